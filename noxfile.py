@@ -1,0 +1,93 @@
+"""Developer sessions: ``nox -s tests``, ``nox -s lint``, ``nox -s bench``, ``nox -s package``.
+
+Every session reuses its virtual environment and installs torch only when the environment has none, so torch is
+never reinstalled and a CPU machine never pulls the CUDA build by accident:
+
+- ``UNICORN_TORCH`` (default ``torch==2.13.0``, the version the project is tested with) is what gets installed;
+- ``UNICORN_TORCH_INDEX`` optionally names the index to take it from, e.g. ``https://download.pytorch.org/whl/cpu``
+  on a CPU-only Linux machine where PyPI's default torch wheel would bring several GB of CUDA libraries.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import os
+import shutil
+
+import nox
+
+nox.needs_version = ">=2024.3.2"
+nox.options.sessions = ["lint", "tests"]
+nox.options.reuse_venv = "yes"
+
+PYTHON = os.environ.get("UNICORN_PYTHON", "3.11")
+
+
+def install_torch(session: nox.Session) -> None:
+    """Install torch into the session's environment unless it already has one."""
+    probe = "import importlib.util as u; print('HAS_TORCH' if u.find_spec('torch') else 'NO_TORCH')"
+    if "HAS_TORCH" in str(session.run("python", "-c", probe, silent=True, log=False)):
+        return
+    spec = os.environ.get("UNICORN_TORCH", "torch==2.13.0")
+    index = os.environ.get("UNICORN_TORCH_INDEX")
+    session.install(spec, *(["--index-url", index] if index else []))
+
+
+def ensure_libusb(session: nox.Session) -> None:
+    """open3d needs the system's libusb-1.0; install Debian's package when we can, else say what is missing."""
+    if ctypes.util.find_library("usb-1.0"):
+        return
+    if shutil.which("apt-get") and os.geteuid() == 0:
+        session.log("installing Debian's libusb-1.0-0 (needed by open3d)")
+        session.run("apt-get", "update", "-qq", external=True)
+        session.run("apt-get", "install", "-y", "-qq", "libusb-1.0-0", external=True)
+        return
+    session.error(
+        "open3d needs the system library libusb-1.0: install it (Debian/Ubuntu: apt-get install libusb-1.0-0)"
+    )
+
+
+def install_project(session: nox.Session, *extras: str) -> None:
+    ensure_libusb(session)
+    install_torch(session)
+    target = f".[{','.join(extras)}]" if extras else "."
+    session.install("-e", target)
+
+
+@nox.session(python=PYTHON)
+def tests(session: nox.Session) -> None:
+    """The test suite (CPU; tests marked gpu run only where CUDA is present). Extra arguments go to pytest."""
+    install_project(session, "dev")
+    session.run("pytest", *(session.posargs or ["-q"]))
+
+
+@nox.session(python=PYTHON)
+def lint(session: nox.Session) -> None:
+    """ruff on the package, tests, benchmarks and this file."""
+    session.install("ruff>=0.5")
+    session.run("ruff", "check", "src", "tests", "benchmarks", "noxfile.py")
+
+
+@nox.session(python=PYTHON)
+def bench(session: nox.Session) -> None:
+    """Benchmarks (pass e.g. ``-- --device cuda`` or ``-- --quick``)."""
+    install_project(session, "dev")
+    session.run("python", "benchmarks/bm_render.py", *session.posargs)
+
+
+@nox.session(python=PYTHON, reuse_venv=False)
+def package(session: nox.Session) -> None:
+    """Build the wheel, install it non-editable in a fresh environment and check the configs shipped in it."""
+    ensure_libusb(session)
+    install_torch(session)
+    session.install("build")
+    tmp = session.create_tmp()
+    session.run("python", "-m", "build", "--wheel", "--outdir", tmp)
+    wheels = [f for f in os.listdir(tmp) if f.endswith(".whl")]
+    session.install(os.path.join(tmp, wheels[0]))
+    session.chdir(tmp)
+    session.run(
+        "python", "-c",
+        "import importlib.resources as r, unicorn; "
+        "assert (r.files('unicorn') / 'conf' / 'renderer' / 'layered.yaml').is_file(), 'configs missing from wheel'",
+    )  # fmt: skip

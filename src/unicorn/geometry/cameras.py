@@ -1,0 +1,126 @@
+"""Perspective camera in unicorn's (PyTorch3D-compatible) NDC and pixel conventions.
+
+- World to view: ``x_view = x_world @ R + T`` (row vectors), view +X left, +Y up, +Z forward.
+- Projection: ``x_ndc = f * x / z``, ``y_ndc = f * y / z`` with ``f = 1 / tan(fov / 2)``; depth stays the view z.
+- Pixels: for an image of H rows and W columns and ``S = min(H, W)``, the centre of pixel (row i, column j) is at
+  ``x_ndc = (W - 1 - 2 j) / S``, ``y_ndc = (H - 1 - 2 i) / S``; for square images this is PyTorch3D's
+  ``(1 - (2j + 1) / W, 1 - (2i + 1) / H)``. NDC +X is image-left and +Y image-up.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "pixel_to_ndc", "world_to_view"]
+
+
+def image_hw(image_size: int | tuple[int, int]) -> tuple[int, int]:
+    """(H, W) from an int or a pair, with a clear error for anything else."""
+    if isinstance(image_size, int):
+        hw = (image_size, image_size)
+    else:
+        hw = tuple(int(s) for s in image_size)
+    if len(hw) != 2 or min(hw) <= 0:
+        raise ValueError(f"image_size must be a positive int or (H, W), got {image_size!r}")
+    return hw  # type: ignore[return-value]
+
+
+def world_to_view(verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """``verts @ R + T``: (B, V, 3) world points to view coordinates, with R (B, 3, 3) and T (B, 3)."""
+    if verts.dim() != 3 or verts.shape[-1] != 3:
+        raise ValueError(f"verts must have shape (B, V, 3), got {tuple(verts.shape)}")
+    B = verts.shape[0]
+    if R.shape != (B, 3, 3):
+        raise ValueError(f"R must have shape ({B}, 3, 3) to match verts, got {tuple(R.shape)}")
+    if T.shape != (B, 3):
+        raise ValueError(f"T must have shape ({B}, 3) to match verts, got {tuple(T.shape)}")
+    return verts @ R.to(verts) + T.to(verts).unsqueeze(1)
+
+
+def ndc_to_pixel(xy: torch.Tensor, image_size: int | tuple[int, int]) -> torch.Tensor:
+    """NDC (..., 2) to continuous pixel coordinates (column, row), pixel centres at integers."""
+    H, W = image_hw(image_size)
+    S = min(H, W)
+    col = (W - 1 - xy[..., 0] * S) / 2
+    row = (H - 1 - xy[..., 1] * S) / 2
+    return torch.stack([col, row], dim=-1)
+
+
+def pixel_to_ndc(colrow: torch.Tensor, image_size: int | tuple[int, int]) -> torch.Tensor:
+    """Continuous pixel coordinates (column, row) (..., 2) to NDC, the inverse of :func:`ndc_to_pixel`."""
+    H, W = image_hw(image_size)
+    S = min(H, W)
+    x = (W - 1 - 2 * colrow[..., 0]) / S
+    y = (H - 1 - 2 * colrow[..., 1]) / S
+    return torch.stack([x, y], dim=-1)
+
+
+class PerspectiveCamera(nn.Module):
+    """Pinhole camera with a square-pixel perspective projection.
+
+    Give either ``fov`` (degrees, full angle spanning NDC [-1, 1]) or ``focal_length`` (in NDC units), not both.
+    ``znear`` and ``zfar`` are used only by aggregators that normalise depth (SoftRas); the rasterizer never
+    clips against them.
+
+    Example:
+        >>> cam = PerspectiveCamera(fov=30.0)
+        >>> round(float(cam.focal_length), 4)
+        3.7321
+    """
+
+    focal_length: torch.Tensor
+
+    def __init__(
+        self,
+        fov: float | None = None,
+        focal_length: float | None = None,
+        znear: float = 1.0,
+        zfar: float = 100.0,
+    ) -> None:
+        super().__init__()
+        if (fov is None) == (focal_length is None):
+            raise ValueError("give exactly one of fov (degrees) or focal_length (NDC units)")
+        if fov is not None:
+            if not 0.0 < fov < 180.0:
+                raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
+            focal_length = 1.0 / math.tan(math.radians(fov) / 2.0)
+        if focal_length <= 0:
+            raise ValueError(f"focal_length must be positive, got {focal_length}")
+        if not 0.0 <= znear < zfar:
+            raise ValueError(f"need 0 <= znear < zfar, got znear={znear}, zfar={zfar}")
+        self.register_buffer("focal_length", torch.tensor(float(focal_length)), persistent=False)
+        self.znear = float(znear)
+        self.zfar = float(zfar)
+
+    @property
+    def fov(self) -> float:
+        """Full field of view in degrees."""
+        return math.degrees(2.0 * math.atan(1.0 / float(self.focal_length)))
+
+    def extra_repr(self) -> str:
+        return f"focal_length={float(self.focal_length):.4f}, znear={self.znear}, zfar={self.zfar}"
+
+    def project(self, verts_view: torch.Tensor) -> torch.Tensor:
+        """View points (..., 3) to ``(x_ndc, y_ndc, z_view)`` (..., 3).
+
+        Points with z <= 0 (behind the camera) get finite but meaningless x, y; the rasterizer skips their faces.
+        """
+        z = verts_view[..., 2]
+        safe_z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+        f = self.focal_length.to(verts_view)
+        xy = f * verts_view[..., :2] / safe_z.unsqueeze(-1)
+        return torch.cat([xy, z.unsqueeze(-1)], dim=-1)
+
+    def transform_points(self, verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+        """World points (B, V, 3) to ``(x_ndc, y_ndc, z_view)`` (B, V, 3)."""
+        return self.project(world_to_view(verts, R, T))
+
+    def transform_points_screen(
+        self, verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor, image_size: int | tuple[int, int]
+    ) -> torch.Tensor:
+        """World points (B, V, 3) to ``(column, row, z_view)`` in pixels, pixel centres at integers."""
+        ndc = self.transform_points(verts, R, T)
+        return torch.cat([ndc_to_pixel(ndc[..., :2], image_size), ndc[..., 2:]], dim=-1)

@@ -1,0 +1,77 @@
+"""Template meshes and their spherical UV coordinates.
+
+Meshes in unicorn share one topology across a batch: vertices (B, V, 3) float and faces (F, 3) long.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import trimesh
+
+__all__ = ["ellipsoid", "icosphere", "spherical_face_uvs", "spherical_vertex_uvs"]
+
+
+def icosphere(level: int = 3, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit icosphere: level 3 has 642 vertices and 1280 faces, level 4 has 2562 and 5120.
+
+    Faces are counter-clockwise seen from outside (outward normals).
+
+    Returns:
+        verts: (V, 3) and faces: (F, 3) long.
+    """
+    if not 0 <= level <= 7:
+        raise ValueError(f"icosphere level must be in [0, 7], got {level}")
+    mesh = trimesh.creation.icosphere(subdivisions=level, radius=1.0)
+    verts = torch.as_tensor(mesh.vertices, dtype=dtype)
+    faces = torch.as_tensor(mesh.faces, dtype=torch.long)
+    return verts, faces
+
+
+def ellipsoid(
+    level: int = 3, axes: tuple[float, float, float] = (1.0, 0.7, 0.7), scale: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Icosphere stretched by ``scale * axes`` (UNICORN's template: long axis X).
+
+    Returns:
+        verts: (V, 3) and faces: (F, 3) long.
+    """
+    verts, faces = icosphere(level)
+    return verts * torch.tensor(axes, dtype=verts.dtype) * scale, faces
+
+
+def spherical_vertex_uvs(verts: torch.Tensor) -> torch.Tensor:
+    """UNICORN's per-vertex spherical UVs (V, 2): u from the azimuth about +Y (0.5 at +Z), v from +Y (0) to -Y (1).
+
+    These are what the released checkpoints were trained with; they are discontinuous along the seam
+    (x = 0, z < 0) and undefined at the poles. Use :func:`spherical_face_uvs` for rendering.
+    """
+    r = verts.norm(dim=-1).clamp_min(1e-5)
+    theta = torch.acos((verts[:, 1] / r).clamp(-1 + 1e-5, 1 - 1e-5))
+    phi = torch.atan2(verts[:, 0], verts[:, 2])
+    return torch.stack([(phi + math.pi) / (2 * math.pi), theta / math.pi], dim=-1)
+
+
+def spherical_face_uvs(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Per-face-vertex spherical UVs (F, 3, 2) with the seam and the poles handled.
+
+    Faces that straddle the seam get ``u + 1`` on their vertices with ``u < 0.5``, so that ``u`` varies by less
+    than half a turn inside every face; sample them with a horizontally periodic texture lookup
+    (``TexturesUV(..., wrap_u=True)``). A pole vertex, whose azimuth is undefined, takes the mean ``u`` of the
+    two other vertices of each face it belongs to.
+    """
+    uv = spherical_vertex_uvs(verts)[faces]  # (F, 3, 2)
+    u = uv[..., 0]
+    straddles = (u.max(dim=1).values - u.min(dim=1).values) > 0.5
+    u = torch.where(straddles.unsqueeze(1) & (u < 0.5), u + 1.0, u)
+    radial = verts[:, [0, 2]].norm(dim=-1)
+    is_pole = (radial < 1e-6 * verts.norm(dim=-1).clamp_min(1e-12))[faces]  # (F, 3)
+    if is_pole.any():
+        others = (~is_pole).to(u.dtype)
+        mean_other = (u * others).sum(1) / others.sum(1).clamp_min(1.0)
+        u = torch.where(is_pole, mean_other.unsqueeze(1), u)
+        # the two other vertices of a pole face may straddle the seam after all
+        straddles = (u.max(dim=1).values - u.min(dim=1).values) > 0.5
+        u = torch.where(straddles.unsqueeze(1) & (u < 0.5), u + 1.0, u)
+    return torch.stack([u, uv[..., 1]], dim=-1)

@@ -1,0 +1,162 @@
+"""Rotations and camera placements in unicorn's (PyTorch3D-compatible) convention.
+
+Points are row vectors and the world-to-view transform is ``x_view = x_world @ R + T``. The view frame has
++X pointing to the image left, +Y up and +Z forward (away from the camera), as in PyTorch3D, so the released
+UNICORN checkpoints and the ShapeNet pose conversion apply unchanged.
+
+Angles are in degrees unless a function says otherwise.
+"""
+
+from __future__ import annotations
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+__all__ = [
+    "azim_elev_roll_to_rotation",
+    "camera_position_from_spherical",
+    "euler_angles_to_matrix",
+    "look_at_rotation",
+    "look_at_view_transform",
+    "rotation_angle_between",
+]
+
+_AXES = {"X": 0, "Y": 1, "Z": 2}
+
+
+def _as_tensor(x: torch.Tensor | float, like: torch.Tensor | None = None) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x
+    if like is not None:
+        return torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    return torch.as_tensor(x, dtype=torch.get_default_dtype())
+
+
+def azim_elev_roll_to_rotation(
+    azim: torch.Tensor, elev: torch.Tensor, roll: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Rotation of a camera looking at the origin, as UNICORN parametrises poses.
+
+    ``R = Az(azim) @ El(elev) @ Ro(roll)`` with row-vector matrices: azimuth about +Y, elevation about +X with
+    positive elevation putting the camera above the object, roll about the optical axis.
+
+    Args:
+        azim: (...,) azimuth in degrees.
+        elev: (...,) elevation in degrees.
+        roll: (...,) roll in degrees, zero when omitted.
+
+    Returns:
+        (..., 3, 3) rotation matrices, to be used as ``x @ R``.
+    """
+    azim = _as_tensor(azim)
+    elev = _as_tensor(elev, azim)
+    roll = torch.zeros_like(azim) if roll is None else _as_tensor(roll, azim)
+    azim, elev, roll = torch.broadcast_tensors(azim, elev, roll)
+    a, e, r = torch.deg2rad(azim), torch.deg2rad(-elev), torch.deg2rad(roll)
+    zero, one = torch.zeros_like(a), torch.ones_like(a)
+
+    def mat(rows: list[list[torch.Tensor]]) -> torch.Tensor:
+        return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+    ca, sa, ce, se, cr, sr = a.cos(), a.sin(), e.cos(), e.sin(), r.cos(), r.sin()
+    r_azim = mat([[ca, zero, sa], [zero, one, zero], [-sa, zero, ca]])
+    r_elev = mat([[one, zero, zero], [zero, ce, se], [zero, -se, ce]])
+    r_roll = mat([[cr, sr, zero], [-sr, cr, zero], [zero, zero, one]])
+    return r_azim @ r_elev @ r_roll
+
+
+def euler_angles_to_matrix(angles: torch.Tensor, convention: str = "XYZ") -> torch.Tensor:
+    """Rotation matrices from Euler angles (radians), composed as ``R_a @ R_b @ R_c`` for convention ``"abc"``.
+
+    Each factor is the column-vector rotation about one axis (kornia's axis-angle map), the PyTorch3D
+    convention; pass the result as ``R`` to rotate the world by its transpose.
+
+    Args:
+        angles: (..., 3) angles in radians, one per letter of ``convention``.
+        convention: three letters from ``"XYZ"``, e.g. ``"XYZ"`` or ``"ZYX"``.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    if len(convention) != 3 or any(c not in _AXES for c in convention):
+        raise ValueError(f"convention must be three letters among 'X', 'Y', 'Z', got {convention!r}")
+    if angles.shape[-1] != 3:
+        raise ValueError(f"angles must have shape (..., 3), got {tuple(angles.shape)}")
+    batch = angles.shape[:-1]
+    flat = angles.reshape(-1, 3)
+    result = None
+    for i, axis in enumerate(convention):
+        axis_angle = torch.zeros_like(flat)
+        axis_angle[:, _AXES[axis]] = flat[:, i]
+        rot = axis_angle_to_rotation_matrix(axis_angle)
+        result = rot if result is None else result @ rot
+    return result.reshape(*batch, 3, 3)
+
+
+def camera_position_from_spherical(
+    dist: torch.Tensor | float, elev: torch.Tensor | float, azim: torch.Tensor | float
+) -> torch.Tensor:
+    """Camera centre (..., 3) at distance ``dist``, elevation and azimuth (degrees) around the origin.
+
+    Azimuth 0 looks from +Z, azimuth 90 from +X, positive elevation from above (+Y).
+    """
+    dist, elev, azim = torch.broadcast_tensors(_as_tensor(dist), _as_tensor(elev), _as_tensor(azim))
+    e, a = torch.deg2rad(elev), torch.deg2rad(azim)
+    return torch.stack([dist * e.cos() * a.sin(), dist * e.sin(), dist * e.cos() * a.cos()], dim=-1)
+
+
+def look_at_rotation(
+    camera_position: torch.Tensor, at: torch.Tensor | None = None, up: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Rotation (row-vector convention) of a camera at ``camera_position`` looking at ``at``.
+
+    Args:
+        camera_position: (..., 3) camera centres in world coordinates.
+        at: (..., 3) target points, the origin by default.
+        up: (..., 3) world up direction, +Y by default.
+
+    Returns:
+        (..., 3, 3) ``R`` whose columns are the camera's X (left), Y (up) and Z (forward) axes in world
+        coordinates, so that ``(x - camera_position) @ R`` are view coordinates.
+    """
+    at = torch.zeros_like(camera_position) if at is None else at.to(camera_position)
+    up = camera_position.new_tensor([0.0, 1.0, 0.0]).expand_as(camera_position) if up is None else up
+    z_axis = torch.nn.functional.normalize(at - camera_position, dim=-1, eps=1e-8)
+    x_axis = torch.nn.functional.normalize(torch.cross(up.to(z_axis).expand_as(z_axis), z_axis, dim=-1), dim=-1)
+    # looking straight along `up`: any x axis orthogonal to z will do
+    degenerate = x_axis.norm(dim=-1, keepdim=True) < 1e-5
+    if degenerate.any():
+        x_ref = z_axis.new_tensor([1.0, 0.0, 0.0]).expand_as(z_axis)
+        alt = torch.nn.functional.normalize(torch.cross(x_ref, z_axis, dim=-1), dim=-1)
+        x_axis = torch.where(degenerate, alt, x_axis)
+    y_axis = torch.nn.functional.normalize(torch.cross(z_axis, x_axis, dim=-1), dim=-1)
+    return torch.stack([x_axis, y_axis, z_axis], dim=-1)
+
+
+def look_at_view_transform(
+    dist: torch.Tensor | float = 1.0,
+    elev: torch.Tensor | float = 0.0,
+    azim: torch.Tensor | float = 0.0,
+    at: torch.Tensor | None = None,
+    up: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """World-to-view ``(R, T)`` of cameras placed by distance, elevation and azimuth (degrees).
+
+    Returns:
+        R: (B, 3, 3) and T: (B, 3) with ``x_view = x_world @ R + T``; B is the broadcast size of the inputs
+        (1 for scalars).
+    """
+    eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
+    if at is not None:
+        at = at.reshape(-1, 3).to(eye)
+        eye = eye + at
+    R = look_at_rotation(eye, at, up)
+    T = -(eye.unsqueeze(1) @ R).squeeze(1)
+    return R, T
+
+
+def rotation_angle_between(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle in degrees between rotations (..., 3, 3), with the arccos argument clamped."""
+    trace = (R1.transpose(-1, -2) @ R2).diagonal(dim1=-2, dim2=-1).sum(-1)
+    cos = ((trace - 1) / 2).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos))

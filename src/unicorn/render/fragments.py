@@ -1,0 +1,116 @@
+"""The rasterizer's output: for every pixel, the nearest faces that cover it or pass within the blur radius.
+
+Fragments are stored *packed*: one row per kept (pixel, face) pair, sorted by pixel and then by increasing
+depth. Only pixels that some face reaches have rows, so memory grows with the covered area, not with
+``B * H * W * faces_per_pixel``. :meth:`Fragments.to_dense` gives PyTorch3D's padded layout when needed.
+
+Letters: B images, H x W pixels, F faces, M kept pairs, K slots per pixel (``num_slots``), R covered pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["DenseFragments", "Fragments"]
+
+
+@dataclass
+class DenseFragments:
+    """PyTorch3D-style padded fragments.
+
+    Attributes:
+        pix_to_face: (B, H, W, K) long, face index in [0, F) or -1 for an empty slot.
+        zbuf: (B, H, W, K) view-space depth, -1 where empty.
+        bary_coords: (B, H, W, K, 3) clipped barycentrics, -1 where empty.
+        dists: (B, H, W, K) signed squared NDC distance (negative inside), -1 where empty.
+    """
+
+    pix_to_face: torch.Tensor
+    zbuf: torch.Tensor
+    bary_coords: torch.Tensor
+    dists: torch.Tensor
+
+
+@dataclass
+class Fragments:
+    """Packed fragments of a batch of meshes sharing one topology.
+
+    Attributes:
+        pix: (M,) long, flat pixel index ``b * H * W + row * W + col``; non-decreasing.
+        slot: (M,) long, rank of the pair among the pixel's faces by increasing depth (0 = nearest).
+        face: (M,) long, face index in [0, F).
+        inside: (M,) bool, whether the pixel centre lies strictly inside the projected face.
+        bary: (M, 3) screen-space barycentrics, clipped to >= 0 and renormalised (differentiable).
+        dists: (M,) signed squared distance in NDC units from the pixel centre to the face boundary,
+            negative inside (differentiable).
+        zbuf: (M,) view-space depth at the pixel, interpolated with the clipped barycentrics (differentiable).
+        batch_size: B.
+        image_size: (H, W).
+        num_slots: K, the largest number of pairs kept for one pixel (at most ``faces_per_pixel``).
+        overflow: number of pixels that had more candidate faces than ``faces_per_pixel`` (the farthest
+            were dropped); 0 means nothing was truncated.
+    """
+
+    pix: torch.Tensor
+    slot: torch.Tensor
+    face: torch.Tensor
+    inside: torch.Tensor
+    bary: torch.Tensor
+    dists: torch.Tensor
+    zbuf: torch.Tensor
+    batch_size: int
+    image_size: tuple[int, int]
+    num_slots: int
+    overflow: int
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.pix.shape[0])
+
+    @property
+    def batch_index(self) -> torch.Tensor:
+        """(M,) image index of every pair."""
+        H, W = self.image_size
+        return torch.div(self.pix, H * W, rounding_mode="floor")
+
+    def rows(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Compact per-pixel layout: ``row`` (M,) in [0, R) for every pair and ``row_pix`` (R,) covered pixels."""
+        row_pix, row = torch.unique_consecutive(self.pix, return_inverse=True)
+        return row, row_pix
+
+    def to_dense(self) -> DenseFragments:
+        """Padded (B, H, W, K) tensors as PyTorch3D returns them (differentiable in bary, dists and zbuf)."""
+        B, (H, W), K = self.batch_size, self.image_size, max(self.num_slots, 1)
+        n = B * H * W
+        flat = (self.pix, self.slot)
+        dev, dt = self.bary.device, self.bary.dtype
+        pix_to_face = torch.full((n, K), -1, dtype=torch.long, device=dev).index_put(flat, self.face)
+        zbuf = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.zbuf)
+        dists = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.dists)
+        bary = torch.full((n, K, 3), -1.0, dtype=dt, device=dev).index_put(flat, self.bary)
+        return DenseFragments(
+            pix_to_face=pix_to_face.view(B, H, W, K),
+            zbuf=zbuf.view(B, H, W, K),
+            bary_coords=bary.view(B, H, W, K, 3),
+            dists=dists.view(B, H, W, K),
+        )
+
+    def first_layer(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest face containing each pixel: face ids (B, H, W) long (-1 where none) and depth (B, H, W)
+        (0 where none). Near-miss faces (outside but within the blur radius) are ignored."""
+        B, (H, W) = self.batch_size, self.image_size
+        n = B * H * W
+        dev = self.pix.device
+        # the first *inside* pair of each pixel: pairs are depth-sorted within a pixel, so take the min slot
+        sel = self.inside
+        big = torch.iinfo(torch.long).max
+        best = torch.full((n,), big, dtype=torch.long, device=dev)
+        best = best.scatter_reduce(0, self.pix[sel], self.slot[sel], reduce="amin")
+        hit = sel & (self.slot == best[self.pix])
+        face_ids = torch.full((n,), -1, dtype=torch.long, device=dev)
+        face_ids[self.pix[hit]] = self.face[hit]
+        depth = torch.zeros(n, dtype=self.zbuf.dtype, device=dev)
+        depth[self.pix[hit]] = self.zbuf[hit].detach()
+        return face_ids.view(B, H, W), depth.view(B, H, W)

@@ -1,0 +1,83 @@
+"""SoftRasterizer's aggregation (Liu et al. 2019), as the UNICORN paper's supplementary writes it.
+
+Occupancy ``D = sigmoid(-d / sigma)`` (d signed squared NDC distance, negative inside), colour = softmax over
+faces and background weighted by ``D * exp(z_inv / gamma)`` with ``z_inv = (zfar - z) / (zfar - znear)``, the
+background a last layer with ``D = 1`` and ``z_inv = eps``; alpha ``1 - prod (1 - D)``.
+Defaults: sigma = gamma = 1e-4, znear = 1, zfar = 100, eps = 1e-3.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .compositing import gather_slots, write_pixels
+from .fragments import Fragments
+
+__all__ = ["SoftRasBlend", "softras_blend"]
+
+
+def softras_blend(
+    colors: torch.Tensor,
+    fragments: Fragments,
+    bg_table: torch.Tensor,
+    sigma: float = 1e-4,
+    gamma: float = 1e-4,
+    znear: float = 1.0,
+    zfar: float = 100.0,
+    eps: float = 1e-3,
+) -> torch.Tensor:
+    """Soft aggregation of fragment colours over a background.
+
+    Args:
+        colors: (M, C) colour of every pair.
+        fragments: the packed fragments (not truncated: every face within the blur radius counts).
+        bg_table: (B * H * W, C) background colour of every pixel.
+        sigma: occupancy temperature on squared NDC distances.
+        gamma: depth softmax temperature.
+        znear, zfar: depth normalisation range.
+        eps: normalised inverse depth of the background layer.
+
+    Returns:
+        (B, C + 1, H, W) images, the last channel the alpha.
+    """
+    if sigma <= 0 or gamma <= 0:
+        raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+    prob = torch.sigmoid(-fragments.dists / sigma)
+    z_inv = (zfar - fragments.zbuf) / (zfar - znear)
+    row_pix, prob_k, z_inv_k, col = gather_slots(fragments, prob, z_inv, colors)
+    valid = gather_slots(fragments, torch.ones_like(prob))[1]
+    # the softmax is shift-invariant: subtract the per-pixel max for stability
+    z_max = torch.where(valid > 0, z_inv_k, torch.full_like(z_inv_k, -torch.inf)).amax(1, keepdim=True)
+    z_max = z_max.clamp_min(eps).detach()
+    w_faces = prob_k * torch.exp((z_inv_k - z_max) / gamma) * valid
+    w_bg = torch.exp((eps - z_max) / gamma)
+    norm = w_faces.sum(1, keepdim=True) + w_bg
+    rgb = ((w_faces.unsqueeze(-1) * col).sum(1) + w_bg * bg_table[row_pix]) / norm
+    alpha = 1.0 - torch.prod(1.0 - prob_k, dim=1)
+    return write_pixels(bg_table, row_pix, rgb, alpha, fragments.batch_size, fragments.image_size)
+
+
+class SoftRasBlend(nn.Module):
+    """Module form of :func:`softras_blend` holding its hyperparameters."""
+
+    def __init__(
+        self,
+        sigma: float = 1e-4,
+        gamma: float = 1e-4,
+        znear: float = 1.0,
+        zfar: float = 100.0,
+        eps: float = 1e-3,
+    ) -> None:
+        super().__init__()
+        if sigma <= 0 or gamma <= 0:
+            raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+        if not 0 <= znear < zfar:
+            raise ValueError(f"need 0 <= znear < zfar, got {znear}, {zfar}")
+        self.sigma, self.gamma, self.znear, self.zfar, self.eps = sigma, gamma, znear, zfar, eps
+
+    def extra_repr(self) -> str:
+        return f"sigma={self.sigma}, gamma={self.gamma}, znear={self.znear}, zfar={self.zfar}, eps={self.eps}"
+
+    def forward(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
+        return softras_blend(colors, fragments, bg_table, self.sigma, self.gamma, self.znear, self.zfar, self.eps)

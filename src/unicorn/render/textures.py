@@ -1,0 +1,150 @@
+"""Surface colours sampled at the rasterized fragments: per-vertex colours or a UV texture image."""
+
+from __future__ import annotations
+
+import torch
+
+from .fragments import Fragments
+
+__all__ = ["Textures", "TexturesUV", "TexturesVertex", "interpolate_vertex_attributes"]
+
+
+def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, attrs: torch.Tensor) -> torch.Tensor:
+    """Barycentric interpolation of per-vertex attributes at every fragment.
+
+    Args:
+        fragments: packed fragments with M pairs.
+        faces: (F, 3) the faces that were rasterized.
+        attrs: (B, V, D) per-vertex attributes, or (V, D) shared by the batch.
+
+    Returns:
+        (M, D) interpolated attributes.
+    """
+    if attrs.dim() == 2:
+        vert_idx = faces[fragments.face]  # (M, 3)
+        values = attrs[vert_idx]
+    elif attrs.dim() == 3:
+        if attrs.shape[0] != fragments.batch_size:
+            raise ValueError(f"attrs has batch size {attrs.shape[0]}, fragments {fragments.batch_size}")
+        V = attrs.shape[1]
+        vert_idx = fragments.batch_index.unsqueeze(1) * V + faces[fragments.face]
+        values = attrs.reshape(-1, attrs.shape[-1])[vert_idx]
+    else:
+        raise ValueError(f"attrs must have shape (B, V, D) or (V, D), got {tuple(attrs.shape)}")
+    return (fragments.bary.unsqueeze(-1).to(values.dtype) * values).sum(1)
+
+
+class Textures:
+    """Something that gives a colour (M, C) to every fragment."""
+
+    num_channels: int
+
+    def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def check_batch(self, batch_size: int) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class TexturesVertex(Textures):
+    """Per-vertex colours, interpolated with the barycentrics.
+
+    Args:
+        colors: (B, V, C) colours, typically in [0, 1].
+    """
+
+    def __init__(self, colors: torch.Tensor) -> None:
+        if colors.dim() != 3:
+            raise ValueError(f"colors must have shape (B, V, C), got {tuple(colors.shape)}")
+        if not colors.dtype.is_floating_point:
+            raise TypeError(f"colors must be a float tensor, got {colors.dtype}")
+        self.colors = colors
+        self.num_channels = colors.shape[-1]
+
+    def check_batch(self, batch_size: int, num_verts: int | None = None) -> None:
+        if self.colors.shape[0] != batch_size:
+            raise ValueError(f"colors have batch size {self.colors.shape[0]}, meshes {batch_size}")
+        if num_verts is not None and self.colors.shape[1] != num_verts:
+            raise ValueError(f"colors have {self.colors.shape[1]} vertices, meshes {num_verts}")
+
+    def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
+        return interpolate_vertex_attributes(fragments, faces, self.colors)
+
+
+class TexturesUV(Textures):
+    """A texture image per mesh, addressed by per-face-vertex UV coordinates and sampled bilinearly.
+
+    ``u`` runs left to right and ``v`` bottom to top (``v = 0`` is the image's last row), as in PyTorch3D and
+    the UNICORN reference.
+
+    Args:
+        maps: (B, C, Ht, Wt) texture images.
+        face_uvs: (F, 3, 2) UV coordinates of the three corners of every face, shared by the batch.
+        wrap_u: sample periodically in ``u`` (period 1), so that a face straddling the seam of a spherical
+            parametrisation (corners with ``u`` slightly above 1) reads the texture across the seam instead
+            of across the whole image. Uses ``align_corners=False`` horizontally, the only choice for which the
+            period is exactly one texture width.
+        align_corners: texel centres at the image borders (``x = u * (Wt - 1)``, as ``grid_sample`` with
+            ``align_corners=True``) instead of half a texel inside. Must be False with ``wrap_u``. The
+            released UNICORN models used ``align_corners=True, wrap_u=False``.
+    """
+
+    def __init__(
+        self, maps: torch.Tensor, face_uvs: torch.Tensor, wrap_u: bool = True, align_corners: bool = False
+    ) -> None:
+        if maps.dim() != 4:
+            raise ValueError(f"maps must have shape (B, C, Ht, Wt), got {tuple(maps.shape)}")
+        if not maps.dtype.is_floating_point:
+            raise TypeError(f"maps must be a float tensor, got {maps.dtype}")
+        if face_uvs.dim() != 3 or face_uvs.shape[1:] != (3, 2):
+            raise ValueError(f"face_uvs must have shape (F, 3, 2), got {tuple(face_uvs.shape)}")
+        if wrap_u and align_corners:
+            raise ValueError("wrap_u=True needs align_corners=False (the period must be one texture width)")
+        self.maps = maps
+        self.face_uvs = face_uvs
+        self.wrap_u = wrap_u
+        self.align_corners = align_corners
+        self.num_channels = maps.shape[1]
+
+    def check_batch(self, batch_size: int, num_faces: int | None = None) -> None:
+        if self.maps.shape[0] != batch_size:
+            raise ValueError(f"texture maps have batch size {self.maps.shape[0]}, meshes {batch_size}")
+        if num_faces is not None and self.face_uvs.shape[0] != num_faces:
+            raise ValueError(f"face_uvs has {self.face_uvs.shape[0]} faces, meshes {num_faces}")
+
+    def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
+        corner_uvs = self.face_uvs.to(fragments.bary)[fragments.face]  # (M, 3, 2)
+        uv = (fragments.bary.unsqueeze(-1) * corner_uvs).sum(1)
+        return sample_bilinear(self.maps, fragments.batch_index, uv, self.wrap_u, self.align_corners)
+
+
+def sample_bilinear(
+    maps: torch.Tensor, batch_index: torch.Tensor, uv: torch.Tensor, wrap_u: bool, align_corners: bool
+) -> torch.Tensor:
+    """Bilinear lookup of ``maps`` (B, C, Ht, Wt) at points ``uv`` (M, 2) of images ``batch_index`` (M,).
+
+    Returns (M, C). Rows are clamped to the border; columns wrap when ``wrap_u`` else clamp.
+    """
+    B, C, Ht, Wt = maps.shape
+    u, v = uv[:, 0], 1.0 - uv[:, 1]
+    if align_corners:
+        x, y = u * (Wt - 1), v * (Ht - 1)
+    else:
+        x, y = u * Wt - 0.5, v * Ht - 0.5
+    x0f, y0f = torch.floor(x.detach()), torch.floor(y.detach())
+    fx, fy = (x - x0f).unsqueeze(1), (y - y0f).unsqueeze(1)
+    x0, y0 = x0f.long(), y0f.long()
+    if wrap_u:
+        xs = (x0 % Wt, (x0 + 1) % Wt)
+    else:
+        xs = (x0.clamp(0, Wt - 1), (x0 + 1).clamp(0, Wt - 1))
+    ys = (y0.clamp(0, Ht - 1), (y0 + 1).clamp(0, Ht - 1))
+    table = maps.permute(0, 2, 3, 1).reshape(-1, C)
+    base = batch_index * (Ht * Wt)
+
+    def tap(yi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+        return table[base + yi * Wt + xi]
+
+    top = tap(ys[0], xs[0]) * (1 - fx) + tap(ys[0], xs[1]) * fx
+    bottom = tap(ys[1], xs[0]) * (1 - fx) + tap(ys[1], xs[1]) * fx
+    return top * (1 - fy) + bottom * fy

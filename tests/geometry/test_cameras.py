@@ -1,0 +1,102 @@
+import math
+
+import pytest
+import torch
+
+from unicorn.geometry.cameras import PerspectiveCamera, ndc_to_pixel, pixel_to_ndc, world_to_view
+from unicorn.geometry.rotations import (
+    azim_elev_roll_to_rotation,
+    camera_position_from_spherical,
+    euler_angles_to_matrix,
+    look_at_view_transform,
+    rotation_angle_between,
+)
+
+
+def test_fov_and_focal_length_agree():
+    cam = PerspectiveCamera(fov=30.0)
+    assert float(cam.focal_length) == pytest.approx(1 / math.tan(math.radians(15)))
+    assert PerspectiveCamera(focal_length=3.732050895690918).fov == pytest.approx(30.0)
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"fov": 30.0, "focal_length": 2.0}, {"fov": 0.0}, {"focal_length": -1.0}])
+def test_bad_camera_arguments(kwargs):
+    with pytest.raises(ValueError):
+        PerspectiveCamera(**kwargs)
+
+
+def test_pixel_centres_follow_pytorch3d_convention():
+    # square image: centre of pixel (row i, col j) at (1 - (2j+1)/W, 1 - (2i+1)/H)
+    H = W = 8
+    cols, rows = torch.meshgrid(torch.arange(W.__float__()), torch.arange(H.__float__()), indexing="xy")
+    ndc = pixel_to_ndc(torch.stack([cols, rows], -1), (H, W))
+    assert torch.allclose(ndc[..., 0], 1 - (2 * cols + 1) / W)
+    assert torch.allclose(ndc[..., 1], 1 - (2 * rows + 1) / H)
+    assert torch.allclose(ndc_to_pixel(ndc, (H, W)), torch.stack([cols, rows], -1))
+    # non-square: the short side spans [-1, 1]
+    ndc = pixel_to_ndc(torch.tensor([[0.0, 0.0], [15.0, 7.0]]), (8, 16))
+    assert torch.allclose(ndc, torch.tensor([[15 / 8, 7 / 8], [-15 / 8, -7 / 8]]))
+
+
+def test_projection_left_up_forward():
+    cam = PerspectiveCamera(fov=90.0)
+    pts = torch.tensor([[[1.0, 0.0, 2.0], [0.0, 1.0, 4.0]]])
+    ndc = cam.project(pts)
+    assert torch.allclose(ndc, torch.tensor([[[0.5, 0.0, 2.0], [0.0, 0.25, 4.0]]]))
+    # +X in view space is image-left: a point with x > 0 lands in a column left of the centre
+    screen = cam.transform_points_screen(pts, torch.eye(3)[None], torch.zeros(1, 3), 64)
+    assert screen[0, 0, 0] < 31.5 and screen[0, 1, 1] < 31.5
+
+
+def test_look_at_puts_target_on_axis_and_camera_at_origin():
+    R, T = look_at_view_transform(
+        dist=torch.tensor([2.0, 3.0]), elev=torch.tensor([30.0, -20.0]), azim=torch.tensor([45.0, 200.0])
+    )
+    eye = camera_position_from_spherical(
+        torch.tensor([2.0, 3.0]), torch.tensor([30.0, -20.0]), torch.tensor([45.0, 200.0])
+    )
+    assert torch.allclose(world_to_view(eye[:, None], R, T), torch.zeros(2, 1, 3), atol=1e-5)
+    origin = world_to_view(torch.zeros(2, 1, 3), R, T)[:, 0]
+    assert torch.allclose(origin, torch.tensor([[0, 0, 2.0], [0, 0, 3.0]]), atol=1e-5)
+    assert torch.allclose(R.transpose(1, 2) @ R, torch.eye(3).expand(2, 3, 3), atol=1e-6)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(2), atol=1e-6)
+    # world up stays image up
+    up = world_to_view(torch.tensor([[[0.0, 0.1, 0.0]]]).expand(2, 1, 3), R, T)[:, 0] - origin
+    assert (up[:, 1] > 0).all()
+
+
+def test_reference_pose_parametrisation_matches_look_at():
+    # UNICORN's R = Az @ El @ Ro with T = (0, 0, d) is a look-at camera with azimuth shifted by 180 degrees
+    azim, elev = torch.tensor([0.0, 60.0, 250.0]), torch.tensor([30.0, -10.0, 5.0])
+    R = azim_elev_roll_to_rotation(azim, elev)
+    R_look, _ = look_at_view_transform(2.732, elev, azim + 180.0)
+    assert torch.allclose(R, R_look, atol=1e-5)
+    roll = azim_elev_roll_to_rotation(torch.zeros(1), torch.zeros(1), torch.tensor([90.0]))
+    assert torch.allclose(torch.tensor([[1.0, 0.0, 0.0]]) @ roll[0], torch.tensor([[0.0, 1.0, 0.0]]), atol=1e-6)
+
+
+def test_euler_angles_compose_axis_rotations():
+    angles = torch.tensor([[0.3, -0.2, 1.1]], dtype=torch.float64)
+    R = euler_angles_to_matrix(angles, "XYZ")
+    c, s = torch.cos(angles[0]), torch.sin(angles[0])
+    rx = torch.tensor([[1, 0, 0], [0, c[0], -s[0]], [0, s[0], c[0]]], dtype=torch.float64)
+    ry = torch.tensor([[c[1], 0, s[1]], [0, 1, 0], [-s[1], 0, c[1]]], dtype=torch.float64)
+    rz = torch.tensor([[c[2], -s[2], 0], [s[2], c[2], 0], [0, 0, 1]], dtype=torch.float64)
+    assert torch.allclose(R[0], rx @ ry @ rz)
+    with pytest.raises(ValueError, match="convention"):
+        euler_angles_to_matrix(angles, "XYW")
+
+
+def test_rotation_angle_between_is_clamped():
+    R = euler_angles_to_matrix(torch.randn(100, 3), "XYZ")
+    angle = rotation_angle_between(R, R)
+    assert torch.isfinite(angle).all() and angle.max() < 0.1
+    Rz = euler_angles_to_matrix(torch.tensor([[0.0, 0.0, math.radians(70)]]), "XYZ")
+    assert rotation_angle_between(torch.eye(3)[None], Rz).item() == pytest.approx(70.0, abs=1e-3)
+
+
+def test_world_to_view_shape_errors():
+    with pytest.raises(ValueError, match=r"R must have shape \(2, 3, 3\)"):
+        world_to_view(torch.zeros(2, 5, 3), torch.eye(3)[None], torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"verts must have shape"):
+        world_to_view(torch.zeros(5, 3), torch.eye(3)[None], torch.zeros(1, 3))

@@ -1,0 +1,149 @@
+"""The contract every registered backend honours, and the registry itself."""
+
+import pytest
+import torch
+
+from unicorn.geometry.cameras import PerspectiveCamera
+from unicorn.render import (
+    LayeredRasterizer,
+    MeshRenderer,
+    TexturesUV,
+    TexturesVertex,
+    build_renderer,
+    get_renderer_class,
+    layered_blend,
+    list_renderers,
+    register_renderer,
+    unregister_renderer,
+)
+
+from .helpers import template_scene
+
+
+@register_renderer("test-flat")
+class FlatRenderer(MeshRenderer):
+    """A third-party backend: hard edges, colour of the nearest face, written against the public pieces."""
+
+    truncate_opaque = True
+    position_gradients = False
+
+    def __init__(self, image_size=64, camera=None, background_color=(1.0, 1.0, 1.0)):
+        super().__init__(image_size, 1, 0.0, camera, background_color)
+
+    def blend(self, colors, fragments, bg_table):
+        return layered_blend(colors, fragments, bg_table, sigma=0.0)
+
+
+def test_registry_round_trip_and_third_party_backend():
+    names = list_renderers()
+    assert {"layered", "softras", "hard", "test-flat"} <= set(names)
+    assert get_renderer_class("layered") is LayeredRasterizer
+    assert isinstance(build_renderer("test-flat", image_size=16), FlatRenderer)
+    with pytest.raises(KeyError, match="already registered"):
+        register_renderer("layered")(FlatRenderer)
+    with pytest.raises(KeyError, match="unknown renderer 'nope'; available: .*layered"):
+        build_renderer("nope")
+    with pytest.raises(TypeError, match="bad options for renderer 'layered'"):
+        build_renderer("layered", sigmaa=1.0)
+    with pytest.raises(TypeError, match="nn.Module"):
+        register_renderer("broken")(object)
+    register_renderer("tmp")(FlatRenderer)
+    unregister_renderer("tmp")
+    assert "tmp" not in list_renderers()
+
+
+def test_hydra_configs_exist_for_builtin_backends():
+    from pathlib import Path
+
+    import yaml
+
+    conf = Path(__file__).resolve().parents[2] / "conf" / "renderer"
+    for name in ("layered", "softras", "hard"):
+        cfg = yaml.safe_load((conf / f"{name}.yaml").read_text())
+        target = cfg.pop("_target_")
+        module, cls = target.rsplit(".", 1)
+        assert get_renderer_class(name).__name__ == cls and module == "unicorn.render"
+        cfg.pop("camera", None)
+        assert isinstance(build_renderer(name, **cfg), get_renderer_class(name))
+
+
+@pytest.fixture(params=list_renderers())
+def renderer_name(request):
+    return request.param
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_output_shape_range_dtype(renderer_name, dtype):
+    verts, faces, R, T, uvs = template_scene(batch=3, dtype=dtype)
+    renderer = build_renderer(renderer_name, image_size=32).to(dtype)
+    maps = torch.rand(3, 3, 16, 16, dtype=dtype)
+    images = renderer(verts, faces, TexturesUV(maps, uvs), R=R, T=T)
+    assert images.shape == (3, 4, 32, 32) and images.dtype == dtype
+    assert torch.isfinite(images).all()
+    assert images.min() >= 0 and images.max() <= 1 + 1e-6
+    alpha = images[:, 3]
+    assert (
+        alpha[:, 0, 0].max() == 0 and alpha[:, 16, 16].min() > 0.9
+    )  # corner empty, centre covered (SoftRas is softer inside)
+    # where nothing is drawn, the image is the background colour
+    empty = alpha == 0
+    assert torch.allclose(images[:, :3].permute(0, 2, 3, 1)[empty], torch.ones(1, 3, dtype=dtype))
+
+
+def test_background_image_and_colour(renderer_name):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    renderer = build_renderer(renderer_name, image_size=24, background_color=(0.0, 0.5, 1.0))
+    tex = TexturesVertex(torch.rand(2, verts.shape[1], 3))
+    images = renderer(verts, faces, tex, R=R, T=T)
+    assert torch.allclose(images[:, :3, 0, 0], torch.tensor([[0.0, 0.5, 1.0]] * 2))
+    bg = torch.rand(2, 3, 24, 24)
+    images = renderer(verts, faces, tex, R=R, T=T, background=bg)
+    assert torch.allclose(images[:, :3, 0, 0], bg[:, :, 0, 0])
+    with pytest.raises(ValueError, match=r"background must have shape \(2, 3, 24, 24\)"):
+        renderer(verts, faces, tex, R=R, T=T, background=torch.rand(2, 3, 12, 12))
+
+
+def test_render_output_depth_and_face_ids(renderer_name):
+    verts, faces, R, T, _ = template_scene(batch=2)
+    renderer = build_renderer(renderer_name, image_size=32)
+    out = renderer.render(verts, faces, TexturesVertex(torch.rand(2, verts.shape[1], 3)), R=R, T=T)
+    ids, depth = out.face_ids, out.depth
+    assert ids.dtype == torch.long and ids.min() >= -1 and ids.max() < faces.shape[0]
+    covered = ids >= 0
+    assert (depth[:, 0][covered] > 2.0).all() and (depth[:, 0][covered] < 3.5).all()
+    assert (depth[:, 0][~covered] == 0).all()
+
+
+def test_batch_of_192_and_level_4_mesh(renderer_name):
+    from unicorn.geometry.mesh import ellipsoid, spherical_face_uvs
+    from unicorn.geometry.rotations import look_at_view_transform
+
+    v, f = ellipsoid(4, scale=0.6)
+    B = 192
+    R, T = look_at_view_transform(2.732, 10.0, torch.linspace(0, 360, B))
+    renderer = build_renderer(renderer_name, image_size=32)
+    images = renderer(
+        v[None].expand(B, -1, -1), f, TexturesUV(torch.rand(B, 3, 8, 8), spherical_face_uvs(v, f)), R=R, T=T
+    )
+    assert images.shape == (B, 4, 32, 32) and torch.isfinite(images).all()
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu(renderer_name):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    maps = torch.rand(2, 3, 16, 16)
+    cpu = build_renderer(renderer_name, image_size=32)
+    gpu = build_renderer(renderer_name, image_size=32).cuda()
+    a = cpu(verts, faces, TexturesUV(maps, uvs), R=R, T=T)
+    b = gpu(verts.cuda(), faces.cuda(), TexturesUV(maps.cuda(), uvs.cuda()), R=R.cuda(), T=T.cuda())
+    assert torch.allclose(a, b.cpu(), atol=1e-4)
+
+
+def test_camera_is_configurable(renderer_name):
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = TexturesVertex(torch.rand(1, verts.shape[1], 3))
+    wide = build_renderer(renderer_name, image_size=32, camera=PerspectiveCamera(fov=60.0))(verts, faces, tex, R=R, T=T)
+    narrow = build_renderer(renderer_name, image_size=32, camera=PerspectiveCamera(fov=30.0))(
+        verts, faces, tex, R=R, T=T
+    )
+    assert wide[:, 3].sum() < 0.5 * narrow[:, 3].sum()

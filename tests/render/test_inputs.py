@@ -1,0 +1,151 @@
+"""Bad input: a clear error, or a defined output with no NaN in values or gradients."""
+
+import pytest
+import torch
+
+from unicorn.render import (
+    LayeredRasterizer,
+    TexturesUV,
+    TexturesVertex,
+    build_renderer,
+    list_renderers,
+    rasterize_meshes,
+)
+
+from .helpers import template_scene
+
+
+@pytest.fixture(params=list_renderers())
+def renderer(request):
+    return build_renderer(request.param, image_size=16)
+
+
+def _tex(B, V):
+    return TexturesVertex(torch.rand(B, V, 3))
+
+
+@pytest.mark.parametrize(
+    ("verts", "faces", "error", "match"),
+    [
+        (torch.zeros(5, 3), torch.tensor([[0, 1, 2]]), ValueError, r"verts must have shape \(B, V, 3\)"),
+        (torch.zeros(1, 5, 2), torch.tensor([[0, 1, 2]]), ValueError, r"verts must have shape \(B, V, 3\)"),
+        (torch.zeros(1, 5, 3, dtype=torch.int64), torch.tensor([[0, 1, 2]]), TypeError, "float32 or float64"),
+        (
+            torch.zeros(1, 5, 3, dtype=torch.float16),
+            torch.tensor([[0, 1, 2]]),
+            TypeError,
+            "float32 or float64",
+        ),
+        (torch.zeros(1, 5, 3), torch.tensor([0, 1, 2]), ValueError, r"faces must have shape \(F, 3\)"),
+        (torch.zeros(1, 5, 3), torch.tensor([[0.0, 1.0, 2.0]]), TypeError, "integer"),
+        (torch.zeros(1, 5, 3), torch.tensor([[0, 1, 5]]), IndexError, r"face indices must be in \[0, 5\)"),
+        (torch.zeros(1, 5, 3), torch.tensor([[0, -1, 2]]), IndexError, "face indices"),
+        (
+            torch.tensor([[[0, 0, 1.0], [float("nan"), 0, 1], [0, 1, 1]]]),
+            torch.tensor([[0, 1, 2]]),
+            ValueError,
+            "NaN or infinite",
+        ),
+        (
+            torch.tensor([[[0, 0, 1.0], [float("inf"), 0, 1], [0, 1, 1]]]),
+            torch.tensor([[0, 1, 2]]),
+            ValueError,
+            "NaN or infinite",
+        ),
+    ],
+)
+def test_bad_meshes_raise_clear_errors(renderer, verts, faces, error, match):
+    B, V = verts.shape[0] if verts.dim() == 3 else 1, verts.shape[-2]
+    with pytest.raises(error, match=match):
+        renderer(verts, faces, _tex(B, V))
+
+
+def test_bad_pose_and_texture_arguments(renderer):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    tex = _tex(2, verts.shape[1])
+    with pytest.raises(ValueError, match=r"R must have shape \(2, 3, 3\)"):
+        renderer(verts, faces, tex, R=R[:1], T=T)
+    with pytest.raises(ValueError, match="give both R and T"):
+        renderer(verts, faces, tex, R=R)
+    with pytest.raises(ValueError, match="batch size 3"):
+        renderer(verts, faces, _tex(3, verts.shape[1]), R=R, T=T)
+    with pytest.raises(TypeError, match="TexturesUV or TexturesVertex"):
+        renderer(verts, faces, torch.rand(2, verts.shape[1], 3), R=R, T=T)
+    with pytest.raises(ValueError, match=r"maps must have shape \(B, C, Ht, Wt\)"):
+        TexturesUV(torch.rand(2, 3, 8), uvs)
+    with pytest.raises(ValueError, match=r"face_uvs must have shape \(F, 3, 2\)"):
+        TexturesUV(torch.rand(2, 3, 8, 8), uvs[..., :1])
+    with pytest.raises(ValueError, match="wrap_u=True needs align_corners=False"):
+        TexturesUV(torch.rand(2, 3, 8, 8), uvs, wrap_u=True, align_corners=True)
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError, match="faces_per_pixel"):
+        LayeredRasterizer(faces_per_pixel=0)
+    with pytest.raises(ValueError, match="sigma"):
+        LayeredRasterizer(sigma=-1.0)
+    with pytest.raises(ValueError, match="image_size"):
+        LayeredRasterizer(image_size=0)
+    with pytest.raises(ValueError, match="sigma and gamma"):
+        build_renderer("softras", gamma=0.0)
+
+
+def test_degenerate_geometry_gives_defined_output_and_finite_gradients(renderer):
+    # one face behind the camera, one crossing the camera plane, one of zero area, one ordinary face
+    verts = torch.tensor(
+        [
+            [
+                [0.0, 0.0, -2.0],
+                [0.3, 0.0, -2.0],
+                [0.0, 0.3, -2.0],
+                [0.0, 0.0, -1.0],
+                [0.3, 0.0, 2.0],
+                [0.0, 0.3, 2.0],
+                [0.1, 0.1, 2.0],
+                [0.2, 0.2, 2.0],
+                [0.3, 0.3, 2.0],
+                [0.1, -0.1, 2.5],
+                [-0.2, -0.1, 2.5],
+                [0.0, 0.2, 2.5],
+            ]
+        ],
+        requires_grad=True,
+    )
+    faces = torch.arange(12).view(4, 3)
+    colors = torch.rand(1, 12, 3, requires_grad=True)
+    images = renderer(verts, faces, TexturesVertex(colors))  # R, T omitted: verts are in view space
+    assert torch.isfinite(images).all()
+    assert images[:, 3].max() > 0.99  # the ordinary face is drawn
+    images.sum().backward()
+    assert torch.isfinite(verts.grad).all() and torch.isfinite(colors.grad).all()
+    # the skipped faces receive nothing
+    assert verts.grad[0, :9].abs().sum() == 0
+
+
+def test_faces_without_vertices_are_an_error(renderer):
+    with pytest.raises(IndexError, match=r"face indices must be in \[0, 0\)"):
+        renderer(torch.rand(2, 0, 3), torch.zeros(4, 3, dtype=torch.long), _tex(2, 0))
+
+
+@pytest.mark.parametrize("shape", [(3, 0), (0, 0)])
+def test_empty_meshes_render_background(renderer, shape):
+    V, F = shape
+    verts = torch.rand(2, V, 3, requires_grad=True)
+    faces = torch.zeros(F, 3, dtype=torch.long)
+    images = renderer(verts, faces, _tex(2, V))
+    assert images.shape == (2, 4, 16, 16)
+    assert torch.equal(images[:, 3], torch.zeros(2, 16, 16))
+    assert torch.equal(images[:, :3], torch.ones(2, 3, 16, 16))
+
+
+def test_empty_batch(renderer):
+    verts, faces, R, T, _ = template_scene(batch=1)
+    images = renderer(verts[:0], faces, _tex(0, verts.shape[1]), R=R[:0], T=T[:0])
+    assert images.shape == (0, 4, 16, 16)
+
+
+def test_mesh_entirely_off_screen_or_behind():
+    verts, faces, R, T, _ = template_scene(batch=2)
+    frags = rasterize_meshes(torch.cat([verts[:1] + 50.0, verts[1:] * torch.tensor([1.0, 1.0, -1.0]) - 3.0]), faces, 16)
+    assert frags.num_pairs == 0 and frags.num_slots == 0
+    assert frags.to_dense().pix_to_face.eq(-1).all()

@@ -1,0 +1,200 @@
+"""Rasterizer against independent oracles: open3d ray casting and a brute-force per-pixel loop."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+import trimesh
+
+from unicorn.geometry.cameras import PerspectiveCamera, pixel_to_ndc, world_to_view
+from unicorn.render import Fragments, blur_radius_from_sigma, rasterize_meshes
+
+from .helpers import posed_ellipsoids, random_rotations
+
+
+def _raycast(view_verts: np.ndarray, faces: np.ndarray, focal: float, size: int):
+    """First hit of the ray through every pixel centre: face id (-1 none), depth, barycentrics."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(view_verts.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    cols, rows = np.meshgrid(np.arange(size), np.arange(size))
+    ndc = pixel_to_ndc(torch.tensor(np.stack([cols, rows], -1), dtype=torch.float64), size).numpy()
+    dirs = np.concatenate([ndc / focal, np.ones((size, size, 1))], -1)
+    rays = np.concatenate([np.zeros_like(dirs), dirs], -1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    t = hit["t_hit"].numpy()
+    ids = hit["primitive_ids"].numpy().astype(np.int64)
+    ids[~np.isfinite(t)] = -1
+    uv = hit["primitive_uvs"].numpy()
+    bary = np.stack([1 - uv[..., 0] - uv[..., 1], uv[..., 0], uv[..., 1]], -1)
+    return ids, t, bary  # with unit z direction, t is the view depth
+
+
+def _scenes():
+    verts, faces, R, T = posed_ellipsoids(batch=3, level=3)
+    yield verts, faces, R, T
+    g = torch.Generator().manual_seed(3)
+    for mesh in (trimesh.creation.torus(0.5, 0.2), trimesh.creation.box((0.9, 0.5, 0.7))):
+        if len(mesh.faces) < 200:
+            mesh = mesh.subdivide().subdivide()
+        v = torch.tensor(mesh.vertices, dtype=torch.float32)[None].repeat(2, 1, 1) @ random_rotations(2, g)
+        Rs = torch.eye(3).repeat(2, 1, 1)
+        Ts = torch.tensor([[0.05, -0.1, 2.5], [-0.1, 0.0, 3.0]])
+        yield v, torch.tensor(mesh.faces), Rs, Ts
+
+
+@pytest.mark.parametrize("scene", list(_scenes()), ids=["ellipsoids", "torus", "box"])
+def test_first_layer_matches_open3d_ray_casting(scene):
+    verts, faces, R, T = scene
+    size, cam = 48, PerspectiveCamera(fov=30.0)
+    view = world_to_view(verts, R, T)
+    frags = rasterize_meshes(cam.project(view), faces, size, blur_radius_from_sigma(1e-4), 25, truncate_opaque=True)
+    face_ids, depth = frags.first_layer()
+    checked = 0
+    for b in range(verts.shape[0]):
+        ids, t, bary = _raycast(view[b].numpy(), faces.numpy(), float(cam.focal_length), size)
+        # away from edges: the ray hits its face well inside (barycentrics > 0.02)
+        interior = (ids >= 0) & (bary.min(-1) > 0.02)
+        assert interior.sum() > 50
+        assert np.array_equal(face_ids[b].numpy()[interior], ids[interior])
+        # our depth interpolates z linearly in screen space (no perspective correction, as the reference)
+        assert np.allclose(depth[b].numpy()[interior], t[interior], rtol=2e-3)
+        # background agrees too, away from silhouettes
+        empty = (ids < 0) & (face_ids[b].numpy() < 0)
+        assert ((ids < 0) | (face_ids[b].numpy() >= 0))[interior].all()
+        checked += interior.sum() + empty.sum()
+    assert checked > 0
+
+
+def _brute_force(verts_ndc: np.ndarray, faces: np.ndarray, size: int, blur: float, K: int):
+    """Per-pixel loop over every face, written independently of the rasterizer (numpy, float64)."""
+    B = verts_ndc.shape[0]
+    cols, rows = np.meshgrid(np.arange(size), np.arange(size))
+    centres = np.stack([1 - (2 * cols + 1) / size, 1 - (2 * rows + 1) / size], -1).reshape(-1, 2)
+    result = []
+    for b in range(B):
+        per_pixel = [[] for _ in range(size * size)]
+        for fi, (i0, i1, i2) in enumerate(faces):
+            a, bb, c = verts_ndc[b, i0], verts_ndc[b, i1], verts_ndc[b, i2]
+            if min(a[2], bb[2], c[2]) <= 0:
+                continue
+            area = 0.5 * ((bb[0] - a[0]) * (c[1] - a[1]) - (bb[1] - a[1]) * (c[0] - a[0]))
+            if abs(area) <= 1e-8:
+                continue
+            p = centres
+
+            # barycentrics by sub-triangle areas (signed)
+            def sub(u, v, p=p):
+                return 0.5 * ((v[0] - u[0]) * (p[:, 1] - u[1]) - (v[1] - u[1]) * (p[:, 0] - u[0]))
+
+            w = np.stack([sub(bb[:2], c[:2]), sub(c[:2], a[:2]), sub(a[:2], bb[:2])], -1) / area
+            inside = (w > 0).all(-1)
+            d2 = np.full(len(p), np.inf)
+            for u, v in ((a, bb), (bb, c), (c, a)):
+                e = v[:2] - u[:2]
+                t = np.clip(((p - u[:2]) @ e) / (e @ e), 0, 1)
+                d2 = np.minimum(d2, ((p - (u[:2] + t[:, None] * e)) ** 2).sum(-1))
+            wc = np.clip(w, 0, None)
+            wc = wc / np.maximum(wc.sum(-1, keepdims=True), 1e-5)
+            z = wc @ np.array([a[2], bb[2], c[2]])
+            for pi in np.nonzero(inside | (d2 < blur))[0]:
+                per_pixel[pi].append((z[pi], fi, -d2[pi] if inside[pi] else d2[pi]))
+        result.append([sorted(cands)[:K] for cands in per_pixel])
+    return result
+
+
+@pytest.mark.parametrize("K", [1, 4, 25])
+def test_fragments_match_brute_force(K):
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
+    size, blur = 20, blur_radius_from_sigma(5e-4)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    frags = rasterize_meshes(ndc, faces, size, blur, K)
+    dense = frags.to_dense()
+    expected = _brute_force(ndc.numpy(), faces.numpy(), size, blur, K)
+    for b in range(2):
+        for pi in range(size * size):
+            r, c = divmod(pi, size)
+            exp = expected[b][pi]
+            got = dense.pix_to_face[b, r, c].tolist()
+            assert got[: len(exp)] == [e[1] for e in exp], (b, r, c)
+            assert all(g == -1 for g in got[len(exp) :])
+            for k, (z, _, d) in enumerate(exp):
+                assert dense.zbuf[b, r, c, k].item() == pytest.approx(z, abs=1e-9)
+                assert dense.dists[b, r, c, k].item() == pytest.approx(d, abs=1e-12)
+    assert frags.num_slots <= K
+
+
+def test_opaque_truncation_is_exact():
+    from unicorn.render import layered_blend
+
+    verts, faces, R, T = posed_ellipsoids(batch=3, level=3)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    blur = blur_radius_from_sigma(1e-4)
+    colors_of = lambda fr: torch.sin(fr.face.float())[:, None].repeat(1, 3)  # noqa: E731
+    bg = torch.ones(3 * 64 * 64, 3)
+    full = rasterize_meshes(ndc, faces, 64, blur, 50)
+    cut = rasterize_meshes(ndc, faces, 64, blur, 50, truncate_opaque=True)
+    assert cut.num_pairs < full.num_pairs
+    assert torch.equal(layered_blend(colors_of(full), full, bg, 1e-4), layered_blend(colors_of(cut), cut, bg, 1e-4))
+
+
+def test_chunking_does_not_change_fragments():
+    verts, faces, R, T = posed_ellipsoids(batch=5, level=2)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    one = rasterize_meshes(ndc, faces, 32, 1e-3, 10)
+    many = rasterize_meshes(ndc, faces, 32, 1e-3, 10, max_candidates=1)
+    for name in ("pix", "slot", "face", "inside"):
+        assert torch.equal(getattr(one, name), getattr(many, name))
+    assert torch.equal(one.dists, many.dists)
+
+
+def test_packed_layout_invariants():
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=2)
+    frags = rasterize_meshes(PerspectiveCamera(fov=30.0).transform_points(verts, R, T), faces, 32, 1e-3, 8)
+    assert isinstance(frags, Fragments)
+    assert (frags.pix[1:] >= frags.pix[:-1]).all()
+    same = frags.pix[1:] == frags.pix[:-1]
+    assert (frags.slot[1:][same] == frags.slot[:-1][same] + 1).all()
+    assert (frags.zbuf[1:][same] >= frags.zbuf[:-1][same] - 1e-6).all()
+    assert torch.allclose(frags.bary.sum(-1), torch.ones(frags.num_pairs))
+    assert (frags.bary >= 0).all()
+    assert ((frags.dists < 0) == frags.inside).all()
+
+
+def test_faces_behind_camera_and_degenerate_faces_are_skipped():
+    # a triangle crossing z = 0, a zero-area triangle and one good triangle
+    verts = torch.tensor(
+        [
+            [
+                [0.0, 0.0, -1.0],
+                [0.5, 0.0, 2.0],
+                [0.0, 0.5, 2.0],
+                [0.1, 0.1, 2.0],
+                [0.1, 0.1, 2.0],
+                [0.2, 0.2, 2.0],
+                [0.0, 0.0, 3.0],
+                [-0.3, 0.0, 3.0],
+                [0.0, -0.3, 3.0],
+            ]
+        ],
+        requires_grad=True,
+    )
+    faces = torch.arange(9).view(3, 3)
+    frags = rasterize_meshes(PerspectiveCamera(fov=60.0).project(verts), faces, 16, 1e-3, 5)
+    assert set(frags.face.tolist()) == {2}
+    frags.dists.sum().backward()
+    assert torch.isfinite(verts.grad).all()
+
+
+def test_near_miss_distance_in_ndc_units():
+    # a huge triangle covering x_ndc >= 0.03 (image left of a vertical edge); near misses lie to its right
+    size, edge = 16, 0.03
+    verts = torch.tensor([[[edge, -5.0, 1.0], [edge, 5.0, 1.0], [edge + 10.0, 0.0, 1.0]]], dtype=torch.float64)
+    blur = (3 * 2.0 / size) ** 2  # three pixels
+    frags = rasterize_meshes(verts, torch.tensor([[0, 1, 2]]), size, blur_radius=blur, faces_per_pixel=1)
+    x_centre = 1 - (2 * (frags.pix % size).double() + 1) / size
+    assert torch.equal(frags.inside, x_centre > edge)
+    expected = (x_centre - edge) ** 2
+    assert torch.allclose(frags.dists.abs(), expected)
+    assert (expected[~frags.inside] < blur).all()
+    # every pixel within the radius is there: 16 rows x (covered columns + 3 near-miss columns)
+    assert frags.num_pairs == size * int(((1 - (2 * torch.arange(size) + 1) / size) > edge - 3 * 2.0 / size).sum())
