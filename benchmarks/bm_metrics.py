@@ -1,0 +1,80 @@
+"""Time and peak memory of the ShapeNet metrics at the reference's sizes.
+
+Usage::
+
+    OMP_NUM_THREADS=2 python benchmarks/bm_metrics.py [--device cpu|cuda] [--points 100000] [--icp-iters 100]
+
+Prints the wall time and the peak memory (CPU: peak resident set size increase, CUDA: peak allocated) of a
+Chamfer-L1 + normal consistency evaluation between two clouds of ``--points`` points, and of the gradient ICP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+
+import torch
+
+from unicorn.geometry.mesh import icosphere
+from unicorn.metrics import gradient_icp, point_cloud_scores, sample_points_from_meshes
+
+
+def _peak_rss_mib() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return usage / 1024 if sys.platform != "darwin" else usage / 2**20
+
+
+def _run(name: str, fn, device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+    rss0 = _peak_rss_mib()
+    t0 = time.perf_counter()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    elapsed = time.perf_counter() - t0
+    if device.type == "cuda":
+        mem = f"peak CUDA alloc +{(torch.cuda.max_memory_allocated() - base) / 2**20:.0f} MiB"
+    else:
+        mem = f"peak RSS +{_peak_rss_mib() - rss0:.0f} MiB (process peak {_peak_rss_mib():.0f} MiB)"
+    print(f"{name:<48s} {elapsed:8.2f} s   {mem}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--points", type=int, default=100_000)
+    parser.add_argument("--icp-iters", type=int, default=100)
+    parser.add_argument("--skip-icp", action="store_true")
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    print(f"device={device} threads={torch.get_num_threads()} points={args.points} torch={torch.__version__}")
+
+    verts, faces = icosphere(4)
+    shape = verts * torch.tensor([0.5, 0.3, 0.2])
+    gt, gt_n = sample_points_from_meshes(shape[None], faces, args.points, seed=0)
+    deformed = shape * (1 + 0.1 * torch.sin(5 * shape))
+    pred, pred_n = sample_points_from_meshes(deformed[None], faces, args.points, seed=1)
+    gt, gt_n, pred, pred_n = (t.to(device) for t in (gt, gt_n, pred, pred_n))
+
+    def chamfer() -> None:
+        s = point_cloud_scores(pred, gt, pred_n, gt_n)
+        print(f"    chamfer-L1={s.chamfer_l1.item():.4f} normal-cos={s.normal_cos.item():.4f}")
+
+    _run(f"chamfer-L1 + normal-cos {args.points} x {args.points}", chamfer, device)
+    if not args.skip_icp:
+        moved = pred * torch.tensor([1.1, 0.9, 1.0], device=device) + 0.05
+
+        def icp() -> None:
+            r = gradient_icp(moved, gt, pred_n, n_iter=args.icp_iters)
+            print(f"    icp loss={r.loss.item():.3e} scale={[round(x, 3) for x in r.scale[0].tolist()]}")
+
+        _run(f"gradient ICP {args.icp_iters} it, {args.points} pts", icp, device)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,30 @@
+"""Datasets: real loaders in their on-disk formats, the synthetic benchmark, and the LightningDataModule.
+
+The synthetic benchmark generator lives in :mod:`unicorn.data.synthetic` (it imports open3d, so it is not
+imported here).
+"""
+
+from unicorn.data.common import PRIOR_TRANSLATION, UnicornDataset
+from unicorn.data.cub import CUB200
+from unicorn.data.datamodule import DATASET_NAMES, UnicornDataModule, build_dataset
+from unicorn.data.folder import CompCars, ImageFolder
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.data.lsun import LSUN
+from unicorn.data.p3d import Pascal3DCar
+from unicorn.data.shapenet import ShapeNetNMR
+
+__all__ = [
+    "CUB200",
+    "DATASET_NAMES",
+    "LSUN",
+    "PRIOR_TRANSLATION",
+    "CompCars",
+    "DatasetNotFoundError",
+    "ImageFolder",
+    "ImageLoadError",
+    "Pascal3DCar",
+    "ShapeNetNMR",
+    "UnicornDataModule",
+    "UnicornDataset",
+    "build_dataset",
+]

@@ -1,0 +1,112 @@
+"""Unannotated image collections: any folder of images, and CompCars.
+
+Images are resized so that their longer side is ``img_size`` and padded to a square by replicating their
+border (the reference's ``resize_mode='pad'``); training items are flipped horizontally at random.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
+from unicorn.data.images import DatasetNotFoundError, fit_and_pad, load_image, require, to_chw_tensor
+
+__all__ = ["IMAGE_EXTENSIONS", "CompCars", "ImageFolder", "list_images", "unannotated_item"]
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp", ".tif", ".tiff", ".webp")
+
+_COMPCARS_HINT = (
+    "CompCars comes as GIRAFFE's comprehensive_cars.zip (github.com/autonomousvision/giraffe, "
+    "scripts/download_dataset.sh): extract it and rename comprehensive_cars to the dataset root, so that it "
+    "holds images/*.jpg."
+)
+
+
+def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> list[Path]:
+    """All files under ``root`` (recursively) whose suffix, lower-cased, is in ``extensions``; sorted."""
+    return sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in extensions)
+
+
+def unannotated_item(image: np.ndarray, img_size: int, flip: bool) -> dict[str, Any]:
+    """Item dict for an image without annotations: fit-and-pad, optional flip, dummy pose, all-ones mask."""
+    image = fit_and_pad(image, img_size)
+    if flip:
+        image = image[:, ::-1]
+    R, T = dummy_pose()
+    return {
+        "image": to_chw_tensor(image),
+        "mask": torch.ones(1, img_size, img_size),
+        "R": R,
+        "T": T,
+        "has_pose": torch.tensor(False),
+        "has_mask": torch.tensor(False),
+    }
+
+
+class ImageFolder(UnicornDataset):
+    """Every image under a folder (recursively), for training on one's own photos.
+
+    Args:
+        root: folder of images (any depth).
+        img_size: side of the returned square images.
+        augment: random horizontal flips (training).
+        extensions: accepted file suffixes (case-insensitive).
+        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+
+    Items: ``image`` (3, S, S), ``mask`` (1, S, S) of ones (``has_mask`` False), dummy pose.
+    """
+
+    hint = "Point the dataset root at a folder that contains images (searched recursively)."
+
+    def __init__(
+        self,
+        root: str | Path,
+        img_size: int = 64,
+        augment: bool = False,
+        extensions: tuple[str, ...] = IMAGE_EXTENSIONS,
+        on_error: OnError = "raise",
+    ) -> None:
+        super().__init__(on_error)
+        self.root = require(root, "image folder", self.hint)
+        self.files = list_images(self.image_root(), tuple(e.lower() for e in extensions))
+        if not self.files:
+            raise DatasetNotFoundError(self.image_root() / "*", f"images with suffix {list(extensions)}", self.hint)
+        self.img_size = int(img_size)
+        self.augment = bool(augment)
+
+    def image_root(self) -> Path:
+        return self.root
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def load(self, index: int) -> dict[str, Any]:
+        image = load_image(self.files[index])
+        flip = self.augment and item_rng().random() < 0.5
+        return unannotated_item(image, self.img_size, flip)
+
+
+class CompCars(ImageFolder):
+    """CompCars web car images (GIRAFFE's copy), ``<root>/images/**/*.jpg``; no annotations, no split.
+
+    Args:
+        root: dataset root (holds ``images/``).
+        img_size: side of the returned square images.
+        augment: random horizontal flips (training).
+        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+    """
+
+    hint = _COMPCARS_HINT
+
+    def __init__(
+        self, root: str | Path, img_size: int = 64, augment: bool = False, on_error: OnError = "raise"
+    ) -> None:
+        require(Path(root) / "images", "CompCars images folder", _COMPCARS_HINT)
+        super().__init__(root, img_size=img_size, augment=augment, extensions=(".jpg", ".jpeg"), on_error=on_error)
+
+    def image_root(self) -> Path:
+        return self.root / "images"

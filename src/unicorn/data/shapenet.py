@@ -1,0 +1,246 @@
+"""ShapeNet renderings of Kato et al. (NMR) in DVR's folder form, also the synthetic benchmark's form.
+
+Expected layout (``root`` = ``datasets/shapenet_nmr``, DVR's ``NMR_Dataset``)::
+
+    metadata.yaml                           # {synset: {id: synset, name: "airplane,aeroplane,plane"}, ...}
+    <synset>/softras_{train,val,test}.lst   # one model id per line
+    <synset>/<model>/image/0000.png ...     # 64x64 RGB on white, one per view (24 for NMR)
+    <synset>/<model>/mask/0000.png ...
+    <synset>/<model>/cameras.npz            # world_mat_<v>, camera_mat_<v> (4x4, DVR/OpenCV convention)
+    <synset>/<model>/pointcloud.npz         # points, normals (P, 3) in the ShapeNet frame, max |coord| 0.5
+
+Poses are converted to unicorn's convention (``x_view = x_world @ R + T``, view +X left, +Y up) and points to
+the object frame UNICORN uses, ``(x, y, z) -> (-z, y, x)``; see :func:`dvr_to_unicorn_pose`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+import yaml
+
+from unicorn.data.common import OnError, UnicornDataset
+from unicorn.data.images import DatasetNotFoundError, load_image, load_mask, require, to_chw_tensor
+
+__all__ = [
+    "SHAPENET_CATEGORIES",
+    "ShapeNetNMR",
+    "dvr_to_unicorn_points",
+    "dvr_to_unicorn_pose",
+    "unicorn_to_dvr_points",
+    "unicorn_to_dvr_world_mat",
+]
+
+#: the 13 NMR categories: UNICORN's config name -> ShapeNet synset
+SHAPENET_CATEGORIES = {
+    "airplane": "02691156",
+    "bench": "02828884",
+    "cabinet": "02933112",
+    "car": "02958343",
+    "chair": "03001627",
+    "display": "03211117",
+    "lamp": "03636649",
+    "speaker": "03691459",
+    "rifle": "04090263",
+    "sofa": "04256520",
+    "table": "04379243",
+    "phone": "04401088",
+    "vessel": "04530566",
+}
+
+# ShapeNet object frame -> UNICORN object frame is x @ _SN_TO_UNI, i.e. (x, y, z) -> (-z, y, x)
+_SN_TO_UNI = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+# OpenCV camera axes (x right, y down) -> PyTorch3D / unicorn camera axes (x left, y up)
+_CV_TO_UNI_CAM = np.diag([-1.0, -1.0, 1.0])
+
+_HINT = (
+    "Download DVR's NMR_Dataset.zip (https://s3.eu-central-1.amazonaws.com/avg-projects/"
+    "differentiable_volumetric_rendering/data/NMR_Dataset.zip, 33 GB), unzip it and rename NMR_Dataset to "
+    "the dataset root. For an offline stand-in, generate the synthetic benchmark: "
+    "unicorn-data synth --out DIR."
+)
+
+
+def dvr_to_unicorn_pose(world_mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Convert a DVR ``world_mat`` to unicorn's ``(R, T)``.
+
+    DVR maps ShapeNet-frame column vectors to OpenCV camera coordinates, ``p_cam = R_dvr p + t``. With
+    ``p = p_uni @ A`` (``A`` the inverse of the point conversion) and the camera-axis flip
+    ``C = diag(-1,-1,1)``, ``p_view = p_uni @ (A R_dvr^T C) + t C``. The reference copies ``t`` without
+    ``C``, which only holds for cameras aimed at the origin; here the translation is flipped too.
+
+    Args:
+        world_mat: (4, 4) or (3, 4) extrinsic matrix.
+
+    Returns:
+        R (3, 3) and T (3,) float64 with ``x_view = x_world @ R + T``.
+    """
+    P = np.asarray(world_mat, dtype=np.float64)
+    R_dvr, t_dvr = P[:3, :3], P[:3, 3]
+    R = _SN_TO_UNI.T @ R_dvr.T @ _CV_TO_UNI_CAM
+    T = t_dvr @ _CV_TO_UNI_CAM
+    return R, T
+
+
+def unicorn_to_dvr_world_mat(R: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`dvr_to_unicorn_pose`: unicorn ``R`` (3, 3), ``T`` (3,) to a (4, 4) ``world_mat``."""
+    R, T = np.asarray(R, dtype=np.float64), np.asarray(T, dtype=np.float64)
+    world_mat = np.eye(4)
+    world_mat[:3, :3] = _CV_TO_UNI_CAM @ R.T @ _SN_TO_UNI.T
+    world_mat[:3, 3] = T @ _CV_TO_UNI_CAM
+    return world_mat
+
+
+def dvr_to_unicorn_points(points: np.ndarray) -> np.ndarray:
+    """ShapeNet / DVR object frame (P, 3) to UNICORN's object frame: ``(x, y, z) -> (-z, y, x)``."""
+    return np.asarray(points) @ _SN_TO_UNI
+
+
+def unicorn_to_dvr_points(points: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`dvr_to_unicorn_points`."""
+    return np.asarray(points) @ _SN_TO_UNI.T
+
+
+def read_metadata(root: Path) -> dict[str, dict[str, str]]:
+    """``metadata.yaml`` as ``{synset: {"id": ..., "name": ...}}``."""
+    path = require(root / "metadata.yaml", "ShapeNet metadata.yaml", _HINT)
+    with open(path) as f:
+        data = yaml.safe_load(f) or {}
+    return {str(k): {"id": str(v.get("id", k)), "name": str(v.get("name", ""))} for k, v in data.items()}
+
+
+def resolve_categories(metadata: dict[str, dict[str, str]], categories: str | list[str] | None) -> list[str]:
+    """Synset ids for category names (any comma-separated token of the metadata name) or ids; None = all."""
+    if categories is None:
+        return sorted(metadata)
+    if isinstance(categories, str):
+        categories = [categories]
+    by_name = {token.strip(): synset for synset, info in metadata.items() for token in info["name"].split(",")}
+    synsets = []
+    for cat in categories:
+        cat = str(cat)
+        if cat in metadata:
+            synsets.append(cat)
+        elif cat in by_name:
+            synsets.append(by_name[cat])
+        else:
+            known = sorted({*metadata, *by_name})
+            raise ValueError(f"unknown ShapeNet category {cat!r}; metadata.yaml lists {known}")
+    return synsets
+
+
+class ShapeNetNMR(UnicornDataset):
+    """NMR renderings (DVR form) with ground-truth poses, masks and point clouds.
+
+    Args:
+        root: dataset root (holds ``metadata.yaml``).
+        categories: names (e.g. ``"chair"``, ``"speaker"``) or synset ids; None for every category.
+        split: ``"train"``, ``"val"`` or ``"test"`` (SoftRas lists).
+        views: ``"all"``: every (model, view) pair is an item, item k = model ``k % n_models``, view
+            ``k // n_models`` (the reference's order); ``"random"``: one view per model, drawn once from
+            ``seed`` (the reference draws it unseeded).
+        with_points: add ``points``/``normals``; defaults to True except for ``"train"``.
+        n_points: keep this many ground-truth points per model (a fixed subset per model), None for all.
+        include_test: for ``"train"``, also use the val and test models (the reference's option).
+        seed: seed of the view choice and the point subsets.
+        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+
+    Items: ``image`` (3, H, W), ``mask`` (1, H, W), ``R`` (3, 3), ``T`` (3,) (``has_pose`` True),
+    ``category`` (index into :attr:`synsets`), ``view``, optionally ``points``/``normals`` (P, 3) in the
+    object frame of ``R``/``T``.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        categories: str | list[str] | None = None,
+        split: Literal["train", "val", "test"] = "train",
+        views: Literal["all", "random"] = "all",
+        with_points: bool | None = None,
+        n_points: int | None = None,
+        include_test: bool = False,
+        seed: int = 0,
+        on_error: OnError = "raise",
+    ) -> None:
+        super().__init__(on_error)
+        if split not in ("train", "val", "test"):
+            raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+        if views not in ("all", "random"):
+            raise ValueError(f"views must be 'all' or 'random', got {views!r}")
+        self.root = require(root, "ShapeNet-NMR root", _HINT)
+        self.metadata = read_metadata(self.root)
+        self.synsets = resolve_categories(self.metadata, categories)
+        self.split, self.views, self.seed = split, views, int(seed)
+        self.with_points = (split != "train") if with_points is None else bool(with_points)
+        self.n_points = n_points
+
+        splits = [split] + (["val", "test"] if include_test and split == "train" else [])
+        self.models: list[tuple[int, Path]] = []  # (category index, model folder)
+        for c, synset in enumerate(self.synsets):
+            for s in splits:
+                lst = require(self.root / synset / f"softras_{s}.lst", f"ShapeNet split list for {synset}", _HINT)
+                names = [line.strip() for line in lst.read_text().splitlines() if line.strip()]
+                self.models += [(c, self.root / synset / name) for name in names]
+        if not self.models:
+            raise ValueError(f"no {split} models for categories {self.synsets} under {self.root}")
+        first = self.models[0][1] / "image"
+        if not first.is_dir():
+            raise DatasetNotFoundError(first, "ShapeNet model image folder", _HINT)
+        self.n_views = len(list(first.glob("*.png")))
+        if self.n_views == 0:
+            raise DatasetNotFoundError(first / "0000.png", "ShapeNet view images", _HINT)
+        rng = np.random.default_rng(self.seed)
+        self.random_views = rng.integers(0, self.n_views, size=len(self.models))
+
+    def __len__(self) -> int:
+        return len(self.models) * (self.n_views if self.views == "all" else 1)
+
+    def model_view(self, index: int) -> tuple[int, int]:
+        """(model index, view index) of item ``index``."""
+        if self.views == "all":
+            return index % len(self.models), index // len(self.models)
+        return index, int(self.random_views[index])
+
+    def model_dir(self, index: int) -> Path:
+        """Folder of the model shown by item ``index``."""
+        return self.models[self.model_view(index)[0]][1]
+
+    def load_points(self, model: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Ground-truth ``points`` and ``normals`` (P, 3) float32 of a model, in UNICORN's object frame."""
+        path = self.models[model][1] / "pointcloud.npz"
+        if not path.exists():
+            raise DatasetNotFoundError(path, "ShapeNet point cloud", _HINT)
+        with np.load(path) as data:
+            points, normals = data["points"].astype(np.float64), data["normals"].astype(np.float64)
+        if self.n_points is not None and self.n_points < len(points):
+            keep = np.random.default_rng([self.seed, model]).choice(len(points), self.n_points, replace=False)
+            points, normals = points[keep], normals[keep]
+        points, normals = dvr_to_unicorn_points(points), dvr_to_unicorn_points(normals)
+        return torch.from_numpy(points.astype(np.float32)), torch.from_numpy(normals.astype(np.float32))
+
+    def load(self, index: int) -> dict[str, Any]:
+        model, view = self.model_view(index)
+        category, folder = self.models[model]
+        image = load_image(folder / "image" / f"{view:04d}.png")
+        mask = load_mask(folder / "mask" / f"{view:04d}.png")
+        cameras = folder / "cameras.npz"
+        if not cameras.exists():
+            raise DatasetNotFoundError(cameras, "ShapeNet cameras.npz", _HINT)
+        with np.load(cameras) as cams:
+            R, T = dvr_to_unicorn_pose(cams[f"world_mat_{view}"])
+        item: dict[str, Any] = {
+            "image": to_chw_tensor(image),
+            "mask": to_chw_tensor(mask),
+            "R": torch.from_numpy(R.astype(np.float32)),
+            "T": torch.from_numpy(T.astype(np.float32)),
+            "has_pose": torch.tensor(True),
+            "has_mask": torch.tensor(True),
+            "category": torch.tensor(category, dtype=torch.int64),
+            "view": torch.tensor(view, dtype=torch.int64),
+        }
+        if self.with_points:
+            item["points"], item["normals"] = self.load_points(model)
+        return item

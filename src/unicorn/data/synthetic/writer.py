@@ -1,0 +1,327 @@
+"""Write the synthetic benchmark in the DVR / NMR layout read by :class:`unicorn.data.shapenet.ShapeNetNMR`.
+
+Per model (``<root>/<synset>/<model>/``): ``image/`` and ``mask/`` PNGs, ``cameras.npz`` (DVR
+``world_mat_<v>``, ``camera_mat_<v>`` and their inverses), ``pointcloud.npz`` (``points``, ``normals``
+float16, ``loc``, ``scale``) and ``mesh.obj`` in the ShapeNet object frame (as DVR stores them), plus
+``views.npz`` (``azim``, ``elev``, ``roll``, ``dist``, ``tx``, ``ty`` per view) and ``params.json`` (shape and
+texture parameters). Per category: ``softras_{train,val,test}.lst``; at the root: ``metadata.yaml`` and
+``synthetic.json`` (generator settings).
+
+Everything is a deterministic function of the seed: model ``i`` of a category draws its shape, views and
+surface points from ``numpy.random.default_rng([seed, category_index, i, stream])``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import uuid
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import open3d as o3d
+import torch
+import trimesh
+import yaml
+from PIL import Image
+from tqdm.auto import tqdm
+
+from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
+from unicorn.data.synthetic.render import random_background, render_object
+from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+
+__all__ = [
+    "GENERATOR_VERSION",
+    "Mode",
+    "default_cache_dir",
+    "ensure_synthetic_dataset",
+    "generate_synthetic_dataset",
+    "sample_surface_points",
+    "sample_views",
+    "split_sizes",
+    "synthetic_dataset_path",
+]
+
+#: bump when the output changes, so that cached datasets are regenerated
+GENERATOR_VERSION = 1
+NMR_DISTANCE, NMR_ELEVATION, NMR_FOV = 2.732, 30.0, 30.0
+
+Mode = Literal["nmr", "wild"]
+
+
+def sample_views(mode: Mode, n_views: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Camera parameters of one model's views.
+
+    ``nmr``: azimuth ``360 k / n_views``, elevation 30, no roll, distance 2.732, centred. ``wild``: azimuth
+    U[0, 360), elevation U[-10, 30], roll U[-15, 15], distance 2.732 * U[0.9, 1.1] and an off-centre shift
+    (``tx``, ``ty``) U[-0.1, 0.1] in view units.
+
+    Returns:
+        dict of (n_views,) float64 arrays ``azim``, ``elev``, ``roll`` (degrees), ``dist``, ``tx``, ``ty``.
+    """
+    zeros = np.zeros(n_views)
+    if mode == "nmr":
+        return {
+            "azim": 360.0 * np.arange(n_views) / n_views,
+            "elev": zeros + NMR_ELEVATION,
+            "roll": zeros,
+            "dist": zeros + NMR_DISTANCE,
+            "tx": zeros,
+            "ty": zeros,
+        }
+    if mode == "wild":
+        return {
+            "azim": rng.uniform(0, 360, n_views),
+            "elev": rng.uniform(-10, 30, n_views),
+            "roll": rng.uniform(-15, 15, n_views),
+            "dist": NMR_DISTANCE * rng.uniform(0.9, 1.1, n_views),
+            "tx": rng.uniform(-0.1, 0.1, n_views),
+            "ty": rng.uniform(-0.1, 0.1, n_views),
+        }
+    raise ValueError(f"mode must be 'nmr' or 'wild', got {mode!r}")
+
+
+def views_to_cameras(views: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """UNICORN's pose parametrisation: ``R = Az @ El @ Ro`` and ``T = (tx, ty, dist)``; (V, 3, 3), (V, 3)."""
+    R = azim_elev_roll_to_rotation(
+        torch.as_tensor(views["azim"], dtype=torch.float64),
+        torch.as_tensor(views["elev"], dtype=torch.float64),
+        torch.as_tensor(views["roll"], dtype=torch.float64),
+    ).numpy()
+    T = np.stack([views["tx"], views["ty"], views["dist"]], axis=1)
+    return R, T
+
+
+def sample_surface_points(
+    obj: ProceduralObject, n_points: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform surface samples of an object, without the surface buried inside other parts.
+
+    Parts are unions of watertight primitives that may interpenetrate; samples lying inside another primitive
+    (e.g. the top of a leg inside a seat) are dropped so the point cloud is the visible outer surface, like
+    ONet's samples of watertight ShapeNet meshes.
+
+    Returns:
+        points (n_points, 3) and unit face normals (n_points, 3), float64, in the object frame.
+    """
+    components = [c for part in obj.parts for c in part.mesh.split(only_watertight=False)]
+    mesh = trimesh.util.concatenate(components)
+    face_comp = np.concatenate([np.full(len(c.faces), i) for i, c in enumerate(components)])
+    points, faces = trimesh.sample.sample_surface(mesh, int(n_points * 1.5) + 64, seed=rng)
+    comp = face_comp[faces]
+    keep = np.ones(len(points), dtype=bool)
+    for i, c in enumerate(components):
+        if not c.is_watertight:  # an open surface has no inside
+            continue
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(c.vertices.astype(np.float32)), o3d.core.Tensor(c.faces.astype(np.uint32)))
+        others = comp != i
+        occupied = scene.compute_occupancy(o3d.core.Tensor(points[others].astype(np.float32)), nsamples=3).numpy()
+        keep[np.flatnonzero(others)[occupied > 0.5]] = False
+    idx = np.flatnonzero(keep)
+    idx = rng.choice(idx, n_points, replace=len(idx) < n_points)
+    return points[idx], mesh.face_normals[faces[idx]]
+
+
+def split_sizes(n_models: int) -> tuple[int, int, int]:
+    """(train, val, test) model counts: 10% val and 20% test, at least one model each."""
+    if n_models < 3:
+        raise ValueError(f"need at least 3 models (one per split), got {n_models}")
+    n_val = max(1, round(0.1 * n_models))
+    n_test = max(1, round(0.2 * n_models))
+    return n_models - n_val - n_test, n_val, n_test
+
+
+def _write_model(
+    folder: Path,
+    obj: ProceduralObject,
+    views: dict[str, np.ndarray],
+    image_size: int,
+    supersample: int,
+    n_points: int,
+    rng_bg: np.random.Generator,
+    rng_points: np.random.Generator,
+    mode: Mode,
+) -> None:
+    R, T = views_to_cameras(views)
+    V = len(R)
+    backgrounds = None
+    if mode == "wild":
+        backgrounds = np.stack([random_background(rng_bg, image_size) for _ in range(V)])
+    images, coverage = render_object(
+        obj, R, T, image_size=image_size, fov=NMR_FOV, supersample=supersample, backgrounds=backgrounds
+    )
+    (folder / "image").mkdir(parents=True)
+    (folder / "mask").mkdir()
+    for v in range(V):
+        Image.fromarray(np.round(images[v] * 255).astype(np.uint8), "RGB").save(folder / "image" / f"{v:04d}.png")
+        Image.fromarray(((coverage[v] >= 0.5) * 255).astype(np.uint8), "L").save(folder / "mask" / f"{v:04d}.png")
+
+    focal = 1.0 / math.tan(math.radians(NMR_FOV) / 2)
+    camera_mat = np.diag([focal, focal, 1.0, 1.0])
+    cameras = {}
+    for v in range(V):
+        world_mat = unicorn_to_dvr_world_mat(R[v], T[v])
+        cameras[f"world_mat_{v}"] = world_mat
+        cameras[f"world_mat_inv_{v}"] = np.linalg.inv(world_mat)
+        cameras[f"camera_mat_{v}"] = camera_mat
+        cameras[f"camera_mat_inv_{v}"] = np.linalg.inv(camera_mat)
+    np.savez(folder / "cameras.npz", **{k: v.astype(np.float32) for k, v in cameras.items()})
+
+    points, normals = sample_surface_points(obj, n_points, rng_points)
+    np.savez(
+        folder / "pointcloud.npz",
+        points=unicorn_to_dvr_points(points).astype(np.float16),
+        normals=unicorn_to_dvr_points(normals).astype(np.float16),
+        loc=np.zeros(3, dtype=np.float32),
+        scale=np.float32(1.0),
+    )
+    mesh = obj.mesh()
+    mesh = trimesh.Trimesh(unicorn_to_dvr_points(mesh.vertices), mesh.faces, process=False)
+    mesh.export(folder / "mesh.obj")
+    np.savez(folder / "views.npz", **{k: v.astype(np.float32) for k, v in views.items()})
+    (folder / "params.json").write_text(json.dumps(obj.params, indent=1))
+
+
+def generate_synthetic_dataset(
+    out: str | os.PathLike,
+    categories: str | Sequence[str] = "chair",
+    mode: Mode = "nmr",
+    n_models: int = 200,
+    seed: int = 0,
+    image_size: int = 64,
+    n_views: int = 24,
+    supersample: int = 3,
+    n_points: int = 20000,
+    progress: bool = True,
+) -> Path:
+    """Generate the synthetic benchmark into ``out`` (created; existing model folders are an error).
+
+    Args:
+        out: dataset root to write.
+        categories: one or more names from :data:`~unicorn.data.synthetic.shapes.CATEGORIES`.
+        mode: ``"nmr"`` (ShapeNet-NMR stand-in) or ``"wild"`` (random views and backgrounds).
+        n_models: models per category, split 70 / 10 / 20 % into train / val / test.
+        seed: everything is a deterministic function of it.
+        image_size: side of the images.
+        n_views: views per model (24 for NMR).
+        supersample: rays per pixel along each axis.
+        n_points: ground-truth surface points per model.
+        progress: show a progress bar.
+
+    Returns:
+        ``out`` as a Path.
+    """
+    out = Path(out)
+    categories = [categories] if isinstance(categories, str) else list(categories)
+    for cat in categories:
+        if cat not in CATEGORIES:
+            raise ValueError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+    n_train, n_val, n_test = split_sizes(n_models)
+    out.mkdir(parents=True, exist_ok=True)
+    meta_path = out / "metadata.yaml"
+    metadata = yaml.safe_load(meta_path.read_text()) if meta_path.exists() else {}
+    metadata = metadata or {}
+
+    bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
+    for cat in categories:
+        synset, _ = CATEGORIES[cat]
+        cat_index = sorted(CATEGORIES).index(cat)  # stable across runs whatever the order given
+        cat_dir = out / synset
+        names = [f"{cat}_{seed}_{i:05d}" for i in range(n_models)]
+        for i, name in enumerate(names):
+            streams = [np.random.default_rng([seed, cat_index, i, k]) for k in range(4)]
+            obj = build_object(cat, streams[0])
+            obj.params.update(category=cat, seed=seed, index=i)
+            views = sample_views(mode, n_views, streams[1])
+            _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, streams[2], streams[3], mode)
+            bar.update()
+        order = np.random.default_rng([seed, cat_index]).permutation(n_models)
+        lists = {
+            "train": order[:n_train],
+            "val": order[n_train : n_train + n_val],
+            "test": order[n_train + n_val :],
+        }
+        for split, idx in lists.items():
+            (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
+        metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
+    bar.close()
+    meta_path.write_text(yaml.safe_dump(metadata, sort_keys=True))
+    settings = {
+        "generator_version": GENERATOR_VERSION,
+        "categories": categories,
+        "mode": mode,
+        "n_models": n_models,
+        "seed": seed,
+        "image_size": image_size,
+        "n_views": n_views,
+        "supersample": supersample,
+        "n_points": n_points,
+        "fov": NMR_FOV,
+    }
+    (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
+    return out
+
+
+def default_cache_dir() -> Path:
+    """``$UNICORN_CACHE/synthetic`` if the variable is set, else ``~/.cache/unicorn/synthetic``."""
+    base = os.environ.get("UNICORN_CACHE")
+    return (Path(base).expanduser() if base else Path.home() / ".cache" / "unicorn") / "synthetic"
+
+
+def synthetic_dataset_path(
+    category: str | Sequence[str], mode: Mode, n_models: int, seed: int, root: str | os.PathLike | None = None
+) -> Path:
+    """Folder that :func:`ensure_synthetic_dataset` uses for these settings (under ``root`` or the cache)."""
+    cats = "+".join([category] if isinstance(category, str) else sorted(category))
+    base = Path(root).expanduser() if root is not None else default_cache_dir()
+    return base / f"{mode}_{cats}_n{n_models}_s{seed}_v{GENERATOR_VERSION}"
+
+
+def ensure_synthetic_dataset(
+    root: str | os.PathLike | None = None,
+    category: str | Sequence[str] = "chair",
+    mode: Mode = "nmr",
+    n_models: int = 200,
+    seed: int = 0,
+    progress: bool = True,
+    **kwargs,
+) -> Path:
+    """Return the synthetic dataset for these settings, generating it first if it is absent.
+
+    Generation writes to a temporary sibling folder that is renamed into place at the end, so an
+    interrupted run never leaves a folder that looks complete; concurrent runs are safe (the loser's copy is
+    discarded).
+
+    Args:
+        root: parent folder of the datasets; defaults to :func:`default_cache_dir` (``$UNICORN_CACHE``).
+        category, mode, n_models, seed: see :func:`generate_synthetic_dataset`.
+        progress: show a progress bar while generating.
+        **kwargs: further :func:`generate_synthetic_dataset` options (``image_size``, ``n_views``...); they
+            are not part of the folder name, so keep them fixed for a given ``root``.
+
+    Returns:
+        The dataset root, ready for :class:`~unicorn.data.shapenet.ShapeNetNMR`.
+    """
+    final = synthetic_dataset_path(category, mode, n_models, seed, root)
+    if (final / "synthetic.json").exists():
+        return final
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.parent / f".{final.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    try:
+        generate_synthetic_dataset(tmp, category, mode, n_models, seed, progress=progress, **kwargs)
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not (final / "synthetic.json").exists():
+                raise
+            # another process finished first: keep its copy
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return final

@@ -1,0 +1,75 @@
+"""Evaluation metrics of UNICORN: Chamfer-L1 (with GT-pose alignment or ICP), normal consistency, mask IoU,
+keypoint-transfer PCK, pose errors and voxel IoU.
+
+Each metric is a plain function on tensors; see the submodules for the protocols they follow.
+"""
+
+from .alignment import align_with_gt_pose, normalize_to_unit_cube
+from .chamfer import (
+    CHAMFER_FACTOR,
+    PointCloudScores,
+    chamfer_l1,
+    chamfer_l2,
+    normal_consistency,
+    point_cloud_scores,
+)
+from .icp import (
+    ICPResult,
+    apply_similarity,
+    gradient_icp,
+    matrix_to_rotation_6d,
+    rotation_6d_to_matrix,
+    transform_normals,
+)
+from .keypoints import keypoint_pairs, keypoint_transfer_pck, pck, project_vertices, transfer_keypoints
+from .masks import mask_iou
+from .mesh_evaluator import SHAPENET_METRICS, evaluate_meshes
+from .nn import NearestNeighborIndex, gather_points, nearest_neighbors
+from .pose import (
+    align_canonical_frame,
+    azimuth_error,
+    geodesic_error,
+    pose_errors,
+    rotation_to_azim_elev_roll,
+)
+from .sampling import face_areas_normals, sample_points_from_meshes
+from .voxels import mesh_voxel_iou, voxel_centers, voxel_iou, voxelize_mesh
+
+__all__ = [
+    "CHAMFER_FACTOR",
+    "SHAPENET_METRICS",
+    "ICPResult",
+    "NearestNeighborIndex",
+    "PointCloudScores",
+    "align_canonical_frame",
+    "align_with_gt_pose",
+    "apply_similarity",
+    "azimuth_error",
+    "chamfer_l1",
+    "chamfer_l2",
+    "evaluate_meshes",
+    "face_areas_normals",
+    "gather_points",
+    "geodesic_error",
+    "gradient_icp",
+    "keypoint_pairs",
+    "keypoint_transfer_pck",
+    "mask_iou",
+    "matrix_to_rotation_6d",
+    "mesh_voxel_iou",
+    "nearest_neighbors",
+    "normal_consistency",
+    "normalize_to_unit_cube",
+    "pck",
+    "point_cloud_scores",
+    "pose_errors",
+    "project_vertices",
+    "rotation_6d_to_matrix",
+    "rotation_to_azim_elev_roll",
+    "sample_points_from_meshes",
+    "transfer_keypoints",
+    "transform_normals",
+    "voxel_centers",
+    "voxel_iou",
+    "voxelize_mesh",
+]

@@ -1,0 +1,174 @@
+"""Camera pose errors: geodesic rotation error, azimuth error, and canonical-frame alignment.
+
+Rotations are world-to-view in unicorn's row-vector convention (``x_view = x @ R + T``). An unsupervised model
+learns its own canonical object frame, related to the ground-truth frame by one fixed rotation ``Q``:
+``x_learned = x_gt @ Q`` so that ``R_gt = Q @ R_pred`` for every image. :func:`align_canonical_frame`
+estimates ``Q`` over a test set before the per-image errors are measured (as is standard for viewpoint metrics
+of unsupervised methods); without alignment the errors assume the learned axes already match the ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ._checks import check_rotations
+
+__all__ = [
+    "align_canonical_frame",
+    "azimuth_error",
+    "geodesic_error",
+    "pose_errors",
+    "rotation_to_azim_elev_roll",
+]
+
+
+def geodesic_error(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle in degrees, in [0, 180], between rotations (..., 3, 3).
+
+    Computed as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = R1^T R2``, accurate near 0 and 180
+    degrees (unlike ``acos`` of the trace, which also needs clamping in float32).
+
+    Example:
+        >>> Rz = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        >>> round(geodesic_error(torch.eye(3), Rz).item(), 4)
+        90.0
+    """
+    if R1.shape[-2:] != (3, 3) or R2.shape[-2:] != (3, 3):
+        raise ValueError(f"rotations must have shape (..., 3, 3), got {tuple(R1.shape)} and {tuple(R2.shape)}")
+    M = R1.transpose(-1, -2) @ R2.to(R1)
+    cos = (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    skew = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+    sin = torch.linalg.vector_norm(skew, dim=-1) / 2
+    return torch.rad2deg(torch.atan2(sin, cos))
+
+
+def azimuth_error(azim_pred: torch.Tensor, azim_gt: torch.Tensor) -> torch.Tensor:
+    """Absolute azimuth difference in degrees, wrapped to [0, 180].
+
+    Example:
+        >>> azimuth_error(torch.tensor([350.0, 10.0]), torch.tensor([10.0, 200.0])).tolist()
+        [20.0, 170.0]
+    """
+    diff = torch.remainder(azim_pred - azim_gt.to(azim_pred) + 180.0, 360.0) - 180.0
+    return diff.abs()
+
+
+def rotation_to_azim_elev_roll(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Inverse of :func:`unicorn.geometry.rotations.azim_elev_roll_to_rotation`.
+
+    Args:
+        R: (..., 3, 3) rotations ``Az(azim) @ El(elev) @ Ro(roll)``.
+
+    Returns:
+        azim in (-180, 180], elev in [-90, 90], roll in (-180, 180], each (...) in degrees (azimuth and roll
+        are undefined at elevation +-90).
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    azim = torch.rad2deg(torch.atan2(R[..., 0, 2], R[..., 2, 2]))
+    elev = -torch.rad2deg(torch.asin(R[..., 1, 2].clamp(-1.0, 1.0)))
+    roll = torch.rad2deg(torch.atan2(-R[..., 1, 0], R[..., 1, 1]))
+    return azim, elev, roll
+
+
+def _kabsch(M: torch.Tensor) -> torch.Tensor:
+    """The rotation Q maximising ``tr(Q^T M)`` for (..., 3, 3) ``M``."""
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
+    return U @ D @ Vh
+
+
+def _median_errors(Q: torch.Tensor, R_pred: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
+    """Median over samples of the error of each candidate Q (C, 3, 3) -> (C,)."""
+    out = []
+    for q in Q.split(64):
+        err = geodesic_error(q.unsqueeze(1) @ R_pred.unsqueeze(0), R_gt.unsqueeze(0))  # (c, N)
+        out.append(err.median(dim=1).values)
+    return torch.cat(out)
+
+
+def align_canonical_frame(
+    R_pred: torch.Tensor, R_gt: torch.Tensor, *, max_candidates: int = 256, refine_steps: int = 10
+) -> torch.Tensor:
+    """The global rotation ``Q`` making ``Q @ R_pred`` closest to ``R_gt`` in median geodesic error.
+
+    Candidates are the chordal least-squares solution (Kabsch/Procrustes on ``sum_i R_gt_i R_pred_i^T``) and
+    the per-image relative rotations ``R_gt_i R_pred_i^T`` of up to ``max_candidates`` evenly spaced images
+    (each one aligns its image exactly, so a frame that is right for most images is among them even when a
+    large share of predictions is flipped); the candidate with the lowest median error is kept and then
+    refined by Kabsch on the images whose error is at most the median, for as long as that lowers the median.
+
+    Args:
+        R_pred: (N, 3, 3) predicted rotations.
+        R_gt: (N, 3, 3) ground-truth rotations.
+        max_candidates: per-image candidates tried.
+        refine_steps: most inlier-Kabsch refinements.
+
+    Returns:
+        (3, 3) rotation ``Q``, dtype of ``R_pred``.
+    """
+    check_rotations(R_pred, "R_pred")
+    check_rotations(R_gt, "R_gt", R_pred.shape[0])
+    dtype = R_pred.dtype
+    R_pred, R_gt = R_pred.double(), R_gt.to(R_pred.device).double()
+    N = R_pred.shape[0]
+    relative = R_gt @ R_pred.transpose(1, 2)  # (N, 3, 3), each aligns one image
+    pick = torch.linspace(0, N - 1, min(N, max_candidates), device=R_pred.device).round().long().unique()
+    candidates = torch.cat([_kabsch(relative.sum(0)).unsqueeze(0), relative[pick]])
+    medians = _median_errors(candidates, R_pred, R_gt)
+    best = int(medians.argmin())
+    Q, best_median = candidates[best], medians[best]
+    for _ in range(refine_steps):
+        err = geodesic_error(Q @ R_pred, R_gt)
+        inliers = err <= err.median()
+        Q_new = _kabsch(relative[inliers].sum(0))
+        new_median = _median_errors(Q_new.unsqueeze(0), R_pred, R_gt)[0]
+        if not new_median < best_median:
+            break
+        Q, best_median = Q_new, new_median
+    return Q.to(dtype)
+
+
+def pose_errors(
+    R_pred: torch.Tensor,
+    R_gt: torch.Tensor,
+    *,
+    align: bool = False,
+    accuracy_threshold: float = 30.0,
+) -> dict[str, float]:
+    """Summary of rotation and azimuth errors over a test set.
+
+    Args:
+        R_pred: (N, 3, 3) predicted world-to-view rotations.
+        R_gt: (N, 3, 3) ground-truth rotations.
+        align: first map the learned canonical frame to the ground truth with :func:`align_canonical_frame`.
+        accuracy_threshold: degrees for the accuracy ratio (30 = pi / 6, the standard Acc_{pi/6}).
+
+    Returns:
+        ``rot-err-mean``, ``rot-err-median`` (degrees), ``rot-acc-30`` (fraction of images below the
+        threshold, the key follows the threshold), ``azim-err-mean`` and ``azim-err-median`` (degrees,
+        azimuths read with :func:`rotation_to_azim_elev_roll`).
+    """
+    check_rotations(R_pred, "R_pred")
+    check_rotations(R_gt, "R_gt", R_pred.shape[0])
+    if R_pred.shape[0] == 0:
+        raise ValueError("need at least one rotation")
+    R_gt = R_gt.to(R_pred)
+    if align:
+        R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred
+    err = geodesic_error(R_pred, R_gt)
+    azim_err = azimuth_error(rotation_to_azim_elev_roll(R_pred)[0], rotation_to_azim_elev_roll(R_gt)[0])
+    th = f"{accuracy_threshold:g}"
+    if math.isclose(accuracy_threshold, round(accuracy_threshold)):
+        th = str(round(accuracy_threshold))
+    return {
+        "rot-err-mean": float(err.mean()),
+        "rot-err-median": float(err.median()),
+        f"rot-acc-{th}": float((err < accuracy_threshold).double().mean()),
+        "azim-err-mean": float(azim_err.mean()),
+        "azim-err-median": float(azim_err.median()),
+    }

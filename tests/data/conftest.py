@@ -1,0 +1,157 @@
+"""Tiny fixtures in the exact on-disk formats of the real datasets, written by code at test time."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import torch
+from PIL import Image
+
+from unicorn.data.cub import CUB_KEYPOINTS
+from unicorn.data.synthetic.writer import generate_synthetic_dataset
+
+# ---------------------------------------------------------------------------------------------------------
+# CMR / UCMR style annotations
+
+_RECORD_DTYPE = [
+    ("id", "O"),
+    ("rel_path", "O"),
+    ("train", "O"),
+    ("test", "O"),
+    ("bbox", "O"),
+    ("width", "O"),
+    ("height", "O"),
+    ("parts", "O"),
+    ("mask", "O"),
+    ("class_id", "O"),
+    ("cad_index", "O"),
+]
+
+
+def make_record(rng: np.random.Generator, rel_path: str, width: int, height: int, n_kp: int, idx: int) -> dict:
+    """One annotation: an ellipse-shaped object with keypoints inside it (1-based MATLAB coordinates)."""
+    x1, y1 = int(rng.integers(0, width // 4)), int(rng.integers(0, height // 4))
+    x2, y2 = int(rng.integers(3 * width // 4, width)), int(rng.integers(3 * height // 4, height))
+    yy, xx = np.mgrid[0:height, 0:width]
+    cx, cy, rx, ry = (x1 + x2) / 2, (y1 + y2) / 2, (x2 - x1) / 2, (y2 - y1) / 2
+    mask = ((xx - cx) / rx) ** 2 + ((yy - cy) / ry) ** 2 <= 1.0
+    # keypoints well inside the ellipse, some invisible
+    angles = rng.uniform(0, 2 * np.pi, n_kp)
+    radius = rng.uniform(0, 0.6, n_kp)
+    kx, ky = cx + radius * rx * np.cos(angles), cy + radius * ry * np.sin(angles)
+    vis = (rng.random(n_kp) < 0.8).astype(np.float64)
+    parts = np.stack([np.round(kx) + 1, np.round(ky) + 1, vis])  # (3, K), 1-based
+    parts[:2, vis == 0] = 0
+    return {
+        "id": idx,
+        "rel_path": rel_path,
+        "train": 1,
+        "test": 0,
+        "bbox": {"x1": x1 + 1.0, "y1": y1 + 1.0, "x2": x2 + 1.0, "y2": y2 + 1.0},
+        "width": width,
+        "height": height,
+        "parts": parts,
+        "mask": mask,
+        "class_id": 1 + idx % 3,
+        "cad_index": 1 + idx % 10,
+    }
+
+
+def write_struct_array(path: Path, records: list[dict], variable: str = "images") -> None:
+    """Save records as a MATLAB struct array (dict fields become nested structs, bools become logical)."""
+    arr = np.empty(len(records), dtype=_RECORD_DTYPE)
+    for i, rec in enumerate(records):
+        for key, _ in _RECORD_DTYPE:
+            arr[i][key] = rec[key]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    scipy.io.savemat(path, {variable: arr})
+
+
+def write_photo(path: Path, width: int, height: int, seed: int) -> None:
+    """A smooth random colour JPEG/PNG (format from the suffix)."""
+    rng = np.random.default_rng(seed)
+    grid = rng.integers(0, 256, size=(4, 4, 3), dtype=np.uint8)
+    img = Image.fromarray(grid).resize((width, height), Image.Resampling.BILINEAR)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img.save(path)
+
+
+def write_annotated_split(
+    root: Path, image_subdir: str, anno: Path, rel_dirs: list[str], n: int, n_kp: int, seed: int
+) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    records = []
+    for i in range(n):
+        w, h = int(rng.integers(60, 120)), int(rng.integers(50, 110))
+        rel = f"{rel_dirs[i % len(rel_dirs)]}/img_{seed}_{i:03d}.jpg"
+        write_photo(root / image_subdir / rel, w, h, seed * 100 + i)
+        records.append(make_record(rng, rel, w, h, n_kp, i))
+    # one box touching the image border, to exercise edge padding
+    records[0]["bbox"] = {
+        "x1": 1.0,
+        "y1": 1.0,
+        "x2": float(records[0]["width"]),
+        "y2": records[0]["bbox"]["y2"],
+    }
+    write_struct_array(anno, records)
+    return records
+
+
+@pytest.fixture
+def cub_root(tmp_path: Path) -> Path:
+    """CUB-200-2011 layout: images/<class>/<file>.jpg + cachedir/cub/data/<split>_cub_cleaned.mat."""
+    root = tmp_path / "cub_200"
+    dirs = ["001.Black_footed_Albatross", "002.Laysan_Albatross"]
+    for seed, (split, n) in enumerate([("train", 4), ("val", 7), ("test", 3)]):
+        write_annotated_split(
+            root,
+            "images",
+            root / "cachedir/cub/data" / f"{split}_cub_cleaned.mat",
+            dirs,
+            n,
+            len(CUB_KEYPOINTS),
+            seed,
+        )
+    return root
+
+
+@pytest.fixture
+def p3d_root(tmp_path: Path) -> Path:
+    """Pascal3D+ layout with UCMR annotations, car_kps.mat and the 10 CAD point clouds."""
+    root = tmp_path / "pascal_3d"
+    dirs = ["car_pascal", "car_imagenet"]
+    for seed, (split, n) in enumerate([("train", 3), ("test", 2)]):
+        write_annotated_split(root, "Images", root / "ucmr_anno/data" / f"car_{split}.mat", dirs, n, 12, seed + 10)
+    perm = np.array([2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11])  # 1-based, like the real file
+    names = np.array([f"kp{i}" for i in range(12)], dtype=object)
+    scipy.io.savemat(root / "ucmr_anno/data/car_kps.mat", {"kp_names": names, "kp_perm_inds": perm})
+    pc_dir = root / "unicorn_anno/car"
+    pc_dir.mkdir(parents=True)
+    for k in range(1, 11):
+        pts = torch.rand(200, 3) - 0.5
+        torch.save(
+            {"points": pts, "normals": torch.nn.functional.normalize(pts, dim=1)},
+            pc_dir / f"{k:02d}_pointcloud.pt",
+        )
+    return root
+
+
+@pytest.fixture(scope="session")
+def synth_nmr(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Synthetic benchmark, NMR mode: 2 categories x 3 models x 6 views (also the ShapeNet-NMR fixture)."""
+    out = tmp_path_factory.mktemp("synth") / "nmr"
+    return generate_synthetic_dataset(
+        out, ["chair", "car"], "nmr", n_models=3, seed=0, n_views=6, n_points=600, progress=False
+    )
+
+
+@pytest.fixture(scope="session")
+def synth_wild(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Synthetic benchmark, wild mode (off-centre cameras, roll, random backgrounds)."""
+    out = tmp_path_factory.mktemp("synth") / "wild"
+    return generate_synthetic_dataset(
+        out, ["airplane", "lamp"], "wild", n_models=3, seed=1, n_views=6, n_points=600, progress=False
+    )

@@ -1,0 +1,148 @@
+"""CUB-200-2011 (CMR annotations) and Pascal3D+ Car (UCMR annotations) loaders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import torch
+
+from unicorn.data.cub import CUB200, CUB_FLIP_PERM
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError, hflip_keypoints
+from unicorn.data.matlab import load_struct_array
+from unicorn.data.p3d import Pascal3DCar
+
+from .conftest import make_record, write_struct_array
+
+
+def _check_item(item: dict, img_size: int, mask_size: int, n_kp: int) -> None:
+    assert item["image"].shape == (3, img_size, img_size) and item["image"].dtype == torch.float32
+    assert 0 <= item["image"].min() and item["image"].max() <= 1
+    assert item["mask"].shape == (1, mask_size, mask_size) and set(item["mask"].unique().tolist()) <= {
+        0.0,
+        1.0,
+    }
+    assert item["mask"].sum() > 0
+    assert item["R"].shape == (3, 3) and item["T"].shape == (3,) and not item["has_pose"]
+    assert torch.equal(item["R"], torch.eye(3)) and torch.allclose(item["T"], torch.tensor([0.0, 0.0, 2.732]))
+    kps = item["keypoints"]
+    assert kps.shape == (n_kp, 3) and kps.dtype == torch.float32
+    vis = kps[:, 2] > 0
+    # the fixture's keypoints lie inside the objects, so they land on the mask
+    col, row = kps[vis, 0].round().long(), kps[vis, 1].round().long()
+    assert ((col >= 0) & (col < mask_size) & (row >= 0) & (row < mask_size)).all()
+    assert item["mask"][0, row, col].min() == 1.0
+
+
+def test_struct_array_quirks(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    recs = [make_record(rng, f"a/{i}.jpg", 40, 30, 15, i) for i in range(2)]
+    write_struct_array(tmp_path / "two.mat", recs)
+    write_struct_array(tmp_path / "one.mat", recs[:1])  # squeeze_me turns this into a bare struct
+    two, one = (
+        load_struct_array(tmp_path / "two.mat", "images"),
+        load_struct_array(tmp_path / "one.mat", "images"),
+    )
+    assert len(two) == 2 and len(one) == 1
+    assert two[1]["rel_path"] == "a/1.jpg" and set(two[0]["bbox"]) == {"x1", "y1", "x2", "y2"}
+    assert two[0]["mask"].dtype == np.uint8 and two[0]["parts"].shape == (3, 15)
+    with pytest.raises(KeyError, match="no variable 'sfm_anno'"):
+        load_struct_array(tmp_path / "one.mat", "sfm_anno")
+
+
+@pytest.mark.parametrize("split", ["train", "val", "test"])
+def test_cub_items(cub_root: Path, split: str) -> None:
+    ds = CUB200(cub_root, split)
+    assert len(ds) == {"train": 4, "val": 7, "test": 3}[split]
+    for i in range(len(ds)):
+        _check_item(ds[i], 64, 64, 15)
+
+
+def test_cub_eval_size(cub_root: Path) -> None:
+    item = CUB200(cub_root, "test", eval_size=256)[0]
+    _check_item(item, 64, 256, 15)
+
+
+def test_cub_flip_keeps_keypoints_consistent(cub_root: Path) -> None:
+    ds = CUB200(cub_root, "train", augment=True)
+    ds.jitter = 0.0  # isolate the flip
+    plain = CUB200(cub_root, "train", augment=False)
+    ref = plain[1]
+    seen = set()
+    for seed in range(20):
+        torch.manual_seed(seed)
+        item = ds[1]
+        seen.add(bool(item["flipped"]))
+        if item["flipped"]:
+            assert torch.equal(item["image"], ref["image"].flip(-1))
+            assert torch.equal(item["mask"], ref["mask"].flip(-1))
+            expected = hflip_keypoints(ref["keypoints"].numpy(), 64, CUB_FLIP_PERM)
+            expected[expected[:, 2] == 0] = 0
+            assert np.allclose(item["keypoints"].numpy(), expected)
+            # LEye (index 6) of the flipped image is REye (index 10) of the original, mirrored
+            if ref["keypoints"][10, 2] > 0:
+                assert np.isclose(item["keypoints"][6, 0], 63 - ref["keypoints"][10, 0])
+        else:
+            assert torch.equal(item["image"], ref["image"])
+    assert seen == {True, False}
+
+
+def test_cub_jitter_moves_the_crop(cub_root: Path) -> None:
+    ds = CUB200(cub_root, "train", augment=True)
+    boxes = {tuple(ds.square_crop_box(2, np.random.default_rng(s))) for s in range(5)}
+    assert len(boxes) > 1
+
+
+def test_cub_missing_root_and_annotations(tmp_path: Path, cub_root: Path) -> None:
+    with pytest.raises(DatasetNotFoundError, match=r"nowhere.*CUB_200_2011"):
+        CUB200(tmp_path / "nowhere")
+    (cub_root / "cachedir/cub/data/val_cub_cleaned.mat").unlink()
+    with pytest.raises(DatasetNotFoundError, match=r"val_cub_cleaned\.mat.*cachedir"):
+        CUB200(cub_root, "val")
+
+
+def test_cub_bad_image_raise_or_skip(cub_root: Path) -> None:
+    ds = CUB200(cub_root, "test")
+    bad = ds.image_path(1)
+    bad.write_bytes(b"garbage")
+    with pytest.raises(ImageLoadError, match=bad.name):
+        ds[1]
+    skipping = CUB200(cub_root, "test", on_error="skip")
+    with pytest.warns(RuntimeWarning, match=bad.name):
+        item = skipping[1]
+    assert int(item["index"]) == 2 and str(bad) in skipping.bad_files
+
+
+def test_p3d_items_and_points(p3d_root: Path) -> None:
+    train = Pascal3DCar(p3d_root, "train")
+    assert len(train) == 3 and "points" not in train[0]
+    for i in range(len(train)):
+        _check_item(train[i], 64, 64, 12)
+    test = Pascal3DCar(p3d_root, "test")
+    assert len(test) == 2
+    for i in range(len(test)):
+        item = test[i]
+        _check_item(item, 64, 64, 12)
+        assert item["points"].shape == (200, 3) and item["normals"].shape == (200, 3)
+        assert 1 <= int(item["cad_index"]) <= 10
+        expected = torch.load(p3d_root / f"unicorn_anno/car/{int(item['cad_index']):02d}_pointcloud.pt")["points"]
+        assert torch.equal(item["points"], expected)
+
+
+def test_p3d_flip_uses_kp_perm(p3d_root: Path) -> None:
+    perm = scipy.io.loadmat(p3d_root / "ucmr_anno/data/car_kps.mat", squeeze_me=True)["kp_perm_inds"] - 1
+    ds = Pascal3DCar(p3d_root, "train", augment=True)
+    assert np.array_equal(ds.flip_perm, perm)
+
+
+def test_p3d_missing_files(tmp_path: Path, p3d_root: Path) -> None:
+    with pytest.raises(DatasetNotFoundError, match="PASCAL3D"):
+        Pascal3DCar(tmp_path / "nowhere")
+    (p3d_root / "unicorn_anno/car/07_pointcloud.pt").unlink()
+    with pytest.raises(DatasetNotFoundError, match=r"07_pointcloud\.pt.*unicorn_anno"):
+        Pascal3DCar(p3d_root, "test")
+    (p3d_root / "ucmr_anno/data/car_train.mat").unlink()
+    with pytest.raises(DatasetNotFoundError, match=r"car_train\.mat.*UCMR"):
+        Pascal3DCar(p3d_root, "train")

@@ -1,0 +1,99 @@
+"""The LightningDataModule: splits, validation subsets, loaders, Hydra configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from unicorn.data.datamodule import UnicornDataModule, build_dataset, val_indices
+
+CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
+
+
+def test_val_indices_reference_sizes_capped() -> None:
+    assert val_indices("shapenet_nmr", 100) == list(range(32))
+    assert val_indices("shapenet_nmr", 3) == [0, 1, 2]
+    assert val_indices("lsun", 100) == list(range(17, 22))
+    assert val_indices("lsun", 10) == list(range(5))
+    cub = val_indices("cub_200", 50)
+    assert len(cub) == 5 and cub == val_indices("cub_200", 50) and cub != list(range(5))
+    assert val_indices("folder", 2) == [0, 1]
+
+
+def test_shapenet_datamodule_builds_splits(synth_nmr: Path) -> None:
+    dm = UnicornDataModule(
+        "shapenet_nmr", str(synth_nmr), categories=["chair", "car"], batch_size=4, num_workers=0, seed=1
+    )
+    dm.setup()
+    assert len(dm.train_set) == 2 * 6 and len(dm.val_set) == 2 and len(dm.test_set) == 2
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image"].shape == (4, 3, 64, 64) and batch["R"].shape == (4, 3, 3) and batch["has_pose"].all()
+    val = next(iter(dm.val_dataloader()))
+    assert val["points"].shape[0] == 2 and val["points"].shape[-1] == 3
+    # the training order follows the seed
+    first = [next(iter(dm.train_dataloader()))["index"].tolist() for _ in range(2)]
+    assert first[0] == first[1]
+
+
+def test_synthetic_datamodule_generates_on_first_use(tmp_path: Path) -> None:
+    synth = {
+        "mode": "wild",
+        "n_models": 3,
+        "seed": 2,
+        "n_views": 2,
+        "n_points": 100,
+        "image_size": 32,
+        "supersample": 1,
+        "progress": False,
+    }
+    dm = UnicornDataModule(
+        "synthetic", str(tmp_path), categories="airplane", batch_size=2, num_workers=0, synthetic=synth
+    )
+    dm.prepare_data()
+    assert (dm.dataset_root() / "synthetic.json").exists() and dm.dataset_root().parent == tmp_path
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image"].shape == (2, 3, 32, 32)
+
+
+def test_cub_datamodule_val_subset(cub_root: Path) -> None:
+    dm = UnicornDataModule("cub_200", str(cub_root), batch_size=2, num_workers=0)
+    dm.setup()
+    assert len(dm.train_set) == 4 and len(dm.val_set) == 5 and len(dm.test_set) == 3
+    assert dm.train_set.augment and not dm.val_set.dataset.augment
+    batch = next(iter(dm.val_dataloader()))
+    assert batch["keypoints"].shape == (2, 15, 3) and batch["mask"].shape == (2, 1, 64, 64)
+
+
+def test_p3d_datamodule_validates_on_train_images(p3d_root: Path) -> None:
+    dm = UnicornDataModule("p3d_car", str(p3d_root), batch_size=2, num_workers=0)
+    dm.setup()
+    assert len(dm.val_set) == 3 and dm.val_set.dataset.split == "train" and not dm.val_set.dataset.augment
+    assert "points" in dm.test_set[0]
+
+
+def test_errors() -> None:
+    with pytest.raises(ValueError, match="unknown dataset 'imagenet'"):
+        UnicornDataModule("imagenet", "x")
+    with pytest.raises(ValueError, match="needs a root"):
+        UnicornDataModule("cub_200")
+    with pytest.raises(ValueError, match="split"):
+        build_dataset("folder", "training", ".")
+
+
+@pytest.mark.parametrize("path", sorted(CONF.glob("*.yaml")), ids=lambda p: p.stem)
+def test_hydra_configs_instantiate(path: Path, tmp_path: Path) -> None:
+    cfg = OmegaConf.load(path)
+    if OmegaConf.is_missing(cfg, "root"):
+        cfg.root = str(tmp_path)
+    dm = instantiate(cfg)
+    assert isinstance(dm, UnicornDataModule) and dm.name == cfg.name
+    assert dm.batch_size == 32 and isinstance(dm.seed, int)
+    assert dm.categories is None or isinstance(dm.categories, (str, list))
+    if dm.name == "shapenet_nmr":
+        assert dm.categories == ["airplane"]
+    torch.testing.assert_close(torch.tensor(dm.img_size), torch.tensor(64))

@@ -1,0 +1,121 @@
+"""Image conversion, bad files, and the crop / pad / flip helpers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from unicorn.data.images import (
+    ImageLoadError,
+    crop_box,
+    decode_image,
+    fit_and_pad,
+    hflip_keypoints,
+    load_image,
+    load_mask,
+    pad_bbox,
+    square_bbox,
+)
+
+
+def _save(path: Path, img: Image.Image) -> Path:
+    img.save(path)
+    return path
+
+
+@pytest.mark.parametrize("mode", ["L", "RGBA", "P", "LA", "I;16", "RGB", "CMYK", "1"])
+def test_load_image_converts_modes_to_rgb(tmp_path: Path, mode: str) -> None:
+    rng = np.random.default_rng(0)
+    rgb = Image.fromarray(rng.integers(0, 256, (12, 10, 3), dtype=np.uint8))
+    if mode == "I;16":
+        img = Image.fromarray((rng.integers(0, 65536, (12, 10))).astype(np.uint16))
+        assert img.mode.startswith("I;16")
+    else:
+        img = rgb.convert(mode)
+    suffix = ".jpg" if mode == "CMYK" else ".png"
+    arr = load_image(_save(tmp_path / f"img{suffix}", img))
+    assert arr.shape == (12, 10, 3) and arr.dtype == np.float32
+    assert 0.0 <= arr.min() and arr.max() <= 1.0
+
+
+def test_sixteen_bit_is_rescaled_not_clipped(tmp_path: Path) -> None:
+    img = Image.fromarray(np.full((4, 4), 32768, dtype=np.uint16))
+    arr = load_image(_save(tmp_path / "a.png", img))
+    assert np.allclose(arr, 32768 / 65535, atol=1e-4)
+
+
+def test_transparent_pixels_become_white(tmp_path: Path) -> None:
+    rgba = np.zeros((4, 4, 4), dtype=np.uint8)
+    rgba[..., 0] = 255
+    rgba[:2, :, 3] = 255  # top half opaque red, bottom half transparent
+    arr = load_image(_save(tmp_path / "a.png", Image.fromarray(rgba, "RGBA")))
+    assert np.allclose(arr[0, 0], [1, 0, 0]) and np.allclose(arr[3, 0], [1, 1, 1])
+
+
+@pytest.mark.parametrize("content", [b"", b"not an image at all", b"\x89PNG\r\n\x1a\n\x00\x00garbage"])
+def test_corrupt_file_names_its_path(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "broken.png"
+    path.write_bytes(content)
+    with pytest.raises(ImageLoadError, match="broken.png"):
+        load_image(path)
+    with pytest.raises(ImageLoadError, match="key42"):
+        decode_image(content, "key42")
+
+
+def test_truncated_jpeg_is_reported(tmp_path: Path) -> None:
+    good = _save(tmp_path / "good.jpg", Image.fromarray(np.zeros((64, 64, 3), np.uint8) + 90))
+    bad = tmp_path / "truncated.jpg"
+    bad.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(ImageLoadError, match="truncated.jpg"):
+        load_image(bad)
+
+
+def test_missing_file_is_reported(tmp_path: Path) -> None:
+    with pytest.raises(ImageLoadError, match="nope.png"):
+        load_image(tmp_path / "nope.png")
+
+
+def test_load_mask_any_mode(tmp_path: Path) -> None:
+    m = np.zeros((5, 5), np.uint8)
+    m[1:3, 1:4] = 255
+    for mode in ("L", "RGB", "1"):
+        arr = load_mask(_save(tmp_path / f"m_{mode}.png", Image.fromarray(m).convert(mode)))
+        assert arr.shape == (5, 5) and set(np.unique(arr)) == {0.0, 1.0} and arr.sum() == 6
+
+
+def test_square_bbox_and_padding() -> None:
+    box = square_bbox(pad_bbox(np.array([10, 20, 29, 59]), 0.05))  # 20 x 40 box, padded by 1 x 2
+    side = box[2] - box[0] + 1
+    assert side == box[3] - box[1] + 1 == 44
+    assert box[1] == 18 and box[3] == 61  # the long side keeps the padded extent
+
+
+def test_crop_box_replicates_border_and_zeroes_mask() -> None:
+    image = np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3)
+    mask = np.ones((4, 5), np.float32)
+    crop, mcrop = crop_box(image, np.array([-2, -1, 6, 7]), mask)
+    assert crop.shape == (9, 9, 3) and mcrop.shape == (9, 9)
+    assert np.array_equal(crop[0, 0], image[0, 0]) and np.array_equal(crop[-1, -1], image[-1, -1])
+    assert np.array_equal(crop[1:5, 2:7], image)
+    assert mcrop.sum() == 20 and mcrop[0].sum() == 0 and mcrop[:, 0].sum() == 0
+    # a box entirely outside the image still gives its full size
+    crop, mcrop = crop_box(image, np.array([10, 10, 12, 13]), mask)
+    assert crop.shape == (4, 3, 3) and mcrop.sum() == 0
+
+
+def test_fit_and_pad_keeps_aspect() -> None:
+    image = np.zeros((20, 40, 3), np.float32)
+    image[:, :, 0] = 1.0
+    out = fit_and_pad(image, 16)
+    assert out.shape == (16, 16, 3) and np.allclose(out[..., 0], 1.0)
+
+
+def test_hflip_keypoints_is_an_involution() -> None:
+    kps = np.array([[3.0, 4.0, 1.0], [10.0, 2.0, 1.0], [0.0, 0.0, 0.0]])
+    perm = np.array([1, 0, 2])
+    once = hflip_keypoints(kps, 16, perm)
+    assert np.allclose(once[1, :2], [12.0, 4.0])  # keypoint 0 mirrored lands in slot 1
+    assert np.allclose(hflip_keypoints(once, 16, perm), kps)

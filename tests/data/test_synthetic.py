@@ -1,0 +1,167 @@
+"""The synthetic benchmark: shapes, renderer, determinism, cache and command line."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from unicorn.data import cli
+from unicorn.data.synthetic import writer
+from unicorn.data.synthetic.render import camera_rays, render_object
+from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, Texture, build_object
+from unicorn.data.synthetic.writer import (
+    ensure_synthetic_dataset,
+    generate_synthetic_dataset,
+    sample_surface_points,
+    synthetic_dataset_path,
+    views_to_cameras,
+)
+from unicorn.geometry.cameras import PerspectiveCamera
+
+TINY = {"n_models": 3, "n_views": 2, "n_points": 200, "supersample": 2, "image_size": 32, "progress": False}
+
+
+def _digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.mark.parametrize("category", sorted(CATEGORIES))
+def test_shapes_are_normalised_and_vary(category: str) -> None:
+    a = build_object(category, np.random.default_rng(0))
+    b = build_object(category, np.random.default_rng(1))
+    for obj in (a, b):
+        lo, hi = obj.mesh().bounds
+        assert np.isclose((hi - lo).max(), 1.0) and np.allclose((hi + lo) / 2, 0.0, atol=1e-9)
+    assert not np.allclose(a.mesh().bounds, b.mesh().bounds)  # per-instance proportions
+    c = build_object(category, np.random.default_rng(0))
+    assert np.array_equal(a.mesh().vertices, c.mesh().vertices)
+
+
+def test_surface_points_skip_buried_faces() -> None:
+    # a post whose top half is buried inside a block: none of the samples may lie inside the block
+    block = trimesh.creation.box(extents=(1.0, 0.5, 1.0))
+    post = trimesh.creation.box(
+        extents=(0.2, 1.0, 0.2), transform=trimesh.transformations.translation_matrix((0, -0.25, 0))
+    )
+    solid = Texture("solid", np.zeros((2, 3)))
+    obj = ProceduralObject("test", [Part("block", block, solid), Part("post", post, solid)])
+    points, normals = sample_surface_points(obj, 3000, np.random.default_rng(0))
+    assert points.shape == (3000, 3) and np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    strictly_inside = np.all(np.abs(points) < np.array([0.5, 0.25, 0.5]) - 1e-6, axis=1)
+    assert not strictly_inside.any()
+    assert (points[:, 1] < -0.25 - 1e-6).sum() > 100  # the visible half of the post is sampled
+
+
+def test_camera_rays_follow_the_pixel_convention() -> None:
+    R, T = views_to_cameras(
+        {
+            "azim": np.array([30.0]),
+            "elev": np.array([20.0]),
+            "roll": np.array([10.0]),
+            "dist": np.array([2.5]),
+            "tx": np.array([0.1]),
+            "ty": np.array([-0.05]),
+        }
+    )
+    origins, dirs = camera_rays(R[0], T[0], 8, fov=30.0)
+    # a point along the ray of pixel (row 2, col 5) projects back onto that pixel centre
+    import torch
+
+    point = origins[2 * 8 + 5] + 1.7 * dirs[2 * 8 + 5]
+    screen = PerspectiveCamera(fov=30.0).transform_points_screen(
+        torch.tensor(point)[None, None], torch.tensor(R), torch.tensor(T), 8
+    )
+    assert np.allclose(screen[0, 0, :2].numpy(), [5.0, 2.0], atol=1e-6)
+
+
+def test_render_white_background_and_coverage() -> None:
+    obj = build_object("car", np.random.default_rng(0))
+    R, T = views_to_cameras(writer.sample_views("nmr", 2, np.random.default_rng(0)))
+    images, cover = render_object(obj, R, T, image_size=32, supersample=2)
+    assert images.shape == (2, 32, 32, 3) and cover.shape == (2, 32, 32)
+    assert np.allclose(images[:, 0, 0], 1.0) and cover[:, 0, 0].max() == 0  # corner: background
+    assert (cover == 1).sum() > 20 and ((cover > 0) & (cover < 1)).any()  # anti-aliased edges
+
+
+def test_generation_is_deterministic(tmp_path: Path) -> None:
+    a = generate_synthetic_dataset(tmp_path / "a", "mug", "wild", seed=5, **TINY)
+    b = generate_synthetic_dataset(tmp_path / "b", "mug", "wild", seed=5, **TINY)
+    c = generate_synthetic_dataset(tmp_path / "c", "mug", "wild", seed=6, **TINY)
+    da, db, dc = _digest(a), _digest(b), _digest(c)
+    assert da == db
+    assert len(da) == len(dc) and set(da.values()).isdisjoint(
+        v for k, v in dc.items() if k.endswith(".png") or k.endswith(".npz")
+    )
+    meta = yaml.safe_load((a / "metadata.yaml").read_text())
+    assert meta == {"90000006": {"id": "90000006", "name": "mug,synthetic_mug"}}
+    lists = [(a / "90000006" / f"softras_{s}.lst").read_text().split() for s in ("train", "val", "test")]
+    assert sorted(sum(lists, [])) == [f"mug_5_{i:05d}" for i in range(3)]
+
+
+def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    options = {k: v for k, v in TINY.items() if k != "n_models"}
+
+    def interrupted(out: Path, *args: object, **kwargs: object) -> None:
+        Path(out).mkdir(parents=True)
+        (Path(out) / "partial").write_text("")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(writer, "generate_synthetic_dataset", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ensure_synthetic_dataset(None, "lamp", "nmr", 3, 0, **options)
+    expected = synthetic_dataset_path("lamp", "nmr", 3, 0)
+    assert expected.parent == tmp_path / "cache" / "synthetic"
+    assert not expected.exists() and list(expected.parent.iterdir()) == []  # nothing half-written left
+
+    monkeypatch.undo()
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    path = ensure_synthetic_dataset(None, "lamp", "nmr", 3, 0, **options)
+    assert path == expected and (path / "synthetic.json").exists()
+    stamp = (path / "synthetic.json").stat().st_mtime_ns
+    monkeypatch.setattr(writer, "generate_synthetic_dataset", interrupted)  # would fail if called again
+    assert ensure_synthetic_dataset(None, "lamp", "nmr", 3, 0, **options) == path
+    assert (path / "synthetic.json").stat().st_mtime_ns == stamp
+    assert [p.name for p in path.parent.iterdir()] == [path.name]
+
+
+def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "cli"
+    code = cli.main(
+        [
+            "synth",
+            "--category",
+            "chair,table",
+            "--mode",
+            "nmr",
+            "--models",
+            "3",
+            "--out",
+            str(out),
+            "--seed",
+            "0",
+            "--views",
+            "2",
+            "--size",
+            "32",
+            "--points",
+            "100",
+            "--supersample",
+            "1",
+            "--quiet",
+        ]
+    )
+    assert code == 0 and "wrote 3 models x 2 categories" in capsys.readouterr().out
+    assert (out / "90000001").is_dir() and (out / "90000002").is_dir()
+    assert len(list((out / "90000002").glob("*/image/0001.png"))) == 3
+    assert cli.main(["check", "synthetic", "--root", str(out), "--categories", "table"]) == 0
+    assert "image: (3, 32, 32) torch.float32" in capsys.readouterr().out

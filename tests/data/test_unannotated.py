@@ -1,0 +1,152 @@
+"""Folder, CompCars and LSUN (LMDB) loaders."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from unicorn.data.folder import CompCars, ImageFolder
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+
+from .conftest import write_photo
+
+
+def _check_item(item: dict, size: int = 64) -> None:
+    assert item["image"].shape == (3, size, size) and item["image"].dtype == torch.float32
+    assert 0 <= item["image"].min() and item["image"].max() <= 1
+    assert item["mask"].shape == (1, size, size) and not item["has_mask"] and not item["has_pose"]
+    assert torch.equal(item["R"], torch.eye(3)) and torch.allclose(item["T"], torch.tensor([0.0, 0.0, 2.732]))
+
+
+@pytest.fixture
+def mixed_folder(tmp_path: Path) -> Path:
+    """Images of every mode and a few sizes, one nested, plus a non-image file."""
+    root = tmp_path / "photos"
+    rng = np.random.default_rng(0)
+    rgb = Image.fromarray(rng.integers(0, 256, (30, 50, 3), dtype=np.uint8))
+    root.mkdir()
+    rgb.convert("L").save(root / "gray.png")
+    rgb.convert("RGBA").save(root / "rgba.png")
+    rgb.convert("P").save(root / "palette.png")
+    Image.fromarray(rng.integers(0, 65536, (40, 20)).astype(np.uint16)).save(root / "deep.png")
+    (root / "sub" / "deeper").mkdir(parents=True)
+    rgb.save(root / "sub" / "deeper" / "photo.JPG")
+    (root / "notes.txt").write_text("not an image")
+    return root
+
+
+def test_folder_reads_every_mode(mixed_folder: Path) -> None:
+    ds = ImageFolder(mixed_folder, img_size=32)
+    assert len(ds) == 5  # the .txt is ignored, the nested upper-case .JPG is found
+    for i in range(len(ds)):
+        _check_item(ds[i], 32)
+
+
+def test_folder_flip_augmentation(mixed_folder: Path) -> None:
+    ds, plain = ImageFolder(mixed_folder, augment=True), ImageFolder(mixed_folder)
+    ref = plain[0]["image"]
+    outs = set()
+    for seed in range(12):
+        torch.manual_seed(seed)
+        img = ds[0]["image"]
+        outs.add("flip" if torch.equal(img, ref.flip(-1)) else "same" if torch.equal(img, ref) else "other")
+    assert outs == {"flip", "same"}
+
+
+def test_folder_errors(tmp_path: Path, mixed_folder: Path) -> None:
+    with pytest.raises(DatasetNotFoundError, match="missing_dir"):
+        ImageFolder(tmp_path / "missing_dir")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetNotFoundError, match="empty"):
+        ImageFolder(tmp_path / "empty")
+    (mixed_folder / "aaa_broken.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(ImageLoadError, match="aaa_broken.png"):
+        ImageFolder(mixed_folder)[0]
+    with pytest.warns(RuntimeWarning, match="aaa_broken.png"):
+        item = ImageFolder(mixed_folder, on_error="skip")[0]
+    assert int(item["index"]) == 1
+
+
+def test_compcars(tmp_path: Path) -> None:
+    root = tmp_path / "comp_cars"
+    for i, (w, h) in enumerate([(80, 50), (50, 80), (64, 64)]):
+        write_photo(root / "images" / f"{i:06d}.jpg", w, h, i)
+    write_photo(root / "images" / "extra" / "nested.jpg", 30, 20, 9)
+    write_photo(root / "images" / "ignored.png", 30, 20, 9)
+    ds = CompCars(root)
+    assert len(ds) == 4 and ds.files[0].name == "000000.jpg"
+    for i in range(len(ds)):
+        _check_item(ds[i])
+    with pytest.raises(DatasetNotFoundError, match=r"comp_cars2.*comprehensive_cars"):
+        CompCars(tmp_path / "comp_cars2")
+
+
+def test_lsun_without_lmdb_names_the_extra(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from unicorn.data.lsun import LSUN
+
+    monkeypatch.setitem(sys.modules, "lmdb", None)  # makes `import lmdb` fail
+    with pytest.raises(ImportError, match=r"pip install unicorn3d\[lmdb\]"):
+        LSUN(tmp_path, "horse")
+
+
+def test_lsun_indices_file(tmp_path: Path) -> None:
+    from unicorn.data.lsun import read_lsun_indices
+
+    (tmp_path / "indices.txt").write_text("0 3\n1 7\n2 8\n")
+    assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7, 8]
+
+
+def _write_lsun(root: Path, tag: str, n: int) -> list[bytes]:
+    lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    path = root / tag
+    path.mkdir(parents=True)
+    env = lmdb.open(str(path), map_size=1 << 26)
+    keys = []
+    with env.begin(write=True) as txn:
+        for i in range(n):
+            rng = np.random.default_rng(i)
+            buf = io.BytesIO()
+            w, h = (48, 32) if i % 2 else (32, 40)
+            Image.fromarray(rng.integers(0, 256, (h, w, 3), dtype=np.uint8)).save(buf, format="JPEG", quality=75)
+            key = hashlib.sha1(str(i).encode()).hexdigest().encode()
+            txn.put(key, buf.getvalue())
+            keys.append(key)
+        txn.put(b"ffff_corrupt", b"not a jpeg")
+    env.close()
+    return sorted(keys)
+
+
+def test_lsun_reads_lmdb_and_cleaned_subset(tmp_path: Path) -> None:
+    from unicorn.data.lsun import LSUN
+
+    keys = _write_lsun(tmp_path, "horse", 24)
+    (tmp_path / "horse" / "indices.txt").write_text("".join(f"{j} {k}\n" for j, k in enumerate(range(0, 24, 2))))
+    ds = LSUN(tmp_path, "horse", cleaned=True, augment=True)
+    assert len(ds) == 12 and ds.keys[1] == keys[2]
+    for i in range(len(ds)):
+        _check_item(ds[i])
+    # worker processes open their own LMDB handle
+    batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=1)))
+    assert batch["image"].shape == (4, 3, 64, 64)
+    full = LSUN(tmp_path, "horse", cleaned=False)
+    assert len(full) == 25
+    with pytest.raises(ImageLoadError, match="ffff_corrupt"):
+        full[24]
+    with pytest.raises(DatasetNotFoundError, match="indices.txt"):
+        (tmp_path / "horse" / "indices.txt").unlink()
+        LSUN(tmp_path, "horse", cleaned=True)
+
+
+def test_lsun_missing_root(tmp_path: Path) -> None:
+    pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    from unicorn.data.lsun import LSUN
+
+    with pytest.raises(DatasetNotFoundError, match=r"motorbike.*dl\.yf\.io"):
+        LSUN(tmp_path, "motorbike")
