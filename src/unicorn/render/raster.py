@@ -86,28 +86,38 @@ def _edge(ax, ay, bx, by, px, py):
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
+def _barycentric(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Unclipped screen-space barycentrics (N, 3) of points (px, py) in 2D triangles (N, 3, 2)."""
+    x0, x1, x2 = tri[..., 0].unbind(-1)
+    y0, y1, y2 = tri[..., 1].unbind(-1)
+    area = _edge(x0, y0, x1, y1, x2, y2).unsqueeze(-1)
+    w = torch.stack([_edge(x1, y1, x2, y2, px, py), _edge(x2, y2, x0, y0, px, py), _edge(x0, y0, x1, y1, px, py)], -1)
+    return w / area
+
+
+def _segment_distance2(px, py, ax, ay, bx, by):
+    """Squared distance from points to segments [a, b], the segment parameter clamped to [0, 1]."""
+    ex, ey = bx - ax, by - ay
+    dx, dy = px - ax, py - ay
+    t = ((dx * ex + dy * ey) / (ex * ex + ey * ey).clamp_min(1e-20)).clamp(0.0, 1.0)
+    return (dx - t * ex) ** 2 + (dy - t * ey) ** 2
+
+
+def _boundary_distance2(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Squared distance (N,) from points to the boundary of 2D triangles (N, 3, 2)."""
+    x0, x1, x2 = tri[..., 0].unbind(-1)
+    y0, y1, y2 = tri[..., 1].unbind(-1)
+    d01 = _segment_distance2(px, py, x0, y0, x1, y1)
+    d12 = _segment_distance2(px, py, x1, y1, x2, y2)
+    d20 = _segment_distance2(px, py, x2, y2, x0, y0)
+    return torch.minimum(torch.minimum(d01, d12), d20)
+
+
 def _barycentric_and_distance(
     tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Unclipped barycentrics (N, 3) and squared distance (N,) to the boundary of 2D triangles (N, 3, 2)."""
-    x, y = tri[..., 0], tri[..., 1]
-    x0, x1, x2 = x.unbind(-1)
-    y0, y1, y2 = y.unbind(-1)
-    area = _edge(x0, y0, x1, y1, x2, y2)
-    w0 = _edge(x1, y1, x2, y2, px, py)
-    w1 = _edge(x2, y2, x0, y0, px, py)
-    w2 = _edge(x0, y0, x1, y1, px, py)
-    bary = torch.stack([w0, w1, w2], dim=-1) / area.unsqueeze(-1)
-    # squared distance from the point to each edge segment, parameter clamped to the segment
-    ax = torch.stack([x0, x1, x2], -1)
-    ay = torch.stack([y0, y1, y2], -1)
-    ex = torch.stack([x1 - x0, x2 - x1, x0 - x2], -1)
-    ey = torch.stack([y1 - y0, y2 - y1, y0 - y2], -1)
-    dx = px.unsqueeze(-1) - ax
-    dy = py.unsqueeze(-1) - ay
-    t = ((dx * ex + dy * ey) / (ex * ex + ey * ey).clamp_min(1e-20)).clamp(0.0, 1.0)
-    d2 = ((dx - t * ex) ** 2 + (dy - t * ey) ** 2).amin(-1)
-    return bary, d2
+    return _barycentric(tri, px, py), _boundary_distance2(tri, px, py)
 
 
 def _clip_barycentric(bary: torch.Tensor) -> torch.Tensor:
@@ -149,15 +159,20 @@ def _select_chunk(
 
     flat_face = active[owner]  # index into (nb * F)
     tri = fpx.reshape(-1, 3, 2)[flat_face]
-    bary, d2 = _barycentric_and_distance(tri, px.to(tri.dtype), py.to(tri.dtype))
+    pxf, pyf = px.to(tri.dtype), py.to(tri.dtype)
+    bary = _barycentric(tri, pxf, pyf)
     inside = (bary > 0).all(-1)
-    keep = inside | (d2 * px_to_ndc2 < blur_radius)
+    keep = inside.clone()
+    if blur_radius > 0:
+        # the distance test is only needed for the candidates outside their face
+        out = (~inside).nonzero().squeeze(1)
+        keep[out] = _boundary_distance2(tri[out], pxf[out], pyf[out]) * px_to_ndc2 < blur_radius
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return empty, empty, empty, empty.bool(), 0
     flat_face, px, py, inside = flat_face[idx], px[idx], py[idx], inside[idx]
     z = (_clip_barycentric(bary[idx]) * fz.reshape(-1, 3)[flat_face]).sum(-1)
-    del bary, d2, tri, owner
+    del bary, tri, owner
 
     image = torch.div(flat_face, F, rounding_mode="floor")
     pix_local = (image * H + py) * W + px
