@@ -1,0 +1,288 @@
+"""Load the released UNICORN checkpoints (``model.pkl``, ``car_big.pkl``, ...) into :class:`Unicorn`.
+
+A released checkpoint is a ``torch.save``d dict with ``epoch``, ``model_kwargs`` (the YAML ``model``
+section), ``model_state`` and optimizer / scheduler states. Its parameter names map onto ours as follows
+(``N`` = the reference's MLP layer indices 0, 2, 4, 6, kept unchanged):
+
+=====================================================  ====================================================
+reference                                              unicorn
+=====================================================  ====================================================
+``encoder.encoder.{0,1,4,5,6,7}.*`` (small)            ``encoders.0.{conv1,bn1,layer1..layer4}.*``
+``encoder_{sh,tx,pose,bg}.encoder.*`` (big)            ``encoders.{0,1,2,3}.*``
+``deform_field.regressor.N.*``                         ``shape.regressor.N.*``
+``deform_field.field.{linear_x,linear_z,mlp.N}.*``     ``shape.field.{linear_x,linear_z,mlp.N}.*``
+``txt_generator.regressor.N.*``                        ``texture.regressor.N.*``
+``txt_generator.generator.{conv_layers,conv_rgb}.i.*`` ``texture.generator.{conv_layers,conv_rgb}.i.*``
+``bkg_generator.*``                                    ``background.*`` (same sub-names)
+``rot_regressors.k.N.*``                               ``pose.rot_regressors.k.N.*``, last layer's rows
+                                                       permuted ``[1, 0, 2]`` (the reference's channel swap)
+``T_regressors.k.N.*``                                 ``pose.T_regressors.k.N.*``
+``proba_regressor.N.*``                                ``pose.proba_regressor.N.*``
+``scale_regressor.N.*``                                ``scale.regressor.N.*``
+``perceptual_loss.slice{1..5}.i.*``                    VGG16 ``features.i.*`` (returned separately)
+=====================================================  ====================================================
+
+Dropped: buffers derived from the configuration (``uvs``, ``R_init``, ``R_range``, ``T_init``, ``T_range``,
+``scale_init``, ``scale_range``, the blur ``*.upsample_rgb.1.kernel``). To reproduce the released models'
+images the model is built with ``template.uv_mode = "reference"`` (per-vertex UVs, ``align_corners=True``,
+border padding) and ``renderer.composite = "reference"`` (``rgb * A + (1 - A) * bkg`` over a white render).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from unicorn.model.autoencoder import Unicorn, merge_config, unicorn_config
+from unicorn.model.perceptual import VGGPerceptualLoss
+from unicorn.model.progressive import active_dims_at
+
+__all__ = ["config_from_reference", "convert_reference_state_dict", "load_reference_checkpoint"]
+
+_RESNET_CHILDREN = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
+_ENCODER_INDEX = {"encoder": 0, "encoder_sh": 0, "encoder_tx": 1, "encoder_pose": 2, "encoder_bg": 3}
+_DROPPED = re.compile(r"^(uvs|R_init|R_range|T_init|T_range|scale_init|scale_range)$|\.kernel$|^renderer\.")
+_PREFIXES = {
+    "deform_field.": "shape.",
+    "txt_generator.": "texture.",
+    "bkg_generator.": "background.",
+    "rot_regressors.": "pose.rot_regressors.",
+    "T_regressors.": "pose.T_regressors.",
+    "proba_regressor.": "pose.proba_regressor.",
+    "scale_regressor.": "scale.regressor.",
+}
+_ROT_SWAP = [1, 0, 2]
+
+
+def _state_dict_of(checkpoint: Mapping[str, Any]) -> Mapping[str, torch.Tensor]:
+    return checkpoint["model_state"] if "model_state" in checkpoint else checkpoint
+
+
+def _last_linear_index(state: Mapping[str, torch.Tensor], prefix: str) -> int:
+    indices = [int(m.group(1)) for k in state if (m := re.match(re.escape(prefix) + r"(\d+)\.weight$", k))]
+    if not indices:
+        raise KeyError(f"no MLP layers under '{prefix}'")
+    return max(indices)
+
+
+def convert_reference_state_dict(
+    state: Mapping[str, torch.Tensor], strict: bool = True
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Rename a reference ``model_state`` into ours.
+
+    Args:
+        state: the reference state dict (or a checkpoint dict holding it under ``model_state``).
+        strict: raise on keys that are neither mapped nor known to be droppable.
+
+    Returns:
+        ``(model_state, vgg_state)``: our state dict (without the mask / switch buffers, which come from
+        the configuration) and the VGG16 perceptual weights under torchvision names (empty if absent).
+
+    Raises:
+        KeyError: unknown keys (``strict``).
+    """
+    state = _state_dict_of(state)
+    ours: dict[str, torch.Tensor] = {}
+    vgg: dict[str, torch.Tensor] = {}
+    unknown: list[str] = []
+    rot_last = {
+        m.group(1): _last_linear_index(state, f"rot_regressors.{m.group(1)}.")
+        for k in state
+        if (m := re.match(r"rot_regressors\.(\d+)\.", k))
+    }
+    for key, value in state.items():
+        if m := re.match(r"^(encoder(?:_sh|_tx|_pose|_bg)?)\.(?:encoder\.)?(\d+)\.(.+)$", key):
+            child = _RESNET_CHILDREN.get(m.group(2))
+            if child is None:
+                unknown.append(key)
+                continue
+            ours[f"encoders.{_ENCODER_INDEX[m.group(1)]}.{child}.{m.group(3)}"] = value
+        elif m := re.match(r"^perceptual_loss\.slice\d+\.(\d+)\.(weight|bias)$", key):
+            vgg[f"features.{m.group(1)}.{m.group(2)}"] = value
+        elif key.startswith("perceptual_loss.") or _DROPPED.search(key):
+            continue
+        else:
+            prefix = next((p for p in _PREFIXES if key.startswith(p)), None)
+            if prefix is None:
+                unknown.append(key)
+                continue
+            new_key = _PREFIXES[prefix] + key[len(prefix) :]
+            if m := re.match(r"^rot_regressors\.(\d+)\.(\d+)\.(weight|bias)$", key):
+                if int(m.group(2)) == rot_last[m.group(1)]:
+                    # the reference reads its rotation head as tanh(out)[..., [1, 0, 2]] -> (azim, elev, roll)
+                    value = value[_ROT_SWAP]
+            ours[new_key] = value
+    if unknown and strict:
+        raise KeyError(f"unrecognised keys in the reference checkpoint ({len(unknown)}): {unknown[:10]}")
+    return ours, vgg
+
+
+def _get(mapping: Any, *keys: str, default: Any = None) -> Any:
+    for key in keys:
+        if not isinstance(mapping, Mapping) or key not in mapping:
+            return default
+        mapping = mapping[key]
+    return mapping
+
+
+def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> dict[str, Any]:
+    """Our model configuration for a released checkpoint.
+
+    Sizes (shared or separate encoders, code sizes, field and generator widths, number of candidates) come
+    from the tensor shapes; ranges, mesh scale, camera and progressive state from ``model_kwargs`` and
+    ``epoch`` when present, else from the dataset family's defaults (ShapeNet when there is no background
+    generator). UVs and compositing follow the reference; losses are off (``perceptual=None``) unless
+    overridden.
+    """
+    state = _state_dict_of(checkpoint)
+    kwargs = checkpoint.get("model_kwargs", {}) if "model_state" in checkpoint else {}
+    has_bg = any(k.startswith("bkg_generator.") for k in state)
+    shared = not any(k.startswith("encoder_sh.") for k in state)
+    cfg = unicorn_config("real" if has_bg else "shapenet", "small" if shared else "big")
+
+    def out_dim(prefix: str) -> int:
+        return state[f"{prefix}{_last_linear_index(state, prefix)}.weight"].shape[0]
+
+    def n_hidden(prefix: str) -> int:
+        return _last_linear_index(state, prefix) // 2
+
+    def units(prefix: str) -> int:
+        return state[f"{prefix}0.weight"].shape[0]
+
+    cfg["encoder"]["shared"] = shared
+    cfg["shape"].update(
+        code_dim=out_dim("deform_field.regressor."),
+        n_reg_units=units("deform_field.regressor."),
+        n_reg_layers=n_hidden("deform_field.regressor."),
+        n_field_units=state["deform_field.field.linear_x.weight"].shape[0],
+        n_field_layers=n_hidden("deform_field.field.mlp."),
+    )
+    for group, prefix in (("texture", "txt_generator."), ("background", "bkg_generator.")):
+        if cfg[group] is None:
+            continue
+        convs = [state[k] for k in state if re.match(re.escape(prefix) + r"generator\.conv_layers\.\d+\.weight$", k)]
+        cfg[group].update(
+            code_dim=out_dim(f"{prefix}regressor."),
+            n_reg_units=units(f"{prefix}regressor."),
+            n_reg_layers=n_hidden(f"{prefix}regressor."),
+            min_features=min(w.shape[0] for w in convs),
+        )
+        if group == "texture":
+            cfg[group]["size"] = 2 ** len(convs)
+    n_cand = len({k.split(".")[1] for k in state if k.startswith("rot_regressors.")})
+    cfg["pose"].update(n_units=units("T_regressors.0."), n_layers=n_hidden("T_regressors.0."))
+    if has_bg:
+        cfg["image_size"] = 2 ** len(
+            [k for k in state if re.match(r"bkg_generator\.generator\.conv_layers\.\d+\.weight$", k)]
+        )
+
+    # ranges and scales from the saved YAML configuration
+    rp = _get(kwargs, "rend_predictor", default={}) or {}
+    n_elev, n_azim = rp.get("n_elev_azim", (1, n_cand))
+    cfg["pose"].update(n_elev=int(n_elev), n_azim=int(n_azim))
+    for key in ("azim_range", "elev_range", "roll_range", "T_range", "scale_range", "prior_translation"):
+        if key in rp:
+            cfg["pose"][key] = rp[key]
+    if int(n_elev) * int(n_azim) != n_cand:
+        raise ValueError(f"checkpoint has {n_cand} pose candidates but n_elev_azim = {rp.get('n_elev_azim')}")
+    mesh = _get(kwargs, "mesh", default={}) or {}
+    if "scale" in mesh:
+        cfg["template"]["scale"] = float(mesh["scale"])
+    init = str(mesh.get("init", "ellipse"))
+    cfg["template"]["axes"] = (1.0, 0.7, 0.7) if init.startswith("ellipse") else (1.0, 1.0, 1.0)
+    cfg["template"]["level"] = 4 if "hr" in init else 3
+    cfg["template"]["uv_mode"] = "reference"
+    if "img_size" in kwargs:
+        size = kwargs["img_size"]
+        cfg["image_size"] = int(size[0] if isinstance(size, list | tuple) else size)
+    rd = _get(kwargs, "renderer", default={}) or {}
+    cams = rd.get("cameras", {}) or {}
+    if cams.get("name") == "perspective" and "focal_length" in cams:
+        cfg["renderer"].update(fov=None, focal_length=float(cams["focal_length"]))
+    elif cams.get("name") == "fov":
+        cfg["renderer"].update(fov=float(cams.get("fov", 30.0)), focal_length=None)
+    options = dict(cfg["renderer"]["options"])
+    for key in ("sigma", "faces_per_pixel"):
+        if key in rd:
+            options[key] = rd[key]
+    cfg["renderer"].update(options=options, composite="reference")
+    if rd.get("background_color") is not None:
+        cfg["renderer"]["background_color"] = tuple(rd["background_color"])
+    cfg["loss"]["perceptual"] = None
+
+    # progressive state at the saved epoch (fully conditioned when unknown)
+    epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
+    for group, keys in (
+        ("shape", ("mesh", "deform_fields")),
+        ("texture", ("mesh", "texture_uv")),
+        ("background", ("background",)),
+    ):
+        if cfg[group] is None:
+            continue
+        powers, milestones = _get(kwargs, *keys, "powers"), _get(kwargs, *keys, "milestones")
+        if epoch is not None and powers and milestones and len(powers) == len(milestones):
+            cfg[group]["active_dims"] = min(active_dims_at(epoch, powers, milestones), cfg[group]["code_dim"])
+        else:
+            cfg[group]["active_dims"] = cfg[group]["code_dim"]
+    return merge_config(cfg, **overrides)
+
+
+def _stage_switches(checkpoint: Mapping[str, Any]) -> dict[str, bool]:
+    """Stage-1 switches at the saved epoch: a milestone m is live (output held off) while epoch < m."""
+    kwargs = checkpoint.get("model_kwargs", {}) if "model_state" in checkpoint else {}
+    epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
+    milestones = _get(kwargs, "milestones", default={}) or {}
+    switches = {}
+    for name, key in (
+        ("translation", "freeze_T_predictor"),
+        ("deformation", "freeze_shape"),
+        ("scale", "freeze_scale_predictor"),
+    ):
+        m = milestones.get(key, 0)
+        live = bool(m) if isinstance(m, bool) else (epoch is not None and epoch < m)
+        switches[name] = not live
+    return switches
+
+
+def load_reference_checkpoint(
+    checkpoint: str | os.PathLike | Mapping[str, Any],
+    strict: bool = True,
+    with_perceptual: bool = False,
+    map_location: str | torch.device = "cpu",
+    **overrides: Any,
+) -> Unicorn:
+    """Build a :class:`Unicorn` from a released UNICORN checkpoint and load its weights.
+
+    Args:
+        checkpoint: path of the ``.pkl`` file, or the loaded dict (or a bare reference state dict).
+        strict: fail on unrecognised reference keys or on our parameters left unset.
+        with_perceptual: also build the VGG16 perceptual loss from the weights stored in the checkpoint.
+        map_location: where to load the tensors.
+        overrides: configuration groups overriding the inferred ones (see :func:`config_from_reference`).
+
+    Returns:
+        the model in eval mode.
+    """
+    if not isinstance(checkpoint, Mapping):
+        # the released files pickle plain dicts and tensors; the optimizer state needs no custom classes
+        checkpoint = torch.load(os.fspath(checkpoint), map_location=map_location, weights_only=False)
+    state, vgg = convert_reference_state_dict(checkpoint, strict=strict)
+    cfg = config_from_reference(checkpoint, **overrides)
+    model = Unicorn(cfg)
+    if with_perceptual:
+        if not vgg:
+            raise KeyError("the checkpoint holds no perceptual_loss weights")
+        model.perceptual = VGGPerceptualLoss(vgg).to(next(model.parameters()).device)
+        model.config["loss"]["perceptual"] = "vgg"
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    # buffers that come from the configuration, not from the reference
+    allowed = re.compile(r"(\.mask\.active|use_translation|use_deformation|use_scale|^renderer\.)")
+    missing = [k for k in missing if not allowed.search(k)]
+    if strict and (missing or unexpected):
+        raise KeyError(f"checkpoint does not fit the model: missing {missing[:10]}, unexpected {unexpected[:10]}")
+    model.set_stage_switches(**_stage_switches(checkpoint))
+    return model.eval()

@@ -1,0 +1,185 @@
+"""Perceptual reconstruction losses, per sample.
+
+- :class:`VGGPerceptualLoss`: the paper's loss, an L2 distance between channel-normalised VGG16
+  ``relu3_3`` features of ImageNet-normalised images. The VGG16 network is written here with torchvision's
+  parameter names (``features.0.weight``, ... ``features.14.bias``) and its ImageNet weights come from a
+  local file: torchvision's ``vgg16-397923af.pth`` (https://download.pytorch.org/models/vgg16-397923af.pth),
+  downloaded on a machine with internet access. Only the layers up to ``relu3_3`` are kept. Cost: at 64x64
+  it is roughly ten times a ResNet-18 forward, and the pose step applies it to K x B renders.
+- :class:`StructuralLoss`: a cheap weights-free stand-in for machines without the VGG16 file: multi-scale
+  SSIM dissimilarity plus an L1 distance between Sobel image gradients (kornia), both averaged over three
+  scales (1, 1/2, 1/4). It is not a calibrated replacement: it rewards matching local structure and edges
+  (what makes textures informative for the pose) but its magnitude differs from the VGG loss, so its weight
+  (``perceptual_weight``) may need retuning; a weight of 1 keeps it of the order of the pixel MSE * 10.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["VGG16_URL", "StructuralLoss", "VGG16Relu33", "VGGPerceptualLoss", "load_vgg16_weights"]
+
+VGG16_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+# torchvision's VGG16 "D" configuration up to relu3_3: (index of the conv in `features`, in, out)
+_CONVS = (
+    (0, 3, 64),
+    (2, 64, 64),
+    (5, 64, 128),
+    (7, 128, 128),
+    (10, 128, 256),
+    (12, 256, 256),
+    (14, 256, 256),
+)
+_POOLS = (4, 9)
+
+
+def _check_pair(rec: torch.Tensor, target: torch.Tensor) -> None:
+    if rec.dim() != 4 or rec.shape != target.shape or rec.shape[1] != 3:
+        raise ValueError(f"need two (B, 3, H, W) images of equal shape, got {tuple(rec.shape)}, {tuple(target.shape)}")
+
+
+def load_vgg16_weights(path: str | os.PathLike | None) -> dict[str, torch.Tensor]:
+    """Read a torchvision VGG16 state dict from ``path``.
+
+    Raises:
+        FileNotFoundError: naming ``path`` and how to obtain the file.
+    """
+    if path is None:
+        raise FileNotFoundError(
+            "the VGG16 perceptual loss needs torchvision's ImageNet VGG16 weights file 'vgg16-397923af.pth', "
+            f"and no path was given. Download it from {VGG16_URL} on a machine with internet access, copy it "
+            "here and give its path; or use the weights-free 'structural' loss instead."
+        )
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(
+            f"VGG16 weights for the perceptual loss not found at '{path}'. Get torchvision's ImageNet VGG16 "
+            f"file 'vgg16-397923af.pth' from {VGG16_URL} (download it on a machine with internet access and "
+            "copy "
+            "it here), then point the perceptual loss's weights path at it; or use the weights-free "
+            "'structural' loss instead."
+        )
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(state, Mapping) and "state_dict" in state:
+        state = state["state_dict"]
+    return dict(state)
+
+
+class VGG16Relu33(nn.Module):
+    """VGG16 ``features[:16]`` (conv1_1 ... relu3_3), frozen: (B, 3, H, W) -> (B, 256, H/4, W/4)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        convs = {i: (cin, cout) for i, cin, cout in _CONVS}
+        for i in range(16):
+            if i in convs:
+                layers.append(nn.Conv2d(*convs[i], kernel_size=3, padding=1))
+            elif i in _POOLS:
+                layers.append(nn.MaxPool2d(2, 2))
+            else:
+                layers.append(nn.ReLU())
+        self.features = nn.Sequential(*layers)
+        # frozen ImageNet weights: non-persistent buffers, so they follow .to(device) but are neither
+        # optimised (not in .parameters()) nor saved in the model's state dict (they come from the file)
+        for i, _, _ in _CONVS:
+            conv = self.features[i]
+            for name in ("weight", "bias"):
+                value = getattr(conv, name).detach()
+                delattr(conv, name)
+                conv.register_buffer(name, value, persistent=False)
+
+    def load_torchvision_state_dict(self, state_dict: Mapping[str, torch.Tensor]) -> None:
+        """Copy the ``features.N.weight`` / ``.bias`` entries (N < 16) of a torchvision VGG16 state dict.
+
+        Raises:
+            KeyError: an expected entry is missing.
+            ValueError: an entry has the wrong shape.
+        """
+        for i, _, _ in _CONVS:
+            conv = self.features[i]
+            for name in ("weight", "bias"):
+                key = f"features.{i}.{name}"
+                if key not in state_dict:
+                    raise KeyError(f"VGG16 state dict lacks '{key}' (is it torchvision's vgg16?)")
+                value = state_dict[key]
+                target = getattr(conv, name)
+                if tuple(value.shape) != tuple(target.shape):
+                    raise ValueError(f"'{key}' has shape {tuple(value.shape)}, expected {tuple(target.shape)}")
+                with torch.no_grad():
+                    target.copy_(value)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.features(x)
+
+
+class VGGPerceptualLoss(nn.Module):
+    """Per-sample ``mean_{c,h,w} (phi(rec) - phi(target))^2``, phi: channel-normalised relu3_3 features.
+
+    Inputs are [0, 1] images, ImageNet-normalised here; no resizing (64x64 gives 16x16x256 features).
+    The VGG weights are frozen non-persistent buffers (not trained, not saved with the model); gradients
+    still flow to the inputs.
+
+    Args:
+        weights: path of torchvision's ``vgg16-397923af.pth``, or an already loaded state dict with
+            torchvision names (e.g. taken from a released UNICORN checkpoint).
+
+    Raises:
+        FileNotFoundError: when ``weights`` is a path that does not exist (message says how to get it).
+    """
+
+    mean: torch.Tensor
+    std: torch.Tensor
+
+    def __init__(self, weights: str | os.PathLike | Mapping[str, torch.Tensor] | None) -> None:
+        super().__init__()
+        state = weights if isinstance(weights, Mapping) else load_vgg16_weights(weights)
+        self.vgg = VGG16Relu33()
+        self.vgg.load_torchvision_state_dict(state)
+        self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, rec: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) x 2 -> (B,)."""
+        _check_pair(rec, target)
+        B = rec.shape[0]
+        # one pass over both images (the BN-free VGG makes this identical to two passes)
+        feats = self.vgg((torch.cat([rec, target]) - self.mean) / self.std)
+        feats = feats / (feats.norm(dim=1, keepdim=True) + 1e-10)
+        return (feats[:B] - feats[B:]).pow(2).flatten(1).mean(1)
+
+
+class StructuralLoss(nn.Module):
+    """Weights-free per-sample loss: ``mean_s [(1 - SSIM_s) / 2 + |grad_s(rec) - grad_s(target)|]``.
+
+    Args:
+        n_scales: number of scales (each halves the resolution with 2x2 average pooling).
+        window_size: SSIM Gaussian window (odd).
+    """
+
+    def __init__(self, n_scales: int = 3, window_size: int = 5) -> None:
+        super().__init__()
+        if n_scales < 1 or window_size % 2 == 0:
+            raise ValueError(f"need n_scales >= 1 and an odd window, got {n_scales}, {window_size}")
+        self.n_scales, self.window_size = n_scales, window_size
+
+    def forward(self, rec: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) x 2 -> (B,)."""
+        _check_pair(rec, target)
+        total = rec.new_zeros(rec.shape[0])
+        for s in range(self.n_scales):
+            if s > 0:
+                rec, target = F.avg_pool2d(rec, 2), F.avg_pool2d(target, 2)
+            window = min(self.window_size, 2 * (min(rec.shape[-2:]) // 2) - 1)
+            ssim = kornia.metrics.ssim(rec, target, max(window, 1), max_val=1.0)
+            grad = kornia.filters.spatial_gradient(rec) - kornia.filters.spatial_gradient(target)
+            total = total + ((1 - ssim) / 2).flatten(1).mean(1) + grad.abs().flatten(1).mean(1)
+        return total / self.n_scales

@@ -1,0 +1,192 @@
+"""Pose candidates (rotation, translation, probability) and the anisotropic scale head."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.model.mlp import MLP
+
+__all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles"]
+
+
+def _pair(r: Sequence[float], name: str) -> tuple[float, float]:
+    if len(r) != 2 or r[1] < r[0]:
+        raise ValueError(f"{name} must be (min, max) with min <= max, got {r}")
+    return float(r[0]), float(r[1])
+
+
+def _triple(r: Sequence[float] | float, name: str) -> tuple[float, float, float]:
+    if isinstance(r, int | float):
+        return (float(r),) * 3
+    if len(r) != 3:
+        raise ValueError(f"{name} must be a float or 3 floats, got {r}")
+    return tuple(float(x) for x in r)  # type: ignore[return-value]
+
+
+def anchor_angles(
+    n_elev: int,
+    n_azim: int,
+    azim_range: Sequence[float],
+    elev_range: Sequence[float],
+    roll_range: Sequence[float],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Anchor angles and offset half-ranges of the ``n_elev * n_azim`` pose candidates.
+
+    Azimuths are evenly spaced from the start of ``azim_range`` when it covers a full turn (0, 60, ..., 300
+    for 6 candidates) and at bin centres otherwise; elevations at bin centres; roll at the centre of its
+    range.
+    Each offset is bounded by ``0.52 * range / n`` (0.5 with a single candidate), so neighbouring candidates
+    overlap slightly.
+
+    Returns:
+        init: (K, 3) anchors (azim, elev, roll) in degrees, elevation-major order.
+        half_range: (3,) maximal offsets (azim, elev, roll) in degrees.
+    """
+    a0, a1 = _pair(azim_range, "azim_range")
+    e0, e1 = _pair(elev_range, "elev_range")
+    r0, r1 = _pair(roll_range, "roll_range")
+    if n_elev < 1 or n_azim < 1:
+        raise ValueError(f"need at least one elevation and azimuth, got {n_elev}, {n_azim}")
+    da, de = (a1 - a0) / n_azim, (e1 - e0) / n_elev
+    full_turn = abs((a1 - a0) - 360.0) < 1e-6
+    azims = [a0 + i * da + (0.0 if full_turn else da / 2) for i in range(n_azim)]
+    elevs = [e0 + (j + 0.5) * de for j in range(n_elev)]
+    roll = (r0 + r1) / 2
+    init = torch.tensor([[a, e, roll] for e in elevs for a in azims], dtype=torch.float32)
+    ratio = 0.52 if n_elev * n_azim > 1 else 0.5
+    half_range = torch.tensor([ratio * da, ratio * de, ratio * (r1 - r0)], dtype=torch.float32)
+    return init, half_range
+
+
+@dataclass
+class PoseOutput:
+    """All pose candidates, candidate-major (candidate k of sample b at ``[k, b]``).
+
+    Attributes:
+        angles: (K, B, 3) azimuth, elevation, roll in degrees.
+        R: (K, B, 3, 3) rotations (``x_view = x @ R + T``).
+        T: (K, B, 3) translations.
+        probs: (K, B) candidate probabilities (softmax over K).
+    """
+
+    angles: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    probs: torch.Tensor
+
+    @property
+    def best(self) -> torch.Tensor:
+        """(B,) index of the most likely candidate."""
+        return self.probs.argmax(0)
+
+    def select(self, index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(R (B, 3, 3), T (B, 3))`` of one candidate per sample, the most likely by default."""
+        index = self.best if index is None else index
+        b = torch.arange(self.R.shape[1], device=self.R.device)
+        return self.R[index, b], self.T[index, b]
+
+    def flat(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(R (K*B, 3, 3), T (K*B, 3))``, row ``k * B + b``."""
+        K, B = self.probs.shape
+        return self.R.reshape(K * B, 3, 3), self.T.reshape(K * B, 3)
+
+
+class PoseHead(nn.Module):
+    """K pose candidates anchored at evenly spaced azimuths, each with bounded offsets and a probability.
+
+    For candidate k: ``angles = tanh(rot_regressors[k](f)) * R_range + R_init`` (azim, elev, roll),
+    ``T = tanh(T_regressors[k](f)) * T_range + prior_translation`` and ``p = softmax_k(proba_regressor(f))``.
+    The rotation and translation heads are zero-initialised (anchor poses at init), the probability head
+    is not. ``use_translation`` (a buffer) holds the translation at its prior during the first stage.
+
+    Args:
+        in_features: encoder feature size (512).
+        n_elev, n_azim: candidates = n_elev * n_azim (UNICORN: 1 x 6).
+        azim_range, elev_range, roll_range: (min, max) degrees.
+        T_range: maximal translation offsets (x, y, z) (0.3 real images, (0.2, 0.2, 0) ShapeNet).
+        prior_translation: translation at zero offset ((0, 0, 2.732): the object 2.732 in front).
+        n_units, n_layers: MLP width and hidden depth.
+    """
+
+    R_init: torch.Tensor
+    R_range: torch.Tensor
+    T_range: torch.Tensor
+    T_init: torch.Tensor
+    use_translation: torch.Tensor
+
+    def __init__(
+        self,
+        in_features: int = 512,
+        n_elev: int = 1,
+        n_azim: int = 6,
+        azim_range: Sequence[float] = (0.0, 360.0),
+        elev_range: Sequence[float] = (-10.0, 30.0),
+        roll_range: Sequence[float] = (-30.0, 30.0),
+        T_range: Sequence[float] | float = 0.3,
+        prior_translation: Sequence[float] = (0.0, 0.0, 2.732),
+        n_units: int = 128,
+        n_layers: int = 3,
+    ) -> None:
+        super().__init__()
+        init, half_range = anchor_angles(n_elev, n_azim, azim_range, elev_range, roll_range)
+        self.n_candidates = init.shape[0]
+        # derived from the configuration: kept out of the state dict
+        self.register_buffer("R_init", init, persistent=False)
+        self.register_buffer("R_range", half_range, persistent=False)
+        self.register_buffer("T_range", torch.tensor(_triple(T_range, "T_range")), persistent=False)
+        self.register_buffer("T_init", torch.tensor(_triple(prior_translation, "prior_translation")), persistent=False)
+        self.register_buffer("use_translation", torch.tensor(True))
+        K = self.n_candidates
+        self.rot_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
+        self.T_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
+        self.proba_regressor = MLP(in_features, K, n_units, n_layers)
+
+    def forward(self, features: torch.Tensor) -> PoseOutput:
+        """(B, in_features) -> :class:`PoseOutput` with K candidates."""
+        if features.dim() != 2:
+            raise ValueError(f"features must have shape (B, C), got {tuple(features.shape)}")
+        offsets = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
+        angles = offsets * self.R_range + self.R_init.unsqueeze(1)
+        R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
+        t_off = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors]) * self.T_range
+        t_off = t_off * self.use_translation.to(t_off.dtype)
+        T = t_off + self.T_init
+        probs = torch.softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
+        return PoseOutput(angles=angles, R=R, T=T, probs=probs)
+
+
+class ScaleHead(nn.Module):
+    """Anisotropic per-instance scale ``s = tanh(mlp(f)) * scale_range + 1`` (identity at init).
+
+    ``use_scale`` (a buffer) holds ``s = 1`` during the first stage.
+
+    Args:
+        in_features: encoder feature size.
+        scale_range: maximal deviation per axis (0.3 real images, 0.5 ShapeNet).
+        n_units, n_layers: MLP width and hidden depth.
+    """
+
+    scale_range: torch.Tensor
+    use_scale: torch.Tensor
+
+    def __init__(
+        self,
+        in_features: int = 512,
+        scale_range: Sequence[float] | float = 0.3,
+        n_units: int = 128,
+        n_layers: int = 3,
+    ) -> None:
+        super().__init__()
+        self.regressor = MLP(in_features, 3, n_units, n_layers, zero_last=True)
+        self.register_buffer("scale_range", torch.tensor(_triple(scale_range, "scale_range")), persistent=False)
+        self.register_buffer("use_scale", torch.tensor(True))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, in_features) -> (B, 3) scales."""
+        offset = torch.tanh(self.regressor(features)) * self.scale_range
+        return 1.0 + offset * self.use_scale.to(offset.dtype)

@@ -1,0 +1,188 @@
+"""Released-checkpoint loading, tested on state dicts written in the reference's names and shapes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from unicorn.model import config_from_reference, convert_reference_state_dict, load_reference_checkpoint
+
+from .test_components import torchvision_resnet18_shapes
+
+_RESNET_INDEX = {"conv1": 0, "bn1": 1, "layer1": 4, "layer2": 5, "layer3": 6, "layer4": 7}
+
+
+def _mlp(prefix: str, n_in: int, n_out: int, units: int = 128, layers: int = 3) -> dict[str, tuple[int, ...]]:
+    dims = [n_in] + [units] * layers + [n_out]
+    shapes = {}
+    for i in range(layers + 1):
+        shapes[f"{prefix}.{2 * i}.weight"] = (dims[i + 1], dims[i])
+        shapes[f"{prefix}.{2 * i}.bias"] = (dims[i + 1],)
+    return shapes
+
+
+def _generator(prefix: str, code: int, size: int, min_features: int) -> dict[str, tuple[int, ...]]:
+    n_blocks = int(math.log2(size))
+
+    def nch(i: int) -> int:
+        return max(code // 2**i, min_features)
+
+    shapes = _mlp(f"{prefix}.regressor", 512, code)
+    shapes[f"{prefix}.generator.conv_layers.0.weight"] = (code // 2, code, 3, 3)
+    for i in range(n_blocks - 1):
+        shapes[f"{prefix}.generator.conv_layers.{i + 1}.weight"] = (nch(i + 2), nch(i + 1), 3, 3)
+    shapes[f"{prefix}.generator.conv_rgb.0.weight"] = (3, code, 3, 3)
+    for i in range(n_blocks):
+        shapes[f"{prefix}.generator.conv_rgb.{i + 1}.weight"] = (3, nch(i + 1), 3, 3)
+    shapes[f"{prefix}.generator.upsample_rgb.1.kernel"] = (1, 1, 3, 3)
+    return shapes
+
+
+def reference_state(big: bool = False, background: bool = True, field_units: int = 128) -> dict[str, torch.Tensor]:
+    """A state dict in the reference's key names and shapes (image 32 px, texture 16 px), random values."""
+    sh, tx, bg, minf = (64, 512, 256, 64) if big else (32, 128, 128, 16)
+    shapes: dict[str, tuple[int, ...]] = {}
+    encoders = (
+        (["encoder_sh", "encoder_tx", "encoder_pose"] + (["encoder_bg"] if background else [])) if big else ["encoder"]
+    )
+    for enc in encoders:
+        for key, shape in torchvision_resnet18_shapes().items():
+            head, rest = key.split(".", 1)
+            if head != "fc":
+                shapes[f"{enc}.encoder.{_RESNET_INDEX[head]}.{rest}"] = shape
+    shapes.update(_mlp("deform_field.regressor", 512, sh))
+    shapes.update(
+        {"deform_field.field.linear_x.weight": (field_units, 3), "deform_field.field.linear_x.bias": (field_units,)}
+    )
+    shapes.update(
+        {"deform_field.field.linear_z.weight": (field_units, sh), "deform_field.field.linear_z.bias": (field_units,)}
+    )
+    shapes.update(_mlp("deform_field.field.mlp", field_units, 3, field_units, 2))
+    shapes.update(_generator("txt_generator", tx, 16, minf))
+    if background:
+        shapes.update(_generator("bkg_generator", bg, 32, minf))
+    for k in range(6):
+        shapes.update(_mlp(f"rot_regressors.{k}", 512, 3))
+        shapes.update(_mlp(f"T_regressors.{k}", 512, 3))
+    shapes.update(_mlp("scale_regressor", 512, 3))
+    shapes.update(_mlp("proba_regressor", 512, 6))
+    for i, (cin, cout) in {0: (3, 64), 2: (64, 64), 5: (64, 128), 7: (128, 128), 10: (128, 256)}.items():
+        slice_id = 1 if i < 4 else (2 if i < 9 else 3)
+        shapes[f"perceptual_loss.slice{slice_id}.{i}.weight"] = (cout, cin, 3, 3)
+        shapes[f"perceptual_loss.slice{slice_id}.{i}.bias"] = (cout,)
+    for i in (12, 14):
+        shapes[f"perceptual_loss.slice3.{i}.weight"] = (256, 256, 3, 3)
+        shapes[f"perceptual_loss.slice3.{i}.bias"] = (256,)
+    shapes.update({"uvs": (1, 642, 2), "R_init": (6, 3), "R_range": (1, 3), "T_init": (3,), "T_range": (3,)})
+    shapes.update({"scale_init": (3,), "scale_range": (3,)})
+    g = torch.Generator().manual_seed(0)
+    state = {}
+    for key, shape in shapes.items():
+        state[key] = torch.tensor(3) if key.endswith("num_batches_tracked") else torch.randn(shape, generator=g) * 0.05
+        if key.endswith("running_var"):
+            state[key] = state[key].abs() + 1.0
+    return state
+
+
+def real_kwargs() -> dict:
+    return {
+        "img_size": 32,
+        "mesh": {"init": "ellipse", "scale": 0.6, "deform_fields": {"powers": [2, 8, 32], "milestones": [10, 20, 30]},
+                 "texture_uv": {"powers": [2, 8, 32, 128], "milestones": [0, 10, 20, 30]}},
+        "background": {"powers": [4, 8, 32, 128], "milestones": [0, 10, 20, 30]},
+        "renderer": {"cameras": {"name": "fov", "fov": 30}, "faces_per_pixel": 25},
+        "rend_predictor": {"n_elev_azim": [1, 6], "azim_range": [0, 360], "elev_range": [-10, 30],
+                           "roll_range": [-30, 30], "T_range": [0.3, 0.3, 0.3], "scale_range": [0.3, 0.3, 0.3]},
+        "milestones": {"freeze_T_predictor": 2, "freeze_shape": 4, "freeze_scale_predictor": 60},
+    }  # fmt: skip
+
+
+def test_small_checkpoint_maps_every_tensor():
+    state = reference_state()
+    model = load_reference_checkpoint(state)
+    assert len(model.encoders) == 1 and not model.training
+    enc = model.encoders[0]
+    assert torch.equal(enc.conv1.weight, state["encoder.encoder.0.weight"])
+    assert torch.equal(enc.bn1.running_var, state["encoder.encoder.1.running_var"])
+    assert torch.equal(enc.layer4[1].bn2.weight, state["encoder.encoder.7.1.bn2.weight"])
+    assert torch.equal(enc.layer2[0].downsample[0].weight, state["encoder.encoder.5.0.downsample.0.weight"])
+    assert torch.equal(model.shape.field.mlp[4].weight, state["deform_field.field.mlp.4.weight"])
+    assert torch.equal(model.texture.generator.conv_rgb[3].weight, state["txt_generator.generator.conv_rgb.3.weight"])
+    assert torch.equal(model.background.regressor[6].bias, state["bkg_generator.regressor.6.bias"])
+    assert torch.equal(model.pose.T_regressors[5][2].weight, state["T_regressors.5.2.weight"])
+    assert torch.equal(model.scale.regressor[0].weight, state["scale_regressor.0.weight"])
+    assert torch.equal(model.pose.proba_regressor[6].bias, state["proba_regressor.6.bias"])
+    # the reference's [1, 0, 2] channel swap lands in the last rotation layer
+    assert torch.equal(model.pose.rot_regressors[2][6].weight, state["rot_regressors.2.6.weight"][[1, 0, 2]])
+    assert torch.equal(model.pose.rot_regressors[2][4].weight, state["rot_regressors.2.4.weight"])
+    cfg = model.config
+    assert cfg["template"]["uv_mode"] == "reference" and cfg["renderer"]["composite"] == "reference"
+    assert model.active_dims() == {"shape": 32, "texture": 128, "background": 128}  # no epoch: final stage
+    assert cfg["image_size"] == 32 and cfg["texture"]["size"] == 16
+
+
+def test_rotation_swap_gives_the_reference_angles():
+    state = reference_state()
+    for k in range(6):
+        state[f"rot_regressors.{k}.6.weight"].zero_()
+        state[f"rot_regressors.{k}.6.bias"] = torch.tensor([0.1, 0.5, -0.3])  # reference channels
+    model = load_reference_checkpoint(state)
+    with torch.no_grad():
+        pred = model.predict(torch.rand(2, 3, 32, 32))
+    # reference: (azim, elev, roll) = tanh(out)[[1, 0, 2]] * range + init
+    offsets = torch.tanh(torch.tensor([0.5, 0.1, -0.3])) * torch.tensor([31.2, 20.8, 31.2])
+    expected = model.pose.R_init + offsets
+    assert torch.allclose(pred.poses.angles, expected[:, None].expand(6, 2, 3), atol=1e-4)
+    rec, _ = model(torch.rand(2, 3, 32, 32))
+    assert rec.shape == (2, 3, 32, 32) and torch.isfinite(rec).all()
+
+
+def test_reference_compositing_formula():
+    model = load_reference_checkpoint(reference_state())
+    with torch.no_grad():
+        pred = model.predict(torch.rand(2, 3, 32, 32))
+        rec, alpha = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+        white = model.renderer(pred.verts, model.template.faces, model.textures(pred.texture), R=pred.R, T=pred.T)
+    a = white[:, 3:]
+    assert torch.allclose(alpha, a)
+    assert torch.allclose(rec, white[:, :3] * a + (1 - a) * pred.background, atol=1e-6)
+    assert 0.05 < float(a.mean()) < 0.95
+
+
+def test_big_checkpoint_with_kwargs_epoch_and_file(tmp_path):
+    checkpoint = {"epoch": 15, "model_name": "unicorn", "model_kwargs": real_kwargs(),
+                  "model_state": reference_state(big=True), "optimizer_state": {}}  # fmt: skip
+    path = tmp_path / "model.pkl"
+    torch.save(checkpoint, path)
+    model = load_reference_checkpoint(path, with_perceptual=True)
+    assert len(model.encoders) == 4
+    assert torch.equal(model.encoders[2].conv1.weight, checkpoint["model_state"]["encoder_pose.encoder.0.weight"])
+    assert model.active_dims() == {"shape": 2, "texture": 8, "background": 8}  # epoch 15: second stage
+    assert bool(model.pose.use_translation) and bool(model.shape.use_deformation)
+    assert not bool(model.scale.use_scale)  # freeze_scale_predictor 60 still live at epoch 15
+    cfg = model.config
+    assert cfg["texture"]["code_dim"] == 512 and cfg["texture"]["min_features"] == 64 and cfg["shape"]["code_dim"] == 64
+    vgg = model.perceptual.vgg.features
+    assert torch.equal(vgg[14].weight, checkpoint["model_state"]["perceptual_loss.slice3.14.weight"])
+    x = torch.rand(2, 3, 32, 32)
+    assert model.perceptual(x, x).abs().max() < 1e-8
+
+
+def test_shapenet_checkpoint_and_key_checks():
+    state = reference_state(background=False, field_units=512)
+    cfg = config_from_reference(state)
+    assert cfg["background"] is None and cfg["shape"]["n_field_units"] == 512 and cfg["template"]["scale"] == 0.4
+    assert cfg["pose"]["elev_range"] == (30.0, 30.0) and cfg["renderer"]["focal_length"] > 3.7
+    model = load_reference_checkpoint(state, image_size=32)
+    assert model.background is None
+    bad = dict(state, **{"mystery.weight": torch.zeros(1)})
+    with pytest.raises(KeyError, match="mystery"):
+        convert_reference_state_dict(bad)
+    ours, vgg = convert_reference_state_dict(bad, strict=False)
+    assert "mystery.weight" not in ours and len(vgg) == 14
+    missing = dict(state)
+    del missing["scale_regressor.0.weight"]
+    with pytest.raises(KeyError, match="scale.regressor.0.weight"):
+        load_reference_checkpoint(missing, image_size=32)

@@ -1,0 +1,193 @@
+"""Building blocks: template, MLPs, masks, field, generators, encoder, pose and scale heads."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.model import (
+    MLP,
+    DeformationField,
+    GiraffeGenerator,
+    PoseHead,
+    ProgressiveMask,
+    ResNet18,
+    ScaleHead,
+    ShapeHead,
+    TemplateMesh,
+    active_dims_at,
+)
+
+
+def torchvision_resnet18_shapes() -> dict[str, tuple[int, ...]]:
+    """Key names and shapes of torchvision's resnet18 state dict, written out from its layout."""
+    shapes: dict[str, tuple[int, ...]] = {"conv1.weight": (64, 3, 7, 7)}
+
+    def bn(prefix: str, c: int) -> None:
+        for name in ("weight", "bias", "running_mean", "running_var"):
+            shapes[f"{prefix}.{name}"] = (c,)
+        shapes[f"{prefix}.num_batches_tracked"] = ()
+
+    bn("bn1", 64)
+    cin = 64
+    for i, c in enumerate((64, 128, 256, 512), start=1):
+        for j in range(2):
+            p = f"layer{i}.{j}"
+            shapes[f"{p}.conv1.weight"] = (c, cin if j == 0 else c, 3, 3)
+            bn(f"{p}.bn1", c)
+            shapes[f"{p}.conv2.weight"] = (c, c, 3, 3)
+            bn(f"{p}.bn2", c)
+            if j == 0 and i > 1:
+                shapes[f"{p}.downsample.0.weight"] = (c, cin, 1, 1)
+                bn(f"{p}.downsample.1", c)
+        cin = c
+    shapes["fc.weight"] = (1000, 512)
+    shapes["fc.bias"] = (1000,)
+    return shapes
+
+
+def random_state(shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    return {
+        k: (torch.tensor(7) if k.endswith("num_batches_tracked") else torch.rand(s, generator=g))
+        for k, s in shapes.items()
+    }
+
+
+def test_template_sizes_axes_and_uvs():
+    t = TemplateMesh(level=3, scale=0.6)
+    assert t.verts.shape == (642, 3) and t.faces.shape == (1280, 3)
+    assert torch.allclose(t.verts.abs().amax(0), torch.tensor([0.6, 0.42, 0.42]), atol=1e-5)
+    assert t.face_uvs.shape == (1280, 3, 2) and t.wrap_u
+    u = t.face_uvs[..., 0]
+    assert (u.amax(1) - u.amin(1)).max() < 0.5  # the seam is fixed: no face spans the whole texture
+    assert t.face_uvs[..., 1].min() >= 0 and t.face_uvs[..., 1].max() <= 1
+    ref = TemplateMesh(level=3, uv_mode="reference")
+    assert not ref.wrap_u and torch.equal(ref.face_uvs, ref.vertex_uvs[ref.faces])
+    assert TemplateMesh(level=4).num_verts == 2562
+    assert t.state_dict() == {}  # derived from the configuration
+    with pytest.raises(ValueError, match="uv_mode"):
+        TemplateMesh(uv_mode="bad")
+
+
+def test_mlp_layout_and_zero_init():
+    mlp = MLP(512, 7, 128, 3, zero_last=True)
+    assert [k for k in mlp.state_dict() if k.endswith("weight")] == ["0.weight", "2.weight", "4.weight", "6.weight"]
+    assert torch.equal(mlp(torch.randn(4, 512)), torch.zeros(4, 7))
+    assert MLP(512, 7).forward(torch.randn(4, 512)).abs().sum() > 0
+
+
+def test_active_dims_schedule():
+    assert [active_dims_at(s, [2, 8, 32], [10, 20, 30]) for s in (0, 10, 25, 30, 99)] == [0, 2, 8, 32, 32]
+    assert active_dims_at(0, [2, 8], [0, 5]) == 2
+
+
+def test_mask_switches_dims_off_and_is_saved():
+    mask = ProgressiveMask(6, active_dims=2)
+    code = torch.arange(1.0, 13.0).view(2, 6)
+    out = mask(code)
+    assert torch.equal(out[:, :2], code[:, :2]) and out[:, 2:].abs().sum() == 0
+    mask.set_active_dims(0)
+    assert mask(code).abs().sum() == 0
+    mask.set_active_dims(6)
+    assert torch.equal(mask(code), code)
+    assert int(mask.state_dict()["active"]) == 6
+    with pytest.raises(ValueError):
+        mask.set_active_dims(7)
+
+
+def test_deformation_field_zero_init_and_shapes():
+    field = DeformationField(code_dim=8, n_units=32)
+    pts = torch.randn(10, 3)
+    out = field(pts, torch.randn(4, 8))
+    assert out.shape == (4, 10, 3) and out.abs().sum() == 0
+    head = ShapeHead(512, code_dim=8, n_field_units=32)
+    assert head.code(torch.randn(3, 512)).shape == (3, 8)
+    assert int(head.mask.active) == 0
+    with pytest.raises(ValueError, match="code"):
+        field(pts, torch.randn(4, 7))
+
+
+@pytest.mark.parametrize(
+    ("code_dim", "min_features", "widths"),
+    [(128, 16, [64, 32, 16, 16, 16, 16]), (512, 64, [256, 128, 64, 64, 64, 64]), (256, 64, [128, 64, 64, 64, 64, 64])],
+)
+def test_giraffe_generator_widths(code_dim, min_features, widths):
+    gen = GiraffeGenerator(code_dim, 64, min_features)
+    assert [c.out_channels for c in gen.conv_layers] == widths
+    assert [c.in_channels for c in gen.conv_rgb] == [code_dim, *widths]
+    assert all(c.bias is None for c in [*gen.conv_layers, *gen.conv_rgb])
+
+
+def test_generator_range_and_zero_code_grey():
+    gen = GiraffeGenerator(32, 16, 8)
+    out = gen(torch.randn(2, 32) * 5)
+    assert out.shape == (2, 3, 16, 16) and out.min() >= 0 and out.max() <= 1
+    assert torch.allclose(gen(torch.zeros(1, 32)), torch.full((1, 3, 16, 16), 0.5))
+    with pytest.raises(ValueError, match="power of 2"):
+        GiraffeGenerator(32, 48)
+
+
+def test_resnet18_loads_torchvision_state_dict():
+    enc = ResNet18()
+    shapes = torchvision_resnet18_shapes()
+    ours = {k: tuple(v.shape) for k, v in enc.state_dict().items()}
+    assert ours == {k: s for k, s in shapes.items() if not k.startswith("fc.")}
+    state = random_state(shapes)
+    enc.load_torchvision_state_dict(state)
+    assert torch.equal(enc.layer3[0].downsample[0].weight, state["layer3.0.downsample.0.weight"])
+    assert enc(torch.rand(2, 3, 64, 64)).shape == (2, 512)
+    with pytest.raises(RuntimeError):
+        enc.load_torchvision_state_dict({k: v for k, v in state.items() if k != "conv1.weight"})
+
+
+def test_pose_anchors_zero_init():
+    head = PoseHead(16, n_units=8)
+    assert torch.allclose(head.R_init[:, 0], torch.tensor([0.0, 60, 120, 180, 240, 300]))
+    assert torch.allclose(head.R_init[:, 1:], torch.tensor([10.0, 0.0]).expand(6, 2))
+    assert torch.allclose(head.R_range, torch.tensor([31.2, 20.8, 31.2]))
+    out = head(torch.randn(5, 16))
+    assert out.R.shape == (6, 5, 3, 3) and out.T.shape == (6, 5, 3) and out.probs.shape == (6, 5)
+    assert torch.allclose(out.probs.sum(0), torch.ones(5))
+    anchors = azim_elev_roll_to_rotation(head.R_init[:, 0], head.R_init[:, 1], head.R_init[:, 2])
+    assert torch.allclose(out.R, anchors.unsqueeze(1).expand(6, 5, 3, 3), atol=1e-6)
+    assert torch.allclose(out.T, torch.tensor([0.0, 0.0, 2.732]).expand(6, 5, 3))
+    R, T = out.select()
+    assert R.shape == (5, 3, 3) and torch.equal(R[0], out.R[out.best[0], 0])
+    assert out.flat()[0].shape == (30, 3, 3) and torch.equal(out.flat()[0][5 + 2], out.R[1, 2])
+
+
+def test_pose_offsets_are_bounded_and_translation_switch():
+    head = PoseHead(16, T_range=(0.2, 0.2, 0.0), n_units=8)
+    with torch.no_grad():
+        for mlp in [*head.rot_regressors, *head.T_regressors]:
+            mlp[-1].bias.fill_(100.0)  # saturate tanh
+    out = head(torch.randn(3, 16))
+    assert torch.allclose(out.angles, (head.R_init + head.R_range).unsqueeze(1).expand(6, 3, 3), atol=1e-4)
+    assert torch.allclose(out.T[..., :2], torch.full((6, 3, 2), 0.2)) and torch.allclose(
+        out.T[..., 2], torch.tensor(2.732)
+    )
+    head.use_translation.fill_(False)
+    assert torch.allclose(head(torch.randn(3, 16)).T, torch.tensor([0.0, 0.0, 2.732]).expand(6, 3, 3))
+    assert "use_translation" in head.state_dict()
+
+
+def test_pose_shapenet_ranges_fix_elevation_and_roll():
+    head = PoseHead(16, elev_range=(30, 30), roll_range=(0, 0), n_units=8)
+    assert torch.allclose(head.R_init[:, 1:], torch.tensor([30.0, 0.0]).expand(6, 2))
+    assert head.R_range[1] == 0 and head.R_range[2] == 0
+    single = PoseHead(16, n_azim=1, azim_range=(-90, 90), n_units=8)
+    assert single.R_init[0, 0] == 0 and math.isclose(float(single.R_range[0]), 90.0)
+
+
+def test_scale_identity_at_init_and_bounded():
+    head = ScaleHead(16, scale_range=0.3, n_units=8)
+    assert torch.equal(head(torch.randn(4, 16)), torch.ones(4, 3))
+    with torch.no_grad():
+        head.regressor[-1].bias.fill_(-100.0)
+    assert torch.allclose(head(torch.randn(4, 16)), torch.full((4, 3), 0.7))
+    head.use_scale.fill_(False)
+    assert torch.equal(head(torch.randn(4, 16)), torch.ones(4, 3))

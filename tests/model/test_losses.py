@@ -1,0 +1,143 @@
+"""Losses against hand-computed values on tiny inputs, and the VGG16 file handling."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from unicorn.model import (
+    NormalConsistencyLoss,
+    StructuralLoss,
+    TemplateMesh,
+    UniformLaplacianLoss,
+    VGGPerceptualLoss,
+    mse_per_sample,
+    uniform_pose_prior,
+)
+from unicorn.model.perceptual import load_vgg16_weights
+
+TETRA_VERTS = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]])
+TETRA_FACES = torch.tensor([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+OCTA_VERTS = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+OCTA_FACES = torch.tensor([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+
+
+def torchvision_vgg16_state(seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random tensors under torchvision's vgg16 key names and shapes (features 0..28, classifier)."""
+    cfg = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"]
+    g = torch.Generator().manual_seed(seed)
+    state, cin, idx = {}, 3, 0
+    for v in cfg:
+        if v == "M":
+            idx += 1
+            continue
+        state[f"features.{idx}.weight"] = torch.randn(v, cin, 3, 3, generator=g) * math.sqrt(2 / (9 * cin))
+        state[f"features.{idx}.bias"] = torch.randn(v, generator=g) * 0.01
+        cin, idx = v, idx + 2
+    for i, (o, n) in {0: (4096, 25088), 3: (4096, 4096), 6: (1000, 4096)}.items():
+        state[f"classifier.{i}.weight"] = torch.zeros(o, n)
+        state[f"classifier.{i}.bias"] = torch.zeros(o)
+    return state
+
+
+def test_mse_per_sample():
+    rec = torch.zeros(2, 1, 2, 2)
+    target = torch.tensor([[[[1.0, 1.0], [1.0, 1.0]]], [[[2.0, 0.0], [0.0, 0.0]]]])
+    assert torch.allclose(mse_per_sample(rec, target), torch.tensor([1.0, 1.0]))
+    with pytest.raises(ValueError):
+        mse_per_sample(rec, target[:1])
+
+
+def test_uniform_pose_prior():
+    probs = torch.tensor([[1.0, 0.5], [0.0, 0.5]])  # (K=2, B=2): mean p = (0.75, 0.25)
+    assert math.isclose(float(uniform_pose_prior(probs)), 0.5)
+    assert math.isclose(float(uniform_pose_prior(probs, "mean")), 0.25)
+    assert float(uniform_pose_prior(torch.full((6, 3), 1 / 6))) < 1e-7
+
+
+def test_normal_consistency_hand_values():
+    # dihedral angles: tetrahedron normals at cos = -1/3 -> 4/3; octahedron cos = 1/3 -> 2/3
+    loss = NormalConsistencyLoss(TETRA_FACES)
+    assert loss.edges.shape == (6, 2)
+    assert math.isclose(float(loss(TETRA_VERTS[None])), 4 / 3, rel_tol=1e-5)
+    octa = NormalConsistencyLoss(OCTA_FACES)
+    batch = torch.stack([OCTA_VERTS, OCTA_VERTS * torch.tensor([2.0, 1.0, 1.0])])
+    single = float(octa(batch[1:]))
+    assert math.isclose(float(octa(OCTA_VERTS[None])), 2 / 3, rel_tol=1e-5)
+    assert math.isclose(float(octa(batch)), (2 / 3 + single) / 2, rel_tol=1e-5)
+    t = TemplateMesh(level=3)
+    sphere = float(NormalConsistencyLoss(t.faces)(t.verts[None] / t.verts.norm(dim=-1, keepdim=True)))
+    assert 0 < sphere < 0.01
+    with pytest.raises(ValueError, match="closed manifold"):
+        NormalConsistencyLoss(TETRA_FACES[:3])
+
+
+def test_uniform_laplacian_hand_values():
+    loss = UniformLaplacianLoss(OCTA_FACES)
+    assert (loss.weights.sum(1) - 1).abs().max() < 1e-6  # 4 neighbours each, weight 1/4
+    # every vertex +-e_i has the 4 others of the other axes as neighbours: mean 0, so |Lv| = |v|
+    assert math.isclose(float(loss(OCTA_VERTS[None])), 1.0, rel_tol=1e-6)
+    # L2 norm, not squared: scaling by 2 doubles it; batch mean
+    assert math.isclose(float(loss(torch.stack([OCTA_VERTS, 2 * OCTA_VERTS]))), 1.5, rel_tol=1e-6)
+    verts = OCTA_VERTS.clone()
+    verts[0, 0] = 3.0  # only vertex 0's own term and its 4 neighbours' terms change
+    # vertex 0: neighbours average 0 -> 3; e.g. (0,1,0): neighbours average (0.5,0,0) -> sqrt(1.25); vertex 1: 1
+    expected = (3.0 + 4 * math.sqrt(1.25) + 1.0) / 6
+    assert math.isclose(float(loss(verts[None])), expected, rel_tol=1e-5)
+    v = OCTA_VERTS[None].clone().requires_grad_(True)
+    loss(v).backward()
+    assert torch.isfinite(v.grad).all()
+
+
+def test_missing_vgg_file_error(tmp_path):
+    path = tmp_path / "nowhere" / "vgg16-397923af.pth"
+    with pytest.raises(FileNotFoundError) as err:
+        VGGPerceptualLoss(path)
+    message = str(err.value)
+    assert str(path) in message and "vgg16-397923af.pth" in message and "download.pytorch.org" in message
+    with pytest.raises(FileNotFoundError, match="no path was given"):
+        load_vgg16_weights(None)
+
+
+def test_vgg_perceptual_from_file_matches_hand_computation(tmp_path):
+    state = torchvision_vgg16_state()
+    path = tmp_path / "vgg16-397923af.pth"
+    torch.save(state, path)
+    loss = VGGPerceptualLoss(path)
+    assert list(loss.parameters()) == [] and loss.state_dict() == {}
+    g = torch.Generator().manual_seed(0)
+    rec = torch.rand(2, 3, 16, 16, generator=g).requires_grad_(True)
+    target = torch.rand(2, 3, 16, 16, generator=g)
+    value = loss(rec, target)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+
+    def features(x):
+        x = (x - mean) / std
+        for i in (0, 2, "M", 5, 7, "M", 10, 12, 14):
+            if i == "M":
+                x = F.max_pool2d(x, 2)
+            else:
+                x = F.relu(F.conv2d(x, state[f"features.{i}.weight"], state[f"features.{i}.bias"], padding=1))
+        return x / (x.norm(dim=1, keepdim=True) + 1e-10)
+
+    expected = (features(rec.detach()) - features(target)).pow(2).flatten(1).mean(1)
+    assert value.shape == (2,) and torch.allclose(value, expected, rtol=1e-4, atol=1e-7)
+    assert float(loss(target, target).abs().max()) < 1e-10
+    value.sum().backward()
+    assert rec.grad.abs().sum() > 0
+    with pytest.raises(KeyError, match="features.14.weight"):
+        VGGPerceptualLoss({k: v for k, v in state.items() if k != "features.14.weight"})
+
+
+def test_structural_loss():
+    loss = StructuralLoss()
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(2, 3, 32, 32, generator=g), torch.rand(2, 3, 32, 32, generator=g)
+    assert loss(a, a).abs().max() < 1e-5
+    value = loss(a, b)
+    assert value.shape == (2,) and (value > 0.1).all()
+    assert float(loss(a, (a + 0.02).clamp(0, 1)).max()) < float(value.min())
