@@ -41,7 +41,7 @@ def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Te
     row_pix, occ, col = gather_slots(fragments, occupancy, colors)
     transmit = torch.cumprod(1.0 - occ, dim=1)  # (R, K): light passing through slots 0..k
     before = torch.cat([torch.ones_like(transmit[:, :1]), transmit[:, :-1]], dim=1)
-    rgb = ((before * occ).unsqueeze(-1) * col).sum(1) + transmit[:, -1:] * bg_table[row_pix]
+    rgb = ((before * occ).unsqueeze(-1) * col).sum(1) + transmit[:, -1:] * bg_table.index_select(0, row_pix)
     alpha = 1.0 - transmit[:, -1]
     return write_pixels(bg_table, row_pix, rgb, alpha, fragments.batch_size, fragments.image_size)
 

@@ -142,7 +142,7 @@ def _select_chunk(
     nb, F = counts.shape
     flat_counts = counts.reshape(-1)
     active = flat_counts.nonzero().squeeze(1)  # faces with at least one candidate pixel
-    c = flat_counts[active]
+    c = flat_counts.index_select(0, active)
     P = int(c.sum())
     empty = fpx.new_empty(0, dtype=torch.long)
     if P == 0:
@@ -150,15 +150,15 @@ def _select_chunk(
     dev = fpx.device
     owner = torch.repeat_interleave(torch.arange(active.numel(), device=dev), c, output_size=P)
     start = torch.cumsum(c, 0) - c
-    local = torch.arange(P, device=dev) - start[owner]
-    x0, y0, w, _ = (b.reshape(-1)[active] for b in boxes)
-    w_o = w[owner]
-    px = x0[owner] + local % w_o
-    py = y0[owner] + torch.div(local, w_o, rounding_mode="floor")
+    local = torch.arange(P, device=dev) - start.index_select(0, owner)
+    x0, y0, w, _ = (b.reshape(-1).index_select(0, active) for b in boxes)
+    w_o = w.index_select(0, owner)
+    px = x0.index_select(0, owner) + local % w_o
+    py = y0.index_select(0, owner) + torch.div(local, w_o, rounding_mode="floor")
     del local, start
 
-    flat_face = active[owner]  # index into (nb * F)
-    tri = fpx.reshape(-1, 3, 2)[flat_face]
+    flat_face = active.index_select(0, owner)  # index into (nb * F)
+    tri = fpx.reshape(-1, 6).index_select(0, flat_face).view(-1, 3, 2)
     pxf, pyf = px.to(tri.dtype), py.to(tri.dtype)
     bary = _barycentric(tri, pxf, pyf)
     inside = (bary > 0).all(-1)
@@ -170,8 +170,8 @@ def _select_chunk(
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return empty, empty, empty, empty.bool(), 0
-    flat_face, px, py, inside = flat_face[idx], px[idx], py[idx], inside[idx]
-    z = (_clip_barycentric(bary[idx]) * fz.reshape(-1, 3)[flat_face]).sum(-1)
+    flat_face, px, py, inside = (t.index_select(0, idx) for t in (flat_face, px, py, inside))
+    z = (_clip_barycentric(bary.index_select(0, idx)) * fz.reshape(-1, 3).index_select(0, flat_face)).sum(-1)
     del bary, tri, owner
 
     image = torch.div(flat_face, F, rounding_mode="floor")
@@ -180,7 +180,7 @@ def _select_chunk(
     scale = (2**_DEPTH_BITS - 1) / (zmax - zmin).clamp_min(1e-12)
     zq = ((z - zmin) * scale).long().clamp_(0, 2**_DEPTH_BITS - 1)
     order = torch.sort((pix_local << _DEPTH_BITS) | zq, stable=True).indices
-    pix_local, flat_face, inside = pix_local[order], flat_face[order], inside[order]
+    pix_local, flat_face, inside = (t.index_select(0, order) for t in (pix_local, flat_face, inside))
 
     n = pix_local.numel()
     ar = torch.arange(n, device=dev)
@@ -197,10 +197,17 @@ def _select_chunk(
     overflow = int((keep & (rank == faces_per_pixel)).sum())
     keep &= rank < faces_per_pixel
     sel = keep.nonzero().squeeze(1)
-    pix = pix_local[sel] + first_image * H * W
-    face_global = flat_face[sel] % F
-    image_global = torch.div(flat_face[sel], F, rounding_mode="floor") + first_image
-    return pix, rank[sel], torch.stack([face_global, image_global]), inside[sel], overflow
+    pix = pix_local.index_select(0, sel) + first_image * H * W
+    flat_face = flat_face.index_select(0, sel)
+    face_global = flat_face % F
+    image_global = torch.div(flat_face, F, rounding_mode="floor") + first_image
+    return (
+        pix,
+        rank.index_select(0, sel),
+        torch.stack([face_global, image_global]),
+        inside.index_select(0, sel),
+        overflow,
+    )
 
 
 def rasterize_meshes(
@@ -259,8 +266,9 @@ def rasterize_meshes(
     if B > 0 and F > 0 and V > 0:
         with torch.no_grad():
             v = verts_ndc.detach()
-            fpx = to_pixels(v)[:, faces]  # (B, F, 3, 2)
-            fz = v[..., 2][:, faces]  # (B, F, 3)
+            corners = v.index_select(1, faces.reshape(-1)).view(B, F, 3, 3)
+            fpx = to_pixels(corners)  # (B, F, 3, 2)
+            fz = corners[..., 2]  # (B, F, 3)
             e1 = fpx[:, :, 1] - fpx[:, :, 0]
             e2 = fpx[:, :, 2] - fpx[:, :, 0]
             area_ndc = 0.5 * (e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]) * px_to_ndc2
@@ -294,8 +302,8 @@ def rasterize_meshes(
         inside = torch.zeros(0, dtype=torch.bool, device=dev)
 
     # stage 2: differentiable recomputation for the kept pairs
-    vert_idx = image.unsqueeze(1) * V + faces[face]  # (M, 3)
-    tri = verts_ndc.reshape(-1, 3)[vert_idx]  # (M, 3, 3)
+    vert_idx = image.unsqueeze(1) * V + faces.index_select(0, face)  # (M, 3)
+    tri = verts_ndc.reshape(-1, 3).index_select(0, vert_idx.reshape(-1)).view(-1, 3, 3)  # (M, 3, 3)
     tri_px = to_pixels(tri)
     centre_x = (pix % W).to(tri.dtype)
     centre_y = torch.div(pix, W, rounding_mode="floor").remainder(H).to(tri.dtype)

@@ -53,7 +53,7 @@ def softras_blend(
     w_faces = prob_k * torch.exp((z_inv_k - z_max) / gamma) * valid
     w_bg = torch.exp((eps - z_max) / gamma)
     norm = w_faces.sum(1, keepdim=True) + w_bg
-    rgb = ((w_faces.unsqueeze(-1) * col).sum(1) + w_bg * bg_table[row_pix]) / norm
+    rgb = ((w_faces.unsqueeze(-1) * col).sum(1) + w_bg * bg_table.index_select(0, row_pix)) / norm
     alpha = 1.0 - torch.prod(1.0 - prob_k, dim=1)
     return write_pixels(bg_table, row_pix, rgb, alpha, fragments.batch_size, fragments.image_size)
 

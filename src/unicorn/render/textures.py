@@ -21,14 +21,18 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
         (M, D) interpolated attributes.
     """
     if attrs.dim() == 2:
-        vert_idx = faces[fragments.face]  # (M, 3)
-        values = attrs[vert_idx]
+        vert_idx = faces.index_select(0, fragments.face)  # (M, 3)
+        values = attrs.index_select(0, vert_idx.reshape(-1)).view(*vert_idx.shape, attrs.shape[-1])
     elif attrs.dim() == 3:
         if attrs.shape[0] != fragments.batch_size:
             raise ValueError(f"attrs has batch size {attrs.shape[0]}, fragments {fragments.batch_size}")
         V = attrs.shape[1]
-        vert_idx = fragments.batch_index.unsqueeze(1) * V + faces[fragments.face]
-        values = attrs.reshape(-1, attrs.shape[-1])[vert_idx]
+        vert_idx = fragments.batch_index.unsqueeze(1) * V + faces.index_select(0, fragments.face)
+        values = (
+            attrs.reshape(-1, attrs.shape[-1])
+            .index_select(0, vert_idx.reshape(-1))
+            .view(*vert_idx.shape, attrs.shape[-1])
+        )
     else:
         raise ValueError(f"attrs must have shape (B, V, D) or (V, D), got {tuple(attrs.shape)}")
     return (fragments.bary.unsqueeze(-1).to(values.dtype) * values).sum(1)
@@ -113,7 +117,7 @@ class TexturesUV(Textures):
             raise ValueError(f"face_uvs has {self.face_uvs.shape[0]} faces, meshes {num_faces}")
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
-        corner_uvs = self.face_uvs.to(fragments.bary)[fragments.face]  # (M, 3, 2)
+        corner_uvs = self.face_uvs.to(fragments.bary).reshape(-1, 6).index_select(0, fragments.face).view(-1, 3, 2)
         uv = (fragments.bary.unsqueeze(-1) * corner_uvs).sum(1)
         return sample_bilinear(self.maps, fragments.batch_index, uv, self.wrap_u, self.align_corners)
 
@@ -143,7 +147,7 @@ def sample_bilinear(
     base = batch_index * (Ht * Wt)
 
     def tap(yi: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-        return table[base + yi * Wt + xi]
+        return table.index_select(0, base + yi * Wt + xi)
 
     top = tap(ys[0], xs[0]) * (1 - fx) + tap(ys[0], xs[1]) * fx
     bottom = tap(ys[1], xs[0]) * (1 - fx) + tap(ys[1], xs[1]) * fx
