@@ -95,6 +95,19 @@ def _barycentric(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch
     return w / area
 
 
+def _barycentric_coefficients(tri: torch.Tensor) -> torch.Tensor:
+    """(N, 9) coefficients ``(a, b, c)`` of the affine maps ``w_i = a_i x + b_i y + c_i`` giving the unclipped
+    barycentrics of a point (x, y) in the 2D triangles (N, 3, 2)."""
+    x, y = tri[..., 0], tri[..., 1]
+    xj, yj = x.roll(-1, dims=-1), y.roll(-1, dims=-1)  # vertex i's opposite edge runs from j = i+1 to k = i+2
+    xk, yk = x.roll(-2, dims=-1), y.roll(-2, dims=-1)
+    area = _edge(x[..., 0], y[..., 0], x[..., 1], y[..., 1], x[..., 2], y[..., 2]).unsqueeze(-1)
+    a = -(yk - yj) / area
+    b = (xk - xj) / area
+    c = ((yk - yj) * xj - (xk - xj) * yj) / area
+    return torch.cat([a, b, c], dim=-1)
+
+
 def _segment_distance2(px, py, ax, ay, bx, by):
     """Squared distance from points to segments [a, b], the segment parameter clamped to [0, 1]."""
     ex, ey = bx - ax, by - ay
@@ -158,21 +171,27 @@ def _select_chunk(
     del local, start
 
     flat_face = active.index_select(0, owner)  # index into (nb * F)
-    tri = fpx.reshape(-1, 6).index_select(0, flat_face).view(-1, 3, 2)
-    pxf, pyf = px.to(tri.dtype), py.to(tri.dtype)
-    bary = _barycentric(tri, pxf, pyf)
+    # barycentrics are affine in the pixel position: three multiply-adds per candidate
+    coef = _barycentric_coefficients(fpx.reshape(-1, 3, 2).index_select(0, active)).index_select(0, owner)
+    del owner
+    pxf, pyf = px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1)
+    bary = torch.addcmul(torch.addcmul(coef[:, 6:], coef[:, :3], pxf), coef[:, 3:6], pyf)
+    del coef
     inside = (bary > 0).all(-1)
     keep = inside.clone()
     if blur_radius > 0:
         # the distance test is only needed for the candidates outside their face
         out = (~inside).nonzero().squeeze(1)
-        keep[out] = _boundary_distance2(tri[out], pxf[out], pyf[out]) * px_to_ndc2 < blur_radius
+        tri = fpx.reshape(-1, 6).index_select(0, flat_face.index_select(0, out)).view(-1, 3, 2)
+        d2 = _boundary_distance2(tri, pxf.squeeze(1).index_select(0, out), pyf.squeeze(1).index_select(0, out))
+        keep[out] = d2 * px_to_ndc2 < blur_radius
+        del tri, d2
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return empty, empty, empty, empty.bool(), 0
     flat_face, px, py, inside = (t.index_select(0, idx) for t in (flat_face, px, py, inside))
     z = (_clip_barycentric(bary.index_select(0, idx)) * fz.reshape(-1, 3).index_select(0, flat_face)).sum(-1)
-    del bary, tri, owner
+    del bary
 
     image = torch.div(flat_face, F, rounding_mode="floor")
     pix_local = (image * H + py) * W + px
