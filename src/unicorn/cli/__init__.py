@@ -1,0 +1,1 @@
+"""Command-line entry points (``unicorn-train`` and the others registered in pyproject.toml)."""

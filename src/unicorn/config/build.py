@@ -1,0 +1,213 @@
+"""Validation of a composed training config and its translation into the model's configuration.
+
+:func:`validate` is what ``unicorn-train`` runs right after Hydra composed the config: it merges the config
+onto the structured schema (:class:`~unicorn.config.schema.TrainConfig`: unknown keys and wrong types fail
+there, naming the key) and checks the relations between values. :func:`model_config` turns the validated
+``model`` and ``renderer`` groups into the mapping :class:`unicorn.model.Unicorn` takes.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from typing import Any
+
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from unicorn.config.schema import TrainConfig
+
+__all__ = ["ConfigError", "model_config", "renderer_settings", "validate"]
+
+N_STAGES = 4
+_CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
+
+
+class ConfigError(ValueError):
+    """A training configuration that cannot be used (the message names the key)."""
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
+def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
+    """Merge ``cfg`` onto the schema and check it; returns the typed config (a new object).
+
+    Interpolations stay unresolved in the result (``${hydra:...}`` only resolves inside a Hydra run), but
+    every value checked here is resolved once.
+
+    Raises:
+        ConfigError: an unknown key, a wrong type or inconsistent values, with the offending key's name.
+    """
+    schema = OmegaConf.structured(TrainConfig)
+    try:
+        typed = OmegaConf.merge(schema, cfg)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"invalid training config: {err}") from None
+    try:
+        _check_values(typed)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"invalid training config: {err}") from None
+    return typed
+
+
+def _check_values(cfg: DictConfig) -> None:
+    m, s, o = cfg.model, cfg.schedule, cfg.optim
+    # -- model
+    _check(m.image_size >= 8, f"model.image_size must be >= 8, got {m.image_size}")
+    _check(
+        m.image_size == cfg.dataset.img_size,
+        f"model.image_size ({m.image_size}) differs from dataset.img_size ({cfg.dataset.img_size})",
+    )
+    _check(m.composite in ("direct", "reference"), f"model.composite must be direct or reference, got {m.composite}")
+    _check(
+        m.loss.perceptual in ("vgg", "structural", None),
+        f"model.loss.perceptual must be vgg, structural or null, got {m.loss.perceptual!r}",
+    )
+    _check(
+        m.loss.uniform_reduction in ("sum", "mean"),
+        f"model.loss.uniform_reduction must be sum or mean, got {m.loss.uniform_reduction!r}",
+    )
+    _check(
+        cfg.dataset.batch_size <= m.loss.memory_size,
+        f"dataset.batch_size ({cfg.dataset.batch_size}) exceeds model.loss.memory_size ({m.loss.memory_size})",
+    )
+    codes = {"shape": m.shape.code_dim, "texture": m.texture.code_dim}
+    if m.background is not None:
+        codes["background"] = m.background.code_dim
+    for name, code_dim in codes.items():
+        dims = list(m.stages[name])
+        key = f"model.stages.{name}"
+        _check(len(dims) == N_STAGES, f"{key} needs {N_STAGES} sizes (one per stage), got {dims}")
+        _check(all(0 <= d <= code_dim for d in dims), f"{key} = {dims} must lie in [0, {name} code_dim={code_dim}]")
+        _check(all(a <= b for a, b in zip(dims, dims[1:])), f"{key} = {dims} must not decrease")
+    # -- schedule
+    _check(s.mode in ("fixed", "plateau"), f"schedule.mode must be fixed or plateau, got {s.mode!r}")
+    ms = list(s.milestones)
+    _check(len(ms) == N_STAGES - 1, f"schedule.milestones needs {N_STAGES - 1} iterations (stages 2-4), got {ms}")
+    _check(all(a < b for a, b in zip([0, *ms], ms)), f"schedule.milestones must increase from > 0, got {ms}")
+    _check(s.alternation_period >= 1, f"schedule.alternation_period must be >= 1, got {s.alternation_period}")
+    for key in ("translation", "deformation", "scale"):
+        _check(s.curriculum[key] >= 0, f"schedule.curriculum.{key} must be >= 0")
+    ta = s.texture_averaging
+    _check(0.0 <= ta.p <= 1.0, f"schedule.texture_averaging.p must be in [0, 1], got {ta.p}")
+    _check(0 <= ta.constant_stages <= N_STAGES, "schedule.texture_averaging.constant_stages must be in [0, 4]")
+    _check(
+        ta.random_until_stage is None or 1 <= ta.random_until_stage <= N_STAGES,
+        "schedule.texture_averaging.random_until_stage must be null or in [1, 4]",
+    )
+    pl = s.plateau
+    _check(pl.window >= 1 and pl.check_every >= 1 and pl.patience >= 1, "schedule.plateau counts must be >= 1")
+    _check(pl.min_steps >= 0 and pl.threshold >= 0, "schedule.plateau.min_steps and threshold must be >= 0")
+    # -- optimisation
+    _check(o.lr > 0, f"optim.lr must be > 0, got {o.lr}")
+    _check(len(o.betas) == 2, f"optim.betas needs two values, got {list(o.betas)}")
+    _check(o.idle_params in ("skip", "momentum"), f"optim.idle_params must be skip or momentum, got {o.idle_params}")
+    _check(o.lr_drop_step is None or o.lr_drop_step >= 0, "optim.lr_drop_step must be null or >= 0")
+    # -- trainer
+    t = cfg.trainer
+    _check(t.max_steps > 0, f"trainer.max_steps must be > 0 (training is counted in iterations), got {t.max_steps}")
+    _check(
+        t.val_check_interval is None or t.val_check_interval >= 1,
+        "trainer.val_check_interval must be null (no validation) or a number of iterations >= 1",
+    )
+    strategy = t.strategy if isinstance(t.strategy, str) else None
+    _check(
+        strategy not in ("ddp", "ddp_spawn", "ddp_fork", "ddp_notebook"),
+        f"trainer.strategy={strategy}: the pose / 3D alternation leaves half of the parameters without gradient "
+        "at every step; use ddp_find_unused_parameters_true (or ddp_spawn_find_unused_parameters_true)",
+    )
+    _check(cfg.callbacks.checkpoint.every_n_steps >= 1, "callbacks.checkpoint.every_n_steps must be >= 1")
+    if cfg.callbacks.images is not None:
+        _check(cfg.callbacks.images.every_n_steps >= 1, "callbacks.images.every_n_steps must be >= 1")
+    for group in ("logger",):
+        for name, node in cfg[group].items():
+            _check(
+                node is None or (isinstance(node, Mapping) and "_target_" in node),
+                f"{group}.{name} must be null or have a _target_",
+            )
+    for name, node in cfg.callbacks.extra.items():
+        _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
+    # -- data and renderer
+    from unicorn.data.datamodule import DATASET_NAMES
+
+    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
+    renderer_settings(cfg.renderer)
+
+
+def _registry_name(cls: type) -> str:
+    from unicorn.render import get_renderer_class, list_renderers
+
+    for name in list_renderers():
+        if get_renderer_class(name) is cls:
+            return name
+    raise ConfigError(f"renderer._target_ {cls.__module__}.{cls.__qualname__} is not a registered renderer")
+
+
+def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
+    """The model's ``renderer`` group from a ``conf/renderer/*.yaml`` node.
+
+    The backend is the registered renderer whose class is ``_target_``; ``camera.fov`` /
+    ``camera.focal_length`` and ``background_color`` become the model's camera and colour, the remaining
+    keys the backend's options. ``image_size`` is ignored (the model's image size wins).
+
+    Raises:
+        ConfigError: no ``_target_``, an unregistered class, or an option the backend does not take.
+    """
+    cfg = OmegaConf.to_container(renderer, resolve=True) if isinstance(renderer, DictConfig) else dict(renderer)
+    _check("_target_" in cfg, "renderer needs a _target_ (one of conf/renderer/*.yaml)")
+    try:
+        cls = get_class(cfg.pop("_target_"))
+    except Exception as err:
+        raise ConfigError(f"renderer._target_: {err}") from None
+    name = _registry_name(cls)
+    cfg.pop("image_size", None)
+    camera = dict(cfg.pop("camera", None) or {})
+    camera.pop("_target_", None)
+    fov, focal = camera.pop("fov", None), camera.pop("focal_length", None)
+    _check((fov is None) != (focal is None), "renderer.camera needs exactly one of fov and focal_length")
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "camera", "image_size"}
+    for key, value in camera.items():
+        if key in accepted and key not in cfg:
+            cfg[key] = value  # e.g. SoftRas depth normalisation
+        else:
+            _check(
+                key in _CAMERA_DEFAULTS and value == _CAMERA_DEFAULTS[key],
+                f"renderer.camera.{key}={value} is not supported by the model's camera",
+            )
+    background_color = cfg.pop("background_color", (1.0, 1.0, 1.0))
+    unknown = sorted(set(cfg) - accepted)
+    _check(not unknown, f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)})")
+    return {
+        "name": name,
+        "fov": fov,
+        "focal_length": focal,
+        "background_color": tuple(background_color),
+        "options": cfg,
+    }
+
+
+def model_config(cfg: DictConfig) -> dict[str, Any]:
+    """Configuration of :class:`unicorn.model.Unicorn` from a validated training config.
+
+    Initial active code sizes are those of stage 1 (the stage callback sets them anyway).
+    """
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    assert isinstance(model, dict)
+    stages = model.pop("stages")
+    model.pop("name")
+    renderer = renderer_settings(cfg.renderer)
+    renderer["composite"] = model.pop("composite")
+    model["renderer"] = renderer
+    model["shape"]["active_dims"] = stages["shape"][0]
+    model["texture"]["active_dims"] = stages["texture"][0]
+    if model["background"] is not None:
+        model["background"]["active_dims"] = stages["background"][0]
+    for group in ("template", "pose"):
+        for key, value in model[group].items():
+            if isinstance(value, list):
+                model[group][key] = tuple(value)
+    return model

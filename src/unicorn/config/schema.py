@@ -1,0 +1,292 @@
+"""Structured schema of the training configuration (``conf/train.yaml`` and its groups).
+
+The composed Hydra config is merged onto :class:`TrainConfig` (an OmegaConf structured config), so a misspelt
+key or a value of the wrong type fails with the key's full name before anything is built; :func:`validate`
+then checks what types cannot express (milestones in order, code sizes within the code, renderer options
+the backend accepts, ...).
+
+The ``model`` group mirrors the groups of :data:`unicorn.model.DEFAULT_CONFIG` (same keys, same defaults) and
+adds ``stages``, the active code sizes of the four stages; ``renderer`` is one of ``conf/renderer/*.yaml``
+(a ``_target_`` backend class plus its options) and is turned into the model's renderer settings by
+:func:`unicorn.config.build.model_config`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "BackgroundConfig",
+    "CallbacksConfig",
+    "CheckpointConfig",
+    "CurriculumConfig",
+    "DatasetConfig",
+    "EncoderConfig",
+    "ImagesConfig",
+    "LossConfig",
+    "ModelConfig",
+    "OptimConfig",
+    "PathsConfig",
+    "PlateauConfig",
+    "PoseConfig",
+    "ScheduleConfig",
+    "ShapeConfig",
+    "StageDimsConfig",
+    "TemplateConfig",
+    "TextureAveragingConfig",
+    "TextureConfig",
+    "TrainConfig",
+    "TrainerConfig",
+]
+
+
+# ---------------------------------------------------------------------------------------------- model
+@dataclass
+class EncoderConfig:
+    shared: bool = True
+
+
+@dataclass
+class TemplateConfig:
+    level: int = 3
+    axes: list[float] = field(default_factory=lambda: [1.0, 0.7, 0.7])
+    scale: float = 0.6
+    uv_mode: str = "seamless"
+
+
+@dataclass
+class ShapeConfig:
+    code_dim: int = 32
+    active_dims: int = 0
+    n_field_units: int = 128
+    n_field_layers: int = 2
+    n_reg_units: int = 128
+    n_reg_layers: int = 3
+
+
+@dataclass
+class TextureConfig:
+    code_dim: int = 128
+    active_dims: int = 2
+    size: int = 64
+    min_features: int = 16
+    n_reg_units: int = 128
+    n_reg_layers: int = 3
+
+
+@dataclass
+class BackgroundConfig:
+    code_dim: int = 128
+    active_dims: int = 4
+    min_features: int = 16
+    n_reg_units: int = 128
+    n_reg_layers: int = 3
+
+
+@dataclass
+class PoseConfig:
+    n_elev: int = 1
+    n_azim: int = 6
+    azim_range: list[float] = field(default_factory=lambda: [0.0, 360.0])
+    elev_range: list[float] = field(default_factory=lambda: [-10.0, 30.0])
+    roll_range: list[float] = field(default_factory=lambda: [-30.0, 30.0])
+    T_range: Any = 0.3  # one float or (x, y, z)
+    prior_translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 2.732])
+    scale_range: Any = 0.3  # one float or (x, y, z)
+    n_units: int = 128
+    n_layers: int = 3
+
+
+@dataclass
+class LossConfig:
+    rgb_weight: float = 1.0
+    perceptual: str | None = "vgg"  # vgg | structural | null
+    perceptual_weight: float = 10.0
+    vgg_weights: str | None = None
+    normal_weight: float = 0.01
+    laplacian_weight: float = 0.01
+    uniform_weight: float = 0.02
+    uniform_reduction: str = "sum"
+    neighbor_weight: float = 1.0
+    memory_size: int = 1024
+    n_bins: int = 5
+    min_angle: float = 20.0
+
+
+@dataclass
+class StageDimsConfig:
+    """Active code sizes in stages 1 to 4 (the reference's small real-image model by default)."""
+
+    shape: list[int] = field(default_factory=lambda: [0, 2, 8, 32])
+    texture: list[int] = field(default_factory=lambda: [2, 8, 32, 128])
+    background: list[int] = field(default_factory=lambda: [4, 8, 32, 128])
+
+
+@dataclass
+class ModelConfig:
+    name: str = "small"
+    image_size: int = 64
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    template: TemplateConfig = field(default_factory=TemplateConfig)
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    background: BackgroundConfig | None = field(default_factory=BackgroundConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    composite: str = "direct"  # direct | reference
+    stages: StageDimsConfig = field(default_factory=StageDimsConfig)
+
+
+# ---------------------------------------------------------------------------------------------- data
+@dataclass
+class DatasetConfig:
+    """Arguments of :class:`unicorn.data.datamodule.UnicornDataModule` (``_target_`` may name a subclass)."""
+
+    _target_: str = "unicorn.data.datamodule.UnicornDataModule"
+    name: str = "synthetic"
+    root: str | None = None
+    categories: Any = None  # one name or a list
+    img_size: int = 64
+    batch_size: int = 32
+    num_workers: int = 4
+    seed: int = 0
+    val_size: int | None = None
+    on_error: str = "raise"
+    pin_memory: bool = False
+    synthetic: dict[str, Any] | None = None
+    options: dict[str, Any] | None = None
+
+
+# ---------------------------------------------------------------------------------------------- schedule
+@dataclass
+class CurriculumConfig:
+    """Iteration at which each stage-1 switch turns on (0: from the start)."""
+
+    translation: int = 0
+    deformation: int = 0
+    scale: int = 0
+
+
+@dataclass
+class TextureAveragingConfig:
+    """Mean-colour textures: constant during the first ``constant_stages`` stages, then with probability ``p``
+    per batch while the stage is below ``random_until_stage`` (null: for the whole run)."""
+
+    constant_stages: int = 0
+    p: float = 0.2
+    random_until_stage: int | None = 4
+
+
+@dataclass
+class PlateauConfig:
+    """Automatic stage changes: move on when the 3D-step reconstruction loss stops improving.
+
+    Every ``check_every`` iterations the mean of the last ``window`` 3D-step reconstruction losses is
+    compared with the mean of the ``window`` before; a relative improvement below ``threshold`` for
+    ``patience`` checks in a row ends the stage, provided it lasted ``min_steps``.
+    """
+
+    window: int = 2000
+    check_every: int = 1000
+    threshold: float = 0.01
+    patience: int = 3
+    min_steps: int = 10000
+
+
+@dataclass
+class ScheduleConfig:
+    mode: str = "fixed"  # fixed | plateau
+    milestones: list[int] = field(default_factory=lambda: [750000, 1500000, 2250000])
+    alternation_period: int = 1
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
+    plateau: PlateauConfig = field(default_factory=PlateauConfig)
+
+
+@dataclass
+class OptimConfig:
+    """One Adam over all parameters; ``idle_params``: ``skip`` or ``momentum`` (see :mod:`unicorn.lit.module`)."""
+
+    lr: float = 1e-4
+    betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
+    eps: float = 1e-8
+    weight_decay: float = 0.0
+    lr_drop_step: int | None = None
+    lr_drop_gamma: float = 0.2
+    idle_params: str = "skip"
+    check_finite: bool = True
+
+
+# ---------------------------------------------------------------------------------------------- run
+@dataclass
+class TrainerConfig:
+    """Keyword arguments of :class:`lightning.pytorch.Trainer` that the configs may set."""
+
+    accelerator: str = "auto"
+    devices: Any = "auto"
+    num_nodes: int = 1
+    strategy: Any = "auto"
+    precision: Any = "32-true"
+    max_steps: int = 3000000
+    val_check_interval: int | None = 2000
+    limit_val_batches: Any = 1.0
+    num_sanity_val_steps: int = 0
+    log_every_n_steps: int = 50
+    enable_progress_bar: bool = True
+    enable_model_summary: bool = True
+    deterministic: Any = False
+    benchmark: bool | None = None
+    profiler: str | None = None
+    sync_batchnorm: bool = False
+
+
+@dataclass
+class CheckpointConfig:
+    """Periodic atomic checkpoints ``step=<N>.ckpt`` (the last ``keep`` kept) and ``last.ckpt``."""
+
+    every_n_steps: int = 10000
+    keep: int = 2
+    save_last: bool = True
+
+
+@dataclass
+class ImagesConfig:
+    """Image logging: inputs, reconstructions, the mesh from ``n_views`` azimuths, textures, backgrounds."""
+
+    every_n_steps: int = 2000
+    n_images: int = 8
+    n_views: int = 4
+    save_png: bool = True
+
+
+@dataclass
+class CallbacksConfig:
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    images: ImagesConfig | None = field(default_factory=ImagesConfig)
+    progress_bar_refresh_rate: int = 1
+    extra: dict[str, Any] = field(default_factory=dict)  # name -> instantiable callback (``_target_``)
+
+
+@dataclass
+class PathsConfig:
+    log_dir: str = "outputs"
+    output_dir: str = "outputs"
+    cache_dir: str = "~/.cache/unicorn"
+    vgg16: str | None = None
+
+
+@dataclass
+class TrainConfig:
+    task_name: str = "train"
+    seed: int = 0
+    ckpt_path: str | None = None
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    renderer: dict[str, Any] = field(default_factory=dict)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    logger: dict[str, Any] = field(default_factory=dict)  # name -> instantiable Lightning logger
+    callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)

@@ -1,0 +1,35 @@
+"""Lightning training of UNICORN: the module, the stage schedule, checkpoints and the training data stream.
+
+- :class:`UnicornLitModule` (``module``): manual optimization alternating pose and 3D steps, one Adam, logging
+  of every loss term and of the pose-candidate shares, the non-finite-loss guard.
+- :class:`StageCallback`, :class:`ImageLogger` (``callbacks``): progressive conditioning, stage-1 curriculum
+  and texture averaging; image logging.
+- :class:`AtomicCheckpointIO` (``checkpoint``): complete-or-absent checkpoint files.
+- :class:`IterationDataModule` (``data``): an endless, resumable, rank-sharded stream of training batches.
+
+Distributed training (DDP) keeps one neighbour memory bank per rank, as the reference does: each process
+searches the neighbours of its own samples among the last ``memory_size`` samples it has seen, with no
+communication. Checkpoints gather every rank's bank (and random states) so that a resumed run with the same
+number of processes continues exactly; with another number of processes rank ``r`` takes the saved bank of
+rank ``r mod saved_world_size``.
+"""
+
+from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
+from unicorn.lit.checkpoint import AtomicCheckpointIO, atomic_torch_save
+from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
+from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
+
+__all__ = [
+    "OPTIM_DEFAULTS",
+    "AtomicCheckpointIO",
+    "ImageLogger",
+    "IterationDataModule",
+    "NonFiniteLossError",
+    "ProgressBar",
+    "SeededItems",
+    "StageCallback",
+    "StreamBatchSampler",
+    "UnicornLitModule",
+    "atomic_torch_save",
+    "render_overview",
+]

@@ -1,0 +1,312 @@
+"""Training callbacks: the progressive-conditioning stage schedule and image logging.
+
+:class:`StageCallback` drives UNICORN's four stages. Before every iteration it computes, for the iteration
+about to run (``trainer.global_step``), the stage, the stage-1 curriculum switches and the texture-averaging
+mode, and writes them into the module's state (``UnicornLitModule.stage`` / ``texture_average_p`` and the
+model's code-size and switch buffers): a checkpoint alone restores them, every DDP rank computes the same
+values without communication, and a resumed run continues where it stopped. With fixed milestones the stage is
+a pure function of the iteration; the ``plateau`` mode moves on when the 3D-step reconstruction loss stops
+improving (decided on rank 0, broadcast to the others, bookkeeping saved with the callback's state).
+
+The neighbour loss needs active shape and texture codes, so with the paper's code sizes (no shape code in
+stage 1) it starts with stage 2.
+
+:class:`ImageLogger` renders, every N iterations, the inputs, their reconstructions, the predicted meshes from
+several viewpoints, the textures and the backgrounds, to TensorBoard and as PNG files.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from collections import deque
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.utilities import rank_zero_only
+
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+
+__all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "render_overview"]
+
+log = logging.getLogger(__name__)
+
+N_STAGES = 4
+_SWITCHES = ("translation", "deformation", "scale")
+
+
+class StageState(dict):
+    """What the schedule prescribes for one iteration: ``stage``, ``dims`` (per code), ``switches`` (curriculum),
+    ``texture_p`` (1: constant mean-colour textures, 0 < p < 1: averaged with probability p per batch)."""
+
+
+class StageCallback(L.Callback):
+    """Progressive conditioning, stage-1 curriculum and texture averaging (see the module docstring).
+
+    Args:
+        dims: active code sizes per stage, ``{"shape": [0, 2, 8, 32], "texture": [...], "background": [...]}``.
+        milestones: iterations at which stages 2, 3 and 4 start (``fixed`` mode).
+        curriculum: iteration at which ``translation``, ``deformation`` and ``scale`` turn on.
+        texture_averaging: ``constant_stages`` (constant mean-colour textures during the first stages),
+            ``p`` and ``random_until_stage`` (averaging with probability p per batch while the stage is below
+            it; None: for the whole run).
+        mode: ``"fixed"`` (milestones) or ``"plateau"``.
+        plateau: ``window``, ``check_every``, ``threshold``, ``patience``, ``min_steps`` (see
+            :class:`unicorn.config.schema.PlateauConfig`).
+    """
+
+    def __init__(
+        self,
+        dims: Mapping[str, Sequence[int]],
+        milestones: Sequence[int],
+        curriculum: Mapping[str, int] | None = None,
+        texture_averaging: Mapping[str, Any] | None = None,
+        mode: str = "fixed",
+        plateau: Mapping[str, Any] | None = None,
+    ) -> None:
+        if mode not in ("fixed", "plateau"):
+            raise ValueError(f"mode must be 'fixed' or 'plateau', got {mode!r}")
+        if len(milestones) != N_STAGES - 1 or list(milestones) != sorted(milestones):
+            raise ValueError(f"need {N_STAGES - 1} increasing milestones, got {list(milestones)}")
+        for name, values in dims.items():
+            if values is not None and len(values) != N_STAGES:
+                raise ValueError(f"dims[{name!r}] needs {N_STAGES} sizes, got {list(values)}")
+        self.dims = {k: [int(d) for d in v] for k, v in dims.items() if v is not None}
+        self.milestones = [int(m) for m in milestones]
+        self.curriculum = {k: 0 for k in _SWITCHES} | {k: int(v) for k, v in dict(curriculum or {}).items()}
+        ta = {"constant_stages": 0, "p": 0.2, "random_until_stage": N_STAGES} | dict(texture_averaging or {})
+        self.texture_averaging = ta
+        self.mode = mode
+        self.plateau = {"window": 2000, "check_every": 1000, "threshold": 0.01, "patience": 3, "min_steps": 10000}
+        self.plateau |= dict(plateau or {})
+        # plateau bookkeeping (saved in the checkpoint)
+        self._history: deque[float] = deque(maxlen=2 * int(self.plateau["window"]))
+        self._strikes = 0
+        self._stage_start = 0
+        self._last: StageState | None = None
+
+    # ------------------------------------------------------------------ the schedule
+    def fixed_stage(self, step: int) -> int:
+        """Stage (1-4) of iteration ``step`` with the fixed milestones."""
+        return 1 + bisect.bisect_right(self.milestones, step)
+
+    def state_at(self, step: int, stage: int) -> StageState:
+        """The settings of iteration ``step`` in ``stage``."""
+        ta = self.texture_averaging
+        if stage <= ta["constant_stages"]:
+            texture_p = 1.0
+        elif ta["random_until_stage"] is None or stage < ta["random_until_stage"]:
+            texture_p = float(ta["p"])
+        else:
+            texture_p = 0.0
+        return StageState(
+            stage=stage,
+            dims={name: values[stage - 1] for name, values in self.dims.items()},
+            switches={name: step >= self.curriculum[name] for name in _SWITCHES},
+            texture_p=texture_p,
+        )
+
+    def apply(self, pl_module: L.LightningModule, state: StageState) -> None:
+        """Write ``state`` into the module (stage and texture buffers) and its model (code sizes, switches)."""
+        pl_module.stage.fill_(state["stage"])
+        pl_module.texture_average_p.fill_(state["texture_p"])
+        pl_module.model.set_active_dims(**state["dims"])
+        pl_module.model.set_stage_switches(**state["switches"])
+
+    def _current(self, trainer: L.Trainer, pl_module: L.LightningModule) -> StageState:
+        step = trainer.global_step
+        stage = self.fixed_stage(step) if self.mode == "fixed" else int(pl_module.stage)
+        return self.state_at(step, stage)
+
+    def _describe(self, old: StageState | None, new: StageState, step: int) -> list[str]:
+        lines = []
+        if old is None or old["stage"] != new["stage"]:
+            dims = ", ".join(f"{k} {v}" for k, v in new["dims"].items())
+            prev = "start" if old is None else f"stage {old['stage']}"
+            lines.append(f"iteration {step}: {prev} -> stage {new['stage']} (code sizes: {dims})")
+        for name in _SWITCHES:
+            if (old is None and not new["switches"][name]) or (
+                old is not None and old["switches"][name] != new["switches"][name]
+            ):
+                lines.append(f"iteration {step}: {name} {'on' if new['switches'][name] else 'held off'}")
+        if old is None or old["texture_p"] != new["texture_p"]:
+            p = new["texture_p"]
+            what = (
+                "constant mean-colour textures"
+                if p >= 1
+                else (f"mean-colour textures with p={p:g}" if p > 0 else "full textures")
+            )
+            lines.append(f"iteration {step}: {what}")
+        return lines
+
+    # ------------------------------------------------------------------ hooks
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._last = None
+        self._update(trainer, pl_module)
+
+    def on_train_batch_start(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
+    ) -> None:
+        state = self._update(trainer, pl_module)
+        pl_module.log("stage", float(state["stage"]), on_step=True, on_epoch=False, prog_bar=True)
+        for name, value in state["dims"].items():
+            pl_module.log(f"stage/dims_{name}", float(value), on_step=True, on_epoch=False)
+        for name, value in state["switches"].items():
+            pl_module.log(f"stage/{name}", float(value), on_step=True, on_epoch=False)
+        pl_module.log("stage/texture_p", state["texture_p"], on_step=True, on_epoch=False)
+        loss = pl_module.model.config["loss"]
+        neighbor = loss["neighbor_weight"] > 0 and state["dims"].get("shape", 1) > 0 and state["dims"]["texture"] > 0
+        pl_module.log("stage/neighbor", float(neighbor), on_step=True, on_epoch=False)
+
+    def _update(self, trainer: L.Trainer, pl_module: L.LightningModule) -> StageState:
+        state = self._current(trainer, pl_module)
+        for line in self._describe(self._last, state, trainer.global_step):
+            if trainer.is_global_zero:
+                log.info(line)
+        self.apply(pl_module, state)
+        self._last = state
+        return state
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        if self.mode != "plateau" or not isinstance(outputs, Mapping):
+            return
+        step = trainer.global_step - 1  # the iteration that just ran
+        if pl_module.phase(step) == "3d":
+            self._history.append(float(outputs.get("rgb", 0.0)) + float(outputs.get("perceptual", 0.0)))
+        if trainer.global_step % int(self.plateau["check_every"]) != 0:
+            return
+        advance = torch.tensor(float(self._plateau_reached(int(pl_module.stage), trainer.global_step)))
+        advance = trainer.strategy.broadcast(advance, src=0)
+        if float(advance) > 0:
+            pl_module.stage.add_(1)
+            self._stage_start, self._strikes = trainer.global_step, 0
+            self._history.clear()
+
+    def _plateau_reached(self, stage: int, step: int) -> bool:
+        window = int(self.plateau["window"])
+        if stage >= N_STAGES or step - self._stage_start < self.plateau["min_steps"] or len(self._history) < 2 * window:
+            return False
+        values = np.asarray(self._history)
+        before, now = values[:window].mean(), values[window:].mean()
+        improvement = (before - now) / max(abs(before), 1e-12)
+        self._strikes = self._strikes + 1 if improvement < self.plateau["threshold"] else 0
+        return self._strikes >= self.plateau["patience"]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "milestones": self.milestones,
+            "mode": self.mode,
+            "history": list(self._history),
+            "strikes": self._strikes,
+            "stage_start": self._stage_start,
+        }
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if state_dict.get("milestones") != self.milestones or state_dict.get("mode") != self.mode:
+            log.warning(
+                "resuming with a different stage schedule (checkpoint: %s %s, now: %s %s)",
+                state_dict.get("mode"),
+                state_dict.get("milestones"),
+                self.mode,
+                self.milestones,
+            )
+        self._history.clear()
+        self._history.extend(state_dict.get("history", []))
+        self._strikes = int(state_dict.get("strikes", 0))
+        self._stage_start = int(state_dict.get("stage_start", 0))
+
+
+# ---------------------------------------------------------------------------------------------- images
+@torch.no_grad()
+def render_overview(
+    model: torch.nn.Module, images: torch.Tensor, n_views: int = 4, average_texture: bool = False
+) -> torch.Tensor:
+    """One row per image: input, reconstruction, the mesh from ``n_views`` azimuths, texture, background.
+
+    Args:
+        model: a :class:`unicorn.model.Unicorn` (put in eval mode by the caller).
+        images: (N, 3, S, S) in [0, 1].
+
+    Returns:
+        (3, N * S, C * S) image grid in [0, 1].
+    """
+    pred = model.predict(images, average_texture=average_texture)
+    rec, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    n, size = images.shape[0], images.shape[-1]
+    columns = [images, rec]
+    elev = torch.full((n,), 20.0, device=images.device)
+    T = images.new_tensor(model.config["pose"]["prior_translation"]).expand(n, 3)
+    for v in range(n_views):
+        azim = torch.full((n,), 360.0 * v / n_views + 30.0, device=images.device)
+        R = azim_elev_roll_to_rotation(azim, elev)
+        view, _ = model.render(pred.verts, pred.texture, R, T)
+        columns.append(view)
+    columns.append(F.interpolate(pred.texture, size=(size, size), mode="bilinear", align_corners=False))
+    if pred.background is not None:
+        columns.append(pred.background)
+    rows = torch.cat(columns, dim=3)  # (N, 3, S, C * S)
+    return rows.permute(1, 0, 2, 3).reshape(3, n * size, -1).clamp(0, 1)
+
+
+class ImageLogger(L.Callback):
+    """Logs :func:`render_overview` of the first ``n_images`` of the batch every ``every_n_steps`` iterations
+    (and after the first one) to TensorBoard (``images/overview``) and as ``<run>/images/step=N.png``.
+
+    Args:
+        every_n_steps: logging period in iterations.
+        n_images: rows (images of the current batch).
+        n_views: viewpoints of the mesh.
+        save_png: also write PNG files into ``<default_root_dir>/images``.
+    """
+
+    def __init__(self, every_n_steps: int = 2000, n_images: int = 8, n_views: int = 4, save_png: bool = True) -> None:
+        self.every_n_steps, self.n_images, self.n_views, self.save_png = every_n_steps, n_images, n_views, save_png
+
+    @rank_zero_only
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        step = trainer.global_step
+        if step != 1 and step % self.every_n_steps != 0:
+            return
+        images = batch["image"][: self.n_images]
+        was_training = pl_module.training
+        pl_module.eval()  # batch-norm statistics must not see these renders
+        try:
+            grid = render_overview(pl_module.model, images, self.n_views, float(pl_module.texture_average_p) >= 1)
+        finally:
+            pl_module.train(was_training)
+        for logger in trainer.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                logger.experiment.add_image("images/overview", grid.cpu(), step)
+        if self.save_png:
+            from PIL import Image
+
+            folder = Path(trainer.default_root_dir) / "images"
+            folder.mkdir(parents=True, exist_ok=True)
+            array = (grid.permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+            Image.fromarray(array).save(folder / f"step={step:07d}.png")
+
+
+class ProgressBar(TQDMProgressBar):
+    """Lightning's progress bar for an iteration-based run: no epoch label, the stage shown as an integer."""
+
+    def on_train_epoch_start(self, trainer: L.Trainer, *args: Any) -> None:
+        super().on_train_epoch_start(trainer, *args)
+        self.train_progress_bar.set_description("Training")
+
+    def get_metrics(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, int | str | float | dict]:
+        items = super().get_metrics(trainer, pl_module)
+        items.pop("v_num", None)
+        if "stage" in items:
+            items["stage"] = int(float(items["stage"]))
+        return items

@@ -1,0 +1,257 @@
+"""The LightningModule that trains :class:`unicorn.model.Unicorn` with manual optimization.
+
+Alternation. Iteration ``i`` (Lightning's ``global_step`` before the step) is a pose step when
+``(i // alternation_period) % 2 == 0`` and a 3D step otherwise; the period is 1 in the paper (pose, 3D, pose,
+...). Each iteration takes one batch and makes one optimizer step, so ``global_step`` counts iterations exactly
+as the paper does, and ``trainer.max_steps`` and every milestone are in iterations.
+
+One Adam over all parameters (lr 1e-4), with an optional drop of the learning rate at ``lr_drop_step`` (the
+ShapeNet schedules multiply it by 0.2 for the last ~50k iterations). What the idle half of the parameters (the
+3D branches in a pose step, the pose heads in a 3D step) does is ``optim.idle_params``:
+
+- ``"skip"`` (default): gradients are reset with ``zero_grad(set_to_none=True)``; a parameter that the step's
+  loss does not reach keeps ``grad = None`` and Adam skips it entirely: it does not move, and its moments and
+  step count are untouched. Each half is then optimised by its own steps only (and the Adam bias correction
+  counts those steps), which is what the alternation means.
+- ``"momentum"``: the reference's behaviour under PyTorch 1.10, ``zero_grad(set_to_none=False)``: the idle half
+  receives zero gradients and Adam still moves it along its decaying first moment at every step.
+
+The shared encoder is reached by both steps and is updated at every iteration in both modes.
+
+Stage state. The stage (1-4) and the texture-averaging probability are buffers of this module, and the code
+sizes and stage-1 switches are buffers of the model, so a checkpoint alone restores them (the stage callback,
+:class:`unicorn.lit.callbacks.StageCallback`, sets them). The neighbour memory bank and the random states are
+written to the checkpoint by :meth:`on_save_checkpoint` (every rank's, see :mod:`unicorn.lit`) and restored
+when training restarts, so a resumed run continues exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from unicorn.model import Unicorn
+from unicorn.model.pose import PoseOutput
+
+__all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
+
+log = logging.getLogger(__name__)
+
+OPTIM_DEFAULTS: dict[str, Any] = {
+    "lr": 1e-4,
+    "betas": (0.9, 0.999),
+    "eps": 1e-8,
+    "weight_decay": 0.0,
+    "lr_drop_step": None,
+    "lr_drop_gamma": 0.2,
+    "idle_params": "skip",
+    "check_finite": True,
+}
+_SEED_STRIDE = 1_000_003
+
+
+class NonFiniteLossError(FloatingPointError):
+    """A loss term or a gradient became NaN or infinite; the message names the iteration and the term."""
+
+
+def _rng_state() -> dict[str, Any]:
+    # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
+    name, keys, pos, has_gauss, gauss = np.random.get_state()  # noqa: NPY002 (the legacy global generator)
+    state: dict[str, Any] = {
+        "torch": torch.get_rng_state(),
+        "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(gauss)],
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: Mapping[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    name, keys, pos, has_gauss, gauss = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))  # noqa: NPY002
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class UnicornLitModule(L.LightningModule):
+    """Trains UNICORN by alternating pose and 3D steps (see the module docstring).
+
+    Args:
+        model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
+        optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
+            ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``).
+        alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
+        seed: seeds the per-batch texture-averaging draws (a pure function of seed and iteration).
+    """
+
+    stage: torch.Tensor
+    texture_average_p: torch.Tensor
+
+    def __init__(
+        self,
+        model: Mapping[str, Any],
+        optim: Mapping[str, Any] | None = None,
+        alternation_period: int = 1,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        self.model = Unicorn(model)
+        unknown = set(optim or {}) - set(OPTIM_DEFAULTS)
+        if unknown:
+            raise KeyError(f"unknown optim keys {sorted(unknown)}; known: {sorted(OPTIM_DEFAULTS)}")
+        self.optim = {**OPTIM_DEFAULTS, **dict(optim or {})}
+        if self.optim["idle_params"] not in ("skip", "momentum"):
+            raise ValueError(f"idle_params must be 'skip' or 'momentum', got {self.optim['idle_params']!r}")
+        if alternation_period < 1:
+            raise ValueError(f"alternation_period must be >= 1, got {alternation_period}")
+        self.alternation_period, self.seed = int(alternation_period), int(seed)
+        # training state that must survive a checkpoint: buffers
+        self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
+        self.register_buffer("texture_average_p", torch.tensor(0.0))
+        self._resume_state: dict[str, Any] | None = None
+        self._pose_probs: torch.Tensor | None = None
+        self.model.pose.register_forward_hook(self._capture_pose)
+
+    # ------------------------------------------------------------------ schedule helpers
+    def phase(self, step: int) -> str:
+        """``"pose"`` or ``"3d"``: the kind of step iteration ``step`` (0-based) makes."""
+        return "pose" if (step // self.alternation_period) % 2 == 0 else "3d"
+
+    def average_texture(self, step: int) -> bool:
+        """Whether iteration ``step`` renders mean-colour textures (constant, or drawn once per batch)."""
+        p = float(self.texture_average_p)
+        if p >= 1.0 or p <= 0.0:
+            return p >= 1.0
+        g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + step)
+        return bool(torch.rand((), generator=g) < p)
+
+    def _capture_pose(self, module: torch.nn.Module, inputs: Any, output: PoseOutput) -> None:
+        # the first pose prediction of a step is the batch's (later ones are neighbours')
+        if self._pose_probs is None:
+            self._pose_probs = output.probs.detach()
+
+    # ------------------------------------------------------------------ training
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """One iteration: a pose or a 3D step on ``batch["image"]`` (B, 3, S, S); returns the detached terms."""
+        images = batch["image"]
+        step = self.global_step
+        phase = self.phase(step)
+        average = self.average_texture(step)
+        opt = self.optimizers()
+        opt.zero_grad(set_to_none=self.optim["idle_params"] == "skip")
+        self._pose_probs = None
+        losses = (self.model.pose_step if phase == "pose" else self.model.step_3d)(images, average_texture=average)
+        self.manual_backward(losses["total"])
+        if self.optim["check_finite"]:
+            self._check_finite(losses, step, phase)
+        opt.step()
+        scheduler = self.lr_schedulers()
+        if scheduler is not None:
+            scheduler.step()
+
+        terms = {name: value.detach() for name, value in losses.items()}
+        self.log_dict({f"train/{phase}/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=False)
+        self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)
+        self.log("train/lr", opt.param_groups[0]["lr"], on_step=True, on_epoch=False)
+        self.log("train/average_texture", float(average), on_step=True, on_epoch=False)
+        if self._pose_probs is not None:
+            probs = self._pose_probs  # (K, B)
+            shares = F.one_hot(probs.argmax(0), probs.shape[0]).float().mean(0)
+            for k in range(probs.shape[0]):
+                self.log(f"pose/share_{k}", shares[k], on_step=True, on_epoch=False)
+                self.log(f"pose/prob_{k}", probs[k].mean(), on_step=True, on_epoch=False)
+        return terms
+
+    def _check_finite(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
+        """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
+
+        The parameters are still those before this iteration, so the checkpoint is the last good state. The
+        decision is reduced over ranks so that every process stops (and saves) together.
+        """
+        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
+        if not bad:
+            grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+            if grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
+                bad.append("gradients of 'total' (finite loss)")
+        flag = torch.tensor(float(bool(bad)), device=self.device)
+        if self.trainer.world_size > 1:
+            flag = self.trainer.strategy.reduce(flag, reduce_op="max")
+        if float(flag) == 0:
+            return
+        where = ", ".join(bad) if bad else "a term on another rank"
+        path = self._save_last_good(step)
+        saved = f"; the state before this iteration was saved to {path}" if path else ""
+        raise NonFiniteLossError(f"non-finite loss at iteration {step} ({phase} step): {where}{saved}")
+
+    def _save_last_good(self, step: int) -> str | None:
+        trainer = self.trainer
+        callback = trainer.checkpoint_callback
+        folder = getattr(callback, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
+        path = Path(folder) / f"nonfinite-step={step}.ckpt"
+        try:
+            trainer.save_checkpoint(path)
+        except Exception as err:  # saving is best effort: the error message matters more
+            log.error("could not save a checkpoint before stopping: %s", err)
+            return None
+        return str(path)
+
+    # ------------------------------------------------------------------ validation
+    def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
+        """Reconstruction error (``val/rgb``) and, where the data has masks, the silhouette IoU (``val/mask_iou``)."""
+        images = batch["image"]
+        pred = self.model.predict(images, average_texture=float(self.texture_average_p) >= 1.0)
+        rec, alpha = self.model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+        self.log("val/rgb", F.mse_loss(rec, images), prog_bar=False, batch_size=images.shape[0])
+        if "mask" in batch and bool(batch.get("has_mask", torch.tensor(False)).all()):
+            inter = ((alpha > 0.5) & (batch["mask"] > 0.5)).flatten(1).sum(1).float()
+            union = ((alpha > 0.5) | (batch["mask"] > 0.5)).flatten(1).sum(1).float().clamp(min=1)
+            self.log("val/mask_iou", (inter / union).mean(), batch_size=images.shape[0])
+
+    # ------------------------------------------------------------------ optimizer
+    def configure_optimizers(self) -> dict[str, Any]:
+        o = self.optim
+        opt = torch.optim.Adam(
+            self.model.parameters(), lr=o["lr"], betas=tuple(o["betas"]), eps=o["eps"], weight_decay=o["weight_decay"]
+        )
+        milestones = [] if o["lr_drop_step"] is None else [int(o["lr_drop_step"])]
+        # stepped once per iteration in training_step (manual optimization never steps schedulers itself)
+        scheduler = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=o["lr_drop_gamma"])
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # ------------------------------------------------------------------ checkpoint state
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Add every rank's neighbour memory and random states (``checkpoint["unicorn"]``)."""
+        memory = {k: (None if v is None else v.detach().cpu()) for k, v in self.model.memory.state().items()}
+        state = {"memory": memory, "rng": _rng_state()}
+        ranks = [state]
+        if self.trainer.world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
+            ranks = [None] * torch.distributed.get_world_size()
+            torch.distributed.all_gather_object(ranks, state)
+        checkpoint["unicorn"] = {"version": 1, "ranks": ranks}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # applied in on_train_start: the random state must be set after everything that precedes training
+        self._resume_state = checkpoint.get("unicorn")
+
+    def on_train_start(self) -> None:
+        state, self._resume_state = self._resume_state, None
+        if not state:
+            return
+        ranks = state["ranks"]
+        mine = ranks[self.global_rank % len(ranks)]
+        self.model.memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
+        _set_rng_state(mine["rng"])
+        log.info("restored the neighbour memory (%d entries) and random states", len(self.model.memory))

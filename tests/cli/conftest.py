@@ -1,0 +1,1 @@
+from tests.lit.conftest import TINY, synthetic_cache  # noqa: F401

@@ -1,0 +1,157 @@
+"""In-process training runs: stages and masks, the alternation, global_step, resume, the non-finite guard."""
+
+from __future__ import annotations
+
+import lightning as L
+import pytest
+import torch
+
+from tests.lit.conftest import build_run
+from unicorn.cli.train import build, fit
+from unicorn.lit import NonFiniteLossError
+
+POSE_ONLY = ("model.pose.",)
+THREE_D_ONLY = ("model.shape.", "model.texture.", "model.scale.")
+
+
+class Recorder(L.Callback):
+    """Records, for every iteration, the stage state seen by the step and which parameters got gradients."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        model = pl_module.model
+        self.rows.append(
+            {
+                "step": trainer.global_step,
+                "stage": int(pl_module.stage),
+                "dims": model.active_dims(),
+                "translation": bool(model.pose.use_translation),
+                "scale": bool(model.scale.use_scale),
+                "texture_p": float(pl_module.texture_average_p),
+                "phase": pl_module.phase(trainer.global_step),
+            }
+        )
+
+    def on_before_optimizer_step(self, trainer, pl_module, optimizer):
+        named = list(pl_module.named_parameters())
+        self.rows[-1]["got"] = {name for name, p in named if p.grad is not None}
+        self.rows[-1]["nonzero"] = {name for name, p in named if p.grad is not None and bool(p.grad.abs().sum() > 0)}
+
+
+def _last_texture_weight(module) -> torch.Tensor:
+    # the zero-initialised last layer of the texture-code regressor gets a gradient from the first 3D step on
+    return list(module.model.texture.regressor.parameters())[-2].detach()
+
+
+def _has(names: set[str], prefixes: tuple[str, ...]) -> bool:
+    return any(n.startswith(prefixes) for n in names)
+
+
+def test_stages_masks_and_alternation(synthetic_cache, tmp_path):
+    run = build_run(tmp_path, "schedule.curriculum.translation=1")
+    recorder = Recorder()
+    run.trainer.callbacks.append(recorder)
+    fit(run)
+    rows = recorder.rows
+    assert run.trainer.global_step == 8 and [r["step"] for r in rows] == list(range(8))  # one step = one iteration
+    # milestones [3, 5, 7]; tiny dims shape 0/2/4/16, texture 2/4/8/16 (no background model in nmr mode)
+    assert [r["stage"] for r in rows] == [1, 1, 1, 2, 2, 3, 3, 4]
+    assert [r["dims"]["shape"] for r in rows] == [0, 0, 0, 2, 2, 4, 4, 16]
+    assert [r["dims"]["texture"] for r in rows] == [2, 2, 2, 4, 4, 8, 8, 16]
+    assert "background" not in rows[0]["dims"]
+    assert [r["translation"] for r in rows[:3]] == [False, True, True]
+    assert [r["scale"] for r in rows[:3]] == [False, False, True]
+    # ShapeNet-style texture averaging: constant in stage 1, then p = 0.2 for the rest of the run
+    assert [r["texture_p"] for r in rows] == pytest.approx([1.0] * 3 + [0.2] * 5)
+    # the masks really zero the trailing code dimensions
+    z = run.module.model.shape.code(torch.randn(2, 512))
+    assert (z[:, 16:] == 0).all()
+    # alternation: pose, 3D, pose, ...; each step's gradients reach its own branches only (idle: grad None)
+    assert [r["phase"] for r in rows] == ["pose", "3d"] * 4
+    for r in rows:
+        got = r["got"]  # parameters whose gradient is not None (zero-initialised heads may give zeros)
+        assert _has(got, ("model.encoders.",))  # the shared encoder learns in both steps
+        if r["phase"] == "pose":
+            assert _has(got, POSE_ONLY) and not _has(got, THREE_D_ONLY)
+        else:
+            assert _has(got, THREE_D_ONLY) and not _has(got, POSE_ONLY)
+    assert any(_has(r["nonzero"], ("model.encoders.",)) for r in rows if r["phase"] == "3d")
+    # the learning-rate drop at iteration 6 (x 0.2)
+    assert run.trainer.optimizers[0].param_groups[0]["lr"] == pytest.approx(5e-4 * 0.2)
+    assert (run.checkpoint_dir / "last.ckpt").is_file()
+
+
+def test_idle_parameters_skip_vs_momentum(synthetic_cache, tmp_path):
+    """skip: a 3D branch does not move in a pose step; momentum: it keeps moving along Adam's first moment."""
+    moved = {}
+    for mode in ("skip", "momentum"):
+        run = build_run(tmp_path / mode, f"optim.idle_params={mode}", "trainer.max_steps=3")
+        snapshots: list[torch.Tensor] = []
+
+        class Snap(L.Callback):
+            def __init__(self, store: list[torch.Tensor]) -> None:
+                self.store = store
+
+            def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+                self.store.append(_last_texture_weight(pl_module).clone())
+
+        run.trainer.callbacks.append(Snap(snapshots))
+        fit(run)
+        final = _last_texture_weight(run.module)
+        # iteration 2 is a pose step: compare the texture branch before and after it
+        moved[mode] = not torch.equal(snapshots[2], final)
+    assert moved == {"skip": False, "momentum": True}
+
+
+def test_resume_is_exact(synthetic_cache, tmp_path):
+    straight = build_run(tmp_path / "straight")
+    fit(straight)
+    first = build_run(tmp_path / "resumed", "trainer.max_steps=4")
+    fit(first)
+    second = build_run(tmp_path / "resumed", "ckpt_path=last")
+    assert second.ckpt_path is not None
+    fit(second)
+    assert second.trainer.global_step == 8
+    a, b = straight.module.state_dict(), second.module.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6, msg=key)
+    mem_a, mem_b = straight.module.model.memory.state(), second.module.model.memory.state()
+    for key in mem_a:
+        torch.testing.assert_close(mem_a[key], mem_b[key], msg=key)
+    opt_a = straight.trainer.optimizers[0].state_dict()
+    opt_b = second.trainer.optimizers[0].state_dict()
+    assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"]
+    for index, state in opt_a["state"].items():
+        torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monkeypatch):
+    run = build_run(tmp_path)
+    model = run.module.model
+    original = model.step_3d
+
+    def broken(images, average_texture=False):
+        out = original(images, average_texture)
+        out["rgb"] = out["rgb"] * float("nan")
+        out["total"] = out["total"] + out["rgb"]
+        return out
+
+    monkeypatch.setattr(model, "step_3d", broken)
+    with pytest.raises(NonFiniteLossError, match=r"iteration 1 \(3d step\): rgb = nan"):
+        fit(run)
+    assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
+
+
+def test_missing_dataset_is_a_clear_error(tmp_path):
+    from tests.lit.conftest import compose_config
+
+    cfg = compose_config(
+        ["+experiment=cub", f"paths.output_dir={tmp_path}", f"dataset.root={tmp_path / 'nothing'}", "logger=none"]
+    )
+    cfg.model.loss.perceptual = "structural"
+    run = build(cfg)
+    with pytest.raises((FileNotFoundError, RuntimeError), match="nothing"):
+        run.trainer.fit(run.module, datamodule=run.data)
