@@ -1,4 +1,4 @@
-"""Developer sessions: ``nox -s tests``, ``nox -s lint``, ``nox -s bench``, ``nox -s package``.
+"""Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s bench``, ``nox -s package``.
 
 Every session reuses its virtual environment and installs torch only when the environment has none, so torch is
 never reinstalled and a CPU machine never pulls the CUDA build by accident:
@@ -59,6 +59,13 @@ def tests(session: nox.Session) -> None:
     """The test suite (CPU; tests marked gpu run only where CUDA is present). Extra arguments go to pytest."""
     install_project(session, "dev")
     session.run("pytest", *(session.posargs or ["-q"]))
+
+
+@nox.session(python=PYTHON)
+def train(session: nox.Session) -> None:
+    """The main job: train on the offline synthetic default. Extra arguments are Hydra overrides."""
+    install_project(session)
+    session.run("unicorn-train", "+experiment=synthetic", *session.posargs)
 
 
 @nox.session(python=PYTHON)
