@@ -1,0 +1,248 @@
+"""``unicorn-eval``: evaluate a checkpoint on a dataset; print the metric table, save it and a visual report.
+
+Examples::
+
+    unicorn-eval outputs/shapenet/runs/<time>/checkpoints/last.ckpt          # dataset of the training run
+    unicorn-eval model.pkl --dataset cub_200 --root datasets/cub_200 --device cuda
+    unicorn-eval last.ckpt --dataset synthetic --root ~/.cache/unicorn/synthetic/nmr_chair_n200_s0_v1 \\
+        --max-images 64 --fast --out eval/chair
+
+Writes ``metrics.csv``, ``metrics.json``, ``per_image.csv``, ``report.html`` and ``report.png`` to ``--out``
+(default ``<run>/eval/<dataset>_<split>`` for a checkpoint inside a training run, else
+``eval/<checkpoint>_<dataset>_<split>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["build_parser", "main"]
+
+log = logging.getLogger("unicorn.eval")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default only when it says something (not None or False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+DATASETS = ("shapenet_nmr", "synthetic", "cub_200", "p3d_car", "compcars", "lsun", "folder")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="unicorn-eval",
+        description="Evaluate a UNICORN checkpoint (unicorn-train .ckpt, released .pkl or unicorn.io.save_model file) "
+        "on a dataset with UNICORN's protocol for it; print the metrics and write them (CSV, JSON) with a visual "
+        "report (HTML, PNG).",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument("checkpoint", help="checkpoint file")
+    p.add_argument(
+        "--dataset",
+        choices=DATASETS,
+        help="dataset name; default: the training run's dataset (from <run>/config.yaml)",
+    )
+    p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="dataset split")
+    p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
+    p.add_argument("--out", type=Path, help="output folder; default: see the description")
+    p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
+    p.add_argument("--max-images", type=int, help="evaluate at most N images, spread over the split")
+    p.add_argument("--batch-size", type=int, default=32, help="images per forward pass")
+    p.add_argument("--num-points", type=int, default=100_000, help="points sampled per mesh for Chamfer")
+    p.add_argument("--icp-iterations", type=int, default=100, help="ICP iterations (0: no -ICP metrics)")
+    p.add_argument("--fast", action="store_true", help="UNICORN's validation setting: 50k points and 30 ICP iterations")
+    p.add_argument("--num-pairs", type=int, default=10_000, help="keypoint-transfer pairs (CUB)")
+    p.add_argument("--no-align-pose", action="store_true", help="pose errors without canonical-frame alignment")
+    p.add_argument(
+        "--template-level",
+        type=int,
+        help="icosphere level of the mesh (3: 642 vertices; UNICORN's CUB keypoint evaluation uses 4)",
+    )
+    p.add_argument(
+        "--average-texture",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="mean-colour textures; auto: as the checkpoint was being trained",
+    )
+    p.add_argument("--report-samples", type=int, default=8, help="images shown in the report (0: no report)")
+    p.add_argument("--view-size", type=int, default=128, help="side of the report pictures")
+    p.add_argument("--turntable-frames", type=int, default=16, help="frames of the report's turntables (0: none)")
+    p.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    p.add_argument(
+        "--nn-workers", type=int, default=1, help="threads of the CPU nearest-neighbour search (-1: all cores)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the view choice and point sampling")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _device(name: str) -> Any:
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def _out_dir(args: argparse.Namespace, info: Any, dataset: str) -> Path:
+    if args.out is not None:
+        return args.out.expanduser()
+    if info.run_dir is not None:
+        return info.run_dir / "eval" / f"{dataset}_{args.split}"
+    return Path("eval") / f"{Path(args.checkpoint).stem}_{dataset}_{args.split}"
+
+
+def _run_root(run_data: dict[str, Any]) -> str | None:
+    """The dataset folder of a training run's ``dataset`` config (synthetic runs name the cache's parent folder)."""
+    if run_data.get("name") != "synthetic":
+        return run_data.get("root")
+    from unicorn.data.datamodule import UnicornDataModule
+
+    module = UnicornDataModule(
+        "synthetic",
+        root=run_data.get("root"),
+        categories=run_data.get("categories"),
+        synthetic=run_data.get("synthetic"),
+    )
+    return str(module.dataset_root())
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate as ``args`` say; returns the exit status."""
+    # heavy imports here: --help and argument errors stay fast
+    import torch
+
+    from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate, format_table, protocol_for
+    from unicorn.evaluation.report import write_metrics, write_report
+    from unicorn.io import load_model
+
+    device = _device(args.device)
+    overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
+    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides)
+    log.info("loaded %s", info.describe())
+
+    run_data = info.dataset or {}
+    dataset = args.dataset or run_data.get("name")
+    if dataset is None:
+        raise ValueError("no --dataset given and the checkpoint's training run does not name one")
+    root = args.root
+    if root is None and run_data.get("name") == dataset:
+        root = _run_root(run_data)
+    if root is None:
+        raise ValueError(f"no --root given for dataset {dataset!r}")
+    categories = args.categories.split(",") if args.categories else None
+    if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
+        categories = run_data["categories"]
+
+    protocol = protocol_for(dataset)
+    data = build_eval_dataset(
+        dataset,
+        str(root),
+        args.split,
+        img_size=model.config["image_size"],
+        categories=categories,
+        max_images=args.max_images,
+        seed=args.seed,
+    )
+    average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
+    options = EvalOptions(
+        protocol=protocol,
+        batch_size=args.batch_size,
+        num_points=50_000 if args.fast else args.num_points,
+        icp_iterations=30 if args.fast else args.icp_iterations,
+        num_pairs=args.num_pairs,
+        align_pose=not args.no_align_pose,
+        average_texture=average,
+        report_samples=args.report_samples,
+        num_workers=args.workers,
+        nn_workers=args.nn_workers,
+        seed=args.seed,
+        progress=not args.quiet,
+    )
+    out = _out_dir(args, info, dataset)
+    print(f"evaluating {len(data)} {args.split} images of {dataset} ({protocol} protocol) on {device}", flush=True)
+    if device.type == "cpu" and protocol in ("shapenet", "p3d") and options.icp_iterations > 30:
+        # the ICP's nearest-neighbour searches dominate: about 1 s per iteration and image at 100k points on CPU
+        print(
+            f"note: the full protocol ({options.num_points} points, {options.icp_iterations} ICP iterations) takes "
+            "one to two minutes per image on a CPU; --fast (UNICORN's validation setting) or a GPU is much quicker",
+            flush=True,
+        )
+    result = evaluate(model, data, options, dataset_name=dataset, device=device)
+
+    meta = {
+        "checkpoint": str(Path(args.checkpoint).expanduser().resolve()),
+        "checkpoint_format": info.format,
+        "epoch": info.epoch,
+        "step": info.step,
+        "dataset": dataset,
+        "root": str(root),
+        "split": args.split,
+        "categories": categories,
+        "device": str(device),
+        "torch": torch.__version__,
+        "options": dataclasses.asdict(options),
+        "command": " ".join(["unicorn-eval", *sys.argv[1:]]),
+    }
+    paths = write_metrics(result, out, meta)
+    print(format_table(result.table, result.columns))
+    if result.samples:
+        title = f"{dataset} ({args.split}): {Path(args.checkpoint).name}"
+        paths.update(
+            write_report(
+                model,
+                result,
+                out,
+                title,
+                meta,
+                view_size=args.view_size,
+                turntable_frames=args.turntable_frames,
+                device=device,
+            )
+        )
+    per_image = result.seconds / max(1, len(result.per_image))
+    print(f"\n{len(result.per_image)} images in {result.seconds:.1f} s ({per_image:.3f} s/image)")
+    for name in ("csv", "json", "per_image", "html", "png"):
+        if name in paths:
+            print(f"{name:>9}: {paths[name]}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point; errors the user can fix are reported in one line with exit status 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # imported after parsing so that --help and argument errors do not wait for torch and lightning
+    from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+    from unicorn.io.checkpoints import CheckpointError
+
+    for name in ("batch_size", "num_points", "num_pairs", "view_size"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be positive")
+    if args.max_images is not None and args.max_images < 1:
+        parser.error("--max-images must be positive")
+    try:
+        return run(args)
+    except (FileNotFoundError, DatasetNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
+        message = err.args[0] if isinstance(err, KeyError) and err.args else err
+        print(f"unicorn-eval: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""``unicorn-reconstruct``: images in, a textured mesh, pictures, mask, pose and turntable per image out.
+
+Examples::
+
+    unicorn-reconstruct car_big.pkl photos/ --out reconstructions
+    unicorn-reconstruct outputs/cub/runs/<time>/checkpoints/last.ckpt bird.png --device cuda
+    unicorn-reconstruct model.pkl car.jpg --bbox 40,80,600,420 --out car
+
+Every image is framed as the training images were (a transparent PNG is cropped around its opaque pixels, a
+``--bbox`` crops around the box, anything else is fitted and padded to a square), then reconstructed; see
+:mod:`unicorn.evaluation.reconstruct` for the files written per image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from unicorn.cli.eval import HelpFormatter
+
+__all__ = ["build_parser", "main"]
+
+log = logging.getLogger("unicorn.reconstruct")
+
+
+def _bbox(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--bbox must be x1,y1,x2,y2 numbers, got {text!r}") from None
+    if len(values) != 4 or values[2] <= values[0] or values[3] <= values[1]:
+        raise argparse.ArgumentTypeError(f"--bbox must be x1,y1,x2,y2 with x2 > x1 and y2 > y1, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="unicorn-reconstruct",
+        description="Reconstruct images with a UNICORN checkpoint (unicorn-train .ckpt, released .pkl or "
+        "unicorn.io.save_model file): per image a textured mesh (OBJ + MTL + PNG, GLB), the reconstruction, the "
+        "predicted mask and pose, and a turntable (GIF and PNG strip).",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument("checkpoint", help="checkpoint file")
+    p.add_argument("inputs", nargs="+", help="image files and/or folders (searched recursively)")
+    p.add_argument("--out", type=Path, default=Path("reconstructions"), help="output folder")
+    p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
+    p.add_argument("--batch-size", type=int, default=16, help="images per forward pass")
+    p.add_argument("--view-size", type=int, default=256, help="side of the pictures")
+    p.add_argument("--turntable-frames", type=int, default=24, help="frames of turntable.gif (0: no GIF)")
+    p.add_argument("--strip-views", type=int, default=4, help="views in turntable.png")
+    p.add_argument("--bbox", type=_bbox, help="object box x1,y1,x2,y2 in pixels (one input image only)")
+    p.add_argument("--padding", type=float, default=0.1, help="margin around an alpha cut-out or --bbox (fraction)")
+    p.add_argument("--no-alpha-crop", action="store_true", help="do not crop transparent images to their object")
+    p.add_argument("--template-level", type=int, help="icosphere level of the mesh (3: 642 vertices, 4: 2562)")
+    p.add_argument(
+        "--average-texture",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="mean-colour textures; auto: as the checkpoint was being trained",
+    )
+    p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Reconstruct as ``args`` say; returns the exit status."""
+    from unicorn.cli.eval import _device
+    from unicorn.data.images import ImageLoadError
+    from unicorn.evaluation.reconstruct import reconstruct, unique_names
+    from unicorn.io import collect_inputs, frame_input, load_model, read_input
+
+    files = collect_inputs(args.inputs)
+    if args.bbox is not None and len(files) != 1:
+        raise ValueError(f"--bbox needs exactly one input image, got {len(files)}")
+    # decode every image once before loading the model, so that input mistakes fail fast (they are read again
+    # below rather than kept: a folder of full-size photos would not fit in memory)
+    readable = []
+    for path, name in zip(files, unique_names(files)):
+        try:
+            read_input(path, args.bbox, not args.no_alpha_crop)
+        except ImageLoadError as err:
+            if not args.skip_bad:
+                raise
+            warnings.warn(f"skipping {err}", RuntimeWarning, stacklevel=1)
+            continue
+        readable.append((path, name))
+    if not readable:
+        raise ValueError("none of the inputs could be read")
+    device = _device(args.device)
+    overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
+    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides)
+    log.info("loaded %s", info.describe())
+    size = model.config["image_size"]
+    items = [
+        frame_input(read_input(path, args.bbox, not args.no_alpha_crop), size, name, args.padding)
+        for path, name in readable
+    ]
+    average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
+    start = time.perf_counter()
+    records = reconstruct(
+        model,
+        items,
+        args.out,
+        device=device,
+        batch_size=args.batch_size,
+        view_size=args.view_size,
+        turntable_frames=args.turntable_frames,
+        strip_views=args.strip_views,
+        average_texture=average,
+        progress=not args.quiet,
+    )
+    seconds = time.perf_counter() - start
+    print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
+    print(f"outputs in {args.out}/<image>/ ; overview: {args.out / 'overview.png'}, {args.out / 'index.html'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point; errors the user can fix are reported in one line with exit status 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # imported after parsing so that --help and argument errors do not wait for torch and lightning
+    from unicorn.data.images import ImageLoadError
+    from unicorn.io.checkpoints import CheckpointError
+
+    for name in ("batch_size", "view_size", "strip_views"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be positive")
+    if args.turntable_frames < 0 or args.padding < 0:
+        parser.error("--turntable-frames and --padding must be >= 0")
+    try:
+        return run(args)
+    except (FileNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
+        message = err.args[0] if isinstance(err, KeyError) and err.args else err
+        print(f"unicorn-reconstruct: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,41 @@
+"""Evaluation of trained models and reconstruction of user images (the library behind ``unicorn-eval`` and
+``unicorn-reconstruct``).
+
+- :mod:`~unicorn.evaluation.evaluator`: the evaluation protocols per dataset family (:func:`evaluate`);
+- :mod:`~unicorn.evaluation.rendering`: hard renders for masks, visibility, mesh views and turntables;
+- :mod:`~unicorn.evaluation.report`: metric tables (text, CSV, JSON) and the visual report (PNG grid, HTML);
+- :mod:`~unicorn.evaluation.reconstruct`: per-image meshes, pictures, masks, poses and turntables.
+
+Every function takes a :class:`~unicorn.model.Unicorn`; :func:`unicorn.io.load_model` reads any checkpoint.
+"""
+
+from unicorn.evaluation.evaluator import (
+    PROTOCOLS,
+    EvalOptions,
+    EvaluationResult,
+    Sample,
+    build_eval_dataset,
+    evaluate,
+    protocol_for,
+)
+from unicorn.evaluation.reconstruct import reconstruct
+from unicorn.evaluation.rendering import hard_render, shaded_render, turntable, vertex_visibility
+from unicorn.evaluation.report import format_table, write_metrics, write_report
+
+__all__ = [
+    "PROTOCOLS",
+    "EvalOptions",
+    "EvaluationResult",
+    "Sample",
+    "build_eval_dataset",
+    "evaluate",
+    "format_table",
+    "hard_render",
+    "protocol_for",
+    "reconstruct",
+    "shaded_render",
+    "turntable",
+    "vertex_visibility",
+    "write_metrics",
+    "write_report",
+]

@@ -1,0 +1,466 @@
+"""Evaluation loops: a model and a dataset in, per-image scores, a per-group table and report samples out.
+
+Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.metrics`):
+
+- ``"shapenet"`` (``shapenet_nmr``, ``synthetic``): one fixed random view per test model. Per image:
+  ``chamfer-L1`` / ``normal-cos`` after mapping the prediction into the ground-truth object frame with the
+  predicted and ground-truth poses, ``chamfer-L1-ICP`` / ``normal-cos-ICP`` after unit-cube normalisation and the
+  anisotropic-scale gradient ICP (:func:`~unicorn.metrics.evaluate_meshes`), ``mask-iou`` of the hard-rendered
+  silhouette. Per category: pose errors (:func:`~unicorn.metrics.pose_errors`, after aligning the learned
+  canonical frame to the ground truth with one rotation). Categories are averaged, then the categories.
+- ``"cub"`` (``cub_200``): ``mask-iou`` per image with masks at 256 px, and PCK by keypoint transfer over image
+  pairs (:func:`~unicorn.metrics.keypoint_transfer_pck`), the visible vertices being those of faces hit by the 2x
+  supersampled hard rasterisation (512 px for the 256 px keypoint frame).
+- ``"p3d"`` (``p3d_car``): ``chamfer-L1-ICP`` / ``normal-cos-ICP`` against the CAD point clouds (there is no
+  ground-truth pose, so no GT-pose alignment) and ``mask-iou``.
+- ``"images"`` (``compcars``, ``lsun``, ``folder``): no ground truth, the reconstruction error only.
+
+Every protocol also reports ``rec-mse``, the mean squared error of the model's own rendering (with its predicted
+background) against the input, the quantity the model was trained to lower.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import DataLoader, Dataset, Subset
+from tqdm.auto import tqdm
+
+from unicorn.data import build_dataset
+from unicorn.evaluation.rendering import hard_render, vertex_visibility
+from unicorn.geometry.cameras import PerspectiveCamera
+from unicorn.metrics import evaluate_meshes, keypoint_transfer_pck, mask_iou, pose_errors
+from unicorn.model import Unicorn
+
+__all__ = [
+    "PROTOCOLS",
+    "EvalOptions",
+    "EvaluationResult",
+    "Sample",
+    "build_eval_dataset",
+    "collate",
+    "evaluate",
+    "protocol_for",
+    "spread_indices",
+]
+
+#: dataset name -> protocol
+PROTOCOLS = {
+    "shapenet_nmr": "shapenet",
+    "synthetic": "shapenet",
+    "cub_200": "cub",
+    "p3d_car": "p3d",
+    "compcars": "images",
+    "lsun": "images",
+    "folder": "images",
+}
+
+#: column order of the tables; "lower" / "higher" says which way is better
+METRIC_ORDER = {
+    "chamfer-L1": "lower",
+    "chamfer-L1-ICP": "lower",
+    "normal-cos": "higher",
+    "normal-cos-ICP": "higher",
+    "mask-iou": "higher",
+    "pck-5": "higher",
+    "pck-10": "higher",
+    "pck-15": "higher",
+    "rot-err-mean": "lower",
+    "rot-err-median": "lower",
+    "rot-acc-30": "higher",
+    "azim-err-mean": "lower",
+    "azim-err-median": "lower",
+    "rec-mse": "lower",
+}
+
+
+def protocol_for(dataset_name: str) -> str:
+    """The evaluation protocol of a dataset name (see the module docstring)."""
+    try:
+        return PROTOCOLS[dataset_name]
+    except KeyError:
+        raise ValueError(f"unknown dataset {dataset_name!r}; choose from {sorted(PROTOCOLS)}") from None
+
+
+@dataclass
+class EvalOptions:
+    """Settings of an evaluation run.
+
+    Attributes:
+        protocol: ``"shapenet"``, ``"cub"``, ``"p3d"`` or ``"images"``.
+        batch_size: images per forward pass.
+        num_points: points sampled on each predicted mesh (UNICORN: 100k).
+        icp_iterations: ICP iterations (UNICORN: 100); 0 skips the ``-ICP`` metrics.
+        mask_supersample: supersampling of the hard renders for masks and visibility (UNICORN: 2).
+        num_pairs: keypoint-transfer pairs (UNICORN: 10,000).
+        align_pose: align the learned canonical frame to the ground truth before the pose errors.
+        average_texture: predict mean-colour textures (for checkpoints still in that training phase).
+        report_samples: images kept (on CPU) for the visual report.
+        num_workers: DataLoader workers.
+        nn_workers: threads of the nearest-neighbour queries.
+        seed: seed of the point sampling.
+        progress: show a progress bar.
+    """
+
+    protocol: str = "shapenet"
+    batch_size: int = 32
+    num_points: int = 100_000
+    icp_iterations: int = 100
+    mask_supersample: int = 2
+    num_pairs: int = 10_000
+    align_pose: bool = True
+    average_texture: bool = False
+    report_samples: int = 8
+    num_workers: int = 0
+    nn_workers: int = 1
+    seed: int = 0
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.protocol not in set(PROTOCOLS.values()):
+            raise ValueError(f"protocol must be one of {sorted(set(PROTOCOLS.values()))}, got {self.protocol!r}")
+        for name in ("batch_size", "num_points", "mask_supersample", "num_pairs"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.icp_iterations < 0 or self.report_samples < 0:
+            raise ValueError("icp_iterations and report_samples must be >= 0")
+
+
+@dataclass
+class Sample:
+    """One evaluated image kept for the report (CPU tensors).
+
+    Attributes:
+        index: dataset index.
+        group: its group (category) name.
+        image: (3, S, S) model input.
+        reconstruction: (3, S, S) the model's rendering over its predicted background.
+        alpha: (1, M, M) hard-rendered predicted silhouette (M = ground-truth mask size, or S).
+        mask: (1, M, M) ground-truth mask, or None.
+        verts: (V, 3) predicted object-frame mesh; texture: (3, Ht, Wt); R: (3, 3); T: (3,) predicted pose.
+        scores: this image's per-image metrics.
+    """
+
+    index: int
+    group: str
+    image: torch.Tensor
+    reconstruction: torch.Tensor
+    alpha: torch.Tensor
+    mask: torch.Tensor | None
+    verts: torch.Tensor
+    texture: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    scores: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class EvaluationResult:
+    """Output of :func:`evaluate`.
+
+    Attributes:
+        protocol: the protocol used.
+        per_image: one dict per image: ``index``, ``group`` and its metrics.
+        table: one row per group then a ``mean`` row (mean over groups): ``group``, ``n-images`` and metrics.
+        columns: the metric columns of ``table``, in display order.
+        samples: images kept for the report.
+        seconds: wall-clock time of the evaluation.
+    """
+
+    protocol: str
+    per_image: list[dict[str, Any]]
+    table: list[dict[str, Any]]
+    columns: list[str]
+    samples: list[Sample]
+    seconds: float
+
+    @property
+    def mean(self) -> dict[str, Any]:
+        """The ``mean`` row of the table."""
+        return self.table[-1]
+
+
+def spread_indices(n: int, k: int | None) -> list[int]:
+    """``k`` indices spread evenly over ``range(n)`` (all of them when ``k`` is None or >= n)."""
+    if k is None or k >= n:
+        return list(range(n))
+    if k < 1:
+        raise ValueError(f"need at least one image, got max_images={k}")
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64)).tolist()
+
+
+def build_eval_dataset(
+    name: str,
+    root: str,
+    split: str = "test",
+    img_size: int = 64,
+    categories: str | list[str] | None = None,
+    max_images: int | None = None,
+    seed: int = 0,
+) -> Dataset:
+    """The evaluation items of a dataset, as its protocol needs them.
+
+    ShapeNet / synthetic: one fixed random view per model (``seed``) with the ground-truth point clouds; CUB:
+    masks and keypoints at 256 px (UNICORN's keypoint frame); Pascal3D+: the test split with the CAD clouds.
+    With ``max_images``, that many items spread evenly over the split (so every category is represented).
+
+    Args:
+        name: a dataset name of :data:`PROTOCOLS`.
+        root: its root folder (for ``synthetic``, the generated dataset, which holds ``metadata.yaml``).
+        split: ``"train"``, ``"val"`` or ``"test"``.
+        img_size: the model's input side (ShapeNet images keep their size and are resized in :func:`evaluate`).
+        categories: ShapeNet / synthetic categories (names or synsets), None for all.
+        max_images: evaluate at most this many items.
+        seed: the view choice of ShapeNet.
+    """
+    protocol_for(name)
+    options: dict[str, Any] = {}
+    if name in ("shapenet_nmr", "synthetic"):
+        options["with_points"] = True
+    elif name == "cub_200":
+        options["eval_size"] = 256
+    dataset = build_dataset(name, split, root, img_size=img_size, categories=categories, seed=seed, **options)
+    if split == "train":
+        # evaluation items are never augmented (ShapeNet training items are every view, which is fine)
+        for attr in ("augment",):
+            if hasattr(dataset, attr):
+                setattr(dataset, attr, False)
+    indices = spread_indices(len(dataset), max_images)
+    return dataset if len(indices) == len(dataset) else Subset(dataset, indices)
+
+
+def collate(items: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Stack tensors of equal shape; keep lists where they differ (e.g. CAD point clouds of different sizes)."""
+    out: dict[str, Any] = {}
+    for key in items[0]:
+        values = [item[key] for item in items]
+        if all(isinstance(v, torch.Tensor) for v in values) and len({tuple(v.shape) for v in values}) == 1:
+            out[key] = torch.stack(values)
+        else:
+            out[key] = values
+    return out
+
+
+def _base_dataset(dataset: Dataset) -> Dataset:
+    while isinstance(dataset, Subset):
+        dataset = dataset.dataset
+    return dataset
+
+
+def group_namer(dataset: Dataset, dataset_name: str) -> Callable[[Mapping[str, Any], int], str]:
+    """A function ``(batch, i) -> group name``: the ShapeNet category name, else the dataset name."""
+    base = _base_dataset(dataset)
+    synsets = getattr(base, "synsets", None)
+    metadata = getattr(base, "metadata", None)
+    if synsets is None or metadata is None:
+        return lambda batch, i: dataset_name
+    names = [metadata[s]["name"].split(",")[0] or s for s in synsets]
+    return lambda batch, i: names[int(batch["category"][i])]
+
+
+def _resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
+    if images.shape[-1] == size and images.shape[-2] == size:
+        return images
+    return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False, antialias=True).clamp(0, 1)
+
+
+class _Accumulator:
+    """Per-image rows plus what the set-level metrics need, grouped."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+        self.poses: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+        self.keypoints: dict[str, list[tuple[torch.Tensor, ...]]] = {}
+        # side of the keypoint frame per group (the ground-truth mask side, 256 for CUB's evaluation items)
+        self.keypoint_frames: dict[str, int] = {}
+
+
+def _mesh_scores(
+    model: Unicorn,
+    pred_verts: torch.Tensor,
+    batch: Mapping[str, Any],
+    device: torch.device,
+    options: EvalOptions,
+    with_pose: bool,
+    R_pred: torch.Tensor,
+    T_pred: torch.Tensor,
+) -> dict[str, torch.Tensor]:
+    """:func:`evaluate_meshes` on a batch; ragged ground truths are scored one image at a time."""
+    faces = model.template.faces
+    kwargs = dict(
+        num_points=options.num_points,
+        run_icp=options.icp_iterations > 0,
+        icp_iterations=max(options.icp_iterations, 1),
+        seed=options.seed,
+        workers=options.nn_workers,
+    )
+    points, normals = batch["points"], batch.get("normals")
+    if isinstance(points, torch.Tensor):
+        pose = {}
+        if with_pose:
+            pose = dict(R_pred=R_pred, T_pred=T_pred, R_gt=batch["R"].to(device), T_gt=batch["T"].to(device))
+        return evaluate_meshes(
+            pred_verts, faces, points.to(device), None if normals is None else normals.to(device), **pose, **kwargs
+        )
+    per: list[dict[str, torch.Tensor]] = []
+    for i in range(pred_verts.shape[0]):
+        pose = {}
+        if with_pose:
+            pose = dict(
+                R_pred=R_pred[i : i + 1],
+                T_pred=T_pred[i : i + 1],
+                R_gt=batch["R"][i : i + 1].to(device),
+                T_gt=batch["T"][i : i + 1].to(device),
+            )
+        n_i = None if normals is None else normals[i][None].to(device)
+        per.append(evaluate_meshes(pred_verts[i : i + 1], faces, points[i][None].to(device), n_i, **pose, **kwargs))
+    return {k: torch.cat([p[k] for p in per]) for k in per[0]}
+
+
+@torch.no_grad()
+def evaluate(
+    model: Unicorn,
+    dataset: Dataset,
+    options: EvalOptions,
+    dataset_name: str = "dataset",
+    device: str | torch.device = "cpu",
+) -> EvaluationResult:
+    """Run the evaluation protocol of ``options.protocol`` over ``dataset``.
+
+    Args:
+        model: the model (moved to ``device`` and put in eval mode).
+        dataset: test items (``image``, ``mask``/``has_mask``, ``R``/``T``, ``points``/``normals``, ``keypoints``...
+            as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it.
+        options: :class:`EvalOptions`.
+        dataset_name: group name for datasets without categories, and the label of the progress bar.
+        device: where the model and the metrics run.
+
+    Returns:
+        :class:`EvaluationResult`.
+    """
+    start = time.perf_counter()
+    device = torch.device(device)
+    model = model.to(device).eval()
+    protocol = options.protocol
+    size = model.config["image_size"]
+    faces = model.template.faces
+    group_of = group_namer(dataset, dataset_name)
+    loader = DataLoader(
+        dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
+    )
+    acc = _Accumulator()
+    samples: list[Sample] = []
+    bar = tqdm(total=len(dataset), desc=f"eval {dataset_name}", unit="img", disable=not options.progress)
+    for batch in loader:
+        images = _resize_images(batch["image"].to(device), size)
+        B = images.shape[0]
+        pred = model.predict(images, average_texture=options.average_texture)
+        rec, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+        scores: dict[str, torch.Tensor] = {"rec-mse": (rec - images).square().flatten(1).mean(1)}
+
+        has_mask = "mask" in batch and isinstance(batch.get("has_mask"), torch.Tensor) and bool(batch["has_mask"].all())
+        mask_size = batch["mask"].shape[-1] if has_mask else size
+        hard = hard_render(model, pred.verts, pred.texture, pred.R, pred.T, mask_size, options.mask_supersample)
+        alpha = hard.images[:, 3:]
+        if has_mask and protocol != "images":
+            scores["mask-iou"] = mask_iou(alpha, batch["mask"].to(device), reduction="none")
+
+        groups = [group_of(batch, i) for i in range(B)]
+        if protocol in ("shapenet", "p3d") and "points" in batch:
+            mesh = _mesh_scores(model, pred.verts, batch, device, options, protocol == "shapenet", pred.R, pred.T)
+            if protocol == "p3d":
+                # no ground-truth pose: only the ICP-registered numbers are meaningful
+                mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
+            scores.update(mesh)
+        if protocol == "shapenet" and bool(batch["has_pose"].all()):
+            for i, g in enumerate(groups):
+                acc.poses.setdefault(g, []).append((pred.R[i].cpu(), batch["R"][i].cpu()))
+        if protocol == "cub" and isinstance(batch.get("keypoints"), torch.Tensor):
+            visible = vertex_visibility(hard.face_ids, faces, pred.verts.shape[1])
+            for i, g in enumerate(groups):
+                acc.keypoint_frames[g] = int(mask_size)
+                acc.keypoints.setdefault(g, []).append(
+                    (pred.verts[i].cpu(), pred.R[i].cpu(), pred.T[i].cpu(), visible[i].cpu(), batch["keypoints"][i])
+                )
+
+        for i in range(B):
+            row: dict[str, Any] = {"index": int(batch["index"][i]), "group": groups[i]}
+            row.update({k: float(v[i]) for k, v in scores.items()})
+            acc.rows.append(row)
+            if len(samples) < options.report_samples:
+                samples.append(
+                    Sample(
+                        index=row["index"],
+                        group=groups[i],
+                        image=images[i].cpu(),
+                        reconstruction=rec[i].cpu(),
+                        alpha=alpha[i].cpu(),
+                        mask=batch["mask"][i].cpu() if has_mask else None,
+                        verts=pred.verts[i].cpu(),
+                        texture=pred.texture[i].cpu(),
+                        R=pred.R[i].cpu(),
+                        T=pred.T[i].cpu(),
+                        scores={k: v for k, v in row.items() if k not in ("index", "group")},
+                    )
+                )
+        bar.update(B)
+    bar.close()
+    if not acc.rows:
+        raise ValueError("the dataset is empty: nothing to evaluate")
+    table, columns = _table(acc, model, options)
+    return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start)
+
+
+def _set_metrics(acc: _Accumulator, group: str, model: Unicorn, options: EvalOptions) -> dict[str, float]:
+    """Metrics over all images of a group: pose errors (ShapeNet) and PCK (CUB)."""
+    out: dict[str, float] = {}
+    if group in acc.poses:
+        R_pred = torch.stack([p[0] for p in acc.poses[group]])
+        R_gt = torch.stack([p[1] for p in acc.poses[group]])
+        out.update(pose_errors(R_pred, R_gt, align=options.align_pose))
+    kps = acc.keypoints.get(group, [])
+    if len(kps) >= 2:
+        verts, R, T, visible, keypoints = (torch.stack(x) for x in zip(*kps))
+        scores = keypoint_transfer_pck(
+            verts,
+            R,
+            T,
+            visible,
+            keypoints,
+            image_size=acc.keypoint_frames[group],
+            # a CPU copy: the collected meshes are on the CPU, and the model's own camera must stay where it is
+            camera=PerspectiveCamera(focal_length=float(model.renderer.camera.focal_length)),
+            num_pairs=options.num_pairs,
+        )
+        out.update({k: v for k, v in scores.items() if k.startswith("pck-")})
+    return out
+
+
+def _table(acc: _Accumulator, model: Unicorn, options: EvalOptions) -> tuple[list[dict[str, Any]], list[str]]:
+    """Per-group means of the per-image metrics plus the group's set metrics; then the mean over groups."""
+    groups = list(dict.fromkeys(row["group"] for row in acc.rows))
+    rows: list[dict[str, Any]] = []
+    for g in groups:
+        members = [r for r in acc.rows if r["group"] == g]
+        row: dict[str, Any] = {"group": g, "n-images": len(members)}
+        keys = [k for k in members[0] if k not in ("index", "group")]
+        for k in keys:
+            values = [r[k] for r in members if k in r and not math.isnan(r[k])]
+            row[k] = float(np.mean(values)) if values else float("nan")
+        row.update(_set_metrics(acc, g, model, options))
+        rows.append(row)
+    present = {k for r in rows for k in r} - {"group", "n-images"}
+    columns = [k for k in METRIC_ORDER if k in present] + sorted(present - set(METRIC_ORDER))
+    rows = [{"group": r["group"], "n-images": r["n-images"], **{k: r[k] for k in columns if k in r}} for r in rows]
+    mean: dict[str, Any] = {"group": "mean", "n-images": sum(r["n-images"] for r in rows)}
+    for k in columns:
+        values = [r[k] for r in rows if k in r and not math.isnan(r[k])]
+        mean[k] = float(np.mean(values)) if values else float("nan")
+    return rows + [mean], columns

@@ -1,0 +1,386 @@
+"""Metric tables (text, CSV, JSON) and the visual report (a PNG grid and an HTML page) of an evaluation.
+
+The report shows, for a few evaluated images, the input, the model's reconstruction, the predicted silhouette
+against the ground-truth mask, and the predicted mesh from several viewpoints, textured and as lit untextured
+geometry (which shows the shape without the texture's help); the HTML page adds the metric table, what each
+column means, the run's settings and a turntable animation per image. Its images are PNG / GIF files in a
+``report/`` folder beside it, referenced by relative paths, so the folder can be copied or served as is.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+
+from unicorn.evaluation.evaluator import METRIC_ORDER, EvaluationResult, Sample
+from unicorn.evaluation.rendering import even_angles, turntable
+from unicorn.model import Unicorn
+
+__all__ = [
+    "METRIC_HELP",
+    "format_table",
+    "image_grid",
+    "mask_overlay",
+    "save_gif",
+    "to_uint8",
+    "write_metrics",
+    "write_report",
+]
+
+#: what each column means (shown in the HTML report)
+METRIC_HELP = {
+    "n-images": "number of evaluated images",
+    "chamfer-L1": "Chamfer-L1 x10 between the predicted mesh, placed in the ground-truth object frame through the "
+    "predicted and ground-truth cameras, and the ground-truth points",
+    "chamfer-L1-ICP": "Chamfer-L1 x10 after normalising the prediction to the unit cube and registering it with "
+    "gradient ICP (rotation, translation, anisotropic scale)",
+    "normal-cos": "mean |cos| between matched normals, GT-pose aligned",
+    "normal-cos-ICP": "mean |cos| between matched normals, after ICP",
+    "mask-iou": "IoU of the hard-rendered predicted silhouette with the ground-truth mask",
+    "pck-5": "keypoints transferred between image pairs through the meshes within 5% of the image side",
+    "pck-10": "... within 10% of the image side",
+    "pck-15": "... within 15% of the image side",
+    "rot-err-mean": "mean geodesic camera rotation error (degrees), learned canonical frame aligned to the GT",
+    "rot-err-median": "median geodesic camera rotation error (degrees)",
+    "rot-acc-30": "fraction of images with a rotation error below 30 degrees",
+    "azim-err-mean": "mean camera azimuth error (degrees)",
+    "azim-err-median": "median camera azimuth error (degrees)",
+    "rec-mse": "mean squared error of the model's rendering (with its background) against the input",
+}
+
+
+# ---------------------------------------------------------------------------------------------- tables
+def _fmt(value: Any, column: str = "") -> str:
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "-"
+        if column.endswith(("err-mean", "err-median")) or abs(value) >= 100:
+            return f"{value:.1f}"  # degrees
+        return f"{value:.4f}"
+    return str(value)
+
+
+def format_table(table: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
+    """A fixed-width text table: one line per row, ``group`` and ``n-images`` first."""
+    header = ["group", "n-images", *columns]
+    cells = [header] + [[_fmt(row.get(c, float("nan")), c) for c in header] for row in table]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN and infinities to None (strict JSON), recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Mapping):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Mapping[str, Any]) -> dict[str, Path]:
+    """Write ``metrics.csv`` (the table), ``per_image.csv`` and ``metrics.json`` (table, per-image, ``meta``).
+
+    Returns:
+        ``{"csv": ..., "per_image": ..., "json": ...}`` paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    header = ["group", "n-images", *result.columns]
+    paths = {"csv": out / "metrics.csv", "per_image": out / "per_image.csv", "json": out / "metrics.json"}
+    with open(paths["csv"], "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
+        writer.writeheader()
+        writer.writerows(result.table)
+    image_cols = ["index", "group"] + [c for c in result.columns if any(c in r for r in result.per_image)]
+    with open(paths["per_image"], "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=image_cols, extrasaction="ignore", restval="")
+        writer.writeheader()
+        writer.writerows(result.per_image)
+    payload = {
+        "protocol": result.protocol,
+        "columns": result.columns,
+        "better": {c: METRIC_ORDER.get(c) for c in result.columns},
+        "mean": result.mean,
+        "table": result.table,
+        "per_image": result.per_image,
+        "seconds": result.seconds,
+        **meta,
+    }
+    paths["json"].write_text(json.dumps(_json_safe(payload), indent=1))
+    return paths
+
+
+# ---------------------------------------------------------------------------------------------- pictures
+def to_uint8(image: torch.Tensor | np.ndarray, size: int | None = None) -> np.ndarray:
+    """(C, H, W) tensor or (H, W, C) / (H, W) array in [0, 1] to an (H', W', 3) uint8 array (resized bicubically)."""
+    if isinstance(image, torch.Tensor):
+        image = image.detach().cpu().float()
+        image = image.permute(1, 2, 0).numpy() if image.dim() == 3 else image.numpy()
+    arr = np.asarray(image, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.shape[-1] == 1:
+        arr = np.repeat(arr, 3, axis=-1)
+    arr = (np.clip(arr[..., :3], 0, 1) * 255).round().astype(np.uint8)
+    if size is not None and arr.shape[:2] != (size, size):
+        arr = np.asarray(Image.fromarray(arr).resize((size, size), Image.Resampling.BICUBIC))
+    return arr
+
+
+def mask_overlay(alpha: torch.Tensor, mask: torch.Tensor | None) -> np.ndarray:
+    """Predicted silhouette against the ground truth: both dark grey, prediction only red, ground truth only blue.
+
+    Args:
+        alpha: (1, H, W) predicted alpha; mask: (1, H, W) ground-truth mask, or None (prediction in grey).
+
+    Returns:
+        (H, W, 3) float array in [0, 1].
+    """
+    pred = alpha[0].detach().cpu().numpy() > 0.5
+    out = np.ones((*pred.shape, 3), dtype=np.float32)
+    if mask is None:
+        out[pred] = (0.3, 0.3, 0.3)
+        return out
+    gt = mask[0].detach().cpu().numpy() > 0.5
+    out[pred & gt] = (0.3, 0.3, 0.3)
+    out[pred & ~gt] = (0.9, 0.25, 0.2)
+    out[~pred & gt] = (0.2, 0.45, 0.9)
+    return out
+
+
+def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1 has only the fixed bitmap font
+        return ImageFont.load_default()
+
+
+def image_grid(
+    rows: Sequence[Sequence[np.ndarray]],
+    column_labels: Sequence[str],
+    row_labels: Sequence[str] | None = None,
+    pad: int = 4,
+    label_width: int = 150,
+) -> Image.Image:
+    """A labelled grid of equally sized uint8 images.
+
+    Args:
+        rows: rows of (H, W, 3) uint8 images, all of one size.
+        column_labels: one header per column.
+        row_labels: text (lines separated by newlines) left of each row, or None.
+        pad: pixels between cells.
+        label_width: width of the row-label column.
+
+    Returns:
+        the grid as a PIL image.
+    """
+    H, W = rows[0][0].shape[:2]
+    n_cols = max(len(r) for r in rows)
+    font = _font(max(11, min(16, W // 9)))
+    head = 24
+    left = label_width if row_labels else 0
+    grid = Image.new("RGB", (left + n_cols * (W + pad) + pad, head + len(rows) * (H + pad) + pad), "white")
+    draw = ImageDraw.Draw(grid)
+    for c, label in enumerate(column_labels[:n_cols]):
+        draw.text((left + pad + c * (W + pad) + W // 2, head // 2), label, fill=(40, 40, 40), font=font, anchor="mm")
+    for r, row in enumerate(rows):
+        y = head + pad + r * (H + pad)
+        for c, cell in enumerate(row):
+            grid.paste(Image.fromarray(cell), (left + pad + c * (W + pad), y))
+        if row_labels:
+            draw.multiline_text((pad + 2, y + 4), row_labels[r], fill=(40, 40, 40), font=font, spacing=3)
+    return grid
+
+
+def save_gif(frames: torch.Tensor, path: str | os.PathLike, duration_ms: int = 80) -> Path:
+    """Write (N, 3 or 4, H, W) frames in [0, 1] as a looping GIF (on white)."""
+    path = Path(path)
+    images = [Image.fromarray(to_uint8(f[:3])) for f in frames]
+    images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=False)
+    return path
+
+
+def sample_views(
+    model: Unicorn,
+    sample: Sample,
+    view_size: int,
+    angles: Sequence[float],
+    device: torch.device,
+) -> tuple[list[np.ndarray], list[str]]:
+    """The report row of one sample: input, reconstruction, mask, textured and shaded views at ``angles``."""
+    v, tex = sample.verts.to(device), sample.texture.to(device)
+    R, T = sample.R.to(device), sample.T.to(device)
+    textured = turntable(model, v, tex, R, T, list(angles), view_size)
+    shaded = turntable(model, v, tex, R, T, list(angles), view_size, shaded=True)
+    cells = [
+        to_uint8(sample.image, view_size),
+        to_uint8(sample.reconstruction, view_size),
+        to_uint8(mask_overlay(sample.alpha, sample.mask), view_size),
+    ]
+    labels = ["input", "reconstruction", "mask (GT: blue/red)" if sample.mask is not None else "mask"]
+    cells += [to_uint8(f[:3]) for f in textured] + [to_uint8(f[:3]) for f in shaded]
+    labels += [f"textured {a:g}°" for a in angles] + [f"shape {a:g}°" for a in angles]
+    return cells, labels
+
+
+#: per-image scores shown first beside a sample
+_KEY_SCORES = ("chamfer-L1", "chamfer-L1-ICP", "mask-iou", "rec-mse")
+
+
+def _row_label(sample: Sample, columns: Sequence[str], limit: int = 4) -> str:
+    lines = [f"#{sample.index} {sample.group}"]
+    order = [c for c in _KEY_SCORES if c in columns] + [c for c in columns if c not in _KEY_SCORES]
+    lines += [f"{c}: {_fmt(sample.scores[c], c)}" for c in order if c in sample.scores][:limit]
+    return "\n".join(lines)
+
+
+def _html_table(result: EvaluationResult) -> str:
+    header = ["group", "n-images", *result.columns]
+    arrow = {"lower": " ↓", "higher": " ↑"}
+    th = "".join(
+        f'<th title="{html.escape(METRIC_HELP.get(c, ""))}">'
+        f"{html.escape(c)}{arrow.get(METRIC_ORDER.get(c, ''), '')}</th>"
+        for c in header
+    )
+    body = []
+    for row in result.table:
+        cls = ' class="mean"' if row is result.table[-1] else ""
+        cells = "".join(f"<td>{html.escape(_fmt(row.get(c, float('nan')), c))}</td>" for c in header)
+        body.append(f"<tr{cls}>{cells}</tr>")
+    return f"<table><thead><tr>{th}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1400px;
+color:#222;padding:0 1em} h1{font-size:1.5em;margin-bottom:.2em} .sub{color:#666;margin-top:0}
+table{border-collapse:collapse;margin:1em 0;font-variant-numeric:tabular-nums}
+th,td{border-bottom:1px solid #ddd;padding:.35em .8em;text-align:right} th:first-child,td:first-child{text-align:left}
+th{background:#f4f4f6;cursor:help} tr.mean td{font-weight:600;border-top:2px solid #999}
+.samples td{text-align:center;vertical-align:top;padding:.3em} .samples img{display:block;image-rendering:auto}
+.samples .cap{font-size:.8em;color:#555;text-align:left;white-space:pre-line;min-width:9em}
+dl{display:grid;grid-template-columns:max-content auto;gap:.2em 1em;font-size:.9em} dt{font-weight:600}
+details{margin:1em 0} code{background:#f4f4f6;padding:0 .3em}
+"""
+
+
+def write_report(
+    model: Unicorn,
+    result: EvaluationResult,
+    out_dir: str | os.PathLike,
+    title: str,
+    meta: Mapping[str, Any],
+    view_size: int = 128,
+    angles: Sequence[float] | None = None,
+    turntable_frames: int = 16,
+    device: str | torch.device = "cpu",
+) -> dict[str, Path]:
+    """Write ``report.png`` (the sample grid) and ``report.html`` (table, legend, samples, settings).
+
+    Args:
+        model: the evaluated model (to render the meshes).
+        result: :func:`~unicorn.evaluation.evaluate`'s output.
+        out_dir: folder of the report (images go to ``out_dir/report/``).
+        title: page title.
+        meta: settings shown at the bottom (checkpoint, dataset, options...).
+        view_size: side of every picture.
+        angles: spin angles of the mesh views (default 0, 120, 240 degrees).
+        turntable_frames: frames of the per-sample turntable GIF (0: none).
+        device: where to render.
+
+    Returns:
+        ``{"html": ..., "png": ...}`` (``png`` absent when there are no samples).
+    """
+    out = Path(out_dir)
+    assets = out / "report"
+    assets.mkdir(parents=True, exist_ok=True)
+    device = torch.device(device)
+    model = model.to(device).eval()
+    angles = list(angles) if angles is not None else even_angles(3)
+    paths: dict[str, Path] = {}
+    grid_rows, row_labels, sample_html = [], [], []
+    labels: list[str] = []
+    with torch.no_grad():
+        for k, sample in enumerate(result.samples):
+            cells, labels = sample_views(model, sample, view_size, angles, device)
+            grid_rows.append(cells)
+            row_labels.append(_row_label(sample, result.columns))
+            names = []
+            for label, cell in zip(labels, cells):
+                slug = label.split(" (")[0].replace(" ", "_").replace("°", "")
+                name = f"sample{k:02d}_{slug}.png"
+                Image.fromarray(cell).save(assets / name)
+                names.append((label, name))
+            if turntable_frames > 0:
+                frames = turntable(
+                    model,
+                    sample.verts.to(device),
+                    sample.texture.to(device),
+                    sample.R.to(device),
+                    sample.T.to(device),
+                    turntable_frames,
+                    view_size,
+                )
+                names.append(("turntable", save_gif(frames, assets / f"sample{k:02d}_turntable.gif").name))
+            caption = html.escape(_row_label(sample, result.columns, limit=len(result.columns)))
+            cells_html = "".join(
+                f'<td><img src="report/{n}" width="{view_size}" height="{view_size}" alt="{html.escape(lb)}"></td>'
+                for lb, n in names
+            )
+            sample_html.append(f'<tr><td class="cap">{caption}</td>{cells_html}</tr>')
+    if grid_rows:
+        paths["png"] = out / "report.png"
+        image_grid(grid_rows, labels, row_labels).save(paths["png"])
+    header_cells = "".join(f"<th>{html.escape(lb)}</th>" for lb in labels)
+    if turntable_frames > 0 and grid_rows:
+        header_cells += "<th>turntable</th>"
+    better = {"lower": " (lower is better)", "higher": " (higher is better)"}
+    legend = "".join(
+        f"<dt>{html.escape(c)}</dt>"
+        f"<dd>{html.escape(METRIC_HELP.get(c, ''))}{better.get(METRIC_ORDER.get(c, ''), '')}</dd>"
+        for c in ["n-images", *result.columns]
+    )
+    settings = "".join(
+        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(json.dumps(_json_safe(v)))}</code></dd>"
+        for k, v in meta.items()
+    )
+    samples_block = (
+        f'<h2>Samples</h2><p class="sub">Mesh views spin the predicted mesh about its vertical axis in front of '
+        f"the predicted camera (0° = the input view). Mask: dark = predicted and ground truth, red = predicted "
+        f"only, blue = ground truth only.</p>"
+        f'<table class="samples"><thead><tr><th></th>{header_cells}</tr></thead><tbody>{"".join(sample_html)}'
+        f'</tbody></table><p><a href="report.png">All samples as one picture (report.png)</a></p>'
+        if grid_rows
+        else ""
+    )
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{_CSS}</style></head>
+<body><h1>{html.escape(title)}</h1>
+<p class="sub">{html.escape(result.protocol)} protocol, {result.mean["n-images"]} images,
+{result.seconds:.1f} s</p>
+<h2>Metrics</h2>{_html_table(result)}
+<details><summary>What the columns mean</summary><dl>{legend}</dl></details>
+{samples_block}
+<h2>Settings</h2><dl>{settings}</dl>
+<p class="sub">Files: <a href="metrics.csv">metrics.csv</a>, <a href="metrics.json">metrics.json</a>,
+<a href="per_image.csv">per_image.csv</a></p>
+</body></html>
+"""
+    paths["html"] = out / "report.html"
+    paths["html"].write_text(page, encoding="utf-8")
+    return paths

@@ -1,0 +1,253 @@
+"""Load a :class:`~unicorn.model.Unicorn` from any checkpoint file the project meets, with one function.
+
+Three formats are recognised by their keys:
+
+- **released UNICORN** ``.pkl`` (``model_state`` and ``model_kwargs``): converted by
+  :func:`unicorn.model.load_reference_checkpoint`;
+- **Lightning** ``.ckpt`` written by ``unicorn-train`` (``state_dict`` and ``hyper_parameters``): the model is built
+  from ``hyper_parameters["model"]`` (the :class:`~unicorn.lit.UnicornLitModule`'s ``model`` argument) and the
+  ``model.``-prefixed weights are loaded; the module's ``texture_average_p`` buffer tells whether the network was
+  still in its mean-texture phase;
+- **plain** files of :func:`save_model` (``{"format": "unicorn-model", "config", "state_dict", "info"}``), small
+  and independent of Lightning.
+
+The perceptual loss is never rebuilt (it is not needed to predict and its VGG weights may not be on this machine).
+Checkpoints are pickles: load only files you trust.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import pickle
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from unicorn.model import Unicorn, load_reference_checkpoint, merge_config
+
+__all__ = ["CheckpointError", "CheckpointInfo", "load_model", "read_checkpoint", "save_model"]
+
+PLAIN_FORMAT = "unicorn-model"
+Format = Literal["reference", "lightning", "plain"]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read or does not hold a UNICORN model; the message names the file."""
+
+
+@dataclass
+class CheckpointInfo:
+    """What is known about a loaded checkpoint besides the weights.
+
+    Attributes:
+        path: the file.
+        format: ``"reference"``, ``"lightning"`` or ``"plain"``.
+        epoch: saved epoch, when stored.
+        step: saved iteration (Lightning ``global_step``), when stored.
+        average_texture: the model was trained with mean-colour textures at that point (predict with
+            ``average_texture=True`` to see what it was optimised for).
+        run_dir: the training run folder (``<run>/checkpoints/x.ckpt`` -> ``<run>``), when the file sits in one.
+        dataset: the training run's ``dataset`` config (``name``, ``root``, ``categories``...), when found in
+            ``<run>/config.yaml``.
+        extra: other format-specific fields (e.g. Lightning's ``stage``).
+    """
+
+    path: Path
+    format: Format
+    epoch: int | None = None
+    step: int | None = None
+    average_texture: bool = False
+    run_dir: Path | None = None
+    dataset: dict[str, Any] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        """One line for logs: format, file, epoch / step."""
+        parts = [f"{self.format} checkpoint {self.path}"]
+        if self.epoch is not None:
+            parts.append(f"epoch {self.epoch}")
+        if self.step is not None:
+            parts.append(f"step {self.step}")
+        return ", ".join(parts)
+
+
+def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """``torch.load`` a checkpoint dict, trying the safe unpickler first.
+
+    Lightning checkpoints may hold objects (OmegaConf configs, numpy random states) that the ``weights_only``
+    unpickler refuses; those are loaded with the full unpickler, which is why only trusted files should be read.
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointError: not a readable torch file or not a dict.
+    """
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        try:
+            data = torch.load(path, map_location=map_location, weights_only=True)
+        except pickle.UnpicklingError:
+            data = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as err:  # torch raises many kinds (RuntimeError, EOFError, UnpicklingError...) on bad files
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {err}") from err
+    if not isinstance(data, Mapping):
+        raise CheckpointError(f"checkpoint {path} holds a {type(data).__name__}, not a dict")
+    return dict(data)
+
+
+def _to_plain(value: Any) -> Any:
+    """OmegaConf containers (and anything nested) to plain dicts / lists."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(value, DictConfig | ListConfig):
+            return OmegaConf.to_container(value, resolve=True)
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        pass
+    if isinstance(value, Mapping):
+        return {k: _to_plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return type(value)(_to_plain(v) for v in value)
+    return value
+
+
+def _model_overrides(config: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The stored model config with the perceptual loss off and the caller's group overrides merged in."""
+    cfg = merge_config(_to_plain(config))
+    cfg["loss"]["perceptual"] = None
+    for group, value in (overrides or {}).items():
+        if isinstance(value, Mapping) and isinstance(cfg.get(group), Mapping):
+            cfg[group] = {**cfg[group], **dict(value)}
+        else:
+            cfg[group] = value
+    return merge_config(cfg)
+
+
+def _load_weights(model: Unicorn, state: Mapping[str, torch.Tensor], path: Path) -> None:
+    """Load ``state`` strictly, except for the perceptual loss's weights (not rebuilt)."""
+    state = {k: v for k, v in state.items() if not k.startswith("perceptual.")}
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise CheckpointError(
+            f"checkpoint {path} does not fit the model built from its own config: "
+            f"missing {missing[:8]}{'...' if len(missing) > 8 else ''}, "
+            f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}"
+        )
+
+
+def _run_dir(path: Path) -> Path | None:
+    return path.parent.parent if path.parent.name == "checkpoints" else None
+
+
+def _run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
+    """The ``dataset`` group of ``<run>/config.yaml`` (written by ``unicorn-train``), if any."""
+    if run_dir is None or not (run_dir / "config.yaml").is_file():
+        return None
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
+    except yaml.YAMLError:
+        return None
+    dataset = cfg.get("dataset") if isinstance(cfg, Mapping) else None
+    return dict(dataset) if isinstance(dataset, Mapping) else None
+
+
+def load_model(
+    path: str | os.PathLike,
+    map_location: str | torch.device = "cpu",
+    overrides: Mapping[str, Any] | None = None,
+) -> tuple[Unicorn, CheckpointInfo]:
+    """Build the model stored in a checkpoint of any supported format and load its weights.
+
+    Args:
+        path: a released ``.pkl``, a Lightning ``.ckpt`` or a :func:`save_model` file.
+        map_location: where the weights are loaded.
+        overrides: model config groups to change, e.g. ``{"template": {"level": 4}}`` for the finer mesh of
+            UNICORN's keypoint evaluation (the template and the renderer are not part of the weights).
+
+    Returns:
+        ``(model, info)``: the model in eval mode on ``map_location``, and a :class:`CheckpointInfo`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointError: unreadable file, unknown layout, or weights that do not fit.
+    """
+    path = Path(path).expanduser()
+    data = read_checkpoint(path, map_location)
+    run_dir = _run_dir(path)
+    if "model_state" in data:
+        try:
+            model = load_reference_checkpoint(data, **copy.deepcopy(dict(overrides or {})))
+        except (KeyError, ValueError) as err:
+            raise CheckpointError(f"released checkpoint {path} could not be converted: {err}") from err
+        info = CheckpointInfo(path, "reference", epoch=data.get("epoch"))
+    elif "state_dict" in data and "hyper_parameters" in data:
+        hparams = _to_plain(data["hyper_parameters"]) or {}
+        if "model" not in hparams:
+            raise CheckpointError(
+                f"Lightning checkpoint {path} has no 'model' hyper-parameter: it was not written by unicorn-train"
+            )
+        state = data["state_dict"]
+        weights = {k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")}
+        if not weights:
+            raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
+        model = Unicorn(_model_overrides(hparams["model"], overrides))
+        _load_weights(model, weights, path)
+        p = state.get("texture_average_p")
+        stage = state.get("stage")
+        info = CheckpointInfo(
+            path,
+            "lightning",
+            epoch=data.get("epoch"),
+            step=data.get("global_step"),
+            average_texture=p is not None and float(p) >= 1.0,
+            extra={"stage": None if stage is None else int(stage)},
+        )
+    elif data.get("format") == PLAIN_FORMAT:
+        model = Unicorn(_model_overrides(data["config"], overrides))
+        _load_weights(model, data["state_dict"], path)
+        meta = dict(data.get("info") or {})
+        info = CheckpointInfo(
+            path,
+            "plain",
+            epoch=meta.pop("epoch", None),
+            step=meta.pop("step", None),
+            average_texture=bool(meta.pop("average_texture", False)),
+            dataset=meta.pop("dataset", None),
+            extra=meta,
+        )
+    else:
+        keys = sorted(map(str, data))[:10]
+        raise CheckpointError(
+            f"{path} is not a UNICORN checkpoint (keys {keys}): expected a released .pkl (model_state), a "
+            "unicorn-train .ckpt (state_dict + hyper_parameters) or a unicorn.io.save_model file"
+        )
+    info.run_dir = run_dir
+    if info.dataset is None:
+        info.dataset = _run_dataset(run_dir)
+    return model.to(map_location).eval(), info
+
+
+def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
+    """Write a plain checkpoint (config, weights and ``info``) that :func:`load_model` reads.
+
+    Args:
+        model: the model.
+        path: the file to write (folders are created).
+        **info: metadata kept with it: ``epoch``, ``step``, ``average_texture``, ``dataset`` (a dict with ``name``
+            and ``root``) or anything else (JSON-like values).
+
+    Returns:
+        ``path`` as a Path.
+    """
+    path = Path(path).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
+    torch.save({"format": PLAIN_FORMAT, "config": copy.deepcopy(model.config), "state_dict": state, "info": info}, path)
+    return path

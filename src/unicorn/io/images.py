@@ -1,0 +1,178 @@
+"""User images for ``unicorn-reconstruct``: find them, read them and bring them to the training framing.
+
+The framing is the training one (:mod:`unicorn.data.images`):
+
+- an image whose alpha channel cuts the object out (a PNG with transparency) is cropped to the square box around
+  its opaque pixels grown by ``padding`` on every side (as the CUB / Pascal3D+ loaders crop around their boxes),
+  composited on white and resized;
+- a box given by the caller is used the same way;
+- any other image is resized so that its longer side is the model's size and padded to a square by replicating
+  its border, centred (the image-folder / CompCars loaders' ``fit_and_pad``).
+
+The models reconstruct what fills the frame as their training images did: one object, centred, seen whole, filling
+most of the square, on its natural background (or on white for models trained on ShapeNet renderings).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+
+from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
+from unicorn.data.images import (
+    ImageLoadError,
+    crop_box,
+    fit_and_pad,
+    load_image,
+    pad_bbox,
+    resize_image,
+    square_bbox,
+    to_chw_tensor,
+)
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "InputImage",
+    "RawInput",
+    "alpha_bbox",
+    "collect_inputs",
+    "frame_input",
+    "load_input",
+    "preprocess",
+    "read_input",
+]
+
+#: box growth around an alpha cut-out, as a fraction of the box size on every side (CUB's 0.05 plus margin)
+DEFAULT_PADDING = 0.1
+
+
+def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+    """Image files named on the command line: files as given, folders searched recursively (sorted).
+
+    Raises:
+        FileNotFoundError: an input does not exist, or nothing to read was found at all.
+    """
+    files: list[Path] = []
+    for item in inputs:
+        path = Path(item).expanduser()
+        if path.is_dir():
+            found = list_images(path)
+            if not found:
+                raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {path}")
+            files += found
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise FileNotFoundError(f"input not found: {path}")
+    if not files:
+        raise FileNotFoundError("no input images given")
+    return files
+
+
+def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | None:
+    """Box ``(x1, y1, x2, y2)`` (0-based, inclusive) of the opaque pixels of an image with transparency.
+
+    Returns:
+        the box, or None when the image has no alpha channel, is fully opaque or fully transparent.
+    """
+    try:
+        with Image.open(path) as img:
+            if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
+                return None
+            alpha = np.asarray(img.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
+        raise ImageLoadError(path, f"{type(err).__name__}: {err}") from err
+    opaque = alpha > threshold
+    if opaque.all() or not opaque.any():
+        return None
+    rows, cols = np.flatnonzero(opaque.any(axis=1)), np.flatnonzero(opaque.any(axis=0))
+    return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
+
+
+def preprocess(
+    image: np.ndarray, size: int, bbox: np.ndarray | Sequence[float] | None = None, padding: float = DEFAULT_PADDING
+) -> np.ndarray:
+    """Frame an image as the training data was: square crop around ``bbox`` or fit-and-pad, then resize.
+
+    Args:
+        image: (H, W, 3) float array in [0, 1].
+        size: the model's input side.
+        bbox: ``(x1, y1, x2, y2)`` 0-based inclusive box of the object, or None for the whole image.
+        padding: fraction of the box size added on every side before squaring it.
+
+    Returns:
+        (size, size, 3) float32 array.
+    """
+    if bbox is None:
+        return fit_and_pad(image, size).astype(np.float32)
+    box = square_bbox(pad_bbox(np.asarray(bbox, dtype=np.float64), padding))
+    crop, _ = crop_box(image, box)
+    return resize_image(crop.astype(np.float32), (size, size))
+
+
+class RawInput:
+    """A user image read from disk, before framing.
+
+    Attributes:
+        path: the file.
+        image: (H, W, 3) float32 array in [0, 1] (transparent pixels composited on white).
+        bbox: the object box (from the alpha channel or given), or None.
+    """
+
+    def __init__(self, path: Path, image: np.ndarray, bbox: np.ndarray | None) -> None:
+        self.path, self.image, self.bbox = path, image, bbox
+
+
+class InputImage:
+    """One preprocessed user image.
+
+    Attributes:
+        path: the file.
+        name: a file-system safe name for its outputs (the stem, made unique by the caller).
+        image: (3, S, S) float tensor in [0, 1], the model's input.
+        cropped: whether an alpha cut-out (or a given box) set the framing.
+    """
+
+    def __init__(self, path: Path, name: str, image: torch.Tensor, cropped: bool) -> None:
+        self.path, self.name, self.image, self.cropped = path, name, image, cropped
+
+
+def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use_alpha: bool = True) -> RawInput:
+    """Read one image and find its object box (``bbox`` if given, else its alpha cut-out when ``use_alpha``).
+
+    Raises:
+        ImageLoadError: the file is not a readable image.
+    """
+    path = Path(path)
+    image = load_image(path)
+    box = None if bbox is None else np.asarray(bbox, dtype=np.float64)
+    if box is None and use_alpha:
+        box = alpha_bbox(path)
+    return RawInput(path, image, box)
+
+
+def frame_input(raw: RawInput, size: int, name: str | None = None, padding: float = DEFAULT_PADDING) -> InputImage:
+    """Frame a read image for a model of input side ``size`` (see the module docstring)."""
+    framed = preprocess(raw.image, size, raw.bbox, padding)
+    return InputImage(raw.path, name or raw.path.stem, to_chw_tensor(framed), raw.bbox is not None)
+
+
+def load_input(
+    path: str | os.PathLike,
+    size: int,
+    name: str | None = None,
+    bbox: Sequence[float] | None = None,
+    use_alpha: bool = True,
+    padding: float = DEFAULT_PADDING,
+) -> InputImage:
+    """Read and frame one image: :func:`read_input` then :func:`frame_input`.
+
+    Raises:
+        ImageLoadError: the file is not a readable image.
+    """
+    return frame_input(read_input(path, bbox, use_alpha), size, name, padding)

@@ -1,0 +1,105 @@
+"""``unicorn-eval`` end to end on a tiny checkpoint and the synthetic fixture set, and its error messages."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.evaluation.helpers import synthetic_data, tiny_checkpoint
+from tests.evaluation.test_report import referenced_files
+from unicorn.cli.eval import main
+
+FAST = ["--num-points", "300", "--icp-iterations", "2", "--view-size", "40", "--turntable-frames", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthetic_data(tmp_path_factory.mktemp("cli_eval") / "nmr")
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tiny_checkpoint(tmp_path_factory.mktemp("cli_eval_ckpt") / "tiny.pt", "shapenet")
+
+
+def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
+    out = tmp_path / "eval"
+    cmd = [sys.executable, "-m", "unicorn.cli.eval", str(checkpoint), "--dataset", "synthetic", "--root", str(synth),
+           "--split", "train", "--max-images", "3", "--report-samples", "2", "--device", "cpu", "--out", str(out),
+           *FAST]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "chamfer-L1-ICP" in proc.stdout and "\nmean " in proc.stdout  # the table is printed
+
+    with open(out / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0])[:7] == [
+        "group", "n-images", "chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "mask-iou",
+    ]  # fmt: skip
+    assert {"rot-err-median", "rec-mse"} <= set(rows[0]) and [r["group"] for r in rows] == ["chair", "mug", "mean"]
+    assert rows[-1]["n-images"] == "3"
+    data = json.loads((out / "metrics.json").read_text())
+    assert data["dataset"] == "synthetic" and data["checkpoint_format"] == "plain" and len(data["per_image"]) == 3
+    assert data["options"]["num_points"] == 300 and data["protocol"] == "shapenet"
+    sources = referenced_files(out / "report.html")
+    assert "report.png" in sources and any(s.endswith(".gif") for s in sources)
+    assert all((out / s).is_file() for s in sources)
+
+
+def test_dataset_of_the_training_run(tmp_path: Path, synth: Path, checkpoint: Path, capsys) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    os.link(checkpoint, run / "checkpoints" / "last.pt")
+    # the synthetic set is in the ShapeNet-NMR format, so it can stand for a shapenet_nmr run
+    (run / "config.yaml").write_text(f"dataset:\n  name: shapenet_nmr\n  root: {synth}\n  categories: [mug]\n")
+    code = main([str(run / "checkpoints" / "last.pt"), "--split", "train", "--report-samples", "0", *FAST])
+    assert code == 0
+    out = run / "eval" / "shapenet_nmr_train"  # inside the run directory
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert [r["group"] for r in rows] == ["mug", "mean"]  # the run's categories
+    assert not (out / "report.html").exists()
+
+
+def test_synthetic_run_root(tmp_path: Path) -> None:
+    from unicorn.cli.eval import _run_root
+    from unicorn.data.synthetic.writer import synthetic_dataset_path
+
+    run_data = {"name": "synthetic", "root": str(tmp_path), "categories": "car", "synthetic": {"n_models": 20}}
+    assert _run_root(run_data) == str(synthetic_dataset_path("car", "nmr", 20, 0, tmp_path))
+    assert _run_root({"name": "cub_200", "root": "datasets/cub_200"}) == "datasets/cub_200"
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["missing.ckpt", "--dataset", "synthetic", "--root", "."], "checkpoint not found"),
+        (["{ckpt}", "--dataset", "synthetic", "--root", "{tmp}/nowhere"], "not found"),
+        (["{ckpt}"], "no --dataset given"),
+        (["{ckpt}", "--dataset", "cub_200"], "no --root given"),
+    ],
+)
+def test_errors(tmp_path: Path, checkpoint: Path, capsys, args: list[str], message: str) -> None:
+    args = [a.format(ckpt=checkpoint, tmp=tmp_path) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("unicorn-eval: error:") and message in err
+
+
+def test_unknown_dataset(checkpoint: Path, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(checkpoint), "--dataset", "imagenet", "--root", "."])
+    assert exit_info.value.code == 2 and "invalid choice: 'imagenet'" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_cuda_requested_without_cuda(checkpoint: Path, capsys) -> None:
+    assert main([str(checkpoint), "--dataset", "synthetic", "--root", ".", "--device", "cuda"]) == 2
+    assert "CUDA is not available" in capsys.readouterr().err

@@ -1,0 +1,115 @@
+"""``unicorn-reconstruct`` end to end on a tiny checkpoint and fixture images, and its error messages."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from tests.evaluation.helpers import TEXTURE_SIZE, tiny_checkpoint, write_inputs
+from tests.evaluation.test_report import referenced_files
+from tests.model.test_checkpoint_compat import reference_state
+from unicorn.cli.reconstruct import main
+from unicorn.io import load_model
+from unicorn.model import export_prediction
+
+FAST = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tiny_checkpoint(tmp_path_factory.mktemp("cli_rec_ckpt") / "tiny.pt", "real")
+
+
+@pytest.fixture
+def inputs(tmp_path: Path) -> Path:
+    write_inputs(tmp_path / "inputs")
+    return tmp_path / "inputs"
+
+
+def test_console_scripts_are_installed() -> None:
+    scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts")}
+    assert scripts.get("unicorn-reconstruct") == "unicorn.cli.reconstruct:main"
+    assert scripts.get("unicorn-eval") == "unicorn.cli.eval:main"
+
+
+def test_reconstruct_command(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "unicorn.cli.reconstruct", str(checkpoint), str(inputs), "--out", str(out), *FAST]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 images reconstructed" in proc.stdout
+
+    model, _ = load_model(checkpoint)
+    with torch.no_grad():
+        expected = export_prediction(model, model.predict(torch.rand(1, 3, 32, 32)), 0)  # same topology for any input
+    for name in ("cutout", "photo"):
+        folder = out / name
+        for file in ("input.png", "reconstruction.png", "mask.png", "turntable.gif", "turntable.png", "pose.json",
+                     "mesh.obj", "mesh.mtl", "mesh.png", "mesh.glb"):  # fmt: skip
+            assert (folder / file).is_file(), file
+        assert Image.open(folder / "input.png").size == (32, 32)
+        assert Image.open(folder / "reconstruction.png").size == (48, 48)
+        assert Image.open(folder / "turntable.png").size == (3 * 48, 48)
+        assert Image.open(folder / "turntable.gif").n_frames == 3
+        obj = trimesh.load(folder / "mesh.obj", force="mesh", process=False)
+        glb = trimesh.load(folder / "mesh.glb", force="mesh", process=False)
+        for mesh in (obj, glb):
+            assert mesh.vertices.shape == expected.vertices.shape and mesh.faces.shape == expected.faces.shape
+            assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+        assert obj.visual.material.image.size == (TEXTURE_SIZE, TEXTURE_SIZE)
+        assert glb.visual.material.baseColorTexture.size == (TEXTURE_SIZE, TEXTURE_SIZE)
+        pose = json.loads((folder / "pose.json").read_text())
+        R = torch.tensor(pose["R"])
+        torch.testing.assert_close(R @ R.T, torch.eye(3), atol=1e-5, rtol=0)
+        assert len(pose["T"]) == 3 and len(pose["candidate_probabilities"]) == 6
+    records = json.loads((out / "reconstructions.json").read_text())
+    assert [r["name"] for r in records] == ["cutout", "photo"]
+    assert records[0]["cropped_from_alpha_or_box"] and not records[1]["cropped_from_alpha_or_box"]
+    assert (out / "overview.png").is_file()
+    assert all((out / s).is_file() for s in referenced_files(out / "index.html"))
+
+
+def test_released_checkpoint(tmp_path: Path, inputs: Path) -> None:
+    torch.save({"epoch": 2, "model_kwargs": {}, "model_state": reference_state()}, tmp_path / "model.pkl")
+    code = main([str(tmp_path / "model.pkl"), str(inputs / "photo.jpg"), "--out", str(tmp_path / "out"),
+                 *FAST, "--turntable-frames", "0"])  # fmt: skip
+    assert code == 0
+    assert (tmp_path / "out" / "photo" / "mesh.glb").is_file()
+    assert not (tmp_path / "out" / "photo" / "turntable.gif").exists()
+
+
+def test_bad_image_skipped_on_request(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:
+    (inputs / "broken.png").write_bytes(b"not a png")
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "a"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("unicorn-reconstruct: error: cannot read image") and "broken.png" in err
+    with pytest.warns(RuntimeWarning, match="broken.png"):
+        assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["cutout", "photo"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["{tmp}/missing.ckpt", "{inputs}"], "checkpoint not found"),
+        (["{ckpt}", "{tmp}/empty"], "no images"),
+        (["{ckpt}", "{tmp}/nothing.png"], "input not found"),
+        (["{ckpt}", "{inputs}", "--bbox", "0,0,10,10"], "--bbox needs exactly one input image"),
+        (["{inputs}/photo.jpg", "{inputs}"], "cannot read checkpoint"),
+    ],
+)
+def test_errors(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, args: list[str], message: str) -> None:
+    (tmp_path / "empty").mkdir()
+    args = [a.format(ckpt=checkpoint, tmp=tmp_path, inputs=inputs) for a in args]
+    assert main([*args, "--out", str(tmp_path / "out"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("unicorn-reconstruct: error:") and message in err

@@ -1,0 +1,48 @@
+"""Tiny checkpoints, fixture datasets and input images for the evaluation and reconstruction tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from unicorn.io import save_model
+from unicorn.model import Unicorn, unicorn_config
+
+IMAGE_SIZE = 32
+TEXTURE_SIZE = 16
+
+
+def tiny_model(family: str = "real", seed: int = 0) -> Unicorn:
+    """An untrained model at 32 px with 16 px textures and no perceptual loss (fast on CPU)."""
+    torch.manual_seed(seed)
+    cfg = unicorn_config(family, image_size=IMAGE_SIZE, texture={"size": TEXTURE_SIZE}, loss={"perceptual": None})
+    return Unicorn(cfg).eval()
+
+
+def tiny_checkpoint(path: Path, family: str = "real", **info) -> Path:
+    """Write :func:`tiny_model` as a plain checkpoint."""
+    return save_model(tiny_model(family), path, **info)
+
+
+def synthetic_data(out: Path) -> Path:
+    """Synthetic NMR set: 2 categories x 3 models x 2 views at 32 px (train split: 2 models per category)."""
+    from unicorn.data.synthetic.writer import generate_synthetic_dataset
+
+    return generate_synthetic_dataset(
+        out, ["chair", "mug"], "nmr", n_models=3, seed=0, image_size=IMAGE_SIZE, n_views=2, n_points=600, progress=False
+    )
+
+
+def write_inputs(folder: Path) -> dict[str, Path]:
+    """A transparent PNG cut-out (object off-centre) and an opaque landscape JPEG."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rgba = np.zeros((60, 90, 4), dtype=np.uint8)
+    rgba[8:30, 50:84] = (200, 60, 40, 255)  # object in the top-right corner
+    Image.fromarray(rgba, "RGBA").save(folder / "cutout.png")
+    rng = np.random.default_rng(0)
+    photo = (rng.random((40, 70, 3)) * 255).astype(np.uint8)
+    Image.fromarray(photo).save(folder / "photo.jpg")
+    return {"cutout": folder / "cutout.png", "photo": folder / "photo.jpg"}

@@ -1,0 +1,87 @@
+"""load_model: the three checkpoint formats, their metadata, overrides and errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.model.test_checkpoint_compat import reference_state
+from unicorn.io import CheckpointError, load_model, save_model
+
+from .helpers import IMAGE_SIZE, tiny_model
+
+
+def _same_prediction(a, b) -> None:
+    x = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        pa, pb = a.predict(x), b.predict(x)
+    for name in ("verts", "texture", "R", "T"):
+        torch.testing.assert_close(getattr(pa, name), getattr(pb, name))
+
+
+def test_plain_round_trip(tmp_path: Path) -> None:
+    model = tiny_model("real", seed=1)
+    path = save_model(model, tmp_path / "m.pt", epoch=3, step=40, average_texture=True, dataset={"name": "folder"})
+    loaded, info = load_model(path)
+    assert info.format == "plain" and info.epoch == 3 and info.step == 40 and info.average_texture
+    assert info.dataset == {"name": "folder"} and not loaded.training
+    _same_prediction(model, loaded)
+
+
+def _lightning_checkpoint(path: Path, average: float = 0.0) -> torch.nn.Module:
+    """A checkpoint written by Lightning itself for the training module (no training needed)."""
+    import lightning as L
+
+    from unicorn.lit.module import UnicornLitModule
+
+    module = UnicornLitModule(tiny_model("real", seed=2).config)
+    module.texture_average_p.fill_(average)
+    trainer = L.Trainer(
+        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        max_steps=0, accelerator="cpu",
+    )  # fmt: skip
+    trainer.strategy.connect(module)
+    module.trainer = trainer
+    trainer.save_checkpoint(path)
+    return module.model
+
+
+def test_lightning_checkpoint_of_a_run(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.yaml").write_text("dataset:\n  name: synthetic\n  root: /data/synth\n  categories: [chair]\n")
+    model = _lightning_checkpoint(run / "checkpoints" / "last.ckpt", average=1.0)
+    loaded, info = load_model(run / "checkpoints" / "last.ckpt")
+    assert info.format == "lightning" and info.step == 0 and info.extra["stage"] == 1
+    assert info.average_texture  # the mean-texture phase is read from the module's buffer
+    assert info.run_dir == run and info.dataset == {"name": "synthetic", "root": "/data/synth", "categories": ["chair"]}
+    assert loaded.perceptual is None
+    _same_prediction(model.eval(), loaded)
+
+
+def test_reference_checkpoint_and_template_override(tmp_path: Path) -> None:
+    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": reference_state()}, tmp_path / "model.pkl")
+    model, info = load_model(tmp_path / "model.pkl")
+    assert info.format == "reference" and info.epoch == 5 and info.run_dir is None
+    assert model.config["template"]["uv_mode"] == "reference" and model.template.verts.shape[0] == 642
+    fine, _ = load_model(tmp_path / "model.pkl", overrides={"template": {"level": 4}})
+    assert fine.template.verts.shape[0] == 2562  # the template is not part of the weights
+
+
+def test_errors(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        load_model(tmp_path / "missing.ckpt")
+    (tmp_path / "junk.ckpt").write_bytes(b"definitely not a torch file")
+    with pytest.raises(CheckpointError, match="cannot read checkpoint"):
+        load_model(tmp_path / "junk.ckpt")
+    torch.save({"weights": torch.zeros(1)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a UNICORN checkpoint"):
+        load_model(tmp_path / "other.pt")
+    path = save_model(tiny_model("real"), tmp_path / "m.pt")
+    data = torch.load(path, weights_only=True)
+    data["state_dict"].pop("scale.regressor.0.weight")
+    torch.save(data, tmp_path / "broken.pt")
+    with pytest.raises(CheckpointError, match="does not fit"):
+        load_model(tmp_path / "broken.pt")

@@ -1,0 +1,56 @@
+"""User images: finding them, framing them like the training data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from unicorn.data.images import ImageLoadError, fit_and_pad, load_image
+from unicorn.io import alpha_bbox, collect_inputs, load_input, preprocess
+
+from .helpers import write_inputs
+
+
+def test_collect_inputs(tmp_path: Path) -> None:
+    files = write_inputs(tmp_path / "in")
+    (tmp_path / "in" / "notes.txt").write_text("not an image")
+    assert collect_inputs([tmp_path / "in"]) == sorted(files.values())
+    assert collect_inputs([files["photo"], tmp_path / "in"])[0] == files["photo"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no images"):
+        collect_inputs([tmp_path / "empty"])
+    with pytest.raises(FileNotFoundError, match="input not found"):
+        collect_inputs([tmp_path / "nope.png"])
+
+
+def test_alpha_cutout_is_centred(tmp_path: Path) -> None:
+    files = write_inputs(tmp_path)
+    assert alpha_bbox(files["photo"]) is None
+    np.testing.assert_array_equal(alpha_bbox(files["cutout"]), [50, 8, 83, 29])
+    item = load_input(files["cutout"], 32)
+    assert item.cropped and item.image.shape == (3, 32, 32)
+    red = (item.image[0] > 0.6) & (item.image[1] < 0.4)  # (32, 32) object pixels
+    rows, cols = np.nonzero(red.numpy())
+    assert abs(rows.mean() - 15.5) < 1.5 and abs(cols.mean() - 15.5) < 1.5  # centred
+    assert 0.5 < (cols.max() - cols.min() + 1) / 32 < 0.95  # fills most of the frame, with a margin
+    assert float(item.image[:, 0, 0].min()) > 0.95  # transparent pixels became white
+
+
+def test_opaque_image_is_fit_and_padded(tmp_path: Path) -> None:
+    files = write_inputs(tmp_path)
+    item = load_input(files["photo"], 32)
+    assert not item.cropped
+    np.testing.assert_allclose(item.image.permute(1, 2, 0).numpy(), fit_and_pad(load_image(files["photo"]), 32))
+    boxed = preprocess(load_image(files["photo"]), 16, bbox=(10, 5, 29, 24), padding=0.0)
+    assert boxed.shape == (16, 16, 3)
+
+
+def test_unreadable_image(tmp_path: Path) -> None:
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(ImageLoadError, match="bad.png"):
+        load_input(tmp_path / "bad.png", 32)
+    Image.new("RGB", (4, 4)).save(tmp_path / "ok.png")
+    assert load_input(tmp_path / "ok.png", 8).image.shape == (3, 8, 8)

@@ -1,0 +1,98 @@
+"""Metric files and the visual report."""
+
+from __future__ import annotations
+
+import csv
+import json
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from unicorn.evaluation import EvaluationResult, Sample, format_table, write_metrics, write_report
+from unicorn.evaluation.report import image_grid, mask_overlay
+
+
+class _Sources(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.sources: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        for key, value in attrs:
+            if (tag, key) in (("img", "src"), ("a", "href")) and value:
+                self.sources.append(value)
+
+
+def referenced_files(page: Path) -> list[str]:
+    """Every ``img src`` and ``a href`` of an HTML file."""
+    parser = _Sources()
+    parser.feed(page.read_text(encoding="utf-8"))
+    return parser.sources
+
+
+def _result(model, n_samples: int = 2) -> EvaluationResult:
+    x = torch.rand(n_samples, 3, 32, 32)
+    with torch.no_grad():
+        pred = model.predict(x)
+        rec, alpha = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    samples = [
+        Sample(i, "chair", x[i], rec[i], alpha[i], (alpha[i] > 0.2).float(), pred.verts[i], pred.texture[i],
+               pred.R[i], pred.T[i], {"mask-iou": 0.5, "rec-mse": 0.01})
+        for i in range(n_samples)
+    ]  # fmt: skip
+    per_image = [{"index": 0, "group": "chair", "mask-iou": 0.5, "rec-mse": 0.01},
+                 {"index": 1, "group": "chair", "mask-iou": float("nan"), "rec-mse": 0.03}]  # fmt: skip
+    table = [
+        {"group": "chair", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
+        {"group": "mean", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
+    ]
+    return EvaluationResult("shapenet", per_image, table, ["mask-iou", "rec-mse"], samples, 1.5)
+
+
+def test_format_table() -> None:
+    text = format_table([{"group": "chair", "n-images": 3, "chamfer-L1": 0.123456}], ["chamfer-L1", "mask-iou"])
+    lines = text.splitlines()
+    assert lines[0].split() == ["group", "n-images", "chamfer-L1", "mask-iou"]
+    assert lines[2].split() == ["chair", "3", "0.1235", "-"]
+
+
+def test_metric_files(tmp_path: Path, real_model) -> None:
+    result = _result(real_model)
+    paths = write_metrics(result, tmp_path, {"checkpoint": Path("/x/model.pkl")})
+    with open(paths["csv"]) as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["group", "n-images", "mask-iou", "rec-mse"] and rows[-1]["group"] == "mean"
+    data = json.loads(paths["json"].read_text())  # strict JSON: NaN written as null
+    assert data["mean"]["mask-iou"] == 0.5 and data["per_image"][1]["mask-iou"] is None
+    assert data["better"] == {"mask-iou": "higher", "rec-mse": "lower"} and data["checkpoint"] == "/x/model.pkl"
+    with open(paths["per_image"]) as f:
+        assert len(list(csv.DictReader(f))) == 2
+
+
+def test_report_page_and_grid(tmp_path: Path, real_model) -> None:
+    result = _result(real_model)
+    paths = write_report(real_model, result, tmp_path, "test run", {"dataset": "synthetic"}, view_size=40,
+                         turntable_frames=3)  # fmt: skip
+    for source in referenced_files(paths["html"]):
+        assert (tmp_path / source).is_file() or source.endswith((".csv", ".json")), source
+    sources = referenced_files(paths["html"])
+    assert sum(s.endswith(".gif") for s in sources) == 2 and "report.png" in sources
+    grid = Image.open(paths["png"])
+    assert grid.width > 9 * 40 and grid.height > 2 * 40  # 9 pictures per row, 2 rows
+    text = paths["html"].read_text()
+    assert "mask-iou" in text and "test run" in text and "synthetic" in text
+
+
+def test_mask_overlay_and_grid() -> None:
+    alpha = torch.tensor([[[1.0, 1.0], [0.0, 0.0]]])
+    gt = torch.tensor([[[1.0, 0.0], [1.0, 0.0]]])
+    colours = mask_overlay(alpha, gt)
+    np.testing.assert_allclose(colours[0, 0], 0.3)  # both: dark
+    np.testing.assert_allclose(colours[1, 1], 1.0)  # neither: white
+    assert colours[0, 1, 0] > colours[0, 1, 2] and colours[1, 0, 2] > colours[1, 0, 0]  # red = FP, blue = FN
+    cell = (torch.rand(8, 8, 3) * 255).to(torch.uint8).numpy()
+    grid = image_grid([[cell, cell], [cell]], ["a", "b"], ["row 1", "row 2"])
+    assert grid.size[0] > 16 and grid.size[1] > 16
