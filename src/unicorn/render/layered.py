@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .compositing import gather_slots, write_pixels
+from .compositing import write_pixels
 from .fragments import Fragments
 
 __all__ = ["LayeredBlend", "layered_blend", "layered_occupancy"]
@@ -28,6 +28,10 @@ def layered_occupancy(fragments: Fragments, sigma: float) -> torch.Tensor:
 def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor, sigma: float) -> torch.Tensor:
     """Composite fragment colours front to back over a background.
 
+    Works on the packed pairs directly (no padded per-pixel layout): the transmittance in front of every pair is
+    an exclusive running product within its pixel, computed as a running sum of ``log(1 - O)`` in float64. A
+    face containing the pixel (O = 1) hides everything behind it exactly.
+
     Args:
         colors: (M, C) colour of every pair.
         fragments: the packed fragments.
@@ -38,12 +42,31 @@ def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Te
         (B, C + 1, H, W) images, the last channel the alpha ``1 - prod_l (1 - O_l)``.
     """
     occupancy = layered_occupancy(fragments, sigma)
-    row_pix, occ, col = gather_slots(fragments, occupancy, colors)
-    transmit = torch.cumprod(1.0 - occ, dim=1)  # (R, K): light passing through slots 0..k
-    before = torch.cat([torch.ones_like(transmit[:, :1]), transmit[:, :-1]], dim=1)
-    rgb = ((before * occ).unsqueeze(-1) * col).sum(1) + transmit[:, -1:] * bg_table.index_select(0, row_pix)
-    alpha = 1.0 - transmit[:, -1]
-    return write_pixels(bg_table, row_pix, rgb, alpha, fragments.batch_size, fragments.image_size)
+    row, row_pix = fragments.rows()
+    R = row_pix.shape[0]
+    counts = torch.bincount(row, minlength=R)
+    first = torch.cumsum(counts, 0) - counts  # index of each pixel's nearest pair
+    last = first + counts - 1
+
+    def exclusive_in_pixel(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per pair: the sum over the pairs in front of it in its pixel; per pixel: the sum over all its pairs."""
+        running = torch.cumsum(values, 0)
+        before_pixel = (running - values).index_select(0, first)
+        return running - values - before_pixel.index_select(0, row), running.index_select(0, last) - before_pixel
+
+    # an opaque pair (inside its face) contributes through the mask below, not through log(0)
+    log_clear = torch.where(
+        fragments.inside, torch.zeros_like(occupancy), torch.log1p(-occupancy.clamp(max=1.0 - 1e-6))
+    ).double()
+    log_front, log_all = exclusive_in_pixel(log_clear)
+    opaque_front, opaque_all = exclusive_in_pixel(fragments.inside.long())
+    front = torch.exp(log_front).to(occupancy.dtype) * (opaque_front == 0)
+    through = torch.exp(log_all).to(occupancy.dtype) * (opaque_all == 0)  # (R,) light reaching the background
+
+    weighted = (front * occupancy).unsqueeze(1) * colors
+    rgb = colors.new_zeros(R, colors.shape[1]).index_add(0, row, weighted)
+    rgb = rgb + through.unsqueeze(1) * bg_table.index_select(0, row_pix)
+    return write_pixels(bg_table, row_pix, rgb, 1.0 - through, fragments.batch_size, fragments.image_size)
 
 
 class LayeredBlend(nn.Module):

@@ -287,7 +287,7 @@ def rasterize_meshes(
             v = verts_ndc.detach()
             corners = v.index_select(1, faces.reshape(-1)).view(B, F, 3, 3)
             fpx = to_pixels(corners)  # (B, F, 3, 2)
-            fz = corners[..., 2]  # (B, F, 3)
+            fz = corners[..., 2].contiguous()  # (B, F, 3); contiguous for fast row gathers
             e1 = fpx[:, :, 1] - fpx[:, :, 0]
             e2 = fpx[:, :, 2] - fpx[:, :, 0]
             area_ndc = 0.5 * (e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]) * px_to_ndc2
