@@ -111,7 +111,13 @@ class MeshRenderer(nn.Module):
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
         )  # fmt: skip
 
+    @property
+    def raster_size(self) -> tuple[int, int]:
+        """(H, W) at which fragments are computed; the output size unless a backend supersamples."""
+        return self.image_size
+
     def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
+        """Images (B, C + 1, H, W) from fragment colours (M, C) and the background table (B * H * W, C)."""
         raise NotImplementedError
 
     def _check_inputs(self, textures: Textures, verts: torch.Tensor, faces: torch.Tensor) -> None:
@@ -131,7 +137,7 @@ class MeshRenderer(nn.Module):
     ) -> RenderOutput:
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
         self._check_inputs(textures, verts, faces)
-        fragments = self.rasterize(verts, faces, R, T)
+        fragments = self.rasterize(verts, faces, R, T, image_size=self.raster_size)
         colors = textures.sample(fragments, faces.long())
         bg = background_pixels(
             background, self.background_color, verts.shape[0], self.image_size, textures.num_channels, colors
@@ -291,30 +297,17 @@ class HardRenderer(MeshRenderer):
             raise ValueError(f"supersample must be >= 1, got {supersample}")
         self.supersample = int(supersample)
 
-    def render(
-        self,
-        verts: torch.Tensor,
-        faces: torch.Tensor,
-        textures: Textures,
-        R: torch.Tensor | None = None,
-        T: torch.Tensor | None = None,
-        background: torch.Tensor | None = None,
-    ) -> RenderOutput:
-        self._check_inputs(textures, verts, faces)
-        s = self.supersample
+    @property
+    def raster_size(self) -> tuple[int, int]:
         H, W = self.image_size
-        fragments = self.rasterize(verts, faces, R, T, image_size=(H * s, W * s))
-        colors = textures.sample(fragments, faces.long())
-        B, C = verts.shape[0], textures.num_channels
-        # composite premultiplied colour over black at full resolution, average, then add the background
-        black = colors.new_zeros(C).expand(B * H * s * W * s, C)
-        fine = layered_blend(colors, fragments, black, sigma=0.0)
-        coarse = nnf.avg_pool2d(fine, s) if s > 1 else fine
-        bg = background_pixels(background, self.background_color, B, self.image_size, C, colors)
-        bg = bg.reshape(B, H, W, C).permute(0, 3, 1, 2)
-        alpha = coarse[:, -1:]
-        images = torch.cat([coarse[:, :-1] + (1 - alpha) * bg, alpha], dim=1)
-        return RenderOutput(images, fragments)
+        return H * self.supersample, W * self.supersample
 
     def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        return layered_blend(colors, fragments, bg_table, sigma=0.0)
+        # composite premultiplied colour over black at full resolution, average, then add the background
+        B, C = fragments.batch_size, colors.shape[1]
+        (H, W), (h, w) = self.image_size, fragments.image_size
+        fine = layered_blend(colors, fragments, colors.new_zeros(C).expand(B * h * w, C), sigma=0.0)
+        coarse = nnf.avg_pool2d(fine, self.supersample) if self.supersample > 1 else fine
+        bg = bg_table.reshape(B, H, W, C).permute(0, 3, 1, 2)
+        alpha = coarse[:, -1:]
+        return torch.cat([coarse[:, :-1] + (1 - alpha) * bg, alpha], dim=1)
