@@ -161,10 +161,11 @@ def _select_chunk(
     if P == 0:
         return empty, empty, empty, empty.bool(), 0
     dev = fpx.device
-    owner = torch.repeat_interleave(torch.arange(active.numel(), device=dev), c, output_size=P)
-    start = torch.cumsum(c, 0) - c
-    local = torch.arange(P, device=dev) - start.index_select(0, owner)
-    x0, y0, w, _ = (b.reshape(-1).index_select(0, active) for b in boxes)
+    # int32 candidate indices: half the memory traffic of int64 on the largest tensors of the pass
+    owner = torch.repeat_interleave(torch.arange(active.numel(), device=dev, dtype=torch.int32), c, output_size=P)
+    start = (torch.cumsum(c, 0) - c).int()
+    local = torch.arange(P, device=dev, dtype=torch.int32) - start.index_select(0, owner)
+    x0, y0, w, _ = (b.reshape(-1).index_select(0, active).int() for b in boxes)
     w_o = w.index_select(0, owner)
     px = x0.index_select(0, owner) + local % w_o
     py = y0.index_select(0, owner) + torch.div(local, w_o, rounding_mode="floor")
@@ -194,7 +195,7 @@ def _select_chunk(
     del bary
 
     image = torch.div(flat_face, F, rounding_mode="floor")
-    pix_local = (image * H + py) * W + px
+    pix_local = (image * H + py.long()) * W + px.long()
     zmin, zmax = z.min(), z.max()
     scale = (2**_DEPTH_BITS - 1) / (zmax - zmin).clamp_min(1e-12)
     zq = ((z - zmin) * scale).long().clamp_(0, 2**_DEPTH_BITS - 1)
