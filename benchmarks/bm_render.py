@@ -31,7 +31,8 @@ def _rss_mib() -> float:
 
 
 def _median_time(fn, device: str, repeats: int) -> float:
-    fn()  # warm-up
+    for _ in range(2):  # warm-up: allocator and page-fault costs of a fresh process settle after a couple of calls
+        fn()
     times = []
     for _ in range(repeats):
         _sync(device)
