@@ -156,7 +156,15 @@ def look_at_view_transform(
 
 
 def rotation_angle_between(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
-    """Geodesic angle in degrees between rotations (..., 3, 3), with the arccos argument clamped."""
-    trace = (R1.transpose(-1, -2) @ R2).diagonal(dim1=-2, dim2=-1).sum(-1)
-    cos = ((trace - 1) / 2).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.arccos(cos))
+    """Geodesic angle in degrees, in [0, 180], between rotations (..., 3, 3).
+
+    Computed as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = R1^T R2``: accurate near 0 and 180
+    degrees and never NaN, unlike ``acos`` of the trace (which the reference left unclamped).
+    """
+    if R1.shape[-2:] != (3, 3) or R2.shape[-2:] != (3, 3):
+        raise ValueError(f"rotations must have shape (..., 3, 3), got {tuple(R1.shape)} and {tuple(R2.shape)}")
+    M = R1.transpose(-1, -2) @ R2.to(R1)
+    cos = (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    skew = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+    sin = torch.linalg.vector_norm(skew, dim=-1) / 2
+    return torch.rad2deg(torch.atan2(sin, cos))

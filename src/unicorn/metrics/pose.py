@@ -13,6 +13,7 @@ import math
 
 import torch
 
+from ..geometry.rotations import rotation_angle_between
 from ._checks import check_rotations
 
 __all__ = [
@@ -27,21 +28,15 @@ __all__ = [
 def geodesic_error(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """Geodesic angle in degrees, in [0, 180], between rotations (..., 3, 3).
 
-    Computed as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = R1^T R2``, accurate near 0 and 180
-    degrees (unlike ``acos`` of the trace, which also needs clamping in float32).
+    The metric name for :func:`unicorn.geometry.rotations.rotation_angle_between` (atan2 form, accurate near
+    0 and 180 degrees).
 
     Example:
         >>> Rz = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
         >>> round(geodesic_error(torch.eye(3), Rz).item(), 4)
         90.0
     """
-    if R1.shape[-2:] != (3, 3) or R2.shape[-2:] != (3, 3):
-        raise ValueError(f"rotations must have shape (..., 3, 3), got {tuple(R1.shape)} and {tuple(R2.shape)}")
-    M = R1.transpose(-1, -2) @ R2.to(R1)
-    cos = (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
-    skew = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
-    sin = torch.linalg.vector_norm(skew, dim=-1) / 2
-    return torch.rad2deg(torch.atan2(sin, cos))
+    return rotation_angle_between(R1, R2)
 
 
 def azimuth_error(azim_pred: torch.Tensor, azim_gt: torch.Tensor) -> torch.Tensor:
