@@ -1,4 +1,5 @@
-"""Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s bench``, ``nox -s package``.
+"""Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s bench``, ``nox -s quality``,
+``nox -s package``.
 
 Every session reuses its virtual environment and installs torch only when the environment has none, so torch is
 never reinstalled and a CPU machine never pulls the CUDA build by accident:
@@ -80,6 +81,13 @@ def bench(session: nox.Session) -> None:
     """Benchmarks (pass e.g. ``-- --device cuda`` or ``-- --quick``)."""
     install_project(session, "dev")
     session.run("python", "benchmarks/bm_render.py", *session.posargs)
+
+
+@nox.session(python=PYTHON)
+def quality(session: nox.Session) -> None:
+    """The quality benchmark: default experiment, ablations, wild mode and baselines (about 50 min on 2 CPU cores)."""
+    install_project(session, "dev")
+    session.run("python", "benchmarks/quality.py", *session.posargs)
 
 
 @nox.session(python=PYTHON, reuse_venv=False)

@@ -34,7 +34,7 @@ def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.Compl
 
 def test_every_experiment_composes_and_validates(tmp_path):
     shipped = sorted(p.stem for p in (config_dir() / "experiment").glob("*.yaml"))
-    assert shipped == sorted(["synthetic", *REAL, *(f"shapenet_{c}" for c in SHAPENET)])
+    assert shipped == sorted(["synthetic", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)])
     for name in shipped:
         for model in ("small", "big"):
             cfg = compose_config([f"+experiment={name}", f"model={model}", f"paths.output_dir={tmp_path}"])
@@ -44,6 +44,14 @@ def test_every_experiment_composes_and_validates(tmp_path):
     shapenet = validate(compose_config(["+experiment=shapenet_chair", f"paths.output_dir={tmp_path}"]))
     assert shapenet.model.background is None and shapenet.schedule.texture_averaging.constant_stages == 1
     assert shapenet.schedule.milestones == [49812, 298872, 547932] and shapenet.optim.lr_drop_step == 796992
+    wild = validate(compose_config(["+experiment=synthetic_wild", f"paths.output_dir={tmp_path}"]))
+    default = validate(compose_config(["+experiment=synthetic", f"paths.output_dir={tmp_path}"]))
+    assert wild.dataset.synthetic.mode == "wild" and wild.model.background is not None
+    assert default.dataset.synthetic.mode == "nmr" and default.model.background is None
+    # the wild variant trains under the default's budget and schedule (benchmarks/quality.py compares them)
+    assert wild.trainer.max_steps == default.trainer.max_steps
+    assert wild.schedule.milestones == default.schedule.milestones
+    assert default.evaluate.enabled and default.callbacks.heldout is not None
     cub = validate(compose_config(["+experiment=cub", "model=big", f"paths.output_dir={tmp_path}"]))
     assert cub.model.stages.texture == [2, 8, 64, 512] and cub.schedule.curriculum.translation == 938
     assert cub.schedule.texture_averaging.random_until_stage == 4 and cub.trainer.max_steps == 3_000_000

@@ -6,8 +6,9 @@ import math
 
 import pytest
 import torch
+from torch.utils.data import Dataset
 
-from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate, protocol_for
+from unicorn.evaluation import EvalOptions, build_eval_dataset, candidate_shares, evaluate, hard_render, protocol_for
 from unicorn.evaluation.evaluator import collate, spread_indices
 from unicorn.metrics import evaluate_meshes, mask_iou
 
@@ -46,7 +47,7 @@ def test_cub_protocol(real_model, cub_root) -> None:
     data = build_eval_dataset("cub_200", str(cub_root), "test", img_size=32)
     assert data[0]["mask"].shape[-1] == 256  # masks and keypoints in UNICORN's 256 px frame
     result = evaluate(real_model, data, EvalOptions("cub", **FAST), "cub_200")
-    assert result.columns == ["mask-iou", "pck-5", "pck-10", "pck-15", "rec-mse"]
+    assert result.columns == ["mask-iou", "pck-5", "pck-10", "pck-15", "cand-share-min", "cand-share-max", "rec-mse"]
     mean = result.mean
     assert 0 <= mean["pck-5"] <= mean["pck-10"] <= mean["pck-15"] <= 1 and 0 <= mean["mask-iou"] <= 1
 
@@ -55,14 +56,16 @@ def test_p3d_protocol(real_model, p3d_root) -> None:
     data = build_eval_dataset("p3d_car", str(p3d_root), "test", img_size=32, max_images=2)
     result = evaluate(real_model, data, EvalOptions("p3d", **FAST), "p3d_car")
     # without ground-truth poses only the ICP-registered shape metrics mean something
-    assert result.columns == ["chamfer-L1-ICP", "normal-cos-ICP", "mask-iou", "rec-mse"]
+    assert result.columns == [
+        "chamfer-L1-ICP", "normal-cos-ICP", "mask-iou", "cand-share-min", "cand-share-max", "rec-mse"
+    ]  # fmt: skip
 
 
 def test_images_protocol_and_max_images(real_model, synth_root) -> None:
     data = build_eval_dataset("folder", str(synth_root), "test", img_size=32, max_images=3)
     assert len(data) == 3
     result = evaluate(real_model, data, EvalOptions("images", **FAST), "folder")
-    assert result.columns == ["rec-mse"] and result.table[0]["group"] == "folder"
+    assert result.columns == ["cand-share-min", "cand-share-max", "rec-mse"] and result.table[0]["group"] == "folder"
 
 
 def test_helpers_and_validation() -> None:
@@ -78,3 +81,90 @@ def test_helpers_and_validation() -> None:
         EvalOptions("nope")
     with pytest.raises(ValueError, match="num_points"):
         EvalOptions("shapenet", num_points=0)
+
+
+POSE_METRICS = {"rot-err-mean", "rot-err-median", "rot-acc-30", "azim-err-mean", "azim-err-median"}
+
+
+def test_oracle_pose_scores_the_shape_at_the_ground_truth_pose(shapenet_model, synth_root) -> None:
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    result = evaluate(shapenet_model, data, EvalOptions("shapenet", oracle_pose=True, **FAST), "synthetic")
+    # pose errors would be trivially 0 and no candidate is selected: both are left out
+    assert not (POSE_METRICS | {"cand-share-min", "cand-share-max"}) & set(result.columns)
+    assert result.candidate_shares == {} and all("candidate" not in row for row in result.per_image)
+    assert {"chamfer-L1", "mask-iou", "rec-mse"} <= set(result.columns)
+
+    # independently: the metric functions with the ground-truth pose in place of the prediction
+    batch = collate([data[i] for i in range(3)])  # the loop's first batch
+    with torch.no_grad():
+        pred = shapenet_model.predict(batch["image"])
+        hard = hard_render(shapenet_model, pred.verts, pred.texture, batch["R"], batch["T"], 32, supersample=2)
+    R, T = batch["R"], batch["T"]
+    direct = evaluate_meshes(
+        pred.verts, shapenet_model.template.faces, batch["points"], batch["normals"],
+        R_pred=R, T_pred=T, R_gt=R, T_gt=T, num_points=400, icp_iterations=2,
+    )  # fmt: skip
+    iou = mask_iou(hard.images[:, 3:], batch["mask"], reduction="none")
+    for i in range(3):
+        assert result.per_image[i]["chamfer-L1"] == pytest.approx(float(direct["chamfer-L1"][i]), rel=1e-5)
+        assert result.per_image[i]["mask-iou"] == pytest.approx(float(iou[i]), abs=1e-6)
+    assert torch.equal(result.samples[0].R, R[0])  # the report shows the pose it was scored at
+
+    # the predicted pose differs from the ground truth, and so do the scores
+    predicted = evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic")
+    assert predicted.per_image[0]["chamfer-L1"] != pytest.approx(result.per_image[0]["chamfer-L1"], rel=1e-3)
+
+
+class _NoPose(Dataset):
+    """Items of another dataset with their ground-truth pose marked missing."""
+
+    def __init__(self, data: Dataset) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, i: int) -> dict:
+        return {**self.data[i], "has_pose": torch.tensor(False)}
+
+
+def test_oracle_pose_validation(shapenet_model, synth_root) -> None:
+    for protocol in ("cub", "p3d", "images"):
+        with pytest.raises(ValueError, match="oracle_pose needs the 'shapenet' protocol"):
+            EvalOptions(protocol, oracle_pose=True)
+    data = _NoPose(build_eval_dataset("synthetic", str(synth_root), "train", img_size=32))
+    with pytest.raises(ValueError, match=r"ground-truth pose for every item; items \[0, 1\]"):
+        evaluate(shapenet_model, data, EvalOptions("shapenet", oracle_pose=True, **FAST))
+
+
+def test_candidate_usage(shapenet_model, synth_root) -> None:
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    result = evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic")
+    with torch.no_grad():
+        probs = shapenet_model.predict(collate([data[i] for i in range(len(data))])["image"]).poses.probs  # (K, B)
+    K = shapenet_model.n_candidates
+    assert probs.shape[0] == K == 6
+    assert [row["candidate"] for row in result.per_image] == probs.argmax(0).tolist()
+    assert set(result.candidate_shares) == {"chair", "mug"}
+    for row in result.table[:-1]:
+        chosen = [r["candidate"] for r in result.per_image if r["group"] == row["group"]]
+        shares = result.candidate_shares[row["group"]]
+        assert shares == pytest.approx([chosen.count(k) / len(chosen) for k in range(K)])
+        assert sum(shares) == pytest.approx(1.0)
+        # 2 images per group over 6 candidates: at least 4 candidates are never chosen
+        assert row["cand-share-min"] == 0.0 and row["cand-share-max"] == max(shares) >= 0.5
+    # the per-image candidate index is not a metric: never averaged into the table
+    assert "candidate" not in result.columns and all("candidate" not in row for row in result.table)
+    order = [result.columns.index(c) for c in ("rot-acc-30", "cand-share-min", "cand-share-max", "rec-mse")]
+    assert order == sorted(order)
+
+
+def test_candidate_shares_helper() -> None:
+    assert candidate_shares([0, 0, 2, 0], 4) == [0.75, 0.0, 0.25, 0.0]
+    assert candidate_shares([1], 2) == [0.0, 1.0]
+    with pytest.raises(ValueError, match="in \\[0, 3\\)"):
+        candidate_shares([0, 3], 3)
+    with pytest.raises(ValueError, match="no images"):
+        candidate_shares([], 3)
+    with pytest.raises(ValueError, match="at least one candidate"):
+        candidate_shares([0], 0)

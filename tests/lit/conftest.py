@@ -10,6 +10,7 @@ import pytest
 #: overrides that turn `+experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
     "+experiment=synthetic",
+    "dataset.categories=chair",
     "dataset.synthetic.n_models=5",
     "dataset.batch_size=4",
     "model.pose.n_azim=2",
@@ -24,6 +25,8 @@ TINY = [
     "trainer.log_every_n_steps=1",
     "callbacks.checkpoint.every_n_steps=4",
     "callbacks.images=null",
+    "callbacks.heldout=null",
+    "evaluate.enabled=false",
     "logger=none",
 ]
 

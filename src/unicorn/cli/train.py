@@ -91,6 +91,7 @@ def build(cfg: DictConfig) -> Run:
     from unicorn.config import model_config, validate
     from unicorn.lit import (
         AtomicCheckpointIO,
+        HeldOutEvaluation,
         ImageLogger,
         IterationDataModule,
         ProgressBar,
@@ -145,6 +146,8 @@ def build(cfg: DictConfig) -> Run:
     ]
     if cb.images is not None:
         callbacks.append(ImageLogger(**OmegaConf.to_container(cb.images, resolve=True)))
+    if cb.heldout is not None:
+        callbacks.append(HeldOutEvaluation(**OmegaConf.to_container(cb.heldout, resolve=True)))
     callbacks += [instantiate(node) for node in cb.extra.values()]
     loggers = [instantiate(node) for node in typed.logger.values() if node is not None]
 
@@ -173,7 +176,44 @@ def fit(run: Run) -> dict[str, float]:
     if not trainer.interrupted and typed.callbacks.checkpoint.save_last:
         # the periodic checkpoints may not fall on the last iteration
         trainer.save_checkpoint(run.checkpoint_dir / "last.ckpt", weights_only=False)
-    return {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
+        evaluate_run(run)
+    return metrics
+
+
+def evaluate_run(run: Run) -> Path:
+    """``unicorn-eval`` on the run's ``last.ckpt`` with the ``evaluate`` settings; returns the report folder.
+
+    The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go
+    to ``<run>/eval``.
+    """
+    from unicorn.cli import eval as eval_cli
+
+    e = run.config.evaluate
+    checkpoint = run.checkpoint_dir / "last.ckpt"
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"evaluate: no checkpoint at {checkpoint} (callbacks.checkpoint.save_last is off?)")
+    out = run.output_dir / "eval"
+    argv = [
+        str(checkpoint),
+        f"--split={e.split}",
+        f"--out={out}",
+        f"--num-points={e.num_points}",
+        f"--icp-iterations={e.icp_iterations}",
+        f"--batch-size={e.batch_size}",
+        f"--report-samples={e.report_samples}",
+        f"--turntable-frames={e.turntable_frames}",
+        "--quiet",
+    ]
+    if e.max_images is not None:
+        argv.append(f"--max-images={e.max_images}")
+    log.info("evaluating %s on the %s split", checkpoint, e.split)
+    status = eval_cli.run(eval_cli.build_parser().parse_args(argv))
+    if status != 0:
+        raise RuntimeError(f"evaluation of {checkpoint} failed with status {status}")
+    log.info("evaluation report: %s", out / "report.html")
+    return out
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

@@ -123,6 +123,21 @@ def _check_values(cfg: DictConfig) -> None:
     _check(cfg.callbacks.checkpoint.every_n_steps >= 1, "callbacks.checkpoint.every_n_steps must be >= 1")
     if cfg.callbacks.images is not None:
         _check(cfg.callbacks.images.every_n_steps >= 1, "callbacks.images.every_n_steps must be >= 1")
+    h = cfg.callbacks.heldout
+    if h is not None:
+        _check(h.split in ("val", "test"), f"callbacks.heldout.split must be val or test, got {h.split!r}")
+        _check(
+            min(h.every_n_steps, h.max_images, h.num_points, h.batch_size) >= 1 and h.icp_iterations >= 0,
+            "callbacks.heldout: every_n_steps, max_images, num_points and batch_size must be >= 1, "
+            "icp_iterations >= 0",
+        )
+    e = cfg.evaluate
+    _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")
+    _check(
+        (e.max_images is None or e.max_images >= 1) and min(e.num_points, e.batch_size) >= 1,
+        "evaluate: max_images must be null or >= 1, num_points and batch_size >= 1",
+    )
+    _check(min(e.icp_iterations, e.report_samples, e.turntable_frames) >= 0, "evaluate: counts must be >= 0")
     for group in ("logger",):
         for name, node in cfg[group].items():
             _check(

@@ -261,11 +261,39 @@ class ImagesConfig:
 
 
 @dataclass
+class HeldOutConfig:
+    """Held-out evaluation during training (:class:`unicorn.lit.HeldOutEvaluation`), rows in ``heldout.csv``."""
+
+    every_n_steps: int = 1000
+    split: str = "val"
+    max_images: int = 32
+    num_points: int = 5000
+    icp_iterations: int = 20
+    batch_size: int = 32
+    at_start: bool = True
+
+
+@dataclass
 class CallbacksConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     images: ImagesConfig | None = field(default_factory=ImagesConfig)
+    heldout: HeldOutConfig | None = None
     progress_bar_refresh_rate: int = 1
     extra: dict[str, Any] = field(default_factory=dict)  # name -> instantiable callback (``_target_``)
+
+
+@dataclass
+class EvaluateConfig:
+    """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s protocol), written to ``<run>/eval``."""
+
+    enabled: bool = False
+    split: str = "test"
+    max_images: int | None = None
+    num_points: int = 50_000
+    icp_iterations: int = 30
+    batch_size: int = 32
+    report_samples: int = 10
+    turntable_frames: int = 16
 
 
 @dataclass
@@ -289,4 +317,5 @@ class TrainConfig:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     logger: dict[str, Any] = field(default_factory=dict)  # name -> instantiable Lightning logger
     callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)

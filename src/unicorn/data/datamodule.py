@@ -73,7 +73,8 @@ def build_dataset(
         raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
     train = split == "train"
     if name in ("shapenet_nmr", "synthetic"):
-        views = "all" if train else "random"
+        # every view for training, one fixed random view per model for evaluation, unless told
+        views = options.pop("views", "all" if train else "random")
         return ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **options)
     if name == "cub_200":
         return CUB200(root, split, img_size=img_size, on_error=on_error, **options)

@@ -17,6 +17,17 @@ Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.m
 
 Every protocol also reports ``rec-mse``, the mean squared error of the model's own rendering (with its predicted
 background) against the input, the quantity the model was trained to lower.
+
+Two diagnostics complete them:
+
+- pose-candidate usage: per image the index of the selected candidate (``candidate`` in the per-image rows) and,
+  per group, ``cand-share-min`` / ``cand-share-max``, the smallest and largest fraction of the group's images
+  that chose one candidate (a candidate never chosen counts as 0). A collapsed pose head (every image on one or
+  two candidates) shows as ``cand-share-min`` 0 and a large ``cand-share-max``; a balanced one as both near
+  ``1 / K``. Only for models with K > 1 candidates.
+- ``EvalOptions(oracle_pose=True)`` (``"shapenet"`` only): the reconstructions, the hard masks and the GT-pose
+  alignment of the meshes use the ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and
+  ``mask-iou`` measure the shape alone; the pose errors and the candidate usage are then left out.
 """
 
 from __future__ import annotations
@@ -25,7 +36,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -39,12 +50,16 @@ from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import evaluate_meshes, keypoint_transfer_pck, mask_iou, pose_errors
 from unicorn.model import Unicorn
 
+if TYPE_CHECKING:  # baselines imports this module at run time
+    from unicorn.evaluation.baselines import FixedShapeModel
+
 __all__ = [
     "PROTOCOLS",
     "EvalOptions",
     "EvaluationResult",
     "Sample",
     "build_eval_dataset",
+    "candidate_shares",
     "collate",
     "evaluate",
     "protocol_for",
@@ -77,8 +92,13 @@ METRIC_ORDER = {
     "rot-acc-30": "higher",
     "azim-err-mean": "lower",
     "azim-err-median": "lower",
+    "cand-share-min": "higher",
+    "cand-share-max": "lower",
     "rec-mse": "lower",
 }
+
+#: per-image row entries that are not metrics (never averaged into the table)
+ROW_INFO = ("index", "group", "candidate")
 
 
 def protocol_for(dataset_name: str) -> str:
@@ -107,6 +127,10 @@ class EvalOptions:
         nn_workers: threads of the nearest-neighbour queries.
         seed: seed of the point sampling.
         progress: show a progress bar.
+        oracle_pose: ``"shapenet"`` only: render the reconstructions and masks, and align the meshes, with the
+            ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and ``mask-iou`` score the
+            shape alone; the pose errors (trivially 0) and the candidate usage are left out. Every item must
+            have a ground-truth pose.
     """
 
     protocol: str = "shapenet"
@@ -122,6 +146,7 @@ class EvalOptions:
     nn_workers: int = 1
     seed: int = 0
     progress: bool = True
+    oracle_pose: bool = False
 
     def __post_init__(self) -> None:
         if self.protocol not in set(PROTOCOLS.values()):
@@ -131,6 +156,9 @@ class EvalOptions:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.icp_iterations < 0 or self.report_samples < 0:
             raise ValueError("icp_iterations and report_samples must be >= 0")
+        if self.oracle_pose and self.protocol != "shapenet":
+            # the other protocols have no ground-truth pose to substitute
+            raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")
 
 
 @dataclass
@@ -144,8 +172,10 @@ class Sample:
         reconstruction: (3, S, S) the model's rendering over its predicted background.
         alpha: (1, M, M) hard-rendered predicted silhouette (M = ground-truth mask size, or S).
         mask: (1, M, M) ground-truth mask, or None.
-        verts: (V, 3) predicted object-frame mesh; texture: (3, Ht, Wt); R: (3, 3); T: (3,) predicted pose.
-        scores: this image's per-image metrics.
+        verts: (V, 3) predicted object-frame mesh; texture: (3, Ht, Wt).
+        R: (3, 3); T: (3,) the pose it was rendered with: the predicted one, or the ground truth with
+            ``oracle_pose``.
+        scores: this image's per-image metrics (and ``candidate``, the selected pose candidate, when recorded).
     """
 
     index: int
@@ -167,11 +197,14 @@ class EvaluationResult:
 
     Attributes:
         protocol: the protocol used.
-        per_image: one dict per image: ``index``, ``group`` and its metrics.
+        per_image: one dict per image: ``index``, ``group``, ``candidate`` (int index of the selected pose
+            candidate, when recorded, see :func:`evaluate`) and its metrics.
         table: one row per group then a ``mean`` row (mean over groups): ``group``, ``n-images`` and metrics.
         columns: the metric columns of ``table``, in display order.
         samples: images kept for the report.
         seconds: wall-clock time of the evaluation.
+        candidate_shares: group -> the K fractions of its images that selected each pose candidate (summing to
+            1); empty when not recorded (one candidate, or ``oracle_pose``).
     """
 
     protocol: str
@@ -180,6 +213,7 @@ class EvaluationResult:
     columns: list[str]
     samples: list[Sample]
     seconds: float
+    candidate_shares: dict[str, list[float]] = field(default_factory=dict)
 
     @property
     def mean(self) -> dict[str, Any]:
@@ -280,10 +314,38 @@ class _Accumulator:
         self.keypoints: dict[str, list[tuple[torch.Tensor, ...]]] = {}
         # side of the keypoint frame per group (the ground-truth mask side, 256 for CUB's evaluation items)
         self.keypoint_frames: dict[str, int] = {}
+        # selected pose-candidate index per image, grouped, and the number K of candidates (0: not recorded)
+        self.candidates: dict[str, list[int]] = {}
+        self.n_candidates = 0
+
+
+def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
+    """Fraction of the images that selected each of the K pose candidates.
+
+    Args:
+        chosen: the selected candidate index of each image, in [0, K).
+        n_candidates: K.
+
+    Returns:
+        K fractions summing to 1 (a candidate never chosen gets 0).
+
+    Example:
+        >>> candidate_shares([0, 0, 2, 0], 4)
+        [0.75, 0.0, 0.25, 0.0]
+    """
+    if n_candidates < 1:
+        raise ValueError(f"need at least one candidate, got n_candidates={n_candidates}")
+    if len(chosen) == 0:
+        raise ValueError("no images: candidate shares are undefined")
+    idx = torch.as_tensor(list(chosen), dtype=torch.long)
+    if int(idx.min()) < 0 or int(idx.max()) >= n_candidates:
+        raise ValueError(f"candidate indices must be in [0, {n_candidates}), got {sorted(set(idx.tolist()))}")
+    counts = torch.bincount(idx, minlength=n_candidates).double()
+    return (counts / counts.sum()).tolist()
 
 
 def _mesh_scores(
-    model: Unicorn,
+    model: Unicorn | FixedShapeModel,
     pred_verts: torch.Tensor,
     batch: Mapping[str, Any],
     device: torch.device,
@@ -324,9 +386,19 @@ def _mesh_scores(
     return {k: torch.cat([p[k] for p in per]) for k in per[0]}
 
 
+def _require_poses(batch: Mapping[str, Any]) -> None:
+    """Raise unless every item of the batch has a ground-truth pose (what ``oracle_pose`` substitutes)."""
+    has_pose = batch.get("has_pose")
+    if not isinstance(has_pose, torch.Tensor) or "R" not in batch or "T" not in batch:
+        raise ValueError("oracle_pose needs ground-truth poses, but the dataset's items have no R / T / has_pose")
+    if not bool(has_pose.all()):
+        missing = [int(i) for i, ok in zip(batch["index"], has_pose.tolist()) if not ok]
+        raise ValueError(f"oracle_pose needs a ground-truth pose for every item; items {missing} have none")
+
+
 @torch.no_grad()
 def evaluate(
-    model: Unicorn,
+    model: Unicorn | FixedShapeModel,
     dataset: Dataset,
     options: EvalOptions,
     dataset_name: str = "dataset",
@@ -334,8 +406,13 @@ def evaluate(
 ) -> EvaluationResult:
     """Run the evaluation protocol of ``options.protocol`` over ``dataset``.
 
+    Per image, the index of the selected pose candidate (argmax of ``pred.poses.probs``, (K, B)) is recorded as
+    ``candidate`` and summarised per group as ``cand-share-min`` / ``cand-share-max`` and
+    :attr:`EvaluationResult.candidate_shares`, when the model has K > 1 candidates and ``oracle_pose`` is off.
+
     Args:
-        model: the model (moved to ``device`` and put in eval mode).
+        model: the model (moved to ``device`` and put in eval mode): a :class:`~unicorn.model.Unicorn`, or a
+            :class:`~unicorn.evaluation.baselines.FixedShapeModel` baseline.
         dataset: test items (``image``, ``mask``/``has_mask``, ``R``/``T``, ``points``/``normals``, ``keypoints``...
             as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it.
         options: :class:`EvalOptions`.
@@ -344,6 +421,9 @@ def evaluate(
 
     Returns:
         :class:`EvaluationResult`.
+
+    Raises:
+        ValueError: an empty dataset, or ``oracle_pose`` with an item without a ground-truth pose.
     """
     start = time.perf_counter()
     device = torch.device(device)
@@ -356,32 +436,48 @@ def evaluate(
         dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
     )
     acc = _Accumulator()
+    oracle = options.oracle_pose
+    # with the oracle pose every image is rendered at its ground-truth pose: no candidate is selected
+    record_candidates = model.n_candidates > 1 and not oracle
+    if record_candidates:
+        acc.n_candidates = model.n_candidates
     samples: list[Sample] = []
     bar = tqdm(total=len(dataset), desc=f"eval {dataset_name}", unit="img", disable=not options.progress)
     for batch in loader:
         images = _resize_images(batch["image"].to(device), size)
         B = images.shape[0]
+        if oracle:
+            _require_poses(batch)
         pred = model.predict(images, average_texture=options.average_texture)
-        rec, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+        # the pose everything is rendered and aligned with: the prediction's, or the ground truth's (oracle)
+        if oracle:
+            R, T = batch["R"].to(device=device, dtype=pred.R.dtype), batch["T"].to(device=device, dtype=pred.T.dtype)
+        else:
+            R, T = pred.R, pred.T
+        rec, _ = model.render(pred.verts, pred.texture, R, T, pred.background)
         scores: dict[str, torch.Tensor] = {"rec-mse": (rec - images).square().flatten(1).mean(1)}
 
         has_mask = "mask" in batch and isinstance(batch.get("has_mask"), torch.Tensor) and bool(batch["has_mask"].all())
         mask_size = batch["mask"].shape[-1] if has_mask else size
-        hard = hard_render(model, pred.verts, pred.texture, pred.R, pred.T, mask_size, options.mask_supersample)
+        hard = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.mask_supersample)
         alpha = hard.images[:, 3:]
         if has_mask and protocol != "images":
             scores["mask-iou"] = mask_iou(alpha, batch["mask"].to(device), reduction="none")
 
         groups = [group_of(batch, i) for i in range(B)]
         if protocol in ("shapenet", "p3d") and "points" in batch:
-            mesh = _mesh_scores(model, pred.verts, batch, device, options, protocol == "shapenet", pred.R, pred.T)
+            mesh = _mesh_scores(model, pred.verts, batch, device, options, protocol == "shapenet", R, T)
             if protocol == "p3d":
                 # no ground-truth pose: only the ICP-registered numbers are meaningful
                 mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
             scores.update(mesh)
-        if protocol == "shapenet" and bool(batch["has_pose"].all()):
+        if protocol == "shapenet" and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
                 acc.poses.setdefault(g, []).append((pred.R[i].cpu(), batch["R"][i].cpu()))
+        chosen = pred.poses.probs.argmax(0).tolist() if record_candidates else None  # (B,) selected candidates
+        if chosen is not None:
+            for i, g in enumerate(groups):
+                acc.candidates.setdefault(g, []).append(int(chosen[i]))
         if protocol == "cub" and isinstance(batch.get("keypoints"), torch.Tensor):
             visible = vertex_visibility(hard.face_ids, faces, pred.verts.shape[1])
             for i, g in enumerate(groups):
@@ -392,6 +488,8 @@ def evaluate(
 
         for i in range(B):
             row: dict[str, Any] = {"index": int(batch["index"][i]), "group": groups[i]}
+            if chosen is not None:
+                row["candidate"] = int(chosen[i])
             row.update({k: float(v[i]) for k, v in scores.items()})
             acc.rows.append(row)
             if len(samples) < options.report_samples:
@@ -405,8 +503,8 @@ def evaluate(
                         mask=batch["mask"][i].cpu() if has_mask else None,
                         verts=pred.verts[i].cpu(),
                         texture=pred.texture[i].cpu(),
-                        R=pred.R[i].cpu(),
-                        T=pred.T[i].cpu(),
+                        R=R[i].cpu(),
+                        T=T[i].cpu(),
                         scores={k: v for k, v in row.items() if k not in ("index", "group")},
                     )
                 )
@@ -415,12 +513,18 @@ def evaluate(
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
     table, columns = _table(acc, model, options)
-    return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start)
+    shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
+    return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 
-def _set_metrics(acc: _Accumulator, group: str, model: Unicorn, options: EvalOptions) -> dict[str, float]:
-    """Metrics over all images of a group: pose errors (ShapeNet) and PCK (CUB)."""
+def _set_metrics(
+    acc: _Accumulator, group: str, model: Unicorn | FixedShapeModel, options: EvalOptions
+) -> dict[str, float]:
+    """Metrics over all images of a group: pose errors (ShapeNet), PCK (CUB) and the pose-candidate usage."""
     out: dict[str, float] = {}
+    if group in acc.candidates:
+        shares = candidate_shares(acc.candidates[group], acc.n_candidates)
+        out["cand-share-min"], out["cand-share-max"] = min(shares), max(shares)
     if group in acc.poses:
         R_pred = torch.stack([p[0] for p in acc.poses[group]])
         R_gt = torch.stack([p[1] for p in acc.poses[group]])
@@ -443,14 +547,16 @@ def _set_metrics(acc: _Accumulator, group: str, model: Unicorn, options: EvalOpt
     return out
 
 
-def _table(acc: _Accumulator, model: Unicorn, options: EvalOptions) -> tuple[list[dict[str, Any]], list[str]]:
+def _table(
+    acc: _Accumulator, model: Unicorn | FixedShapeModel, options: EvalOptions
+) -> tuple[list[dict[str, Any]], list[str]]:
     """Per-group means of the per-image metrics plus the group's set metrics; then the mean over groups."""
     groups = list(dict.fromkeys(row["group"] for row in acc.rows))
     rows: list[dict[str, Any]] = []
     for g in groups:
         members = [r for r in acc.rows if r["group"] == g]
         row: dict[str, Any] = {"group": g, "n-images": len(members)}
-        keys = [k for k in members[0] if k not in ("index", "group")]
+        keys = [k for k in members[0] if k not in ROW_INFO]  # the candidate index is not a metric to average
         for k in keys:
             values = [r[k] for r in members if k in r and not math.isnan(r[k])]
             row[k] = float(np.mean(values)) if values else float("nan")

@@ -5,6 +5,7 @@
 - :class:`StageCallback`, :class:`ImageLogger` (``callbacks``): progressive conditioning, stage-1 curriculum
   and texture averaging; image logging.
 - :class:`AtomicCheckpointIO` (``checkpoint``): complete-or-absent checkpoint files.
+- :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`IterationDataModule` (``data``): an endless, resumable, rank-sharded stream of training batches.
 
 Distributed training (DDP) keeps one neighbour memory bank per rank, as the reference does: each process
@@ -17,11 +18,13 @@ rank ``r mod saved_world_size``.
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
 from unicorn.lit.checkpoint import AtomicCheckpointIO, atomic_torch_save
 from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
+from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
 
 __all__ = [
     "OPTIM_DEFAULTS",
     "AtomicCheckpointIO",
+    "HeldOutEvaluation",
     "ImageLogger",
     "IterationDataModule",
     "NonFiniteLossError",

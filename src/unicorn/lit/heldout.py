@@ -1,0 +1,152 @@
+"""Held-out evaluation during training: the metrics of :mod:`unicorn.evaluation` against the iteration.
+
+:class:`HeldOutEvaluation` scores the model every N iterations (and once before the first one) on a fixed set
+of held-out images with the dataset's evaluation protocol, at a cost small enough to run inside training
+(few surface points, few ICP iterations). The numbers go to every logger under ``heldout/<metric>`` and, one
+row per evaluation, to ``<run>/heldout.csv``: the learning curves of shape, silhouette and pose quality, not
+only of the training loss. Nothing is selected on them: they are for watching and plotting.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.utilities import rank_zero_only
+
+__all__ = ["HeldOutEvaluation"]
+
+log = logging.getLogger(__name__)
+
+
+class HeldOutEvaluation(L.Callback):
+    """Evaluate on held-out images every ``every_n_steps`` iterations (see the module docstring).
+
+    The images are the first ``max_images`` items (spread over the split) of
+    :func:`~unicorn.evaluation.build_eval_dataset` for the training data's dataset and ``split``; the model is
+    put in eval mode, and the global random state is left untouched, so a run with this callback trains
+    exactly as one without it.
+
+    Args:
+        every_n_steps: evaluation period in iterations.
+        split: ``"val"`` or ``"test"``.
+        max_images: held-out images scored each time.
+        num_points: surface points sampled per mesh for the Chamfer distances.
+        icp_iterations: ICP iterations of the ``-ICP`` metrics (0: no ICP metrics).
+        batch_size: images per forward pass.
+        at_start: also evaluate before the first iteration (the untrained model, the start of the curves).
+        filename: the CSV file, relative to the run directory.
+    """
+
+    def __init__(
+        self,
+        every_n_steps: int = 1000,
+        split: str = "val",
+        max_images: int = 32,
+        num_points: int = 5000,
+        icp_iterations: int = 20,
+        batch_size: int = 32,
+        at_start: bool = True,
+        filename: str = "heldout.csv",
+    ) -> None:
+        if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
+            raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
+        if split not in ("val", "test"):
+            raise ValueError(f"split must be 'val' or 'test', got {split!r}")
+        if icp_iterations < 0:
+            raise ValueError(f"icp_iterations must be >= 0, got {icp_iterations}")
+        self.every_n_steps, self.split, self.max_images = int(every_n_steps), split, int(max_images)
+        self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
+        self.at_start, self.filename = bool(at_start), filename
+        self._dataset: Any = None
+        self._name = "dataset"
+        self.history: list[dict[str, float]] = []
+
+    # ------------------------------------------------------------------ data
+    def _build_dataset(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        from unicorn.evaluation import build_eval_dataset
+
+        data = trainer.datamodule
+        data = getattr(data, "data", data)  # IterationDataModule wraps the dataset module
+        if data is None or not hasattr(data, "name"):
+            raise RuntimeError("HeldOutEvaluation needs the run's UnicornDataModule (trainer.datamodule)")
+        root = data.dataset_root() if hasattr(data, "dataset_root") else data.root
+        self._name = data.name
+        self._dataset = build_eval_dataset(
+            data.name,
+            str(root),
+            self.split,
+            img_size=pl_module.model.config["image_size"],
+            categories=data.categories,
+            max_images=self.max_images,
+        )
+
+    # ------------------------------------------------------------------ hooks
+    @rank_zero_only
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._build_dataset(trainer, pl_module)
+        if self.at_start and trainer.global_step == 0:
+            self.evaluate_now(trainer, pl_module)
+
+    @rank_zero_only
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        if trainer.global_step % self.every_n_steps == 0:
+            self.evaluate_now(trainer, pl_module)
+
+    def evaluate_now(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
+        """Score the current model, log and append the row; returns ``{"step": ..., metric: value}``."""
+        from unicorn.evaluation import EvalOptions, evaluate, protocol_for
+
+        if self._dataset is None:
+            self._build_dataset(trainer, pl_module)
+        options = EvalOptions(
+            protocol=protocol_for(self._name),
+            batch_size=self.batch_size,
+            num_points=self.num_points,
+            icp_iterations=self.icp_iterations,
+            average_texture=float(getattr(pl_module, "texture_average_p", 0.0)) >= 1,
+            report_samples=0,
+            progress=False,
+        )
+        step = int(trainer.global_step)
+        was_training = pl_module.training
+        devices = [pl_module.device] if pl_module.device.type == "cuda" else []
+        # the evaluation draws points and ICP noise: keep the training's random streams where they were
+        with torch.random.fork_rng(devices=devices):
+            try:
+                result = evaluate(pl_module.model, self._dataset, options, self._name, device=pl_module.device)
+            finally:
+                pl_module.train(was_training)
+        row = {"step": float(step), **{k: float(v) for k, v in result.mean.items() if k in result.columns}}
+        self.history.append(row)
+        metrics = {f"heldout/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
+        for logger in trainer.loggers:
+            logger.log_metrics(metrics, step=step)
+        self._append_csv(Path(trainer.default_root_dir) / self.filename, row)
+        shown = ", ".join(f"{k} {v:.4g}" for k, v in row.items() if k != "step")
+        log.info("held-out %s (%d images) at iteration %d: %s", self.split, len(self._dataset), step, shown)
+        return row
+
+    @staticmethod
+    def _append_csv(path: Path, row: dict[str, float]) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rows: list[dict[str, Any]] = []
+        if path.exists():
+            with path.open(newline="") as f:
+                # a resumed run re-evaluates its restart step: keep one row per step
+                rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
+        rows.append(row)
+        columns = list(dict.fromkeys(k for r in rows for k in r))
+        tmp = path.with_name(path.name + ".tmp")
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+        tmp.replace(path)

@@ -1,0 +1,180 @@
+"""Reference baselines: the template at the anchor pose, the fitted mean training shape, the fixed-shape wrapper."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import trimesh
+
+from unicorn.evaluation import (
+    EvalOptions,
+    FixedShapeModel,
+    build_eval_dataset,
+    evaluate,
+    fit_mean_shape,
+    mean_shape_baseline,
+    template_baseline,
+    training_point_clouds,
+)
+from unicorn.geometry.mesh import ellipsoid
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.metrics import chamfer_l1, sample_points_from_meshes
+
+from .helpers import IMAGE_SIZE, tiny_model
+
+FAST = dict(batch_size=3, num_points=400, icp_iterations=2, progress=False)
+# a 162-vertex template, UNICORN's ShapeNet ellipsoid at level 2
+TEMPLATE_VERTS, TEMPLATE_FACES = ellipsoid(2, (1.0, 0.7, 0.7), 0.4)
+
+
+def _surface_points(mesh: trimesh.Trimesh, n: int, seed: int) -> torch.Tensor:
+    verts = torch.tensor(mesh.vertices, dtype=torch.float32)
+    return sample_points_from_meshes(verts, torch.tensor(mesh.faces), n, seed=seed)[0]
+
+
+def _mesh_points(verts: torch.Tensor, n: int = 10_000) -> torch.Tensor:
+    return sample_points_from_meshes(verts, TEMPLATE_FACES, n, seed=5)[0]
+
+
+def _chamfer(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(chamfer_l1(a[None], b[None], factor=1.0)[0])
+
+
+@pytest.mark.parametrize(("family", "elevation"), [("shapenet", 30.0), ("real", 10.0)])
+def test_template_baseline_is_the_template_at_the_anchor_pose(family, elevation, shapenet_model, real_model) -> None:
+    model = shapenet_model if family == "shapenet" else real_model
+    baseline = template_baseline(model)
+    images = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE)
+    with torch.no_grad():
+        pred = baseline.predict(images)
+        own = model.predict(images)
+    # candidate 0: azimuth 0 (a full turn starts at 0), elevation at the centre of its range ((30, 30) for
+    # ShapeNet, (-10, 30) otherwise), roll 0; the object 2.732 in front of the camera
+    R = azim_elev_roll_to_rotation(torch.tensor(0.0), torch.tensor(elevation), torch.tensor(0.0))
+    torch.testing.assert_close(pred.R, R.expand(2, 3, 3))
+    torch.testing.assert_close(pred.T, torch.tensor([[0.0, 0.0, 2.732]] * 2))
+    template = model.template.verts.expand(2, -1, -1)
+    assert torch.equal(pred.verts, template) and torch.equal(pred.canonical_verts, template)
+    assert torch.equal(pred.scale, torch.ones(2, 3))
+    # every image selects candidate 0, whose pose is the one returned
+    K = model.n_candidates
+    assert pred.poses.probs.shape == (K, 2) and pred.poses.best.tolist() == [0, 0]
+    assert torch.equal(pred.poses.probs.sum(0), torch.ones(2))
+    torch.testing.assert_close(pred.poses.select()[0], pred.R)
+    # texture and background are still the wrapped model's
+    assert torch.equal(pred.texture, own.texture)
+    assert (pred.background is None) == (own.background is None)
+
+
+def test_fixed_shape_model_with_predicted_pose(shapenet_model) -> None:
+    verts = shapenet_model.template.verts * 1.5
+    fixed = FixedShapeModel(shapenet_model, verts, pose="predicted")
+    images = torch.rand(3, 3, IMAGE_SIZE, IMAGE_SIZE)
+    with torch.no_grad():
+        pred, own = fixed.predict(images), shapenet_model.predict(images)
+        rec, out = fixed(images)
+    assert torch.equal(pred.R, own.R) and torch.equal(pred.T, own.T)
+    assert torch.equal(pred.poses.probs, own.poses.probs)
+    assert torch.equal(pred.verts, verts.expand(3, -1, -1)) and rec.shape == (3, 3, IMAGE_SIZE, IMAGE_SIZE)
+    assert torch.equal(out.verts, pred.verts)
+    # what evaluate() and the renders use, delegated to the wrapped (registered) model
+    assert fixed.config is shapenet_model.config and fixed.template is shapenet_model.template
+    assert fixed.renderer is shapenet_model.renderer and fixed.n_candidates == shapenet_model.n_candidates
+    assert "fixed_verts" in fixed.state_dict() and fixed.eval() is fixed and not shapenet_model.training
+    # .to() moves the fixed mesh with the wrapped model (a fresh model: the fixture is shared)
+    fresh = FixedShapeModel(tiny_model("shapenet"), verts).to(torch.float64)
+    assert fresh.fixed_verts.dtype == fresh.template.verts.dtype == torch.float64
+
+
+def test_template_baseline_selects_one_candidate(shapenet_model, synth_root) -> None:
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=IMAGE_SIZE)
+    result = evaluate(template_baseline(shapenet_model), data, EvalOptions("shapenet", **FAST), "synthetic")
+    K = shapenet_model.n_candidates
+    assert result.candidate_shares == {g: [1.0] + [0.0] * (K - 1) for g in ("chair", "mug")}
+    assert all(row["candidate"] == 0 for row in result.per_image)
+    for row in result.table:
+        assert row["cand-share-min"] == 0.0 and row["cand-share-max"] == 1.0
+    assert all(0 <= row["mask-iou"] <= 1 for row in result.per_image)
+
+
+def test_fit_mean_shape_recovers_a_single_shape() -> None:
+    sphere = trimesh.creation.icosphere(5, radius=0.3)
+    cloud = _surface_points(sphere, 1000, seed=0)
+    fitted = fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud] * 3, iterations=150, num_points=1000)
+    assert fitted.shape == TEMPLATE_VERTS.shape and fitted.dtype == TEMPLATE_VERTS.dtype
+    # dense clouds on both sides, so that the sampling's own Chamfer floor stays well below the threshold
+    dense = _surface_points(sphere, 30_000, seed=1)
+    before, after = (_chamfer(_mesh_points(v, 30_000), dense) for v in (TEMPLATE_VERTS, fitted))
+    assert after < 0.2 * before
+    # the surface lies on the sphere (up to the faceting of 162 vertices): exact distances | |p| - r |
+    off_before, off_after = ((_mesh_points(v).norm(dim=1) - 0.3).abs() for v in (TEMPLATE_VERTS, fitted))
+    assert off_after.mean() < 0.15 * off_before.mean() and (fitted.norm(dim=1) - 0.3).abs().max() < 0.03
+
+
+def test_fit_mean_shape_beats_every_single_shape() -> None:
+    # two boxes, long along X and along Z: no single one of them is the best compromise
+    boxes = [trimesh.creation.box(extents=e) for e in ((0.8, 0.3, 0.3), (0.3, 0.3, 0.8))]
+    clouds = [_surface_points(b, 1000, seed=i) for i, b in enumerate(boxes)]
+    dense = [_surface_points(b, 10_000, seed=10 + i) for i, b in enumerate(boxes)]
+
+    def objective(points: torch.Tensor) -> float:  # the fitted quantity: mean Chamfer-L1 over the shapes
+        return sum(_chamfer(points, d) for d in dense) / len(dense)
+
+    options = dict(iterations=150, num_points=1000)
+    mean = fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, torch.stack(clouds), **options)  # (M, N, 3) input
+    singles = [fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [c], **options) for c in clouds]
+    best_single = min(objective(_mesh_points(v)) for v in singles)  # each box fitted alone, same topology
+    exact_single = min(objective(_surface_points(b, 10_000, seed=20)) for b in boxes)  # each box itself
+    assert objective(_mesh_points(mean)) < 0.9 * min(best_single, exact_single)
+    # and no iteration leaves the template as it was
+    assert torch.equal(fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, clouds, iterations=0), TEMPLATE_VERTS)
+
+
+def test_training_point_clouds_and_mean_shape_baseline(shapenet_model, synth_root) -> None:
+    clouds = training_point_clouds(synth_root)
+    assert len(clouds) == 2 and all(c.shape == (600, 3) for c in clouds)  # 2 categories x 1 train model
+    train = build_eval_dataset("synthetic", str(synth_root), "train", img_size=IMAGE_SIZE)
+    assert len(train) == 4  # 2 models x 2 views
+    # one cloud per model, not per view, in the frame of the evaluation items' points (item k shows model k % 2)
+    assert torch.equal(clouds[0], train[2]["points"]) and torch.equal(clouds[1], train[3]["points"])
+    assert torch.equal(training_point_clouds(synth_root, "mug")[0], clouds[1])
+    assert len(training_point_clouds(synth_root, max_models=1)) == 1
+    assert training_point_clouds(synth_root, num_points=100)[0].shape == (100, 3)
+
+    baseline = mean_shape_baseline(shapenet_model, clouds, iterations=100, num_points=300)
+    assert isinstance(baseline, FixedShapeModel) and baseline.pose_mode == "predicted"
+    options = EvalOptions("shapenet", oracle_pose=True, **FAST)
+    mean = evaluate(baseline, train, options, "synthetic").mean
+    template = evaluate(FixedShapeModel(shapenet_model, shapenet_model.template.verts), train, options).mean
+    # on the shapes it was fitted to, at the ground-truth pose, the mean shape beats the template
+    assert mean["chamfer-L1"] < template["chamfer-L1"] and mean["mask-iou"] > template["mask-iou"]
+
+
+def test_bad_inputs(shapenet_model) -> None:
+    V = shapenet_model.template.num_verts
+    with pytest.raises(ValueError, match=rf"verts must be a \({V}, 3\) tensor"):
+        FixedShapeModel(shapenet_model, torch.zeros(V + 1, 3))
+    with pytest.raises(ValueError, match="pose must be one of"):
+        FixedShapeModel(shapenet_model, shapenet_model.template.verts, pose="random")
+    with pytest.raises(ValueError, match="finite"):
+        FixedShapeModel(shapenet_model, torch.full((V, 3), float("nan")))
+    with pytest.raises(TypeError, match="Unicorn"):
+        FixedShapeModel(torch.nn.Linear(1, 1), torch.zeros(V, 3))  # type: ignore[arg-type]
+
+    cloud = torch.rand(50, 3)
+    with pytest.raises(ValueError, match="point_clouds is empty"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [])
+    with pytest.raises(ValueError, match=r"point cloud 1 must have shape \(N, 3\)"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud, torch.rand(50, 2)])
+    with pytest.raises(ValueError, match=r"point cloud 0 must have shape \(N, 3\) with N >= 1"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [torch.zeros(0, 3)])
+    with pytest.raises(ValueError, match=r"\(M, N, 3\)"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, torch.rand(10, 3))
+    with pytest.raises(ValueError, match=r"template_verts must have shape \(V, 3\)"):
+        fit_mean_shape(TEMPLATE_VERTS[:, :2], TEMPLATE_FACES, [cloud])
+    with pytest.raises(ValueError, match="face indices must be in"):
+        fit_mean_shape(TEMPLATE_VERTS[:10], TEMPLATE_FACES, [cloud])
+    with pytest.raises(ValueError, match="iterations >= 0"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], iterations=-1)
+    with pytest.raises(ValueError, match="lr > 0"):
+        fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], lr=0.0)

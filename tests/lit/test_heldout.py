@@ -1,0 +1,92 @@
+"""Held-out evaluation during training and the evaluation after it (``callbacks.heldout``, ``evaluate``)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from tests.lit.conftest import build_run, compose_config
+from unicorn.cli.train import fit
+from unicorn.config import ConfigError, validate
+from unicorn.lit import HeldOutEvaluation
+
+HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2}"]
+
+
+def _weights(run) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in run.module.model.state_dict().items()}
+
+
+def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
+    plain = build_run(tmp_path / "plain")
+    fit(plain)
+    watched = build_run(tmp_path / "watched", *HELDOUT)
+    fit(watched)
+    # the callback evaluates in eval mode under a forked random state: training is bit-for-bit the same
+    a, b = _weights(plain), _weights(watched)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+    rows = list(csv.DictReader(open(watched.output_dir / "heldout.csv")))
+    assert [float(r["step"]) for r in rows] == [0.0, 4.0, 8.0]
+    for r in rows:
+        assert 0.0 <= float(r["mask-iou"]) <= 1.0
+        assert float(r["chamfer-L1"]) > 0 and float(r["chamfer-L1-ICP"]) > 0
+    callback = next(c for c in watched.trainer.callbacks if isinstance(c, HeldOutEvaluation))
+    assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
+    # the untrained model and the trained one are different models: the curve moves
+    assert rows[0]["rec-mse"] != rows[-1]["rec-mse"]
+
+
+def test_csv_keeps_one_row_per_step(tmp_path):
+    path = tmp_path / "heldout.csv"
+    HeldOutEvaluation._append_csv(path, {"step": 0.0, "mask-iou": 0.1})
+    HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.2})
+    HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.3, "rot-err-median": 9.0})  # a resumed run
+    rows = list(csv.DictReader(open(path)))
+    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0.0", "0.1"), ("4.0", "0.3")]
+    assert rows[1]["rot-err-median"] == "9.0" and rows[0]["rot-err-median"] == ""
+
+
+def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
+    run = build_run(
+        tmp_path,
+        "evaluate.enabled=true",
+        "evaluate.max_images=2",
+        "evaluate.num_points=300",
+        "evaluate.icp_iterations=2",
+        "evaluate.report_samples=2",
+        "evaluate.turntable_frames=0",
+    )
+    fit(run)
+    out = run.output_dir / "eval"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (out / "report.png").is_file() and (out / "report.html").is_file()
+    text = json.dumps(metrics)
+    for key in ("chamfer-L1-ICP", "mask-iou", "rot-err-median"):
+        assert key in text
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("callbacks.heldout={split:train}", "callbacks.heldout.split"),
+        ("callbacks.heldout={every_n_steps:0}", "callbacks.heldout"),
+        ("evaluate.split=everything", "evaluate.split"),
+        ("evaluate.max_images=0", "evaluate: max_images"),
+    ],
+)
+def test_bad_settings_are_named(tmp_path, override, message):
+    from tests.lit.conftest import TINY
+
+    with pytest.raises(ConfigError, match=message):
+        validate(compose_config([*TINY, f"paths.output_dir={tmp_path}", override]))
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="split"):
+        HeldOutEvaluation(split="train")
+    with pytest.raises(ValueError, match="positive"):
+        HeldOutEvaluation(every_n_steps=0)
