@@ -25,7 +25,7 @@ Writes ``results.md`` / ``results.json`` (the table, the bars, the machine, the 
 metrics against iterations, from each run's ``heldout.csv``) and ``pictures/report.png`` (input,
 reconstruction, mask, the mesh from three viewpoints, for ten held-out images) into ``--out``.
 
-    python benchmarks/quality.py                      # about 45 minutes on a 2-core CPU
+    python benchmarks/quality.py                      # about 50 minutes on a quiet 2-core CPU
     python benchmarks/quality.py --runs full --steps 600 --out /tmp/q   # a quick look
 """
 
