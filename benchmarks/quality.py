@@ -32,6 +32,7 @@ reconstruction, mask, the mesh from three viewpoints, for ten held-out images) i
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -132,6 +133,7 @@ def load_run(run_dir: Path, device: str) -> tuple[Any, Path]:
     return model, root.dataset_root()
 
 
+@functools.cache  # the baselines and the full model share the test set
 def test_sets(root: Path, img_size: int) -> tuple[Any, Any]:
     """(one fixed view per test model, every view of every test model), both with ground-truth points."""
     from unicorn.data import build_dataset

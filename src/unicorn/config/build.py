@@ -128,8 +128,7 @@ def _check_values(cfg: DictConfig) -> None:
         _check(h.split in ("val", "test"), f"callbacks.heldout.split must be val or test, got {h.split!r}")
         _check(
             min(h.every_n_steps, h.max_images, h.num_points, h.batch_size) >= 1 and h.icp_iterations >= 0,
-            "callbacks.heldout: every_n_steps, max_images, num_points and batch_size must be >= 1, "
-            "icp_iterations >= 0",
+            "callbacks.heldout: every_n_steps, max_images, num_points and batch_size must be >= 1, icp_iterations >= 0",
         )
     e = cfg.evaluate
     _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")

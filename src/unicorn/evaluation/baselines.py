@@ -24,11 +24,9 @@ from tqdm.auto import tqdm
 
 from unicorn.data.shapenet import ShapeNetNMR
 from unicorn.evaluation.evaluator import spread_indices
-from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.metrics import nearest_neighbors, sample_points_from_meshes
+from unicorn.metrics import chamfer_l1, sample_points_from_meshes
 from unicorn.model import Prediction, Unicorn
 from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
-from unicorn.model.pose import PoseOutput
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV
 
@@ -117,25 +115,6 @@ class FixedShapeModel(nn.Module):
         return self.model.render(verts, maps, R, T, background)
 
     # ------------------------------------------------------------------ predictions
-    def anchor_poses(self) -> PoseOutput:
-        """The K candidates at their anchors with zero offsets, for one image (B = 1), probability 1 on candidate 0.
-
-        Built like :class:`~unicorn.model.pose.PoseHead` builds its poses, with the offsets at 0: the angles are
-        its anchor angles ``R_init`` (K, 3), the rotations :func:`~unicorn.geometry.rotations.
-        azim_elev_roll_to_rotation` of them, the translations its prior translation ``T_init`` (3,).
-
-        Returns:
-            :class:`~unicorn.model.pose.PoseOutput` with angles (K, 1, 3), R (K, 1, 3, 3), T (K, 1, 3), probs (K, 1).
-        """
-        head = self.model.pose
-        angles = head.R_init  # (K, 3): tanh(0) * R_range + R_init
-        R = azim_elev_roll_to_rotation(angles[:, 0], angles[:, 1], angles[:, 2])
-        K = angles.shape[0]
-        T = head.T_init.expand(K, 3)
-        probs = torch.zeros(K, 1, dtype=angles.dtype, device=angles.device)
-        probs[0] = 1.0  # every image selects candidate 0
-        return PoseOutput(angles=angles.unsqueeze(1), R=R.unsqueeze(1), T=T.unsqueeze(1), probs=probs)
-
     def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
         """The wrapped model's prediction with the fixed shape (and, with ``pose="anchor"``, the anchor pose).
 
@@ -154,14 +133,7 @@ class FixedShapeModel(nn.Module):
         scale = torch.ones(B, 3, dtype=verts.dtype, device=verts.device)
         poses, R, T = pred.poses, pred.R, pred.T
         if self.pose_mode == "anchor":
-            one = self.anchor_poses()
-            K = one.probs.shape[0]
-            poses = PoseOutput(
-                angles=one.angles.expand(K, B, 3).clone(),
-                R=one.R.expand(K, B, 3, 3).clone(),
-                T=one.T.expand(K, B, 3).clone(),
-                probs=one.probs.expand(K, B).clone(),
-            )
+            poses = self.model.pose.anchor_poses(B)
             R, T = poses.select()
         return dataclasses.replace(pred, canonical_verts=verts, scale=scale, verts=verts, poses=poses, R=R, T=T)
 
@@ -305,10 +277,7 @@ def fit_mean_shape(
             verts = (base + offsets).unsqueeze(0)  # (1, V, 3)
             points, _ = sample_points_from_meshes(verts, faces, num_points, generator=generator)
             points = points.expand(b, -1, -1)  # one surface sample scored against every shape
-            # exact, differentiable NN distances (kdtree on the CPU, blocked torch.cdist on CUDA)
-            accuracy, _ = nearest_neighbors(points, target)
-            completeness, _ = nearest_neighbors(target, points)
-            chamfer = 0.5 * (accuracy.mean(1) + completeness.mean(1)).mean()
+            chamfer = chamfer_l1(points, target, factor=1.0).mean()
             loss = chamfer + smooth_weight * laplacian(verts) + normal_weight * normal(verts)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

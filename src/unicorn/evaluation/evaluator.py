@@ -512,19 +512,22 @@ def evaluate(
     bar.close()
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
-    table, columns = _table(acc, model, options)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
+    table, columns = _table(acc, model, options, shares)
     return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 
 def _set_metrics(
-    acc: _Accumulator, group: str, model: Unicorn | FixedShapeModel, options: EvalOptions
+    acc: _Accumulator,
+    group: str,
+    model: Unicorn | FixedShapeModel,
+    options: EvalOptions,
+    shares: Mapping[str, list[float]],
 ) -> dict[str, float]:
     """Metrics over all images of a group: pose errors (ShapeNet), PCK (CUB) and the pose-candidate usage."""
     out: dict[str, float] = {}
-    if group in acc.candidates:
-        shares = candidate_shares(acc.candidates[group], acc.n_candidates)
-        out["cand-share-min"], out["cand-share-max"] = min(shares), max(shares)
+    if group in shares:
+        out["cand-share-min"], out["cand-share-max"] = min(shares[group]), max(shares[group])
     if group in acc.poses:
         R_pred = torch.stack([p[0] for p in acc.poses[group]])
         R_gt = torch.stack([p[1] for p in acc.poses[group]])
@@ -548,7 +551,7 @@ def _set_metrics(
 
 
 def _table(
-    acc: _Accumulator, model: Unicorn | FixedShapeModel, options: EvalOptions
+    acc: _Accumulator, model: Unicorn | FixedShapeModel, options: EvalOptions, shares: Mapping[str, list[float]]
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Per-group means of the per-image metrics plus the group's set metrics; then the mean over groups."""
     groups = list(dict.fromkeys(row["group"] for row in acc.rows))
@@ -560,7 +563,7 @@ def _table(
         for k in keys:
             values = [r[k] for r in members if k in r and not math.isnan(r[k])]
             row[k] = float(np.mean(values)) if values else float("nan")
-        row.update(_set_metrics(acc, g, model, options))
+        row.update(_set_metrics(acc, g, model, options, shares))
         rows.append(row)
     present = {k for r in rows for k in r} - {"group", "n-images"}
     columns = [k for k in METRIC_ORDER if k in present] + sorted(present - set(METRIC_ORDER))

@@ -282,7 +282,7 @@ class ImageLogger(L.Callback):
         was_training = pl_module.training
         pl_module.eval()  # batch-norm statistics must not see these renders
         try:
-            grid = render_overview(pl_module.model, images, self.n_views, float(pl_module.texture_average_p) >= 1)
+            grid = render_overview(pl_module.model, images, self.n_views, pl_module.constant_mean_textures)
         finally:
             pl_module.train(was_training)
         for logger in trainer.loggers:

@@ -111,7 +111,7 @@ class HeldOutEvaluation(L.Callback):
             batch_size=self.batch_size,
             num_points=self.num_points,
             icp_iterations=self.icp_iterations,
-            average_texture=float(getattr(pl_module, "texture_average_p", 0.0)) >= 1,
+            average_texture=pl_module.constant_mean_textures,
             report_samples=0,
             progress=False,
         )

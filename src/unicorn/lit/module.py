@@ -130,6 +130,11 @@ class UnicornLitModule(L.LightningModule):
         """``"pose"`` or ``"3d"``: the kind of step iteration ``step`` (0-based) makes."""
         return "pose" if (step // self.alternation_period) % 2 == 0 else "3d"
 
+    @property
+    def constant_mean_textures(self) -> bool:
+        """Whether the schedule currently renders mean-colour textures for every batch (p = 1)."""
+        return float(self.texture_average_p) >= 1.0
+
     def average_texture(self, step: int) -> bool:
         """Whether iteration ``step`` renders mean-colour textures (constant, or drawn once per batch)."""
         p = float(self.texture_average_p)

@@ -150,14 +150,27 @@ class PoseHead(nn.Module):
         """(B, in_features) -> :class:`PoseOutput` with K candidates."""
         if features.dim() != 2:
             raise ValueError(f"features must have shape (B, C), got {tuple(features.shape)}")
-        offsets = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
-        angles = offsets * self.R_range + self.R_init.unsqueeze(1)
-        R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
-        t_off = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors]) * self.T_range
-        t_off = t_off * self.use_translation.to(t_off.dtype)
-        T = t_off + self.T_init
+        rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
+        trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
         probs = torch.softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
-        return PoseOutput(angles=angles, R=R, T=T, probs=probs)
+        return self._compose(rot, trans, probs)
+
+    def _compose(self, rot: torch.Tensor, trans: torch.Tensor, probs: torch.Tensor) -> PoseOutput:
+        """Candidates from offsets in [-1, 1]: rot (K, B, 3), trans (K, B, 3), probs (K, B)."""
+        angles = rot * self.R_range + self.R_init.unsqueeze(1)
+        R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
+        t_off = trans * self.T_range * self.use_translation.to(trans.dtype)
+        return PoseOutput(angles=angles, R=R, T=t_off + self.T_init, probs=probs)
+
+    def anchor_poses(self, batch_size: int, selected: int = 0) -> PoseOutput:
+        """The K candidates at their anchors (zero offsets) for ``batch_size`` samples, probability 1 on
+        candidate ``selected``: the poses of an untrained head, without its random probabilities."""
+        if not 0 <= selected < self.n_candidates:
+            raise ValueError(f"selected must be in [0, {self.n_candidates}), got {selected}")
+        zeros = self.R_init.new_zeros(self.n_candidates, batch_size, 3)
+        probs = self.R_init.new_zeros(self.n_candidates, batch_size)
+        probs[selected] = 1.0
+        return self._compose(zeros, zeros, probs)
 
 
 class ScaleHead(nn.Module):
