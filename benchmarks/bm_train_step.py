@@ -1,61 +1,97 @@
 """Training-step benchmark: where the time of a pose step and of a 3D step goes.
 
-For the small and big models (the reference's real-image settings, 64 px, stage 4 so that every code and the
-neighbour loss are active, neighbour memory filled) it times one pose step and one 3D step at batch 32, split into
+Models (stage 4, so every code and the neighbour loss are active; the neighbour memory is filled by warm-up
+steps first):
 
-- the forward time of the encoders, the generators (shape, texture, background, pose and scale heads), the
-  renderer, the perceptual loss and the mesh regularisers (forward hooks; the neighbour loss's renders and
-  predictions count in their components), ``other`` = the rest of the forward (MSE, memory search, glue),
-- the backward pass (all of it) and the optimizer step (Adam),
+- ``tiny``: the README main job's model exactly as ``+experiment=synthetic`` composes it (32 px, batch 16,
+  structural perceptual loss, ShapeNet family: no background);
+- ``small`` / ``big``: the reference's real-image settings (64 px, batch 32, VGG16 perceptual loss);
+- ``small-structural``: ``small`` with the weights-free structural loss instead of VGG16.
 
-as medians over ``--repeats`` steps. The VGG16 of the perceptual loss gets random weights unless ``--vgg`` names
-torchvision's file (the time is the same).
+Each step is split into
 
-    python benchmarks/bm_train_step.py                  # CPU, small and big, batch 32
-    python benchmarks/bm_train_step.py --device cuda
-    python benchmarks/bm_train_step.py --models small --repeats 2 --batch 8
+- forward time of the encoders, the generators (shape, texture, background, pose and scale heads), the
+  renderer, the perceptual loss, the mesh regularisers and the neighbour loss (all of its forward: memory
+  search, re-encoding the neighbour images, their renders and losses; its inner modules count only there),
+  ``other`` = the rest of the forward (MSE, glue);
+- ``backward`` (all of it), and inside it ``bwd-nbr`` (the neighbour term's share: its graph is backpropagated
+  first, with the rest of the graph kept, then the other terms) and ``bwd-render`` (the renderer's backward,
+  measured by replaying the step's render calls on detached inputs with random output gradients);
+- the optimizer step, the total, and the peak memory of the step (CUDA: ``max_memory_allocated``; CPU: the
+  growth of the process's peak resident set over the step, 0 once the process has reached its plateau).
+
+Medians over ``--repeats`` steps, after ``--warmup`` steps of each kind. The VGG16 of the perceptual loss gets
+random weights unless ``--vgg`` names torchvision's file (the time is the same).
+
+    python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
+    python benchmarks/bm_train_step.py --models tiny --repeats 20
+    python benchmarks/bm_train_step.py --device cuda --models small big
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import resource
 import statistics
+import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 
 from unicorn.model import Unicorn, unicorn_config
 from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
 
-GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers")
-COLUMNS = ("forward", *GROUPS, "other", "backward", "optimizer", "total")
+GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
+COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")
+MODELS = ("tiny", "small", "small-structural", "big")
 
 
 class ComponentTimer:
-    """Accumulates the forward time of groups of modules through forward pre-hooks and hooks."""
+    """Accumulates the forward time of groups of modules through forward pre-hooks and hooks.
 
-    def __init__(self, device: str) -> None:
-        self.device = device
+    Nested timed modules count in the outermost group only (``override`` routes everything to one group while
+    it is set, e.g. inside the neighbour loss).
+    """
+
+    def __init__(self, sync: Callable[[], None]) -> None:
+        self.sync = sync
         self.totals: dict[str, float] = defaultdict(float)
-        self._open: dict[int, float] = {}
+        self._start: float | None = None
         self._depth = 0
+        self.override: str | None = None
 
-    def _sync(self) -> None:
-        if self.device == "cuda":
-            torch.cuda.synchronize()
+    @contextlib.contextmanager
+    def region(self, group: str) -> Iterator[None]:
+        """Time a block as ``group`` and route the modules called inside it to the same group."""
+        self.sync()
+        t0 = time.perf_counter()
+        self.override, previous = group, self.override
+        try:
+            yield
+        finally:
+            self.override = previous
+            self.sync()
+            self.totals[group] += time.perf_counter() - t0
 
     def attach(self, group: str, module: torch.nn.Module | None) -> None:
         if module is None:
             return
 
         def begin(mod: torch.nn.Module, inputs: object) -> None:
-            self._sync()
-            self._open[id(mod)] = time.perf_counter()
+            if self.override is None and self._depth == 0:
+                self.sync()
+                self._start = time.perf_counter()
+            self._depth += 1
 
         def end(mod: torch.nn.Module, inputs: object, output: object) -> None:
-            self._sync()
-            self.totals[group] += time.perf_counter() - self._open.pop(id(mod))
+            self._depth -= 1
+            if self.override is None and self._depth == 0:
+                self.sync()
+                self.totals[group] += time.perf_counter() - self._start
 
         module.register_forward_pre_hook(begin)
         module.register_forward_hook(end)
@@ -73,19 +109,51 @@ def random_vgg_weights() -> dict[str, torch.Tensor]:
     return state
 
 
-def build(size: str, image_size: int, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim.Optimizer]:
-    cfg = unicorn_config("real", size, image_size=image_size, loss={"perceptual": None})
+def main_job_model_config() -> dict[str, Any]:
+    """The model config of ``unicorn-train +experiment=synthetic``, composed by Hydra like the CLI does."""
+    from hydra import compose, initialize_config_dir
+
+    from unicorn.cli.train import config_dir
+    from unicorn.config import model_config, validate
+
+    with initialize_config_dir(str(config_dir()), version_base=None):
+        cfg = compose("train", overrides=["+experiment=synthetic"])
+    return model_config(validate(cfg))
+
+
+def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim.Optimizer, int, int]:
+    """Model, optimizer (as the trainer builds it), batch size and image size of one benchmarked setting."""
+    if name == "tiny":
+        cfg, batch = main_job_model_config(), 16
+    else:
+        size = "big" if name == "big" else "small"
+        perceptual = "structural" if name == "small-structural" else None
+        cfg, batch = unicorn_config("real", size, image_size=64, loss={"perceptual": perceptual}), 32
     model = Unicorn(cfg)
-    # the perceptual term is computed whenever the module exists: give it real or random VGG16 weights
-    model.perceptual = VGGPerceptualLoss(vgg if vgg else random_vgg_weights())
+    if name in ("small", "big"):
+        # the perceptual term is computed whenever the module exists: give it real or random VGG16 weights
+        model.perceptual = VGGPerceptualLoss(vgg if vgg else random_vgg_weights())
     model.to(device).train()
-    stage4 = {"shape": cfg["shape"]["code_dim"], "texture": cfg["texture"]["code_dim"]}
-    model.set_active_dims(**stage4, background=cfg["background"]["code_dim"])
-    return model, torch.optim.Adam(model.parameters(), lr=1e-4)
+    full = {"shape": cfg["shape"]["code_dim"], "texture": cfg["texture"]["code_dim"]}
+    if cfg["background"] is not None:
+        full["background"] = cfg["background"]["code_dim"]
+    model.set_active_dims(**full)
+    from unicorn.lit.module import UnicornLitModule
+
+    opt = UnicornLitModule.make_optimizer(model.parameters(), {"lr": 1e-4})
+    return model, opt, batch, cfg["image_size"]
 
 
-def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor, device: str, repeats: int) -> dict:
-    timer = ComponentTimer(device)
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
+def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor, device: str, args) -> dict:
+    def sync() -> None:
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    timer = ComponentTimer(sync)
     for encoder in model.encoders:
         timer.attach("encoder", encoder)
     for head in (model.shape, model.texture, model.background, model.pose, model.scale):
@@ -95,58 +163,122 @@ def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor,
     timer.attach("regularisers", model.normal_loss)
     timer.attach("regularisers", model.laplacian_loss)
 
-    def sync() -> None:
-        if device == "cuda":
-            torch.cuda.synchronize()
+    # the neighbour loss: its whole forward is one group; remember its output to backpropagate it separately
+    neighbour_loss = model.neighbor_loss
+
+    def timed_neighbour_loss(*a: Any, **kw: Any) -> torch.Tensor:
+        with timer.region("neighbour"):
+            return neighbour_loss(*a, **kw)
+
+    model.neighbor_loss = timed_neighbour_loss  # instance attribute shadows the method
+
+    # the renderer's calls of the step, replayed afterwards to time its backward alone
+    render_calls: list[tuple[tuple, dict]] = []
+
+    def record(mod: torch.nn.Module, a: tuple, kw: dict) -> None:
+        render_calls.append((a, kw))
+
+    model.renderer.register_forward_pre_hook(record, with_kwargs=True)
+
+    def replay_render_backward() -> float:
+        def detach(x: Any) -> Any:
+            if isinstance(x, torch.Tensor) and x.is_floating_point():
+                return x.detach().requires_grad_(x.requires_grad)
+            return x
+
+        spent = 0.0
+        calls = list(render_calls)
+        render_calls.clear()  # the replays below pass through the same hook
+        for a, kw in calls:
+            a2 = tuple(detach(x) for x in a)
+            kw2 = {k: detach(v) for k, v in kw.items()}
+            textures = a2[2]
+            if hasattr(textures, "maps"):
+                textures = type(textures)(
+                    detach(textures.maps),
+                    textures.face_uvs,
+                    wrap_u=textures.wrap_u,
+                    align_corners=textures.align_corners,
+                )
+                a2 = (*a2[:2], textures, *a2[3:])
+            out = model.renderer(*a2, **kw2)
+            if not out.requires_grad:
+                continue
+            grad = torch.randn_like(out)
+            sync()
+            t0 = time.perf_counter()
+            out.backward(grad)
+            sync()
+            spent += time.perf_counter() - t0
+        return spent
 
     results = {}
     for phase, fn in (("pose", model.pose_step), ("3d", model.step_3d)):
         rows = []
-        for i in range(repeats + 1):  # the first is a warm-up (and fills the neighbour memory)
+        for i in range(args.warmup + args.repeats):
             timer.reset()
+            render_calls.clear()
             opt.zero_grad(set_to_none=True)
+            if device == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            rss0 = peak_rss_mb()
             sync()
             t0 = time.perf_counter()
             losses = fn(images)
             sync()
             t1 = time.perf_counter()
-            losses["total"].backward()
+            nbr = losses.get("neighbor")
+            if nbr is not None and nbr.requires_grad:
+                nbr.backward(retain_graph=True)
+                sync()
+                tn = time.perf_counter()
+                (losses["total"] - nbr).backward()
+            else:
+                tn = t1
+                losses["total"].backward()
             sync()
             t2 = time.perf_counter()
             opt.step()
             sync()
             t3 = time.perf_counter()
-            if i == 0:
+            peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
+            if i < args.warmup:
                 continue
             row = {g: timer.totals.get(g, 0.0) for g in GROUPS}
             row.update(forward=t1 - t0, backward=t2 - t1, optimizer=t3 - t2, total=t3 - t0)
+            row["bwd-nbr"] = tn - t1
             row["other"] = row["forward"] - sum(row[g] for g in GROUPS)
+            row["peak MB"] = peak
+            row["bwd-render"] = replay_render_backward()
             rows.append(row)
         results[phase] = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
+        results[phase]["peak MB"] = max(r["peak MB"] for r in rows)
     return results
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--models", nargs="+", default=["small", "big"], choices=["small", "big"])
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--image-size", type=int, default=64)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=3, help="untimed steps of each kind (fill the memory)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--vgg", default=None, help="torchvision's vgg16-397923af.pth (random weights otherwise)")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        sys.exit("bm_train_step.py: error: --device cuda but CUDA is not available")
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
-    print(f"# UNICORN training step, batch {args.batch}, {args.image_size} px, stage 4, {name}; seconds (median)")
-    print(f"{'model':6s} {'step':5s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
+    print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
+    print(f"{'model':17s} {'batch':>5s} {'px':>3s} {'step':4s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:
-        model, opt = build(size, args.image_size, args.vgg, args.device)
-        images = torch.rand(args.batch, 3, args.image_size, args.image_size, device=args.device)
-        for phase, row in time_steps(model, opt, images, args.device, args.repeats).items():
-            print(f"{size:6s} {phase:5s} " + " ".join(f"{row[c]:12.3f}" for c in COLUMNS), flush=True)
+        model, opt, batch, image_size = build(size, args.vgg, args.device)
+        images = torch.rand(batch, 3, image_size, image_size, device=args.device)
+        for phase, row in time_steps(model, opt, images, args.device, args).items():
+            cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
+            print(f"{size:17s} {batch:5d} {image_size:3d} {phase:4s} {cells}", flush=True)
 
 
 if __name__ == "__main__":

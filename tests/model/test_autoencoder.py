@@ -189,3 +189,20 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
     for name, values in history.items():
         first, last = sum(values[:4]) / 4, sum(values[-4:]) / 4
         assert last < 0.7 * first, (name, values)
+
+
+def test_neighbour_parameters_equal_the_matching_parts_of_predict(tiny_model, images):
+    """The neighbour swaps compute only what they use; each part equals what predict() gives."""
+    randomize_heads(tiny_model)
+    tiny_model.set_active_dims(shape=4, texture=4, background=4)
+    batch = torch.cat([images, images.flip(0)])  # 2n images: n shape then n texture neighbours
+    n = images.shape[0]
+    with torch.no_grad():
+        full = tiny_model.predict(batch)
+        scale, maps, verts, R, T, bkg = tiny_model._neighbour_parameters(batch, n, average_texture=False)
+    torch.testing.assert_close(scale, full.scale[:n])
+    torch.testing.assert_close(maps, full.texture[:n])
+    torch.testing.assert_close(verts, full.verts[n:])
+    torch.testing.assert_close(R, full.R)
+    torch.testing.assert_close(T, full.T)
+    torch.testing.assert_close(bkg, full.background)

@@ -216,6 +216,7 @@ class OptimConfig:
     lr_drop_gamma: float = 0.2
     idle_params: str = "skip"
     check_finite: bool = True
+    fused: bool = True
 
 
 # ---------------------------------------------------------------------------------------------- run

@@ -54,6 +54,7 @@ OPTIM_DEFAULTS: dict[str, Any] = {
     "lr_drop_gamma": 0.2,
     "idle_params": "skip",
     "check_finite": True,
+    "fused": True,
 }
 _SEED_STRIDE = 1_000_003
 
@@ -90,7 +91,7 @@ class UnicornLitModule(L.LightningModule):
     Args:
         model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
-            ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``).
+            ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
         seed: seeds the per-batch texture-averaging draws (a pure function of seed and iteration).
     """
@@ -226,11 +227,24 @@ class UnicornLitModule(L.LightningModule):
             self.log("val/mask_iou", (inter / union).mean(), batch_size=images.shape[0])
 
     # ------------------------------------------------------------------ optimizer
+    @staticmethod
+    def make_optimizer(params: Any, optim: Mapping[str, Any]) -> torch.optim.Adam:
+        """The Adam of training for ``params`` with ``optim`` settings (over :data:`OPTIM_DEFAULTS`)."""
+        o = {**OPTIM_DEFAULTS, **dict(optim)}
+        # fused: one kernel per parameter group instead of ~10 element-wise passes per tensor (Adam was 15 % of
+        # a CPU step of the tiny model); the same update up to float rounding
+        return torch.optim.Adam(
+            params,
+            lr=o["lr"],
+            betas=tuple(o["betas"]),
+            eps=o["eps"],
+            weight_decay=o["weight_decay"],
+            fused=bool(o["fused"]),
+        )
+
     def configure_optimizers(self) -> dict[str, Any]:
         o = self.optim
-        opt = torch.optim.Adam(
-            self.model.parameters(), lr=o["lr"], betas=tuple(o["betas"]), eps=o["eps"], weight_decay=o["weight_decay"]
-        )
+        opt = self.make_optimizer(self.model.parameters(), o)
         milestones = [] if o["lr_drop_step"] is None else [int(o["lr_drop_step"])]
         # stepped once per iteration in training_step (manual optimization never steps schedulers itself)
         scheduler = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=o["lr_drop_gamma"])

@@ -567,16 +567,40 @@ class Unicorn(nn.Module):
         nbr_images = torch.cat(
             [self.memory.images[match.shape_index[idx]], self.memory.images[match.texture_index[idx]]]
         )
-        with torch.no_grad():
-            nbr = self.predict(nbr_images, average_texture)
         n = idx.numel()
-        sh, tx = slice(0, n), slice(n, 2 * n)
-        verts = torch.cat([canonical_verts[idx] * nbr.scale[sh].unsqueeze(1), nbr.verts[tx]])
-        tex = torch.cat([nbr.texture[sh], maps[idx]])
-        bkg = nbr.background
-        rec, _ = self.render(verts, tex, nbr.R, nbr.T, bkg)
+        with torch.no_grad():
+            nbr_scale, nbr_maps, nbr_verts, nbr_R, nbr_T, nbr_bkg = self._neighbour_parameters(
+                nbr_images, n, average_texture
+            )
+        verts = torch.cat([canonical_verts[idx] * nbr_scale.unsqueeze(1), nbr_verts])
+        tex = torch.cat([nbr_maps, maps[idx]])
+        rec, _ = self.render(verts, tex, nbr_R, nbr_T, nbr_bkg)
         terms = self.reconstruction_terms(rec, nbr_images)
         if not terms:
             return loss
         per = sum(terms.values())
-        return loss.index_put((idx,), per[sh] + per[tx])
+        return loss.index_put((idx,), per[:n] + per[n:])
+
+    def _neighbour_parameters(
+        self, images: torch.Tensor, n: int, average_texture: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """What the two swaps take from the neighbours (call without gradient).
+
+        ``images`` (2n, 3, S, S) holds the n shape neighbours then the n texture neighbours. The encoders see
+        all 2n images together (their batch statistics are those of :meth:`predict` on the same batch); the
+        heads compute only what a swap uses: the shape neighbours' scales (n, 3) and texture maps
+        (n, 3, Ht, Wt), the texture neighbours' world vertices (n, V, 3), and everyone's R (2n, 3, 3),
+        T (2n, 3) and background (2n, 3, S, S) or None.
+        """
+        feats = self._encode(images, self._branches())
+        scale = self.scale(feats["shape"])
+        z_sh = self.shape.code(feats["shape"][n:])
+        verts = (self.template.verts + self.shape(self.template.verts, z_sh)) * scale[n:].unsqueeze(1)
+        maps = self.texture(self.texture.code(feats["texture"][:n]))
+        if average_texture:
+            maps = _mean_texture(maps)
+        bkg = None
+        if self.background is not None:
+            bkg = self.background(self.background.code(feats["background"]))
+        R, T = self.pose(feats["pose"]).select()
+        return scale[:n], maps, verts, R, T, bkg

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.model.filtering import separable_filter
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
 
@@ -15,20 +16,16 @@ __all__ = ["Blur", "CodeGenerator", "GiraffeGenerator"]
 
 
 class Blur(nn.Module):
-    """Depthwise ``[1, 2, 1] x [1, 2, 1] / 16`` blur with reflect padding (anti-aliases upsampling)."""
+    """Depthwise ``[1, 2, 1] x [1, 2, 1] / 16`` blur with reflect padding (anti-aliases upsampling).
 
-    kernel: torch.Tensor
-
-    def __init__(self) -> None:
-        super().__init__()
-        k = torch.tensor([1.0, 2.0, 1.0])
-        self.register_buffer("kernel", (k[:, None] * k[None, :] / 16.0)[None, None], persistent=False)
+    As a separable filter (:func:`unicorn.model.filtering.separable_filter`): the same values as the depthwise
+    convolution, without oneDNN's slow path for 3-channel depthwise convolutions.
+    """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) -> (B, C, H, W); H and W must be >= 2 for reflect padding."""
-        C = x.shape[1]
-        x = F.pad(x, (1, 1, 1, 1), mode="reflect")
-        return F.conv2d(x, self.kernel.to(x.dtype).expand(C, 1, 3, 3), groups=C)
+        taps = [0.25, 0.5, 0.25]
+        return separable_filter(x, taps, taps, "reflect")
 
 
 class GiraffeGenerator(nn.Module):

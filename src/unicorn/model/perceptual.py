@@ -7,7 +7,7 @@
   downloaded on a machine with internet access. Only the layers up to ``relu3_3`` are kept. Cost: at 64x64
   it is roughly ten times a ResNet-18 forward, and the pose step applies it to K x B renders.
 - :class:`StructuralLoss`: a cheap weights-free stand-in for machines without the VGG16 file: multi-scale
-  SSIM dissimilarity plus an L1 distance between Sobel image gradients (kornia), both averaged over three
+  SSIM dissimilarity plus an L1 distance between Sobel image gradients (kornia's definitions), both averaged over three
   scales (1, 1/2, 1/4). It is not a calibrated replacement: it rewards matching local structure and edges
   (what makes textures informative for the pose) but its magnitude differs from the VGG loss, so its weight
   (``perceptual_weight``) may need retuning; a weight of 1 keeps it of the order of the pixel MSE * 10.
@@ -18,12 +18,21 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 
-import kornia
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["VGG16_URL", "StructuralLoss", "VGG16Relu33", "VGGPerceptualLoss", "load_vgg16_weights"]
+from unicorn.model.filtering import separable_filter
+
+__all__ = [
+    "VGG16_URL",
+    "StructuralLoss",
+    "VGG16Relu33",
+    "VGGPerceptualLoss",
+    "load_vgg16_weights",
+    "sobel_gradient",
+    "ssim_map",
+]
 
 VGG16_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -157,8 +166,46 @@ class VGGPerceptualLoss(nn.Module):
         return (feats[:B] - feats[B:]).pow(2).flatten(1).mean(1)
 
 
+def _gaussian_taps(window_size: int, sigma: float = 1.5) -> list[float]:
+    """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size)."""
+    x = torch.arange(window_size, dtype=torch.float64) - window_size // 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return (g / g.sum()).tolist()
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: float = 1.0) -> torch.Tensor:
+    """SSIM index map of two (B, C, H, W) images, as ``kornia.metrics.ssim(x, y, window_size, max_val)``.
+
+    Same definition (Gaussian window sigma 1.5, reflect padding, c1 = (0.01 L)^2, c2 = (0.03 L)^2, eps 1e-12),
+    computed with one separable filtering pass over the five stacked moments. Returns (B, C, H, W).
+    """
+    C = x.shape[1]
+    moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    taps = _gaussian_taps(window_size)
+    f = separable_filter(moments, taps, taps, "reflect")
+    mu_x, mu_y, xx, yy, xy = f.split(C, dim=1)
+    c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    num = (2 * mu_xy + c1) * (2 * (xy - mu_xy) + c2)
+    den = (mu_xx + mu_yy + c1) * ((xx - mu_xx) + (yy - mu_yy) + c2)
+    return num / (den + 1e-12)
+
+
+def sobel_gradient(x: torch.Tensor) -> torch.Tensor:
+    """Normalised Sobel derivatives (B, C, 2, H, W) with replicated border, as ``kornia.filters.spatial_gradient``."""
+    smooth, diff = [0.25, 0.5, 0.25], [-0.5, 0.0, 0.5]
+    dx = separable_filter(x, smooth, diff, "replicate")
+    dy = separable_filter(x, diff, smooth, "replicate")
+    return torch.stack([dx, dy], dim=2)
+
+
 class StructuralLoss(nn.Module):
     """Weights-free per-sample loss: ``mean_s [(1 - SSIM_s) / 2 + |grad_s(rec) - grad_s(target)|]``.
+
+    SSIM and the Sobel gradients are kornia's definitions (``kornia.metrics.ssim``,
+    ``kornia.filters.spatial_gradient``; the tests compare with them), computed by :func:`ssim_map` and
+    :func:`sobel_gradient` as small matrix products because kornia's depthwise convolutions dominated the CPU
+    training step. The gradient is linear, so ``grad(rec) - grad(target)`` is computed as ``grad(rec - target)``.
 
     Args:
         n_scales: number of scales (each halves the resolution with 2x2 average pooling).
@@ -179,7 +226,7 @@ class StructuralLoss(nn.Module):
             if s > 0:
                 rec, target = F.avg_pool2d(rec, 2), F.avg_pool2d(target, 2)
             window = min(self.window_size, 2 * (min(rec.shape[-2:]) // 2) - 1)
-            ssim = kornia.metrics.ssim(rec, target, max(window, 1), max_val=1.0)
-            grad = kornia.filters.spatial_gradient(rec) - kornia.filters.spatial_gradient(target)
+            ssim = ssim_map(rec, target, max(window, 1), max_val=1.0)
+            grad = sobel_gradient(rec - target)
             total = total + ((1 - ssim) / 2).flatten(1).mean(1) + grad.abs().flatten(1).mean(1)
         return total / self.n_scales

@@ -1,0 +1,127 @@
+"""Iterations per second of the README main job's training loop, this tree against an earlier commit.
+
+Runs ``unicorn-train +experiment=synthetic`` (the main job's data, model, schedule and callbacks) for
+``--steps`` iterations in fresh processes, alternating the variants so that a busy machine slows both alike,
+and reports for each variant the median over ``--repeats`` runs of
+
+- ``it/s``: iterations per second of wall time between iteration ``--warmup`` and the last one (everything the
+  trainer does in between counts: logging, checkpoints, image logging, held-out scoring if enabled);
+- ``cpu ms/it``: the process's CPU time per iteration over the same window (less sensitive to other load;
+  with more than one thread it includes the threads' spinning).
+
+``--ref REV`` adds the tree of git revision REV (checked out once with ``git worktree`` under the system's
+temporary folder) as the "before" variant. Extra arguments are Hydra overrides for both variants.
+
+    python benchmarks/bm_train_rate.py --ref 8b6efcd                       # before/after, held-out off
+    python benchmarks/bm_train_rate.py --ref 8b6efcd --heldout             # with the main job's held-out scoring
+    python benchmarks/bm_train_rate.py --steps 200 trainer.accelerator=cuda
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
+    """A Lightning callback (instantiated by Hydra in the child) that times iterations ``warmup`` .. the end."""
+    from lightning.pytorch.callbacks import Callback
+
+    class IterationTimer(Callback):
+        def __init__(self) -> None:
+            self.start: tuple[float, float, int] | None = None
+
+        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:  # noqa: ANN001
+            if self.start is None and trainer.global_step >= warmup:
+                self.start = (time.perf_counter(), time.process_time(), trainer.global_step)
+
+        def on_train_end(self, trainer, module) -> None:  # noqa: ANN001
+            wall, cpu, step = self.start
+            n = trainer.global_step - step
+            result = {"iterations": n, "wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
+            Path(out).write_text(json.dumps(result))
+
+    return IterationTimer()
+
+
+def tree_of(ref: str) -> Path:
+    """A checkout of ``ref`` (a git worktree under the temporary folder, made once)."""
+    sha = subprocess.run(["git", "rev-parse", ref], cwd=REPO, check=True, capture_output=True, text=True).stdout.strip()
+    path = Path(tempfile.gettempdir()) / f"unicorn-ref-{sha[:12]}"
+    if not path.exists():
+        cmd = ["git", "worktree", "add", "--detach", str(path), sha]
+        subprocess.run(cmd, cwd=REPO, check=True, capture_output=True)
+    return path
+
+
+def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir: Path) -> dict:
+    out = workdir / "timing.json"
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(tree / "src"), str(Path(__file__).resolve().parent)])
+    if args.threads:
+        env["OMP_NUM_THREADS"] = str(args.threads)
+    cmd = [
+        sys.executable,
+        "-m",
+        "unicorn.cli.train",
+        "+experiment=synthetic",
+        f"trainer.max_steps={args.steps}",
+        "evaluate.enabled=false",
+        "trainer.enable_progress_bar=true",
+        f"hydra.run.dir={workdir / 'run'}",
+        "+callbacks.extra.timer._target_=bm_train_rate.make_timer_callback",
+        f"+callbacks.extra.timer.out={out}",
+        f"+callbacks.extra.timer.warmup={args.warmup}",
+        *([] if args.heldout else ["callbacks.heldout=null"]),
+        *overrides,
+    ]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if proc.returncode != 0 or not out.exists():
+        sys.exit(f"bm_train_rate.py: error: training in {tree} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(out.read_text())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ref", default=None, help="git revision to compare with (the 'before' variant)")
+    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--warmup", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)")
+    parser.add_argument("--heldout", action="store_true", help="keep the main job's held-out scoring")
+    args, overrides = parser.parse_known_args()
+    variants = {"this tree": REPO}
+    if args.ref:
+        variants = {f"before ({args.ref})": tree_of(args.ref), **variants}
+    results: dict[str, list[dict]] = {name: [] for name in variants}
+    with tempfile.TemporaryDirectory(prefix="bm_train_rate-") as tmp:
+        for r in range(args.repeats):
+            for name, tree in variants.items():
+                workdir = Path(tmp) / f"{len(results[name])}-{abs(hash(name))}"
+                results[name].append(run_once(tree, args, overrides, workdir))
+                last = results[name][-1]
+                print(f"  run {r + 1}/{args.repeats} {name}: {last['iterations'] / last['wall']:.2f} it/s", flush=True)
+    threads = args.threads or "torch default"
+    print(f"# main job training rate: +experiment=synthetic, iterations {args.warmup}..{args.steps}, threads {threads}")
+    print(f"{'variant':28s} {'it/s':>8s} {'cpu ms/it':>10s}")
+    rates = {}
+    for name, rows in results.items():
+        rates[name] = statistics.median(r["iterations"] / r["wall"] for r in rows)
+        cpu = statistics.median(1000 * r["cpu"] / r["iterations"] for r in rows)
+        print(f"{name:28s} {rates[name]:8.2f} {cpu:10.1f}")
+    if len(rates) == 2:
+        before, after = rates.values()
+        print(f"speed-up: {after / before:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,38 @@
+"""Separable image filters as two small matrix products, the border padding folded into the matrices.
+
+On the CPU, oneDNN runs the depthwise convolutions of one to three channels that image filters usually become
+(kornia's filters, a ``groups=C`` conv) several times slower than these products, forward and backward; on
+CUDA they are one batched GEMM. Used by the structural perceptual loss (SSIM, Sobel) and the generators' blur.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["filter_matrix", "separable_filter"]
+
+
+def filter_matrix(n: int, taps: list[float], mode: str, like: torch.Tensor) -> torch.Tensor:
+    """(n, n) matrix M with ``(v @ M)[j] = sum_t taps[t] * pad(v)[j + t]`` for length-n vectors v.
+
+    ``pad`` adds ``len(taps) // 2`` values on each side in ``mode`` (``"reflect"`` or ``"replicate"``, torch's
+    padding modes); padding is linear, so it is folded into the matrix by padding the identity. Built on
+    ``like``'s device and dtype (no host-device copy).
+    """
+    if len(taps) % 2 == 0:
+        raise ValueError(f"need an odd number of taps, got {len(taps)}")
+    p = len(taps) // 2
+    padded = F.pad(torch.eye(n, dtype=like.dtype, device=like.device), (p, p), mode=mode)  # (n, n + 2p)
+    return sum(w * padded[:, t : t + n] for t, w in enumerate(taps))
+
+
+def separable_filter(x: torch.Tensor, taps_y: list[float], taps_x: list[float], mode: str) -> torch.Tensor:
+    """Correlate (..., H, W) maps with ``taps_y`` along rows and ``taps_x`` along columns; the size is kept.
+
+    Equal (to rounding) to padding by ``len(taps) // 2`` in ``mode`` and a 2-D correlation with the outer
+    product ``taps_y x taps_x``.
+    """
+    rows = filter_matrix(x.shape[-2], taps_y, mode, x)
+    cols = filter_matrix(x.shape[-1], taps_x, mode, x)
+    return rows.transpose(0, 1) @ x @ cols
