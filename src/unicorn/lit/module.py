@@ -138,7 +138,7 @@ class UnicornLitModule(L.LightningModule):
 
     def average_texture(self, step: int) -> bool:
         """Whether iteration ``step`` renders mean-colour textures (constant, or drawn once per batch)."""
-        p = float(self.texture_average_p)
+        p = float(self.texture_average_p)  # one 0-dim read per step: the choice is a Python branch
         if p >= 1.0 or p <= 0.0:
             return p >= 1.0
         g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + step)
@@ -187,16 +187,21 @@ class UnicornLitModule(L.LightningModule):
         The parameters are still those before this iteration, so the checkpoint is the last good state. The
         decision is reduced over ranks so that every process stops (and saves) together.
         """
-        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
-        if not bad:
-            grads = [p.grad for p in self.model.parameters() if p.grad is not None]
-            if grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
-                bad.append("gradients of 'total' (finite loss)")
-        flag = torch.tensor(float(bool(bad)), device=self.device)
+        # everything reduced to one flag on the device and read once: the single host sync of a step, needed
+        # because the optimizer must not apply a non-finite update
+        values = torch.stack([v.detach() for v in losses.values()])
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        finite = torch.isfinite(values).all()
+        if grads:
+            finite = finite & torch.isfinite(torch.nn.utils.get_total_norm(grads))
+        flag = (~finite).float()
         if self.trainer.world_size > 1:
             flag = self.trainer.strategy.reduce(flag, reduce_op="max")
         if float(flag) == 0:
             return
+        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
+        if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
+            bad.append("gradients of 'total' (finite loss)")
         where = ", ".join(bad) if bad else "a term on another rank"
         path = self._save_last_good(step)
         saved = f"; the state before this iteration was saved to {path}" if path else ""

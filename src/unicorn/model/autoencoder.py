@@ -561,6 +561,8 @@ class Unicorn(nn.Module):
         self_index = self.memory.push(images, shape_code, texture_code, R)
         match = self.memory.search(shape_code.detach(), texture_code.detach(), R, self_index)
         loss = images.new_zeros(B)
+        # a host sync: the swaps run on the samples that found neighbours only (all of them once the memory
+        # holds a few batches); padding the others would change the neighbour batch's BatchNorm statistics
         idx = match.valid.nonzero().squeeze(1)
         if idx.numel() == 0:
             return loss

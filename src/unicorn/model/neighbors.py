@@ -132,7 +132,9 @@ class NeighborMemory:
         valid = nonempty.any(1)
         weights = nonempty.float()
         weights[~valid] = 1.0  # placeholder row, ignored below
-        bins = torch.multinomial(weights.cpu(), 1, generator=generator).squeeze(1).to(R.device)
+        # drawn where the weights are (no host round trip) unless the caller's generator lives elsewhere
+        on = weights if generator is None or generator.device == weights.device else weights.cpu()
+        bins = torch.multinomial(on, 1, generator=generator).squeeze(1).to(R.device)
         bins = torch.where(valid, bins, torch.full_like(bins, -1))
         candidate = usable & (entry_bins == bins.unsqueeze(0))  # (M, B)
 

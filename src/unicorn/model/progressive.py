@@ -53,6 +53,7 @@ class ProgressiveMask(nn.Module):
         if code_dim < 0:
             raise ValueError(f"code_dim must be >= 0, got {code_dim}")
         self.code_dim = int(code_dim)
+        self._active_host: int | None = None
         self.register_buffer("active", torch.tensor(code_dim if active_dims is None else 0, dtype=torch.long))
         if active_dims is not None:
             self.set_active_dims(active_dims)
@@ -60,7 +61,10 @@ class ProgressiveMask(nn.Module):
     @property
     def active_dims(self) -> int:
         """Number of code dimensions currently used."""
-        return int(self.active)
+        # a host copy of the buffer: reading a CUDA buffer at every step would synchronise with the device
+        if self._active_host is None:
+            self._active_host = int(self.active)
+        return self._active_host
 
     def set_active_dims(self, n: int) -> None:
         """Use the first ``n`` dimensions from now on (0 means a code that is all zeros)."""
@@ -68,6 +72,11 @@ class ProgressiveMask(nn.Module):
         if not 0 <= n <= self.code_dim:
             raise ValueError(f"active dims must be in [0, {self.code_dim}], got {n}")
         self.active.fill_(n)
+        self._active_host = n
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003
+        super()._load_from_state_dict(*args, **kwargs)
+        self._active_host = None  # the buffer may have changed: read it again when asked
 
     def forward(self, code: torch.Tensor) -> torch.Tensor:
         """(B, code_dim) -> (B, code_dim) with the trailing ``code_dim - active_dims`` entries set to 0."""

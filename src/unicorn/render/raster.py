@@ -61,11 +61,14 @@ def check_mesh_inputs(verts: torch.Tensor, faces: torch.Tensor) -> None:
         raise TypeError(f"faces must be an integer tensor, got {faces.dtype}")
     if faces.device != verts.device:
         raise ValueError(f"faces are on {faces.device} but verts on {verts.device}")
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= verts.shape[1]):
-        raise IndexError(
-            f"face indices must be in [0, {verts.shape[1]}), got range [{int(faces.min())}, {int(faces.max())}]"
-        )
-    if not torch.isfinite(verts).all():
+    # the value checks are reduced on the device and read back together: one host sync per call
+    if faces.numel():
+        lo, hi, finite = torch.stack([faces.min(), faces.max(), torch.isfinite(verts).all().to(faces.dtype)]).tolist()
+        if lo < 0 or hi >= verts.shape[1]:
+            raise IndexError(f"face indices must be in [0, {verts.shape[1]}), got range [{lo}, {hi}]")
+    else:
+        finite = bool(torch.isfinite(verts).all())
+    if not finite:
         raise ValueError("verts contain NaN or infinite values")
 
 
@@ -151,7 +154,13 @@ def _select_chunk(
     faces_per_pixel: int,
     truncate_opaque: bool,
 ) -> tuple[torch.Tensor, ...]:
-    """Stage 1 for a chunk of images: kept (pixel, face) pairs ranked by depth. No gradient."""
+    """Stage 1 for a chunk of images: kept (pixel, face) pairs ranked by depth. No gradient.
+
+    Host syncs: the packed layout is what keeps memory at O(kept pairs) instead of O(B H W F), and its sizes
+    are data-dependent, so this pass reads three sizes back from the device (the candidate count ``P`` and the
+    two ``nonzero`` selections, plus one for the near-miss subset when ``blur_radius > 0``). Everything else
+    stays on the device.
+    """
     nb, F = counts.shape
     flat_counts = counts.reshape(-1)
     active = flat_counts.nonzero().squeeze(1)  # faces with at least one candidate pixel
@@ -159,7 +168,7 @@ def _select_chunk(
     P = int(c.sum())
     empty = fpx.new_empty(0, dtype=torch.long)
     if P == 0:
-        return empty, empty, empty, empty.bool(), 0
+        return empty, empty, empty, empty.bool(), empty.new_zeros(())
     dev = fpx.device
     # int32 candidate indices: half the memory traffic of int64 on the largest tensors of the pass
     owner = torch.repeat_interleave(torch.arange(active.numel(), device=dev, dtype=torch.int32), c, output_size=P)
@@ -189,7 +198,7 @@ def _select_chunk(
         del tri, d2
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
-        return empty, empty, empty, empty.bool(), 0
+        return empty, empty, empty, empty.bool(), empty.new_zeros(())
     flat_face, px, py, inside = (t.index_select(0, idx) for t in (flat_face, px, py, inside))
     z = (_clip_barycentric(bary.index_select(0, idx)) * fz.reshape(-1, 3).index_select(0, flat_face)).sum(-1)
     del bary
@@ -214,7 +223,7 @@ def _select_chunk(
         cum_inside = torch.cumsum(inside.long(), 0)
         inside_before = cum_inside - inside.long() - (cum_inside[seg_start] - inside[seg_start].long())
         keep = inside_before == 0
-    overflow = int((keep & (rank == faces_per_pixel)).sum())
+    overflow = (keep & (rank == faces_per_pixel)).sum()
     keep &= rank < faces_per_pixel
     sel = keep.nonzero().squeeze(1)
     pix = pix_local.index_select(0, sel) + first_image * H * W
@@ -282,7 +291,7 @@ def rasterize_meshes(
 
     dev = verts_ndc.device
     pieces: list[tuple[torch.Tensor, ...]] = []
-    overflow = 0
+    overflow = torch.zeros((), dtype=torch.long, device=verts_ndc.device)
     if B > 0 and F > 0 and V > 0:
         with torch.no_grad():
             v = verts_ndc.detach()
@@ -295,7 +304,7 @@ def rasterize_meshes(
             valid = (fz.amin(-1) > _MIN_DEPTH) & (area_ndc.abs() > _MIN_FACE_AREA)
             boxes = _face_boxes(fpx[..., 0], fpx[..., 1], radius_px, H, W)
             counts = boxes[2] * boxes[3] * valid
-            per_image = counts.sum(1).tolist()
+            per_image = counts.sum(1).tolist()  # one host read: chunks are planned from the per-image work
             start = 0
             while start < B:
                 stop, total = start + 1, per_image[start]
@@ -333,6 +342,8 @@ def rasterize_meshes(
     dists = torch.where(inside, -d2, d2)
     zbuf = (bary * tri[..., 2]).sum(-1)
 
+    # one host read for both counts (the packed layout's sizes are data-dependent: see _select_chunk)
+    overflow, num_slots = torch.stack([overflow, slot.max() + 1 if slot.numel() else slot.new_zeros(())]).tolist()
     if overflow:
         # one message per setting (Python shows a repeated warning once); Fragments.overflow has the count
         warnings.warn(
@@ -340,7 +351,6 @@ def rasterize_meshes(
             "dropped (Fragments.overflow counts them; raise faces_per_pixel if it matters)",
             stacklevel=2,
         )
-    num_slots = int(slot.max()) + 1 if slot.numel() else 0
     return Fragments(
         pix=pix, slot=slot, face=face, inside=inside, bary=bary, dists=dists, zbuf=zbuf,
         batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow,

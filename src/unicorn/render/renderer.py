@@ -106,6 +106,17 @@ class MeshRenderer(nn.Module):
     ) -> Fragments:
         """Fragments of the meshes (B, V, 3) / (F, 3) seen with pose (R, T)."""
         check_mesh_inputs(verts, faces)
+        return self._rasterize(verts, faces, R, T, image_size)
+
+    def _rasterize(
+        self,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        R: torch.Tensor | None,
+        T: torch.Tensor | None,
+        image_size: tuple[int, int] | None,
+    ) -> Fragments:
+        # inputs already checked (each check is a host sync on CUDA: once per render)
         return rasterize_meshes(
             self.project(verts, R, T), faces, image_size or self.image_size, self.blur_radius,
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
@@ -137,7 +148,7 @@ class MeshRenderer(nn.Module):
     ) -> RenderOutput:
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
         self._check_inputs(textures, verts, faces)
-        fragments = self.rasterize(verts, faces, R, T, image_size=self.raster_size)
+        fragments = self._rasterize(verts, faces, R, T, self.raster_size)
         colors = textures.sample(fragments, faces.long())
         bg = background_pixels(
             background, self.background_color, verts.shape[0], self.image_size, textures.num_channels, colors
