@@ -194,6 +194,7 @@ class ShapeNetNMR(UnicornDataset):
             raise DatasetNotFoundError(first / "0000.png", "ShapeNet view images", _HINT)
         rng = np.random.default_rng(self.seed)
         self.random_views = rng.integers(0, self.n_views, size=len(self.models))
+        self._world_mats: dict[int, dict[str, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.models) * (self.n_views if self.views == "all" else 1)
@@ -221,16 +222,28 @@ class ShapeNetNMR(UnicornDataset):
         points, normals = dvr_to_unicorn_points(points), dvr_to_unicorn_points(normals)
         return torch.from_numpy(points.astype(np.float32)), torch.from_numpy(normals.astype(np.float32))
 
+    def view_pose(self, model: int, view: int) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-truth (R (3, 3), T (3,)) of one view, in UNICORN's conventions.
+
+        A model's ``cameras.npz`` is read once and its world matrices kept (about 1 KB per model): opening the
+        archive for every item took a tenth of the data loading.
+        """
+        mats = self._world_mats.get(model)
+        if mats is None:
+            cameras = self.models[model][1] / "cameras.npz"
+            if not cameras.exists():
+                raise DatasetNotFoundError(cameras, "ShapeNet cameras.npz", _HINT)
+            with np.load(cameras) as cams:
+                mats = {k: cams[k] for k in cams.files if k.startswith("world_mat_")}
+            self._world_mats[model] = mats
+        return dvr_to_unicorn_pose(mats[f"world_mat_{view}"])
+
     def load(self, index: int) -> dict[str, Any]:
         model, view = self.model_view(index)
         category, folder = self.models[model]
         image = load_image(folder / "image" / f"{view:04d}.png")
         mask = load_mask(folder / "mask" / f"{view:04d}.png")
-        cameras = folder / "cameras.npz"
-        if not cameras.exists():
-            raise DatasetNotFoundError(cameras, "ShapeNet cameras.npz", _HINT)
-        with np.load(cameras) as cams:
-            R, T = dvr_to_unicorn_pose(cams[f"world_mat_{view}"])
+        R, T = self.view_pose(model, view)
         item: dict[str, Any] = {
             "image": to_chw_tensor(image),
             "mask": to_chw_tensor(mask),
