@@ -191,3 +191,26 @@ def test_scale_identity_at_init_and_bounded():
     assert torch.allclose(head(torch.randn(4, 16)), torch.full((4, 3), 0.7))
     head.use_scale.fill_(False)
     assert torch.equal(head(torch.randn(4, 16)), torch.ones(4, 3))
+
+
+@pytest.mark.parametrize(
+    "size, kernel, stride, padding",
+    [(1, 3, 1, 1), (2, 3, 2, 1), (2, 3, 1, 1), (1, 1, 1, 0), (2, 1, 2, 0), (3, 3, 1, 0), (4, 7, 2, 3), (1, 7, 2, 3)],
+)
+def test_encoder_conv_equals_the_padded_convolution(size, kernel, stride, padding):
+    """The cropped-kernel shortcut for single-pixel outputs: same output and gradients as ``F.conv2d``."""
+    import torch.nn.functional as F
+
+    from unicorn.model.encoder import Conv2d
+
+    g = torch.Generator().manual_seed(0)
+    conv = Conv2d(5, 4, kernel, stride=stride, padding=padding, bias=True).double()
+    x = torch.rand(3, 5, size, size, generator=g, dtype=torch.float64, requires_grad=True)
+    ours = conv(x)
+    ref = F.conv2d(x, conv.weight, conv.bias, stride=stride, padding=padding)
+    torch.testing.assert_close(ours, ref)
+    upstream = torch.rand(ref.shape, generator=g, dtype=torch.float64)
+    g_ours = torch.autograd.grad(ours, (x, conv.weight, conv.bias), upstream)
+    g_ref = torch.autograd.grad(ref, (x, conv.weight, conv.bias), upstream)
+    for a, b in zip(g_ours, g_ref):
+        torch.testing.assert_close(a, b)
