@@ -4,7 +4,7 @@ Examples::
 
     unicorn-eval outputs/shapenet/runs/<time>/checkpoints/last.ckpt          # dataset of the training run
     unicorn-eval model.pkl --dataset cub_200 --root datasets/cub_200 --device cuda
-    unicorn-eval last.ckpt --dataset synthetic --root ~/.cache/unicorn/synthetic/nmr_chair_n200_s0_v1 \\
+    unicorn-eval last.ckpt --dataset synthetic --root ~/.cache/unicorn/synthetic/nmr_chair_n200_s0_v2 \\
         --max-images 64 --fast --out eval/chair
 
 Writes ``metrics.csv``, ``metrics.json``, ``per_image.csv``, ``report.html`` and ``report.png`` to ``--out``
