@@ -46,9 +46,7 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
 def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_root) -> None:
     data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
     template = shapenet_model.template.verts.clone()
-    result = evaluate(
-        shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic", shape_baseline=template * 0.9
-    )
+    result = evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic", shape_baseline=template * 0.9)
     for key in ("color-err", "color-err-mean", "color-ratio", "chamfer-L1-ICP-mean-shape", "shape-win", "rot-flip-150"):
         assert key in result.columns
 
