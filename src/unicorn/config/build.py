@@ -127,8 +127,10 @@ def _check_values(cfg: DictConfig) -> None:
     if h is not None:
         _check(h.split in ("val", "test"), f"callbacks.heldout.split must be val or test, got {h.split!r}")
         _check(
-            min(h.every_n_steps, h.max_images, h.num_points, h.batch_size) >= 1 and h.icp_iterations >= 0,
-            "callbacks.heldout: every_n_steps, max_images, num_points and batch_size must be >= 1, icp_iterations >= 0",
+            min(h.every_n_steps, h.max_images, h.num_points, h.batch_size, h.mean_shape_models) >= 1
+            and min(h.icp_iterations, h.mean_shape_iterations) >= 0,
+            "callbacks.heldout: every_n_steps, max_images, num_points, batch_size and mean_shape_models must be >= 1, "
+            "icp_iterations and mean_shape_iterations >= 0",
         )
     e = cfg.evaluate
     _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")

@@ -271,6 +271,8 @@ class HeldOutConfig:
     icp_iterations: int = 20
     batch_size: int = 32
     at_start: bool = True
+    mean_shape_iterations: int = 0  # > 0: score the training shapes' mean shape beside the model (shape-win)
+    mean_shape_models: int = 200
 
 
 @dataclass
