@@ -13,9 +13,7 @@ from unicorn.cli.train import fit
 from unicorn.config import ConfigError, validate
 from unicorn.lit import HeldOutEvaluation
 
-HELDOUT = [
-    "callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5}"
-]
+HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5}"]
 
 
 def _weights(run) -> dict[str, torch.Tensor]:
