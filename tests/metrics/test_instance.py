@@ -96,6 +96,7 @@ def test_code_spread_and_active_units_against_numpy() -> None:
     np.testing.assert_allclose(spread.numpy(), np.std(codes, axis=0), rtol=1e-10, atol=1e-12)
     assert spread[2] == 0
     assert code_spread(torch.tensor(codes), active_dims=2).shape == (2,)
+    assert code_spread(torch.tensor(codes), active_dims=0).shape == (0,)  # a fully masked code
     with pytest.raises(ValueError, match="active_dims"):
         code_spread(torch.tensor(codes), active_dims=6)
 

@@ -132,6 +132,12 @@ def _check_values(cfg: DictConfig) -> None:
             "callbacks.heldout: every_n_steps, max_images, num_points, batch_size and mean_shape_models must be >= 1, "
             "icp_iterations and mean_shape_iterations >= 0",
         )
+    d = cfg.callbacks.diagnostics
+    if d is not None:
+        _check(
+            d.every_n_steps >= 1 and d.max_images >= 2 and d.spread_tol >= 0,
+            "callbacks.diagnostics: every_n_steps must be >= 1, max_images >= 2 and spread_tol >= 0",
+        )
     e = cfg.evaluate
     _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")
     _check(

@@ -276,10 +276,21 @@ class HeldOutConfig:
 
 
 @dataclass
+class DiagnosticsConfig:
+    """Code spread and dead units of the code regressors (:class:`unicorn.lit.CodeDiagnostics`), rows in
+    ``diagnostics.csv``, a loud warning when a branch collapses."""
+
+    every_n_steps: int = 100
+    max_images: int = 64
+    spread_tol: float = 1e-6
+
+
+@dataclass
 class CallbacksConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     images: ImagesConfig | None = field(default_factory=ImagesConfig)
     heldout: HeldOutConfig | None = None
+    diagnostics: DiagnosticsConfig | None = field(default_factory=DiagnosticsConfig)
     progress_bar_refresh_rate: int = 1
     extra: dict[str, Any] = field(default_factory=dict)  # name -> instantiable callback (``_target_``)
 

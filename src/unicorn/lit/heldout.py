@@ -25,7 +25,7 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities import rank_zero_only
 
-__all__ = ["HeldOutEvaluation"]
+__all__ = ["HeldOutEvaluation", "append_csv_row"]
 
 log = logging.getLogger(__name__)
 
@@ -177,17 +177,22 @@ class HeldOutEvaluation(L.Callback):
 
     @staticmethod
     def _append_csv(path: Path, row: dict[str, float]) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rows: list[dict[str, Any]] = []
-        if path.exists():
-            with path.open(newline="") as f:
-                # a resumed run re-evaluates its restart step: keep one row per step
-                rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
-        rows.append(row)
-        columns = list(dict.fromkeys(k for r in rows for k in r))
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=columns, restval="")
-            writer.writeheader()
-            writer.writerows(rows)
-        tmp.replace(path)
+        append_csv_row(path, row)
+
+
+def append_csv_row(path: Path, row: dict[str, float]) -> None:
+    """Add ``row`` (with a ``step``) to a CSV file of one row per step, atomically; new columns widen the file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    if path.exists():
+        with path.open(newline="") as f:
+            # a resumed run re-evaluates its restart step: keep one row per step
+            rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
+    rows.append(row)
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)

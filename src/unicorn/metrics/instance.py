@@ -186,6 +186,8 @@ def code_spread(codes: torch.Tensor, active_dims: int | None = None) -> torch.Te
         if not 0 <= active_dims <= codes.shape[1]:
             raise ValueError(f"active_dims must be in [0, {codes.shape[1]}], got {active_dims}")
         codes = codes[:, :active_dims]
+    if codes.shape[1] == 0:
+        return codes.new_zeros(0)
     return codes.double().std(dim=0, correction=0).to(codes.dtype)
 
 
