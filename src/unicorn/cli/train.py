@@ -207,6 +207,7 @@ def evaluate_run(run: Run) -> Path:
         f"--batch-size={e.batch_size}",
         f"--report-samples={e.report_samples}",
         f"--turntable-frames={e.turntable_frames}",
+        f"--mean-shape={e.mean_shape_iterations}",
         "--quiet",
     ]
     if e.max_images is not None:

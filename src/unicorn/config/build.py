@@ -144,7 +144,10 @@ def _check_values(cfg: DictConfig) -> None:
         (e.max_images is None or e.max_images >= 1) and min(e.num_points, e.batch_size) >= 1,
         "evaluate: max_images must be null or >= 1, num_points and batch_size >= 1",
     )
-    _check(min(e.icp_iterations, e.report_samples, e.turntable_frames) >= 0, "evaluate: counts must be >= 0")
+    _check(
+        min(e.icp_iterations, e.report_samples, e.turntable_frames, e.mean_shape_iterations) >= 0,
+        "evaluate: counts must be >= 0",
+    )
     for group in ("logger",):
         for name, node in cfg[group].items():
             _check(

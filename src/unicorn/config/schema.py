@@ -307,6 +307,7 @@ class EvaluateConfig:
     batch_size: int = 32
     report_samples: int = 10
     turntable_frames: int = 16
+    mean_shape_iterations: int = 0  # > 0: the training shapes' mean shape scored beside the model (shape-win)
 
 
 @dataclass
