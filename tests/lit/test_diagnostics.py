@@ -1,4 +1,4 @@
-"""Code diagnostics: the numbers against a hand-run forward pass, the collapse warning, and a training run."""
+"""Code diagnostics: the numbers against a hand-run forward pass and the collapse warning."""
 
 from __future__ import annotations
 
@@ -11,9 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from tests.lit.conftest import build_run
 from tests.model.helpers import randomize_heads, tiny_config
-from unicorn.cli.train import fit
 from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.model import Unicorn
 
@@ -115,19 +113,4 @@ def test_a_collapsed_branch_warns_loudly(tmp_path) -> None:
         CodeDiagnostics(max_images=1)
 
 
-def test_training_writes_diagnostics_and_is_unchanged(synthetic_cache, tmp_path) -> None:
-    plain = build_run(tmp_path / "plain", "callbacks.diagnostics=null")
-    fit(plain)
-    watched = build_run(
-        tmp_path / "watched", "callbacks.diagnostics.every_n_steps=4", "callbacks.diagnostics.max_images=8"
-    )
-    fit(watched)
-    a = plain.module.model.state_dict()
-    b = watched.module.model.state_dict()
-    assert all(torch.equal(a[k], b[k]) for k in a)  # eval mode, forked random state: training unchanged
-    callback = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
-    assert not callback.collapsed  # a healthy start raises no alarm
-    rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
-    assert [float(r["step"]) for r in rows] == [4.0, 8.0]
-    assert {"shape/code-std", "texture/alive-last", "texture/units-last"} <= set(rows[0])
-    assert not (plain.output_dir / "diagnostics.csv").exists()
+# in a training run (rows in diagnostics.csv, training unchanged): tests/lit/test_heldout.py

@@ -11,8 +11,9 @@ import torch
 from tests.lit.conftest import build_run, compose_config
 from unicorn.cli.train import fit
 from unicorn.config import ConfigError, validate
-from unicorn.lit import HeldOutEvaluation
+from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
 
+DIAGNOSTICS = ["callbacks.diagnostics.every_n_steps=4", "callbacks.diagnostics.max_images=8"]
 HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5}"]
 
 
@@ -21,11 +22,12 @@ def _weights(run) -> dict[str, torch.Tensor]:
 
 
 def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
-    plain = build_run(tmp_path / "plain")
+    plain = build_run(tmp_path / "plain", "callbacks.diagnostics=null")
     fit(plain)
-    watched = build_run(tmp_path / "watched", *HELDOUT)
+    # the code diagnostics (tests/lit/test_diagnostics.py) are watched in the same run
+    watched = build_run(tmp_path / "watched", *HELDOUT, *DIAGNOSTICS)
     fit(watched)
-    # the callback evaluates in eval mode under a forked random state: training is bit-for-bit the same
+    # the callbacks evaluate in eval mode under a forked random state: training is bit-for-bit the same
     a, b = _weights(plain), _weights(watched)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
@@ -46,6 +48,13 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
     assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
     # the untrained model and the trained one are different models: the curve moves
     assert rows[0]["rec-mse"] != rows[-1]["rec-mse"]
+
+    # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
+    rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
+    assert [float(r["step"]) for r in rows] == [4.0, 8.0]
+    assert {"shape/code-std", "texture/alive-last", "texture/units-last"} <= set(rows[0])
+    diagnostics = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
+    assert not diagnostics.collapsed and not (plain.output_dir / "diagnostics.csv").exists()
 
 
 def test_csv_keeps_one_row_per_step(tmp_path):
