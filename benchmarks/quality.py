@@ -21,6 +21,13 @@ rotation errors after aligning the learned canonical frame with one global rotat
 lowest median error among the chordal least-squares solution and the per-image relative rotations, refined on
 the inliers: ``unicorn.metrics.align_canonical_frame``) and the share of images choosing each pose candidate.
 
+Instance-level columns (``unicorn.metrics.instance``), which tell reconstructions of each object from the
+category mean: ``rot-flip-150`` (share of views predicted turned round, beside ``rot-acc-30``); ``color-err``
+(per view, L1 between the mean foreground colours of the reconstruction and of the input) beside
+``color-err-mean`` (the same for predicting the test views' average colour for every view) and their ratio
+``color-ratio``; ``shape-win``, the share of test objects on which the model's Chamfer-L1 after ICP is below the
+mean shape's on the same object (``chamfer-L1-ICP-mean-shape``).
+
 Writes ``results.md`` / ``results.json`` (the table, the bars, the machine, the times), ``curves.png`` (held-out
 metrics against iterations, from each run's ``heldout.csv``) and ``pictures/report.png`` (input,
 reconstruction, mask, the mesh from three viewpoints, for ten held-out images) into ``--out``.
@@ -65,10 +72,16 @@ BARS = {
 
 COLUMNS = [
     ("chamfer-L1-ICP", "Chamfer-L1 ICP", "{:.3f}"),
+    ("chamfer-L1-ICP-mean-shape", "mean shape, same objects", "{:.3f}"),
+    ("shape-win", "wins vs mean shape", "{:.2f}"),
     ("chamfer-L1", "Chamfer-L1 GT pose", "{:.3f}"),
     ("mask-iou", "mask IoU", "{:.3f}"),
+    ("color-err", "colour err.", "{:.3f}"),
+    ("color-err-mean", "mean-colour err.", "{:.3f}"),
+    ("color-ratio", "colour ratio", "{:.2f}"),
     ("rot-err-median", "rot. err. median (deg)", "{:.1f}"),
     ("rot-acc-30", "rot. acc. 30 deg", "{:.3f}"),
+    ("rot-flip-150", "flipped (> 150 deg)", "{:.3f}"),
     ("cand-share-min", "min cand. share", "{:.3f}"),
     ("train-minutes", "train (min)", "{:.1f}"),
 ]
@@ -149,8 +162,13 @@ def score(
     args: argparse.Namespace,
     oracle_pose: bool = False,
     report_samples: int = 0,
+    mean_shape: torch.Tensor | None = None,
 ) -> tuple[dict[str, float], Any]:
-    """The benchmark's metrics of one model (see the module docstring) and the ICP pass's result."""
+    """The benchmark's metrics of one model (see the module docstring) and the ICP pass's result.
+
+    With ``mean_shape`` ((V, 3) on the model's template), the ICP pass also scores it on every test object and
+    reports the share of objects the model wins (``shape-win``).
+    """
     from unicorn.evaluation import EvalOptions, evaluate
 
     one, every = test_sets(root, model.config["image_size"])
@@ -166,6 +184,7 @@ def score(
         ),
         "synthetic",
         device=args.device,
+        shape_baseline=mean_shape,
     )
     views = evaluate(
         model,
@@ -174,13 +193,19 @@ def score(
         "synthetic",
         args.device,
     )
-    out = {k: icp.mean[k] for k in ("chamfer-L1-ICP", "chamfer-L1")}
-    out.update({k: views.mean[k] for k in views.columns if k not in out and k.startswith(("mask", "rot", "cand"))})
+    out = {
+        k: icp.mean[k]
+        for k in ("chamfer-L1-ICP", "chamfer-L1", "chamfer-L1-ICP-mean-shape", "shape-win")
+        if k in icp.mean
+    }
+    prefixes = ("mask", "rot", "cand", "color")
+    out.update({k: views.mean[k] for k in views.columns if k not in out and k.startswith(prefixes)})
     out["n-icp"], out["n-views"] = icp.mean["n-images"], views.mean["n-images"]
     return out, icp
 
 
-def baselines(model: Any, root: Path, args: argparse.Namespace) -> dict[str, dict[str, float]]:
+def baselines(model: Any, root: Path, args: argparse.Namespace) -> tuple[dict[str, dict[str, float]], torch.Tensor]:
+    """The baselines' rows and the mean shape ((V, 3), which every variant is compared with object by object)."""
     from unicorn.evaluation import mean_shape_baseline, template_baseline, training_point_clouds
 
     rows = {}
@@ -190,7 +215,7 @@ def baselines(model: Any, root: Path, args: argparse.Namespace) -> dict[str, dic
     mean_model = mean_shape_baseline(model, clouds, iterations=args.mean_shape_iterations)
     rows["mean shape (GT pose)"], _ = score(mean_model, root, args, oracle_pose=True)
     print(f"[baselines] scored in {(time.perf_counter() - start) / 60:.1f} min", flush=True)
-    return rows
+    return rows, mean_model.fixed_verts.detach()
 
 
 # ---------------------------------------------------------------------------------------------- outputs
@@ -208,8 +233,16 @@ def plot_curves(run_dirs: dict[str, Path], path: Path) -> Path | None:
         ("chamfer-L1", "Chamfer-L1, GT-pose aligned"),
         ("mask-iou", "mask IoU"),
         ("rot-err-median", "median rotation error (deg)"),
+        ("rot-flip-150", "share of views flipped (> 150 deg)"),
+        ("color-ratio", "colour error / mean-colour error"),
+        ("shape-win", "share of objects beating the mean shape"),
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
+    n_cols = 4
+    n_rows = -(-len(panels) // n_cols)
+    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.2 * n_cols, 3.4 * n_rows), squeeze=False)
+    axes = list(grid.flat)
+    for ax in axes[len(panels) :]:
+        ax.axis("off")
     drawn = False
     for name, run_dir in run_dirs.items():
         csv_path = run_dir / "heldout.csv"
@@ -281,12 +314,17 @@ def main(argv: list[str] | None = None) -> int:
 
     rows: dict[str, dict[str, float]] = {}
     report = None
+    mean_shape = None
+    # the baselines first (with the first run's model: every variant has the same template), so that each
+    # variant is compared with the same mean shape object by object
     for name in names:
         t0 = time.perf_counter()
         model, root = load_run(run_dirs[name], args.device)
-        if name == "full":
-            rows.update(baselines(model, root, args))
-        rows[name], result = score(model, root, args, report_samples=10 if name == "full" else 0)
+        if mean_shape is None:
+            baseline_rows, mean_shape = baselines(model, root, args)
+            rows.update(baseline_rows)
+        samples = 10 if name == "full" else 0
+        rows[name], result = score(model, root, args, report_samples=samples, mean_shape=mean_shape)
         rows[name]["train-minutes"] = minutes[name]
         if name == "full":
             from unicorn.evaluation.report import write_report

@@ -33,7 +33,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     out = tmp_path / "eval"
     cmd = [sys.executable, "-m", "unicorn.cli.eval", str(checkpoint), "--dataset", "synthetic", "--root", str(synth),
            "--split", "train", "--max-images", "3", "--report-samples", "2", "--device", "cpu", "--out", str(out),
-           *FAST]  # fmt: skip
+           "--mean-shape", "5", *FAST]  # fmt: skip
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -46,6 +46,11 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     ]  # fmt: skip
     assert {"rot-err-median", "rec-mse"} <= set(rows[0]) and [r["group"] for r in rows] == ["chair", "mug", "mean"]
     assert rows[-1]["n-images"] == "3"
+    # the instance-level columns, in the table and per image
+    instance = {"color-err", "color-err-mean", "chamfer-L1-ICP-mean-shape", "shape-win"}
+    assert instance | {"color-ratio", "rot-flip-150"} <= set(rows[0])
+    with open(out / "per_image.csv") as f:
+        assert instance <= set(next(csv.DictReader(f)))
     data = json.loads((out / "metrics.json").read_text())
     assert data["dataset"] == "synthetic" and data["checkpoint_format"] == "plain" and len(data["per_image"]) == 3
     assert data["options"]["num_points"] == 300 and data["protocol"] == "shapenet"
@@ -84,6 +89,7 @@ def test_synthetic_run_root(tmp_path: Path) -> None:
         (["{ckpt}", "--dataset", "synthetic", "--root", "{tmp}/nowhere"], "not found"),
         (["{ckpt}"], "no --dataset given"),
         (["{ckpt}", "--dataset", "cub_200"], "no --root given"),
+        (["{ckpt}", "--dataset", "folder", "--root", "{tmp}", "--mean-shape", "5"], "--mean-shape needs"),
     ],
 )
 def test_errors(tmp_path: Path, checkpoint: Path, capsys, args: list[str], message: str) -> None:

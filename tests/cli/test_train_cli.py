@@ -34,7 +34,9 @@ def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.Compl
 
 def test_every_experiment_composes_and_validates(tmp_path):
     shipped = sorted(p.stem for p in (config_dir() / "experiment").glob("*.yaml"))
-    assert shipped == sorted(["synthetic", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)])
+    assert shipped == sorted(
+        ["synthetic", "synthetic64", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)]
+    )
     for name in shipped:
         for model in ("small", "big"):
             cfg = compose_config([f"+experiment={name}", f"model={model}", f"paths.output_dir={tmp_path}"])
@@ -52,6 +54,11 @@ def test_every_experiment_composes_and_validates(tmp_path):
     assert wild.trainer.max_steps == default.trainer.max_steps
     assert wild.schedule.milestones == default.schedule.milestones
     assert default.evaluate.enabled and default.callbacks.heldout is not None
+    # the 64 px variant: its own cache folder (the generator's manifest would refuse the 32 px one), same budget
+    big = validate(compose_config(["+experiment=synthetic64", f"paths.output_dir={tmp_path}"]))
+    assert default.dataset.img_size == default.model.image_size == default.dataset.synthetic["image_size"] == 32
+    assert big.dataset.img_size == big.model.image_size == big.dataset.synthetic["image_size"] == 64
+    assert big.dataset.root != default.dataset.root and big.trainer.max_steps == default.trainer.max_steps
     cub = validate(compose_config(["+experiment=cub", "model=big", f"paths.output_dir={tmp_path}"]))
     assert cub.model.stages.texture == [2, 8, 64, 512] and cub.schedule.curriculum.translation == 938
     assert cub.schedule.texture_averaging.random_until_stage == 4 and cub.trainer.max_steps == 3_000_000

@@ -43,11 +43,65 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
     assert result.per_image[0]["mask-iou"] == pytest.approx(float(iou), abs=1e-6)
 
 
+def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_root) -> None:
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    template = shapenet_model.template.verts.clone()
+    result = evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic", shape_baseline=template * 0.9)
+    for key in ("color-err", "color-err-mean", "color-ratio", "chamfer-L1-ICP-mean-shape", "shape-win", "rot-flip-150"):
+        assert key in result.columns
+
+    # colours, with pixel loops over the same hard renders and the input masks
+    batches = [collate([data[i] for i in range(0, 3)]), collate([data[i] for i in range(3, len(data))])]
+    pred_colors, gt_colors, groups = [], [], []
+    for batch in batches:
+        with torch.no_grad():
+            pred = shapenet_model.predict(batch["image"])
+            hard = hard_render(shapenet_model, pred.verts, pred.texture, pred.R, pred.T, batch["mask"].shape[-1], 2)
+        for i in range(len(batch["index"])):
+            rgb, alpha, mask = hard.images[i, :3], hard.images[i, 3], batch["mask"][i, 0]
+            image = batch["image"][i]
+            pix = [rgb[:, y, x] for y in range(rgb.shape[1]) for x in range(rgb.shape[2]) if alpha[y, x] >= 0.5]
+            gt = [image[:, y, x] for y in range(image.shape[1]) for x in range(image.shape[2]) if mask[y, x] >= 0.5]
+            pred_colors.append(torch.stack(pix).mean(0) if pix else torch.full((3,), math.nan))
+            gt_colors.append(torch.stack(gt).mean(0))
+            groups.append(result.per_image[len(groups)]["group"])
+    for g in ("chair", "mug"):
+        members = [i for i, x in enumerate(groups) if x == g]
+        reference = torch.stack([gt_colors[i] for i in members]).mean(0)
+        model_errors, base_errors = [], []
+        for i in members:
+            row = result.per_image[i]
+            want = (pred_colors[i] - gt_colors[i]).abs().mean().item()
+            want_base = (reference - gt_colors[i]).abs().mean().item()
+            assert row["color-err"] == pytest.approx(want, abs=1e-5)
+            assert row["color-err-mean"] == pytest.approx(want_base, abs=1e-5)
+            model_errors.append(want)
+            base_errors.append(want_base)
+        table = next(r for r in result.table if r["group"] == g)
+        assert table["color-ratio"] == pytest.approx(sum(model_errors) / sum(base_errors), rel=1e-4)
+
+    # shape: the baseline mesh scored with the metric function, the win decided per object
+    batch = batches[0]
+    direct = evaluate_meshes(
+        (template * 0.9).expand(3, -1, -1), shapenet_model.template.faces, batch["points"], batch["normals"],
+        num_points=400, icp_iterations=2,
+    )  # fmt: skip
+    for i in range(3):
+        row = result.per_image[i]
+        assert row["chamfer-L1-ICP-mean-shape"] == pytest.approx(float(direct["chamfer-L1-ICP"][i]), rel=1e-5)
+        assert row["shape-win"] == (1.0 if row["chamfer-L1-ICP"] < row["chamfer-L1-ICP-mean-shape"] else 0.0)
+    with pytest.raises(ValueError, match="shape_baseline"):
+        evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic", shape_baseline=template[:5])
+
+
 def test_cub_protocol(real_model, cub_root) -> None:
     data = build_eval_dataset("cub_200", str(cub_root), "test", img_size=32)
     assert data[0]["mask"].shape[-1] == 256  # masks and keypoints in UNICORN's 256 px frame
     result = evaluate(real_model, data, EvalOptions("cub", **FAST), "cub_200")
-    assert result.columns == ["mask-iou", "pck-5", "pck-10", "pck-15", "cand-share-min", "cand-share-max", "rec-mse"]
+    assert result.columns == [
+        "mask-iou", "pck-5", "pck-10", "pck-15", "cand-share-min", "cand-share-max",
+        "color-err", "color-err-mean", "color-ratio", "rec-mse",
+    ]  # fmt: skip
     mean = result.mean
     assert 0 <= mean["pck-5"] <= mean["pck-10"] <= mean["pck-15"] <= 1 and 0 <= mean["mask-iou"] <= 1
 
@@ -57,7 +111,8 @@ def test_p3d_protocol(real_model, p3d_root) -> None:
     result = evaluate(real_model, data, EvalOptions("p3d", **FAST), "p3d_car")
     # without ground-truth poses only the ICP-registered shape metrics mean something
     assert result.columns == [
-        "chamfer-L1-ICP", "normal-cos-ICP", "mask-iou", "cand-share-min", "cand-share-max", "rec-mse"
+        "chamfer-L1-ICP", "normal-cos-ICP", "mask-iou", "cand-share-min", "cand-share-max",
+        "color-err", "color-err-mean", "color-ratio", "rec-mse",
     ]  # fmt: skip
 
 

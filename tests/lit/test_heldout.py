@@ -11,9 +11,10 @@ import torch
 from tests.lit.conftest import build_run, compose_config
 from unicorn.cli.train import fit
 from unicorn.config import ConfigError, validate
-from unicorn.lit import HeldOutEvaluation
+from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
 
-HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2}"]
+DIAGNOSTICS = ["callbacks.diagnostics.every_n_steps=4", "callbacks.diagnostics.max_images=8"]
+HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5}"]
 
 
 def _weights(run) -> dict[str, torch.Tensor]:
@@ -21,11 +22,12 @@ def _weights(run) -> dict[str, torch.Tensor]:
 
 
 def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
-    plain = build_run(tmp_path / "plain")
+    plain = build_run(tmp_path / "plain", "callbacks.diagnostics=null")
     fit(plain)
-    watched = build_run(tmp_path / "watched", *HELDOUT)
+    # the code diagnostics (tests/lit/test_diagnostics.py) are watched in the same run
+    watched = build_run(tmp_path / "watched", *HELDOUT, *DIAGNOSTICS)
     fit(watched)
-    # the callback evaluates in eval mode under a forked random state: training is bit-for-bit the same
+    # the callbacks evaluate in eval mode under a forked random state: training is bit-for-bit the same
     a, b = _weights(plain), _weights(watched)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
@@ -34,10 +36,25 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
     for r in rows:
         assert 0.0 <= float(r["mask-iou"]) <= 1.0
         assert float(r["chamfer-L1"]) > 0 and float(r["chamfer-L1-ICP"]) > 0
+        # the instance-level columns: colour against the mean colour, flips, the mean shape on the same objects
+        # (one validation model here: the mean colour is its own, so the baseline is exact and the ratio undefined)
+        assert float(r["color-err"]) > 0 and float(r["color-err-mean"]) == 0 and r["color-ratio"] == "nan"
+        assert 0.0 <= float(r["rot-flip-150"]) <= 1.0 and 0.0 <= float(r["shape-win"]) <= 1.0
+        assert float(r["chamfer-L1-ICP-mean-shape"]) > 0
     callback = next(c for c in watched.trainer.callbacks if isinstance(c, HeldOutEvaluation))
+    assert callback.mean_shape is not None and callback.mean_shape.shape == watched.module.model.template.verts.shape
+    # the mean shape is the same at every evaluation: its scores do not move while the model's do
+    assert len({r["chamfer-L1-ICP-mean-shape"] for r in rows}) == 1
     assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
     # the untrained model and the trained one are different models: the curve moves
     assert rows[0]["rec-mse"] != rows[-1]["rec-mse"]
+
+    # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
+    rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
+    assert [float(r["step"]) for r in rows] == [4.0, 8.0]
+    assert {"shape/code-std", "texture/alive-last", "texture/units-last"} <= set(rows[0])
+    diagnostics = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
+    assert not diagnostics.collapsed and not (plain.output_dir / "diagnostics.csv").exists()
 
 
 def test_csv_keeps_one_row_per_step(tmp_path):

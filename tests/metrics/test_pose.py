@@ -53,7 +53,19 @@ def test_align_canonical_frame_with_outliers():
     errors = pose_errors(R_pred, R_gt, align=True)
     assert errors["rot-err-median"] < 5.0
     assert errors["rot-acc-30"] == pytest.approx(0.7, abs=0.01)
-    assert set(errors) == {"rot-err-mean", "rot-err-median", "rot-acc-30", "azim-err-mean", "azim-err-median"}
+    assert errors["rot-flip-150"] == pytest.approx(0.3, abs=0.01)  # the flipped frames, and only them
+    assert set(errors) == {
+        "rot-err-mean",
+        "rot-err-median",
+        "rot-acc-30",
+        "rot-flip-150",
+        "azim-err-mean",
+        "azim-err-median",
+    }
+    assert set(pose_errors(R_pred, R_gt, accuracy_threshold=15.0, flip_threshold=170.5)) >= {
+        "rot-acc-15",
+        "rot-flip-170.5",
+    }
     unaligned = pose_errors(R_pred, R_gt)
     assert unaligned["rot-err-median"] > 10.0
 

@@ -4,7 +4,7 @@ Examples::
 
     unicorn-eval outputs/shapenet/runs/<time>/checkpoints/last.ckpt          # dataset of the training run
     unicorn-eval model.pkl --dataset cub_200 --root datasets/cub_200 --device cuda
-    unicorn-eval last.ckpt --dataset synthetic --root ~/.cache/unicorn/synthetic/nmr_chair_n200_s0_v1 \\
+    unicorn-eval last.ckpt --dataset synthetic --root ~/.cache/unicorn/synthetic/nmr_chair_n200_s0_v2 \\
         --max-images 64 --fast --out eval/chair
 
 Writes ``metrics.csv``, ``metrics.json``, ``per_image.csv``, ``report.html`` and ``report.png`` to ``--out``
@@ -63,6 +63,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--icp-iterations", type=int, default=100, help="ICP iterations (0: no -ICP metrics)")
     p.add_argument("--fast", action="store_true", help="UNICORN's validation setting: 50k points and 30 ICP iterations")
     p.add_argument("--num-pairs", type=int, default=10_000, help="keypoint-transfer pairs (CUB)")
+    p.add_argument(
+        "--mean-shape",
+        type=int,
+        default=0,
+        metavar="ITERATIONS",
+        help="ShapeNet / synthetic: fit the training split's mean shape with this many iterations (e.g. 300) and "
+        "score it on every object beside the model (chamfer-L1-ICP-mean-shape, shape-win); 0: off",
+    )
     p.add_argument("--no-align-pose", action="store_true", help="pose errors without canonical-frame alignment")
     p.add_argument(
         "--template-level",
@@ -149,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
         categories = run_data["categories"]
 
     protocol = protocol_for(dataset)
+    if args.mean_shape > 0 and protocol != "shapenet":
+        raise ValueError(f"--mean-shape needs a dataset with training point clouds (shapenet protocol), not {dataset}")
     data = build_eval_dataset(
         dataset,
         str(root),
@@ -182,7 +192,16 @@ def run(args: argparse.Namespace) -> int:
             "one to two minutes per image on a CPU; --fast (UNICORN's validation setting) or a GPU is much quicker",
             flush=True,
         )
-    result = evaluate(model, data, options, dataset_name=dataset, device=device)
+    mean_shape = None
+    if args.mean_shape > 0:
+        from unicorn.evaluation import fit_mean_shape, training_point_clouds
+
+        clouds = training_point_clouds(root, categories, max_models=200, num_points=5000)
+        print(f"fitting the mean shape of {len(clouds)} training shapes ({args.mean_shape} iterations)", flush=True)
+        mean_shape = fit_mean_shape(
+            model.template.verts, model.template.faces, clouds, iterations=args.mean_shape, seed=args.seed
+        )
+    result = evaluate(model, data, options, dataset_name=dataset, device=device, shape_baseline=mean_shape)
 
     meta = {
         "checkpoint": str(Path(args.checkpoint).expanduser().resolve()),
@@ -196,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
         "device": str(device),
         "torch": torch.__version__,
         "options": dataclasses.asdict(options),
+        "mean_shape_iterations": args.mean_shape,
         "command": " ".join(["unicorn-eval", *sys.argv[1:]]),
     }
     paths = write_metrics(result, out, meta)

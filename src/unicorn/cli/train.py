@@ -91,6 +91,7 @@ def build(cfg: DictConfig) -> Run:
     from unicorn.config import model_config, validate
     from unicorn.lit import (
         AtomicCheckpointIO,
+        CodeDiagnostics,
         HeldOutEvaluation,
         ImageLogger,
         IterationDataModule,
@@ -148,6 +149,8 @@ def build(cfg: DictConfig) -> Run:
         callbacks.append(ImageLogger(**OmegaConf.to_container(cb.images, resolve=True)))
     if cb.heldout is not None:
         callbacks.append(HeldOutEvaluation(**OmegaConf.to_container(cb.heldout, resolve=True)))
+    if cb.diagnostics is not None:
+        callbacks.append(CodeDiagnostics(**OmegaConf.to_container(cb.diagnostics, resolve=True)))
     callbacks += [instantiate(node) for node in cb.extra.values()]
     loggers = [instantiate(node) for node in typed.logger.values() if node is not None]
 
@@ -204,6 +207,7 @@ def evaluate_run(run: Run) -> Path:
         f"--batch-size={e.batch_size}",
         f"--report-samples={e.report_samples}",
         f"--turntable-frames={e.turntable_frames}",
+        f"--mean-shape={e.mean_shape_iterations}",
         "--quiet",
     ]
     if e.max_images is not None:

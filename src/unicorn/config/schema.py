@@ -272,6 +272,18 @@ class HeldOutConfig:
     icp_iterations: int = 20
     batch_size: int = 32
     at_start: bool = True
+    mean_shape_iterations: int = 0  # > 0: score the training shapes' mean shape beside the model (shape-win)
+    mean_shape_models: int = 200
+
+
+@dataclass
+class DiagnosticsConfig:
+    """Code spread and dead units of the code regressors (:class:`unicorn.lit.CodeDiagnostics`), rows in
+    ``diagnostics.csv``, a loud warning when a branch collapses."""
+
+    every_n_steps: int = 100
+    max_images: int = 64
+    spread_tol: float = 1e-6
 
 
 @dataclass
@@ -279,6 +291,7 @@ class CallbacksConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     images: ImagesConfig | None = field(default_factory=ImagesConfig)
     heldout: HeldOutConfig | None = None
+    diagnostics: DiagnosticsConfig | None = field(default_factory=DiagnosticsConfig)
     progress_bar_refresh_rate: int = 1
     extra: dict[str, Any] = field(default_factory=dict)  # name -> instantiable callback (``_target_``)
 
@@ -295,6 +308,7 @@ class EvaluateConfig:
     batch_size: int = 32
     report_samples: int = 10
     turntable_frames: int = 16
+    mean_shape_iterations: int = 0  # > 0: the training shapes' mean shape scored beside the model (shape-win)
 
 
 @dataclass

@@ -18,6 +18,19 @@ Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.m
 Every protocol also reports ``rec-mse``, the mean squared error of the model's own rendering (with its predicted
 background) against the input, the quantity the model was trained to lower.
 
+Instance-level metrics (:mod:`unicorn.metrics.instance`) tell a model that reconstructs each object from one that
+outputs the category mean:
+
+- colour (every protocol with ground-truth masks): per image ``color-err``, the L1 distance (mean over RGB)
+  between the mean foreground colour of the hard-rendered reconstruction (inside its silhouette) and of the
+  input (inside its mask), and ``color-err-mean``, the same for a predictor of one colour for every image (the
+  average input foreground colour of the group's evaluated images); per group ``color-ratio``, the ratio of
+  their means (below 1 only when reconstructions carry their image's colour);
+- shape (with ``shape_baseline``, a mean shape, see :func:`evaluate`): per image ``chamfer-L1-ICP-mean-shape``,
+  Chamfer-L1 after ICP of that one mesh on the same object, and ``shape-win``, 1 where the model's
+  ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model wins;
+- pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round.
+
 Two diagnostics complete them:
 
 - pose-candidate usage: per image the index of the selected candidate (``candidate`` in the per-image rows) and,
@@ -47,7 +60,14 @@ from tqdm.auto import tqdm
 from unicorn.data import build_dataset
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
 from unicorn.geometry.cameras import PerspectiveCamera
-from unicorn.metrics import evaluate_meshes, keypoint_transfer_pck, mask_iou, pose_errors
+from unicorn.metrics import (
+    color_errors,
+    evaluate_meshes,
+    keypoint_transfer_pck,
+    mask_iou,
+    mean_foreground_color,
+    pose_errors,
+)
 from unicorn.model import Unicorn
 
 if TYPE_CHECKING:  # baselines imports this module at run time
@@ -90,10 +110,16 @@ METRIC_ORDER = {
     "rot-err-mean": "lower",
     "rot-err-median": "lower",
     "rot-acc-30": "higher",
+    "rot-flip-150": "lower",
     "azim-err-mean": "lower",
     "azim-err-median": "lower",
     "cand-share-min": "higher",
     "cand-share-max": "lower",
+    "color-err": "lower",
+    "color-err-mean": "lower",
+    "color-ratio": "lower",
+    "chamfer-L1-ICP-mean-shape": "lower",
+    "shape-win": "higher",
     "rec-mse": "lower",
 }
 
@@ -317,6 +343,8 @@ class _Accumulator:
         # selected pose-candidate index per image, grouped, and the number K of candidates (0: not recorded)
         self.candidates: dict[str, list[int]] = {}
         self.n_candidates = 0
+        # per group: (row number, reconstruction's mean foreground colour (3,), input's (3,))
+        self.colors: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}
 
 
 def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
@@ -403,6 +431,7 @@ def evaluate(
     options: EvalOptions,
     dataset_name: str = "dataset",
     device: str | torch.device = "cpu",
+    shape_baseline: torch.Tensor | None = None,
 ) -> EvaluationResult:
     """Run the evaluation protocol of ``options.protocol`` over ``dataset``.
 
@@ -418,6 +447,9 @@ def evaluate(
         options: :class:`EvalOptions`.
         dataset_name: group name for datasets without categories, and the label of the progress bar.
         device: where the model and the metrics run.
+        shape_baseline: (V, 3) one mesh on the model's template topology, e.g. the training set's mean shape
+            (:func:`~unicorn.evaluation.baselines.fit_mean_shape`), scored on every object beside the model
+            (``chamfer-L1-ICP-mean-shape`` and ``shape-win``; needs ground-truth points and ICP).
 
     Returns:
         :class:`EvaluationResult`.
@@ -431,6 +463,12 @@ def evaluate(
     protocol = options.protocol
     size = model.config["image_size"]
     faces = model.template.faces
+    if shape_baseline is not None:
+        V = model.template.num_verts
+        if not isinstance(shape_baseline, torch.Tensor) or shape_baseline.shape != (V, 3):
+            shape = tuple(shape_baseline.shape) if isinstance(shape_baseline, torch.Tensor) else type(shape_baseline)
+            raise ValueError(f"shape_baseline must be a ({V}, 3) mesh on the model's template topology, got {shape}")
+        shape_baseline = shape_baseline.to(device=device, dtype=model.template.verts.dtype)
     group_of = group_namer(dataset, dataset_name)
     loader = DataLoader(
         dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
@@ -461,8 +499,13 @@ def evaluate(
         mask_size = batch["mask"].shape[-1] if has_mask else size
         hard = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.mask_supersample)
         alpha = hard.images[:, 3:]
+        colors = None
         if has_mask and protocol != "images":
-            scores["mask-iou"] = mask_iou(alpha, batch["mask"].to(device), reduction="none")
+            gt_mask = batch["mask"].to(device)
+            scores["mask-iou"] = mask_iou(alpha, gt_mask, reduction="none")
+            # mean foreground colours: the input's inside its mask, the reconstruction's inside its silhouette
+            small_mask = F.interpolate(gt_mask.float().reshape(B, 1, *gt_mask.shape[-2:]), size=(size, size))
+            colors = (mean_foreground_color(hard.images[:, :3], alpha), mean_foreground_color(images, small_mask))
 
         groups = [group_of(batch, i) for i in range(B)]
         if protocol in ("shapenet", "p3d") and "points" in batch:
@@ -471,6 +514,12 @@ def evaluate(
                 # no ground-truth pose: only the ICP-registered numbers are meaningful
                 mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
             scores.update(mesh)
+            if shape_baseline is not None and "chamfer-L1-ICP" in mesh:
+                base_verts = shape_baseline.unsqueeze(0).expand(B, -1, -1)
+                base = _mesh_scores(model, base_verts, batch, device, options, False, R, T)["chamfer-L1-ICP"]
+                ours = mesh["chamfer-L1-ICP"]
+                scores["chamfer-L1-ICP-mean-shape"] = base
+                scores["shape-win"] = (ours < base).to(ours.dtype) + 0.5 * (ours == base).to(ours.dtype)
         if protocol == "shapenet" and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
                 acc.poses.setdefault(g, []).append((pred.R[i].cpu(), batch["R"][i].cpu()))
@@ -491,6 +540,8 @@ def evaluate(
             if chosen is not None:
                 row["candidate"] = int(chosen[i])
             row.update({k: float(v[i]) for k, v in scores.items()})
+            if colors is not None:
+                acc.colors.setdefault(groups[i], []).append((len(acc.rows), colors[0][i].cpu(), colors[1][i].cpu()))
             acc.rows.append(row)
             if len(samples) < options.report_samples:
                 samples.append(
@@ -512,9 +563,22 @@ def evaluate(
     bar.close()
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
+    _color_scores(acc)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = _table(acc, model, options, shares)
     return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
+
+
+def _color_scores(acc: _Accumulator) -> None:
+    """Per-image ``color-err`` and ``color-err-mean`` (the group's average input colour as the prediction)."""
+    for entries in acc.colors.values():
+        rows, pred, gt = zip(*entries)
+        pred_colors, gt_colors = torch.stack(pred).double(), torch.stack(gt).double()
+        if bool(torch.isnan(gt_colors).any(dim=1).all()):
+            continue  # no input foreground at all: nothing to compare
+        model, base = color_errors(pred_colors, gt_colors)
+        for r, m, b in zip(rows, model.tolist(), base.tolist()):
+            acc.rows[r]["color-err"], acc.rows[r]["color-err-mean"] = m, b
 
 
 def _set_metrics(
@@ -528,6 +592,11 @@ def _set_metrics(
     out: dict[str, float] = {}
     if group in shares:
         out["cand-share-min"], out["cand-share-max"] = min(shares[group]), max(shares[group])
+    errors = [(r["color-err"], r["color-err-mean"]) for r in acc.rows if r["group"] == group and "color-err" in r]
+    errors = [(m, b) for m, b in errors if not (math.isnan(m) or math.isnan(b))]
+    if errors:
+        model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
+        out["color-ratio"] = model_mean / base_mean if base_mean > 0 else float("nan")
     if group in acc.poses:
         R_pred = torch.stack([p[0] for p in acc.poses[group]])
         R_gt = torch.stack([p[1] for p in acc.poses[group]])
@@ -559,7 +628,7 @@ def _table(
     for g in groups:
         members = [r for r in acc.rows if r["group"] == g]
         row: dict[str, Any] = {"group": g, "n-images": len(members)}
-        keys = [k for k in members[0] if k not in ROW_INFO]  # the candidate index is not a metric to average
+        keys = list(dict.fromkeys(k for r in members for k in r if k not in ROW_INFO))  # not the candidate index
         for k in keys:
             values = [r[k] for r in members if k in r and not math.isnan(r[k])]
             row[k] = float(np.mean(values)) if values else float("nan")

@@ -6,6 +6,8 @@
   and texture averaging; image logging.
 - :class:`AtomicCheckpointIO` (``checkpoint``): complete-or-absent checkpoint files.
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
+- :class:`CodeDiagnostics` (``diagnostics``): code spread and dead units of the code regressors, with a loud
+  :class:`CollapseWarning` when a branch stops depending on the image.
 - :class:`IterationDataModule` (``data``): an endless, resumable, rank-sharded stream of training batches.
 
 Distributed training (DDP) keeps one neighbour memory bank per rank, as the reference does: each process
@@ -18,12 +20,15 @@ rank ``r mod saved_world_size``.
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
 from unicorn.lit.checkpoint import AtomicCheckpointIO, atomic_torch_save
 from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
+from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
 
 __all__ = [
     "OPTIM_DEFAULTS",
     "AtomicCheckpointIO",
+    "CodeDiagnostics",
+    "CollapseWarning",
     "HeldOutEvaluation",
     "ImageLogger",
     "IterationDataModule",
@@ -34,5 +39,6 @@ __all__ = [
     "StreamBatchSampler",
     "UnicornLitModule",
     "atomic_torch_save",
+    "code_diagnostics",
     "render_overview",
 ]

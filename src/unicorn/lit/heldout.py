@@ -5,6 +5,12 @@ of held-out images with the dataset's evaluation protocol, at a cost small enoug
 (few surface points, few ICP iterations). The numbers go to every logger under ``heldout/<metric>`` and, one
 row per evaluation, to ``<run>/heldout.csv``: the learning curves of shape, silhouette and pose quality, not
 only of the training loss. Nothing is selected on them: they are for watching and plotting.
+
+They include the instance-level metrics of :func:`~unicorn.evaluation.evaluate`: the colour error beside the
+mean-colour predictor's (``color-err``, ``color-err-mean``, ``color-ratio``), the flip rate (``rot-flip-150``)
+and, with ``mean_shape_iterations`` > 0 on a dataset with ground-truth point clouds, the training split's mean
+shape (fitted once, at the start) scored on the same objects (``chamfer-L1-ICP-mean-shape``) and the share of
+objects on which the model is closer (``shape-win``).
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities import rank_zero_only
 
-__all__ = ["HeldOutEvaluation"]
+__all__ = ["HeldOutEvaluation", "append_csv_row"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +47,11 @@ class HeldOutEvaluation(L.Callback):
         batch_size: images per forward pass.
         at_start: also evaluate before the first iteration (the untrained model, the start of the curves).
         filename: the CSV file, relative to the run directory.
+        mean_shape_iterations: fit the mean shape of (at most ``mean_shape_models``) training point clouds
+            with this many iterations (:func:`~unicorn.evaluation.baselines.fit_mean_shape`) and score it beside
+            the model; 0: no shape baseline. Needs a dataset with point clouds (ShapeNet-NMR, synthetic) and
+            ``icp_iterations`` > 0.
+        mean_shape_models: most training shapes the mean shape is fitted to.
     """
 
     def __init__(
@@ -53,6 +64,8 @@ class HeldOutEvaluation(L.Callback):
         batch_size: int = 32,
         at_start: bool = True,
         filename: str = "heldout.csv",
+        mean_shape_iterations: int = 0,
+        mean_shape_models: int = 200,
     ) -> None:
         if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
             raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
@@ -60,9 +73,16 @@ class HeldOutEvaluation(L.Callback):
             raise ValueError(f"split must be 'val' or 'test', got {split!r}")
         if icp_iterations < 0:
             raise ValueError(f"icp_iterations must be >= 0, got {icp_iterations}")
+        if mean_shape_iterations < 0 or mean_shape_models < 1:
+            raise ValueError(
+                f"mean_shape_iterations must be >= 0 and mean_shape_models >= 1, got {mean_shape_iterations}, "
+                f"{mean_shape_models}"
+            )
         self.every_n_steps, self.split, self.max_images = int(every_n_steps), split, int(max_images)
         self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
         self.at_start, self.filename = bool(at_start), filename
+        self.mean_shape_iterations, self.mean_shape_models = int(mean_shape_iterations), int(mean_shape_models)
+        self.mean_shape: torch.Tensor | None = None  # (V, 3), fitted with the dataset
         self._dataset: Any = None
         self._name = "dataset"
         self.history: list[dict[str, float]] = []
@@ -85,6 +105,20 @@ class HeldOutEvaluation(L.Callback):
             categories=data.categories,
             max_images=self.max_images,
         )
+        if self.mean_shape_iterations > 0 and self.icp_iterations > 0 and data.name in ("shapenet_nmr", "synthetic"):
+            from unicorn.evaluation import fit_mean_shape, training_point_clouds
+
+            clouds = training_point_clouds(root, data.categories, self.mean_shape_models, num_points=self.num_points)
+            template = pl_module.model.template
+            with torch.random.fork_rng(devices=[]):  # the fit is seeded; leave the training's streams alone
+                self.mean_shape = fit_mean_shape(
+                    template.verts.detach(), template.faces, clouds, iterations=self.mean_shape_iterations
+                )
+            log.info(
+                "held-out: mean shape of %d training shapes fitted (%d iterations)",
+                len(clouds),
+                self.mean_shape_iterations,
+            )
 
     # ------------------------------------------------------------------ hooks
     @rank_zero_only
@@ -121,7 +155,14 @@ class HeldOutEvaluation(L.Callback):
         # the evaluation draws points and ICP noise: keep the training's random streams where they were
         with torch.random.fork_rng(devices=devices):
             try:
-                result = evaluate(pl_module.model, self._dataset, options, self._name, device=pl_module.device)
+                result = evaluate(
+                    pl_module.model,
+                    self._dataset,
+                    options,
+                    self._name,
+                    device=pl_module.device,
+                    shape_baseline=self.mean_shape,
+                )
             finally:
                 pl_module.train(was_training)
         row = {"step": float(step), **{k: float(v) for k, v in result.mean.items() if k in result.columns}}
@@ -136,17 +177,22 @@ class HeldOutEvaluation(L.Callback):
 
     @staticmethod
     def _append_csv(path: Path, row: dict[str, float]) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rows: list[dict[str, Any]] = []
-        if path.exists():
-            with path.open(newline="") as f:
-                # a resumed run re-evaluates its restart step: keep one row per step
-                rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
-        rows.append(row)
-        columns = list(dict.fromkeys(k for r in rows for k in r))
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=columns, restval="")
-            writer.writeheader()
-            writer.writerows(rows)
-        tmp.replace(path)
+        append_csv_row(path, row)
+
+
+def append_csv_row(path: Path, row: dict[str, float]) -> None:
+    """Add ``row`` (with a ``step``) to a CSV file of one row per step, atomically; new columns widen the file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    if path.exists():
+        with path.open(newline="") as f:
+            # a resumed run re-evaluates its restart step: keep one row per step
+            rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
+    rows.append(row)
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)

@@ -1,5 +1,6 @@
 """Evaluation metrics of UNICORN: Chamfer-L1 (with GT-pose alignment or ICP), normal consistency, mask IoU,
-keypoint-transfer PCK, pose errors and voxel IoU.
+keypoint-transfer PCK, pose errors and voxel IoU; and instance-level metrics (colour error against the
+mean-colour predictor, win share against a baseline, flip rate, code spread and active units).
 
 Each metric is a plain function on tensors; see the submodules for the protocols they follow.
 """
@@ -21,6 +22,15 @@ from .icp import (
     rotation_6d_to_matrix,
     transform_normals,
 )
+from .instance import (
+    active_units,
+    code_spread,
+    color_errors,
+    flip_rate,
+    mean_foreground_color,
+    rotation_accuracy,
+    win_share,
+)
 from .keypoints import keypoint_pairs, keypoint_transfer_pck, pck, project_vertices, transfer_keypoints
 from .masks import mask_iou
 from .mesh_evaluator import SHAPENET_METRICS, evaluate_meshes
@@ -41,14 +51,18 @@ __all__ = [
     "ICPResult",
     "NearestNeighborIndex",
     "PointCloudScores",
+    "active_units",
     "align_canonical_frame",
     "align_with_gt_pose",
     "apply_similarity",
     "azimuth_error",
     "chamfer_l1",
     "chamfer_l2",
+    "code_spread",
+    "color_errors",
     "evaluate_meshes",
     "face_areas_normals",
+    "flip_rate",
     "gather_points",
     "geodesic_error",
     "gradient_icp",
@@ -56,6 +70,7 @@ __all__ = [
     "keypoint_transfer_pck",
     "mask_iou",
     "matrix_to_rotation_6d",
+    "mean_foreground_color",
     "mesh_voxel_iou",
     "nearest_neighbors",
     "normal_consistency",
@@ -65,6 +80,7 @@ __all__ = [
     "pose_errors",
     "project_vertices",
     "rotation_6d_to_matrix",
+    "rotation_accuracy",
     "rotation_to_azim_elev_roll",
     "sample_points_from_meshes",
     "transfer_keypoints",
@@ -72,4 +88,5 @@ __all__ = [
     "voxel_centers",
     "voxel_iou",
     "voxelize_mesh",
+    "win_share",
 ]

@@ -15,6 +15,7 @@ import torch
 
 from ..geometry.rotations import rotation_angle_between
 from ._checks import check_rotations
+from .instance import flip_rate, rotation_accuracy
 
 __all__ = [
     "align_canonical_frame",
@@ -128,12 +129,18 @@ def align_canonical_frame(
     return Q.to(dtype)
 
 
+def _degrees(value: float) -> str:
+    """A threshold as it appears in a metric's key: ``30`` rather than ``30.0``."""
+    return str(round(value)) if math.isclose(value, round(value)) else f"{value:g}"
+
+
 def pose_errors(
     R_pred: torch.Tensor,
     R_gt: torch.Tensor,
     *,
     align: bool = False,
     accuracy_threshold: float = 30.0,
+    flip_threshold: float = 150.0,
 ) -> dict[str, float]:
     """Summary of rotation and azimuth errors over a test set.
 
@@ -142,11 +149,14 @@ def pose_errors(
         R_gt: (N, 3, 3) ground-truth rotations.
         align: first map the learned canonical frame to the ground truth with :func:`align_canonical_frame`.
         accuracy_threshold: degrees for the accuracy ratio (30 = pi / 6, the standard Acc_{pi/6}).
+        flip_threshold: degrees above which an image counts as predicted turned round (flipped).
 
     Returns:
         ``rot-err-mean``, ``rot-err-median`` (degrees), ``rot-acc-30`` (fraction of images below the
-        threshold, the key follows the threshold), ``azim-err-mean`` and ``azim-err-median`` (degrees,
-        azimuths read with :func:`rotation_to_azim_elev_roll`).
+        accuracy threshold, :func:`~unicorn.metrics.instance.rotation_accuracy`), ``rot-flip-150`` (fraction
+        above the flip threshold, :func:`~unicorn.metrics.instance.flip_rate`; the keys follow the thresholds),
+        ``azim-err-mean`` and ``azim-err-median`` (degrees, azimuths read with
+        :func:`rotation_to_azim_elev_roll`).
     """
     check_rotations(R_pred, "R_pred")
     check_rotations(R_gt, "R_gt", R_pred.shape[0])
@@ -157,13 +167,11 @@ def pose_errors(
         R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred
     err = geodesic_error(R_pred, R_gt)
     azim_err = azimuth_error(rotation_to_azim_elev_roll(R_pred)[0], rotation_to_azim_elev_roll(R_gt)[0])
-    th = f"{accuracy_threshold:g}"
-    if math.isclose(accuracy_threshold, round(accuracy_threshold)):
-        th = str(round(accuracy_threshold))
     return {
         "rot-err-mean": float(err.mean()),
         "rot-err-median": float(err.median()),
-        f"rot-acc-{th}": float((err < accuracy_threshold).double().mean()),
+        f"rot-acc-{_degrees(accuracy_threshold)}": rotation_accuracy(err, accuracy_threshold),
+        f"rot-flip-{_degrees(flip_threshold)}": flip_rate(err, flip_threshold),
         "azim-err-mean": float(azim_err.mean()),
         "azim-err-median": float(azim_err.median()),
     }

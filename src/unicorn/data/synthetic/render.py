@@ -82,10 +82,11 @@ def render_object(
     fov: float = 30.0,
     supersample: int = 3,
     backgrounds: np.ndarray | None = None,
+    key_light: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ray-cast an object from several cameras.
 
-    Shading: ambient 0.35, a world-fixed key light (0.45) and a headlight (0.25), Lambertian, on normals
+    Shading: ambient 0.35, a world-fixed key light (0.45, ``key_light``) and a headlight (0.25), Lambertian, on normals
     flipped to face the camera; colours come from each part's solid texture at the hit point.
 
     Args:
@@ -95,6 +96,8 @@ def render_object(
         fov: full field of view in degrees (30 for NMR).
         supersample: rays per pixel along each axis (anti-aliasing).
         backgrounds: (V, S, S, 3) backgrounds in [0, 1], white when None.
+        key_light: (3,) world direction towards the key light; None for the default (above, in front, to the
+            side). A vertical one, ``(0, 1, 0)``, makes the lighting invariant to turning the camera about +Y.
 
     Returns:
         images (V, S, S, 3) float32 in [0, 1] and coverage (V, S, S) float32 in [0, 1], the fraction of each
@@ -123,7 +126,8 @@ def render_object(
 
     # two-sided Lambert: orient normals towards the camera
     normals *= -np.sign(np.sum(normals * d, axis=1, keepdims=True) + 1e-12)
-    shade = 0.35 + 0.45 * np.clip(normals @ _KEY_LIGHT, 0, None) + 0.25 * np.clip(-(normals * d).sum(1), 0, None)
+    light = _KEY_LIGHT if key_light is None else np.asarray(key_light, np.float64) / np.linalg.norm(key_light)
+    shade = 0.35 + 0.45 * np.clip(normals @ light, 0, None) + 0.25 * np.clip(-(normals * d).sum(1), 0, None)
     colors = np.empty((len(prim), 3))
     part_of_hit = face_part[prim]
     for k, part in enumerate(obj.parts):

@@ -13,6 +13,7 @@ surface points from ``numpy.random.default_rng([seed, category_index, i, stream]
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import os
@@ -33,11 +34,14 @@ from tqdm.auto import tqdm
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
 from unicorn.data.synthetic.render import random_background, render_object
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
+from unicorn.errors import UserError
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 
 __all__ = [
     "GENERATOR_VERSION",
     "Mode",
+    "StaleSyntheticDataset",
+    "check_manifest",
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
@@ -47,8 +51,9 @@ __all__ = [
     "synthetic_dataset_path",
 ]
 
-#: bump when the output changes, so that cached datasets are regenerated
-GENERATOR_VERSION = 1
+#: bump when the output changes: it is part of the cache folder's name and of ``synthetic.json``, so that a
+#: dataset of an older generator is never reused (2: every category has a front, wider instance variation)
+GENERATOR_VERSION = 2
 NMR_DISTANCE, NMR_ELEVATION, NMR_FOV = 2.732, 30.0, 30.0
 
 Mode = Literal["nmr", "wild"]
@@ -268,6 +273,42 @@ def generate_synthetic_dataset(
     return out
 
 
+class StaleSyntheticDataset(UserError, ValueError):
+    """A generated dataset's ``synthetic.json`` does not match the settings (or the generator) asked for."""
+
+
+def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, object]:
+    """Check a generated dataset's ``synthetic.json`` against the current generator and ``expected`` settings.
+
+    Args:
+        root: the generated dataset.
+        **expected: settings it must have been generated with (``categories``, ``mode``, ``image_size``...);
+            the generator version is always checked.
+
+    Returns:
+        The recorded settings.
+
+    Raises:
+        StaleSyntheticDataset: the generator version or a setting differs (the message names it).
+    """
+    root = Path(root)
+    settings = json.loads((root / "synthetic.json").read_text())
+    expected = {"generator_version": GENERATOR_VERSION, **expected}
+    if isinstance(expected.get("categories"), str):
+        expected["categories"] = [expected["categories"]]
+    wrong = [
+        f"{key}={settings.get(key)!r} (asked: {value!r})"
+        for key, value in expected.items()
+        if (sorted(settings.get(key) or []) != sorted(value) if key == "categories" else settings.get(key) != value)
+    ]
+    if wrong:
+        raise StaleSyntheticDataset(
+            f"the synthetic dataset in {root} was generated with {', '.join(wrong)}; delete that folder to "
+            "generate it again, or choose another root"
+        )
+    return settings
+
+
 def default_cache_dir() -> Path:
     """``$UNICORN_CACHE/synthetic`` if the variable is set, else ``~/.cache/unicorn/synthetic``."""
     base = os.environ.get("UNICORN_CACHE")
@@ -294,6 +335,9 @@ def ensure_synthetic_dataset(
 ) -> Path:
     """Return the synthetic dataset for these settings, generating it first if it is absent.
 
+    An existing dataset is checked against these settings and the generator version (:func:`check_manifest`),
+    so that one made by another generator or with other options is never reused silently.
+
     Generation writes to a temporary sibling folder that is renamed into place at the end, so an
     interrupted run never leaves a folder that looks complete; concurrent runs are safe (the loser's copy is
     discarded).
@@ -303,13 +347,22 @@ def ensure_synthetic_dataset(
         category, mode, n_models, seed: see :func:`generate_synthetic_dataset`.
         progress: show a progress bar while generating.
         **kwargs: further :func:`generate_synthetic_dataset` options (``image_size``, ``n_views``...); they
-            are not part of the folder name, so keep them fixed for a given ``root``.
+            are not part of the folder name: a dataset in the folder generated with other values is an error
+            (:class:`StaleSyntheticDataset`), so give each combination its own ``root``.
 
     Returns:
         The dataset root, ready for :class:`~unicorn.data.shapenet.ShapeNetNMR`.
     """
     final = synthetic_dataset_path(category, mode, n_models, seed, root)
+    # options left out mean generate_synthetic_dataset's defaults: check those too
+    defaults = {
+        name: param.default
+        for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
+        if name in ("image_size", "n_views", "supersample", "n_points")
+    }
+    expected = {"categories": category, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **kwargs}
     if (final / "synthetic.json").exists():
+        check_manifest(final, **expected)
         return final
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.parent / f".{final.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -320,7 +373,8 @@ def ensure_synthetic_dataset(
         except OSError:
             if not (final / "synthetic.json").exists():
                 raise
-            # another process finished first: keep its copy
+            # another process finished first: keep its copy (if it was made with the same settings)
+            check_manifest(final, **expected)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,204 @@
+"""Code diagnostics during training: does each branch still see the image?
+
+A code regressor whose hidden ReLUs are all dead outputs its last layer's bias whatever the image, and a code
+that does not vary across images makes the model reconstruct the category mean. Both fail silently: the losses
+keep falling (the mean shape and colour are a fair first answer). :class:`CodeDiagnostics` measures them every
+N iterations on the most recent training images:
+
+- ``code-std`` / ``code-std-min``: the mean and smallest standard deviation across the images of each active
+  code dimension (:func:`~unicorn.metrics.code_spread`); ``raw-std``: the same over every dimension of the
+  regressor's output before the progressive mask (a masked dimension still shows whether the regressor
+  would vary);
+- ``alive-last`` (of ``units-last``): hidden units of the regressor's last hidden layer active for at least
+  one of the images (:func:`~unicorn.metrics.active_units`); ``alive-frac``: the share over all its hidden
+  layers;
+- ``active-dims``: the code size the schedule currently uses.
+
+Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
+check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its
+code is constant, masked or not), or when its active code dimensions vary, on average, by less than
+``spread_tol`` across the images (not judged on the first check after its code size changed: a newly unmasked
+dimension starts at 0 and needs a few iterations to move): the callback then emits a :class:`CollapseWarning`
+and a log error naming the branch, the step and the numbers, once when it happens (and again at the end of
+training if it has not recovered).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.utilities import rank_zero_only
+from torch import nn
+
+from unicorn.lit.heldout import append_csv_row
+from unicorn.metrics import active_units, code_spread
+
+__all__ = ["CodeDiagnostics", "CollapseWarning", "code_diagnostics"]
+
+log = logging.getLogger(__name__)
+
+#: the branches whose code regressors are watched (``background`` only when the model has one)
+BRANCHES = ("shape", "texture", "background")
+
+
+class CollapseWarning(UserWarning):
+    """A code branch no longer depends on the image (dead regressor units or a constant code)."""
+
+
+@torch.no_grad()
+def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[str, float]]:
+    """Code spread and active hidden units of each code regressor of ``model`` on ``images``.
+
+    The model runs as given (call it in eval mode so that batch-norm statistics are not updated); forward hooks
+    read the regressors' hidden activations, nothing in the model changes.
+
+    Args:
+        model: a :class:`~unicorn.model.Unicorn`.
+        images: (B, 3, S, S) in [0, 1], B >= 2.
+
+    Returns:
+        branch -> ``active-dims``, ``code-std``, ``code-std-min`` (NaN without active dimensions), ``raw-std``,
+        ``alive-last``, ``units-last`` and ``alive-frac`` (see the module docstring).
+    """
+    if images.dim() != 4 or images.shape[0] < 2:
+        raise ValueError(f"need a (B, 3, S, S) batch with B >= 2 images, got {tuple(images.shape)}")
+    heads = {b: getattr(model, b) for b in BRANCHES if getattr(model, b, None) is not None}
+    hidden: dict[str, list[torch.Tensor]] = {b: [] for b in heads}
+    raw: dict[str, torch.Tensor] = {}
+    handles = []
+    for b, head in heads.items():
+        for layer in head.regressor:
+            if isinstance(layer, nn.ReLU):
+                handles.append(layer.register_forward_hook(lambda m, i, out, b=b: hidden[b].append(out.detach())))
+        handles.append(head.regressor.register_forward_hook(lambda m, i, out, b=b: raw.__setitem__(b, out.detach())))
+    try:
+        model.predict(images)
+    finally:
+        for h in handles:
+            h.remove()
+    out: dict[str, dict[str, float]] = {}
+    for b, head in heads.items():
+        active = head.mask.active_dims
+        spread = code_spread(raw[b], active)
+        layers = [active_units(a.flatten(1)) for a in hidden[b]]
+        row = {
+            "active-dims": float(active),
+            "code-std": float(spread.mean()) if active > 0 else math.nan,
+            "code-std-min": float(spread.min()) if active > 0 else math.nan,
+            "raw-std": float(code_spread(raw[b]).mean()),
+        }
+        if layers:
+            row["alive-last"] = float(layers[-1].sum())
+            row["units-last"] = float(layers[-1].numel())
+            row["alive-frac"] = float(torch.cat(layers).double().mean())
+        out[b] = row
+    return out
+
+
+def collapse_reasons(stats: dict[str, float], spread_tol: float, judge_spread: bool = True) -> list[str]:
+    """Why a branch's numbers (one entry of :func:`code_diagnostics`) say it collapsed; empty when it did not.
+
+    ``judge_spread=False`` skips the spread criterion (right after the code size changed)."""
+    reasons = []
+    if stats.get("alive-last") == 0:
+        reasons.append(
+            f"0 of the {int(stats['units-last'])} units of its code regressor's last hidden layer are active for "
+            "any image (dead ReLUs: the code is the same for every image, now or once unmasked)"
+        )
+    if judge_spread and stats["active-dims"] > 0 and not stats["code-std"] >= spread_tol:
+        reasons.append(
+            f"its {int(stats['active-dims'])} active code dimensions vary by {stats['code-std']:.2g} on average "
+            f"(std across images, tolerance {spread_tol:g}): the code ignores the image"
+        )
+    return reasons
+
+
+class CodeDiagnostics(L.Callback):
+    """Code spread and dead units of the code regressors during training (see the module docstring).
+
+    Args:
+        every_n_steps: check period in iterations (also after the last iteration).
+        max_images: the most recent training images kept for the check (at least 2 are needed).
+        spread_tol: a code whose active dimensions' std across the images is below this on average has collapsed.
+        filename: the CSV file, relative to the run directory.
+    """
+
+    def __init__(
+        self,
+        every_n_steps: int = 100,
+        max_images: int = 64,
+        spread_tol: float = 1e-6,
+        filename: str = "diagnostics.csv",
+    ) -> None:
+        if every_n_steps < 1 or max_images < 2:
+            raise ValueError(f"need every_n_steps >= 1 and max_images >= 2, got {every_n_steps}, {max_images}")
+        if not spread_tol >= 0:
+            raise ValueError(f"spread_tol must be >= 0, got {spread_tol}")
+        self.every_n_steps, self.max_images, self.spread_tol = int(every_n_steps), int(max_images), float(spread_tol)
+        self.filename = filename
+        self._images: deque[torch.Tensor] = deque(maxlen=self.max_images)
+        self.collapsed: dict[str, list[str]] = {}  # branch -> reasons, while collapsed
+        self._dims: dict[str, float] = {}  # branch -> active code size at the previous check
+        self.history: list[dict[str, float]] = []
+
+    @rank_zero_only
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        self._images.extend(batch["image"].detach()[: self.max_images].to("cpu", copy=True).unbind(0))
+        if trainer.global_step % self.every_n_steps == 0:
+            self.check(trainer, pl_module)
+
+    @rank_zero_only
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not self.history or self.history[-1]["step"] != trainer.global_step:
+            self.check(trainer, pl_module)
+        for branch, reasons in self.collapsed.items():
+            self._warn(f"at the end of training the {branch} branch is still collapsed: " + "; ".join(reasons))
+
+    def check(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float] | None:
+        """Measure the current model on the kept images, log, append the CSV row and warn on a new collapse."""
+        if len(self._images) < 2:
+            return None
+        step = int(trainer.global_step)
+        images = torch.stack(list(self._images)).to(pl_module.device)
+        was_training = pl_module.training
+        pl_module.eval()  # batch-norm statistics must not see these images twice
+        try:
+            with torch.random.fork_rng(devices=[pl_module.device] if pl_module.device.type == "cuda" else []):
+                stats = code_diagnostics(pl_module.model, images)
+        finally:
+            pl_module.train(was_training)
+        row: dict[str, float] = {"step": float(step)}
+        for branch, values in stats.items():
+            row.update({f"{branch}/{k}": v for k, v in values.items()})
+            settled = self._dims.get(branch) == values["active-dims"]
+            self._dims[branch] = values["active-dims"]
+            reasons = collapse_reasons(values, self.spread_tol, judge_spread=settled)
+            if reasons and branch not in self.collapsed:
+                self._warn(f"the {branch} branch collapsed at iteration {step}: " + "; ".join(reasons))
+            elif not reasons and branch in self.collapsed:
+                log.info("code diagnostics: the %s branch varies with the image again at iteration %d", branch, step)
+            if reasons:
+                self.collapsed[branch] = reasons
+            else:
+                self.collapsed.pop(branch, None)
+        self.history.append(row)
+        metrics = {f"diagnostics/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
+        for logger in trainer.loggers:
+            logger.log_metrics(metrics, step=step)
+        append_csv_row(Path(trainer.default_root_dir) / self.filename, row)
+        return row
+
+    @staticmethod
+    def _warn(message: str) -> None:
+        text = f"CODE COLLAPSE: {message}. The model cannot reconstruct individual objects this way."
+        log.error(text)
+        warnings.warn(text, CollapseWarning, stacklevel=2)

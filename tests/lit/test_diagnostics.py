@@ -1,0 +1,116 @@
+"""Code diagnostics: the numbers against a hand-run forward pass and the collapse warning."""
+
+from __future__ import annotations
+
+import csv
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from tests.model.helpers import randomize_heads, tiny_config
+from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
+from unicorn.model import Unicorn
+
+
+def _model() -> Unicorn:
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config("real")).eval()
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=3, background=0)
+    return model
+
+
+class _LitStandIn(nn.Module):
+    """What the callback uses of a UnicornLitModule: ``model``, ``device``, train / eval."""
+
+    def __init__(self, model: Unicorn) -> None:
+        super().__init__()
+        self.model = model
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+
+def test_numbers_match_a_hand_run_forward_pass() -> None:
+    model = _model()
+    images = torch.rand(6, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+    stats = code_diagnostics(model, images)
+    assert set(stats) == {"shape", "texture", "background"}
+    with torch.no_grad():
+        feats = model.encoders[0](images)  # the small model's shared encoder
+    for branch in ("shape", "texture", "background"):
+        x, hidden = feats, []
+        for layer in getattr(model, branch).regressor:
+            with torch.no_grad():
+                x = layer(x.clone())
+            if isinstance(layer, nn.ReLU):
+                hidden.append(x.numpy().copy())
+        code = x.numpy()
+        active = getattr(model, branch).mask.active_dims
+        s = stats[branch]
+        assert s["active-dims"] == active
+        assert s["raw-std"] == pytest.approx(np.std(code, axis=0).mean(), rel=1e-4)
+        if active:
+            assert s["code-std"] == pytest.approx(np.std(code[:, :active], axis=0).mean(), rel=1e-4)
+            assert s["code-std-min"] == pytest.approx(np.std(code[:, :active], axis=0).min(), rel=1e-4)
+        else:
+            assert math.isnan(s["code-std"])
+        last = hidden[-1]
+        assert s["alive-last"] == sum(any(last[b, u] > 0 for b in range(6)) for u in range(last.shape[1]))
+        assert s["units-last"] == last.shape[1]
+        alive = sum(int((h > 0).any(axis=0).sum()) for h in hidden)
+        assert s["alive-frac"] == pytest.approx(alive / sum(h.shape[1] for h in hidden))
+    # hooks are removed and nothing in the model changed
+    assert all(not layer._forward_hooks for layer in model.modules())
+
+
+def test_a_collapsed_branch_warns_loudly(tmp_path) -> None:
+    model = _model()
+    callback = CodeDiagnostics(every_n_steps=1, max_images=8)
+    trainer = SimpleNamespace(global_step=5, loggers=[], default_root_dir=str(tmp_path))
+    module = _LitStandIn(model)
+    callback._images.extend(torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(2)).unbind(0))
+    row = callback.check(trainer, module)
+    assert row is not None and callback.collapsed == {}
+    assert row["shape/alive-last"] > 0 and row["texture/code-std"] > 1e-4
+
+    # every unit of the shape regressor's last hidden layer dead: a constant code
+    last_hidden = [m for m in model.shape.regressor if isinstance(m, nn.Linear)][-2]
+    with torch.no_grad():
+        last_hidden.bias.fill_(-1e4)
+    # and a texture regressor whose output ignores the image
+    with torch.no_grad():
+        model.texture.regressor[-1].weight.zero_()
+    trainer.global_step = 6
+    with pytest.warns(CollapseWarning) as caught:
+        row = callback.check(trainer, module)
+    text = " ".join(str(w.message) for w in caught)
+    assert "shape branch collapsed at iteration 6" in text and "dead ReLUs" in text
+    assert "texture branch collapsed" in text and "ignores the image" in text
+    assert row["shape/alive-last"] == 0 and row["texture/code-std"] == 0
+    assert set(callback.collapsed) == {"shape", "texture"} and module.training  # mode restored
+    # a collapse is reported once, not at every check
+    trainer.global_step = 7
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CollapseWarning)
+        callback.check(trainer, module)
+    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv")))
+    assert [r["step"] for r in rows] == ["5.0", "6.0", "7.0"] and rows[1]["shape/alive-last"] == "0.0"
+    # a code size that just changed is not judged on its spread (new dimensions start at 0), dead units are
+    fresh = CodeDiagnostics(every_n_steps=1, max_images=8)
+    fresh._images.extend(callback._images)
+    with pytest.warns(CollapseWarning) as caught:
+        fresh.check(trainer, module)
+    assert set(fresh.collapsed) == {"shape"} and "dead ReLUs" in str(caught[0].message)
+    with pytest.raises(ValueError, match="max_images"):
+        CodeDiagnostics(max_images=1)
+
+
+# in a training run (rows in diagnostics.csv, training unchanged): tests/lit/test_heldout.py
