@@ -9,8 +9,10 @@ Per input image ``<out>/<name>/``:
 - ``mesh.obj`` + ``mesh.mtl`` + ``mesh.png`` and ``mesh.glb``: the textured mesh in the object frame
   (+Y up, the camera of azimuth 0 looks from +Z; ``pose.json`` places it in the camera frame);
 - ``pose.json``: rotation ``R`` and translation ``T`` (``x_view = x_object @ R + T``, PyTorch3D view axes: +X left,
-  +Y up, +Z away from the camera), azimuth / elevation / roll in degrees, the anisotropic scale, the camera
-  (field of view or focal length) and the probabilities of all pose candidates;
+  +Y up, +Z away from the camera), and the same camera as the arguments of
+  :func:`unicorn.geometry.rotations.look_at_view_transform` (``distance``, ``elevation``, ``azimuth`` in degrees,
+  ``at``, ``up``; ``roll`` is informative), the anisotropic scale, the camera (field of view or focal length)
+  and the probabilities of all pose candidates;
 - ``turntable.gif`` and ``turntable.png`` (a strip of views): the mesh spinning about its vertical axis.
 
 The folder also gets ``overview.png`` (one row per image) and ``index.html``.
@@ -34,8 +36,8 @@ from tqdm.auto import tqdm
 
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
 from unicorn.evaluation.report import image_grid, save_gif, to_uint8
+from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
-from unicorn.metrics import rotation_to_azim_elev_roll
 from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
@@ -68,19 +70,36 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
+#: how pose.json's numbers are read (written into the file)
+POSE_CONVENTION = (
+    "x_view = x_object @ R + T; view axes +X left, +Y up, +Z away from the camera (PyTorch3D). "
+    "R, T = unicorn.geometry.rotations.look_at_view_transform(dist=distance, elev=elevation, azim=azimuth, "
+    "at=[at], up=[up]) gives back R and T (PyTorch3D's look_at_view_transform too): azimuth 0 puts the camera "
+    "on +Z, 90 on +X, positive elevation above (+Y), in degrees; at is the point of the optical axis at the "
+    "object's depth (0 when the object is centred) and up the camera's +Y axis; roll (degrees) is the turn of "
+    "the camera about its axis from the +Y-up camera (0: up=[0, 1, 0] gives the same camera)."
+)
+
+
 def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
-    """JSON-ready pose of one prediction: R, T, angles, scale, camera, candidate probabilities."""
-    R, T = pred.R[index].detach().cpu(), pred.T[index].detach().cpu()
-    azim, elev, roll = (float(a) for a in rotation_to_azim_elev_roll(R))
+    """JSON-ready pose of one prediction: R, T, look-at parameters, scale, camera, candidate probabilities."""
+    R, T = pred.R[index].detach().cpu().double(), pred.T[index].detach().cpu().double()
+    look = look_at_view_parameters(R, T)
+    # roll: signed angle about the optical axis from the +Y-up look-at camera's Y axis to this camera's
+    upright = look_at_rotation((-T @ R.T)[None], look["at"][None])[0]
+    y0, y, z = upright[:, 1], R[:, 1], R[:, 2]
+    roll = torch.rad2deg(torch.atan2(torch.linalg.cross(y0, y).dot(z), y0.dot(y)))
     camera = model.renderer.camera
     return {
-        "convention": "x_view = x_object @ R + T; view axes +X left, +Y up, +Z away from the camera (PyTorch3D)",
+        "convention": POSE_CONVENTION,
         "R": R.tolist(),
         "T": T.tolist(),
-        "azimuth": azim,
-        "elevation": elev,
-        "roll": roll,
-        "distance": float(T.norm()),
+        "azimuth": float(look["azim"]),
+        "elevation": float(look["elev"]),
+        "distance": float(look["dist"]),
+        "at": look["at"].tolist(),
+        "up": look["up"].tolist(),
+        "roll": float(roll),
         "scale": pred.scale[index].detach().cpu().tolist(),
         "camera": {"fov_degrees": camera.fov, "focal_length_ndc": float(camera.focal_length)},
         "image_size": model.config["image_size"],
