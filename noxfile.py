@@ -66,7 +66,7 @@ def tests(session: nox.Session) -> None:
 def train(session: nox.Session) -> None:
     """The main job: train on the offline synthetic default. Extra arguments are Hydra overrides."""
     install_project(session)
-    session.run("unicorn-train", "+experiment=synthetic", *session.posargs)
+    session.run("unicorn-train", "experiment=synthetic", *session.posargs)
 
 
 @nox.session(python=PYTHON)

@@ -21,6 +21,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from unicorn import __version__
+
 __all__ = ["build_parser", "main"]
 
 log = logging.getLogger("unicorn.eval")
@@ -46,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         "report (HTML, PNG).",
         formatter_class=HelpFormatter,
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument(
         "--dataset",

@@ -20,6 +20,7 @@ import time
 import warnings
 from pathlib import Path
 
+from unicorn import __version__
 from unicorn.cli.eval import HelpFormatter
 
 __all__ = ["build_parser", "main"]
@@ -45,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
         "predicted mask and pose, and a turntable (GIF and PNG strip).",
         formatter_class=HelpFormatter,
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument("inputs", nargs="+", help="image files and/or folders (searched recursively)")
     p.add_argument("--out", type=Path, default=Path("reconstructions"), help="output folder")

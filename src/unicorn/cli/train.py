@@ -2,16 +2,17 @@
 
 Examples::
 
-    unicorn-train +experiment=synthetic                      # the offline default, a few minutes on a CPU
-    unicorn-train +experiment=cub trainer=gpu dataset.root=/data/cub_200
-    unicorn-train +experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
-    unicorn-train -m +experiment=synthetic seed=1,2,3        # a sweep, one run directory per job
-    unicorn-train --cfg job +experiment=cub                  # print the composed config, train nothing
+    unicorn-train                                           # no arguments: experiment=synthetic, the offline default
+    unicorn-train experiment=cub trainer=gpu dataset.root=/data/cub_200
+    unicorn-train experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
+    unicorn-train -m experiment=synthetic seed=1,2,3        # a sweep, one run directory per job
+    unicorn-train --cfg job experiment=cub                  # print the composed config, train nothing
+    unicorn-train --help                                    # what it does, the groups, examples; also --version
 
 The configs are looked up where they ship: ``unicorn/conf`` inside an installed wheel, or the repository's
 top-level ``conf/`` for an editable install; the directory is resolved from this file, never from the working
 directory, and passed to Hydra as an absolute path. ``--config-dir``/``-cd`` adds a directory of your own
-(e.g. ``-cd my_conf +experiment=mine``).
+(e.g. ``-cd my_conf experiment=mine``).
 
 Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for sweeps,
 ``outputs/<task_name>/multiruns/<time>/<job>``): ``.hydra/`` (composed config and overrides), ``config.yaml``
@@ -21,6 +22,7 @@ Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for s
 from __future__ import annotations
 
 import logging
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +31,10 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["Run", "build", "config_dir", "fit", "main", "train"]
+__all__ = ["DEFAULT_EXPERIMENT", "Run", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
+
+#: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
+DEFAULT_EXPERIMENT = "synthetic"
 
 log = logging.getLogger("unicorn.train")
 
@@ -232,8 +237,27 @@ def _task(cfg: DictConfig) -> None:
         raise SystemExit(2) from None
 
 
+def hydra_argv(argv: list[str]) -> list[str]:
+    """The arguments handed to Hydra: ``experiment=synthetic`` (the offline default) when there are none."""
+    return argv if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
+    args = sys.argv[1:]
+    if "--version" in args:
+        from unicorn import __version__
+
+        print(f"unicorn-train (unicorn3d) {__version__}")
+        return
+    if not args:
+        print(
+            f"unicorn-train: no arguments, running the offline default experiment={DEFAULT_EXPERIMENT} "
+            "(see unicorn-train --help)",
+            file=sys.stderr,
+            flush=True,
+        )
+    sys.argv[1:] = hydra_argv(args)
     hydra.main(config_path=str(config_dir()), config_name="train", version_base="1.3")(_task)()
 
 
