@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import pytest
 import torch
@@ -20,11 +21,16 @@ def _weights(run) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in run.module.model.state_dict().items()}
 
 
-def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
+def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, caplog):
     plain = build_run(tmp_path / "plain")
     fit(plain)
+    capsys.readouterr()
     watched = build_run(tmp_path / "watched", *HELDOUT)
-    fit(watched)
+    with caplog.at_level("INFO", logger="unicorn.lit.heldout"):
+        fit(watched)
+    # progress: a bar while scoring, and a line before each evaluation
+    assert "held-out val: 100%" in capsys.readouterr().err.replace("\r", "\n")
+    assert re.search(r"held-out val: scoring \d+ images at iteration 4", caplog.text)
     # the callback evaluates in eval mode under a forked random state: training is bit-for-bit the same
     a, b = _weights(plain), _weights(watched)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
@@ -63,6 +69,11 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     fit(run)
     out = run.output_dir / "eval"
     metrics = json.loads((out / "metrics.json").read_text())
+    # provenance: the equivalent unicorn-eval command, and the training command that ran it, kept apart
+    assert metrics["command"].startswith(f"unicorn-eval {run.checkpoint_dir / 'last.ckpt'} --split=test")
+    assert metrics["produced_by"].startswith("unicorn-train ")
+    assert metrics["produced_by"].endswith("(evaluation after training)")
+    assert metrics["checkpoint"] == str((run.checkpoint_dir / "last.ckpt").resolve()) and "git_commit" in metrics
     assert (out / "report.png").is_file() and (out / "report.html").is_file()
     text = json.dumps(metrics)
     for key in ("chamfer-L1-ICP", "mask-iou", "rot-err-median"):

@@ -69,6 +69,22 @@ def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
     return str(path)
 
 
+def _route_lightning_logs() -> None:
+    """Send Lightning's log records through the root logger's handlers only (each message printed once).
+
+    Lightning gives its loggers a stderr handler of their own; under Hydra, whose root handlers also print to the
+    console (and to train.log), every Lightning line would appear twice. Nothing changes without root handlers.
+    """
+    if not logging.getLogger().handlers:
+        return
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in list(logger.handlers):
+            if isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler):
+                logger.removeHandler(handler)
+        logger.propagate = True
+
+
 @dataclass
 class Run:
     """Everything :func:`build` assembles for one training run."""
@@ -104,6 +120,7 @@ def build(cfg: DictConfig) -> Run:
         UnicornLitModule,
     )
 
+    _route_lightning_logs()
     typed = validate(cfg)
     # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
@@ -209,12 +226,18 @@ def evaluate_run(run: Run) -> Path:
         f"--batch-size={e.batch_size}",
         f"--report-samples={e.report_samples}",
         f"--turntable-frames={e.turntable_frames}",
-        "--quiet",
     ]
     if e.max_images is not None:
         argv.append(f"--max-images={e.max_images}")
     log.info("evaluating %s on the %s split", checkpoint, e.split)
-    status = eval_cli.run(eval_cli.build_parser().parse_args(argv))
+    from unicorn.io.provenance import command_line
+
+    # the report records the equivalent unicorn-eval command, and the training command that ran it
+    status = eval_cli.run(
+        eval_cli.build_parser().parse_args(argv),
+        command=command_line("unicorn-eval", argv),
+        produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+    )
     if status != 0:
         raise RuntimeError(f"evaluation of {checkpoint} failed with status {status}")
     log.info("evaluation report: %s", out / "report.html")

@@ -15,7 +15,9 @@ Per input image ``<out>/<name>/``:
   and the probabilities of all pose candidates;
 - ``turntable.gif`` and ``turntable.png`` (a strip of views): the mesh spinning about its vertical axis.
 
-The folder also gets ``overview.png`` (one row per image) and ``index.html``.
+The folder also gets ``overview.png`` (one row per image), ``index.html`` and ``reconstructions.json``
+(``{"provenance": ..., "images": [...]}``); ``pose.json`` and both of these record the provenance (command,
+checkpoint, package version, git commit) given to :func:`reconstruct`.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ import html
 import json
 import os
 import re
-from collections.abc import Sequence
+import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +39,7 @@ from tqdm.auto import tqdm
 
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
 from unicorn.evaluation.report import image_grid, save_gif, to_uint8
+from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
 from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
@@ -117,6 +121,7 @@ def _write_one(
     turntable_frames: int,
     strip_views: int,
     device: torch.device,
+    provenance: Mapping[str, Any],
 ) -> dict[str, Any]:
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
@@ -141,7 +146,7 @@ def _write_one(
         written = save_mesh(mesh, folder / f"mesh{suffix}")
         files[f"mesh{suffix}"] = written[0].name
     pose = pose_record(model, pred, i)
-    (folder / "pose.json").write_text(json.dumps(pose, indent=1))
+    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
     files["pose"] = "pose.json"
 
     strip_angles = even_angles(strip_views)
@@ -179,6 +184,7 @@ def reconstruct(
     strip_views: int = 4,
     average_texture: bool = False,
     progress: bool = True,
+    provenance: Mapping[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Reconstruct preprocessed images and write their outputs (see the module docstring).
 
@@ -193,6 +199,8 @@ def reconstruct(
         strip_views: views in ``turntable.png`` (evenly spaced over a turn).
         average_texture: predict mean-colour textures.
         progress: show a progress bar.
+        provenance: where the results come from (:func:`unicorn.io.provenance.provenance`: command,
+            checkpoint, versions), recorded in every JSON file and the HTML page; default: the calling process.
 
     Returns:
         one record per image (name, source, folder, written files, pose angles); also written to
@@ -200,6 +208,11 @@ def reconstruct(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if provenance is None:
+        from unicorn.io.provenance import command_line
+        from unicorn.io.provenance import provenance as record
+
+        provenance = record(command_line(Path(sys.argv[0]).name, sys.argv[1:]))
     device = torch.device(device)
     model = model.to(device).eval()
     size = model.config["image_size"]
@@ -213,7 +226,9 @@ def reconstruct(
         pred = model.predict(images, average_texture=average_texture)
         for i, item in enumerate(chunk):
             records.append(
-                _write_one(model, pred, i, item, out / item.name, view_size, turntable_frames, strip_views, device)
+                _write_one(
+                    model, pred, i, item, out / item.name, view_size, turntable_frames, strip_views, device, provenance
+                )
             )
             bar.update()
     bar.close()
@@ -225,39 +240,57 @@ def reconstruct(
         labels = ["input", "reconstruction", "mask"]
         labels += [f"textured {a:g}°" for a in angles] + [f"shape {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
-        _write_index(out, records, labels, view_size)
-    (out / "reconstructions.json").write_text(json.dumps(records, indent=1))
+        _write_index(out, records, labels, view_size, provenance)
+    (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
     return records
 
 
-def _write_index(out: Path, records: Sequence[dict[str, Any]], labels: Sequence[str], view_size: int) -> None:
-    """``index.html``: per image its pictures, turntable and links to the meshes and pose."""
+def _write_index(
+    out: Path,
+    records: Sequence[dict[str, Any]],
+    labels: Sequence[str],
+    view_size: int,
+    provenance: Mapping[str, Any],
+) -> None:
+    """``index.html``: per image its pictures, turntable, an interactive 3D view, and links to the meshes and pose."""
     rows = []
     size = min(view_size, 192)
+    head_script, body_script = viewer_script_tags(install_viewer(out))
     for r in records:
         name = html.escape(r["name"])
         pics = [f"{name}/{r['files'][k]}" for k in ("input", "reconstruction", "mask") if k in r["files"]]
         if "turntable_gif" in r["files"]:
             pics.append(f"{name}/{r['files']['turntable_gif']}")
         cells = "".join(f'<td><img src="{p}" width="{size}" height="{size}"></td>' for p in pics)
+        pose = r["pose"]
+        glb = Path(r["folder"]) / r["files"]["mesh.glb"]
+        orbit = (pose["azimuth"], pose["elevation"])
+        viewer = viewer_element(glb, max(size, 160), alt=f"textured mesh of {r['name']}", orbit=orbit)
+        cells += f"<td>{viewer}</td>"
         links = " ".join(
             f'<a href="{name}/{html.escape(r["files"][k])}">{html.escape(k)}</a>'
             for k in ("mesh.obj", "mesh.glb", "pose", "turntable")
             if k in r["files"]
         )
-        pose = r["pose"]
         caption = (
             f"<b>{name}</b><br>azim {pose['azimuth']:.0f}°, elev {pose['elevation']:.0f}°, "
             f"roll {pose['roll']:.0f}°<br>{links}"
         )
         rows.append(f"<tr><td class='cap'>{caption}</td>{cells}</tr>")
+    origin = "".join(
+        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(str(v))}</code></dd>" for k, v in provenance.items()
+    )
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>unicorn reconstructions</title><style>
 body{{font-family:system-ui,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1200px;padding:0 1em;color:#222}}
 td{{padding:.3em;vertical-align:top}} .cap{{font-size:.9em;min-width:12em}}
-</style></head><body><h1>Reconstructions</h1>
-<p>Input, reconstruction, predicted mask and turntable per image; <a href="overview.png">overview.png</a> shows
+dl{{display:grid;grid-template-columns:max-content auto;gap:.2em 1em;font-size:.85em}} dt{{font-weight:600}}
+</style>{head_script}</head><body><h1>Reconstructions</h1>
+<p>Input, reconstruction, predicted mask, turntable and an interactive 3D view (drag to rotate, scroll to zoom;
+it opens from the predicted viewpoint) per image; <a href="overview.png">overview.png</a> shows
 the meshes from {(len(labels) - 3) // 2} viewpoints, textured and untextured.</p>
-<table>{"".join(rows)}</table></body></html>
+<table>{"".join(rows)}</table>
+<h2>Provenance</h2><dl>{origin}</dl>
+{body_script}</body></html>
 """
     (out / "index.html").write_text(page, encoding="utf-8")

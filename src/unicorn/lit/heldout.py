@@ -41,6 +41,7 @@ class HeldOutEvaluation(L.Callback):
         batch_size: images per forward pass.
         at_start: also evaluate before the first iteration (the untrained model, the start of the curves).
         filename: the CSV file, relative to the run directory.
+        progress: a progress bar while scoring (erased when done; a line is logged before and after either way).
     """
 
     def __init__(
@@ -53,6 +54,7 @@ class HeldOutEvaluation(L.Callback):
         batch_size: int = 32,
         at_start: bool = True,
         filename: str = "heldout.csv",
+        progress: bool = True,
     ) -> None:
         if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
             raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
@@ -62,7 +64,7 @@ class HeldOutEvaluation(L.Callback):
             raise ValueError(f"icp_iterations must be >= 0, got {icp_iterations}")
         self.every_n_steps, self.split, self.max_images = int(every_n_steps), split, int(max_images)
         self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
-        self.at_start, self.filename = bool(at_start), filename
+        self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
         self._dataset: Any = None
         self._name = "dataset"
         self.history: list[dict[str, float]] = []
@@ -113,9 +115,12 @@ class HeldOutEvaluation(L.Callback):
             icp_iterations=self.icp_iterations,
             average_texture=pl_module.constant_mean_textures,
             report_samples=0,
-            progress=False,
+            progress=self.progress,
+            progress_label=f"held-out {self.split}",
+            progress_leave=False,
         )
         step = int(trainer.global_step)
+        log.info("held-out %s: scoring %d images at iteration %d", self.split, len(self._dataset), step)
         was_training = pl_module.training
         devices = [pl_module.device] if pl_module.device.type == "cuda" else []
         # the evaluation draws points and ICP noise: keep the training's random streams where they were

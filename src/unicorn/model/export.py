@@ -18,7 +18,7 @@ from PIL import Image
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
 
-__all__ = ["export_prediction", "neutral_material", "save_mesh", "textured_mesh"]
+__all__ = ["export_prediction", "glb_bytes", "neutral_material", "save_mesh", "textured_mesh"]
 
 _WHITE = np.full(4, 255, dtype=np.uint8)
 
@@ -126,11 +126,17 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> list[Path]:
     image = _texture_image(mesh)
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".glb":
-        mesh = mesh.copy()
-        mesh.visual.material = neutral_material(image, getattr(mesh.visual.material, "name", None) or path.stem)
-        path.write_bytes(mesh.export(file_type="glb"))
+        path.write_bytes(glb_bytes(mesh, name=path.stem))
         return [path]
     return _write_obj(mesh, image, path)
+
+
+def glb_bytes(mesh: trimesh.Trimesh, name: str = "texture") -> bytes:
+    """The binary glTF of a textured ``mesh``, with a material of base colour 1 (see :func:`save_mesh`)."""
+    image = _texture_image(mesh)
+    mesh = mesh.copy()
+    mesh.visual.material = neutral_material(image, getattr(mesh.visual.material, "name", None) or name)
+    return mesh.export(file_type="glb")
 
 
 def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
