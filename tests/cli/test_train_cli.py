@@ -114,6 +114,9 @@ def test_end_to_end(synthetic_cache, tmp_path):
     args = [a for a in TINY if not a.startswith(("logger=", "callbacks.images="))]
     result = unicorn_train(*args, "callbacks.images.every_n_steps=4", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    # Lightning's messages reach the console once (through Hydra's handlers) and train.log
+    assert (result.stdout + result.stderr).count("GPU available") == 1
+    assert "GPU available" in (run_dir / "train.log").read_text()
     for path in (".hydra/config.yaml", ".hydra/overrides.yaml", "config.yaml", "train.log", "checkpoints/last.ckpt"):
         assert (run_dir / path).is_file(), path
     assert list((run_dir / "tensorboard").glob("events.out.tfevents.*"))

@@ -210,6 +210,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     paths = write_metrics(result, out, meta)
     print(format_table(result.table, result.columns))
     if result.samples:
+        print(f"writing the report: {len(result.samples)} samples to {out / 'report.html'}", flush=True)
         title = f"{dataset} ({args.split}): {Path(args.checkpoint).name}"
         paths.update(
             write_report(
