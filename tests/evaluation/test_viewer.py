@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,12 @@ def check_viewers(page: Path, count: int) -> None:
         states = browser.wait_for(f"{STATES}.every(s => s) && {STATES}") or browser.evaluate(STATES)
         assert states == ["loaded"] * count
         assert browser.evaluate("customElements.get('model-viewer') !== undefined")
-        drawn = _drawn_fraction(browser.screenshot("model-viewer"))
+        # 'load' can come before the first frame is drawn: shoot until the mesh shows, for up to 30 s
+        for _ in range(60):
+            drawn = _drawn_fraction(browser.screenshot("model-viewer"))
+            if drawn > 0.2:
+                break
+            time.sleep(0.5)
     # the same element without its mesh draws nothing: the check above can fail
     text = page.read_text(encoding="utf-8")
     empty_page = page.with_name("empty_viewer.html")

@@ -272,10 +272,8 @@ def _write_index(
             for k in ("mesh.obj", "mesh.glb", "pose", "turntable")
             if k in r["files"]
         )
-        caption = (
-            f"<b>{name}</b><br>azim {pose['azimuth']:.0f}°, elev {pose['elevation']:.0f}°, "
-            f"roll {pose['roll']:.0f}°<br>{links}"
-        )
+        azim, elev, roll = (pose[k] if abs(pose[k]) >= 0.5 else 0.0 for k in ("azimuth", "elevation", "roll"))
+        caption = f"<b>{name}</b><br>azim {azim:.0f}°, elev {elev:.0f}°, roll {roll:.0f}°<br>{links}"
         rows.append(f"<tr><td class='cap'>{caption}</td>{cells}</tr>")
     origin = "".join(
         f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(str(v))}</code></dd>" for k, v in provenance.items()
