@@ -364,7 +364,8 @@ def write_report(
                 for lb, n in names
             )
             if interactive:
-                cells_html += f"<td>{_sample_viewer(model, sample, max(view_size, 160))}</td>"
+                # first, beside the caption: visible without scrolling the wide table sideways
+                cells_html = f"<td>{_sample_viewer(model, sample, max(view_size, 160))}</td>" + cells_html
             sample_html.append(f'<tr><td class="cap">{caption}</td>{cells_html}</tr>')
     if grid_rows:
         paths["png"] = out / "report.png"
@@ -374,7 +375,7 @@ def write_report(
         header_cells += "<th>turntable</th>"
     head_script, body_script = "", ""
     if interactive and grid_rows:
-        header_cells += '<th title="drag to rotate, scroll to zoom">3D view</th>'
+        header_cells = '<th title="drag to rotate, scroll to zoom">3D view (drag, scroll)</th>' + header_cells
         head_script, body_script = viewer_script_tags(install_viewer(out))
     better = {"lower": " (lower is better)", "higher": " (higher is better)"}
     legend = "".join(
