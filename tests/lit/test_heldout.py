@@ -36,6 +36,9 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
     rows = list(csv.DictReader(open(watched.output_dir / "heldout.csv")))
+    # the run's metrics files have their provenance beside them
+    (origin,) = json.loads((watched.output_dir / "provenance.json").read_text())
+    assert origin["unicorn_version"] and "git_commit" in origin and origin["command"]
     assert [float(r["step"]) for r in rows] == [0.0, 4.0, 8.0]
     for r in rows:
         assert 0.0 <= float(r["mask-iou"]) <= 1.0

@@ -16,12 +16,14 @@ directory, and passed to Hydra as an absolute path. ``--config-dir``/``-cd`` add
 
 Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for sweeps,
 ``outputs/<task_name>/multiruns/<time>/<job>``): ``.hydra/`` (composed config and overrides), ``config.yaml``
-(the validated, resolved config), ``train.log``, ``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
+(the validated, resolved config), ``provenance.json`` (command, version, git commit), ``train.log``,
+``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import warnings
 from dataclasses import dataclass
@@ -85,6 +87,26 @@ def _route_lightning_logs() -> None:
         logger.propagate = True
 
 
+def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
+    """``<run>/provenance.json``: the command, resumed checkpoint, version and commit behind the run's metrics files
+    (``heldout.csv``, ``csv/``, ``tensorboard/``); a resumed run keeps one record per start."""
+    import json
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.io.provenance import command_line, provenance
+
+    if int(os.environ.get("LOCAL_RANK", "0")) != 0 or int(os.environ.get("NODE_RANK", "0")) != 0:
+        return  # DDP processes started by Lightning build the run again: one record per start
+    if HydraConfig.initialized():
+        command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
+    else:  # built from Python (e.g. with Hydra's compose API)
+        command = command_line(Path(sys.argv[0]).name, sys.argv[1:])
+    path = output_dir / "provenance.json"
+    starts = json.loads(path.read_text()) if path.is_file() else []
+    path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
+
+
 @dataclass
 class Run:
     """Everything :func:`build` assembles for one training run."""
@@ -129,6 +151,7 @@ def build(cfg: DictConfig) -> Run:
     checkpoint_dir = output_dir / "checkpoints"
     (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
     ckpt_path = _resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    _write_provenance(output_dir, ckpt_path)
 
     L.seed_everything(typed.seed, workers=True, verbose=False)
     data = IterationDataModule(instantiate(typed.dataset, _convert_="all"), seed=typed.seed)
