@@ -59,6 +59,8 @@ def install_project(session: nox.Session, *extras: str) -> None:
 def tests(session: nox.Session) -> None:
     """The test suite (CPU; tests marked gpu run only where CUDA is present). Extra arguments go to pytest."""
     install_project(session, "dev")
+    if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
+        session.run("npm", "ci", "--no-audit", "--no-fund", external=True)  # the glTF validator of the GLB test
     session.run("pytest", *(session.posargs or ["-q"]))
 
 
@@ -66,7 +68,7 @@ def tests(session: nox.Session) -> None:
 def train(session: nox.Session) -> None:
     """The main job: train on the offline synthetic default. Extra arguments are Hydra overrides."""
     install_project(session)
-    session.run("unicorn-train", "+experiment=synthetic", *session.posargs)
+    session.run("unicorn-train", "experiment=synthetic", *session.posargs)
 
 
 @nox.session(python=PYTHON)

@@ -1,6 +1,6 @@
 """Iterations per second of the README main job's training loop, this tree against an earlier commit.
 
-Runs ``unicorn-train +experiment=synthetic`` (the main job's data, model, schedule and callbacks) for
+Runs ``unicorn-train experiment=synthetic`` (the main job's data, model, schedule and callbacks) for
 ``--steps`` iterations in fresh processes, alternating the variants so that a busy machine slows both alike,
 and reports for each variant the median over ``--repeats`` runs of
 
@@ -63,6 +63,12 @@ def tree_of(ref: str) -> Path:
     return path
 
 
+def experiment_override(tree: Path) -> str:
+    """``experiment=synthetic``, or ``+experiment=synthetic`` for trees from before ``experiment: null``."""
+    grouped = "experiment: null" in (tree / "conf" / "train.yaml").read_text()
+    return ("" if grouped else "+") + "experiment=synthetic"
+
+
 def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir: Path) -> dict:
     out = workdir / "timing.json"
     env = dict(os.environ)
@@ -73,7 +79,7 @@ def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir
         sys.executable,
         "-m",
         "unicorn.cli.train",
-        "+experiment=synthetic",
+        experiment_override(tree),
         f"trainer.max_steps={args.steps}",
         "evaluate.enabled=false",
         "trainer.enable_progress_bar=true",
@@ -111,7 +117,7 @@ def main() -> None:
                 last = results[name][-1]
                 print(f"  run {r + 1}/{args.repeats} {name}: {last['iterations'] / last['wall']:.2f} it/s", flush=True)
     threads = args.threads or "torch default"
-    print(f"# main job training rate: +experiment=synthetic, iterations {args.warmup}..{args.steps}, threads {threads}")
+    print(f"# main job training rate: experiment=synthetic, iterations {args.warmup}..{args.steps}, threads {threads}")
     print(f"{'variant':28s} {'it/s':>8s} {'cpu ms/it':>10s}")
     rates = {}
     for name, rows in results.items():

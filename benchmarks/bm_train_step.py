@@ -3,7 +3,7 @@
 Models (stage 4, so every code and the neighbour loss are active; the neighbour memory is filled by warm-up
 steps first):
 
-- ``tiny``: the README main job's model exactly as ``+experiment=synthetic`` composes it (32 px, batch 16,
+- ``tiny``: the README main job's model exactly as ``experiment=synthetic`` composes it (32 px, batch 16,
   structural perceptual loss, ShapeNet family: no background);
 - ``small`` / ``big``: the reference's real-image settings (64 px, batch 32, VGG16 perceptual loss);
 - ``small-structural``: ``small`` with the weights-free structural loss instead of VGG16.
@@ -110,14 +110,14 @@ def random_vgg_weights() -> dict[str, torch.Tensor]:
 
 
 def main_job_model_config() -> dict[str, Any]:
-    """The model config of ``unicorn-train +experiment=synthetic``, composed by Hydra like the CLI does."""
+    """The model config of ``unicorn-train experiment=synthetic``, composed by Hydra like the CLI does."""
     from hydra import compose, initialize_config_dir
 
     from unicorn.cli.train import config_dir
     from unicorn.config import model_config, validate
 
     with initialize_config_dir(str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=["+experiment=synthetic"])
+        cfg = compose("train", overrides=["experiment=synthetic"])
     return model_config(validate(cfg))
 
 

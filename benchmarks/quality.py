@@ -1,13 +1,13 @@
 """Does unicorn learn? Reconstruction quality on the synthetic benchmark, against baselines and ablations.
 
-Trains the README's default experiment (``+experiment=synthetic``: procedural cars, ShapeNet-NMR layout,
+Trains the README's default experiment (``experiment=synthetic``: procedural cars, ShapeNet-NMR layout,
 32 px, the tiny model) with the same iteration budget in four variants, each with ``unicorn-train`` as a user
 would run it, then scores every final checkpoint on the held-out test models:
 
 - ``full``: the experiment as it is;
 - ``no-neighbor``: without the neighbour reconstruction loss (``model.loss.neighbor_weight=0``);
 - ``no-progressive``: without progressive conditioning (every code at its full size from the first iteration);
-- ``wild``: the ``wild`` mode (random viewpoints, distances, shifts and backgrounds, ``+experiment=synthetic_wild``).
+- ``wild``: the ``wild`` mode (random viewpoints, distances, shifts and backgrounds, ``experiment=synthetic_wild``).
 
 Two baselines are measured in the same run: the untrained template (the model's ellipsoid at the anchor pose
 of the first candidate) and the best single mean shape (one mesh with the template's topology fitted to every
@@ -52,14 +52,14 @@ from typing import Any
 import torch
 
 RUNS: dict[str, list[str]] = {
-    "full": ["+experiment=synthetic"],
-    "no-neighbor": ["+experiment=synthetic", "model.loss.neighbor_weight=0"],
+    "full": ["experiment=synthetic"],
+    "no-neighbor": ["experiment=synthetic", "model.loss.neighbor_weight=0"],
     "no-progressive": [
-        "+experiment=synthetic",
+        "experiment=synthetic",
         "model.stages.shape=[16,16,16,16]",
         "model.stages.texture=[16,16,16,16]",
     ],
-    "wild": ["+experiment=synthetic_wild"],
+    "wild": ["experiment=synthetic_wild"],
 }
 
 #: the bars of the full model, as (metric, comparison, value or baseline multiple)

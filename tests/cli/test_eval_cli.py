@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import html
 import json
 import os
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
+import unicorn
 from tests.evaluation.helpers import synthetic_data, tiny_checkpoint
 from tests.evaluation.test_report import referenced_files
 from unicorn.cli.eval import main
@@ -54,6 +56,11 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     data = json.loads((out / "metrics.json").read_text())
     assert data["dataset"] == "synthetic" and data["checkpoint_format"] == "plain" and len(data["per_image"]) == 3
     assert data["options"]["num_points"] == 300 and data["protocol"] == "shapenet"
+    # provenance: the command, the checkpoint, the package version and the commit, in the JSON and the page
+    assert data["command"] == "unicorn-eval " + " ".join(cmd[3:]) and "produced_by" not in data
+    assert data["checkpoint"] == str(checkpoint.resolve()) and data["unicorn_version"] == unicorn.__version__
+    assert "git_commit" in data and data["torch"] == torch.__version__
+    assert html.escape(json.dumps(data["command"])) in (out / "report.html").read_text()
     sources = referenced_files(out / "report.html")
     assert "report.png" in sources and any(s.endswith(".gif") for s in sources)
     assert all((out / s).is_file() for s in sources)

@@ -14,6 +14,7 @@ import torch
 import trimesh
 from PIL import Image
 
+import unicorn
 from tests.evaluation.helpers import TEXTURE_SIZE, tiny_checkpoint, write_inputs
 from tests.evaluation.test_report import referenced_files
 from tests.model.test_checkpoint_compat import reference_state
@@ -71,8 +72,15 @@ def test_reconstruct_command(tmp_path: Path, checkpoint: Path, inputs: Path) -> 
         R = torch.tensor(pose["R"])
         torch.testing.assert_close(R @ R.T, torch.eye(3), atol=1e-5, rtol=0)
         assert len(pose["T"]) == 3 and len(pose["candidate_probabilities"]) == 6
-    records = json.loads((out / "reconstructions.json").read_text())
+    saved = json.loads((out / "reconstructions.json").read_text())
+    records = saved["images"]
     assert [r["name"] for r in records] == ["cutout", "photo"]
+    # provenance: this command (not the test runner's), the checkpoint, the package version, the commit
+    origin = saved["provenance"]
+    assert origin["command"].startswith(f"unicorn-reconstruct {checkpoint} {inputs} --out {out}")
+    assert origin["checkpoint"] == str(checkpoint.resolve()) and origin["unicorn_version"] == unicorn.__version__
+    assert "git_commit" in origin and json.loads((out / "photo" / "pose.json").read_text())["provenance"] == origin
+    assert origin["command"] in (out / "index.html").read_text()
     assert records[0]["cropped_from_alpha_or_box"] and not records[1]["cropped_from_alpha_or_box"]
     assert (out / "overview.png").is_file()
     assert all((out / s).is_file() for s in referenced_files(out / "index.html"))
@@ -94,7 +102,8 @@ def test_bad_image_skipped_on_request(tmp_path: Path, checkpoint: Path, inputs: 
     assert err.startswith("unicorn-reconstruct: error: cannot read image") and "broken.png" in err
     with pytest.warns(RuntimeWarning, match="broken.png"):
         assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
-    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["cutout", "photo"]
+    folders = sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir())
+    assert folders == ["_viewer", "cutout", "photo"]
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from unicorn.evaluation.reconstruct import pose_record, unique_names
-from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation, look_at_view_parameters, look_at_view_transform
 
 from .helpers import IMAGE_SIZE
 
@@ -24,12 +24,46 @@ def test_unique_names() -> None:
 
 
 def test_pose_record(real_model) -> None:
+    """pose.json's azimuth, elevation, distance, at and up are look_at_view_transform's: they give back R, T."""
     with torch.no_grad():
         pred = real_model.predict(torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE))
     record = json.loads(json.dumps(pose_record(real_model, pred, 1)))  # JSON-ready
-    torch.testing.assert_close(torch.tensor(record["R"]), pred.R[1])
-    rebuilt = azim_elev_roll_to_rotation(
-        torch.tensor(record["azimuth"]), torch.tensor(record["elevation"]), torch.tensor(record["roll"])
+    torch.testing.assert_close(torch.tensor(record["R"], dtype=torch.float64), pred.R[1].double())
+    assert "look_at_view_transform" in record["convention"]
+    R, T = look_at_view_transform(
+        dist=torch.tensor(record["distance"], dtype=torch.float64),
+        elev=record["elevation"],
+        azim=record["azimuth"],
+        at=torch.tensor(record["at"], dtype=torch.float64),
+        up=torch.tensor(record["up"], dtype=torch.float64),
     )
-    torch.testing.assert_close(rebuilt.reshape(3, 3), pred.R[1], atol=1e-5, rtol=0)
+    torch.testing.assert_close(R[0], pred.R[1].double(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(T[0], pred.T[1].double(), atol=1e-6, rtol=0)
     assert abs(sum(record["candidate_probabilities"]) - 1) < 1e-5 and record["camera"]["fov_degrees"] > 0
+
+
+def test_pose_record_of_a_centred_upright_camera(real_model) -> None:
+    """A camera at azimuth a of the model's pose head (no roll, object centred) is look_at's azimuth a + 180."""
+    with torch.no_grad():
+        pred = real_model.predict(torch.rand(1, 3, IMAGE_SIZE, IMAGE_SIZE))
+    pred.R[0] = azim_elev_roll_to_rotation(torch.tensor(30.0), torch.tensor(10.0), torch.tensor(0.0)).reshape(3, 3)
+    pred.T[0] = torch.tensor([0.0, 0.0, 2.5])
+    record = pose_record(real_model, pred, 0)
+    assert abs(record["azimuth"] - (-150.0)) < 1e-4 and abs(record["elevation"] - 10.0) < 1e-4
+    assert abs(record["distance"] - 2.5) < 1e-6 and abs(record["roll"]) < 1e-4
+    assert torch.tensor(record["at"]).abs().max() < 1e-6
+    # the defaults (at = origin, up = +Y) are enough for such a camera
+    R, T = look_at_view_transform(record["distance"], record["elevation"], record["azimuth"])
+    torch.testing.assert_close(R[0], pred.R[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(T[0], pred.T[0], atol=1e-5, rtol=0)
+
+
+def test_look_at_view_parameters_round_trip() -> None:
+    g = torch.Generator().manual_seed(0)
+    angles = torch.rand(64, 3, generator=g) * torch.tensor([360.0, 170.0, 120.0]) - torch.tensor([180.0, 85, 60])
+    R = azim_elev_roll_to_rotation(angles[:, 0], angles[:, 1], angles[:, 2]).double()
+    T = (torch.randn(64, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 3.0])).double()
+    p = look_at_view_parameters(R, T)
+    R2, T2 = look_at_view_transform(p["dist"], p["elev"], p["azim"], p["at"], p["up"])
+    torch.testing.assert_close(R2, R, atol=1e-6, rtol=0)
+    torch.testing.assert_close(T2, T, atol=1e-6, rtol=0)

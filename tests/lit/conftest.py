@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-#: overrides that turn `+experiment=synthetic` into a run of a few seconds on two CPU cores
+#: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
-    "+experiment=synthetic",
+    "experiment=synthetic",
     "dataset.categories=chair",
     "dataset.synthetic.n_models=5",
     "dataset.batch_size=4",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import pytest
 import torch
@@ -21,17 +22,25 @@ def _weights(run) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in run.module.model.state_dict().items()}
 
 
-def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path):
+def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, caplog):
     plain = build_run(tmp_path / "plain", "callbacks.diagnostics=null")
     fit(plain)
+    capsys.readouterr()
     # the code diagnostics (tests/lit/test_diagnostics.py) are watched in the same run
     watched = build_run(tmp_path / "watched", *HELDOUT, *DIAGNOSTICS)
-    fit(watched)
+    with caplog.at_level("INFO", logger="unicorn.lit.heldout"):
+        fit(watched)
+    # progress: a bar while scoring, and a line before each evaluation
+    assert "held-out val: 100%" in capsys.readouterr().err.replace("\r", "\n")
+    assert re.search(r"held-out val: scoring \d+ images at iteration 4", caplog.text)
     # the callbacks evaluate in eval mode under a forked random state: training is bit-for-bit the same
     a, b = _weights(plain), _weights(watched)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
     rows = list(csv.DictReader(open(watched.output_dir / "heldout.csv")))
+    # the run's metrics files have their provenance beside them
+    (origin,) = json.loads((watched.output_dir / "provenance.json").read_text())
+    assert origin["unicorn_version"] and "git_commit" in origin and origin["command"]
     assert [float(r["step"]) for r in rows] == [0.0, 4.0, 8.0]
     for r in rows:
         assert 0.0 <= float(r["mask-iou"]) <= 1.0
@@ -80,6 +89,11 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     fit(run)
     out = run.output_dir / "eval"
     metrics = json.loads((out / "metrics.json").read_text())
+    # provenance: the equivalent unicorn-eval command, and the training command that ran it, kept apart
+    assert metrics["command"].startswith(f"unicorn-eval {run.checkpoint_dir / 'last.ckpt'} --split=test")
+    assert metrics["produced_by"].startswith("unicorn-train ")
+    assert metrics["produced_by"].endswith("(evaluation after training)")
+    assert metrics["checkpoint"] == str((run.checkpoint_dir / "last.ckpt").resolve()) and "git_commit" in metrics
     assert (out / "report.png").is_file() and (out / "report.html").is_file()
     text = json.dumps(metrics)
     for key in ("chamfer-L1-ICP", "mask-iou", "rot-err-median"):

@@ -149,7 +149,7 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
     from tests.lit.conftest import compose_config
 
     cfg = compose_config(
-        ["+experiment=cub", f"paths.output_dir={tmp_path}", f"dataset.root={tmp_path / 'nothing'}", "logger=none"]
+        ["experiment=cub", f"paths.output_dir={tmp_path}", f"dataset.root={tmp_path / 'nothing'}", "logger=none"]
     )
     cfg.model.loss.perceptual = "structural"
     run = build(cfg)

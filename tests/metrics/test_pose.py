@@ -78,3 +78,11 @@ def test_pose_errors_exact():
     assert errors["rot-acc-30"] == 1.0
     with pytest.raises(ValueError, match="shape"):
         pose_errors(R_pred[:, :2], R_gt)
+
+
+def test_geodesic_error_equals_scipy():
+    from scipy.spatial.transform import Rotation
+
+    R1, R2 = random_rotations(64, 1).double(), random_rotations(64, 2).double()
+    expected = Rotation.from_matrix((R1.transpose(1, 2) @ R2).numpy()).magnitude() * 180 / torch.pi
+    torch.testing.assert_close(geodesic_error(R1, R2), torch.from_numpy(expected), atol=1e-4, rtol=0)

@@ -50,3 +50,15 @@ def test_voxel_iou_edge_cases():
     assert voxel_iou(empty, empty).item() == 1.0
     with pytest.raises(ValueError, match="share"):
         voxel_iou(empty, torch.zeros(2, 4, 4, 4, dtype=torch.bool))
+
+
+def test_occupancy_of_an_octahedron_is_exact():
+    """Planar faces make the inside test analytic: |x| + |y| + |z| < r, cell centre by cell centre."""
+    r = 0.4123
+    verts = torch.tensor([[r, 0, 0], [-r, 0, 0], [0, r, 0], [0, -r, 0], [0, 0, r], [0, 0, -r]], dtype=torch.float64)
+    hull = trimesh.convex.convex_hull(verts.numpy())
+    occ = voxelize_mesh(torch.tensor(hull.vertices), torch.tensor(hull.faces), resolution=20)
+    c = voxel_centers(20, dtype=torch.float64)
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    expected = x.abs() + y.abs() + z.abs() < r
+    assert occ.sum() > 500 and torch.equal(occ, expected)

@@ -1,13 +1,21 @@
-"""Exported meshes reload in trimesh with the same vertices, UVs and texture."""
+"""Exported meshes reload in trimesh and open3d with the same vertices, UVs and texture, and show its colours."""
 
 from __future__ import annotations
 
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
 import numpy as np
+import open3d as o3d
 import pytest
 import torch
 import trimesh
 
 from unicorn.model import Unicorn, export_prediction, save_mesh
+from unicorn.render.textures import sample_bilinear
 
 from .helpers import randomize_heads, tiny_config
 
@@ -35,8 +43,11 @@ def test_export_roundtrip(model_and_prediction, tmp_path, posed, suffix):
     model, pred = model_and_prediction
     mesh = export_prediction(model, pred, index=1, posed=posed)
     verts = pred.verts[1] @ pred.R[1] + pred.T[1] if posed else pred.verts[1]
-    # seam and pole vertices are duplicated, nothing else changes
+    # seam and pole vertices are duplicated for their UVs, at bit-identical positions
     assert len(mesh.vertices) > 642 and len(mesh.faces) == 1280
+    welded = mesh.copy()
+    welded.merge_vertices(merge_tex=True, merge_norm=True)
+    assert len(welded.vertices) == 642 and welded.is_watertight
     # same point sets (rounding then np.unique would split values that straddle a rounding boundary)
     dist = np.linalg.norm(mesh.vertices[:, None] - verts.numpy()[None].astype(np.float64), axis=-1)
     assert dist.min(axis=1).max() < 1e-6 and dist.min(axis=0).max() < 1e-6
@@ -66,3 +77,101 @@ def test_reference_uvs_are_converted_to_edge_convention():
     assert np.allclose(mesh.visual.uv[mesh.faces], (uv * (W - 1) + 0.5) / W, atol=1e-6)
     with pytest.raises(ValueError, match="unsupported"):
         save_mesh(mesh, "mesh.ply")
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _sample_image(image: np.ndarray, uv: np.ndarray, rows_from_top: bool) -> np.ndarray:
+    """Bilinear texel lookup as a glTF / OBJ viewer does it: texel centres at (i + 0.5) / size, u repeats.
+
+    Rows are clamped (as the renderer does); ``rows_from_top``: row 0 is ``v = 1`` (PNG order).
+    """
+    H, W = image.shape[:2]
+    x = uv[:, 0] * W - 0.5
+    y = ((1.0 - uv[:, 1]) if rows_from_top else uv[:, 1]) * H - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    xs = [x0.astype(int) % W, (x0.astype(int) + 1) % W]
+    ys = [np.clip(y0.astype(int), 0, H - 1), np.clip(y0.astype(int) + 1, 0, H - 1)]
+    img = image.astype(np.float64) / 255.0
+    top = img[ys[0], xs[0]] * (1 - fx) + img[ys[0], xs[1]] * fx
+    bottom = img[ys[1], xs[0]] * (1 - fx) + img[ys[1], xs[1]] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _model_colours(model: Unicorn, texture: torch.Tensor) -> np.ndarray:
+    """(F, 3) what the model's renderer shows at every face centre: its own sampler on the predicted texture."""
+    tmpl = model.template
+    uv = tmpl.face_uvs.mean(1)
+    out = sample_bilinear(
+        texture[None].clamp(0, 1), torch.zeros(len(uv), dtype=torch.long), uv, tmpl.wrap_u, not tmpl.wrap_u
+    )
+    return out.double().numpy()
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_exports_show_the_predicted_texture(model_and_prediction, tmp_path, suffix):
+    """Viewers multiply the texture by the base colour: it must be 1, and colours must equal the model's."""
+    model, pred = model_and_prediction
+    files = save_mesh(export_prediction(model, pred, index=1), tmp_path / f"pred{suffix}")
+    expected = _model_colours(model, pred.texture[1])
+    tol = 1.0 / 255 + 1e-6  # the texture is stored as 8-bit
+
+    # trimesh: material colour times the texture at every face's UV centre
+    loaded = trimesh.load(files[0], force="mesh", process=False)
+    material = loaded.visual.material
+    factor = getattr(material, "baseColorFactor", None)
+    if factor is None:  # OBJ: SimpleMaterial with Kd as `diffuse`
+        factor = material.diffuse
+    factor = np.asarray(factor, dtype=np.float64)[:3] / 255.0
+    shown = factor * _sample_image(_texture_pixels(loaded), loaded.visual.uv[loaded.faces].mean(1), True)
+    assert np.abs(shown - expected).max() < tol
+
+    # open3d: the material of its renderer (read_triangle_model) and the mesh's per-corner UVs and texture
+    model3d = o3d.io.read_triangle_model(str(files[0]))
+    base = np.asarray(model3d.materials[0].base_color, dtype=np.float64)
+    assert np.allclose(base, 1.0)
+    mesh3d = o3d.io.read_triangle_mesh(str(files[0]))
+    ids = np.asarray(mesh3d.triangle_material_ids)
+    image = np.asarray(mesh3d.textures[ids[0]])  # open3d keeps image rows bottom (v = 0) first
+    uv = np.asarray(mesh3d.triangle_uvs).reshape(-1, 3, 2).mean(1)
+    # open3d may reorder faces: compare each face with the template face at the same position
+    centres = np.asarray(mesh3d.vertices)[np.asarray(mesh3d.triangles)].mean(1)
+    template_centres = pred.verts[1].double().numpy()[model.template.faces.numpy()].mean(1)
+    order = np.linalg.norm(centres[:, None] - template_centres[None], axis=-1).argmin(1)
+    shown = base[:3] * _sample_image(image, uv, False)
+    assert np.abs(shown - expected[order]).max() < tol
+
+
+def test_obj_is_welded(model_and_prediction, tmp_path):
+    """The OBJ writes every template vertex once (positions and UVs indexed apart): a closed surface."""
+    model, pred = model_and_prediction
+    obj = save_mesh(export_prediction(model, pred, index=0), tmp_path / "welded.obj")[0]
+    text = obj.read_text()
+    positions = np.array([line.split()[1:] for line in text.splitlines() if line.startswith("v ")], dtype=float)
+    faces = np.array(
+        [[int(c.split("/")[0]) - 1 for c in line.split()[1:]] for line in text.splitlines() if line.startswith("f ")]
+    )
+    assert len(positions) == len(model.template.verts) == 642
+    assert np.allclose(positions, pred.verts[0].double().numpy(), atol=1e-6)  # template order kept
+    assert trimesh.Trimesh(positions, faces, process=False).is_watertight
+    assert re.search(r"^Kd 1 1 1$", (tmp_path / "welded.mtl").read_text(), re.M)
+
+
+def test_glb_passes_the_khronos_validator(model_and_prediction, tmp_path):
+    """The Khronos glTF validator (npm package gltf-validator, installed by `npm ci`) finds no error or warning."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("Node.js is not installed: the Khronos glTF validator (npm gltf-validator) needs it")
+    if not (REPO / "node_modules" / "gltf-validator").is_dir():
+        pytest.fail("Node.js is present but gltf-validator is not installed: run `npm ci` in the repository root")
+    model, pred = model_and_prediction
+    glb = save_mesh(export_prediction(model, pred, index=1), tmp_path / "pred.glb")[0]
+    script = Path(__file__).with_name("gltf_validate.cjs")
+    result = subprocess.run([node, str(script), str(glb)], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
+    info = report["info"]
+    assert info["drawCallCount"] == 1 and info["totalTriangleCount"] == 1280 and info["materialCount"] == 1

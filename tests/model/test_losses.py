@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+import urllib.error
 
 import pytest
 import torch
 import torch.nn.functional as F
 
+from unicorn.errors import UserError
 from unicorn.model import (
     NormalConsistencyLoss,
     StructuralLoss,
@@ -17,7 +19,12 @@ from unicorn.model import (
     mse_per_sample,
     uniform_pose_prior,
 )
-from unicorn.model.perceptual import load_vgg16_weights
+from unicorn.model.perceptual import (
+    VGG16_URL,
+    VGGWeightsNotFoundError,
+    load_vgg16_weights,
+    vgg16_cache_path,
+)
 
 TETRA_VERTS = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]])
 TETRA_FACES = torch.tensor([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
@@ -92,14 +99,60 @@ def test_uniform_laplacian_hand_values():
     assert torch.isfinite(v.grad).all()
 
 
+def _one_line_with_options(message: str) -> bool:
+    return "\n" not in message and all(
+        key in message for key in ("paths.vgg16", "UNICORN_VGG16", "model.loss.perceptual=structural")
+    )
+
+
 def test_missing_vgg_file_error(tmp_path):
     path = tmp_path / "nowhere" / "vgg16-397923af.pth"
-    with pytest.raises(FileNotFoundError) as err:
+    with pytest.raises(VGGWeightsNotFoundError) as err:
         VGGPerceptualLoss(path)
     message = str(err.value)
+    assert isinstance(err.value, UserError) and isinstance(err.value, FileNotFoundError)
     assert str(path) in message and "vgg16-397923af.pth" in message and "download.pytorch.org" in message
-    with pytest.raises(FileNotFoundError, match="no path was given"):
+    assert _one_line_with_options(message)
+
+
+@pytest.fixture
+def torch_home(tmp_path, monkeypatch):
+    """An empty torch hub cache (as torchvision uses it) under tmp_path."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setattr(torch.hub, "_hub_dir", None)
+    return tmp_path / "torch" / "hub" / "checkpoints"
+
+
+def test_offline_machine_without_cached_vgg_gets_one_line(torch_home, monkeypatch):
+    def offline(url, dst, hash_prefix=None, progress=True):
+        raise urllib.error.URLError("Name or service not known")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    with pytest.raises(VGGWeightsNotFoundError) as err:
         load_vgg16_weights(None)
+    message = str(err.value)
+    assert _one_line_with_options(message) and "could not be downloaded" in message
+    assert str(torch_home) in message  # says where the cache is
+    with pytest.raises(VGGWeightsNotFoundError, match="no .*vgg16-397923af.pth"):
+        load_vgg16_weights(None, download=False)
+
+
+def test_vgg_weights_come_from_torch_hub_cache(torch_home, monkeypatch):
+    """No path: torchvision's URL is fetched into torch's hub cache (hash prefix passed on), then reused."""
+    state = torchvision_vgg16_state()
+    calls = []
+
+    def fake_download(url, dst, hash_prefix=None, progress=True):
+        calls.append((url, hash_prefix))
+        torch.save(state, dst)
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", fake_download)
+    loaded = load_vgg16_weights(None)
+    assert calls == [(VGG16_URL, "397923af")]
+    assert (torch_home / "vgg16-397923af.pth").is_file() and vgg16_cache_path() == torch_home / "vgg16-397923af.pth"
+    assert torch.equal(loaded["features.14.weight"], state["features.14.weight"])
+    loss = VGGPerceptualLoss(None)  # from the cache now: no second download
+    assert len(calls) == 1 and torch.equal(loss.vgg.features[0].weight, state["features.0.weight"])
 
 
 def test_vgg_perceptual_from_file_matches_hand_computation(tmp_path):

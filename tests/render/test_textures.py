@@ -1,68 +1,29 @@
-"""Texture sampling: bilinear lookups, and the seam of the spherical UVs."""
+"""TexturesUV takes PyTorch3D's channels-last maps as well as (B, C, Ht, Wt), and says which layouts it knows."""
 
-import math
-
+import pytest
 import torch
-import torch.nn.functional as nnf
 
-from unicorn.geometry.mesh import ellipsoid, spherical_face_uvs, spherical_vertex_uvs
-from unicorn.geometry.rotations import look_at_view_transform
-from unicorn.render import LayeredRasterizer, TexturesUV
-from unicorn.render.textures import sample_bilinear
+from unicorn.render import TexturesUV, build_renderer
+
+from .helpers import template_scene
 
 
-def test_bilinear_matches_grid_sample():
-    maps = torch.rand(2, 3, 7, 9, dtype=torch.float64)
-    uv = torch.rand(50, 2, dtype=torch.float64) * 1.2 - 0.1
-    b = torch.randint(0, 2, (50,))
-    for align in (True, False):
-        ours = sample_bilinear(maps, b, uv, wrap_u=False, align_corners=align)
-        grid = torch.stack([uv[:, 0] * 2 - 1, (1 - uv[:, 1]) * 2 - 1], -1)  # v = 0 is the bottom row
-        ref = torch.stack(
-            [
-                nnf.grid_sample(
-                    maps[i : i + 1], grid[None, None, j : j + 1], align_corners=align, padding_mode="border"
-                )[0, :, 0, 0]
-                for j, i in enumerate(b.tolist())
-            ]
-        )
-        assert torch.allclose(ours, ref)
+def test_pytorch3d_channels_last_maps_render_like_channels_first():
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    maps = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    renderer = build_renderer("layered", image_size=32)
+    expected = renderer(verts, faces, TexturesUV(maps, uvs), R=R, T=T)
+    pytorch3d_layout = maps.permute(0, 2, 3, 1).contiguous()  # PyTorch3D's (B, Ht, Wt, C)
+    textures = TexturesUV(pytorch3d_layout, uvs)
+    assert textures.maps.shape == (2, 3, 16, 16) and textures.num_channels == 3
+    torch.testing.assert_close(renderer(verts, faces, textures, R=R, T=T), expected)
+    # an explicit layout wins over the shape (a 4 x 4 RGBA texture is ambiguous)
+    tiny = torch.rand(1, 4, 4, 3)
+    assert TexturesUV(tiny, uvs, channels_last=True).maps.shape == (1, 3, 4, 4)
+    assert TexturesUV(tiny, uvs).maps.shape == (1, 4, 4, 3)
 
 
-def test_wrap_u_is_periodic():
-    maps = torch.rand(1, 3, 4, 8, dtype=torch.float64)
-    uv = torch.rand(20, 2, dtype=torch.float64)
-    b = torch.zeros(20, dtype=torch.long)
-    a = sample_bilinear(maps, b, uv, wrap_u=True, align_corners=False)
-    shifted = sample_bilinear(
-        maps, b, uv + torch.tensor([1.0, 0.0], dtype=torch.float64), wrap_u=True, align_corners=False
-    )
-    assert torch.allclose(a, shifted)
-
-
-def _azimuth_texture(width: int = 64):
-    # colour = smooth periodic function of the azimuth: red = (1 + cos)/2, green = (1 + sin)/2
-    u = (torch.arange(width) + 0.5) / width
-    phi = 2 * math.pi * u - math.pi
-    row = torch.stack([(1 + phi.cos()) / 2, (1 + phi.sin()) / 2, torch.full_like(phi, 0.5)])
-    return row[:, None, :].expand(3, 32, width).clone()[None]
-
-
-def test_seam_faces_sample_across_the_seam():
-    v, f = ellipsoid(3, scale=0.6)
-    # look at the seam (x = 0, z < 0): the camera sits on -Z
-    R, T = look_at_view_transform(2.0, 0.0, 180.0)
-    tex = _azimuth_texture()
-    renderer = LayeredRasterizer(image_size=64)
-    ours = renderer(v[None], f, TexturesUV(tex, spherical_face_uvs(v, f), wrap_u=True), R=R, T=T)
-    naive_uvs = spherical_vertex_uvs(v)[f]
-    naive = renderer(v[None], f, TexturesUV(tex, naive_uvs, wrap_u=False), R=R, T=T)
-    # expected colour from the visible surface point's azimuth: near the seam phi = +-pi, so red = 0, green = 0.5
-    out = renderer.render(v[None], f, TexturesUV(tex, spherical_face_uvs(v, f)), R=R, T=T)
-    ids = out.face_ids[0]
-    centre_cols = slice(28, 36)
-    covered = ids[:, centre_cols] >= 0
-    red_ours = ours[0, 0, :, centre_cols][covered]
-    red_naive = naive[0, 0, :, centre_cols][covered]
-    assert red_ours.max() < 0.08  # the seam column is red-free as it should be
-    assert red_naive.max() > 0.4  # the reference UVs smear the whole texture across seam faces
+def test_other_shapes_are_refused_at_construction_naming_the_layouts():
+    _, _, _, _, uvs = template_scene(batch=1)
+    with pytest.raises(ValueError, match=r"\(B, C, Ht, Wt\) or PyTorch3D's \(B, Ht, Wt, C\)"):
+        TexturesUV(torch.rand(16, 16, 3), uvs)

@@ -21,6 +21,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from unicorn import __version__
+
 __all__ = ["build_parser", "main"]
 
 log = logging.getLogger("unicorn.eval")
@@ -46,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         "report (HTML, PNG).",
         formatter_class=HelpFormatter,
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument(
         "--dataset",
@@ -129,14 +132,21 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
     return str(module.dataset_root())
 
 
-def run(args: argparse.Namespace) -> int:
-    """Evaluate as ``args`` say; returns the exit status."""
-    # heavy imports here: --help and argument errors stay fast
-    import torch
+def run(args: argparse.Namespace, command: str | None = None, produced_by: str | None = None) -> int:
+    """Evaluate as ``args`` say; returns the exit status.
 
+    Args:
+        args: parsed arguments.
+        command: the ``unicorn-eval`` command line recorded as the results' provenance (default: this
+            process's arguments).
+        produced_by: the command that ran this evaluation when it is not ``unicorn-eval`` itself (the training
+            run whose evaluation this is), recorded beside ``command``.
+    """
+    # heavy imports here: --help and argument errors stay fast
     from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate, format_table, protocol_for
     from unicorn.evaluation.report import write_metrics, write_report
     from unicorn.io import load_model
+    from unicorn.io.provenance import command_line, provenance
 
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
@@ -203,8 +213,9 @@ def run(args: argparse.Namespace) -> int:
         )
     result = evaluate(model, data, options, dataset_name=dataset, device=device, shape_baseline=mean_shape)
 
+    extra = {"produced_by": produced_by} if produced_by else {}
     meta = {
-        "checkpoint": str(Path(args.checkpoint).expanduser().resolve()),
+        **provenance(command or command_line("unicorn-eval", sys.argv[1:]), args.checkpoint, **extra),
         "checkpoint_format": info.format,
         "epoch": info.epoch,
         "step": info.step,
@@ -213,14 +224,13 @@ def run(args: argparse.Namespace) -> int:
         "split": args.split,
         "categories": categories,
         "device": str(device),
-        "torch": torch.__version__,
         "options": dataclasses.asdict(options),
         "mean_shape_iterations": args.mean_shape,
-        "command": " ".join(["unicorn-eval", *sys.argv[1:]]),
     }
     paths = write_metrics(result, out, meta)
     print(format_table(result.table, result.columns))
     if result.samples:
+        print(f"writing the report: {len(result.samples)} samples to {out / 'report.html'}", flush=True)
         title = f"{dataset} ({args.split}): {Path(args.checkpoint).name}"
         paths.update(
             write_report(
@@ -257,7 +267,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_images is not None and args.max_images < 1:
         parser.error("--max-images must be positive")
     try:
-        return run(args)
+        from unicorn.io.provenance import command_line
+
+        return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))
     except (FileNotFoundError, DatasetNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
         message = err.args[0] if isinstance(err, KeyError) and err.args else err
         print(f"unicorn-eval: error: {message}", file=sys.stderr)

@@ -20,6 +20,7 @@ import time
 import warnings
 from pathlib import Path
 
+from unicorn import __version__
 from unicorn.cli.eval import HelpFormatter
 
 __all__ = ["build_parser", "main"]
@@ -45,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
         "predicted mask and pose, and a turntable (GIF and PNG strip).",
         formatter_class=HelpFormatter,
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument("inputs", nargs="+", help="image files and/or folders (searched recursively)")
     p.add_argument("--out", type=Path, default=Path("reconstructions"), help="output folder")
@@ -68,12 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def run(args: argparse.Namespace) -> int:
-    """Reconstruct as ``args`` say; returns the exit status."""
+def run(args: argparse.Namespace, command: str | None = None) -> int:
+    """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
     from unicorn.cli.eval import _device
     from unicorn.data.images import ImageLoadError
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
+    from unicorn.io.provenance import command_line, provenance
 
     files = collect_inputs(args.inputs)
     if args.bbox is not None and len(files) != 1:
@@ -114,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         strip_views=args.strip_views,
         average_texture=average,
         progress=not args.quiet,
+        provenance=provenance(command or command_line("unicorn-reconstruct", sys.argv[1:]), args.checkpoint),
     )
     seconds = time.perf_counter() - start
     print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
@@ -136,7 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.turntable_frames < 0 or args.padding < 0:
         parser.error("--turntable-frames and --padding must be >= 0")
     try:
-        return run(args)
+        from unicorn.io.provenance import command_line
+
+        return run(args, command=command_line("unicorn-reconstruct", sys.argv[1:] if argv is None else argv))
     except (FileNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
         message = err.args[0] if isinstance(err, KeyError) and err.args else err
         print(f"unicorn-reconstruct: error: {message}", file=sys.stderr)

@@ -2,25 +2,29 @@
 
 Examples::
 
-    unicorn-train +experiment=synthetic                      # the offline default, a few minutes on a CPU
-    unicorn-train +experiment=cub trainer=gpu dataset.root=/data/cub_200
-    unicorn-train +experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
-    unicorn-train -m +experiment=synthetic seed=1,2,3        # a sweep, one run directory per job
-    unicorn-train --cfg job +experiment=cub                  # print the composed config, train nothing
+    unicorn-train                                           # no arguments: experiment=synthetic, the offline default
+    unicorn-train experiment=cub trainer=gpu dataset.root=/data/cub_200
+    unicorn-train experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
+    unicorn-train -m experiment=synthetic seed=1,2,3        # a sweep, one run directory per job
+    unicorn-train --cfg job experiment=cub                  # print the composed config, train nothing
+    unicorn-train --help                                    # what it does, the groups, examples; also --version
 
 The configs are looked up where they ship: ``unicorn/conf`` inside an installed wheel, or the repository's
 top-level ``conf/`` for an editable install; the directory is resolved from this file, never from the working
 directory, and passed to Hydra as an absolute path. ``--config-dir``/``-cd`` adds a directory of your own
-(e.g. ``-cd my_conf +experiment=mine``).
+(e.g. ``-cd my_conf experiment=mine``).
 
 Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for sweeps,
 ``outputs/<task_name>/multiruns/<time>/<job>``): ``.hydra/`` (composed config and overrides), ``config.yaml``
-(the validated, resolved config), ``train.log``, ``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
+(the validated, resolved config), ``provenance.json`` (command, version, git commit), ``train.log``,
+``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +33,10 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["Run", "build", "config_dir", "fit", "main", "train"]
+__all__ = ["DEFAULT_EXPERIMENT", "Run", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
+
+#: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
+DEFAULT_EXPERIMENT = "synthetic"
 
 log = logging.getLogger("unicorn.train")
 
@@ -62,6 +69,42 @@ def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
     if not path.is_file():
         raise FileNotFoundError(f"ckpt_path: no checkpoint file at {path}")
     return str(path)
+
+
+def _route_lightning_logs() -> None:
+    """Send Lightning's log records through the root logger's handlers only (each message printed once).
+
+    Lightning gives its loggers a stderr handler of their own; under Hydra, whose root handlers also print to the
+    console (and to train.log), every Lightning line would appear twice. Nothing changes without root handlers.
+    """
+    if not logging.getLogger().handlers:
+        return
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in list(logger.handlers):
+            if isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler):
+                logger.removeHandler(handler)
+        logger.propagate = True
+
+
+def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
+    """``<run>/provenance.json``: the command, resumed checkpoint, version and commit behind the run's metrics files
+    (``heldout.csv``, ``csv/``, ``tensorboard/``); a resumed run keeps one record per start."""
+    import json
+
+    from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.io.provenance import command_line, provenance
+
+    if int(os.environ.get("LOCAL_RANK", "0")) != 0 or int(os.environ.get("NODE_RANK", "0")) != 0:
+        return  # DDP processes started by Lightning build the run again: one record per start
+    if HydraConfig.initialized():
+        command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
+    else:  # built from Python (e.g. with Hydra's compose API)
+        command = command_line(Path(sys.argv[0]).name, sys.argv[1:])
+    path = output_dir / "provenance.json"
+    starts = json.loads(path.read_text()) if path.is_file() else []
+    path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
 
 
 @dataclass
@@ -100,6 +143,7 @@ def build(cfg: DictConfig) -> Run:
         UnicornLitModule,
     )
 
+    _route_lightning_logs()
     typed = validate(cfg)
     # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
@@ -108,6 +152,7 @@ def build(cfg: DictConfig) -> Run:
     checkpoint_dir = output_dir / "checkpoints"
     (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
     ckpt_path = _resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    _write_provenance(output_dir, ckpt_path)
 
     L.seed_everything(typed.seed, workers=True, verbose=False)
     data = IterationDataModule(instantiate(typed.dataset, _convert_="all"), seed=typed.seed)
@@ -208,12 +253,18 @@ def evaluate_run(run: Run) -> Path:
         f"--report-samples={e.report_samples}",
         f"--turntable-frames={e.turntable_frames}",
         f"--mean-shape={e.mean_shape_iterations}",
-        "--quiet",
     ]
     if e.max_images is not None:
         argv.append(f"--max-images={e.max_images}")
     log.info("evaluating %s on the %s split", checkpoint, e.split)
-    status = eval_cli.run(eval_cli.build_parser().parse_args(argv))
+    from unicorn.io.provenance import command_line
+
+    # the report records the equivalent unicorn-eval command, and the training command that ran it
+    status = eval_cli.run(
+        eval_cli.build_parser().parse_args(argv),
+        command=command_line("unicorn-eval", argv),
+        produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+    )
     if status != 0:
         raise RuntimeError(f"evaluation of {checkpoint} failed with status {status}")
     log.info("evaluation report: %s", out / "report.html")
@@ -236,8 +287,27 @@ def _task(cfg: DictConfig) -> None:
         raise SystemExit(2) from None
 
 
+def hydra_argv(argv: list[str]) -> list[str]:
+    """The arguments handed to Hydra: ``experiment=synthetic`` (the offline default) when there are none."""
+    return argv if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
+    args = sys.argv[1:]
+    if "--version" in args:
+        from unicorn import __version__
+
+        print(f"unicorn-train (unicorn3d) {__version__}")
+        return
+    if not args:
+        print(
+            f"unicorn-train: no arguments, running the offline default experiment={DEFAULT_EXPERIMENT} "
+            "(see unicorn-train --help)",
+            file=sys.stderr,
+            flush=True,
+        )
+    sys.argv[1:] = hydra_argv(args)
     hydra.main(config_path=str(config_dir()), config_name="train", version_base="1.3")(_task)()
 
 

@@ -103,7 +103,7 @@ class LossConfig:
     rgb_weight: float = 1.0
     perceptual: str | None = "vgg"  # vgg | structural | null
     perceptual_weight: float = 10.0
-    vgg_weights: str | None = None
+    vgg_weights: str | None = None  # None: torchvision's file in torch's hub cache (downloaded when absent)
     normal_weight: float = 0.01
     laplacian_weight: float = 0.01
     uniform_weight: float = 0.02

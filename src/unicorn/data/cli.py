@@ -15,6 +15,7 @@ from collections.abc import Sequence
 
 import torch
 
+from unicorn import __version__
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 
@@ -53,6 +54,7 @@ def _check(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``unicorn-data`` console script."""
     parser = argparse.ArgumentParser(prog="unicorn-data", description=__doc__.split("\n")[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     synth = sub.add_parser("synth", help="generate the synthetic benchmark in the ShapeNet-NMR (DVR) layout")

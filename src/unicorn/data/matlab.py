@@ -1,8 +1,8 @@
-"""Reading the MATLAB annotation files of CMR / UCMR with ``scipy.io.loadmat``.
+"""Reading the MATLAB annotation files of CMR / UCMR with ``scipy.io.loadmat(..., simplify_cells=True)``.
 
-``loadmat(..., struct_as_record=False, squeeze_me=True)`` returns struct arrays as numpy object arrays of
-``mat_struct``, except that a one-element array collapses to a bare ``mat_struct`` and a MATLAB logical loads
-as uint8. These helpers undo both so loaders see a list of plain dicts.
+scipy turns MATLAB structs into dicts (nested ones too) and squeezes singleton dimensions; the one thing left
+to the caller is that a struct array holding one record loads as that record's dict rather than a list of
+one, which :func:`load_struct_array` undoes. (A MATLAB logical still loads as uint8.)
 """
 
 from __future__ import annotations
@@ -13,18 +13,7 @@ from typing import Any
 import numpy as np
 import scipy.io
 
-__all__ = ["load_struct_array", "struct_to_dict"]
-
-
-def struct_to_dict(struct: Any) -> dict[str, Any]:
-    """One ``mat_struct`` to a dict of its fields (nested structs converted too)."""
-    out = {}
-    for name in struct._fieldnames:
-        value = getattr(struct, name)
-        if isinstance(value, scipy.io.matlab.mat_struct):
-            value = struct_to_dict(value)
-        out[name] = value
-    return out
+__all__ = ["load_struct_array"]
 
 
 def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, Any]]:
@@ -40,9 +29,11 @@ def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, 
     Raises:
         KeyError: if the file has no such variable (the message lists the variables it has).
     """
-    data = scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True)
+    data = scipy.io.loadmat(path, simplify_cells=True)
     if variable not in data:
         names = sorted(k for k in data if not k.startswith("__"))
         raise KeyError(f"{path} has no variable {variable!r} (it has {names})")
-    records = np.atleast_1d(data[variable])  # a single record loads as a bare struct
-    return [struct_to_dict(r) for r in records.ravel()]
+    records = data[variable]
+    if isinstance(records, dict):  # a single record
+        return [records]
+    return list(np.asarray(records, dtype=object).ravel())

@@ -153,6 +153,8 @@ class EvalOptions:
         nn_workers: threads of the nearest-neighbour queries.
         seed: seed of the point sampling.
         progress: show a progress bar.
+        progress_label: the bar's label (default ``eval <dataset name>``).
+        progress_leave: keep the finished bar on screen (False: erase it, for bars inside another one's).
         oracle_pose: ``"shapenet"`` only: render the reconstructions and masks, and align the meshes, with the
             ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and ``mask-iou`` score the
             shape alone; the pose errors (trivially 0) and the candidate usage are left out. Every item must
@@ -172,6 +174,8 @@ class EvalOptions:
     nn_workers: int = 1
     seed: int = 0
     progress: bool = True
+    progress_label: str | None = None
+    progress_leave: bool = True
     oracle_pose: bool = False
 
     def __post_init__(self) -> None:
@@ -480,7 +484,13 @@ def evaluate(
     if record_candidates:
         acc.n_candidates = model.n_candidates
     samples: list[Sample] = []
-    bar = tqdm(total=len(dataset), desc=f"eval {dataset_name}", unit="img", disable=not options.progress)
+    bar = tqdm(
+        total=len(dataset),
+        desc=options.progress_label or f"eval {dataset_name}",
+        unit="img",
+        disable=not options.progress,
+        leave=options.progress_leave,
+    )
     for batch in loader:
         images = _resize_images(batch["image"].to(device), size)
         B = images.shape[0]

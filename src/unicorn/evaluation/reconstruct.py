@@ -9,11 +9,15 @@ Per input image ``<out>/<name>/``:
 - ``mesh.obj`` + ``mesh.mtl`` + ``mesh.png`` and ``mesh.glb``: the textured mesh in the object frame
   (+Y up, the camera of azimuth 0 looks from +Z; ``pose.json`` places it in the camera frame);
 - ``pose.json``: rotation ``R`` and translation ``T`` (``x_view = x_object @ R + T``, PyTorch3D view axes: +X left,
-  +Y up, +Z away from the camera), azimuth / elevation / roll in degrees, the anisotropic scale, the camera
-  (field of view or focal length) and the probabilities of all pose candidates;
+  +Y up, +Z away from the camera), and the same camera as the arguments of
+  :func:`unicorn.geometry.rotations.look_at_view_transform` (``distance``, ``elevation``, ``azimuth`` in degrees,
+  ``at``, ``up``; ``roll`` is informative), the anisotropic scale, the camera (field of view or focal length)
+  and the probabilities of all pose candidates;
 - ``turntable.gif`` and ``turntable.png`` (a strip of views): the mesh spinning about its vertical axis.
 
-The folder also gets ``overview.png`` (one row per image) and ``index.html``.
+The folder also gets ``overview.png`` (one row per image), ``index.html`` and ``reconstructions.json``
+(``{"provenance": ..., "images": [...]}``); ``pose.json`` and both of these record the provenance (command,
+checkpoint, package version, git commit) given to :func:`reconstruct`.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ import html
 import json
 import os
 import re
-from collections.abc import Sequence
+import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,8 +39,9 @@ from tqdm.auto import tqdm
 
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
 from unicorn.evaluation.report import image_grid, save_gif, to_uint8
+from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
+from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
-from unicorn.metrics import rotation_to_azim_elev_roll
 from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
@@ -68,19 +74,36 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
+#: how pose.json's numbers are read (written into the file)
+POSE_CONVENTION = (
+    "x_view = x_object @ R + T; view axes +X left, +Y up, +Z away from the camera (PyTorch3D). "
+    "R, T = unicorn.geometry.rotations.look_at_view_transform(dist=distance, elev=elevation, azim=azimuth, "
+    "at=[at], up=[up]) gives back R and T (PyTorch3D's look_at_view_transform too): azimuth 0 puts the camera "
+    "on +Z, 90 on +X, positive elevation above (+Y), in degrees; at is the point of the optical axis at the "
+    "object's depth (0 when the object is centred) and up the camera's +Y axis; roll (degrees) is the turn of "
+    "the camera about its axis from the +Y-up camera (0: up=[0, 1, 0] gives the same camera)."
+)
+
+
 def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
-    """JSON-ready pose of one prediction: R, T, angles, scale, camera, candidate probabilities."""
-    R, T = pred.R[index].detach().cpu(), pred.T[index].detach().cpu()
-    azim, elev, roll = (float(a) for a in rotation_to_azim_elev_roll(R))
+    """JSON-ready pose of one prediction: R, T, look-at parameters, scale, camera, candidate probabilities."""
+    R, T = pred.R[index].detach().cpu().double(), pred.T[index].detach().cpu().double()
+    look = look_at_view_parameters(R, T)
+    # roll: signed angle about the optical axis from the +Y-up look-at camera's Y axis to this camera's
+    upright = look_at_rotation((-T @ R.T)[None], look["at"][None])[0]
+    y0, y, z = upright[:, 1], R[:, 1], R[:, 2]
+    roll = torch.rad2deg(torch.atan2(torch.linalg.cross(y0, y).dot(z), y0.dot(y)))
     camera = model.renderer.camera
     return {
-        "convention": "x_view = x_object @ R + T; view axes +X left, +Y up, +Z away from the camera (PyTorch3D)",
+        "convention": POSE_CONVENTION,
         "R": R.tolist(),
         "T": T.tolist(),
-        "azimuth": azim,
-        "elevation": elev,
-        "roll": roll,
-        "distance": float(T.norm()),
+        "azimuth": float(look["azim"]),
+        "elevation": float(look["elev"]),
+        "distance": float(look["dist"]),
+        "at": look["at"].tolist(),
+        "up": look["up"].tolist(),
+        "roll": float(roll),
         "scale": pred.scale[index].detach().cpu().tolist(),
         "camera": {"fov_degrees": camera.fov, "focal_length_ndc": float(camera.focal_length)},
         "image_size": model.config["image_size"],
@@ -98,6 +121,7 @@ def _write_one(
     turntable_frames: int,
     strip_views: int,
     device: torch.device,
+    provenance: Mapping[str, Any],
 ) -> dict[str, Any]:
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
@@ -122,7 +146,7 @@ def _write_one(
         written = save_mesh(mesh, folder / f"mesh{suffix}")
         files[f"mesh{suffix}"] = written[0].name
     pose = pose_record(model, pred, i)
-    (folder / "pose.json").write_text(json.dumps(pose, indent=1))
+    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
     files["pose"] = "pose.json"
 
     strip_angles = even_angles(strip_views)
@@ -160,6 +184,7 @@ def reconstruct(
     strip_views: int = 4,
     average_texture: bool = False,
     progress: bool = True,
+    provenance: Mapping[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Reconstruct preprocessed images and write their outputs (see the module docstring).
 
@@ -174,6 +199,8 @@ def reconstruct(
         strip_views: views in ``turntable.png`` (evenly spaced over a turn).
         average_texture: predict mean-colour textures.
         progress: show a progress bar.
+        provenance: where the results come from (:func:`unicorn.io.provenance.provenance`: command,
+            checkpoint, versions), recorded in every JSON file and the HTML page; default: the calling process.
 
     Returns:
         one record per image (name, source, folder, written files, pose angles); also written to
@@ -181,6 +208,11 @@ def reconstruct(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if provenance is None:
+        from unicorn.io.provenance import command_line
+        from unicorn.io.provenance import provenance as record
+
+        provenance = record(command_line(Path(sys.argv[0]).name, sys.argv[1:]))
     device = torch.device(device)
     model = model.to(device).eval()
     size = model.config["image_size"]
@@ -194,7 +226,9 @@ def reconstruct(
         pred = model.predict(images, average_texture=average_texture)
         for i, item in enumerate(chunk):
             records.append(
-                _write_one(model, pred, i, item, out / item.name, view_size, turntable_frames, strip_views, device)
+                _write_one(
+                    model, pred, i, item, out / item.name, view_size, turntable_frames, strip_views, device, provenance
+                )
             )
             bar.update()
     bar.close()
@@ -206,39 +240,55 @@ def reconstruct(
         labels = ["input", "reconstruction", "mask"]
         labels += [f"textured {a:g}°" for a in angles] + [f"shape {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
-        _write_index(out, records, labels, view_size)
-    (out / "reconstructions.json").write_text(json.dumps(records, indent=1))
+        _write_index(out, records, labels, view_size, provenance)
+    (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
     return records
 
 
-def _write_index(out: Path, records: Sequence[dict[str, Any]], labels: Sequence[str], view_size: int) -> None:
-    """``index.html``: per image its pictures, turntable and links to the meshes and pose."""
+def _write_index(
+    out: Path,
+    records: Sequence[dict[str, Any]],
+    labels: Sequence[str],
+    view_size: int,
+    provenance: Mapping[str, Any],
+) -> None:
+    """``index.html``: per image its pictures, turntable, an interactive 3D view, and links to the meshes and pose."""
     rows = []
     size = min(view_size, 192)
+    head_script, body_script = viewer_script_tags(install_viewer(out))
     for r in records:
         name = html.escape(r["name"])
         pics = [f"{name}/{r['files'][k]}" for k in ("input", "reconstruction", "mask") if k in r["files"]]
         if "turntable_gif" in r["files"]:
             pics.append(f"{name}/{r['files']['turntable_gif']}")
         cells = "".join(f'<td><img src="{p}" width="{size}" height="{size}"></td>' for p in pics)
+        pose = r["pose"]
+        glb = Path(r["folder"]) / r["files"]["mesh.glb"]
+        orbit = (pose["azimuth"], pose["elevation"])
+        viewer = viewer_element(glb, max(size, 160), alt=f"textured mesh of {r['name']}", orbit=orbit)
+        cells += f"<td>{viewer}</td>"
         links = " ".join(
             f'<a href="{name}/{html.escape(r["files"][k])}">{html.escape(k)}</a>'
             for k in ("mesh.obj", "mesh.glb", "pose", "turntable")
             if k in r["files"]
         )
-        pose = r["pose"]
-        caption = (
-            f"<b>{name}</b><br>azim {pose['azimuth']:.0f}°, elev {pose['elevation']:.0f}°, "
-            f"roll {pose['roll']:.0f}°<br>{links}"
-        )
+        azim, elev, roll = (pose[k] if abs(pose[k]) >= 0.5 else 0.0 for k in ("azimuth", "elevation", "roll"))
+        caption = f"<b>{name}</b><br>azim {azim:.0f}°, elev {elev:.0f}°, roll {roll:.0f}°<br>{links}"
         rows.append(f"<tr><td class='cap'>{caption}</td>{cells}</tr>")
+    origin = "".join(
+        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(str(v))}</code></dd>" for k, v in provenance.items()
+    )
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>unicorn reconstructions</title><style>
 body{{font-family:system-ui,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1200px;padding:0 1em;color:#222}}
 td{{padding:.3em;vertical-align:top}} .cap{{font-size:.9em;min-width:12em}}
-</style></head><body><h1>Reconstructions</h1>
-<p>Input, reconstruction, predicted mask and turntable per image; <a href="overview.png">overview.png</a> shows
+dl{{display:grid;grid-template-columns:max-content auto;gap:.2em 1em;font-size:.85em}} dt{{font-weight:600}}
+</style>{head_script}</head><body><h1>Reconstructions</h1>
+<p>Input, reconstruction, predicted mask, turntable and an interactive 3D view (drag to rotate, scroll to zoom;
+it opens from the predicted viewpoint) per image; <a href="overview.png">overview.png</a> shows
 the meshes from {(len(labels) - 3) // 2} viewpoints, textured and untextured.</p>
-<table>{"".join(rows)}</table></body></html>
+<table>{"".join(rows)}</table>
+<h2>Provenance</h2><dl>{origin}</dl>
+{body_script}</body></html>
 """
     (out / "index.html").write_text(page, encoding="utf-8")

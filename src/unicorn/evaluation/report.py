@@ -3,8 +3,10 @@
 The report shows, for a few evaluated images, the input, the model's reconstruction, the predicted silhouette
 against the ground-truth mask, and the predicted mesh from several viewpoints, textured and as lit untextured
 geometry (which shows the shape without the texture's help); the HTML page adds the metric table, what each
-column means, the run's settings and a turntable animation per image. Its images are PNG / GIF files in a
-``report/`` folder beside it, referenced by relative paths, so the folder can be copied or served as is.
+column means, the run's settings, a turntable animation and an interactive 3D view (drag to rotate, scroll to
+zoom; :mod:`unicorn.evaluation.viewer`) per image. Its images are PNG / GIF files in a ``report/`` folder beside
+it, referenced by relative paths, and the viewer's script is copied to ``_viewer/``, so the folder can be copied,
+served or opened from disk as is, without a network.
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ from PIL import Image, ImageDraw, ImageFont
 
 from unicorn.evaluation.evaluator import METRIC_ORDER, EvaluationResult, Sample
 from unicorn.evaluation.rendering import even_angles, turntable
+from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
+from unicorn.geometry.rotations import look_at_view_parameters
 from unicorn.model import Unicorn
+from unicorn.model.export import glb_bytes, textured_mesh
 
 __all__ = [
     "METRIC_HELP",
@@ -124,6 +129,19 @@ def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Ma
     }
     paths["json"].write_text(json.dumps(_json_safe(payload), indent=1))
     return paths
+
+
+def _sample_viewer(model: Unicorn, sample: Sample, size: int) -> str:
+    """The interactive view of a sample's textured mesh, opening from its camera's azimuth and elevation."""
+    tmpl = model.template
+    mesh = textured_mesh(sample.verts, tmpl.faces, tmpl.face_uvs, sample.texture, align_corners=not tmpl.wrap_u)
+    look = look_at_view_parameters(sample.R.double(), sample.T.double())
+    return viewer_element(
+        glb_bytes(mesh, name=f"sample{sample.index}"),
+        size,
+        alt=f"textured mesh of image {sample.index}",
+        orbit=(float(look["azim"]), float(look["elev"])),
+    )
 
 
 # ---------------------------------------------------------------------------------------------- pictures
@@ -289,6 +307,7 @@ def write_report(
     angles: Sequence[float] | None = None,
     turntable_frames: int = 16,
     device: str | torch.device = "cpu",
+    interactive: bool = True,
 ) -> dict[str, Path]:
     """Write ``report.png`` (the sample grid) and ``report.html`` (table, legend, samples, settings).
 
@@ -302,6 +321,8 @@ def write_report(
         angles: spin angles of the mesh views (default 0, 120, 240 degrees).
         turntable_frames: frames of the per-sample turntable GIF (0: none).
         device: where to render.
+        interactive: add an interactive 3D view of every sample's textured mesh (its GLB, embedded), opening at
+            the predicted viewpoint.
 
     Returns:
         ``{"html": ..., "png": ...}`` (``png`` absent when there are no samples).
@@ -342,6 +363,9 @@ def write_report(
                 f'<td><img src="report/{n}" width="{view_size}" height="{view_size}" alt="{html.escape(lb)}"></td>'
                 for lb, n in names
             )
+            if interactive:
+                # first, beside the caption: visible without scrolling the wide table sideways
+                cells_html = f"<td>{_sample_viewer(model, sample, max(view_size, 160))}</td>" + cells_html
             sample_html.append(f'<tr><td class="cap">{caption}</td>{cells_html}</tr>')
     if grid_rows:
         paths["png"] = out / "report.png"
@@ -349,6 +373,10 @@ def write_report(
     header_cells = "".join(f"<th>{html.escape(lb)}</th>" for lb in labels)
     if turntable_frames > 0 and grid_rows:
         header_cells += "<th>turntable</th>"
+    head_script, body_script = "", ""
+    if interactive and grid_rows:
+        header_cells = '<th title="drag to rotate, scroll to zoom">3D view (drag, scroll)</th>' + header_cells
+        head_script, body_script = viewer_script_tags(install_viewer(out))
     better = {"lower": " (lower is better)", "higher": " (higher is better)"}
     legend = "".join(
         f"<dt>{html.escape(c)}</dt>"
@@ -369,7 +397,8 @@ def write_report(
         else ""
     )
     page = f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{_CSS}</style></head>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{_CSS}</style>
+{head_script}</head>
 <body><h1>{html.escape(title)}</h1>
 <p class="sub">{html.escape(result.protocol)} protocol, {result.mean["n-images"]} images,
 {result.seconds:.1f} s</p>
@@ -379,7 +408,7 @@ def write_report(
 <h2>Settings</h2><dl>{settings}</dl>
 <p class="sub">Files: <a href="metrics.csv">metrics.csv</a>, <a href="metrics.json">metrics.json</a>,
 <a href="per_image.csv">per_image.csv</a></p>
-</body></html>
+{body_script}</body></html>
 """
     paths["html"] = out / "report.html"
     paths["html"].write_text(page, encoding="utf-8")

@@ -17,6 +17,7 @@ __all__ = [
     "camera_position_from_spherical",
     "euler_angles_to_matrix",
     "look_at_rotation",
+    "look_at_view_parameters",
     "look_at_view_transform",
     "rotation_angle_between",
 ]
@@ -153,6 +154,34 @@ def look_at_view_transform(
     R = look_at_rotation(eye, at, up)
     T = -(eye.unsqueeze(1) @ R).squeeze(1)
     return R, T
+
+
+def look_at_view_parameters(R: torch.Tensor, T: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Inverse of :func:`look_at_view_transform`: the arguments that give back the camera ``(R, T)``.
+
+    ``at`` is the point of the optical axis at the depth of the world origin (``T[..., 2]`` in front of the
+    camera), so ``dist`` is that depth; ``up`` is the camera's own +Y axis, which carries the roll. For a camera
+    looking at the origin with no roll, ``at`` is 0 and ``up`` is +Y: ``look_at_view_transform(dist, elev, azim)``
+    alone gives it back.
+
+    Args:
+        R: (..., 3, 3) world-to-view rotations (``x_view = x_world @ R + T``).
+        T: (..., 3) translations; the world origin must be in front of the camera (``T[..., 2] > 0``).
+
+    Returns:
+        ``dist`` (...), ``elev`` (...) and ``azim`` (...) in degrees, ``at`` (..., 3) and ``up`` (..., 3) such
+        that ``look_at_view_transform(dist, elev, azim, at, up)`` equals ``(R, T)`` (flattened to one batch).
+    """
+    if R.shape[-2:] != (3, 3) or T.shape[-1] != 3 or R.shape[:-2] != T.shape[:-1]:
+        raise ValueError(f"need R (..., 3, 3) and T (..., 3), got {tuple(R.shape)}, {tuple(T.shape)}")
+    centre = -(T.unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2)  # x_view = 0
+    forward, up = R[..., :, 2], R[..., :, 1]  # the camera's +Z and +Y axes in world coordinates
+    dist = T[..., 2]
+    at = centre + dist.unsqueeze(-1) * forward
+    back = -forward  # direction from `at` to the camera
+    elev = torch.rad2deg(torch.asin(back[..., 1].clamp(-1.0, 1.0)))
+    azim = torch.rad2deg(torch.atan2(back[..., 0], back[..., 2]))
+    return {"dist": dist, "elev": elev, "azim": azim, "at": at, "up": up}
 
 
 def rotation_angle_between(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:

@@ -52,6 +52,7 @@ class HeldOutEvaluation(L.Callback):
             the model; 0: no shape baseline. Needs a dataset with point clouds (ShapeNet-NMR, synthetic) and
             ``icp_iterations`` > 0.
         mean_shape_models: most training shapes the mean shape is fitted to.
+        progress: a progress bar while scoring (erased when done; a line is logged before and after either way).
     """
 
     def __init__(
@@ -66,6 +67,7 @@ class HeldOutEvaluation(L.Callback):
         filename: str = "heldout.csv",
         mean_shape_iterations: int = 0,
         mean_shape_models: int = 200,
+        progress: bool = True,
     ) -> None:
         if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
             raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
@@ -80,7 +82,7 @@ class HeldOutEvaluation(L.Callback):
             )
         self.every_n_steps, self.split, self.max_images = int(every_n_steps), split, int(max_images)
         self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
-        self.at_start, self.filename = bool(at_start), filename
+        self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
         self.mean_shape_iterations, self.mean_shape_models = int(mean_shape_iterations), int(mean_shape_models)
         self.mean_shape: torch.Tensor | None = None  # (V, 3), fitted with the dataset
         self._dataset: Any = None
@@ -147,9 +149,12 @@ class HeldOutEvaluation(L.Callback):
             icp_iterations=self.icp_iterations,
             average_texture=pl_module.constant_mean_textures,
             report_samples=0,
-            progress=False,
+            progress=self.progress,
+            progress_label=f"held-out {self.split}",
+            progress_leave=False,
         )
         step = int(trainer.global_step)
+        log.info("held-out %s: scoring %d images at iteration %d", self.split, len(self._dataset), step)
         was_training = pl_module.training
         devices = [pl_module.device] if pl_module.device.type == "cuda" else []
         # the evaluation draws points and ICP noise: keep the training's random streams where they were

@@ -30,7 +30,9 @@ def geodesic_error(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """Geodesic angle in degrees, in [0, 180], between rotations (..., 3, 3).
 
     The metric name for :func:`unicorn.geometry.rotations.rotation_angle_between` (atan2 form, accurate near
-    0 and 180 degrees).
+    0 and 180 degrees). Equal to scipy's ``Rotation.magnitude`` of ``R1^T R2`` (the tests check it), but kept in
+    torch: it runs batched on the model's device inside training (neighbour matching) and evaluation, where a
+    round trip through scipy's CPU float64 arrays would cost a copy per call; kornia has no such distance.
 
     Example:
         >>> Rz = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -70,7 +72,11 @@ def rotation_to_azim_elev_roll(R: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
 
 def _kabsch(M: torch.Tensor) -> torch.Tensor:
-    """The rotation Q maximising ``tr(Q^T M)`` for (..., 3, 3) ``M``."""
+    """The rotation Q maximising ``tr(Q^T M)`` for (..., 3, 3) ``M``.
+
+    Written out (three lines of SVD) because it is applied to a batch of summed rotation matrices, not to the
+    paired vectors that scipy's ``Rotation.align_vectors`` takes.
+    """
     U, _, Vh = torch.linalg.svd(M)
     d = torch.sign(torch.linalg.det(U @ Vh))
     d = torch.where(d == 0, torch.ones_like(d), d)

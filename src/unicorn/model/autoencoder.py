@@ -25,7 +25,7 @@ Configuration (keyword groups, each a mapping merged over :data:`DEFAULT_CONFIG`
   the white background colour, then ``rgb * A + (1 - A) * bkg`` as the released models did), ``options``
   (extra keyword arguments of :func:`unicorn.render.build_renderer`; {sigma: 1e-4, faces_per_pixel: 25}).
 - ``loss``: ``rgb_weight`` (1), ``perceptual`` ("vgg", "structural" or None), ``perceptual_weight`` (10),
-  ``vgg_weights`` (path of torchvision's ``vgg16-397923af.pth``; required for "vgg"), ``normal_weight``
+  ``vgg_weights`` (a copy of ``vgg16-397923af.pth``; None: torch's hub cache, downloaded), ``normal_weight``
   (0.01), ``laplacian_weight`` (0.01), ``uniform_weight`` (0.02), ``uniform_reduction`` ("sum" as in the
   paper, "mean" as in the reference code), ``neighbor_weight`` (1), ``memory_size`` (1024), ``n_bins`` (5),
   ``min_angle`` (20).

@@ -1,4 +1,8 @@
-"""Export predictions as textured triangle meshes (trimesh objects, OBJ + MTL + PNG, GLB)."""
+"""Export predictions as textured triangle meshes (trimesh objects, OBJ + MTL + PNG, GLB).
+
+Materials are unlit-neutral: base colour (glTF ``baseColorFactor``, MTL ``Kd``) exactly 1, so that viewers,
+which multiply the texture by it, show the predicted texture unchanged; no specular term, fully rough.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +18,19 @@ from PIL import Image
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
 
-__all__ = ["export_prediction", "save_mesh", "textured_mesh"]
+__all__ = ["export_prediction", "glb_bytes", "neutral_material", "save_mesh", "textured_mesh"]
+
+_WHITE = np.full(4, 255, dtype=np.uint8)
+
+
+def neutral_material(image: Image.Image, name: str = "texture") -> trimesh.visual.material.PBRMaterial:
+    """A glTF metallic-roughness material that shows ``image`` as is: base colour 1, not metallic, fully rough.
+
+    (trimesh's ``SimpleMaterial`` defaults to a diffuse colour of 0.4, which viewers multiply the texture by.)
+    """
+    return trimesh.visual.material.PBRMaterial(
+        name=name, baseColorTexture=image, baseColorFactor=_WHITE, metallicFactor=0.0, roughnessFactor=1.0
+    )
 
 
 def textured_mesh(
@@ -27,8 +43,10 @@ def textured_mesh(
 ) -> trimesh.Trimesh:
     """A trimesh mesh with per-vertex UVs and a texture image.
 
-    trimesh (like OBJ and glTF) needs one UV per vertex, so every vertex is duplicated once per distinct UV
-    it takes in the per-face UVs (the seam column and the pole fans). Seam-fixed UVs may have ``u > 1``:
+    trimesh (like glTF) needs one UV per vertex, so every vertex is duplicated once per distinct UV it takes in
+    the per-face UVs (the seam column and the pole fans); the copies share their position exactly, so
+    ``mesh.merge_vertices(merge_tex=True)`` gives back the template's closed surface, and :func:`save_mesh`
+    writes OBJ files with one position per template vertex (watertight). Seam-fixed UVs may have ``u > 1``:
     OBJ and glTF viewers repeat textures by default, which is the wrap the renderer used. ``v`` runs bottom
     to top in both our UVs and OBJ/glTF (trimesh converts for glTF), so UVs are written unchanged.
 
@@ -62,7 +80,7 @@ def textured_mesh(
     new_faces = inverse.reshape(-1, 3)
     pixels = (texture.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
     image = Image.fromarray(np.ascontiguousarray(pixels), mode="RGB")
-    material = trimesh.visual.material.SimpleMaterial(image=image, name=name)
+    material = neutral_material(image, name)
     visual = trimesh.visual.TextureVisuals(uv=unique[:, 1:], image=image, material=material)
     return trimesh.Trimesh(new_verts, new_faces, visual=visual, process=False)
 
@@ -93,25 +111,77 @@ def export_prediction(
 def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> list[Path]:
     """Write ``mesh`` to ``path``: ``.obj`` (with ``<stem>.mtl`` and ``<stem>.png`` beside it) or ``.glb``.
 
+    The OBJ keeps positions and UVs apart (``f v/vt``): vertices that :func:`textured_mesh` split only for
+    their UVs are written once, so the surface stays closed. Both formats get a material of base colour 1
+    (MTL ``Kd 1 1 1``, glTF ``baseColorFactor [1, 1, 1, 1]``) whatever ``mesh``'s material says, so that the
+    texture is shown unchanged.
+
     Returns:
         the files written.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if suffix not in (".glb", ".obj"):
+        raise ValueError(f"unsupported mesh format {path.suffix!r}: use .obj or .glb")
+    image = _texture_image(mesh)
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".glb":
-        path.write_bytes(mesh.export(file_type="glb"))
+        path.write_bytes(glb_bytes(mesh, name=path.stem))
         return [path]
-    if suffix != ".obj":
-        raise ValueError(f"unsupported mesh format {path.suffix!r}: use .obj or .glb")
-    # name the material after the file so that several exports can share a folder
+    return _write_obj(mesh, image, path)
+
+
+def glb_bytes(mesh: trimesh.Trimesh, name: str = "texture") -> bytes:
+    """The binary glTF of a textured ``mesh``, with a material of base colour 1 (see :func:`save_mesh`)."""
+    image = _texture_image(mesh)
     mesh = mesh.copy()
-    mesh.visual.material.name = path.stem
-    text, files = trimesh.exchange.obj.export_obj(mesh, return_texture=True, mtl_name=f"{path.stem}.mtl")
-    path.write_text(text)
-    written = [path]
-    for fname, data in files.items():
-        target = path.parent / fname
-        target.write_bytes(data)
-        written.append(target)
-    return written
+    mesh.visual.material = neutral_material(image, getattr(mesh.visual.material, "name", None) or name)
+    return mesh.export(file_type="glb")
+
+
+def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
+    visual = mesh.visual
+    material = getattr(visual, "material", None)
+    image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
+    if not isinstance(visual, trimesh.visual.TextureVisuals) or visual.uv is None or image is None:
+        raise ValueError("save_mesh needs a textured mesh (TextureVisuals with UVs and an image)")
+    return image.convert("RGB")
+
+
+def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Path]:
+    # weld: copies made for the UVs have bit-identical positions
+    positions, position_index = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
+    position_index = position_index.reshape(-1)
+    # keep the first-seen order of positions (for an export, the template's vertex order)
+    first = np.full(len(positions), len(position_index), dtype=np.int64)
+    np.minimum.at(first, position_index, np.arange(len(position_index)))
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    uv = np.asarray(mesh.visual.uv, dtype=np.float64)
+    stem = path.stem
+    lines = [f"# unicorn textured mesh: {len(positions)} vertices, {len(faces)} faces", f"mtllib {stem}.mtl"]
+    lines += [f"v {x:.8g} {y:.8g} {z:.8g}" for x, y, z in positions[order]]
+    lines += [f"vt {u:.8g} {v:.8g}" for u, v in uv]
+    lines.append(f"usemtl {stem}")
+    v_idx, t_idx = rank[position_index[faces]] + 1, faces + 1  # OBJ indices start at 1
+    lines += [
+        f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(v_idx.tolist(), t_idx.tolist())
+    ]
+    mtl = "\n".join(
+        [
+            f"newmtl {stem}",
+            "Ka 0 0 0",
+            "Kd 1 1 1",  # viewers multiply the texture by Kd
+            "Ks 0 0 0",
+            "d 1",
+            "illum 1",
+            f"map_Kd {stem}.png",
+            "",
+        ]
+    )
+    path.write_text("\n".join(lines) + "\n")
+    (path.parent / f"{stem}.mtl").write_text(mtl)
+    image.save(path.parent / f"{stem}.png")
+    return [path, path.parent / f"{stem}.mtl", path.parent / f"{stem}.png"]

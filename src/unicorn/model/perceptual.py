@@ -1,11 +1,14 @@
 """Perceptual reconstruction losses, per sample.
 
 - :class:`VGGPerceptualLoss`: the paper's loss, an L2 distance between channel-normalised VGG16
-  ``relu3_3`` features of ImageNet-normalised images. The VGG16 network is written here with torchvision's
-  parameter names (``features.0.weight``, ... ``features.14.bias``) and its ImageNet weights come from a
-  local file: torchvision's ``vgg16-397923af.pth`` (https://download.pytorch.org/models/vgg16-397923af.pth),
-  downloaded on a machine with internet access. Only the layers up to ``relu3_3`` are kept. Cost: at 64x64
-  it is roughly ten times a ResNet-18 forward, and the pose step applies it to K x B renders.
+  ``relu3_3`` features of ImageNet-normalised images, with torchvision's ImageNet VGG16 weights
+  (``VGG16_Weights.IMAGENET1K_V1``: ``vgg16-397923af.pth``). The weights are found as torchvision finds them:
+  in torch's hub cache (``<torch.hub.get_dir()>/checkpoints``, ``$TORCH_HOME``), downloaded there with the
+  hash checked when absent; an offline machine names a copy of the file instead (``paths.vgg16`` /
+  ``$UNICORN_VGG16``). The network up to ``relu3_3`` is defined here, with torchvision's parameter names
+  (``features.0.weight``, ... ``features.14.bias``), rather than imported from torchvision: PyPI's Linux
+  torchvision wheels are CUDA builds that cannot be imported next to a CPU-only torch. Cost: at 64x64 it is
+  roughly ten times a ResNet-18 forward, and the pose step applies it to K x B renders.
 - :class:`StructuralLoss`: a cheap weights-free stand-in for machines without the VGG16 file: multi-scale
   SSIM dissimilarity plus an L1 distance between Sobel image gradients (kornia's definitions), both averaged over three
   scales (1, 1/2, 1/4). It is not a calibrated replacement: it rewards matching local structure and edges
@@ -17,24 +20,37 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.errors import UserError
 from unicorn.model.filtering import separable_filter
 
 __all__ = [
+    "VGG16_FILE",
     "VGG16_URL",
     "StructuralLoss",
     "VGG16Relu33",
     "VGGPerceptualLoss",
+    "VGGWeightsNotFoundError",
     "load_vgg16_weights",
     "sobel_gradient",
     "ssim_map",
+    "vgg16_cache_path",
 ]
 
+#: torchvision's ``VGG16_Weights.IMAGENET1K_V1``; the file name ends with the first digits of its SHA-256
 VGG16_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
+VGG16_FILE = "vgg16-397923af.pth"
+#: what a user can do about missing weights (one line, shared by every message)
+_VGG16_OPTIONS = (
+    f"on an offline machine copy torchvision's {VGG16_FILE} ({VGG16_URL}) here and pass paths.vgg16=FILE "
+    "(or set UNICORN_VGG16=FILE), or put it in {cache}; or train with the weights-free loss: "
+    "model.loss.perceptual=structural"
+)
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
 # torchvision's VGG16 "D" configuration up to relu3_3: (index of the conv in `features`, in, out)
@@ -55,28 +71,49 @@ def _check_pair(rec: torch.Tensor, target: torch.Tensor) -> None:
         raise ValueError(f"need two (B, 3, H, W) images of equal shape, got {tuple(rec.shape)}, {tuple(target.shape)}")
 
 
-def load_vgg16_weights(path: str | os.PathLike | None) -> dict[str, torch.Tensor]:
-    """Read a torchvision VGG16 state dict from ``path``.
+class VGGWeightsNotFoundError(UserError, FileNotFoundError):
+    """The perceptual loss's VGG16 weights are neither where the user said nor in (nor downloadable to) the cache."""
+
+
+def vgg16_cache_path() -> Path:
+    """Where torch's hub (and torchvision) keeps the VGG16 file: ``<torch.hub.get_dir()>/checkpoints/<file>``."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILE
+
+
+def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) -> dict[str, torch.Tensor]:
+    """torchvision's ImageNet VGG16 state dict, from ``path`` or from torch's hub cache.
+
+    Args:
+        path: a copy of ``vgg16-397923af.pth`` (any file name); None: torch's hub cache, where the file is
+            downloaded (SHA-256 prefix checked, as torchvision does) when absent and ``download`` is True.
+        download: allow the download.
 
     Raises:
-        FileNotFoundError: naming ``path`` and how to obtain the file.
+        VGGWeightsNotFoundError: the file is missing and cannot be downloaded; the one-line message says what to
+            pass (``paths.vgg16`` / ``UNICORN_VGG16``), where the cache is, and the weights-free alternative.
     """
-    if path is None:
-        raise FileNotFoundError(
-            "the VGG16 perceptual loss needs torchvision's ImageNet VGG16 weights file 'vgg16-397923af.pth', "
-            f"and no path was given. Download it from {VGG16_URL} on a machine with internet access, copy it "
-            "here and give its path; or use the weights-free 'structural' loss instead."
-        )
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(
-            f"VGG16 weights for the perceptual loss not found at '{path}'. Get torchvision's ImageNet VGG16 "
-            f"file 'vgg16-397923af.pth' from {VGG16_URL} (download it on a machine with internet access and "
-            "copy "
-            "it here), then point the perceptual loss's weights path at it; or use the weights-free "
-            "'structural' loss instead."
-        )
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    cache = vgg16_cache_path()
+    if path is not None:
+        path = Path(os.fspath(path)).expanduser()
+        if not path.is_file():
+            options = _VGG16_OPTIONS.format(cache=cache.parent)
+            raise VGGWeightsNotFoundError(f"VGG16 weights for the perceptual loss not found at {path}: {options}")
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    elif cache.is_file() or download:
+        try:
+            state = torch.hub.load_state_dict_from_url(
+                VGG16_URL, map_location="cpu", progress=False, check_hash=True, weights_only=True
+            )
+        except OSError as err:  # URLError and socket errors are OSErrors
+            reason = getattr(err, "reason", None) or err
+            options = _VGG16_OPTIONS.format(cache=cache.parent)
+            raise VGGWeightsNotFoundError(
+                f"VGG16 weights for the perceptual loss: {VGG16_FILE} is not in torch's cache and could not be "
+                f"downloaded ({reason}); {options}"
+            ) from None
+    else:
+        options = _VGG16_OPTIONS.format(cache=cache.parent)
+        raise VGGWeightsNotFoundError(f"VGG16 weights for the perceptual loss: no {cache}; {options}")
     if isinstance(state, Mapping) and "state_dict" in state:
         state = state["state_dict"]
     return dict(state)
@@ -138,11 +175,12 @@ class VGGPerceptualLoss(nn.Module):
     still flow to the inputs.
 
     Args:
-        weights: path of torchvision's ``vgg16-397923af.pth``, or an already loaded state dict with
+        weights: path of a copy of torchvision's ``vgg16-397923af.pth``; None: torch's hub cache, downloading
+            the file there when absent (see :func:`load_vgg16_weights`); or an already loaded state dict with
             torchvision names (e.g. taken from a released UNICORN checkpoint).
 
     Raises:
-        FileNotFoundError: when ``weights`` is a path that does not exist (message says how to get it).
+        VGGWeightsNotFoundError: no weights (the one-line message says what to pass).
     """
 
     mean: torch.Tensor

@@ -82,7 +82,9 @@ class TexturesUV(Textures):
     the UNICORN reference.
 
     Args:
-        maps: (B, C, Ht, Wt) texture images.
+        maps: (B, C, Ht, Wt) texture images, or PyTorch3D's (B, Ht, Wt, C) with C <= 4 channels (recognised by
+            a last dimension of at most 4 under a larger second one, or forced with ``channels_last``); kept
+            as (B, C, Ht, Wt) in ``self.maps``.
         face_uvs: (F, 3, 2) UV coordinates of the three corners of every face, shared by the batch.
         wrap_u: sample periodically in ``u`` (period 1), so that a face straddling the seam of a spherical
             parametrisation (corners with ``u`` slightly above 1) reads the texture across the seam instead
@@ -91,13 +93,26 @@ class TexturesUV(Textures):
         align_corners: texel centres at the image borders (``x = u * (Wt - 1)``, as ``grid_sample`` with
             ``align_corners=True``) instead of half a texel inside. Must be False with ``wrap_u``. The
             released UNICORN models used ``align_corners=True, wrap_u=False``.
+        channels_last: the layout of ``maps``: True for PyTorch3D's (B, Ht, Wt, C), False for (B, C, Ht, Wt),
+            None to recognise it from the shape.
     """
 
     def __init__(
-        self, maps: torch.Tensor, face_uvs: torch.Tensor, wrap_u: bool = True, align_corners: bool = False
+        self,
+        maps: torch.Tensor,
+        face_uvs: torch.Tensor,
+        wrap_u: bool = True,
+        align_corners: bool = False,
+        channels_last: bool | None = None,
     ) -> None:
         if maps.dim() != 4:
-            raise ValueError(f"maps must have shape (B, C, Ht, Wt), got {tuple(maps.shape)}")
+            raise ValueError(
+                f"maps must have shape (B, C, Ht, Wt) or PyTorch3D's (B, Ht, Wt, C), got {tuple(maps.shape)}"
+            )
+        if channels_last is None:
+            channels_last = maps.shape[-1] <= 4 < maps.shape[1]
+        if channels_last:
+            maps = maps.permute(0, 3, 1, 2)
         if not maps.dtype.is_floating_point:
             raise TypeError(f"maps must be a float tensor, got {maps.dtype}")
         if face_uvs.dim() != 3 or face_uvs.shape[1:] != (3, 2):

@@ -1,0 +1,72 @@
+"""Where a result came from: the command, the checkpoint, the package version and the git commit.
+
+Every report and metrics file that unicorn writes carries :func:`provenance`'s record, so that a number can be
+traced back to the exact command and code that produced it.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+import shlex
+import subprocess
+from collections.abc import Sequence
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+__all__ = ["command_line", "git_commit", "provenance"]
+
+
+def command_line(prog: str, argv: Sequence[str]) -> str:
+    """A shell-quoted command line that reruns ``prog`` with ``argv``."""
+    return shlex.join([prog, *argv])
+
+
+@lru_cache(maxsize=1)
+def git_commit() -> str | None:
+    """The commit of the git checkout unicorn runs from (``+dirty`` when tracked files differ); None otherwise.
+
+    Installed wheels have no checkout: None. Editable installs and source trees report their commit.
+    """
+    root = Path(__file__).resolve().parents[3]  # src/unicorn/io/provenance.py -> the repository
+    if not (root / ".git").exists():
+        return None
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "HEAD")
+        dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{commit}+dirty" if dirty else commit
+
+
+def provenance(command: str, checkpoint: str | os.PathLike | None = None, **extra: Any) -> dict[str, Any]:
+    """The record written into reports and metrics files.
+
+    Args:
+        command: the command line that produced the file (:func:`command_line`).
+        checkpoint: the checkpoint it used, stored as an absolute path.
+        extra: more entries (e.g. ``produced_by`` for an evaluation run by another command).
+
+    Returns:
+        ``{"command", "checkpoint", "unicorn_version", "git_commit", "torch", "created", **extra}``.
+    """
+    import torch
+
+    from unicorn import __version__
+
+    return {
+        "command": command,
+        "checkpoint": None if checkpoint is None else str(Path(checkpoint).expanduser().resolve()),
+        "unicorn_version": __version__,
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }
