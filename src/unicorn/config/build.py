@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from unicorn.config.schema import TrainConfig
+from unicorn.errors import UserError
 
 __all__ = ["ConfigError", "model_config", "renderer_settings", "validate"]
 
@@ -24,7 +25,7 @@ N_STAGES = 4
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """A training configuration that cannot be used (the message names the key)."""
 
 
