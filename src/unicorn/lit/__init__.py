@@ -6,7 +6,7 @@
   and texture averaging; image logging.
 - :class:`AtomicCheckpointIO`, :class:`PeriodicCheckpoint` (``checkpoint``): complete-or-absent, sealed checkpoint
   files read without running code; rotation that counts the files of earlier attempts.
-- :class:`CSVLogger`, :class:`ResumeLogs` (``loggers``): metric logs that a resume appends to.
+- :class:`CSVLogger`, :class:`TensorBoardLogger`, :class:`ResumeLogs` (``loggers``): logs a resume appends to.
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`IterationDataModule` (``data``): an endless, resumable, rank-sharded stream of training batches.
 
@@ -21,7 +21,7 @@ from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, rende
 from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint, atomic_torch_save
 from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
 from unicorn.lit.heldout import HeldOutEvaluation
-from unicorn.lit.loggers import CSVLogger, ResumeLogs
+from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "SeededItems",
     "StageCallback",
     "StreamBatchSampler",
+    "TensorBoardLogger",
     "UnicornLitModule",
     "atomic_torch_save",
     "render_overview",

@@ -80,8 +80,16 @@ class PeriodicCheckpoint(ModelCheckpoint):
         if self.monitor != "step" or self.save_top_k < 0:
             return
         for path in Path(self.dirpath).glob("step=*.ckpt"):
-            match = re.fullmatch(r"step=(\d+)\.ckpt", path.name)
-            if match and str(path) not in self.best_k_models:
+            match = re.fullmatch(r"step=(\d+)(-v\d+)?\.ckpt", path.name)
+            if not match:
+                continue
+            if int(match.group(1)) > trainer.global_step:
+                # written after the checkpoint this run resumes from by an attempt that was then killed: it is
+                # about to be written again (Lightning would otherwise write a "-v1" copy beside it)
+                self.best_k_models.pop(str(path), None)
+                log.info("removing %s, newer than the resumed iteration %d", path, trainer.global_step)
+                trainer.strategy.remove_checkpoint(path)
+            elif str(path) not in self.best_k_models:
                 self.best_k_models[str(path)] = torch.tensor(float(match.group(1)))
         ranked = sorted(self.best_k_models, key=lambda p: float(self.best_k_models[p]))
         for stale in ranked[: max(0, len(ranked) - self.save_top_k)]:

@@ -13,15 +13,16 @@ from __future__ import annotations
 import csv
 import logging
 import os
+from collections.abc import Mapping
 from typing import Any
 
 import lightning as L
 from lightning.pytorch.loggers import CSVLogger as _LightningCSVLogger
-from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.loggers import TensorBoardLogger as _LightningTensorBoardLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-__all__ = ["CSVLogger", "ResumeLogs"]
+__all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,17 @@ class _AppendingWriter(ExperimentWriter):
             header = next(csv.reader(f), [])
         # a later new column rewrites the file with every earlier column too
         self.metrics_keys = sorted(set(header))
+
+    #: set on resume: the first row logged drops the earlier rows from its step on
+    resume_pending = False
+
+    def log_metrics(self, metrics_dict: dict[str, float], step: int | None = None) -> None:
+        if self.resume_pending and step is not None:
+            self.resume_pending = False
+            dropped = self.drop_from(step)
+            if dropped:
+                log.info("resumed at logged step %d: replaced %d later rows of %s", step, dropped, self.log_dir)
+        super().log_metrics(metrics_dict, step)
 
     def drop_from(self, step: int) -> int:
         """Remove the rows logged at ``step`` or later (they are about to be logged again); returns how many."""
@@ -58,7 +70,18 @@ class _AppendingWriter(ExperimentWriter):
 
 
 class CSVLogger(_LightningCSVLogger):
-    """:class:`lightning.pytorch.loggers.CSVLogger` that appends to an existing ``metrics.csv``."""
+    """:class:`lightning.pytorch.loggers.CSVLogger` that appends to an existing ``metrics.csv``.
+
+    Rows are written as they are logged (``flush_logs_every_n_steps=1``: Lightning buffers 100, which a killed
+    run lost, including rows of iterations its checkpoint already holds) and again with every checkpoint.
+    """
+
+    def __init__(self, *args: Any, flush_logs_every_n_steps: int = 1, **kwargs: Any) -> None:
+        super().__init__(*args, flush_logs_every_n_steps=flush_logs_every_n_steps, **kwargs)
+
+    def after_save_checkpoint(self, checkpoint_callback: Any) -> None:
+        super().after_save_checkpoint(checkpoint_callback)
+        self.save()
 
     @property
     @rank_zero_experiment
@@ -69,24 +92,48 @@ class CSVLogger(_LightningCSVLogger):
         return self._experiment
 
 
+class TensorBoardLogger(_LightningTensorBoardLogger):
+    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that, on resume, hides the events it is about to repeat.
+
+    TensorBoard reads every event file of the folder, so the earlier run's events stay; the first metrics logged
+    after a resume are preceded by a ``SessionLog.START`` event at their step, after which TensorBoard discards
+    the earlier events at that step and later (what ``SummaryWriter(purge_step=...)`` writes).
+    """
+
+    #: set on resume (by :class:`ResumeLogs`)
+    resume_pending = False
+
+    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+        if self.resume_pending and step is not None:
+            self.resume_pending = False
+            _purge_tensorboard(self, step)
+        super().log_metrics(metrics, step)
+
+
 class ResumeLogs(L.Callback):
-    """On a resumed run, forget what the logs hold from the resumed iteration on (see the module docstring)."""
+    """On a resumed run, forget what the logs hold from the resumed iteration on (see the module docstring).
+
+    The step is that of the first metrics the resumed run logs (Lightning's logging step is not the checkpoint's
+    ``global_step``), so the loggers act when they get them.
+
+    Args:
+        resume: the run resumes (or restarts) in its own folder; when False nothing is done.
+    """
+
+    def __init__(self, resume: bool = True) -> None:
+        self.resume = resume
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.ckpt_path is None or not trainer.is_global_zero:
+        if not self.resume or not trainer.is_global_zero:
             return
-        # the step Lightning's loggers use: optimizer steps taken so far
-        step = trainer.fit_loop.epoch_loop._batches_that_stepped
         for logger in trainer.loggers:
             if isinstance(logger, CSVLogger):
-                dropped = logger.experiment.drop_from(step)
-                if dropped:
-                    log.info("resumed at step %d: dropped %d later rows of %s", step, dropped, logger.log_dir)
+                logger.experiment.resume_pending = True
             elif isinstance(logger, TensorBoardLogger):
-                _purge_tensorboard(logger, step)
+                logger.resume_pending = True
 
 
-def _purge_tensorboard(logger: TensorBoardLogger, step: int) -> None:
+def _purge_tensorboard(logger: _LightningTensorBoardLogger, step: int) -> None:
     """Make TensorBoard discard the run's earlier events at ``step`` and later."""
     writer: Any = logger.experiment
     try:
