@@ -314,15 +314,18 @@ def _task(cfg: DictConfig) -> None:
     except Exception:  # an invalid paths group: validate() reports it
         pass
     empty_before = [f for f in folders if _holds_nothing(f)]
+    run = None
     try:
-        train(cfg)
+        run = build(cfg)
+        fit(run)
     except USER_ERRORS as err:
         if debug_requested(_DEBUG):
             raise
-        for folder in empty_before:
-            # nothing of value was written: no half-created run folder is left behind
-            if _previous_run(folder) is None and not any((folder / "checkpoints").glob("*.ckpt")):
-                shutil.rmtree(folder, ignore_errors=True)
+        if run is None or run.trainer.global_step == 0:
+            # failed before the first iteration: no half-created run folder is left behind
+            for folder in empty_before:
+                if not any((folder / "checkpoints").glob("*.ckpt")):
+                    shutil.rmtree(folder, ignore_errors=True)
         print(f"unicorn-train: error: {one_line(err)}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
 

@@ -22,17 +22,12 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from unicorn.data.common import OnError
 from unicorn.data.cub import CUB200
 from unicorn.data.folder import CompCars, ImageFolder
-from unicorn.data.images import set_max_image_pixels
+from unicorn.data.images import DatasetError, set_max_image_pixels
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
-from unicorn.errors import UserError
 
-__all__ = ["DATASET_NAMES", "VAL_SIZES", "DatasetOptionError", "UnicornDataModule", "build_dataset", "val_indices"]
-
-
-class DatasetOptionError(UserError, ValueError):
-    """A dataset name, split or option that does not exist (the message lists the valid ones)."""
+__all__ = ["DATASET_NAMES", "VAL_SIZES", "UnicornDataModule", "build_dataset", "val_indices"]
 
 
 Split = Literal["train", "val", "test"]
@@ -77,7 +72,7 @@ def build_dataset(
         **options: extra constructor arguments of the dataset class (e.g. ``tag`` for LSUN, ``eval_size``).
     """
     if split not in ("train", "val", "test"):
-        raise DatasetOptionError(f"split must be 'train', 'val' or 'test', got {split!r}")
+        raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
     train = split == "train"
     if name in ("shapenet_nmr", "synthetic"):
         # every view for training, one fixed random view per model for evaluation, unless told
@@ -95,7 +90,7 @@ def build_dataset(
         return LSUN(root, img_size=img_size, augment=train, on_error=on_error, **options)
     if name == "folder":
         return ImageFolder(root, img_size=img_size, augment=train, on_error=on_error, **options)
-    raise DatasetOptionError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+    raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
 
 
 def val_indices(name: str, n: int, size: int | None = None) -> list[int]:
@@ -155,9 +150,9 @@ class UnicornDataModule(L.LightningDataModule):
         if max_image_pixels is not None:
             set_max_image_pixels(max_image_pixels)
         if name not in DATASET_NAMES:
-            raise DatasetOptionError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+            raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
         if name != "synthetic" and root is None:
-            raise DatasetOptionError(f"dataset {name!r} needs a root folder (dataset.root)")
+            raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")
         self.name, self.root, self.img_size = name, root, int(img_size)
         # Hydra passes lists as ListConfig: normalise to plain str / list[str]
         if categories is None or isinstance(categories, str):

@@ -30,6 +30,7 @@ from unicorn.errors import UserError
 __all__ = [
     "DEFAULT_MAX_IMAGE_PIXELS",
     "MAX_IMAGE_PIXELS_ENV",
+    "DatasetError",
     "DatasetNotFoundError",
     "ImageLoadError",
     "crop_box",
@@ -57,6 +58,11 @@ class ImageLoadError(UserError, RuntimeError):
     def __init__(self, path: str | os.PathLike, reason: str) -> None:
         self.path = str(path)
         super().__init__(f"cannot read image {self.path}: {reason}")
+
+
+class DatasetError(UserError, ValueError):
+    """A dataset that cannot be used as given: an unknown name, split or category, a malformed annotation file,
+    no readable item (the message names it)."""
 
 
 class DatasetNotFoundError(UserError, FileNotFoundError):
