@@ -118,3 +118,17 @@ def test_train_resume_refuses(synthetic_cache: Path, tmp_path: Path, marker: Pat
     assert "Traceback" not in proc.stderr and "trust_checkpoint=true" in proc.stderr
     assert not marker.exists()
     assert not run.exists()  # failed before the first iteration: no half-created run folder
+
+
+def test_corrupted_checkpoint_is_named(tmp_path: Path, capsys) -> None:
+    path = tiny_checkpoint(tmp_path / "tiny.pt")
+    raw = bytearray(path.read_bytes())
+    middle = len(raw) // 2
+    raw[middle : middle + 4096] = bytes(b ^ 0xFF for b in raw[middle : middle + 4096])  # 4 KB of flipped bytes
+    path.write_bytes(bytes(raw))
+    write_inputs(tmp_path / "inputs")
+    code = reconstruct_cli.main([str(path), str(tmp_path / "inputs"), "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and f"checkpoint {path}" in err
+    assert "corrupted" in err or "cannot read" in err
+    assert not (tmp_path / "out").exists()

@@ -23,7 +23,7 @@ MAX_STEPS = 6
 EVERY = 3  # checkpoint period: step=3 and step=6 (each with last.ckpt)
 OVERRIDES = [
     *[a for a in TINY if not a.startswith("logger=")],
-    "logger=csv",
+    "logger=default",  # TensorBoard and CSV
     f"trainer.max_steps={MAX_STEPS}",
     f"callbacks.checkpoint.every_n_steps={EVERY}",
     "callbacks.checkpoint.keep=1",
@@ -69,6 +69,15 @@ def _kill_plan(rng: random.Random) -> list[tuple[int, str, int]]:
     return plan
 
 
+def _scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
+    """What TensorBoard shows: every scalar's (step, value) series, after its purge events are applied."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
 def _rows(run: Path) -> list[dict[str, str]]:
     with open(run / "csv" / "metrics.csv", newline="") as f:
         return list(csv.DictReader(f))
@@ -108,6 +117,16 @@ def test_killed_and_resumed_run_equals_an_uninterrupted_one(synthetic_cache, tmp
     for row_a, row_b in zip(rows_a, rows_b):
         both = {k for k in row_a if row_a[k] and row_b.get(k)}
         assert {k: row_b[k] for k in both} == {k: row_a[k] for k in both}, f"{context}: step {row_a['step']}"
+    # TensorBoard: the earlier attempts' event files stay, the repeated iterations count once
+    assert len(list((killed / "tensorboard").glob("events.out.tfevents.*"))) == len(plan) + 1, context
+    scalars_a, scalars_b = _scalars(straight), _scalars(killed)
+    assert scalars_b.keys() == scalars_a.keys() and scalars_a, context
+    for tag, series in scalars_b.items():
+        steps = [step for step, _ in series]
+        assert steps == sorted(set(steps)), f"{context}: {tag} repeats steps {steps}"
+        assert set(series) <= set(scalars_a[tag]), f"{context}: {tag} {series} vs {scalars_a[tag]}"
+    logged_steps = [{step for series in scalars.values() for step, _ in series} for scalars in (scalars_a, scalars_b)]
+    assert logged_steps[0] == logged_steps[1], context
     # no partial checkpoint left, and rotation kept `keep` periodic files across the attempts
     names = sorted(p.name for p in (killed / "checkpoints").iterdir())
     assert names == ["last.ckpt", "step=0000006.ckpt"], f"{context}: {names}"

@@ -82,7 +82,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     check.add_argument("--tag", default="horse", help="LSUN category")
     check.set_defaults(func=_check)
 
-    add_debug_argument(parser)
+    for command in (synth, check):
+        add_debug_argument(command)
     args = parser.parse_args(argv)
     if getattr(args, "category", None) is None and args.command == "synth":
         args.category = ["chair"]

@@ -93,7 +93,8 @@ class CSVLogger(_LightningCSVLogger):
 
 
 class TensorBoardLogger(_LightningTensorBoardLogger):
-    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that, on resume, hides the events it is about to repeat.
+    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that writes events as they are logged and, on resume,
+    hides the events it is about to repeat.
 
     TensorBoard reads every event file of the folder, so the earlier run's events stay; the first metrics logged
     after a resume are preceded by a ``SessionLog.START`` event at their step, after which TensorBoard discards
@@ -108,6 +109,9 @@ class TensorBoardLogger(_LightningTensorBoardLogger):
             self.resume_pending = False
             _purge_tensorboard(self, step)
         super().log_metrics(metrics, step)
+        # written as logged (SummaryWriter buffers up to two minutes, which a killed run lost, including
+        # iterations its last checkpoint already holds); logging happens every log_every_n_steps iterations
+        self.experiment.flush()
 
 
 class ResumeLogs(L.Callback):

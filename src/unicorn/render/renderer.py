@@ -253,7 +253,7 @@ class SoftRasRenderer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
     ) -> None:
-        if sigma <= 0 or gamma <= 0:
+        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
             raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
         super().__init__(
             image_size,
