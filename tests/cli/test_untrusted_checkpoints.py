@@ -25,6 +25,7 @@ from unicorn.cli import eval as eval_cli
 from unicorn.cli import reconstruct as reconstruct_cli
 from unicorn.io import UnsafeCheckpointError, load_model, read_checkpoint
 from unicorn.model import load_reference_checkpoint
+from unicorn.serialization import INTEGRITY_KEY
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -60,6 +61,7 @@ def evil_pkl(tmp_path: Path, marker: Path) -> Path:
 @pytest.fixture
 def evil_plain(tmp_path: Path, marker: Path) -> Path:
     data = torch.load(tiny_checkpoint(tmp_path / "tiny.pt"), weights_only=True)
+    data.pop(INTEGRITY_KEY)  # a hand-made file, as an attacker would write it
     data["info"] = {"epoch": Payload(marker)}
     torch.save(data, tmp_path / "evil.pt")
     return tmp_path / "evil.pt"
@@ -99,6 +101,10 @@ def test_reconstruct_refuses(evil_plain: Path, marker: Path, tmp_path: Path, cap
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and err.startswith("unicorn-reconstruct: error: refusing to load")
     assert not marker.exists() and not out.exists()
+    # the flag the message names does what it says (here: the payload runs)
+    args = [str(evil_plain), str(tmp_path / "inputs" / "photo.jpg"), "--out", str(out), "--quiet", "--trust-checkpoint"]
+    assert reconstruct_cli.main([*args, "--view-size", "32", "--turntable-frames", "0"]) == 0
+    assert marker.exists()
 
 
 def test_train_resume_refuses(synthetic_cache: Path, tmp_path: Path, marker: Path) -> None:

@@ -334,16 +334,20 @@ class _HeldStream(io.TextIOBase):
     """Holds what is written to stderr until the task starts, so that Hydra's errors can be put on one line."""
 
     def __init__(self, stream: Any) -> None:
-        self.stream, self.held = stream, io.StringIO()
+        self.stream, self.held, self.released = stream, io.StringIO(), False
 
     def write(self, text: str) -> int:
-        return self.held.write(text)
+        # a handler created meanwhile may keep this object: after the release it writes through
+        return self.stream.write(text) if self.released else self.held.write(text)
 
     def flush(self) -> None:
-        pass
+        if self.released:
+            self.stream.flush()
 
     def release(self) -> Any:
-        self.stream.write(self.held.getvalue())
+        if not self.released:
+            self.released = True
+            self.stream.write(self.held.getvalue())
         return self.stream
 
 
