@@ -63,22 +63,17 @@ def _attempt(out: Path, *extra: str) -> int:
 
 
 def _kill_plan(rng: random.Random) -> list[tuple[int, str, int]]:
-    """Two kills at increasing iterations, each between iterations or inside a checkpoint write."""
-    plan, low = [], 1
-    for _ in range(2):
-        where = rng.choice(["iteration", "write"])
-        if where == "write":
-            steps = [s for s in range(EVERY, MAX_STEPS, EVERY) if s >= low]
-            if not steps:
-                break
-            step = rng.choice(steps)
-        else:
-            step = rng.randint(low, MAX_STEPS - 1)
+    """Three kills at increasing iterations (so that every attempt gets past the checkpoint it resumed from),
+    at least one of them inside a checkpoint write; ``(iteration, where, nth write)``."""
+    write_step = rng.choice(range(EVERY, MAX_STEPS + 1, EVERY))
+    others = rng.sample([s for s in range(1, MAX_STEPS + 1) if s != write_step], 2)
+    plan = []
+    for step in sorted([write_step, *others]):
+        where = (
+            "write" if step == write_step else rng.choice(["iteration", "write"]) if step % EVERY == 0 else "iteration"
+        )
         # the periodic file and last.ckpt are written at the same iteration: die in either
-        plan.append((step, where, rng.choice([1, 2])))
-        low = step + 1
-        if low >= MAX_STEPS:
-            break
+        plan.append((step, where, rng.choice([1, 2]) if where == "write" else 1))
     return plan
 
 
