@@ -15,10 +15,12 @@ import trimesh
 from PIL import Image
 
 import unicorn
+from tests.data.test_images import bomb_png
 from tests.evaluation.helpers import TEXTURE_SIZE, tiny_checkpoint, write_inputs
 from tests.evaluation.test_report import referenced_files
 from tests.model.test_checkpoint_compat import reference_state
 from unicorn.cli.reconstruct import main
+from unicorn.data.images import MAX_IMAGE_PIXELS_ENV
 from unicorn.io import load_model
 from unicorn.model import export_prediction
 
@@ -122,3 +124,48 @@ def test_errors(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, args: li
     assert main([*args, "--out", str(tmp_path / "out"), *FAST]) == 2
     err = capsys.readouterr().err
     assert err.startswith("unicorn-reconstruct: error:") and message in err
+
+
+def test_decompression_bomb_is_skipped_or_one_line(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(MAX_IMAGE_PIXELS_ENV, "")  # --max-image-pixels sets it for the process: restored after
+    bomb_png(inputs / "bomb.png")
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "a"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bomb.png" in err and "exceeds the limit" in err
+    assert not (tmp_path / "a").exists()
+    with pytest.warns(RuntimeWarning, match="bomb.png"):
+        assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["cutout", "photo"]
+    # a limit the user lowers applies too
+    assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "c"),
+                 "--max-image-pixels", "100", *FAST]) == 2  # fmt: skip
+    assert "exceeds the limit of 100" in capsys.readouterr().err
+
+
+def test_non_empty_out_needs_overwrite(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "index.html").write_text("the user's own page")
+    assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--overwrite" in err and str(out) in err
+    assert [p.name for p in out.iterdir()] == ["index.html"]
+    assert (out / "index.html").read_text() == "the user's own page"
+    assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(out), "--overwrite", *FAST]) == 0
+    assert (out / "photo" / "mesh.glb").is_file() and "photo" in (out / "index.html").read_text()
+
+
+def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+    for name in ("index.html.png", "overview.png.png", "reconstructions.json.png", "Index.HTML.jpg"):
+        (inputs / name).write_bytes((inputs / "photo.jpg").read_bytes())
+    out = tmp_path / "out"
+    assert main([str(checkpoint), str(inputs), "--out", str(out), *FAST]) == 0
+    for name in ("index.html", "overview.png", "reconstructions.json"):
+        assert (out / name).is_file()
+    records = json.loads((out / "reconstructions.json").read_text())
+    assert len(records) == 6 and all((out / r["name"] / "mesh.glb").is_file() for r in records)
+    names = [r["name"].lower() for r in records]
+    assert len(set(names)) == 6 and not set(names) & {"index.html", "overview.png", "reconstructions.json"}
+    assert {"index.html_1", "overview.png_1", "reconstructions.json_1"} <= set(names)

@@ -188,3 +188,76 @@ def test_configs_ship_in_the_wheel(tmp_path):
     )
     assert job.returncode == 0, job.stderr[-2000:]
     assert "task_name: cub" in job.stdout and "cub_200" in job.stdout
+
+
+def _error_lines(stderr: str) -> list[str]:
+    """stderr without Lightning's start-up notes (``INFO: GPU available...``)."""
+    return [line for line in stderr.splitlines() if line.strip() and not line.startswith("INFO: ")]
+
+
+def test_user_errors_are_one_line_and_leave_no_run_folder(synthetic_cache, tmp_path):
+    run_dir = tmp_path / "run"
+    cases = [
+        (["dataset.batch_size=0"], "dataset.batch_size must be >= 1, got 0"),
+        ([f"ckpt_path={tmp_path / 'missing.ckpt'}"], "ckpt_path: no checkpoint file at"),
+        (["optim.lrr=1"], "lrr"),  # Hydra's own composition error, put on one line
+    ]
+    for overrides, message in cases:
+        result = unicorn_train(*TINY, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        lines = _error_lines(result.stderr)
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: ") and message in lines[0], lines
+        assert not run_dir.exists(), overrides
+    # --debug (or HYDRA_FULL_ERROR=1) shows where it came from
+    debug = unicorn_train("--debug", *TINY, "dataset.batch_size=0", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert debug.returncode != 0 and "Traceback" in debug.stderr and "ConfigError" in debug.stderr
+
+
+def test_missing_dataset_is_one_line(tmp_path):
+    run_dir = tmp_path / "run"
+    result = unicorn_train(
+        "experiment=cub", "model=tiny", "logger=default", f"dataset.root={tmp_path / 'nothing'}",
+        f"hydra.run.dir={run_dir}", cwd=tmp_path,
+    )  # fmt: skip
+    lines = _error_lines(result.stderr)
+    assert result.returncode == 2 and len(lines) == 1 and "nothing" in lines[0], result.stderr[-3000:]
+    assert not run_dir.exists()  # not even the loggers' folders
+
+
+def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp_path):
+    from tests.lit.conftest import build_run
+    from unicorn.cli.train import RunFolderError, fit
+
+    fit(build_run(tmp_path, "trainer.max_steps=2"))
+    assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
+    with pytest.raises(RunFolderError, match=r"already holds a run \(checkpoints/last\.ckpt\).*ckpt_path=last"):
+        build_run(tmp_path)
+    assert build_run(tmp_path, "ckpt_path=last").ckpt_path == str(tmp_path / "checkpoints" / "last.ckpt")
+    (tmp_path / "notes.txt").write_text("mine")
+    fresh = build_run(tmp_path, "overwrite=true")
+    assert fresh.ckpt_path is None and not (tmp_path / "checkpoints").exists()
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # only the run's own outputs are deleted
+
+
+def test_progress_bar_can_be_disabled(synthetic_cache, tmp_path):
+    from tests.lit.conftest import build_run
+    from unicorn.cli.train import fit
+
+    run = build_run(tmp_path, "trainer.enable_progress_bar=false", "trainer.max_steps=1")
+    fit(run)
+    assert run.trainer.global_step == 1 and run.trainer.progress_bar_callback is None
+
+
+def test_values_are_range_checked_where_declared(tmp_path):
+    base = ["experiment=synthetic", f"paths.output_dir={tmp_path}"]
+    for override, message in [
+        ("dataset.batch_size=0", r"dataset\.batch_size must be >= 1, got 0"),
+        ("dataset.num_workers=-1", r"dataset\.num_workers must be >= 0"),
+        ("model.pose.n_azim=0", r"model\.pose\.n_azim must be >= 1"),
+        ("model.loss.min_angle=270", r"model\.loss\.min_angle must be in \[0, 180\]"),
+        ("callbacks.checkpoint.keep=-2", r"callbacks\.checkpoint\.keep must be >= -1"),
+        ("renderer.faces_per_pixel=0", r"renderer\.faces_per_pixel must be a finite number >= 1"),
+        ("renderer.sigma=nan", r"renderer\.sigma must be a finite number >= 0"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            validate(compose_config([*base, override]))

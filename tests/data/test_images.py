@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ import pytest
 from PIL import Image
 
 from unicorn.data.images import (
+    DEFAULT_MAX_IMAGE_PIXELS,
+    MAX_IMAGE_PIXELS_ENV,
     ImageLoadError,
     crop_box,
     decode_image,
@@ -16,7 +19,9 @@ from unicorn.data.images import (
     hflip_keypoints,
     load_image,
     load_mask,
+    max_image_pixels,
     pad_bbox,
+    set_max_image_pixels,
     square_bbox,
 )
 
@@ -119,3 +124,63 @@ def test_hflip_keypoints_is_an_involution() -> None:
     once = hflip_keypoints(kps, 16, perm)
     assert np.allclose(once[1, :2], [12.0, 4.0])  # keypoint 0 mirrored lands in slot 1
     assert np.allclose(hflip_keypoints(once, 16, perm), kps)
+
+
+# ---------------------------------------------------------------------------------------------- limits, bombs
+def bomb_png(path: Path, width: int = 20000, height: int = 20000) -> Path:
+    """A valid PNG header announcing ``width x height`` RGB pixels, a few hundred bytes on disk."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    row = b"\x00" + bytes(3 * min(width, 64))  # only the start of the image data: decoding would fail anyway
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(row)) + chunk(b"IEND", b"")
+    )
+    return path
+
+
+def test_decompression_bomb_is_a_bad_image(tmp_path: Path) -> None:
+    path = bomb_png(tmp_path / "bomb.png")
+    assert path.stat().st_size < 400
+    with pytest.raises(ImageLoadError, match=r"20000x20000 = 400000000 pixels exceeds the limit") as info:
+        load_image(path)
+    assert "--max-image-pixels" in str(info.value) and "\n" not in str(info.value)
+    with pytest.raises(ImageLoadError, match="exceeds the limit"):
+        decode_image(path.read_bytes(), "record-7")
+    with pytest.raises(ImageLoadError, match="exceeds the limit"):
+        load_mask(path)
+
+
+def test_pixel_limit_can_be_raised_and_lowered(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(MAX_IMAGE_PIXELS_ENV, "")  # empty: the default; restored after the test
+    assert max_image_pixels() == DEFAULT_MAX_IMAGE_PIXELS
+    path = _save(tmp_path / "small.png", Image.new("RGB", (20, 10)))
+    set_max_image_pixels(199)
+    assert os.environ[MAX_IMAGE_PIXELS_ENV] == "199"  # inherited by DataLoader workers
+    with pytest.raises(ImageLoadError, match="200 pixels exceeds the limit of 199"):
+        load_image(path)
+    set_max_image_pixels(200)
+    assert load_image(path).shape == (10, 20, 3)
+    set_max_image_pixels(0)  # no limit: PIL's own bomb check is not in the way either
+    assert max_image_pixels() is None
+    with pytest.raises(ImageLoadError, match="bomb.png"):  # decodes the header, then fails on the short data
+        load_image(bomb_png(tmp_path / "bomb.png", 3000, 3000))
+    with pytest.raises(ValueError, match=">= 0"):
+        set_max_image_pixels(-1)
+
+
+def test_any_decode_failure_is_a_bad_image(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import struct
+
+    path = _save(tmp_path / "ok.png", Image.new("RGB", (4, 4)))
+
+    def broken_decoder(self):
+        raise struct.error("unpack requires a buffer of 4 bytes")  # neither OSError nor ValueError
+
+    monkeypatch.setattr(Image.Image, "load", broken_decoder)
+    with pytest.raises(ImageLoadError, match=r"ok.png: error: unpack requires"):
+        load_image(path)

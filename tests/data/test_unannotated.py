@@ -150,3 +150,14 @@ def test_lsun_missing_root(tmp_path: Path) -> None:
 
     with pytest.raises(DatasetNotFoundError, match=r"motorbike.*dl\.yf\.io"):
         LSUN(tmp_path, "motorbike")
+
+
+def test_decompression_bomb_is_skipped_like_any_bad_image(mixed_folder: Path) -> None:
+    from tests.data.test_images import bomb_png
+
+    bomb_png(mixed_folder / "aaa_bomb.png")
+    with pytest.raises(ImageLoadError, match="aaa_bomb.png.*exceeds the limit"):
+        ImageFolder(mixed_folder)[0]
+    with pytest.warns(RuntimeWarning, match="aaa_bomb.png"):
+        item = ImageFolder(mixed_folder, on_error="skip")[0]
+    assert int(item["index"]) == 1

@@ -5,6 +5,7 @@ import torch
 
 from unicorn.render import (
     LayeredRasterizer,
+    MeshRenderer,
     TexturesUV,
     TexturesVertex,
     build_renderer,
@@ -149,3 +150,41 @@ def test_mesh_entirely_off_screen_or_behind():
     frags = rasterize_meshes(torch.cat([verts[:1] + 50.0, verts[1:] * torch.tensor([1.0, 1.0, -1.0]) - 3.0]), faces, 16)
     assert frags.num_pairs == 0 and frags.num_slots == 0
     assert frags.to_dense().pix_to_face.eq(-1).all()
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_cameras_are_named(renderer, bad):
+    verts, faces, R, T, _ = template_scene(batch=2)
+    tex = _tex(2, verts.shape[1])
+    R_bad, T_bad = R.clone(), T.clone()
+    R_bad[1, 0, 2] = bad
+    T_bad[0, 2] = bad
+    with pytest.raises(ValueError, match="R contains NaN or infinite values"):
+        renderer(verts, faces, tex, R=R_bad, T=T)
+    with pytest.raises(ValueError, match="T contains NaN or infinite values"):
+        renderer(verts, faces, tex, R=R, T=T_bad)
+    with pytest.raises(ValueError, match="T contains NaN"):
+        renderer.rasterize(verts, faces, R, T_bad)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])
+def test_non_finite_blur_radius_and_sigma_are_named(bad):
+    verts, faces, R, T, _ = template_scene(batch=1)
+    with pytest.raises(ValueError, match="blur_radius must be finite and >= 0"):
+        rasterize_meshes(verts, faces, 16, blur_radius=bad)
+    with pytest.raises(ValueError, match="blur_radius must be finite"):
+        MeshRenderer(blur_radius=bad)
+    with pytest.raises(ValueError, match="sigma"):
+        LayeredRasterizer(sigma=bad)
+    with pytest.raises(ValueError, match="sigma"):
+        build_renderer("softras", sigma=bad)
+    with pytest.raises(ValueError, match="sigma and gamma must be > 0"):
+        build_renderer("softras", gamma=bad)
+
+
+def test_texture_sizes_must_match_the_mesh(renderer):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    with pytest.raises(ValueError, match=rf"colors have {verts.shape[1] - 1} vertices, meshes {verts.shape[1]}"):
+        renderer(verts, faces, _tex(2, verts.shape[1] - 1), R=R, T=T)
+    with pytest.raises(ValueError, match=rf"face_uvs has {faces.shape[0] - 2} faces, meshes {faces.shape[0]}"):
+        renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8), uvs[:-2]), R=R, T=T)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from unicorn import __version__
+from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
 
 __all__ = ["build_parser", "main"]
 
@@ -95,7 +96,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the view choice and point sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_arguments(p)
     return p
+
+
+def add_common_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every checkpoint-reading tool shares: trust, image pixel limit, debug."""
+    p.add_argument(
+        "--trust-checkpoint",
+        action="store_true",
+        help="read a checkpoint that needs full unpickling (it can run code: only for files you trust)",
+    )
+    p.add_argument(
+        "--max-image-pixels",
+        type=int,
+        help="refuse images with more pixels (decompression bombs); 0: no limit; default: "
+        "$UNICORN_MAX_IMAGE_PIXELS or 178956970",
+    )
+    add_debug_argument(p)
 
 
 def _device(name: str) -> Any:
@@ -105,7 +123,7 @@ def _device(name: str) -> Any:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine")
+        raise UsageError(f"--device {name}: CUDA is not available on this machine")
     return device
 
 
@@ -150,18 +168,18 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
 
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
-    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides)
+    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
 
     run_data = info.dataset or {}
     dataset = args.dataset or run_data.get("name")
     if dataset is None:
-        raise ValueError("no --dataset given and the checkpoint's training run does not name one")
+        raise UsageError("no --dataset given and the checkpoint's training run does not name one")
     root = args.root
     if root is None and run_data.get("name") == dataset:
         root = _run_root(run_data)
     if root is None:
-        raise ValueError(f"no --root given for dataset {dataset!r}")
+        raise UsageError(f"no --root given for dataset {dataset!r}")
     categories = args.categories.split(",") if args.categories else None
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]
@@ -257,23 +275,26 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    # imported after parsing so that --help and argument errors do not wait for torch and lightning
-    from unicorn.data.images import DatasetNotFoundError, ImageLoadError
-    from unicorn.io.checkpoints import CheckpointError
-
     for name in ("batch_size", "num_points", "num_pairs", "view_size"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     if args.max_images is not None and args.max_images < 1:
         parser.error("--max-images must be positive")
-    try:
-        from unicorn.io.provenance import command_line
+    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "max_image_pixels"):
+        if (getattr(args, name) or 0) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0")
+    # ValueError and KeyError: what the dataset and protocol builders raise on unknown names and bad layouts
+    return report_errors("unicorn-eval", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
 
-        return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))
-    except (FileNotFoundError, DatasetNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
-        message = err.args[0] if isinstance(err, KeyError) and err.args else err
-        print(f"unicorn-eval: error: {message}", file=sys.stderr)
-        return 2
+
+def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    if args.max_image_pixels is not None:
+        from unicorn.data.images import set_max_image_pixels
+
+        set_max_image_pixels(args.max_image_pixels)
+    from unicorn.io.provenance import command_line
+
+    return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

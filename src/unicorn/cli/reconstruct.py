@@ -21,7 +21,8 @@ import warnings
 from pathlib import Path
 
 from unicorn import __version__
-from unicorn.cli.eval import HelpFormatter
+from unicorn.cli.errors import UsageError, report_errors
+from unicorn.cli.eval import HelpFormatter, add_common_arguments
 
 __all__ = ["build_parser", "main"]
 
@@ -66,7 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="mean-colour textures; auto: as the checkpoint was being trained",
     )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
+    p.add_argument(
+        "--overwrite", action="store_true", help="write into a non-empty --out (same-named files are replaced)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_arguments(p)
     return p
 
 
@@ -78,9 +83,14 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.provenance import command_line, provenance
 
+    out = args.out.expanduser()
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+        raise UsageError(f"--out {out} is not empty; choose another folder or pass --overwrite to write into it")
     files = collect_inputs(args.inputs)
     if args.bbox is not None and len(files) != 1:
-        raise ValueError(f"--bbox needs exactly one input image, got {len(files)}")
+        raise UsageError(f"--bbox needs exactly one input image, got {len(files)}")
     # decode every image once before loading the model, so that input mistakes fail fast (they are read again
     # below rather than kept: a folder of full-size photos would not fit in memory)
     readable = []
@@ -94,10 +104,10 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
             continue
         readable.append((path, name))
     if not readable:
-        raise ValueError("none of the inputs could be read")
+        raise UsageError("none of the inputs could be read")
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
-    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides)
+    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
     size = model.config["image_size"]
     items = [
@@ -109,7 +119,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     records = reconstruct(
         model,
         items,
-        args.out,
+        out,
         device=device,
         batch_size=args.batch_size,
         view_size=args.view_size,
@@ -121,7 +131,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     )
     seconds = time.perf_counter() - start
     print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
-    print(f"outputs in {args.out}/<image>/ ; overview: {args.out / 'overview.png'}, {args.out / 'index.html'}")
+    print(f"outputs in {out}/<image>/ ; overview: {out / 'overview.png'}, {out / 'index.html'}")
     return 0
 
 
@@ -130,23 +140,24 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    # imported after parsing so that --help and argument errors do not wait for torch and lightning
-    from unicorn.data.images import ImageLoadError
-    from unicorn.io.checkpoints import CheckpointError
-
     for name in ("batch_size", "view_size", "strip_views"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     if args.turntable_frames < 0 or args.padding < 0:
         parser.error("--turntable-frames and --padding must be >= 0")
-    try:
-        from unicorn.io.provenance import command_line
+    if args.max_image_pixels is not None and args.max_image_pixels < 0:
+        parser.error("--max-image-pixels must be >= 0")
+    return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
 
-        return run(args, command=command_line("unicorn-reconstruct", sys.argv[1:] if argv is None else argv))
-    except (FileNotFoundError, CheckpointError, ImageLoadError, ValueError, KeyError) as err:
-        message = err.args[0] if isinstance(err, KeyError) and err.args else err
-        print(f"unicorn-reconstruct: error: {message}", file=sys.stderr)
-        return 2
+
+def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    if args.max_image_pixels is not None:
+        from unicorn.data.images import set_max_image_pixels
+
+        set_max_image_pixels(args.max_image_pixels)
+    from unicorn.io.provenance import command_line
+
+    return run(args, command=command_line("unicorn-reconstruct", sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -18,12 +18,20 @@ Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for s
 ``outputs/<task_name>/multiruns/<time>/<job>``): ``.hydra/`` (composed config and overrides), ``config.yaml``
 (the validated, resolved config), ``provenance.json`` (command, version, git commit), ``train.log``,
 ``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
+A folder that already holds a run is only trained in again to resume it (``ckpt_path=last``: the logs are
+appended to) or with ``overwrite=true`` (its checkpoints and logs are deleted first).
+
+Mistakes the user can fix (a bad value, a missing dataset or checkpoint, an unsafe checkpoint, a diverged run)
+end the command with one line on stderr and exit status 2; a run folder that holds nothing yet is removed
+again. ``--debug`` or ``HYDRA_FULL_ERROR=1`` shows the traceback.
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import os
+import shutil
 import sys
 import warnings
 from dataclasses import dataclass
@@ -33,12 +41,22 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["DEFAULT_EXPERIMENT", "Run", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
+from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
+from unicorn.errors import UserError
+
+__all__ = ["DEFAULT_EXPERIMENT", "Run", "RunFolderError", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
 
 #: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
 DEFAULT_EXPERIMENT = "synthetic"
 
 log = logging.getLogger("unicorn.train")
+
+#: what a run writes into its folder (besides Hydra's ``.hydra/`` and ``train.log``, and ``config.yaml``)
+RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv")
+
+
+class RunFolderError(UserError, FileExistsError):
+    """A new run was started in a folder that already holds one."""
 
 
 def config_dir() -> Path:
@@ -57,6 +75,8 @@ def config_dir() -> Path:
 
 def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
     """``None``, ``"last"`` (this run directory's last.ckpt if it exists) or an existing file."""
+    from unicorn.serialization import CheckpointNotFoundError
+
     if ckpt_path is None:
         return None
     if ckpt_path == "last":
@@ -67,7 +87,7 @@ def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
         return None
     path = Path(ckpt_path).expanduser().resolve()
     if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path: no checkpoint file at {path}")
+        raise CheckpointNotFoundError(f"ckpt_path: no checkpoint file at {path}")
     return str(path)
 
 
@@ -107,6 +127,43 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
     path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
 
 
+def _previous_run(output_dir: Path) -> Path | None:
+    """The first output of an earlier run found in ``output_dir`` (a checkpoint, a metric log...), or None."""
+    checkpoints = output_dir / "checkpoints"
+    if checkpoints.is_dir():
+        found = next((p for p in sorted(checkpoints.iterdir()) if p.suffix == ".ckpt"), None)
+        if found is not None:
+            return found
+    for name in RUN_OUTPUTS[1:]:
+        path = output_dir / name
+        if path.is_file() or (path.is_dir() and any(path.iterdir())):
+            return path
+    return None
+
+
+def _prepare_folder(output_dir: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a new run over an earlier one, or delete the earlier one's outputs when told to.
+
+    Raises:
+        RunFolderError: ``output_dir`` holds a run and neither ``resume`` nor ``overwrite`` is set.
+    """
+    previous = _previous_run(output_dir)
+    if previous is None or resume:
+        return
+    if not overwrite:
+        raise RunFolderError(
+            f"{output_dir} already holds a run ({previous.relative_to(output_dir)}); resume it with "
+            "ckpt_path=last, replace it with overwrite=true, or train elsewhere (hydra.run.dir=...)"
+        )
+    log.warning("overwrite=true: deleting the earlier run's outputs in %s", output_dir)
+    for name in RUN_OUTPUTS:
+        path = output_dir / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+
+
 @dataclass
 class Run:
     """Everything :func:`build` assembles for one training run."""
@@ -129,7 +186,6 @@ def build(cfg: DictConfig) -> Run:
     # heavy imports here: `unicorn-train --help` and config errors stay fast
     import lightning as L
     from hydra.utils import instantiate
-    from lightning.pytorch.callbacks import ModelCheckpoint
 
     from unicorn.config import model_config, validate
     from unicorn.lit import (
@@ -138,20 +194,27 @@ def build(cfg: DictConfig) -> Run:
         HeldOutEvaluation,
         ImageLogger,
         IterationDataModule,
+        PeriodicCheckpoint,
         ProgressBar,
+        ResumeLogs,
         StageCallback,
         UnicornLitModule,
     )
+    from unicorn.serialization import remove_stale_temporaries
 
     _route_lightning_logs()
     typed = validate(cfg)
     # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
-    output_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_dir = output_dir / "checkpoints"
-    (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
     ckpt_path = _resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    _prepare_folder(output_dir, resume=typed.ckpt_path is not None, overwrite=typed.overwrite)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    if checkpoint_dir.is_dir():
+        for tmp in remove_stale_temporaries(checkpoint_dir):
+            log.info("removed %s, a partial checkpoint of a killed run", tmp)
+    (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
     _write_provenance(output_dir, ckpt_path)
 
     L.seed_everything(typed.seed, workers=True, verbose=False)
@@ -178,7 +241,7 @@ def build(cfg: DictConfig) -> Run:
             plateau=OmegaConf.to_container(s.plateau, resolve=True),
         ),
         # keeps the `keep` latest periodic checkpoints ("step" is always a monitor candidate) plus last.ckpt
-        ModelCheckpoint(
+        PeriodicCheckpoint(
             dirpath=checkpoint_dir,
             filename="step={step:07d}",
             auto_insert_metric_name=False,
@@ -188,8 +251,11 @@ def build(cfg: DictConfig) -> Run:
             save_top_k=cb.checkpoint.keep,
             save_last=cb.checkpoint.save_last,
         ),
-        ProgressBar(refresh_rate=cb.progress_bar_refresh_rate),
+        ResumeLogs(resume=typed.ckpt_path is not None),
     ]
+    if typed.trainer.enable_progress_bar:
+        # Lightning refuses a progress-bar callback with enable_progress_bar=False
+        callbacks.append(ProgressBar(refresh_rate=cb.progress_bar_refresh_rate))
     if cb.images is not None:
         callbacks.append(ImageLogger(**OmegaConf.to_container(cb.images, resolve=True)))
     if cb.heldout is not None:
@@ -211,7 +277,7 @@ def build(cfg: DictConfig) -> Run:
         default_root_dir=str(output_dir),
         callbacks=callbacks,
         logger=loggers or False,
-        plugins=[AtomicCheckpointIO()],
+        plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
     )
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path)
 
@@ -276,14 +342,45 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return fit(build(cfg))
 
 
-def _task(cfg: DictConfig) -> None:
-    from unicorn.config import ConfigError
+#: set by main(): --debug was given
+_DEBUG = False
+#: set when Hydra hands the composed config to the task (errors before are Hydra's: composition, overrides)
+_TASK_STARTED = False
 
+
+def _holds_nothing(folder: Path) -> bool:
+    """Whether ``folder`` holds only what Hydra and :func:`build` write before training (or does not exist)."""
+    if not folder.is_dir():
+        return True
+    return all(p.name in (".hydra", "train.log", "config.yaml") for p in folder.iterdir())
+
+
+def _task(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    global _TASK_STARTED
+    _TASK_STARTED = True
+    if isinstance(sys.stderr, _HeldStream):
+        sys.stderr = sys.stderr.release()
+    folders = {Path(HydraConfig.get().runtime.output_dir).resolve()}
     try:
-        train(cfg)
-    except ConfigError as err:
-        # a readable one-liner instead of a traceback through Hydra
-        log.error("%s", err)
+        folders.add(Path(str(cfg.paths.output_dir)).expanduser().resolve())
+    except Exception:  # an invalid paths group: validate() reports it
+        pass
+    empty_before = [f for f in folders if _holds_nothing(f)]
+    run = None
+    try:
+        run = build(cfg)
+        fit(run)
+    except USER_ERRORS as err:
+        if debug_requested(_DEBUG):
+            raise
+        if run is None or run.trainer.global_step == 0:
+            # failed before the first iteration: no half-created run folder is left behind
+            for folder in empty_before:
+                if not any((folder / "checkpoints").glob("*.ckpt")):
+                    shutil.rmtree(folder, ignore_errors=True)
+        print(f"unicorn-train: error: {one_line(err)}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
 
 
@@ -292,8 +389,33 @@ def hydra_argv(argv: list[str]) -> list[str]:
     return argv if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
 
 
+class _HeldStream(io.TextIOBase):
+    """Holds what is written to stderr until the task starts, so that Hydra's errors can be put on one line."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream, self.held, self.released = stream, io.StringIO(), False
+
+    def write(self, text: str) -> int:
+        # a handler created meanwhile may keep this object: after the release it writes through
+        return self.stream.write(text) if self.released else self.held.write(text)
+
+    def flush(self) -> None:
+        if self.released:
+            self.stream.flush()
+
+    def release(self) -> Any:
+        if not self.released:
+            self.released = True
+            self.stream.write(self.held.getvalue())
+        return self.stream
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
+    global _DEBUG
+    if "--debug" in sys.argv[1:]:
+        sys.argv.remove("--debug")
+        _DEBUG = True
     args = sys.argv[1:]
     if "--version" in args:
         from unicorn import __version__
@@ -308,7 +430,26 @@ def main() -> None:
             flush=True,
         )
     sys.argv[1:] = hydra_argv(args)
-    hydra.main(config_path=str(config_dir()), config_name="train", version_base="1.3")(_task)()
+    held = None if debug_requested(_DEBUG) else _HeldStream(sys.stderr)
+    if held is not None:
+        sys.stderr = held
+    try:
+        hydra.main(config_path=str(config_dir()), config_name="train", version_base="1.3")(_task)()
+    except SystemExit as exit:
+        if held is None or _TASK_STARTED or not exit.code:
+            raise
+        # Hydra's own report of a composition error (a misspelt override or group): one line, status 2
+        lines = [
+            line.strip()
+            for line in held.held.getvalue().splitlines()
+            if line.strip() and "HYDRA_FULL_ERROR" not in line
+        ]
+        sys.stderr = held.stream
+        print(f"unicorn-train: error: {' '.join(lines) or 'invalid command line'}", file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if isinstance(sys.stderr, _HeldStream):
+            sys.stderr = sys.stderr.release()
 
 
 if __name__ == "__main__":

@@ -8,7 +8,11 @@ there, naming the key) and checks the relations between values. :func:`model_con
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
+import math
+import types
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -17,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from unicorn.config.schema import TrainConfig
+from unicorn.errors import UserError
 
 __all__ = ["ConfigError", "model_config", "renderer_settings", "validate"]
 
@@ -24,7 +29,7 @@ N_STAGES = 4
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """A training configuration that cannot be used (the message names the key)."""
 
 
@@ -54,7 +59,45 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     return typed
 
 
+def _dataclass_of(hint: Any) -> type | None:
+    """The dataclass in a type hint (``X`` or ``X | None``), or None."""
+    if dataclasses.is_dataclass(hint):
+        return hint
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        return next((a for a in typing.get_args(hint) if dataclasses.is_dataclass(a)), None)
+    return None
+
+
+def _check_ranges(node: DictConfig, schema: type, prefix: str = "") -> None:
+    """Check every field declared with :func:`unicorn.config.schema.ranged`, recursing into nested groups."""
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        value = node.get(f.name)
+        key = f"{prefix}{f.name}"
+        nested = _dataclass_of(hints[f.name])
+        if nested is not None:
+            if value is not None:
+                _check_ranges(value, nested, f"{key}.")
+            continue
+        low, high = f.metadata.get("range", (None, None))
+        if value is None or (low is None and high is None):
+            continue
+        _check(
+            (low is None or value >= low) and (high is None or value <= high),
+            f"{key} must be {_describe_range(low, high)}, got {value}",
+        )
+
+
+def _describe_range(low: float | None, high: float | None) -> str:
+    if high is None:
+        return f">= {low:g}"
+    if low is None:
+        return f"<= {high:g}"
+    return f"in [{low:g}, {high:g}]"
+
+
 def _check_values(cfg: DictConfig) -> None:
+    _check_ranges(cfg, TrainConfig)
     m, s, o = cfg.model, cfg.schedule, cfg.optim
     # -- model
     _check(m.image_size >= 8, f"model.image_size must be >= 8, got {m.image_size}")
@@ -206,6 +249,13 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     background_color = cfg.pop("background_color", (1.0, 1.0, 1.0))
     unknown = sorted(set(cfg) - accepted)
     _check(not unknown, f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)})")
+    for key, low in (("faces_per_pixel", 1), ("supersample", 1), ("sigma", 0), ("gamma", 0), ("eps", 0)):
+        if key in cfg:
+            value = cfg[key]
+            _check(
+                isinstance(value, int | float) and math.isfinite(value) and value >= low,
+                f"renderer.{key} must be a finite number >= {low}, got {value!r}",
+            )
     return {
         "name": name,
         "fov": fov,

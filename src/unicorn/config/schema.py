@@ -41,6 +41,12 @@ __all__ = [
 ]
 
 
+def ranged(default: Any, low: float | None = None, high: float | None = None) -> Any:
+    """A field whose value must lie in ``[low, high]`` (either bound may be None); :func:`unicorn.config.validate`
+    checks every such field and names it. ``None`` values (optional fields) are not checked."""
+    return field(default=default, metadata={"range": (low, high)})
+
+
 # ---------------------------------------------------------------------------------------------- model
 @dataclass
 class EncoderConfig:
@@ -49,69 +55,69 @@ class EncoderConfig:
 
 @dataclass
 class TemplateConfig:
-    level: int = 3
+    level: int = ranged(3, 0, 7)
     axes: list[float] = field(default_factory=lambda: [1.0, 0.7, 0.7])
-    scale: float = 0.6
+    scale: float = ranged(0.6, 1e-6)
     uv_mode: str = "seamless"
 
 
 @dataclass
 class ShapeConfig:
-    code_dim: int = 32
+    code_dim: int = ranged(32, 1)
     active_dims: int = 0
-    n_field_units: int = 128
-    n_field_layers: int = 2
-    n_reg_units: int = 128
-    n_reg_layers: int = 3
+    n_field_units: int = ranged(128, 1)
+    n_field_layers: int = ranged(2, 0)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
 
 
 @dataclass
 class TextureConfig:
-    code_dim: int = 128
+    code_dim: int = ranged(128, 1)
     active_dims: int = 2
-    size: int = 64
-    min_features: int = 16
-    n_reg_units: int = 128
-    n_reg_layers: int = 3
+    size: int = ranged(64, 4)
+    min_features: int = ranged(16, 1)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
 
 
 @dataclass
 class BackgroundConfig:
-    code_dim: int = 128
+    code_dim: int = ranged(128, 1)
     active_dims: int = 4
-    min_features: int = 16
-    n_reg_units: int = 128
-    n_reg_layers: int = 3
+    min_features: int = ranged(16, 1)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
 
 
 @dataclass
 class PoseConfig:
-    n_elev: int = 1
-    n_azim: int = 6
+    n_elev: int = ranged(1, 1)
+    n_azim: int = ranged(6, 1)
     azim_range: list[float] = field(default_factory=lambda: [0.0, 360.0])
     elev_range: list[float] = field(default_factory=lambda: [-10.0, 30.0])
     roll_range: list[float] = field(default_factory=lambda: [-30.0, 30.0])
     T_range: Any = 0.3  # one float or (x, y, z)
     prior_translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 2.732])
     scale_range: Any = 0.3  # one float or (x, y, z)
-    n_units: int = 128
-    n_layers: int = 3
+    n_units: int = ranged(128, 1)
+    n_layers: int = ranged(3, 0)
 
 
 @dataclass
 class LossConfig:
-    rgb_weight: float = 1.0
+    rgb_weight: float = ranged(1.0, 0)
     perceptual: str | None = "vgg"  # vgg | structural | null
-    perceptual_weight: float = 10.0
+    perceptual_weight: float = ranged(10.0, 0)
     vgg_weights: str | None = None  # None: torchvision's file in torch's hub cache (downloaded when absent)
-    normal_weight: float = 0.01
-    laplacian_weight: float = 0.01
-    uniform_weight: float = 0.02
+    normal_weight: float = ranged(0.01, 0)
+    laplacian_weight: float = ranged(0.01, 0)
+    uniform_weight: float = ranged(0.02, 0)
     uniform_reduction: str = "sum"
-    neighbor_weight: float = 1.0
-    memory_size: int = 1024
-    n_bins: int = 5
-    min_angle: float = 20.0
+    neighbor_weight: float = ranged(1.0, 0)
+    memory_size: int = ranged(1024, 1)
+    n_bins: int = ranged(5, 1)
+    min_angle: float = ranged(20.0, 0, 180)
 
 
 @dataclass
@@ -126,7 +132,7 @@ class StageDimsConfig:
 @dataclass
 class ModelConfig:
     name: str = "small"
-    image_size: int = 64
+    image_size: int = ranged(64, 8)
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     template: TemplateConfig = field(default_factory=TemplateConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
@@ -147,15 +153,16 @@ class DatasetConfig:
     name: str = "synthetic"
     root: str | None = None
     categories: Any = None  # one name or a list
-    img_size: int = 64
-    batch_size: int = 32
-    num_workers: int = 4
+    img_size: int = ranged(64, 8)
+    batch_size: int = ranged(32, 1)
+    num_workers: int = ranged(4, 0)
     seed: int = 0
-    val_size: int | None = None
+    val_size: int | None = ranged(None, 1)
     on_error: str = "raise"
     pin_memory: bool = False
     synthetic: dict[str, Any] | None = None
     options: dict[str, Any] | None = None
+    max_image_pixels: int | None = ranged(None, 0)  # null: $UNICORN_MAX_IMAGE_PIXELS or PIL's limit; 0: none
 
 
 # ---------------------------------------------------------------------------------------------- schedule
@@ -210,10 +217,10 @@ class OptimConfig:
 
     lr: float = 1e-4
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
-    eps: float = 1e-8
-    weight_decay: float = 0.0
+    eps: float = ranged(1e-8, 0)
+    weight_decay: float = ranged(0.0, 0)
     lr_drop_step: int | None = None
-    lr_drop_gamma: float = 0.2
+    lr_drop_gamma: float = ranged(0.2, 0)
     idle_params: str = "skip"
     check_finite: bool = True
     fused: bool = True
@@ -226,14 +233,14 @@ class TrainerConfig:
 
     accelerator: str = "auto"
     devices: Any = "auto"
-    num_nodes: int = 1
+    num_nodes: int = ranged(1, 1)
     strategy: Any = "auto"
     precision: Any = "32-true"
     max_steps: int = 3000000
     val_check_interval: int | None = 2000
     limit_val_batches: Any = 1.0
-    num_sanity_val_steps: int = 0
-    log_every_n_steps: int = 50
+    num_sanity_val_steps: int = ranged(0, -1)
+    log_every_n_steps: int = ranged(50, 1)
     enable_progress_bar: bool = True
     enable_model_summary: bool = True
     deterministic: Any = False
@@ -247,7 +254,7 @@ class CheckpointConfig:
     """Periodic atomic checkpoints ``step=<N>.ckpt`` (the last ``keep`` kept) and ``last.ckpt``."""
 
     every_n_steps: int = 10000
-    keep: int = 2
+    keep: int = ranged(2, -1)  # -1: all
     save_last: bool = True
 
 
@@ -256,8 +263,8 @@ class ImagesConfig:
     """Image logging: inputs, reconstructions, the mesh from ``n_views`` azimuths, textures, backgrounds."""
 
     every_n_steps: int = 2000
-    n_images: int = 8
-    n_views: int = 4
+    n_images: int = ranged(8, 1)
+    n_views: int = ranged(4, 1)
     save_png: bool = True
 
 
@@ -292,7 +299,7 @@ class CallbacksConfig:
     images: ImagesConfig | None = field(default_factory=ImagesConfig)
     heldout: HeldOutConfig | None = None
     diagnostics: DiagnosticsConfig | None = field(default_factory=DiagnosticsConfig)
-    progress_bar_refresh_rate: int = 1
+    progress_bar_refresh_rate: int = ranged(1, 0)
     extra: dict[str, Any] = field(default_factory=dict)  # name -> instantiable callback (``_target_``)
 
 
@@ -324,6 +331,8 @@ class TrainConfig:
     task_name: str = "train"
     seed: int = 0
     ckpt_path: str | None = None
+    trust_checkpoint: bool = False
+    overwrite: bool = False
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     renderer: dict[str, Any] = field(default_factory=dict)

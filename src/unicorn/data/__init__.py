@@ -8,7 +8,7 @@ from unicorn.data.common import PRIOR_TRANSLATION, UnicornDataset
 from unicorn.data.cub import CUB200
 from unicorn.data.datamodule import DATASET_NAMES, UnicornDataModule, build_dataset
 from unicorn.data.folder import CompCars, ImageFolder
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
@@ -19,6 +19,7 @@ __all__ = [
     "LSUN",
     "PRIOR_TRANSLATION",
     "CompCars",
+    "DatasetError",
     "DatasetNotFoundError",
     "ImageFolder",
     "ImageLoadError",

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import torch
 
 from unicorn import __version__
+from unicorn.cli.errors import add_debug_argument, report_errors
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 
@@ -83,10 +84,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     check.add_argument("--tag", default="horse", help="LSUN category")
     check.set_defaults(func=_check)
 
+    for command in (synth, check):
+        add_debug_argument(command)
     args = parser.parse_args(argv)
     if getattr(args, "category", None) is None and args.command == "synth":
         args.category = ["chair"]
-    return args.func(args)
+    return report_errors("unicorn-data", lambda: args.func(args), args.debug)
 
 
 if __name__ == "__main__":

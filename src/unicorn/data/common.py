@@ -24,8 +24,9 @@ import torch
 from torch.utils.data import Dataset
 
 from unicorn.data.images import ImageLoadError
+from unicorn.errors import UserError
 
-__all__ = ["PRIOR_TRANSLATION", "OnError", "UnicornDataset", "dummy_pose", "item_rng"]
+__all__ = ["PRIOR_TRANSLATION", "OnError", "UnicornDataset", "UnreadableItemsError", "dummy_pose", "item_rng"]
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +34,10 @@ log = logging.getLogger(__name__)
 PRIOR_TRANSLATION = (0.0, 0.0, 2.732)
 
 OnError = Literal["skip", "raise"]
+
+
+class UnreadableItemsError(UserError, RuntimeError):
+    """Too many consecutive items of a dataset could not be read, even when skipping bad files."""
 
 
 def dummy_pose() -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,6 +90,6 @@ class UnicornDataset(Dataset):
                 continue
             item.setdefault("index", torch.tensor(i, dtype=torch.int64))
             return item
-        raise RuntimeError(f"{min(self.max_skips, n)} consecutive unreadable items from index {index}") from (
-            last_error
-        )
+        raise UnreadableItemsError(
+            f"{min(self.max_skips, n)} consecutive unreadable items from index {index}, the last: {last_error}"
+        ) from last_error

@@ -15,7 +15,7 @@ import numpy as np
 
 from unicorn.data.annotated import BBoxCropDataset
 from unicorn.data.common import OnError
-from unicorn.data.images import require
+from unicorn.data.images import DatasetError, require
 from unicorn.data.matlab import load_struct_array
 
 __all__ = ["CUB_KEYPOINTS", "CUB_FLIP_PERM", "CUB200"]
@@ -78,7 +78,7 @@ class CUB200(BBoxCropDataset):
         on_error: OnError = "raise",
     ) -> None:
         if split not in ("train", "val", "test"):
-            raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+            raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
         root = require(root, "CUB-200-2011 root", _IMAGES_HINT)
         image_dir = require(root / "images", "CUB-200-2011 images folder", _IMAGES_HINT)
         anno = require(

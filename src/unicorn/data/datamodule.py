@@ -22,11 +22,13 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from unicorn.data.common import OnError
 from unicorn.data.cub import CUB200
 from unicorn.data.folder import CompCars, ImageFolder
+from unicorn.data.images import DatasetError, set_max_image_pixels
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
 
 __all__ = ["DATASET_NAMES", "VAL_SIZES", "UnicornDataModule", "build_dataset", "val_indices"]
+
 
 Split = Literal["train", "val", "test"]
 
@@ -70,7 +72,7 @@ def build_dataset(
         **options: extra constructor arguments of the dataset class (e.g. ``tag`` for LSUN, ``eval_size``).
     """
     if split not in ("train", "val", "test"):
-        raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+        raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
     train = split == "train"
     if name in ("shapenet_nmr", "synthetic"):
         # every view for training, one fixed random view per model for evaluation, unless told
@@ -88,7 +90,7 @@ def build_dataset(
         return LSUN(root, img_size=img_size, augment=train, on_error=on_error, **options)
     if name == "folder":
         return ImageFolder(root, img_size=img_size, augment=train, on_error=on_error, **options)
-    raise ValueError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+    raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
 
 
 def val_indices(name: str, n: int, size: int | None = None) -> list[int]:
@@ -123,6 +125,9 @@ class UnicornDataModule(L.LightningDataModule):
         synthetic: for ``synthetic``: ``mode`` (``"nmr"``/``"wild"``), ``n_models``, ``seed`` and other
             :func:`~unicorn.data.synthetic.writer.generate_synthetic_dataset` options.
         options: extra dataset-constructor arguments (e.g. ``{"tag": "horse"}`` for LSUN).
+        max_image_pixels: refuse images with more pixels (a bad image, skipped with ``on_error="skip"``); None:
+            the current limit (:func:`unicorn.data.images.max_image_pixels`), 0: no limit. Set for the whole
+            process and its workers.
     """
 
     def __init__(
@@ -139,12 +144,15 @@ class UnicornDataModule(L.LightningDataModule):
         pin_memory: bool = False,
         synthetic: dict[str, Any] | None = None,
         options: dict[str, Any] | None = None,
+        max_image_pixels: int | None = None,
     ) -> None:
         super().__init__()
+        if max_image_pixels is not None:
+            set_max_image_pixels(max_image_pixels)
         if name not in DATASET_NAMES:
-            raise ValueError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+            raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
         if name != "synthetic" and root is None:
-            raise ValueError(f"dataset {name!r} needs a root folder")
+            raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")
         self.name, self.root, self.img_size = name, root, int(img_size)
         # Hydra passes lists as ListConfig: normalise to plain str / list[str]
         if categories is None or isinstance(categories, str):

@@ -1,21 +1,36 @@
 """Image loading and the crop / pad / resize / flip steps shared by the loaders.
 
 Arrays are numpy ``(H, W, 3)`` float32 in [0, 1] until :func:`to_chw_tensor` turns them into ``(C, H, W)``
-tensors. Bounding boxes are ``(x1, y1, x2, y2)`` in 0-based pixel indices, inclusive on both ends. Keypoints
+tensors. Every decode goes through :func:`open_image`: any failure (truncated, not an image, an unknown
+format, a decompression bomb) is an :class:`ImageLoadError`, and an image of more than :func:`max_image_pixels`
+pixels is refused from its header before it is decoded (raise the limit with ``UNICORN_MAX_IMAGE_PIXELS``,
+``dataset.max_image_pixels`` or the tools' ``--max-image-pixels``).
+
+Bounding boxes are ``(x1, y1, x2, y2)`` in 0-based pixel indices, inclusive on both ends. Keypoints
 are ``(K, 3)`` arrays of ``(column, row, visible)`` with pixel centres at integer coordinates.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
+import threading
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
+
+from unicorn.errors import UserError
 
 __all__ = [
+    "DEFAULT_MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_PIXELS_ENV",
+    "DatasetError",
     "DatasetNotFoundError",
     "ImageLoadError",
     "crop_box",
@@ -25,16 +40,19 @@ __all__ = [
     "jitter_bbox",
     "load_image",
     "load_mask",
+    "max_image_pixels",
+    "open_image",
     "pad_bbox",
     "resize_image",
     "resize_mask",
     "require",
+    "set_max_image_pixels",
     "square_bbox",
     "to_chw_tensor",
 ]
 
 
-class ImageLoadError(RuntimeError):
+class ImageLoadError(UserError, RuntimeError):
     """An image file (or LMDB record) could not be read or decoded; the message names it."""
 
     def __init__(self, path: str | os.PathLike, reason: str) -> None:
@@ -42,7 +60,12 @@ class ImageLoadError(RuntimeError):
         super().__init__(f"cannot read image {self.path}: {reason}")
 
 
-class DatasetNotFoundError(FileNotFoundError):
+class DatasetError(UserError, ValueError):
+    """A dataset that cannot be used as given: an unknown name, split or category, a malformed annotation file,
+    no readable item (the message names it)."""
+
+
+class DatasetNotFoundError(UserError, FileNotFoundError):
     """A dataset root or annotation file is missing; the message says where the data comes from."""
 
     def __init__(self, path: str | os.PathLike, what: str, hint: str) -> None:
@@ -56,6 +79,73 @@ def require(path: str | os.PathLike, what: str, hint: str) -> Path:
     if not path.exists():
         raise DatasetNotFoundError(path, what, hint)
     return path
+
+
+#: pixels above which an image is refused: where PIL itself refuses (2 x its warning threshold), about 13400^2
+DEFAULT_MAX_IMAGE_PIXELS = 178_956_970
+#: environment variable holding the limit (inherited by DataLoader workers); 0 means no limit
+MAX_IMAGE_PIXELS_ENV = "UNICORN_MAX_IMAGE_PIXELS"
+_PIL_LOCK = threading.Lock()
+
+
+def max_image_pixels() -> int | None:
+    """The current limit on pixels per image (None: no limit); see :func:`set_max_image_pixels`."""
+    text = os.environ.get(MAX_IMAGE_PIXELS_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_IMAGE_PIXELS
+    try:
+        value = int(float(text))
+    except ValueError:
+        raise ImageLimitError(f"{MAX_IMAGE_PIXELS_ENV}={text!r} is not a number of pixels") from None
+    return value if value > 0 else None
+
+
+def set_max_image_pixels(limit: int | None) -> None:
+    """Set the limit on pixels per image for this process and its children (None or 0: no limit).
+
+    Raises:
+        ImageLimitError: a negative limit.
+    """
+    if limit is not None and limit < 0:
+        raise ImageLimitError(f"the image pixel limit must be >= 0 (0: none), got {limit}")
+    os.environ[MAX_IMAGE_PIXELS_ENV] = str(int(limit or 0))
+
+
+class ImageLimitError(UserError, ValueError):
+    """An invalid image pixel limit."""
+
+
+@contextlib.contextmanager
+def open_image(source: str | os.PathLike | IO[bytes], name: str | os.PathLike) -> Iterator[Image.Image]:
+    """``PIL.Image.open`` with the pixel limit and one error type; ``name`` is used in errors.
+
+    Yields the opened (not yet loaded) image. Any exception while opening or inside the block becomes an
+    :class:`ImageLoadError` naming ``name``.
+    """
+    limit = max_image_pixels()
+    try:
+        with _PIL_LOCK, warnings.catch_warnings():
+            # PIL's global bomb check is replaced by the header check below (its limit is not ours)
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                img = Image.open(source)  # reads the header only
+            finally:
+                Image.MAX_IMAGE_PIXELS = saved
+        with img:
+            pixels = img.width * img.height
+            if limit is not None and pixels > limit:
+                raise ImageLoadError(
+                    name,
+                    f"{img.width}x{img.height} = {pixels} pixels exceeds the limit of {limit} (a decompression "
+                    f"bomb?); if the image is genuine raise the limit with --max-image-pixels, "
+                    f"dataset.max_image_pixels or {MAX_IMAGE_PIXELS_ENV}",
+                )
+            yield img
+    except ImageLoadError:
+        raise
+    except Exception as err:  # PIL raises many kinds on bad files (OSError, SyntaxError, struct.error, ...)
+        raise ImageLoadError(name, f"{type(err).__name__}: {' '.join(str(err).split())}") from err
 
 
 def _pil_to_rgb(img: Image.Image) -> np.ndarray:
@@ -91,32 +181,23 @@ def load_image(path: str | os.PathLike) -> np.ndarray:
     Raises:
         ImageLoadError: if the file is missing, truncated or not an image.
     """
-    try:
-        with Image.open(path) as img:
-            img.load()
-            return _pil_to_rgb(img)
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
-        raise ImageLoadError(path, f"{type(err).__name__}: {err}") from err
+    with open_image(path, path) as img:
+        img.load()
+        return _pil_to_rgb(img)
 
 
 def decode_image(data: bytes, name: str) -> np.ndarray:
     """Decode encoded image bytes (e.g. an LMDB value) like :func:`load_image`; ``name`` is used in errors."""
-    try:
-        with Image.open(io.BytesIO(data)) as img:
-            img.load()
-            return _pil_to_rgb(img)
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
-        raise ImageLoadError(name, f"{type(err).__name__}: {err}") from err
+    with open_image(io.BytesIO(data), name) as img:
+        img.load()
+        return _pil_to_rgb(img)
 
 
 def load_mask(path: str | os.PathLike) -> np.ndarray:
     """Read a mask image (any mode, first channel) as an (H, W) float32 array in {0, 1}."""
-    try:
-        with Image.open(path) as img:
-            img.load()
-            arr = np.asarray(img)
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
-        raise ImageLoadError(path, f"{type(err).__name__}: {err}") from err
+    with open_image(path, path) as img:
+        img.load()
+        arr = np.asarray(img)
     if arr.ndim == 3:
         arr = arr[..., 0]
     return (arr > arr.max() / 2 if arr.max() > 0 else arr > 0).astype(np.float32)

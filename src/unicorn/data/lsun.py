@@ -19,7 +19,7 @@ import numpy as np
 
 from unicorn.data.common import OnError, UnicornDataset, item_rng
 from unicorn.data.folder import unannotated_item
-from unicorn.data.images import ImageLoadError, crop_box, decode_image, jitter_bbox, pad_bbox, require
+from unicorn.data.images import DatasetError, ImageLoadError, crop_box, decode_image, jitter_bbox, pad_bbox, require
 
 __all__ = ["LSUN", "import_lmdb", "read_lsun_indices"]
 
@@ -62,7 +62,7 @@ def read_lsun_indices(path: str | Path) -> np.ndarray:
     """Second column of UNICORN's ``indices.txt`` (space-separated integer pairs, no header) as (N,) int64."""
     table = np.loadtxt(path, dtype=np.int64, ndmin=2)
     if table.shape[1] < 2:
-        raise ValueError(f"{path}: expected lines of two integers '<j> <k>', got {table.shape[1]} column(s)")
+        raise DatasetError(f"{path}: expected lines of two integers '<j> <k>', got {table.shape[1]} column(s)")
     return table[:, 1]
 
 
@@ -111,7 +111,7 @@ class LSUN(UnicornDataset):
             indices = read_lsun_indices(indices_file)
             bad = indices[(indices < 0) | (indices >= len(keys))]
             if bad.size:
-                raise ValueError(f"{indices_file}: indices {bad[:5].tolist()} outside the {len(keys)} LMDB keys")
+                raise DatasetError(f"{indices_file}: indices {bad[:5].tolist()} outside the {len(keys)} LMDB keys")
             keys = [keys[k] for k in indices]
         self.keys = keys
 

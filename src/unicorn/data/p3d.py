@@ -20,7 +20,7 @@ import torch
 
 from unicorn.data.annotated import BBoxCropDataset
 from unicorn.data.common import OnError
-from unicorn.data.images import DatasetNotFoundError, require
+from unicorn.data.images import DatasetError, DatasetNotFoundError, require
 from unicorn.data.matlab import load_struct_array
 
 __all__ = ["Pascal3DCar", "load_cad_pointclouds"]
@@ -91,7 +91,7 @@ class Pascal3DCar(BBoxCropDataset):
         on_error: OnError = "raise",
     ) -> None:
         if split not in ("train", "test"):
-            raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+            raise DatasetError(f"split must be 'train' or 'test', got {split!r}")
         root = require(root, "Pascal3D+ root", _IMAGES_HINT)
         image_dir = require(root / "Images", "Pascal3D+ images folder", _IMAGES_HINT)
         data_dir = root / "ucmr_anno" / "data"

@@ -23,7 +23,7 @@ import torch
 import yaml
 
 from unicorn.data.common import OnError, UnicornDataset
-from unicorn.data.images import DatasetNotFoundError, load_image, load_mask, require, to_chw_tensor
+from unicorn.data.images import DatasetError, DatasetNotFoundError, load_image, load_mask, require, to_chw_tensor
 
 __all__ = [
     "SHAPENET_CATEGORIES",
@@ -128,7 +128,7 @@ def resolve_categories(metadata: dict[str, dict[str, str]], categories: str | li
             synsets.append(by_name[cat])
         else:
             known = sorted({*metadata, *by_name})
-            raise ValueError(f"unknown ShapeNet category {cat!r}; metadata.yaml lists {known}")
+            raise DatasetError(f"unknown ShapeNet category {cat!r}; metadata.yaml lists {known}")
     return synsets
 
 
@@ -167,9 +167,9 @@ class ShapeNetNMR(UnicornDataset):
     ) -> None:
         super().__init__(on_error)
         if split not in ("train", "val", "test"):
-            raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+            raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
         if views not in ("all", "random"):
-            raise ValueError(f"views must be 'all' or 'random', got {views!r}")
+            raise DatasetError(f"views must be 'all' or 'random', got {views!r}")
         self.root = require(root, "ShapeNet-NMR root", _HINT)
         self.metadata = read_metadata(self.root)
         self.synsets = resolve_categories(self.metadata, categories)
@@ -185,7 +185,7 @@ class ShapeNetNMR(UnicornDataset):
                 names = [line.strip() for line in lst.read_text().splitlines() if line.strip()]
                 self.models += [(c, self.root / synset / name) for name in names]
         if not self.models:
-            raise ValueError(f"no {split} models for categories {self.synsets} under {self.root}")
+            raise DatasetError(f"no {split} models for categories {self.synsets} under {self.root}")
         first = self.models[0][1] / "image"
         if not first.is_dir():
             raise DatasetNotFoundError(first, "ShapeNet model image folder", _HINT)

@@ -46,6 +46,9 @@ from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
+#: the files written at the top of the output folder: no image's folder may take these names
+RESERVED_NAMES = ("index.html", "overview.png", "reconstructions.json")
+
 #: largest side of a picture in overview.png (the per-image files keep the full view size)
 OVERVIEW_CELL = 160
 
@@ -54,7 +57,8 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
     """File-system safe, unique output names for input files.
 
     The file stem when stems are unique; otherwise the path relative to the inputs' common folder (``a/0000.png``
-    and ``b/0000.png`` become ``a_0000`` and ``b_0000``); a numeric suffix settles what remains.
+    and ``b/0000.png`` become ``a_0000`` and ``b_0000``); a numeric suffix settles what remains, and keeps names
+    clear of :data:`RESERVED_NAMES` (the folder's own files). Names differ also without regard to case.
     """
     paths = [Path(p) for p in paths]
     if len({p.stem for p in paths}) == len(paths):
@@ -63,13 +67,13 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
         common = Path(os.path.commonpath([str(p.resolve().parent) for p in paths]))
         raw = [str(p.resolve().relative_to(common).with_suffix("")) for p in paths]
     names: list[str] = []
-    seen: set[str] = set()
+    seen: set[str] = {n.lower() for n in RESERVED_NAMES}
     for text in raw:
         base = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or "image"
         name, k = base, 1
-        while name in seen:
+        while name.lower() in seen:
             name, k = f"{base}_{k}", k + 1
-        seen.add(name)
+        seen.add(name.lower())
         names.append(name)
     return names
 

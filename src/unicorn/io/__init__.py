@@ -1,6 +1,14 @@
 """Files in and out: checkpoints of every supported format, and user images framed like the training data."""
 
-from unicorn.io.checkpoints import CheckpointError, CheckpointInfo, load_model, read_checkpoint, save_model
+from unicorn.io.checkpoints import (
+    CheckpointError,
+    CheckpointInfo,
+    CorruptCheckpointError,
+    UnsafeCheckpointError,
+    load_model,
+    read_checkpoint,
+    save_model,
+)
 from unicorn.io.images import (
     InputImage,
     RawInput,
@@ -15,8 +23,10 @@ from unicorn.io.images import (
 __all__ = [
     "CheckpointError",
     "CheckpointInfo",
+    "CorruptCheckpointError",
     "InputImage",
     "RawInput",
+    "UnsafeCheckpointError",
     "alpha_bbox",
     "collect_inputs",
     "frame_input",

@@ -12,14 +12,18 @@ Three formats are recognised by their keys:
   and independent of Lightning.
 
 The perceptual loss is never rebuilt (it is not needed to predict and its VGG weights may not be on this machine).
-Checkpoints are pickles: load only files you trust.
+
+Checkpoints are pickles, and a pickle can run any code while it is read. Every file is therefore read with
+PyTorch's restricted unpickler (tensors and plain data only, see :mod:`unicorn.serialization`); one that needs
+more is refused with :class:`~unicorn.serialization.UnsafeCheckpointError` unless ``trust=True`` is passed (the
+command-line tools' ``--trust-checkpoint``): do that only for files from a source you trust. Files written by
+unicorn carry a content hash that is checked on load.
 """
 
 from __future__ import annotations
 
 import copy
 import os
-import pickle
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,15 +32,26 @@ from typing import Any, Literal
 import torch
 
 from unicorn.model import Unicorn, load_reference_checkpoint, merge_config
+from unicorn.serialization import (
+    CheckpointError,
+    CorruptCheckpointError,
+    UnsafeCheckpointError,
+    atomic_save,
+    load_checkpoint_file,
+)
 
-__all__ = ["CheckpointError", "CheckpointInfo", "load_model", "read_checkpoint", "save_model"]
+__all__ = [
+    "CheckpointError",
+    "CheckpointInfo",
+    "CorruptCheckpointError",
+    "UnsafeCheckpointError",
+    "load_model",
+    "read_checkpoint",
+    "save_model",
+]
 
 PLAIN_FORMAT = "unicorn-model"
 Format = Literal["reference", "lightning", "plain"]
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be read or does not hold a UNICORN model; the message names the file."""
 
 
 @dataclass
@@ -75,26 +90,24 @@ class CheckpointInfo:
         return ", ".join(parts)
 
 
-def read_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """``torch.load`` a checkpoint dict, trying the safe unpickler first.
+def read_checkpoint(
+    path: str | os.PathLike, map_location: str | torch.device = "cpu", trust: bool = False
+) -> dict[str, Any]:
+    """Load a checkpoint dict without running code from it, and check its content hash when it has one.
 
-    Lightning checkpoints may hold objects (OmegaConf configs, numpy random states) that the ``weights_only``
-    unpickler refuses; those are loaded with the full unpickler, which is why only trusted files should be read.
+    Args:
+        path: the file.
+        map_location: where tensors are loaded.
+        trust: allow full unpickling, for files from a source you trust (it can run arbitrary code).
 
     Raises:
         FileNotFoundError: no such file.
+        UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
+        CorruptCheckpointError: the content does not match its stored hash.
         CheckpointError: not a readable torch file or not a dict.
     """
     path = Path(path).expanduser()
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        try:
-            data = torch.load(path, map_location=map_location, weights_only=True)
-        except pickle.UnpicklingError:
-            data = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as err:  # torch raises many kinds (RuntimeError, EOFError, UnpicklingError...) on bad files
-        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {err}") from err
+    data = load_checkpoint_file(path, map_location=map_location, trust=trust)
     if not isinstance(data, Mapping):
         raise CheckpointError(f"checkpoint {path} holds a {type(data).__name__}, not a dict")
     return dict(data)
@@ -162,6 +175,7 @@ def load_model(
     path: str | os.PathLike,
     map_location: str | torch.device = "cpu",
     overrides: Mapping[str, Any] | None = None,
+    trust: bool = False,
 ) -> tuple[Unicorn, CheckpointInfo]:
     """Build the model stored in a checkpoint of any supported format and load its weights.
 
@@ -170,16 +184,18 @@ def load_model(
         map_location: where the weights are loaded.
         overrides: model config groups to change, e.g. ``{"template": {"level": 4}}`` for the finer mesh of
             UNICORN's keypoint evaluation (the template and the renderer are not part of the weights).
+        trust: allow full unpickling, for files from a source you trust (it can run arbitrary code).
 
     Returns:
         ``(model, info)``: the model in eval mode on ``map_location``, and a :class:`CheckpointInfo`.
 
     Raises:
         FileNotFoundError: no such file.
-        CheckpointError: unreadable file, unknown layout, or weights that do not fit.
+        UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
+        CheckpointError: unreadable or corrupted file, unknown layout, or weights that do not fit.
     """
     path = Path(path).expanduser()
-    data = read_checkpoint(path, map_location)
+    data = read_checkpoint(path, map_location, trust=trust)
     run_dir = _run_dir(path)
     if "model_state" in data:
         try:
@@ -237,6 +253,8 @@ def load_model(
 def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
     """Write a plain checkpoint (config, weights and ``info``) that :func:`load_model` reads.
 
+    The file is written atomically and carries a hash of its content (see :mod:`unicorn.serialization`).
+
     Args:
         model: the model.
         path: the file to write (folders are created).
@@ -247,7 +265,7 @@ def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
         ``path`` as a Path.
     """
     path = Path(path).expanduser()
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu() for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
-    torch.save({"format": PLAIN_FORMAT, "config": copy.deepcopy(model.config), "state_dict": state, "info": info}, path)
-    return path
+    return atomic_save(
+        {"format": PLAIN_FORMAT, "config": copy.deepcopy(model.config), "state_dict": state, "info": info}, path
+    )

@@ -21,14 +21,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
 
 from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
 from unicorn.data.images import (
-    ImageLoadError,
     crop_box,
     fit_and_pad,
     load_image,
+    open_image,
     pad_bbox,
     resize_image,
     square_bbox,
@@ -80,13 +79,10 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
     Returns:
         the box, or None when the image has no alpha channel, is fully opaque or fully transparent.
     """
-    try:
-        with Image.open(path) as img:
-            if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
-                return None
-            alpha = np.asarray(img.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as err:
-        raise ImageLoadError(path, f"{type(err).__name__}: {err}") from err
+    with open_image(path, path) as img:
+        if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
+            return None
+        alpha = np.asarray(img.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
     opaque = alpha > threshold
     if opaque.all() or not opaque.any():
         return None

@@ -4,7 +4,9 @@
   of every loss term and of the pose-candidate shares, the non-finite-loss guard.
 - :class:`StageCallback`, :class:`ImageLogger` (``callbacks``): progressive conditioning, stage-1 curriculum
   and texture averaging; image logging.
-- :class:`AtomicCheckpointIO` (``checkpoint``): complete-or-absent checkpoint files.
+- :class:`AtomicCheckpointIO`, :class:`PeriodicCheckpoint` (``checkpoint``): complete-or-absent, sealed checkpoint
+  files read without running code; rotation that counts the files of earlier attempts.
+- :class:`CSVLogger`, :class:`TensorBoardLogger`, :class:`ResumeLogs` (``loggers``): logs a resume appends to.
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`CodeDiagnostics` (``diagnostics``): code spread and dead units of the code regressors, with a loud
   :class:`CollapseWarning` when a branch stops depending on the image.
@@ -18,10 +20,11 @@ rank ``r mod saved_world_size``.
 """
 
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
-from unicorn.lit.checkpoint import AtomicCheckpointIO, atomic_torch_save
+from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint, atomic_torch_save
 from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
 from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.lit.heldout import HeldOutEvaluation
+from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
 
 __all__ = [
@@ -29,14 +32,18 @@ __all__ = [
     "AtomicCheckpointIO",
     "CodeDiagnostics",
     "CollapseWarning",
+    "CSVLogger",
     "HeldOutEvaluation",
     "ImageLogger",
     "IterationDataModule",
     "NonFiniteLossError",
+    "PeriodicCheckpoint",
     "ProgressBar",
+    "ResumeLogs",
     "SeededItems",
     "StageCallback",
     "StreamBatchSampler",
+    "TensorBoardLogger",
     "UnicornLitModule",
     "atomic_torch_save",
     "code_diagnostics",

@@ -1,57 +1,105 @@
-"""Checkpoints that are either complete or absent.
+"""Checkpoints that are either complete or absent, sealed with a content hash, and read without running code.
 
-:class:`AtomicCheckpointIO` writes a checkpoint to a temporary file next to its destination, flushes it to
-disk (``fsync``) and renames it into place (``os.replace`` is atomic on POSIX and Windows). A run killed while
-saving (Ctrl-C, SIGKILL, a pre-empted job) leaves its previous checkpoint intact, at worst with a stray
-``.tmp`` file beside it. Lightning's own writer renames too (fsspec transactions) but does not ``fsync``, so a
-crash of the machine could leave a renamed but incomplete file. Remote paths (``s3://``...) go to Lightning's
-writer.
+:class:`AtomicCheckpointIO` writes a checkpoint with :func:`unicorn.serialization.atomic_save`: to a temporary file
+next to its destination, flushed to disk (``fsync``) and renamed into place (``os.replace`` is atomic on POSIX
+and Windows), with a SHA-256 of its content stored in it. A run killed while saving (Ctrl-C, SIGKILL, a
+pre-empted job) leaves its previous checkpoint intact, at worst with a stray ``.tmp`` file beside it, which the
+next run removes (:func:`unicorn.serialization.remove_stale_temporaries`). Lightning's own writer renames too
+(fsspec transactions) but does not ``fsync``, so a crash of the machine could leave a renamed but incomplete
+file. Resuming reads the file with PyTorch's restricted unpickler and checks the hash; a file that needs full
+unpickling is refused unless the run trusts it (``trust_checkpoint=true``). Remote paths (``s3://``...) go to
+Lightning's reader and writer.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
+import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import ModelCheckpoint
 
-__all__ = ["AtomicCheckpointIO", "atomic_torch_save"]
+from unicorn.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
+
+__all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint", "atomic_torch_save"]
+
+log = logging.getLogger(__name__)
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save(obj, path)`` that never leaves a partial file at ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    torch.save(obj, buffer)  # serialise first: a failure here leaves nothing behind
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(buffer.getbuffer())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-    # make the rename itself durable
-    with contextlib.suppress(OSError):
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    """``torch.save(obj, path)`` that never leaves a partial file at ``path`` (dicts get a content hash)."""
+    atomic_save(obj, path)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
-    """Lightning checkpoint I/O with atomic, fsync'ed local writes (pass it in ``Trainer(plugins=[...])``)."""
+    """Lightning checkpoint I/O with atomic, fsync'ed, sealed local writes and safe reads.
+
+    Pass it in ``Trainer(plugins=[...])``.
+
+    Args:
+        trust: read checkpoints with full unpickling (only files from a source you trust: it can run code).
+    """
+
+    def __init__(self, trust: bool = False) -> None:
+        super().__init__()
+        self.trust = trust
 
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
         if storage_options is not None or "://" in str(path):
             super().save_checkpoint(checkpoint, path, storage_options)
             return
-        atomic_torch_save(checkpoint, path)
+        atomic_save(checkpoint, path)
+
+    def load_checkpoint(self, path: Any, map_location: Any | None = None, weights_only: bool | None = None) -> dict:
+        if "://" in str(path):
+            return super().load_checkpoint(path, map_location=map_location, weights_only=not self.trust)
+        kwargs = {} if map_location is None else {"map_location": map_location}
+        return load_checkpoint_file(path, trust=self.trust, **kwargs)
+
+
+class PeriodicCheckpoint(ModelCheckpoint):
+    """:class:`~lightning.pytorch.callbacks.ModelCheckpoint` whose rotation also counts files of earlier attempts.
+
+    Lightning only rotates the files it knows from the resumed checkpoint's state; ``step=<N>.ckpt`` files written
+    after that checkpoint by a run that was then killed, or by a run started afresh in the folder, were kept
+    forever. At the start of training the folder's ``step=<N>.ckpt`` files are added to the rotation (ranked by
+    ``N``, monitor ``"step"``) and the oldest beyond ``save_top_k`` are deleted. Stale ``.tmp`` files of killed
+    writes are deleted too.
+    """
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_train_start(trainer, pl_module)
+        if self.dirpath is None or not trainer.is_global_zero or not os.path.isdir(self.dirpath):
+            return
+        remove_stale_temporaries(self.dirpath)
+        if self.monitor != "step" or self.save_top_k < 0:
+            return
+        for path in Path(self.dirpath).glob("step=*.ckpt"):
+            match = re.fullmatch(r"step=(\d+)(-v\d+)?\.ckpt", path.name)
+            if not match:
+                continue
+            if int(match.group(1)) > trainer.global_step:
+                # written after the checkpoint this run resumes from by an attempt that was then killed: it is
+                # about to be written again (Lightning would otherwise write a "-v1" copy beside it)
+                self.best_k_models.pop(str(path), None)
+                log.info("removing %s, newer than the resumed iteration %d", path, trainer.global_step)
+                trainer.strategy.remove_checkpoint(path)
+            elif str(path) not in self.best_k_models:
+                self.best_k_models[str(path)] = torch.tensor(float(match.group(1)))
+        ranked = sorted(self.best_k_models, key=lambda p: float(self.best_k_models[p]))
+        for stale in ranked[: max(0, len(ranked) - self.save_top_k)]:
+            self.best_k_models.pop(stale)
+            if os.path.isfile(stale):
+                log.info("removing %s (beyond the %d kept checkpoints)", stale, self.save_top_k)
+                trainer.strategy.remove_checkpoint(stale)
+        if self.best_k_models:
+            self.best_model_path = max(self.best_k_models, key=lambda p: float(self.best_k_models[p]))
+            self.best_model_score = self.best_k_models[self.best_model_path]
+            if len(self.best_k_models) == self.save_top_k:
+                self.kth_best_model_path = min(self.best_k_models, key=lambda p: float(self.best_k_models[p]))
+                self.kth_value = self.best_k_models[self.kth_best_model_path]

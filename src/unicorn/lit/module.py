@@ -38,6 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from unicorn.errors import UserError
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 
@@ -59,7 +60,7 @@ OPTIM_DEFAULTS: dict[str, Any] = {
 _SEED_STRIDE = 1_000_003
 
 
-class NonFiniteLossError(FloatingPointError):
+class NonFiniteLossError(UserError, FloatingPointError):
     """A loss term or a gradient became NaN or infinite; the message names the iteration and the term."""
 
 

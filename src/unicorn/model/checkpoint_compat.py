@@ -40,6 +40,7 @@ import torch
 from unicorn.model.autoencoder import Unicorn, merge_config, unicorn_config
 from unicorn.model.perceptual import VGGPerceptualLoss
 from unicorn.model.progressive import active_dims_at
+from unicorn.serialization import load_checkpoint_file
 
 __all__ = ["config_from_reference", "convert_reference_state_dict", "load_reference_checkpoint"]
 
@@ -253,6 +254,7 @@ def load_reference_checkpoint(
     strict: bool = True,
     with_perceptual: bool = False,
     map_location: str | torch.device = "cpu",
+    trust: bool = False,
     **overrides: Any,
 ) -> Unicorn:
     """Build a :class:`Unicorn` from a released UNICORN checkpoint and load its weights.
@@ -262,14 +264,19 @@ def load_reference_checkpoint(
         strict: fail on unrecognised reference keys or on our parameters left unset.
         with_perceptual: also build the VGG16 perceptual loss from the weights stored in the checkpoint.
         map_location: where to load the tensors.
+        trust: read the file with full unpickling, for files from a source you trust (it can run arbitrary
+            code); by default only tensors and plain data are read, which is all the released files hold.
         overrides: configuration groups overriding the inferred ones (see :func:`config_from_reference`).
 
     Returns:
         the model in eval mode.
+
+    Raises:
+        unicorn.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
     """
     if not isinstance(checkpoint, Mapping):
-        # the released files pickle plain dicts and tensors; the optimizer state needs no custom classes
-        checkpoint = torch.load(os.fspath(checkpoint), map_location=map_location, weights_only=False)
+        # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
+        checkpoint = load_checkpoint_file(checkpoint, map_location=map_location, trust=trust)
     state, vgg = convert_reference_state_dict(checkpoint, strict=strict)
     cfg = config_from_reference(checkpoint, **overrides)
     model = Unicorn(cfg)

@@ -8,6 +8,8 @@ rendering").
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -74,8 +76,8 @@ class LayeredBlend(nn.Module):
 
     def __init__(self, sigma: float = 1e-4) -> None:
         super().__init__()
-        if sigma < 0:
-            raise ValueError(f"sigma must be >= 0, got {sigma}")
+        if not 0 <= sigma < math.inf:
+            raise ValueError(f"sigma must be finite and >= 0, got {sigma}")
         self.sigma = float(sigma)
 
     def extra_repr(self) -> str:

@@ -26,7 +26,7 @@ import torch
 from ..geometry.cameras import image_hw
 from .fragments import Fragments
 
-__all__ = ["blur_radius_from_sigma", "rasterize_meshes", "check_mesh_inputs"]
+__all__ = ["blur_radius_from_sigma", "check_mesh_inputs", "check_pose_inputs", "rasterize_meshes"]
 
 # depth is quantised to this many bits inside the sort key; the pixel index takes the bits above
 _DEPTH_BITS = 31
@@ -42,9 +42,25 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
     For the layered occupancy ``exp(-d / sigma)`` and SoftRas' ``sigmoid(-d / sigma)`` alike this is where the
     face stops mattering (1e-4 by default, as in the reference).
     """
-    if sigma < 0:
-        raise ValueError(f"sigma must be >= 0, got {sigma}")
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"sigma must be finite and >= 0, got {sigma}")
     return math.log(1.0 / eps - 1.0) * sigma
+
+
+def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size: int) -> None:
+    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), finite, or both None."""
+    if (R is None) != (T is None):
+        raise ValueError("give both R and T, or neither (verts already in view coordinates)")
+    if R is None or T is None:
+        return
+    if not isinstance(R, torch.Tensor) or tuple(R.shape) != (batch_size, 3, 3):
+        raise ValueError(f"R must have shape ({batch_size}, 3, 3), got {tuple(getattr(R, 'shape', ()))}")
+    if not isinstance(T, torch.Tensor) or tuple(T.shape) != (batch_size, 3):
+        raise ValueError(f"T must have shape ({batch_size}, 3), got {tuple(getattr(T, 'shape', ()))}")
+    finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync
+    for name, ok in zip("RT", finite):
+        if not ok:
+            raise ValueError(f"{name} contains NaN or infinite values")
 
 
 def check_mesh_inputs(verts: torch.Tensor, faces: torch.Tensor) -> None:
@@ -276,8 +292,8 @@ def rasterize_meshes(
         check_mesh_inputs(verts_ndc, faces)
     if faces_per_pixel < 1:
         raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
-    if blur_radius < 0:
-        raise ValueError(f"blur_radius must be >= 0, got {blur_radius}")
+    if not (math.isfinite(blur_radius) and blur_radius >= 0):
+        raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
     H, W = image_hw(image_size)
     S = min(H, W)
     B, V, _ = verts_ndc.shape

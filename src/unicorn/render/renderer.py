@@ -7,6 +7,7 @@ background image, and returns images (B, C + 1, H, W) whose last channel is alph
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,7 +19,7 @@ from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from .compositing import background_pixels
 from .fragments import Fragments
 from .layered import layered_blend
-from .raster import blur_radius_from_sigma, check_mesh_inputs, rasterize_meshes
+from .raster import blur_radius_from_sigma, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 from .registry import register_renderer
 from .softras import softras_blend
 from .textures import Textures
@@ -79,6 +80,8 @@ class MeshRenderer(nn.Module):
         if faces_per_pixel < 1:
             raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
         self.faces_per_pixel = int(faces_per_pixel)
+        if not (math.isfinite(blur_radius) and blur_radius >= 0):
+            raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
         self.blur_radius = float(blur_radius)
         self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
         self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32))
@@ -106,6 +109,7 @@ class MeshRenderer(nn.Module):
     ) -> Fragments:
         """Fragments of the meshes (B, V, 3) / (F, 3) seen with pose (R, T)."""
         check_mesh_inputs(verts, faces)
+        check_pose_inputs(R, T, verts.shape[0])
         return self._rasterize(verts, faces, R, T, image_size)
 
     def _rasterize(
@@ -116,7 +120,7 @@ class MeshRenderer(nn.Module):
         T: torch.Tensor | None,
         image_size: tuple[int, int] | None,
     ) -> Fragments:
-        # inputs already checked (each check is a host sync on CUDA: once per render)
+        # inputs already checked by the caller (each check is a host sync on CUDA: once per render)
         return rasterize_meshes(
             self.project(verts, R, T), faces, image_size or self.image_size, self.blur_radius,
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
@@ -135,7 +139,7 @@ class MeshRenderer(nn.Module):
         check_mesh_inputs(verts, faces)
         if not isinstance(textures, Textures):
             raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
-        textures.check_batch(verts.shape[0])
+        textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0])
 
     def render(
         self,
@@ -148,6 +152,7 @@ class MeshRenderer(nn.Module):
     ) -> RenderOutput:
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
         self._check_inputs(textures, verts, faces)
+        check_pose_inputs(R, T, verts.shape[0])
         fragments = self._rasterize(verts, faces, R, T, self.raster_size)
         colors = textures.sample(fragments, faces.long())
         bg = background_pixels(
@@ -260,7 +265,7 @@ class SoftRasRenderer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
     ) -> None:
-        if sigma <= 0 or gamma <= 0:
+        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
             raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
         super().__init__(
             image_size,

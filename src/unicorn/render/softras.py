@@ -8,6 +8,8 @@ Defaults: sigma = gamma = 1e-4, znear = 1, zfar = 100, eps = 1e-3.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -41,7 +43,7 @@ def softras_blend(
     Returns:
         (B, C + 1, H, W) images, the last channel the alpha.
     """
-    if sigma <= 0 or gamma <= 0:
+    if not (0 < sigma < math.inf and 0 < gamma < math.inf):
         raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
     prob = torch.sigmoid(-fragments.dists / sigma)
     z_inv = (zfar - fragments.zbuf) / (zfar - znear)
@@ -70,7 +72,7 @@ class SoftRasBlend(nn.Module):
         eps: float = 1e-3,
     ) -> None:
         super().__init__()
-        if sigma <= 0 or gamma <= 0:
+        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
             raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
         if not 0 <= znear < zfar:
             raise ValueError(f"need 0 <= znear < zfar, got {znear}, {zfar}")

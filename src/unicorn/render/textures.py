@@ -46,7 +46,10 @@ class Textures:
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def check_batch(self, batch_size: int) -> None:  # pragma: no cover - interface
+    def check_batch(
+        self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None
+    ) -> None:  # pragma: no cover - interface
+        """Raise ValueError unless the textures fit ``batch_size`` meshes of ``num_verts`` / ``num_faces``."""
         raise NotImplementedError
 
 
@@ -65,7 +68,7 @@ class TexturesVertex(Textures):
         self.colors = colors
         self.num_channels = colors.shape[-1]
 
-    def check_batch(self, batch_size: int, num_verts: int | None = None) -> None:
+    def check_batch(self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None) -> None:
         if self.colors.shape[0] != batch_size:
             raise ValueError(f"colors have batch size {self.colors.shape[0]}, meshes {batch_size}")
         if num_verts is not None and self.colors.shape[1] != num_verts:
@@ -125,7 +128,7 @@ class TexturesUV(Textures):
         self.align_corners = align_corners
         self.num_channels = maps.shape[1]
 
-    def check_batch(self, batch_size: int, num_faces: int | None = None) -> None:
+    def check_batch(self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None) -> None:
         if self.maps.shape[0] != batch_size:
             raise ValueError(f"texture maps have batch size {self.maps.shape[0]}, meshes {batch_size}")
         if num_faces is not None and self.face_uvs.shape[0] != num_faces:

@@ -22,6 +22,8 @@ import trimesh
 from trimesh import creation
 from trimesh.transformations import rotation_matrix
 
+from unicorn.data.images import DatasetError
+
 __all__ = ["CATEGORIES", "Part", "ProceduralObject", "Texture", "build_object"]
 
 Rng = np.random.Generator
@@ -630,7 +632,7 @@ def build_object(category: str, rng: Rng, patterned: float = 0.5) -> ProceduralO
         The object, centred with its longest bounding-box edge equal to 1.
     """
     if category not in CATEGORIES:
-        raise ValueError(f"unknown synthetic category {category!r}; choose from {sorted(CATEGORIES)}")
+        raise DatasetError(f"unknown synthetic category {category!r}; choose from {sorted(CATEGORIES)}")
     _, builder = CATEGORIES[category]
     groups, params = builder(rng)
     parts = [

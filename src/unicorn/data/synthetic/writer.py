@@ -31,6 +31,7 @@ import yaml
 from PIL import Image
 from tqdm.auto import tqdm
 
+from unicorn.data.images import DatasetError
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
 from unicorn.data.synthetic.render import random_background, render_object
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
@@ -88,7 +89,7 @@ def sample_views(mode: Mode, n_views: int, rng: np.random.Generator) -> dict[str
             "tx": rng.uniform(-0.1, 0.1, n_views),
             "ty": rng.uniform(-0.1, 0.1, n_views),
         }
-    raise ValueError(f"mode must be 'nmr' or 'wild', got {mode!r}")
+    raise DatasetError(f"mode must be 'nmr' or 'wild', got {mode!r}")
 
 
 def views_to_cameras(views: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -136,7 +137,7 @@ def sample_surface_points(
 def split_sizes(n_models: int) -> tuple[int, int, int]:
     """(train, val, test) model counts: 10% val and 20% test, at least one model each."""
     if n_models < 3:
-        raise ValueError(f"need at least 3 models (one per split), got {n_models}")
+        raise DatasetError(f"need at least 3 models (one per split), got {n_models}")
     n_val = max(1, round(0.1 * n_models))
     n_test = max(1, round(0.2 * n_models))
     return n_models - n_val - n_test, n_val, n_test
@@ -226,7 +227,7 @@ def generate_synthetic_dataset(
     categories = [categories] if isinstance(categories, str) else list(categories)
     for cat in categories:
         if cat not in CATEGORIES:
-            raise ValueError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+            raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
     n_train, n_val, n_test = split_sizes(n_models)
     out.mkdir(parents=True, exist_ok=True)
     meta_path = out / "metadata.yaml"

@@ -1,0 +1,271 @@
+"""Checkpoint files that cannot run code and whose corruption is detected.
+
+Every checkpoint unicorn reads (``unicorn-train`` ``.ckpt``, released UNICORN ``.pkl``, :func:`unicorn.io.save_model`
+files, resumed runs) goes through :func:`load_checkpoint_file`, which uses PyTorch's restricted unpickler
+(``torch.load(weights_only=True)``): tensors, plain containers and numbers, plus the numpy array types old files hold
+(:data:`SAFE_GLOBALS`). A pickle can name any Python callable to be called while it is read (``__reduce__``), so a
+file that needs anything else is refused with :class:`UnsafeCheckpointError` instead of being unpickled in full;
+for a file you trust, ``trust=True`` (``--trust-checkpoint`` on the command line, ``trust_checkpoint=true`` for
+``unicorn-train``) lifts the restriction.
+
+Checkpoints written by unicorn carry a SHA-256 of their content (:func:`seal`, key :data:`INTEGRITY_KEY`): every
+tensor's bytes, dtype and shape and every other value, in order. :func:`verify` recomputes it on load, so flipped
+bytes that still unpickle are caught (:class:`CorruptCheckpointError`). Files without the key (released files,
+checkpoints of older versions) load unchecked.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import os
+import pickle
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from unicorn.errors import UserError
+
+__all__ = [
+    "INTEGRITY_KEY",
+    "SAFE_GLOBALS",
+    "TRUST_HINT",
+    "CheckpointError",
+    "CorruptCheckpointError",
+    "UnsafeCheckpointError",
+    "atomic_save",
+    "content_digest",
+    "load_checkpoint_file",
+    "remove_stale_temporaries",
+    "seal",
+    "verify",
+]
+
+#: where :func:`seal` stores the content hash in a checkpoint dict
+INTEGRITY_KEY = "unicorn_integrity"
+
+#: how a user allows full unpickling, named in every refusal
+TRUST_HINT = "if you trust the file, pass --trust-checkpoint (Python: trust=True; unicorn-train: trust_checkpoint=true)"
+
+
+def _numpy_globals() -> list[Any]:
+    """numpy's array / scalar reconstructors and dtype classes: they build arrays and call nothing else."""
+    core = getattr(np, "_core", None) or np.core  # numpy 2 renamed np.core
+    found: list[Any] = [core.multiarray._reconstruct, core.multiarray.scalar, np.ndarray, np.dtype]
+    found += [type(np.dtype(t)) for t in ("b1", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8")]
+    return found
+
+
+#: globals beyond PyTorch's defaults that checkpoints may name (numpy arrays and scalars of older files)
+SAFE_GLOBALS: list[Any] = _numpy_globals()
+
+
+class CheckpointError(UserError, ValueError):
+    """A checkpoint that cannot be read or does not hold a UNICORN model; the message names the file."""
+
+
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint that only full unpickling can read, which can run arbitrary code: refused unless trusted."""
+
+
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint whose content does not match the hash stored in it."""
+
+
+def _one_line(text: str, limit: int = 300) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def load_checkpoint_file(
+    path: str | os.PathLike, map_location: Any = "cpu", trust: bool = False, check: bool = True
+) -> Any:
+    """``torch.load`` a file with the restricted unpickler (or the full one when ``trust``), then :func:`verify`.
+
+    Args:
+        path: the file.
+        map_location: passed to ``torch.load``.
+        trust: allow full unpickling (only for files from a source you trust: it can run any code).
+        check: verify the content hash of sealed dicts.
+
+    Returns:
+        the loaded object (the integrity key removed).
+
+    Raises:
+        FileNotFoundError: no such file (also a :class:`~unicorn.errors.UserError`).
+        UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
+        CheckpointError: not a readable torch file.
+        CorruptCheckpointError: the content hash does not match.
+    """
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise CheckpointNotFoundError(f"checkpoint not found: {path}")
+    try:
+        if trust:
+            data = torch.load(path, map_location=map_location, weights_only=False)
+        else:
+            with torch.serialization.safe_globals(SAFE_GLOBALS):
+                data = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        names = [] if trust else _unsafe_names(path)
+        if not names and (trust or "global" not in str(err).lower()):
+            raise CheckpointError(f"cannot read checkpoint {path}: {_one_line(err)}") from err
+        what = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+        raise UnsafeCheckpointError(
+            f"refusing to load {path}: it needs full unpickling ({what or 'objects beyond tensors and plain data'}),"
+            f" which can run arbitrary code; {TRUST_HINT}"
+        ) from None
+    except Exception as err:  # torch raises many kinds (RuntimeError, EOFError...) on bad files
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {_one_line(err)}") from err
+    if check and isinstance(data, Mapping):
+        data = verify(data, path)
+    return data
+
+
+class CheckpointNotFoundError(UserError, FileNotFoundError):
+    """No checkpoint file at the given path."""
+
+
+def _unsafe_names(path: Path) -> list[str]:
+    """The globals a file names beyond the allowed ones (read without unpickling); empty when unknown."""
+    try:
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # an old (non-zip) format or a damaged file
+        return []
+    allowed = {f"{g.__module__}.{g.__qualname__}" for g in SAFE_GLOBALS}
+    return [n for n in names if n not in allowed]
+
+
+# ---------------------------------------------------------------------------------------------- integrity
+def _feed(h: Any, value: Any) -> None:
+    """Hash ``value`` into ``h``: tensors by dtype, shape and bytes, containers in order, scalars by repr."""
+    if isinstance(value, torch.Tensor):
+        t = value.detach()
+        if t.layout != torch.strided:
+            t = t.to_dense()
+        t = t.cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}|".encode())
+        if t.numel():
+            h.update(memoryview(t.reshape(-1).view(torch.uint8).numpy()))
+    elif isinstance(value, np.ndarray) and value.dtype != object:
+        h.update(f"A{value.dtype.str}{value.shape}|".encode())
+        h.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, Mapping):
+        h.update(f"D{len(value)}|".encode())
+        for key, item in value.items():
+            _feed(h, key)
+            _feed(h, item)
+    elif isinstance(value, list | tuple | set | frozenset):
+        items = sorted(value, key=repr) if isinstance(value, set | frozenset) else value
+        h.update(f"{type(value).__name__[0]}{len(value)}|".encode())
+        for item in items:
+            _feed(h, item)
+    elif value is None or isinstance(value, bool | int | float | complex | str | bytes | torch.dtype | torch.device):
+        text = repr(value)
+        h.update(f"S{type(value).__name__}{len(text)}|{text}".encode())
+    else:  # anything else (only in trusted files): its type and its plain attributes
+        h.update(f"O{type(value).__module__}.{type(value).__qualname__}|".encode())
+        _feed(h, {k: v for k, v in sorted(getattr(value, "__dict__", {}).items())})
+
+
+def content_digest(data: Mapping[str, Any]) -> str:
+    """SHA-256 hex digest of a checkpoint dict's content, without its :data:`INTEGRITY_KEY` entry."""
+    h = hashlib.sha256()
+    _feed(h, {k: v for k, v in data.items() if k != INTEGRITY_KEY})
+    return h.hexdigest()
+
+
+def seal(data: dict[str, Any]) -> dict[str, Any]:
+    """Store the content hash of ``data`` in it (in place) under :data:`INTEGRITY_KEY`; returns ``data``."""
+    data[INTEGRITY_KEY] = {"algorithm": "sha256", "digest": content_digest(data)}
+    return data
+
+
+def verify(data: Mapping[str, Any], path: str | os.PathLike) -> dict[str, Any]:
+    """Check the content hash stored by :func:`seal`, if any; returns a copy of ``data`` without it.
+
+    Raises:
+        CorruptCheckpointError: the hash does not match (the message names ``path``).
+    """
+    data = dict(data)
+    stamp = data.pop(INTEGRITY_KEY, None)
+    if stamp is None:
+        return data
+    expected = stamp.get("digest") if isinstance(stamp, Mapping) else None
+    if not isinstance(expected, str) or content_digest(data) != expected:
+        raise CorruptCheckpointError(
+            f"checkpoint {path} is corrupted: its content does not match the SHA-256 stored in it "
+            "(a damaged copy or an incomplete transfer); use another copy"
+        )
+    return data
+
+
+# ---------------------------------------------------------------------------------------------- writing
+def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
+    r"""``torch.save(obj, path)`` that never leaves a partial file at ``path``; dicts are sealed (:func:`seal`).
+
+    The object is serialised in memory first, written to ``.<name>.tmp-<pid>`` beside ``path``, flushed to disk
+    (``fsync``) and renamed into place (``os.replace`` is atomic). A process killed meanwhile leaves at worst the
+    ``.tmp`` file, which :func:`remove_stale_temporaries` deletes later. ``obj`` itself is not modified.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if sealed and isinstance(obj, Mapping):
+        obj = seal(dict(obj))
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)  # serialise first: a failure here leaves nothing behind
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(buffer.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+    # make the rename itself durable
+    with contextlib.suppress(OSError):
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    return path
+
+
+#: infix of the temporary files of :func:`atomic_save` (``.<name>.tmp-<pid>``)
+TMP_MARK = ".tmp-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists, owned by someone else
+    return True
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the ``.tmp-<pid>`` files that :func:`atomic_save` calls killed in ``folder`` left behind.
+
+    A file is stale when its process is gone (or is this process, which is not writing now).
+
+    Returns:
+        the deleted files.
+    """
+    removed = []
+    for tmp in Path(folder).glob(f".*{TMP_MARK}*"):
+        pid = tmp.name.rpartition(TMP_MARK)[2]
+        if not pid.isdigit() or (int(pid) != os.getpid() and _alive(int(pid))):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed

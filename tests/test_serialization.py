@@ -1,0 +1,129 @@
+"""Checkpoint files: the restricted unpickler refuses code, the content hash catches corruption, writes are atomic."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from unicorn.errors import UserError
+from unicorn.serialization import (
+    INTEGRITY_KEY,
+    CheckpointError,
+    CorruptCheckpointError,
+    UnsafeCheckpointError,
+    atomic_save,
+    content_digest,
+    load_checkpoint_file,
+    remove_stale_temporaries,
+    seal,
+)
+
+
+class Payload:
+    """Unpickling this runs ``os.system``: it creates ``marker`` (the shell command of a malicious file)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def malicious(path: Path, marker: Path, data: dict | None = None) -> Path:
+    """Save ``data`` (default: a small dict) with a payload inside it."""
+    torch.save({**(data or {"weights": torch.zeros(2)}), "epoch": Payload(marker)}, path)
+    return path
+
+
+def test_payload_is_refused_and_never_runs(tmp_path: Path) -> None:
+    marker = tmp_path / "PWNED"
+    path = malicious(tmp_path / "evil.pkl", marker)
+    with pytest.raises(UnsafeCheckpointError) as info:
+        load_checkpoint_file(path)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message and "--trust-checkpoint" in message
+    assert "posix.system" in message or "os.system" in message  # names what the file wants to call
+    assert isinstance(info.value, UserError) and isinstance(info.value, ValueError)
+    assert not marker.exists()
+    # the control: full unpickling (trust=True) does run it, so the test above could have failed
+    load_checkpoint_file(path, trust=True)
+    assert marker.exists()
+
+
+def test_plain_data_and_old_numpy_values_load(tmp_path: Path) -> None:
+    data = {
+        "epoch": np.int64(7),
+        "loss": np.float32(0.5),
+        "mean": np.arange(6, dtype=np.float64).reshape(2, 3),
+        "milestones": Counter({10: 1, 20: 1}),
+        "kwargs": {"n_elev_azim": (1, 6), "name": "x", "ratio": 0.5, "flag": None},
+        "state": {"w": torch.randn(3, 2)},
+    }
+    torch.save(data, tmp_path / "f.pt")
+    out = load_checkpoint_file(tmp_path / "f.pt")
+    assert out["epoch"] == 7 and out["milestones"] == Counter({10: 1, 20: 1})
+    np.testing.assert_array_equal(out["mean"], data["mean"])
+    assert torch.equal(out["state"]["w"], data["state"]["w"]) and out["kwargs"] == data["kwargs"]
+
+
+def test_content_hash_catches_flipped_bytes(tmp_path: Path) -> None:
+    path = atomic_save({"w": torch.arange(100_000, dtype=torch.float32), "meta": {"epoch": 3}}, tmp_path / "c.pt")
+    assert INTEGRITY_KEY in torch.load(path, weights_only=True)
+    assert set(load_checkpoint_file(path)) == {"w", "meta"}  # verified, key removed
+    raw = bytearray(path.read_bytes())
+    middle = len(raw) // 2
+    raw[middle : middle + 4096] = bytes(b ^ 0xFF for b in raw[middle : middle + 4096])
+    path.write_bytes(bytes(raw))
+    assert torch.load(path, weights_only=True)["meta"] == {"epoch": 3}  # torch itself reads it without complaint
+    with pytest.raises(CorruptCheckpointError, match=f"checkpoint {path} is corrupted"):
+        load_checkpoint_file(path)
+
+
+def test_digest_follows_content() -> None:
+    a = {"w": torch.ones(3), "n": 1, "l": [1.0, "x"]}
+    same = {"w": torch.ones(3), "n": 1, "l": [1.0, "x"]}
+    assert content_digest(a) == content_digest(same) == content_digest(seal(dict(a)))
+    for other in ({**a, "n": 2}, {**a, "w": torch.ones(3, dtype=torch.float64)}, {**a, "w": torch.ones(1, 3)},
+                  {**a, "l": [1.0, "y"]}, {**a, "w": torch.tensor([1.0, 1.0, 1.0 + 1e-7])}):  # fmt: skip
+        assert content_digest(other) != content_digest(a)
+
+
+def test_unreadable_file_is_one_error(tmp_path: Path) -> None:
+    (tmp_path / "junk.pt").write_bytes(b"not a torch file")
+    with pytest.raises(CheckpointError, match="cannot read checkpoint"):
+        load_checkpoint_file(tmp_path / "junk.pt")
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        load_checkpoint_file(tmp_path / "missing.pt")
+
+
+def test_stale_temporaries_are_removed(tmp_path: Path) -> None:
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    stale = tmp_path / f".last.ckpt.tmp-{dead_pid}"
+    mine = tmp_path / f".step=4.ckpt.tmp-{os.getpid()}"
+    live = tmp_path / f".last.ckpt.tmp-{os.getppid()}"  # another live process may be writing it
+    for path in (stale, mine, live):
+        path.write_bytes(b"partial")
+    (tmp_path / "last.ckpt").write_bytes(b"x")
+    assert sorted(remove_stale_temporaries(tmp_path)) == sorted([stale, mine])
+    assert live.exists() and (tmp_path / "last.ckpt").exists()
+
+
+def test_atomic_save_leaves_no_partial_file(tmp_path: Path, monkeypatch) -> None:
+    path = atomic_save({"w": torch.zeros(3)}, tmp_path / "m.pt")
+
+    def fail(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", fail)
+    with pytest.raises(OSError, match="disk full"):
+        atomic_save({"w": torch.ones(3)}, path)
+    assert torch.equal(load_checkpoint_file(path)["w"], torch.zeros(3))  # the earlier file is intact
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]
