@@ -137,7 +137,7 @@ def test_decompression_bomb_is_skipped_or_one_line(
     assert not (tmp_path / "a").exists()
     with pytest.warns(RuntimeWarning, match="bomb.png"):
         assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
-    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["cutout", "photo"]
+    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["_viewer", "cutout", "photo"]
     # a limit the user lowers applies too
     assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "c"),
                  "--max-image-pixels", "100", *FAST]) == 2  # fmt: skip
@@ -164,7 +164,7 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
     assert main([str(checkpoint), str(inputs), "--out", str(out), *FAST]) == 0
     for name in ("index.html", "overview.png", "reconstructions.json"):
         assert (out / name).is_file()
-    records = json.loads((out / "reconstructions.json").read_text())
+    records = json.loads((out / "reconstructions.json").read_text())["images"]
     assert len(records) == 6 and all((out / r["name"] / "mesh.glb").is_file() for r in records)
     names = [r["name"].lower() for r in records]
     assert len(set(names)) == 6 and not set(names) & {"index.html", "overview.png", "reconstructions.json"}

@@ -47,7 +47,7 @@ from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
 #: the files written at the top of the output folder: no image's folder may take these names
-RESERVED_NAMES = ("index.html", "overview.png", "reconstructions.json")
+RESERVED_NAMES = ("index.html", "overview.png", "reconstructions.json", "_viewer")
 
 #: largest side of a picture in overview.png (the per-image files keep the full view size)
 OVERVIEW_CELL = 160

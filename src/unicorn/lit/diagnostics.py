@@ -148,6 +148,17 @@ class CodeDiagnostics(L.Callback):
         self._dims: dict[str, float] = {}  # branch -> active code size at the previous check
         self.history: list[dict[str, float]] = []
 
+    def state_dict(self) -> dict[str, Any]:
+        """The kept images and the collapse state, saved in checkpoints so a resumed run measures the same."""
+        images = torch.stack(list(self._images)) if self._images else torch.zeros(0)
+        return {"images": images, "dims": dict(self._dims), "collapsed": dict(self.collapsed)}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._images.clear()
+        self._images.extend(state_dict["images"].unbind(0) if state_dict["images"].numel() else [])
+        self._dims = dict(state_dict["dims"])
+        self.collapsed = {k: list(v) for k, v in state_dict["collapsed"].items()}
+
     @rank_zero_only
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
