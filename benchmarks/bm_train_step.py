@@ -35,6 +35,7 @@ import contextlib
 import resource
 import statistics
 import sys
+import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
@@ -117,7 +118,8 @@ def main_job_model_config() -> dict[str, Any]:
     from unicorn.config import model_config, validate
 
     with initialize_config_dir(str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=["experiment=synthetic"])
+        # an output folder is given so that no ${hydra:...} interpolation needs a running Hydra app
+        cfg = compose("train", overrides=["experiment=synthetic", f"paths.output_dir={tempfile.gettempdir()}"])
     return model_config(validate(cfg))
 
 
