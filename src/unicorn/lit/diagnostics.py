@@ -150,7 +150,7 @@ class CodeDiagnostics(L.Callback):
 
     def state_dict(self) -> dict[str, Any]:
         """The kept images and the collapse state, saved in checkpoints so a resumed run measures the same."""
-        images = torch.stack(list(self._images)) if self._images else torch.zeros(0)
+        images = torch.stack(list(self._images)).cpu() if self._images else torch.zeros(0)
         return {"images": images, "dims": dict(self._dims), "collapsed": dict(self.collapsed)}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
@@ -163,7 +163,8 @@ class CodeDiagnostics(L.Callback):
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int
     ) -> None:
-        self._images.extend(batch["image"].detach()[: self.max_images].to("cpu", copy=True).unbind(0))
+        # kept where training runs: a copy to the host at every iteration would wait for the device each time
+        self._images.extend(batch["image"].detach()[: self.max_images].clone().unbind(0))
         if trainer.global_step % self.every_n_steps == 0:
             self.check(trainer, pl_module)
 
