@@ -155,3 +155,42 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
     run = build(cfg)
     with pytest.raises((FileNotFoundError, RuntimeError), match="nothing"):
         run.trainer.fit(run.module, datamodule=run.data)
+
+
+def test_adam_state_per_step(synthetic_cache, tmp_path):
+    """per_step: the pose step's Adam holds moments of the pose heads only, the 3D step's of the 3D branches
+    only, both of the shared encoder, with equal learning rates after the drop; a resumed run is exact."""
+    straight = build_run(tmp_path / "straight", "optim.adam_state=per_step")
+    fit(straight)
+    pose_opt, opt_3d = straight.trainer.optimizers
+    names = dict(enumerate(n for n, _ in straight.module.named_parameters()))
+
+    def held(opt) -> set[str]:
+        index = {id(p): i for i, p in enumerate(straight.module.parameters())}
+        return {names[index[id(p)]] for p in opt.state if opt.state[p]}
+
+    pose_names, names_3d = held(pose_opt), held(opt_3d)
+    assert _has(pose_names, POSE_ONLY) and not _has(pose_names, THREE_D_ONLY)
+    assert _has(names_3d, THREE_D_ONLY) and not _has(names_3d, POSE_ONLY)
+    assert _has(pose_names, ("model.encoders.",)) and _has(names_3d, ("model.encoders.",))
+    encoder = next(p for n, p in straight.module.named_parameters() if n.startswith("model.encoders."))
+    # four pose and four 3D steps, each counted by its own Adam; different moments for the shared encoder
+    assert int(pose_opt.state[encoder]["step"]) == 4 and int(opt_3d.state[encoder]["step"]) == 4
+    assert not torch.equal(pose_opt.state[encoder]["exp_avg_sq"], opt_3d.state[encoder]["exp_avg_sq"])
+    assert pose_opt.param_groups[0]["lr"] == opt_3d.param_groups[0]["lr"] == pytest.approx(5e-4 * 0.2)
+
+    first = build_run(tmp_path / "resumed", "optim.adam_state=per_step", "trainer.max_steps=5")
+    fit(first)
+    second = build_run(tmp_path / "resumed", "optim.adam_state=per_step", "ckpt_path=last")
+    fit(second)
+    a, b = straight.module.state_dict(), second.module.state_dict()
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6, msg=key)
+    for opt_a, opt_b in zip(straight.trainer.optimizers, second.trainer.optimizers, strict=True):
+        for p_a, p_b in zip(opt_a.state_dict()["state"].values(), opt_b.state_dict()["state"].values(), strict=True):
+            torch.testing.assert_close(p_a["exp_avg"], p_b["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+def test_adam_state_is_checked(tmp_path):
+    with pytest.raises(Exception, match="adam_state"):
+        build_run(tmp_path, "optim.adam_state=both")

@@ -149,6 +149,7 @@ def _check_values(cfg: DictConfig) -> None:
     _check(o.lr > 0, f"optim.lr must be > 0, got {o.lr}")
     _check(len(o.betas) == 2, f"optim.betas needs two values, got {list(o.betas)}")
     _check(o.idle_params in ("skip", "momentum"), f"optim.idle_params must be skip or momentum, got {o.idle_params}")
+    _check(o.adam_state in ("shared", "per_step"), f"optim.adam_state must be shared or per_step, got {o.adam_state}")
     _check(o.lr_drop_step is None or o.lr_drop_step >= 0, "optim.lr_drop_step must be null or >= 0")
     # -- trainer
     t = cfg.trainer

@@ -213,7 +213,8 @@ class ScheduleConfig:
 
 @dataclass
 class OptimConfig:
-    """One Adam over all parameters; ``idle_params``: ``skip`` or ``momentum`` (see :mod:`unicorn.lit.module`)."""
+    """Adam over all parameters; ``idle_params``: ``skip`` or ``momentum``; ``adam_state``: ``shared`` (one Adam,
+    the paper's) or ``per_step`` (one per step kind) (see :mod:`unicorn.lit.module`)."""
 
     lr: float = 1e-4
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
@@ -224,6 +225,7 @@ class OptimConfig:
     idle_params: str = "skip"
     check_finite: bool = True
     fused: bool = True
+    adam_state: str = "shared"
 
 
 # ---------------------------------------------------------------------------------------------- run
