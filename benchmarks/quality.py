@@ -548,17 +548,16 @@ def main(argv: list[str] | None = None) -> int:
         if len(args.seeds) > 1
         else f"runs: seed {args.seeds[0]}"
     )
+    bar_lines = [
+        f"- {'met' if ok else 'MISSED'}: {bar} (value {value:.3f}, bar {limit:.3f})" for bar, value, limit, ok in bars
+    ]
     lines = [
         markdown_table(rows, stds),
         "",
         seeds_note,
-        *([f"{order[0]}"] if order else []),
+        *([order[0]] if order else []),
         "",
-        *(
-            f"- {'met' if ok else 'MISSED'}: {bar} (value {value:.3f}, bar {limit:.3f})"
-            for bar, value, limit, ok in bars
-        ),
-        "",
+        *([*bar_lines, ""] if bar_lines else []),
         f"command: `{command}`",
         f"machine: {machine()}",
         f"jobs: {args.jobs}, {threads_per_run(args.jobs)} threads per training run",
