@@ -55,8 +55,8 @@ times), ``curves.png`` (held-out metrics against iterations, from each run's ``h
 the ``full`` model's first seed) into ``--out``; training logs in ``<out>/logs``.
 
 Time: a 2400-iteration run takes about 9-10 minutes on a quiet 2-core CPU with 2 threads; scoring about 2
-minutes per run, plus about 3 minutes of baselines per category. All five variants with one seed: about 75
-minutes; with ``--seeds 0,1,2``, about three times that.
+minutes per run, plus about 3 minutes of baselines per category. All five variants with one seed: a little over
+an hour; with ``--seeds 0,1,2``, about three hours.
 
     python benchmarks/quality.py                                  # five variants, seed 0
     python benchmarks/quality.py --runs full,no-neighbor,no-progressive --seeds 0,1,2 --jobs 2
