@@ -1,0 +1,101 @@
+"""benchmarks/quality.py: argument parsing, aggregation over seeds, the table, the bars and the ablation-order line
+(no training: the parts that need no model)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "quality.py"
+
+
+@pytest.fixture(scope="module")
+def quality():
+    spec = importlib.util.spec_from_file_location("benchmarks_quality", PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)
+
+
+def test_parse_args(quality):
+    args = quality.parse_args(["--runs", "full,chairs", "--seeds", "0,2", "--jobs", "2", "a=1"])
+    assert args.runs == ["full", "chairs"] and args.seeds == [0, 2] and args.jobs == 2 and args.overrides == ["a=1"]
+    assert quality.parse_args([]).seeds == [0] and "chairs" in quality.parse_args([]).runs
+    for bad in (["--runs", "nope"], ["--seeds", "a"], ["--seeds", "1,1"], ["--jobs", "0"]):
+        with pytest.raises(SystemExit):
+            quality.parse_args(bad)
+
+
+def test_run_layout_and_command(quality, tmp_path):
+    args = quality.parse_args(["--runs", "chairs", "--steps", "8", "--out", str(tmp_path), "x=1"])
+    run = quality.Run("chairs", 3, tmp_path)
+    assert run.dir == (tmp_path / "runs" / "chairs" / "seed3").resolve()
+    command = quality.train_command(run, args)
+    assert "seed=3" in command and "dataset.categories=chair" in command and "x=1" in command
+    assert "trainer.max_steps=8" in command and command[-1] == "ckpt_path=null"
+    (run.dir / "checkpoints").mkdir(parents=True)
+    (run.dir / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert quality.train_command(run, args)[-1] == "ckpt_path=last"
+
+
+def test_finished_runs_are_reused(quality, tmp_path):
+    args = quality.parse_args(["--runs", "full", "--seeds", "0,1", "--out", str(tmp_path)])
+    runs = [quality.Run("full", s, tmp_path) for s in (0, 1)]
+    for i, run in enumerate(runs):
+        run.dir.mkdir(parents=True)
+        (run.dir / "done.json").write_text(json.dumps({"minutes": 1.5 + i}))
+    assert quality.train_all(runs, args) == {runs[0]: 1.5, runs[1]: 2.5}
+
+
+def test_threads_per_run(quality, monkeypatch):
+    monkeypatch.setattr(quality.os, "cpu_count", lambda: 8)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert [quality.threads_per_run(j) for j in (1, 2, 3, 16)] == [8, 4, 2, 1]
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert quality.threads_per_run(1) == 2
+
+
+def test_aggregate_and_table(quality):
+    mean, std = quality.aggregate({0: {"chamfer-L1-ICP": 0.24, "mask-iou": 0.9}, 1: {"chamfer-L1-ICP": 0.25}})
+    assert mean["chamfer-L1-ICP"] == pytest.approx(0.245) and std["chamfer-L1-ICP"] == pytest.approx(0.00707, abs=1e-4)
+    assert mean["mask-iou"] == 0.9 and math.isnan(std["mask-iou"])
+    table = quality.markdown_table({"full": mean}, {"full": std})
+    assert "| full | 0.245 ± 0.007 |" in table and "| 0.900 |" in table
+    assert "±" not in quality.markdown_table({"full": mean}, {})
+
+
+def rows(full_cd: float) -> dict:
+    """Means of the car rows: the full model passes every bar but the Chamfer one above 0.24."""
+    good = {"color-ratio": 0.2, "rot-acc-30": 0.97, "rot-flip-150": 0.01, "mask-iou": 0.92, "cand-share-min": 0.1}
+    return {
+        "mean shape (GT pose)": {"chamfer-L1-ICP": 0.3},
+        "full": {"chamfer-L1-ICP": full_cd, **good},
+        "no-neighbor": {"chamfer-L1-ICP": 0.26, "color-ratio": 0.25, "rot-flip-150": 0.0},
+        "no-progressive": {"chamfer-L1-ICP": 0.28, "color-ratio": 0.3, "rot-flip-150": 0.05},
+    }
+
+
+def test_bars(quality):
+    assert quality.MEAN_SHAPE_ROW == "mean shape (GT pose)"
+    bars = quality.check_bars(rows(0.23))
+    assert len(bars) == 6 and all(ok for *_, ok in bars)
+    assert bars[0][2] == pytest.approx(0.24)
+    bars = quality.check_bars(rows(0.25))
+    assert [ok for *_, ok in bars] == [False, True, True, True, True, True]
+    assert quality.check_bars({"chairs": {"chamfer-L1-ICP": 0.1}}) == []
+    assert quality.baseline_names("chair") == ("template, chairs", "mean shape (GT pose), chairs")
+
+
+def test_ablation_order(quality):
+    line, checks = quality.ablation_order(rows(0.23), {"full": {"chamfer-L1-ICP": 0.01}})
+    assert line.startswith("paper's order (full < no-neighbor, full < no-progressive on Chamfer-L1 ICP): holds")
+    assert "full 0.230 ± 0.010" in line
+    assert [c["holds"] for c in checks] == [True, True, False]  # flip rate: no-neighbor flips less
+    assert quality.ablation_order({"full": {}}, {}) is None
