@@ -80,7 +80,9 @@ def gt_pose_step(model: Unicorn, batch: dict) -> tuple[torch.Tensor, dict]:
     loss = sum(v.mean() for v in model.reconstruction_terms(rec, images).values())
     if model.shape.mask.active_dims > 0:
         ls = model.config["loss"]
-        loss = loss + ls["normal_weight"] * model.normal_loss(verts) + ls["laplacian_weight"] * model.laplacian_loss(verts)
+        loss = (
+            loss + ls["normal_weight"] * model.normal_loss(verts) + ls["laplacian_weight"] * model.laplacian_loss(verts)
+        )
     return loss, {"rec": rec, "alpha": alpha, "shape_code": z_sh, "texture_code": z_tx}
 
 
@@ -118,14 +120,18 @@ def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) 
     with torch.no_grad():
         _, out = gt_pose_step(model, held)
     hook.remove()
-    err, base = color_errors(mean_foreground_color(out["rec"], out["alpha"]), mean_foreground_color(held["image"], held["mask"]))
+    err, base = color_errors(
+        mean_foreground_color(out["rec"], out["alpha"]), mean_foreground_color(held["image"], held["mask"])
+    )
     pred, gt = out["alpha"][:, 0] > 0.5, held["mask"][:, 0] > 0.5
     iou = ((pred & gt).sum((1, 2)).float() / (pred | gt).sum((1, 2)).clamp_min(1)).mean()
     return {
         "colour ratio": float(err.nanmean() / base.nanmean()),
         "mask IoU": float(iou),
         "texture code std": float(code_spread(out["texture_code"], control.texture_dims).mean()),
-        "shape code std": float(code_spread(out["shape_code"], control.shape_dims).mean()) if control.shape_dims else float("nan"),
+        "shape code std": float(code_spread(out["shape_code"], control.shape_dims).mean())
+        if control.shape_dims
+        else float("nan"),
         "shape units alive": float(active_units(hidden[0]).sum()),
         "minutes": (time.perf_counter() - start) / 60,
     }
