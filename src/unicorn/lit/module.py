@@ -180,8 +180,10 @@ class UnicornLitModule(L.LightningModule):
             self._check_finite(losses, step, phase)
         opt.step()
         schedulers = self.lr_schedulers()
+        if not isinstance(schedulers, list):
+            schedulers = [] if schedulers is None else [schedulers]
         # every scheduler steps every iteration, so that all optimizers share one learning-rate schedule
-        for scheduler in schedulers if isinstance(schedulers, list) else [schedulers] if schedulers else []:
+        for scheduler in schedulers:
             scheduler.step()
 
         terms = {name: value.detach() for name, value in losses.items()}
