@@ -35,7 +35,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     out = tmp_path / "eval"
     cmd = [sys.executable, "-m", "unicorn.cli.eval", str(checkpoint), "--dataset", "synthetic", "--root", str(synth),
            "--split", "train", "--max-images", "3", "--report-samples", "2", "--device", "cpu", "--out", str(out),
-           "--mean-shape", "5", *FAST]  # fmt: skip
+           "--mean-shape", "5", "--own-mean-shape", *FAST]  # fmt: skip
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -50,6 +50,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     assert rows[-1]["n-images"] == "3"
     # the instance-level columns, in the table and per image
     instance = {"color-err", "color-err-mean", "chamfer-L1-ICP-mean-shape", "shape-win"}
+    instance |= {"chamfer-L1-ICP-own-mean", "shape-win-own"}
     assert instance | {"color-ratio", "rot-flip-150"} <= set(rows[0])
     with open(out / "per_image.csv") as f:
         assert instance <= set(next(csv.DictReader(f)))

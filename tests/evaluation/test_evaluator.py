@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -9,6 +10,7 @@ import torch
 from torch.utils.data import Dataset
 
 from unicorn.evaluation import EvalOptions, build_eval_dataset, candidate_shares, evaluate, hard_render, protocol_for
+from unicorn.evaluation.baselines import FixedShapeModel
 from unicorn.evaluation.evaluator import collate, spread_indices
 from unicorn.metrics import evaluate_meshes, mask_iou
 
@@ -92,6 +94,59 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
         assert row["shape-win"] == (1.0 if row["chamfer-L1-ICP"] < row["chamfer-L1-ICP-mean-shape"] else 0.0)
     with pytest.raises(ValueError, match="shape_baseline"):
         evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic", shape_baseline=template[:5])
+
+
+def _varied_shapes(model):
+    """A copy of ``model`` whose predicted shapes differ from image to image (random shape code and field)."""
+    varied = copy.deepcopy(model)
+    varied.set_active_dims(shape=varied.shape.code_dim)
+    varied.set_stage_switches(deformation=True)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for layer, std in ((varied.shape.regressor[-1], 1.0), (varied.shape.field.mlp[-1], 0.05)):
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen) * std)
+    return varied
+
+
+def test_own_mean_shape_against_a_direct_computation(shapenet_model, synth_root) -> None:
+    model = _varied_shapes(shapenet_model)
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    result = evaluate(model, data, EvalOptions("shapenet", own_mean_shape=True, **FAST), "synthetic")
+    assert {"chamfer-L1-ICP-own-mean", "shape-win-own"} <= set(result.columns)
+
+    # each group's mean of the predicted meshes, scored with each image's own predicted pose and alignment
+    batches = [collate([data[i] for i in range(0, 3)]), collate([data[i] for i in range(3, len(data))])]
+    with torch.no_grad():
+        preds = [model.predict(b["image"]) for b in batches]
+    groups = [row["group"] for row in result.per_image]
+    verts = torch.cat([p.verts for p in preds])
+    assert verts.std(0).max() > 1e-3  # the shapes do differ between images
+    means = {g: verts[[i for i, x in enumerate(groups) if x == g]].mean(0) for g in set(groups)}
+    start = 0
+    for batch, pred in zip(batches, preds):
+        n = len(batch["index"])
+        own = torch.stack([means[groups[start + i]] for i in range(n)])
+        direct = evaluate_meshes(
+            own, model.template.faces, batch["points"], batch["normals"],
+            R_pred=pred.R, T_pred=pred.T, R_gt=batch["R"], T_gt=batch["T"], num_points=400, icp_iterations=2,
+        )  # fmt: skip
+        for i in range(n):
+            row = result.per_image[start + i]
+            assert row["chamfer-L1-ICP-own-mean"] == pytest.approx(float(direct["chamfer-L1-ICP"][i]), rel=1e-4)
+            assert row["shape-win-own"] == (1.0 if row["chamfer-L1-ICP"] < row["chamfer-L1-ICP-own-mean"] else 0.0)
+        start += n
+
+
+def test_own_mean_shape_of_a_one_shape_model_is_that_shape(shapenet_model, synth_root) -> None:
+    # a model that outputs the same mesh for every image is its own mean: the two scores agree on every object
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    one_shape = FixedShapeModel(shapenet_model, shapenet_model.template.verts * 0.8, pose="predicted")
+    result = evaluate(one_shape, data, EvalOptions("shapenet", own_mean_shape=True, **FAST), "synthetic")
+    for row in result.per_image:
+        assert row["chamfer-L1-ICP-own-mean"] == pytest.approx(row["chamfer-L1-ICP"], rel=1e-4)
+    # without ground-truth points (images protocol) the option changes nothing
+    plain = evaluate(shapenet_model, data, EvalOptions("images", own_mean_shape=True, **FAST), "synthetic")
+    assert "shape-win-own" not in plain.columns
 
 
 def test_cub_protocol(real_model, cub_root) -> None:

@@ -15,7 +15,10 @@ from unicorn.config import ConfigError, validate
 from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
 
 DIAGNOSTICS = ["callbacks.diagnostics.every_n_steps=4", "callbacks.diagnostics.max_images=8"]
-HELDOUT = ["callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5}"]
+HELDOUT = [
+    "callbacks.heldout={every_n_steps:4,max_images:2,num_points:300,icp_iterations:2,mean_shape_iterations:5,"
+    "own_mean_shape:true}"
+]
 
 
 def _weights(run) -> dict[str, torch.Tensor]:
@@ -50,6 +53,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
         assert float(r["color-err"]) > 0 and float(r["color-err-mean"]) == 0 and r["color-ratio"] == "nan"
         assert 0.0 <= float(r["rot-flip-150"]) <= 1.0 and 0.0 <= float(r["shape-win"]) <= 1.0
         assert float(r["chamfer-L1-ICP-mean-shape"]) > 0
+        assert float(r["chamfer-L1-ICP-own-mean"]) > 0 and 0.0 <= float(r["shape-win-own"]) <= 1.0
     callback = next(c for c in watched.trainer.callbacks if isinstance(c, HeldOutEvaluation))
     assert callback.mean_shape is not None and callback.mean_shape.shape == watched.module.model.template.verts.shape
     # the mean shape is the same at every evaluation: its scores do not move while the model's do

@@ -75,6 +75,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="ShapeNet / synthetic: fit the training split's mean shape with this many iterations (e.g. 300) and "
         "score it on every object beside the model (chamfer-L1-ICP-mean-shape, shape-win); 0: off",
     )
+    p.add_argument(
+        "--own-mean-shape",
+        action="store_true",
+        help="ShapeNet / synthetic / Pascal3D+: also score the model's own average shape over the evaluated images "
+        "with each image's predicted pose (chamfer-L1-ICP-own-mean, shape-win-own): do the per-image shapes "
+        "follow the objects?",
+    )
     p.add_argument("--no-align-pose", action="store_true", help="pose errors without canonical-frame alignment")
     p.add_argument(
         "--template-level",
@@ -187,6 +194,8 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     protocol = protocol_for(dataset)
     if args.mean_shape > 0 and protocol != "shapenet":
         raise ValueError(f"--mean-shape needs a dataset with training point clouds (shapenet protocol), not {dataset}")
+    if args.own_mean_shape and protocol not in ("shapenet", "p3d"):
+        raise ValueError(f"--own-mean-shape needs a dataset with ground-truth point clouds, not {dataset}")
     data = build_eval_dataset(
         dataset,
         str(root),
@@ -210,6 +219,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         nn_workers=args.nn_workers,
         seed=args.seed,
         progress=not args.quiet,
+        own_mean_shape=args.own_mean_shape,
     )
     out = _out_dir(args, info, dataset)
     print(f"evaluating {len(data)} {args.split} images of {dataset} ({protocol} protocol) on {device}", flush=True)

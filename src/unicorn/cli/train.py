@@ -320,6 +320,8 @@ def evaluate_run(run: Run) -> Path:
         f"--turntable-frames={e.turntable_frames}",
         f"--mean-shape={e.mean_shape_iterations}",
     ]
+    if e.own_mean_shape:
+        argv.append("--own-mean-shape")
     if e.max_images is not None:
         argv.append(f"--max-images={e.max_images}")
     log.info("evaluating %s on the %s split", checkpoint, e.split)

@@ -283,6 +283,7 @@ class HeldOutConfig:
     at_start: bool = True
     mean_shape_iterations: int = 0  # > 0: score the training shapes' mean shape beside the model (shape-win)
     mean_shape_models: int = 200
+    own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
 
 
 @dataclass
@@ -318,6 +319,7 @@ class EvaluateConfig:
     report_samples: int = 10
     turntable_frames: int = 16
     mean_shape_iterations: int = 0  # > 0: the training shapes' mean shape scored beside the model (shape-win)
+    own_mean_shape: bool = False  # the model's own average shape scored beside it (shape-win-own)
 
 
 @dataclass

@@ -29,6 +29,13 @@ outputs the category mean:
 - shape (with ``shape_baseline``, a mean shape, see :func:`evaluate`): per image ``chamfer-L1-ICP-mean-shape``,
   Chamfer-L1 after ICP of that one mesh on the same object, and ``shape-win``, 1 where the model's
   ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model wins;
+- own shape (``EvalOptions(own_mean_shape=True)``): per image ``chamfer-L1-ICP-own-mean``, the same score for
+  the model's *own* average shape (the mean of its predicted meshes over the group's evaluated images, vertex by
+  vertex on the template topology) placed with the image's predicted pose, and ``shape-win-own``, 1 where the
+  model's own prediction is closer. The mean-shape baseline above is fitted to the 3D ground truth, so it mixes
+  two questions (is the category shape accurate? is each shape the image's?); this one asks only the second:
+  a model that outputs one shape for every image ties its own mean (win share 0.5 from ties), one whose
+  per-image shapes follow the objects wins on most of them;
 - pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round.
 
 Two diagnostics complete them:
@@ -120,6 +127,8 @@ METRIC_ORDER = {
     "color-ratio": "lower",
     "chamfer-L1-ICP-mean-shape": "lower",
     "shape-win": "higher",
+    "chamfer-L1-ICP-own-mean": "lower",
+    "shape-win-own": "higher",
     "rec-mse": "lower",
 }
 
@@ -159,6 +168,9 @@ class EvalOptions:
             ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and ``mask-iou`` score the
             shape alone; the pose errors (trivially 0) and the candidate usage are left out. Every item must
             have a ground-truth pose.
+        own_mean_shape: also score, per image, the model's own average shape over the group's evaluated images
+            (``chamfer-L1-ICP-own-mean``, ``shape-win-own``; only with ground-truth points and ICP, otherwise
+            ignored). Costs one more forward pass over the dataset and doubles the Chamfer work.
     """
 
     protocol: str = "shapenet"
@@ -177,6 +189,7 @@ class EvalOptions:
     progress_label: str | None = None
     progress_leave: bool = True
     oracle_pose: bool = False
+    own_mean_shape: bool = False
 
     def __post_init__(self) -> None:
         if self.protocol not in set(PROTOCOLS.values()):
@@ -483,6 +496,9 @@ def evaluate(
     record_candidates = model.n_candidates > 1 and not oracle
     if record_candidates:
         acc.n_candidates = model.n_candidates
+    own_means = None
+    if options.own_mean_shape and protocol in ("shapenet", "p3d") and options.icp_iterations > 0:
+        own_means = _own_mean_shapes(model, loader, group_of, size, options, device)
     samples: list[Sample] = []
     bar = tqdm(
         total=len(dataset),
@@ -519,7 +535,8 @@ def evaluate(
 
         groups = [group_of(batch, i) for i in range(B)]
         if protocol in ("shapenet", "p3d") and "points" in batch:
-            mesh = _mesh_scores(model, pred.verts, batch, device, options, protocol == "shapenet", R, T)
+            with_pose = protocol == "shapenet"
+            mesh = _mesh_scores(model, pred.verts, batch, device, options, with_pose, R, T)
             if protocol == "p3d":
                 # no ground-truth pose: only the ICP-registered numbers are meaningful
                 mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
@@ -529,7 +546,13 @@ def evaluate(
                 base = _mesh_scores(model, base_verts, batch, device, options, False, R, T)["chamfer-L1-ICP"]
                 ours = mesh["chamfer-L1-ICP"]
                 scores["chamfer-L1-ICP-mean-shape"] = base
-                scores["shape-win"] = (ours < base).to(ours.dtype) + 0.5 * (ours == base).to(ours.dtype)
+                scores["shape-win"] = _wins(ours, base)
+            if own_means is not None and "chamfer-L1-ICP" in mesh:
+                # the same pose and alignment as the model's prediction: only the shape differs
+                own_verts = torch.stack([own_means[g] for g in groups])
+                own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T)["chamfer-L1-ICP"]
+                scores["chamfer-L1-ICP-own-mean"] = own
+                scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
         if protocol == "shapenet" and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
                 acc.poses.setdefault(g, []).append((pred.R[i].cpu(), batch["R"][i].cpu()))
@@ -577,6 +600,33 @@ def evaluate(
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = _table(acc, model, options, shares)
     return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
+
+
+def _wins(ours: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+    """(B,) 1 where ``ours`` is the lower error, 0.5 on a tie, else 0."""
+    return (ours < base).to(ours.dtype) + 0.5 * (ours == base).to(ours.dtype)
+
+
+def _own_mean_shapes(
+    model: Unicorn | FixedShapeModel,
+    loader: DataLoader,
+    group_of: Callable[[Mapping[str, Any], int], str],
+    size: int,
+    options: EvalOptions,
+    device: torch.device,
+) -> dict[str, torch.Tensor]:
+    """Per group, the model's average predicted mesh (V, 3) over the evaluated images (a forward pass only)."""
+    sums: dict[str, torch.Tensor] = {}
+    counts: dict[str, int] = {}
+    for batch in loader:
+        verts = model.predict(
+            _resize_images(batch["image"].to(device), size), average_texture=options.average_texture
+        ).verts
+        for i in range(verts.shape[0]):
+            g = group_of(batch, i)
+            sums[g] = sums[g] + verts[i] if g in sums else verts[i].clone()
+            counts[g] = counts.get(g, 0) + 1
+    return {g: sums[g] / counts[g] for g in sums}
 
 
 def _color_scores(acc: _Accumulator) -> None:

@@ -10,7 +10,9 @@ They include the instance-level metrics of :func:`~unicorn.evaluation.evaluate`:
 mean-colour predictor's (``color-err``, ``color-err-mean``, ``color-ratio``), the flip rate (``rot-flip-150``)
 and, with ``mean_shape_iterations`` > 0 on a dataset with ground-truth point clouds, the training split's mean
 shape (fitted once, at the start) scored on the same objects (``chamfer-L1-ICP-mean-shape``) and the share of
-objects on which the model is closer (``shape-win``).
+objects on which the model is closer (``shape-win``); with ``own_mean_shape``, the model's own average shape
+over the held-out images scored the same way (``chamfer-L1-ICP-own-mean``, ``shape-win-own``): whether the
+per-image shapes follow the objects, whatever the accuracy of the category's shape.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ class HeldOutEvaluation(L.Callback):
             the model; 0: no shape baseline. Needs a dataset with point clouds (ShapeNet-NMR, synthetic) and
             ``icp_iterations`` > 0.
         mean_shape_models: most training shapes the mean shape is fitted to.
+        own_mean_shape: also score the model's own average shape (``EvalOptions.own_mean_shape``).
         progress: a progress bar while scoring (erased when done; a line is logged before and after either way).
     """
 
@@ -67,6 +70,7 @@ class HeldOutEvaluation(L.Callback):
         filename: str = "heldout.csv",
         mean_shape_iterations: int = 0,
         mean_shape_models: int = 200,
+        own_mean_shape: bool = False,
         progress: bool = True,
     ) -> None:
         if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
@@ -85,6 +89,7 @@ class HeldOutEvaluation(L.Callback):
         self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
         self.mean_shape_iterations, self.mean_shape_models = int(mean_shape_iterations), int(mean_shape_models)
         self.mean_shape: torch.Tensor | None = None  # (V, 3), fitted with the dataset
+        self.own_mean_shape = bool(own_mean_shape)
         self._dataset: Any = None
         self._name = "dataset"
         self.history: list[dict[str, float]] = []
@@ -152,6 +157,7 @@ class HeldOutEvaluation(L.Callback):
             progress=self.progress,
             progress_label=f"held-out {self.split}",
             progress_leave=False,
+            own_mean_shape=self.own_mean_shape,
         )
         step = int(trainer.global_step)
         log.info("held-out %s: scoring %d images at iteration %d", self.split, len(self._dataset), step)

@@ -166,9 +166,7 @@ def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Pa
     lines += [f"vt {u:.8g} {v:.8g}" for u, v in uv]
     lines.append(f"usemtl {stem}")
     v_idx, t_idx = rank[position_index[faces]] + 1, faces + 1  # OBJ indices start at 1
-    lines += [
-        f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(v_idx.tolist(), t_idx.tolist())
-    ]
+    lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(v_idx.tolist(), t_idx.tolist())]
     mtl = "\n".join(
         [
             f"newmtl {stem}",
