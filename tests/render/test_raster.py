@@ -123,6 +123,29 @@ def test_fragments_match_brute_force(K):
     assert frags.num_slots <= K
 
 
+@pytest.mark.parametrize("K", [1, 4])
+def test_overflow_counts_the_pixels_with_too_many_faces(K, monkeypatch):
+    import warnings
+
+    from unicorn.render import raster
+
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
+    size, blur = 20, blur_radius_from_sigma(5e-4)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    every = _brute_force(ndc.numpy(), faces.numpy(), size, blur, K=10**9)  # every candidate of every pixel
+    expected = sum(len(cands) > K for image in every for cands in image)
+    assert expected > 0
+    monkeypatch.setattr(raster, "_OVERFLOW_WARNED", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for _ in range(3):
+            frags = rasterize_meshes(ndc, faces, size, blur, K)
+            assert frags.overflow == expected
+            warnings.filterwarnings("ignore", message="unrelated")  # as Lightning does, which resets the registry
+    # reported once per setting and process, however often the filters change
+    assert [str(w.message).count(f"faces_per_pixel={K} ") for w in caught] == [1]
+
+
 def test_opaque_truncation_is_exact():
     from unicorn.render import layered_blend
 

@@ -34,6 +34,8 @@ _DEPTH_BITS = 31
 _MIN_FACE_AREA = 1e-8
 # vertices closer to the camera plane than this (view units) make their face skipped
 _MIN_DEPTH = 1e-6
+#: the faces_per_pixel settings whose overflow was already reported in this process (see rasterize_meshes)
+_OVERFLOW_WARNED: set[int] = set()
 
 
 def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
@@ -360,8 +362,11 @@ def rasterize_meshes(
 
     # one host read for both counts (the packed layout's sizes are data-dependent: see _select_chunk)
     overflow, num_slots = torch.stack([overflow, slot.max() + 1 if slot.numel() else slot.new_zeros(())]).tolist()
-    if overflow:
-        # one message per setting (Python shows a repeated warning once); Fragments.overflow has the count
+    if overflow and faces_per_pixel not in _OVERFLOW_WARNED:
+        # once per setting and process: Python's own once-per-location registry is reset whenever any library
+        # changes the warning filters (Lightning does, every step), which repeated this line thousands of times
+        # in a training log; Fragments.overflow has the count of every call
+        _OVERFLOW_WARNED.add(faces_per_pixel)
         warnings.warn(
             f"some pixels had more than faces_per_pixel={faces_per_pixel} candidate faces and the farthest were "
             "dropped (Fragments.overflow counts them; raise faces_per_pixel if it matters)",
