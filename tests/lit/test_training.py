@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import lightning as L
 import pytest
 import torch
@@ -168,7 +170,11 @@ def test_adam_state_per_step(synthetic_cache, tmp_path):
     """per_step: the pose step's Adam holds moments of the pose heads only, the 3D step's of the 3D branches
     only, both of the shared encoder, with equal learning rates after the drop; a resumed run is exact."""
     straight = build_run(tmp_path / "straight", "optim.adam_state=per_step")
-    fit(straight)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit(straight)
+    # the 3D step's scheduler steps before its Adam at iteration 0, on purpose: torch's warning is not shown
+    assert not [w for w in caught if "lr_scheduler.step()" in str(w.message)]
     pose_opt, opt_3d = straight.trainer.optimizers
     names = dict(enumerate(n for n, _ in straight.module.named_parameters()))
 

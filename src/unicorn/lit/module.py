@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import random
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -183,8 +184,17 @@ class UnicornLitModule(L.LightningModule):
         if not isinstance(schedulers, list):
             schedulers = [] if schedulers is None else [schedulers]
         # every scheduler steps every iteration, so that all optimizers share one learning-rate schedule
-        for scheduler in schedulers:
-            scheduler.step()
+        if step == 0 and len(schedulers) > 1:
+            with warnings.catch_warnings():
+                # one Adam per step kind: the 3D step's has not stepped yet at iteration 0, and torch warns that the
+                # schedule's first value would be skipped, which is not so for MultiStepLR (it counts iterations).
+                # Only here: changing the filters resets Python's once-per-location warning registry.
+                warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
+                for scheduler in schedulers:
+                    scheduler.step()
+        else:
+            for scheduler in schedulers:
+                scheduler.step()
 
         terms = {name: value.detach() for name, value in losses.items()}
         self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)
