@@ -58,11 +58,14 @@ def test_first_layer_matches_open3d_ray_casting(scene):
         assert np.array_equal(face_ids[b].numpy()[interior], ids[interior])
         # our depth interpolates z linearly in screen space (no perspective correction, as the reference)
         assert np.allclose(depth[b].numpy()[interior], t[interior], rtol=2e-3)
-        # background agrees too, away from silhouettes
-        empty = (ids < 0) & (face_ids[b].numpy() < 0)
-        assert ((ids < 0) | (face_ids[b].numpy() >= 0))[interior].all()
-        checked += interior.sum() + empty.sum()
-    assert checked > 0
+        # background agrees too, away from silhouettes: where the ray and the rays of the 8 neighbouring pixels
+        # all miss, the nearest face is over a pixel away, beyond the blur radius (~0.7 px here)
+        miss = np.pad(ids < 0, 1, constant_values=True)
+        far = np.all(
+            [miss[1 + dy : 1 + dy + size, 1 + dx : 1 + dx + size] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 0
+        )
+        assert far.sum() > 50
+        assert (face_ids[b].numpy()[far] < 0).all()
 
 
 def _brute_force(verts_ndc: np.ndarray, faces: np.ndarray, size: int, blur: float, K: int):
