@@ -49,7 +49,6 @@ def test_first_layer_matches_open3d_ray_casting(scene):
     view = world_to_view(verts, R, T)
     frags = rasterize_meshes(cam.project(view), faces, size, blur_radius_from_sigma(1e-4), 25, truncate_opaque=True)
     face_ids, depth = frags.first_layer()
-    checked = 0
     for b in range(verts.shape[0]):
         ids, t, bary = _raycast(view[b].numpy(), faces.numpy(), float(cam.focal_length), size)
         # away from edges: the ray hits its face well inside (barycentrics > 0.02)
