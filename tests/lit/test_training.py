@@ -207,3 +207,22 @@ def test_adam_state_per_step(synthetic_cache, tmp_path):
 def test_adam_state_is_checked(tmp_path):
     with pytest.raises(Exception, match="adam_state"):
         build_run(tmp_path, "optim.adam_state=both")
+
+
+def test_validation_logs_reconstruction_error_and_mask_iou(synthetic_cache, tmp_path, monkeypatch):
+    module = build_run(tmp_path).module.eval()
+    logged: dict[str, float] = {}
+    monkeypatch.setattr(module, "log", lambda name, value, **kw: logged.__setitem__(name, float(value)))
+    images = torch.rand(3, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        pred = module.model.predict(images)
+        rec, alpha = module.model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    silhouette = (alpha > 0.5).float()
+    assert 0 < silhouette[0].sum() < silhouette[0].numel()
+    # image 0: its own silhouette (IoU 1); image 1: the complement (IoU 0); image 2: both empty (IoU 1)
+    masks = torch.stack([silhouette[0], 1 - silhouette[1], torch.zeros_like(silhouette[2])])
+    monkeypatch.setattr(module.model, "render", lambda *a: (rec, torch.cat([alpha[:2], torch.zeros_like(alpha[2:])])))
+    with torch.no_grad():
+        module.validation_step({"image": images, "mask": masks, "has_mask": torch.ones(3, dtype=torch.bool)}, 0)
+    assert logged["val/mask_iou"] == pytest.approx(2 / 3)
+    assert logged["val/rgb"] == pytest.approx(float(((rec - images) ** 2).mean()), rel=1e-5)

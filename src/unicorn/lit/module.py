@@ -50,6 +50,7 @@ import torch
 import torch.nn.functional as F
 
 from unicorn.errors import UserError
+from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 
@@ -262,9 +263,8 @@ class UnicornLitModule(L.LightningModule):
         rec, alpha = self.model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
         self.log("val/rgb", F.mse_loss(rec, images), prog_bar=False, batch_size=images.shape[0])
         if "mask" in batch and bool(batch.get("has_mask", torch.tensor(False)).all()):
-            inter = ((alpha > 0.5) & (batch["mask"] > 0.5)).flatten(1).sum(1).float()
-            union = ((alpha > 0.5) | (batch["mask"] > 0.5)).flatten(1).sum(1).float().clamp(min=1)
-            self.log("val/mask_iou", (inter / union).mean(), batch_size=images.shape[0])
+            # the evaluation's definition (two empty masks score 1), not a second one
+            self.log("val/mask_iou", mask_iou(alpha, batch["mask"]), batch_size=images.shape[0])
 
     # ------------------------------------------------------------------ optimizer
     @staticmethod
