@@ -53,7 +53,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     instance |= {"chamfer-L1-ICP-own-mean", "shape-win-own"}
     assert instance | {"color-ratio", "rot-flip-150"} <= set(rows[0])
     with open(out / "per_image.csv") as f:
-        assert instance <= set(next(csv.DictReader(f)))
+        assert instance | {"rot-err"} <= set(next(csv.DictReader(f)))  # with each image's rotation error
     data = json.loads((out / "metrics.json").read_text())
     assert data["dataset"] == "synthetic" and data["checkpoint_format"] == "plain" and len(data["per_image"]) == 3
     assert data["options"]["num_points"] == 300 and data["protocol"] == "shapenet"

@@ -29,6 +29,12 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
         assert result.mean[key] == pytest.approx(sum(groups) / len(groups))  # categories, then their mean
         assert all(math.isfinite(v) for v in groups)
     assert 0 <= result.mean["mask-iou"] <= 1 and len(result.samples) == 2
+    # each image's rotation error (after its group's alignment) is in its row, and the set metrics summarise it
+    for row in result.table[:-1]:
+        errors = torch.tensor([r["rot-err"] for r in result.per_image if r["group"] == row["group"]])
+        assert row["rot-err-mean"] == pytest.approx(float(errors.mean()), abs=1e-4)
+        assert row["rot-acc-30"] == pytest.approx(float((errors < 30).double().mean()))
+    assert "rot-err" not in result.columns
 
     # the loop's numbers are the metric functions' on the same prediction (GT-pose alignment wired right)
     batch = collate([data[i] for i in range(3)])  # the loop's first batch (the point sampling is per batch)

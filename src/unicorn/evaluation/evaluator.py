@@ -36,7 +36,9 @@ outputs the category mean:
   two questions (is the category shape accurate? is each shape the image's?); this one asks only the second:
   a model that outputs one shape for every image ties its own mean (win share 0.5 from ties), one whose
   per-image shapes follow the objects wins on most of them;
-- pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round.
+- pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round; each
+  image's own error after the alignment is kept in its row (``rot-err``, degrees), so that one can see, e.g.,
+  whether the flipped views are whole objects turned round or scattered views.
 
 Two diagnostics complete them:
 
@@ -68,8 +70,10 @@ from unicorn.data import build_dataset
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import (
+    align_canonical_frame,
     color_errors,
     evaluate_meshes,
+    geodesic_error,
     keypoint_transfer_pck,
     mask_iou,
     mean_foreground_color,
@@ -132,8 +136,9 @@ METRIC_ORDER = {
     "rec-mse": "lower",
 }
 
-#: per-image row entries that are not metrics (never averaged into the table)
-ROW_INFO = ("index", "group", "candidate")
+#: per-image row entries that are not averaged into the table: identifiers, and ``rot-err`` (the image's rotation
+#: error in degrees after the group's canonical-frame alignment), which the set metrics ``rot-*`` summarise
+ROW_INFO = ("index", "group", "candidate", "rot-err")
 
 
 def protocol_for(dataset_name: str) -> str:
@@ -353,7 +358,7 @@ class _Accumulator:
 
     def __init__(self) -> None:
         self.rows: list[dict[str, Any]] = []
-        self.poses: dict[str, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+        self.poses: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}  # (row, R_pred, R_gt)
         self.keypoints: dict[str, list[tuple[torch.Tensor, ...]]] = {}
         # side of the keypoint frame per group (the ground-truth mask side, 256 for CUB's evaluation items)
         self.keypoint_frames: dict[str, int] = {}
@@ -555,7 +560,8 @@ def evaluate(
                 scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
         if protocol == "shapenet" and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
-                acc.poses.setdefault(g, []).append((pred.R[i].cpu(), batch["R"][i].cpu()))
+                # the index its row will have: the rows of this batch are appended below
+                acc.poses.setdefault(g, []).append((len(acc.rows) + i, pred.R[i].cpu(), batch["R"][i].cpu()))
         chosen = pred.poses.probs.argmax(0).tolist() if record_candidates else None  # (B,) selected candidates
         if chosen is not None:
             for i, g in enumerate(groups):
@@ -658,9 +664,13 @@ def _set_metrics(
         model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
         out["color-ratio"] = model_mean / base_mean if base_mean > 0 else float("nan")
     if group in acc.poses:
-        R_pred = torch.stack([p[0] for p in acc.poses[group]])
-        R_gt = torch.stack([p[1] for p in acc.poses[group]])
-        out.update(pose_errors(R_pred, R_gt, align=options.align_pose))
+        rows, R_pred, R_gt = zip(*acc.poses[group])
+        R_pred, R_gt = torch.stack(R_pred), torch.stack(R_gt)
+        if options.align_pose:  # once, for the summary and the per-image errors
+            R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred
+        out.update(pose_errors(R_pred, R_gt))
+        for r, err in zip(rows, geodesic_error(R_pred, R_gt).tolist()):
+            acc.rows[r]["rot-err"] = err
     kps = acc.keypoints.get(group, [])
     if len(kps) >= 2:
         verts, R, T, visible, keypoints = (torch.stack(x) for x in zip(*kps))

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from unicorn.evaluation.evaluator import METRIC_ORDER, EvaluationResult, Sample
+from unicorn.evaluation.evaluator import METRIC_ORDER, ROW_INFO, EvaluationResult, Sample
 from unicorn.evaluation.rendering import even_angles, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters
@@ -112,7 +112,9 @@ def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Ma
         writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
         writer.writeheader()
         writer.writerows(result.table)
-    image_cols = ["index", "group"] + [c for c in result.columns if any(c in r for r in result.per_image)]
+    # the metrics, and the per-image entries that are not averaged (the selected candidate, the rotation error)
+    cols = [c for c in ROW_INFO if c not in ("index", "group")] + result.columns
+    image_cols = ["index", "group"] + [c for c in cols if any(c in r for r in result.per_image)]
     with open(paths["per_image"], "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=image_cols, extrasaction="ignore", restval="")
         writer.writeheader()
