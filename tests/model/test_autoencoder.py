@@ -159,25 +159,6 @@ def test_neighbor_term_gradients_reach_only_shape_and_texture(images):
     assert len(model.memory) == 6 + images.shape[0]
 
 
-def test_neighbor_term_from_start_needs_only_the_texture_code(images):
-    torch.manual_seed(0)
-    model = Unicorn(tiny_config(loss={"neighbor_from_start": True}))
-    randomize_heads(model, std=0.1)
-    model.set_active_dims(shape=0, texture=8)
-    model.set_stage_switches(deformation=False)  # stage 1: the plain template
-    with torch.no_grad():
-        other = torch.rand(6, 3, IMAGE_SIZE, IMAGE_SIZE)
-        pred = model.predict(other)
-        turn = azim_elev_roll_to_rotation(torch.linspace(40, 160, 6), torch.zeros(6))
-        model.memory.push(other, pred.shape_code, pred.texture_code, turn)
-    losses = model.step_3d(images)
-    assert "neighbor" in losses and losses["neighbor"].item() > 0
-    losses["neighbor"].backward()  # stage 1: the texture swap trains the texture, the shape is the template's
-    assert grads_of(model.texture.generator) > 0 and grads_of(model.shape.field) == 0
-    model.set_active_dims(texture=0)
-    assert "neighbor" not in model.step_3d(images)
-
-
 def test_shapenet_model_without_background():
     torch.manual_seed(0)
     model = Unicorn(tiny_config("shapenet", "big"))

@@ -115,7 +115,6 @@ class LossConfig:
     uniform_weight: float = ranged(0.02, 0)
     uniform_reduction: str = "sum"
     neighbor_weight: float = ranged(1.0, 0)
-    neighbor_from_start: bool = False  # True: the neighbour term before the shape code is active (a deviation)
     memory_size: int = ranged(1024, 1)
     n_bins: int = ranged(5, 1)
     min_angle: float = ranged(20.0, 0, 180)

@@ -27,10 +27,8 @@ Configuration (keyword groups, each a mapping merged over :data:`DEFAULT_CONFIG`
 - ``loss``: ``rgb_weight`` (1), ``perceptual`` ("vgg", "structural" or None), ``perceptual_weight`` (10),
   ``vgg_weights`` (a copy of ``vgg16-397923af.pth``; None: torch's hub cache, downloaded), ``normal_weight``
   (0.01), ``laplacian_weight`` (0.01), ``uniform_weight`` (0.02), ``uniform_reduction`` ("sum" as in the
-  paper, "mean" as in the reference code), ``neighbor_weight`` (1), ``neighbor_from_start`` (False: the paper's
-  neighbour term starts with the shape code; True: from the first iteration, while only the texture code is
-  active, so that the texture swaps tie the viewpoints together before the pose assignment settles),
-  ``memory_size`` (1024), ``n_bins`` (5), ``min_angle`` (20).
+  paper, "mean" as in the reference code), ``neighbor_weight`` (1), ``memory_size`` (1024), ``n_bins`` (5),
+  ``min_angle`` (20).
 """
 
 from __future__ import annotations
@@ -120,7 +118,6 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "uniform_weight": 0.02,
         "uniform_reduction": "sum",
         "neighbor_weight": 1.0,
-        "neighbor_from_start": False,
         "memory_size": 1024,
         "n_bins": 5,
         "min_angle": 20.0,
@@ -502,8 +499,7 @@ class Unicorn(nn.Module):
 
         ``total = mean_b [L_rec + w_nbr * L_nbr] + w_norm * L_norm + w_lap * L_lap`` (``*_weight`` keys);
         gradients reach the shape, scale, texture and background branches (and their encoders) only.
-        The neighbour term is active once both the shape and texture codes have active dimensions (with
-        ``loss.neighbor_from_start``, once the texture code has).
+        The neighbour term is active once both the shape and texture codes have active dimensions.
 
         Args:
             images: (B, 3, S, S) in [0, 1].
@@ -525,8 +521,7 @@ class Unicorn(nn.Module):
         rec, _ = self.render(verts, maps, R, T, bkg)
         per_sample = self.reconstruction_terms(rec, images)
         ls = self.config["loss"]
-        has_shape = self.shape.mask.active_dims > 0 or ls["neighbor_from_start"]
-        use_nbr = ls["neighbor_weight"] > 0 and has_shape and self.texture.mask.active_dims > 0
+        use_nbr = ls["neighbor_weight"] > 0 and self.shape.mask.active_dims > 0 and self.texture.mask.active_dims > 0
         if use_nbr:
             per_sample["neighbor"] = ls["neighbor_weight"] * self.neighbor_loss(
                 images, z_sh, z_tx, canonical, maps, R, average_texture
