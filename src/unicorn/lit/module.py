@@ -37,6 +37,7 @@ when training restarts, so a resumed run continues exactly.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import random
 import warnings
@@ -185,15 +186,13 @@ class UnicornLitModule(L.LightningModule):
         if not isinstance(schedulers, list):
             schedulers = [] if schedulers is None else [schedulers]
         # every scheduler steps every iteration, so that all optimizers share one learning-rate schedule
-        if step == 0 and len(schedulers) > 1:
-            with warnings.catch_warnings():
+        first_of_several = step == 0 and len(schedulers) > 1
+        with warnings.catch_warnings() if first_of_several else contextlib.nullcontext():
+            if first_of_several:
                 # one Adam per step kind: the 3D step's has not stepped yet at iteration 0, and torch warns that the
                 # schedule's first value would be skipped, which is not so for MultiStepLR (it counts iterations).
                 # Only here: changing the filters resets Python's once-per-location warning registry.
                 warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
-                for scheduler in schedulers:
-                    scheduler.step()
-        else:
             for scheduler in schedulers:
                 scheduler.step()
 
