@@ -121,6 +121,34 @@ def test_pose_step_gradients_only_reach_the_pose_branch(size, images):
         assert all(grads_of(model.encoders[i]) == 0 for i in (0, 1, 3))
 
 
+def test_pose_step_assigned_objective(images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"pose_objective": "assigned", "assignment_weight": 0.5}))
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    losses = model.pose_step(images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "assignment", "total"}
+    # the value: cross-entropy against the candidate with the lowest reconstruction loss, computed here from
+    # the model's own predictions rendered candidate by candidate
+    with torch.no_grad():
+        pred = model.predict(images)
+        per_candidate = []
+        for k in range(model.n_candidates):
+            rec, _ = model.render(pred.verts, pred.texture, pred.poses.R[k], pred.poses.T[k], pred.background)
+            per_candidate.append(sum(model.reconstruction_terms(rec, images).values()))
+        best = torch.stack(per_candidate).argmin(0)
+        expected = torch.nn.functional.cross_entropy(pred.poses.probs.log().T, best)
+    assert torch.allclose(losses["assignment"], 0.5 * expected, rtol=1e-4)
+    # the reconstruction terms train the poses but not the probabilities; the cross-entropy trains these
+    losses["rgb"].backward(retain_graph=True)
+    assert grads_of(model.pose.proba_regressor) == 0
+    assert grads_of(model.pose.rot_regressors[0]) > 0
+    losses["assignment"].backward()
+    assert grads_of(model.pose.proba_regressor) > 0
+    with pytest.raises(ValueError, match="pose_objective"):
+        Unicorn(tiny_config(loss={"pose_objective": "best"}))
+
+
 @pytest.mark.parametrize("size", ["small", "big"])
 def test_step_3d_gradients_skip_the_pose_branch(size, images):
     torch.manual_seed(0)

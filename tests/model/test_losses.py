@@ -16,6 +16,7 @@ from unicorn.model import (
     TemplateMesh,
     UniformLaplacianLoss,
     VGGPerceptualLoss,
+    candidate_assignment_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -80,6 +81,23 @@ def test_normal_consistency_hand_values():
     assert 0 < sphere < 0.01
     with pytest.raises(ValueError, match="closed manifold"):
         NormalConsistencyLoss(TETRA_FACES[:3])
+
+
+def test_candidate_assignment_loss_hand_values_and_gradient():
+    logits = torch.tensor([[2.0, 0.0], [0.0, -20.0], [-1.0, 1.0]], requires_grad=True)  # (K=3, B=2)
+    losses = torch.tensor([[0.3, 0.1], [0.2, 0.05], [0.4, 0.2]])  # best: candidate 1 for both samples
+    log_probs = torch.log_softmax(logits, dim=0)
+    value = candidate_assignment_loss(log_probs, losses)
+    p = torch.softmax(logits.detach(), dim=0)
+    assert math.isclose(float(value.detach()), -0.5 * float(p[1, 0].log() + p[1, 1].log()), rel_tol=1e-6)
+    value.backward()
+    # softmax cross-entropy: d/dlogit_k = (p_k - [k == best]) / B, not ~0 for the unlikely best candidate
+    target = torch.zeros(3, 2)
+    target[1] = 1.0
+    assert torch.allclose(logits.grad, (p - target) / 2, atol=1e-7)
+    assert float(logits.grad[1, 1]) < -0.49
+    with pytest.raises(ValueError, match="shape"):
+        candidate_assignment_loss(log_probs, losses[:, :1])
 
 
 def test_uniform_laplacian_hand_values():

@@ -97,6 +97,8 @@ def _describe_range(low: float | None, high: float | None) -> str:
 
 
 def _check_values(cfg: DictConfig) -> None:
+    from unicorn.model.losses import POSE_OBJECTIVES  # here: importing this module stays free of torch
+
     _check_ranges(cfg, TrainConfig)
     m, s, o = cfg.model, cfg.schedule, cfg.optim
     # -- model
@@ -113,6 +115,10 @@ def _check_values(cfg: DictConfig) -> None:
     _check(
         m.loss.uniform_reduction in ("sum", "mean"),
         f"model.loss.uniform_reduction must be sum or mean, got {m.loss.uniform_reduction!r}",
+    )
+    _check(
+        m.loss.pose_objective in POSE_OBJECTIVES,
+        f"model.loss.pose_objective must be one of {POSE_OBJECTIVES}, got {m.loss.pose_objective!r}",
     )
     _check(
         cfg.dataset.batch_size <= m.loss.memory_size,

@@ -114,6 +114,8 @@ class LossConfig:
     laplacian_weight: float = ranged(0.01, 0)
     uniform_weight: float = ranged(0.02, 0)
     uniform_reduction: str = "sum"
+    pose_objective: str = "expected"  # expected (paper) | assigned
+    assignment_weight: float = ranged(0.02, 0)
     neighbor_weight: float = ranged(1.0, 0)
     memory_size: int = ranged(1024, 1)
     n_bins: int = ranged(5, 1)

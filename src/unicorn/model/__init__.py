@@ -22,6 +22,7 @@ from unicorn.model.generator import CodeGenerator, GiraffeGenerator
 from unicorn.model.losses import (
     NormalConsistencyLoss,
     UniformLaplacianLoss,
+    candidate_assignment_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -54,6 +55,7 @@ __all__ = [
     "UniformLaplacianLoss",
     "VGGPerceptualLoss",
     "active_dims_at",
+    "candidate_assignment_loss",
     "config_from_reference",
     "convert_reference_state_dict",
     "export_prediction",

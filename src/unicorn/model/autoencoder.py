@@ -27,8 +27,11 @@ Configuration (keyword groups, each a mapping merged over :data:`DEFAULT_CONFIG`
 - ``loss``: ``rgb_weight`` (1), ``perceptual`` ("vgg", "structural" or None), ``perceptual_weight`` (10),
   ``vgg_weights`` (a copy of ``vgg16-397923af.pth``; None: torch's hub cache, downloaded), ``normal_weight``
   (0.01), ``laplacian_weight`` (0.01), ``uniform_weight`` (0.02), ``uniform_reduction`` ("sum" as in the
-  paper, "mean" as in the reference code), ``neighbor_weight`` (1), ``memory_size`` (1024), ``n_bins`` (5),
-  ``min_angle`` (20).
+  paper, "mean" as in the reference code), ``pose_objective`` ("expected": the paper's probability-weighted
+  loss trains the probabilities; "assigned": the reconstruction terms are weighted by the detached probabilities
+  and the probabilities learn from ``assignment_weight`` (0.02) x the cross-entropy against the best-reconstructing
+  candidate, see :func:`~unicorn.model.losses.candidate_assignment_loss`), ``neighbor_weight`` (1),
+  ``memory_size`` (1024), ``n_bins`` (5), ``min_angle`` (20).
 """
 
 from __future__ import annotations
@@ -46,8 +49,10 @@ from unicorn.model.encoder import ResNet18
 from unicorn.model.field import ShapeHead
 from unicorn.model.generator import CodeGenerator
 from unicorn.model.losses import (
+    POSE_OBJECTIVES,
     NormalConsistencyLoss,
     UniformLaplacianLoss,
+    candidate_assignment_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -117,6 +122,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "laplacian_weight": 0.01,
         "uniform_weight": 0.02,
         "uniform_reduction": "sum",
+        "pose_objective": "expected",
+        "assignment_weight": 0.02,
         "neighbor_weight": 1.0,
         "memory_size": 1024,
         "n_bins": 5,
@@ -304,6 +311,8 @@ class Unicorn(nn.Module):
             self.perceptual = None
         else:
             raise ValueError(f"loss.perceptual must be 'vgg', 'structural' or None, got {ls['perceptual']!r}")
+        if ls["pose_objective"] not in POSE_OBJECTIVES:
+            raise ValueError(f"loss.pose_objective must be one of {POSE_OBJECTIVES}, got {ls['pose_objective']!r}")
         self.normal_loss = NormalConsistencyLoss(self.template.faces)
         self.laplacian_loss = UniformLaplacianLoss(self.template.faces, self.template.num_verts)
         self.memory = NeighborMemory(ls["memory_size"], ls["n_bins"], ls["min_angle"])
@@ -456,7 +465,9 @@ class Unicorn(nn.Module):
         """P-step: all K candidates rendered with detached shapes, textures and backgrounds.
 
         ``total = mean_b sum_k p[k, b] * L_rec(k, b) + uniform_weight * L_uni``; gradients reach the pose
-        branch (rotation, translation and probability heads, and the encoder that feeds them) only.
+        branch (rotation, translation and probability heads, and the encoder that feeds them) only. With
+        ``loss.pose_objective = "assigned"`` the weights ``p`` are detached and the probabilities learn from
+        ``assignment_weight * candidate_assignment_loss`` instead (term ``assignment``).
 
         Args:
             images: (B, 3, S, S) in [0, 1].
@@ -487,8 +498,13 @@ class Unicorn(nn.Module):
             None if bkg is None else bkg.repeat(K, 1, 1, 1),
         )
         terms = self.reconstruction_terms(rec, images.repeat(K, 1, 1, 1))
-        out = {name: (poses.probs * value.view(K, B)).sum(0).mean() for name, value in terms.items()}
         ls = self.config["loss"]
+        assigned = ls["pose_objective"] == "assigned"
+        weights = poses.probs.detach() if assigned else poses.probs
+        out = {name: (weights * value.view(K, B)).sum(0).mean() for name, value in terms.items()}
+        if assigned and terms:
+            per_candidate = torch.stack(list(terms.values())).sum(0).view(K, B)
+            out["assignment"] = ls["assignment_weight"] * candidate_assignment_loss(poses.log_probs, per_candidate)
         if ls["uniform_weight"] > 0:
             out["uniform"] = ls["uniform_weight"] * uniform_pose_prior(poses.probs, ls["uniform_reduction"])
         out["total"] = torch.stack(list(out.values())).sum() if out else images.new_zeros(())

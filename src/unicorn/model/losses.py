@@ -9,7 +9,18 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["NormalConsistencyLoss", "UniformLaplacianLoss", "mse_per_sample", "uniform_pose_prior"]
+__all__ = [
+    "POSE_OBJECTIVES",
+    "NormalConsistencyLoss",
+    "UniformLaplacianLoss",
+    "candidate_assignment_loss",
+    "mse_per_sample",
+    "uniform_pose_prior",
+]
+
+
+#: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
+POSE_OBJECTIVES = ("expected", "assigned")
 
 
 def mse_per_sample(rec: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -38,6 +49,30 @@ def uniform_pose_prior(probs: torch.Tensor, reduction: str = "sum") -> torch.Ten
     if reduction == "mean":
         return dev.mean()
     raise ValueError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
+
+
+def candidate_assignment_loss(log_probs: torch.Tensor, losses: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the candidate probabilities against the candidate that reconstructs best.
+
+    ``mean_b -log p[k*(b), b]`` with ``k*(b) = argmin_k losses[k, b]``. Unlike the expected loss
+    ``sum_k p[k, b] * losses[k, b]``, whose gradient on a candidate's logit is ``p[k, b] * (losses[k, b] - mean)``
+    and vanishes once its probability is near 0, this moves the probability to whichever candidate reconstructs
+    best, however unlikely it was: a pose assignment made early (e.g. a range of views predicted turned round
+    while the shape was still symmetric) can be undone later.
+
+    Args:
+        log_probs: (K, B) log-probabilities of the candidates.
+        losses: (K, B) reconstruction loss of each candidate (not differentiated).
+
+    Returns:
+        scalar.
+    """
+    if log_probs.dim() != 2 or log_probs.shape != losses.shape:
+        raise ValueError(
+            f"log_probs and losses must both have shape (K, B), got {tuple(log_probs.shape)} and {tuple(losses.shape)}"
+        )
+    best = losses.detach().argmin(0)  # (B,)
+    return -log_probs.gather(0, best.unsqueeze(0)).mean()
 
 
 def _edges_and_opposites(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

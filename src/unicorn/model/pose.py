@@ -72,12 +72,14 @@ class PoseOutput:
         R: (K, B, 3, 3) rotations (``x_view = x @ R + T``).
         T: (K, B, 3) translations.
         probs: (K, B) candidate probabilities (softmax over K).
+        log_probs: (K, B) their logarithms, from the logits (``probs`` is derived from them).
     """
 
     angles: torch.Tensor
     R: torch.Tensor
     T: torch.Tensor
     probs: torch.Tensor
+    log_probs: torch.Tensor
 
     @property
     def best(self) -> torch.Tensor:
@@ -152,15 +154,15 @@ class PoseHead(nn.Module):
             raise ValueError(f"features must have shape (B, C), got {tuple(features.shape)}")
         rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
         trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
-        probs = torch.softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
-        return self._compose(rot, trans, probs)
+        log_probs = torch.log_softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
+        return self._compose(rot, trans, log_probs)
 
-    def _compose(self, rot: torch.Tensor, trans: torch.Tensor, probs: torch.Tensor) -> PoseOutput:
-        """Candidates from offsets in [-1, 1]: rot (K, B, 3), trans (K, B, 3), probs (K, B)."""
+    def _compose(self, rot: torch.Tensor, trans: torch.Tensor, log_probs: torch.Tensor) -> PoseOutput:
+        """Candidates from offsets in [-1, 1]: rot (K, B, 3), trans (K, B, 3), log_probs (K, B)."""
         angles = rot * self.R_range + self.R_init.unsqueeze(1)
         R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
         t_off = trans * self.T_range * self.use_translation.to(trans.dtype)
-        return PoseOutput(angles=angles, R=R, T=t_off + self.T_init, probs=probs)
+        return PoseOutput(angles=angles, R=R, T=t_off + self.T_init, probs=log_probs.exp(), log_probs=log_probs)
 
     def anchor_poses(self, batch_size: int, selected: int = 0) -> PoseOutput:
         """The K candidates at their anchors (zero offsets) for ``batch_size`` samples, probability 1 on
@@ -168,9 +170,9 @@ class PoseHead(nn.Module):
         if not 0 <= selected < self.n_candidates:
             raise ValueError(f"selected must be in [0, {self.n_candidates}), got {selected}")
         zeros = self.R_init.new_zeros(self.n_candidates, batch_size, 3)
-        probs = self.R_init.new_zeros(self.n_candidates, batch_size)
-        probs[selected] = 1.0
-        return self._compose(zeros, zeros, probs)
+        log_probs = self.R_init.new_full((self.n_candidates, batch_size), float("-inf"))
+        log_probs[selected] = 0.0
+        return self._compose(zeros, zeros, log_probs)
 
 
 class ScaleHead(nn.Module):
