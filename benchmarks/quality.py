@@ -26,7 +26,11 @@ car models; chairs for ``chairs``), measured on the first run's dataset of that 
 ``template, chairs``) and the best single mean shape (one mesh with the template's topology fitted to every
 training model's ground-truth point cloud of that category, rendered at the ground-truth pose: the best one can
 do without looking at the image, and generous since its pose is perfect; rows ``mean shape (GT pose)`` and
-``mean shape (GT pose), chairs``).
+``mean shape (GT pose), chairs``).; and the silhouette floor (each test object's template fitted to the masks of
+all its views at their ground-truth poses with the model's own renderer and regularisers,
+``unicorn.evaluation.fit_silhouettes``: what silhouettes at this image size can say about a shape, with no pose
+error and no generalisation gap; rows ``silhouette fit (GT poses, every view)`` and ``..., chairs``;
+``--silhouette-iterations 0`` leaves it out, about 3 minutes per category on 2 cores).
 
 Metrics (see unicorn.evaluation): on one fixed view per test model, ``chamfer-L1-ICP`` (unit-cube normalised,
 anisotropic-scale ICP) and ``chamfer-L1`` (prediction mapped into the ground-truth frame through the predicted
@@ -100,6 +104,7 @@ RUNS: dict[str, list[str]] = {
 #: baseline row names of the cars (the bars' reference); other categories get ", <category>s" appended
 TEMPLATE_ROW = "template (anchor pose)"
 MEAN_SHAPE_ROW = "mean shape (GT pose)"
+SILHOUETTE_ROW = "silhouette fit (GT poses, every view)"
 
 #: the bars of the full car model (mean over seeds), as (metric, comparison, limit or baseline multiple)
 BARS = [
@@ -152,6 +157,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--icp-points", type=int, default=20_000, help="points per mesh in the ICP pass")
     p.add_argument("--icp-iterations", type=int, default=30, help="ICP iterations")
     p.add_argument("--mean-shape-iterations", type=int, default=300, help="iterations of the mean-shape fit")
+    p.add_argument(
+        "--silhouette-iterations", type=int, default=300, help="iterations of each silhouette fit (0: no such row)"
+    )
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("overrides", nargs="*", help="extra unicorn-train overrides for every run (key=value)")
     args = p.parse_args(argv)
@@ -283,11 +291,11 @@ def load_run(run_dir: Path, device: str) -> tuple[Any, Path, str]:
     return model, data.dataset_root(), category
 
 
-def baseline_names(category: str) -> tuple[str, str]:
-    """(template row, mean-shape row) of a category: the cars' plain names, ``..., chairs`` for the others."""
+def baseline_names(category: str) -> tuple[str, str, str]:
+    """(template, mean-shape, silhouette-fit rows) of a category: the cars' plain names, ``..., chairs`` else."""
     if category == "car":
-        return TEMPLATE_ROW, MEAN_SHAPE_ROW
-    return f"template, {category}s", f"{MEAN_SHAPE_ROW}, {category}s"
+        return TEMPLATE_ROW, MEAN_SHAPE_ROW, SILHOUETTE_ROW
+    return f"template, {category}s", f"{MEAN_SHAPE_ROW}, {category}s", f"{SILHOUETTE_ROW}, {category}s"
 
 
 @functools.cache  # the baselines and the runs share the test set
@@ -362,15 +370,40 @@ def baselines(model: Any, root: Path, category: str, args: argparse.Namespace) -
     """A category's baseline rows and its mean shape ((V, 3), which its runs are compared with object by object)."""
     from unicorn.evaluation import mean_shape_baseline, template_baseline, training_point_clouds
 
-    template_row, mean_row = baseline_names(category)
+    template_row, mean_row, silhouette_row = baseline_names(category)
     rows = {}
     start = time.perf_counter()
     rows[template_row], _ = score(template_baseline(model), root, args)
     clouds = training_point_clouds(root)
     mean_model = mean_shape_baseline(model, clouds, iterations=args.mean_shape_iterations)
     rows[mean_row], _ = score(mean_model, root, args, oracle_pose=True)
+    if args.silhouette_iterations:
+        rows[silhouette_row] = silhouette_fit(model, root, args)
     print(f"[baselines, {category}] scored in {(time.perf_counter() - start) / 60:.1f} min", flush=True)
     return rows, mean_model.fixed_verts.detach()
+
+
+def silhouette_fit(model: Any, root: Path, args: argparse.Namespace) -> Row:
+    """The silhouette floor: every test object's template fitted to the masks of all its views at their
+    ground-truth poses (:func:`unicorn.evaluation.fit_silhouettes`), scored like the models (Chamfer-L1 after ICP
+    against the object's points; mask IoU over every view)."""
+    from unicorn.evaluation import fit_silhouettes
+    from unicorn.metrics import evaluate_meshes
+
+    _, every = test_sets(root, model.config["image_size"])
+    views: dict[int, list[int]] = {}
+    for i in range(len(every)):
+        views.setdefault(every.model_view(i)[0], []).append(i)
+    chamfer, iou = [], []
+    for indices in views.values():
+        items = [every[i] for i in indices]
+        masks, R, T = (torch.stack([it[k] for it in items]).to(args.device) for k in ("mask", "R", "T"))
+        verts, ious = fit_silhouettes(model, masks, R, T, iterations=args.silhouette_iterations)
+        points = items[0]["points"][None].to(args.device)
+        kw = dict(num_points=args.icp_points, icp_iterations=args.icp_iterations)
+        chamfer.append(float(evaluate_meshes(verts[None], model.template.faces, points, None, **kw)["chamfer-L1-ICP"]))
+        iou += ious.tolist()
+    return {"chamfer-L1-ICP": statistics.fmean(chamfer), "mask-iou": statistics.fmean(iou)}
 
 
 def aggregate(per_seed: dict[int, Row]) -> tuple[Row, Row]:

@@ -90,7 +90,48 @@ def test_bars(quality):
     bars = quality.check_bars(rows(0.25))
     assert [ok for *_, ok in bars] == [False, True, True, True, True, True]
     assert quality.check_bars({"chairs": {"chamfer-L1-ICP": 0.1}}) == []
-    assert quality.baseline_names("chair") == ("template, chairs", "mean shape (GT pose), chairs")
+    assert quality.baseline_names("chair") == (
+        "template, chairs",
+        "mean shape (GT pose), chairs",
+        "silhouette fit (GT poses, every view), chairs",
+    )
+
+
+def test_silhouette_fit_row_fits_each_object_to_its_own_views(quality, tmp_path, monkeypatch):
+    import argparse
+
+    import torch
+
+    import unicorn.evaluation as evaluation
+    from unicorn.data.synthetic.writer import generate_synthetic_dataset
+    from unicorn.model import Unicorn, unicorn_config
+
+    root = generate_synthetic_dataset(
+        tmp_path, ["car"], "nmr", n_models=6, seed=0, image_size=32, n_views=3, n_points=600, progress=False
+    )
+    torch.manual_seed(0)
+    model = Unicorn(unicorn_config("shapenet", image_size=32, loss={"perceptual": None})).eval()
+    calls, fit = [], evaluation.fit_silhouettes
+
+    def recording(model, masks, R, T, **kw):
+        calls.append((masks, R))
+        return fit(model, masks, R, T, **kw)
+
+    monkeypatch.setattr(evaluation, "fit_silhouettes", recording)
+    args = argparse.Namespace(silhouette_iterations=0, icp_points=500, icp_iterations=2, device="cpu")
+    before = quality.silhouette_fit(model, root, args)
+    _, every = quality.test_sets(root, 32)
+    n_test = len(every.models)
+    assert n_test >= 1 and len(calls) == n_test
+    for m, (masks, R) in enumerate(calls):  # one call per test object, with all of its views and their cameras
+        views = [i for i in range(len(every)) if every.model_view(i)[0] == m]
+        assert masks.shape == (3, 1, 32, 32) and len(views) == 3
+        assert torch.equal(R, torch.stack([every[i]["R"] for i in views]))
+        assert torch.equal(masks, torch.stack([every[i]["mask"] for i in views]))
+    args.silhouette_iterations = 100
+    after = quality.silhouette_fit(model, root, args)
+    assert set(after) == {"chamfer-L1-ICP", "mask-iou"}
+    assert after["mask-iou"] > before["mask-iou"] + 0.1 and math.isfinite(after["chamfer-L1-ICP"])
 
 
 def test_ablation_order(quality):

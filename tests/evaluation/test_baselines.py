@@ -12,6 +12,7 @@ from unicorn.evaluation import (
     build_eval_dataset,
     evaluate,
     fit_mean_shape,
+    fit_silhouettes,
     mean_shape_baseline,
     template_baseline,
     training_point_clouds,
@@ -128,6 +129,41 @@ def test_fit_mean_shape_beats_every_single_shape() -> None:
     assert objective(_mesh_points(mean)) < 0.9 * min(best_single, exact_single)
     # and no iteration leaves the template as it was
     assert torch.equal(fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, clouds, iterations=0), TEMPLATE_VERTS)
+
+
+def _views(n: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """n cameras around the object, 20 degrees above it, 2.732 away (the ShapeNet family's distance)."""
+    R = azim_elev_roll_to_rotation(torch.arange(n) * (360.0 / n), torch.full((n,), 20.0), torch.zeros(n))
+    return R, torch.tensor([0.0, 0.0, 2.732]).expand(n, 3)
+
+
+def test_fit_silhouettes_recovers_a_shape_from_its_masks(shapenet_model) -> None:
+    model, faces = shapenet_model, shapenet_model.template.faces
+    stretch = torch.tensor([1.3, 0.6, 0.9])
+    target = model.template.verts * stretch  # a known shape on the template's topology
+    R, T = _views()
+    with torch.no_grad():
+        _, alpha = model.render(target.expand(8, -1, -1), torch.full((8, 3, 4, 4), 0.5), R, T)
+    masks = (alpha > 0.5).float()
+    verts, iou = fit_silhouettes(model, masks, R, T, iterations=150)
+    template, before = fit_silhouettes(model, masks, R, T, iterations=0)
+    assert torch.equal(template, model.template.verts) and verts.shape == template.shape
+    assert iou.shape == (8,) and before.mean() < 0.8 and iou.min() > 0.95
+    # in 3D (independently of the renders): the extents of the target, and closer to it than the template
+    extent = verts.amax(0) - verts.amin(0)
+    truth = target.amax(0) - target.amin(0)
+    torch.testing.assert_close(extent, truth, atol=0.06 * float(truth.max()), rtol=0)
+
+    def points(v: torch.Tensor) -> torch.Tensor:
+        return sample_points_from_meshes(v, faces, 10_000, seed=3)[0]
+
+    assert _chamfer(points(verts), points(target)) < 0.35 * _chamfer(points(template), points(target))
+    with pytest.raises(ValueError, match=r"masks must have shape \(N, 1, 32, 32\)"):
+        fit_silhouettes(model, masks[:, :, :16], R, T)
+    with pytest.raises(ValueError, match=r"R \(N, 3, 3\) and T \(N, 3\)"):
+        fit_silhouettes(model, masks, R[:7], T)
+    with pytest.raises(ValueError, match="iterations >= 0"):
+        fit_silhouettes(model, masks, R, T, iterations=-1)
 
 
 def test_training_point_clouds_and_mean_shape_baseline(shapenet_model, synth_root) -> None:

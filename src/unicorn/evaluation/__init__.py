@@ -14,6 +14,7 @@ Every function takes a :class:`~unicorn.model.Unicorn`; :func:`unicorn.io.load_m
 from unicorn.evaluation.baselines import (
     FixedShapeModel,
     fit_mean_shape,
+    fit_silhouettes,
     mean_shape_baseline,
     template_baseline,
     training_point_clouds,
@@ -42,6 +43,7 @@ __all__ = [
     "candidate_shares",
     "evaluate",
     "fit_mean_shape",
+    "fit_silhouettes",
     "format_table",
     "hard_render",
     "mean_shape_baseline",

@@ -2,6 +2,9 @@
 
 - :func:`template_baseline`: the untrained template (UNICORN's ellipsoid) at the anchor pose of the first pose
   candidate, for every image. A model whose numbers are no better has learned neither shape nor pose.
+- :func:`fit_silhouettes`: one object's template fitted to the masks of all its views at their ground-truth poses:
+  what the silhouettes alone tell about a shape (the floor of a method that learns shape from silhouettes and
+  colours at that image size, with the model's regularisers), scored against the object's 3D ground truth.
 - :func:`mean_shape_baseline`: the single mesh (template topology) closest on average to the training shapes
   (:func:`fit_mean_shape`), placed with a pose supplied by the caller. Evaluated with
   ``EvalOptions(oracle_pose=True)``, i.e. with the ground-truth pose, it is the best one can do with one shape
@@ -24,7 +27,7 @@ from tqdm.auto import tqdm
 
 from unicorn.data.shapenet import ShapeNetNMR
 from unicorn.evaluation.evaluator import spread_indices
-from unicorn.metrics import chamfer_l1, sample_points_from_meshes
+from unicorn.metrics import chamfer_l1, mask_iou, sample_points_from_meshes
 from unicorn.model import Prediction, Unicorn
 from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
 from unicorn.model.template import TemplateMesh
@@ -34,6 +37,7 @@ __all__ = [
     "POSE_MODES",
     "FixedShapeModel",
     "fit_mean_shape",
+    "fit_silhouettes",
     "mean_shape_baseline",
     "template_baseline",
     "training_point_clouds",
@@ -286,6 +290,74 @@ def fit_mean_shape(
             if progress:
                 bar.set_postfix(chamfer=f"{float(chamfer):.4f}")
     return (base + offsets).detach()
+
+
+def fit_silhouettes(
+    model: Unicorn,
+    masks: torch.Tensor,
+    R: torch.Tensor,
+    T: torch.Tensor,
+    iterations: int = 300,
+    lr: float = 0.01,
+    regularisation: float = 1.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's template deformed to match one object's silhouettes, seen from known cameras.
+
+    Per-vertex offsets of ``model.template`` are optimised with Adam to minimise the mean squared error between
+    the renderer's alpha (``model.render``, the model's own soft rasteriser at its image size) and the masks, plus
+    the model's normal-consistency and Laplacian regularisers at its training weights times ``regularisation``.
+    With the masks of every view of an object and its ground-truth cameras, the result is what silhouettes can say
+    about that shape at this resolution: no pose error, no generalisation gap, no texture. Its Chamfer distance to
+    the 3D ground truth is a floor for models that learn shape from images (concavities that no silhouette shows,
+    such as the underside of a car between its wheels, stay filled).
+
+    Args:
+        model: the model whose template, renderer and regularisers are used (its weights are not).
+        masks: (N, 1, S, S) target silhouettes in [0, 1], S the model's ``image_size``.
+        R: (N, 3, 3) world-to-view rotations of the views (the datasets' ``R``).
+        T: (N, 3) their translations.
+        iterations: Adam steps (0 returns the template).
+        lr: Adam learning rate, in object units per step.
+        regularisation: factor on the model's ``normal_weight`` and ``laplacian_weight``.
+
+    Returns:
+        (V, 3) fitted object-frame vertices (detached) and the (N,) mask IoU of their renders (alpha > 0.5).
+
+    Raises:
+        ValueError: malformed masks or cameras, or invalid settings.
+    """
+    size = int(model.config["image_size"])
+    if not isinstance(masks, torch.Tensor) or masks.dim() != 4 or masks.shape[1:] != (1, size, size):
+        shape = tuple(masks.shape) if isinstance(masks, torch.Tensor) else type(masks)
+        raise ValueError(f"masks must have shape (N, 1, {size}, {size}) at the model's image size, got {shape}")
+    N = masks.shape[0]
+    if N == 0 or R.shape != (N, 3, 3) or T.shape != (N, 3):
+        raise ValueError(f"need N >= 1 views with R (N, 3, 3) and T (N, 3), got {tuple(R.shape)} and {tuple(T.shape)}")
+    if iterations < 0 or not lr > 0 or regularisation < 0:
+        raise ValueError(
+            f"need iterations >= 0, lr > 0 and regularisation >= 0, got {iterations}, {lr}, {regularisation}"
+        )
+    weights = model.config["loss"]
+    base = model.template.verts.detach()
+    masks, R, T = (x.to(base) for x in (masks, R, T))
+    maps = torch.full((N, 3, 4, 4), 0.5, device=base.device, dtype=base.dtype)  # the alpha ignores the colour
+    offsets = torch.zeros_like(base, requires_grad=True)
+    optimizer = torch.optim.Adam([offsets], lr=lr)
+    with torch.enable_grad():  # callers may be under no_grad
+        for _ in range(iterations):
+            verts = (base + offsets).unsqueeze(0)
+            _, alpha = model.render(verts.expand(N, -1, -1), maps, R, T)
+            loss = torch.nn.functional.mse_loss(alpha, masks) + regularisation * (
+                weights["normal_weight"] * model.normal_loss(verts)
+                + weights["laplacian_weight"] * model.laplacian_loss(verts)
+            )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+    verts = (base + offsets).detach()
+    with torch.no_grad():
+        _, alpha = model.render(verts.unsqueeze(0).expand(N, -1, -1), maps, R, T)
+    return verts, mask_iou(alpha, masks, reduction="none")
 
 
 def mean_shape_baseline(
