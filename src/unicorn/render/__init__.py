@@ -9,6 +9,7 @@ them into images. The backends put the pieces together and are registered by nam
 """
 
 from .fragments import DenseFragments, Fragments
+from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
 from .raster import blur_radius_from_sigma, rasterize_meshes
 from .registry import (
@@ -25,6 +26,7 @@ from .textures import Textures, TexturesUV, TexturesVertex, interpolate_vertex_a
 __all__ = [
     "DenseFragments",
     "Fragments",
+    "HardBlend",
     "HardRenderer",
     "LayeredBlend",
     "LayeredRasterizer",
@@ -38,6 +40,7 @@ __all__ = [
     "blur_radius_from_sigma",
     "build_renderer",
     "get_renderer_class",
+    "hard_blend",
     "interpolate_vertex_attributes",
     "layered_blend",
     "layered_occupancy",

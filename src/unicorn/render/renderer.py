@@ -12,16 +12,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as nnf
 from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from .compositing import background_pixels
 from .fragments import Fragments
+from .hard import hard_blend
 from .layered import layered_blend
 from .raster import blur_radius_from_sigma, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 from .registry import register_renderer
-from .softras import softras_blend
+from .softras import check_temperatures, softras_blend
 from .textures import Textures
 
 __all__ = ["HardRenderer", "LayeredRasterizer", "MeshRenderer", "RenderOutput", "SoftRasRenderer"]
@@ -265,8 +265,7 @@ class SoftRasRenderer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
     ) -> None:
-        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-            raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+        check_temperatures(sigma, gamma)
         super().__init__(
             image_size,
             faces_per_pixel,
@@ -319,11 +318,4 @@ class HardRenderer(MeshRenderer):
         return H * self.supersample, W * self.supersample
 
     def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        # composite premultiplied colour over black at full resolution, average, then add the background
-        B, C = fragments.batch_size, colors.shape[1]
-        (H, W), (h, w) = self.image_size, fragments.image_size
-        fine = layered_blend(colors, fragments, colors.new_zeros(C).expand(B * h * w, C), sigma=0.0)
-        coarse = nnf.avg_pool2d(fine, self.supersample) if self.supersample > 1 else fine
-        bg = bg_table.reshape(B, H, W, C).permute(0, 3, 1, 2)
-        alpha = coarse[:, -1:]
-        return torch.cat([coarse[:, :-1] + (1 - alpha) * bg, alpha], dim=1)
+        return hard_blend(colors, fragments, bg_table, self.supersample)
