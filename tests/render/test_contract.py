@@ -68,6 +68,26 @@ def test_hydra_configs_exist_for_builtin_backends():
         assert isinstance(build_renderer(name, **cfg), get_renderer_class(name))
 
 
+@pytest.mark.parametrize("name", ["layered", "softras", "hard"])
+def test_hydra_instantiates_the_configs_target_directly(name):
+    from pathlib import Path
+
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "renderer" / f"{name}.yaml")
+    renderer = instantiate(cfg, image_size=16)
+    assert type(renderer) is get_renderer_class(name) and renderer.image_size == (16, 16)
+    options = OmegaConf.to_container(cfg, resolve=True)
+    del options["_target_"], options["camera"]["_target_"]
+    options.update(image_size=16, camera=PerspectiveCamera(**options["camera"]))
+    verts, faces, R, T, _ = template_scene(batch=1, level=2)
+    tex = TexturesVertex(torch.rand(1, verts.shape[1], 3))
+    assert torch.equal(
+        renderer(verts, faces, tex, R=R, T=T), build_renderer(name, **options)(verts, faces, tex, R=R, T=T)
+    )
+
+
 @pytest.fixture(params=list_renderers())
 def renderer_name(request):
     return request.param
