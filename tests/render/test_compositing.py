@@ -1,4 +1,4 @@
-"""Both compositing rules against naive per-pixel loops written from the formulas (float64, plain Python)."""
+"""The compositing rules (layered, SoftRas, hard) against naive per-pixel loops from the formulas (float64, Python)."""
 
 import math
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from unicorn.geometry.cameras import PerspectiveCamera
-from unicorn.render import blur_radius_from_sigma, layered_blend, rasterize_meshes, softras_blend
+from unicorn.render import blur_radius_from_sigma, hard_blend, layered_blend, rasterize_meshes, softras_blend
 
 from .helpers import posed_ellipsoids
 
@@ -79,3 +79,35 @@ def test_softras_blend_matches_a_softmax_loop(scene):
         ]
         alpha = 1.0 - math.prod(1.0 - p for p in prob)
         assert _pixel(out, pixel) == pytest.approx(rgb + [alpha], abs=1e-9), pixel
+
+
+@pytest.mark.parametrize("supersample", [1, 2, 4])
+def test_hard_blend_matches_a_nearest_face_loop_averaged_over_subpixels(scene, supersample):
+    frags, colors, bg_fine = scene
+    size = SIZE // supersample
+    bg = bg_fine[: 2 * size * size]  # (B * H * W, C) at the output resolution
+    out = hard_blend(colors, frags, bg, supersample)
+    assert out.shape == (2, 4, size, size)
+    pairs_of = _pairs_by_pixel(frags)
+    for b in range(2):
+        for y in range(size):
+            for x in range(size):
+                rgb, alpha = [0.0, 0.0, 0.0], 0.0  # means over the subpixels of colour over black and coverage
+                for i in range(supersample**2):
+                    row, col = supersample * y + i // supersample, supersample * x + i % supersample
+                    sub = (b * SIZE + row) * SIZE + col
+                    inside = [j for j in pairs_of.get(sub, []) if bool(frags.inside[j])]
+                    if inside:  # the nearest face containing the subpixel, near misses ignored
+                        rgb = [c + float(colors[inside[0], k]) / supersample**2 for k, c in enumerate(rgb)]
+                        alpha += 1.0 / supersample**2
+                pixel = (b * size + y) * size + x
+                expected = [c + (1.0 - alpha) * float(bg[pixel, k]) for k, c in enumerate(rgb)] + [alpha]
+                assert out[b, :, y, x].tolist() == pytest.approx(expected, abs=1e-12), (b, y, x)
+
+
+def test_hard_blend_needs_the_background_at_the_supersampled_size(scene):
+    frags, colors, bg = scene
+    with pytest.raises(ValueError, match="not a supersampling by 2 of 2 images"):
+        hard_blend(colors, frags, bg, supersample=2)
+    with pytest.raises(ValueError, match="not a supersampling by 3"):
+        hard_blend(colors, frags, bg[: 2 * 5 * 5], supersample=3)

@@ -5,13 +5,17 @@ import torch
 
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.render import (
+    HardBlend,
+    LayeredBlend,
     LayeredRasterizer,
+    MeshRasterizer,
     MeshRenderer,
+    SoftRasBlend,
     TexturesUV,
     TexturesVertex,
+    blur_radius_from_sigma,
     build_renderer,
     get_renderer_class,
-    layered_blend,
     list_renderers,
     register_renderer,
     unregister_renderer,
@@ -22,16 +26,13 @@ from .helpers import template_scene
 
 @register_renderer("test-flat")
 class FlatRenderer(MeshRenderer):
-    """A third-party backend: hard edges, colour of the nearest face, written against the public pieces."""
+    """A third-party backend: hard edges, colour of the nearest face, composed from the public pieces."""
 
-    truncate_opaque = True
     position_gradients = False
 
     def __init__(self, image_size=64, camera=None, background_color=(1.0, 1.0, 1.0)):
-        super().__init__(image_size, 1, 0.0, camera, background_color)
-
-    def blend(self, colors, fragments, bg_table):
-        return layered_blend(colors, fragments, bg_table, sigma=0.0)
+        rasterizer = MeshRasterizer(image_size, 1, 0.0, camera, truncate_opaque=True)
+        super().__init__(rasterizer, LayeredBlend(sigma=0.0), background_color)
 
 
 def test_registry_round_trip_and_third_party_backend():
@@ -65,6 +66,26 @@ def test_hydra_configs_exist_for_builtin_backends():
         assert get_renderer_class(name).__name__ == cls and module == "unicorn.render"
         cfg.pop("camera", None)
         assert isinstance(build_renderer(name, **cfg), get_renderer_class(name))
+
+
+@pytest.mark.parametrize("name", ["layered", "softras", "hard"])
+def test_hydra_instantiates_the_configs_target_directly(name):
+    from pathlib import Path
+
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "renderer" / f"{name}.yaml")
+    renderer = instantiate(cfg, image_size=16)
+    assert type(renderer) is get_renderer_class(name) and renderer.image_size == (16, 16)
+    options = OmegaConf.to_container(cfg, resolve=True)
+    del options["_target_"], options["camera"]["_target_"]
+    options.update(image_size=16, camera=PerspectiveCamera(**options["camera"]))
+    verts, faces, R, T, _ = template_scene(batch=1, level=2)
+    tex = TexturesVertex(torch.rand(1, verts.shape[1], 3))
+    assert torch.equal(
+        renderer(verts, faces, tex, R=R, T=T), build_renderer(name, **options)(verts, faces, tex, R=R, T=T)
+    )
 
 
 @pytest.fixture(params=list_renderers())
@@ -147,3 +168,54 @@ def test_camera_is_configurable(renderer_name):
         verts, faces, tex, R=R, T=T
     )
     assert wide[:, 3].sum() < 0.5 * narrow[:, 3].sum()
+
+
+# the built-in backends' options in the test below, and the same renderers composed by hand
+_OPTIONS = {
+    "layered": {"sigma": 1e-3, "faces_per_pixel": 25},
+    "softras": {"sigma": 1e-3, "gamma": 1e-2, "faces_per_pixel": 40, "znear": 0.5},
+    "hard": {"supersample": 2},
+}
+_BY_HAND = {
+    "layered": lambda cam: MeshRenderer(
+        MeshRasterizer(16, 25, blur_radius_from_sigma(1e-3), cam, truncate_opaque=True), LayeredBlend(1e-3)
+    ),
+    "softras": lambda cam: MeshRenderer(
+        MeshRasterizer(16, 40, blur_radius_from_sigma(1e-3), cam), SoftRasBlend(1e-3, 1e-2, 0.5, cam.zfar, 1e-3)
+    ),
+    "hard": lambda cam: MeshRenderer(
+        MeshRasterizer(16, 1, 0.0, cam, truncate_opaque=True, supersample=2), HardBlend(2)
+    ),
+}
+
+
+def _images_and_gradients(render, verts, faces, maps, uvs, R, T, bg):
+    """Images (B, 4, 16, 16) and the gradients of a weighted sum to the vertices, texture maps and background."""
+    inputs = [x.detach().clone().requires_grad_() for x in (verts, maps, bg)]
+    images = render(inputs[0], faces, TexturesUV(inputs[1], uvs), R, T, inputs[2])
+    weights = torch.rand(images.shape, generator=torch.Generator().manual_seed(1), dtype=images.dtype)
+    return [images, *torch.autograd.grad((images * weights).sum(), inputs, allow_unused=True)]
+
+
+def test_registered_renderer_is_its_rasterizer_then_its_aggregator(renderer_name):
+    assert {"layered", "softras", "hard"} <= set(_BY_HAND)
+    verts, faces, R, T, uvs = template_scene(batch=2, level=2, dtype=torch.float64)
+    verts = verts + 0.02 * torch.randn(verts.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    g = torch.Generator().manual_seed(2)
+    maps, bg = torch.rand(2, 3, 8, 8, generator=g, dtype=torch.float64), torch.rand(2, 3, 16, 16, generator=g)
+    camera = PerspectiveCamera(fov=35.0)
+    renderer = build_renderer(renderer_name, image_size=16, camera=camera, **_OPTIONS.get(renderer_name, {})).double()
+    bg = bg.double()
+
+    def by_parts(verts, faces, textures, R, T, bg):
+        fragments = renderer.rasterizer(verts, faces, R, T)
+        table = bg.permute(0, 2, 3, 1).reshape(-1, bg.shape[1])
+        return renderer.blend(textures.sample(fragments, faces), fragments, table)
+
+    expected = _images_and_gradients(renderer.forward, verts, faces, maps, uvs, R, T, bg)
+    composed = [by_parts]
+    if renderer_name in _BY_HAND:
+        composed.append(_BY_HAND[renderer_name](camera).double().forward)
+    for render in composed:
+        for want, got in zip(expected, _images_and_gradients(render, verts, faces, maps, uvs, R, T, bg)):
+            assert (want is None and got is None) or torch.equal(want, got)

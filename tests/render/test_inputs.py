@@ -5,7 +5,7 @@ import torch
 
 from unicorn.render import (
     LayeredRasterizer,
-    MeshRenderer,
+    MeshRasterizer,
     TexturesUV,
     TexturesVertex,
     build_renderer,
@@ -173,7 +173,7 @@ def test_non_finite_blur_radius_and_sigma_are_named(bad):
     with pytest.raises(ValueError, match="blur_radius must be finite and >= 0"):
         rasterize_meshes(verts, faces, 16, blur_radius=bad)
     with pytest.raises(ValueError, match="blur_radius must be finite"):
-        MeshRenderer(blur_radius=bad)
+        MeshRasterizer(blur_radius=bad)
     with pytest.raises(ValueError, match="sigma"):
         LayeredRasterizer(sigma=bad)
     with pytest.raises(ValueError, match="sigma"):

@@ -214,7 +214,12 @@ def _check_values(cfg: DictConfig) -> None:
 
 
 def _registry_name(cls: type) -> str:
-    from unicorn.render import get_renderer_class, list_renderers
+    """The registry name of a backend class: the model's config (saved in checkpoints) names its renderer by it.
+
+    ``hydra.utils.instantiate`` builds ``conf/renderer/*.yaml`` from ``_target_`` directly; this lookup only
+    translates the node into the model's settings.
+    """
+    from unicorn.render import get_renderer_class, list_renderers  # here: importing this module stays free of torch
 
     for name in list_renderers():
         if get_renderer_class(name) is cls:

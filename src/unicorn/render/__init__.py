@@ -1,16 +1,21 @@
 """unicorn's differentiable mesh renderer, in pure PyTorch (CPU and CUDA).
 
-Pieces, PyTorch3D-style: :func:`rasterize_meshes` turns projected meshes into packed top-K
-:class:`Fragments`; textures give every fragment a colour; an aggregator (layered, SoftRas, hard) composites
-them into images. The backends put the pieces together and are registered by name::
+Pieces, PyTorch3D-style: a :class:`MeshRasterizer` turns projected meshes into packed top-K :class:`Fragments`
+(:func:`rasterize_meshes`); textures give every fragment a colour; an aggregator (:class:`LayeredBlend`,
+:class:`SoftRasBlend`, :class:`HardBlend`, each with its function) composites them into images. A
+:class:`MeshRenderer` composes a rasterizer and an aggregator; the built-in compositions are registered by
+name::
 
     from unicorn.render import build_renderer, list_renderers
     renderer = build_renderer("layered", image_size=64, sigma=1e-4)
 """
 
+from .backends import HardRenderer, LayeredRasterizer, SoftRasRenderer
 from .fragments import DenseFragments, Fragments
+from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
 from .raster import blur_radius_from_sigma, rasterize_meshes
+from .rasterizer import MeshRasterizer
 from .registry import (
     build_renderer,
     get_renderer_class,
@@ -18,16 +23,18 @@ from .registry import (
     register_renderer,
     unregister_renderer,
 )
-from .renderer import HardRenderer, LayeredRasterizer, MeshRenderer, RenderOutput, SoftRasRenderer
+from .renderer import MeshRenderer, RenderOutput
 from .softras import SoftRasBlend, softras_blend
 from .textures import Textures, TexturesUV, TexturesVertex, interpolate_vertex_attributes
 
 __all__ = [
     "DenseFragments",
     "Fragments",
+    "HardBlend",
     "HardRenderer",
     "LayeredBlend",
     "LayeredRasterizer",
+    "MeshRasterizer",
     "MeshRenderer",
     "RenderOutput",
     "SoftRasBlend",
@@ -38,6 +45,7 @@ __all__ = [
     "blur_radius_from_sigma",
     "build_renderer",
     "get_renderer_class",
+    "hard_blend",
     "interpolate_vertex_attributes",
     "layered_blend",
     "layered_occupancy",

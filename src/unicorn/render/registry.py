@@ -1,10 +1,14 @@
 """Registry of renderer backends, by name.
 
-Backends are ``nn.Module`` classes whose constructor takes keyword options and whose ``forward`` follows
-:class:`unicorn.render.MeshRenderer`. Another package registers its own with the decorator::
+This is the one list of the backends. Backends are ``nn.Module`` classes whose constructor takes keyword
+options and whose ``forward`` follows :class:`unicorn.render.MeshRenderer`; the built-in ones
+(:mod:`unicorn.render.backends`) are named compositions of a rasterizer and an aggregator. Another package
+registers its own with the decorator::
 
     @register_renderer("mine")
-    class MyRenderer(MeshRenderer): ...
+    class MyRenderer(MeshRenderer):
+        def __init__(self, image_size=64, background_color=(1.0, 1.0, 1.0)):
+            super().__init__(MeshRasterizer(image_size, truncate_opaque=True), LayeredBlend(0.0), background_color)
 
 or through the ``unicorn.renderers`` entry-point group (``name = "package.module:Class"``), loaded on first use.
 """

@@ -1,30 +1,29 @@
-"""Mesh renderers: camera transform, rasterization into fragments, shading, aggregation.
+"""The renderer: a rasterizer and an aggregator composed (PyTorch3D's ``MeshRenderer(rasterizer, shader)``).
 
-Every backend takes a batch of meshes with shared topology, verts (B, V, 3) and faces (F, 3), their
+A renderer takes a batch of meshes with shared topology, verts (B, V, 3) and faces (F, 3), their
 :class:`~unicorn.render.textures.Textures`, the world-to-view pose ``x_view = x @ R + T`` and an optional
-background image, and returns images (B, C + 1, H, W) whose last channel is alpha.
+background image, and returns images (B, C + 1, H, W) whose last channel is alpha. The rasterizer
+(:class:`~unicorn.render.rasterizer.MeshRasterizer`) makes the fragments, the textures colour them and the
+aggregator (:class:`~unicorn.render.layered.LayeredBlend`, :class:`~unicorn.render.softras.SoftRasBlend`,
+:class:`~unicorn.render.hard.HardBlend` or any module with that call signature) composites them.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as nnf
 from torch import nn
 
-from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
+from ..geometry.cameras import PerspectiveCamera
 from .compositing import background_pixels
 from .fragments import Fragments
-from .layered import layered_blend
-from .raster import blur_radius_from_sigma, check_mesh_inputs, check_pose_inputs, rasterize_meshes
-from .registry import register_renderer
-from .softras import softras_blend
+from .raster import check_mesh_inputs, check_pose_inputs
+from .rasterizer import MeshRasterizer
 from .textures import Textures
 
-__all__ = ["HardRenderer", "LayeredRasterizer", "MeshRenderer", "RenderOutput", "SoftRasRenderer"]
+__all__ = ["MeshRenderer", "RenderOutput"]
 
 
 @dataclass
@@ -51,95 +50,50 @@ class RenderOutput:
 
 
 class MeshRenderer(nn.Module):
-    """Base of the backends: everything but the aggregation.
+    """Rasterize, colour the fragments from the textures, aggregate them over the background.
 
     Args:
-        image_size: H or (H, W).
-        faces_per_pixel: K, the most faces kept per pixel.
-        blur_radius: squared NDC radius within which a face outside the pixel still counts.
-        camera: projection; a 30-degree field of view by default (the reference's).
+        rasterizer: makes the fragments at its ``raster_size``; its ``image_size`` is the output size.
+        blend: the aggregator, called as ``blend(colors (M, C), fragments, bg_table (B * H * W, C))`` and
+            returning images (B, C + 1, H, W).
         background_color: colour (C,) behind the mesh when no background image is given.
-        max_candidates: rasterizer work budget per chunk of images (bounds memory).
     """
 
-    truncate_opaque = False
     # whether images are differentiable in the vertex positions (the hard backend's are not)
     position_gradients = True
 
     def __init__(
         self,
-        image_size: int | Sequence[int] = 64,
-        faces_per_pixel: int = 1,
-        blur_radius: float = 0.0,
-        camera: PerspectiveCamera | None = None,
+        rasterizer: MeshRasterizer,
+        blend: nn.Module,
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
     ) -> None:
         super().__init__()
-        self.image_size = image_hw(image_size if isinstance(image_size, int) else tuple(image_size))
-        if faces_per_pixel < 1:
-            raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
-        self.faces_per_pixel = int(faces_per_pixel)
-        if not (math.isfinite(blur_radius) and blur_radius >= 0):
-            raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
-        self.blur_radius = float(blur_radius)
-        self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
+        self.rasterizer = rasterizer
+        self.blend = blend
         self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32))
-        self.max_candidates = int(max_candidates)
 
-    def extra_repr(self) -> str:
-        return (
-            f"image_size={self.image_size}, faces_per_pixel={self.faces_per_pixel}, blur_radius={self.blur_radius:.3g}"
-        )
-
-    def project(self, verts: torch.Tensor, R: torch.Tensor | None, T: torch.Tensor | None) -> torch.Tensor:
-        """World vertices (B, V, 3) to ``(x_ndc, y_ndc, z_view)``; with R and T None, verts are in view space."""
-        if (R is None) != (T is None):
-            raise ValueError("give both R and T, or neither (verts already in view coordinates)")
-        view = verts if R is None else world_to_view(verts, R, T)
-        return self.camera.project(view)
-
-    def rasterize(
-        self,
-        verts: torch.Tensor,
-        faces: torch.Tensor,
-        R: torch.Tensor | None = None,
-        T: torch.Tensor | None = None,
-        image_size: tuple[int, int] | None = None,
-    ) -> Fragments:
-        """Fragments of the meshes (B, V, 3) / (F, 3) seen with pose (R, T)."""
-        check_mesh_inputs(verts, faces)
-        check_pose_inputs(R, T, verts.shape[0])
-        return self._rasterize(verts, faces, R, T, image_size)
-
-    def _rasterize(
-        self,
-        verts: torch.Tensor,
-        faces: torch.Tensor,
-        R: torch.Tensor | None,
-        T: torch.Tensor | None,
-        image_size: tuple[int, int] | None,
-    ) -> Fragments:
-        # inputs already checked by the caller (each check is a host sync on CUDA: once per render)
-        return rasterize_meshes(
-            self.project(verts, R, T), faces, image_size or self.image_size, self.blur_radius,
-            self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
-        )  # fmt: skip
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W) of the output images."""
+        return self.rasterizer.image_size
 
     @property
     def raster_size(self) -> tuple[int, int]:
-        """(H, W) at which fragments are computed; the output size unless a backend supersamples."""
-        return self.image_size
+        """(H, W) at which fragments are computed; the output size unless the rasterizer supersamples."""
+        return self.rasterizer.raster_size
 
-    def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        """Images (B, C + 1, H, W) from fragment colours (M, C) and the background table (B * H * W, C)."""
-        raise NotImplementedError
+    @property
+    def camera(self) -> PerspectiveCamera:
+        """The rasterizer's camera."""
+        return self.rasterizer.camera
 
-    def _check_inputs(self, textures: Textures, verts: torch.Tensor, faces: torch.Tensor) -> None:
-        check_mesh_inputs(verts, faces)
-        if not isinstance(textures, Textures):
-            raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
-        textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0])
+    def rasterize(
+        self, verts: torch.Tensor, faces: torch.Tensor, R: torch.Tensor | None = None, T: torch.Tensor | None = None
+    ) -> Fragments:
+        """Fragments of the meshes (B, V, 3) / (F, 3) seen with pose (R, T), at the output size (not supersampled);
+        ``self.rasterizer(...)`` for others."""
+        return self.rasterizer(verts, faces, R, T, self.image_size)
 
     def render(
         self,
@@ -151,9 +105,12 @@ class MeshRenderer(nn.Module):
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
-        self._check_inputs(textures, verts, faces)
+        check_mesh_inputs(verts, faces)
+        if not isinstance(textures, Textures):
+            raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
+        textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0])
         check_pose_inputs(R, T, verts.shape[0])
-        fragments = self._rasterize(verts, faces, R, T, self.raster_size)
+        fragments = self.rasterizer(verts, faces, R, T, check_inputs=False)  # checked once above
         colors = textures.sample(fragments, faces.long())
         bg = background_pixels(
             background, self.background_color, verts.shape[0], self.image_size, textures.num_channels, colors
@@ -183,147 +140,3 @@ class MeshRenderer(nn.Module):
             (B, C + 1, H, W) images, the last channel alpha.
         """
         return self.render(verts, faces, textures, R, T, background).images
-
-
-@register_renderer("layered")
-class LayeredRasterizer(MeshRenderer):
-    """UNICORN's renderer: soft top-K rasterization and layered alpha compositing.
-
-    Occupancy ``exp(min(0, -d) / sigma)`` on squared NDC distances: 1 inside a face, fading over about a pixel
-    outside; faces are composited front to back. The blur radius follows from ``sigma`` (occupancy 1e-4 at the
-    edge), and faces behind the first opaque one are dropped exactly.
-
-    Args:
-        image_size: H or (H, W).
-        sigma: occupancy temperature (1e-4 in the reference); 0 renders hard edges.
-        faces_per_pixel: K (25 for real images, 50 for ShapeNet in the reference).
-        camera, background_color, max_candidates: see :class:`MeshRenderer`.
-
-    Example:
-        >>> import torch
-        >>> from unicorn.geometry.mesh import icosphere
-        >>> from unicorn.geometry.rotations import look_at_view_transform
-        >>> from unicorn.render import LayeredRasterizer, TexturesVertex
-        >>> verts, faces = icosphere(2)
-        >>> R, T = look_at_view_transform(dist=2.7, elev=30.0, azim=45.0)
-        >>> renderer = LayeredRasterizer(image_size=32)
-        >>> images = renderer(verts[None] * 0.5, faces, TexturesVertex(torch.rand(1, len(verts), 3)), R=R, T=T)
-        >>> tuple(images.shape)
-        (1, 4, 32, 32)
-    """
-
-    truncate_opaque = True
-
-    def __init__(
-        self,
-        image_size: int | Sequence[int] = 64,
-        sigma: float = 1e-4,
-        faces_per_pixel: int = 25,
-        camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-    ) -> None:
-        super().__init__(
-            image_size,
-            faces_per_pixel,
-            blur_radius_from_sigma(sigma),
-            camera,
-            background_color,
-            max_candidates,
-        )
-        self.sigma = float(sigma)
-
-    def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        return layered_blend(colors, fragments, bg_table, self.sigma)
-
-
-@register_renderer("softras")
-class SoftRasRenderer(MeshRenderer):
-    """SoftRasterizer-style aggregation (sigmoid occupancy, depth softmax with a background layer).
-
-    Args:
-        image_size: H or (H, W).
-        sigma: occupancy temperature on squared NDC distances.
-        gamma: depth softmax temperature.
-        faces_per_pixel: K; unlike the layered renderer nothing is exactly hidden, so K must cover the depth
-            complexity within the blur radius.
-        eps: normalised inverse depth of the background layer.
-        znear, zfar: depth normalisation; the camera's when None.
-        camera, background_color, max_candidates: see :class:`MeshRenderer`.
-    """
-
-    def __init__(
-        self,
-        image_size: int | Sequence[int] = 64,
-        sigma: float = 1e-4,
-        gamma: float = 1e-4,
-        faces_per_pixel: int = 50,
-        eps: float = 1e-3,
-        znear: float | None = None,
-        zfar: float | None = None,
-        camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-    ) -> None:
-        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-            raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
-        super().__init__(
-            image_size,
-            faces_per_pixel,
-            blur_radius_from_sigma(sigma),
-            camera,
-            background_color,
-            max_candidates,
-        )
-        self.sigma, self.gamma, self.eps = float(sigma), float(gamma), float(eps)
-        self.znear = self.camera.znear if znear is None else float(znear)
-        self.zfar = self.camera.zfar if zfar is None else float(zfar)
-
-    def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        return softras_blend(colors, fragments, bg_table, self.sigma, self.gamma, self.znear, self.zfar, self.eps)
-
-
-@register_renderer("hard")
-class HardRenderer(MeshRenderer):
-    """Hard rasterization (nearest face containing the pixel, no blur), optionally supersampled.
-
-    For masks and pictures: with ``supersample = s`` it renders at s times the resolution and averages s x s
-    blocks, which anti-aliases edges. Gradients reach colours, textures and the background, not positions.
-    ``render(...).fragments`` are at the supersampled resolution.
-
-    Args:
-        image_size: H or (H, W) of the output.
-        supersample: integer supersampling factor (1 = none).
-        camera, background_color, max_candidates: see :class:`MeshRenderer`.
-    """
-
-    truncate_opaque = True
-    position_gradients = False
-
-    def __init__(
-        self,
-        image_size: int | Sequence[int] = 64,
-        supersample: int = 2,
-        camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-    ) -> None:
-        super().__init__(image_size, 1, 0.0, camera, background_color, max_candidates)
-        if supersample < 1:
-            raise ValueError(f"supersample must be >= 1, got {supersample}")
-        self.supersample = int(supersample)
-
-    @property
-    def raster_size(self) -> tuple[int, int]:
-        H, W = self.image_size
-        return H * self.supersample, W * self.supersample
-
-    def blend(self, colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor) -> torch.Tensor:
-        # composite premultiplied colour over black at full resolution, average, then add the background
-        B, C = fragments.batch_size, colors.shape[1]
-        (H, W), (h, w) = self.image_size, fragments.image_size
-        fine = layered_blend(colors, fragments, colors.new_zeros(C).expand(B * h * w, C), sigma=0.0)
-        coarse = nnf.avg_pool2d(fine, self.supersample) if self.supersample > 1 else fine
-        bg = bg_table.reshape(B, H, W, C).permute(0, 3, 1, 2)
-        alpha = coarse[:, -1:]
-        return torch.cat([coarse[:, :-1] + (1 - alpha) * bg, alpha], dim=1)

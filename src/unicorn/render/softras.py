@@ -16,7 +16,13 @@ from torch import nn
 from .compositing import gather_slots, write_pixels
 from .fragments import Fragments
 
-__all__ = ["SoftRasBlend", "softras_blend"]
+__all__ = ["SoftRasBlend", "check_temperatures", "softras_blend"]
+
+
+def check_temperatures(sigma: float, gamma: float) -> None:
+    """Raise ValueError unless the occupancy and depth temperatures are finite and > 0."""
+    if not (0 < sigma < math.inf and 0 < gamma < math.inf):
+        raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
 
 
 def softras_blend(
@@ -43,8 +49,7 @@ def softras_blend(
     Returns:
         (B, C + 1, H, W) images, the last channel the alpha.
     """
-    if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-        raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+    check_temperatures(sigma, gamma)
     prob = torch.sigmoid(-fragments.dists / sigma)
     z_inv = (zfar - fragments.zbuf) / (zfar - znear)
     row_pix, prob_k, z_inv_k, col = gather_slots(fragments, prob, z_inv, colors)
@@ -61,7 +66,7 @@ def softras_blend(
 
 
 class SoftRasBlend(nn.Module):
-    """Module form of :func:`softras_blend` holding its hyperparameters."""
+    """Module form of :func:`softras_blend` holding its hyperparameters (see there)."""
 
     def __init__(
         self,
@@ -72,11 +77,11 @@ class SoftRasBlend(nn.Module):
         eps: float = 1e-3,
     ) -> None:
         super().__init__()
-        if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-            raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+        check_temperatures(sigma, gamma)
         if not 0 <= znear < zfar:
             raise ValueError(f"need 0 <= znear < zfar, got {znear}, {zfar}")
-        self.sigma, self.gamma, self.znear, self.zfar, self.eps = sigma, gamma, znear, zfar, eps
+        self.sigma, self.gamma, self.eps = float(sigma), float(gamma), float(eps)
+        self.znear, self.zfar = float(znear), float(zfar)
 
     def extra_repr(self) -> str:
         return f"sigma={self.sigma}, gamma={self.gamma}, znear={self.znear}, zfar={self.zfar}, eps={self.eps}"

@@ -1,0 +1,107 @@
+"""The rasterizer module: camera projection plus :func:`rasterize_meshes`, with its settings.
+
+Soft top-K rasterization (``faces_per_pixel`` faces within ``blur_radius`` of each pixel) and hard
+rasterization (one face, no blur, optionally supersampled) are the same module with different settings.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
+from .fragments import Fragments
+from .raster import check_mesh_inputs, check_pose_inputs, rasterize_meshes
+
+__all__ = ["MeshRasterizer"]
+
+
+class MeshRasterizer(nn.Module):
+    """Meshes seen from a camera to packed :class:`Fragments`.
+
+    Args:
+        image_size: H or (H, W), the size of the images rendered from the fragments.
+        faces_per_pixel: K, the most faces kept per pixel.
+        blur_radius: squared NDC radius within which a face outside the pixel still counts.
+        camera: projection; a 30-degree field of view by default (the reference's).
+        truncate_opaque: drop the faces behind the first one containing the pixel (for aggregators in which
+            that face hides them exactly).
+        supersample: integer factor s: fragments are computed at (s * H, s * W) (1 = none).
+        max_candidates: rasterizer work budget per chunk of images (bounds memory).
+    """
+
+    def __init__(
+        self,
+        image_size: int | Sequence[int] = 64,
+        faces_per_pixel: int = 1,
+        blur_radius: float = 0.0,
+        camera: PerspectiveCamera | None = None,
+        truncate_opaque: bool = False,
+        supersample: int = 1,
+        max_candidates: int = 1 << 23,
+    ) -> None:
+        super().__init__()
+        self.image_size = image_hw(image_size if isinstance(image_size, int) else tuple(image_size))
+        if faces_per_pixel < 1:
+            raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
+        self.faces_per_pixel = int(faces_per_pixel)
+        if not (math.isfinite(blur_radius) and blur_radius >= 0):
+            raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
+        self.blur_radius = float(blur_radius)
+        self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
+        self.truncate_opaque = bool(truncate_opaque)
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        self.supersample = int(supersample)
+        self.max_candidates = int(max_candidates)
+
+    def extra_repr(self) -> str:
+        return (
+            f"image_size={self.image_size}, faces_per_pixel={self.faces_per_pixel}, "
+            f"blur_radius={self.blur_radius:.3g}, truncate_opaque={self.truncate_opaque}, "
+            f"supersample={self.supersample}"
+        )
+
+    @property
+    def raster_size(self) -> tuple[int, int]:
+        """(s * H, s * W), the size of the fragments."""
+        H, W = self.image_size
+        return H * self.supersample, W * self.supersample
+
+    def project(self, verts: torch.Tensor, R: torch.Tensor | None, T: torch.Tensor | None) -> torch.Tensor:
+        """World vertices (B, V, 3) to ``(x_ndc, y_ndc, z_view)`` (B, V, 3); with R, T None verts are in view space."""
+        if (R is None) != (T is None):
+            raise ValueError("give both R and T, or neither (verts already in view coordinates)")
+        view = verts if R is None else world_to_view(verts, R, T)
+        return self.camera.project(view)
+
+    def forward(
+        self,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        R: torch.Tensor | None = None,
+        T: torch.Tensor | None = None,
+        image_size: tuple[int, int] | None = None,
+        check_inputs: bool = True,
+    ) -> Fragments:
+        """Fragments of the meshes seen with pose (R, T).
+
+        Args:
+            verts: (B, V, 3) world vertices (view vertices if R and T are None).
+            faces: (F, 3) integer, shared by the batch.
+            R: (B, 3, 3) world-to-view rotation, ``x_view = x @ R + T``.
+            T: (B, 3) world-to-view translation.
+            image_size: (H, W) of the fragments; :attr:`raster_size` when None.
+            check_inputs: validate the meshes and the pose (False when the caller did: each check is a host
+                sync on CUDA).
+        """
+        if check_inputs:
+            check_mesh_inputs(verts, faces)
+            check_pose_inputs(R, T, verts.shape[0])
+        return rasterize_meshes(
+            self.project(verts, R, T), faces, image_size or self.raster_size, self.blur_radius,
+            self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
+        )  # fmt: skip
