@@ -30,7 +30,7 @@ do without looking at the image, and generous since its pose is perfect; rows ``
 all its views at their ground-truth poses with the model's own renderer and regularisers,
 ``unicorn.evaluation.fit_silhouettes``: what silhouettes at this image size can say about a shape, with no pose
 error and no generalisation gap; rows ``silhouette fit (GT poses, every view)`` and ``..., chairs``;
-``--silhouette-iterations 0`` leaves it out, about 3 minutes per category on 2 cores).
+``--silhouette-iterations 0`` leaves it out; 12 minutes for the 20 test cars on one busy thread).
 
 Metrics (see unicorn.evaluation): on one fixed view per test model, ``chamfer-L1-ICP`` (unit-cube normalised,
 anisotropic-scale ICP) and ``chamfer-L1`` (prediction mapped into the ground-truth frame through the predicted
