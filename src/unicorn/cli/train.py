@@ -193,7 +193,6 @@ def build(cfg: DictConfig) -> Run:
         CodeDiagnostics,
         HeldOutEvaluation,
         ImageLogger,
-        IterationDataModule,
         PeriodicCheckpoint,
         ProgressBar,
         ResumeLogs,
@@ -218,7 +217,7 @@ def build(cfg: DictConfig) -> Run:
     _write_provenance(output_dir, ckpt_path)
 
     L.seed_everything(typed.seed, workers=True, verbose=False)
-    data = IterationDataModule(instantiate(typed.dataset, _convert_="all"), seed=typed.seed)
+    data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
     module = UnicornLitModule(
         model_config(typed),
         optim=OmegaConf.to_container(typed.optim, resolve=True),
