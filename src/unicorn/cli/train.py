@@ -75,7 +75,7 @@ def config_dir() -> Path:
 
 def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
     """``None``, ``"last"`` (this run directory's last.ckpt if it exists) or an existing file."""
-    from unicorn.serialization import CheckpointNotFoundError
+    from unicorn.io.serialization import CheckpointNotFoundError
 
     if ckpt_path is None:
         return None
@@ -188,6 +188,7 @@ def build(cfg: DictConfig) -> Run:
     from hydra.utils import instantiate
 
     from unicorn.config import model_config, validate
+    from unicorn.io.serialization import remove_stale_temporaries
     from unicorn.lit import (
         AtomicCheckpointIO,
         CodeDiagnostics,
@@ -199,7 +200,6 @@ def build(cfg: DictConfig) -> Run:
         StageCallback,
         UnicornLitModule,
     )
-    from unicorn.serialization import remove_stale_temporaries
 
     _route_lightning_logs()
     typed = validate(cfg)

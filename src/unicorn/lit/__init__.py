@@ -21,7 +21,7 @@ rank ``r mod saved_world_size``.
 """
 
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
-from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint, atomic_torch_save
+from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint
 from unicorn.lit.data import SeededItems, StreamBatchSampler, UnicornDataModule
 from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.lit.heldout import HeldOutEvaluation
@@ -46,7 +46,6 @@ __all__ = [
     "TensorBoardLogger",
     "UnicornDataModule",
     "UnicornLitModule",
-    "atomic_torch_save",
     "code_diagnostics",
     "render_overview",
 ]
