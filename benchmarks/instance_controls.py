@@ -57,7 +57,7 @@ def compose_model_config(cache: str | None) -> tuple[dict, str]:
 
     from unicorn.cli.train import config_dir
     from unicorn.config import model_config, validate
-    from unicorn.data.datamodule import UnicornDataModule
+    from unicorn.data import prepare_dataset
 
     overrides = ["experiment=synthetic", f"paths.output_dir={tempfile.gettempdir()}"]
     if cache:
@@ -65,9 +65,8 @@ def compose_model_config(cache: str | None) -> tuple[dict, str]:
     with initialize_config_dir(str(config_dir()), version_base=None):
         cfg = validate(compose("train", overrides=overrides))
     d = cfg.dataset
-    data = UnicornDataModule("synthetic", d.root, d.categories, synthetic=dict(d.synthetic))
-    data.prepare_data()
-    return model_config(cfg), str(data.dataset_root())
+    categories = d.categories if d.categories is None or isinstance(d.categories, str) else list(d.categories)
+    return model_config(cfg), str(prepare_dataset("synthetic", d.root, categories, dict(d.synthetic)))
 
 
 def gt_pose_step(model: Unicorn, batch: dict) -> tuple[torch.Tensor, dict]:

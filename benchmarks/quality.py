@@ -280,15 +280,15 @@ def train_all(runs: list[Run], args: argparse.Namespace) -> dict[Run, float]:
 # ---------------------------------------------------------------------------------------------- scoring
 def load_run(run_dir: Path, device: str) -> tuple[Any, Path, str]:
     """The run's final model, the root of its synthetic dataset and its category (the baselines' key)."""
-    from unicorn.data.datamodule import UnicornDataModule
+    from unicorn.data import dataset_root
+    from unicorn.data.registry import SYNTHETIC_DEFAULTS
     from unicorn.io import load_model
 
     model, info = load_model(run_dir / "checkpoints" / "last.ckpt", map_location=device)
     d = info.dataset
-    data = UnicornDataModule("synthetic", d.get("root"), d.get("categories"), synthetic=d.get("synthetic"))
-    category = data.categories if data.categories is not None else "chair"  # the synthetic default
-    category = category if isinstance(category, str) else "+".join(sorted(category))
-    return model, data.dataset_root(), category
+    category = d.get("categories") if d.get("categories") is not None else SYNTHETIC_DEFAULTS["category"]
+    category = category if isinstance(category, str) else "+".join(sorted(map(str, category)))
+    return model, dataset_root("synthetic", d.get("root"), d.get("categories"), d.get("synthetic")), category
 
 
 def baseline_names(category: str) -> tuple[str, str, str]:

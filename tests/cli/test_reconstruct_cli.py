@@ -18,11 +18,10 @@ import unicorn
 from tests.data.test_images import bomb_png
 from tests.evaluation.helpers import TEXTURE_SIZE, tiny_checkpoint, write_inputs
 from tests.evaluation.test_report import referenced_files
-from tests.model.test_checkpoint_compat import reference_state
+from tests.io.test_reference_checkpoints import reference_state
 from unicorn.cli.reconstruct import main
 from unicorn.data.images import MAX_IMAGE_PIXELS_ENV
-from unicorn.io import load_model
-from unicorn.model import export_prediction
+from unicorn.io import export_prediction, load_model
 
 FAST = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
 

@@ -1,7 +1,7 @@
 """A checkpoint carrying a ``__reduce__`` payload is refused by every entry point, and the payload never runs.
 
 Entry points: ``unicorn-eval``, ``unicorn-reconstruct``, ``unicorn-train ckpt_path=...`` (resume), and the API
-(:func:`unicorn.io.load_model`, :func:`unicorn.io.read_checkpoint`, :func:`unicorn.model.load_reference_checkpoint`).
+(:func:`unicorn.io.load_model`, :func:`unicorn.io.read_checkpoint`, :func:`unicorn.io.load_reference_checkpoint`).
 Released-format files, which hold only tensors and plain data, still load without trusting them.
 """
 
@@ -18,14 +18,13 @@ import pytest
 import torch
 
 from tests.evaluation.helpers import tiny_checkpoint, write_inputs
+from tests.io.test_reference_checkpoints import reference_state
+from tests.io.test_serialization import Payload
 from tests.lit.conftest import TINY
-from tests.model.test_checkpoint_compat import reference_state
-from tests.test_serialization import Payload
 from unicorn.cli import eval as eval_cli
 from unicorn.cli import reconstruct as reconstruct_cli
-from unicorn.io import UnsafeCheckpointError, load_model, read_checkpoint
-from unicorn.model import load_reference_checkpoint
-from unicorn.serialization import INTEGRITY_KEY
+from unicorn.io import UnsafeCheckpointError, load_model, load_reference_checkpoint, read_checkpoint
+from unicorn.io.serialization import INTEGRITY_KEY
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.data.conftest import cub_root, p3d_root, synth_nmr  # noqa: F401  (fixtures in the real on-disk formats)
+
 #: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
     "experiment=synthetic",

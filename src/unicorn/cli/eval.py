@@ -146,15 +146,9 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
     """The dataset folder of a training run's ``dataset`` config (synthetic runs name the cache's parent folder)."""
     if run_data.get("name") != "synthetic":
         return run_data.get("root")
-    from unicorn.data.datamodule import UnicornDataModule
+    from unicorn.data import dataset_root
 
-    module = UnicornDataModule(
-        "synthetic",
-        root=run_data.get("root"),
-        categories=run_data.get("categories"),
-        synthetic=run_data.get("synthetic"),
-    )
-    return str(module.dataset_root())
+    return str(dataset_root("synthetic", run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
 
 
 def run(args: argparse.Namespace, command: str | None = None, produced_by: str | None = None) -> int:

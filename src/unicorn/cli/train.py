@@ -75,7 +75,7 @@ def config_dir() -> Path:
 
 def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
     """``None``, ``"last"`` (this run directory's last.ckpt if it exists) or an existing file."""
-    from unicorn.serialization import CheckpointNotFoundError
+    from unicorn.io.serialization import CheckpointNotFoundError
 
     if ckpt_path is None:
         return None
@@ -188,19 +188,18 @@ def build(cfg: DictConfig) -> Run:
     from hydra.utils import instantiate
 
     from unicorn.config import model_config, validate
+    from unicorn.io.serialization import remove_stale_temporaries
     from unicorn.lit import (
         AtomicCheckpointIO,
         CodeDiagnostics,
         HeldOutEvaluation,
         ImageLogger,
-        IterationDataModule,
         PeriodicCheckpoint,
         ProgressBar,
         ResumeLogs,
         StageCallback,
         UnicornLitModule,
     )
-    from unicorn.serialization import remove_stale_temporaries
 
     _route_lightning_logs()
     typed = validate(cfg)
@@ -218,7 +217,7 @@ def build(cfg: DictConfig) -> Run:
     _write_provenance(output_dir, ckpt_path)
 
     L.seed_everything(typed.seed, workers=True, verbose=False)
-    data = IterationDataModule(instantiate(typed.dataset, _convert_="all"), seed=typed.seed)
+    data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
     module = UnicornLitModule(
         model_config(typed),
         optim=OmegaConf.to_container(typed.optim, resolve=True),

@@ -207,7 +207,7 @@ def _check_values(cfg: DictConfig) -> None:
     for name, node in cfg.callbacks.extra.items():
         _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
     # -- data and renderer
-    from unicorn.data.datamodule import DATASET_NAMES
+    from unicorn.data import DATASET_NAMES
 
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     renderer_settings(cfg.renderer)

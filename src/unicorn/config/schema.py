@@ -149,9 +149,9 @@ class ModelConfig:
 # ---------------------------------------------------------------------------------------------- data
 @dataclass
 class DatasetConfig:
-    """Arguments of :class:`unicorn.data.datamodule.UnicornDataModule` (``_target_`` may name a subclass)."""
+    """Arguments of :class:`unicorn.lit.UnicornDataModule` (``_target_`` may name a subclass)."""
 
-    _target_: str = "unicorn.data.datamodule.UnicornDataModule"
+    _target_: str = "unicorn.lit.UnicornDataModule"
     name: str = "synthetic"
     root: str | None = None
     categories: Any = None  # one name or a list

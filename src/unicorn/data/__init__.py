@@ -1,16 +1,16 @@
-"""Datasets: real loaders in their on-disk formats, the synthetic benchmark, and the LightningDataModule.
+"""Datasets: real loaders in their on-disk formats, the synthetic benchmark, and the registry that builds them.
 
-The synthetic benchmark generator lives in :mod:`unicorn.data.synthetic` (it imports open3d, so it is not
-imported here).
+No Lightning here: the LightningDataModule is :class:`unicorn.lit.UnicornDataModule`. The synthetic benchmark
+generator lives in :mod:`unicorn.data.synthetic` (it imports open3d, so it is not imported here).
 """
 
 from unicorn.data.common import PRIOR_TRANSLATION, UnicornDataset
 from unicorn.data.cub import CUB200
-from unicorn.data.datamodule import DATASET_NAMES, UnicornDataModule, build_dataset
 from unicorn.data.folder import CompCars, ImageFolder
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
+from unicorn.data.registry import DATASET_NAMES, build_dataset, dataset_root, prepare_dataset
 from unicorn.data.shapenet import ShapeNetNMR
 
 __all__ = [
@@ -25,7 +25,8 @@ __all__ = [
     "ImageLoadError",
     "Pascal3DCar",
     "ShapeNetNMR",
-    "UnicornDataModule",
     "UnicornDataset",
     "build_dataset",
+    "dataset_root",
+    "prepare_dataset",
 ]

@@ -41,7 +41,7 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _check(args: argparse.Namespace) -> int:
-    from unicorn.data.datamodule import build_dataset
+    from unicorn.data.registry import build_dataset
 
     options = {"tag": args.tag} if args.dataset == "lsun" else {}
     dataset = build_dataset(args.dataset, args.split, args.root, categories=args.categories, **options)

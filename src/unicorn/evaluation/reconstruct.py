@@ -42,7 +42,8 @@ from unicorn.evaluation.report import image_grid, save_gif, to_uint8
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
-from unicorn.model import Prediction, Unicorn, export_prediction, save_mesh
+from unicorn.io.meshes import export_prediction, save_mesh
+from unicorn.model import Prediction, Unicorn
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 

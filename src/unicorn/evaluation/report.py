@@ -28,8 +28,8 @@ from unicorn.evaluation.evaluator import METRIC_ORDER, ROW_INFO, EvaluationResul
 from unicorn.evaluation.rendering import even_angles, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters
+from unicorn.io.meshes import glb_bytes, textured_mesh
 from unicorn.model import Unicorn
-from unicorn.model.export import glb_bytes, textured_mesh
 
 __all__ = [
     "METRIC_HELP",

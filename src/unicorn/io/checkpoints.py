@@ -3,7 +3,7 @@
 Three formats are recognised by their keys:
 
 - **released UNICORN** ``.pkl`` (``model_state`` and ``model_kwargs``): converted by
-  :func:`unicorn.model.load_reference_checkpoint`;
+  :func:`unicorn.io.reference_checkpoints.load_reference_checkpoint`;
 - **Lightning** ``.ckpt`` written by ``unicorn-train`` (``state_dict`` and ``hyper_parameters``): the model is built
   from ``hyper_parameters["model"]`` (the :class:`~unicorn.lit.UnicornLitModule`'s ``model`` argument) and the
   ``model.``-prefixed weights are loaded; the module's ``texture_average_p`` buffer tells whether the network was
@@ -14,8 +14,8 @@ Three formats are recognised by their keys:
 The perceptual loss is never rebuilt (it is not needed to predict and its VGG weights may not be on this machine).
 
 Checkpoints are pickles, and a pickle can run any code while it is read. Every file is therefore read with
-PyTorch's restricted unpickler (tensors and plain data only, see :mod:`unicorn.serialization`); one that needs
-more is refused with :class:`~unicorn.serialization.UnsafeCheckpointError` unless ``trust=True`` is passed (the
+PyTorch's restricted unpickler (tensors and plain data only, see :mod:`unicorn.io.serialization`); one that needs
+more is refused with :class:`~unicorn.io.serialization.UnsafeCheckpointError` unless ``trust=True`` is passed (the
 command-line tools' ``--trust-checkpoint``): do that only for files from a source you trust. Files written by
 unicorn carry a content hash that is checked on load.
 """
@@ -31,14 +31,15 @@ from typing import Any, Literal
 
 import torch
 
-from unicorn.model import Unicorn, load_reference_checkpoint, merge_config
-from unicorn.serialization import (
+from unicorn.io.reference_checkpoints import load_reference_checkpoint
+from unicorn.io.serialization import (
     CheckpointError,
     CorruptCheckpointError,
     UnsafeCheckpointError,
     atomic_save,
     load_checkpoint_file,
 )
+from unicorn.model import Unicorn, merge_config
 
 __all__ = [
     "CheckpointError",
@@ -253,7 +254,7 @@ def load_model(
 def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
     """Write a plain checkpoint (config, weights and ``info``) that :func:`load_model` reads.
 
-    The file is written atomically and carries a hash of its content (see :mod:`unicorn.serialization`).
+    The file is written atomically and carries a hash of its content (see :mod:`unicorn.io.serialization`).
 
     Args:
         model: the model.

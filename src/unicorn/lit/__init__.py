@@ -1,4 +1,4 @@
-"""Lightning training of UNICORN: the module, the stage schedule, checkpoints and the training data stream.
+"""Lightning training of UNICORN: the module, the stage schedule, checkpoints and the DataModule.
 
 - :class:`UnicornLitModule` (``module``): manual optimization alternating pose and 3D steps, one Adam, logging
   of every loss term and of the pose-candidate shares, the non-finite-loss guard.
@@ -10,7 +10,8 @@
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`CodeDiagnostics` (``diagnostics``): code spread and dead units of the code regressors, with a loud
   :class:`CollapseWarning` when a branch stops depending on the image.
-- :class:`IterationDataModule` (``data``): an endless, resumable, rank-sharded stream of training batches.
+- :class:`UnicornDataModule` (``data``): the one LightningDataModule: a dataset's splits and loaders, training on an
+  endless, resumable, rank-sharded stream of batches (:class:`StreamBatchSampler`).
 
 Distributed training (DDP) keeps one neighbour memory bank per rank, as the reference does: each process
 searches the neighbours of its own samples among the last ``memory_size`` samples it has seen, with no
@@ -20,8 +21,8 @@ rank ``r mod saved_world_size``.
 """
 
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
-from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint, atomic_torch_save
-from unicorn.lit.data import IterationDataModule, SeededItems, StreamBatchSampler
+from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint
+from unicorn.lit.data import SeededItems, StreamBatchSampler, UnicornDataModule
 from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
@@ -35,7 +36,6 @@ __all__ = [
     "CSVLogger",
     "HeldOutEvaluation",
     "ImageLogger",
-    "IterationDataModule",
     "NonFiniteLossError",
     "PeriodicCheckpoint",
     "ProgressBar",
@@ -44,8 +44,8 @@ __all__ = [
     "StageCallback",
     "StreamBatchSampler",
     "TensorBoardLogger",
+    "UnicornDataModule",
     "UnicornLitModule",
-    "atomic_torch_save",
     "code_diagnostics",
     "render_overview",
 ]

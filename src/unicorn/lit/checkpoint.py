@@ -1,10 +1,12 @@
-"""Checkpoints that are either complete or absent, sealed with a content hash, and read without running code.
+"""Lightning's side of checkpoints (a CheckpointIO plugin, a rotation callback) on :mod:`unicorn.io.serialization`.
 
-:class:`AtomicCheckpointIO` writes a checkpoint with :func:`unicorn.serialization.atomic_save`: to a temporary file
+Checkpoints are either complete or absent, sealed with a content hash, and read without running code.
+
+:class:`AtomicCheckpointIO` writes a checkpoint with :func:`unicorn.io.serialization.atomic_save`: to a temporary file
 next to its destination, flushed to disk (``fsync``) and renamed into place (``os.replace`` is atomic on POSIX
 and Windows), with a SHA-256 of its content stored in it. A run killed while saving (Ctrl-C, SIGKILL, a
 pre-empted job) leaves its previous checkpoint intact, at worst with a stray ``.tmp`` file beside it, which the
-next run removes (:func:`unicorn.serialization.remove_stale_temporaries`). Lightning's own writer renames too
+next run removes (:func:`unicorn.io.serialization.remove_stale_temporaries`). Lightning's own writer renames too
 (fsspec transactions) but does not ``fsync``, so a crash of the machine could leave a renamed but incomplete
 file. Resuming reads the file with PyTorch's restricted unpickler and checks the hash; a file that needs full
 unpickling is refused unless the run trusts it (``trust_checkpoint=true``). Remote paths (``s3://``...) go to
@@ -24,16 +26,11 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from unicorn.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
+from unicorn.io.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
 
-__all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint", "atomic_torch_save"]
+__all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint"]
 
 log = logging.getLogger(__name__)
-
-
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
-    """``torch.save(obj, path)`` that never leaves a partial file at ``path`` (dicts get a content hash)."""
-    atomic_save(obj, path)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -1,23 +1,29 @@
-"""Iteration-based training data: an endless, resumable stream of shuffled batches.
+"""The LightningDataModule of every dataset: splits, validation subset, loaders, and the training stream.
 
-UNICORN trains for a number of iterations, not epochs. :class:`StreamBatchSampler` yields batch ``b`` of an
-endless concatenation of seeded permutations of the dataset, so the batches of a run are a pure function of
-``(seed, b)``: resuming at iteration ``N`` only needs ``N`` (Lightning's restored ``global_step``), whatever the
-number of workers or what had been prefetched when the checkpoint was written. Each rank of a distributed run
-reads its own slice of every global batch. :class:`SeededItems` makes random augmentation a pure function of
-the sample's stream position too, so a resumed run sees the very same augmented images.
+:class:`UnicornDataModule` builds a dataset's splits with :mod:`unicorn.data.registry` (free of Lightning) and
+serves their loaders. UNICORN trains for a number of iterations, not epochs: :class:`StreamBatchSampler` yields
+batch ``b`` of an endless concatenation of seeded permutations of the dataset, so the batches of a run are a pure
+function of ``(seed, b)``: resuming at iteration ``N`` only needs ``N`` (Lightning's restored ``global_step``),
+whatever the number of workers or what had been prefetched when the checkpoint was written. Each rank of a
+distributed run reads its own slice of every global batch. :class:`SeededItems` makes random augmentation a pure
+function of the sample's stream position too, so a resumed run sees the very same augmented images.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 
-__all__ = ["IterationDataModule", "SeededItems", "StreamBatchSampler"]
+from unicorn.data.common import OnError
+from unicorn.data.images import DatasetError, set_max_image_pixels
+from unicorn.data.registry import DATASET_NAMES, Split, build_dataset, dataset_root, prepare_dataset, val_indices
+
+__all__ = ["SeededItems", "StreamBatchSampler", "UnicornDataModule"]
 
 _SEED_STRIDE = 1_000_003
 
@@ -86,49 +92,146 @@ class SeededItems(Dataset):
             return self.dataset[index]
 
 
-class IterationDataModule(L.LightningDataModule):
-    """Wraps a :class:`~unicorn.data.datamodule.UnicornDataModule`: the same splits and validation loader, and an
-    endless resumable training stream (:class:`StreamBatchSampler`) starting at the trainer's ``global_step``.
+class UnicornDataModule(L.LightningDataModule):
+    """Train / val / test loaders for one dataset.
 
-    The trainer must run with ``use_distributed_sampler=False`` (the stream shards itself).
+    The training loader is, with ``stream_seed`` (``unicorn-train`` passes the run's seed), an endless resumable
+    stream (:class:`StreamBatchSampler`) starting at the trainer's ``global_step``; the trainer must then run with
+    ``use_distributed_sampler=False`` (the stream shards itself). Without it, it is a shuffled loader of one pass
+    over the training set, seeded by ``seed``.
 
     Args:
-        data: the dataset module (its ``train_set`` is read after ``setup``).
-        seed: stream seed (the run's seed).
+        name: one of :data:`~unicorn.data.registry.DATASET_NAMES`.
+        root: dataset root; for ``synthetic`` the parent folder of generated datasets (default: the cache,
+            ``$UNICORN_CACHE/synthetic`` or ``~/.cache/unicorn/synthetic``).
+        categories: ShapeNet categories (names or synsets); for ``synthetic`` the generated categories.
+        img_size: image side.
+        batch_size: training batch size (evaluation uses the same).
+        num_workers: DataLoader worker processes.
+        seed: seeds the one-pass training shuffle and the evaluation view choice.
+        val_size: validation subset size, default :data:`~unicorn.data.registry.VAL_SIZES` (capped at the split
+            size).
+        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+        pin_memory: pin batches (for GPU training).
+        synthetic: for ``synthetic``: ``mode`` (``"nmr"``/``"wild"``), ``n_models``, ``seed`` and other
+            :func:`~unicorn.data.synthetic.writer.generate_synthetic_dataset` options.
+        options: extra dataset-constructor arguments (e.g. ``{"tag": "horse"}`` for LSUN).
+        max_image_pixels: refuse images with more pixels (a bad image, skipped with ``on_error="skip"``); None:
+            the current limit (:func:`unicorn.data.images.max_image_pixels`), 0: no limit. Set for the whole
+            process and its workers.
+        stream_seed: seed of the endless training stream; None: one-pass training loaders.
     """
 
-    def __init__(self, data: L.LightningDataModule, seed: int = 0) -> None:
+    def __init__(
+        self,
+        name: str,
+        root: str | None = None,
+        categories: str | list[str] | None = None,
+        img_size: int = 64,
+        batch_size: int = 32,
+        num_workers: int = 4,
+        seed: int = 0,
+        val_size: int | None = None,
+        on_error: OnError = "raise",
+        pin_memory: bool = False,
+        synthetic: dict[str, Any] | None = None,
+        options: dict[str, Any] | None = None,
+        max_image_pixels: int | None = None,
+        stream_seed: int | None = None,
+    ) -> None:
         super().__init__()
-        self.data, self.seed = data, int(seed)
+        if max_image_pixels is not None:
+            set_max_image_pixels(max_image_pixels)
+        if name not in DATASET_NAMES:
+            raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+        if name != "synthetic" and root is None:
+            raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")
+        self.name, self.root, self.img_size = name, root, int(img_size)
+        # Hydra passes lists as ListConfig: normalise to plain str / list[str]
+        if categories is None or isinstance(categories, str):
+            self.categories = categories
+        else:
+            self.categories = [str(c) for c in categories]
+        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
+        self.val_size, self.on_error, self.pin_memory = val_size, on_error, pin_memory
+        self.synthetic = dict(synthetic or {})
+        self.options = dict(options or {})
+        self.stream_seed = None if stream_seed is None else int(stream_seed)
+        self.train_set: Dataset | None = None
+        self.val_set: Dataset | None = None
+        self.test_set: Dataset | None = None
+
+    def dataset_root(self) -> Path:
+        """Folder the datasets are read from (for ``synthetic``: the generated dataset)."""
+        return dataset_root(self.name, self.root, self.categories, self.synthetic)
 
     def prepare_data(self) -> None:
-        self.data.prepare_data()
+        """Generate the synthetic dataset if it is absent (runs on one process only)."""
+        prepare_dataset(self.name, self.root, self.categories, self.synthetic)
 
-    def setup(self, stage: str) -> None:
-        self.data.setup(stage)
-        train = getattr(self.data, "train_set", None)
-        if stage == "fit" and (train is None or len(train) == 0):
-            name = getattr(self.data, "name", type(self.data).__name__)
-            root = getattr(self.data, "root", None)
-            raise RuntimeError(f"dataset {name!r} (root {root!r}) has no training images")
+    def build(self, split: Split) -> Dataset:
+        """The full dataset of ``split`` (see :func:`~unicorn.data.registry.build_dataset`)."""
+        return build_dataset(
+            self.name,
+            split,
+            self.dataset_root(),
+            img_size=self.img_size,
+            categories=self.categories,
+            seed=self.seed,
+            on_error=self.on_error,
+            **self.options,
+        )
 
-    def train_dataloader(self) -> DataLoader:
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit") and self.train_set is None:
+            self.train_set = self.build("train")
+        if stage == "fit" and self.stream_seed is not None and len(self.train_set) == 0:  # type: ignore[arg-type]
+            raise RuntimeError(f"dataset {self.name!r} (root {self.root!r}) has no training images")
+        if stage in (None, "fit", "validate") and self.val_set is None:
+            full = self.build("val")
+            self.val_set = Subset(full, val_indices(self.name, len(full), self.val_size))
+        if stage in (None, "test", "predict") and self.test_set is None:
+            self.test_set = self.build("test")
+
+    def _loader(self, dataset: Dataset | None, train: bool) -> DataLoader:
+        if dataset is None:
+            raise RuntimeError("call setup() before asking for a dataloader")
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            shuffle=train,
+            drop_last=train and len(dataset) >= self.batch_size,  # type: ignore[arg-type]
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.num_workers > 0,
+            generator=torch.Generator().manual_seed(self.seed) if train else None,
+        )
+
+    def _stream(self, dataset: Dataset | None, seed: int) -> DataLoader:
+        if dataset is None:
+            raise RuntimeError("call setup() before asking for a dataloader")
         trainer = self.trainer
         start, rank, world = (
             (0, 0, 1) if trainer is None else (trainer.global_step, trainer.global_rank, trainer.world_size)
         )
-        train = self.data.train_set  # type: ignore[attr-defined]
-        workers = int(getattr(self.data, "num_workers", 0))
-        sampler = StreamBatchSampler(len(train), self.data.batch_size, self.seed, start, rank, world)  # type: ignore
+        sampler = StreamBatchSampler(len(dataset), self.batch_size, seed, start, rank, world)  # type: ignore[arg-type]
         return DataLoader(
-            SeededItems(train, self.seed),
+            SeededItems(dataset, seed),
             batch_sampler=sampler,
-            num_workers=workers,
-            pin_memory=bool(getattr(self.data, "pin_memory", False)),
-            persistent_workers=workers > 0,
+            num_workers=self.num_workers,
+            pin_memory=bool(self.pin_memory),
+            persistent_workers=self.num_workers > 0,
             # a private generator: creating the iterator must not consume the global RNG
-            generator=torch.Generator().manual_seed(self.seed),
+            generator=torch.Generator().manual_seed(seed),
         )
 
+    def train_dataloader(self) -> DataLoader:
+        if self.stream_seed is None:
+            return self._loader(self.train_set, train=True)
+        return self._stream(self.train_set, self.stream_seed)
+
     def val_dataloader(self) -> DataLoader:
-        return self.data.val_dataloader()
+        return self._loader(self.val_set, train=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.test_set, train=False)

@@ -99,7 +99,6 @@ class HeldOutEvaluation(L.Callback):
         from unicorn.evaluation import build_eval_dataset
 
         data = trainer.datamodule
-        data = getattr(data, "data", data)  # IterationDataModule wraps the dataset module
         if data is None or not hasattr(data, "name"):
             raise RuntimeError("HeldOutEvaluation needs the run's UnicornDataModule (trainer.datamodule)")
         root = data.dataset_root() if hasattr(data, "dataset_root") else data.root

@@ -6,17 +6,12 @@
   ``generator`` (texture / background), ``pose`` (candidates and scale), ``progressive`` (code masks).
 - Losses: ``losses`` (MSE, normal consistency, Laplacian, pose prior), ``perceptual`` (VGG16 / structural),
   ``neighbors`` (memory bank for the neighbour reconstruction).
-- ``checkpoint_compat`` (released checkpoints) and ``export`` (textured meshes).
+
+Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
 from unicorn.model.autoencoder import DEFAULT_CONFIG, Prediction, Unicorn, merge_config, unicorn_config
-from unicorn.model.checkpoint_compat import (
-    config_from_reference,
-    convert_reference_state_dict,
-    load_reference_checkpoint,
-)
 from unicorn.model.encoder import ResNet18
-from unicorn.model.export import export_prediction, save_mesh, textured_mesh
 from unicorn.model.field import DeformationField, ShapeHead
 from unicorn.model.generator import CodeGenerator, GiraffeGenerator
 from unicorn.model.losses import (
@@ -56,15 +51,25 @@ __all__ = [
     "VGGPerceptualLoss",
     "active_dims_at",
     "candidate_assignment_loss",
-    "config_from_reference",
-    "convert_reference_state_dict",
-    "export_prediction",
-    "load_reference_checkpoint",
     "load_vgg16_weights",
     "merge_config",
     "mse_per_sample",
-    "save_mesh",
-    "textured_mesh",
     "uniform_pose_prior",
     "unicorn_config",
 ]
+
+# README.md documents these three to users as ``unicorn.model.*``: kept as re-exports of their home in
+# unicorn.io, imported on first use so that importing unicorn.model never imports unicorn.io (a higher floor).
+_MOVED_TO_IO = {
+    "load_reference_checkpoint": "unicorn.io.reference_checkpoints",
+    "export_prediction": "unicorn.io.meshes",
+    "save_mesh": "unicorn.io.meshes",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _MOVED_TO_IO:
+        import importlib
+
+        return getattr(importlib.import_module(_MOVED_TO_IO[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -7,11 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.model.test_checkpoint_compat import reference_state
+from tests.evaluation.helpers import IMAGE_SIZE, tiny_model
+from tests.io.test_reference_checkpoints import reference_state
 from unicorn.io import CheckpointError, load_model, save_model
-from unicorn.serialization import INTEGRITY_KEY
-
-from .helpers import IMAGE_SIZE, tiny_model
+from unicorn.io.serialization import INTEGRITY_KEY
 
 
 def _same_prediction(a, b) -> None:

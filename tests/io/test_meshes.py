@@ -14,10 +14,10 @@ import pytest
 import torch
 import trimesh
 
-from unicorn.model import Unicorn, export_prediction, save_mesh
+from tests.model.helpers import randomize_heads, tiny_config
+from unicorn.io import export_prediction, save_mesh
+from unicorn.model import Unicorn
 from unicorn.render.textures import sample_bilinear
-
-from .helpers import randomize_heads, tiny_config
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,8 @@ import math
 import pytest
 import torch
 
-from unicorn.model import config_from_reference, convert_reference_state_dict, load_reference_checkpoint
-
-from .test_components import torchvision_resnet18_shapes
+from tests.model.test_components import torchvision_resnet18_shapes
+from unicorn.io import config_from_reference, convert_reference_state_dict, load_reference_checkpoint
 
 _RESNET_INDEX = {"conv1": 0, "bn1": 1, "layer1": 4, "layer2": 5, "layer3": 6, "layer4": 7}
 

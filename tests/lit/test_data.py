@@ -1,4 +1,4 @@
-"""The LightningDataModule: splits, validation subsets, loaders, Hydra configs."""
+"""The LightningDataModule: splits, validation subsets, loaders, the training stream, Hydra configs."""
 
 from __future__ import annotations
 
@@ -9,19 +9,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from unicorn.data.datamodule import UnicornDataModule, build_dataset, val_indices
+from unicorn.lit import StreamBatchSampler, UnicornDataModule
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
-
-
-def test_val_indices_reference_sizes_capped() -> None:
-    assert val_indices("shapenet_nmr", 100) == list(range(32))
-    assert val_indices("shapenet_nmr", 3) == [0, 1, 2]
-    assert val_indices("lsun", 100) == list(range(17, 22))
-    assert val_indices("lsun", 10) == list(range(5))
-    cub = val_indices("cub_200", 50)
-    assert len(cub) == 5 and cub == val_indices("cub_200", 50) and cub != list(range(5))
-    assert val_indices("folder", 2) == [0, 1]
 
 
 def test_shapenet_datamodule_builds_splits(synth_nmr: Path) -> None:
@@ -60,6 +50,21 @@ def test_synthetic_datamodule_generates_on_first_use(tmp_path: Path) -> None:
     assert batch["image"].shape == (2, 3, 32, 32)
 
 
+def test_stream_seed_trains_on_the_resumable_stream(cub_root: Path, tmp_path: Path) -> None:
+    dm = UnicornDataModule("cub_200", str(cub_root), batch_size=3, num_workers=0, stream_seed=5)
+    dm.setup("fit")
+    loader = dm.train_dataloader()
+    assert isinstance(loader.batch_sampler, StreamBatchSampler) and loader.batch_sampler.seed == 5
+    batches = iter(loader)
+    expected = StreamBatchSampler(len(dm.train_set), 3, seed=5)
+    for b in range(3):  # past the end of the 4 training images: the stream goes on
+        assert next(batches)["index"].tolist() == [i for _, i in expected.batch_at(b)]
+    empty = UnicornDataModule("folder", str(tmp_path), num_workers=0, stream_seed=0)
+    empty.build = lambda split: []  # e.g. every image skipped as unreadable
+    with pytest.raises(RuntimeError, match="no training images"):
+        empty.setup("fit")
+
+
 def test_cub_datamodule_val_subset(cub_root: Path) -> None:
     dm = UnicornDataModule("cub_200", str(cub_root), batch_size=2, num_workers=0)
     dm.setup()
@@ -81,8 +86,6 @@ def test_errors() -> None:
         UnicornDataModule("imagenet", "x")
     with pytest.raises(ValueError, match="needs a root"):
         UnicornDataModule("cub_200")
-    with pytest.raises(ValueError, match="split"):
-        build_dataset("folder", "training", ".")
 
 
 @pytest.mark.parametrize("path", sorted(CONF.glob("*.yaml")), ids=lambda p: p.stem)

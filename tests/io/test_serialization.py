@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import subprocess
 import sys
 from collections import Counter
@@ -13,7 +14,7 @@ import pytest
 import torch
 
 from unicorn.errors import UserError
-from unicorn.serialization import (
+from unicorn.io.serialization import (
     INTEGRITY_KEY,
     CheckpointError,
     CorruptCheckpointError,
@@ -127,3 +128,17 @@ def test_atomic_save_leaves_no_partial_file(tmp_path: Path, monkeypatch) -> None
         atomic_save({"w": torch.ones(3)}, path)
     assert torch.equal(load_checkpoint_file(path)["w"], torch.zeros(3))  # the earlier file is intact
     assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]
+
+
+class _Unpicklable:
+    def __reduce__(self):
+        raise pickle.PicklingError("boom")
+
+
+def test_atomic_save_keeps_the_previous_file(tmp_path):
+    path = tmp_path / "last.ckpt"
+    atomic_save({"step": 1}, path)
+    with pytest.raises(pickle.PicklingError):
+        atomic_save({"step": 2, "bad": _Unpicklable()}, path)
+    assert load_checkpoint_file(path) == {"step": 1}  # sealed, and the seal matches
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]

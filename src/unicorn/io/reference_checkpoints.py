@@ -37,10 +37,10 @@ from typing import Any
 
 import torch
 
+from unicorn.io.serialization import load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn, merge_config, unicorn_config
 from unicorn.model.perceptual import VGGPerceptualLoss
 from unicorn.model.progressive import active_dims_at
-from unicorn.serialization import load_checkpoint_file
 
 __all__ = ["config_from_reference", "convert_reference_state_dict", "load_reference_checkpoint"]
 
@@ -272,7 +272,7 @@ def load_reference_checkpoint(
         the model in eval mode.
 
     Raises:
-        unicorn.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
+        unicorn.io.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
     """
     if not isinstance(checkpoint, Mapping):
         # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)

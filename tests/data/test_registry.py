@@ -1,0 +1,41 @@
+"""The dataset registry: names, splits, validation subsets; no Lightning in ``unicorn.data``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from unicorn.data.registry import build_dataset, dataset_root, val_indices
+
+
+def test_val_indices_reference_sizes_capped() -> None:
+    assert val_indices("shapenet_nmr", 100) == list(range(32))
+    assert val_indices("shapenet_nmr", 3) == [0, 1, 2]
+    assert val_indices("lsun", 100) == list(range(17, 22))
+    assert val_indices("lsun", 10) == list(range(5))
+    cub = val_indices("cub_200", 50)
+    assert len(cub) == 5 and cub == val_indices("cub_200", 50) and cub != list(range(5))
+    assert val_indices("folder", 2) == [0, 1]
+
+
+def test_errors() -> None:
+    with pytest.raises(ValueError, match="split"):
+        build_dataset("folder", "training", ".")
+    with pytest.raises(ValueError, match="unknown dataset 'imagenet'"):
+        build_dataset("imagenet", "train", ".")
+
+
+def test_dataset_root(tmp_path: Path) -> None:
+    assert dataset_root("cub_200", tmp_path) == tmp_path
+    synthetic = dataset_root("synthetic", tmp_path, ["car", "chair"], {"mode": "wild", "n_models": 3})
+    assert synthetic.parent == tmp_path and synthetic.name.startswith("wild_car+chair_n3_s0_")
+    assert dataset_root("synthetic", tmp_path).name.startswith("nmr_chair_n200_s0_")  # the defaults
+
+
+def test_data_does_not_import_lightning() -> None:
+    code = "import sys, unicorn.data, unicorn.data.registry; print(sorted(m for m in sys.modules if 'lightning' in m))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
