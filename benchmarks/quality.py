@@ -26,7 +26,7 @@ car models; chairs for ``chairs``), measured on the first run's dataset of that 
 ``template, chairs``) and the best single mean shape (one mesh with the template's topology fitted to every
 training model's ground-truth point cloud of that category, rendered at the ground-truth pose: the best one can
 do without looking at the image, and generous since its pose is perfect; rows ``mean shape (GT pose)`` and
-``mean shape (GT pose), chairs``).; and the silhouette floor (each test object's template fitted to the masks of
+``mean shape (GT pose), chairs``); and the silhouette floor (each test object's template fitted to the masks of
 all its views at their ground-truth poses with the model's own renderer and regularisers,
 ``unicorn.evaluation.fit_silhouettes``: what silhouettes at this image size can say about a shape, with no pose
 error and no generalisation gap; rows ``silhouette fit (GT poses, every view)`` and ``..., chairs``;
