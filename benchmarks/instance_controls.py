@@ -120,7 +120,8 @@ def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) 
         _, out = gt_pose_step(model, held)
     hook.remove()
     err, base = color_errors(
-        mean_foreground_color(out["rec"], out["alpha"]), mean_foreground_color(held["image"], held["mask"])
+        mean_foreground_color(out["rec"], out["alpha"], interior=1),
+        mean_foreground_color(held["image"], held["mask"], interior=1),
     )
     pred, gt = out["alpha"][:, 0] > 0.5, held["mask"][:, 0] > 0.5
     iou = ((pred & gt).sum((1, 2)).float() / (pred | gt).sum((1, 2)).clamp_min(1)).mean()

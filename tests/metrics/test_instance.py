@@ -37,6 +37,34 @@ def test_mean_foreground_color_matches_a_pixel_loop() -> None:
         mean_foreground_color(images, masks[:, :, :3])
 
 
+@pytest.mark.parametrize("r", [1, 2])
+def test_mean_foreground_color_interior_matches_a_pixel_loop(r: int) -> None:
+    g = torch.Generator().manual_seed(1)
+    images = torch.rand(3, 3, 9, 11, generator=g)
+    masks = torch.zeros(3, 9, 11)
+    masks[0, 1:8, 2:10] = 1.0  # a block: its eroded interior
+    masks[0, 3, 5] = 0.0  # a hole erodes its neighbours too
+    masks[1, :, :6] = 1.0  # touching the frame: the frame is not a border
+    masks[2, 4, 3:8] = 1.0  # a one-pixel line: nothing survives, the whole mask is kept
+    got = mean_foreground_color(images, masks, interior=r)
+    H, W = masks.shape[1:]
+
+    def inside(b: int, i: int, j: int) -> bool:
+        ys = range(max(i - r, 0), min(i + r + 1, H))
+        xs = range(max(j - r, 0), min(j + r + 1, W))
+        return all(masks[b, y, x] >= 0.5 for y in ys for x in xs)
+
+    for b in range(3):
+        kept = [(i, j) for i in range(H) for j in range(W) if inside(b, i, j)]
+        if not kept:
+            kept = [(i, j) for i in range(H) for j in range(W) if masks[b, i, j] >= 0.5]
+        expected = np.mean([images[b, :, i, j].numpy() for i, j in kept], axis=0)
+        np.testing.assert_allclose(got[b].numpy(), expected, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(got[1], mean_foreground_color(images, masks)[1])  # the test can tell
+    with pytest.raises(ValueError, match="interior"):
+        mean_foreground_color(images, masks, interior=-1)
+
+
 def test_color_errors_against_numpy() -> None:
     rng = np.random.default_rng(1)
     gt = rng.uniform(size=(6, 3))

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 
 __all__ = [
     "active_units",
@@ -34,7 +35,9 @@ __all__ = [
 ]
 
 
-def mean_foreground_color(images: torch.Tensor, masks: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+def mean_foreground_color(
+    images: torch.Tensor, masks: torch.Tensor, threshold: float = 0.5, interior: int = 0
+) -> torch.Tensor:
     """Mean colour of each image's foreground pixels.
 
     Args:
@@ -42,6 +45,11 @@ def mean_foreground_color(images: torch.Tensor, masks: torch.Tensor, threshold: 
         masks: (B, H, W) or (B, 1, H, W) foreground masks or alphas (bool or float), binarised with
             ``mask >= threshold``.
         threshold: binarisation threshold.
+        interior: r >= 0: keep only the foreground pixels whose (2r + 1) x (2r + 1) neighbourhood is all
+            foreground (the mask eroded by r pixels). A border pixel mixes the object's colour with the
+            background's (anti-aliasing), and which pixels are border depends on the silhouette, so comparing
+            border colours of two silhouettes measures their shapes as much as their colours. An image whose
+            eroded mask is empty keeps its whole mask (thin objects at low resolution).
 
     Returns:
         (B, C) mean colour over the pixels inside the mask; NaN for an image with an empty mask.
@@ -59,7 +67,15 @@ def mean_foreground_color(images: torch.Tensor, masks: torch.Tensor, threshold: 
         masks = masks[:, 0]
     if masks.shape != (images.shape[0], *images.shape[-2:]):
         raise ValueError(f"masks {tuple(masks.shape)} do not match images {tuple(images.shape)}")
+    if interior < 0:
+        raise ValueError(f"interior must be >= 0, got {interior}")
     w = (masks.to(images.device).float() >= threshold).to(images.dtype)  # (B, H, W)
+    if interior > 0:
+        # erosion = a min filter = -maxpool(-w); outside the image counts as foreground: the frame cutting an
+        # object is not a silhouette border, its pixels are not mixed
+        k = 2 * interior + 1
+        eroded = -F.max_pool2d(F.pad(-w.unsqueeze(1), [interior] * 4, value=-1.0), k, stride=1).squeeze(1)
+        w = torch.where((eroded.sum(dim=(1, 2)) > 0)[:, None, None], eroded, w)
     total = w.sum(dim=(1, 2))  # (B,)
     colors = (images * w.unsqueeze(1)).sum(dim=(2, 3)) / total.clamp_min(1.0).unsqueeze(1)
     return torch.where(total.unsqueeze(1) > 0, colors, torch.full_like(colors, math.nan))
