@@ -51,6 +51,18 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
     assert result.per_image[0]["mask-iou"] == pytest.approx(float(iou), abs=1e-6)
 
 
+def _interior(fg: torch.Tensor, r: int) -> list[tuple[int, int]]:
+    """Pixels of a (H, W) bool mask whose (2r+1)^2 neighbourhood (clipped to the frame) is all foreground."""
+    H, W = fg.shape
+    inside = [
+        (y, x)
+        for y in range(H)
+        for x in range(W)
+        if bool(fg[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1].all())
+    ]
+    return inside or [(y, x) for y in range(H) for x in range(W) if bool(fg[y, x])]
+
+
 def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_root) -> None:
     data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
     template = shapenet_model.template.verts.clone()
@@ -68,8 +80,10 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
         for i in range(len(batch["index"])):
             rgb, alpha, mask = hard.images[i, :3], hard.images[i, 3], batch["mask"][i, 0]
             image = batch["image"][i]
-            pix = [rgb[:, y, x] for y in range(rgb.shape[1]) for x in range(rgb.shape[2]) if alpha[y, x] >= 0.5]
-            gt = [image[:, y, x] for y in range(image.shape[1]) for x in range(image.shape[2]) if mask[y, x] >= 0.5]
+            # interior pixels only: every pixel within r (inside the frame) foreground; none: the whole mask
+            r_hard = max(1, round(mask.shape[-1] / image.shape[-1]))
+            pix = [rgb[:, y, x] for y, x in _interior(alpha >= 0.5, r_hard)]
+            gt = [image[:, y, x] for y, x in _interior(mask >= 0.5, 1)]
             pred_colors.append(torch.stack(pix).mean(0) if pix else torch.full((3,), math.nan))
             gt_colors.append(torch.stack(gt).mean(0))
             groups.append(result.per_image[len(groups)]["group"])

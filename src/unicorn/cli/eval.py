@@ -99,7 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--turntable-frames", type=int, default=16, help="frames of the report's turntables (0: none)")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers")
     p.add_argument(
-        "--nn-workers", type=int, default=1, help="threads of the CPU nearest-neighbour search (-1: all cores)"
+        "--nn-workers",
+        type=int,
+        default=None,
+        help="threads of the CPU nearest-neighbour search (-1: all cores; default: torch's thread count)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the view choice and point sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

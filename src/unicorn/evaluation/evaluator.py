@@ -171,7 +171,8 @@ class EvalOptions:
         average_texture: predict mean-colour textures (for checkpoints still in that training phase).
         report_samples: images kept (on CPU) for the visual report.
         num_workers: DataLoader workers.
-        nn_workers: threads of the nearest-neighbour queries.
+        nn_workers: threads of the nearest-neighbour queries; None: torch's thread count (exact search: the
+            results do not depend on it).
         seed: seed of the point sampling.
         progress: show a progress bar.
         progress_label: the bar's label (default ``eval <dataset name>``).
@@ -195,7 +196,7 @@ class EvalOptions:
     average_texture: bool = False
     report_samples: int = 8
     num_workers: int = 0
-    nn_workers: int = 1
+    nn_workers: int | None = None
     seed: int = 0
     progress: bool = True
     progress_label: str | None = None
@@ -418,7 +419,7 @@ def _mesh_scores(
         run_icp=options.icp_iterations > 0,
         icp_iterations=max(options.icp_iterations, 1),
         seed=options.seed,
-        workers=options.nn_workers,
+        workers=torch.get_num_threads() if options.nn_workers is None else options.nn_workers,
     )
     points, normals = batch["points"], batch.get("normals")
     if isinstance(points, torch.Tensor):
