@@ -204,6 +204,28 @@ def test_adam_state_per_step(synthetic_cache, tmp_path):
             torch.testing.assert_close(p_a["exp_avg"], p_b["exp_avg"], rtol=1e-5, atol=1e-7)
 
 
+def test_texture_lr_scale(synthetic_cache, tmp_path):
+    """optim.texture_lr_scale: the texture branch (regressor and generator) in its own group at lr x scale, every
+    other parameter at lr, in each Adam; the first 3D step moves a texture weight by about its own lr (Adam)."""
+    run = build_run(tmp_path, "optim.adam_state=per_step", "optim.texture_lr_scale=5", "trainer.max_steps=2")
+    model = run.module.model
+    # the code regressor's zero-initialised last layer: the only texture weights with a gradient at first
+    weight = [p for p in model.texture.regressor.parameters() if p.dim() == 2][-1]
+    before = weight.detach().clone()
+    fit(run)
+    texture = {id(p) for p in model.texture.parameters()}
+    for opt in run.trainer.optimizers:
+        rest, tex = opt.param_groups
+        assert {id(p) for p in tex["params"]} == texture
+        assert not texture & {id(p) for p in rest["params"]}
+        assert len(rest["params"]) + len(tex["params"]) == len(list(model.parameters()))
+        assert tex["lr"] == pytest.approx(5 * rest["lr"])
+    # iteration 0 is a pose step (no texture gradient), iteration 1 the 3D step: Adam's first step is ~lr per weight
+    step = (weight.detach() - before).abs()
+    lr = run.trainer.optimizers[1].param_groups[1]["lr"]
+    assert step.max() == pytest.approx(lr, rel=0.05)
+
+
 def test_adam_state_is_checked(tmp_path):
     with pytest.raises(Exception, match="adam_state"):
         build_run(tmp_path, "optim.adam_state=both")

@@ -228,6 +228,7 @@ class OptimConfig:
     check_finite: bool = True
     fused: bool = True
     adam_state: str = "shared"
+    texture_lr_scale: float = ranged(1.0, 1e-6)  # the texture branch's learning rate over lr (paper: 1)
 
 
 # ---------------------------------------------------------------------------------------------- run

@@ -70,6 +70,7 @@ OPTIM_DEFAULTS: dict[str, Any] = {
     "check_finite": True,
     "fused": True,
     "adam_state": "shared",
+    "texture_lr_scale": 1.0,
 }
 ADAM_STATES = ("shared", "per_step")
 _SEED_STRIDE = 1_000_003
@@ -107,7 +108,8 @@ class UnicornLitModule(L.LightningModule):
     Args:
         model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
-            ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``).
+            ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``,
+            ``adam_state``, ``texture_lr_scale``: the texture branch's learning rate over ``lr``).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
         seed: seeds the per-batch texture-averaging draws (a pure function of seed and iteration).
     """
@@ -293,8 +295,18 @@ class UnicornLitModule(L.LightningModule):
         milestones = [] if o["lr_drop_step"] is None else [int(o["lr_drop_step"])]
         n = 2 if o["adam_state"] == "per_step" else 1  # per_step: [pose step's, 3D step's]
         configs = []
+        params: Any = self.model.parameters
+        scale = float(o.get("texture_lr_scale", 1.0))
+        if scale != 1.0:
+            texture = list(self.model.texture.parameters())
+            ids = {id(p) for p in texture}
+            rest = [p for p in self.model.parameters() if id(p) not in ids]
+
+            def params() -> list[dict[str, Any]]:
+                return [{"params": rest}, {"params": texture, "lr": o["lr"] * scale}]
+
         for _ in range(n):
-            opt = self.make_optimizer(self.model.parameters(), o)
+            opt = self.make_optimizer(params(), o)
             # stepped once per iteration in training_step (manual optimization never steps schedulers itself)
             scheduler = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=o["lr_drop_gamma"])
             configs.append({"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}})
