@@ -33,7 +33,7 @@ def test_user_errors(cls: type, builtin: type) -> None:
 
 
 def test_unicorn_data_reports_in_one_line(tmp_path, capsys) -> None:
-    from unicorn.data.cli import main
+    from unicorn.cli.data import main
 
     assert main(["check", "cub_200", "--root", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err

@@ -7,7 +7,7 @@ import pytest
 from unicorn import __version__
 from unicorn.cli import eval as eval_cli
 from unicorn.cli import reconstruct as reconstruct_cli
-from unicorn.data import cli as data_cli
+from unicorn.cli import data as data_cli
 
 
 @pytest.mark.parametrize(

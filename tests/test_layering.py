@@ -1,0 +1,56 @@
+"""The package's floors: a module imports only from its own floor or the floors below it.
+
+geometry -> render / metrics / data -> model / config -> io -> evaluation -> lit -> cli (README, "Layout").
+Checked on the source (every ``import`` / ``from`` statement, including the ones inside functions).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "unicorn"
+FLOORS = [
+    {"errors", "geometry"},
+    {"render", "metrics", "data"},
+    {"model", "config"},
+    {"io"},
+    {"evaluation"},
+    {"lit"},
+    {"cli"},
+]
+FLOOR = {package: level for level, packages in enumerate(FLOORS) for package in packages}
+
+
+def _imported_packages(path: Path) -> set[str]:
+    """The ``unicorn.<package>`` names a source file imports."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module]
+        else:
+            continue
+        found.update(n.split(".")[1] for n in names if n.startswith("unicorn.") and n.count(".") >= 1)
+    return found
+
+
+@pytest.mark.parametrize("package", sorted(FLOOR))
+def test_no_import_runs_up_a_floor(package: str) -> None:
+    files = [SRC / f"{package}.py"] if (SRC / f"{package}.py").exists() else sorted((SRC / package).rglob("*.py"))
+    assert files, package
+    upward = {
+        f"{f.relative_to(SRC)} imports unicorn.{other}"
+        for f in files
+        for other in _imported_packages(f)
+        if other in FLOOR and FLOOR[other] > FLOOR[package]
+    }
+    assert not upward, sorted(upward)
+
+
+def test_every_package_has_a_floor() -> None:
+    packages = {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert packages <= set(FLOOR), packages - set(FLOOR)
