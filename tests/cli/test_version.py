@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from unicorn import __version__
+from unicorn.cli import data as data_cli
 from unicorn.cli import eval as eval_cli
 from unicorn.cli import reconstruct as reconstruct_cli
-from unicorn.cli import data as data_cli
 
 
 @pytest.mark.parametrize(
