@@ -13,7 +13,7 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "unicorn"
 FLOORS = [
-    {"errors", "geometry"},
+    {"errors", "checks", "geometry"},
     {"render", "metrics", "data"},
     {"model", "config"},
     {"io"},

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from unicorn.checks import check_faces
 from unicorn.data.shapenet import ShapeNetNMR
 from unicorn.evaluation.evaluator import spread_indices
 from unicorn.metrics import chamfer_l1, mask_iou, sample_points_from_meshes
@@ -157,16 +158,6 @@ def template_baseline(model: Unicorn) -> FixedShapeModel:
 
 
 # ---------------------------------------------------------------------------------------------- the mean shape
-def _check_faces(faces: torch.Tensor, num_verts: int) -> None:
-    if not isinstance(faces, torch.Tensor) or faces.dim() != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
-        shape = tuple(faces.shape) if isinstance(faces, torch.Tensor) else type(faces).__name__
-        raise ValueError(f"faces must be a non-empty (F, 3) tensor, got {shape}")
-    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
-        raise ValueError(f"faces must hold integer vertex indices, got {faces.dtype}")
-    if int(faces.min()) < 0 or int(faces.max()) >= num_verts:
-        raise ValueError(f"face indices must be in [0, {num_verts}), got [{int(faces.min())}, {int(faces.max())}]")
-
-
 def _stack_clouds(
     point_clouds: Sequence[torch.Tensor] | torch.Tensor,
     num_points: int,
@@ -250,7 +241,7 @@ def fit_mean_shape(
     if not template_verts.dtype.is_floating_point or not bool(torch.isfinite(template_verts).all()):
         raise ValueError("template_verts must be finite floating-point coordinates")
     V = template_verts.shape[0]
-    _check_faces(faces, V)
+    check_faces(faces, V)
     if iterations < 0 or num_points < 1 or shapes_per_step < 1:
         raise ValueError(
             f"need iterations >= 0, num_points >= 1 and shapes_per_step >= 1, got {iterations}, {num_points}, "

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_points, check_rotations, check_translations
+from unicorn.checks import check_points, check_rotations, check_translations
 
 __all__ = ["align_with_gt_pose", "normalize_to_unit_cube"]
 

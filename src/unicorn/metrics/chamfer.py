@@ -18,7 +18,8 @@ from typing import NamedTuple
 
 import torch
 
-from ._checks import check_normals, check_points, check_same_batch
+from unicorn.checks import check_normals, check_points, check_same_batch
+
 from .nn import Backend, gather_points, nearest_neighbors
 
 __all__ = [

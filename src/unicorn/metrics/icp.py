@@ -23,7 +23,8 @@ from typing import NamedTuple
 
 import torch
 
-from ._checks import check_normals, check_points, check_same_batch
+from unicorn.checks import check_normals, check_points, check_same_batch
+
 from .nn import Backend, NearestNeighborIndex, nearest_neighbors
 
 __all__ = [

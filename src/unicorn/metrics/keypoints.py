@@ -25,9 +25,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from unicorn.checks import check_rotations, check_translations
 from unicorn.geometry.cameras import PerspectiveCamera, image_hw
-
-from ._checks import check_rotations, check_translations
 
 __all__ = ["keypoint_pairs", "keypoint_transfer_pck", "pck", "project_vertices", "transfer_keypoints"]
 

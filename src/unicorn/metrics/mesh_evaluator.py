@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_mesh, check_normals, check_points, check_same_batch
+from unicorn.checks import check_mesh, check_normals, check_points, check_same_batch
+
 from .alignment import align_with_gt_pose, normalize_to_unit_cube
 from .chamfer import CHAMFER_FACTOR, point_cloud_scores
 from .icp import gradient_icp

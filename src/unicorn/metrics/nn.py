@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from ._checks import check_points, check_same_batch
+from unicorn.checks import check_points, check_same_batch
 
 __all__ = ["Backend", "NearestNeighborIndex", "gather_points", "nearest_neighbors"]
 

@@ -13,8 +13,9 @@ import math
 
 import torch
 
+from unicorn.checks import check_rotations
+
 from ..geometry.rotations import rotation_angle_between
-from ._checks import check_rotations
 from .instance import flip_rate, rotation_accuracy
 
 __all__ = [

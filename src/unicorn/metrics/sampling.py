@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_mesh
+from unicorn.checks import check_mesh
 
 __all__ = ["face_areas_normals", "sample_points_from_meshes"]
 

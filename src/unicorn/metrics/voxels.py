@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ._checks import check_mesh
+from unicorn.checks import check_mesh
+
 from .sampling import sample_points_from_meshes
 
 __all__ = ["mesh_voxel_iou", "voxel_centers", "voxel_iou", "voxelize_mesh"]

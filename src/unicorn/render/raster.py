@@ -23,6 +23,7 @@ import warnings
 
 import torch
 
+from ..checks import check_mesh
 from ..geometry.cameras import image_hw
 from .fragments import Fragments
 
@@ -66,28 +67,9 @@ def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size
 
 
 def check_mesh_inputs(verts: torch.Tensor, faces: torch.Tensor) -> None:
-    """Validate a batch of meshes with shared topology: verts (B, V, 3) float, faces (F, 3) integer in [0, V)."""
-    if not isinstance(verts, torch.Tensor) or verts.dim() != 3 or verts.shape[-1] != 3:
-        shape = tuple(verts.shape) if isinstance(verts, torch.Tensor) else type(verts).__name__
-        raise ValueError(f"verts must have shape (B, V, 3), got {shape}")
-    if verts.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"verts must be float32 or float64, got {verts.dtype}")
-    if not isinstance(faces, torch.Tensor) or faces.dim() != 2 or faces.shape[-1] != 3:
-        shape = tuple(faces.shape) if isinstance(faces, torch.Tensor) else type(faces).__name__
-        raise ValueError(f"faces must have shape (F, 3), got {shape}")
-    if faces.dtype.is_floating_point or faces.dtype == torch.bool:
-        raise TypeError(f"faces must be an integer tensor, got {faces.dtype}")
-    if faces.device != verts.device:
-        raise ValueError(f"faces are on {faces.device} but verts on {verts.device}")
-    # the value checks are reduced on the device and read back together: one host sync per call
-    if faces.numel():
-        lo, hi, finite = torch.stack([faces.min(), faces.max(), torch.isfinite(verts).all().to(faces.dtype)]).tolist()
-        if lo < 0 or hi >= verts.shape[1]:
-            raise IndexError(f"face indices must be in [0, {verts.shape[1]}), got range [{lo}, {hi}]")
-    else:
-        finite = bool(torch.isfinite(verts).all())
-    if not finite:
-        raise ValueError("verts contain NaN or infinite values")
+    """Validate a batch of meshes with shared topology: verts (B, V, 3) float, faces (F, 3) integer in [0, V),
+    finite vertices; empty batches, meshes and face lists are allowed (:func:`unicorn.checks.check_mesh`)."""
+    check_mesh(verts, faces, allow_empty=True, finite=True)
 
 
 def _face_boxes(

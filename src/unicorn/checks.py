@@ -1,8 +1,28 @@
-"""Input validation shared by the metrics (private)."""
+"""Input checks shared by the renderer, the metrics and the evaluation (the ground floor: torch only).
+
+Each check raises one error naming the argument and what is wrong with it: ``TypeError`` for a wrong type or
+dtype, ``ValueError`` for a wrong shape or value, :class:`FaceIndexError` (an ``IndexError`` and a
+``ValueError``) for face indices outside the vertices.
+"""
 
 from __future__ import annotations
 
 import torch
+
+__all__ = [
+    "FaceIndexError",
+    "check_faces",
+    "check_mesh",
+    "check_normals",
+    "check_points",
+    "check_rotations",
+    "check_same_batch",
+    "check_translations",
+]
+
+
+class FaceIndexError(IndexError, ValueError):
+    """Face indices outside ``[0, V)``: an index error, and a bad value of the argument."""
 
 
 def check_points(x: torch.Tensor, name: str, dim: int | None = 3) -> torch.Tensor:
@@ -61,17 +81,57 @@ def check_translations(T: torch.Tensor, name: str, batch: int) -> None:
         raise TypeError(f"{name} must be a floating point tensor, got {T.dtype}")
 
 
-def check_mesh(verts: torch.Tensor, faces: torch.Tensor) -> None:
-    """Batched vertices ``(B, V, 3)`` float and shared faces ``(F, 3)`` long indexing them."""
-    check_points(verts, "verts")
+def _check_face_layout(faces: torch.Tensor, allow_empty: bool) -> None:
     if not isinstance(faces, torch.Tensor) or faces.dim() != 2 or faces.shape[1] != 3:
         shape = tuple(faces.shape) if isinstance(faces, torch.Tensor) else type(faces).__name__
         raise ValueError(f"faces must have shape (F, 3), got {shape}")
-    if faces.dtype not in (torch.int32, torch.int64):
+    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
         raise TypeError(f"faces must be an integer tensor, got {faces.dtype}")
-    if faces.shape[0] == 0:
+    if faces.shape[0] == 0 and not allow_empty:
         raise ValueError("faces is empty (F = 0)")
+
+
+def _check_face_range(lo: int, hi: int, num_verts: int) -> None:
+    if lo < 0 or hi >= num_verts:
+        raise FaceIndexError(f"face indices must be in [0, {num_verts}), got range [{lo}, {hi}]")
+
+
+def check_faces(faces: torch.Tensor, num_verts: int, *, allow_empty: bool = False) -> None:
+    """Faces ``(F, 3)`` of any integer dtype indexing ``num_verts`` vertices (one host sync when F > 0)."""
+    _check_face_layout(faces, allow_empty)
+    if faces.numel():
+        _check_face_range(*torch.stack([faces.min(), faces.max()]).tolist(), num_verts)
+
+
+def check_mesh(verts: torch.Tensor, faces: torch.Tensor, *, allow_empty: bool = False, finite: bool = False) -> None:
+    """Batched vertices ``(B, V, 3)`` float and shared faces ``(F, 3)`` integer indexing them, on one device.
+
+    Args:
+        verts: (B, V, 3) float32 or float64.
+        faces: (F, 3) integer.
+        allow_empty: accept B = 0, V = 0 or F = 0 (the renderer draws nothing); otherwise each is an error.
+        finite: also require finite vertices.
+
+    The value checks (face range, finiteness) are reduced on the device and read back together: one host sync.
+    """
+    if allow_empty:
+        if not isinstance(verts, torch.Tensor) or verts.dim() != 3 or verts.shape[-1] != 3:
+            shape = tuple(verts.shape) if isinstance(verts, torch.Tensor) else type(verts).__name__
+            raise ValueError(f"verts must have shape (B, V, 3), got {shape}")
+    else:
+        check_points(verts, "verts")
+    if verts.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"verts must be float32 or float64, got {verts.dtype}")
+    _check_face_layout(faces, allow_empty)
     if faces.device != verts.device:
         raise ValueError(f"verts is on {verts.device} but faces is on {faces.device}")
-    if int(faces.min()) < 0 or int(faces.max()) >= verts.shape[1]:
-        raise ValueError(f"faces index vertices outside [0, {verts.shape[1]})")
+    values = [faces.min(), faces.max()] if faces.numel() else []
+    if finite:
+        values.append(torch.isfinite(verts).all().to(torch.int64))
+    if not values:
+        return
+    read = torch.stack([v.to(torch.int64) for v in values]).tolist()
+    if faces.numel():
+        _check_face_range(read[0], read[1], verts.shape[1])
+    if finite and not read[-1]:
+        raise ValueError("verts contain NaN or infinite values")
