@@ -1,0 +1,91 @@
+"""Where does a trained model's colour error come from: the metric, the texture generator, or the encoder?
+
+For test views of the synthetic benchmark, the model's predicted shape and pose are kept fixed and the textures
+are re-fitted per image with the training's reconstruction loss (Adam, ``--steps``):
+
+- ``amortised``: the model's own textures (what ``unicorn-eval`` scores);
+- ``code-opt``: the texture *code* optimised per image, through the model's generator: what the generator can
+  express; the gap to ``amortised`` is the encoder's (amortisation);
+- ``map-opt``: the texture *image* optimised per image, every texel free: what the loss can reach at this shape
+  and pose.
+
+Each row is scored with the colour ratio (:func:`unicorn.metrics.instance.color_errors`: error of the mean
+foreground colour over the error of predicting the views' average colour) on whole masks and on mask interiors
+(each mask eroded by one pixel, ``interior=1``, what ``unicorn-eval`` reports).
+
+    python benchmarks/colour_probe.py outputs/synthetic/runs/<time>/checkpoints/last.ckpt --root <dataset folder>
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from unicorn.data import build_dataset
+from unicorn.evaluation.rendering import hard_render
+from unicorn.io import load_model
+from unicorn.metrics.instance import color_errors, mean_foreground_color
+
+
+def colour_ratios(model, pred, maps: torch.Tensor, images: torch.Tensor, masks: torch.Tensor) -> dict[str, float]:
+    """Colour ratio of the textures ``maps`` at the predicted shapes and poses, on whole masks and interiors."""
+    with torch.no_grad():
+        hard = hard_render(model, pred.verts, maps, pred.R, pred.T, images.shape[-1], 4)
+    out = {}
+    for name, r in (("whole masks", 0), ("interiors", 1)):
+        p = mean_foreground_color(hard.images[:, :3], hard.images[:, 3:], interior=r).double()
+        g = mean_foreground_color(images, masks, interior=r).double()
+        ok = ~(torch.isnan(p).any(1) | torch.isnan(g).any(1))
+        err, base = color_errors(p[ok], g[ok])
+        out[name] = float(err.mean() / base.mean())
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("checkpoint")
+    p.add_argument("--root", required=True, help="the synthetic dataset folder (with metadata.yaml)")
+    p.add_argument("--views", type=int, default=96, help="test views (a fixed random choice)")
+    p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
+    p.add_argument("--lr", type=float, default=1e-2)
+    args = p.parse_args()
+
+    model, _ = load_model(args.checkpoint)
+    model.eval().requires_grad_(False)
+    size = model.config["image_size"]
+    data = build_dataset("synthetic", "test", args.root, img_size=size, views="all")
+    idx = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[: args.views].tolist()
+    batch = torch.utils.data.default_collate([data[i] for i in idx])
+    images = batch["image"]
+    masks = batch["mask"].float().reshape(len(idx), 1, *batch["mask"].shape[-2:])
+    masks = torch.nn.functional.interpolate(masks, size=images.shape[-2:])  # nearest, as unicorn-eval
+    with torch.no_grad():
+        pred = model.predict(images)
+
+    code = pred.texture_code.clone().requires_grad_(True)
+    logits = torch.logit(pred.texture.clamp(1e-3, 1 - 1e-3)).requires_grad_(True)
+    fits = {"code-opt": (code, lambda: model.texture(code)), "map-opt": (logits, lambda: torch.sigmoid(logits))}
+    with torch.no_grad():
+        rec, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, None)
+        loss = sum(model.reconstruction_terms(rec, images).values()).mean()
+    rows = {"amortised": (colour_ratios(model, pred, pred.texture, images, masks), float(loss))}
+    for name, (param, make) in fits.items():
+        opt = torch.optim.Adam([param], lr=args.lr)
+        for _ in range(args.steps):
+            rec, _ = model.render(pred.verts, make(), pred.R, pred.T, None)
+            loss = sum(model.reconstruction_terms(rec, images).values()).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        rows[name] = (colour_ratios(model, pred, make().detach(), images, masks), float(loss.detach()))
+
+    print(f"{len(idx)} test views, {args.steps} Adam steps per fit\n")
+    print("| textures | colour ratio, whole masks | colour ratio, interiors | reconstruction loss (last step) |")
+    print("|---|---|---|---|")
+    for name, (r, loss) in rows.items():
+        print(f"| {name} | {r['whole masks']:.3f} | {r['interiors']:.3f} | {loss:.5f} |")
+
+
+if __name__ == "__main__":
+    main()
