@@ -11,7 +11,7 @@ import pytest
 import trimesh
 import yaml
 
-from unicorn.data import cli
+from unicorn.cli import data as cli
 from unicorn.data.synthetic import writer
 from unicorn.data.synthetic.render import camera_rays, render_object
 from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, Texture, build_object
