@@ -290,23 +290,24 @@ class UnicornLitModule(L.LightningModule):
             return opts[0] if phase == "pose" else opts[1]
         return opts
 
+    def _param_groups(self, o: Mapping[str, Any]) -> Any:
+        """Fresh parameter groups for one Adam: all parameters, or the texture branch in its own group at
+        ``lr * texture_lr_scale`` (fresh each call: an optimizer takes ownership of its group dicts)."""
+        scale = float(o.get("texture_lr_scale", 1.0))
+        if scale == 1.0:
+            return self.model.parameters()
+        texture = list(self.model.texture.parameters())
+        ids = {id(p) for p in texture}
+        rest = [p for p in self.model.parameters() if id(p) not in ids]
+        return [{"params": rest}, {"params": texture, "lr": o["lr"] * scale}]
+
     def configure_optimizers(self) -> Any:
         o = self.optim
         milestones = [] if o["lr_drop_step"] is None else [int(o["lr_drop_step"])]
         n = 2 if o["adam_state"] == "per_step" else 1  # per_step: [pose step's, 3D step's]
         configs = []
-        params: Any = self.model.parameters
-        scale = float(o.get("texture_lr_scale", 1.0))
-        if scale != 1.0:
-            texture = list(self.model.texture.parameters())
-            ids = {id(p) for p in texture}
-            rest = [p for p in self.model.parameters() if id(p) not in ids]
-
-            def params() -> list[dict[str, Any]]:
-                return [{"params": rest}, {"params": texture, "lr": o["lr"] * scale}]
-
         for _ in range(n):
-            opt = self.make_optimizer(params(), o)
+            opt = self.make_optimizer(self._param_groups(o), o)
             # stepped once per iteration in training_step (manual optimization never steps schedulers itself)
             scheduler = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=o["lr_drop_gamma"])
             configs.append({"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}})
