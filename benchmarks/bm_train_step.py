@@ -43,7 +43,8 @@ from typing import Any
 
 import torch
 
-from unicorn.model import Unicorn, unicorn_config
+from unicorn.config import model_preset
+from unicorn.model import Unicorn, objectives
 from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
@@ -114,8 +115,8 @@ def main_job_model_config() -> dict[str, Any]:
     """The model config of ``unicorn-train experiment=synthetic``, composed by Hydra like the CLI does."""
     from hydra import compose, initialize_config_dir
 
-    from unicorn.cli.train import config_dir
     from unicorn.config import model_config, validate
+    from unicorn.resources import config_dir
 
     with initialize_config_dir(str(config_dir()), version_base=None):
         # an output folder is given so that no ${hydra:...} interpolation needs a running Hydra app
@@ -130,7 +131,7 @@ def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim
     else:
         size = "big" if name == "big" else "small"
         perceptual = "structural" if name == "small-structural" else None
-        cfg, batch = unicorn_config("real", size, image_size=64, loss={"perceptual": perceptual}), 32
+        cfg, batch = model_preset("real", size, image_size=64, loss={"perceptual": perceptual}), 32
     model = Unicorn(cfg)
     if name in ("small", "big"):
         # the perceptual term is computed whenever the module exists: give it real or random VGG16 weights
@@ -166,13 +167,13 @@ def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor,
     timer.attach("regularisers", model.laplacian_loss)
 
     # the neighbour loss: its whole forward is one group; remember its output to backpropagate it separately
-    neighbour_loss = model.neighbor_loss
+    neighbour_loss = objectives.neighbor_loss
 
     def timed_neighbour_loss(*a: Any, **kw: Any) -> torch.Tensor:
         with timer.region("neighbour"):
             return neighbour_loss(*a, **kw)
 
-    model.neighbor_loss = timed_neighbour_loss  # instance attribute shadows the method
+    objectives.neighbor_loss = timed_neighbour_loss  # the 3D step looks it up in its module at each call
 
     # the renderer's calls of the step, replayed afterwards to time its backward alone
     render_calls: list[tuple[tuple, dict]] = []

@@ -55,9 +55,9 @@ def compose_model_config(cache: str | None) -> tuple[dict, str]:
     """The main job's model config and its synthetic dataset folder."""
     from hydra import compose, initialize_config_dir
 
-    from unicorn.cli.train import config_dir
     from unicorn.config import model_config, validate
     from unicorn.data import prepare_dataset
+    from unicorn.resources import config_dir
 
     overrides = ["experiment=synthetic", f"paths.output_dir={tempfile.gettempdir()}"]
     if cache:
@@ -72,8 +72,8 @@ def compose_model_config(cache: str | None) -> tuple[dict, str]:
 def gt_pose_step(model: Unicorn, batch: dict) -> tuple[torch.Tensor, dict]:
     """The 3D step's loss with the ground-truth camera instead of the predicted one."""
     images = batch["image"]
-    feats = model._encode(images, model._branches())
-    z_sh, canonical, scale, z_tx, maps, _, bkg = model._predict_3d(feats, False)
+    feats = model.encode(images, model.branches())
+    z_sh, canonical, scale, z_tx, maps, _, bkg = model.predict_3d(feats, False)
     verts = canonical * scale.unsqueeze(1)
     rec, alpha = model.render(verts, maps, batch["R"], batch["T"], bkg)
     loss = sum(v.mean() for v in model.reconstruction_terms(rec, images).values())

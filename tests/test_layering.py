@@ -1,6 +1,7 @@
 """The package's floors: a module imports only from its own floor or the floors below it.
 
-geometry -> render / metrics / data -> model / config -> io -> evaluation -> lit -> cli (README, "Layout").
+errors / checks / resources / geometry -> render / metrics / data -> model / config -> io -> evaluation -> lit
+-> cli (README, "Layout").
 Checked on the source (every ``import`` / ``from`` statement, including the ones inside functions).
 """
 
@@ -13,7 +14,7 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "unicorn"
 FLOORS = [
-    {"errors", "checks", "geometry"},
+    {"errors", "checks", "resources", "geometry"},
     {"render", "metrics", "data"},
     {"model", "config"},
     {"io"},

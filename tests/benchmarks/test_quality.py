@@ -103,14 +103,15 @@ def test_silhouette_fit_row_fits_each_object_to_its_own_views(quality, tmp_path,
     import torch
 
     import unicorn.evaluation as evaluation
+    from unicorn.config import model_preset
     from unicorn.data.synthetic.writer import generate_synthetic_dataset
-    from unicorn.model import Unicorn, unicorn_config
+    from unicorn.model import Unicorn
 
     root = generate_synthetic_dataset(
         tmp_path, ["car"], "nmr", n_models=6, seed=0, image_size=32, n_views=3, n_points=600, progress=False
     )
     torch.manual_seed(0)
-    model = Unicorn(unicorn_config("shapenet", image_size=32, loss={"perceptual": None})).eval()
+    model = Unicorn(model_preset("shapenet", image_size=32, loss={"perceptual": None})).eval()
     calls, fit = [], evaluation.fit_silhouettes
 
     def recording(model, masks, R, T, **kw):

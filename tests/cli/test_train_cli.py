@@ -13,8 +13,9 @@ import torch
 
 from tests.lit.conftest import TINY, compose_config
 from unicorn import __version__
-from unicorn.cli.train import config_dir, hydra_argv
+from unicorn.cli.train import hydra_argv
 from unicorn.config import ConfigError, validate
+from unicorn.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[2]
 SHAPENET = "airplane bench cabinet car chair display lamp phone rifle sofa speaker table vessel".split()
@@ -170,7 +171,7 @@ def test_configs_ship_in_the_wheel(tmp_path):
     subprocess.run([*pip, "install", "--no-deps", "--target", str(target), str(wheel), "-q"], check=True, timeout=180)
     env = {**os.environ, "PYTHONPATH": str(target)}  # the installed copy shadows the editable one
     where = subprocess.run(
-        [sys.executable, "-c", "from unicorn.cli.train import config_dir; print(config_dir())"],
+        [sys.executable, "-c", "from unicorn.resources import config_dir; print(config_dir())"],
         cwd=tmp_path,
         env=env,
         capture_output=True,

@@ -8,8 +8,9 @@ import numpy as np
 import torch
 from PIL import Image
 
+from unicorn.config import model_preset
 from unicorn.io import save_model
-from unicorn.model import Unicorn, unicorn_config
+from unicorn.model import Unicorn
 
 IMAGE_SIZE = 32
 TEXTURE_SIZE = 16
@@ -18,7 +19,7 @@ TEXTURE_SIZE = 16
 def tiny_model(family: str = "real", seed: int = 0) -> Unicorn:
     """An untrained model at 32 px with 16 px textures and no perceptual loss (fast on CPU)."""
     torch.manual_seed(seed)
-    cfg = unicorn_config(family, image_size=IMAGE_SIZE, texture={"size": TEXTURE_SIZE}, loss={"perceptual": None})
+    cfg = model_preset(family, image_size=IMAGE_SIZE, texture={"size": TEXTURE_SIZE}, loss={"perceptual": None})
     return Unicorn(cfg).eval()
 
 

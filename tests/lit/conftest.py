@@ -55,7 +55,7 @@ def compose_config(overrides: list[str]):
     """The composed (unvalidated) training config for ``overrides``."""
     from hydra import compose, initialize_config_dir
 
-    from unicorn.cli.train import config_dir
+    from unicorn.resources import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose("train", overrides=overrides)

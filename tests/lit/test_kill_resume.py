@@ -33,7 +33,8 @@ OVERRIDES = [
 def _train(out: str, extra: list[str]) -> None:  # runs in a forked child
     from hydra import compose, initialize_config_dir
 
-    from unicorn.cli.train import build, config_dir, fit
+    from unicorn.cli.train import build, fit
+    from unicorn.resources import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         cfg = compose("train", overrides=[*OVERRIDES, f"paths.output_dir={out}", *extra])

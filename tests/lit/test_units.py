@@ -64,10 +64,10 @@ def test_plateau_detection():
 
 
 def test_texture_averaging_draws():
+    from unicorn.config import model_preset
     from unicorn.lit import UnicornLitModule
-    from unicorn.model import unicorn_config
 
-    cfg = unicorn_config("shapenet", image_size=32, loss={"perceptual": None}, template={"level": 1})
+    cfg = model_preset("shapenet", image_size=32, loss={"perceptual": None}, template={"level": 1})
     module = UnicornLitModule(cfg, seed=5)
     module.texture_average_p.fill_(0.2)
     draws = [module.average_texture(step) for step in range(2000)]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from unicorn.config import model_preset
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import look_at_view_transform
-from unicorn.model import unicorn_config
 from unicorn.render import TexturesVertex, build_renderer
 
 IMAGE_SIZE = 32
@@ -25,7 +25,7 @@ def tiny_config(family: str = "real", size: str = "small", **overrides):
             base[group] = {**base[group], **value}
         else:
             base[group] = value
-    return unicorn_config(family, size, **base)
+    return model_preset(family, size, **base)
 
 
 def randomize_heads(model: torch.nn.Module, std: float = 0.05, seed: int = 123) -> None:

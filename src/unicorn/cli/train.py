@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
 from unicorn.errors import UserError
+from unicorn.resources import config_dir
 
 __all__ = ["DEFAULT_EXPERIMENT", "Run", "RunFolderError", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
 
@@ -57,20 +58,6 @@ RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.c
 
 class RunFolderError(UserError, FileExistsError):
     """A new run was started in a folder that already holds one."""
-
-
-def config_dir() -> Path:
-    """Absolute path of the shipped configs: ``unicorn/conf`` in a wheel, else the checkout's ``conf/``.
-
-    Raises:
-        FileNotFoundError: neither holds ``train.yaml``.
-    """
-    package = Path(__file__).resolve().parent.parent  # .../unicorn
-    candidates = [package / "conf", package.parent.parent / "conf"]  # wheel; src/unicorn -> repository root
-    for path in candidates:
-        if (path / "train.yaml").is_file():
-            return path
-    raise FileNotFoundError(f"unicorn's configs (train.yaml) not found in {[str(p) for p in candidates]}")
 
 
 def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:

@@ -1,10 +1,20 @@
-"""Training configuration: the structured schema of ``conf/`` and its validation.
+"""Training configuration: the structured schema of ``conf/``, its validation, and ``conf/``'s model presets.
 
 Importing this package does not touch Hydra's global state; ``unicorn-train`` (:mod:`unicorn.cli.train`) is
 the Hydra application.
 """
 
-from unicorn.config.build import ConfigError, model_config, renderer_settings, validate
+from unicorn.config.build import ConfigError, check_optim, model_config, renderer_settings, validate
+from unicorn.config.presets import list_presets, model_preset
 from unicorn.config.schema import TrainConfig
 
-__all__ = ["ConfigError", "TrainConfig", "model_config", "renderer_settings", "validate"]
+__all__ = [
+    "ConfigError",
+    "TrainConfig",
+    "check_optim",
+    "list_presets",
+    "model_config",
+    "model_preset",
+    "renderer_settings",
+    "validate",
+]

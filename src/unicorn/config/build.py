@@ -8,11 +8,8 @@ there, naming the key) and checks the relations between values. :func:`model_con
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
 import math
-import types
-import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -20,10 +17,13 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from unicorn.config.schema import TrainConfig
+from unicorn.config.schema import OPTIM_CHOICES, TrainConfig
+from unicorn.data import DATASET_NAMES
 from unicorn.errors import UserError
+from unicorn.model.config import CHOICES, check_model_config, check_ranges
+from unicorn.render import get_renderer_class, list_renderers
 
-__all__ = ["ConfigError", "model_config", "renderer_settings", "validate"]
+__all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
 N_STAGES = 4
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
@@ -59,66 +59,35 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     return typed
 
 
-def _dataclass_of(hint: Any) -> type | None:
-    """The dataclass in a type hint (``X`` or ``X | None``), or None."""
-    if dataclasses.is_dataclass(hint):
-        return hint
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        return next((a for a in typing.get_args(hint) if dataclasses.is_dataclass(a)), None)
-    return None
+def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:
+    """The value checks of the optimisation settings (:class:`~unicorn.config.schema.OptimConfig`'s keys).
 
-
-def _check_ranges(node: DictConfig, schema: type, prefix: str = "") -> None:
-    """Check every field declared with :func:`unicorn.config.schema.ranged`, recursing into nested groups."""
-    hints = typing.get_type_hints(schema)
-    for f in dataclasses.fields(schema):
-        value = node.get(f.name)
-        key = f"{prefix}{f.name}"
-        nested = _dataclass_of(hints[f.name])
-        if nested is not None:
-            if value is not None:
-                _check_ranges(value, nested, f"{key}.")
-            continue
-        low, high = f.metadata.get("range", (None, None))
-        if value is None or (low is None and high is None):
-            continue
-        _check(
-            (low is None or value >= low) and (high is None or value <= high),
-            f"{key} must be {_describe_range(low, high)}, got {value}",
-        )
-
-
-def _describe_range(low: float | None, high: float | None) -> str:
-    if high is None:
-        return f">= {low:g}"
-    if low is None:
-        return f"<= {high:g}"
-    return f"in [{low:g}, {high:g}]"
+    Raises:
+        ValueError: the first bad value, named with its key.
+    """
+    _check(optim["lr"] > 0, f"{prefix}lr must be > 0, got {optim['lr']}")
+    _check(len(optim["betas"]) == 2, f"{prefix}betas needs two values, got {list(optim['betas'])}")
+    for key, allowed in OPTIM_CHOICES.items():
+        _check(optim[key] in allowed, f"{prefix}{key} must be one of {allowed}, got {optim[key]!r}")
+    _check(optim["lr_drop_step"] is None or optim["lr_drop_step"] >= 0, f"{prefix}lr_drop_step must be null or >= 0")
 
 
 def _check_values(cfg: DictConfig) -> None:
-    from unicorn.model.losses import POSE_OBJECTIVES  # here: importing this module stays free of torch
-
-    _check_ranges(cfg, TrainConfig)
+    try:
+        check_ranges(cfg, TrainConfig)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     m, s, o = cfg.model, cfg.schedule, cfg.optim
-    # -- model
-    _check(m.image_size >= 8, f"model.image_size must be >= 8, got {m.image_size}")
+    # -- model: the model's own checks on the configuration it will get, then the relations to the rest
+    composites = CHOICES["renderer.composite"]
+    _check(m.composite in composites, f"model.composite must be one of {composites}, got {m.composite!r}")
+    try:
+        check_model_config(model_config(cfg), prefix="model.")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     _check(
         m.image_size == cfg.dataset.img_size,
         f"model.image_size ({m.image_size}) differs from dataset.img_size ({cfg.dataset.img_size})",
-    )
-    _check(m.composite in ("direct", "reference"), f"model.composite must be direct or reference, got {m.composite}")
-    _check(
-        m.loss.perceptual in ("vgg", "structural", None),
-        f"model.loss.perceptual must be vgg, structural or null, got {m.loss.perceptual!r}",
-    )
-    _check(
-        m.loss.uniform_reduction in ("sum", "mean"),
-        f"model.loss.uniform_reduction must be sum or mean, got {m.loss.uniform_reduction!r}",
-    )
-    _check(
-        m.loss.pose_objective in POSE_OBJECTIVES,
-        f"model.loss.pose_objective must be one of {POSE_OBJECTIVES}, got {m.loss.pose_objective!r}",
     )
     _check(
         cfg.dataset.batch_size <= m.loss.memory_size,
@@ -152,11 +121,10 @@ def _check_values(cfg: DictConfig) -> None:
     _check(pl.window >= 1 and pl.check_every >= 1 and pl.patience >= 1, "schedule.plateau counts must be >= 1")
     _check(pl.min_steps >= 0 and pl.threshold >= 0, "schedule.plateau.min_steps and threshold must be >= 0")
     # -- optimisation
-    _check(o.lr > 0, f"optim.lr must be > 0, got {o.lr}")
-    _check(len(o.betas) == 2, f"optim.betas needs two values, got {list(o.betas)}")
-    _check(o.idle_params in ("skip", "momentum"), f"optim.idle_params must be skip or momentum, got {o.idle_params}")
-    _check(o.adam_state in ("shared", "per_step"), f"optim.adam_state must be shared or per_step, got {o.adam_state}")
-    _check(o.lr_drop_step is None or o.lr_drop_step >= 0, "optim.lr_drop_step must be null or >= 0")
+    try:
+        check_optim(o)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     # -- trainer
     t = cfg.trainer
     _check(t.max_steps > 0, f"trainer.max_steps must be > 0 (training is counted in iterations), got {t.max_steps}")
@@ -206,11 +174,8 @@ def _check_values(cfg: DictConfig) -> None:
             )
     for name, node in cfg.callbacks.extra.items():
         _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
-    # -- data and renderer
-    from unicorn.data import DATASET_NAMES
-
+    # -- data
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
-    renderer_settings(cfg.renderer)
 
 
 def _registry_name(cls: type) -> str:
@@ -219,8 +184,6 @@ def _registry_name(cls: type) -> str:
     ``hydra.utils.instantiate`` builds ``conf/renderer/*.yaml`` from ``_target_`` directly; this lookup only
     translates the node into the model's settings.
     """
-    from unicorn.render import get_renderer_class, list_renderers  # here: importing this module stays free of torch
-
     for name in list_renderers():
         if get_renderer_class(name) is cls:
             return name

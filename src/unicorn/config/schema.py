@@ -5,10 +5,10 @@ key or a value of the wrong type fails with the key's full name before anything 
 then checks what types cannot express (milestones in order, code sizes within the code, renderer options
 the backend accepts, ...).
 
-The ``model`` group mirrors the groups of :data:`unicorn.model.DEFAULT_CONFIG` (same keys, same defaults) and
-adds ``stages``, the active code sizes of the four stages; ``renderer`` is one of ``conf/renderer/*.yaml``
-(a ``_target_`` backend class plus its options) and is turned into the model's renderer settings by
-:func:`unicorn.config.build.model_config`.
+The ``model`` group is the model's own configuration groups (:mod:`unicorn.model.config`, where every model key
+and default is defined) plus ``name``, ``composite`` and ``stages``, the active code sizes of the four stages;
+``renderer`` is one of ``conf/renderer/*.yaml`` (a ``_target_`` backend class plus its options) and is turned
+into the model's renderer settings by :func:`unicorn.config.build.model_config`.
 """
 
 from __future__ import annotations
@@ -16,112 +16,28 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from unicorn.model.config import ModelGroups, RendererConfig, ranged
+
 __all__ = [
-    "BackgroundConfig",
     "CallbacksConfig",
     "CheckpointConfig",
     "CurriculumConfig",
     "DatasetConfig",
-    "EncoderConfig",
     "ImagesConfig",
-    "LossConfig",
     "ModelConfig",
+    "OPTIM_CHOICES",
     "OptimConfig",
     "PathsConfig",
     "PlateauConfig",
-    "PoseConfig",
     "ScheduleConfig",
-    "ShapeConfig",
     "StageDimsConfig",
-    "TemplateConfig",
     "TextureAveragingConfig",
-    "TextureConfig",
     "TrainConfig",
     "TrainerConfig",
 ]
 
 
-def ranged(default: Any, low: float | None = None, high: float | None = None) -> Any:
-    """A field whose value must lie in ``[low, high]`` (either bound may be None); :func:`unicorn.config.validate`
-    checks every such field and names it. ``None`` values (optional fields) are not checked."""
-    return field(default=default, metadata={"range": (low, high)})
-
-
 # ---------------------------------------------------------------------------------------------- model
-@dataclass
-class EncoderConfig:
-    shared: bool = True
-
-
-@dataclass
-class TemplateConfig:
-    level: int = ranged(3, 0, 7)
-    axes: list[float] = field(default_factory=lambda: [1.0, 0.7, 0.7])
-    scale: float = ranged(0.6, 1e-6)
-    uv_mode: str = "seamless"
-
-
-@dataclass
-class ShapeConfig:
-    code_dim: int = ranged(32, 1)
-    active_dims: int = 0
-    n_field_units: int = ranged(128, 1)
-    n_field_layers: int = ranged(2, 0)
-    n_reg_units: int = ranged(128, 1)
-    n_reg_layers: int = ranged(3, 0)
-
-
-@dataclass
-class TextureConfig:
-    code_dim: int = ranged(128, 1)
-    active_dims: int = 2
-    size: int = ranged(64, 4)
-    min_features: int = ranged(16, 1)
-    n_reg_units: int = ranged(128, 1)
-    n_reg_layers: int = ranged(3, 0)
-
-
-@dataclass
-class BackgroundConfig:
-    code_dim: int = ranged(128, 1)
-    active_dims: int = 4
-    min_features: int = ranged(16, 1)
-    n_reg_units: int = ranged(128, 1)
-    n_reg_layers: int = ranged(3, 0)
-
-
-@dataclass
-class PoseConfig:
-    n_elev: int = ranged(1, 1)
-    n_azim: int = ranged(6, 1)
-    azim_range: list[float] = field(default_factory=lambda: [0.0, 360.0])
-    elev_range: list[float] = field(default_factory=lambda: [-10.0, 30.0])
-    roll_range: list[float] = field(default_factory=lambda: [-30.0, 30.0])
-    T_range: Any = 0.3  # one float or (x, y, z)
-    prior_translation: list[float] = field(default_factory=lambda: [0.0, 0.0, 2.732])
-    scale_range: Any = 0.3  # one float or (x, y, z)
-    n_units: int = ranged(128, 1)
-    n_layers: int = ranged(3, 0)
-
-
-@dataclass
-class LossConfig:
-    rgb_weight: float = ranged(1.0, 0)
-    perceptual: str | None = "vgg"  # vgg | structural | null
-    perceptual_weight: float = ranged(10.0, 0)
-    vgg_weights: str | None = None  # None: torchvision's file in torch's hub cache (downloaded when absent)
-    normal_weight: float = ranged(0.01, 0)
-    laplacian_weight: float = ranged(0.01, 0)
-    uniform_weight: float = ranged(0.02, 0)
-    uniform_reduction: str = "sum"
-    pose_objective: str = "expected"  # expected (paper) | assigned
-    assignment_weight: float = ranged(0.02, 0)
-    neighbor_weight: float = ranged(1.0, 0)
-    memory_size: int = ranged(1024, 1)
-    n_bins: int = ranged(5, 1)
-    min_angle: float = ranged(20.0, 0, 180)
-
-
 @dataclass
 class StageDimsConfig:
     """Active code sizes in stages 1 to 4 (the reference's small real-image model by default)."""
@@ -132,17 +48,12 @@ class StageDimsConfig:
 
 
 @dataclass
-class ModelConfig:
+class ModelConfig(ModelGroups):
+    """The model's groups (:class:`unicorn.model.config.ModelGroups`) plus the preset's name, the compositing
+    rule (the model's ``renderer.composite``; the renderer itself is the ``renderer`` group) and the stages."""
+
     name: str = "small"
-    image_size: int = ranged(64, 8)
-    encoder: EncoderConfig = field(default_factory=EncoderConfig)
-    template: TemplateConfig = field(default_factory=TemplateConfig)
-    shape: ShapeConfig = field(default_factory=ShapeConfig)
-    texture: TextureConfig = field(default_factory=TextureConfig)
-    background: BackgroundConfig | None = field(default_factory=BackgroundConfig)
-    pose: PoseConfig = field(default_factory=PoseConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    composite: str = "direct"  # direct | reference
+    composite: str = RendererConfig.composite  # direct | reference
     stages: StageDimsConfig = field(default_factory=StageDimsConfig)
 
 
@@ -211,6 +122,10 @@ class ScheduleConfig:
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)
+
+
+#: allowed values of the optimisation's string settings (see :class:`OptimConfig`)
+OPTIM_CHOICES: dict[str, tuple[str, ...]] = {"idle_params": ("skip", "momentum"), "adam_state": ("shared", "per_step")}
 
 
 @dataclass

@@ -37,8 +37,10 @@ from typing import Any
 
 import torch
 
+from unicorn.config.presets import model_preset
 from unicorn.io.serialization import load_checkpoint_file
-from unicorn.model.autoencoder import Unicorn, merge_config, unicorn_config
+from unicorn.model.autoencoder import Unicorn
+from unicorn.model.config import merge_config
 from unicorn.model.perceptual import VGGPerceptualLoss
 from unicorn.model.progressive import active_dims_at
 
@@ -143,7 +145,7 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     kwargs = checkpoint.get("model_kwargs", {}) if "model_state" in checkpoint else {}
     has_bg = any(k.startswith("bkg_generator.") for k in state)
     shared = not any(k.startswith("encoder_sh.") for k in state)
-    cfg = unicorn_config("real" if has_bg else "shapenet", "small" if shared else "big")
+    cfg = model_preset("real" if has_bg else "shapenet", "small" if shared else "big")
 
     def out_dim(prefix: str) -> int:
         return state[f"{prefix}{_last_linear_index(state, prefix)}.weight"].shape[0]

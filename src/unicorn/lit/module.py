@@ -38,6 +38,7 @@ when training restarts, so a resumed run continues exactly.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import random
 import warnings
@@ -50,29 +51,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from unicorn.config.build import check_optim
+from unicorn.config.schema import OptimConfig
 from unicorn.errors import UserError
 from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
-from unicorn.model.pose import PoseOutput
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
 
 log = logging.getLogger(__name__)
 
-OPTIM_DEFAULTS: dict[str, Any] = {
-    "lr": 1e-4,
-    "betas": (0.9, 0.999),
-    "eps": 1e-8,
-    "weight_decay": 0.0,
-    "lr_drop_step": None,
-    "lr_drop_gamma": 0.2,
-    "idle_params": "skip",
-    "check_finite": True,
-    "fused": True,
-    "adam_state": "shared",
-    "texture_lr_scale": 1.0,
-}
-ADAM_STATES = ("shared", "per_step")
+#: the optimisation settings' defaults (:class:`unicorn.config.schema.OptimConfig`, where each is documented)
+OPTIM_DEFAULTS: dict[str, Any] = dataclasses.asdict(OptimConfig())
 _SEED_STRIDE = 1_000_003
 
 
@@ -132,10 +122,7 @@ class UnicornLitModule(L.LightningModule):
         if unknown:
             raise KeyError(f"unknown optim keys {sorted(unknown)}; known: {sorted(OPTIM_DEFAULTS)}")
         self.optim = {**OPTIM_DEFAULTS, **dict(optim or {})}
-        if self.optim["idle_params"] not in ("skip", "momentum"):
-            raise ValueError(f"idle_params must be 'skip' or 'momentum', got {self.optim['idle_params']!r}")
-        if self.optim["adam_state"] not in ADAM_STATES:
-            raise ValueError(f"adam_state must be one of {ADAM_STATES}, got {self.optim['adam_state']!r}")
+        check_optim(self.optim, prefix="")
         if alternation_period < 1:
             raise ValueError(f"alternation_period must be >= 1, got {alternation_period}")
         self.alternation_period, self.seed = int(alternation_period), int(seed)
@@ -143,8 +130,6 @@ class UnicornLitModule(L.LightningModule):
         self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
         self.register_buffer("texture_average_p", torch.tensor(0.0))
         self._resume_state: dict[str, Any] | None = None
-        self._pose_probs: torch.Tensor | None = None
-        self.model.pose.register_forward_hook(self._capture_pose)
 
     # ------------------------------------------------------------------ schedule helpers
     def phase(self, step: int) -> str:
@@ -164,11 +149,6 @@ class UnicornLitModule(L.LightningModule):
         g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + step)
         return bool(torch.rand((), generator=g) < p)
 
-    def _capture_pose(self, module: torch.nn.Module, inputs: Any, output: PoseOutput) -> None:
-        # the first pose prediction of a step is the batch's (later ones are neighbours')
-        if self._pose_probs is None:
-            self._pose_probs = output.probs.detach()
-
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
         """One iteration: a pose or a 3D step on ``batch["image"]`` (B, 3, S, S); returns the detached terms."""
@@ -178,7 +158,6 @@ class UnicornLitModule(L.LightningModule):
         average = self.average_texture(step)
         opt = self._optimizer(phase)
         opt.zero_grad(set_to_none=self.optim["idle_params"] == "skip")
-        self._pose_probs = None
         losses = (self.model.pose_step if phase == "pose" else self.model.step_3d)(images, average_texture=average)
         self.manual_backward(losses["total"])
         if self.optim["check_finite"]:
@@ -205,12 +184,11 @@ class UnicornLitModule(L.LightningModule):
         self.log_dict({f"train/{phase}/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=False)
         self.log("train/lr", opt.param_groups[0]["lr"], on_step=True, on_epoch=False)
         self.log("train/average_texture", float(average), on_step=True, on_epoch=False)
-        if self._pose_probs is not None:
-            probs = self._pose_probs  # (K, B)
-            shares = F.one_hot(probs.argmax(0), probs.shape[0]).float().mean(0)
-            for k in range(probs.shape[0]):
-                self.log(f"pose/share_{k}", shares[k], on_step=True, on_epoch=False)
-                self.log(f"pose/prob_{k}", probs[k].mean(), on_step=True, on_epoch=False)
+        probs = losses.probs  # (K, B), detached: the batch's pose probabilities, whichever the step
+        shares = F.one_hot(probs.argmax(0), probs.shape[0]).float().mean(0)
+        for k in range(probs.shape[0]):
+            self.log(f"pose/share_{k}", shares[k], on_step=True, on_epoch=False)
+            self.log(f"pose/prob_{k}", probs[k].mean(), on_step=True, on_epoch=False)
         return terms
 
     def _logs_this_step(self) -> bool:

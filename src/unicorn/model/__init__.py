@@ -1,7 +1,10 @@
 """UNICORN's structured autoencoder and its losses, as plain PyTorch modules.
 
-- :class:`Unicorn` (``autoencoder``): image -> shape, texture, pose, background -> rendered image, with the
-  two training steps :meth:`Unicorn.pose_step` and :meth:`Unicorn.step_3d`.
+- ``config``: the configuration's groups, defaults and checks (:class:`UnicornConfig`, :func:`merge_config`).
+- :class:`Unicorn` (``autoencoder``): image -> shape, texture, pose, background -> rendered image (assembly,
+  predict, render).
+- ``objectives``: the two training steps (pose step, 3D step) and the neighbour loss, each returning its loss
+  terms and the pose probabilities (:class:`StepLosses`); also :meth:`Unicorn.pose_step` / :meth:`Unicorn.step_3d`.
 - Building blocks: ``template`` (ellipsoid mesh and UVs), ``encoder`` (ResNet-18), ``field`` (shape),
   ``generator`` (texture / background), ``pose`` (candidates and scale), ``progressive`` (code masks).
 - Losses: ``losses`` (MSE, normal consistency, Laplacian, pose prior), ``perceptual`` (VGG16 / structural),
@@ -10,7 +13,8 @@
 Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
-from unicorn.model.autoencoder import DEFAULT_CONFIG, Prediction, Unicorn, merge_config, unicorn_config
+from unicorn.model.autoencoder import Prediction, Unicorn
+from unicorn.model.config import DEFAULT_CONFIG, UnicornConfig, check_model_config, merge_config
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import DeformationField, ShapeHead
 from unicorn.model.generator import CodeGenerator, GiraffeGenerator
@@ -23,6 +27,7 @@ from unicorn.model.losses import (
 )
 from unicorn.model.mlp import MLP
 from unicorn.model.neighbors import NeighborMatch, NeighborMemory
+from unicorn.model.objectives import StepLosses
 from unicorn.model.perceptual import StructuralLoss, VGGPerceptualLoss, load_vgg16_weights
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.progressive import ProgressiveMask, active_dims_at
@@ -44,18 +49,20 @@ __all__ = [
     "ResNet18",
     "ScaleHead",
     "ShapeHead",
+    "StepLosses",
     "StructuralLoss",
     "TemplateMesh",
     "Unicorn",
+    "UnicornConfig",
     "UniformLaplacianLoss",
     "VGGPerceptualLoss",
     "active_dims_at",
     "candidate_assignment_loss",
+    "check_model_config",
     "load_vgg16_weights",
     "merge_config",
     "mse_per_sample",
     "uniform_pose_prior",
-    "unicorn_config",
 ]
 
 # README.md documents these three to users as ``unicorn.model.*``: kept as re-exports of their home in

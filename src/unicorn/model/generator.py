@@ -12,7 +12,7 @@ from unicorn.model.filtering import separable_filter
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
 
-__all__ = ["Blur", "CodeGenerator", "GiraffeGenerator"]
+__all__ = ["Blur", "CodeGenerator", "GiraffeGenerator", "mean_texture"]
 
 
 class Blur(nn.Module):
@@ -123,3 +123,8 @@ class CodeGenerator(nn.Module):
     def forward(self, code: torch.Tensor) -> torch.Tensor:
         """Masked code (B, code_dim) -> image (B, 3, S, S) in [0, 1]."""
         return self.generator(code)
+
+
+def mean_texture(maps: torch.Tensor) -> torch.Tensor:
+    """Replace every texture image by its mean colour: (B, C, H, W) -> (B, C, H, W)."""
+    return maps.mean(dim=(2, 3), keepdim=True).expand_as(maps)

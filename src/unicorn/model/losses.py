@@ -10,17 +10,12 @@ import torch
 from torch import nn
 
 __all__ = [
-    "POSE_OBJECTIVES",
     "NormalConsistencyLoss",
     "UniformLaplacianLoss",
     "candidate_assignment_loss",
     "mse_per_sample",
     "uniform_pose_prior",
 ]
-
-
-#: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
-POSE_OBJECTIVES = ("expected", "assigned")
 
 
 def mse_per_sample(rec: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

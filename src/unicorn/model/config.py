@@ -1,0 +1,257 @@
+"""The model's configuration, defined once: typed groups with their defaults, ranges and allowed values.
+
+:class:`UnicornConfig` is what :class:`unicorn.model.Unicorn` takes (as the plain mapping
+:data:`DEFAULT_CONFIG` / :func:`merge_config`); the training schema (:mod:`unicorn.config.schema`) reuses the
+same group classes for its ``model`` group, and the presets (small, big, tiny; real-image and ShapeNet families)
+are the YAML files of ``conf/`` (:func:`unicorn.config.model_preset`). Every value check of a model
+configuration is :func:`check_model_config`, run by :func:`merge_config` and by the training config's validation.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "BackgroundConfig",
+    "CHOICES",
+    "EncoderConfig",
+    "LossConfig",
+    "ModelGroups",
+    "POSE_OBJECTIVES",
+    "PoseConfig",
+    "RendererConfig",
+    "ShapeConfig",
+    "TemplateConfig",
+    "TextureConfig",
+    "UnicornConfig",
+    "check_model_config",
+    "check_ranges",
+    "merge_config",
+    "ranged",
+]
+
+#: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
+POSE_OBJECTIVES = ("expected", "assigned")
+#: allowed values of the model's string settings: ``group.key`` -> values
+CHOICES: dict[str, tuple[Any, ...]] = {
+    "template.uv_mode": ("seamless", "reference"),
+    "renderer.composite": ("direct", "reference"),
+    "loss.perceptual": ("vgg", "structural", None),
+    "loss.uniform_reduction": ("sum", "mean"),
+    "loss.pose_objective": POSE_OBJECTIVES,
+}
+
+
+def ranged(default: Any, low: float | None = None, high: float | None = None) -> Any:
+    """A dataclass field whose value must lie in ``[low, high]`` (either bound may be None), checked by
+    :func:`check_ranges`. ``None`` values (optional fields) are not checked."""
+    return field(default=default, metadata={"range": (low, high)})
+
+
+@dataclass
+class EncoderConfig:
+    shared: bool = True  # one ResNet-18 for all branches (False: one per branch, the big model)
+
+
+@dataclass
+class TemplateConfig:
+    level: int = ranged(3, 0, 7)  # icosphere subdivisions (3: 642 vertices)
+    axes: tuple[float, float, float] = (1.0, 0.7, 0.7)
+    scale: float = ranged(0.6, 1e-6)  # 0.6 real images, 0.4 ShapeNet
+    uv_mode: str = "seamless"  # seamless | reference (see unicorn.model.template)
+
+
+@dataclass
+class ShapeConfig:
+    code_dim: int = ranged(32, 1)
+    active_dims: int = ranged(0, 0)
+    n_field_units: int = ranged(128, 1)
+    n_field_layers: int = ranged(2, 0)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
+
+
+@dataclass
+class TextureConfig:
+    code_dim: int = ranged(128, 1)
+    active_dims: int = ranged(2, 0)
+    size: int = ranged(64, 4)
+    min_features: int = ranged(16, 1)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
+
+
+@dataclass
+class BackgroundConfig:
+    code_dim: int = ranged(128, 1)
+    active_dims: int = ranged(4, 0)
+    min_features: int = ranged(16, 1)
+    n_reg_units: int = ranged(128, 1)
+    n_reg_layers: int = ranged(3, 0)
+
+
+@dataclass
+class PoseConfig:
+    n_elev: int = ranged(1, 1)
+    n_azim: int = ranged(6, 1)
+    azim_range: tuple[float, float] = (0.0, 360.0)
+    elev_range: tuple[float, float] = (-10.0, 30.0)
+    roll_range: tuple[float, float] = (-30.0, 30.0)
+    T_range: Any = 0.3  # one float or (x, y, z)
+    prior_translation: tuple[float, float, float] = (0.0, 0.0, 2.732)
+    scale_range: Any = 0.3  # one float or (x, y, z)
+    n_units: int = ranged(128, 1)
+    n_layers: int = ranged(3, 0)
+
+
+@dataclass
+class RendererConfig:
+    """The model's renderer: a registered backend (:func:`unicorn.render.build_renderer`) and its camera.
+
+    ``composite``: ``direct`` (the background image is the renderer's background) or ``reference`` (render
+    over ``background_color``, then ``rgb * A + (1 - A) * bkg``, as the released models did).
+    """
+
+    name: str = "layered"
+    fov: float | None = 30.0  # exactly one of fov and focal_length
+    focal_length: float | None = None
+    background_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    composite: str = "direct"
+    options: dict[str, Any] = field(default_factory=lambda: {"sigma": 1e-4, "faces_per_pixel": 25})
+
+
+@dataclass
+class LossConfig:
+    rgb_weight: float = ranged(1.0, 0)
+    perceptual: str | None = "vgg"  # vgg | structural | None
+    perceptual_weight: float = ranged(10.0, 0)
+    vgg_weights: str | None = None  # a copy of vgg16-397923af.pth; None: torch's hub cache (downloaded)
+    normal_weight: float = ranged(0.01, 0)
+    laplacian_weight: float = ranged(0.01, 0)
+    uniform_weight: float = ranged(0.02, 0)
+    uniform_reduction: str = "sum"  # sum (the paper) | mean (the reference code)
+    # expected (the paper): the probability-weighted loss trains the probabilities; assigned: the reconstruction
+    # terms are weighted by the detached probabilities and the probabilities learn from assignment_weight x the
+    # cross-entropy against the best-reconstructing candidate (unicorn.model.losses.candidate_assignment_loss)
+    pose_objective: str = "expected"
+    assignment_weight: float = ranged(0.02, 0)
+    neighbor_weight: float = ranged(1.0, 0)
+    memory_size: int = ranged(1024, 1)
+    n_bins: int = ranged(5, 1)
+    min_angle: float = ranged(20.0, 0, 180)
+
+
+@dataclass
+class ModelGroups:
+    """The groups the model and the training schema's ``model`` group share (the reference's small model)."""
+
+    image_size: int = ranged(64, 8)  # input / render side
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    template: TemplateConfig = field(default_factory=TemplateConfig)
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    background: BackgroundConfig | None = field(default_factory=BackgroundConfig)  # None: no background model
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+@dataclass
+class UnicornConfig(ModelGroups):
+    """Everything :class:`unicorn.model.Unicorn` takes."""
+
+    renderer: RendererConfig = field(default_factory=RendererConfig)
+
+
+#: the default configuration as a plain mapping (groups of keys), see :class:`UnicornConfig`
+DEFAULT_CONFIG: dict[str, Any] = dataclasses.asdict(UnicornConfig())
+
+
+def _dataclass_of(hint: Any) -> type | None:
+    """The dataclass in a type hint (``X`` or ``X | None``), or None."""
+    if dataclasses.is_dataclass(hint):
+        return hint  # type: ignore[return-value]
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        return next((a for a in typing.get_args(hint) if dataclasses.is_dataclass(a)), None)
+    return None
+
+
+def _describe_range(low: float | None, high: float | None) -> str:
+    if high is None:
+        return f">= {low:g}"
+    if low is None:
+        return f"<= {high:g}"
+    return f"in [{low:g}, {high:g}]"
+
+
+def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> None:
+    """Check every field of ``schema`` declared with :func:`ranged`, recursing into nested groups.
+
+    Raises:
+        ValueError: the first value out of its range, named with its full key (``prefix`` + path).
+    """
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        value = values.get(f.name)
+        key = f"{prefix}{f.name}"
+        nested = _dataclass_of(hints[f.name])
+        if nested is not None:
+            if value is not None:
+                check_ranges(value, nested, f"{key}.")
+            continue
+        low, high = f.metadata.get("range", (None, None))
+        if value is None or (low is None and high is None):
+            continue
+        if not ((low is None or value >= low) and (high is None or value <= high)):
+            raise ValueError(f"{key} must be {_describe_range(low, high)}, got {value}")
+
+
+def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
+    """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges and choices.
+
+    Raises:
+        ValueError: the first bad value, named with its key (``prefix`` + ``group.key``).
+    """
+    check_ranges(cfg, UnicornConfig, prefix)
+    for key, allowed in CHOICES.items():
+        group, name = key.split(".")
+        if cfg.get(group) is not None and cfg[group][name] not in allowed:
+            raise ValueError(f"{prefix}{key} must be one of {allowed}, got {cfg[group][name]!r}")
+    renderer = cfg["renderer"]
+    if (renderer["fov"] is None) == (renderer["focal_length"] is None):
+        raise ValueError(f"{prefix}renderer needs exactly one of fov and focal_length")
+
+
+def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> dict[str, Any]:
+    """Full configuration: :data:`DEFAULT_CONFIG` updated group by group with ``config`` then ``overrides``.
+
+    Raises:
+        KeyError: an unknown group or key (typos fail loudly).
+        ValueError: a value out of range or not among the allowed ones (:func:`check_model_config`).
+    """
+    merged = copy.deepcopy(DEFAULT_CONFIG)
+    for source in (config or {}, overrides):
+        for group, value in source.items():
+            if group not in merged:
+                raise KeyError(f"unknown model config group {group!r}; known: {sorted(merged)}")
+            if group == "image_size":
+                merged[group] = int(value)
+            elif value is None:
+                if group != "background":
+                    raise KeyError(f"only the background model can be disabled (None), not {group!r}")
+                merged[group] = None
+            else:
+                base = merged[group] if merged[group] is not None else copy.deepcopy(DEFAULT_CONFIG[group])
+                for key, v in dict(value).items():
+                    if key not in base:
+                        raise KeyError(f"unknown key {key!r} in model config group {group!r}; known: {sorted(base)}")
+                    base[key] = dict(v) if isinstance(v, Mapping) else v
+                merged[group] = base
+    check_model_config(merged)
+    return merged

@@ -1,0 +1,158 @@
+"""The training objectives: what each step's gradients reach, its terms, and the pose probabilities it returns."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.model import StepLosses, Unicorn, objectives
+
+from .helpers import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
+
+# randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
+pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
+
+
+def grads_of(module: torch.nn.Module) -> float:
+    return sum(float(p.grad.abs().sum()) for p in module.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("size", ["small", "big"])
+def test_both_steps_return_the_batch_pose_probabilities(size, images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(size=size)).eval()  # eval: batch norm is the same in every call
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    with torch.no_grad():
+        expected = model.predict(images).poses.probs  # (K, B)
+    for step in (model.pose_step, model.step_3d):
+        losses = step(images)
+        assert isinstance(losses, StepLosses)
+        assert losses.probs.shape == (model.n_candidates, images.shape[0]) and not losses.probs.requires_grad
+        assert torch.allclose(losses.probs, expected, atol=1e-6)
+        assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
+
+
+@pytest.mark.parametrize("size", ["small", "big"])
+def test_pose_step_gradients_only_reach_the_pose_branch(size, images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(size=size))
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    losses = model.pose_step(images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "total"}
+    losses["total"].backward()
+    for head in (*model.pose.rot_regressors, *model.pose.T_regressors, model.pose.proba_regressor):
+        assert grads_of(head) > 0
+    for module in (model.shape, model.texture, model.background, model.scale):
+        assert grads_of(module) == 0
+    if size == "small":
+        assert grads_of(model.encoders[0]) > 0
+    else:
+        assert grads_of(model.encoders[2]) > 0
+        assert all(grads_of(model.encoders[i]) == 0 for i in (0, 1, 3))
+
+
+def test_pose_step_assigned_objective(images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"pose_objective": "assigned", "assignment_weight": 0.5}))
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    losses = model.pose_step(images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "assignment", "total"}
+    # the value: cross-entropy against the candidate with the lowest reconstruction loss, computed here from
+    # the model's own predictions rendered candidate by candidate
+    with torch.no_grad():
+        pred = model.predict(images)
+        per_candidate = []
+        for k in range(model.n_candidates):
+            rec, _ = model.render(pred.verts, pred.texture, pred.poses.R[k], pred.poses.T[k], pred.background)
+            per_candidate.append(sum(model.reconstruction_terms(rec, images).values()))
+        best = torch.stack(per_candidate).argmin(0)
+        expected = torch.nn.functional.cross_entropy(pred.poses.probs.log().T, best)
+    assert torch.allclose(losses["assignment"], 0.5 * expected, rtol=1e-4)
+    # the reconstruction terms train the poses but not the probabilities; the cross-entropy trains these
+    losses["rgb"].backward(retain_graph=True)
+    assert grads_of(model.pose.proba_regressor) == 0
+    assert grads_of(model.pose.rot_regressors[0]) > 0
+    losses["assignment"].backward()
+    assert grads_of(model.pose.proba_regressor) > 0
+    with pytest.raises(ValueError, match="pose_objective"):
+        Unicorn(tiny_config(loss={"pose_objective": "best"}))
+
+
+@pytest.mark.parametrize("size", ["small", "big"])
+def test_step_3d_gradients_skip_the_pose_branch(size, images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(size=size))
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    losses = model.step_3d(images)
+    assert {"rgb", "perceptual", "normal", "laplacian", "total"} <= set(losses)
+    assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
+    losses["total"].backward()
+    assert grads_of(model.pose) == 0
+    for module in (model.shape.field, model.shape.regressor, model.texture, model.background, model.scale):
+        assert grads_of(module) > 0
+    if size == "big":
+        assert grads_of(model.encoders[2]) == 0
+        assert all(grads_of(model.encoders[i]) > 0 for i in (0, 1, 3))
+
+
+def test_neighbor_term_gradients_reach_only_shape_and_texture(images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config())
+    randomize_heads(model, std=0.1)
+    model.set_active_dims(shape=2, texture=8)
+    assert "neighbor" not in Unicorn(tiny_config()).step_3d(images)  # shape code 0-dim: inactive
+    # memory with other viewpoints so that every sample has neighbours
+    with torch.no_grad():
+        other = torch.rand(6, 3, IMAGE_SIZE, IMAGE_SIZE)
+        pred = model.predict(other)
+        turn = azim_elev_roll_to_rotation(torch.linspace(40, 160, 6), torch.zeros(6))
+        model.memory.push(other, pred.shape_code, pred.texture_code, turn)
+    losses = model.step_3d(images)
+    assert "neighbor" in losses and losses["neighbor"].item() > 0
+    losses["neighbor"].backward()  # the neighbour term alone
+    assert grads_of(model.shape.field) > 0 and grads_of(model.texture.generator) > 0
+    assert grads_of(model.background) == 0 and grads_of(model.scale) == 0 and grads_of(model.pose) == 0
+    assert len(model.memory) == 6 + images.shape[0]
+
+
+def test_both_steps_decrease_losses_on_synthetic_renders():
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"memory_size": 32}))
+    model.set_active_dims(shape=2, texture=8)
+    data = ellipsoid_images(8)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    history: dict[str, list[float]] = {"pose": [], "3d": []}
+    g = torch.Generator().manual_seed(0)
+    for it in range(24):
+        batch = data[torch.randperm(8, generator=g)[:4]]
+        optimizer.zero_grad(set_to_none=True)
+        losses = model.pose_step(batch) if it % 2 == 0 else model.step_3d(batch)
+        assert all(torch.isfinite(v) for v in losses.values()), losses
+        losses["total"].backward()
+        optimizer.step()
+        history["pose" if it % 2 == 0 else "3d"].append(losses["total"].item())
+    for name, values in history.items():
+        first, last = sum(values[:4]) / 4, sum(values[-4:]) / 4
+        assert last < 0.7 * first, (name, values)
+
+
+def test_neighbour_parameters_equal_the_matching_parts_of_predict(tiny_model, images):
+    """The neighbour swaps compute only what they use; each part equals what predict() gives."""
+    randomize_heads(tiny_model)
+    tiny_model.set_active_dims(shape=4, texture=4, background=4)
+    batch = torch.cat([images, images.flip(0)])  # 2n images: n shape then n texture neighbours
+    n = images.shape[0]
+    with torch.no_grad():
+        full = tiny_model.predict(batch)
+        scale, maps, verts, R, T, bkg = objectives._neighbour_parameters(tiny_model, batch, n, average_texture=False)
+    torch.testing.assert_close(scale, full.scale[:n])
+    torch.testing.assert_close(maps, full.texture[:n])
+    torch.testing.assert_close(verts, full.verts[n:])
+    torch.testing.assert_close(R, full.R)
+    torch.testing.assert_close(T, full.T)
+    torch.testing.assert_close(bkg, full.background)
