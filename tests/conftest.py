@@ -5,6 +5,9 @@ import os
 import pytest
 import torch
 
+#: fixtures shared by several test packages (datasets in real on-disk formats, the synthetic set, a cache)
+pytest_plugins = ["tests.support.fixtures"]
+
 # two cores on the CI machine: keep torch from oversubscribing them
 torch.set_num_threads(int(os.environ.get("UNICORN_TEST_THREADS", "2")))
 

@@ -55,3 +55,19 @@ def test_no_import_runs_up_a_floor(package: str) -> None:
 def test_every_package_has_a_floor() -> None:
     packages = {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
     assert packages <= set(FLOOR), packages - set(FLOOR)
+
+
+def test_tests_share_code_through_tests_support_only() -> None:
+    """No test module imports another test module or a conftest (shared code lives in tests/support)."""
+    tests = Path(__file__).resolve().parent
+    offending = []
+    for path in sorted(tests.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom) or not node.module:
+                continue
+            module = node.module.split(".")
+            if node.level == 0 and module[0] == "tests" and module[1:2] != ["support"]:
+                offending.append(f"{path.relative_to(tests)} imports {node.module}")
+            elif node.level > 0 and (module[-1] == "conftest" or module[-1].startswith("test_")):
+                offending.append(f"{path.relative_to(tests)} imports .{node.module}")
+    assert not offending, offending

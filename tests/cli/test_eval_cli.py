@@ -14,8 +14,7 @@ import pytest
 import torch
 
 import unicorn
-from tests.evaluation.helpers import synthetic_data, tiny_checkpoint
-from tests.evaluation.test_report import referenced_files
+from tests.support.evaluation import referenced_files, synthetic_data, tiny_checkpoint
 from unicorn.cli.eval import main
 
 FAST = ["--num-points", "300", "--icp-iterations", "2", "--view-size", "40", "--turntable-frames", "2", "--quiet"]

@@ -15,10 +15,9 @@ import trimesh
 from PIL import Image
 
 import unicorn
-from tests.data.test_images import bomb_png
-from tests.evaluation.helpers import TEXTURE_SIZE, tiny_checkpoint, write_inputs
-from tests.evaluation.test_report import referenced_files
-from tests.io.test_reference_checkpoints import reference_state
+from tests.support.checkpoints import reference_state
+from tests.support.datasets import bomb_png
+from tests.support.evaluation import TEXTURE_SIZE, referenced_files, tiny_checkpoint, write_inputs
 from unicorn.cli.reconstruct import main
 from unicorn.data.images import MAX_IMAGE_PIXELS_ENV
 from unicorn.io import export_prediction, load_model

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.lit.conftest import TINY, compose_config
+from tests.support.training import TINY, compose_config
 from unicorn import __version__
 from unicorn.cli.train import hydra_argv
 from unicorn.config import ConfigError, validate
@@ -226,7 +226,7 @@ def test_missing_dataset_is_one_line(tmp_path):
 
 
 def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp_path):
-    from tests.lit.conftest import build_run
+    from tests.support.training import build_run
     from unicorn.cli.train import RunFolderError, fit
 
     fit(build_run(tmp_path, "trainer.max_steps=2"))
@@ -241,7 +241,7 @@ def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp
 
 
 def test_progress_bar_can_be_disabled(synthetic_cache, tmp_path):
-    from tests.lit.conftest import build_run
+    from tests.support.training import build_run
     from unicorn.cli.train import fit
 
     run = build_run(tmp_path, "trainer.enable_progress_bar=false", "trainer.max_steps=1")

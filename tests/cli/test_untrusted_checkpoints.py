@@ -17,10 +17,9 @@ import numpy as np
 import pytest
 import torch
 
-from tests.evaluation.helpers import tiny_checkpoint, write_inputs
-from tests.io.test_reference_checkpoints import reference_state
-from tests.io.test_serialization import Payload
-from tests.lit.conftest import TINY
+from tests.support.checkpoints import Payload, reference_state
+from tests.support.evaluation import tiny_checkpoint, write_inputs
+from tests.support.training import TINY
 from unicorn.cli import eval as eval_cli
 from unicorn.cli import reconstruct as reconstruct_cli
 from unicorn.io import UnsafeCheckpointError, load_model, load_reference_checkpoint, read_checkpoint

@@ -9,12 +9,11 @@ import pytest
 import scipy.io
 import torch
 
+from tests.support.datasets import make_record, write_struct_array
 from unicorn.data.cub import CUB200, CUB_FLIP_PERM
 from unicorn.data.images import DatasetNotFoundError, ImageLoadError, hflip_keypoints
 from unicorn.data.matlab import load_struct_array
 from unicorn.data.p3d import Pascal3DCar
-
-from .conftest import make_record, write_struct_array
 
 
 def _check_item(item: dict, img_size: int, mask_size: int, n_kp: int) -> None:

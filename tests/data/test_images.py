@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from tests.support.datasets import bomb_png
 from unicorn.data.images import (
     DEFAULT_MAX_IMAGE_PIXELS,
     MAX_IMAGE_PIXELS_ENV,
@@ -124,23 +125,6 @@ def test_hflip_keypoints_is_an_involution() -> None:
     once = hflip_keypoints(kps, 16, perm)
     assert np.allclose(once[1, :2], [12.0, 4.0])  # keypoint 0 mirrored lands in slot 1
     assert np.allclose(hflip_keypoints(once, 16, perm), kps)
-
-
-# ---------------------------------------------------------------------------------------------- limits, bombs
-def bomb_png(path: Path, width: int = 20000, height: int = 20000) -> Path:
-    """A valid PNG header announcing ``width x height`` RGB pixels, a few hundred bytes on disk."""
-    import struct
-    import zlib
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    row = b"\x00" + bytes(3 * min(width, 64))  # only the start of the image data: decoding would fail anyway
-    path.write_bytes(
-        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(row)) + chunk(b"IEND", b"")
-    )
-    return path
 
 
 def test_decompression_bomb_is_a_bad_image(tmp_path: Path) -> None:

@@ -12,10 +12,9 @@ import pytest
 import torch
 from PIL import Image
 
+from tests.support.datasets import write_photo
 from unicorn.data.folder import CompCars, ImageFolder
 from unicorn.data.images import DatasetNotFoundError, ImageLoadError
-
-from .conftest import write_photo
 
 
 def _check_item(item: dict, size: int = 64) -> None:
@@ -153,7 +152,7 @@ def test_lsun_missing_root(tmp_path: Path) -> None:
 
 
 def test_decompression_bomb_is_skipped_like_any_bad_image(mixed_folder: Path) -> None:
-    from tests.data.test_images import bomb_png
+    from tests.support.datasets import bomb_png
 
     bomb_png(mixed_folder / "aaa_bomb.png")
     with pytest.raises(ImageLoadError, match="aaa_bomb.png.*exceeds the limit"):

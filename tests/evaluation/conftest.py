@@ -6,10 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.data.conftest import cub_root, p3d_root  # noqa: F401  (fixtures in the real on-disk formats)
+from tests.support.evaluation import synthetic_data, tiny_checkpoint, tiny_model
 from unicorn.model import Unicorn
-
-from .helpers import synthetic_data, tiny_checkpoint, tiny_model
 
 
 @pytest.fixture(scope="session")

@@ -6,6 +6,7 @@ import pytest
 import torch
 import trimesh
 
+from tests.support.evaluation import IMAGE_SIZE, tiny_model
 from unicorn.evaluation import (
     EvalOptions,
     FixedShapeModel,
@@ -20,8 +21,6 @@ from unicorn.evaluation import (
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.metrics import chamfer_l1, sample_points_from_meshes
-
-from .helpers import IMAGE_SIZE, tiny_model
 
 FAST = dict(batch_size=3, num_points=400, icp_iterations=2, progress=False)
 # a 162-vertex template, UNICORN's ShapeNet ellipsoid at level 2

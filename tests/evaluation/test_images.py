@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from tests.support.evaluation import write_inputs
 from unicorn.data.images import ImageLoadError, fit_and_pad, load_image
 from unicorn.io import alpha_bbox, collect_inputs, load_input, preprocess
-
-from .helpers import write_inputs
 
 
 def test_collect_inputs(tmp_path: Path) -> None:

@@ -7,10 +7,9 @@ from pathlib import Path
 
 import torch
 
+from tests.support.evaluation import IMAGE_SIZE
 from unicorn.evaluation.reconstruct import pose_record, unique_names
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, look_at_view_parameters, look_at_view_transform
-
-from .helpers import IMAGE_SIZE
 
 
 def test_unique_names() -> None:

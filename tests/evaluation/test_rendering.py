@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from tests.support.evaluation import IMAGE_SIZE
 from unicorn.evaluation import hard_render, shaded_render, turntable, vertex_visibility
 from unicorn.evaluation.rendering import spin_rotation, vertex_normals
 from unicorn.geometry.mesh import icosphere
-
-from .helpers import IMAGE_SIZE
 
 
 def test_vertex_visibility() -> None:

@@ -4,52 +4,15 @@ from __future__ import annotations
 
 import csv
 import json
-from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
 
-from unicorn.evaluation import EvaluationResult, Sample, format_table, write_metrics, write_report
+from tests.support.evaluation import referenced_files, report_result
+from unicorn.evaluation import format_table, write_metrics, write_report
 from unicorn.evaluation.report import image_grid, mask_overlay
-
-
-class _Sources(HTMLParser):
-    def __init__(self) -> None:
-        super().__init__()
-        self.sources: list[str] = []
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        for key, value in attrs:
-            if (tag, key) in (("img", "src"), ("a", "href")) and value:
-                self.sources.append(value)
-
-
-def referenced_files(page: Path) -> list[str]:
-    """Every ``img src`` and ``a href`` of an HTML file."""
-    parser = _Sources()
-    parser.feed(page.read_text(encoding="utf-8"))
-    return parser.sources
-
-
-def _result(model, n_samples: int = 2) -> EvaluationResult:
-    x = torch.rand(n_samples, 3, 32, 32)
-    with torch.no_grad():
-        pred = model.predict(x)
-        rec, alpha = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
-    samples = [
-        Sample(i, "chair", x[i], rec[i], alpha[i], (alpha[i] > 0.2).float(), pred.verts[i], pred.texture[i],
-               pred.R[i], pred.T[i], {"mask-iou": 0.5, "rec-mse": 0.01})
-        for i in range(n_samples)
-    ]  # fmt: skip
-    per_image = [{"index": 0, "group": "chair", "mask-iou": 0.5, "rec-mse": 0.01},
-                 {"index": 1, "group": "chair", "mask-iou": float("nan"), "rec-mse": 0.03}]  # fmt: skip
-    table = [
-        {"group": "chair", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
-        {"group": "mean", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
-    ]
-    return EvaluationResult("shapenet", per_image, table, ["mask-iou", "rec-mse"], samples, 1.5)
 
 
 def test_format_table() -> None:
@@ -60,7 +23,7 @@ def test_format_table() -> None:
 
 
 def test_metric_files(tmp_path: Path, real_model) -> None:
-    result = _result(real_model)
+    result = report_result(real_model)
     paths = write_metrics(result, tmp_path, {"checkpoint": Path("/x/model.pkl")})
     with open(paths["csv"]) as f:
         rows = list(csv.DictReader(f))
@@ -73,7 +36,7 @@ def test_metric_files(tmp_path: Path, real_model) -> None:
 
 
 def test_report_page_and_grid(tmp_path: Path, real_model) -> None:
-    result = _result(real_model)
+    result = report_result(real_model)
     paths = write_report(real_model, result, tmp_path, "test run", {"dataset": "synthetic"}, view_size=40,
                          turntable_frames=3)  # fmt: skip
     for source in referenced_files(paths["html"]):

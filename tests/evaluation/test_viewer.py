@@ -17,13 +17,12 @@ import pytest
 import torch
 from PIL import Image
 
+from tests.support.evaluation import report_result, tiny_checkpoint, tiny_model, write_inputs
 from unicorn.cli.reconstruct import main as reconstruct_main
 from unicorn.evaluation import write_report
 from unicorn.evaluation.viewer import VIEWER_SCRIPT
 
 from .chromium import EXECUTABLE, Chromium
-from .helpers import tiny_checkpoint, tiny_model, write_inputs
-from .test_report import _result
 
 pytestmark = pytest.mark.skipif(
     EXECUTABLE is None, reason="headless Chromium is not installed (Debian: apt-get install chromium; .ci/run does)"
@@ -76,5 +75,5 @@ def test_reconstruct_index_shows_each_mesh_in_3d(tmp_path):
 def test_eval_report_shows_each_sample_in_3d(tmp_path):
     model = tiny_model("real")
     torch.manual_seed(0)
-    paths = write_report(model, _result(model), tmp_path / "report", "test", {}, view_size=32, turntable_frames=0)
+    paths = write_report(model, report_result(model), tmp_path / "report", "test", {}, view_size=32, turntable_frames=0)
     check_viewers(paths["html"], 2)

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.evaluation.helpers import IMAGE_SIZE, tiny_model
-from tests.io.test_reference_checkpoints import reference_state
+from tests.support.checkpoints import reference_state
+from tests.support.evaluation import IMAGE_SIZE, tiny_model
 from unicorn.io import CheckpointError, load_model, save_model
 from unicorn.io.serialization import INTEGRITY_KEY
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 import trimesh
 
-from tests.model.helpers import randomize_heads, tiny_config
+from tests.support.model import randomize_heads, tiny_config
 from unicorn.io import export_prediction, save_mesh
 from unicorn.model import Unicorn
 from unicorn.render.textures import sample_bilinear

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.support.checkpoints import malicious
 from unicorn.errors import UserError
 from unicorn.io.serialization import (
     INTEGRITY_KEY,
@@ -25,22 +26,6 @@ from unicorn.io.serialization import (
     remove_stale_temporaries,
     seal,
 )
-
-
-class Payload:
-    """Unpickling this runs ``os.system``: it creates ``marker`` (the shell command of a malicious file)."""
-
-    def __init__(self, marker: Path) -> None:
-        self.marker = marker
-
-    def __reduce__(self):
-        return (os.system, (f"touch {self.marker}",))
-
-
-def malicious(path: Path, marker: Path, data: dict | None = None) -> Path:
-    """Save ``data`` (default: a small dict) with a payload inside it."""
-    torch.save({**(data or {"weights": torch.zeros(2)}), "epoch": Payload(marker)}, path)
-    return path
 
 
 def test_payload_is_refused_and_never_runs(tmp_path: Path) -> None:

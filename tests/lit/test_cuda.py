@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from tests.lit.conftest import build_run
+from tests.support.training import build_run
 from unicorn.cli.train import fit
 
 pytestmark = pytest.mark.gpu

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from tests.model.helpers import randomize_heads, tiny_config
+from tests.support.model import randomize_heads, tiny_config
 from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
 from unicorn.model import Unicorn
 

@@ -9,7 +9,7 @@ import re
 import pytest
 import torch
 
-from tests.lit.conftest import build_run, compose_config
+from tests.support.training import build_run, compose_config
 from unicorn.cli.train import fit
 from unicorn.config import ConfigError, validate
 from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
@@ -114,7 +114,7 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     ],
 )
 def test_bad_settings_are_named(tmp_path, override, message):
-    from tests.lit.conftest import TINY
+    from tests.support.training import TINY
 
     with pytest.raises(ConfigError, match=message):
         validate(compose_config([*TINY, f"paths.output_dir={tmp_path}", override]))

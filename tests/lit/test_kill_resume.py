@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from tests.lit.conftest import TINY
+from tests.support.training import TINY
 
 MAX_STEPS = 6
 EVERY = 3  # checkpoint period: step=3 and step=6 (each with last.ckpt)

@@ -8,7 +8,7 @@ import lightning as L
 import pytest
 import torch
 
-from tests.lit.conftest import build_run
+from tests.support.training import build_run
 from unicorn.cli.train import build, fit
 from unicorn.lit import NonFiniteLossError
 
@@ -155,7 +155,7 @@ def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monk
 
 
 def test_missing_dataset_is_a_clear_error(tmp_path):
-    from tests.lit.conftest import compose_config
+    from tests.support.training import compose_config
 
     cfg = compose_config(
         ["experiment=cub", f"paths.output_dir={tmp_path}", f"dataset.root={tmp_path / 'nothing'}", "logger=none"]

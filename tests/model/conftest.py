@@ -5,9 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.support.model import IMAGE_SIZE, tiny_config
 from unicorn.model import Unicorn
-
-from .helpers import IMAGE_SIZE, tiny_config
 
 
 @pytest.fixture

@@ -5,10 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn, merge_config
-
-from .helpers import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")

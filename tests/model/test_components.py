@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from tests.support.checkpoints import torchvision_resnet18_shapes
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import (
     MLP,
@@ -20,33 +21,6 @@ from unicorn.model import (
     TemplateMesh,
     active_dims_at,
 )
-
-
-def torchvision_resnet18_shapes() -> dict[str, tuple[int, ...]]:
-    """Key names and shapes of torchvision's resnet18 state dict, written out from its layout."""
-    shapes: dict[str, tuple[int, ...]] = {"conv1.weight": (64, 3, 7, 7)}
-
-    def bn(prefix: str, c: int) -> None:
-        for name in ("weight", "bias", "running_mean", "running_var"):
-            shapes[f"{prefix}.{name}"] = (c,)
-        shapes[f"{prefix}.num_batches_tracked"] = ()
-
-    bn("bn1", 64)
-    cin = 64
-    for i, c in enumerate((64, 128, 256, 512), start=1):
-        for j in range(2):
-            p = f"layer{i}.{j}"
-            shapes[f"{p}.conv1.weight"] = (c, cin if j == 0 else c, 3, 3)
-            bn(f"{p}.bn1", c)
-            shapes[f"{p}.conv2.weight"] = (c, c, 3, 3)
-            bn(f"{p}.bn2", c)
-            if j == 0 and i > 1:
-                shapes[f"{p}.downsample.0.weight"] = (c, cin, 1, 1)
-                bn(f"{p}.downsample.1", c)
-        cin = c
-    shapes["fc.weight"] = (1000, 512)
-    shapes["fc.bias"] = (1000,)
-    return shapes
 
 
 def random_state(shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:

@@ -7,9 +7,8 @@ import copy
 import pytest
 import torch
 
+from tests.support.model import randomize_heads, tiny_config
 from unicorn.model import Unicorn
-
-from .helpers import randomize_heads, tiny_config
 
 pytestmark = pytest.mark.gpu
 

@@ -1,20 +1,12 @@
-"""Tiny fixtures in the exact on-disk formats of the real datasets, written by code at test time."""
+"""Tiny datasets in the exact on-disk formats of the real ones, written by code at test time; a PNG bomb."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-import pytest
 import scipy.io
-import torch
 from PIL import Image
-
-from unicorn.data.cub import CUB_KEYPOINTS
-from unicorn.data.synthetic.writer import generate_synthetic_dataset
-
-# ---------------------------------------------------------------------------------------------------------
-# CMR / UCMR style annotations
 
 _RECORD_DTYPE = [
     ("id", "O"),
@@ -100,58 +92,18 @@ def write_annotated_split(
     return records
 
 
-@pytest.fixture
-def cub_root(tmp_path: Path) -> Path:
-    """CUB-200-2011 layout: images/<class>/<file>.jpg + cachedir/cub/data/<split>_cub_cleaned.mat."""
-    root = tmp_path / "cub_200"
-    dirs = ["001.Black_footed_Albatross", "002.Laysan_Albatross"]
-    for seed, (split, n) in enumerate([("train", 4), ("val", 7), ("test", 3)]):
-        write_annotated_split(
-            root,
-            "images",
-            root / "cachedir/cub/data" / f"{split}_cub_cleaned.mat",
-            dirs,
-            n,
-            len(CUB_KEYPOINTS),
-            seed,
-        )
-    return root
+# ---------------------------------------------------------------------------------------------- limits, bombs
+def bomb_png(path: Path, width: int = 20000, height: int = 20000) -> Path:
+    """A valid PNG header announcing ``width x height`` RGB pixels, a few hundred bytes on disk."""
+    import struct
+    import zlib
 
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-@pytest.fixture
-def p3d_root(tmp_path: Path) -> Path:
-    """Pascal3D+ layout with UCMR annotations, car_kps.mat and the 10 CAD point clouds."""
-    root = tmp_path / "pascal_3d"
-    dirs = ["car_pascal", "car_imagenet"]
-    for seed, (split, n) in enumerate([("train", 3), ("test", 2)]):
-        write_annotated_split(root, "Images", root / "ucmr_anno/data" / f"car_{split}.mat", dirs, n, 12, seed + 10)
-    perm = np.array([2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11])  # 1-based, like the real file
-    names = np.array([f"kp{i}" for i in range(12)], dtype=object)
-    scipy.io.savemat(root / "ucmr_anno/data/car_kps.mat", {"kp_names": names, "kp_perm_inds": perm})
-    pc_dir = root / "unicorn_anno/car"
-    pc_dir.mkdir(parents=True)
-    for k in range(1, 11):
-        pts = torch.rand(200, 3) - 0.5
-        torch.save(
-            {"points": pts, "normals": torch.nn.functional.normalize(pts, dim=1)},
-            pc_dir / f"{k:02d}_pointcloud.pt",
-        )
-    return root
-
-
-@pytest.fixture(scope="session")
-def synth_nmr(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Synthetic benchmark, NMR mode: 2 categories x 3 models x 6 views (also the ShapeNet-NMR fixture)."""
-    out = tmp_path_factory.mktemp("synth") / "nmr"
-    return generate_synthetic_dataset(
-        out, ["chair", "car"], "nmr", n_models=3, seed=0, n_views=6, n_points=600, progress=False
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    row = b"\x00" + bytes(3 * min(width, 64))  # only the start of the image data: decoding would fail anyway
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(row)) + chunk(b"IEND", b"")
     )
-
-
-@pytest.fixture(scope="session")
-def synth_wild(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Synthetic benchmark, wild mode (off-centre cameras, roll, random backgrounds)."""
-    out = tmp_path_factory.mktemp("synth") / "wild"
-    return generate_synthetic_dataset(
-        out, ["airplane", "lamp"], "wild", n_models=3, seed=1, n_views=6, n_points=600, progress=False
-    )
+    return path

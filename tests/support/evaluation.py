@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import torch
 from PIL import Image
 
 from unicorn.config import model_preset
+from unicorn.evaluation import EvaluationResult, Sample
 from unicorn.io import save_model
 from unicorn.model import Unicorn
 
@@ -47,3 +49,41 @@ def write_inputs(folder: Path) -> dict[str, Path]:
     photo = (rng.random((40, 70, 3)) * 255).astype(np.uint8)
     Image.fromarray(photo).save(folder / "photo.jpg")
     return {"cutout": folder / "cutout.png", "photo": folder / "photo.jpg"}
+
+
+class _Sources(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.sources: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        for key, value in attrs:
+            if (tag, key) in (("img", "src"), ("a", "href")) and value:
+                self.sources.append(value)
+
+
+def referenced_files(page: Path) -> list[str]:
+    """Every ``img src`` and ``a href`` of an HTML file."""
+    parser = _Sources()
+    parser.feed(page.read_text(encoding="utf-8"))
+    return parser.sources
+
+
+def report_result(model, n_samples: int = 2) -> EvaluationResult:
+    """A small hand-made evaluation result on random images: two samples, per-image rows and a table."""
+    x = torch.rand(n_samples, 3, 32, 32)
+    with torch.no_grad():
+        pred = model.predict(x)
+        rec, alpha = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    samples = [
+        Sample(i, "chair", x[i], rec[i], alpha[i], (alpha[i] > 0.2).float(), pred.verts[i], pred.texture[i],
+               pred.R[i], pred.T[i], {"mask-iou": 0.5, "rec-mse": 0.01})
+        for i in range(n_samples)
+    ]  # fmt: skip
+    per_image = [{"index": 0, "group": "chair", "mask-iou": 0.5, "rec-mse": 0.01},
+                 {"index": 1, "group": "chair", "mask-iou": float("nan"), "rec-mse": 0.03}]  # fmt: skip
+    table = [
+        {"group": "chair", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
+        {"group": "mean", "n-images": 2, "mask-iou": 0.5, "rec-mse": 0.02},
+    ]
+    return EvaluationResult("shapenet", per_image, table, ["mask-iou", "rec-mse"], samples, 1.5)

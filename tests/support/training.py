@@ -1,13 +1,8 @@
-"""Shared fixtures of the training tests: a tiny synthetic dataset and a small, fast training config."""
+"""Tiny training runs: overrides that make `experiment=synthetic` a run of seconds, composing and building it."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
-
-import pytest
-
-from tests.data.conftest import cub_root, p3d_root, synth_nmr  # noqa: F401  (fixtures in the real on-disk formats)
 
 #: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
@@ -31,24 +26,6 @@ TINY = [
     "evaluate.enabled=false",
     "logger=none",
 ]
-
-
-@pytest.fixture(scope="session")
-def synthetic_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A cache holding the 5-model synthetic set at 32 px; ``UNICORN_CACHE`` points at it (also for subprocesses)."""
-    from unicorn.data.synthetic import ensure_synthetic_dataset
-
-    cache = tmp_path_factory.mktemp("unicorn_cache")
-    ensure_synthetic_dataset(
-        root=cache / "synthetic_32px", category="chair", mode="nmr", n_models=5, seed=0, image_size=32, progress=False
-    )
-    old = os.environ.get("UNICORN_CACHE")
-    os.environ["UNICORN_CACHE"] = str(cache)
-    yield cache
-    if old is None:
-        os.environ.pop("UNICORN_CACHE", None)
-    else:
-        os.environ["UNICORN_CACHE"] = old
 
 
 def compose_config(overrides: list[str]):

@@ -1,1 +1,0 @@
-from tests.lit.conftest import TINY, synthetic_cache  # noqa: F401
