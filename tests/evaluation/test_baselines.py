@@ -9,6 +9,7 @@ import trimesh
 from tests.support.evaluation import IMAGE_SIZE, tiny_model
 from unicorn.evaluation import (
     EvalOptions,
+    EvaluableModel,
     FixedShapeModel,
     build_eval_dataset,
     evaluate,
@@ -213,3 +214,10 @@ def test_bad_inputs(shapenet_model) -> None:
         fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], iterations=-1)
     with pytest.raises(ValueError, match="lr > 0"):
         fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], lr=0.0)
+
+
+def test_models_and_baselines_are_evaluable(shapenet_model) -> None:
+    baseline = FixedShapeModel(shapenet_model, shapenet_model.template.verts.clone())
+    for model in (shapenet_model, baseline):
+        assert isinstance(model, EvaluableModel)
+    assert not isinstance(torch.nn.Linear(2, 2), EvaluableModel)  # the check has teeth

@@ -11,7 +11,8 @@ from torch.utils.data import Dataset
 
 from unicorn.evaluation import EvalOptions, build_eval_dataset, candidate_shares, evaluate, hard_render, protocol_for
 from unicorn.evaluation.baselines import FixedShapeModel
-from unicorn.evaluation.evaluator import collate, spread_indices
+from unicorn.evaluation.evaluator import collate
+from unicorn.evaluation.interface import spread_indices
 from unicorn.metrics import evaluate_meshes, mask_iou
 
 FAST = dict(batch_size=3, num_points=400, icp_iterations=2, num_pairs=50, progress=False)

@@ -1,6 +1,7 @@
 """Evaluation of trained models and reconstruction of user images (the library behind ``unicorn-eval`` and
 ``unicorn-reconstruct``).
 
+- :mod:`~unicorn.evaluation.interface`: what a model must offer to be evaluated (:class:`EvaluableModel`);
 - :mod:`~unicorn.evaluation.evaluator`: the evaluation protocols per dataset family (:func:`evaluate`);
 - :mod:`~unicorn.evaluation.rendering`: hard renders for masks, visibility, mesh views and turntables;
 - :mod:`~unicorn.evaluation.report`: metric tables (text, CSV, JSON) and the visual report (PNG grid, HTML);
@@ -8,7 +9,8 @@
 - :mod:`~unicorn.evaluation.baselines`: the reference baselines (template at the anchor pose, mean training
   shape) as :class:`FixedShapeModel` instances that :func:`evaluate` scores like any model.
 
-Every function takes a :class:`~unicorn.model.Unicorn`; :func:`unicorn.io.load_model` reads any checkpoint.
+Every function takes an :class:`EvaluableModel` (a :class:`~unicorn.model.Unicorn` or a baseline);
+:func:`unicorn.io.load_model` reads any checkpoint.
 """
 
 from unicorn.evaluation.baselines import (
@@ -29,6 +31,7 @@ from unicorn.evaluation.evaluator import (
     evaluate,
     protocol_for,
 )
+from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.reconstruct import reconstruct
 from unicorn.evaluation.rendering import hard_render, shaded_render, turntable, vertex_visibility
 from unicorn.evaluation.report import format_table, write_metrics, write_report
@@ -36,6 +39,7 @@ from unicorn.evaluation.report import format_table, write_metrics, write_report
 __all__ = [
     "PROTOCOLS",
     "EvalOptions",
+    "EvaluableModel",
     "EvaluationResult",
     "FixedShapeModel",
     "Sample",

@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from unicorn.checks import check_faces
 from unicorn.data.shapenet import ShapeNetNMR
-from unicorn.evaluation.evaluator import spread_indices
+from unicorn.evaluation.interface import spread_indices
 from unicorn.metrics import chamfer_l1, mask_iou, sample_points_from_meshes
 from unicorn.model import Prediction, Unicorn
 from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
@@ -52,9 +52,8 @@ class FixedShapeModel(nn.Module):
     """A :class:`~unicorn.model.Unicorn` whose shape (and optionally pose) predictions are replaced by fixed ones.
 
     Texture, background and pose candidates still come from the wrapped model, so :func:`evaluate` (and the
-    rendering helpers) score it like any model: it exposes ``config``, ``template``, ``renderer``,
-    ``render``, ``textures``, ``n_candidates`` and ``predict``; ``.to()`` / ``.eval()`` reach the wrapped model,
-    a registered submodule.
+    rendering helpers) score it like any model: it is an :class:`~unicorn.evaluation.interface.EvaluableModel`
+    whose members delegate to the wrapped model (a registered submodule, so ``.to()`` / ``.eval()`` reach it).
 
     Args:
         model: the wrapped model.

@@ -60,7 +60,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -69,6 +69,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from unicorn.data import build_dataset
+from unicorn.evaluation.interface import EvaluableModel, spread_indices
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import (
@@ -81,10 +82,6 @@ from unicorn.metrics import (
     mean_foreground_color,
     pose_errors,
 )
-from unicorn.model import Unicorn
-
-if TYPE_CHECKING:  # baselines imports this module at run time
-    from unicorn.evaluation.baselines import FixedShapeModel
 
 __all__ = [
     "PROTOCOLS",
@@ -96,7 +93,6 @@ __all__ = [
     "collate",
     "evaluate",
     "protocol_for",
-    "spread_indices",
 ]
 
 # colour metrics leave out this many border pixels (input resolution) of each mask: measured on the synthetic cars
@@ -277,15 +273,6 @@ class EvaluationResult:
         return self.table[-1]
 
 
-def spread_indices(n: int, k: int | None) -> list[int]:
-    """``k`` indices spread evenly over ``range(n)`` (all of them when ``k`` is None or >= n)."""
-    if k is None or k >= n:
-        return list(range(n))
-    if k < 1:
-        raise ValueError(f"need at least one image, got max_images={k}")
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64)).tolist()
-
-
 def build_eval_dataset(
     name: str,
     root: str,
@@ -403,7 +390,7 @@ def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
 
 
 def _mesh_scores(
-    model: Unicorn | FixedShapeModel,
+    model: EvaluableModel,
     pred_verts: torch.Tensor,
     batch: Mapping[str, Any],
     device: torch.device,
@@ -456,7 +443,7 @@ def _require_poses(batch: Mapping[str, Any]) -> None:
 
 @torch.no_grad()
 def evaluate(
-    model: Unicorn | FixedShapeModel,
+    model: EvaluableModel,
     dataset: Dataset,
     options: EvalOptions,
     dataset_name: str = "dataset",
@@ -470,8 +457,8 @@ def evaluate(
     :attr:`EvaluationResult.candidate_shares`, when the model has K > 1 candidates and ``oracle_pose`` is off.
 
     Args:
-        model: the model (moved to ``device`` and put in eval mode): a :class:`~unicorn.model.Unicorn`, or a
-            :class:`~unicorn.evaluation.baselines.FixedShapeModel` baseline.
+        model: the model (moved to ``device`` and put in eval mode): any
+            :class:`~unicorn.evaluation.interface.EvaluableModel` (a :class:`~unicorn.model.Unicorn`, a baseline).
         dataset: test items (``image``, ``mask``/``has_mask``, ``R``/``T``, ``points``/``normals``, ``keypoints``...
             as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it.
         options: :class:`EvalOptions`.
@@ -627,7 +614,7 @@ def _wins(ours: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
 
 
 def _own_mean_shapes(
-    model: Unicorn | FixedShapeModel,
+    model: EvaluableModel,
     loader: DataLoader,
     group_of: Callable[[Mapping[str, Any], int], str],
     size: int,
@@ -663,7 +650,7 @@ def _color_scores(acc: _Accumulator) -> None:
 def _set_metrics(
     acc: _Accumulator,
     group: str,
-    model: Unicorn | FixedShapeModel,
+    model: EvaluableModel,
     options: EvalOptions,
     shares: Mapping[str, list[float]],
 ) -> dict[str, float]:
@@ -703,7 +690,7 @@ def _set_metrics(
 
 
 def _table(
-    acc: _Accumulator, model: Unicorn | FixedShapeModel, options: EvalOptions, shares: Mapping[str, list[float]]
+    acc: _Accumulator, model: EvaluableModel, options: EvalOptions, shares: Mapping[str, list[float]]
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Per-group means of the per-image metrics plus the group's set metrics; then the mean over groups."""
     groups = list(dict.fromkeys(row["group"] for row in acc.rows))

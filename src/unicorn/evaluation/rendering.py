@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import torch
 
-from unicorn.model import Unicorn
+from unicorn.evaluation.interface import EvaluableModel
 from unicorn.render import RenderOutput, TexturesVertex, build_renderer
 
 __all__ = [
@@ -32,7 +32,7 @@ __all__ = [
 SHADE_COLOR = (0.72, 0.76, 0.85)
 
 
-def _hard(model: Unicorn, image_size: int, supersample: int, device: torch.device) -> torch.nn.Module:
+def _hard(model: EvaluableModel, image_size: int, supersample: int, device: torch.device) -> torch.nn.Module:
     return build_renderer(
         "hard",
         image_size=image_size,
@@ -43,7 +43,7 @@ def _hard(model: Unicorn, image_size: int, supersample: int, device: torch.devic
 
 
 def hard_render(
-    model: Unicorn,
+    model: EvaluableModel,
     verts: torch.Tensor,
     maps: torch.Tensor,
     R: torch.Tensor,
@@ -108,7 +108,7 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def shaded_render(
-    model: Unicorn,
+    model: EvaluableModel,
     verts: torch.Tensor,
     R: torch.Tensor,
     T: torch.Tensor,
@@ -173,7 +173,7 @@ def fit_pose(
 
 
 def turntable(
-    model: Unicorn,
+    model: EvaluableModel,
     verts: torch.Tensor,
     maps: torch.Tensor,
     R: torch.Tensor,

@@ -25,11 +25,11 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from unicorn.evaluation.evaluator import METRIC_ORDER, ROW_INFO, EvaluationResult, Sample
+from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.rendering import even_angles, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters
 from unicorn.io.meshes import glb_bytes, textured_mesh
-from unicorn.model import Unicorn
 
 __all__ = [
     "METRIC_HELP",
@@ -133,7 +133,7 @@ def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Ma
     return paths
 
 
-def _sample_viewer(model: Unicorn, sample: Sample, size: int) -> str:
+def _sample_viewer(model: EvaluableModel, sample: Sample, size: int) -> str:
     """The interactive view of a sample's textured mesh, opening from its camera's azimuth and elevation."""
     tmpl = model.template
     mesh = textured_mesh(sample.verts, tmpl.faces, tmpl.face_uvs, sample.texture, align_corners=not tmpl.wrap_u)
@@ -237,7 +237,7 @@ def save_gif(frames: torch.Tensor, path: str | os.PathLike, duration_ms: int = 8
 
 
 def sample_views(
-    model: Unicorn,
+    model: EvaluableModel,
     sample: Sample,
     view_size: int,
     angles: Sequence[float],
@@ -300,7 +300,7 @@ details{margin:1em 0} code{background:#f4f4f6;padding:0 .3em}
 
 
 def write_report(
-    model: Unicorn,
+    model: EvaluableModel,
     result: EvaluationResult,
     out_dir: str | os.PathLike,
     title: str,
