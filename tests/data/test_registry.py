@@ -39,3 +39,22 @@ def test_data_does_not_import_lightning() -> None:
     code = "import sys, unicorn.data, unicorn.data.registry; print(sorted(m for m in sys.modules if 'lightning' in m))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_one_registry_names_every_dataset_for_training_evaluation_and_the_cli() -> None:
+    from unicorn.cli.eval import build_parser
+    from unicorn.data.registry import DATASET_NAMES, DATASETS, VAL_SIZES
+    from unicorn.evaluation import PROTOCOLS
+
+    choices = next(a.choices for a in build_parser()._actions if a.dest == "dataset")
+    assert list(choices) == list(DATASET_NAMES) == list(DATASETS) == list(PROTOCOLS) == list(VAL_SIZES)
+    assert set(PROTOCOLS.values()) == {"shapenet", "cub", "p3d", "images"}
+
+
+def test_unknown_dataset_names_the_known_ones() -> None:
+    from unicorn.data.images import DatasetError
+
+    with pytest.raises(DatasetError, match=r"unknown dataset 'imagenet'; choose from \['shapenet_nmr'"):
+        build_dataset("imagenet", "train", "/nowhere")
+    with pytest.raises(DatasetError, match="unknown dataset"):
+        val_indices("imagenet", 10)

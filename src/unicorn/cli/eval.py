@@ -23,6 +23,7 @@ from typing import Any
 
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
+from unicorn.data.registry import DATASET_NAMES
 
 __all__ = ["build_parser", "main"]
 
@@ -38,9 +39,6 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-DATASETS = ("shapenet_nmr", "synthetic", "cub_200", "p3d_car", "compcars", "lsun", "folder")
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="unicorn-eval",
@@ -53,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument(
         "--dataset",
-        choices=DATASETS,
+        choices=DATASET_NAMES,
         help="dataset name; default: the training run's dataset (from <run>/config.yaml)",
     )
     p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")

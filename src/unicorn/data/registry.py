@@ -11,6 +11,8 @@ at the dataset size. The Lightning DataModule built on these is :class:`unicorn.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -26,12 +28,15 @@ from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
 
 __all__ = [
+    "DATASETS",
     "DATASET_NAMES",
+    "DatasetSpec",
     "SYNTHETIC_DEFAULTS",
     "VAL_SIZES",
     "Split",
     "build_dataset",
     "dataset_root",
+    "dataset_spec",
     "prepare_dataset",
     "synthetic_options",
     "val_indices",
@@ -40,23 +45,95 @@ __all__ = [
 
 Split = Literal["train", "val", "test"]
 
-#: the reference's validation subset sizes
-VAL_SIZES = {
-    "shapenet_nmr": 32,
-    "synthetic": 32,
-    "cub_200": 5,
-    "p3d_car": 5,
-    "compcars": 5,
-    "lsun": 5,
-    "folder": 5,
-}
-DATASET_NAMES = tuple(VAL_SIZES)
 #: the reference shuffles CUB's evaluation sets with this seed
 _EVAL_SHUFFLE_SEED = 123
 #: the reference's LSUN validation images start at this offset
 _LSUN_VAL_OFFSET = 17
 #: settings of a ``synthetic`` dataset left out of its config (the category when ``categories`` is None)
 SYNTHETIC_DEFAULTS: dict[str, Any] = {"category": "chair", "mode": "nmr", "n_models": 200, "seed": 0}
+
+
+def _first(n: int, size: int) -> list[int]:
+    return list(range(size))
+
+
+def _shuffled(n: int, size: int) -> list[int]:
+    return np.random.default_rng(_EVAL_SHUFFLE_SEED).permutation(n)[:size].tolist()
+
+
+def _from_offset(n: int, size: int) -> list[int]:
+    return list(range(_LSUN_VAL_OFFSET, _LSUN_VAL_OFFSET + size)) if n >= _LSUN_VAL_OFFSET + size else _first(n, size)
+
+
+def _shapenet(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
+    # every view for training, one fixed random view per model for evaluation, unless told
+    views = o.pop("views", "all" if split == "train" else "random")
+    return ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **o)
+
+
+def _cub(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
+    return CUB200(root, split, img_size=img_size, on_error=on_error, **o)
+
+
+def _p3d(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
+    # the reference validates on (unaugmented) training images
+    p3d_split = "test" if split == "test" else "train"
+    return Pascal3DCar(root, p3d_split, img_size=img_size, augment=split == "train", on_error=on_error, **o)
+
+
+def _unsplit(cls: type) -> Callable[..., Dataset]:
+    """A dataset without splits: every image for training (augmented) and for testing."""
+
+    def build(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
+        return cls(root, img_size=img_size, augment=split == "train", on_error=on_error, **o)
+
+    return build
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """One dataset: how to build a split, the validation subset, and what evaluation does with it.
+
+    Attributes:
+        build: ``(root, split, img_size, categories, seed, on_error, **options) -> Dataset``.
+        val_size: the reference's validation subset size.
+        val_pick: ``(n, size) -> indices`` of the validation subset of a split of n items.
+        protocol: the evaluation protocol (:mod:`unicorn.evaluation`): ``shapenet``, ``cub``, ``p3d``, ``images``.
+        eval_options: extra dataset options when evaluating (ground-truth points, the keypoint frame).
+    """
+
+    build: Callable[..., Dataset]
+    val_size: int
+    protocol: str
+    val_pick: Callable[[int, int], list[int]] = _first
+    eval_options: Mapping[str, Any] = field(default_factory=dict)
+
+
+#: every dataset by name: the one list of names, validation sizes and protocols
+DATASETS: dict[str, DatasetSpec] = {
+    "shapenet_nmr": DatasetSpec(_shapenet, 32, "shapenet", eval_options={"with_points": True}),
+    "synthetic": DatasetSpec(_shapenet, 32, "shapenet", eval_options={"with_points": True}),  # read as ShapeNet-NMR
+    "cub_200": DatasetSpec(_cub, 5, "cub", val_pick=_shuffled, eval_options={"eval_size": 256}),
+    "p3d_car": DatasetSpec(_p3d, 5, "p3d"),
+    "compcars": DatasetSpec(_unsplit(CompCars), 5, "images"),
+    "lsun": DatasetSpec(_unsplit(LSUN), 5, "images", val_pick=_from_offset),
+    "folder": DatasetSpec(_unsplit(ImageFolder), 5, "images"),
+}
+DATASET_NAMES = tuple(DATASETS)
+#: the reference's validation subset sizes
+VAL_SIZES = {name: spec.val_size for name, spec in DATASETS.items()}
+
+
+def dataset_spec(name: str) -> DatasetSpec:
+    """The registry entry of a dataset name.
+
+    Raises:
+        DatasetError: an unknown name (the known ones are listed).
+    """
+    try:
+        return DATASETS[name]
+    except KeyError:
+        raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}") from None
 
 
 def build_dataset(
@@ -83,24 +160,7 @@ def build_dataset(
     """
     if split not in ("train", "val", "test"):
         raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
-    train = split == "train"
-    if name in ("shapenet_nmr", "synthetic"):
-        # every view for training, one fixed random view per model for evaluation, unless told
-        views = options.pop("views", "all" if train else "random")
-        return ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **options)
-    if name == "cub_200":
-        return CUB200(root, split, img_size=img_size, on_error=on_error, **options)
-    if name == "p3d_car":
-        # the reference validates on (unaugmented) training images
-        p3d_split = "test" if split == "test" else "train"
-        return Pascal3DCar(root, p3d_split, img_size=img_size, augment=train, on_error=on_error, **options)
-    if name == "compcars":
-        return CompCars(root, img_size=img_size, augment=train, on_error=on_error, **options)
-    if name == "lsun":
-        return LSUN(root, img_size=img_size, augment=train, on_error=on_error, **options)
-    if name == "folder":
-        return ImageFolder(root, img_size=img_size, augment=train, on_error=on_error, **options)
-    raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+    return dataset_spec(name).build(root, split, img_size, categories, seed, on_error, **options)
 
 
 def val_indices(name: str, n: int, size: int | None = None) -> list[int]:
@@ -109,12 +169,8 @@ def val_indices(name: str, n: int, size: int | None = None) -> list[int]:
     ShapeNet: the first models; CUB: the first after a seed-123 shuffle; LSUN: 5 images from offset 17;
     others: the first images. ``size`` defaults to :data:`VAL_SIZES` and is capped at ``n``.
     """
-    size = min(VAL_SIZES.get(name, 5) if size is None else size, n)
-    if name == "cub_200":
-        return np.random.default_rng(_EVAL_SHUFFLE_SEED).permutation(n)[:size].tolist()
-    if name == "lsun" and n >= _LSUN_VAL_OFFSET + size:
-        return list(range(_LSUN_VAL_OFFSET, _LSUN_VAL_OFFSET + size))
-    return list(range(size))
+    spec = dataset_spec(name)
+    return spec.val_pick(n, min(spec.val_size if size is None else size, n))
 
 
 def synthetic_options(

@@ -69,6 +69,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from unicorn.data import build_dataset
+from unicorn.data.registry import DATASETS, dataset_spec
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
 from unicorn.geometry.cameras import PerspectiveCamera
@@ -100,16 +101,8 @@ __all__ = [
 # the interiors, i.e. the borders alone, where silhouettes differ and colours mix with the background, kept a floor
 COLOR_INTERIOR = 1
 
-#: dataset name -> protocol
-PROTOCOLS = {
-    "shapenet_nmr": "shapenet",
-    "synthetic": "shapenet",
-    "cub_200": "cub",
-    "p3d_car": "p3d",
-    "compcars": "images",
-    "lsun": "images",
-    "folder": "images",
-}
+#: dataset name -> protocol (from the dataset registry, :data:`unicorn.data.registry.DATASETS`)
+PROTOCOLS = {name: spec.protocol for name, spec in DATASETS.items()}
 
 #: column order of the tables; "lower" / "higher" says which way is better
 METRIC_ORDER = {
@@ -146,10 +139,7 @@ ROW_INFO = ("index", "group", "candidate", "rot-err")
 
 def protocol_for(dataset_name: str) -> str:
     """The evaluation protocol of a dataset name (see the module docstring)."""
-    try:
-        return PROTOCOLS[dataset_name]
-    except KeyError:
-        raise ValueError(f"unknown dataset {dataset_name!r}; choose from {sorted(PROTOCOLS)}") from None
+    return dataset_spec(dataset_name).protocol
 
 
 @dataclass
@@ -297,12 +287,7 @@ def build_eval_dataset(
         max_images: evaluate at most this many items.
         seed: the view choice of ShapeNet.
     """
-    protocol_for(name)
-    options: dict[str, Any] = {}
-    if name in ("shapenet_nmr", "synthetic"):
-        options["with_points"] = True
-    elif name == "cub_200":
-        options["eval_size"] = 256
+    options = dict(dataset_spec(name).eval_options)
     dataset = build_dataset(name, split, root, img_size=img_size, categories=categories, seed=seed, **options)
     if split == "train":
         # evaluation items are never augmented (ShapeNet training items are every view, which is fine)

@@ -21,7 +21,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 
 from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, set_max_image_pixels
-from unicorn.data.registry import DATASET_NAMES, Split, build_dataset, dataset_root, prepare_dataset, val_indices
+from unicorn.data.registry import Split, build_dataset, dataset_root, dataset_spec, prepare_dataset, val_indices
 
 __all__ = ["SeededItems", "StreamBatchSampler", "UnicornDataModule"]
 
@@ -142,8 +142,7 @@ class UnicornDataModule(L.LightningDataModule):
         super().__init__()
         if max_image_pixels is not None:
             set_max_image_pixels(max_image_pixels)
-        if name not in DATASET_NAMES:
-            raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}")
+        dataset_spec(name)  # an unknown name fails here, naming the known ones
         if name != "synthetic" and root is None:
             raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")
         self.name, self.root, self.img_size = name, root, int(img_size)
