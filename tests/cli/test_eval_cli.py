@@ -96,7 +96,7 @@ def test_synthetic_run_root(tmp_path: Path) -> None:
         (["{ckpt}", "--dataset", "synthetic", "--root", "{tmp}/nowhere"], "not found"),
         (["{ckpt}"], "no --dataset given"),
         (["{ckpt}", "--dataset", "cub_200"], "no --root given"),
-        (["{ckpt}", "--dataset", "folder", "--root", "{tmp}", "--mean-shape", "5"], "--mean-shape needs"),
+        (["{ckpt}", "--dataset", "folder", "--root", "{tmp}", "--mean-shape", "5"], "a mean shape needs"),
     ],
 )
 def test_errors(tmp_path: Path, checkpoint: Path, capsys, args: list[str], message: str) -> None:

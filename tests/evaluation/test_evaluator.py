@@ -299,3 +299,17 @@ def test_candidate_shares_helper() -> None:
         candidate_shares([], 3)
     with pytest.raises(ValueError, match="at least one candidate"):
         candidate_shares([0], 0)
+
+
+def test_protocol_registry_says_what_each_protocol_scores() -> None:
+    from unicorn.data.registry import DATASETS
+    from unicorn.evaluation import PROTOCOL_REGISTRY, get_protocol
+
+    assert {spec.protocol for spec in DATASETS.values()} == set(PROTOCOL_REGISTRY)
+    shapenet, cub, p3d, images = (get_protocol(n) for n in ("shapenet", "cub", "p3d", "images"))
+    assert shapenet.meshes == "posed" and shapenet.poses and shapenet.training_clouds
+    assert p3d.meshes == "icp" and not p3d.poses and cub.keypoints and not images.masks
+    with pytest.raises(ValueError, match=r"protocol must be one of \['cub', 'images', 'p3d', 'shapenet'\]"):
+        EvalOptions(protocol="kitti")
+    with pytest.raises(ValueError, match="oracle_pose needs"):
+        EvalOptions(protocol="p3d", oracle_pose=True)

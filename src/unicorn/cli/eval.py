@@ -15,7 +15,6 @@ Writes ``metrics.csv``, ``metrics.json``, ``per_image.csv``, ``report.html`` and
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -153,18 +152,19 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
 
 
 def run(args: argparse.Namespace, command: str | None = None, produced_by: str | None = None) -> int:
-    """Evaluate as ``args`` say; returns the exit status.
+    """Evaluate as ``args`` say (:func:`unicorn.evaluation.session.evaluate_to_folder` on the loaded checkpoint);
+    returns the exit status.
 
     Args:
         args: parsed arguments.
         command: the ``unicorn-eval`` command line recorded as the results' provenance (default: this
             process's arguments).
-        produced_by: the command that ran this evaluation when it is not ``unicorn-eval`` itself (the training
-            run whose evaluation this is), recorded beside ``command``.
+        produced_by: the command that ran this evaluation when it is not ``unicorn-eval`` itself, recorded beside
+            ``command``.
     """
     # heavy imports here: --help and argument errors stay fast
-    from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate, format_table, protocol_for
-    from unicorn.evaluation.report import write_metrics, write_report
+    from unicorn.evaluation import EvalOptions, format_table, get_protocol, protocol_for
+    from unicorn.evaluation.session import EvalTarget, evaluate_to_folder
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
 
@@ -187,19 +187,6 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         categories = run_data["categories"]
 
     protocol = protocol_for(dataset)
-    if args.mean_shape > 0 and protocol != "shapenet":
-        raise ValueError(f"--mean-shape needs a dataset with training point clouds (shapenet protocol), not {dataset}")
-    if args.own_mean_shape and protocol not in ("shapenet", "p3d"):
-        raise ValueError(f"--own-mean-shape needs a dataset with ground-truth point clouds, not {dataset}")
-    data = build_eval_dataset(
-        dataset,
-        str(root),
-        args.split,
-        img_size=model.config["image_size"],
-        categories=categories,
-        max_images=args.max_images,
-        seed=args.seed,
-    )
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = EvalOptions(
         protocol=protocol,
@@ -216,57 +203,33 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         progress=not args.quiet,
         own_mean_shape=args.own_mean_shape,
     )
-    out = _out_dir(args, info, dataset)
-    print(f"evaluating {len(data)} {args.split} images of {dataset} ({protocol} protocol) on {device}", flush=True)
-    if device.type == "cpu" and protocol in ("shapenet", "p3d") and options.icp_iterations > 30:
+    if device.type == "cpu" and get_protocol(protocol).meshes is not None and options.icp_iterations > 30:
         # the ICP's nearest-neighbour searches dominate: about 1 s per iteration and image at 100k points on CPU
         print(
             f"note: the full protocol ({options.num_points} points, {options.icp_iterations} ICP iterations) takes "
             "one to two minutes per image on a CPU; --fast (UNICORN's validation setting) or a GPU is much quicker",
             flush=True,
         )
-    mean_shape = None
-    if args.mean_shape > 0:
-        from unicorn.evaluation import fit_mean_shape, training_point_clouds
-
-        clouds = training_point_clouds(root, categories, max_models=200, num_points=5000)
-        print(f"fitting the mean shape of {len(clouds)} training shapes ({args.mean_shape} iterations)", flush=True)
-        mean_shape = fit_mean_shape(
-            model.template.verts, model.template.faces, clouds, iterations=args.mean_shape, seed=args.seed
-        )
-    result = evaluate(model, data, options, dataset_name=dataset, device=device, shape_baseline=mean_shape)
-
     extra = {"produced_by": produced_by} if produced_by else {}
     meta = {
         **provenance(command or command_line("unicorn-eval", sys.argv[1:]), args.checkpoint, **extra),
         "checkpoint_format": info.format,
         "epoch": info.epoch,
         "step": info.step,
-        "dataset": dataset,
-        "root": str(root),
-        "split": args.split,
-        "categories": categories,
-        "device": str(device),
-        "options": dataclasses.asdict(options),
-        "mean_shape_iterations": args.mean_shape,
     }
-    paths = write_metrics(result, out, meta)
+    result, paths = evaluate_to_folder(
+        model,
+        EvalTarget(dataset, str(root), args.split, categories, args.max_images),
+        options,
+        _out_dir(args, info, dataset),
+        meta,
+        mean_shape_iterations=args.mean_shape,
+        view_size=args.view_size,
+        turntable_frames=args.turntable_frames,
+        title=f"{dataset} ({args.split}): {Path(args.checkpoint).name}",
+        device=device,
+    )
     print(format_table(result.table, result.columns))
-    if result.samples:
-        print(f"writing the report: {len(result.samples)} samples to {out / 'report.html'}", flush=True)
-        title = f"{dataset} ({args.split}): {Path(args.checkpoint).name}"
-        paths.update(
-            write_report(
-                model,
-                result,
-                out,
-                title,
-                meta,
-                view_size=args.view_size,
-                turntable_frames=args.turntable_frames,
-                device=device,
-            )
-        )
     per_image = result.seconds / max(1, len(result.per_image))
     print(f"\n{len(result.per_image)} images in {result.seconds:.1f} s ({per_image:.3f} s/image)")
     for name in ("csv", "json", "per_image", "html", "png"):

@@ -283,44 +283,54 @@ def fit(run: Run) -> dict[str, float]:
 
 
 def evaluate_run(run: Run) -> Path:
-    """``unicorn-eval`` on the run's ``last.ckpt`` with the ``evaluate`` settings; returns the report folder.
+    """The ``evaluate`` settings' evaluation of the trained model, in memory; returns the report folder.
 
-    The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go
-    to ``<run>/eval``.
+    The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go to
+    ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command.
     """
-    from unicorn.cli import eval as eval_cli
+    from unicorn.evaluation import EvalOptions, protocol_for
+    from unicorn.evaluation.session import EvalTarget, evaluate_to_folder
+    from unicorn.io.provenance import command_line, provenance
 
-    e = run.config.evaluate
+    e, d = run.config.evaluate, run.config.dataset
     checkpoint = run.checkpoint_dir / "last.ckpt"
-    if not checkpoint.is_file():
-        raise FileNotFoundError(f"evaluate: no checkpoint at {checkpoint} (callbacks.checkpoint.save_last is off?)")
     out = run.output_dir / "eval"
-    argv = [
-        str(checkpoint),
-        f"--split={e.split}",
-        f"--out={out}",
-        f"--num-points={e.num_points}",
-        f"--icp-iterations={e.icp_iterations}",
-        f"--batch-size={e.batch_size}",
-        f"--report-samples={e.report_samples}",
-        f"--turntable-frames={e.turntable_frames}",
-        f"--mean-shape={e.mean_shape_iterations}",
-    ]
-    if e.own_mean_shape:
-        argv.append("--own-mean-shape")
-    if e.max_images is not None:
-        argv.append(f"--max-images={e.max_images}")
-    log.info("evaluating %s on the %s split", checkpoint, e.split)
-    from unicorn.io.provenance import command_line
-
-    # the report records the equivalent unicorn-eval command, and the training command that ran it
-    status = eval_cli.run(
-        eval_cli.build_parser().parse_args(argv),
-        command=command_line("unicorn-eval", argv),
-        produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+    argv = [str(checkpoint), f"--split={e.split}", f"--out={out}", f"--num-points={e.num_points}"]
+    argv += [f"--icp-iterations={e.icp_iterations}", f"--batch-size={e.batch_size}"]
+    argv += [f"--report-samples={e.report_samples}", f"--turntable-frames={e.turntable_frames}"]
+    argv += [f"--mean-shape={e.mean_shape_iterations}"] + (["--own-mean-shape"] if e.own_mean_shape else [])
+    argv += [f"--max-images={e.max_images}"] if e.max_images is not None else []
+    meta = {
+        **provenance(
+            command_line("unicorn-eval", argv),
+            checkpoint if checkpoint.is_file() else None,
+            produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+        ),
+        "epoch": run.trainer.current_epoch,
+        "step": run.trainer.global_step,
+    }
+    categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
+    target = EvalTarget(d.name, str(run.data.dataset_root()), e.split, categories, e.max_images)
+    options = EvalOptions(
+        protocol=protocol_for(d.name),
+        batch_size=e.batch_size,
+        num_points=e.num_points,
+        icp_iterations=e.icp_iterations,
+        average_texture=run.module.constant_mean_textures,
+        report_samples=e.report_samples,
+        own_mean_shape=e.own_mean_shape,
     )
-    if status != 0:
-        raise RuntimeError(f"evaluation of {checkpoint} failed with status {status}")
+    log.info("evaluating the trained model on the %s split", e.split)
+    evaluate_to_folder(
+        run.module.model,
+        target,
+        options,
+        out,
+        meta,
+        mean_shape_iterations=e.mean_shape_iterations,
+        turntable_frames=e.turntable_frames,
+        title=f"{d.name} ({e.split}): {checkpoint.name}",
+    )
     log.info("evaluation report: %s", out / "report.html")
     return out
 

@@ -2,7 +2,11 @@
 ``unicorn-reconstruct``).
 
 - :mod:`~unicorn.evaluation.interface`: what a model must offer to be evaluated (:class:`EvaluableModel`);
-- :mod:`~unicorn.evaluation.evaluator`: the evaluation protocols per dataset family (:func:`evaluate`);
+- :mod:`~unicorn.evaluation.protocols`: what each protocol scores (:data:`PROTOCOL_REGISTRY`), the options and
+  the result records;
+- :mod:`~unicorn.evaluation.evaluator`: the evaluation loop (:func:`evaluate`);
+- :mod:`~unicorn.evaluation.session`: one evaluation into a folder, metrics and report (what ``unicorn-eval``
+  and ``unicorn-train`` run);
 - :mod:`~unicorn.evaluation.rendering`: hard renders for masks, visibility, mesh views and turntables;
 - :mod:`~unicorn.evaluation.report`: metric tables (text, CSV, JSON) and the visual report (PNG grid, HTML);
 - :mod:`~unicorn.evaluation.reconstruct`: per-image meshes, pictures, masks, poses and turntables;
@@ -21,32 +25,36 @@ from unicorn.evaluation.baselines import (
     template_baseline,
     training_point_clouds,
 )
-from unicorn.evaluation.evaluator import (
+from unicorn.evaluation.evaluator import build_eval_dataset, candidate_shares, evaluate
+from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.protocols import (
+    PROTOCOL_REGISTRY,
     PROTOCOLS,
     EvalOptions,
     EvaluationResult,
+    Protocol,
     Sample,
-    build_eval_dataset,
-    candidate_shares,
-    evaluate,
+    get_protocol,
     protocol_for,
 )
-from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.reconstruct import reconstruct
 from unicorn.evaluation.rendering import hard_render, shaded_render, turntable, vertex_visibility
 from unicorn.evaluation.report import format_table, write_metrics, write_report
 
 __all__ = [
     "PROTOCOLS",
+    "PROTOCOL_REGISTRY",
     "EvalOptions",
     "EvaluableModel",
     "EvaluationResult",
     "FixedShapeModel",
+    "Protocol",
     "Sample",
     "build_eval_dataset",
     "candidate_shares",
     "evaluate",
     "fit_mean_shape",
+    "get_protocol",
     "fit_silhouettes",
     "format_table",
     "hard_render",

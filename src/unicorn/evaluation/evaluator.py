@@ -1,57 +1,7 @@
-"""Evaluation loops: a model and a dataset in, per-image scores, a per-group table and report samples out.
+"""The evaluation loop: a model and a dataset in, per-image scores, a per-group table and report samples out.
 
-Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.metrics`):
-
-- ``"shapenet"`` (``shapenet_nmr``, ``synthetic``): one fixed random view per test model. Per image:
-  ``chamfer-L1`` / ``normal-cos`` after mapping the prediction into the ground-truth object frame with the
-  predicted and ground-truth poses, ``chamfer-L1-ICP`` / ``normal-cos-ICP`` after unit-cube normalisation and the
-  anisotropic-scale gradient ICP (:func:`~unicorn.metrics.evaluate_meshes`), ``mask-iou`` of the hard-rendered
-  silhouette. Per category: pose errors (:func:`~unicorn.metrics.pose_errors`, after aligning the learned
-  canonical frame to the ground truth with one rotation). Categories are averaged, then the categories.
-- ``"cub"`` (``cub_200``): ``mask-iou`` per image with masks at 256 px, and PCK by keypoint transfer over image
-  pairs (:func:`~unicorn.metrics.keypoint_transfer_pck`), the visible vertices being those of faces hit by the 2x
-  supersampled hard rasterisation (512 px for the 256 px keypoint frame).
-- ``"p3d"`` (``p3d_car``): ``chamfer-L1-ICP`` / ``normal-cos-ICP`` against the CAD point clouds (there is no
-  ground-truth pose, so no GT-pose alignment) and ``mask-iou``.
-- ``"images"`` (``compcars``, ``lsun``, ``folder``): no ground truth, the reconstruction error only.
-
-Every protocol also reports ``rec-mse``, the mean squared error of the model's own rendering (with its predicted
-background) against the input, the quantity the model was trained to lower.
-
-Instance-level metrics (:mod:`unicorn.metrics.instance`) tell a model that reconstructs each object from one that
-outputs the category mean:
-
-- colour (every protocol with ground-truth masks): per image ``color-err``, the L1 distance (mean over RGB)
-  between the mean foreground colour of the hard-rendered reconstruction (inside its silhouette) and of the
-  input (inside its mask), both over the interior pixels (each mask eroded by one input pixel: a border pixel
-  mixes object and background, and its colour depends on where each silhouette runs), and ``color-err-mean``,
-  the same for a predictor of one colour for every image (the average input foreground colour of the group's
-  evaluated images); per group ``color-ratio``, the ratio of their means (below 1 only when reconstructions
-  carry their image's colour);
-- shape (with ``shape_baseline``, a mean shape, see :func:`evaluate`): per image ``chamfer-L1-ICP-mean-shape``,
-  Chamfer-L1 after ICP of that one mesh on the same object, and ``shape-win``, 1 where the model's
-  ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model wins;
-- own shape (``EvalOptions(own_mean_shape=True)``): per image ``chamfer-L1-ICP-own-mean``, the same score for
-  the model's *own* average shape (the mean of its predicted meshes over the group's evaluated images, vertex by
-  vertex on the template topology) placed with the image's predicted pose, and ``shape-win-own``, 1 where the
-  model's own prediction is closer. The mean-shape baseline above is fitted to the 3D ground truth, so it mixes
-  two questions (is the category shape accurate? is each shape the image's?); this one asks only the second:
-  a model that outputs one shape for every image ties its own mean (win share 0.5 from ties), one whose
-  per-image shapes follow the objects wins on most of them;
-- pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round; each
-  image's own error after the alignment is kept in its row (``rot-err``, degrees), so that one can see, e.g.,
-  whether the flipped views are whole objects turned round or scattered views.
-
-Two diagnostics complete them:
-
-- pose-candidate usage: per image the index of the selected candidate (``candidate`` in the per-image rows) and,
-  per group, ``cand-share-min`` / ``cand-share-max``, the smallest and largest fraction of the group's images
-  that chose one candidate (a candidate never chosen counts as 0). A collapsed pose head (every image on one or
-  two candidates) shows as ``cand-share-min`` 0 and a large ``cand-share-max``; a balanced one as both near
-  ``1 / K``. Only for models with K > 1 candidates.
-- ``EvalOptions(oracle_pose=True)`` (``"shapenet"`` only): the reconstructions, the hard masks and the GT-pose
-  alignment of the meshes use the ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and
-  ``mask-iou`` measure the shape alone; the pose errors and the candidate usage are then left out.
+What each protocol scores is :mod:`unicorn.evaluation.protocols` (its docstring describes every metric); this
+module builds the evaluation items of a dataset and runs the loop.
 """
 
 from __future__ import annotations
@@ -59,7 +9,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -69,8 +18,17 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from unicorn.data import build_dataset
-from unicorn.data.registry import DATASETS, dataset_spec
+from unicorn.data.registry import dataset_spec
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
+from unicorn.evaluation.protocols import (
+    COLOR_INTERIOR,
+    METRIC_ORDER,
+    ROW_INFO,
+    EvalOptions,
+    EvaluationResult,
+    Sample,
+    get_protocol,
+)
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import (
@@ -84,183 +42,7 @@ from unicorn.metrics import (
     pose_errors,
 )
 
-__all__ = [
-    "PROTOCOLS",
-    "EvalOptions",
-    "EvaluationResult",
-    "Sample",
-    "build_eval_dataset",
-    "candidate_shares",
-    "collate",
-    "evaluate",
-    "protocol_for",
-]
-
-# colour metrics leave out this many border pixels (input resolution) of each mask: measured on the synthetic cars
-# (a trained model's textures optimised per image against its inputs): colour ratio 0.32 on whole masks, 0.07 on
-# the interiors, i.e. the borders alone, where silhouettes differ and colours mix with the background, kept a floor
-COLOR_INTERIOR = 1
-
-#: dataset name -> protocol (from the dataset registry, :data:`unicorn.data.registry.DATASETS`)
-PROTOCOLS = {name: spec.protocol for name, spec in DATASETS.items()}
-
-#: column order of the tables; "lower" / "higher" says which way is better
-METRIC_ORDER = {
-    "chamfer-L1": "lower",
-    "chamfer-L1-ICP": "lower",
-    "normal-cos": "higher",
-    "normal-cos-ICP": "higher",
-    "mask-iou": "higher",
-    "pck-5": "higher",
-    "pck-10": "higher",
-    "pck-15": "higher",
-    "rot-err-mean": "lower",
-    "rot-err-median": "lower",
-    "rot-acc-30": "higher",
-    "rot-flip-150": "lower",
-    "azim-err-mean": "lower",
-    "azim-err-median": "lower",
-    "cand-share-min": "higher",
-    "cand-share-max": "lower",
-    "color-err": "lower",
-    "color-err-mean": "lower",
-    "color-ratio": "lower",
-    "chamfer-L1-ICP-mean-shape": "lower",
-    "shape-win": "higher",
-    "chamfer-L1-ICP-own-mean": "lower",
-    "shape-win-own": "higher",
-    "rec-mse": "lower",
-}
-
-#: per-image row entries that are not averaged into the table: identifiers, and ``rot-err`` (the image's rotation
-#: error in degrees after the group's canonical-frame alignment), which the set metrics ``rot-*`` summarise
-ROW_INFO = ("index", "group", "candidate", "rot-err")
-
-
-def protocol_for(dataset_name: str) -> str:
-    """The evaluation protocol of a dataset name (see the module docstring)."""
-    return dataset_spec(dataset_name).protocol
-
-
-@dataclass
-class EvalOptions:
-    """Settings of an evaluation run.
-
-    Attributes:
-        protocol: ``"shapenet"``, ``"cub"``, ``"p3d"`` or ``"images"``.
-        batch_size: images per forward pass.
-        num_points: points sampled on each predicted mesh (UNICORN: 100k).
-        icp_iterations: ICP iterations (UNICORN: 100); 0 skips the ``-ICP`` metrics.
-        mask_supersample: supersampling of the hard renders for masks and visibility (UNICORN: 2).
-        num_pairs: keypoint-transfer pairs (UNICORN: 10,000).
-        align_pose: align the learned canonical frame to the ground truth before the pose errors.
-        average_texture: predict mean-colour textures (for checkpoints still in that training phase).
-        report_samples: images kept (on CPU) for the visual report.
-        num_workers: DataLoader workers.
-        nn_workers: threads of the nearest-neighbour queries; None: torch's thread count (exact search: the
-            results do not depend on it).
-        seed: seed of the point sampling.
-        progress: show a progress bar.
-        progress_label: the bar's label (default ``eval <dataset name>``).
-        progress_leave: keep the finished bar on screen (False: erase it, for bars inside another one's).
-        oracle_pose: ``"shapenet"`` only: render the reconstructions and masks, and align the meshes, with the
-            ground-truth pose instead of the predicted one, so that ``chamfer-L1`` and ``mask-iou`` score the
-            shape alone; the pose errors (trivially 0) and the candidate usage are left out. Every item must
-            have a ground-truth pose.
-        own_mean_shape: also score, per image, the model's own average shape over the group's evaluated images
-            (``chamfer-L1-ICP-own-mean``, ``shape-win-own``; only with ground-truth points and ICP, otherwise
-            ignored). Costs one more forward pass over the dataset and doubles the Chamfer work.
-    """
-
-    protocol: str = "shapenet"
-    batch_size: int = 32
-    num_points: int = 100_000
-    icp_iterations: int = 100
-    mask_supersample: int = 2
-    num_pairs: int = 10_000
-    align_pose: bool = True
-    average_texture: bool = False
-    report_samples: int = 8
-    num_workers: int = 0
-    nn_workers: int | None = None
-    seed: int = 0
-    progress: bool = True
-    progress_label: str | None = None
-    progress_leave: bool = True
-    oracle_pose: bool = False
-    own_mean_shape: bool = False
-
-    def __post_init__(self) -> None:
-        if self.protocol not in set(PROTOCOLS.values()):
-            raise ValueError(f"protocol must be one of {sorted(set(PROTOCOLS.values()))}, got {self.protocol!r}")
-        for name in ("batch_size", "num_points", "mask_supersample", "num_pairs"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.icp_iterations < 0 or self.report_samples < 0:
-            raise ValueError("icp_iterations and report_samples must be >= 0")
-        if self.oracle_pose and self.protocol != "shapenet":
-            # the other protocols have no ground-truth pose to substitute
-            raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")
-
-
-@dataclass
-class Sample:
-    """One evaluated image kept for the report (CPU tensors).
-
-    Attributes:
-        index: dataset index.
-        group: its group (category) name.
-        image: (3, S, S) model input.
-        reconstruction: (3, S, S) the model's rendering over its predicted background.
-        alpha: (1, M, M) hard-rendered predicted silhouette (M = ground-truth mask size, or S).
-        mask: (1, M, M) ground-truth mask, or None.
-        verts: (V, 3) predicted object-frame mesh; texture: (3, Ht, Wt).
-        R: (3, 3); T: (3,) the pose it was rendered with: the predicted one, or the ground truth with
-            ``oracle_pose``.
-        scores: this image's per-image metrics (and ``candidate``, the selected pose candidate, when recorded).
-    """
-
-    index: int
-    group: str
-    image: torch.Tensor
-    reconstruction: torch.Tensor
-    alpha: torch.Tensor
-    mask: torch.Tensor | None
-    verts: torch.Tensor
-    texture: torch.Tensor
-    R: torch.Tensor
-    T: torch.Tensor
-    scores: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass
-class EvaluationResult:
-    """Output of :func:`evaluate`.
-
-    Attributes:
-        protocol: the protocol used.
-        per_image: one dict per image: ``index``, ``group``, ``candidate`` (int index of the selected pose
-            candidate, when recorded, see :func:`evaluate`) and its metrics.
-        table: one row per group then a ``mean`` row (mean over groups): ``group``, ``n-images`` and metrics.
-        columns: the metric columns of ``table``, in display order.
-        samples: images kept for the report.
-        seconds: wall-clock time of the evaluation.
-        candidate_shares: group -> the K fractions of its images that selected each pose candidate (summing to
-            1); empty when not recorded (one candidate, or ``oracle_pose``).
-    """
-
-    protocol: str
-    per_image: list[dict[str, Any]]
-    table: list[dict[str, Any]]
-    columns: list[str]
-    samples: list[Sample]
-    seconds: float
-    candidate_shares: dict[str, list[float]] = field(default_factory=dict)
-
-    @property
-    def mean(self) -> dict[str, Any]:
-        """The ``mean`` row of the table."""
-        return self.table[-1]
+__all__ = ["build_eval_dataset", "candidate_shares", "collate", "evaluate", "group_namer"]
 
 
 def build_eval_dataset(
@@ -462,7 +244,7 @@ def evaluate(
     start = time.perf_counter()
     device = torch.device(device)
     model = model.to(device).eval()
-    protocol = options.protocol
+    protocol = get_protocol(options.protocol)
     size = model.config["image_size"]
     faces = model.template.faces
     if shape_baseline is not None:
@@ -482,7 +264,7 @@ def evaluate(
     if record_candidates:
         acc.n_candidates = model.n_candidates
     own_means = None
-    if options.own_mean_shape and protocol in ("shapenet", "p3d") and options.icp_iterations > 0:
+    if options.own_mean_shape and protocol.meshes is not None and options.icp_iterations > 0:
         own_means = _own_mean_shapes(model, loader, group_of, size, options, device)
     samples: list[Sample] = []
     bar = tqdm(
@@ -509,9 +291,9 @@ def evaluate(
         has_mask = "mask" in batch and isinstance(batch.get("has_mask"), torch.Tensor) and bool(batch["has_mask"].all())
         mask_size = batch["mask"].shape[-1] if has_mask else size
         hard = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.mask_supersample)
-        alpha = hard.images[:, 3:]
+        alpha = hard.images[:, 3:]  # each pixel's coverage; mask_iou's silhouette: more than half covered
         colors = None
-        if has_mask and protocol != "images":
+        if has_mask and protocol.masks:
             gt_mask = batch["mask"].to(device)
             scores["mask-iou"] = mask_iou(alpha, gt_mask, reduction="none")
             # mean foreground colours: the input's inside its mask, the reconstruction's inside its silhouette,
@@ -524,10 +306,10 @@ def evaluate(
             )
 
         groups = [group_of(batch, i) for i in range(B)]
-        if protocol in ("shapenet", "p3d") and "points" in batch:
-            with_pose = protocol == "shapenet"
+        if protocol.meshes is not None and "points" in batch:
+            with_pose = protocol.meshes == "posed"
             mesh = _mesh_scores(model, pred.verts, batch, device, options, with_pose, R, T)
-            if protocol == "p3d":
+            if not with_pose:
                 # no ground-truth pose: only the ICP-registered numbers are meaningful
                 mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
             scores.update(mesh)
@@ -543,7 +325,7 @@ def evaluate(
                 own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T)["chamfer-L1-ICP"]
                 scores["chamfer-L1-ICP-own-mean"] = own
                 scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
-        if protocol == "shapenet" and not oracle and bool(batch["has_pose"].all()):
+        if protocol.poses and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
                 # the index its row will have: the rows of this batch are appended below
                 acc.poses.setdefault(g, []).append((len(acc.rows) + i, pred.R[i].cpu(), batch["R"][i].cpu()))
@@ -551,8 +333,11 @@ def evaluate(
         if chosen is not None:
             for i, g in enumerate(groups):
                 acc.candidates.setdefault(g, []).append(int(chosen[i]))
-        if protocol == "cub" and isinstance(batch.get("keypoints"), torch.Tensor):
-            visible = vertex_visibility(hard.face_ids, faces, pred.verts.shape[1])
+        if protocol.keypoints and isinstance(batch.get("keypoints"), torch.Tensor):
+            seen = hard
+            if options.visibility_supersample != options.mask_supersample:
+                seen = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.visibility_supersample)
+            visible = vertex_visibility(seen.face_ids, faces, pred.verts.shape[1])
             for i, g in enumerate(groups):
                 acc.keypoint_frames[g] = int(mask_size)
                 acc.keypoints.setdefault(g, []).append(
@@ -590,7 +375,7 @@ def evaluate(
     _color_scores(acc)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = _table(acc, model, options, shares)
-    return EvaluationResult(protocol, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
+    return EvaluationResult(protocol.name, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 
 def _wins(ours: torch.Tensor, base: torch.Tensor) -> torch.Tensor:

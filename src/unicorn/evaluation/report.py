@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from unicorn.evaluation.evaluator import METRIC_ORDER, ROW_INFO, EvaluationResult, Sample
 from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.protocols import METRIC_ORDER, ROW_INFO, EvaluationResult, Sample
 from unicorn.evaluation.rendering import even_angles, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters

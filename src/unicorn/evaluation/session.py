@@ -1,0 +1,138 @@
+"""One evaluation into a folder: a dataset's protocol on a model in memory, the metrics and the visual report.
+
+:func:`evaluate_to_folder` is what ``unicorn-eval`` runs after loading a checkpoint, and what ``unicorn-train``
+runs on the model it just trained (``evaluate.enabled``), without re-reading it from disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
+from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
+from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
+from unicorn.evaluation.report import write_metrics, write_report
+
+__all__ = ["EvalTarget", "evaluate_to_folder"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvalTarget:
+    """What to evaluate on: a dataset split.
+
+    Attributes:
+        dataset: a registered dataset name (:data:`unicorn.data.registry.DATASET_NAMES`).
+        root: its folder (for ``synthetic``: the generated dataset, which holds ``metadata.yaml``).
+        split: ``"train"``, ``"val"`` or ``"test"``.
+        categories: ShapeNet / synthetic categories, None for all.
+        max_images: at most this many items, spread evenly over the split; None for all.
+    """
+
+    dataset: str
+    root: str
+    split: str = "test"
+    categories: str | list[str] | None = None
+    max_images: int | None = None
+
+
+def evaluate_to_folder(
+    model: EvaluableModel,
+    target: EvalTarget,
+    options: EvalOptions,
+    out: Path,
+    meta: Mapping[str, Any],
+    *,
+    mean_shape_iterations: int = 0,
+    view_size: int = 256,
+    turntable_frames: int = 16,
+    title: str | None = None,
+    device: torch.device | str | None = None,
+) -> tuple[EvaluationResult, dict[str, Path]]:
+    """Evaluate ``model`` on ``target`` with ``options`` and write the metrics (CSV, JSON) and the report into ``out``.
+
+    Args:
+        model: the model (moved to ``device``, put in eval mode).
+        target: the dataset split.
+        options: the evaluation settings; ``options.protocol`` must be the dataset's.
+        out: the output folder (created).
+        meta: provenance written with the metrics (command, checkpoint, ...); the target and the options are added.
+        mean_shape_iterations: > 0: fit the training shapes' mean shape for that many iterations and score it
+            beside the model (``shape-win``; the shapenet protocol only).
+        view_size, turntable_frames: the report's render size and turntable length.
+        title: the report's title (default: dataset and split).
+        device: where to evaluate (default: the model's device).
+
+    Returns:
+        the result and the written files by kind (``csv``, ``json``, ``per_image``, ``html``, ``png``).
+
+    Raises:
+        ValueError: a protocol that does not match the dataset, or a mean shape asked where there are no
+            training point clouds.
+    """
+    protocol = protocol_for(target.dataset)
+    spec = get_protocol(protocol)
+    if options.protocol != protocol:
+        raise ValueError(
+            f"options.protocol is {options.protocol!r} but {target.dataset} is evaluated with {protocol!r}"
+        )
+    if mean_shape_iterations > 0 and not spec.training_clouds:
+        raise ValueError(
+            f"a mean shape needs a dataset with training point clouds (shapenet protocol), not {target.dataset}"
+        )
+    if options.own_mean_shape and spec.meshes is None:
+        raise ValueError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
+    if device is None:
+        device = next(model.parameters()).device  # type: ignore[attr-defined]
+    data = build_eval_dataset(
+        target.dataset,
+        target.root,
+        target.split,
+        img_size=model.config["image_size"],
+        categories=target.categories,
+        max_images=target.max_images,
+        seed=options.seed,
+    )
+    log.info(
+        "evaluating %d %s images of %s (%s protocol) on %s", len(data), target.split, target.dataset, protocol, device
+    )
+    mean_shape = None
+    if mean_shape_iterations > 0:
+        clouds = training_point_clouds(target.root, target.categories, max_models=200, num_points=5000)
+        log.info("fitting the mean shape of %d training shapes (%d iterations)", len(clouds), mean_shape_iterations)
+        mean_shape = fit_mean_shape(
+            model.template.verts, model.template.faces, clouds, iterations=mean_shape_iterations, seed=options.seed
+        )
+    result = evaluate(model, data, options, dataset_name=target.dataset, device=device, shape_baseline=mean_shape)
+    full_meta = {
+        **meta,
+        **dataclasses.asdict(target),
+        "device": str(device),
+        "options": dataclasses.asdict(options),
+        "mean_shape_iterations": mean_shape_iterations,
+    }
+    paths = write_metrics(result, out, full_meta)
+    if result.samples:
+        log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")
+        paths.update(
+            write_report(
+                model,
+                result,
+                out,
+                title or f"{target.dataset} ({target.split})",
+                full_meta,
+                view_size=view_size,
+                turntable_frames=turntable_frames,
+                device=device,
+            )
+        )
+    return result, paths
