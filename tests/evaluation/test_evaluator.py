@@ -77,7 +77,7 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
     for batch in batches:
         with torch.no_grad():
             pred = shapenet_model.predict(batch["image"])
-            hard = hard_render(shapenet_model, pred.verts, pred.texture, pred.R, pred.T, batch["mask"].shape[-1], 2)
+            hard = hard_render(shapenet_model, pred.verts, pred.texture, pred.R, pred.T, batch["mask"].shape[-1], 3)
         for i in range(len(batch["index"])):
             rgb, alpha, mask = hard.images[i, :3], hard.images[i, 3], batch["mask"][i, 0]
             image = batch["image"][i]
@@ -229,7 +229,7 @@ def test_oracle_pose_scores_the_shape_at_the_ground_truth_pose(shapenet_model, s
     batch = collate([data[i] for i in range(3)])  # the loop's first batch
     with torch.no_grad():
         pred = shapenet_model.predict(batch["image"])
-        hard = hard_render(shapenet_model, pred.verts, pred.texture, batch["R"], batch["T"], 32, supersample=2)
+        hard = hard_render(shapenet_model, pred.verts, pred.texture, batch["R"], batch["T"], 32, supersample=3)
     R, T = batch["R"], batch["T"]
     direct = evaluate_meshes(
         pred.verts, shapenet_model.template.faces, batch["points"], batch["normals"],

@@ -6,12 +6,10 @@ module builds the evaluation items of a dataset and runs the loop.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader, Dataset, Subset
@@ -22,24 +20,17 @@ from unicorn.data.registry import dataset_spec
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
 from unicorn.evaluation.protocols import (
     COLOR_INTERIOR,
-    METRIC_ORDER,
-    ROW_INFO,
     EvalOptions,
     EvaluationResult,
     Sample,
     get_protocol,
 )
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
-from unicorn.geometry.cameras import PerspectiveCamera
+from unicorn.evaluation.tables import Accumulator, candidate_shares, color_scores, summary_table
 from unicorn.metrics import (
-    align_canonical_frame,
-    color_errors,
     evaluate_meshes,
-    geodesic_error,
-    keypoint_transfer_pck,
     mask_iou,
     mean_foreground_color,
-    pose_errors,
 )
 
 __all__ = ["build_eval_dataset", "candidate_shares", "collate", "evaluate", "group_namer"]
@@ -113,47 +104,6 @@ def _resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
     if images.shape[-1] == size and images.shape[-2] == size:
         return images
     return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False, antialias=True).clamp(0, 1)
-
-
-class _Accumulator:
-    """Per-image rows plus what the set-level metrics need, grouped."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, Any]] = []
-        self.poses: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}  # (row, R_pred, R_gt)
-        self.keypoints: dict[str, list[tuple[torch.Tensor, ...]]] = {}
-        # side of the keypoint frame per group (the ground-truth mask side, 256 for CUB's evaluation items)
-        self.keypoint_frames: dict[str, int] = {}
-        # selected pose-candidate index per image, grouped, and the number K of candidates (0: not recorded)
-        self.candidates: dict[str, list[int]] = {}
-        self.n_candidates = 0
-        # per group: (row number, reconstruction's mean foreground colour (3,), input's (3,))
-        self.colors: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}
-
-
-def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
-    """Fraction of the images that selected each of the K pose candidates.
-
-    Args:
-        chosen: the selected candidate index of each image, in [0, K).
-        n_candidates: K.
-
-    Returns:
-        K fractions summing to 1 (a candidate never chosen gets 0).
-
-    Example:
-        >>> candidate_shares([0, 0, 2, 0], 4)
-        [0.75, 0.0, 0.25, 0.0]
-    """
-    if n_candidates < 1:
-        raise ValueError(f"need at least one candidate, got n_candidates={n_candidates}")
-    if len(chosen) == 0:
-        raise ValueError("no images: candidate shares are undefined")
-    idx = torch.as_tensor(list(chosen), dtype=torch.long)
-    if int(idx.min()) < 0 or int(idx.max()) >= n_candidates:
-        raise ValueError(f"candidate indices must be in [0, {n_candidates}), got {sorted(set(idx.tolist()))}")
-    counts = torch.bincount(idx, minlength=n_candidates).double()
-    return (counts / counts.sum()).tolist()
 
 
 def _mesh_scores(
@@ -257,7 +207,7 @@ def evaluate(
     loader = DataLoader(
         dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
     )
-    acc = _Accumulator()
+    acc = Accumulator()
     oracle = options.oracle_pose
     # with the oracle pose every image is rendered at its ground-truth pose: no candidate is selected
     record_candidates = model.n_candidates > 1 and not oracle
@@ -372,9 +322,9 @@ def evaluate(
     bar.close()
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
-    _color_scores(acc)
+    color_scores(acc)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
-    table, columns = _table(acc, model, options, shares)
+    table, columns = summary_table(acc, model, options, shares)
     return EvaluationResult(protocol.name, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 
@@ -403,82 +353,3 @@ def _own_mean_shapes(
             sums[g] = sums[g] + verts[i] if g in sums else verts[i].clone()
             counts[g] = counts.get(g, 0) + 1
     return {g: sums[g] / counts[g] for g in sums}
-
-
-def _color_scores(acc: _Accumulator) -> None:
-    """Per-image ``color-err`` and ``color-err-mean`` (the group's average input colour as the prediction)."""
-    for entries in acc.colors.values():
-        rows, pred, gt = zip(*entries)
-        pred_colors, gt_colors = torch.stack(pred).double(), torch.stack(gt).double()
-        if bool(torch.isnan(gt_colors).any(dim=1).all()):
-            continue  # no input foreground at all: nothing to compare
-        model, base = color_errors(pred_colors, gt_colors)
-        for r, m, b in zip(rows, model.tolist(), base.tolist()):
-            acc.rows[r]["color-err"], acc.rows[r]["color-err-mean"] = m, b
-
-
-def _set_metrics(
-    acc: _Accumulator,
-    group: str,
-    model: EvaluableModel,
-    options: EvalOptions,
-    shares: Mapping[str, list[float]],
-) -> dict[str, float]:
-    """Metrics over all images of a group: pose errors (ShapeNet), PCK (CUB) and the pose-candidate usage."""
-    out: dict[str, float] = {}
-    if group in shares:
-        out["cand-share-min"], out["cand-share-max"] = min(shares[group]), max(shares[group])
-    errors = [(r["color-err"], r["color-err-mean"]) for r in acc.rows if r["group"] == group and "color-err" in r]
-    errors = [(m, b) for m, b in errors if not (math.isnan(m) or math.isnan(b))]
-    if errors:
-        model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
-        out["color-ratio"] = model_mean / base_mean if base_mean > 0 else float("nan")
-    if group in acc.poses:
-        rows, R_pred, R_gt = zip(*acc.poses[group])
-        R_pred, R_gt = torch.stack(R_pred), torch.stack(R_gt)
-        if options.align_pose:  # once, for the summary and the per-image errors
-            R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred
-        out.update(pose_errors(R_pred, R_gt))
-        for r, err in zip(rows, geodesic_error(R_pred, R_gt).tolist()):
-            acc.rows[r]["rot-err"] = err
-    kps = acc.keypoints.get(group, [])
-    if len(kps) >= 2:
-        verts, R, T, visible, keypoints = (torch.stack(x) for x in zip(*kps))
-        scores = keypoint_transfer_pck(
-            verts,
-            R,
-            T,
-            visible,
-            keypoints,
-            image_size=acc.keypoint_frames[group],
-            # a CPU copy: the collected meshes are on the CPU, and the model's own camera must stay where it is
-            camera=PerspectiveCamera(focal_length=float(model.renderer.camera.focal_length)),
-            num_pairs=options.num_pairs,
-        )
-        out.update({k: v for k, v in scores.items() if k.startswith("pck-")})
-    return out
-
-
-def _table(
-    acc: _Accumulator, model: EvaluableModel, options: EvalOptions, shares: Mapping[str, list[float]]
-) -> tuple[list[dict[str, Any]], list[str]]:
-    """Per-group means of the per-image metrics plus the group's set metrics; then the mean over groups."""
-    groups = list(dict.fromkeys(row["group"] for row in acc.rows))
-    rows: list[dict[str, Any]] = []
-    for g in groups:
-        members = [r for r in acc.rows if r["group"] == g]
-        row: dict[str, Any] = {"group": g, "n-images": len(members)}
-        keys = list(dict.fromkeys(k for r in members for k in r if k not in ROW_INFO))  # not the candidate index
-        for k in keys:
-            values = [r[k] for r in members if k in r and not math.isnan(r[k])]
-            row[k] = float(np.mean(values)) if values else float("nan")
-        row.update(_set_metrics(acc, g, model, options, shares))
-        rows.append(row)
-    present = {k for r in rows for k in r} - {"group", "n-images"}
-    columns = [k for k in METRIC_ORDER if k in present] + sorted(present - set(METRIC_ORDER))
-    rows = [{"group": r["group"], "n-images": r["n-images"], **{k: r[k] for k in columns if k in r}} for r in rows]
-    mean: dict[str, Any] = {"group": "mean", "n-images": sum(r["n-images"] for r in rows)}
-    for k in columns:
-        values = [r[k] for r in rows if k in r and not math.isnan(r[k])]
-        mean[k] = float(np.mean(values)) if values else float("nan")
-    return rows + [mean], columns
