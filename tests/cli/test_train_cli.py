@@ -227,7 +227,8 @@ def test_missing_dataset_is_one_line(tmp_path):
 
 def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp_path):
     from tests.support.training import build_run
-    from unicorn.cli.train import RunFolderError, fit
+    from unicorn.cli.train import fit
+    from unicorn.io.run_folder import RunFolderError
 
     fit(build_run(tmp_path, "trainer.max_steps=2"))
     assert (tmp_path / "checkpoints" / "last.ckpt").is_file()

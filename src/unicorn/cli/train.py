@@ -42,40 +42,14 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
-from unicorn.errors import UserError
 from unicorn.resources import config_dir
 
-__all__ = ["DEFAULT_EXPERIMENT", "Run", "RunFolderError", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
+__all__ = ["DEFAULT_EXPERIMENT", "Run", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
 
 #: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
 DEFAULT_EXPERIMENT = "synthetic"
 
 log = logging.getLogger("unicorn.train")
-
-#: what a run writes into its folder (besides Hydra's ``.hydra/`` and ``train.log``, and ``config.yaml``)
-RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv")
-
-
-class RunFolderError(UserError, FileExistsError):
-    """A new run was started in a folder that already holds one."""
-
-
-def _resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
-    """``None``, ``"last"`` (this run directory's last.ckpt if it exists) or an existing file."""
-    from unicorn.io.serialization import CheckpointNotFoundError
-
-    if ckpt_path is None:
-        return None
-    if ckpt_path == "last":
-        last = checkpoint_dir / "last.ckpt"
-        if last.is_file():
-            return str(last)
-        log.info("ckpt_path=last: no %s yet, training from scratch", last)
-        return None
-    path = Path(ckpt_path).expanduser().resolve()
-    if not path.is_file():
-        raise CheckpointNotFoundError(f"ckpt_path: no checkpoint file at {path}")
-    return str(path)
 
 
 def _route_lightning_logs() -> None:
@@ -114,43 +88,6 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
     path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
 
 
-def _previous_run(output_dir: Path) -> Path | None:
-    """The first output of an earlier run found in ``output_dir`` (a checkpoint, a metric log...), or None."""
-    checkpoints = output_dir / "checkpoints"
-    if checkpoints.is_dir():
-        found = next((p for p in sorted(checkpoints.iterdir()) if p.suffix == ".ckpt"), None)
-        if found is not None:
-            return found
-    for name in RUN_OUTPUTS[1:]:
-        path = output_dir / name
-        if path.is_file() or (path.is_dir() and any(path.iterdir())):
-            return path
-    return None
-
-
-def _prepare_folder(output_dir: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse to start a new run over an earlier one, or delete the earlier one's outputs when told to.
-
-    Raises:
-        RunFolderError: ``output_dir`` holds a run and neither ``resume`` nor ``overwrite`` is set.
-    """
-    previous = _previous_run(output_dir)
-    if previous is None or resume:
-        return
-    if not overwrite:
-        raise RunFolderError(
-            f"{output_dir} already holds a run ({previous.relative_to(output_dir)}); resume it with "
-            "ckpt_path=last, replace it with overwrite=true, or train elsewhere (hydra.run.dir=...)"
-        )
-    log.warning("overwrite=true: deleting the earlier run's outputs in %s", output_dir)
-    for name in RUN_OUTPUTS:
-        path = output_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
-
-
 @dataclass
 class Run:
     """Everything :func:`build` assembles for one training run."""
@@ -175,6 +112,7 @@ def build(cfg: DictConfig) -> Run:
     from hydra.utils import instantiate
 
     from unicorn.config import model_config, validate
+    from unicorn.io.run_folder import prepare_folder, resolve_ckpt
     from unicorn.io.serialization import remove_stale_temporaries
     from unicorn.lit import (
         AtomicCheckpointIO,
@@ -194,8 +132,8 @@ def build(cfg: DictConfig) -> Run:
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
     checkpoint_dir = output_dir / "checkpoints"
-    ckpt_path = _resolve_ckpt(typed.ckpt_path, checkpoint_dir)
-    _prepare_folder(output_dir, resume=typed.ckpt_path is not None, overwrite=typed.overwrite)
+    ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    prepare_folder(output_dir, resume=typed.ckpt_path is not None, overwrite=typed.overwrite)
     output_dir.mkdir(parents=True, exist_ok=True)
     if checkpoint_dir.is_dir():
         for tmp in remove_stale_temporaries(checkpoint_dir):
@@ -346,15 +284,10 @@ _DEBUG = False
 _TASK_STARTED = False
 
 
-def _holds_nothing(folder: Path) -> bool:
-    """Whether ``folder`` holds only what Hydra and :func:`build` write before training (or does not exist)."""
-    if not folder.is_dir():
-        return True
-    return all(p.name in (".hydra", "train.log", "config.yaml") for p in folder.iterdir())
-
-
 def _task(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.io.run_folder import holds_nothing
 
     global _TASK_STARTED
     _TASK_STARTED = True
@@ -365,7 +298,7 @@ def _task(cfg: DictConfig) -> None:
         folders.add(Path(str(cfg.paths.output_dir)).expanduser().resolve())
     except Exception:  # an invalid paths group: validate() reports it
         pass
-    empty_before = [f for f in folders if _holds_nothing(f)]
+    empty_before = [f for f in folders if holds_nothing(f)]
     run = None
     try:
         run = build(cfg)
