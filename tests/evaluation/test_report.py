@@ -12,7 +12,7 @@ from PIL import Image
 
 from tests.support.evaluation import referenced_files, report_result
 from unicorn.evaluation import format_table, write_metrics, write_report
-from unicorn.evaluation.report import image_grid, mask_overlay
+from unicorn.evaluation.pictures import image_grid, mask_overlay
 
 
 def test_format_table() -> None:
@@ -59,3 +59,11 @@ def test_mask_overlay_and_grid() -> None:
     cell = (torch.rand(8, 8, 3) * 255).to(torch.uint8).numpy()
     grid = image_grid([[cell, cell], [cell]], ["a", "b"], ["row 1", "row 2"])
     assert grid.size[0] > 16 and grid.size[1] > 16
+
+
+def test_every_metric_column_has_a_direction_and_a_meaning() -> None:
+    from unicorn.evaluation.protocols import METRIC_HELP, METRIC_ORDER, METRICS
+
+    assert list(METRIC_ORDER) == [name for name in METRICS if name != "n-images"]
+    assert set(METRIC_ORDER.values()) == {"lower", "higher"}
+    assert all(METRIC_HELP[name].strip() for name in METRICS)

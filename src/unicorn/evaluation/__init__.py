@@ -8,7 +8,8 @@
 - :mod:`~unicorn.evaluation.session`: one evaluation into a folder, metrics and report (what ``unicorn-eval``
   and ``unicorn-train`` run);
 - :mod:`~unicorn.evaluation.rendering`: hard renders for masks, visibility, mesh views and turntables;
-- :mod:`~unicorn.evaluation.report`: metric tables (text, CSV, JSON) and the visual report (PNG grid, HTML);
+- :mod:`~unicorn.evaluation.metric_files`: metric tables (text, CSV, JSON); :mod:`~unicorn.evaluation.report`:
+  the visual report (PNG grid, HTML), with :mod:`~unicorn.evaluation.pictures`;
 - :mod:`~unicorn.evaluation.reconstruct`: per-image meshes, pictures, masks, poses and turntables;
 - :mod:`~unicorn.evaluation.baselines`: the reference baselines (template at the anchor pose, mean training
   shape) as :class:`FixedShapeModel` instances that :func:`evaluate` scores like any model.
@@ -27,6 +28,7 @@ from unicorn.evaluation.baselines import (
 )
 from unicorn.evaluation.evaluator import build_eval_dataset, candidate_shares, evaluate
 from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.metric_files import format_table, write_metrics
 from unicorn.evaluation.protocols import (
     PROTOCOL_REGISTRY,
     PROTOCOLS,
@@ -39,7 +41,7 @@ from unicorn.evaluation.protocols import (
 )
 from unicorn.evaluation.reconstruct import reconstruct
 from unicorn.evaluation.rendering import hard_render, shaded_render, turntable, vertex_visibility
-from unicorn.evaluation.report import format_table, write_metrics, write_report
+from unicorn.evaluation.report import write_report
 
 __all__ = [
     "PROTOCOLS",

@@ -66,6 +66,8 @@ from unicorn.data.registry import DATASETS, dataset_spec
 
 __all__ = [
     "COLOR_INTERIOR",
+    "METRICS",
+    "METRIC_HELP",
     "METRIC_ORDER",
     "PROTOCOLS",
     "PROTOCOL_REGISTRY",
@@ -86,33 +88,70 @@ COLOR_INTERIOR = 1
 #: dataset name -> protocol (from the dataset registry, :data:`unicorn.data.registry.DATASETS`)
 PROTOCOLS = {name: spec.protocol for name, spec in DATASETS.items()}
 
-#: column order of the tables; "lower" / "higher" says which way is better
-METRIC_ORDER = {
-    "chamfer-L1": "lower",
-    "chamfer-L1-ICP": "lower",
-    "normal-cos": "higher",
-    "normal-cos-ICP": "higher",
-    "mask-iou": "higher",
-    "pck-5": "higher",
-    "pck-10": "higher",
-    "pck-15": "higher",
-    "rot-err-mean": "lower",
-    "rot-err-median": "lower",
-    "rot-acc-30": "higher",
-    "rot-flip-150": "lower",
-    "azim-err-mean": "lower",
-    "azim-err-median": "lower",
-    "cand-share-min": "higher",
-    "cand-share-max": "lower",
-    "color-err": "lower",
-    "color-err-mean": "lower",
-    "color-ratio": "lower",
-    "chamfer-L1-ICP-mean-shape": "lower",
-    "shape-win": "higher",
-    "chamfer-L1-ICP-own-mean": "lower",
-    "shape-win-own": "higher",
-    "rec-mse": "lower",
+#: every metric column, in table order: which way is better and what it means (the report shows both)
+METRICS: dict[str, tuple[str, str]] = {
+    "n-images": ("", "number of evaluated images"),
+    "chamfer-L1": (
+        "lower",
+        "Chamfer-L1 x10 between the predicted mesh, placed in the ground-truth object frame through the "
+        "predicted and ground-truth cameras, and the ground-truth points",
+    ),
+    "chamfer-L1-ICP": (
+        "lower",
+        "Chamfer-L1 x10 after normalising the prediction to the unit cube and registering it with "
+        "gradient ICP (rotation, translation, anisotropic scale)",
+    ),
+    "normal-cos": ("higher", "mean |cos| between matched normals, GT-pose aligned"),
+    "normal-cos-ICP": ("higher", "mean |cos| between matched normals, after ICP"),
+    "mask-iou": ("higher", "IoU of the hard-rendered predicted silhouette with the ground-truth mask"),
+    "pck-5": ("higher", "keypoints transferred between image pairs through the meshes within 5% of the image side"),
+    "pck-10": ("higher", "... within 10% of the image side"),
+    "pck-15": ("higher", "... within 15% of the image side"),
+    "rot-err-mean": (
+        "lower",
+        "mean geodesic camera rotation error (degrees), learned canonical frame aligned to the GT",
+    ),
+    "rot-err-median": ("lower", "median geodesic camera rotation error (degrees)"),
+    "rot-acc-30": ("higher", "fraction of images with a rotation error below 30 degrees"),
+    "rot-flip-150": ("lower", "fraction of images with a rotation error above 150 degrees (predicted turned round)"),
+    "azim-err-mean": ("lower", "mean camera azimuth error (degrees)"),
+    "azim-err-median": ("lower", "median camera azimuth error (degrees)"),
+    "cand-share-min": (
+        "higher",
+        "smallest fraction of the group's images that chose one pose candidate (0: a candidate never chosen)",
+    ),
+    "cand-share-max": ("lower", "largest fraction of the group's images that chose one pose candidate"),
+    "color-err": (
+        "lower",
+        "L1 between the mean colours of the reconstruction and of the input over the mask interiors",
+    ),
+    "color-err-mean": ("lower", "the same for the group's average input colour predicted for every image"),
+    "color-ratio": (
+        "lower",
+        "color-err / color-err-mean over the group: below 1 only when reconstructions carry their image's colour",
+    ),
+    "chamfer-L1-ICP-mean-shape": (
+        "lower",
+        "Chamfer-L1 x10 after ICP of the training shapes' mean shape on the same object",
+    ),
+    "shape-win": (
+        "higher",
+        "share of objects on which the model's chamfer-L1-ICP beats the mean shape's (0.5 for a tie)",
+    ),
+    "chamfer-L1-ICP-own-mean": (
+        "lower",
+        "Chamfer-L1 x10 after ICP of the model's own average shape at the image's predicted pose",
+    ),
+    "shape-win-own": (
+        "higher",
+        "share of objects on which the model's own prediction beats its own average shape (0.5: one shape for all)",
+    ),
+    "rec-mse": ("lower", "mean squared error of the model's rendering (with its background) against the input"),
 }
+#: column order of the tables; "lower" / "higher" says which way is better
+METRIC_ORDER = {name: better for name, (better, _) in METRICS.items() if better}
+#: what each column means
+METRIC_HELP = {name: text for name, (_, text) in METRICS.items()}
 
 #: per-image row entries that are not averaged into the table: identifiers, and ``rot-err`` (the image's rotation
 #: error in degrees after the group's canonical-frame alignment), which the set metrics ``rot-*`` summarise

@@ -37,8 +37,8 @@ import torch.nn.functional as F
 from PIL import Image
 from tqdm.auto import tqdm
 
+from unicorn.evaluation.pictures import image_grid, save_gif, to_uint8
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
-from unicorn.evaluation.report import image_grid, save_gif, to_uint8
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage

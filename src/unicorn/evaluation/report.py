@@ -1,4 +1,4 @@
-"""Metric tables (text, CSV, JSON) and the visual report (a PNG grid and an HTML page) of an evaluation.
+"""The visual report of an evaluation (a PNG grid and an HTML page); the metric files are :mod:`.metric_files`.
 
 The report shows, for a few evaluated images, the input, the model's reconstruction, the predicted silhouette
 against the ground-truth mask, and the predicted mesh from several viewpoints, textured and as lit untextured
@@ -11,10 +11,8 @@ served or opened from disk as is, without a network.
 
 from __future__ import annotations
 
-import csv
 import html
 import json
-import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -22,115 +20,18 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image
 
 from unicorn.evaluation.interface import EvaluableModel
-from unicorn.evaluation.protocols import METRIC_ORDER, ROW_INFO, EvaluationResult, Sample
+from unicorn.evaluation.metric_files import format_value, json_safe
+from unicorn.evaluation.pictures import image_grid, mask_overlay, save_gif, to_uint8
+from unicorn.evaluation.protocols import METRIC_HELP, METRIC_ORDER, EvaluationResult, Sample
 from unicorn.evaluation.rendering import even_angles, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters
 from unicorn.io.meshes import glb_bytes, textured_mesh
 
-__all__ = [
-    "METRIC_HELP",
-    "format_table",
-    "image_grid",
-    "mask_overlay",
-    "save_gif",
-    "to_uint8",
-    "write_metrics",
-    "write_report",
-]
-
-#: what each column means (shown in the HTML report)
-METRIC_HELP = {
-    "n-images": "number of evaluated images",
-    "chamfer-L1": "Chamfer-L1 x10 between the predicted mesh, placed in the ground-truth object frame through the "
-    "predicted and ground-truth cameras, and the ground-truth points",
-    "chamfer-L1-ICP": "Chamfer-L1 x10 after normalising the prediction to the unit cube and registering it with "
-    "gradient ICP (rotation, translation, anisotropic scale)",
-    "normal-cos": "mean |cos| between matched normals, GT-pose aligned",
-    "normal-cos-ICP": "mean |cos| between matched normals, after ICP",
-    "mask-iou": "IoU of the hard-rendered predicted silhouette with the ground-truth mask",
-    "pck-5": "keypoints transferred between image pairs through the meshes within 5% of the image side",
-    "pck-10": "... within 10% of the image side",
-    "pck-15": "... within 15% of the image side",
-    "rot-err-mean": "mean geodesic camera rotation error (degrees), learned canonical frame aligned to the GT",
-    "rot-err-median": "median geodesic camera rotation error (degrees)",
-    "rot-acc-30": "fraction of images with a rotation error below 30 degrees",
-    "azim-err-mean": "mean camera azimuth error (degrees)",
-    "azim-err-median": "median camera azimuth error (degrees)",
-    "rec-mse": "mean squared error of the model's rendering (with its background) against the input",
-}
-
-
-# ---------------------------------------------------------------------------------------------- tables
-def _fmt(value: Any, column: str = "") -> str:
-    if isinstance(value, float):
-        if math.isnan(value):
-            return "-"
-        if column.endswith(("err-mean", "err-median")) or abs(value) >= 100:
-            return f"{value:.1f}"  # degrees
-        return f"{value:.4f}"
-    return str(value)
-
-
-def format_table(table: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
-    """A fixed-width text table: one line per row, ``group`` and ``n-images`` first."""
-    header = ["group", "n-images", *columns]
-    cells = [header] + [[_fmt(row.get(c, float("nan")), c) for c in header] for row in table]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in cells]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def _json_safe(value: Any) -> Any:
-    """NaN and infinities to None (strict JSON), recursively."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, Mapping):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Mapping[str, Any]) -> dict[str, Path]:
-    """Write ``metrics.csv`` (the table), ``per_image.csv`` and ``metrics.json`` (table, per-image, ``meta``).
-
-    Returns:
-        ``{"csv": ..., "per_image": ..., "json": ...}`` paths.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    header = ["group", "n-images", *result.columns]
-    paths = {"csv": out / "metrics.csv", "per_image": out / "per_image.csv", "json": out / "metrics.json"}
-    with open(paths["csv"], "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
-        writer.writeheader()
-        writer.writerows(result.table)
-    # the metrics, and the per-image entries that are not averaged (the selected candidate, the rotation error)
-    cols = [c for c in ROW_INFO if c not in ("index", "group")] + result.columns
-    image_cols = ["index", "group"] + [c for c in cols if any(c in r for r in result.per_image)]
-    with open(paths["per_image"], "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=image_cols, extrasaction="ignore", restval="")
-        writer.writeheader()
-        writer.writerows(result.per_image)
-    payload = {
-        "protocol": result.protocol,
-        "columns": result.columns,
-        "better": {c: METRIC_ORDER.get(c) for c in result.columns},
-        "mean": result.mean,
-        "table": result.table,
-        "per_image": result.per_image,
-        "seconds": result.seconds,
-        **meta,
-    }
-    paths["json"].write_text(json.dumps(_json_safe(payload), indent=1))
-    return paths
+__all__ = ["sample_views", "write_report"]
 
 
 def _sample_viewer(model: EvaluableModel, sample: Sample, size: int) -> str:
@@ -144,96 +45,6 @@ def _sample_viewer(model: EvaluableModel, sample: Sample, size: int) -> str:
         alt=f"textured mesh of image {sample.index}",
         orbit=(float(look["azim"]), float(look["elev"])),
     )
-
-
-# ---------------------------------------------------------------------------------------------- pictures
-def to_uint8(image: torch.Tensor | np.ndarray, size: int | None = None) -> np.ndarray:
-    """(C, H, W) tensor or (H, W, C) / (H, W) array in [0, 1] to an (H', W', 3) uint8 array (resized bicubically)."""
-    if isinstance(image, torch.Tensor):
-        image = image.detach().cpu().float()
-        image = image.permute(1, 2, 0).numpy() if image.dim() == 3 else image.numpy()
-    arr = np.asarray(image, dtype=np.float32)
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    if arr.shape[-1] == 1:
-        arr = np.repeat(arr, 3, axis=-1)
-    arr = (np.clip(arr[..., :3], 0, 1) * 255).round().astype(np.uint8)
-    if size is not None and arr.shape[:2] != (size, size):
-        arr = np.asarray(Image.fromarray(arr).resize((size, size), Image.Resampling.BICUBIC))
-    return arr
-
-
-def mask_overlay(alpha: torch.Tensor, mask: torch.Tensor | None) -> np.ndarray:
-    """Predicted silhouette against the ground truth: both dark grey, prediction only red, ground truth only blue.
-
-    Args:
-        alpha: (1, H, W) predicted alpha; mask: (1, H, W) ground-truth mask, or None (prediction in grey).
-
-    Returns:
-        (H, W, 3) float array in [0, 1].
-    """
-    pred = alpha[0].detach().cpu().numpy() > 0.5
-    out = np.ones((*pred.shape, 3), dtype=np.float32)
-    if mask is None:
-        out[pred] = (0.3, 0.3, 0.3)
-        return out
-    gt = mask[0].detach().cpu().numpy() > 0.5
-    out[pred & gt] = (0.3, 0.3, 0.3)
-    out[pred & ~gt] = (0.9, 0.25, 0.2)
-    out[~pred & gt] = (0.2, 0.45, 0.9)
-    return out
-
-
-def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:  # Pillow < 10.1 has only the fixed bitmap font
-        return ImageFont.load_default()
-
-
-def image_grid(
-    rows: Sequence[Sequence[np.ndarray]],
-    column_labels: Sequence[str],
-    row_labels: Sequence[str] | None = None,
-    pad: int = 4,
-    label_width: int = 150,
-) -> Image.Image:
-    """A labelled grid of equally sized uint8 images.
-
-    Args:
-        rows: rows of (H, W, 3) uint8 images, all of one size.
-        column_labels: one header per column.
-        row_labels: text (lines separated by newlines) left of each row, or None.
-        pad: pixels between cells.
-        label_width: width of the row-label column.
-
-    Returns:
-        the grid as a PIL image.
-    """
-    H, W = rows[0][0].shape[:2]
-    n_cols = max(len(r) for r in rows)
-    font = _font(max(11, min(16, W // 9)))
-    head = 24
-    left = label_width if row_labels else 0
-    grid = Image.new("RGB", (left + n_cols * (W + pad) + pad, head + len(rows) * (H + pad) + pad), "white")
-    draw = ImageDraw.Draw(grid)
-    for c, label in enumerate(column_labels[:n_cols]):
-        draw.text((left + pad + c * (W + pad) + W // 2, head // 2), label, fill=(40, 40, 40), font=font, anchor="mm")
-    for r, row in enumerate(rows):
-        y = head + pad + r * (H + pad)
-        for c, cell in enumerate(row):
-            grid.paste(Image.fromarray(cell), (left + pad + c * (W + pad), y))
-        if row_labels:
-            draw.multiline_text((pad + 2, y + 4), row_labels[r], fill=(40, 40, 40), font=font, spacing=3)
-    return grid
-
-
-def save_gif(frames: torch.Tensor, path: str | os.PathLike, duration_ms: int = 80) -> Path:
-    """Write (N, 3 or 4, H, W) frames in [0, 1] as a looping GIF (on white)."""
-    path = Path(path)
-    images = [Image.fromarray(to_uint8(f[:3])) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=False)
-    return path
 
 
 def sample_views(
@@ -266,7 +77,7 @@ _KEY_SCORES = ("chamfer-L1", "chamfer-L1-ICP", "mask-iou", "rec-mse")
 def _row_label(sample: Sample, columns: Sequence[str], limit: int = 4) -> str:
     lines = [f"#{sample.index} {sample.group}"]
     order = [c for c in _KEY_SCORES if c in columns] + [c for c in columns if c not in _KEY_SCORES]
-    lines += [f"{c}: {_fmt(sample.scores[c], c)}" for c in order if c in sample.scores][:limit]
+    lines += [f"{c}: {format_value(sample.scores[c], c)}" for c in order if c in sample.scores][:limit]
     return "\n".join(lines)
 
 
@@ -281,7 +92,7 @@ def _html_table(result: EvaluationResult) -> str:
     body = []
     for row in result.table:
         cls = ' class="mean"' if row is result.table[-1] else ""
-        cells = "".join(f"<td>{html.escape(_fmt(row.get(c, float('nan')), c))}</td>" for c in header)
+        cells = "".join(f"<td>{html.escape(format_value(row.get(c, float('nan')), c))}</td>" for c in header)
         body.append(f"<tr{cls}>{cells}</tr>")
     return f"<table><thead><tr>{th}</tr></thead><tbody>{''.join(body)}</tbody></table>"
 
@@ -386,7 +197,7 @@ def write_report(
         for c in ["n-images", *result.columns]
     )
     settings = "".join(
-        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(json.dumps(_json_safe(v)))}</code></dd>"
+        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(json.dumps(json_safe(v)))}</code></dd>"
         for k, v in meta.items()
     )
     samples_block = (

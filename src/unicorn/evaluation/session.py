@@ -18,8 +18,9 @@ import torch
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.metric_files import write_metrics
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
-from unicorn.evaluation.report import write_metrics, write_report
+from unicorn.evaluation.report import write_report
 
 __all__ = ["EvalTarget", "evaluate_to_folder"]
 
