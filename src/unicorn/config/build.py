@@ -121,10 +121,7 @@ def _check_values(cfg: DictConfig) -> None:
     _check(pl.window >= 1 and pl.check_every >= 1 and pl.patience >= 1, "schedule.plateau counts must be >= 1")
     _check(pl.min_steps >= 0 and pl.threshold >= 0, "schedule.plateau.min_steps and threshold must be >= 0")
     # -- optimisation
-    try:
-        check_optim(o)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    check_optim(o)  # raises ConfigError itself
     # -- trainer
     t = cfg.trainer
     _check(t.max_steps > 0, f"trainer.max_steps must be > 0 (training is counted in iterations), got {t.max_steps}")
