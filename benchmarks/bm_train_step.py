@@ -43,6 +43,7 @@ from typing import Any
 
 import torch
 
+from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.model import Unicorn, objectives
 from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
@@ -272,8 +273,11 @@ def main() -> None:
         sys.exit("bm_train_step.py: error: --device cuda but CUDA is not available")
     if args.threads:
         torch.set_num_threads(args.threads)
+    # what unicorn-train does at start (UNICORN_TUNE_MALLOC=0 measures glibc's defaults)
+    tuned = tune_allocator()
     torch.manual_seed(0)
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+    name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
     print(f"{'model':17s} {'batch':>5s} {'px':>3s} {'step':4s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:

@@ -82,3 +82,17 @@ def test_structural_loss_and_gradient_match_kornia():
     (g_ours,) = torch.autograd.grad(ours.sum(), rec)
     (g_ref,) = torch.autograd.grad(ref.sum(), rec)
     torch.testing.assert_close(g_ours, g_ref)
+
+
+def test_cached_filter_matrix_first_built_under_inference_mode_serves_autograd():
+    # the matrices are built once and shared; one first asked for under inference_mode must still be a normal
+    # tensor that a later training step's autograd can save, and give the same values
+    x = torch.rand(2, 3, 13, 11)
+    with torch.inference_mode():
+        first = separable_filter(x.clone(), [0.2, 0.6, 0.2], [0.1, 0.8, 0.1], "reflect")
+    y = x.clone().requires_grad_(True)
+    again = separable_filter(y, [0.2, 0.6, 0.2], [0.1, 0.8, 0.1], "reflect")
+    again.square().sum().backward()
+    torch.testing.assert_close(again.detach(), first)
+    torch.testing.assert_close(again.detach(), _conv_reference(x, [0.2, 0.6, 0.2], [0.1, 0.8, 0.1], "reflect"))
+    assert y.grad is not None and torch.isfinite(y.grad).all()

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from unicorn import __version__
+from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
 from unicorn.data.registry import DATASET_NAMES
 
@@ -256,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    tune_allocator()
     if args.max_image_pixels is not None:
         from unicorn.data.images import set_max_image_pixels
 

@@ -41,6 +41,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
 from unicorn.resources import config_dir
 
@@ -361,6 +362,7 @@ def main() -> None:
             flush=True,
         )
     sys.argv[1:] = hydra_argv(args)
+    tune_allocator()
     held = None if debug_requested(_DEBUG) else _HeldStream(sys.stderr)
     if held is not None:
         sys.stderr = held

@@ -7,6 +7,8 @@ CUDA they are one batched GEMM. Used by the structural perceptual loss (SSIM, So
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -18,13 +20,25 @@ def filter_matrix(n: int, taps: list[float], mode: str, like: torch.Tensor) -> t
 
     ``pad`` adds ``len(taps) // 2`` values on each side in ``mode`` (``"reflect"`` or ``"replicate"``, torch's
     padding modes); padding is linear, so it is folded into the matrix by padding the identity. Built on
-    ``like``'s device and dtype (no host-device copy).
+    ``like``'s device and dtype (no host-device copy) once per size, taps, mode, dtype and device: the result
+    is shared, do not modify it in place.
     """
     if len(taps) % 2 == 0:
         raise ValueError(f"need an odd number of taps, got {len(taps)}")
+    return _filter_matrix(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
+
+
+@functools.lru_cache(maxsize=128)
+def _filter_matrix(
+    n: int, taps: tuple[float, ...], mode: str, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
+    # cached: building it is ~2 x len(taps) small ops, and a training step filters a dozen times (an 11-tap
+    # SSIM window: a sixth of the tiny model's torch calls per iteration were these)
     p = len(taps) // 2
-    padded = F.pad(torch.eye(n, dtype=like.dtype, device=like.device), (p, p), mode=mode)  # (n, n + 2p)
-    return sum(w * padded[:, t : t + n] for t, w in enumerate(taps))
+    # a normal tensor even when first asked for under inference_mode, so that autograd may save it later
+    with torch.inference_mode(False):
+        padded = F.pad(torch.eye(n, dtype=dtype, device=device), (p, p), mode=mode)  # (n, n + 2p)
+        return sum(w * padded[:, t : t + n] for t, w in enumerate(taps))
 
 
 def separable_filter(x: torch.Tensor, taps_y: list[float], taps_x: list[float], mode: str) -> torch.Tensor:
