@@ -45,6 +45,17 @@ def test_run_layout_and_command(quality, tmp_path):
     assert quality.train_command(run, args)[-1] == "ckpt_path=last"
 
 
+def test_experiment_option_sets_the_recipe_of_every_variant_but_wild(quality, tmp_path):
+    args = quality.parse_args(["--experiment", "synthetic_long", "--out", str(tmp_path)])
+    assert quality.train_command(quality.Run("full", 0, tmp_path), args)[3] == "experiment=synthetic_long"
+    chairs = quality.train_command(quality.Run("chairs", 0, tmp_path), args)
+    assert "experiment=synthetic_long" in chairs and "dataset.categories=chair" in chairs
+    assert "experiment=synthetic_wild" in quality.train_command(quality.Run("wild", 0, tmp_path), args)
+    assert "experiment=synthetic" in quality.train_command(quality.Run("full", 0, tmp_path), quality.parse_args([]))
+    with pytest.raises(SystemExit):
+        quality.parse_args(["--experiment", "cub"])
+
+
 def test_finished_runs_are_reused(quality, tmp_path):
     args = quality.parse_args(["--runs", "full", "--seeds", "0,1", "--out", str(tmp_path)])
     runs = [quality.Run("full", s, tmp_path) for s in (0, 1)]

@@ -37,7 +37,7 @@ def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.Compl
 def test_every_experiment_composes_and_validates(tmp_path):
     shipped = sorted(p.stem for p in (config_dir() / "experiment").glob("*.yaml"))
     assert shipped == sorted(
-        ["synthetic", "synthetic64", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)]
+        ["synthetic", "synthetic64", "synthetic_long", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)]
     )
     for name in shipped:
         for model in ("small", "big"):
