@@ -1,8 +1,9 @@
 """Does unicorn learn? Reconstruction quality on the synthetic benchmark, against baselines and ablations.
 
 Trains the README's default experiment (``experiment=synthetic``: procedural cars, ShapeNet-NMR layout,
-32 px, the tiny model) with the same iteration budget in five variants, each with ``unicorn-train`` as a user
-would run it, then scores every final checkpoint on the held-out test models:
+32 px, the tiny model), or the one ``--experiment`` names (``synthetic_long``: the recipe that meets the colour
+bar, 200 cars and 4800 iterations; ``synthetic64``), with the same iteration budget in five variants, each with
+``unicorn-train`` as a user would run it, then scores every final checkpoint on the held-out test models:
 
 - ``full``: the experiment as it is;
 - ``no-neighbor``: without the neighbour reconstruction loss (``model.loss.neighbor_weight=0``);
@@ -63,13 +64,14 @@ times), ``curves.png`` (held-out metrics against iterations, from each run's ``h
 ``pictures/report.png`` (input, reconstruction, mask, the mesh from three viewpoints, for ten held-out images of
 the ``full`` model's first seed) into ``--out``; training logs in ``<out>/logs``.
 
-Time: a 2400-iteration run takes about 9-10 minutes on a quiet 2-core CPU with 2 threads; scoring about 2
-minutes per run, plus about 3 minutes of baselines per category. All five variants with one seed: a little over
-an hour; with ``--seeds 0,1,2``, about three hours.
+Time: a 2400-iteration run takes about 9-10 minutes on a quiet 2-core CPU with 2 threads (``synthetic_long``:
+about twice that); scoring about 2 minutes per run, plus about 3 minutes of baselines per category. All five
+variants with one seed: a little over an hour; with ``--seeds 0,1,2``, about three hours.
 
     python benchmarks/quality.py                                  # five variants, seed 0
     python benchmarks/quality.py --runs full,no-neighbor,no-progressive --seeds 0,1,2 --jobs 2
     python benchmarks/quality.py --runs full --steps 600 --out /tmp/q   # a quick look
+    python benchmarks/quality.py --experiment synthetic_long --runs full --seeds 0,1,2 --silhouette-iterations 0
 """
 
 from __future__ import annotations
