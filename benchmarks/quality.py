@@ -100,8 +100,15 @@ RUNS: dict[str, tuple[str | None, list[str]]] = {
     "wild": ("synthetic_wild", []),
     "chairs": (None, ["dataset.categories=chair"]),
 }
-#: what ``--experiment`` may name: the procedural cars in the ShapeNet-NMR layout
-EXPERIMENTS = ("synthetic", "synthetic64", "synthetic_long")
+
+
+def experiments() -> list[str]:
+    """What ``--experiment`` may name: the shipped ``synthetic*`` experiments that no variant fixes itself."""
+    from unicorn.resources import config_dir
+
+    fixed = {experiment for experiment, _ in RUNS.values() if experiment}
+    return sorted(p.stem for p in (config_dir() / "experiment").glob("synthetic*.yaml") if p.stem not in fixed)
+
 
 #: baseline row names of the cars (the bars' reference); other categories get ", <category>s" appended
 TEMPLATE_ROW = "template (anchor pose)"
@@ -155,7 +162,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seeds", default="0", help="comma-separated training seeds; every run is trained once per seed")
     p.add_argument("--jobs", type=int, default=1, help="train up to this many runs at once")
     p.add_argument(
-        "--experiment", default="synthetic", choices=EXPERIMENTS, help="the recipe of every variant but wild"
+        "--experiment", default="synthetic", choices=experiments(), help="the recipe of every variant but wild"
     )
     p.add_argument("--steps", type=int, help="training iterations (default: the experiment's)")
     p.add_argument("--retrain", action="store_true", help="train again even where a finished run exists")
