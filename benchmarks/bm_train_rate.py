@@ -10,10 +10,12 @@ and reports for each variant the median over ``--repeats`` runs of
   with more than one thread it includes the threads' spinning).
 
 ``--ref REV`` adds the tree of git revision REV (checked out once with ``git worktree`` under the system's
-temporary folder) as the "before" variant. Extra arguments are Hydra overrides for both variants.
+temporary folder) as the "before" variant; ``--variant NAME OVERRIDE...`` adds this tree with more Hydra
+overrides (repeatable). Extra arguments are Hydra overrides for every variant.
 
     python benchmarks/bm_train_rate.py --ref 8b6efcd                       # before/after, held-out off
     python benchmarks/bm_train_rate.py --ref 8b6efcd --heldout             # with the main job's held-out scoring
+    python benchmarks/bm_train_rate.py --variant width-64 model.encoder.width=64
     python benchmarks/bm_train_rate.py --steps 200 trainer.accelerator=cuda
 """
 
@@ -70,6 +72,7 @@ def experiment_override(tree: Path) -> str:
 
 
 def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir: Path) -> dict:
+    """Train in ``tree`` with ``overrides`` in a fresh process; its timer's figures."""
     out = workdir / "timing.json"
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(tree / "src"), str(Path(__file__).resolve().parent)])
@@ -104,16 +107,29 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)")
     parser.add_argument("--heldout", action="store_true", help="keep the main job's held-out scoring")
+    parser.add_argument(
+        "--variant",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar=("NAME", "OVERRIDE"),
+        help="also run this tree with these Hydra overrides, named NAME (repeatable)",
+    )
     args, overrides = parser.parse_known_args()
-    variants = {"this tree": REPO}
+    # name -> (tree, the variant's own overrides)
+    variants: dict[str, tuple[Path, list[str]]] = {"this tree": (REPO, [])}
     if args.ref:
-        variants = {f"before ({args.ref})": tree_of(args.ref), **variants}
+        variants = {f"before ({args.ref})": (tree_of(args.ref), []), **variants}
+    for name, *extra in args.variant:
+        if not extra or name in variants:
+            parser.error(f"--variant {name}: needs a new name and at least one override")
+        variants[name] = (REPO, extra)
     results: dict[str, list[dict]] = {name: [] for name in variants}
     with tempfile.TemporaryDirectory(prefix="bm_train_rate-") as tmp:
         for r in range(args.repeats):
-            for name, tree in variants.items():
+            for name, (tree, extra) in variants.items():
                 workdir = Path(tmp) / f"{len(results[name])}-{abs(hash(name))}"
-                results[name].append(run_once(tree, args, overrides, workdir))
+                results[name].append(run_once(tree, args, [*overrides, *extra], workdir))
                 last = results[name][-1]
                 print(f"  run {r + 1}/{args.repeats} {name}: {last['iterations'] / last['wall']:.2f} it/s", flush=True)
     threads = args.threads or "torch default"
@@ -124,9 +140,9 @@ def main() -> None:
         rates[name] = statistics.median(r["iterations"] / r["wall"] for r in rows)
         cpu = statistics.median(1000 * r["cpu"] / r["iterations"] for r in rows)
         print(f"{name:28s} {rates[name]:8.2f} {cpu:10.1f}")
-    if len(rates) == 2:
-        before, after = rates.values()
-        print(f"speed-up: {after / before:.2f}x")
+    first, *others = rates
+    for name in others:
+        print(f"speed-up of {name} over {first}: {rates[name] / rates[first]:.2f}x")
 
 
 if __name__ == "__main__":

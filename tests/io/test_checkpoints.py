@@ -30,6 +30,14 @@ def test_plain_round_trip(tmp_path: Path) -> None:
     _same_prediction(model, loaded)
 
 
+def test_checkpoint_from_before_the_encoder_width_loads_resnet18(tmp_path: Path) -> None:
+    model = tiny_model("real", seed=1)
+    del model.config["encoder"]["width"]  # what versions before the setting stored
+    loaded, _ = load_model(save_model(model, tmp_path / "m.pt"))
+    assert loaded.config["encoder"]["width"] == 64 and loaded.encoders[0].out_features == 512
+    _same_prediction(model, loaded)
+
+
 def _lightning_checkpoint(path: Path, average: float = 0.0) -> torch.nn.Module:
     """A checkpoint written by Lightning itself for the training module (no training needed)."""
     import lightning as L

@@ -100,6 +100,18 @@ def test_stage_switches_and_texture_averaging(tiny_model, images):
     assert torch.allclose(flat[..., 0], tiny_model.predict(images).texture.mean((2, 3)), atol=1e-6)
 
 
+def test_encoder_width_sets_the_features_every_head_reads():
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config("real", "big", encoder={"shared": False, "width": 16}))
+    assert [e.out_features for e in model.encoders] == [128] * 4
+    x = ellipsoid_images(2)
+    assert tuple(model.encode(x, model.branches())["shape"].shape) == (2, 128)
+    pose, step = model.pose_step(x), model.step_3d(x)
+    assert all(torch.isfinite(v) for v in [*pose.values(), *step.values()])
+    with pytest.raises(ValueError, match="width"):
+        merge_config(encoder={"width": 0})
+
+
 def test_shapenet_model_without_background():
     torch.manual_seed(0)
     model = Unicorn(tiny_config("shapenet", "big"))

@@ -118,6 +118,23 @@ def test_resnet18_loads_torchvision_state_dict():
         enc.load_torchvision_state_dict({k: v for k, v in state.items() if k != "conv1.weight"})
 
 
+@pytest.mark.parametrize("width", [16, 32])
+def test_narrow_resnet18_scales_every_channel_count(width):
+    # torchvision's layout with every channel count (a multiple of 64; kernel sizes and the 3 input channels are
+    # not) scaled by width / 64
+    expected = {
+        k: tuple(d * width // 64 if d % 64 == 0 else d for d in shape)
+        for k, shape in torchvision_resnet18_shapes().items()
+        if not k.startswith("fc.")
+    }
+    enc = ResNet18(width)
+    assert {k: tuple(v.shape) for k, v in enc.state_dict().items()} == expected
+    assert enc.out_features == 8 * width
+    assert enc(torch.rand(3, 3, 32, 32)).shape == (3, 8 * width)
+    with pytest.raises(ValueError, match="encoder width"):
+        ResNet18(0)
+
+
 def test_pose_anchors_zero_init():
     head = PoseHead(16, n_units=8)
     assert torch.allclose(head.R_init[:, 0], torch.tensor([0.0, 60, 120, 180, 240, 300]))

@@ -94,8 +94,8 @@ class Unicorn(nn.Module):
         self.template = TemplateMesh(**cfg["template"])
 
         n_enc = 1 if cfg["encoder"]["shared"] else (4 if cfg["background"] is not None else 3)
-        self.encoders = nn.ModuleList([ResNet18() for _ in range(n_enc)])
-        nf = ResNet18.out_features
+        self.encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"]) for _ in range(n_enc)])
+        nf = self.encoders[0].out_features
 
         sh = dict(cfg["shape"])
         sh_active = sh.pop("active_dims")
@@ -194,7 +194,8 @@ class Unicorn(nn.Module):
             raise ValueError(f"images must have shape (B, 3, {s}, {s}), got {tuple(images.shape)}")
 
     def encode(self, images: torch.Tensor, branches: tuple[str, ...]) -> dict[str, torch.Tensor]:
-        """Encoder features (B, 512) of the requested branches (one shared encoder or one per branch)."""
+        """Encoder features (B, 8 x width; 512 for ResNet-18) of the requested branches (one shared encoder or one
+        per branch)."""
         if len(self.encoders) == 1:
             f = self.encoders[0](images)
             return {b: f for b in branches}

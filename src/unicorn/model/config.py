@@ -58,6 +58,7 @@ def ranged(default: Any, low: float | None = None, high: float | None = None) ->
 @dataclass
 class EncoderConfig:
     shared: bool = True  # one ResNet-18 for all branches (False: one per branch, the big model)
+    width: int = ranged(64, 1)  # channels of its first stage (64: ResNet-18; features are 8 x width)
 
 
 @dataclass

@@ -69,22 +69,30 @@ class BasicBlock(nn.Module):
 class ResNet18(nn.Module):
     """ResNet-18 features: stem (7x7/2 conv, BN, ReLU, 3x3/2 max-pool), 4 stages, global average pool.
 
+    Args:
+        width: channels of the stem and the first stage, doubled at each later stage (64: ResNet-18 as
+            published and as UNICORN uses it). Half the width is a quarter of the multiply-adds, but measured
+            on the synthetic main job it reconstructed the colours worse and turned more views round (README,
+            "Training speed"), so every preset keeps 64.
+
     Shapes:
-        (B, 3, H, W) -> (B, 512). A 64x64 input gives a 2x2 map before pooling.
+        (B, 3, H, W) -> (B, 8 * width), ``out_features``. A 64x64 input gives a 2x2 map before pooling.
     """
 
-    out_features = 512
-
-    def __init__(self) -> None:
+    def __init__(self, width: int = 64) -> None:
         super().__init__()
-        self.conv1 = Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
-        self.bn1 = nn.BatchNorm2d(64)
+        if width < 1:
+            raise ValueError(f"encoder width must be at least 1, got {width}")
+        w = int(width)
+        self.out_features = 8 * w
+        self.conv1 = Conv2d(3, w, 7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(w)
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, stride=2, padding=1)
-        self.layer1 = nn.Sequential(BasicBlock(64, 64), BasicBlock(64, 64))
-        self.layer2 = nn.Sequential(BasicBlock(64, 128, 2), BasicBlock(128, 128))
-        self.layer3 = nn.Sequential(BasicBlock(128, 256, 2), BasicBlock(256, 256))
-        self.layer4 = nn.Sequential(BasicBlock(256, 512, 2), BasicBlock(512, 512))
+        self.layer1 = nn.Sequential(BasicBlock(w, w), BasicBlock(w, w))
+        self.layer2 = nn.Sequential(BasicBlock(w, 2 * w, 2), BasicBlock(2 * w, 2 * w))
+        self.layer3 = nn.Sequential(BasicBlock(2 * w, 4 * w, 2), BasicBlock(4 * w, 4 * w))
+        self.layer4 = nn.Sequential(BasicBlock(4 * w, 8 * w, 2), BasicBlock(8 * w, 8 * w))
         self.avgpool = nn.AdaptiveAvgPool2d(1)
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
