@@ -10,12 +10,13 @@ and reports for each variant the median over ``--repeats`` runs of
   with more than one thread it includes the threads' spinning).
 
 ``--ref REV`` adds the tree of git revision REV (checked out once with ``git worktree`` under the system's
-temporary folder) as the "before" variant; ``--variant NAME OVERRIDE...`` adds this tree with more Hydra
-overrides (repeatable). Extra arguments are Hydra overrides for every variant.
+temporary folder) as the "before" variant; ``--variant "NAME OVERRIDE..."`` (one quoted argument, split like
+a shell line) adds this tree with more Hydra overrides (repeatable). Extra arguments are Hydra overrides for
+every variant.
 
     python benchmarks/bm_train_rate.py --ref 8b6efcd                       # before/after, held-out off
     python benchmarks/bm_train_rate.py --ref 8b6efcd --heldout             # with the main job's held-out scoring
-    python benchmarks/bm_train_rate.py --variant width-64 model.encoder.width=64
+    python benchmarks/bm_train_rate.py --variant "width-32 model.encoder.width=32" 'schedule.milestones=[20,40,60]'
     python benchmarks/bm_train_rate.py --steps 200 trainer.accelerator=cuda
 """
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
@@ -99,7 +101,8 @@ def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir
     return json.loads(out.read_text())
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> tuple[argparse.Namespace, list[str]]:
+    """The options and the Hydra overrides of every variant; ``args.variant`` is a list of (name, overrides)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ref", default=None, help="git revision to compare with (the 'before' variant)")
     parser.add_argument("--steps", type=int, default=400)
@@ -109,21 +112,32 @@ def main() -> None:
     parser.add_argument("--heldout", action="store_true", help="keep the main job's held-out scoring")
     parser.add_argument(
         "--variant",
-        nargs="+",
         action="append",
         default=[],
-        metavar=("NAME", "OVERRIDE"),
-        help="also run this tree with these Hydra overrides, named NAME (repeatable)",
+        metavar='"NAME OVERRIDE..."',
+        help="also run this tree with these Hydra overrides, named NAME (one quoted argument; repeatable)",
     )
-    args, overrides = parser.parse_known_args()
+    args, overrides = parser.parse_known_args(argv)
+    if unknown := [o for o in overrides if o.startswith("-")]:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    variants = []
+    for spec in args.variant:
+        # one argument per variant: a bare list of overrides would swallow the overrides meant for every variant
+        parts = shlex.split(spec)
+        if len(parts) < 2 or parts[0] in ("this tree", *(n for n, _ in variants)):
+            parser.error(f"--variant {spec!r}: needs a new name and at least one override, in one quoted argument")
+        variants.append((parts[0], parts[1:]))
+    args.variant = variants
+    return args, overrides
+
+
+def main() -> None:
+    args, overrides = parse_args()
     # name -> (tree, the variant's own overrides)
     variants: dict[str, tuple[Path, list[str]]] = {"this tree": (REPO, [])}
     if args.ref:
         variants = {f"before ({args.ref})": (tree_of(args.ref), []), **variants}
-    for name, *extra in args.variant:
-        if not extra or name in variants:
-            parser.error(f"--variant {name}: needs a new name and at least one override")
-        variants[name] = (REPO, extra)
+    variants.update((name, (REPO, extra)) for name, extra in args.variant)
     results: dict[str, list[dict]] = {name: [] for name in variants}
     with tempfile.TemporaryDirectory(prefix="bm_train_rate-") as tmp:
         for r in range(args.repeats):
