@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "bm_train_rate.py"
+from tests.support.benchmarks import load_script, unload_script
 
 
 @pytest.fixture(scope="module")
 def rate():
-    spec = importlib.util.spec_from_file_location("benchmarks_bm_train_rate", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    yield load_script("bm_train_rate")
+    unload_script("bm_train_rate")
 
 
 def test_variant_overrides_stay_with_their_variant(rate):
