@@ -81,6 +81,24 @@ def test_p3d_datamodule_validates_on_train_images(p3d_root: Path) -> None:
     assert "points" in dm.test_set[0]
 
 
+def test_cache_items_gives_the_same_batches(synth_nmr: Path) -> None:
+    kw = {"categories": "car", "batch_size": 4, "num_workers": 0, "stream_seed": 3}
+    plain, cached = (UnicornDataModule("shapenet_nmr", str(synth_nmr), cache_items=c, **kw) for c in (False, True))
+    for dm in (plain, cached):
+        dm.setup()
+    assert cached.train_set._items == {} and cached.test_set._items == {} and plain.train_set._items is None
+    for _ in range(2):  # the second time from memory
+        a, b = next(iter(plain.train_dataloader())), next(iter(cached.train_dataloader()))
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+        assert len(cached.train_set._items) == 4
+
+
+def test_cache_items_refuses_augmented_data(cub_root: Path) -> None:
+    dm = UnicornDataModule("cub_200", str(cub_root), num_workers=0, cache_items=True)
+    with pytest.raises(ValueError, match="cache_items=true for cub_200 train: CUB200 augments its items"):
+        dm.setup("fit")
+
+
 def test_errors() -> None:
     with pytest.raises(ValueError, match="unknown dataset 'imagenet'"):
         UnicornDataModule("imagenet", "x")

@@ -73,6 +73,7 @@ class DatasetConfig:
     val_size: int | None = ranged(None, 1)
     on_error: str = "raise"
     pin_memory: bool = False
+    cache_items: bool = False
     synthetic: dict[str, Any] | None = None
     options: dict[str, Any] | None = None
     max_image_pixels: int | None = ranged(None, 0)  # null: $UNICORN_MAX_IMAGE_PIXELS or PIL's limit; 0: none

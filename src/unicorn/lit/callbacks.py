@@ -33,6 +33,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.lit.loggers import logs_this_step
 
 __all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "render_overview"]
 
@@ -156,6 +157,8 @@ class StageCallback(L.Callback):
     ) -> None:
         state = self._update(trainer, pl_module)
         pl_module.log("stage", float(state["stage"]), on_step=True, on_epoch=False, prog_bar=True)
+        if not logs_this_step(trainer):
+            return  # Lightning would drop the step values below (their log calls were 2 % of a CPU step)
         for name, value in state["dims"].items():
             pl_module.log(f"stage/dims_{name}", float(value), on_step=True, on_epoch=False)
         for name, value in state["switches"].items():

@@ -113,6 +113,9 @@ class UnicornDataModule(L.LightningDataModule):
             size).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
         pin_memory: pin batches (for GPU training).
+        cache_items: keep every item of every split in memory once read (:meth:`UnicornDataset.cache_items
+            <unicorn.data.common.UnicornDataset.cache_items>`; datasets without augmentation only, e.g. the
+            synthetic default). Each worker process holds its own copy.
         synthetic: for ``synthetic``: ``mode`` (``"nmr"``/``"wild"``), ``n_models``, ``seed`` and other
             :func:`~unicorn.data.synthetic.writer.generate_synthetic_dataset` options.
         options: extra dataset-constructor arguments (e.g. ``{"tag": "horse"}`` for LSUN).
@@ -134,6 +137,7 @@ class UnicornDataModule(L.LightningDataModule):
         val_size: int | None = None,
         on_error: OnError = "raise",
         pin_memory: bool = False,
+        cache_items: bool = False,
         synthetic: dict[str, Any] | None = None,
         options: dict[str, Any] | None = None,
         max_image_pixels: int | None = None,
@@ -153,6 +157,7 @@ class UnicornDataModule(L.LightningDataModule):
             self.categories = [str(c) for c in categories]
         self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
         self.val_size, self.on_error, self.pin_memory = val_size, on_error, pin_memory
+        self.cache_items = bool(cache_items)
         self.synthetic = dict(synthetic or {})
         self.options = dict(options or {})
         self.stream_seed = None if stream_seed is None else int(stream_seed)
@@ -170,7 +175,7 @@ class UnicornDataModule(L.LightningDataModule):
 
     def build(self, split: Split) -> Dataset:
         """The full dataset of ``split`` (see :func:`~unicorn.data.registry.build_dataset`)."""
-        return build_dataset(
+        dataset = build_dataset(
             self.name,
             split,
             self.dataset_root(),
@@ -180,6 +185,12 @@ class UnicornDataModule(L.LightningDataModule):
             on_error=self.on_error,
             **self.options,
         )
+        if self.cache_items:
+            try:
+                dataset.cache_items()  # type: ignore[attr-defined]
+            except DatasetError as err:
+                raise DatasetError(f"dataset.cache_items=true for {self.name} {split}: {err}") from None
+        return dataset
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit") and self.train_set is None:

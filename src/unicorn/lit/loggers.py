@@ -22,9 +22,19 @@ from lightning.pytorch.loggers import TensorBoardLogger as _LightningTensorBoard
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-__all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger"]
+__all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger", "logs_this_step"]
 
 log = logging.getLogger(__name__)
+
+
+def logs_this_step(trainer: L.Trainer | None) -> bool:
+    """Whether the loggers write the coming (or current) iteration's step values (``trainer.log_every_n_steps``).
+
+    Lightning drops the step values of other iterations; skipping their ``log`` calls saves their cost (a few
+    percent of a CPU training step). True without a trainer.
+    """
+    connector = getattr(trainer, "_logger_connector", None)  # Lightning's own test, where it exists
+    return bool(getattr(connector, "should_update_logs", True))
 
 
 class _AppendingWriter(ExperimentWriter):
