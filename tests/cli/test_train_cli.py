@@ -120,9 +120,8 @@ def test_bad_override_on_the_command_line(tmp_path):
 def test_end_to_end(synthetic_cache, tmp_path):
     run_dir = tmp_path / "run"
     args = [a for a in TINY if not a.startswith(("logger=", "callbacks.images="))]
-    result = unicorn_train(
-        *args, "callbacks.images.every_n_steps=4", "trainer.log_every_n_steps=3", f"hydra.run.dir={run_dir}", cwd=tmp_path
-    )
+    logs = ("callbacks.images.every_n_steps=4", "trainer.log_every_n_steps=3")
+    result = unicorn_train(*args, *logs, f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     # Lightning's messages reach the console once (through Hydra's handlers) and train.log
     assert (result.stdout + result.stderr).count("GPU available") == 1
