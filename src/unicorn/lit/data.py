@@ -113,9 +113,10 @@ class UnicornDataModule(L.LightningDataModule):
             size).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
         pin_memory: pin batches (for GPU training).
-        cache_items: keep every item of every split in memory once read (:meth:`UnicornDataset.cache_items
+        cache_items: keep the training items in memory once read (:meth:`UnicornDataset.cache_items
             <unicorn.data.common.UnicornDataset.cache_items>`; datasets without augmentation only, e.g. the
-            synthetic default). Each worker process holds its own copy.
+            synthetic default). Each worker process holds its own copy. Validation and test items (read a few
+            times, and with their point clouds) are not cached.
         synthetic: for ``synthetic``: ``mode`` (``"nmr"``/``"wild"``), ``n_models``, ``seed`` and other
             :func:`~unicorn.data.synthetic.writer.generate_synthetic_dataset` options.
         options: extra dataset-constructor arguments (e.g. ``{"tag": "horse"}`` for LSUN).
@@ -185,7 +186,7 @@ class UnicornDataModule(L.LightningDataModule):
             on_error=self.on_error,
             **self.options,
         )
-        if self.cache_items:
+        if self.cache_items and split == "train":
             try:
                 dataset.cache_items()  # type: ignore[attr-defined]
             except DatasetError as err:
