@@ -10,7 +10,9 @@ import torch
 
 from tests.support.training import build_run
 from unicorn.cli.train import build, fit
+from unicorn.io.serialization import atomic_save
 from unicorn.lit import NonFiniteLossError
+from unicorn.model.encoder import Conv2d
 
 POSE_ONLY = ("model.pose.",)
 THREE_D_ONLY = ("model.shape.", "model.texture.", "model.scale.")
@@ -135,6 +137,40 @@ def test_resume_is_exact(synthetic_cache, tmp_path):
     assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"]
     for index, state in opt_a["state"].items():
         torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+def test_resume_from_a_checkpoint_with_whole_kernel_moments(synthetic_cache, tmp_path):
+    """Checkpoints written when layer 4 trained its whole 3 x 3 kernels at 32 px hold Adam moments of the whole
+    kernels (zero on the taps that meet padding): resuming one continues exactly as from today's checkpoint."""
+    first = build_run(tmp_path / "first", "trainer.max_steps=4")
+    fit(first)
+    today = first.checkpoint_dir / "last.ckpt"
+    checkpoint = torch.load(today, map_location="cpu", weights_only=False)
+    convs = {id(m.weight): m for m in first.module.model.modules() if isinstance(m, Conv2d) and m.taps is not None}
+    assert convs, "the tiny run's encoder keeps no taps: the test would not test anything"
+    params = list(first.module.model.parameters())  # one parameter group per optimizer in this run
+    widened = 0
+    for state in checkpoint["optimizer_states"]:
+        for index, entry in state["state"].items():
+            conv = convs.get(id(params[index]))
+            if conv is None:
+                continue
+            top, left, h, w = conv.taps
+            for key in ("exp_avg", "exp_avg_sq"):
+                whole = torch.zeros_like(conv.kernel)
+                whole[:, :, top : top + h, left : left + w] = entry[key]
+                entry[key] = whole
+                widened += 1
+    assert widened
+    older = tmp_path / "older.ckpt"
+    atomic_save(checkpoint, older)  # sealed with its new content's digest, as the trainer writes checkpoints
+    runs = {}
+    for name, path in (("today", today), ("older", older)):
+        runs[name] = build_run(tmp_path / name, f"ckpt_path={path}")
+        fit(runs[name])
+    a, b = runs["today"].module.state_dict(), runs["older"].module.state_dict()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
 
 
 def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -185,23 +186,124 @@ def test_scale_identity_at_init_and_bounded():
 
 
 @pytest.mark.parametrize(
-    "size, kernel, stride, padding",
-    [(1, 3, 1, 1), (2, 3, 2, 1), (2, 3, 1, 1), (1, 1, 1, 0), (2, 1, 2, 0), (3, 3, 1, 0), (4, 7, 2, 3), (1, 7, 2, 3)],
+    "size, kernel, stride, padding, kept",
+    [
+        (1, 3, 1, 1, (1, 1, 1, 1)),  # layer 4's second convolutions at 32 px: the centre tap
+        (2, 3, 2, 1, (1, 1, 2, 2)),  # layer 4's first one: 2 x 2 in, one pixel out
+        (1, 7, 2, 3, (3, 3, 1, 1)),
+        (2, 3, 1, 1, None),  # 2 x 2 out
+        (1, 1, 1, 0, None),  # nothing to crop
+        (2, 1, 2, 0, None),
+        (3, 3, 1, 0, None),
+        (4, 7, 2, 3, None),
+    ],
 )
-def test_encoder_conv_equals_the_padded_convolution(size, kernel, stride, padding):
-    """The cropped-kernel shortcut for single-pixel outputs: same output and gradients as ``F.conv2d``."""
+def test_encoder_conv_trains_only_the_taps_that_meet_the_image(size, kernel, stride, padding, kept):
+    """After ``keep_taps_for(size)``: the output and the input and bias gradients are ``F.conv2d``'s with the
+    whole kernel and its padding, the kept taps get that kernel gradient's values, and it is zero on every other
+    tap (which is why they need not be trained)."""
     import torch.nn.functional as F
 
     from unicorn.model.encoder import Conv2d
 
     g = torch.Generator().manual_seed(0)
     conv = Conv2d(5, 4, kernel, stride=stride, padding=padding, bias=True).double()
+    whole = conv.weight.detach().clone().requires_grad_()
+    assert conv.keep_taps_for(size, size) == (kept is not None)
+    assert conv.taps == kept
     x = torch.rand(3, 5, size, size, generator=g, dtype=torch.float64, requires_grad=True)
     ours = conv(x)
-    ref = F.conv2d(x, conv.weight, conv.bias, stride=stride, padding=padding)
+    ref = F.conv2d(x, whole, conv.bias, stride=stride, padding=padding)
     torch.testing.assert_close(ours, ref)
     upstream = torch.rand(ref.shape, generator=g, dtype=torch.float64)
-    g_ours = torch.autograd.grad(ours, (x, conv.weight, conv.bias), upstream)
-    g_ref = torch.autograd.grad(ref, (x, conv.weight, conv.bias), upstream)
-    for a, b in zip(g_ours, g_ref):
-        torch.testing.assert_close(a, b)
+    x_ours, w_ours, b_ours = torch.autograd.grad(ours, (x, conv.weight, conv.bias), upstream)
+    x_ref, w_ref, b_ref = torch.autograd.grad(ref, (x, whole, conv.bias), upstream)
+    torch.testing.assert_close(x_ours, x_ref)
+    torch.testing.assert_close(b_ours, b_ref)
+    if kept is None:
+        torch.testing.assert_close(w_ours, w_ref)
+        return
+    top, left, h, w = kept
+    assert conv.weight.shape == (4, 5, h, w)
+    torch.testing.assert_close(w_ours, w_ref[:, :, top : top + h, left : left + w])
+    w_ref[:, :, top : top + h, left : left + w] = 0
+    assert w_ref.abs().max() == 0
+
+
+def test_encoder_conv_with_kept_taps_saves_loads_and_runs_the_whole_kernel():
+    import torch.nn.functional as F
+
+    from unicorn.model.encoder import Conv2d
+
+    conv = Conv2d(5, 4, 3, padding=1, bias=False)
+    conv.keep_taps_for(1, 1)
+    whole = torch.randn(4, 5, 3, 3)
+    conv.load_state_dict({"weight": whole})  # a whole kernel loads into both parts
+    assert torch.equal(conv.weight, whole[:, :, 1:2, 1:2])
+    assert torch.equal(conv.state_dict()["weight"], whole)
+    with torch.no_grad():  # training moves the kept taps only; the saved kernel shows them in place
+        conv.weight.add_(1.0)
+    expected = whole.clone()
+    expected[:, :, 1, 1] += 1.0
+    assert torch.equal(conv.state_dict()["weight"], expected)
+    # other input sizes run the whole kernel with its padding, and the kept taps still learn
+    x = torch.rand(2, 5, 4, 4, requires_grad=True)
+    whole_now = expected.clone().requires_grad_()
+    torch.testing.assert_close(conv(x), F.conv2d(x, whole_now, padding=1))
+    (grad,) = torch.autograd.grad(conv(x).sum(), conv.weight)
+    (grad_ref,) = torch.autograd.grad(F.conv2d(x, whole_now, padding=1).sum(), whole_now)
+    torch.testing.assert_close(grad, grad_ref[:, :, 1:2, 1:2])
+    conv.double()  # the untrained rest follows dtype and device changes
+    assert conv.state_dict()["weight"].dtype == torch.float64
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        conv.load_state_dict({"weight": torch.randn(4, 5, 2, 2)})
+    with pytest.raises(RuntimeError, match="already"):
+        conv.keep_taps_for(1, 1)
+
+
+def test_resnet18_at_its_image_size_trains_like_the_whole_network():
+    """ResNet-18 told its image size (32 px: layer 4 on 1 x 1 maps) has fewer parameters but the same state dict
+    as the whole network, through Adam steps; and an older optimizer state (whole-kernel moments, as the whole
+    network's Adam holds them) continues the same after :func:`crop_optimizer_state`."""
+    from unicorn.model.encoder import Conv2d, crop_optimizer_state
+
+    # float64: Adam's first steps turn float32 rounding of near-zero gradients into differences of ~lr
+    torch.manual_seed(0)
+    whole = ResNet18(8).double()
+    torch.manual_seed(0)
+    kept = ResNet18(8, image_size=32).double()
+    cropped = [n for n, m in kept.named_modules() if isinstance(m, Conv2d) and m.taps is not None]
+    assert cropped == ["layer4.0.conv1", "layer4.0.conv2", "layer4.1.conv1", "layer4.1.conv2"]
+    assert sum(p.numel() for p in kept.parameters()) < 0.5 * sum(p.numel() for p in whole.parameters())
+    assert all(torch.equal(v, kept.state_dict()[k]) for k, v in whole.state_dict().items())
+    opt_whole = torch.optim.Adam(whole.parameters(), lr=1e-2)
+    opt_kept = torch.optim.Adam(kept.parameters(), lr=1e-2)
+    g = torch.Generator().manual_seed(1)
+    batches = [torch.rand(4, 3, 32, 32, generator=g, dtype=torch.float64) for _ in range(4)]
+
+    def step(net, opt, x):
+        opt.zero_grad(set_to_none=True)
+        net(x).square().mean().backward()
+        opt.step()
+
+    def assert_same_state(a, b):
+        sa, sb = a.state_dict(), b.state_dict()
+        assert sa.keys() == sb.keys()
+        for k in sa:
+            torch.testing.assert_close(sa[k], sb[k], msg=k)
+
+    for x in batches[:3]:
+        step(whole, opt_whole, x)
+        step(kept, opt_kept, x)
+    assert_same_state(whole, kept)
+    older = copy.deepcopy(opt_whole.state_dict())  # as read from a checkpoint: no tensor shared with opt_whole
+    assert crop_optimizer_state(kept, list(kept.parameters()), older) == 8  # two moments of four kernels
+    resumed = torch.optim.Adam(kept.parameters(), lr=1e-2)
+    resumed.load_state_dict(older)
+    step(whole, opt_whole, batches[3])
+    step(kept, resumed, batches[3])
+    assert_same_state(whole, kept)
+    # other image sizes run the whole network
+    x64 = torch.rand(2, 3, 64, 64, generator=g, dtype=torch.float64)
+    whole.eval(), kept.eval()
+    torch.testing.assert_close(whole(x64), kept(x64))

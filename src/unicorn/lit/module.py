@@ -57,6 +57,7 @@ from unicorn.errors import UserError
 from unicorn.lit.loggers import logs_this_step
 from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
+from unicorn.model.encoder import crop_optimizer_state
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
 
@@ -301,6 +302,11 @@ class UnicornLitModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # applied in on_train_start: the random state must be set after everything that precedes training
         self._resume_state = checkpoint.get("unicorn")
+        # Lightning loads the optimizer states after this hook: fit older checkpoints' whole-kernel moments
+        groups = self._param_groups(self.optim)
+        params = [p for g in groups for p in g["params"]] if isinstance(groups, list) else list(groups)
+        if sum(crop_optimizer_state(self.model, params, s) for s in checkpoint.get("optimizer_states", [])):
+            log.info("cropped the optimizer moments saved for whole layer-4 kernels (an older checkpoint)")
 
     def on_train_start(self) -> None:
         state, self._resume_state = self._resume_state, None

@@ -94,7 +94,7 @@ class Unicorn(nn.Module):
         self.template = TemplateMesh(**cfg["template"])
 
         n_enc = 1 if cfg["encoder"]["shared"] else (4 if cfg["background"] is not None else 3)
-        self.encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"]) for _ in range(n_enc)])
+        self.encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], size) for _ in range(n_enc)])
         nf = self.encoders[0].out_features
 
         sh = dict(cfg["shape"])
