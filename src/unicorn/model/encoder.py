@@ -63,16 +63,21 @@ class Conv2d(nn.Conv2d):
         full = self.weight.detach()
         self.kernel = full.clone()
         self.taps = (ph, pw, height, width)
-        self.weight = nn.Parameter(full[:, :, ph : ph + height, pw : pw + width].clone(), self.weight.requires_grad)
+        self.weight = nn.Parameter(full[self.window].clone(), self.weight.requires_grad)
         return True
+
+    @property
+    def window(self) -> tuple[slice, ...]:
+        """Index of the trained taps in a whole kernel (out, in, kh, kw), from :attr:`taps`."""
+        top, left, h, w = self.taps
+        return (slice(None), slice(None), slice(top, top + h), slice(left, left + w))
 
     def full_weight(self) -> torch.Tensor:
         """The whole kernel (out, in, kh, kw): the trained taps set into the untrained rest (differentiable)."""
         if self.taps is None:
             return self.weight
-        top, left, h, w = self.taps
         full = self.kernel.clone()
-        full[:, :, top : top + h, left : left + w] = self.weight
+        full[self.window] = self.weight
         return full
 
     def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
@@ -112,11 +117,10 @@ def crop_optimizer_state(model: nn.Module, params: Sequence[nn.Parameter], state
         entry = state.get("state", {}).get(index)
         if conv is None or not entry:
             continue
-        top, left, h, w = conv.taps
         fitted = dict(entry)  # a new entry: a live optimizer's state_dict() shares its entries with it
         for key, value in entry.items():
             if isinstance(value, torch.Tensor) and value.shape == conv.kernel.shape:
-                fitted[key] = value[:, :, top : top + h, left : left + w].clone()
+                fitted[key] = value[conv.window].clone()
                 cropped += 1
         state["state"][index] = fitted
     return cropped
@@ -136,8 +140,7 @@ def _load_full_kernel(module: Conv2d, state_dict: dict[str, Any], prefix: str, *
         return  # anything else is load_state_dict's to accept or report
     with torch.no_grad():
         module.kernel.copy_(value)
-    top, left, h, w = module.taps
-    state_dict[key] = value[:, :, top : top + h, left : left + w]  # load_state_dict works on its own copy
+    state_dict[key] = value[module.window]  # load_state_dict works on its own copy
 
 
 class BasicBlock(nn.Module):
