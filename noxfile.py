@@ -1,8 +1,8 @@
-"""Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s bench``, ``nox -s quality``,
-``nox -s package``.
+"""Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s docs``, ``nox -s bench``,
+``nox -s quality``, ``nox -s package``.
 
-Every session reuses its virtual environment and installs torch only when the environment has none, so torch is
-never reinstalled and a CPU machine never pulls the CUDA build by accident:
+Every session that runs unicorn's code reuses its virtual environment and installs torch only when the
+environment has none, so torch is never reinstalled and a CPU machine never pulls the CUDA build by accident:
 
 - ``UNICORN_TORCH`` (default ``torch==2.13.0``, the version the project is tested with) is what gets installed;
 - ``UNICORN_TORCH_INDEX`` optionally names the index to take it from, e.g. ``https://download.pytorch.org/whl/cpu``
@@ -73,9 +73,21 @@ def train(session: nox.Session) -> None:
 
 @nox.session(python=PYTHON)
 def lint(session: nox.Session) -> None:
-    """ruff on the package, tests, benchmarks and this file."""
+    """ruff on the package, tests, benchmarks, the docs site's extension and this file."""
     session.install("ruff>=0.5")
-    session.run("ruff", "check", "src", "tests", "benchmarks", "noxfile.py")
+    session.run("ruff", "check", "src", "tests", "benchmarks", "docs/_ext", "noxfile.py")
+
+
+@nox.session(python=PYTHON)
+def docs(session: nox.Session) -> None:
+    """The documentation site (MkDocs, Material theme), built with ``--strict``: a broken link or reference fails.
+
+    The API pages are read from the source by static analysis (griffe), so this environment has no torch and does
+    not install unicorn. Extra arguments go to ``mkdocs build`` (e.g. ``-- --site-dir site``).
+    """
+    session.install("mkdocs>=1.6", "mkdocs-material>=9.5", "mkdocstrings[python]>=0.29", "mkdocstrings-python>=1.16")
+    site = os.path.join(session.create_tmp(), "site")  # a later --site-dir in the arguments wins
+    session.run("mkdocs", "build", "--strict", "--site-dir", site, *session.posargs)
 
 
 @nox.session(python=PYTHON)
