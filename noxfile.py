@@ -73,9 +73,9 @@ def train(session: nox.Session) -> None:
 
 @nox.session(python=PYTHON)
 def lint(session: nox.Session) -> None:
-    """ruff on the package, tests, benchmarks, the docs site's extension and this file."""
+    """ruff on the package, tests, benchmarks, experiments, the docs site's extension and this file."""
     session.install("ruff>=0.5")
-    session.run("ruff", "check", "src", "tests", "benchmarks", "docs/_ext", "noxfile.py")
+    session.run("ruff", "check", "src", "tests", "benchmarks", "experiments", "docs/_ext", "noxfile.py")
 
 
 @nox.session(python=PYTHON)

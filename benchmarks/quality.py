@@ -43,7 +43,7 @@ the inliers: ``unicorn.metrics.align_canonical_frame``) and the share of images 
 Instance-level columns (``unicorn.metrics.instance``), which tell reconstructions of each object from the
 category mean: ``rot-flip-150`` (share of views predicted turned round, beside ``rot-acc-30``); ``color-err``
 (per view, L1 between the mean foreground colours of the reconstruction and of the input, over mask interiors:
-each mask eroded by one pixel, since session 8; docs/quality results before it used whole masks) beside
+each mask eroded by one pixel, so that border pixels mixing object and background do not count) beside
 ``color-err-mean`` (the same for predicting the test views' average colour for every view) and their ratio
 ``color-ratio``; ``shape-win``, the share of test objects on which the model's Chamfer-L1 after ICP is below the
 mean shape's of its category on the same object (``chamfer-L1-ICP-mean-shape``). That mean shape is fitted to

@@ -17,7 +17,7 @@ and, across the objects, the Pearson correlation between the predicted and the g
 width / length ratios: whether the per-image shapes follow each object's proportions. A model that outputs one
 shape for every image has its own mean as prediction (win share 0.5, correlations undefined).
 
-    python benchmarks/shape_gap.py RUN/checkpoints/last.ckpt --root $UNICORN_CACHE/synthetic_32px/nmr_car_n100_s0_v2
+    python experiments/shape_gap.py RUN/checkpoints/last.ckpt --root $UNICORN_CACHE/synthetic_32px/nmr_car_n100_s0_v2
 
 About a minute on a 2-core CPU for the 20 test cars of the default experiment.
 """

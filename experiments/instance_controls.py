@@ -17,7 +17,7 @@ against ground-truth silhouettes), ``texture code std`` and ``shape code std`` (
 the active dimensions), ``shape units alive`` (hidden units of the shape-code regressor's last hidden layer active
 for at least one view, of 64).
 
-    python benchmarks/instance_controls.py --iterations 800     # about 15 minutes on a quiet 2-core CPU
+    python experiments/instance_controls.py --iterations 800     # about 15 minutes on a quiet 2-core CPU
 """
 
 from __future__ import annotations

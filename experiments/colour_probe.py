@@ -13,7 +13,7 @@ Each row is scored with the colour ratio (:func:`unicorn.metrics.instance.color_
 foreground colour over the error of predicting the views' average colour) on whole masks and on mask interiors
 (each mask eroded by one pixel, ``interior=1``, what ``unicorn-eval`` reports).
 
-    python benchmarks/colour_probe.py outputs/synthetic/runs/<time>/checkpoints/last.ckpt --root <dataset folder>
+    python experiments/colour_probe.py outputs/synthetic/runs/<time>/checkpoints/last.ckpt --root <dataset folder>
 """
 
 from __future__ import annotations
