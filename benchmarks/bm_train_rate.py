@@ -14,8 +14,8 @@ temporary folder) as the "before" variant; ``--variant "NAME OVERRIDE..."`` (one
 a shell line) adds this tree with more Hydra overrides (repeatable). Extra arguments are Hydra overrides for
 every variant.
 
-    python benchmarks/bm_train_rate.py --ref 8b6efcd                       # before/after, held-out off
-    python benchmarks/bm_train_rate.py --ref 8b6efcd --heldout             # with the main job's held-out scoring
+    python benchmarks/bm_train_rate.py --ref main                          # this tree against main, held-out off
+    python benchmarks/bm_train_rate.py --ref main --heldout                # with the main job's held-out scoring
     python benchmarks/bm_train_rate.py --variant "width-32 model.encoder.width=32" 'schedule.milestones=[20,40,60]'
     python benchmarks/bm_train_rate.py --steps 200 trainer.accelerator=cuda
 """

@@ -100,8 +100,7 @@ def test_every_category_has_a_front(category: str) -> None:
     0.5; a pixel covered in one image only compares the object with the white background). The key light is
     vertical, so a turn about +Y changes nothing but the object's orientation: an object that looks the same
     from the back as from the front scores ~0 (the symmetric control below scores < 0.005). Every one of six
-    azimuth pairs (0/180 ... 150/330) of each of six instances must score above 0.04; the old generator's
-    cars scored as little as 0.007 on the same measure, its arm-less lamps and its tables 0.
+    azimuth pairs (0/180 ... 150/330) of each of six instances must score above 0.04.
     """
     control = _turn_difference(_symmetric_car(), np.arange(0.0, 180.0, 30.0))
     assert control.max() < 0.005

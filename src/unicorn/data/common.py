@@ -73,7 +73,7 @@ class UnicornDataset(Dataset):
     def cache_items(self) -> None:
         """Keep every item in memory once read, so that each file is decoded once per process.
 
-        For small datasets read many times (the synthetic default's 32 px images: decoding them was about a
+        For small datasets read many times (the synthetic default's 32 px images: decoding them costs about a
         twentieth of a CPU training step); the memory is that of the items (a 64 px item with its mask about
         64 KB). Items drawn at random cannot be cached.
 

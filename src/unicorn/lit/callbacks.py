@@ -158,7 +158,7 @@ class StageCallback(L.Callback):
         state = self._update(trainer, pl_module)
         pl_module.log("stage", float(state["stage"]), on_step=True, on_epoch=False, prog_bar=True)
         if not logs_this_step(trainer):
-            return  # Lightning would drop the step values below (their log calls were 2 % of a CPU step)
+            return  # Lightning would drop the step values below (their log calls cost 2 % of a CPU step)
         for name, value in state["dims"].items():
             pl_module.log(f"stage/dims_{name}", float(value), on_step=True, on_epoch=False)
         for name, value in state["switches"].items():

@@ -63,7 +63,7 @@ class PeriodicCheckpoint(ModelCheckpoint):
     """:class:`~lightning.pytorch.callbacks.ModelCheckpoint` whose rotation also counts files of earlier attempts.
 
     Lightning only rotates the files it knows from the resumed checkpoint's state; ``step=<N>.ckpt`` files written
-    after that checkpoint by a run that was then killed, or by a run started afresh in the folder, were kept
+    after that checkpoint by a run that was then killed, or by a run started afresh in the folder, would be kept
     forever. At the start of training the folder's ``step=<N>.ckpt`` files are added to the rotation (ranked by
     ``N``, monitor ``"step"``) and the oldest beyond ``save_top_k`` are deleted. Stale ``.tmp`` files of killed
     writes are deleted too.

@@ -1,7 +1,7 @@
 """Metric logs that survive a resume: the CSV is appended to, not rewritten, and neither log repeats iterations.
 
 Lightning's :class:`~lightning.pytorch.loggers.CSVLogger` deletes ``metrics.csv`` when its folder exists, so
-resuming a run in its own folder (the SLURM requeue recipe) lost every metric logged before. :class:`CSVLogger`
+resuming a run in its own folder (the SLURM requeue recipe) would lose every metric logged. :class:`CSVLogger`
 keeps the file and its columns. A resumed run repeats the iterations between its checkpoint and the kill;
 :class:`ResumeLogs` (a callback) drops their earlier rows from the CSV and tells TensorBoard to discard the
 earlier events from that step on (a ``SessionLog.START`` event, what ``SummaryWriter(purge_step=...)`` writes),

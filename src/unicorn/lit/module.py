@@ -247,8 +247,8 @@ class UnicornLitModule(L.LightningModule):
     def make_optimizer(params: Any, optim: Mapping[str, Any]) -> torch.optim.Adam:
         """The Adam of training for ``params`` with ``optim`` settings (over :data:`OPTIM_DEFAULTS`)."""
         o = {**OPTIM_DEFAULTS, **dict(optim)}
-        # fused: one kernel per parameter group instead of ~10 element-wise passes per tensor (Adam was 15 % of
-        # a CPU step of the tiny model); the same update up to float rounding
+        # fused: one kernel per parameter group instead of ~10 element-wise passes per tensor (the unfused Adam
+        # is 15 % of a CPU step of the tiny model); the same update up to float rounding
         return torch.optim.Adam(
             params,
             lr=o["lr"],

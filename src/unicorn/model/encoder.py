@@ -97,7 +97,7 @@ class Conv2d(nn.Conv2d):
 def crop_optimizer_state(model: nn.Module, params: Sequence[nn.Parameter], state: dict[str, Any]) -> int:
     """Crop what an optimizer's state dict holds for whole kernels that now train only some taps.
 
-    A checkpoint written before :meth:`Conv2d.keep_taps_for` holds Adam moments of the whole kernels; PyTorch
+    A checkpoint of a model that trained the whole kernels holds Adam moments of the whole kernels; PyTorch
     would load them beside the smaller parameters without a word, and the fused Adam would read the wrong
     entries. The moments of the untrained taps are zero (they never had a gradient), so cropping loses nothing.
 

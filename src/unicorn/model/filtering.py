@@ -33,7 +33,7 @@ def _filter_matrix(
     n: int, taps: tuple[float, ...], mode: str, dtype: torch.dtype, device: torch.device
 ) -> torch.Tensor:
     # cached: building it is ~2 x len(taps) small ops, and a training step filters a dozen times (an 11-tap
-    # SSIM window: a sixth of the tiny model's torch calls per iteration were these)
+    # SSIM window: uncached, these would be a sixth of the tiny model's torch calls per iteration)
     p = len(taps) // 2
     # a normal tensor even when first asked for under inference_mode, so that autograd may save it later
     with torch.inference_mode(False):
