@@ -26,7 +26,7 @@ Adam's moments are ``optim.adam_state``:
   moments the pose step's larger encoder gradients set the second moment, the 3D step's encoder updates shrink
   accordingly, and the encoder learns little of what only the 3D branches need (the object's colours and
   proportions): measured on the synthetic cars, ground-truth poses in the 3D step, 400 3D steps, the colour
-  error ratio is 0.84 with shared moments and 0.53 with moments per step (README, "Results").
+  error ratio is 0.84 with shared moments and 0.53 with moments per step (experiments/instance_controls.py).
 
 Stage state. The stage (1-4) and the texture-averaging probability are buffers of this module, and the code
 sizes and stage-1 switches are buffers of the model, so a checkpoint alone restores them (the stage callback,
