@@ -42,8 +42,9 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
 
     with open(out / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0])[:7] == [
-        "group", "n-images", "chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "mask-iou",
+    assert list(rows[0])[:9] == [
+        "group", "n-images", "chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "iou-3d", "iou-3d-ICP",
+        "mask-iou",
     ]  # fmt: skip
     assert {"rot-err-median", "rec-mse"} <= set(rows[0]) and [r["group"] for r in rows] == ["chair", "mug", "mean"]
     assert rows[-1]["n-images"] == "3"
@@ -64,6 +65,21 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     sources = referenced_files(out / "report.html")
     assert "report.png" in sources and any(s.endswith(".gif") for s in sources)
     assert all((out / s).is_file() for s in sources)
+
+
+def test_pascal3d_reports_3d_iou(tmp_path: Path, p3d_root: Path, capsys) -> None:
+    """``unicorn-eval --dataset p3d_car`` prints and writes the ICP-aligned 3D IoU (no GT pose: no ``iou-3d``)."""
+    checkpoint = tiny_checkpoint(tmp_path / "real.pt")
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "p3d_car", "--root", str(p3d_root), "--device", "cpu", "--out", str(out)]
+    assert main([*args, "--report-samples", "0", *FAST]) == 0
+    header = next(line for line in capsys.readouterr().out.splitlines() if "chamfer-L1-ICP" in line)
+    assert "iou-3d-ICP" in header.split()
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert "iou-3d-ICP" in rows[-1] and "iou-3d" not in rows[-1] and rows[-1]["group"] == "mean"
+    assert 0 <= float(rows[-1]["iou-3d-ICP"]) <= 1
+    per_image = list(csv.DictReader(open(out / "per_image.csv")))
+    assert len(per_image) == 2 and all(0 <= float(r["iou-3d-ICP"]) <= 1 for r in per_image)
 
 
 def test_dataset_of_the_training_run(tmp_path: Path, synth: Path, checkpoint: Path, capsys) -> None:

@@ -67,7 +67,8 @@ def test_every_experiment_composes_and_validates(tmp_path):
 
 
 def test_experiment_is_a_group_with_a_null_default(tmp_path):
-    """lightning-hydra-template's form: `experiment=NAME` (no `+`); no arguments at all run the offline default."""
+    """A group with a null default: `experiment=NAME` (or `+experiment=NAME`, see test_experiment_forms.py); no
+    arguments at all run the offline default."""
     assert validate(compose_config(["experiment=cub", f"paths.output_dir={tmp_path}"])).task_name == "cub"
     assert hydra_argv([]) == ["experiment=synthetic"] and hydra_argv(["seed=1"]) == ["seed=1"]
     bare = validate(compose_config([*hydra_argv([]), f"paths.output_dir={tmp_path}"]))

@@ -22,7 +22,9 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
     data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
     result = evaluate(shapenet_model, data, EvalOptions("shapenet", report_samples=2, **FAST), "synthetic")
     assert [row["group"] for row in result.table] == ["chair", "mug", "mean"]
-    assert result.columns[:5] == ["chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "mask-iou"]
+    assert result.columns[:7] == [
+        "chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "iou-3d", "iou-3d-ICP", "mask-iou",
+    ]  # fmt: skip
     assert {"rot-err-median", "rot-acc-30", "rec-mse"} <= set(result.columns)
     assert len(result.per_image) == len(data) == 4 and result.mean["n-images"] == 4
     for key in result.columns:
@@ -47,6 +49,8 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
     )  # fmt: skip
     for i in range(3):
         assert result.per_image[i]["chamfer-L1"] == pytest.approx(float(direct["chamfer-L1"][i]), rel=1e-5)
+        assert result.per_image[i]["iou-3d"] == pytest.approx(float(direct["iou-3d"][i]), abs=1e-12)
+        assert 0 <= result.per_image[i]["iou-3d-ICP"] <= 1
     sample = result.samples[0]
     iou = mask_iou(sample.alpha[None], sample.mask[None])
     assert result.per_image[0]["mask-iou"] == pytest.approx(float(iou), abs=1e-6)
@@ -187,7 +191,7 @@ def test_p3d_protocol(real_model, p3d_root) -> None:
     result = evaluate(real_model, data, EvalOptions("p3d", **FAST), "p3d_car")
     # without ground-truth poses only the ICP-registered shape metrics mean something
     assert result.columns == [
-        "chamfer-L1-ICP", "normal-cos-ICP", "mask-iou", "cand-share-min", "cand-share-max",
+        "chamfer-L1-ICP", "normal-cos-ICP", "iou-3d-ICP", "mask-iou", "cand-share-min", "cand-share-max",
         "color-err", "color-err-mean", "color-ratio", "rec-mse",
     ]  # fmt: skip
 
@@ -238,6 +242,8 @@ def test_oracle_pose_scores_the_shape_at_the_ground_truth_pose(shapenet_model, s
     iou = mask_iou(hard.images[:, 3:], batch["mask"], reduction="none")
     for i in range(3):
         assert result.per_image[i]["chamfer-L1"] == pytest.approx(float(direct["chamfer-L1"][i]), rel=1e-5)
+        assert result.per_image[i]["iou-3d"] == pytest.approx(float(direct["iou-3d"][i]), abs=1e-12)
+        assert 0 <= result.per_image[i]["iou-3d-ICP"] <= 1
         assert result.per_image[i]["mask-iou"] == pytest.approx(float(iou[i]), abs=1e-6)
     assert torch.equal(result.samples[0].R, R[0])  # the report shows the pose it was scored at
 

@@ -40,18 +40,22 @@ def test_perfect_prediction_through_poses(shape):
     assert out["chamfer-L1"].item() < 0.15
     assert out["chamfer-L1-ICP"].item() < 0.15
     assert out["normal-cos"].item() > 0.95 and out["normal-cos-ICP"].item() > 0.95
+    # two samplings of one surface fill almost the same cells (some thin-slice cells hold a point of only one)
+    assert out["iou-3d"].item() > 0.9 and out["iou-3d-ICP"].item() > 0.9
     # without the pose alignment the prediction is badly placed
     unaligned = evaluate_meshes(v_pred, f, gt_points, gt_normals, num_points=3000, run_icp=False)
-    assert set(unaligned) == {"chamfer-L1", "normal-cos"}
+    assert set(unaligned) == {"chamfer-L1", "normal-cos", "iou-3d"}
     assert unaligned["chamfer-L1"].item() > 5 * out["chamfer-L1"].item()
+    assert unaligned["iou-3d"].item() < 0.5 * out["iou-3d"].item()
 
 
 def test_icp_branch_fixes_scale_and_offset(shape):
     v, f, gt_points, gt_normals = shape
     wrong = v * torch.tensor([1.3, 0.8, 1.0]) + 0.1
     out = evaluate_meshes(wrong, f, gt_points, None, num_points=3000, icp_iterations=60)
-    assert set(out) == {"chamfer-L1", "chamfer-L1-ICP"}
+    assert set(out) == {"chamfer-L1", "chamfer-L1-ICP", "iou-3d", "iou-3d-ICP"}
     assert out["chamfer-L1-ICP"].item() < 0.5 * out["chamfer-L1"].item()
+    assert out["iou-3d-ICP"].item() > 0.8 > out["iou-3d"].item()
 
 
 def test_invalid_inputs(shape):

@@ -2,17 +2,19 @@
 
 Examples::
 
-    unicorn-train                                           # no arguments: experiment=synthetic, the offline default
-    unicorn-train experiment=cub trainer=gpu dataset.root=/data/cub_200
-    unicorn-train experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
-    unicorn-train -m experiment=synthetic seed=1,2,3        # a sweep, one run directory per job
-    unicorn-train --cfg job experiment=cub                  # print the composed config, train nothing
+    unicorn-train                                           # no arguments: +experiment=synthetic, the offline default
+    unicorn-train +experiment=cub trainer=gpu dataset.root=/data/cub_200
+    unicorn-train +experiment=cub ckpt_path=outputs/cub/runs/<time>/checkpoints/last.ckpt
+    unicorn-train -m +experiment=synthetic seed=1,2,3       # a sweep, one run directory per job
+    unicorn-train --cfg job +experiment=cub                 # print the composed config, train nothing
     unicorn-train --help                                    # what it does, the groups, examples; also --version
+
+``+experiment=NAME`` and ``experiment=NAME`` are the same command (:func:`experiment_overrides`).
 
 The configs are looked up where they ship: ``unicorn/conf`` inside an installed wheel, or the repository's
 top-level ``conf/`` for an editable install; the directory is resolved from this file, never from the working
 directory, and passed to Hydra as an absolute path. ``--config-dir``/``-cd`` adds a directory of your own
-(e.g. ``-cd my_conf experiment=mine``).
+(e.g. ``-cd my_conf +experiment=mine`` with ``my_conf/experiment/mine.yaml``).
 
 Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for sweeps,
 ``outputs/<task_name>/multiruns/<time>/<job>``): ``.hydra/`` (composed config and overrides), ``config.yaml``
@@ -45,7 +47,17 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
 from unicorn.resources import config_dir
 
-__all__ = ["DEFAULT_EXPERIMENT", "Run", "build", "config_dir", "fit", "hydra_argv", "main", "train"]
+__all__ = [
+    "DEFAULT_EXPERIMENT",
+    "Run",
+    "build",
+    "config_dir",
+    "experiment_overrides",
+    "fit",
+    "hydra_argv",
+    "main",
+    "train",
+]
 
 #: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
 DEFAULT_EXPERIMENT = "synthetic"
@@ -316,9 +328,27 @@ def _task(cfg: DictConfig) -> None:
         raise SystemExit(2) from None
 
 
+def experiment_overrides(overrides: list[str]) -> list[str]:
+    """``overrides`` (command-line arguments or compose overrides) with ``+experiment=V`` written ``experiment=V``.
+
+    ``conf/train.yaml`` ends its defaults list with ``experiment: null``: a placeholder after ``_self_``, so that the
+    chosen experiment is merged last and overrides everything above it, and one that the compose API
+    (``compose("train", overrides=["experiment=cub"])``) fills like any group. Hydra fills such an entry with
+    ``experiment=NAME``; ``+experiment=NAME``, the form of Hydra's "Configuring Experiments" page (whose primary
+    config has no entry), asks to append a second one, which Hydra refuses ("Multiple values for experiment").
+    Rewriting the ``+`` form is the one change that makes both forms compose the same run, in single runs, sweeps
+    (``-m +experiment=a,b``; the sweep value is kept as written) and with ``-cd DIR``, whose ``DIR/experiment/``
+    presets join the same group. A ``train.yaml`` of your own in ``DIR`` replaces ours and must keep the
+    ``experiment: null`` entry. Every other argument is returned unchanged.
+    """
+    prefix = "+experiment="
+    return [arg[1:] if arg.startswith(prefix) else arg for arg in overrides]
+
+
 def hydra_argv(argv: list[str]) -> list[str]:
-    """The arguments handed to Hydra: ``experiment=synthetic`` (the offline default) when there are none."""
-    return argv if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
+    """The arguments handed to Hydra: :func:`experiment_overrides` of ``argv``, or ``experiment=synthetic`` (the
+    offline default) when there are none."""
+    return experiment_overrides(argv) if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
 
 
 class _HeldStream(io.TextIOBase):
@@ -356,7 +386,7 @@ def main() -> None:
         return
     if not args:
         print(
-            f"unicorn-train: no arguments, running the offline default experiment={DEFAULT_EXPERIMENT} "
+            f"unicorn-train: no arguments, running the offline default +experiment={DEFAULT_EXPERIMENT} "
             "(see unicorn-train --help)",
             file=sys.stderr,
             flush=True,

@@ -5,16 +5,25 @@ Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.m
 - ``"shapenet"`` (``shapenet_nmr``, ``synthetic``): one fixed random view per test model. Per image:
   ``chamfer-L1`` / ``normal-cos`` after mapping the prediction into the ground-truth object frame with the
   predicted and ground-truth poses, ``chamfer-L1-ICP`` / ``normal-cos-ICP`` after unit-cube normalisation and the
-  anisotropic-scale gradient ICP (:func:`~unicorn.metrics.evaluate_meshes`), ``mask-iou`` of the hard-rendered
-  silhouette (3 x 3 samples per pixel, the pixels more than half covered, see ``EvalOptions.mask_supersample``).
+  anisotropic-scale gradient ICP (:func:`~unicorn.metrics.evaluate_meshes`), ``iou-3d`` / ``iou-3d-ICP`` (3D IoU
+  at 32^3 under the same two alignments, see below), ``mask-iou`` of the hard-rendered silhouette (3 x 3 samples
+  per pixel, the pixels more than half covered, see ``EvalOptions.mask_supersample``).
   Per category: pose errors (:func:`~unicorn.metrics.pose_errors`, after aligning the learned canonical frame to
   the ground truth with one rotation). Categories are averaged, then the categories.
 - ``"cub"`` (``cub_200``): ``mask-iou`` per image with masks at 256 px, and PCK by keypoint transfer over image
   pairs (:func:`~unicorn.metrics.keypoint_transfer_pck`), the visible vertices being those of faces hit by the 2x
   supersampled hard rasterisation (512 px for the 256 px keypoint frame).
-- ``"p3d"`` (``p3d_car``): ``chamfer-L1-ICP`` / ``normal-cos-ICP`` against the CAD point clouds (there is no
-  ground-truth pose, so no GT-pose alignment) and ``mask-iou``.
+- ``"p3d"`` (``p3d_car``): ``chamfer-L1-ICP`` / ``normal-cos-ICP`` / ``iou-3d-ICP`` against the CAD point clouds
+  (there is no ground-truth pose, so no GT-pose alignment) and ``mask-iou``.
 - ``"images"`` (``compcars``, ``lsun``, ``folder``): no ground truth, the reconstruction error only.
+
+3D IoU (``iou-3d``, ``iou-3d-ICP``; :func:`~unicorn.metrics.voxels.point_cloud_voxel_iou`): the predicted surface
+samples of the Chamfer distance, after its alignment, and the ground-truth point cloud are each voxelised solid
+on the 32^3 grid of the unit cube [-0.5, 0.5]^3 (extended where a prediction sticks out): the cells holding a
+point, closed by one cell (dilated, holes filled, eroded); IoU = cells of both / cells of either. The classic
+Pascal3D+ protocol (CMR, DRC) also voxelises surfaces at 32^3 and fills them, but places all predictions with one
+translation and scale for the whole test set; the per-object ICP here (rotation, translation, anisotropic scale)
+fits each prediction better, so the numbers are not comparable with that table.
 
 Every protocol also reports ``rec-mse``, the mean squared error of the model's own rendering (with its predicted
 background) against the input, the quantity the model was trained to lower.
@@ -103,6 +112,12 @@ METRICS: dict[str, tuple[str, str]] = {
     ),
     "normal-cos": ("higher", "mean |cos| between matched normals, GT-pose aligned"),
     "normal-cos-ICP": ("higher", "mean |cos| between matched normals, after ICP"),
+    "iou-3d": (
+        "higher",
+        "3D IoU of the GT-pose aligned prediction and the ground-truth points, both voxelised solid at 32^3 over "
+        "the unit cube (cells holding surface points, closed by one cell, holes filled)",
+    ),
+    "iou-3d-ICP": ("higher", "3D IoU after the normalisation and ICP of chamfer-L1-ICP"),
     "mask-iou": ("higher", "IoU of the hard-rendered predicted silhouette with the ground-truth mask"),
     "pck-5": ("higher", "keypoints transferred between image pairs through the meshes within 5% of the image side"),
     "pck-10": ("higher", "... within 10% of the image side"),

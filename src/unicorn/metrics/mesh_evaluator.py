@@ -9,7 +9,10 @@ Per object (``final_scores.tsv`` columns):
 - ``chamfer-L1-ICP`` and ``normal-cos-ICP``: the (aligned) prediction is normalised to the unit cube
   (:func:`~unicorn.metrics.alignment.normalize_to_unit_cube`), resampled, registered onto the ground truth by
   :func:`~unicorn.metrics.icp.gradient_icp` (rotation, translation, anisotropic scale; Adam 0.01;
-  ``icp_iterations``) and compared again, its normals transformed with the points.
+  ``icp_iterations``) and compared again, its normals transformed with the points;
+- ``iou-3d`` and ``iou-3d-ICP``: 3D IoU of the same predicted samples (GT-pose aligned, and after ICP) and the
+  ground-truth cloud, both voxelised solid at 32^3 over the unit cube (surface cells, one-cell closing, holes
+  filled: :func:`~unicorn.metrics.voxels.point_cloud_voxel_iou`).
 
 UNICORN's final evaluation uses 100k points and 100 ICP iterations, its validation 50k points and 30
 iterations. Average the per-object values over the test objects of a class, then over classes.
@@ -26,10 +29,11 @@ from .chamfer import CHAMFER_FACTOR, point_cloud_scores
 from .icp import gradient_icp
 from .nn import Backend
 from .sampling import sample_points_from_meshes
+from .voxels import point_cloud_voxel_iou
 
 __all__ = ["SHAPENET_METRICS", "evaluate_meshes"]
 
-SHAPENET_METRICS = ("chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP")
+SHAPENET_METRICS = ("chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "iou-3d", "iou-3d-ICP")
 
 
 def evaluate_meshes(
@@ -50,8 +54,9 @@ def evaluate_meshes(
     check_gt_range: bool = True,
     backend: Backend = "auto",
     workers: int = 1,
+    voxel_resolution: int = 32,
 ) -> dict[str, torch.Tensor]:
-    """Chamfer-L1 and normal consistency, with GT-pose alignment and after unit-cube normalisation plus ICP.
+    """Chamfer-L1, normal consistency and 3D IoU, with GT-pose alignment and after unit-cube normalisation plus ICP.
 
     Args:
         verts: (B, V, 3) predicted vertices in the predicted object frame.
@@ -71,6 +76,7 @@ def evaluate_meshes(
         check_gt_range: raise unless every ground-truth cloud has ``max |coord|`` within 0.01 of 0.5.
         backend: nearest-neighbour backend, see :func:`unicorn.metrics.nn.nearest_neighbors`.
         workers: kdtree query threads.
+        voxel_resolution: cells per axis of the unit cube for the 3D IoU.
 
     Returns:
         dict of (B,) tensors keyed by :data:`SHAPENET_METRICS` (``chamfer-L1`` already multiplied by 10).
@@ -115,6 +121,7 @@ def evaluate_meshes(
         results["chamfer-L1"], normal_cos = scores(points, normals)
         if normal_cos is not None:
             results["normal-cos"] = normal_cos
+        results["iou-3d"] = point_cloud_voxel_iou(points, gt_points, voxel_resolution)
         if run_icp:
             normalized, _, _ = normalize_to_unit_cube(verts)
             points, normals = sample_points_from_meshes(normalized, faces, num_points, seed=seed + 1)
@@ -133,4 +140,5 @@ def evaluate_meshes(
             results["chamfer-L1-ICP"], normal_cos = scores(icp.points, icp.normals)
             if normal_cos is not None:
                 results["normal-cos-ICP"] = normal_cos
+            results["iou-3d-ICP"] = point_cloud_voxel_iou(icp.points, gt_points, voxel_resolution)
     return {k: results[k] for k in SHAPENET_METRICS if k in results}

@@ -1,0 +1,149 @@
+"""``unicorn-train +experiment=NAME`` and ``experiment=NAME`` compose the same run: single runs, sweeps, ``--cfg job``,
+``--help`` and ``-cd`` (a config directory of the user's)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from tests.support.training import compose_config
+from unicorn.cli.train import experiment_overrides, hydra_argv
+from unicorn.config import validate
+
+#: runs unicorn-train's main() with its task (build and train) replaced by writing the composed config of each
+#: job (unresolved, so that the two forms can be compared) and Hydra's choice of experiment into the job's folder
+COMPOSE_ONLY = """
+import json
+from pathlib import Path
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+import unicorn.cli.train as train
+
+def task(cfg):
+    hydra = HydraConfig.get()
+    out = Path(hydra.runtime.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "composed.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (out / "choice.json").write_text(json.dumps(hydra.runtime.choices.get("experiment")))
+
+train._task = task
+train.main()
+"""
+
+#: a user's preset in a config directory of their own (``-cd my_conf``): it overrides a group and values
+MINE = """# @package _global_
+defaults:
+  - override /dataset: synthetic
+  - override /model: tiny
+  - _self_
+task_name: mine
+seed: 7
+optim:
+  lr: 3.0e-4
+"""
+
+
+def unicorn_train(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    command = [sys.executable, "-m", "unicorn.cli.train", *args]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def compose_only(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    script = cwd / "compose_only.py"
+    script.write_text(COMPOSE_ONLY)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    command = [sys.executable, str(script), *args]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_only_the_appending_experiment_form_is_rewritten():
+    argv = ["-m", "--cfg", "job", "-cd", "my_conf", "+experiment=a,b", "experiment=c", "+experiment.x=1", "+seed=2"]
+    assert experiment_overrides(argv) == [
+        "-m",
+        "--cfg",
+        "job",
+        "-cd",
+        "my_conf",
+        "experiment=a,b",
+        "experiment=c",
+        "+experiment.x=1",
+        "+seed=2",
+    ]
+    assert hydra_argv(["+experiment=cub"]) == ["experiment=cub"] and hydra_argv([]) == ["experiment=synthetic"]
+
+
+def test_both_forms_compose_the_same_config_with_the_experiment_applied_last(tmp_path):
+    out = f"paths.output_dir={tmp_path}"
+    for name in ("synthetic", "cub", "shapenet_chair"):
+        for extra in ([], ["model=big"]):
+            plus = compose_config(experiment_overrides([f"+experiment={name}", *extra, out]))
+            plain = compose_config([f"experiment={name}", *extra, out])
+            assert OmegaConf.to_yaml(plus) == OmegaConf.to_yaml(plain)
+            typed = validate(plus)
+            assert typed.task_name == name  # the experiment overrides train.yaml's `task_name: train`
+            assert typed.model.name == ("big" if extra else validate(plain).model.name)  # the command line wins
+    synthetic = validate(compose_config(experiment_overrides(["+experiment=synthetic", out])))
+    assert synthetic.evaluate.enabled and synthetic.trainer.accelerator == "cpu"  # train.yaml says false, default
+
+
+def test_cfg_job_prints_the_same_config_for_both_forms(tmp_path):
+    plus = unicorn_train("--cfg", "job", "+experiment=cub", "model=big", cwd=tmp_path)
+    plain = unicorn_train("--cfg", "job", "experiment=cub", "model=big", cwd=tmp_path)
+    assert plus.returncode == 0 and plain.returncode == 0, plus.stderr[-2000:] + plain.stderr[-2000:]
+    assert plus.stdout == plain.stdout and "task_name: cub" in plus.stdout
+
+
+def test_help_with_either_form(tmp_path):
+    for form in ("+experiment=cub", "experiment=cub"):
+        result = unicorn_train("--help", form, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert "unicorn-train +experiment=cub" in result.stdout and "experiment:" in result.stdout
+
+
+def test_a_user_config_dir_with_its_own_experiment(tmp_path):
+    (tmp_path / "my_conf" / "experiment").mkdir(parents=True)
+    (tmp_path / "my_conf" / "experiment" / "mine.yaml").write_text(MINE)
+    plus = unicorn_train("--cfg", "job", "-cd", "my_conf", "+experiment=mine", cwd=tmp_path)
+    plain = unicorn_train("--cfg", "job", "--config-dir=my_conf", "experiment=mine", cwd=tmp_path)
+    assert plus.returncode == 0 and plain.returncode == 0, plus.stderr[-2000:] + plain.stderr[-2000:]
+    assert plus.stdout == plain.stdout
+    composed = OmegaConf.create(plus.stdout)
+    assert composed.task_name == "mine" and composed.seed == 7 and composed.optim.lr == 3.0e-4
+    # the shipped presets stay reachable next to the user's
+    shipped = unicorn_train("--cfg", "job", "-cd", "my_conf", "+experiment=cub", cwd=tmp_path)
+    assert shipped.returncode == 0 and "task_name: cub" in shipped.stdout
+
+
+def test_sweeps_and_single_runs_compose_the_same_jobs_with_both_forms(tmp_path):
+    """A sweep over seeds and one over experiments, each job composed (building and training are replaced)."""
+    composed = {}
+    for form in ("+experiment", "experiment"):
+        sweep = tmp_path / form
+        result = compose_only("-m", f"{form}=synthetic", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+        assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+        jobs = [(sweep / job / "composed.yaml").read_text() for job in ("0", "1")]
+        assert [OmegaConf.create(j).seed for j in jobs] == [1, 2]
+        assert all(OmegaConf.create(j).task_name == "synthetic" for j in jobs)
+        assert all(json.loads((sweep / job / "choice.json").read_text()) == "synthetic" for job in ("0", "1"))
+        composed[form] = jobs
+    assert composed["+experiment"] == composed["experiment"]
+
+    sweep = tmp_path / "experiments"
+    result = compose_only("-m", "+experiment=synthetic,cub", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    names = [OmegaConf.create((sweep / job / "composed.yaml").read_text()).task_name for job in ("0", "1")]
+    assert names == ["synthetic", "cub"]
+
+    single = {}
+    for form in ("+experiment", "experiment"):
+        run = tmp_path / f"run{form}"
+        result = compose_only(f"{form}=cub", f"hydra.run.dir={run}", cwd=tmp_path)
+        assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+        single[form] = (run / "composed.yaml").read_text()
+    assert single["+experiment"] == single["experiment"] and "task_name: cub" in single["experiment"]
