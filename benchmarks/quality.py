@@ -370,6 +370,7 @@ def prepare_data(runs: list[Run], args: argparse.Namespace) -> None:
     done = set()
     for run in runs:
         overrides = [o for o in train_command(run, args)[3:] if not o.startswith(("hydra.", "ckpt_path="))]
+        overrides.append(f"paths.output_dir={run.dir}")  # what hydra sets when it runs unicorn-train
         with initialize_config_dir(str(config_dir()), version_base=None):
             d = validate(compose("train", overrides=overrides)).dataset
         if d.name != "synthetic":

@@ -220,3 +220,18 @@ def test_categories_table_and_bars(quality):
     assert (
         not any("silhouette" in b for b, *_ in bars) and not dict((b, ok) for b, *_, ok in bars)["car: mask-iou >= 0.9"]
     )
+
+
+def test_prepare_data_generates_each_dataset_once_with_the_runs_settings(quality, tmp_path, monkeypatch):
+    import unicorn.data
+
+    calls = []
+    monkeypatch.setattr(unicorn.data, "prepare_dataset", lambda *a: calls.append(a) or tmp_path)
+    argv = ["--table", "categories", "--categories", "car,mug,car-wild", "--car-seeds", "0,1", "--data-root", "/d"]
+    args = quality.parse_args([*argv, "--out", str(tmp_path)])
+    quality.prepare_data(quality.plan(args), args)
+    assert [(name, root, category, synthetic["mode"]) for name, root, category, synthetic in calls] == [
+        ("synthetic", "/d", "car", "nmr"),
+        ("synthetic", "/d", "mug", "nmr"),
+        ("synthetic", "/d", "car", "wild"),
+    ]

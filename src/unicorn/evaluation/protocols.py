@@ -286,8 +286,9 @@ class EvalOptions:
             (``chamfer-L1-ICP-own-mean``, ``shape-win-own``; only with ground-truth points and ICP, otherwise
             ignored). Costs one more forward pass over the dataset and doubles the Chamfer work.
         shape_points: points per shape of the shape retrieval (``shape-top1`` ..., ``shape-spread-ratio``); 0: off.
-            It costs about ``5 Q C`` Chamfer distances per group of Q images of C objects (a few seconds for 20
-            images at 2000 points on a CPU core), so it grows with the square of the group's size.
+            It costs ``3 Q C + 4 Q^2`` Chamfer distances between clouds of this size per group of Q images of C
+            objects (retrieval of three reconstructions, two spreads of the predicted and ground-truth shapes), so
+            it grows with the square of the group's size: meant for sets of tens to a few hundred images.
     """
 
     protocol: str = "shapenet"
