@@ -68,10 +68,24 @@ Time: a 2400-iteration run takes about 9-10 minutes on a quiet 2-core CPU with 2
 about twice that); scoring about 2 minutes per run, plus about 3 minutes of baselines per category. All five
 variants with one seed: a little over an hour; with ``--seeds 0,1,2``, about three hours.
 
+The categories table (``--table categories``): one recipe (``--experiment``) trained on each synthetic
+category in the NMR views, car, chair, table, lamp and mug, and on cars in the ``wild`` mode; only the category
+and the mode change (``dataset.categories=X dataset.synthetic.mode=Y``, and for the wild mode the ``real``
+family's real-image settings, ``family=real``; ``--data-root`` sets ``dataset.root`` for every run). Cars over
+``--car-seeds`` (default 0,1,2), the others over ``--seeds`` (default 0); ``--categories`` picks entries. Each
+category's datasets are generated before training starts (once, not by concurrent runs). Rows per entry: the
+silhouette fit with ground-truth poses (what these views allow), then the model (mean ± std over its seeds).
+Columns: the shape retrieval among the test objects (``shape-top3``, the right object among the 3 closest
+normalised shapes in the image's view, and its floor ``shape-top3-floor``, the model's mean canonical shape times
+each image's scale; chance 3 / test objects), Chamfer-L1 after ICP, colour ratio, rotation accuracy at 30
+degrees, flipped views and mask IoU. ``--dry-run`` prints the training commands and stops.
+
     python benchmarks/quality.py                                  # five variants, seed 0
     python benchmarks/quality.py --runs full,no-neighbor,no-progressive --seeds 0,1,2 --jobs 2
     python benchmarks/quality.py --runs full --steps 600 --out /tmp/q   # a quick look
     python benchmarks/quality.py --experiment synthetic_long --runs full --seeds 0,1,2 --silhouette-iterations 0
+    python benchmarks/quality.py --table categories --jobs 2 --out /tmp/categories   # six entries, cars x 3 seeds
+    python benchmarks/quality.py --table categories --categories chair,mug --dry-run
 """
 
 from __future__ import annotations
@@ -100,6 +114,45 @@ RUNS: dict[str, tuple[str | None, list[str]]] = {
     "wild": ("synthetic_wild", []),
     "chairs": (None, ["dataset.categories=chair"]),
 }
+
+
+#: the categories table's entries: name -> (synthetic category, synthetic mode)
+CATEGORY_RUNS: dict[str, tuple[str, str]] = {
+    "car": ("car", "nmr"),
+    "chair": ("chair", "nmr"),
+    "table": ("table", "nmr"),
+    "lamp": ("lamp", "nmr"),
+    "mug": ("mug", "nmr"),
+    "car-wild": ("car", "wild"),
+}
+#: the entries trained over ``--car-seeds`` (the others over ``--seeds``)
+CAR_ENTRIES = ("car",)
+#: per synthetic mode, what the recipe takes from elsewhere: the wild mode's real-image settings (background
+#: model, viewpoint ranges, texture averaging) are the ``real`` family's
+MODE_OVERRIDES: dict[str, list[str]] = {"nmr": [], "wild": ["family=real"]}
+TABLES = ("ablations", "categories")
+#: the categories table's bars, per entry (mean over its seeds), as (metric, comparison, limit, reference):
+#: reference None: the limit itself; "silhouette": limit x the entry's silhouette-fit value; a metric: limit x
+#: the entry's value of that metric
+CATEGORY_BARS: dict[str, list[tuple[str, str, float, str | None]]] = {
+    "car": [
+        ("shape-top3", ">=", 0.6, None),
+        ("shape-top3", ">=", 2.0, "shape-top3-floor"),
+        ("chamfer-L1-ICP", "<=", 1.1, "silhouette"),
+        ("color-ratio", "<=", 0.35, None),
+        ("rot-acc-30", ">=", 0.95, None),
+        ("rot-flip-150", "<=", 0.03, None),
+        ("mask-iou", ">=", 0.90, None),
+    ],
+    "car-wild": [("rot-acc-30", ">=", 0.80, None), ("mask-iou", ">=", 0.80, None), ("color-ratio", "<=", 0.6, None)],
+}
+#: the bars of the other entries
+OTHER_BARS: list[tuple[str, str, float, str | None]] = [
+    ("color-ratio", "<=", 0.5, None),
+    ("rot-acc-30", ">=", 0.90, None),
+    ("mask-iou", ">=", 0.80, None),
+    ("shape-top3", ">=", 2.0, "shape-top3-floor"),
+]
 
 
 def experiments() -> list[str]:
@@ -150,7 +203,23 @@ COLUMNS = [
     ("cand-share-min", "min cand. share", "{:.3f}"),
     ("train-minutes", "train (min)", "{:.1f}"),
 ]
-FORMATS = {key: fmt for key, _, fmt in COLUMNS}
+#: the categories table's columns
+CATEGORY_COLUMNS = [
+    ("shape-top3", "shape top-3", "{:.2f}"),
+    ("shape-top3-floor", "top-3 floor (scale only)", "{:.2f}"),
+    ("chamfer-L1-ICP", "Chamfer-L1 ICP", "{:.3f}"),
+    ("color-ratio", "colour ratio", "{:.2f}"),
+    ("rot-acc-30", "rot. acc. 30 deg", "{:.3f}"),
+    ("rot-flip-150", "flipped (> 150 deg)", "{:.3f}"),
+    ("mask-iou", "mask IoU", "{:.3f}"),
+    ("train-minutes", "train (min)", "{:.1f}"),
+]
+FORMATS = {key: fmt for key, _, fmt in COLUMNS + CATEGORY_COLUMNS}
+#: the shape-retrieval columns kept from the evaluation of one view per test object
+SHAPE_KEYS = tuple(f"shape-{m}{s}" for s in ("", "-gt", "-floor") for m in ("top1", "top3", "mrr")) + (
+    "shape-spread-ratio",
+    "shape-detail-ratio",
+)
 
 Row = dict[str, float]
 
@@ -158,9 +227,28 @@ Row = dict[str, float]
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/quality"), help="output folder")
-    p.add_argument("--runs", default=",".join(RUNS), help=f"comma-separated subset of {list(RUNS)}")
+    p.add_argument(
+        "--table",
+        choices=TABLES,
+        default="ablations",
+        help="ablations: the experiment's variants on cars; categories: one recipe on every synthetic category",
+    )
+    p.add_argument("--runs", default=",".join(RUNS), help=f"ablations table: comma-separated subset of {list(RUNS)}")
+    p.add_argument(
+        "--categories",
+        default=",".join(CATEGORY_RUNS),
+        help=f"categories table: comma-separated subset of {list(CATEGORY_RUNS)}",
+    )
     p.add_argument("--seeds", default="0", help="comma-separated training seeds; every run is trained once per seed")
+    p.add_argument(
+        "--car-seeds", default="0,1,2", help="categories table: the seeds of the car entry (--seeds: the others)"
+    )
+    p.add_argument("--data-root", help="categories table: dataset.root of every run (default: the experiment's)")
     p.add_argument("--jobs", type=int, default=1, help="train up to this many runs at once")
+    p.add_argument(
+        "--threads", type=int, help="threads of each training run (default: the cores shared by the --jobs runs)"
+    )
+    p.add_argument("--dry-run", action="store_true", help="print the training commands and stop")
     p.add_argument(
         "--experiment", default="synthetic", choices=experiments(), help="the recipe of every variant but wild"
     )
@@ -179,15 +267,35 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     unknown = set(args.runs) - set(RUNS)
     if unknown or not args.runs:
         p.error(f"unknown runs {sorted(unknown)}; choose from {list(RUNS)}")
-    try:
-        args.seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    except ValueError:
-        p.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
-    if not args.seeds or len(set(args.seeds)) != len(args.seeds):
-        p.error(f"--seeds must list distinct integers, got {args.seeds}")
+    args.categories = [c for c in args.categories.split(",") if c]
+    unknown = set(args.categories) - set(CATEGORY_RUNS)
+    if unknown or not args.categories:
+        p.error(f"unknown categories {sorted(unknown)}; choose from {list(CATEGORY_RUNS)}")
+    for name in ("seeds", "car_seeds"):
+        flag = "--" + name.replace("_", "-")
+        try:
+            seeds = [int(s) for s in getattr(args, name).split(",") if s.strip()]
+        except ValueError:
+            p.error(f"{flag} must be comma-separated integers, got {getattr(args, name)!r}")
+        if not seeds or len(set(seeds)) != len(seeds):
+            p.error(f"{flag} must list distinct integers, got {seeds}")
+        setattr(args, name, seeds)
     if args.jobs < 1:
         p.error(f"--jobs must be at least 1, got {args.jobs}")
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads must be at least 1, got {args.threads}")
     return args
+
+
+def plan(args: argparse.Namespace) -> list[Run]:
+    """The training runs of the chosen table: every variant (or category entry) once per seed."""
+    if args.table == "categories":
+        return [
+            Run(name, seed, args.out)
+            for name in args.categories
+            for seed in (args.car_seeds if name in CAR_ENTRIES else args.seeds)
+        ]
+    return [Run(name, seed, args.out) for name in args.runs for seed in args.seeds]
 
 
 # ---------------------------------------------------------------------------------------------- training
@@ -212,16 +320,33 @@ class Run:
         return self.out / "logs" / f"train_{self.name}_seed{self.seed}.log"
 
 
-def threads_per_run(jobs: int) -> int:
-    """Threads of each training process: the cores shared by the concurrent runs, within the caller's limit."""
+def threads_per_run(jobs: int, threads: int | None = None) -> int:
+    """Threads of each training process: ``threads`` if given, else the cores shared by the concurrent runs
+    within the caller's limit."""
+    if threads is not None:
+        return threads
     threads = max(1, (os.cpu_count() or 1) // jobs)
     limit = os.environ.get("OMP_NUM_THREADS", "")
     return min(threads, int(limit)) if limit.isdigit() and int(limit) > 0 else threads
 
 
+def recipe(name: str, args: argparse.Namespace) -> list[str]:
+    """The experiment and overrides that make a run of the chosen table (before its seed, folder and steps).
+
+    Categories table: ``--experiment`` with only the category and the mode changed (plus what the mode takes from
+    elsewhere, :data:`MODE_OVERRIDES`, and ``--data-root``); ablations table: the variant's (:data:`RUNS`).
+    """
+    if args.table == "categories":
+        category, mode = CATEGORY_RUNS[name]
+        overrides = [f"experiment={args.experiment}", f"dataset.categories={category}"]
+        overrides += [f"dataset.synthetic.mode={mode}", *MODE_OVERRIDES[mode]]
+        return overrides + ([f"dataset.root={args.data_root}"] if args.data_root else [])
+    experiment, extra = RUNS[name]
+    return [f"experiment={experiment or args.experiment}", *extra]
+
+
 def train_command(run: Run, args: argparse.Namespace) -> list[str]:
-    experiment, extra = RUNS[run.name]
-    overrides = [f"experiment={experiment or args.experiment}", *extra]
+    overrides = recipe(run.name, args)
     overrides += [f"seed={run.seed}", f"hydra.run.dir={run.dir}", "evaluate.enabled=false"]
     overrides += args.overrides
     if args.steps is not None:
@@ -231,6 +356,30 @@ def train_command(run: Run, args: argparse.Namespace) -> list[str]:
     else:
         overrides.append("ckpt_path=last")  # an interrupted benchmark goes on where it stopped
     return [sys.executable, "-m", "unicorn.cli.train", *overrides]
+
+
+def prepare_data(runs: list[Run], args: argparse.Namespace) -> None:
+    """Generate each run's synthetic dataset once, before any training starts (concurrent runs of one category
+    would each generate it). The settings are the run's own, composed from its overrides as unicorn-train does."""
+    from hydra import compose, initialize_config_dir
+
+    from unicorn.config import validate
+    from unicorn.data import prepare_dataset
+    from unicorn.resources import config_dir
+
+    done = set()
+    for run in runs:
+        overrides = [o for o in train_command(run, args)[3:] if not o.startswith(("hydra.", "ckpt_path="))]
+        overrides.append(f"paths.output_dir={run.dir}")  # what hydra sets when it runs unicorn-train
+        with initialize_config_dir(str(config_dir()), version_base=None):
+            d = validate(compose("train", overrides=overrides)).dataset
+        if d.name != "synthetic":
+            continue
+        categories = d.categories if d.categories is None or isinstance(d.categories, str) else list(d.categories)
+        key = (str(d.root), str(categories), str(dict(d.synthetic)))
+        if key not in done:
+            done.add(key)
+            print(f"[{run.label}] dataset: {prepare_dataset('synthetic', d.root, categories, dict(d.synthetic))}")
 
 
 def train_all(runs: list[Run], args: argparse.Namespace) -> dict[Run, float]:
@@ -244,7 +393,7 @@ def train_all(runs: list[Run], args: argparse.Namespace) -> dict[Run, float]:
             print(f"[{run.label}] reusing the finished run in {run.dir} ({minutes[run]:.1f} min)", flush=True)
         else:
             pending.append(run)
-    threads = threads_per_run(args.jobs)
+    threads = threads_per_run(args.jobs, args.threads)
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     active: dict[Run, tuple[subprocess.Popen, float, IO[str], list[str]]] = {}
     failed: list[str] = []
@@ -358,7 +507,8 @@ def score(
     views = evaluate(
         model,
         every,
-        EvalOptions(num_points=2000, icp_iterations=0, report_samples=0, **common),
+        # the shape retrieval is scored on one view per object (its cost grows with the square of the images)
+        EvalOptions(num_points=2000, icp_iterations=0, report_samples=0, shape_points=0, **common),
         "synthetic",
         args.device,
     )
@@ -371,6 +521,7 @@ def score(
             "shape-win",
             "chamfer-L1-ICP-own-mean",
             "shape-win-own",
+            *SHAPE_KEYS,
         )
         if k in icp.mean
     }
@@ -400,15 +551,17 @@ def baselines(model: Any, root: Path, category: str, args: argparse.Namespace) -
 def silhouette_fit(model: Any, root: Path, args: argparse.Namespace) -> Row:
     """The silhouette floor: every test object's template fitted to the masks of all its views at their
     ground-truth poses (:func:`unicorn.evaluation.fit_silhouettes`), scored like the models (Chamfer-L1 after ICP
-    against the object's points; mask IoU over every view)."""
+    against the object's points; mask IoU over every view; the shape retrieval among the test objects, each
+    fitted mesh in the ground-truth object frame, ``shape-top3``)."""
     from unicorn.evaluation import fit_silhouettes
-    from unicorn.metrics import evaluate_meshes
+    from unicorn.metrics import evaluate_meshes, sample_points_from_meshes, shape_retrieval
 
     _, every = test_sets(root, model.config["image_size"])
     views: dict[int, list[int]] = {}
     for i in range(len(every)):
         views.setdefault(every.model_view(i)[0], []).append(i)
-    chamfer, iou = [], []
+    chamfer, iou, fitted, truth = [], [], [], []
+    n = 2000
     for indices in views.values():
         items = [every[i] for i in indices]
         masks, R, T = (torch.stack([it[k] for it in items]).to(args.device) for k in ("mask", "R", "T"))
@@ -417,7 +570,15 @@ def silhouette_fit(model: Any, root: Path, args: argparse.Namespace) -> Row:
         kw = dict(num_points=args.icp_points, icp_iterations=args.icp_iterations)
         chamfer.append(float(evaluate_meshes(verts[None], model.template.faces, points, None, **kw)["chamfer-L1-ICP"]))
         iou += ious.tolist()
-    return {"chamfer-L1-ICP": statistics.fmean(chamfer), "mask-iou": statistics.fmean(iou)}
+        fitted.append(sample_points_from_meshes(verts.detach().cpu(), model.template.faces.cpu(), n, seed=0)[0])
+        keep = torch.randperm(len(points[0]), generator=torch.Generator().manual_seed(0))[:n]
+        truth.append(points[0, keep].cpu())
+    row = {"chamfer-L1-ICP": statistics.fmean(chamfer), "mask-iou": statistics.fmean(iou)}
+    if len(fitted) > 1:  # the fits are in the ground-truth object frame: the identity is their view
+        queries, candidates = torch.stack(fitted).double(), torch.stack(truth).double()
+        eye = torch.eye(3, dtype=torch.float64).expand(len(fitted), 3, 3)
+        row["shape-top3"] = float(shape_retrieval(queries, eye, candidates, torch.arange(len(fitted)))["top3"].mean())
+    return row
 
 
 def aggregate(per_seed: dict[int, Row]) -> tuple[Row, Row]:
@@ -529,12 +690,12 @@ def ablation_order(rows: dict[str, Row], stds: dict[str, Row]) -> tuple[str, lis
     return line, checks
 
 
-def markdown_table(rows: dict[str, Row], stds: dict[str, Row]) -> str:
-    head = "| model | " + " | ".join(label for _, label, _ in COLUMNS) + " |"
-    lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+def markdown_table(rows: dict[str, Row], stds: dict[str, Row], columns: list[tuple[str, str, str]] = COLUMNS) -> str:
+    head = "| model | " + " | ".join(label for _, label, _ in columns) + " |"
+    lines = [head, "|" + "---|" * (len(columns) + 1)]
     for name, row in rows.items():
         std = stds.get(name, {})
-        cells = [cell(key, row.get(key, float("nan")), std.get(key)) for key, _, _ in COLUMNS]
+        cells = [cell(key, row.get(key, float("nan")), std.get(key)) for key, _, _ in columns]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -554,13 +715,11 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores; {device}; torch {torch.__version__}, Python {platform.python_version()}"
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    runs = [Run(name, seed, args.out) for name in args.runs for seed in args.seeds]
-    minutes = train_all(runs, args)
-
+def ablation_rows(
+    runs: list[Run], minutes: dict[Run, float], args: argparse.Namespace
+) -> tuple[dict[str, Row], dict[str, Row], dict[str, dict[int, Row]], Any]:
+    """The ablations table: each category's baselines, every run scored beside its category's mean shape; the
+    rows (mean over the seeds), their standard deviations, every run's row and the pictures' report."""
     baseline_rows: dict[str, Row] = {}
     mean_shapes: dict[str, torch.Tensor] = {}
     per_seed: dict[str, dict[int, Row]] = {name: {} for name in args.runs}
@@ -603,22 +762,113 @@ def main(argv: list[str] | None = None) -> int:
         rows[name], std = aggregate(seeds)
         if len(seeds) > 1:
             stds[name] = std
+    return rows, stds, per_seed, report
 
-    curves = plot_curves({n: {r.seed: r.dir for r in runs if r.name == n} for n in args.runs}, args.out / "curves.png")
+
+def print_plan(runs: list[Run], args: argparse.Namespace) -> None:
+    """What a run of the benchmark would train (``--dry-run``): one command per run, with its thread count."""
+    threads = threads_per_run(args.jobs, args.threads)
+    print(f"# {len(runs)} training runs, up to {args.jobs} at once, {threads} thread(s) each; output {args.out}")
+    for run in runs:
+        command = " ".join(train_command(run, args)[2:])
+        print(f"OMP_NUM_THREADS={threads} MKL_NUM_THREADS={threads} python -m {command}")
+
+
+def silhouette_row(name: str) -> str:
+    """The categories table's silhouette-fit row of an entry."""
+    return f"{SILHOUETTE_ROW}, {name}"
+
+
+def category_rows(
+    runs: list[Run], minutes: dict[Run, float], args: argparse.Namespace
+) -> tuple[dict[str, Row], dict[str, Row], dict[str, dict[int, Row]]]:
+    """The categories table: per entry, its silhouette fit (with its first run's model) and its runs' mean and
+    standard deviation over the seeds; and every run's row."""
+    per_seed: dict[str, dict[int, Row]] = {name: {} for name in args.categories}
+    silhouettes: dict[str, Row] = {}
+    for run in runs:
+        t0 = time.perf_counter()
+        model, root, _ = load_run(run.dir, args.device)
+        if run.name not in silhouettes and args.silhouette_iterations:
+            silhouettes[run.name] = silhouette_fit(model, root, args)
+        row, _ = score(model, root, args)
+        row["train-minutes"] = minutes[run]
+        per_seed[run.name][run.seed] = row
+        shown = ", ".join(f"{k} {row[k]:.4g}" for k, _, _ in CATEGORY_COLUMNS if k in row)
+        print(f"[{run.label}] scored in {(time.perf_counter() - t0) / 60:.1f} min: {shown}", flush=True)
+    rows: dict[str, Row] = {}
+    stds: dict[str, Row] = {}
+    for name in args.categories:
+        if name in silhouettes:
+            rows[silhouette_row(name)] = silhouettes[name]
+        rows[name], std = aggregate(per_seed[name])
+        if len(per_seed[name]) > 1:
+            stds[name] = std
+    return rows, stds, per_seed
+
+
+def check_category_bars(rows: dict[str, Row]) -> list[tuple[str, float, float, bool]]:
+    """(bar, value, limit, met) of every entry of the categories table present in ``rows`` (its mean over the
+    seeds); a bar relative to the silhouette fit needs that row."""
+    out = []
+    for name in CATEGORY_RUNS:
+        if name not in rows:
+            continue
+        row = rows[name]
+        for key, op, limit, reference in CATEGORY_BARS.get(name, OTHER_BARS):
+            if reference == "silhouette":
+                if silhouette_row(name) not in rows:
+                    continue
+                bar = f"{name}: {key} {op} {limit} x the silhouette fit's"
+                limit = limit * rows[silhouette_row(name)].get(key, float("nan"))
+            elif reference is not None:
+                bar, limit = f"{name}: {key} {op} {limit} x {reference}", limit * row.get(reference, float("nan"))
+            else:
+                bar = f"{name}: {key} {op} {limit}"
+            value = row.get(key, float("nan"))
+            out.append((bar, value, limit, value <= limit if op == "<=" else value >= limit))  # NaN: missed
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    runs = plan(args)
+    if args.dry_run:
+        print_plan(runs, args)
+        return 0
+    args.out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    if args.table == "categories":
+        prepare_data(runs, args)
+    minutes = train_all(runs, args)
+
+    report = None
+    if args.table == "categories":
+        rows, stds, per_seed = category_rows(runs, minutes, args)
+        bars, order, columns, names = check_category_bars(rows), None, CATEGORY_COLUMNS, args.categories
+        seeds_note = (
+            f"runs: mean ± std (n-1) over seeds {', '.join(map(str, args.car_seeds))} for "
+            f"{', '.join(n for n in names if n in CAR_ENTRIES) or 'no entry'}, seed(s) "
+            f"{', '.join(map(str, args.seeds))} for the others"
+        )
+    else:
+        rows, stds, per_seed, report = ablation_rows(runs, minutes, args)
+        bars, order, columns, names = check_bars(rows), ablation_order(rows, stds), COLUMNS, args.runs
+        seeds_note = (
+            f"runs: mean ± std (n-1) over seeds {', '.join(map(str, args.seeds))}"
+            if len(args.seeds) > 1
+            else f"runs: seed {args.seeds[0]}"
+        )
+
+    curves = plot_curves({n: {r.seed: r.dir for r in runs if r.name == n} for n in names}, args.out / "curves.png")
     total = (time.perf_counter() - start) / 60
-    bars = check_bars(rows)
-    order = ablation_order(rows, stds)
     command = " ".join(["python", "benchmarks/quality.py", *(argv if argv is not None else sys.argv[1:])])
-    seeds_note = (
-        f"runs: mean ± std (n-1) over seeds {', '.join(map(str, args.seeds))}"
-        if len(args.seeds) > 1
-        else f"runs: seed {args.seeds[0]}"
-    )
     bar_lines = [
         f"- {'met' if ok else 'MISSED'}: {bar} (value {value:.3f}, bar {limit:.3f})" for bar, value, limit, ok in bars
     ]
+    threads = threads_per_run(args.jobs, args.threads)
     lines = [
-        markdown_table(rows, stds),
+        markdown_table(rows, stds, columns),
         "",
         seeds_note,
         *([order[0]] if order else []),
@@ -626,7 +876,7 @@ def main(argv: list[str] | None = None) -> int:
         *([*bar_lines, ""] if bar_lines else []),
         f"command: `{command}`",
         f"machine: {machine()}",
-        f"jobs: {args.jobs}, {threads_per_run(args.jobs)} threads per training run",
+        f"jobs: {args.jobs}, {threads} threads per training run",
         f"total time: {total:.1f} min (training, wall minutes per run: "
         + ", ".join(f"{r.label} {minutes[r]:.1f}" for r in runs)
         + ")",
@@ -636,16 +886,18 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "results.json").write_text(
         json.dumps(
             {
+                "table": args.table,
                 "rows": rows,
                 "std": stds,
                 "per_seed": per_seed,
                 "seeds": args.seeds,
+                **({"car_seeds": args.car_seeds} if args.table == "categories" else {}),
                 "bars": [{"bar": b, "value": v, "limit": t, "met": ok} for b, v, t, ok in bars],
                 "order": order[1] if order else None,
                 "command": command,
                 "machine": machine(),
                 "jobs": args.jobs,
-                "threads_per_run": threads_per_run(args.jobs),
+                "threads_per_run": threads,
                 "minutes": {"total": total, "train": {r.label: minutes[r] for r in runs}},
             },
             indent=2,

@@ -145,3 +145,93 @@ def test_ablation_order(quality):
     assert "full 0.230 ± 0.010" in line
     assert [c["holds"] for c in checks] == [True, True, False]  # flip rate: no-neighbor flips less
     assert quality.ablation_order({"full": {}}, {}) is None
+
+
+def test_categories_table_commands_change_only_the_category_and_the_mode(quality, tmp_path):
+    args = quality.parse_args(
+        ["--table", "categories", "--experiment", "synthetic_long", "--out", str(tmp_path), "--data-root", "/d"]
+    )
+    runs = quality.plan(args)
+    # cars over three seeds, the others over one
+    assert [(r.name, r.seed) for r in runs] == [
+        ("car", 0), ("car", 1), ("car", 2), ("chair", 0), ("table", 0), ("lamp", 0), ("mug", 0), ("car-wild", 0)
+    ]  # fmt: skip
+    commands = {(r.name, r.seed): quality.train_command(r, args) for r in runs}
+    recipe = {"experiment=synthetic_long", "dataset.root=/d", "evaluate.enabled=false"}
+    for (name, seed), command in commands.items():
+        category, mode = quality.CATEGORY_RUNS[name]
+        assert command[3] == "experiment=synthetic_long" and recipe <= set(command)
+        assert f"dataset.categories={category}" in command and f"dataset.synthetic.mode={mode}" in command
+        assert f"seed={seed}" in command and f"hydra.run.dir={(tmp_path / 'runs' / name / f'seed{seed}').resolve()}"
+    # the wild mode takes the real family's settings; nothing else differs between two categories' commands
+    assert "family=real" in commands[("car-wild", 0)] and "family=real" not in commands[("car", 0)]
+    chair, mug = commands[("chair", 0)], commands[("mug", 0)]
+    assert [a for a, b in zip(chair, mug) if a != b] == ["dataset.categories=chair", f"hydra.run.dir={runs[3].dir}"]
+    # picking entries and seeds
+    args = quality.parse_args(
+        ["--table", "categories", "--categories", "mug,car", "--car-seeds", "4", "--seeds", "1,2"]
+    )
+    assert [(r.name, r.seed) for r in quality.plan(args)] == [("mug", 1), ("mug", 2), ("car", 4)]
+    assert "dataset.root" not in " ".join(quality.train_command(quality.plan(args)[0], args))
+    for bad in (["--categories", "boat"], ["--car-seeds", "1,1"], ["--threads", "0"]):
+        with pytest.raises(SystemExit):
+            quality.parse_args(["--table", "categories", *bad])
+    # the ablations table is unchanged by the categories options
+    assert [r.name for r in quality.plan(quality.parse_args(["--runs", "full,wild"]))] == ["full", "wild"]
+
+
+def test_dry_run_prints_one_command_per_run(quality, tmp_path, capsys):
+    argv = ["--table", "categories", "--categories", "chair,car-wild", "--jobs", "2", "--threads", "1"]
+    assert quality.main([*argv, "--out", str(tmp_path / "q"), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("# 2 training runs, up to 2 at once, 1 thread(s) each")
+    assert lines[1].startswith("OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m unicorn.cli.train experiment=synthetic")
+    assert "dataset.categories=chair" in lines[1] and "dataset.synthetic.mode=wild family=real" in lines[2]
+    assert not (tmp_path / "q").exists()  # nothing trained, nothing written
+
+
+def test_categories_table_and_bars(quality):
+    rows = {
+        "silhouette fit (GT poses, every view), car": {"chamfer-L1-ICP": 0.2, "mask-iou": 0.95, "shape-top3": 0.9},
+        "car": {
+            "shape-top3": 0.62, "shape-top3-floor": 0.3, "chamfer-L1-ICP": 0.21, "color-ratio": 0.3,
+            "rot-acc-30": 0.96, "rot-flip-150": 0.01, "mask-iou": 0.91, "train-minutes": 9.5,
+        },
+        "chair": {
+            "shape-top3": 0.4, "shape-top3-floor": 0.25, "color-ratio": 0.4, "rot-acc-30": 0.95, "mask-iou": 0.85,
+        },
+    }  # fmt: skip
+    stds = {"car": {"shape-top3": 0.05, "chamfer-L1-ICP": 0.01}}
+    table = quality.markdown_table(rows, stds, quality.CATEGORY_COLUMNS)
+    lines = table.splitlines()
+    assert lines[0] == (
+        "| model | shape top-3 | top-3 floor (scale only) | Chamfer-L1 ICP | colour ratio | rot. acc. 30 deg | "
+        "flipped (> 150 deg) | mask IoU | train (min) |"
+    )
+    assert lines[2] == "| silhouette fit (GT poses, every view), car | 0.90 | – | 0.200 | – | – | – | 0.950 | – |"
+    assert lines[3] == "| car | 0.62 ± 0.05 | 0.30 | 0.210 ± 0.010 | 0.30 | 0.960 | 0.010 | 0.910 | 9.5 |"
+    bars = {bar: ok for bar, _, _, ok in quality.check_category_bars(rows)}
+    assert bars["car: shape-top3 >= 0.6"] and bars["car: shape-top3 >= 2.0 x shape-top3-floor"]
+    assert bars["car: chamfer-L1-ICP <= 1.1 x the silhouette fit's"]  # 0.21 <= 0.22
+    assert not bars["chair: shape-top3 >= 2.0 x shape-top3-floor"]  # 0.4 < 0.5
+    assert bars["chair: mask-iou >= 0.8"] and len(bars) == 7 + 4
+    # without its silhouette row the relative Chamfer bar is left out; a missing metric is missed
+    bars = quality.check_category_bars({"car": {"shape-top3": 0.7}})
+    assert (
+        not any("silhouette" in b for b, *_ in bars) and not dict((b, ok) for b, *_, ok in bars)["car: mask-iou >= 0.9"]
+    )
+
+
+def test_prepare_data_generates_each_dataset_once_with_the_runs_settings(quality, tmp_path, monkeypatch):
+    import unicorn.data
+
+    calls = []
+    monkeypatch.setattr(unicorn.data, "prepare_dataset", lambda *a: calls.append(a) or tmp_path)
+    argv = ["--table", "categories", "--categories", "car,mug,car-wild", "--car-seeds", "0,1", "--data-root", "/d"]
+    args = quality.parse_args([*argv, "--out", str(tmp_path)])
+    quality.prepare_data(quality.plan(args), args)
+    assert [(name, root, category, synthetic["mode"]) for name, root, category, synthetic in calls] == [
+        ("synthetic", "/d", "car", "nmr"),
+        ("synthetic", "/d", "mug", "nmr"),
+        ("synthetic", "/d", "car", "wild"),
+    ]

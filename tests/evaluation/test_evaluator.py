@@ -13,7 +13,7 @@ from unicorn.evaluation import EvalOptions, build_eval_dataset, candidate_shares
 from unicorn.evaluation.baselines import FixedShapeModel
 from unicorn.evaluation.evaluator import collate
 from unicorn.evaluation.interface import spread_indices
-from unicorn.metrics import evaluate_meshes, mask_iou
+from unicorn.metrics import evaluate_meshes, mask_iou, sample_points_from_meshes, shape_retrieval
 
 FAST = dict(batch_size=3, num_points=400, icp_iterations=2, num_pairs=50, progress=False)
 
@@ -172,6 +172,70 @@ def test_own_mean_shape_of_a_one_shape_model_is_that_shape(shapenet_model, synth
     # without ground-truth points (images protocol) the option changes nothing
     plain = evaluate(shapenet_model, data, EvalOptions("images", own_mean_shape=True, **FAST), "synthetic")
     assert "shape-win-own" not in plain.columns
+
+
+SHAPE_COLUMNS = [f"shape-{m}{s}" for s in ("", "-gt", "-floor") for m in ("top1", "top3", "mrr")]
+
+
+class _OneGroup(Dataset):
+    """The items of a dataset as one group (no categories): here 2 objects x 2 views."""
+
+    def __init__(self, data: Dataset) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.data[i]
+
+
+def test_shape_retrieval_against_a_direct_computation(shapenet_model, synth_root) -> None:
+    model = _varied_shapes(shapenet_model)
+    data = _OneGroup(build_eval_dataset("synthetic", str(synth_root), "train", img_size=32))
+    result = evaluate(model, data, EvalOptions("shapenet", shape_points=300, **FAST), "synthetic")
+    assert set(SHAPE_COLUMNS) | {"shape-spread-ratio", "shape-detail-ratio"} <= set(result.columns)
+    batch = collate([data[i] for i in range(len(data))])
+    with torch.no_grad():
+        pred = model.predict(batch["image"])
+    faces = model.template.faces
+    for group in ("synthetic",):
+        rows = [i for i, r in enumerate(result.per_image) if r["group"] == group]
+        objects = sorted({int(batch["model"][i]) for i in rows})
+        assert len(objects) == 2 and len(rows) == 4  # two views of each object: two candidates
+        # the candidates: the first 300 of a seeded permutation of each object's ground-truth points
+        candidates = torch.stack(
+            [
+                batch["points"][i][torch.randperm(len(batch["points"][i]), generator=torch.Generator().manual_seed(o))]
+                for o in objects
+                for i in [next(j for j in rows if int(batch["model"][j]) == o)]
+            ]
+        )[:, :300].double()
+        points = torch.stack([sample_points_from_meshes(pred.verts[i], faces, 300, seed=0)[0] for i in rows]).double()
+        in_view = points @ pred.R[rows].double() + pred.T[rows, None].double()
+        targets = torch.tensor([objects.index(int(batch["model"][i])) for i in rows])
+        direct = shape_retrieval(in_view, batch["R"][rows], candidates, targets)
+        for k, i in enumerate(rows):
+            assert result.per_image[i]["shape-top1"] == pytest.approx(float(direct["top1"][k]))
+            assert result.per_image[i]["shape-mrr"] == pytest.approx(float(direct["rr"][k]))
+        assert 0 < next(r for r in result.table if r["group"] == group)["shape-spread-ratio"]
+
+
+def test_shape_retrieval_of_a_one_shape_model_is_its_floor(shapenet_model, synth_root) -> None:
+    # one mesh for every image: its mean canonical mesh times its scale is itself, and its shapes do not spread
+    data = _OneGroup(build_eval_dataset("synthetic", str(synth_root), "train", img_size=32))
+    one_shape = FixedShapeModel(shapenet_model, shapenet_model.template.verts * 0.8, pose="predicted")
+    result = evaluate(one_shape, data, EvalOptions("shapenet", shape_points=200, **FAST), "synthetic")
+    assert "shape-top1" in result.columns
+    for row in result.per_image:
+        for m in ("top1", "top3", "mrr"):
+            assert row[f"shape-{m}"] == row[f"shape-{m}-floor"]
+    assert all(row["shape-spread-ratio"] == 0 and row["shape-detail-ratio"] == 0 for row in result.table)
+    off = evaluate(one_shape, data, EvalOptions("shapenet", shape_points=0, **FAST), "synthetic")
+    assert not {"shape-top1", "shape-spread-ratio"} & set(off.columns)
+    # one object per category: nothing to retrieve it from
+    per_category = evaluate(one_shape, data.data, EvalOptions("shapenet", shape_points=200, **FAST), "synthetic")
+    assert "shape-top1" not in per_category.columns
 
 
 def test_cub_protocol(real_model, cub_root) -> None:

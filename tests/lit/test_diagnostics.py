@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,6 +14,7 @@ from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
+from unicorn.lit.diagnostics import collapse_reasons
 from unicorn.model import Unicorn
 
 
@@ -111,6 +113,39 @@ def test_a_collapsed_branch_warns_loudly(tmp_path) -> None:
     assert set(fresh.collapsed) == {"shape"} and "dead ReLUs" in str(caught[0].message)
     with pytest.raises(ValueError, match="max_images"):
         CodeDiagnostics(max_images=1)
+
+
+def test_a_shape_code_far_less_spread_than_the_texture_code_warns(tmp_path) -> None:
+    stats = {"active-dims": 4.0, "code-std": 0.005, "alive-last": 27.0, "units-last": 64.0}
+    # the main job's numbers: shape 0.005 against texture 0.50, far above the absolute tolerance
+    assert collapse_reasons(stats, 1e-6) == []
+    reasons = collapse_reasons(stats, 1e-6, reference=("texture", 0.5), min_ratio=0.05)
+    assert len(reasons) == 1 and "0.01 of the texture code's 0.5 (below 0.05)" in reasons[0]
+    assert collapse_reasons(stats, 1e-6, reference=("texture", 0.09), min_ratio=0.05) == []  # 0.056 of it: fine
+    assert collapse_reasons(stats, 1e-6, judge_spread=False, reference=("texture", 0.5), min_ratio=0.05) == []
+
+    # in the callback: a shape code scaled down to 1 % of its spread (the texture code's is untouched)
+    model = _model()
+    images = torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(3))
+    base = code_diagnostics(model, images)
+    ratio = base["shape"]["code-std"] / base["texture"]["code-std"]
+    assert ratio > 0.05  # the untrained model's codes vary alike
+    with torch.no_grad():  # the code's variation is its last layer's weight times the hidden units'
+        model.shape.regressor[-1].weight.mul_(0.01 * 0.05 / ratio)
+    trainer = SimpleNamespace(global_step=5, loggers=[], default_root_dir=str(tmp_path))
+    module = _LitStandIn(model)
+    for threshold, warns in ((0.05, True), (0.0, False)):
+        callback = CodeDiagnostics(every_n_steps=1, max_images=8, shape_spread_ratio=threshold)
+        callback._images.extend(images.unbind(0))
+        callback._dims = {b: base[b]["active-dims"] for b in base}  # code sizes settled
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            row = callback.check(trainer, module)
+        assert row["shape/code-std"] < 0.05 * row["texture/code-std"] and row["shape/code-std"] > 1e-6
+        assert ("shape" in callback.collapsed) is warns
+        assert any(issubclass(w.category, CollapseWarning) for w in caught) is warns
+    with pytest.raises(ValueError, match="shape_spread_ratio"):
+        CodeDiagnostics(shape_spread_ratio=-1.0)
 
 
 # in a training run (rows in diagnostics.csv, training unchanged): tests/lit/test_heldout.py

@@ -80,6 +80,14 @@ def build_parser() -> argparse.ArgumentParser:
         "with each image's predicted pose (chamfer-L1-ICP-own-mean, shape-win-own): do the per-image shapes "
         "follow the objects?",
     )
+    p.add_argument(
+        "--shape-points",
+        type=int,
+        default=2000,
+        help="ShapeNet / synthetic: points per shape of the shape retrieval (shape-top1, shape-top3, shape-mrr, their "
+        "-gt ceiling and -floor, shape-spread-ratio): is each reconstruction closest to its own object among the "
+        "evaluated ones? 0: off",
+    )
     p.add_argument("--no-align-pose", action="store_true", help="pose errors without canonical-frame alignment")
     p.add_argument(
         "--template-level",
@@ -203,6 +211,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         seed=args.seed,
         progress=not args.quiet,
         own_mean_shape=args.own_mean_shape,
+        shape_points=args.shape_points,
     )
     if device.type == "cpu" and get_protocol(protocol).meshes is not None and options.icp_iterations > 30:
         # the ICP's nearest-neighbour searches dominate: about 1 s per iteration and image at 100k points on CPU
@@ -249,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     if args.max_images is not None and args.max_images < 1:
         parser.error("--max-images must be positive")
-    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "max_image_pixels"):
+    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "max_image_pixels", "shape_points"):
         if (getattr(args, name) or 0) < 0:
             parser.error(f"--{name.replace('_', '-')} must be >= 0")
     # ValueError and KeyError: what the dataset and protocol builders raise on unknown names and bad layouts

@@ -250,6 +250,7 @@ def evaluate_run(run: Run) -> Path:
     argv += [f"--icp-iterations={e.icp_iterations}", f"--batch-size={e.batch_size}"]
     argv += [f"--report-samples={e.report_samples}", f"--turntable-frames={e.turntable_frames}"]
     argv += [f"--mean-shape={e.mean_shape_iterations}"] + (["--own-mean-shape"] if e.own_mean_shape else [])
+    argv += [f"--shape-points={e.shape_points}"]
     argv += [f"--max-images={e.max_images}"] if e.max_images is not None else []
     meta = {
         **provenance(
@@ -270,6 +271,7 @@ def evaluate_run(run: Run) -> Path:
         average_texture=run.module.constant_mean_textures,
         report_samples=e.report_samples,
         own_mean_shape=e.own_mean_shape,
+        shape_points=e.shape_points,
     )
     log.info("evaluating the trained model on the %s split", e.split)
     evaluate_to_folder(

@@ -143,15 +143,16 @@ def _check_values(cfg: DictConfig) -> None:
         _check(h.split in ("val", "test"), f"callbacks.heldout.split must be val or test, got {h.split!r}")
         _check(
             min(h.every_n_steps, h.max_images, h.num_points, h.batch_size, h.mean_shape_models) >= 1
-            and min(h.icp_iterations, h.mean_shape_iterations) >= 0,
+            and min(h.icp_iterations, h.mean_shape_iterations, h.shape_points) >= 0,
             "callbacks.heldout: every_n_steps, max_images, num_points, batch_size and mean_shape_models must be >= 1, "
-            "icp_iterations and mean_shape_iterations >= 0",
+            "icp_iterations, mean_shape_iterations and shape_points >= 0",
         )
     d = cfg.callbacks.diagnostics
     if d is not None:
         _check(
-            d.every_n_steps >= 1 and d.max_images >= 2 and d.spread_tol >= 0,
-            "callbacks.diagnostics: every_n_steps must be >= 1, max_images >= 2 and spread_tol >= 0",
+            d.every_n_steps >= 1 and d.max_images >= 2 and d.spread_tol >= 0 and d.shape_spread_ratio >= 0,
+            "callbacks.diagnostics: every_n_steps must be >= 1, max_images >= 2, spread_tol and shape_spread_ratio "
+            ">= 0",
         )
     e = cfg.evaluate
     _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")
@@ -160,7 +161,7 @@ def _check_values(cfg: DictConfig) -> None:
         "evaluate: max_images must be null or >= 1, num_points and batch_size >= 1",
     )
     _check(
-        min(e.icp_iterations, e.report_samples, e.turntable_frames, e.mean_shape_iterations) >= 0,
+        min(e.icp_iterations, e.report_samples, e.turntable_frames, e.mean_shape_iterations, e.shape_points) >= 0,
         "evaluate: counts must be >= 0",
     )
     for group in ("logger",):

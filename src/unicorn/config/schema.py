@@ -203,6 +203,7 @@ class HeldOutConfig:
     mean_shape_iterations: int = 0  # > 0: score the training shapes' mean shape beside the model (shape-win)
     mean_shape_models: int = 200
     own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
+    shape_points: int = 1000  # > 0: shape retrieval among the held-out objects (shape-top1, ...), points per shape
 
 
 @dataclass
@@ -213,6 +214,7 @@ class DiagnosticsConfig:
     every_n_steps: int = 100
     max_images: int = 64
     spread_tol: float = 1e-6
+    shape_spread_ratio: float = 0.05  # the shape code collapses below this fraction of the texture code's spread
 
 
 @dataclass
@@ -239,6 +241,7 @@ class EvaluateConfig:
     turntable_frames: int = 16
     mean_shape_iterations: int = 0  # > 0: the training shapes' mean shape scored beside the model (shape-win)
     own_mean_shape: bool = False  # the model's own average shape scored beside it (shape-win-own)
+    shape_points: int = 2000  # > 0: shape retrieval among the evaluated objects (shape-top1, ...), points per shape
 
 
 @dataclass

@@ -149,8 +149,8 @@ class ShapeNetNMR(UnicornDataset):
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
 
     Items: ``image`` (3, H, W), ``mask`` (1, H, W), ``R`` (3, 3), ``T`` (3,) (``has_pose`` True),
-    ``category`` (index into :attr:`synsets`), ``view``, optionally ``points``/``normals`` (P, 3) in the
-    object frame of ``R``/``T``.
+    ``category`` (index into :attr:`synsets`), ``model`` (index into :attr:`models`: which object), ``view``,
+    optionally ``points``/``normals`` (P, 3) in the object frame of ``R``/``T``.
     """
 
     def __init__(
@@ -252,6 +252,7 @@ class ShapeNetNMR(UnicornDataset):
             "has_pose": torch.tensor(True),
             "has_mask": torch.tensor(True),
             "category": torch.tensor(category, dtype=torch.int64),
+            "model": torch.tensor(model, dtype=torch.int64),
             "view": torch.tensor(view, dtype=torch.int64),
         }
         if self.with_points:

@@ -22,11 +22,20 @@ from unicorn.evaluation.protocols import (
     COLOR_INTERIOR,
     EvalOptions,
     EvaluationResult,
+    Protocol,
     Sample,
     get_protocol,
 )
 from unicorn.evaluation.rendering import hard_render, vertex_visibility
-from unicorn.evaluation.tables import Accumulator, candidate_shares, color_scores, summary_table
+from unicorn.evaluation.tables import (
+    Accumulator,
+    ShapeEntry,
+    candidate_shares,
+    color_scores,
+    object_samples,
+    shape_scores,
+    summary_table,
+)
 from unicorn.metrics import (
     evaluate_meshes,
     mask_iou,
@@ -275,6 +284,24 @@ def evaluate(
                 own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T)["chamfer-L1-ICP"]
                 scores["chamfer-L1-ICP-own-mean"] = own
                 scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
+        if _retrieves_shapes(protocol, options, batch):
+            for i, g in enumerate(groups):
+                obj = int(batch["model"][i])
+                objects = acc.objects.setdefault(g, {})
+                if obj not in objects:
+                    objects[obj] = object_samples(batch["points"][i], options.shape_points, options.seed + obj)
+                acc.shapes.setdefault(g, []).append(
+                    ShapeEntry(
+                        len(acc.rows) + i,  # the index its row will have
+                        obj,
+                        pred.verts[i].cpu(),
+                        pred.canonical_verts[i].cpu(),
+                        pred.scale[i].cpu(),
+                        R[i].cpu(),
+                        T[i].cpu(),
+                        batch["R"][i].cpu(),
+                    )
+                )
         if protocol.poses and not oracle and bool(batch["has_pose"].all()):
             for i, g in enumerate(groups):
                 # the index its row will have: the rows of this batch are appended below
@@ -323,9 +350,22 @@ def evaluate(
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
     color_scores(acc)
+    shape_scores(acc, faces, options)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = summary_table(acc, model, options, shares)
     return EvaluationResult(protocol.name, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
+
+
+def _retrieves_shapes(protocol: Protocol, options: EvalOptions, batch: Mapping[str, Any]) -> bool:
+    """Whether the batch enters the shape retrieval: ground-truth points and poses, and each item's object."""
+    return (
+        options.shape_points > 0
+        and protocol.meshes == "posed"
+        and isinstance(batch.get("model"), torch.Tensor)
+        and "points" in batch
+        and isinstance(batch.get("has_pose"), torch.Tensor)
+        and bool(batch["has_pose"].all())
+    )
 
 
 def _wins(ours: torch.Tensor, base: torch.Tensor) -> torch.Tensor:

@@ -48,6 +48,22 @@ outputs the category mean:
   two questions (is the category shape accurate? is each shape the image's?); this one asks only the second:
   a model that outputs one shape for every image ties its own mean (win share 0.5 from ties), one whose
   per-image shapes follow the objects wins on most of them;
+- shape identity (``EvalOptions.shape_points`` > 0, protocols with ground-truth points and poses, items that
+  name their object, ``model``): per image ``shape-top1`` / ``shape-top3`` / ``shape-mrr``, whether the image's
+  object is the closest / among the 3 closest / at which rank (reciprocal) among the group's evaluated objects
+  (distinct objects: several views of one object make one candidate), from its reconstruction
+  (:func:`~unicorn.metrics.shape_retrieval`): the predicted mesh at its pose, in view coordinates, against each
+  object's ground truth seen in the image's view (its ground-truth pose), both normalised for the size that one
+  image cannot know (centred, unit RMS radius: proportions are kept) and compared by Chamfer-L1. Chance is
+  ``1 / C`` and ``3 / C`` for C objects. Beside it, through the same measure, its ceiling ``shape-*-gt`` (a
+  sample of the image's ground-truth surface independent of the candidates') and its floor ``shape-*-floor`` (the
+  model's mean canonical mesh over the group's images times the image's predicted scale, at the same pose: what
+  the scale alone identifies). Per group ``shape-spread-ratio``, how much the predicted shapes differ over how
+  much the ground-truth shapes do (:func:`~unicorn.metrics.shape_spread`: the mean Chamfer-L1 between two
+  normalised shapes of different objects): 0 for a model emitting one shape, near 1 when the predicted shapes
+  vary as the objects do; ``shape-detail-ratio``, the same with each shape normalised along each axis (the
+  predicted meshes in their canonical frame, whose axes the anisotropic scale stretches): what varies beyond the
+  proportions, 0 for a model emitting one shape stretched by a per-image scale;
 - pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round; each
   image's own error after the alignment is kept in its row (``rot-err``, degrees), so that one can see, e.g.,
   whether the flipped views are whole objects turned round or scattered views.
@@ -161,6 +177,32 @@ METRICS: dict[str, tuple[str, str]] = {
         "higher",
         "share of objects on which the model's own prediction beats its own average shape (0.5: one shape for all)",
     ),
+    "shape-top1": (
+        "higher",
+        "share of images whose object is the closest of the group's objects to the reconstruction (normalised "
+        "Chamfer-L1 in the image's view; chance 1 / objects)",
+    ),
+    "shape-top3": ("higher", "... among the 3 closest (chance 3 / objects)"),
+    "shape-mrr": ("higher", "mean reciprocal rank of the image's object among the group's objects"),
+    "shape-top1-gt": ("higher", "shape-top1 of a ground-truth surface sample: the ceiling of the measure"),
+    "shape-top3-gt": ("higher", "shape-top3 of a ground-truth surface sample"),
+    "shape-mrr-gt": ("higher", "shape-mrr of a ground-truth surface sample"),
+    "shape-top1-floor": (
+        "higher",
+        "shape-top1 of the model's mean canonical mesh times the image's predicted scale: what the scale alone gives",
+    ),
+    "shape-top3-floor": ("higher", "shape-top3 of the mean canonical mesh times the image's scale"),
+    "shape-mrr-floor": ("higher", "shape-mrr of the mean canonical mesh times the image's scale"),
+    "shape-spread-ratio": (
+        "higher",
+        "mean normalised Chamfer-L1 between the predicted shapes of two objects over the same for the ground "
+        "truth (0: one shape for all)",
+    ),
+    "shape-detail-ratio": (
+        "higher",
+        "the same with each shape scaled to a unit RMS along each axis: the spread beyond the proportions "
+        "(0: one shape for all, anisotropically scaled)",
+    ),
     "rec-mse": ("lower", "mean squared error of the model's rendering (with its background) against the input"),
 }
 #: column order of the tables; "lower" / "higher" says which way is better
@@ -258,6 +300,10 @@ class EvalOptions:
         own_mean_shape: also score, per image, the model's own average shape over the group's evaluated images
             (``chamfer-L1-ICP-own-mean``, ``shape-win-own``; only with ground-truth points and ICP, otherwise
             ignored). Costs one more forward pass over the dataset and doubles the Chamfer work.
+        shape_points: points per shape of the shape retrieval (``shape-top1`` ..., ``shape-spread-ratio``); 0: off.
+            It costs ``3 Q C + 4 Q^2`` Chamfer distances between clouds of this size per group of Q images of C
+            objects (retrieval of three reconstructions, two spreads of the predicted and ground-truth shapes), so
+            it grows with the square of the group's size: meant for sets of tens to a few hundred images.
     """
 
     protocol: str = "shapenet"
@@ -278,14 +324,15 @@ class EvalOptions:
     progress_leave: bool = True
     oracle_pose: bool = False
     own_mean_shape: bool = False
+    shape_points: int = 2000
 
     def __post_init__(self) -> None:
         protocol = get_protocol(self.protocol)
         for name in ("batch_size", "num_points", "mask_supersample", "visibility_supersample", "num_pairs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.icp_iterations < 0 or self.report_samples < 0:
-            raise ValueError("icp_iterations and report_samples must be >= 0")
+        if self.icp_iterations < 0 or self.report_samples < 0 or self.shape_points < 0:
+            raise ValueError("icp_iterations, report_samples and shape_points must be >= 0")
         if self.oracle_pose and not protocol.poses:
             # the other protocols have no ground-truth pose to substitute
             raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")

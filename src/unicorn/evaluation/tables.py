@@ -1,14 +1,17 @@
-"""What an evaluation collects per image and how it sums it up: colour errors, per-group tables, set metrics.
+"""What an evaluation collects per image and how it sums it up: colour errors, shape retrieval, per-group tables,
+set metrics.
 
-:func:`unicorn.evaluation.evaluate` fills an :class:`Accumulator` batch by batch, then :func:`color_scores` and
-:func:`summary_table` turn it into the per-image rows and the per-group table (pose errors after the
-canonical-frame alignment, PCK by keypoint transfer, pose-candidate usage, colour ratio).
+:func:`unicorn.evaluation.evaluate` fills an :class:`Accumulator` batch by batch, then :func:`color_scores`,
+:func:`shape_scores` and :func:`summary_table` turn it into the per-image rows and the per-group table (pose
+errors after the canonical-frame alignment, PCK by keypoint transfer, pose-candidate usage, colour ratio, shape
+spread ratio).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -17,9 +20,42 @@ import torch
 from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.protocols import METRIC_ORDER, ROW_INFO, EvalOptions
 from unicorn.geometry.cameras import PerspectiveCamera
-from unicorn.metrics import align_canonical_frame, color_errors, geodesic_error, keypoint_transfer_pck, pose_errors
+from unicorn.metrics import (
+    align_canonical_frame,
+    color_errors,
+    geodesic_error,
+    keypoint_transfer_pck,
+    pose_errors,
+    sample_points_from_meshes,
+    shape_retrieval,
+    shape_spread,
+)
 
-__all__ = ["Accumulator", "candidate_shares", "color_scores", "summary_table"]
+__all__ = ["Accumulator", "ShapeEntry", "candidate_shares", "color_scores", "shape_scores", "summary_table"]
+
+
+@dataclass(frozen=True)
+class ShapeEntry:
+    """What the shape retrieval keeps of one image (CPU tensors).
+
+    Attributes:
+        row: the image's row number.
+        obj: which object the image shows (unique within its group).
+        verts: (V, 3) the predicted object-frame mesh; canonical: (V, 3) its canonical mesh (before the
+            scale); scale: (3,) its anisotropic scale.
+        R: (3, 3); T: (3,) the pose it is placed with (the predicted one, or the ground truth's with
+            ``oracle_pose``).
+        R_gt: (3, 3) the image's ground-truth rotation.
+    """
+
+    row: int
+    obj: int
+    verts: torch.Tensor
+    canonical: torch.Tensor
+    scale: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    R_gt: torch.Tensor
 
 
 class Accumulator:
@@ -36,6 +72,11 @@ class Accumulator:
         self.n_candidates = 0
         # per group: (row number, reconstruction's mean foreground colour (3,), input's (3,))
         self.colors: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}
+        # shape retrieval, per group: each image's entry, and each object's ground-truth points, (2 n, 3): the
+        # candidates' n then the ceiling's n (two independent samples of its surface)
+        self.shapes: dict[str, list[ShapeEntry]] = {}
+        self.objects: dict[str, dict[int, torch.Tensor]] = {}
+        self.spread_ratio: dict[str, dict[str, float]] = {}  # group -> shape-spread-ratio, shape-detail-ratio
 
 
 def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
@@ -75,6 +116,73 @@ def color_scores(acc: Accumulator) -> None:
             acc.rows[r]["color-err"], acc.rows[r]["color-err-mean"] = m, b
 
 
+def object_samples(points: torch.Tensor, n: int, seed: int) -> torch.Tensor:
+    """Two disjoint random subsets of a ground-truth cloud, ``(2 n', 3)`` with ``n' = min(n, P // 2)``: the first
+    half stands for the object among the candidates, the second for its ground truth as a reconstruction."""
+    k = min(n, points.shape[0] // 2)
+    if k < 1:
+        raise ValueError(f"a ground-truth cloud of {points.shape[0]} points cannot give two samples")
+    keep = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(seed))[: 2 * k]
+    return points[keep]
+
+
+def _sample(verts: torch.Tensor, faces: torch.Tensor, n: int, seed: int) -> torch.Tensor:
+    """(B, n, 3) points on each mesh, every mesh with the same random numbers (one shape repeated: one cloud)."""
+    return torch.stack([sample_points_from_meshes(v, faces, n, seed=seed)[0] for v in verts])
+
+
+def shape_scores(acc: Accumulator, faces: torch.Tensor, options: EvalOptions) -> None:
+    """Per-image shape retrieval among the group's objects and the group's shape spread ratio.
+
+    Per image ``shape-top1``, ``shape-top3``, ``shape-mrr`` (its reciprocal rank; the group mean is the MRR) of
+    :func:`~unicorn.metrics.shape_retrieval` for three reconstructions placed at the image's pose: the model's
+    (``shape-*``), an independent sample of the ground truth (``shape-*-gt``, the ceiling) and the model's mean
+    canonical mesh over the group's images times the image's scale (``shape-*-floor``, the scale-only
+    predictor). Per group, in :attr:`Accumulator.spread_ratio`: the predicted meshes'
+    :func:`~unicorn.metrics.shape_spread` over the ground truth's, ``shape-spread-ratio`` (proportions count) and
+    ``shape-detail-ratio`` (each axis normalised: the predicted meshes in their canonical frame, whose axes the
+    anisotropic scale stretches, the ground truths in their object frame). A group of one object is left out
+    (nothing to tell it from).
+    """
+    n, seed = options.shape_points, options.seed
+    workers = torch.get_num_threads() if options.nn_workers is None else options.nn_workers
+    for group, entries in acc.shapes.items():
+        objects = acc.objects[group]
+        ids = sorted(objects)
+        if len(ids) < 2:
+            continue
+        k = min(x.shape[0] for x in objects.values()) // 2
+        candidates = torch.stack([objects[i][:k] for i in ids]).double()  # (C, k, 3)
+        ceiling = torch.stack([objects[i][k : 2 * k] for i in ids]).double()
+        targets = torch.tensor([ids.index(e.obj) for e in entries])
+        R, T, R_gt = (torch.stack([getattr(e, a) for e in entries]).double() for a in ("R", "T", "R_gt"))
+        verts = torch.stack([e.verts for e in entries]).double()
+        mean_canonical = torch.stack([e.canonical for e in entries]).double().mean(dim=0)
+        floor = mean_canonical * torch.stack([e.scale for e in entries]).double()[:, None]
+        faces_ = faces.cpu()
+        own = _sample(verts, faces_, n, seed)  # (Q, n, 3) in the object frame
+        queries = {
+            "": own @ R + T[:, None],
+            "-gt": ceiling[targets] @ R_gt,  # the object seen in the image's view (T: taken out by centring)
+            "-floor": _sample(floor, faces_, n, seed) @ R + T[:, None],
+        }
+        for suffix, points in queries.items():
+            got = shape_retrieval(points, R_gt, candidates, targets, workers=workers)
+            for i, e in enumerate(entries):
+                row = acc.rows[e.row]
+                row[f"shape-top1{suffix}"] = float(got["top1"][i])
+                row[f"shape-top3{suffix}"] = float(got["top3"][i])
+                row[f"shape-mrr{suffix}"] = float(got["rr"][i])
+        image_objects = torch.tensor([e.obj for e in entries])
+        # the detail: the canonical meshes (one canonical mesh at any scale: one cloud, no spread)
+        canonical = _sample(torch.stack([e.canonical for e in entries]).double(), faces_, n, seed)
+        ratios = {}
+        for name, predicted, per_axis in (("shape-spread-ratio", own, False), ("shape-detail-ratio", canonical, True)):
+            truth = shape_spread(candidates[targets], image_objects, per_axis, workers=workers)
+            ratios[name] = shape_spread(predicted, image_objects, per_axis, workers=workers) / truth
+        acc.spread_ratio[group] = ratios
+
+
 def _set_metrics(
     acc: Accumulator,
     group: str,
@@ -91,6 +199,8 @@ def _set_metrics(
     if errors:
         model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
         out["color-ratio"] = model_mean / base_mean if base_mean > 0 else float("nan")
+    if group in acc.spread_ratio:
+        out.update(acc.spread_ratio[group])
     if group in acc.poses:
         rows, R_pred, R_gt = zip(*acc.poses[group])
         R_pred, R_gt = torch.stack(R_pred), torch.stack(R_gt)

@@ -17,10 +17,12 @@ N iterations on the most recent training images:
 Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
 check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its
 code is constant, masked or not), or when its active code dimensions vary, on average, by less than
-``spread_tol`` across the images (not judged on the first check after its code size changed: a newly unmasked
-dimension starts at 0 and needs a few iterations to move): the callback then emits a :class:`CollapseWarning`
-and a log error naming the branch, the step and the numbers, once when it happens (and again at the end of
-training if it has not recovered).
+``spread_tol`` across the images, or (the shape branch) by less than ``shape_spread_ratio`` times the texture
+code's spread: a shape code that barely moves while the texture code does means one shape for every image, which
+an absolute tolerance near 0 does not catch (the spreads are not judged on the first check after a code size
+changed: a newly unmasked dimension starts at 0 and needs a few iterations to move). The callback then emits a
+:class:`CollapseWarning` and a log error naming the branch, the step and the numbers, once when it happens (and
+again at the end of training if it has not recovered).
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ log = logging.getLogger(__name__)
 
 #: the branches whose code regressors are watched (``background`` only when the model has one)
 BRANCHES = ("shape", "texture", "background")
+#: branch -> the branch whose code spread it is compared with (``CodeDiagnostics.shape_spread_ratio``)
+SPREAD_REFERENCE = {"shape": "texture"}
 
 
 class CollapseWarning(UserWarning):
@@ -102,10 +106,18 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
     return out
 
 
-def collapse_reasons(stats: dict[str, float], spread_tol: float, judge_spread: bool = True) -> list[str]:
+def collapse_reasons(
+    stats: dict[str, float],
+    spread_tol: float,
+    judge_spread: bool = True,
+    reference: tuple[str, float] | None = None,
+    min_ratio: float = 0.0,
+) -> list[str]:
     """Why a branch's numbers (one entry of :func:`code_diagnostics`) say it collapsed; empty when it did not.
 
-    ``judge_spread=False`` skips the spread criterion (right after the code size changed)."""
+    ``judge_spread=False`` skips the spread criteria (right after the code size changed). ``reference``:
+    ``(branch name, its code-std)``, another branch's spread that this one's must reach ``min_ratio`` times of
+    (not judged when that spread is not positive)."""
     reasons = []
     if stats.get("alive-last") == 0:
         reasons.append(
@@ -117,6 +129,14 @@ def collapse_reasons(stats: dict[str, float], spread_tol: float, judge_spread: b
             f"its {int(stats['active-dims'])} active code dimensions vary by {stats['code-std']:.2g} on average "
             f"(std across images, tolerance {spread_tol:g}): the code ignores the image"
         )
+    elif judge_spread and reference is not None and stats["active-dims"] > 0 and reference[1] > 0:
+        name, spread = reference
+        if not stats["code-std"] >= min_ratio * spread:
+            reasons.append(
+                f"its {int(stats['active-dims'])} active code dimensions vary by {stats['code-std']:.2g} on average, "
+                f"{stats['code-std'] / spread:.2g} of the {name} code's {spread:.2g} (below {min_ratio:g}): the code "
+                "hardly depends on the image"
+            )
     return reasons
 
 
@@ -127,6 +147,8 @@ class CodeDiagnostics(L.Callback):
         every_n_steps: check period in iterations (also after the last iteration).
         max_images: the most recent training images kept for the check (at least 2 are needed).
         spread_tol: a code whose active dimensions' std across the images is below this on average has collapsed.
+        shape_spread_ratio: so has a shape code whose spread is below this fraction of the texture code's
+            (:data:`SPREAD_REFERENCE`); 0: no relative check.
         filename: the CSV file, relative to the run directory.
     """
 
@@ -135,13 +157,15 @@ class CodeDiagnostics(L.Callback):
         every_n_steps: int = 100,
         max_images: int = 64,
         spread_tol: float = 1e-6,
+        shape_spread_ratio: float = 0.05,
         filename: str = "diagnostics.csv",
     ) -> None:
         if every_n_steps < 1 or max_images < 2:
             raise ValueError(f"need every_n_steps >= 1 and max_images >= 2, got {every_n_steps}, {max_images}")
-        if not spread_tol >= 0:
-            raise ValueError(f"spread_tol must be >= 0, got {spread_tol}")
+        if not (spread_tol >= 0 and shape_spread_ratio >= 0):
+            raise ValueError(f"spread_tol and shape_spread_ratio must be >= 0, got {spread_tol}, {shape_spread_ratio}")
         self.every_n_steps, self.max_images, self.spread_tol = int(every_n_steps), int(max_images), float(spread_tol)
+        self.shape_spread_ratio = float(shape_spread_ratio)
         self.filename = filename
         self._images: deque[torch.Tensor] = deque(maxlen=self.max_images)
         self.collapsed: dict[str, list[str]] = {}  # branch -> reasons, while collapsed
@@ -193,7 +217,13 @@ class CodeDiagnostics(L.Callback):
             row.update({f"{branch}/{k}": v for k, v in values.items()})
             settled = self._dims.get(branch) == values["active-dims"]
             self._dims[branch] = values["active-dims"]
-            reasons = collapse_reasons(values, self.spread_tol, judge_spread=settled)
+            other = SPREAD_REFERENCE.get(branch)
+            reference = None
+            if other in stats and self.shape_spread_ratio > 0 and math.isfinite(stats[other]["code-std"]):
+                reference = (other, stats[other]["code-std"])
+            reasons = collapse_reasons(
+                values, self.spread_tol, judge_spread=settled, reference=reference, min_ratio=self.shape_spread_ratio
+            )
             if reasons and branch not in self.collapsed:
                 self._warn(f"the {branch} branch collapsed at iteration {step}: " + "; ".join(reasons))
             elif not reasons and branch in self.collapsed:

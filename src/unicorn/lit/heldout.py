@@ -12,7 +12,9 @@ and, with ``mean_shape_iterations`` > 0 on a dataset with ground-truth point clo
 shape (fitted once, at the start) scored on the same objects (``chamfer-L1-ICP-mean-shape``) and the share of
 objects on which the model is closer (``shape-win``); with ``own_mean_shape``, the model's own average shape
 over the held-out images scored the same way (``chamfer-L1-ICP-own-mean``, ``shape-win-own``): whether the
-per-image shapes follow the objects, whatever the accuracy of the category's shape.
+per-image shapes follow the objects, whatever the accuracy of the category's shape; and with ``shape_points`` > 0
+the shape retrieval among the held-out objects (``shape-top1``, ``shape-top3``, ``shape-mrr``, their ``-gt``
+ceiling and ``-floor``, ``shape-spread-ratio``, ``shape-detail-ratio``).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class HeldOutEvaluation(L.Callback):
             ``icp_iterations`` > 0.
         mean_shape_models: most training shapes the mean shape is fitted to.
         own_mean_shape: also score the model's own average shape (``EvalOptions.own_mean_shape``).
+        shape_points: points per shape of the shape retrieval (``EvalOptions.shape_points``); 0: off.
         progress: a progress bar while scoring (erased when done; a line is logged before and after either way).
     """
 
@@ -71,14 +74,15 @@ class HeldOutEvaluation(L.Callback):
         mean_shape_iterations: int = 0,
         mean_shape_models: int = 200,
         own_mean_shape: bool = False,
+        shape_points: int = 1000,
         progress: bool = True,
     ) -> None:
         if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
             raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
         if split not in ("val", "test"):
             raise ValueError(f"split must be 'val' or 'test', got {split!r}")
-        if icp_iterations < 0:
-            raise ValueError(f"icp_iterations must be >= 0, got {icp_iterations}")
+        if icp_iterations < 0 or shape_points < 0:
+            raise ValueError(f"icp_iterations and shape_points must be >= 0, got {icp_iterations}, {shape_points}")
         if mean_shape_iterations < 0 or mean_shape_models < 1:
             raise ValueError(
                 f"mean_shape_iterations must be >= 0 and mean_shape_models >= 1, got {mean_shape_iterations}, "
@@ -89,7 +93,7 @@ class HeldOutEvaluation(L.Callback):
         self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
         self.mean_shape_iterations, self.mean_shape_models = int(mean_shape_iterations), int(mean_shape_models)
         self.mean_shape: torch.Tensor | None = None  # (V, 3), fitted with the dataset
-        self.own_mean_shape = bool(own_mean_shape)
+        self.own_mean_shape, self.shape_points = bool(own_mean_shape), int(shape_points)
         self._dataset: Any = None
         self._name = "dataset"
         self.history: list[dict[str, float]] = []
@@ -157,6 +161,7 @@ class HeldOutEvaluation(L.Callback):
             progress_label=f"held-out {self.split}",
             progress_leave=False,
             own_mean_shape=self.own_mean_shape,
+            shape_points=self.shape_points,
         )
         step = int(trainer.global_step)
         log.info("held-out %s: scoring %d images at iteration %d", self.split, len(self._dataset), step)

@@ -1,6 +1,7 @@
 """Evaluation metrics of UNICORN: Chamfer-L1 (with GT-pose alignment or ICP), normal consistency, mask IoU,
 keypoint-transfer PCK, pose errors and voxel IoU; and instance-level metrics (colour error against the
-mean-colour predictor, win share against a baseline, flip rate, code spread and active units).
+mean-colour predictor, win share against a baseline, shape retrieval among the evaluated objects, shape spread,
+flip rate, code spread and active units).
 
 Each metric is a plain function on tensors; see the submodules for the protocols they follow.
 """
@@ -11,6 +12,7 @@ from .chamfer import (
     PointCloudScores,
     chamfer_l1,
     chamfer_l2,
+    chamfer_matrix,
     normal_consistency,
     point_cloud_scores,
 )
@@ -28,7 +30,11 @@ from .instance import (
     color_errors,
     flip_rate,
     mean_foreground_color,
+    normalize_shape,
+    retrieval_scores,
     rotation_accuracy,
+    shape_retrieval,
+    shape_spread,
     win_share,
 )
 from .keypoints import keypoint_pairs, keypoint_transfer_pck, pck, project_vertices, transfer_keypoints
@@ -58,6 +64,7 @@ __all__ = [
     "azimuth_error",
     "chamfer_l1",
     "chamfer_l2",
+    "chamfer_matrix",
     "code_spread",
     "color_errors",
     "evaluate_meshes",
@@ -74,15 +81,19 @@ __all__ = [
     "mesh_voxel_iou",
     "nearest_neighbors",
     "normal_consistency",
+    "normalize_shape",
     "normalize_to_unit_cube",
     "pck",
     "point_cloud_scores",
     "pose_errors",
     "project_vertices",
     "rotation_6d_to_matrix",
+    "retrieval_scores",
     "rotation_accuracy",
     "rotation_to_azim_elev_roll",
     "sample_points_from_meshes",
+    "shape_retrieval",
+    "shape_spread",
     "transfer_keypoints",
     "transform_normals",
     "voxel_centers",

@@ -20,13 +20,14 @@ import torch
 
 from unicorn.checks import check_normals, check_points, check_same_batch
 
-from .nn import Backend, gather_points, nearest_neighbors
+from .nn import Backend, NearestNeighborIndex, gather_points, nearest_neighbors
 
 __all__ = [
     "CHAMFER_FACTOR",
     "PointCloudScores",
     "chamfer_l1",
     "chamfer_l2",
+    "chamfer_matrix",
     "normal_consistency",
     "point_cloud_scores",
 ]
@@ -180,3 +181,43 @@ def chamfer_l2(
     d_x, _ = nearest_neighbors(x, y, backend=backend, workers=workers)
     d_y, _ = nearest_neighbors(y, x, backend=backend, workers=workers)
     return d_x.square().mean(dim=1) + d_y.square().mean(dim=1)
+
+
+@torch.no_grad()
+def chamfer_matrix(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    factor: float = CHAMFER_FACTOR,
+    backend: Backend = "auto",
+    workers: int = 1,
+) -> torch.Tensor:
+    """Chamfer-L1 between every cloud of ``x`` and every cloud of ``y`` (as :func:`chamfer_l1` scores one pair).
+
+    One search structure per cloud (P + Q of them), each queried with the whole other set at once: 2 P Q
+    nearest-neighbour queries, where scoring the P Q pairs with :func:`chamfer_l1` would also build 2 P Q trees.
+
+    Args:
+        x: (P, N, 3) points.
+        y: (Q, M, 3) points, same dtype and device.
+        factor: multiplier, as :func:`chamfer_l1`'s.
+        backend: nearest-neighbour backend.
+        workers: kdtree query threads.
+
+    Returns:
+        (P, Q) ``D[p, q] = chamfer_l1(x[p], y[q])``, without gradient.
+
+    Example:
+        >>> x = torch.zeros(2, 1, 3)
+        >>> x[1, 0, 2] = 0.1
+        >>> chamfer_matrix(x, x[:1]).flatten().tolist() == [0.0, chamfer_l1(x[1:], x[:1]).item()]
+        True
+    """
+    check_points(x, "x")
+    check_points(y, "y")
+    P, Q = x.shape[0], y.shape[0]
+    into_y = NearestNeighborIndex(y, backend=backend, workers=workers)
+    into_x = NearestNeighborIndex(x, backend=backend, workers=workers)
+    accuracy = torch.stack([into_y.query(xp.expand(Q, -1, -1))[0].mean(dim=1) for xp in x])  # (P, Q)
+    completeness = torch.stack([into_x.query(yq.expand(P, -1, -1))[0].mean(dim=1) for yq in y], dim=1)  # (P, Q)
+    return factor * 0.5 * (accuracy + completeness)
