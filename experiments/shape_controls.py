@@ -1,0 +1,203 @@
+"""Controlled runs: can the shape branch express each car, and what keeps it from doing so?
+
+Each row trains the main job's model (``+experiment=synthetic``: tiny model, level-2 template, 32 px cars,
+batch 16) with the 3D step only and the ground-truth camera, so that no pose error is involved, with every code
+dimension active from the start; one thing changes per row. Rows marked *per-object codes* replace the encoder's
+shape code by a free code per training car (an auto-decoder: the deformation field alone, no generalisation),
+and are scored on the training cars; the others are scored on the test cars. The last row is no network at all:
+each test car's template fitted to the silhouettes of all 24 of its views at their ground-truth cameras
+(:func:`unicorn.evaluation.fit_silhouettes`), what these views can say about each shape at this resolution.
+
+Score: shape retrieval (:func:`unicorn.metrics.shape_retrieval`): each reconstruction, posed in its view,
+normalised, compared by Chamfer-L1 with every scored car seen in the same view; top-1 / top-3 hits of the right
+car, beside chance, and ``detail``, the mean normalised distance between the canonical shapes of two cars
+(per-axis normalisation: what varies beyond the anisotropic scale), 0 for one shape for every car.
+
+    python experiments/shape_controls.py --rows all --iterations 1200   # about 10 minutes per row on one core
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from unicorn.metrics import sample_points_from_meshes, shape_retrieval, shape_spread
+from unicorn.model import Unicorn
+
+VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
+
+
+@dataclass(frozen=True)
+class Row:
+    name: str
+    overrides: tuple[str, ...] = ()
+    per_object_codes: bool = False
+    mean_colour: float = 0.0  # probability of mean-colour textures per batch
+    silhouette_fit: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+ROWS = [
+    Row("encoder codes"),
+    Row("encoder codes, sigma 1e-3", ("renderer.sigma=1e-3",)),
+    Row("encoder codes, mean-colour textures p 0.5", mean_colour=0.5),
+    Row("per-object codes", per_object_codes=True),
+    Row("per-object codes, sigma 1e-3", ("renderer.sigma=1e-3",), per_object_codes=True),
+    Row("per-object codes, mean-colour textures", per_object_codes=True, mean_colour=1.0),
+    Row("silhouette fit, every view (no network)", silhouette_fit=True),
+]
+
+
+def compose(overrides: tuple[str, ...], cache: str | None) -> tuple[dict, str]:
+    """The main job's model config with ``overrides`` and its synthetic dataset folder."""
+    import tempfile
+
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from unicorn.config import model_config, validate
+    from unicorn.data import prepare_dataset
+    from unicorn.resources import config_dir
+
+    args = ["experiment=synthetic", f"paths.output_dir={tempfile.gettempdir()}", *overrides]
+    if cache:
+        args.append(f"paths.cache_dir={cache}")
+    with initialize_config_dir(str(config_dir()), version_base=None):
+        cfg = validate(hydra_compose("train", overrides=args))
+    d = cfg.dataset
+    return model_config(cfg), str(prepare_dataset("synthetic", d.root, d.categories, dict(d.synthetic)))
+
+
+def scored_views(root: str, split: str, size: int) -> dict[str, torch.Tensor]:
+    """Four views of every car of a split: images, cameras, object ids and ground-truth points."""
+    from unicorn.data import build_dataset
+
+    ds = build_dataset("synthetic", split, root, size, "car", views="all", with_points=True)
+    n = len(ds.models)
+    items = [ds[v * n + m] for m in range(n) for v in VIEWS]
+    g = torch.Generator().manual_seed(0)
+    points = [ds.load_points(m)[0] for m in range(n)]
+    return {
+        "image": torch.stack([i["image"] for i in items]),
+        "R": torch.stack([i["R"] for i in items]),
+        "T": torch.stack([i["T"] for i in items]),
+        "object": torch.stack([i["model"] for i in items]),
+        "candidates": torch.stack([p[torch.randperm(len(p), generator=g)[:2000]] for p in points]),
+    }
+
+
+def score(verts: torch.Tensor, canonical: torch.Tensor, faces: torch.Tensor, views: dict) -> dict[str, float]:
+    """Retrieval of object-frame meshes (Q, V, 3) shown at the views' ground-truth cameras."""
+    points = sample_points_from_meshes(verts, faces, 2000, seed=0)[0]
+    posed = points @ views["R"] + views["T"][:, None]
+    hits = shape_retrieval(posed, views["R"], views["candidates"], views["object"])
+    canon_points = sample_points_from_meshes(canonical, faces, 2000, seed=0)[0]
+    C = views["candidates"].shape[0]
+    return {
+        "top-1": float(hits["top1"].mean()),
+        "top-3": float(hits["top3"].mean()),
+        "chance top-3": min(3, C) / C,
+        "detail": shape_spread(canon_points, views["object"], per_axis=True),
+    }
+
+
+def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Unicorn, torch.nn.Embedding]:
+    """The 3D step with ground-truth cameras, every code dimension active."""
+    from unicorn.data import build_dataset
+
+    torch.manual_seed(args.seed)
+    data = build_dataset("synthetic", "train", root, cfg["image_size"], "car")
+    model = Unicorn(cfg)
+    model.set_active_dims(shape=model.shape.code_dim, texture=model.texture.mask.code_dim)
+    model.set_stage_switches(translation=False, deformation=True, scale=True)
+    codes = torch.nn.Embedding(len(data.models), model.shape.code_dim)
+    torch.nn.init.normal_(codes.weight, std=0.01)
+    groups = [{"params": list(model.parameters())}]
+    if row.per_object_codes:
+        groups.append({"params": list(codes.parameters()), "lr": args.lr * 10})
+    opt = torch.optim.Adam(groups, lr=args.lr)
+    loader = torch.utils.data.DataLoader(
+        data, batch_size=16, shuffle=True, drop_last=True, generator=torch.Generator().manual_seed(args.seed)
+    )
+    loss_cfg = model.config["loss"]
+    it = 0
+    while it < args.iterations:
+        for batch in loader:
+            images = batch["image"]
+            feats = model.encode(images, model.branches())
+            average = bool(torch.rand(()) < row.mean_colour)
+            _, canonical, scale, _, maps, _, bkg = model.predict_3d(feats, average)
+            if row.per_object_codes:
+                canonical = model.template.verts + model.shape(model.template.verts, codes(batch["model"]))
+            verts = canonical * scale.unsqueeze(1)
+            rec, _ = model.render(verts, maps, batch["R"], batch["T"], bkg)
+            loss = sum(v.mean() for v in model.reconstruction_terms(rec, images).values())
+            loss = loss + loss_cfg["normal_weight"] * model.normal_loss(verts)
+            loss = loss + loss_cfg["laplacian_weight"] * model.laplacian_loss(verts)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            it += 1
+            if it >= args.iterations:
+                break
+    return model.eval(), codes
+
+
+@torch.no_grad()
+def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
+    cfg, root = compose(row.overrides, args.cache)
+    start = time.perf_counter()
+    if row.silhouette_fit:
+        from unicorn.data import build_dataset
+        from unicorn.evaluation import fit_silhouettes
+
+        model = Unicorn(cfg).eval()
+        views = scored_views(root, "test", cfg["image_size"])
+        ds = build_dataset("synthetic", "test", root, cfg["image_size"], "car", views="all")
+        n = len(ds.models)
+        fitted = []
+        for m in range(n):
+            items = [ds[v * n + m] for v in range(ds.n_views)]
+            masks, R, T = (torch.stack([i[k] for i in items]) for k in ("mask", "R", "T"))
+            with torch.enable_grad():
+                fitted.append(fit_silhouettes(model, masks, R, T, iterations=args.fit_iterations)[0])
+        verts = torch.stack(fitted)[views["object"]]
+        return {**score(verts, verts, model.template.faces, views), "minutes": (time.perf_counter() - start) / 60}
+    with torch.enable_grad():
+        model, codes = train(row, cfg, root, args)
+    views = scored_views(root, "train" if row.per_object_codes else "test", cfg["image_size"])
+    pred = model.predict(views["image"])
+    canonical = pred.canonical_verts
+    if row.per_object_codes:
+        canonical = model.template.verts + model.shape(model.template.verts, codes(views["object"]))
+    verts = canonical * pred.scale.unsqueeze(1)
+    return {**score(verts, canonical, model.template.faces, views), "minutes": (time.perf_counter() - start) / 60}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--iterations", type=int, default=1200)
+    p.add_argument("--fit-iterations", type=int, default=300, help="silhouette-fit Adam steps per car")
+    p.add_argument("--lr", type=float, default=2e-4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
+    p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
+    args = p.parse_args()
+    chosen = ROWS if args.rows == "all" else [ROWS[int(i)] for i in args.rows.split(",")]
+    results = {}
+    for row in chosen:
+        results[row.name] = run(row, args)
+        print(row.name, {k: round(v, 3) for k, v in results[row.name].items()}, flush=True)
+    cols = list(next(iter(results.values())))
+    print(f"\n{args.iterations} iterations (3D step, ground-truth cameras), Adam lr {args.lr}, seed {args.seed}\n")
+    print("| control | " + " | ".join(cols) + " |")
+    print("|---|" + "---|" * len(cols))
+    for name, row in results.items():
+        print(f"| {name} | " + " | ".join(f"{row[c]:.3f}" for c in cols) + " |")
+
+
+if __name__ == "__main__":
+    main()
