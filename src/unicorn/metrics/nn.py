@@ -9,8 +9,9 @@ to both clouds.
 - ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default for CPU tensors otherwise.
   ``benchmarks/bm_eval.py`` compares the two on the evaluation's clouds.
 - ``"torch"``: brute force in blocks of at most ``block_elements`` pairwise distances (a running minimum over
-  blocks of ``y``), so memory stays bounded whatever the cloud sizes. It is the default for CUDA tensors,
-  where a 100k x 100k search is a few tens of milliseconds and avoids a device round trip.
+  blocks of ``y``), so memory stays bounded whatever the cloud sizes, each distance from the coordinate
+  differences (the neighbours the k-d trees find, up to float32 rounding of near-ties). It is the default for
+  CUDA tensors, where it avoids a device round trip.
 
 :class:`NearestNeighborIndex` holds a fixed reference cloud (a ground truth) and answers both directions of a
 Chamfer distance against clouds that change (an ICP's moving source): the nearest reference point of each
@@ -49,15 +50,15 @@ def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> tor
     rows = min(N, max(1, block_elements // cols))
     out = torch.empty(B, N, dtype=torch.long, device=x.device)
     for b in range(B):
-        # centring on y's mean reduces the cancellation of the matrix-product form of cdist
-        centre = y[b].mean(0, keepdim=True)
-        xb, yb = x[b] - centre, y[b] - centre
+        xb, yb = x[b], y[b]
         for r0 in range(0, N, rows):
             xs = xb[r0 : r0 + rows]
             best = torch.full((xs.shape[0],), float("inf"), dtype=x.dtype, device=x.device)
             best_idx = torch.zeros(xs.shape[0], dtype=torch.long, device=x.device)
             for c0 in range(0, M, cols):
-                d, j = torch.cdist(xs, yb[c0 : c0 + cols]).min(dim=1)
+                # from coordinate differences: the matrix-product form's cancellation (|x|^2 - 2 x.y + |y|^2)
+                # picks another neighbour among near-ties often enough to move an ICP's result by 1e-4 to 1e-3
+                d, j = torch.cdist(xs, yb[c0 : c0 + cols], compute_mode="donot_use_mm_for_euclid_dist").min(dim=1)
                 better = d < best
                 best = torch.where(better, d, best)
                 best_idx = torch.where(better, j + c0, best_idx)
@@ -178,8 +179,7 @@ class NearestNeighborIndex:
         if self._trees is None or self._distinct is None:
             return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
         out = [
-            torch.from_numpy(d.first[tree.nearest(_numpy64(xb))])
-            for xb, d, tree in zip(x, self._distinct, self._trees)
+            torch.from_numpy(d.first[tree.nearest(_numpy64(xb))]) for xb, d, tree in zip(x, self._distinct, self._trees)
         ]
         return torch.stack(out).to(x.device)
 
