@@ -23,6 +23,7 @@ a point by taking its first occurrence.
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 from typing import Literal, NamedTuple
 
@@ -165,6 +166,16 @@ class NearestNeighborIndex:
         if backend in _TREES:
             self._distinct = [_distinct(yb) for yb in y]
             self._trees = [_TREES[backend](d.points, workers) for d in self._distinct]
+
+    def select(self, rows: torch.Tensor | list[int]) -> NearestNeighborIndex:
+        """The index over ``y[rows]`` (rows: (K,) batch indices), sharing this one's search structures."""
+        rows = [int(r) for r in rows]
+        out = copy.copy(self)
+        out.y = self.y[rows]
+        if self._trees is not None and self._distinct is not None:
+            out._trees = [self._trees[r] for r in rows]
+            out._distinct = [self._distinct[r] for r in rows]
+        return out
 
     def _check(self, x: torch.Tensor) -> None:
         check_points(x, "x", dim=None)
