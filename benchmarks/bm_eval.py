@@ -11,7 +11,8 @@ mean shape, fitted once, and the model's own mean shape), at each of ``--setting
 
 Each tree runs in a fresh process (``--ref REV``: the tree of git revision REV, checked out once with
 ``git worktree`` under the system's temporary folder, see ``revisions.py``), the variants alternating per
-setting, and prints, in milliseconds of wall time per image:
+setting, and prints, in milliseconds per image (of the process's CPU time, all threads, on the CPU: what other
+load on the machine changes least; of wall time on CUDA):
 
 - per scored shape (``model``, ``mean shape``, ``own mean``): ``sampling`` (surface points),
   ``ICP`` (:func:`~unicorn.metrics.gradient_icp`), ``Chamfer`` (the scores before and after the ICP) and
@@ -19,8 +20,8 @@ setting, and prints, in milliseconds of wall time per image:
 - ``gt search index`` (the ground truth's search structure, where the tree builds it apart), ``silhouettes``
   (hard renders and mask IoU), ``own-mean forward`` (the model's pass computing its own mean shapes), ``rest``
   (the model's forward pass and soft render, colours, tables);
-- ``total`` (wall) and ``total cpu`` (the process's CPU time, less sensitive to other load), and the speed-up of
-  each variant's total over the first one. The mean shape's fit (once per evaluation, before it) is shown apart.
+- ``total`` (wall) and ``total cpu``, and the speed-ups of each variant's totals over the first one's. The
+  mean shape's fit (once per evaluation, before it) is shown apart.
 
     python benchmarks/bm_eval.py runs/synthetic/checkpoints/last.ckpt --ref main
     python benchmarks/bm_eval.py CKPT --ref main --settings heldout,final,full --images 5
@@ -54,8 +55,8 @@ class StageTimer:
     """Exclusive wall time per stage of wrapped functions (a function called inside another is subtracted from
     it); calls inside a *scope* function are keyed ``"<scope label>: <stage>"``."""
 
-    def __init__(self, sync: Callable[[], None]) -> None:
-        self.sync = sync
+    def __init__(self, clock: Callable[[], float], sync: Callable[[], None]) -> None:
+        self.clock, self.sync = clock, sync
         self.seconds: dict[str, float] = defaultdict(float)
         self._stack: list[list[float]] = []  # per active call: [time spent in children]
         self._scope: str | None = None
@@ -64,12 +65,12 @@ class StageTimer:
     def _timed(self, key: Callable[[], str], fn: Callable, *args: Any, **kwargs: Any) -> Any:
         self.sync()
         self._stack.append([0.0])
-        t0 = time.perf_counter()
+        t0 = self.clock()
         try:
             return fn(*args, **kwargs)
         finally:
             self.sync()
-            elapsed = time.perf_counter() - t0
+            elapsed = self.clock() - t0
             children = self._stack.pop()[0]
             self.seconds[key()] += elapsed - children
             if self._stack:
@@ -140,16 +141,18 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         name, root, args.split, img_size=model.config["image_size"], categories=categories, max_images=args.images
     )
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    # stages in CPU time on the CPU (all threads; what other load on the machine changes least), else wall time
+    clock = time.perf_counter if device.type == "cuda" else time.process_time
     out: dict[str, Any] = {"unicorn": str(Path(evaluator.__file__).parents[1])}
     for setting in args.settings:
         num_points, icp_iterations = SETTINGS[setting]
         # the clouds as the held-out callback (its num_points) and unicorn-eval (5000) read them
         clouds = training_point_clouds(root, categories, max_models=200, num_points=min(num_points, 5000))
-        t0 = time.perf_counter()
+        t0 = clock()
         mean_shape = fit_mean_shape(
             model.template.verts, model.template.faces, clouds, iterations=args.mean_shape_iterations
         )
-        fit = time.perf_counter() - t0
+        fit = clock() - t0
         options = EvalOptions(
             protocol=protocol_for(name),
             num_points=num_points,
@@ -159,7 +162,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             progress=False,
             own_mean_shape=True,
         )
-        timer = StageTimer(sync)
+        timer = StageTimer(clock, sync)
         timer.wrap(mesh_evaluator, "sample_points_from_meshes", "sampling")
         timer.wrap(mesh_evaluator, "gradient_icp", "ICP")
         timer.wrap(mesh_evaluator, "point_cloud_scores", "Chamfer")
@@ -177,8 +180,9 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         finally:
             timer.restore()
         stages = dict(timer.seconds)
-        stages["rest"] = wall - sum(stages.values())
+        stages["rest"] = (wall if device.type == "cuda" else cpu) - sum(stages.values())
         out[setting] = {
+            "clock": "wall" if device.type == "cuda" else "cpu",
             "images": len(result.per_image),
             "stages": stages,
             "total": wall,
@@ -217,7 +221,7 @@ def report(setting: str, results: dict[str, dict[str, Any]]) -> None:
     first = next(iter(results.values()))
     print(f"\n# {setting}: {num_points} points, {icp_iterations} ICP iterations, {first['images']} images")
     names = list(results)
-    print(f"{'ms per image':28s}" + "".join(f"{n[:22]:>24s}" for n in names))
+    print(f"{'ms per image (' + first['clock'] + ')':28s}" + "".join(f"{n[:22]:>24s}" for n in names))
     stages = stage_order({k for r in results.values() for k in r["stages"]})
     for stage in stages:
         cells = []
