@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import statistics
 import subprocess
@@ -33,7 +32,8 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from revisions import REPO, child_env, tree_of  # noqa: E402
 
 
 def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
@@ -57,16 +57,6 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
     return IterationTimer()
 
 
-def tree_of(ref: str) -> Path:
-    """A checkout of ``ref`` (a git worktree under the temporary folder, made once)."""
-    sha = subprocess.run(["git", "rev-parse", ref], cwd=REPO, check=True, capture_output=True, text=True).stdout.strip()
-    path = Path(tempfile.gettempdir()) / f"unicorn-ref-{sha[:12]}"
-    if not path.exists():
-        cmd = ["git", "worktree", "add", "--detach", str(path), sha]
-        subprocess.run(cmd, cwd=REPO, check=True, capture_output=True)
-    return path
-
-
 def experiment_override(tree: Path) -> str:
     """``experiment=synthetic``, or ``+experiment=synthetic`` for trees from before ``experiment: null``."""
     grouped = "experiment: null" in (tree / "conf" / "train.yaml").read_text()
@@ -76,10 +66,7 @@ def experiment_override(tree: Path) -> str:
 def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir: Path) -> dict:
     """Train in ``tree`` with ``overrides`` in a fresh process; its timer's figures."""
     out = workdir / "timing.json"
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(tree / "src"), str(Path(__file__).resolve().parent)])
-    if args.threads:
-        env["OMP_NUM_THREADS"] = str(args.threads)
+    env = child_env(tree, args.threads)
     cmd = [
         sys.executable,
         "-m",

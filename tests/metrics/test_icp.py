@@ -4,12 +4,14 @@ import torch
 from unicorn.geometry.rotations import euler_angles_to_matrix
 from unicorn.metrics.chamfer import point_cloud_scores
 from unicorn.metrics.icp import (
+    ICPResult,
     apply_similarity,
     gradient_icp,
     matrix_to_rotation_6d,
     rotation_6d_to_matrix,
     transform_normals,
 )
+from unicorn.metrics.nn import NearestNeighborIndex
 from unicorn.metrics.pose import geodesic_error
 from unicorn.metrics.sampling import sample_points_from_meshes
 
@@ -67,6 +69,59 @@ def test_icp_per_object_batch_and_options(blob):
     assert torch.allclose(iso.scale, iso.scale[:, :1].expand(2, 3))
 
 
+def _reference_icp(src, tgt, src_normals, n_iter, lr=0.01, window=10):
+    """The ICP searched by brute force, both directions afresh at every iteration (anisotropic scale): the oracle
+    of :func:`gradient_icp`'s shared and deduplicated searches."""
+
+    def nearest(x, y):  # (B, N) distances from x to y, differentiable, with brute-force indices
+        idx = torch.cdist(x.detach().double(), y.detach().double()).argmin(-1)
+        return torch.linalg.vector_norm(x - y[torch.arange(x.shape[0])[:, None], idx], dim=-1)
+
+    B = src.shape[0]
+    d6 = src.new_tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]).repeat(B, 1).requires_grad_(True)
+    T = src.new_zeros(B, 3).requires_grad_(True)
+    s = src.new_ones(B, 3).requires_grad_(True)
+    optimizer = torch.optim.Adam([d6, T, s], lr=lr)
+    best_loss, best, losses = src.new_full((B,), float("inf")), [p.detach().clone() for p in (d6, T, s)], []
+    for it in range(n_iter):
+        optimizer.zero_grad()
+        moved = apply_similarity(src, rotation_6d_to_matrix(d6), T, s)
+        loss = nearest(moved, tgt).square().mean(1) + nearest(tgt, moved).square().mean(1)
+        loss.mean().backward()
+        optimizer.step()
+        losses.append(loss.detach())
+        if (it + 1) % window == 0 or it + 1 == n_iter:
+            mean, losses = torch.stack(losses).mean(0), []
+            better = mean < best_loss
+            best_loss = torch.where(better, mean, best_loss)
+            for kept, current in zip(best, (d6, T, s)):
+                kept.copy_(torch.where(better.view(B, 1), current.detach(), kept))
+    with torch.no_grad():
+        R = rotation_6d_to_matrix(best[0])
+        points = apply_similarity(src, R, best[1], best[2])
+        return ICPResult(points, transform_normals(src_normals, R, best[2]), R, best[1], best[2], best_loss)
+
+
+@pytest.mark.parametrize("backend", ["kdtree", "torch"])
+@pytest.mark.parametrize("shared_index", [False, True])
+def test_icp_matches_the_brute_force_oracle(blob, backend, shared_index):
+    v, f = blob
+    src, src_n = sample_points_from_meshes(torch.stack([v, 0.9 * v]), f, 400, seed=0)
+    tgt, _ = sample_points_from_meshes(torch.stack([v, v]), f, 600, seed=1)
+    tgt = apply_similarity(
+        tgt, euler_angles_to_matrix(torch.tensor([[0.2, 0.1, -0.1]] * 2)), torch.zeros(2, 3), 1.1 * torch.ones(2, 3)
+    )
+    tgt = torch.cat([tgt, tgt[:, :200]], dim=1)  # repeated target points, as in float16 ground truths
+    index = NearestNeighborIndex(tgt, backend=backend) if shared_index else None
+    res = gradient_icp(src, tgt, src_n, n_iter=25, backend=backend, tgt_index=index)
+    ref = _reference_icp(src, tgt, src_n, n_iter=25)
+    for name in ICPResult._fields:
+        torch.testing.assert_close(getattr(res, name), getattr(ref, name), atol=1e-6, rtol=1e-5, msg=name)
+    if shared_index:  # the index is reusable: a second ICP on it gives the same result
+        again = gradient_icp(src, tgt, src_n, n_iter=25, tgt_index=index)
+        torch.testing.assert_close(again.points, res.points, atol=0, rtol=0)
+
+
 def test_icp_invalid_inputs():
     x = torch.rand(1, 10, 3)
     with pytest.raises(ValueError, match="n_iter"):
@@ -75,3 +130,5 @@ def test_icp_invalid_inputs():
         gradient_icp(x, x, lr=0.0)
     with pytest.raises(ValueError, match="src_normals"):
         gradient_icp(x, x, torch.rand(1, 9, 3))
+    with pytest.raises(ValueError, match="tgt_index"):
+        gradient_icp(x, x, tgt_index=NearestNeighborIndex(torch.rand(1, 11, 3)))

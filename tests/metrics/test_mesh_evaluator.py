@@ -4,6 +4,7 @@ import torch
 from unicorn.geometry.rotations import look_at_view_transform
 from unicorn.metrics.alignment import normalize_to_unit_cube
 from unicorn.metrics.mesh_evaluator import SHAPENET_METRICS, evaluate_meshes
+from unicorn.metrics.nn import NearestNeighborIndex
 from unicorn.metrics.sampling import sample_points_from_meshes
 
 
@@ -56,6 +57,44 @@ def test_icp_branch_fixes_scale_and_offset(shape):
     assert set(out) == {"chamfer-L1", "chamfer-L1-ICP", "iou-3d", "iou-3d-ICP"}
     assert out["chamfer-L1-ICP"].item() < 0.5 * out["chamfer-L1"].item()
     assert out["iou-3d-ICP"].item() > 0.8 > out["iou-3d"].item()
+
+
+@pytest.mark.parametrize("backend", ["kdtree", "torch"])
+def test_a_shared_ground_truth_index_gives_the_same_scores(shape, backend):
+    v, f, gt_points, gt_normals = shape
+    gt = torch.cat([gt_points, gt_points[:, :500]], dim=1)  # repeated points, as in float16 ground truths
+    gt_n = torch.cat([gt_normals, gt_normals[:, :500]], dim=1)
+    preds = [v * torch.tensor([1.2, 0.9, 1.0]) + 0.05, v * 0.8]
+    index = NearestNeighborIndex(gt, backend=backend)
+    for pred in preds:
+        alone = evaluate_meshes(pred, f, gt, gt_n, num_points=1000, icp_iterations=15, backend=backend)
+        shared = evaluate_meshes(pred, f, gt, gt_n, num_points=1000, icp_iterations=15, gt_index=index)
+        assert set(shared) == set(SHAPENET_METRICS)
+        for k in SHAPENET_METRICS:
+            torch.testing.assert_close(shared[k], alone[k], atol=0, rtol=0)
+        icp_only = evaluate_meshes(
+            pred, f, gt, gt_n, num_points=1000, icp_iterations=15, run_direct=False, backend=backend
+        )
+        assert set(icp_only) == {"chamfer-L1-ICP", "normal-cos-ICP"}
+        torch.testing.assert_close(icp_only["chamfer-L1-ICP"], alone["chamfer-L1-ICP"], atol=1e-6, rtol=1e-5)
+    with pytest.raises(ValueError, match="gt_index"):
+        evaluate_meshes(v, f, gt_points, gt_normals, gt_index=index)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.gpu
+def test_cuda_scores_match_cpu(shape):
+    v, f, gt_points, gt_normals = shape
+    pred = v * torch.tensor([1.2, 0.9, 1.0]) + 0.05
+    kwargs = dict(num_points=5000, icp_iterations=20)
+    cpu = evaluate_meshes(pred, f, gt_points, gt_normals, **kwargs)
+    index = NearestNeighborIndex(gt_points.cuda())
+    gpu = evaluate_meshes(pred.cuda(), f.cuda(), gt_points.cuda(), gt_normals.cuda(), **kwargs, gt_index=index)
+    assert set(gpu) == set(cpu)
+    for k in cpu:
+        assert gpu[k].device.type == "cuda"
+        # the same neighbours; float32 sums in another order, through 20 Adam steps
+        torch.testing.assert_close(gpu[k].cpu(), cpu[k], atol=0, rtol=1e-4, msg=k)
 
 
 def test_invalid_inputs(shape):

@@ -1,7 +1,13 @@
+import importlib.util
+
 import pytest
 import torch
 
-from unicorn.metrics.nn import NearestNeighborIndex, nearest_neighbors
+from unicorn.metrics.nn import BACKENDS, NearestNeighborIndex, default_backend, nearest_neighbors
+
+HAS_PYKDTREE = importlib.util.find_spec("pykdtree") is not None
+PYKDTREE = pytest.param("pykdtree", marks=pytest.mark.skipif(not HAS_PYKDTREE, reason="pykdtree not installed"))
+CPU_BACKENDS = ["kdtree", PYKDTREE, "torch"]
 
 
 def brute_force(x, y):
@@ -9,7 +15,7 @@ def brute_force(x, y):
     return d.min(dim=2)
 
 
-@pytest.mark.parametrize("backend", ["kdtree", "torch"])
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("dim", [2, 3])
 def test_matches_brute_force(backend, dim):
     g = torch.Generator().manual_seed(0)
@@ -20,6 +26,45 @@ def test_matches_brute_force(backend, dim):
     torch.testing.assert_close(d.double(), d_ref, atol=1e-6, rtol=0)
     # indices may differ only at exact ties
     assert (i == i_ref).float().mean() > 0.999
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_reverse_query_is_the_search_the_other_way(backend):
+    g = torch.Generator().manual_seed(1)
+    y = torch.randn(2, 400, 3, generator=g)
+    y[:, 100:200] = y[:, :100]  # repeated reference points, as in float16 ground truths
+    x = torch.randn(2, 300, 3, generator=g) * 1.5
+    index = NearestNeighborIndex(y, backend=backend, block_elements=1000)
+    d, i = index.reverse_query(x)
+    d_ref, _ = brute_force(y, x)
+    assert d.shape == (2, 400) and i.shape == (2, 400) and i.dtype == torch.long
+    torch.testing.assert_close(d.double(), d_ref, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d, torch.linalg.vector_norm(y - x[torch.arange(2)[:, None], i], dim=-1))
+    # the same as a fresh search the other way, and the forward query of the same index as nearest_neighbors
+    d_fresh, _ = nearest_neighbors(y, x, backend=backend)
+    torch.testing.assert_close(d, d_fresh, atol=0, rtol=0)
+    d_fwd, i_fwd = index.query(x)
+    d_nn, _ = nearest_neighbors(x, y, backend=backend)
+    torch.testing.assert_close(d_fwd, d_nn, atol=0, rtol=0)
+    torch.testing.assert_close(d_fwd.double(), brute_force(x, y)[0], atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("backend", ["kdtree", PYKDTREE])
+def test_trees_take_the_first_copy_of_a_repeated_point(backend):
+    y = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 5.0, 5.0]]])
+    x = torch.tensor([[[0.1, 0.0, 0.0], [0.9, 0.1, 0.0], [4.0, 5.0, 5.0]]])
+    _, i = NearestNeighborIndex(y, backend=backend).query(x)
+    assert i.tolist() == [[0, 1, 4]]
+    d, j = NearestNeighborIndex(y, backend=backend).reverse_query(x)
+    assert j.tolist() == [[0, 1, 0, 1, 2]]
+    torch.testing.assert_close(d, torch.tensor([[0.1, 0.1414214, 0.1, 0.1414214, 1.0]]))
+
+
+def test_default_backend():
+    assert set(BACKENDS) == {"kdtree", "pykdtree", "torch"}
+    assert default_backend("cpu") == ("pykdtree" if HAS_PYKDTREE else "kdtree")
+    assert default_backend(torch.device("cuda", 0)) == "torch"
+    assert NearestNeighborIndex(torch.rand(1, 5, 3)).backend == default_backend("cpu")
 
 
 def test_gradients_flow_through_distances():
@@ -69,3 +114,19 @@ def test_cuda_matches_cpu():
     d_gpu, i_gpu = nearest_neighbors(x.cuda(), y.cuda())
     assert i_gpu.device.type == "cuda"
     torch.testing.assert_close(d_gpu.cpu(), d_cpu, atol=1e-6, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.gpu
+def test_cuda_index_both_directions_match_cpu():
+    g = torch.Generator().manual_seed(3)
+    y = torch.rand(2, 5000, 3, generator=g)
+    y[:, 2500:] = y[:, :2500]  # repeated reference points
+    x = torch.rand(2, 7000, 3, generator=g) * 1.2
+    cpu, gpu = NearestNeighborIndex(y), NearestNeighborIndex(y.cuda())
+    assert gpu.backend == "torch"
+    for name in ("query", "reverse_query"):
+        d_cpu, _ = getattr(cpu, name)(x)
+        d_gpu, i_gpu = getattr(gpu, name)(x.cuda())
+        assert i_gpu.device.type == "cuda"
+        torch.testing.assert_close(d_gpu.cpu(), d_cpu, atol=1e-6, rtol=0)

@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 from unicorn.checks import check_faces
 from unicorn.data.shapenet import ShapeNetNMR
 from unicorn.evaluation.interface import spread_indices
-from unicorn.metrics import chamfer_l1, mask_iou, sample_points_from_meshes
+from unicorn.metrics import NearestNeighborIndex, gather_points, mask_iou, sample_points_from_meshes
 from unicorn.model import Prediction, Unicorn
 from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
 from unicorn.model.template import TemplateMesh
@@ -257,6 +257,7 @@ def fit_mean_shape(
     if iterations == 0:
         return base.clone()
 
+    targets = NearestNeighborIndex(clouds)  # the shapes' search structures, built once for every iteration
     laplacian = UniformLaplacianLoss(faces, V).to(device)
     normal = NormalConsistencyLoss(faces).to(device)
     offsets = torch.zeros_like(base, requires_grad=True)
@@ -270,8 +271,7 @@ def fit_mean_shape(
             target = clouds if pick is None else clouds[pick]  # (b, N, 3)
             verts = (base + offsets).unsqueeze(0)  # (1, V, 3)
             points, _ = sample_points_from_meshes(verts, faces, num_points, generator=generator)
-            points = points.expand(b, -1, -1)  # one surface sample scored against every shape
-            chamfer = chamfer_l1(points, target, factor=1.0).mean()
+            chamfer = _sample_chamfer(points, target, targets if pick is None else targets.select(pick))
             loss = chamfer + smooth_weight * laplacian(verts) + normal_weight * normal(verts)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -280,6 +280,19 @@ def fit_mean_shape(
             if progress:
                 bar.set_postfix(chamfer=f"{float(chamfer):.4f}")
     return (base + offsets).detach()
+
+
+def _sample_chamfer(points: torch.Tensor, target: torch.Tensor, index: NearestNeighborIndex) -> torch.Tensor:
+    """``chamfer_l1(points.expand(b, -1, -1), target, factor=1.0).mean()``, the same operations (the fit's samples
+    depend on every rounding of it), for one sample (1, N, 3) of a mesh against b shapes (b, N', 3) with their
+    ``index``: the shapes' trees are reused, and their points are searched in one tree of the sample."""
+    b = target.shape[0]
+    expanded = points.expand(b, -1, -1)
+    d_pred, _ = index.query(expanded)
+    idx_gt = NearestNeighborIndex(points.detach()).indices(target.reshape(1, -1, 3)).view(b, -1)
+    d_gt = torch.linalg.vector_norm(target - gather_points(expanded, idx_gt), dim=-1)
+    factor = 1.0
+    return (factor * 0.5 * (d_pred.mean(dim=1) + d_gt.mean(dim=1))).mean()
 
 
 def fit_silhouettes(

@@ -37,6 +37,7 @@ from unicorn.evaluation.tables import (
     summary_table,
 )
 from unicorn.metrics import (
+    NearestNeighborIndex,
     evaluate_meshes,
     mask_iou,
     mean_foreground_color,
@@ -124,23 +125,35 @@ def _mesh_scores(
     with_pose: bool,
     R_pred: torch.Tensor,
     T_pred: torch.Tensor,
+    gt_index: NearestNeighborIndex | list[NearestNeighborIndex],
+    run_direct: bool = True,
 ) -> dict[str, torch.Tensor]:
-    """:func:`evaluate_meshes` on a batch; ragged ground truths are scored one image at a time."""
+    """:func:`evaluate_meshes` on a batch; ragged ground truths are scored one image at a time.
+
+    ``gt_index``: :func:`_gt_indices` of the batch, shared by the scorings of several meshes on it.
+    """
     faces = model.template.faces
     kwargs = dict(
         num_points=options.num_points,
+        run_direct=run_direct,
         run_icp=options.icp_iterations > 0,
         icp_iterations=max(options.icp_iterations, 1),
         seed=options.seed,
-        workers=torch.get_num_threads() if options.nn_workers is None else options.nn_workers,
     )
     points, normals = batch["points"], batch.get("normals")
     if isinstance(points, torch.Tensor):
+        assert isinstance(gt_index, NearestNeighborIndex)
         pose = {}
         if with_pose:
             pose = dict(R_pred=R_pred, T_pred=T_pred, R_gt=batch["R"].to(device), T_gt=batch["T"].to(device))
         return evaluate_meshes(
-            pred_verts, faces, points.to(device), None if normals is None else normals.to(device), **pose, **kwargs
+            pred_verts,
+            faces,
+            gt_index.y,
+            None if normals is None else normals.to(device),
+            **pose,
+            **kwargs,
+            gt_index=gt_index,
         )
     per: list[dict[str, torch.Tensor]] = []
     for i in range(pred_verts.shape[0]):
@@ -153,8 +166,21 @@ def _mesh_scores(
                 T_gt=batch["T"][i : i + 1].to(device),
             )
         n_i = None if normals is None else normals[i][None].to(device)
-        per.append(evaluate_meshes(pred_verts[i : i + 1], faces, points[i][None].to(device), n_i, **pose, **kwargs))
+        index = gt_index[i]
+        per.append(evaluate_meshes(pred_verts[i : i + 1], faces, index.y, n_i, **pose, **kwargs, gt_index=index))
     return {k: torch.cat([p[k] for p in per]) for k in per[0]}
+
+
+def _gt_indices(
+    batch: Mapping[str, Any], device: torch.device, dtype: torch.dtype, options: EvalOptions
+) -> NearestNeighborIndex | list[NearestNeighborIndex]:
+    """The search structure over the batch's ground-truth points (one per image when they are ragged), built
+    once for the scorings of the model and of the baselines."""
+    workers = torch.get_num_threads() if options.nn_workers is None else options.nn_workers
+    points = batch["points"]
+    if isinstance(points, torch.Tensor):
+        return NearestNeighborIndex(points.to(device=device, dtype=dtype), workers=workers)
+    return [NearestNeighborIndex(p[None].to(device=device, dtype=dtype), workers=workers) for p in points]
 
 
 def _require_poses(batch: Mapping[str, Any]) -> None:
@@ -267,21 +293,25 @@ def evaluate(
         groups = [group_of(batch, i) for i in range(B)]
         if protocol.meshes is not None and "points" in batch:
             with_pose = protocol.meshes == "posed"
-            mesh = _mesh_scores(model, pred.verts, batch, device, options, with_pose, R, T)
+            gt_index = _gt_indices(batch, device, pred.verts.dtype, options)
+            # without a ground-truth pose only the ICP-registered numbers are meaningful: the rest is not computed
+            mesh = _mesh_scores(model, pred.verts, batch, device, options, with_pose, R, T, gt_index, with_pose)
             if not with_pose:
                 # no ground-truth pose: only the ICP-registered numbers are meaningful
                 mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
             scores.update(mesh)
             if shape_baseline is not None and "chamfer-L1-ICP" in mesh:
                 base_verts = shape_baseline.unsqueeze(0).expand(B, -1, -1)
-                base = _mesh_scores(model, base_verts, batch, device, options, False, R, T)["chamfer-L1-ICP"]
+                base = _mesh_scores(model, base_verts, batch, device, options, False, R, T, gt_index, False)
+                base = base["chamfer-L1-ICP"]
                 ours = mesh["chamfer-L1-ICP"]
                 scores["chamfer-L1-ICP-mean-shape"] = base
                 scores["shape-win"] = _wins(ours, base)
             if own_means is not None and "chamfer-L1-ICP" in mesh:
                 # the same pose and alignment as the model's prediction: only the shape differs
                 own_verts = torch.stack([own_means[g] for g in groups])
-                own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T)["chamfer-L1-ICP"]
+                own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T, gt_index, False)
+                own = own["chamfer-L1-ICP"]
                 scores["chamfer-L1-ICP-own-mean"] = own
                 scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
         if _retrieves_shapes(protocol, options, batch):

@@ -64,6 +64,7 @@ def point_cloud_scores(
     factor: float = CHAMFER_FACTOR,
     backend: Backend = "auto",
     workers: int = 1,
+    gt_index: NearestNeighborIndex | None = None,
 ) -> PointCloudScores:
     """Chamfer-L1 (and normal consistency when normals are given) from one NN search per direction.
 
@@ -75,12 +76,15 @@ def point_cloud_scores(
         factor: multiplier of the Chamfer distance, 10 as reported by UNICORN, DVR and ONet.
         backend: nearest-neighbour backend, see :func:`unicorn.metrics.nn.nearest_neighbors`.
         workers: kdtree query threads.
+        gt_index: a :class:`~unicorn.metrics.nn.NearestNeighborIndex` over ``gt`` (the same points) to reuse;
+            ``backend`` and ``workers`` are then its own. None: the clouds are searched here.
 
     Returns:
         :class:`PointCloudScores` of (B,) tensors.
 
     Raises:
-        ValueError: on malformed shapes, empty clouds, or only one set of normals.
+        ValueError: on malformed shapes, empty clouds, only one set of normals, or a ``gt_index`` of another
+            shape than ``gt``.
     """
     check_points(pred, "pred")
     check_points(gt, "gt")
@@ -89,8 +93,14 @@ def point_cloud_scores(
         raise ValueError("give normals for both clouds or for neither")
     check_normals(pred_normals, pred, "pred_normals")
     check_normals(gt_normals, gt, "gt_normals")
-    d_pred, idx_pred = nearest_neighbors(pred, gt, backend=backend, workers=workers)
-    d_gt, idx_gt = nearest_neighbors(gt, pred, backend=backend, workers=workers)
+    if gt_index is None:
+        d_pred, idx_pred = nearest_neighbors(pred, gt, backend=backend, workers=workers)
+        d_gt, idx_gt = nearest_neighbors(gt, pred, backend=backend, workers=workers)
+    else:
+        if gt_index.y.shape != gt.shape:
+            raise ValueError(f"gt_index must index gt {tuple(gt.shape)}, got one over {tuple(gt_index.y.shape)}")
+        d_pred, idx_pred = gt_index.query(pred)
+        d_gt, idx_gt = gt_index.reverse_query(pred)
     accuracy, completeness = d_pred.mean(dim=1), d_gt.mean(dim=1)
     normal_cos = None
     if pred_normals is not None and gt_normals is not None:

@@ -25,7 +25,7 @@ import torch
 
 from unicorn.checks import check_normals, check_points, check_same_batch
 
-from .nn import Backend, NearestNeighborIndex, nearest_neighbors
+from .nn import Backend, NearestNeighborIndex
 
 __all__ = [
     "ICPResult",
@@ -120,6 +120,7 @@ def gradient_icp(
     window: int = 10,
     backend: Backend = "auto",
     workers: int = 1,
+    tgt_index: NearestNeighborIndex | None = None,
 ) -> ICPResult:
     """Align ``src`` onto ``tgt`` by Adam on the squared Chamfer distance over ``(R, T, s)``.
 
@@ -137,16 +138,22 @@ def gradient_icp(
         window: iterations per keep-best window.
         backend: nearest-neighbour backend, see :func:`unicorn.metrics.nn.nearest_neighbors`.
         workers: kdtree query threads.
+        tgt_index: a :class:`~unicorn.metrics.nn.NearestNeighborIndex` over ``tgt`` (the same points) to reuse,
+            e.g. across the ICPs of several predictions against one ground truth; ``backend`` and ``workers``
+            are then its own. None: one is built here.
 
     Returns:
         :class:`ICPResult`.
 
     Raises:
-        ValueError: on malformed inputs or non-positive ``n_iter``, ``window`` or ``lr``.
+        ValueError: on malformed inputs, non-positive ``n_iter``, ``window`` or ``lr``, or a ``tgt_index`` of
+            another shape than ``tgt``.
     """
     check_points(src, "src")
     check_points(tgt, "tgt")
     check_same_batch(src, tgt, "src", "tgt")
+    if tgt_index is not None and tgt_index.y.shape != tgt.shape:
+        raise ValueError(f"tgt_index must index tgt {tuple(tgt.shape)}, got one over {tuple(tgt_index.y.shape)}")
     check_normals(src_normals, src, "src_normals")
     if n_iter < 1 or window < 1:
         raise ValueError(f"n_iter and window must be positive, got n_iter={n_iter}, window={window}")
@@ -161,7 +168,8 @@ def gradient_icp(
     for p in params:
         p.requires_grad_(True)
     optimizer = torch.optim.Adam(params, lr=lr)
-    tgt_index = NearestNeighborIndex(tgt, backend=backend, workers=workers)
+    if tgt_index is None:
+        tgt_index = NearestNeighborIndex(tgt, backend=backend, workers=workers)
 
     best_loss = src.new_full((B,), float("inf"))
     best = [p.detach().clone() for p in (d6, T, s)]
@@ -171,7 +179,7 @@ def gradient_icp(
             optimizer.zero_grad(set_to_none=True)
             moved = apply_similarity(src, rotation_6d_to_matrix(d6), T, s.expand(B, 3))
             d_src, _ = tgt_index.query(moved)
-            d_tgt, _ = nearest_neighbors(tgt, moved, backend=tgt_index.backend, workers=workers)
+            d_tgt, _ = tgt_index.reverse_query(moved)
             loss = d_src.square().mean(dim=1) + d_tgt.square().mean(dim=1)  # (B,)
             loss.mean().backward()
             optimizer.step()

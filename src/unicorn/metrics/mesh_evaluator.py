@@ -27,7 +27,7 @@ from unicorn.checks import check_mesh, check_normals, check_points, check_same_b
 from .alignment import align_with_gt_pose, normalize_to_unit_cube
 from .chamfer import CHAMFER_FACTOR, point_cloud_scores
 from .icp import gradient_icp
-from .nn import Backend
+from .nn import Backend, NearestNeighborIndex
 from .sampling import sample_points_from_meshes
 from .voxels import point_cloud_voxel_iou
 
@@ -47,6 +47,7 @@ def evaluate_meshes(
     R_gt: torch.Tensor | None = None,
     T_gt: torch.Tensor | None = None,
     num_points: int = 100000,
+    run_direct: bool = True,
     run_icp: bool = True,
     icp_iterations: int = 100,
     icp_lr: float = 0.01,
@@ -55,6 +56,7 @@ def evaluate_meshes(
     backend: Backend = "auto",
     workers: int = 1,
     voxel_resolution: int = 32,
+    gt_index: NearestNeighborIndex | None = None,
 ) -> dict[str, torch.Tensor]:
     """Chamfer-L1, normal consistency and 3D IoU, with GT-pose alignment and after unit-cube normalisation plus ICP.
 
@@ -69,6 +71,7 @@ def evaluate_meshes(
         R_gt: (B, 3, 3) ground-truth rotations, same convention.
         T_gt: (B, 3) ground-truth translations.
         num_points: points sampled on each predicted mesh (100k final, 50k validation).
+        run_direct: compute the metrics without ICP (``chamfer-L1``, ``normal-cos``, ``iou-3d``).
         run_icp: also compute the ``-ICP`` metrics.
         icp_iterations: Adam iterations of the ICP (100 final, 30 validation).
         icp_lr: Adam learning rate of the ICP.
@@ -77,12 +80,16 @@ def evaluate_meshes(
         backend: nearest-neighbour backend, see :func:`unicorn.metrics.nn.nearest_neighbors`.
         workers: kdtree query threads.
         voxel_resolution: cells per axis of the unit cube for the 3D IoU.
+        gt_index: a :class:`~unicorn.metrics.nn.NearestNeighborIndex` over ``gt_points`` (the same points and
+            dtype as ``verts``) to reuse, e.g. when several predictions are scored against one ground truth;
+            ``backend`` and ``workers`` are then its own. None: one is built here.
 
     Returns:
         dict of (B,) tensors keyed by :data:`SHAPENET_METRICS` (``chamfer-L1`` already multiplied by 10).
 
     Raises:
-        ValueError: on malformed inputs, partial poses, or a ground truth outside the unit cube.
+        ValueError: on malformed inputs, partial poses, a ground truth outside the unit cube, or a ``gt_index``
+            of another shape than ``gt_points``.
     """
     check_mesh(verts, faces)
     check_points(gt_points, "gt_points")
@@ -97,8 +104,13 @@ def evaluate_meshes(
             raise ValueError(
                 f"ground-truth clouds must have max |coord| = 0.5 +- 0.01 (unit cube), got {extent.tolist()}"
             )
+    if gt_index is not None and gt_index.y.shape != gt_points.shape:
+        raise ValueError(f"gt_index must index gt_points {tuple(gt_points.shape)}, got {tuple(gt_index.y.shape)}")
     with torch.no_grad():
         gt_points = gt_points.to(verts.dtype)
+        if gt_index is None:
+            # one search structure over the ground truth for the direct scores, the ICP and the scores after it
+            gt_index = NearestNeighborIndex(gt_points, backend=backend, workers=workers)
         gt_normals = None if gt_normals is None else gt_normals.to(verts.dtype)
         if R_pred is not None:
             verts = align_with_gt_pose(verts, R_pred, T_pred, R_gt, T_gt)  # type: ignore[arg-type]
@@ -111,17 +123,17 @@ def evaluate_meshes(
                 normals if with_normals else None,
                 gt_normals,
                 factor=CHAMFER_FACTOR,
-                backend=backend,
-                workers=workers,
+                gt_index=gt_index,
             )
             return s.chamfer_l1, s.normal_cos
 
         results: dict[str, torch.Tensor] = {}
-        points, normals = sample_points_from_meshes(verts, faces, num_points, seed=seed)
-        results["chamfer-L1"], normal_cos = scores(points, normals)
-        if normal_cos is not None:
-            results["normal-cos"] = normal_cos
-        results["iou-3d"] = point_cloud_voxel_iou(points, gt_points, voxel_resolution)
+        if run_direct:
+            points, normals = sample_points_from_meshes(verts, faces, num_points, seed=seed)
+            results["chamfer-L1"], normal_cos = scores(points, normals)
+            if normal_cos is not None:
+                results["normal-cos"] = normal_cos
+            results["iou-3d"] = point_cloud_voxel_iou(points, gt_points, voxel_resolution)
         if run_icp:
             normalized, _, _ = normalize_to_unit_cube(verts)
             points, normals = sample_points_from_meshes(normalized, faces, num_points, seed=seed + 1)
@@ -133,8 +145,7 @@ def evaluate_meshes(
                 lr=icp_lr,
                 estimate_scale=True,
                 anisotropic_scale=True,
-                backend=backend,
-                workers=workers,
+                tgt_index=gt_index,
             )
             assert icp.normals is not None
             results["chamfer-L1-ICP"], normal_cos = scores(icp.points, icp.normals)

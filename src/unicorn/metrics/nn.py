@@ -1,20 +1,31 @@
 """Exact nearest-neighbour search between point clouds in bounded memory.
 
-Two backends find the neighbour indices without gradient; the distances are then recomputed in torch from the
+The backends find the neighbour indices without gradient; the distances are then recomputed in torch from the
 matched pairs, so they are exact (no ``|x|^2 - 2 x.y + |y|^2`` cancellation) and differentiable with respect
 to both clouds.
 
-- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64). On 2 CPU cores a 100k x 100k search takes
-  about 0.15 s (build 0.05 s, query 0.1 s) against about 50 s for the brute-force torch search with one
-  thread, so it is the default for CPU tensors.
+- ``"pykdtree"``: :mod:`pykdtree` k-d trees on the CPU (float64; queries use the OpenMP threads,
+  ``OMP_NUM_THREADS``). The default for CPU tensors when it is installed.
+- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default for CPU tensors otherwise.
+  ``benchmarks/bm_eval.py`` compares the two on the evaluation's clouds.
 - ``"torch"``: brute force in blocks of at most ``block_elements`` pairwise distances (a running minimum over
-  blocks of ``y``), so memory stays bounded whatever the cloud sizes. It is the default for CUDA tensors,
-  where a 100k x 100k search is a few tens of milliseconds and avoids a device round trip.
+  blocks of ``y``), so memory stays bounded whatever the cloud sizes, each distance from the coordinate
+  differences (the neighbours the k-d trees find, up to float32 rounding of near-ties). It is the default for
+  CUDA tensors, where it avoids a device round trip.
+
+:class:`NearestNeighborIndex` holds a fixed reference cloud (a ground truth) and answers both directions of a
+Chamfer distance against clouds that change (an ICP's moving source): the nearest reference point of each
+query point (:meth:`~NearestNeighborIndex.query`) and the nearest query point of each reference point
+(:meth:`~NearestNeighborIndex.reverse_query`). The k-d tree backends search each distinct reference point once
+(ground-truth clouds stored in float16, as ShapeNet's are, repeat many points) and break ties between copies of
+a point by taking its first occurrence.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+import copy
+import importlib.util
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -22,9 +33,9 @@ from scipy.spatial import cKDTree
 
 from unicorn.checks import check_points, check_same_batch
 
-__all__ = ["Backend", "NearestNeighborIndex", "gather_points", "nearest_neighbors"]
+__all__ = ["BACKENDS", "Backend", "NearestNeighborIndex", "default_backend", "gather_points", "nearest_neighbors"]
 
-Backend = Literal["auto", "kdtree", "torch"]
+Backend = Literal["auto", "kdtree", "pykdtree", "torch"]
 
 
 def gather_points(y: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -40,15 +51,15 @@ def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> tor
     rows = min(N, max(1, block_elements // cols))
     out = torch.empty(B, N, dtype=torch.long, device=x.device)
     for b in range(B):
-        # centring on y's mean reduces the cancellation of the matrix-product form of cdist
-        centre = y[b].mean(0, keepdim=True)
-        xb, yb = x[b] - centre, y[b] - centre
+        xb, yb = x[b], y[b]
         for r0 in range(0, N, rows):
             xs = xb[r0 : r0 + rows]
             best = torch.full((xs.shape[0],), float("inf"), dtype=x.dtype, device=x.device)
             best_idx = torch.zeros(xs.shape[0], dtype=torch.long, device=x.device)
             for c0 in range(0, M, cols):
-                d, j = torch.cdist(xs, yb[c0 : c0 + cols]).min(dim=1)
+                # from coordinate differences: the matrix-product form's cancellation (|x|^2 - 2 x.y + |y|^2)
+                # picks another neighbour among near-ties often enough to move an ICP's result by 1e-4 to 1e-3
+                d, j = torch.cdist(xs, yb[c0 : c0 + cols], compute_mode="donot_use_mm_for_euclid_dist").min(dim=1)
                 better = d < best
                 best = torch.where(better, d, best)
                 best_idx = torch.where(better, j + c0, best_idx)
@@ -56,17 +67,77 @@ def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> tor
     return out
 
 
-class NearestNeighborIndex:
-    """A reusable search structure over reference clouds ``y`` (B, M, D), for repeated queries.
+# ---------------------------------------------------------------------------------------------- CPU k-d trees
+class _ScipyTree:
+    """A :class:`scipy.spatial.cKDTree` over (M, D) float64 points; ``nearest`` gives (N,) int64 indices."""
 
-    With the kdtree backend the trees are built once here, which is what an optimisation loop with a fixed
-    target (ICP) wants.
+    def __init__(self, points: np.ndarray, workers: int) -> None:
+        # sliding-midpoint trees with larger leaves: 3-4x faster than scipy's defaults for queries far
+        # from a surface sample (the first ICP iterations), as fast otherwise
+        self.tree = cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)
+        self.workers = workers
+
+    def nearest(self, queries: np.ndarray) -> np.ndarray:
+        return np.asarray(self.tree.query(queries, k=1, workers=self.workers)[1], dtype=np.int64)
+
+
+class _PyKDTree:
+    """A :class:`pykdtree.kdtree.KDTree` (OpenMP threads: ``workers`` is not used); same interface."""
+
+    def __init__(self, points: np.ndarray, workers: int) -> None:
+        from pykdtree.kdtree import KDTree
+
+        self.tree = KDTree(points, leafsize=16)
+
+    def nearest(self, queries: np.ndarray) -> np.ndarray:
+        return self.tree.query(queries, k=1, sqr_dists=True)[1].astype(np.int64)
+
+
+#: CPU k-d tree backends: name -> tree class
+_TREES = {"kdtree": _ScipyTree, "pykdtree": _PyKDTree}
+
+#: every backend name accepted besides ``"auto"``
+BACKENDS = (*_TREES, "torch")
+
+
+def default_backend(device: torch.device | str) -> str:
+    """``"torch"`` on CUDA; on the CPU ``"pykdtree"`` when installed, else ``"kdtree"``."""
+    if torch.device(device).type == "cuda":
+        return "torch"
+    return "pykdtree" if importlib.util.find_spec("pykdtree") is not None else "kdtree"
+
+
+class _DistinctPoints(NamedTuple):
+    """The distinct points of a cloud: ``points[inverse] == cloud`` and ``cloud[first] == points``."""
+
+    points: np.ndarray  # (U, D) float64
+    first: np.ndarray  # (U,) int64, each distinct point's first occurrence in the cloud
+    inverse: np.ndarray  # (M,) int64
+
+
+def _distinct(cloud: torch.Tensor) -> _DistinctPoints:
+    points = np.ascontiguousarray(cloud.detach().to(device="cpu", dtype=torch.float64).numpy())
+    # rows compared as 24-byte strings: 5x faster than np.unique(axis=0)
+    rows = points.view(np.dtype((np.void, points.dtype.itemsize * points.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    return _DistinctPoints(points[first], first.astype(np.int64), inverse.reshape(-1).astype(np.int64))
+
+
+def _numpy64(x: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
+
+
+class NearestNeighborIndex:
+    """A reusable search structure over reference clouds ``y`` (B, M, D), for repeated queries in both directions.
+
+    With the k-d tree backends the trees over ``y`` are built once here, which is what an optimisation loop with
+    a fixed target (ICP) or several scorings against one ground truth want.
 
     Args:
         y: (B, M, D) float reference points.
-        backend: ``"kdtree"``, ``"torch"`` or ``"auto"``, see :func:`nearest_neighbors`.
+        backend: ``"pykdtree"``, ``"kdtree"``, ``"torch"`` or ``"auto"``, see :func:`nearest_neighbors`.
         block_elements: torch backend only, the largest number of pairwise distances held at once.
-        workers: kdtree backend only, query threads (-1 for all cores).
+        workers: ``"kdtree"`` backend only, query threads (-1 for all cores).
     """
 
     def __init__(
@@ -79,9 +150,9 @@ class NearestNeighborIndex:
     ) -> None:
         check_points(y, "y", dim=None)
         if backend == "auto":
-            backend = "torch" if y.device.type == "cuda" else "kdtree"
-        if backend not in ("kdtree", "torch"):
-            raise ValueError(f"backend must be 'auto', 'kdtree' or 'torch', got {backend!r}")
+            backend = default_backend(y.device)  # type: ignore[assignment]
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
         if block_elements is None:
             block_elements = 2**26 if y.device.type == "cuda" else 2**22
         if block_elements < 1:
@@ -90,39 +161,68 @@ class NearestNeighborIndex:
         self.backend = backend
         self.block_elements = int(block_elements)
         self.workers = workers
-        self._trees = None
-        if backend == "kdtree":
-            # sliding-midpoint trees with larger leaves: 3-4x faster than scipy's defaults for queries far
-            # from a surface sample (the first ICP iterations), as fast otherwise
-            self._trees = [
-                cKDTree(
-                    yb.detach().to(device="cpu", dtype=torch.float64).numpy(),
-                    leafsize=32,
-                    balanced_tree=False,
-                    compact_nodes=False,
-                )
-                for yb in y
-            ]
+        self._distinct: list[_DistinctPoints] | None = None
+        self._trees: list | None = None
+        if backend in _TREES:
+            self._distinct = [_distinct(yb) for yb in y]
+            self._trees = [_TREES[backend](d.points, workers) for d in self._distinct]
 
-    @torch.no_grad()
-    def indices(self, x: torch.Tensor) -> torch.Tensor:
-        """Indices (B, N) long into ``y`` of the nearest neighbours of ``x`` (B, N, D), without gradient."""
+    def select(self, rows: torch.Tensor | list[int]) -> NearestNeighborIndex:
+        """The index over ``y[rows]`` (rows: (K,) batch indices), sharing this one's search structures."""
+        rows = [int(r) for r in rows]
+        out = copy.copy(self)
+        out.y = self.y[rows]
+        if self._trees is not None and self._distinct is not None:
+            out._trees = [self._trees[r] for r in rows]
+            out._distinct = [self._distinct[r] for r in rows]
+        return out
+
+    def _check(self, x: torch.Tensor) -> None:
         check_points(x, "x", dim=None)
         check_same_batch(x, self.y, "x", "y")
         if x.shape[-1] != self.y.shape[-1]:
             raise ValueError(f"x and y must have the same point dimension, got {x.shape[-1]} and {self.y.shape[-1]}")
-        if self._trees is not None:
-            out = []
-            for xb, tree in zip(x.detach(), self._trees):
-                _, idx = tree.query(xb.to(device="cpu", dtype=torch.float64).numpy(), k=1, workers=self.workers)
-                out.append(torch.from_numpy(np.asarray(idx, dtype=np.int64)))
-            return torch.stack(out).to(x.device)
-        return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
+
+    @torch.no_grad()
+    def indices(self, x: torch.Tensor) -> torch.Tensor:
+        """Indices (B, N) long into ``y`` of the nearest neighbours of ``x`` (B, N, D), without gradient."""
+        self._check(x)
+        if self._trees is None or self._distinct is None:
+            return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
+        out = [
+            torch.from_numpy(d.first[tree.nearest(_numpy64(xb))]) for xb, d, tree in zip(x, self._distinct, self._trees)
+        ]
+        return torch.stack(out).to(x.device)
+
+    @torch.no_grad()
+    def reverse_indices(self, x: torch.Tensor) -> torch.Tensor:
+        """Indices (B, M) long into ``x`` (B, N, D) of the nearest neighbours of ``y``, without gradient.
+
+        The k-d tree backends build a tree over each cloud of ``x`` and query the distinct points of ``y``.
+        """
+        self._check(x)
+        if self._trees is None or self._distinct is None:
+            return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
+        tree = _TREES[self.backend]
+        out = [
+            torch.from_numpy(tree(_numpy64(xb), self.workers).nearest(d.points)[d.inverse])
+            for xb, d in zip(x, self._distinct)
+        ]
+        return torch.stack(out).to(x.device)
 
     def query(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Distances (B, N), differentiable w.r.t. ``x`` and ``y``, and indices (B, N) of the neighbours."""
+        """For each point of ``x`` (B, N, D): distances (B, N), differentiable w.r.t. ``x`` and ``y``, and indices
+        (B, N) into ``y`` of its nearest neighbour."""
         idx = self.indices(x)
         dists = torch.linalg.vector_norm(x - gather_points(self.y.to(x.dtype), idx), dim=-1)
+        return dists, idx
+
+    def reverse_query(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """For each point of ``y``: distances (B, M) to its nearest neighbour in ``x`` (B, N, D), differentiable
+        w.r.t. ``x`` and ``y``, and its indices (B, M) into ``x``; ``nearest_neighbors(y, x)`` with ``y`` in
+        ``x``'s dtype."""
+        idx = self.reverse_indices(x)
+        dists = torch.linalg.vector_norm(self.y.to(x.dtype) - gather_points(x, idx), dim=-1)
         return dists, idx
 
 
@@ -139,11 +239,11 @@ def nearest_neighbors(
     Args:
         x: (B, N, D) float query points.
         y: (B, M, D) float reference points, same batch size, dtype family and device as ``x``.
-        backend: ``"kdtree"`` (scipy, CPU), ``"torch"`` (blocked brute force, any device) or ``"auto"``
-            (torch on CUDA, kdtree otherwise).
+        backend: ``"pykdtree"`` or ``"kdtree"`` (scipy) (CPU), ``"torch"`` (blocked brute force, any device) or
+            ``"auto"`` (:func:`default_backend` of ``y``'s device).
         block_elements: torch backend only, the largest number of pairwise distances held at once
             (default 2**22 on the CPU, 2**26 on CUDA, i.e. 16 MiB / 256 MiB in float32).
-        workers: kdtree backend only, threads used by the query (-1 for all cores).
+        workers: ``"kdtree"`` backend only, threads used by the query (-1 for all cores).
 
     Returns:
         dists: (B, N) Euclidean distance to the nearest neighbour, differentiable w.r.t. ``x`` and ``y``.
