@@ -7,16 +7,21 @@ dtype, ``ValueError`` for a wrong shape or value, :class:`FaceIndexError` (an ``
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from numbers import Integral
+
 import torch
 
 __all__ = [
     "FaceIndexError",
     "check_faces",
+    "check_image_size",
     "check_mesh",
     "check_normals",
     "check_points",
     "check_rotations",
     "check_same_batch",
+    "check_same_dtype",
     "check_translations",
 ]
 
@@ -50,6 +55,31 @@ def check_same_batch(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str)
         raise ValueError(f"{name_a} is on {a.device} but {name_b} is on {b.device}")
 
 
+def check_same_dtype(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
+    """Two tensors computed together must share a dtype: no silent promotion (PyTorch3D does not promote either)."""
+    if a.dtype != b.dtype:
+        raise TypeError(f"{name_a} is {a.dtype} but {name_b} is {b.dtype}: give both the same dtype")
+
+
+def check_image_size(image_size: object, name: str = "image_size") -> tuple[int, int]:
+    """``(H, W)`` from a positive int or a pair of them; anything else (a float, a string, a bool) is an error.
+
+    Raises:
+        TypeError: not an int or a pair of ints.
+        ValueError: a pair of another length, or a side <= 0.
+    """
+
+    def is_int(v: object) -> bool:
+        return isinstance(v, Integral) and not isinstance(v, bool)  # True is an int to Python, not a size
+
+    hw = (image_size, image_size) if is_int(image_size) else image_size
+    if not isinstance(hw, Sequence) or isinstance(hw, (str, bytes)) or not all(is_int(s) for s in hw):
+        raise TypeError(f"{name} must be a positive int or (H, W) of ints, got {image_size!r}")
+    if len(hw) != 2 or min(hw) <= 0:
+        raise ValueError(f"{name} must be a positive int or (H, W), got {image_size!r}")
+    return int(hw[0]), int(hw[1])
+
+
 def check_normals(normals: torch.Tensor | None, points: torch.Tensor, name: str) -> None:
     """Normals, when given, must have the shape of their points."""
     if normals is None:
@@ -65,11 +95,11 @@ def check_rotations(R: torch.Tensor, name: str, batch: int | None = None) -> Non
     """``R`` must be ``(B, 3, 3)`` floating point, with ``B == batch`` when given."""
     if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
         shape = tuple(R.shape) if isinstance(R, torch.Tensor) else type(R).__name__
-        raise ValueError(f"{name} must have shape (B, 3, 3), got {shape}")
+        raise ValueError(f"{name} must have shape ({'B' if batch is None else batch}, 3, 3), got {shape}")
+    if batch is not None and R.shape[0] != batch:
+        raise ValueError(f"{name} must have shape ({batch}, 3, 3), got {tuple(R.shape)}")
     if not R.is_floating_point():
         raise TypeError(f"{name} must be a floating point tensor, got {R.dtype}")
-    if batch is not None and R.shape[0] != batch:
-        raise ValueError(f"{name} must have batch size {batch}, got {R.shape[0]}")
 
 
 def check_translations(T: torch.Tensor, name: str, batch: int) -> None:
@@ -103,7 +133,14 @@ def check_faces(faces: torch.Tensor, num_verts: int, *, allow_empty: bool = Fals
         _check_face_range(*torch.stack([faces.min(), faces.max()]).tolist(), num_verts)
 
 
-def check_mesh(verts: torch.Tensor, faces: torch.Tensor, *, allow_empty: bool = False, finite: bool = False) -> None:
+def check_mesh(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    *,
+    allow_empty: bool = False,
+    finite: bool = False,
+    finite_also: Mapping[str, torch.Tensor] | None = None,
+) -> None:
     """Batched vertices ``(B, V, 3)`` float and shared faces ``(F, 3)`` integer indexing them, on one device.
 
     Args:
@@ -111,6 +148,8 @@ def check_mesh(verts: torch.Tensor, faces: torch.Tensor, *, allow_empty: bool = 
         faces: (F, 3) integer.
         allow_empty: accept B = 0, V = 0 or F = 0 (the renderer draws nothing); otherwise each is an error.
         finite: also require finite vertices.
+        finite_also: other tensors, by argument name, that must be finite (a renderer's colours), checked in
+            the same read.
 
     The value checks (face range, finiteness) are reduced on the device and read back together: one host sync.
     """
@@ -126,12 +165,14 @@ def check_mesh(verts: torch.Tensor, faces: torch.Tensor, *, allow_empty: bool = 
     if faces.device != verts.device:
         raise ValueError(f"verts is on {verts.device} but faces is on {faces.device}")
     values = [faces.min(), faces.max()] if faces.numel() else []
-    if finite:
-        values.append(torch.isfinite(verts).all().to(torch.int64))
+    named = {"verts": verts} if finite else {}
+    named.update(finite_also or {})
+    values += [torch.isfinite(t).all().to(torch.int64) for t in named.values()]
     if not values:
         return
-    read = torch.stack([v.to(torch.int64) for v in values]).tolist()
+    read = torch.stack([v.to(device=verts.device, dtype=torch.int64) for v in values]).tolist()
     if faces.numel():
         _check_face_range(read[0], read[1], verts.shape[1])
-    if finite and not read[-1]:
-        raise ValueError("verts contain NaN or infinite values")
+    for name, ok in zip(named, read[len(read) - len(named) :]):
+        if not ok:
+            raise ValueError(f"{name} contains NaN or infinite values")

@@ -19,7 +19,7 @@ from tests.support.checkpoints import reference_state
 from tests.support.datasets import bomb_png
 from tests.support.evaluation import TEXTURE_SIZE, referenced_files, tiny_checkpoint, write_inputs
 from unicorn.cli.reconstruct import main
-from unicorn.data.images import MAX_IMAGE_PIXELS_ENV
+from unicorn.data.images import MAX_IMAGE_BYTES_ENV, MAX_IMAGE_PIXELS_ENV
 from unicorn.io import export_prediction, load_model
 
 FAST = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
@@ -140,6 +140,17 @@ def test_decompression_bomb_is_skipped_or_one_line(
     assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "c"),
                  "--max-image-pixels", "100", *FAST]) == 2  # fmt: skip
     assert "exceeds the limit of 100" in capsys.readouterr().err
+
+
+def test_image_byte_limit_option(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, monkeypatch) -> None:
+    monkeypatch.setenv(MAX_IMAGE_BYTES_ENV, "")  # --max-image-bytes sets it for the process: restored after
+    assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "a"),
+                 "--max-image-bytes", "100", *FAST]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "photo.jpg" in err and "over the limit of 100" in err
+    with pytest.raises(SystemExit):
+        main([str(checkpoint), str(inputs), "--max-image-bytes", "-1"])
+    assert "--max-image-bytes must be >= 0" in capsys.readouterr().err
 
 
 def test_non_empty_out_needs_overwrite(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import scipy.io
 import torch
+from PIL import Image
 
-from tests.support.datasets import make_record, write_struct_array
+from tests.support.datasets import make_record, save_with_orientation, write_struct_array
 from unicorn.data.cub import CUB200, CUB_FLIP_PERM
 from unicorn.data.images import DatasetNotFoundError, ImageLoadError, hflip_keypoints
 from unicorn.data.matlab import load_struct_array
@@ -112,6 +113,30 @@ def test_cub_bad_image_raise_or_skip(cub_root: Path) -> None:
     with pytest.warns(RuntimeWarning, match=bad.name):
         item = skipping[1]
     assert int(item["index"]) == 2 and str(bad) in skipping.bad_files
+
+
+def test_annotated_images_keep_their_stored_grid(cub_root: Path) -> None:
+    # the boxes, masks and keypoints refer to the stored pixels: an orientation tag must not turn the image away
+    ds = CUB200(cub_root, "test")
+    before = ds[0]
+    path = ds.image_path(0)
+    save_with_orientation(Image.open(path).copy(), path.with_suffix(".png"), 6)  # PNG: the same pixels, lossless
+    ds.records[0]["rel_path"] = str(Path(ds.records[0]["rel_path"]).with_suffix(".png"))
+    after = ds[0]
+    _check_item(after, 64, 64, 15)
+    assert torch.equal(after["image"], before["image"]) and torch.equal(after["mask"], before["mask"])
+
+
+def test_non_finite_image_is_a_bad_image(cub_root: Path) -> None:
+    ds = CUB200(cub_root, "test", on_error="skip")
+    Image.fromarray(np.full((40, 60), np.nan, np.float32), "F").save(ds.image_path(1).with_suffix(".tif"))
+    ds.records[1]["rel_path"] = str(Path(ds.records[1]["rel_path"]).with_suffix(".tif"))
+    with pytest.warns(RuntimeWarning, match=r"\.tif: pixel values are NaN or infinite"):
+        item = ds[1]
+    assert int(item["index"]) == 2 and torch.isfinite(item["image"]).all()
+    ds.on_error = "raise"
+    with pytest.raises(ImageLoadError, match=r"\.tif: pixel values are NaN or infinite"):
+        ds[1]
 
 
 def test_p3d_items_and_points(p3d_root: Path) -> None:

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.support.datasets import bomb_png
+from tests.support.datasets import bomb_png, save_with_orientation
 from unicorn.data.images import (
+    DEFAULT_MAX_IMAGE_BYTES,
     DEFAULT_MAX_IMAGE_PIXELS,
+    MAX_IMAGE_BYTES_ENV,
     MAX_IMAGE_PIXELS_ENV,
     ImageLoadError,
     crop_box,
@@ -20,8 +22,10 @@ from unicorn.data.images import (
     hflip_keypoints,
     load_image,
     load_mask,
+    max_image_bytes,
     max_image_pixels,
     pad_bbox,
+    set_max_image_bytes,
     set_max_image_pixels,
     square_bbox,
 )
@@ -168,3 +172,66 @@ def test_any_decode_failure_is_a_bad_image(tmp_path: Path, monkeypatch: pytest.M
     monkeypatch.setattr(Image.Image, "load", broken_decoder)
     with pytest.raises(ImageLoadError, match=r"ok.png: error: unpack requires"):
         load_image(path)
+
+
+def test_a_one_bit_bomb_within_the_pixel_limit_is_refused_by_its_decoded_bytes(tmp_path: Path) -> None:
+    # 13000 x 13000 = 169e6 pixels, under the pixel limit; as float32 RGB 2.03e9 bytes, over the 1 GiB default
+    path = bomb_png(tmp_path / "bits.png", 13000, 13000, one_bit=True)
+    assert 13000 * 13000 < DEFAULT_MAX_IMAGE_PIXELS
+    with pytest.raises(ImageLoadError, match=r"bits.png: 13000x13000 pixels decode to 2028000000 bytes") as info:
+        load_image(path)
+    assert "--max-image-bytes" in str(info.value) and MAX_IMAGE_BYTES_ENV in str(info.value)
+    assert "\n" not in str(info.value)
+    with pytest.raises(ImageLoadError, match="record-3: .*decode to 2028000000 bytes"):
+        decode_image(path.read_bytes(), "record-3")
+
+
+def test_byte_limit_counts_what_each_loader_returns(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(MAX_IMAGE_BYTES_ENV, "")  # empty: the default; restored after the test
+    assert max_image_bytes() == DEFAULT_MAX_IMAGE_BYTES
+    path = _save(tmp_path / "small.png", Image.new("1", (20, 10)))  # 1 bit per pixel on disk, 12 bytes loaded
+    set_max_image_bytes(20 * 10 * 12 - 1)
+    assert os.environ[MAX_IMAGE_BYTES_ENV] == "2399"  # inherited by DataLoader workers
+    with pytest.raises(ImageLoadError, match="decode to 2400 bytes .12 per pixel., over the limit of 2399"):
+        load_image(path)
+    assert load_mask(path).shape == (10, 20)  # a mask is one float32 band: 800 bytes
+    set_max_image_bytes(20 * 10 * 4 - 1)
+    with pytest.raises(ImageLoadError, match="decode to 800 bytes .4 per pixel."):
+        load_mask(path)
+    set_max_image_bytes(20 * 10 * 12)
+    assert load_image(path).shape == (10, 20, 3)
+    set_max_image_bytes(0)
+    assert max_image_bytes() is None
+    with pytest.raises(ValueError, match=">= 0"):
+        set_max_image_bytes(-1)
+    monkeypatch.setenv(MAX_IMAGE_BYTES_ENV, "lots")
+    with pytest.raises(ValueError, match="UNICORN_MAX_IMAGE_BYTES='lots' is not a number of bytes"):
+        load_image(path)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_pixels_are_a_bad_image(tmp_path: Path, bad: float) -> None:
+    values = np.full((6, 5), 0.5, np.float32)
+    values[2, 3] = bad
+    path = _save(tmp_path / "float.tif", Image.fromarray(values, "F"))
+    for read in (load_image, load_mask, lambda p: decode_image(p.read_bytes(), str(p))):
+        with pytest.raises(ImageLoadError, match=r"float.tif: pixel values are NaN or infinite"):
+            read(path)
+    finite = _save(tmp_path / "finite.tif", Image.fromarray(np.full((6, 5), 0.25, np.float32), "F"))
+    np.testing.assert_allclose(load_image(finite), 0.25)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_exif_orientation_is_applied(tmp_path: Path, suffix: str) -> None:
+    stored = np.zeros((10, 20, 3), np.uint8)  # 20 wide, 10 high as stored
+    stored[:, :5] = 255  # a white band on the stored left: on the top once shown turned clockwise
+    path = save_with_orientation(Image.fromarray(stored), tmp_path / f"phone{suffix}", 6)
+    shown = np.rot90(stored, k=-1).astype(np.float32) / 255  # ImageOps.exif_transpose's reading of orientation 6
+    tol = 0.1 if suffix == ".jpg" else 0.0
+    for upright in (load_image(path), decode_image(path.read_bytes(), "phone")):
+        assert upright.shape == (20, 10, 3)
+        np.testing.assert_allclose(upright, shown, atol=tol)
+    mask = load_mask(path)
+    assert mask.shape == (20, 10) and mask[:5].all() and not mask[6:].any()
+    np.testing.assert_allclose(load_image(path, exif_orientation=False), stored / 255, atol=tol)
+    assert load_mask(path, exif_orientation=False).shape == (10, 20)

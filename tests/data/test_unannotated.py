@@ -12,9 +12,9 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.support.datasets import write_photo
+from tests.support.datasets import save_with_orientation, write_photo
 from unicorn.data.folder import CompCars, ImageFolder
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError, fit_and_pad
 
 
 def _check_item(item: dict, size: int = 64) -> None:
@@ -160,3 +160,22 @@ def test_decompression_bomb_is_skipped_like_any_bad_image(mixed_folder: Path) ->
     with pytest.warns(RuntimeWarning, match="aaa_bomb.png"):
         item = ImageFolder(mixed_folder, on_error="skip")[0]
     assert int(item["index"]) == 1
+
+
+def test_folder_photos_are_upright_by_their_exif_orientation(tmp_path: Path) -> None:
+    stored = np.zeros((16, 32, 3), np.uint8)  # stored 32 wide, 16 high: shown 16 wide, 32 high
+    stored[:, :8] = 255  # on top once shown
+    save_with_orientation(Image.fromarray(stored), tmp_path / "photos" / "phone.png", 6)
+    image = ImageFolder(tmp_path / "photos", img_size=32)[0]["image"]
+    expected = fit_and_pad(np.rot90(stored, k=-1).astype(np.float32) / 255, 32)
+    np.testing.assert_allclose(image.permute(1, 2, 0).numpy(), expected, atol=1e-6)
+    assert image[:, :4].min() == 1.0 and image[:, -4:].max() == 0.0  # white on top, black at the bottom
+
+
+def test_non_finite_image_is_skipped_like_any_bad_image(mixed_folder: Path) -> None:
+    Image.fromarray(np.full((8, 8), np.nan, np.float32), "F").save(mixed_folder / "aaa_nan.tif")
+    with pytest.raises(ImageLoadError, match="aaa_nan.tif: pixel values are NaN or infinite"):
+        ImageFolder(mixed_folder)[0]
+    with pytest.warns(RuntimeWarning, match="aaa_nan.tif"):
+        item = ImageFolder(mixed_folder, on_error="skip")[0]
+    assert int(item["index"]) == 1 and torch.isfinite(item["image"]).all()

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from unicorn.render import (
+    MAX_RENDER_BYTES_ENV,
     LayeredRasterizer,
     MeshRasterizer,
     TexturesUV,
@@ -188,3 +189,84 @@ def test_texture_sizes_must_match_the_mesh(renderer):
         renderer(verts, faces, _tex(2, verts.shape[1] - 1), R=R, T=T)
     with pytest.raises(ValueError, match=rf"face_uvs has {faces.shape[0] - 2} faces, meshes {faces.shape[0]}"):
         renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8), uvs[:-2]), R=R, T=T)
+
+
+def test_integer_poses_are_named(renderer):
+    verts, faces, R, T, _ = template_scene(batch=2)
+    tex = _tex(2, verts.shape[1])
+    eye = torch.eye(3, dtype=torch.long).expand(2, 3, 3)
+    with pytest.raises(TypeError, match="R must be a floating point tensor, got torch.int64"):
+        renderer(verts, faces, tex, R=eye, T=T)
+    with pytest.raises(TypeError, match="T must be a floating point tensor, got torch.int32"):
+        renderer(verts, faces, tex, R=R, T=T.int())
+    with pytest.raises(TypeError, match="R must be a floating point tensor"):
+        renderer.rasterize(verts, faces, eye, T)
+
+
+def test_mixed_precisions_are_named(renderer):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    V = verts.shape[1]
+    with pytest.raises(TypeError, match="verts is torch.float64 but colors is torch.float32"):
+        renderer(verts.double(), faces, _tex(2, V), R=R, T=T)
+    with pytest.raises(TypeError, match="verts is torch.float32 but maps is torch.float64"):
+        renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8, dtype=torch.float64), uvs), R=R, T=T)
+    # one precision throughout renders; the pose follows the vertices' dtype
+    images = renderer(verts.double(), faces, TexturesVertex(torch.rand(2, V, 3, dtype=torch.float64)), R=R, T=T)
+    assert images.dtype == torch.float64 and images[:, 3].max() > 0.99
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_textures_are_named(renderer, bad):
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    colors = torch.rand(2, verts.shape[1], 3)
+    colors[1, 7, 2] = bad
+    with pytest.raises(ValueError, match="colors contains NaN or infinite values"):
+        renderer(verts, faces, TexturesVertex(colors), R=R, T=T)
+    maps = torch.rand(2, 3, 8, 8)
+    maps[0, 1, 2, 3] = bad
+    with pytest.raises(ValueError, match="maps contains NaN or infinite values"):
+        renderer(verts, faces, TexturesUV(maps, uvs), R=R, T=T)
+    bad_uvs = uvs.clone()
+    bad_uvs[3, 1, 0] = bad
+    with pytest.raises(ValueError, match="face_uvs contains NaN or infinite values"):
+        renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8), bad_uvs), R=R, T=T)
+
+
+@pytest.mark.parametrize("name", list_renderers())
+@pytest.mark.parametrize("size", [2.5, "abc", True, (16, 2.0), (16, 16, 16), -3])
+def test_bad_image_sizes_are_named(name, size):
+    with pytest.raises((TypeError, ValueError), match=r"^(bad options for renderer '\w+': )?image_size must be"):
+        build_renderer(name, image_size=size)
+
+
+def test_image_size_accepts_ints_and_pairs():
+    assert build_renderer("layered", image_size=(12, 20)).image_size == (12, 20)
+    assert build_renderer("layered", image_size=[12, 20]).image_size == (12, 20)
+    assert MeshRasterizer(image_size=torch.Size([8, 9])).image_size == (8, 9)
+
+
+@pytest.mark.parametrize("name", list_renderers())
+def test_a_render_too_large_for_memory_fails_before_allocating(name, monkeypatch):
+    monkeypatch.delenv(MAX_RENDER_BYTES_ENV, raising=False)
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = _tex(1, verts.shape[1])
+    renderer = build_renderer(name, image_size=10000)
+    with pytest.raises(ValueError, match=r"^image_size: 1 x \d+x\d+ pixels .* GiB of fragments .*MAX_RENDER_BYTES"):
+        renderer(verts, faces, tex, R=R, T=T)
+    # the limit is the renderer's option, else the environment's
+    small = build_renderer(name, image_size=16, max_bytes=1000)
+    with pytest.raises(ValueError, match=r"over the limit of 9.31e-07 GiB"):
+        small(verts, faces, tex, R=R, T=T)
+    monkeypatch.setenv(MAX_RENDER_BYTES_ENV, "1000")
+    with pytest.raises(ValueError, match="image_size: 1 x"):
+        build_renderer(name, image_size=16)(verts, faces, tex, R=R, T=T)
+    assert build_renderer(name, image_size=16, max_bytes=0)(verts, faces, tex, R=R, T=T).shape == (1, 4, 16, 16)
+
+
+def test_render_size_bound():
+    from unicorn.render import check_render_size
+
+    check_render_size(192, (64, 64), 25, max_bytes=192 * 64 * 64 * 25 * 64)  # exactly at the limit
+    with pytest.raises(ValueError, match=r"faces_per_pixel=25 may need 1\.17 GiB"):
+        check_render_size(192, (64, 64), 25, max_bytes=192 * 64 * 64 * 25 * 64 - 1)
+    check_render_size(10**6, (10**4, 10**4), 50, max_bytes=0)  # 0: no limit

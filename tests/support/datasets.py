@@ -93,17 +93,29 @@ def write_annotated_split(
 
 
 # ---------------------------------------------------------------------------------------------- limits, bombs
-def bomb_png(path: Path, width: int = 20000, height: int = 20000) -> Path:
-    """A valid PNG header announcing ``width x height`` RGB pixels, a few hundred bytes on disk."""
+def bomb_png(path: Path, width: int = 20000, height: int = 20000, one_bit: bool = False) -> Path:
+    """A valid PNG header announcing ``width x height`` RGB pixels (1-bit grayscale with ``one_bit``), a few
+    hundred bytes on disk."""
     import struct
     import zlib
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    depth, colour = (1, 0) if one_bit else (8, 2)
+    header = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, 0)
     row = b"\x00" + bytes(3 * min(width, 64))  # only the start of the image data: decoding would fail anyway
     path.write_bytes(
         b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(row)) + chunk(b"IEND", b"")
     )
+    return path
+
+
+def save_with_orientation(img: Image.Image, path: Path, orientation: int) -> Path:
+    """Save an image (JPEG / PNG by suffix) with the EXIF orientation tag (6: stored turned 90 degrees
+    counter-clockwise, shown turned clockwise, as a phone held upright stores it)."""
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img.save(path, exif=exif)
     return path

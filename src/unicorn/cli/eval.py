@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def add_common_arguments(p: argparse.ArgumentParser) -> None:
-    """The options every checkpoint-reading tool shares: trust, image pixel limit, debug."""
+    """The options every checkpoint-reading tool shares: trust, image pixel and byte limits, debug."""
     p.add_argument(
         "--trust-checkpoint",
         action="store_true",
@@ -129,7 +129,30 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
         help="refuse images with more pixels (decompression bombs); 0: no limit; default: "
         "$UNICORN_MAX_IMAGE_PIXELS or 178956970",
     )
+    p.add_argument(
+        "--max-image-bytes",
+        type=int,
+        help="refuse images whose decoded array has more bytes (width x height x 12 for float32 RGB); 0: no limit; "
+        "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
+    )
     add_debug_argument(p)
+
+
+def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse negative image limits (a usage error)."""
+    for name in ("max_image_pixels", "max_image_bytes"):
+        if (getattr(args, name) or 0) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0")
+
+
+def apply_common_arguments(args: argparse.Namespace) -> None:
+    """Set the image limits given on the command line for this process and its workers."""
+    from unicorn.data.images import set_max_image_bytes, set_max_image_pixels
+
+    if args.max_image_pixels is not None:
+        set_max_image_pixels(args.max_image_pixels)
+    if args.max_image_bytes is not None:
+        set_max_image_bytes(args.max_image_bytes)
 
 
 def _device(name: str) -> Any:
@@ -258,19 +281,17 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     if args.max_images is not None and args.max_images < 1:
         parser.error("--max-images must be positive")
-    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "max_image_pixels", "shape_points"):
+    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "shape_points"):
         if (getattr(args, name) or 0) < 0:
             parser.error(f"--{name.replace('_', '-')} must be >= 0")
+    check_common_arguments(parser, args)
     # ValueError and KeyError: what the dataset and protocol builders raise on unknown names and bad layouts
     return report_errors("unicorn-eval", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     tune_allocator()
-    if args.max_image_pixels is not None:
-        from unicorn.data.images import set_max_image_pixels
-
-        set_max_image_pixels(args.max_image_pixels)
+    apply_common_arguments(args)
     from unicorn.io.provenance import command_line
 
     return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))

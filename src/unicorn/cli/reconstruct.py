@@ -22,7 +22,7 @@ from pathlib import Path
 
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, report_errors
-from unicorn.cli.eval import HelpFormatter, add_common_arguments
+from unicorn.cli.eval import HelpFormatter, add_common_arguments, apply_common_arguments, check_common_arguments
 
 __all__ = ["build_parser", "main"]
 
@@ -145,16 +145,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     if args.turntable_frames < 0 or args.padding < 0:
         parser.error("--turntable-frames and --padding must be >= 0")
-    if args.max_image_pixels is not None and args.max_image_pixels < 0:
-        parser.error("--max-image-pixels must be >= 0")
+    check_common_arguments(parser, args)
     return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
-    if args.max_image_pixels is not None:
-        from unicorn.data.images import set_max_image_pixels
-
-        set_max_image_pixels(args.max_image_pixels)
+    apply_common_arguments(args)
     from unicorn.io.provenance import command_line
 
     return run(args, command=command_line("unicorn-reconstruct", sys.argv[1:] if argv is None else argv))

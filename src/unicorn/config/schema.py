@@ -77,6 +77,7 @@ class DatasetConfig:
     synthetic: dict[str, Any] | None = None
     options: dict[str, Any] | None = None
     max_image_pixels: int | None = ranged(None, 0)  # null: $UNICORN_MAX_IMAGE_PIXELS or PIL's limit; 0: none
+    max_image_bytes: int | None = ranged(None, 0)  # decoded bytes; null: $UNICORN_MAX_IMAGE_BYTES or 1 GiB; 0: none
 
 
 # ---------------------------------------------------------------------------------------------- schedule

@@ -6,6 +6,11 @@ array ``images`` whose records have ``rel_path``, ``bbox`` (struct ``x1, y1, x2,
 training, jittered) box, with the image border replicated where the crop leaves the image and the mask zero
 there, resized to ``img_size``; training items are flipped horizontally with probability 0.5, keypoints
 mirrored and their left/right names swapped.
+
+Images are read as stored, EXIF orientation NOT applied (unlike the other loaders): the boxes, masks and keypoints
+were made on the stored pixel grid (MATLAB's ``imread``, which ignores the tag, as does the reference's PIL
+loading), so turning the image upright would move it away from its annotations. CUB's and Pascal3D+'s JPEGs carry
+no orientation tag in practice, so the two readings agree on them anyway.
 """
 
 from __future__ import annotations
@@ -91,7 +96,7 @@ class BBoxCropDataset(UnicornDataset):
 
     def load(self, index: int) -> dict[str, Any]:
         record = self.records[index]
-        image = load_image(self.image_path(index))
+        image = load_image(self.image_path(index), exif_orientation=False)  # annotations are on the stored grid
         mask = np.asarray(record["mask"], dtype=np.float32)
         if mask.shape != image.shape[:2]:
             mask = resize_mask(mask, image.shape[:2])

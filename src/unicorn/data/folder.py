@@ -1,7 +1,8 @@
 """Unannotated image collections: any folder of images, and CompCars.
 
-Images are resized so that their longer side is ``img_size`` and padded to a square by replicating their
-border (the reference's ``resize_mode='pad'``); training items are flipped horizontally at random.
+Images are read upright by their EXIF orientation (a phone photo stored sideways reaches the network as it is
+shown), resized so that their longer side is ``img_size`` and padded to a square by replicating their border (the
+reference's ``resize_mode='pad'``); training items are flipped horizontally at random.
 """
 
 from __future__ import annotations

@@ -1,10 +1,21 @@
 """Image loading and the crop / pad / resize / flip steps shared by the loaders.
 
 Arrays are numpy ``(H, W, 3)`` float32 in [0, 1] until :func:`to_chw_tensor` turns them into ``(C, H, W)``
-tensors. Every decode goes through :func:`open_image`: any failure (truncated, not an image, an unknown
-format, a decompression bomb) is an :class:`ImageLoadError`, and an image of more than :func:`max_image_pixels`
-pixels is refused from its header before it is decoded (raise the limit with ``UNICORN_MAX_IMAGE_PIXELS``,
-``dataset.max_image_pixels`` or the tools' ``--max-image-pixels``).
+tensors. Every decode goes through :func:`open_image` and :func:`decoded`, so every loader (:func:`load_image`,
+:func:`decode_image`, :func:`load_mask`) treats these the same way: any failure (truncated, not an image, an
+unknown format) is an :class:`ImageLoadError` naming the file, and so are
+
+- an image of more than :func:`max_image_pixels` pixels, or whose decoded array (width x height x bands x bytes
+  per band of what the loader returns: 12 bytes per pixel for float32 RGB, 4 for a float32 mask) exceeds
+  :func:`max_image_bytes`, refused from its header before it is decoded (a decompression bomb: a 20 KB 1-bit PNG
+  of 13000 x 13000 pixels decodes to 2 GB of float32 RGB). Raise the limits with ``UNICORN_MAX_IMAGE_PIXELS`` /
+  ``UNICORN_MAX_IMAGE_BYTES``, ``dataset.max_image_pixels`` / ``dataset.max_image_bytes`` or the tools'
+  ``--max-image-pixels`` / ``--max-image-bytes``;
+- an image whose pixels decode to NaN or infinite values (a float TIFF).
+
+EXIF orientation is applied (as ``PIL.ImageOps.exif_transpose``: a phone photo stored sideways with orientation 6
+is returned upright) unless the loader is asked for the stored pixels (``exif_orientation=False``), which
+datasets whose annotations refer to the stored pixel grid need (:mod:`unicorn.data.annotated`).
 
 Bounding boxes are ``(x1, y1, x2, y2)`` in 0-based pixel indices, inclusive on both ends. Keypoints
 are ``(K, 3)`` arrays of ``(column, row, visible)`` with pixel centres at integer coordinates.
@@ -23,29 +34,36 @@ from typing import IO
 
 import numpy as np
 import torch
-from PIL import Image
+from PIL import ExifTags, Image, ImageOps
 
 from unicorn.errors import UserError
 
 __all__ = [
+    "DEFAULT_MAX_IMAGE_BYTES",
     "DEFAULT_MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_BYTES_ENV",
     "MAX_IMAGE_PIXELS_ENV",
+    "MASK_BYTES_PER_PIXEL",
+    "RGB_BYTES_PER_PIXEL",
     "DatasetError",
     "DatasetNotFoundError",
     "ImageLoadError",
     "crop_box",
     "decode_image",
+    "decoded",
     "fit_and_pad",
     "hflip_keypoints",
     "jitter_bbox",
     "load_image",
     "load_mask",
+    "max_image_bytes",
     "max_image_pixels",
     "open_image",
     "pad_bbox",
     "resize_image",
     "resize_mask",
     "require",
+    "set_max_image_bytes",
     "set_max_image_pixels",
     "square_bbox",
     "to_chw_tensor",
@@ -85,19 +103,41 @@ def require(path: str | os.PathLike, what: str, hint: str) -> Path:
 DEFAULT_MAX_IMAGE_PIXELS = 178_956_970
 #: environment variable holding the limit (inherited by DataLoader workers); 0 means no limit
 MAX_IMAGE_PIXELS_ENV = "UNICORN_MAX_IMAGE_PIXELS"
+#: decoded bytes above which an image is refused: 1 GiB, a float32 RGB image of about 89 megapixels (a 48 MP
+#: phone photo takes 576 MB); the decode and conversion temporaries come on top
+DEFAULT_MAX_IMAGE_BYTES = 1 << 30
+#: environment variable holding the bytes limit (inherited by DataLoader workers); 0 means no limit
+MAX_IMAGE_BYTES_ENV = "UNICORN_MAX_IMAGE_BYTES"
+#: bytes per pixel of what the loaders return: float32 RGB images, float32 masks
+RGB_BYTES_PER_PIXEL = 3 * 4
+MASK_BYTES_PER_PIXEL = 4
 _PIL_LOCK = threading.Lock()
+
+
+class ImageLimitError(UserError, ValueError):
+    """An invalid image pixel or byte limit."""
+
+
+def _read_limit(env: str, default: int, unit: str) -> int | None:
+    text = os.environ.get(env, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(float(text))
+    except ValueError:
+        raise ImageLimitError(f"{env}={text!r} is not a number of {unit}") from None
+    return value if value > 0 else None
+
+
+def _write_limit(env: str, limit: int | None, what: str) -> None:
+    if limit is not None and limit < 0:
+        raise ImageLimitError(f"the image {what} limit must be >= 0 (0: none), got {limit}")
+    os.environ[env] = str(int(limit or 0))
 
 
 def max_image_pixels() -> int | None:
     """The current limit on pixels per image (None: no limit); see :func:`set_max_image_pixels`."""
-    text = os.environ.get(MAX_IMAGE_PIXELS_ENV, "").strip()
-    if not text:
-        return DEFAULT_MAX_IMAGE_PIXELS
-    try:
-        value = int(float(text))
-    except ValueError:
-        raise ImageLimitError(f"{MAX_IMAGE_PIXELS_ENV}={text!r} is not a number of pixels") from None
-    return value if value > 0 else None
+    return _read_limit(MAX_IMAGE_PIXELS_ENV, DEFAULT_MAX_IMAGE_PIXELS, "pixels")
 
 
 def set_max_image_pixels(limit: int | None) -> None:
@@ -106,26 +146,43 @@ def set_max_image_pixels(limit: int | None) -> None:
     Raises:
         ImageLimitError: a negative limit.
     """
-    if limit is not None and limit < 0:
-        raise ImageLimitError(f"the image pixel limit must be >= 0 (0: none), got {limit}")
-    os.environ[MAX_IMAGE_PIXELS_ENV] = str(int(limit or 0))
+    _write_limit(MAX_IMAGE_PIXELS_ENV, limit, "pixel")
 
 
-class ImageLimitError(UserError, ValueError):
-    """An invalid image pixel limit."""
+def max_image_bytes() -> int | None:
+    """The current limit on the decoded bytes of an image (None: no limit); see :func:`set_max_image_bytes`."""
+    return _read_limit(MAX_IMAGE_BYTES_ENV, DEFAULT_MAX_IMAGE_BYTES, "bytes")
+
+
+def set_max_image_bytes(limit: int | None) -> None:
+    """Set the limit on decoded bytes per image (width x height x bands x bytes per band of the array a loader
+    returns) for this process and its children (None or 0: no limit).
+
+    Raises:
+        ImageLimitError: a negative limit.
+    """
+    _write_limit(MAX_IMAGE_BYTES_ENV, limit, "byte")
 
 
 @contextlib.contextmanager
-def open_image(source: str | os.PathLike | IO[bytes], name: str | os.PathLike) -> Iterator[Image.Image]:
-    """``PIL.Image.open`` with the pixel limit and one error type; ``name`` is used in errors.
+def open_image(
+    source: str | os.PathLike | IO[bytes], name: str | os.PathLike, bytes_per_pixel: int = RGB_BYTES_PER_PIXEL
+) -> Iterator[Image.Image]:
+    """``PIL.Image.open`` with the pixel and byte limits and one error type; ``name`` is used in errors.
+
+    Args:
+        source: file path or binary file object.
+        name: what errors call the image.
+        bytes_per_pixel: bytes per pixel of the array the caller makes of the image (bands x bytes per band
+            after its conversion: :data:`RGB_BYTES_PER_PIXEL`, :data:`MASK_BYTES_PER_PIXEL`), for the byte limit.
 
     Yields the opened (not yet loaded) image. Any exception while opening or inside the block becomes an
     :class:`ImageLoadError` naming ``name``.
     """
-    limit = max_image_pixels()
+    pixel_limit, byte_limit = max_image_pixels(), max_image_bytes()
     try:
         with _PIL_LOCK, warnings.catch_warnings():
-            # PIL's global bomb check is replaced by the header check below (its limit is not ours)
+            # PIL's global bomb check is replaced by the header checks below (its limit is not ours)
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
             try:
@@ -134,18 +191,44 @@ def open_image(source: str | os.PathLike | IO[bytes], name: str | os.PathLike) -
                 Image.MAX_IMAGE_PIXELS = saved
         with img:
             pixels = img.width * img.height
-            if limit is not None and pixels > limit:
+            if pixel_limit is not None and pixels > pixel_limit:
                 raise ImageLoadError(
                     name,
-                    f"{img.width}x{img.height} = {pixels} pixels exceeds the limit of {limit} (a decompression "
+                    f"{img.width}x{img.height} = {pixels} pixels exceeds the limit of {pixel_limit} (a decompression "
                     f"bomb?); if the image is genuine raise the limit with --max-image-pixels, "
                     f"dataset.max_image_pixels or {MAX_IMAGE_PIXELS_ENV}",
+                )
+            size = pixels * bytes_per_pixel
+            if byte_limit is not None and size > byte_limit:
+                raise ImageLoadError(
+                    name,
+                    f"{img.width}x{img.height} pixels decode to {size} bytes ({bytes_per_pixel} per pixel), over the "
+                    f"limit of {byte_limit} (a decompression bomb?); if the image is genuine raise the limit with "
+                    f"--max-image-bytes, dataset.max_image_bytes or {MAX_IMAGE_BYTES_ENV}",
                 )
             yield img
     except ImageLoadError:
         raise
     except Exception as err:  # PIL raises many kinds on bad files (OSError, SyntaxError, struct.error, ...)
         raise ImageLoadError(name, f"{type(err).__name__}: {' '.join(str(err).split())}") from err
+
+
+def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = True) -> Image.Image:
+    """Decode an image from :func:`open_image` the one way every loader does (call it inside that block).
+
+    Loads the pixels, refuses non-finite ones (float images: a NaN TIFF is a bad image, not an image of NaNs),
+    and turns the image upright by its EXIF orientation (``PIL.ImageOps.exif_transpose``) unless
+    ``exif_orientation`` is False.
+
+    Raises:
+        ImageLoadError: non-finite pixel values.
+    """
+    img.load()
+    if img.mode == "F" and not np.isfinite(np.asarray(img)).all():  # the one float mode; others are integers
+        raise ImageLoadError(name, "pixel values are NaN or infinite")
+    if exif_orientation and img.getexif().get(ExifTags.Base.Orientation, 1) != 1:
+        img = ImageOps.exif_transpose(img)  # a copy: only made when there is something to turn
+    return img
 
 
 def _pil_to_rgb(img: Image.Image) -> np.ndarray:
@@ -167,37 +250,36 @@ def _pil_to_rgb(img: Image.Image) -> np.ndarray:
     return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
 
-def load_image(path: str | os.PathLike) -> np.ndarray:
-    """Read an image file as RGB.
+def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
+    """Read an image file as RGB, upright by its EXIF orientation unless ``exif_orientation`` is False.
 
     Grayscale, palette, RGBA (composited on white), CMYK and 16-bit images are converted.
 
     Args:
         path: image file.
+        exif_orientation: apply the EXIF orientation tag; False returns the stored pixel grid.
 
     Returns:
         (H, W, 3) float32 array in [0, 1].
 
     Raises:
-        ImageLoadError: if the file is missing, truncated or not an image.
+        ImageLoadError: if the file is missing, truncated, not an image, over the limits or not finite.
     """
     with open_image(path, path) as img:
-        img.load()
-        return _pil_to_rgb(img)
+        return _pil_to_rgb(decoded(img, path, exif_orientation))
 
 
-def decode_image(data: bytes, name: str) -> np.ndarray:
+def decode_image(data: bytes, name: str, exif_orientation: bool = True) -> np.ndarray:
     """Decode encoded image bytes (e.g. an LMDB value) like :func:`load_image`; ``name`` is used in errors."""
     with open_image(io.BytesIO(data), name) as img:
-        img.load()
-        return _pil_to_rgb(img)
+        return _pil_to_rgb(decoded(img, name, exif_orientation))
 
 
-def load_mask(path: str | os.PathLike) -> np.ndarray:
-    """Read a mask image (any mode, first channel) as an (H, W) float32 array in {0, 1}."""
-    with open_image(path, path) as img:
-        img.load()
-        arr = np.asarray(img)
+def load_mask(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
+    """Read a mask image (any mode, first channel) as an (H, W) float32 array in {0, 1}, oriented as
+    :func:`load_image` orients its image."""
+    with open_image(path, path, MASK_BYTES_PER_PIXEL) as img:
+        arr = np.asarray(decoded(img, path, exif_orientation))
     if arr.ndim == 3:
         arr = arr[..., 0]
     return (arr > arr.max() / 2 if arr.max() > 0 else arr > 0).astype(np.float32)

@@ -69,7 +69,8 @@ def read_lsun_indices(path: str | Path) -> np.ndarray:
 class LSUN(UnicornDataset):
     """LSUN object images (e.g. horses, motorbikes) from an LMDB.
 
-    Each image's full frame is enlarged by ``padding`` of its size on every side (jittered by ``jitter`` when
+    Each image (upright by its EXIF orientation: nothing is annotated on its pixel grid) is read whole: its full
+    frame is enlarged by ``padding`` of its size on every side (jittered by ``jitter`` when
     augmenting), cropped with border replication, then fitted into a square of ``img_size`` and padded.
 
     Args:

@@ -10,7 +10,8 @@ Expected layout (``root`` = ``datasets/shapenet_nmr``, DVR's ``NMR_Dataset``)::
     <synset>/<model>/pointcloud.npz         # points, normals (P, 3) in the ShapeNet frame, max |coord| 0.5
 
 Poses are converted to unicorn's convention (``x_view = x_world @ R + T``, view +X left, +Y up) and points to
-the object frame UNICORN uses, ``(x, y, z) -> (-z, y, x)``; see :func:`dvr_to_unicorn_pose`.
+the object frame UNICORN uses, ``(x, y, z) -> (-z, y, x)``; see :func:`dvr_to_unicorn_pose`. Images and masks are
+read as stored (EXIF orientation not applied, unlike user photos): the cameras describe the stored pixel grid.
 """
 
 from __future__ import annotations
@@ -241,8 +242,9 @@ class ShapeNetNMR(UnicornDataset):
     def load(self, index: int) -> dict[str, Any]:
         model, view = self.model_view(index)
         category, folder = self.models[model]
-        image = load_image(folder / "image" / f"{view:04d}.png")
-        mask = load_mask(folder / "mask" / f"{view:04d}.png")
+        # the stored pixel grid, EXIF orientation not applied: the cameras were made for it
+        image = load_image(folder / "image" / f"{view:04d}.png", exif_orientation=False)
+        mask = load_mask(folder / "mask" / f"{view:04d}.png", exif_orientation=False)
         R, T = self.view_pose(model, view)
         item: dict[str, Any] = {
             "image": to_chw_tensor(image),

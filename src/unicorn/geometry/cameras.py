@@ -14,18 +14,15 @@ import math
 import torch
 from torch import nn
 
+from unicorn.checks import check_image_size
+
 __all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "pixel_to_ndc", "world_to_view"]
 
 
 def image_hw(image_size: int | tuple[int, int]) -> tuple[int, int]:
-    """(H, W) from an int or a pair, with a clear error for anything else."""
-    if isinstance(image_size, int):
-        hw = (image_size, image_size)
-    else:
-        hw = tuple(int(s) for s in image_size)
-    if len(hw) != 2 or min(hw) <= 0:
-        raise ValueError(f"image_size must be a positive int or (H, W), got {image_size!r}")
-    return hw  # type: ignore[return-value]
+    """(H, W) from an int or a pair of ints, with one error naming ``image_size`` for anything else
+    (:func:`unicorn.checks.check_image_size`)."""
+    return check_image_size(image_size)
 
 
 def world_to_view(verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,9 @@ The framing is the training one (:mod:`unicorn.data.images`):
 - any other image is resized so that its longer side is the model's size and padded to a square by replicating
   its border, centred (the image-folder / CompCars loaders' ``fit_and_pad``).
 
+Images are read upright by their EXIF orientation, as image viewers show them (a phone photo stored sideways with
+orientation 6 reaches the model upright); a box given by the caller is in that displayed pixel grid.
+
 The models reconstruct what fills the frame as their training images did: one object, centred, seen whole, filling
 most of the square, on its natural background (or on white for models trained on ShapeNet renderings).
 """
@@ -25,6 +28,7 @@ import torch
 from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
 from unicorn.data.images import (
     crop_box,
+    decoded,
     fit_and_pad,
     load_image,
     open_image,
@@ -74,7 +78,8 @@ def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
 
 
 def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | None:
-    """Box ``(x1, y1, x2, y2)`` (0-based, inclusive) of the opaque pixels of an image with transparency.
+    """Box ``(x1, y1, x2, y2)`` (0-based, inclusive) of the opaque pixels of an image with transparency, in the
+    pixel grid of :func:`~unicorn.data.images.load_image` (EXIF orientation applied).
 
     Returns:
         the box, or None when the image has no alpha channel, is fully opaque or fully transparent.
@@ -82,7 +87,8 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
     with open_image(path, path) as img:
         if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
             return None
-        alpha = np.asarray(img.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
+        # oriented as load_image orients the image, so that the box is in its pixel grid
+        alpha = np.asarray(decoded(img, path).convert("RGBA"))[..., 3].astype(np.float32) / 255.0
     opaque = alpha > threshold
     if opaque.all() or not opaque.any():
         return None

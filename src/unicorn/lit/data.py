@@ -20,7 +20,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 
 from unicorn.data.common import OnError
-from unicorn.data.images import DatasetError, set_max_image_pixels
+from unicorn.data.images import DatasetError, set_max_image_bytes, set_max_image_pixels
 from unicorn.data.registry import Split, build_dataset, dataset_root, dataset_spec, prepare_dataset, val_indices
 
 __all__ = ["SeededItems", "StreamBatchSampler", "UnicornDataModule"]
@@ -123,6 +123,9 @@ class UnicornDataModule(L.LightningDataModule):
         max_image_pixels: refuse images with more pixels (a bad image, skipped with ``on_error="skip"``); None:
             the current limit (:func:`unicorn.data.images.max_image_pixels`), 0: no limit. Set for the whole
             process and its workers.
+        max_image_bytes: refuse images whose decoded array (width x height x bands x bytes per band, 12 bytes per
+            pixel for float32 RGB) has more bytes, likewise; None: the current limit
+            (:func:`unicorn.data.images.max_image_bytes`), 0: no limit.
         stream_seed: seed of the endless training stream; None: one-pass training loaders.
     """
 
@@ -142,11 +145,14 @@ class UnicornDataModule(L.LightningDataModule):
         synthetic: dict[str, Any] | None = None,
         options: dict[str, Any] | None = None,
         max_image_pixels: int | None = None,
+        max_image_bytes: int | None = None,
         stream_seed: int | None = None,
     ) -> None:
         super().__init__()
         if max_image_pixels is not None:
             set_max_image_pixels(max_image_pixels)
+        if max_image_bytes is not None:
+            set_max_image_bytes(max_image_bytes)
         dataset_spec(name)  # an unknown name fails here, naming the known ones
         if name != "synthetic" and root is None:
             raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")

@@ -14,7 +14,14 @@ from .backends import HardRenderer, LayeredRasterizer, SoftRasRenderer
 from .fragments import DenseFragments, Fragments
 from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
-from .raster import blur_radius_from_sigma, rasterize_meshes
+from .raster import (
+    DEFAULT_MAX_RENDER_BYTES,
+    MAX_RENDER_BYTES_ENV,
+    blur_radius_from_sigma,
+    check_render_size,
+    max_render_bytes,
+    rasterize_meshes,
+)
 from .rasterizer import MeshRasterizer
 from .registry import (
     build_renderer,
@@ -28,6 +35,8 @@ from .softras import SoftRasBlend, softras_blend
 from .textures import Textures, TexturesUV, TexturesVertex, interpolate_vertex_attributes
 
 __all__ = [
+    "DEFAULT_MAX_RENDER_BYTES",
+    "MAX_RENDER_BYTES_ENV",
     "DenseFragments",
     "Fragments",
     "HardBlend",
@@ -44,12 +53,14 @@ __all__ = [
     "TexturesVertex",
     "blur_radius_from_sigma",
     "build_renderer",
+    "check_render_size",
     "get_renderer_class",
     "hard_blend",
     "interpolate_vertex_attributes",
     "layered_blend",
     "layered_occupancy",
     "list_renderers",
+    "max_render_bytes",
     "rasterize_meshes",
     "register_renderer",
     "softras_blend",

@@ -14,20 +14,37 @@ as piecewise constant leaves the image continuous up to that threshold.
 
 Units: distances are *squared* NDC distances as in PyTorch3D and the UNICORN reference; ``blur_radius`` is a
 squared NDC distance too. See :func:`blur_radius_from_sigma`.
+
+Memory: a render is refused before anything is allocated when its fragments could exceed
+:func:`max_render_bytes` (16 GiB unless ``UNICORN_MAX_RENDER_BYTES`` or the ``max_bytes`` argument says otherwise):
+``B x H x W x K x 64`` bytes, the packed pairs if every pixel of the (supersampled) raster kept
+``faces_per_pixel = K`` faces; see :func:`check_render_size`.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import warnings
+from collections.abc import Mapping
 
 import torch
 
-from ..checks import check_mesh
+from ..checks import check_mesh, check_rotations, check_translations
 from ..geometry.cameras import image_hw
 from .fragments import Fragments
 
-__all__ = ["blur_radius_from_sigma", "check_mesh_inputs", "check_pose_inputs", "rasterize_meshes"]
+__all__ = [
+    "DEFAULT_MAX_RENDER_BYTES",
+    "MAX_RENDER_BYTES_ENV",
+    "PAIR_BYTES",
+    "blur_radius_from_sigma",
+    "check_mesh_inputs",
+    "check_pose_inputs",
+    "check_render_size",
+    "max_render_bytes",
+    "rasterize_meshes",
+]
 
 # depth is quantised to this many bits inside the sort key; the pixel index takes the bits above
 _DEPTH_BITS = 31
@@ -37,6 +54,57 @@ _MIN_FACE_AREA = 1e-8
 _MIN_DEPTH = 1e-6
 #: the faces_per_pixel settings whose overflow was already reported in this process (see rasterize_meshes)
 _OVERFLOW_WARNED: set[int] = set()
+#: bytes of one packed (pixel, face) pair, rounded up: four int64 indices, the inside flag, and barycentrics,
+#: distance and depth in float32 (53 bytes); autograd and the aggregators keep a few times that while rendering
+PAIR_BYTES = 64
+#: the largest fragments a render may need, ``B x H x W x K x PAIR_BYTES``: 16 GiB (a batch of 192 training
+#: images of 64 x 64 with K = 25 needs at most 1.3 GB; a single 10000 x 10000 render with K = 25, 160 GB)
+DEFAULT_MAX_RENDER_BYTES = 16 << 30
+#: environment variable holding that limit; 0 means no limit
+MAX_RENDER_BYTES_ENV = "UNICORN_MAX_RENDER_BYTES"
+
+
+def max_render_bytes() -> int | None:
+    """The limit on a render's fragment bytes: ``$UNICORN_MAX_RENDER_BYTES``, else 16 GiB (None: no limit)."""
+    text = os.environ.get(MAX_RENDER_BYTES_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_RENDER_BYTES
+    try:
+        value = int(float(text))
+    except ValueError:
+        raise ValueError(f"{MAX_RENDER_BYTES_ENV}={text!r} is not a number of bytes") from None
+    return value if value > 0 else None
+
+
+def check_render_size(
+    batch_size: int, image_size: tuple[int, int], faces_per_pixel: int, max_bytes: int | None = None
+) -> None:
+    """Refuse a render whose fragments could exceed the limit, before anything is allocated.
+
+    The bound is ``B x H x W x K x PAIR_BYTES``: the packed pairs if every pixel of the raster (supersampled
+    when the rasterizer is) kept K faces. Actual renders usually keep fewer pairs (a mesh covers part of the
+    image, and the layered renderer drops what an opaque face hides), but the bound is what a frame-filling
+    mesh can reach.
+
+    Args:
+        batch_size: B.
+        image_size: (H, W) of the raster.
+        faces_per_pixel: K.
+        max_bytes: the limit; None: :func:`max_render_bytes`; 0: no limit.
+
+    Raises:
+        ValueError: over the limit (naming ``image_size``, the estimate and how to raise the limit).
+    """
+    limit = max_render_bytes() if max_bytes is None else (max_bytes or None)
+    H, W = image_size
+    need = batch_size * H * W * faces_per_pixel * PAIR_BYTES
+    if limit is not None and need > limit:
+        raise ValueError(
+            f"image_size: {batch_size} x {H}x{W} pixels (supersampled where the renderer is) with "
+            f"faces_per_pixel={faces_per_pixel} may need {need / 2**30:.3g} GiB of fragments (B x H x W x K x "
+            f"{PAIR_BYTES} bytes), over the limit of {limit / 2**30:.3g} GiB; render smaller or raise the limit "
+            f"(the renderer's max_bytes, or {MAX_RENDER_BYTES_ENV}; 0: none)"
+        )
 
 
 def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
@@ -51,25 +119,26 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
 
 
 def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size: int) -> None:
-    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), finite, or both None."""
+    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None."""
     if (R is None) != (T is None):
         raise ValueError("give both R and T, or neither (verts already in view coordinates)")
     if R is None or T is None:
         return
-    if not isinstance(R, torch.Tensor) or tuple(R.shape) != (batch_size, 3, 3):
-        raise ValueError(f"R must have shape ({batch_size}, 3, 3), got {tuple(getattr(R, 'shape', ()))}")
-    if not isinstance(T, torch.Tensor) or tuple(T.shape) != (batch_size, 3):
-        raise ValueError(f"T must have shape ({batch_size}, 3), got {tuple(getattr(T, 'shape', ()))}")
+    check_rotations(R, "R", batch_size)  # an integer R would be cast and render a wrong pose
+    check_translations(T, "T", batch_size)
     finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync
     for name, ok in zip("RT", finite):
         if not ok:
             raise ValueError(f"{name} contains NaN or infinite values")
 
 
-def check_mesh_inputs(verts: torch.Tensor, faces: torch.Tensor) -> None:
+def check_mesh_inputs(
+    verts: torch.Tensor, faces: torch.Tensor, finite_also: Mapping[str, torch.Tensor] | None = None
+) -> None:
     """Validate a batch of meshes with shared topology: verts (B, V, 3) float, faces (F, 3) integer in [0, V),
-    finite vertices; empty batches, meshes and face lists are allowed (:func:`unicorn.checks.check_mesh`)."""
-    check_mesh(verts, faces, allow_empty=True, finite=True)
+    finite vertices; empty batches, meshes and face lists are allowed (:func:`unicorn.checks.check_mesh`).
+    ``finite_also`` (a render's colours, by argument name) must be finite too, checked in the same host read."""
+    check_mesh(verts, faces, allow_empty=True, finite=True, finite_also=finite_also)
 
 
 def _face_boxes(
@@ -248,6 +317,7 @@ def rasterize_meshes(
     truncate_opaque: bool = False,
     max_candidates: int = 1 << 23,
     check_inputs: bool = True,
+    max_bytes: int | None = None,
 ) -> Fragments:
     """Rasterize a batch of projected meshes into packed top-K fragments.
 
@@ -268,6 +338,8 @@ def rasterize_meshes(
         max_candidates: stage-1 work budget; images are processed in chunks of at most this many candidate
             (pixel, face) pairs (a single image is never split).
         check_inputs: validate shapes, dtypes, index ranges and finiteness.
+        max_bytes: refuse, before allocating, a render whose fragments could exceed this many bytes
+            (:func:`check_render_size`); None: :func:`max_render_bytes`; 0: no limit.
 
     Returns:
         :class:`~unicorn.render.fragments.Fragments`.
@@ -279,8 +351,9 @@ def rasterize_meshes(
     if not (math.isfinite(blur_radius) and blur_radius >= 0):
         raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
     H, W = image_hw(image_size)
-    S = min(H, W)
     B, V, _ = verts_ndc.shape
+    check_render_size(B, (H, W), faces_per_pixel, max_bytes)
+    S = min(H, W)
     faces = faces.long()
     F = faces.shape[0]
     px_to_ndc2 = (2.0 / S) ** 2

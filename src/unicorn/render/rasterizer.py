@@ -31,6 +31,9 @@ class MeshRasterizer(nn.Module):
             that face hides them exactly).
         supersample: integer factor s: fragments are computed at (s * H, s * W) (1 = none).
         max_candidates: rasterizer work budget per chunk of images (bounds memory).
+        max_bytes: refuse renders whose fragments could exceed this many bytes, ``B x H x W x K x 64`` at the
+            raster size (:func:`~unicorn.render.raster.check_render_size`); None: ``$UNICORN_MAX_RENDER_BYTES``
+            or 16 GiB; 0: no limit.
     """
 
     def __init__(
@@ -42,9 +45,10 @@ class MeshRasterizer(nn.Module):
         truncate_opaque: bool = False,
         supersample: int = 1,
         max_candidates: int = 1 << 23,
+        max_bytes: int | None = None,
     ) -> None:
         super().__init__()
-        self.image_size = image_hw(image_size if isinstance(image_size, int) else tuple(image_size))
+        self.image_size = image_hw(image_size)
         if faces_per_pixel < 1:
             raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
         self.faces_per_pixel = int(faces_per_pixel)
@@ -57,6 +61,9 @@ class MeshRasterizer(nn.Module):
             raise ValueError(f"supersample must be >= 1, got {supersample}")
         self.supersample = int(supersample)
         self.max_candidates = int(max_candidates)
+        if max_bytes is not None and max_bytes < 0:
+            raise ValueError(f"max_bytes must be >= 0 (0: no limit), got {max_bytes}")
+        self.max_bytes = max_bytes
 
     def extra_repr(self) -> str:
         return (
@@ -104,4 +111,5 @@ class MeshRasterizer(nn.Module):
         return rasterize_meshes(
             self.project(verts, R, T), faces, image_size or self.raster_size, self.blur_radius,
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
+            max_bytes=self.max_bytes,
         )  # fmt: skip

@@ -105,10 +105,11 @@ class MeshRenderer(nn.Module):
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
-        check_mesh_inputs(verts, faces)
         if not isinstance(textures, Textures):
             raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
-        textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0])
+        # the textures' finiteness is read with the mesh's (one host read): NaN colours would give NaN pixels
+        check_mesh_inputs(verts, faces, finite_also=textures.tensors())
+        textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0], verts=verts)
         check_pose_inputs(R, T, verts.shape[0])
         fragments = self.rasterizer(verts, faces, R, T, check_inputs=False)  # checked once above
         colors = textures.sample(fragments, faces.long())
@@ -129,14 +130,20 @@ class MeshRenderer(nn.Module):
         """Render a batch of textured meshes.
 
         Args:
-            verts: (B, V, 3) vertices in world coordinates (view coordinates if R and T are None).
+            verts: (B, V, 3) float32 or float64 vertices in world coordinates (view coordinates if R and T are
+                None), finite.
             faces: (F, 3) long, shared by the batch.
-            textures: :class:`TexturesUV` or :class:`TexturesVertex` with batch size B and C channels.
-            R: (B, 3, 3) world-to-view rotation, ``x_view = x @ R + T``.
-            T: (B, 3) world-to-view translation.
+            textures: :class:`TexturesUV` or :class:`TexturesVertex` with batch size B and C channels, finite, of
+                the vertices' dtype (no silent promotion: a mismatch is a TypeError naming both).
+            R: (B, 3, 3) floating point world-to-view rotation, ``x_view = x @ R + T``, finite.
+            T: (B, 3) floating point world-to-view translation, finite.
             background: (B, C, H, W) background images; ``background_color`` when None.
 
         Returns:
             (B, C + 1, H, W) images, the last channel alpha.
+
+        Raises:
+            TypeError, ValueError: a bad argument, named in the one-line message; ValueError also when the
+                fragments could exceed the renderer's memory limit (:func:`~unicorn.render.raster.check_render_size`).
         """
         return self.render(verts, faces, textures, R, T, background).images

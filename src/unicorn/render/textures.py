@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..checks import check_same_dtype
 from .fragments import Fragments
 
 __all__ = ["Textures", "TexturesUV", "TexturesVertex", "interpolate_vertex_attributes"]
@@ -47,10 +48,20 @@ class Textures:
         raise NotImplementedError
 
     def check_batch(
-        self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None
+        self,
+        batch_size: int,
+        num_verts: int | None = None,
+        num_faces: int | None = None,
+        verts: torch.Tensor | None = None,
     ) -> None:  # pragma: no cover - interface
-        """Raise ValueError unless the textures fit ``batch_size`` meshes of ``num_verts`` / ``num_faces``."""
+        """Raise ValueError unless the textures fit ``batch_size`` meshes of ``num_verts`` / ``num_faces``, and
+        TypeError unless their colours have the dtype of ``verts`` when given."""
         raise NotImplementedError
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """The tensors whose values reach the pixels, by argument name: the renderer requires them finite (in the
+        host read it makes anyway). None by default."""
+        return {}
 
 
 class TexturesVertex(Textures):
@@ -68,11 +79,22 @@ class TexturesVertex(Textures):
         self.colors = colors
         self.num_channels = colors.shape[-1]
 
-    def check_batch(self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None) -> None:
+    def check_batch(
+        self,
+        batch_size: int,
+        num_verts: int | None = None,
+        num_faces: int | None = None,
+        verts: torch.Tensor | None = None,
+    ) -> None:
         if self.colors.shape[0] != batch_size:
             raise ValueError(f"colors have batch size {self.colors.shape[0]}, meshes {batch_size}")
         if num_verts is not None and self.colors.shape[1] != num_verts:
             raise ValueError(f"colors have {self.colors.shape[1]} vertices, meshes {num_verts}")
+        if verts is not None:
+            check_same_dtype(verts, self.colors, "verts", "colors")
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {"colors": self.colors}
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
         return interpolate_vertex_attributes(fragments, faces, self.colors)
@@ -128,11 +150,22 @@ class TexturesUV(Textures):
         self.align_corners = align_corners
         self.num_channels = maps.shape[1]
 
-    def check_batch(self, batch_size: int, num_verts: int | None = None, num_faces: int | None = None) -> None:
+    def check_batch(
+        self,
+        batch_size: int,
+        num_verts: int | None = None,
+        num_faces: int | None = None,
+        verts: torch.Tensor | None = None,
+    ) -> None:
         if self.maps.shape[0] != batch_size:
             raise ValueError(f"texture maps have batch size {self.maps.shape[0]}, meshes {batch_size}")
         if num_faces is not None and self.face_uvs.shape[0] != num_faces:
             raise ValueError(f"face_uvs has {self.face_uvs.shape[0]} faces, meshes {num_faces}")
+        if verts is not None:
+            check_same_dtype(verts, self.maps, "verts", "maps")  # face_uvs follow the vertices' dtype
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {"maps": self.maps, "face_uvs": self.face_uvs}
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
         corner_uvs = self.face_uvs.to(fragments.bary).reshape(-1, 6).index_select(0, fragments.face).view(-1, 3, 2)

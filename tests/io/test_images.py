@@ -1,0 +1,41 @@
+"""User images for unicorn-reconstruct: orientation, and the checks every loader shares."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from tests.support.datasets import save_with_orientation
+from unicorn.data.images import ImageLoadError, fit_and_pad
+from unicorn.io import alpha_bbox, load_input, read_input
+
+
+def test_a_sideways_phone_photo_reaches_the_model_upright(tmp_path: Path) -> None:
+    stored = np.zeros((24, 48, 3), np.uint8)  # stored 48 wide, 24 high; shown 24 wide, 48 high
+    stored[:, :12] = 255  # the stored left band: the top once shown
+    path = save_with_orientation(Image.fromarray(stored), tmp_path / "phone.png", 6)
+    item = load_input(path, 32)
+    expected = fit_and_pad(np.rot90(stored, k=-1).astype(np.float32) / 255, 32)
+    np.testing.assert_allclose(item.image.permute(1, 2, 0).numpy(), expected, atol=1e-6)
+
+
+def test_alpha_box_is_in_the_upright_grid(tmp_path: Path) -> None:
+    stored = np.zeros((20, 40, 4), np.uint8)
+    stored[2:6, 30:38, 3] = 255  # opaque black at rows 2-5, columns 30-37 as stored; transparent elsewhere
+    path = save_with_orientation(Image.fromarray(stored, "RGBA"), tmp_path / "cutout.png", 6)
+    # shown turned clockwise: stored (row r, column c) lands at (row c, column H - 1 - r) with H = 20
+    np.testing.assert_array_equal(alpha_bbox(path), [20 - 1 - 5, 30, 20 - 1 - 2, 37])
+    raw = read_input(path)
+    assert raw.image.shape == (40, 20, 3)
+    x1, y1, x2, y2 = raw.bbox.astype(int)
+    assert (raw.image[y1 : y2 + 1, x1 : x2 + 1] < 1).all()  # the box holds the opaque (black) pixels
+
+
+def test_non_finite_input_is_a_bad_image(tmp_path: Path) -> None:
+    path = tmp_path / "nan.tif"
+    Image.fromarray(np.full((8, 8), np.nan, np.float32), "F").save(path)
+    with pytest.raises(ImageLoadError, match=r"nan.tif: pixel values are NaN or infinite"):
+        load_input(path, 32)
