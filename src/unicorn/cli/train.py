@@ -113,10 +113,12 @@ def build(cfg: DictConfig) -> Run:
     # heavy imports here: `unicorn-train --help` and config errors stay fast
     import lightning as L
     from hydra.utils import instantiate
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
 
-    from unicorn.config import model_config, validate
+    from unicorn.config import ConfigError, model_config, validate
+    from unicorn.io.checkpoints import init_weights
     from unicorn.io.run_folder import prepare_folder, resolve_ckpt
-    from unicorn.io.serialization import remove_stale_temporaries
+    from unicorn.io.serialization import check_checkpoint_path, remove_stale_temporaries
     from unicorn.lit import (
         AtomicCheckpointIO,
         CodeDiagnostics,
@@ -152,6 +154,9 @@ def build(cfg: DictConfig) -> Run:
         alternation_period=typed.schedule.alternation_period,
         seed=typed.seed,
     )
+    if typed.init_from is not None:
+        info = init_weights(module.model, check_checkpoint_path(typed.init_from, "init_from"), typed.trust_checkpoint)
+        log.info("init_from: starting from the weights of the %s", info.describe())
 
     s, cb = typed.schedule, typed.callbacks
     dims = OmegaConf.to_container(typed.model.stages, resolve=True)
@@ -196,16 +201,22 @@ def build(cfg: DictConfig) -> Run:
     assert isinstance(trainer_kwargs, dict)
     if trainer_kwargs["val_check_interval"] is None:
         trainer_kwargs["limit_val_batches"] = 0
-    trainer = L.Trainer(
-        **trainer_kwargs,
-        max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
-        check_val_every_n_epoch=None,
-        use_distributed_sampler=False,  # the stream shards itself across ranks
-        default_root_dir=str(output_dir),
-        callbacks=callbacks,
-        logger=loggers or False,
-        plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
-    )
+    try:
+        trainer = L.Trainer(
+            **trainer_kwargs,
+            max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
+            check_val_every_n_epoch=None,
+            use_distributed_sampler=False,  # the stream shards itself across ranks
+            default_root_dir=str(output_dir),
+            callbacks=callbacks,
+            logger=loggers or False,
+            plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
+        )
+    except MisconfigurationException as err:  # e.g. accelerator=gpu on a machine without one
+        t = typed.trainer
+        raise ConfigError(
+            f"trainer (accelerator={t.accelerator}, devices={t.devices}, strategy={t.strategy}): {err}"
+        ) from err
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path)
 
 
