@@ -44,7 +44,7 @@ class UsageError(UserError, ValueError):
 USER_ERRORS: tuple[type[BaseException], ...] = (UserError, OSError)
 
 #: how torch re-raises an exception of a DataLoader worker: its type, the worker, then the worker's traceback
-_WORKER = re.compile(r"Caught (\w+) in DataLoader worker process (\d+)\.\s*Original Traceback", re.S)
+_WORKER = re.compile(r"Caught (\w+) in DataLoader worker process (\d+)\.\s*Original ", re.S)
 #: the message of a worker killed from outside (by the kernel for memory, or a signal)
 _WORKER_DIED = "DataLoader worker (pid"
 
