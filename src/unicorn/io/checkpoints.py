@@ -365,9 +365,7 @@ def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -
             f"settings it was trained with, e.g. model=big): missing {missing[:4]}, unexpected {unexpected[:4]}, "
             f"other sizes {misfit[:4]}"
         )
-    with torch.no_grad():
-        for key, value in own.items():
-            value.copy_(state[key])
+    model.load_state_dict(state, strict=False)  # every key checked above; the perceptual loss keeps its own
     return info
 
 
