@@ -94,3 +94,63 @@ def test_errors(tmp_path: Path) -> None:
     torch.save(data, tmp_path / "broken.pt")
     with pytest.raises(CheckpointError, match="does not fit"):
         load_model(tmp_path / "broken.pt")
+
+
+def test_a_directory_is_not_a_checkpoint(tmp_path: Path) -> None:
+    with pytest.raises(IsADirectoryError, match=r"is a directory, not a checkpoint file"):
+        load_model(tmp_path)
+
+
+def test_a_stored_config_is_size_checked_before_the_model_is_built(tmp_path: Path, monkeypatch) -> None:
+    import copy
+
+    from unicorn.io.checkpoints import MAX_MODEL_PARAMS, ModelTooLargeError
+    from unicorn.io.serialization import atomic_save
+    from unicorn.model import Unicorn, count_parameters
+
+    model = tiny_model("real", seed=1)
+    config = copy.deepcopy(model.config)
+    # the oracle: the built model's networks (template, renderer, losses hold no size of their own)
+    networks = [model.encoders, model.shape, model.texture, model.background, model.pose, model.scale]
+    assert count_parameters(config) == sum(t.numel() for m in networks for t in [*m.parameters(), *m.buffers()])
+    config["encoder"]["width"] = 8192  # ~10^11 parameters: hundreds of GB if it were built
+    path = atomic_save({"format": "unicorn-model", "config": config, "state_dict": {}, "info": {}}, tmp_path / "w.pt")
+    built = []
+    monkeypatch.setattr(Unicorn, "__init__", lambda *a, **k: built.append(1))
+    with pytest.raises(ModelTooLargeError, match=r"encoder\.width=8192.*UNICORN_MAX_MODEL_PARAMS"):
+        load_model(path)
+    assert not built and count_parameters(config) > MAX_MODEL_PARAMS
+    monkeypatch.undo()
+    # the limit can be changed: a low one refuses even the tiny model
+    monkeypatch.setenv("UNICORN_MAX_MODEL_PARAMS", "1000")
+    with pytest.raises(ModelTooLargeError, match="above the limit of 1,000"):
+        load_model(save_model(model, tmp_path / "m.pt"))
+
+
+def test_only_training_checkpoints_resume_the_others_name_init_from(tmp_path: Path) -> None:
+    from unicorn.io.checkpoints import NotATrainingCheckpointError, check_training_checkpoint
+
+    check_training_checkpoint({"pytorch-lightning_version": "2.5", "state_dict": {}}, "run.ckpt")
+    for data, kind in [
+        ({"model_state": {}, "model_kwargs": {}}, "a released UNICORN model"),
+        ({"format": "unicorn-model", "config": {}, "state_dict": {}}, "a unicorn.io.save_model file"),
+        ({"weights": 1}, "not a unicorn-train checkpoint"),
+    ]:
+        with pytest.raises(NotATrainingCheckpointError, match=rf"m\.pkl is {kind}.*use init_from=m\.pkl"):
+            check_training_checkpoint(data, "m.pkl")
+
+
+def test_init_weights_copies_every_weight_or_refuses(tmp_path: Path) -> None:
+    from unicorn.io.checkpoints import init_weights
+    from unicorn.model import Unicorn
+
+    source = tiny_model("real", seed=1)
+    path = save_model(source, tmp_path / "m.pt")
+    target = Unicorn(source.config)
+    info = init_weights(target, path)
+    assert info.format == "plain"
+    for key, value in source.state_dict().items():
+        assert torch.equal(target.state_dict()[key], value), key
+    other = Unicorn(source.config, shape={"code_dim": source.config["shape"]["code_dim"] * 2})
+    with pytest.raises(CheckpointError, match=r"init_from: the weights of .* do not fit the configured model"):
+        init_weights(other, path)

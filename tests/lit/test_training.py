@@ -190,6 +190,45 @@ def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monk
     assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
 
 
+class StateBefore(L.Callback):
+    """Records the module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
+
+    def __init__(self, step: int) -> None:
+        self.step, self.state = step, None
+
+    def on_train_batch_start(self, trainer, pl_module, *args):
+        if trainer.global_step == self.step:
+            self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
+
+
+def test_nonfinite_checkpoint_is_the_state_before_the_failing_iteration(synthetic_cache, tmp_path, monkeypatch):
+    from unicorn.io.serialization import load_checkpoint_file
+
+    run = build_run(tmp_path)
+    model, n = run.module.model, 3  # iteration 3 is a 3D step
+    original = model.step_3d
+
+    def nan_at_n(images, average_texture=False):
+        out = original(images, average_texture)  # the forward pass has updated the BatchNorm statistics
+        if run.trainer.global_step == n:
+            out["rgb"] = out["rgb"] * float("nan")
+            out["total"] = out["total"] + out["rgb"]
+        return out
+
+    monkeypatch.setattr(model, "step_3d", nan_at_n)
+    before = StateBefore(n)  # added last: after the stage callback's changes at iteration n
+    run.trainer.callbacks.append(before)
+    with pytest.raises(NonFiniteLossError, match=rf"iteration {n} \(3d step\): rgb = nan"):
+        fit(run)
+    saved = load_checkpoint_file(run.checkpoint_dir / f"nonfinite-step={n}.ckpt")
+    assert saved["global_step"] == n and before.state is not None
+    state = saved["state_dict"]
+    assert state.keys() == before.state.keys()
+    assert any(k.endswith("running_var") for k in state)
+    for key, value in state.items():
+        assert torch.equal(value, before.state[key]), key
+
+
 def test_missing_dataset_is_a_clear_error(tmp_path):
     from tests.support.training import compose_config
 

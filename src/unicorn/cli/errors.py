@@ -1,36 +1,101 @@
-"""How every command-line tool reports errors: a user's mistake in one line, a bug with its traceback.
+"""How every command-line tool reports errors: an expected failure in one line, a bug with its traceback.
 
-A :class:`unicorn.errors.UserError` (and the few built-in errors that always mean a wrong path or option:
-``FileNotFoundError``, ``NotADirectoryError``, ``IsADirectoryError``, ``PermissionError``) ends the command with
-``<prog>: error: <message>`` on stderr, on one line, and exit status 2, as argparse does for a bad option.
-Anything else is a bug and keeps its traceback. ``--debug`` (or ``HYDRA_FULL_ERROR=1`` / ``UNICORN_DEBUG=1`` in
-the environment) shows the traceback of user errors too.
+Expected failures end the command with ``<prog>: error: <message>`` on stderr, on one line, and exit status 2,
+as argparse does for a bad option (:func:`expected_error` decides):
+
+- a :class:`unicorn.errors.UserError` (a bad value, a missing or unsafe file, a checkpoint of the wrong kind...);
+- an ``OSError``: a missing path, a permission, a read-only or full disk (the message names the path when the
+  system gives it);
+- Lightning's ``MisconfigurationException`` (e.g. ``trainer.accelerator=gpu`` on a machine without one);
+- a DataLoader worker that died (killed for memory) or raised one of the above: the worker's message, not its
+  traceback;
+- any of these wrapped by Hydra's ``instantiate`` ("Error in call to target ..."): the cause.
+
+Anything else is a bug and keeps its traceback (exit status 1). ``--debug`` (or ``HYDRA_FULL_ERROR=1`` /
+``UNICORN_DEBUG=1`` in the environment) shows the traceback of expected failures too.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Callable
 
 from unicorn.errors import UserError
 
-__all__ = ["USER_ERRORS", "UsageError", "add_debug_argument", "debug_requested", "one_line", "report_errors"]
+__all__ = [
+    "USER_ERRORS",
+    "UsageError",
+    "add_debug_argument",
+    "debug_requested",
+    "expected_error",
+    "one_line",
+    "report_errors",
+]
 
 
 class UsageError(UserError, ValueError):
     """Options that do not fit together or do not fit this machine (the message names the option)."""
 
 
-#: exceptions reported in one line: the user can fix them
-USER_ERRORS: tuple[type[BaseException], ...] = (
-    UserError,
-    FileNotFoundError,
-    NotADirectoryError,
-    IsADirectoryError,
-    PermissionError,
-)
+#: exceptions reported in one line: the user can fix them (a path, a permission, a full disk, a bad value)
+USER_ERRORS: tuple[type[BaseException], ...] = (UserError, OSError)
+
+#: how torch re-raises an exception of a DataLoader worker: its type, the worker, then the worker's traceback
+_WORKER = re.compile(r"Caught (\w+) in DataLoader worker process (\d+)\.\s*Original ", re.S)
+#: the message of a worker killed from outside (by the kernel for memory, or a signal)
+_WORKER_DIED = "DataLoader worker (pid"
+
+
+def _user_error_names() -> set[str]:
+    """Names of the :class:`UserError` classes defined so far (torch re-raises a worker's error as a
+    ``RuntimeError`` when it cannot rebuild its type)."""
+    names, todo = set(), [UserError]
+    while todo:
+        cls = todo.pop()
+        names.add(cls.__name__)
+        todo += cls.__subclasses__()
+    return names
+
+
+def _worker_message(err: BaseException) -> tuple[str, str, str] | None:
+    """``(type name, worker, message)`` of an error torch re-raised from a DataLoader worker, else None."""
+    text = str(err.args[0]) if err.args else ""
+    match = _WORKER.match(text)
+    if match is None:
+        return None
+    name, worker = match.group(1), match.group(2)
+    # the traceback ends with "<module>.<Name>: <message>" (after any chained exceptions)
+    start = max(text.rfind(f".{name}: "), text.rfind(f"\n{name}: "))
+    message = text[start + len(name) + 3 :] if start >= 0 else text.splitlines()[-1]
+    return name, worker, message
+
+
+def _is_misconfiguration(err: BaseException) -> bool:
+    """Lightning's error for trainer flags this machine or installation cannot honour."""
+    return any(
+        cls.__name__ == "MisconfigurationException" and cls.__module__.startswith("lightning")
+        for cls in type(err).__mro__
+    )
+
+
+def expected_error(err: BaseException) -> BaseException | None:
+    """The error to report in one line if ``err`` is an expected failure (see the module docstring), else None.
+
+    Hydra's instantiation errors are unwrapped to their cause.
+    """
+    if type(err).__name__ == "InstantiationException" and err.__cause__ is not None:
+        return expected_error(err.__cause__)
+    if isinstance(err, USER_ERRORS) or _is_misconfiguration(err):
+        return err
+    worker = _worker_message(err)
+    if worker is not None and worker[0] in _user_error_names():
+        return err
+    if isinstance(err, RuntimeError) and str(err).startswith(_WORKER_DIED):
+        return err
+    return None
 
 
 def debug_requested(flag: bool = False) -> bool:
@@ -39,8 +104,15 @@ def debug_requested(flag: bool = False) -> bool:
 
 
 def one_line(err: BaseException) -> str:
-    """The error's message on one line (a ``KeyError``'s message without its quotes)."""
-    text = err.args[0] if isinstance(err, KeyError) and len(err.args) == 1 else err
+    """The error's message on one line (a ``KeyError``'s message without its quotes; a DataLoader worker's error
+    by its message and the worker, without the worker's traceback)."""
+    worker = _worker_message(err)
+    if worker is not None:
+        text: object = f"{worker[2]} (in DataLoader worker {worker[1]})"
+    elif isinstance(err, KeyError) and len(err.args) == 1:
+        text = err.args[0]
+    else:
+        text = err
     return " ".join(str(text).split()) or type(err).__name__
 
 
@@ -60,21 +132,24 @@ def report_errors(
 ) -> int:
     """Run ``func``; a user error is printed as ``<prog>: error: <message>`` and gives exit status 2.
 
+    Any other exception (a bug) propagates with its traceback, after ``cleanup``.
+
     Args:
         prog: the command's name.
         func: the command; returns its exit status.
         debug: re-raise user errors (traceback) instead.
         extra: more exception types this command reports as user errors.
-        cleanup: called before reporting a user error (e.g. to remove a half-created output folder).
+        cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
     try:
         return func()
-    except USER_ERRORS + extra as err:
+    except Exception as err:
         if cleanup is not None:
             cleanup()
-        if debug_requested(debug):
+        reported = err if isinstance(err, extra) else expected_error(err)
+        if reported is None or debug_requested(debug):
             raise
-        print(f"{prog}: error: {one_line(err)}", file=sys.stderr)
+        print(f"{prog}: error: {one_line(reported)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         if cleanup is not None:

@@ -68,7 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     p.add_argument(
-        "--overwrite", action="store_true", help="write into a non-empty --out (same-named files are replaced)"
+        "--overwrite",
+        action="store_true",
+        help="write into a non-empty --out (same-named files are replaced, once every image is reconstructed)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_common_arguments(p)
@@ -82,6 +84,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.provenance import command_line, provenance
+    from unicorn.io.staging import staged_folder
 
     out = args.out.expanduser()
     if out.exists() and not out.is_dir():
@@ -116,19 +119,20 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     ]
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     start = time.perf_counter()
-    records = reconstruct(
-        model,
-        items,
-        out,
-        device=device,
-        batch_size=args.batch_size,
-        view_size=args.view_size,
-        turntable_frames=args.turntable_frames,
-        strip_views=args.strip_views,
-        average_texture=average,
-        progress=not args.quiet,
-        provenance=provenance(command or command_line("unicorn-reconstruct", sys.argv[1:]), args.checkpoint),
-    )
+    with staged_folder(out) as staging:  # a failure part-way leaves --out as it was
+        records = reconstruct(
+            model,
+            items,
+            staging,
+            device=device,
+            batch_size=args.batch_size,
+            view_size=args.view_size,
+            turntable_frames=args.turntable_frames,
+            strip_views=args.strip_views,
+            average_texture=average,
+            progress=not args.quiet,
+            provenance=provenance(command or command_line("unicorn-reconstruct", sys.argv[1:]), args.checkpoint),
+        )
     seconds = time.perf_counter() - start
     print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
     print(f"outputs in {out}/<image>/ ; overview: {out / 'overview.png'}, {out / 'index.html'}")

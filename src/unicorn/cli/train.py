@@ -30,9 +30,11 @@ again. ``--debug`` or ``HYDRA_FULL_ERROR=1`` shows the traceback.
 
 from __future__ import annotations
 
+import builtins
 import io
 import logging
 import os
+import re
 import shutil
 import sys
 import warnings
@@ -44,7 +46,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.errors import USER_ERRORS, debug_requested, one_line
+from unicorn.cli.errors import debug_requested, expected_error, one_line
 from unicorn.resources import config_dir
 
 __all__ = [
@@ -123,10 +125,12 @@ def build(cfg: DictConfig) -> Run:
     # heavy imports here: `unicorn-train --help` and config errors stay fast
     import lightning as L
     from hydra.utils import instantiate
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
 
-    from unicorn.config import model_config, validate
+    from unicorn.config import ConfigError, model_config, validate
+    from unicorn.io.checkpoints import init_weights
     from unicorn.io.run_folder import prepare_folder, resolve_ckpt
-    from unicorn.io.serialization import remove_stale_temporaries
+    from unicorn.io.serialization import check_checkpoint_path, remove_stale_temporaries
     from unicorn.lit import (
         AtomicCheckpointIO,
         CodeDiagnostics,
@@ -162,6 +166,9 @@ def build(cfg: DictConfig) -> Run:
         alternation_period=typed.schedule.alternation_period,
         seed=typed.seed,
     )
+    if typed.init_from is not None:
+        info = init_weights(module.model, check_checkpoint_path(typed.init_from, "init_from"), typed.trust_checkpoint)
+        log.info("init_from: starting from the weights of the %s", info.describe())
 
     s, cb = typed.schedule, typed.callbacks
     dims = OmegaConf.to_container(typed.model.stages, resolve=True)
@@ -206,16 +213,22 @@ def build(cfg: DictConfig) -> Run:
     assert isinstance(trainer_kwargs, dict)
     if trainer_kwargs["val_check_interval"] is None:
         trainer_kwargs["limit_val_batches"] = 0
-    trainer = L.Trainer(
-        **trainer_kwargs,
-        max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
-        check_val_every_n_epoch=None,
-        use_distributed_sampler=False,  # the stream shards itself across ranks
-        default_root_dir=str(output_dir),
-        callbacks=callbacks,
-        logger=loggers or False,
-        plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
-    )
+    try:
+        trainer = L.Trainer(
+            **trainer_kwargs,
+            max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
+            check_val_every_n_epoch=None,
+            use_distributed_sampler=False,  # the stream shards itself across ranks
+            default_root_dir=str(output_dir),
+            callbacks=callbacks,
+            logger=loggers or False,
+            plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
+        )
+    except MisconfigurationException as err:  # e.g. accelerator=gpu on a machine without one
+        t = typed.trainer
+        raise ConfigError(
+            f"trainer (accelerator={t.accelerator}, devices={t.devices}, strategy={t.strategy}): {err}"
+        ) from err
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path)
 
 
@@ -297,6 +310,25 @@ def train(cfg: DictConfig) -> dict[str, float]:
 _DEBUG = False
 #: set when Hydra hands the composed config to the task (errors before are Hydra's: composition, overrides)
 _TASK_STARTED = False
+#: where in the run folder the task writes Hydra's record of the run (``hydra.output_subdir``; None: nowhere)
+_HYDRA_SUBDIR: str | None = ".hydra"
+
+
+def _save_hydra_record(cfg: DictConfig, output_dir: Path) -> None:
+    """Hydra's record of the run (``config.yaml``, ``hydra.yaml``, ``overrides.yaml`` in ``.hydra/``), as Hydra
+    writes it, but only once the folder was accepted (Hydra itself would write it before the task, over the
+    record of a run whose folder is then refused)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if _HYDRA_SUBDIR is None or not HydraConfig.initialized():
+        return
+    # a plain copy (Hydra's is read-only), interpolations kept as Hydra saves them
+    hydra_cfg = OmegaConf.create(OmegaConf.to_container(HydraConfig.instance().cfg, resolve=False))
+    hydra_cfg.hydra.output_subdir = _HYDRA_SUBDIR
+    folder = output_dir / _HYDRA_SUBDIR
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, node in (("config", cfg), ("hydra", hydra_cfg), ("overrides", hydra_cfg.hydra.overrides.task)):
+        OmegaConf.save(node, folder / f"{name}.yaml")
 
 
 def _task(cfg: DictConfig) -> None:
@@ -317,16 +349,18 @@ def _task(cfg: DictConfig) -> None:
     run = None
     try:
         run = build(cfg)
+        _save_hydra_record(cfg, run.output_dir)
         fit(run)
-    except USER_ERRORS as err:
-        if debug_requested(_DEBUG):
-            raise
+    except Exception as err:
         if run is None or run.trainer.global_step == 0:
             # failed before the first iteration: no half-created run folder is left behind
             for folder in empty_before:
                 if not any((folder / "checkpoints").glob("*.ckpt")):
                     shutil.rmtree(folder, ignore_errors=True)
-        print(f"unicorn-train: error: {one_line(err)}", file=sys.stderr, flush=True)
+        reported = expected_error(err)
+        if reported is None or debug_requested(_DEBUG):
+            raise  # a bug: Hydra prints the traceback, exit status 1
+        print(f"unicorn-train: error: {one_line(reported)}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
 
 
@@ -374,6 +408,40 @@ class _HeldStream(io.TextIOBase):
         return self.stream
 
 
+def _hydra_subdir(args: list[str]) -> list[str]:
+    """The arguments with Hydra's own writing of ``.hydra/`` turned off (the task writes it, see
+    :func:`_save_hydra_record`); a ``hydra.output_subdir`` given by the user is kept for the task."""
+    global _HYDRA_SUBDIR
+    rest = []
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key.lstrip("+~") == "hydra.output_subdir":
+            _HYDRA_SUBDIR = None if value in ("", "null") or key.startswith("~") else value
+        else:
+            rest.append(arg)
+    return [*rest, "hydra.output_subdir=null"]
+
+
+#: the last line of a Python traceback: the exception's (qualified) name and message
+_EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
+
+
+def _hydra_failure(text: str) -> str | None:
+    """The one line to print for what Hydra reported before the task ran, or None when it is a bug.
+
+    Without a traceback it is a composition error (a misspelt override or group); with one, an expected failure
+    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk).
+    """
+    lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
+    if not any(line.startswith("Traceback (most recent call last)") for line in lines):
+        return " ".join(lines) or "invalid command line"
+    match = _EXCEPTION_LINE.match(lines[-1])
+    cls = getattr(builtins, match.group(1), None) if match else None
+    if match and isinstance(cls, type) and issubclass(cls, OSError):
+        return match.group(2)
+    return None
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
     global _DEBUG
@@ -393,7 +461,7 @@ def main() -> None:
             file=sys.stderr,
             flush=True,
         )
-    sys.argv[1:] = hydra_argv(args)
+    sys.argv[1:] = _hydra_subdir(hydra_argv(args))
     tune_allocator()
     held = None if debug_requested(_DEBUG) else _HeldStream(sys.stderr)
     if held is not None:
@@ -403,14 +471,13 @@ def main() -> None:
     except SystemExit as exit:
         if held is None or _TASK_STARTED or not exit.code:
             raise
-        # Hydra's own report of a composition error (a misspelt override or group): one line, status 2
-        lines = [
-            line.strip()
-            for line in held.held.getvalue().splitlines()
-            if line.strip() and "HYDRA_FULL_ERROR" not in line
-        ]
         sys.stderr = held.stream
-        print(f"unicorn-train: error: {' '.join(lines) or 'invalid command line'}", file=sys.stderr)
+        # Hydra's own report of an error before the task: one line, status 2, unless it is a bug
+        line = _hydra_failure(held.held.getvalue())
+        if line is None:
+            sys.stderr.write(held.held.getvalue())
+            raise
+        print(f"unicorn-train: error: {line}", file=sys.stderr)
         raise SystemExit(2) from None
     finally:
         if isinstance(sys.stderr, _HeldStream):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -19,6 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from unicorn.config.schema import OPTIM_CHOICES, TrainConfig
 from unicorn.data import DATASET_NAMES
+from unicorn.data.common import OnError
 from unicorn.errors import UserError
 from unicorn.model.config import CHOICES, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
@@ -31,6 +33,10 @@ _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
 
 class ConfigError(UserError, ValueError):
     """A training configuration that cannot be used (the message names the key)."""
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _check(condition: bool, message: str) -> None:
@@ -65,14 +71,21 @@ def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:
     Raises:
         ValueError: the first bad value, named with its key.
     """
-    _check(optim["lr"] > 0, f"{prefix}lr must be > 0, got {optim['lr']}")
-    _check(len(optim["betas"]) == 2, f"{prefix}betas needs two values, got {list(optim['betas'])}")
+    lr, betas = optim["lr"], list(optim["betas"])
+    _check(_finite(lr) and lr > 0, f"{prefix}lr must be a finite number > 0, got {lr}")
+    _check(len(betas) == 2, f"{prefix}betas needs two values, got {betas}")
+    _check(all(_finite(b) and 0 <= b < 1 for b in betas), f"{prefix}betas must lie in [0, 1), got {betas}")
     for key, allowed in OPTIM_CHOICES.items():
         _check(optim[key] in allowed, f"{prefix}{key} must be one of {allowed}, got {optim[key]!r}")
     _check(optim["lr_drop_step"] is None or optim["lr_drop_step"] >= 0, f"{prefix}lr_drop_step must be null or >= 0")
 
 
 def _check_values(cfg: DictConfig) -> None:
+    _check(
+        not OmegaConf.is_missing(cfg.dataset, "root"),
+        f"dataset.root is required by dataset {cfg.dataset.name!r}: give the folder of its data "
+        "(dataset.root=/path/to/data)",
+    )
     try:
         check_ranges(cfg, TrainConfig)
     except ValueError as err:
@@ -172,8 +185,14 @@ def _check_values(cfg: DictConfig) -> None:
             )
     for name, node in cfg.callbacks.extra.items():
         _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
+    _check(
+        cfg.init_from is None or cfg.ckpt_path is None,
+        "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights",
+    )
     # -- data
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
+    on_error, d = typing.get_args(OnError), cfg.dataset
+    _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")
 
 
 def _registry_name(cls: type) -> str:

@@ -258,6 +258,7 @@ class TrainConfig:
     task_name: str = "train"
     seed: int = 0
     ckpt_path: str | None = None
+    init_from: str | None = None  # start from these weights (any checkpoint), at iteration 0 with fresh optimizers
     trust_checkpoint: bool = False
     overwrite: bool = False
     dataset: DatasetConfig = field(default_factory=DatasetConfig)

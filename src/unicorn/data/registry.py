@@ -22,7 +22,7 @@ from torch.utils.data import Dataset
 from unicorn.data.common import OnError
 from unicorn.data.cub import CUB200
 from unicorn.data.folder import CompCars, ImageFolder
-from unicorn.data.images import DatasetError
+from unicorn.data.images import DatasetError, DatasetNotFoundError
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
@@ -216,5 +216,32 @@ def prepare_dataset(
     if name == "synthetic":
         from unicorn.data.synthetic.writer import ensure_synthetic_dataset
 
-        return ensure_synthetic_dataset(**synthetic_options(root, categories, synthetic))
+        options = synthetic_options(root, categories, synthetic)
+        _check_generation_root(options["root"], bool(options.pop("generate", False)))
+        return ensure_synthetic_dataset(**options)
     return dataset_root(name, root)
+
+
+def _check_generation_root(root: str | os.PathLike | None, generate: bool) -> None:
+    """Generate the synthetic dataset only where it is meant to go: the cache (``$UNICORN_CACHE``, where a missing
+    folder is created), an existing folder, or anywhere with ``synthetic.generate=true``; a misspelt root is an
+    error, not tens of MB written to a new folder.
+
+    Raises:
+        DatasetNotFoundError: ``root`` does not exist, is outside the cache and generation was not asked for.
+    """
+    from unicorn.data.synthetic.writer import default_cache_dir
+
+    if root is None or generate:
+        return
+    path = Path(root).expanduser().resolve()
+    cache = default_cache_dir().parent.expanduser().resolve()
+    if path.exists() or path.is_relative_to(cache):
+        return
+    raise DatasetNotFoundError(
+        path,
+        "synthetic dataset root (dataset.root)",
+        f"The synthetic dataset is generated on first use only into the cache ({cache}, $UNICORN_CACHE) or an "
+        "existing folder: correct the path, create the folder, or ask for generation there with "
+        "dataset.synthetic.generate=true",
+    )

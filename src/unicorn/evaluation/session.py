@@ -21,6 +21,7 @@ from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.metric_files import write_metrics
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
 from unicorn.evaluation.report import write_report
+from unicorn.io.staging import staged_folder
 
 __all__ = ["EvalTarget", "evaluate_to_folder"]
 
@@ -65,7 +66,8 @@ def evaluate_to_folder(
         model: the model (moved to ``device``, put in eval mode).
         target: the dataset split.
         options: the evaluation settings; ``options.protocol`` must be the dataset's.
-        out: the output folder (created).
+        out: the output folder (created); the files appear in it only when all are written
+            (:func:`unicorn.io.staging.staged_folder`), replacing same-named ones.
         meta: provenance written with the metrics (command, checkpoint, ...); the target and the options are added.
         mean_shape_iterations: > 0: fit the training shapes' mean shape for that many iterations and score it
             beside the model (``shape-win``; the shapenet protocol only).
@@ -121,19 +123,20 @@ def evaluate_to_folder(
         "options": dataclasses.asdict(options),
         "mean_shape_iterations": mean_shape_iterations,
     }
-    paths = write_metrics(result, out, full_meta)
-    if result.samples:
-        log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")
-        paths.update(
-            write_report(
-                model,
-                result,
-                out,
-                title or f"{target.dataset} ({target.split})",
-                full_meta,
-                view_size=view_size,
-                turntable_frames=turntable_frames,
-                device=device,
+    with staged_folder(out) as staging:  # a failure while writing leaves ``out`` as it was
+        paths = write_metrics(result, staging, full_meta)
+        if result.samples:
+            log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")
+            paths.update(
+                write_report(
+                    model,
+                    result,
+                    staging,
+                    title or f"{target.dataset} ({target.split})",
+                    full_meta,
+                    view_size=view_size,
+                    turntable_frames=turntable_frames,
+                    device=device,
+                )
             )
-        )
-    return result, paths
+    return result, {kind: Path(out) / path.relative_to(staging) for kind, path in paths.items()}

@@ -39,13 +39,20 @@ from unicorn.io.serialization import (
     atomic_save,
     load_checkpoint_file,
 )
-from unicorn.model import Unicorn, merge_config
+from unicorn.model import Unicorn, count_parameters, merge_config
 
 __all__ = [
+    "MAX_MODEL_PARAMS",
     "CheckpointError",
     "CheckpointInfo",
     "CorruptCheckpointError",
+    "ModelTooLargeError",
+    "NotATrainingCheckpointError",
     "UnsafeCheckpointError",
+    "check_model_size",
+    "checkpoint_format",
+    "check_training_checkpoint",
+    "init_weights",
     "load_model",
     "read_checkpoint",
     "save_model",
@@ -53,6 +60,84 @@ __all__ = [
 
 PLAIN_FORMAT = "unicorn-model"
 Format = Literal["reference", "lightning", "plain"]
+
+#: the largest model (parameters and buffers of its networks) a checkpoint's stored configuration may build before
+#: its weights are loaded: ten times the paper's big model (49 M); ``$UNICORN_MAX_MODEL_PARAMS`` sets another
+#: limit (0: none). A file of a few MB can describe a model of hundreds of GB.
+MAX_MODEL_PARAMS = 500_000_000
+#: what a training run's checkpoint holds beside the weights (written by Lightning)
+_TRAINING_KEY = "pytorch-lightning_version"
+
+
+class ModelTooLargeError(CheckpointError):
+    """A checkpoint's stored configuration describes a model above the size limit."""
+
+
+class NotATrainingCheckpointError(CheckpointError):
+    """A file that holds weights but no training state was given to resume training."""
+
+
+def checkpoint_format(data: Mapping[str, Any]) -> Format | None:
+    """The format of a loaded checkpoint dict (see the module docstring), or None for none of them."""
+    if "model_state" in data:
+        return "reference"
+    if "state_dict" in data and "hyper_parameters" in data:
+        return "lightning"
+    if data.get("format") == PLAIN_FORMAT:
+        return "plain"
+    return None
+
+
+def check_training_checkpoint(data: Mapping[str, Any], path: str | os.PathLike) -> None:
+    """Check that a loaded checkpoint is one ``unicorn-train`` can resume (``ckpt_path``).
+
+    Raises:
+        NotATrainingCheckpointError: a released model, a :func:`save_model` file or another dict; the message
+            says to start from its weights with ``init_from``.
+    """
+    if _TRAINING_KEY in data:
+        return
+    kind = {
+        "reference": "a released UNICORN model",
+        "plain": "a unicorn.io.save_model file",
+        "lightning": "a Lightning checkpoint without training state",
+    }.get(checkpoint_format(data) or "", "not a unicorn-train checkpoint")
+    raise NotATrainingCheckpointError(
+        f"ckpt_path: {path} is {kind}; ckpt_path resumes a unicorn-train run (a .ckpt with its optimizer and "
+        f"iteration); to start training from these weights use init_from={path} instead"
+    )
+
+
+def _max_model_params() -> int:
+    value = os.environ.get("UNICORN_MAX_MODEL_PARAMS", "")
+    try:
+        return int(value) if value.strip() else MAX_MODEL_PARAMS
+    except ValueError:
+        raise CheckpointError(f"UNICORN_MAX_MODEL_PARAMS must be an integer, got {value!r}") from None
+
+
+def check_model_size(config: Mapping[str, Any], path: str | os.PathLike, limit: int | None = None) -> None:
+    """Refuse a stored model configuration whose networks exceed ``limit`` elements, before allocating them.
+
+    Args:
+        config: a merged model configuration.
+        path: the checkpoint (named in the message).
+        limit: the most parameters and buffers; None: ``$UNICORN_MAX_MODEL_PARAMS`` or :data:`MAX_MODEL_PARAMS`;
+            0: no limit.
+
+    Raises:
+        ModelTooLargeError: the model is larger.
+    """
+    limit = _max_model_params() if limit is None else limit
+    if limit <= 0:
+        return
+    n = count_parameters(config)
+    if n > limit:
+        raise ModelTooLargeError(
+            f"checkpoint {path}: its stored configuration describes a model of {n:,} parameters "
+            f"({4 * n / 2**30:.1f} GiB as float32), above the limit of {limit:,} (encoder.width="
+            f"{config['encoder']['width']}); if you trust the file, raise the limit with UNICORN_MAX_MODEL_PARAMS"
+        )
 
 
 @dataclass
@@ -198,13 +283,14 @@ def load_model(
     path = Path(path).expanduser()
     data = read_checkpoint(path, map_location, trust=trust)
     run_dir = _run_dir(path)
-    if "model_state" in data:
+    kind = checkpoint_format(data)
+    if kind == "reference":
         try:
             model = load_reference_checkpoint(data, **copy.deepcopy(dict(overrides or {})))
         except (KeyError, ValueError) as err:
             raise CheckpointError(f"released checkpoint {path} could not be converted: {err}") from err
         info = CheckpointInfo(path, "reference", epoch=data.get("epoch"))
-    elif "state_dict" in data and "hyper_parameters" in data:
+    elif kind == "lightning":
         hparams = _to_plain(data["hyper_parameters"]) or {}
         if "model" not in hparams:
             raise CheckpointError(
@@ -214,7 +300,9 @@ def load_model(
         weights = {k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")}
         if not weights:
             raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
-        model = Unicorn(_model_overrides(hparams["model"], overrides))
+        cfg = _model_overrides(hparams["model"], overrides)
+        check_model_size(cfg, path)
+        model = Unicorn(cfg)
         _load_weights(model, weights, path)
         p = state.get("texture_average_p")
         stage = state.get("stage")
@@ -226,8 +314,10 @@ def load_model(
             average_texture=p is not None and float(p) >= 1.0,
             extra={"stage": None if stage is None else int(stage)},
         )
-    elif data.get("format") == PLAIN_FORMAT:
-        model = Unicorn(_model_overrides(data["config"], overrides))
+    elif kind == "plain":
+        cfg = _model_overrides(data["config"], overrides)
+        check_model_size(cfg, path)
+        model = Unicorn(cfg)
         _load_weights(model, data["state_dict"], path)
         meta = dict(data.get("info") or {})
         info = CheckpointInfo(
@@ -249,6 +339,34 @@ def load_model(
     if info.dataset is None:
         info.dataset = _run_dataset(run_dir)
     return model.to(map_location).eval(), info
+
+
+def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -> CheckpointInfo:
+    """Load the weights of any checkpoint (:func:`load_model`'s formats) into ``model``, in place: training started
+    from a released model or a :func:`save_model` file (``unicorn-train init_from=...``).
+
+    Every learned weight must fit: the same networks, the same sizes (the perceptual loss is not part of it).
+
+    Raises:
+        CheckpointError: the file cannot be loaded, or its weights do not fit ``model``'s configuration.
+    """
+    source, info = load_model(path, trust=trust)
+    state = {k: v for k, v in source.state_dict().items() if not k.startswith("perceptual.")}
+    own = {k: v for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
+    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    misfit = [
+        f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in state and state[k].shape != v.shape
+    ]
+    if missing or unexpected or misfit:
+        raise CheckpointError(
+            f"init_from: the weights of {path} do not fit the configured model (choose the model and dataset "
+            f"settings it was trained with, e.g. model=big): missing {missing[:4]}, unexpected {unexpected[:4]}, "
+            f"other sizes {misfit[:4]}"
+        )
+    model.load_state_dict(state, strict=False)  # every key checked above; the perceptual loss keeps its own
+    return info
 
 
 def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:

@@ -11,7 +11,7 @@ import shutil
 from pathlib import Path
 
 from unicorn.errors import UserError
-from unicorn.io.serialization import CheckpointNotFoundError
+from unicorn.io.serialization import check_checkpoint_path
 
 __all__ = ["RUN_OUTPUTS", "RunFolderError", "holds_nothing", "prepare_folder", "previous_run", "resolve_ckpt"]
 
@@ -35,10 +35,7 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
             return str(last)
         log.info("ckpt_path=last: no %s yet, training from scratch", last)
         return None
-    path = Path(ckpt_path).expanduser().resolve()
-    if not path.is_file():
-        raise CheckpointNotFoundError(f"ckpt_path: no checkpoint file at {path}")
-    return str(path)
+    return str(check_checkpoint_path(Path(ckpt_path).expanduser().resolve(), "ckpt_path"))
 
 
 def previous_run(output_dir: Path) -> Path | None:

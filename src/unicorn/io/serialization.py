@@ -35,9 +35,12 @@ __all__ = [
     "SAFE_GLOBALS",
     "TRUST_HINT",
     "CheckpointError",
+    "CheckpointIsADirectoryError",
+    "CheckpointNotFoundError",
     "CorruptCheckpointError",
     "UnsafeCheckpointError",
     "atomic_save",
+    "check_checkpoint_path",
     "content_digest",
     "load_checkpoint_file",
     "remove_stale_temporaries",
@@ -102,8 +105,7 @@ def load_checkpoint_file(
         CorruptCheckpointError: the content hash does not match.
     """
     path = Path(path).expanduser()
-    if not path.is_file():
-        raise CheckpointNotFoundError(f"checkpoint not found: {path}")
+    check_checkpoint_path(path)
     try:
         if trust:
             data = torch.load(path, map_location=map_location, weights_only=False)
@@ -128,6 +130,27 @@ def load_checkpoint_file(
 
 class CheckpointNotFoundError(UserError, FileNotFoundError):
     """No checkpoint file at the given path."""
+
+
+class CheckpointIsADirectoryError(UserError, IsADirectoryError):
+    """A folder was given where a checkpoint file is expected."""
+
+
+def check_checkpoint_path(path: str | os.PathLike, option: str | None = None) -> Path:
+    """``path`` if it is a file; ``option`` (e.g. ``"ckpt_path"``) names where it was given in the message.
+
+    Raises:
+        CheckpointIsADirectoryError: ``path`` is a folder.
+        CheckpointNotFoundError: nothing is there.
+    """
+    path = Path(path).expanduser()
+    if path.is_dir():
+        raise CheckpointIsADirectoryError(f"{option or 'checkpoint'}: {path} is a directory, not a checkpoint file")
+    if not path.is_file():
+        raise CheckpointNotFoundError(
+            f"checkpoint not found: {path}" if option is None else f"{option}: no checkpoint file at {path}"
+        )
+    return path
 
 
 def _unsafe_names(path: Path) -> list[str]:

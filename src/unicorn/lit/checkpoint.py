@@ -26,6 +26,7 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from unicorn.io.checkpoints import check_training_checkpoint
 from unicorn.io.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
 
 __all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint"]
@@ -56,7 +57,9 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         if "://" in str(path):
             return super().load_checkpoint(path, map_location=map_location, weights_only=not self.trust)
         kwargs = {} if map_location is None else {"map_location": map_location}
-        return load_checkpoint_file(path, trust=self.trust, **kwargs)
+        data = load_checkpoint_file(path, trust=self.trust, **kwargs)
+        check_training_checkpoint(data, path)  # a released model or save_model file: say to use init_from
+        return data
 
 
 class PeriodicCheckpoint(ModelCheckpoint):

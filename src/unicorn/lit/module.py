@@ -132,6 +132,9 @@ class UnicornLitModule(L.LightningModule):
         self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
         self.register_buffer("texture_average_p", torch.tensor(0.0))
         self._resume_state: dict[str, Any] | None = None
+        # the forward pass's changes besides the parameters, kept to be undone (see _snapshot_forward_state)
+        self._forward_buffers: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+        self._memory_before: dict[str, torch.Tensor | None] | None = None
 
     # ------------------------------------------------------------------ schedule helpers
     def phase(self, step: int) -> str:
@@ -160,6 +163,8 @@ class UnicornLitModule(L.LightningModule):
         average = self.average_texture(step)
         opt = self._optimizer(phase)
         opt.zero_grad(set_to_none=self.optim["idle_params"] == "skip")
+        if self.optim["check_finite"]:
+            self._snapshot_forward_state()
         losses = (self.model.pose_step if phase == "pose" else self.model.step_3d)(images, average_texture=average)
         self.manual_backward(losses["total"])
         if self.optim["check_finite"]:
@@ -193,11 +198,32 @@ class UnicornLitModule(L.LightningModule):
             self.log(f"pose/prob_{k}", probs[k].mean(), on_step=True, on_epoch=False)
         return terms
 
+    def _snapshot_forward_state(self) -> None:
+        """Keep what the forward pass changes besides the parameters: the BatchNorm running statistics (copied
+        into buffers kept for it, one fused copy per step) and the neighbour memory (replaced, not changed in
+        place, by each push: references suffice). :meth:`_restore_forward_state` puts them back."""
+        if self._forward_buffers is None:
+            norms = [m for m in self.model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+            live = [b for m in norms for b in (m.running_mean, m.running_var, m.num_batches_tracked) if b is not None]
+            self._forward_buffers = (live, [b.clone() for b in live])
+        live, saved = self._forward_buffers
+        if live:
+            torch._foreach_copy_(saved, live)
+        self._memory_before = self.model.memory.state()
+
+    def _restore_forward_state(self) -> None:
+        live, saved = self._forward_buffers or ([], [])
+        if live:
+            torch._foreach_copy_(live, saved)
+        if self._memory_before is not None:
+            self.model.memory.load_state(self._memory_before)
+
     def _check_finite(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
         """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
 
-        The parameters are still those before this iteration, so the checkpoint is the last good state. The
-        decision is reduced over ranks so that every process stops (and saves) together.
+        The parameters are still those before this iteration and the forward pass's other changes (BatchNorm
+        statistics, neighbour memory) are undone before saving, so the checkpoint is the state after the last good
+        iteration. The decision is reduced over ranks so that every process stops (and saves) together.
         """
         # everything reduced to one flag on the device and read once: the single host sync of a step, needed
         # because the optimizer must not apply a non-finite update
@@ -215,6 +241,7 @@ class UnicornLitModule(L.LightningModule):
         if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
             bad.append("gradients of 'total' (finite loss)")
         where = ", ".join(bad) if bad else "a term on another rank"
+        self._restore_forward_state()
         path = self._save_last_good(step)
         saved = f"; the state before this iteration was saved to {path}" if path else ""
         raise NonFiniteLossError(f"non-finite loss at iteration {step} ({phase} step): {where}{saved}")

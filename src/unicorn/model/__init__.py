@@ -13,7 +13,7 @@
 Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
-from unicorn.model.autoencoder import Prediction, Unicorn
+from unicorn.model.autoencoder import Prediction, Unicorn, count_parameters
 from unicorn.model.config import DEFAULT_CONFIG, UnicornConfig, check_model_config, merge_config
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import DeformationField, ShapeHead
@@ -59,6 +59,7 @@ __all__ = [
     "active_dims_at",
     "candidate_assignment_loss",
     "check_model_config",
+    "count_parameters",
     "load_vgg16_weights",
     "merge_config",
     "mse_per_sample",

@@ -33,7 +33,7 @@ from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV, build_renderer
 
-__all__ = ["BRANCHES", "Prediction", "Unicorn"]
+__all__ = ["BRANCHES", "Prediction", "Unicorn", "count_parameters"]
 
 BRANCHES = ("shape", "texture", "pose", "background")
 
@@ -68,6 +68,69 @@ class Prediction:
     T: torch.Tensor
 
 
+def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
+    """The learned networks of a merged configuration: encoders, shape, texture, background, pose and scale heads
+    (the only parts whose size grows with the configuration: :func:`count_parameters` builds them on no memory)."""
+    n_enc = 1 if cfg["encoder"]["shared"] else (4 if cfg["background"] is not None else 3)
+    encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], cfg["image_size"]) for _ in range(n_enc)])
+    nf = encoders[0].out_features
+
+    sh = dict(cfg["shape"])
+    sh_active = sh.pop("active_dims")
+    shape = ShapeHead(nf, **sh)
+    shape.mask.set_active_dims(sh_active)
+
+    tx = dict(cfg["texture"])
+    texture = CodeGenerator(
+        nf,
+        tx["code_dim"],
+        tx["size"],
+        tx["min_features"],
+        tx["n_reg_units"],
+        tx["n_reg_layers"],
+        tx["active_dims"],
+    )
+    background = None
+    if cfg["background"] is not None:
+        bg = cfg["background"]
+        background = CodeGenerator(
+            nf,
+            bg["code_dim"],
+            cfg["image_size"],
+            bg["min_features"],
+            bg["n_reg_units"],
+            bg["n_reg_layers"],
+            bg["active_dims"],
+        )
+
+    po = dict(cfg["pose"])
+    scale_range = po.pop("scale_range")
+    pose = PoseHead(nf, **po)
+    scale = ScaleHead(nf, scale_range, po["n_units"], po["n_layers"])
+    return {
+        "encoders": encoders,
+        "shape": shape,
+        "texture": texture,
+        "background": background,
+        "pose": pose,
+        "scale": scale,
+    }
+
+
+def count_parameters(config: Mapping[str, Any] | None = None, **groups: Any) -> int:
+    """Parameters and buffers (elements) of the learned networks a configuration describes, counted without
+    allocating them (built on the ``meta`` device): what a stored configuration would make :class:`Unicorn`
+    allocate, checked before building it (:func:`unicorn.io.load_model`).
+
+    Raises:
+        KeyError, ValueError: as :func:`unicorn.model.config.merge_config`.
+    """
+    cfg = merge_config(config, **groups)
+    with torch.device("meta"):
+        networks = [m for m in _networks(cfg).values() if m is not None]
+    return sum(t.numel() for m in networks for t in [*m.parameters(), *m.buffers()])
+
+
 class Unicorn(nn.Module):
     """The structured autoencoder (see the module docstring for the configuration keys).
 
@@ -85,6 +148,13 @@ class Unicorn(nn.Module):
         ((2, 642, 3), (2, 3, 64, 64))
     """
 
+    encoders: nn.ModuleList
+    shape: ShapeHead
+    texture: CodeGenerator
+    background: CodeGenerator | None
+    pose: PoseHead
+    scale: ScaleHead
+
     def __init__(self, config: Mapping[str, Any] | None = None, **groups: Any) -> None:
         super().__init__()
         cfg = merge_config(config, **groups)
@@ -93,42 +163,8 @@ class Unicorn(nn.Module):
 
         self.template = TemplateMesh(**cfg["template"])
 
-        n_enc = 1 if cfg["encoder"]["shared"] else (4 if cfg["background"] is not None else 3)
-        self.encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], size) for _ in range(n_enc)])
-        nf = self.encoders[0].out_features
-
-        sh = dict(cfg["shape"])
-        sh_active = sh.pop("active_dims")
-        self.shape = ShapeHead(nf, **sh)
-        self.shape.mask.set_active_dims(sh_active)
-
-        tx = dict(cfg["texture"])
-        self.texture = CodeGenerator(
-            nf,
-            tx["code_dim"],
-            tx["size"],
-            tx["min_features"],
-            tx["n_reg_units"],
-            tx["n_reg_layers"],
-            tx["active_dims"],
-        )
-        self.background: CodeGenerator | None = None
-        if cfg["background"] is not None:
-            bg = cfg["background"]
-            self.background = CodeGenerator(
-                nf,
-                bg["code_dim"],
-                size,
-                bg["min_features"],
-                bg["n_reg_units"],
-                bg["n_reg_layers"],
-                bg["active_dims"],
-            )
-
-        po = dict(cfg["pose"])
-        scale_range = po.pop("scale_range")
-        self.pose = PoseHead(nf, **po)
-        self.scale = ScaleHead(nf, scale_range, po["n_units"], po["n_layers"])
+        for name, module in _networks(cfg).items():  # encoders, shape, texture, background, pose, scale
+            setattr(self, name, module)
 
         rd = cfg["renderer"]
         camera = PerspectiveCamera(fov=rd["fov"], focal_length=rd["focal_length"])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Mapping
@@ -192,10 +193,11 @@ def _describe_range(low: float | None, high: float | None) -> str:
 
 
 def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> None:
-    """Check every field of ``schema`` declared with :func:`ranged`, recursing into nested groups.
+    """Check every field of ``schema`` declared with :func:`ranged`, recursing into nested groups: a finite number
+    within its bounds.
 
     Raises:
-        ValueError: the first value out of its range, named with its full key (``prefix`` + path).
+        ValueError: the first value out of its range (or not finite), named with its full key (``prefix`` + path).
     """
     hints = typing.get_type_hints(schema)
     for f in dataclasses.fields(schema):
@@ -209,6 +211,8 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
         low, high = f.metadata.get("range", (None, None))
         if value is None or (low is None and high is None):
             continue
+        if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+            raise ValueError(f"{key} must be a finite number {_describe_range(low, high)}, got {value!r}")
         if not ((low is None or value >= low) and (high is None or value <= high)):
             raise ValueError(f"{key} must be {_describe_range(low, high)}, got {value}")
 

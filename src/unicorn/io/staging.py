@@ -1,0 +1,85 @@
+"""Output folders that are complete or absent: written to a temporary sibling, moved into place at the end.
+
+:func:`staged_folder` is how ``unicorn-eval`` and ``unicorn-reconstruct`` write their output folders: a run that
+fails part-way (a full disk, a bad image, Ctrl-C) leaves the folder as it was, not half-written. The sibling
+``.<name>.partial-<pid>`` lies on the same file system, so moving its entries into place is a rename; a sibling
+left by a killed process is removed by the next run that writes the same folder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+from unicorn.io.serialization import _alive
+
+__all__ = ["PARTIAL_MARK", "staged_folder"]
+
+#: infix of the temporary siblings (``.<name>.partial-<pid>``)
+PARTIAL_MARK = ".partial-"
+#: errors of the disk rather than of a file: the message gets the output folder's name
+_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
+
+
+def _remove_stale_siblings(out: Path) -> None:
+    """Remove the temporary siblings of ``out`` left by processes that no longer run."""
+    prefix = f".{out.name}{PARTIAL_MARK}"
+    if not out.parent.is_dir():
+        return
+    for sibling in out.parent.iterdir():
+        pid = sibling.name[len(prefix) :]
+        if sibling.name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(sibling, ignore_errors=True)
+
+
+def _merge(source: Path, target: Path) -> None:
+    """Move ``source``'s entries into the folder ``target``: files replace same-named ones, folders are merged."""
+    for entry in sorted(source.iterdir()):
+        dest = target / entry.name
+        if entry.is_dir() and dest.is_dir() and not dest.is_symlink():
+            _merge(entry, dest)
+        else:
+            if dest.is_dir() and not dest.is_symlink():
+                shutil.rmtree(dest)
+            os.replace(entry, dest)
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty temporary folder beside ``out``; when the block succeeds, move its contents into ``out``.
+
+    A missing ``out`` is the renamed temporary folder. In an existing ``out`` each file written replaces the file
+    of the same name (sub-folders are merged) and the others are kept: whether an existing folder may be written
+    into is the caller's decision. When the block raises, the temporary folder is removed and
+    ``out`` is untouched.
+
+    Raises:
+        OSError: the temporary folder cannot be created (a read-only or full disk, a missing permission).
+    """
+    out = Path(out).expanduser()
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"output folder {out} exists and is not a folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_siblings(out)
+    tmp = out.with_name(f".{out.name}{PARTIAL_MARK}{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        tmp.mkdir()
+    except OSError as err:
+        raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+    try:
+        yield tmp
+        if not out.exists():
+            os.replace(tmp, out)
+            return
+        _merge(tmp, out)
+    except OSError as err:
+        if err.filename is None and err.errno in _DISK_ERRORS:  # e.g. a write() on a full disk names no file
+            raise type(err)(err.errno, f"{err.strerror} while writing the output folder {out}") from err
+        raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,91 @@
+"""The commands' error boundary: which failures are one line (exit 2), how they read, and that bugs keep tracebacks."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from unicorn.cli.errors import expected_error, one_line, report_errors
+from unicorn.data.common import UnreadableItemsError
+from unicorn.data.images import ImageLoadError
+
+
+class _Bad(Dataset):
+    """Every item fails the way a bad image file does (with ``chained``: as the skip policy gives up)."""
+
+    def __init__(self, chained: bool = False) -> None:
+        self.chained = chained
+
+    def __len__(self) -> int:
+        return 4
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        error = ImageLoadError(f"photos/{index}.png", "cannot identify image file")
+        if not self.chained:
+            raise error
+        raise UnreadableItemsError(f"4 consecutive unreadable items from index {index}, the last: {error}") from error
+
+
+def _worker_error(chained: bool) -> BaseException:
+    with pytest.raises(Exception) as caught:
+        next(iter(DataLoader(_Bad(chained), batch_size=2, num_workers=1)))
+    return caught.value
+
+
+@pytest.mark.parametrize("chained", [False, True])
+def test_a_dataloader_workers_error_is_its_message_not_its_traceback(chained: bool) -> None:
+    err = _worker_error(chained)
+    assert "Traceback" in str(err)  # torch puts the worker's traceback into the message
+    assert expected_error(err) is err
+    line = one_line(err)
+    assert "Traceback" not in line and "File " not in line and line.endswith("(in DataLoader worker 0)")
+    assert line.startswith("4 consecutive unreadable items" if chained else "cannot read image photos/0.png")
+
+
+def test_a_worker_killed_from_outside_is_expected() -> None:
+    err = RuntimeError("DataLoader worker (pid(s) 1234) exited unexpectedly")
+    assert expected_error(err) is err
+
+
+def test_hydras_instantiation_error_is_reported_by_its_cause() -> None:
+    from hydra.errors import InstantiationException
+
+    cause = ImageLoadError("a.png", "truncated")
+    try:
+        raise InstantiationException("Error in call to target 'x':\nImageLoadError(...)\nfull_key: dataset") from cause
+    except InstantiationException as err:
+        assert expected_error(err) is cause
+    assert expected_error(InstantiationException("no cause")) is None
+
+
+def test_disk_errors_and_lightning_misconfiguration_are_expected_bugs_are_not() -> None:
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    for err in (OSError(errno.ENOSPC, "No space left on device"), PermissionError(13, "denied", "/x")):
+        assert expected_error(err) is err
+    assert expected_error(MisconfigurationException("No supported gpu backend found!")) is not None
+    for bug in (RuntimeError("shape mismatch"), KeyError("pytorch-lightning_version"), TypeError("x")):
+        assert expected_error(bug) is None
+
+
+def test_report_errors_cleans_up_then_keeps_a_bugs_traceback(capsys) -> None:
+    cleaned = []
+
+    def disk_full() -> int:
+        raise OSError(errno.ENOSPC, "No space left on device while writing the output folder out")
+
+    assert report_errors("prog", disk_full, cleanup=lambda: cleaned.append(1)) == 2
+    assert (
+        capsys.readouterr().err
+        == "prog: error: [Errno 28] No space left on device while writing the output folder out\n"
+    )
+
+    def bug() -> int:
+        raise ZeroDivisionError("bug")
+
+    with pytest.raises(ZeroDivisionError):
+        report_errors("prog", bug, cleanup=lambda: cleaned.append(2))
+    assert cleaned == [1, 2]

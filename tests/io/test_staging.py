@@ -1,0 +1,68 @@
+"""Output folders written to a temporary sibling: complete or as they were."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import pytest
+
+from unicorn.io.staging import PARTIAL_MARK, staged_folder
+
+
+def _siblings(folder):
+    return sorted(p.name for p in folder.parent.iterdir() if PARTIAL_MARK in p.name)
+
+
+def test_a_new_folder_appears_only_complete(tmp_path) -> None:
+    out = tmp_path / "out"
+    with staged_folder(out) as staging:
+        (staging / "a.txt").write_text("a")
+        assert not out.exists()  # nothing visible while writing
+    assert (out / "a.txt").read_text() == "a" and not _siblings(out)
+
+
+def test_an_existing_folder_gets_the_new_files_and_keeps_the_others(tmp_path) -> None:
+    out = tmp_path / "out"
+    (out / "img").mkdir(parents=True)
+    (out / "img" / "old.png").write_text("old")
+    (out / "img" / "mesh.obj").write_text("old")
+    (out / "notes.txt").write_text("mine")
+    with staged_folder(out) as staging:
+        (staging / "img").mkdir()
+        (staging / "img" / "mesh.obj").write_text("new")
+    assert (out / "img" / "mesh.obj").read_text() == "new"
+    assert (out / "img" / "old.png").read_text() == "old" and (out / "notes.txt").read_text() == "mine"
+
+
+def test_a_failure_leaves_the_folder_as_it_was(tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("before")
+    with pytest.raises(ValueError), staged_folder(out) as staging:
+        (staging / "a.txt").write_text("half")
+        raise ValueError("bad image")
+    assert [p.name for p in out.iterdir()] == ["a.txt"] and (out / "a.txt").read_text() == "before"
+    assert not _siblings(out)
+    with pytest.raises(ValueError), staged_folder(tmp_path / "new") as staging:
+        raise ValueError("bad image")
+    assert not (tmp_path / "new").exists() and not _siblings(tmp_path / "new")
+
+
+def test_a_full_disk_names_the_folder(tmp_path) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match=rf"No space left on device while writing the output folder {out}"):
+        with staged_folder(out):
+            raise OSError(errno.ENOSPC, "No space left on device")  # as a write() on a full disk: no file name
+    assert not out.exists()
+
+
+def test_a_sibling_of_a_killed_process_is_removed(tmp_path) -> None:
+    out = tmp_path / "out"
+    dead = tmp_path / f".out{PARTIAL_MARK}999999999"
+    dead.mkdir()
+    live = tmp_path / f".out{PARTIAL_MARK}{os.getppid()}"
+    live.mkdir()
+    with staged_folder(out):
+        pass
+    assert not dead.exists() and live.exists()
