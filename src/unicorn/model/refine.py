@@ -10,7 +10,8 @@ The variables come in parts (:data:`PARTS`):
 
 - ``codes``: the shape, texture and background codes (a delta on each, decoded by the network's own
   generators, so the result stays in what the network can express; masked like the codes);
-- ``texture``: a residual added to the texture image, every texel free (clamped to [0, 1]);
+- ``texture``: a colour offset of the whole texture and a residual of every texel, added to the texture image
+  (clamped to [0, 1]); the offset carries a colour correction to the sides the image does not show;
 - ``vertices``: per-vertex offsets of the canonical mesh and a log-residual of the anisotropic scale;
 - ``pose``: a small rotation (Euler angles about the view axes, radians) and a translation residual.
 
@@ -44,7 +45,7 @@ __all__ = ["PARTS", "RefineOptions", "Refinement", "refine"]
 #: the refinable parts: name -> what it optimises
 PARTS: dict[str, str] = {
     "codes": "the shape, texture and background codes, decoded by the network",
-    "texture": "a residual of the texture image (every texel)",
+    "texture": "a colour offset of the whole texture and a residual of every texel",
     "vertices": "per-vertex offsets of the canonical mesh and a log-residual of the scale",
     "pose": "a small rotation and a translation residual of the selected pose",
 }
@@ -62,7 +63,8 @@ class RefineOptions:
         lr_codes, lr_texture, lr_vertices, lr_pose: Adam learning rates of each part's variables (codes in code
             units, texture in colour units, vertices and translation in world units, rotation in radians).
         code_weight: prior weight on the code deltas, times their squared norm (sum over code dimensions).
-        texture_weight: prior weight on the texture residual, times its mean square over texels.
+        texture_weight: prior weight on the texture's colour offset and residual, times the squared offset (mean over
+            RGB) plus the residual's mean square over texels.
         vertex_weight: prior weight on the vertex offsets and the log-scale residual, times their mean square.
         pose_weight: prior weight on the rotation (radians) and translation residuals, times their squared norm.
         progress: show a progress bar over the steps.
@@ -124,6 +126,7 @@ class _Variables:
         self.shape = zeros(pred.shape_code.shape[1])
         self.texture_code = zeros(pred.texture_code.shape[1])
         self.background_code = zeros(pred.background_code.shape[1]) if pred.background_code is not None else None
+        self.colour = zeros(pred.texture.shape[1], 1, 1)
         self.texture = zeros(*pred.texture.shape[1:])
         self.offsets = zeros(*pred.canonical_verts.shape[1:])
         self.log_scale = zeros(3)
@@ -132,7 +135,7 @@ class _Variables:
         codes = [self.shape, self.texture_code] + ([self.background_code] if self.background_code is not None else [])
         all_groups = {
             "codes": codes,
-            "texture": [self.texture],
+            "texture": [self.colour, self.texture],
             "vertices": [self.offsets, self.log_scale],
             "pose": [self.rotation, self.translation],
         }
@@ -148,7 +151,7 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
     maps = model.texture(z_tx)
     if average_texture:
         maps = mean_texture(maps)
-    maps = (maps + v.texture).clamp(0.0, 1.0)
+    maps = (maps + v.colour + v.texture).clamp(0.0, 1.0)
     z_bg = bkg = None
     if model.background is not None and v.background_code is not None:
         z_bg = pred.background_code + model.background.mask(v.background_code)
@@ -181,7 +184,7 @@ def _objective(model: Unicorn, images: torch.Tensor, p: Prediction, v: _Variable
         loss = loss + ls["laplacian_weight"] * model.laplacian_loss(p.verts, reduction="none")
     codes = [v.shape, v.texture_code] + ([v.background_code] if v.background_code is not None else [])
     prior = o.code_weight * sum(c.square().sum(1) for c in codes)
-    prior = prior + o.texture_weight * v.texture.square().flatten(1).mean(1)
+    prior = prior + o.texture_weight * (v.colour.square().flatten(1).mean(1) + v.texture.square().flatten(1).mean(1))
     prior = prior + o.vertex_weight * (v.offsets.square().flatten(1).mean(1) + v.log_scale.square().mean(1))
     prior = prior + o.pose_weight * (v.rotation.square().sum(1) + v.translation.square().sum(1))
     return loss + prior
