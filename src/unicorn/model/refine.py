@@ -73,13 +73,13 @@ class RefineOptions:
     steps: int = 50
     parts: tuple[str, ...] = ("codes", "texture", "vertices", "pose")
     codes_first: float = 0.5
-    lr_codes: float = 0.05
+    lr_codes: float = 0.1
     lr_texture: float = 0.02
-    lr_vertices: float = 0.002
+    lr_vertices: float = 0.001
     lr_pose: float = 0.005
-    code_weight: float = 0.01
+    code_weight: float = 0.001
     texture_weight: float = 0.1
-    vertex_weight: float = 1.0
+    vertex_weight: float = 10.0
     pose_weight: float = 0.1
     progress: bool = False
 
