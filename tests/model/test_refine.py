@@ -125,3 +125,14 @@ def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
     with pytest.raises(ValueError, match="images must have shape"):
         refine(model, targets[:, :, :16])
     assert set(PARTS) == {"codes", "texture", "vertices", "pose"}
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu(model: Unicorn, targets: torch.Tensor) -> None:
+    # float64, as the batching test: Adam's normalised steps would turn the devices' rounding into differences
+    model, targets, options = copy.deepcopy(model).double(), targets.double(), RefineOptions(steps=3)
+    cpu = refine(model, targets, options)
+    gpu = refine(model.cuda(), targets.cuda(), options)
+    assert gpu.prediction.verts.device.type == "cuda"
+    for name in ("verts", "texture", "R", "T"):
+        torch.testing.assert_close(getattr(gpu.prediction, name).cpu(), getattr(cpu.prediction, name))

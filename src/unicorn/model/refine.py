@@ -19,9 +19,15 @@ The default schedule refines the codes alone for the first ``codes_first`` share
 the residuals together: the codes move the whole object consistently (colour and shape on its hidden side too),
 the residuals then add what the codes cannot express.
 
+Backgrounds: a model with a background branch refines its background code with the other codes, so the
+background's pixels are explained by the background and the object keeps to its own. A model without one (trained
+on ShapeNet-style renderings on white) renders over the renderer's background colour: fitted to a photo with a
+background, the object would take the background's colour at its borders and grow into it. Give such a model the
+object cut out (a transparent PNG, composited on white by :mod:`unicorn.io.images`).
+
 Each image's variables are independent and the objective is a sum over images, so refining a batch gives the same
-result as refining its images one at a time (Adam is element-wise). Nothing is drawn at random: a refinement is
-deterministic on a given device.
+result as refining its images one at a time (Adam is element-wise), up to floating-point rounding. Nothing is
+drawn at random: a refinement is deterministic on a given device.
 """
 
 from __future__ import annotations
@@ -54,6 +60,9 @@ PARTS: dict[str, str] = {
 @dataclass(frozen=True)
 class RefineOptions:
     """How to refine (defaults: the ones ``unicorn-reconstruct --refine N`` uses).
+
+    The default weights, learning rates and schedule were chosen on the validation cars of the synthetic benchmark
+    (``benchmarks/refine.py --split val``: refined on one view, scored on the 23 others).
 
     Attributes:
         steps: Adam steps (0: the prediction itself).
