@@ -284,7 +284,7 @@ def reconstruct(
         labels = ["input", "reconstruction", "mask"]
         labels += [f"textured {a:g}°" for a in angles] + [f"shape {a:g}°" for a in angles]
         if len(rows[0]) > len(labels):
-            labels += ["network: reconstruction"] + [f"network: textured {a:g}°" for a in angles]
+            labels += ["network"] + [f"network {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
         _write_index(out, records, labels, view_size, provenance)
     (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
