@@ -178,3 +178,38 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
     names = [r["name"].lower() for r in records]
     assert len(set(names)) == 6 and not set(names) & {"index.html", "overview.png", "reconstructions.json"}
     assert {"index.html_1", "overview.png_1", "reconstructions.json_1"} <= set(names)
+
+
+def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+    photo = str(inputs / "photo.jpg")
+    assert main([str(checkpoint), photo, "--out", str(tmp_path / "plain"), *FAST]) == 0
+    assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), "--refine", "6", *FAST]) == 0
+    plain, refined = tmp_path / "plain" / "photo", tmp_path / "refined" / "photo"
+    # the network's own pictures beside the refined ones, identical to an unrefined run's
+    for name in ("reconstruction_network.png", "turntable_network.png"):
+        assert (refined / name).is_file() and not (plain / name).exists()
+    same = {"reconstruction_network.png": "reconstruction.png", "turntable_network.png": "turntable.png"}
+    for ours, theirs in same.items():
+        assert Image.open(refined / ours).tobytes() == Image.open(plain / theirs).tobytes(), ours
+    # the exports carry the refined result
+    for name in ("mesh.obj", "mesh.png", "mesh.glb", "reconstruction.png"):
+        assert (refined / name).read_bytes() != (plain / name).read_bytes(), name
+    poses = [json.loads((folder / "pose.json").read_text()) for folder in (plain, refined)]
+    assert poses[0]["R"] != poses[1]["R"] and poses[0]["T"] != poses[1]["T"]
+    record = json.loads((tmp_path / "refined" / "reconstructions.json").read_text())["images"][0]
+    assert record["refinement"]["steps"] == 6
+    assert record["refinement"]["objective_refined"] < record["refinement"]["objective_network"]
+    wide, narrow = Image.open(tmp_path / "refined" / "overview.png"), Image.open(tmp_path / "plain" / "overview.png")
+    assert wide.size[0] > narrow.size[0] and wide.size[1] == narrow.size[1]
+    assert "reconstruction_network.png" in (tmp_path / "refined" / "index.html").read_text()
+
+
+def test_refine_parts_are_checked(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:
+    args = [str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "out"), *FAST, "--refine", "2"]
+    assert main([*args, "--refine-parts", "codes,colour"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("unicorn-reconstruct: error: --refine-parts") and "colour" in err
+    assert main([*args, "--refine-parts", "texture"]) == 0
+    with pytest.raises(SystemExit):
+        main([str(checkpoint), str(inputs), "--out", str(tmp_path / "neg"), *FAST, "--refine", "-1"])
+    assert "--refine must be >= 0" in capsys.readouterr().err

@@ -5,6 +5,7 @@ Examples::
     unicorn-reconstruct car_big.pkl photos/ --out reconstructions
     unicorn-reconstruct outputs/cub/runs/<time>/checkpoints/last.ckpt bird.png --device cuda
     unicorn-reconstruct model.pkl car.jpg --bbox 40,80,600,420 --out car
+    unicorn-reconstruct model.pkl car.jpg --refine 50 --out car     # fitted to the photo, 50 steps
 
 Every image is framed as the training images were (a transparent PNG is cropped around its opaque pixels, a
 ``--bbox`` crops around the box, anything else is fitted and padded to a square), then reconstructed; see
@@ -66,6 +67,19 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="mean-colour textures; auto: as the checkpoint was being trained",
     )
+    p.add_argument(
+        "--refine",
+        type=int,
+        default=0,
+        metavar="STEPS",
+        help="refine each prediction against its image for this many steps (0: the network's prediction); the "
+        "exports carry the refined result, the report shows the network's beside it",
+    )
+    p.add_argument(
+        "--refine-parts",
+        default="all",
+        help="what --refine optimises: 'all' or comma-separated codes, texture, vertices, pose",
+    )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     p.add_argument(
         "--overwrite",
@@ -108,6 +122,15 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
         readable.append((path, name))
     if not readable:
         raise UsageError("none of the inputs could be read")
+    refine_options = None
+    if args.refine > 0:
+        from unicorn.model.refine import PARTS, RefineOptions
+
+        parts = tuple(PARTS) if args.refine_parts == "all" else tuple(args.refine_parts.split(","))
+        unknown = [q for q in parts if q not in PARTS]
+        if unknown:
+            raise UsageError(f"--refine-parts: unknown part(s) {unknown}; choose 'all' or from {list(PARTS)}")
+        refine_options = RefineOptions(steps=args.refine, parts=parts, progress=not args.quiet)
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
@@ -132,6 +155,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
             average_texture=average,
             progress=not args.quiet,
             provenance=provenance(command or command_line("unicorn-reconstruct", sys.argv[1:]), args.checkpoint),
+            refine_options=refine_options,
         )
     seconds = time.perf_counter() - start
     print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
@@ -147,8 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("batch_size", "view_size", "strip_views"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
-    if args.turntable_frames < 0 or args.padding < 0:
-        parser.error("--turntable-frames and --padding must be >= 0")
+    if args.turntable_frames < 0 or args.padding < 0 or args.refine < 0:
+        parser.error("--turntable-frames, --padding and --refine must be >= 0")
     check_common_arguments(parser, args)
     return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
 

@@ -15,7 +15,11 @@ Per input image ``<out>/<name>/``:
   and the probabilities of all pose candidates;
 - ``turntable.gif`` and ``turntable.png`` (a strip of views): the mesh spinning about its vertical axis.
 
-The folder also gets ``overview.png`` (one row per image), ``index.html`` and ``reconstructions.json``
+With refinement (``refine``, :func:`unicorn.model.refine.refine`) every file above carries the refined result,
+and ``reconstruction_network.png`` and ``turntable_network.png`` keep the network's own prediction beside it.
+
+The folder also gets ``overview.png`` (one row per image; with refinement the network's reconstruction and views
+next to the refined ones), ``index.html`` and ``reconstructions.json``
 (``{"provenance": ..., "images": [...]}``); ``pose.json`` and both of these record the provenance (command,
 checkpoint, package version, git commit) given to :func:`reconstruct`.
 """
@@ -44,6 +48,7 @@ from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
 from unicorn.io.meshes import export_prediction, save_mesh
 from unicorn.model import Prediction, Unicorn
+from unicorn.model.refine import RefineOptions, refine
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
@@ -116,6 +121,20 @@ def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
     }
 
 
+def _views(
+    model: Unicorn, pred: Prediction, i: int, view_size: int, angles: Sequence[float]
+) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """Image ``i``'s hard render over its background (4, S, S) (RGB, alpha) and its textured turntable views."""
+    verts, tex, R, T = pred.verts[i : i + 1], pred.texture[i : i + 1], pred.R[i : i + 1], pred.T[i : i + 1]
+    bkg = None
+    if pred.background is not None:
+        bkg = F.interpolate(
+            pred.background[i : i + 1], size=(view_size, view_size), mode="bilinear", align_corners=False
+        )
+    rendered = hard_render(model, verts, tex, R, T, view_size, background=bkg).images[0]
+    return rendered, list(turntable(model, verts[0], tex[0], R[0], T[0], angles, view_size))
+
+
 def _write_one(
     model: Unicorn,
     pred: Prediction,
@@ -127,7 +146,10 @@ def _write_one(
     strip_views: int,
     device: torch.device,
     provenance: Mapping[str, Any],
+    network: Prediction | None = None,
 ) -> dict[str, Any]:
+    """Write image ``i``'s files for ``pred`` and return its record; ``network``: the network's own prediction
+    that ``pred`` refines, written beside it."""
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
 
@@ -135,13 +157,8 @@ def _write_one(
         Image.fromarray(array).save(folder / name)
         files[name.split(".")[0]] = name
 
-    verts, tex, R, T = pred.verts[i : i + 1], pred.texture[i : i + 1], pred.R[i : i + 1], pred.T[i : i + 1]
-    bkg = None
-    if pred.background is not None:
-        bkg = F.interpolate(
-            pred.background[i : i + 1], size=(view_size, view_size), mode="bilinear", align_corners=False
-        )
-    rendered = hard_render(model, verts, tex, R, T, view_size, background=bkg).images[0]
+    strip_angles = even_angles(strip_views)
+    rendered, strip = _views(model, pred, i, view_size, strip_angles)
     save("input.png", to_uint8(item.image))
     save("reconstruction.png", to_uint8(rendered[:3]))
     save("mask.png", to_uint8(rendered[3:]))
@@ -154,17 +171,22 @@ def _write_one(
     (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
     files["pose"] = "pose.json"
 
-    strip_angles = even_angles(strip_views)
-    strip = turntable(model, verts[0], tex[0], R[0], T[0], strip_angles, view_size)
-    shaded = turntable(model, verts[0], tex[0], R[0], T[0], strip_angles, view_size, shaded=True)
+    verts, tex, R, T = pred.verts[i], pred.texture[i], pred.R[i], pred.T[i]
+    shaded = turntable(model, verts, tex, R, T, strip_angles, view_size, shaded=True)
     save("turntable.png", np.concatenate([to_uint8(f[:3]) for f in strip], axis=1))
     if turntable_frames > 0:
-        frames = turntable(model, verts[0], tex[0], R[0], T[0], turntable_frames, view_size)
+        frames = turntable(model, verts, tex, R, T, turntable_frames, view_size)
         save_gif(frames, folder / "turntable.gif")
         files["turntable_gif"] = "turntable.gif"
     cell = min(view_size, OVERVIEW_CELL)
     row = [to_uint8(item.image, cell), to_uint8(rendered[:3], cell), to_uint8(rendered[3:], cell)]
     row += [to_uint8(f[:3], cell) for f in strip] + [to_uint8(f[:3], cell) for f in shaded]
+    if network is not None:
+        # the network's prediction beside the refined one
+        net_rendered, net_strip = _views(model, network, i, view_size, strip_angles)
+        save("reconstruction_network.png", to_uint8(net_rendered[:3]))
+        save("turntable_network.png", np.concatenate([to_uint8(f[:3]) for f in net_strip], axis=1))
+        row += [to_uint8(net_rendered[:3], cell)] + [to_uint8(f[:3], cell) for f in net_strip]
     return {
         "name": item.name,
         "source": str(item.path),
@@ -190,6 +212,7 @@ def reconstruct(
     average_texture: bool = False,
     progress: bool = True,
     provenance: Mapping[str, Any] | None = None,
+    refine_options: RefineOptions | None = None,
 ) -> list[dict[str, Any]]:
     """Reconstruct preprocessed images and write their outputs (see the module docstring).
 
@@ -206,9 +229,12 @@ def reconstruct(
         progress: show a progress bar.
         provenance: where the results come from (:func:`unicorn.io.provenance.provenance`: command,
             checkpoint, versions), recorded in every JSON file and the HTML page; default: the calling process.
+        refine_options: refine each prediction against its image (:func:`unicorn.model.refine.refine`) and write
+            the refined result, the network's beside it; None (or 0 steps): the network's prediction.
 
     Returns:
-        one record per image (name, source, folder, written files, pose angles); also written to
+        one record per image (name, source, folder, written files, pose angles, and with refinement the objective
+        before and after it); also written to
         ``<out>/reconstructions.json``.
     """
     out = Path(out_dir)
@@ -229,12 +255,25 @@ def reconstruct(
         if images.shape[-1] != size:
             raise ValueError(f"inputs must be framed at the model's size {size}, got {tuple(images.shape[-2:])}")
         pred = model.predict(images, average_texture=average_texture)
+        network = result = None
+        if refine_options is not None and refine_options.steps > 0:
+            with torch.enable_grad():
+                result = refine(model, images, refine_options, initial=pred, average_texture=average_texture)
+            network, pred = pred, result.prediction
         for i, item in enumerate(chunk):
-            records.append(
-                _write_one(
-                    model, pred, i, item, out / item.name, view_size, turntable_frames, strip_views, device, provenance
-                )
+            folder = out / item.name
+            record = _write_one(
+                model, pred, i, item, folder, view_size, turntable_frames, strip_views, device, provenance, network
             )
+            if result is not None:
+                losses = result.losses[:, i]
+                record["refinement"] = {
+                    "steps": refine_options.steps,  # type: ignore[union-attr]
+                    "parts": list(refine_options.parts),  # type: ignore[union-attr]
+                    "objective_network": float(losses[0]),
+                    "objective_refined": float(losses[-1]),
+                }
+            records.append(record)
             bar.update()
     bar.close()
     rows = [r.pop("_row") for r in records]
@@ -244,6 +283,8 @@ def reconstruct(
     if rows:
         labels = ["input", "reconstruction", "mask"]
         labels += [f"textured {a:g}°" for a in angles] + [f"shape {a:g}°" for a in angles]
+        if len(rows[0]) > len(labels):
+            labels += ["network"] + [f"network {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
         _write_index(out, records, labels, view_size, provenance)
     (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
@@ -260,10 +301,18 @@ def _write_index(
     """``index.html``: per image its pictures, turntable, an interactive 3D view, and links to the meshes and pose."""
     rows = []
     size = min(view_size, 192)
+    n_views = sum(label.startswith("textured") for label in labels)
+    refined = ""
+    if any("refinement" in r for r in records):
+        refined = (
+            " Every result is refined against its image; the network's own reconstruction (before refinement) is "
+            "shown beside it, and in overview.png its views after the refined ones."
+        )
     head_script, body_script = viewer_script_tags(install_viewer(out))
     for r in records:
         name = html.escape(r["name"])
-        pics = [f"{name}/{r['files'][k]}" for k in ("input", "reconstruction", "mask") if k in r["files"]]
+        shown = ("input", "reconstruction", "reconstruction_network", "mask")
+        pics = [f"{name}/{r['files'][k]}" for k in shown if k in r["files"]]
         if "turntable_gif" in r["files"]:
             pics.append(f"{name}/{r['files']['turntable_gif']}")
         cells = "".join(f'<td><img src="{p}" width="{size}" height="{size}"></td>' for p in pics)
@@ -291,7 +340,7 @@ dl{{display:grid;grid-template-columns:max-content auto;gap:.2em 1em;font-size:.
 </style>{head_script}</head><body><h1>Reconstructions</h1>
 <p>Input, reconstruction, predicted mask, turntable and an interactive 3D view (drag to rotate, scroll to zoom;
 it opens from the predicted viewpoint) per image; <a href="overview.png">overview.png</a> shows
-the meshes from {(len(labels) - 3) // 2} viewpoints, textured and untextured.</p>
+the meshes from {n_views} viewpoints, textured and untextured.{refined}</p>
 <table>{"".join(rows)}</table>
 <h2>Provenance</h2><dl>{origin}</dl>
 {body_script}</body></html>

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -32,6 +32,9 @@ from unicorn.model.perceptual import StructuralLoss, VGGPerceptualLoss
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV, build_renderer
+
+if TYPE_CHECKING:
+    from unicorn.model.refine import Refinement
 
 __all__ = ["BRANCHES", "Prediction", "Unicorn", "count_parameters"]
 
@@ -323,6 +326,33 @@ class Unicorn(nn.Module):
         pred = self.predict(images)
         rec, _ = self.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
         return rec, pred
+
+    def refine(
+        self,
+        images: torch.Tensor,
+        steps: int = 50,
+        parts: tuple[str, ...] | None = None,
+        average_texture: bool = False,
+        **options: Any,
+    ) -> Refinement:
+        """Fit the prediction of images (B, 3, S, S) to each image (:func:`unicorn.model.refine.refine`).
+
+        Args:
+            images: (B, 3, S, S) in [0, 1].
+            steps: Adam steps (0: the prediction itself).
+            parts: names of :data:`unicorn.model.refine.PARTS` (None: all of them).
+            average_texture: mean-colour textures, as :meth:`predict`.
+            **options: other :class:`~unicorn.model.refine.RefineOptions` fields (learning rates, prior weights,
+                ``codes_first``, ``progress``).
+
+        Returns:
+            :class:`~unicorn.model.refine.Refinement`: ``prediction`` (refined), ``initial``, ``losses``.
+        """
+        from unicorn.model.refine import RefineOptions, refine
+
+        if parts is not None:
+            options["parts"] = tuple(parts)
+        return refine(self, images, RefineOptions(steps=steps, **options), average_texture=average_texture)
 
     # ------------------------------------------------------------------ training objectives
     def reconstruction_terms(self, rec: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -1,7 +1,7 @@
 """Reconstruction, mesh and pose losses.
 
-Per-sample terms keep a (B,) (or (K*B,)) shape until the probability weighting; mesh regularisers and the
-pose prior are batch scalars.
+Per-sample terms keep a (B,) (or (K*B,)) shape until the probability weighting; mesh regularisers are batch
+scalars unless asked per mesh (``reduction="none"``), the pose prior is a batch scalar.
 """
 
 from __future__ import annotations
@@ -111,8 +111,8 @@ class NormalConsistencyLoss(nn.Module):
         self.register_buffer("edges", edges, persistent=False)
         self.register_buffer("opposite", opposite, persistent=False)
 
-    def forward(self, verts: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3) -> scalar."""
+    def forward(self, verts: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+        """(B, V, 3) -> scalar (``reduction="mean"``), or (B,) per mesh (``"none"``)."""
         if verts.dim() != 3 or verts.shape[-1] != 3:
             raise ValueError(f"verts must have shape (B, V, 3), got {tuple(verts.shape)}")
         v0, v1 = verts[:, self.edges[:, 0]], verts[:, self.edges[:, 1]]
@@ -120,7 +120,7 @@ class NormalConsistencyLoss(nn.Module):
         n0 = torch.cross(e, verts[:, self.opposite[:, 0]] - v0, dim=-1)
         n1 = torch.cross(e, verts[:, self.opposite[:, 1]] - v0, dim=-1)
         cos = torch.nn.functional.cosine_similarity(n0, -n1, dim=-1, eps=1e-6)
-        return (1 - cos).mean()
+        return _reduce((1 - cos).mean(1), reduction)
 
 
 class UniformLaplacianLoss(nn.Module):
@@ -158,9 +158,19 @@ class UniformLaplacianLoss(nn.Module):
         self.register_buffer("neighbors", neighbors, persistent=False)
         self.register_buffer("weights", weights, persistent=False)
 
-    def forward(self, verts: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3) -> scalar."""
+    def forward(self, verts: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+        """(B, V, 3) -> scalar (``reduction="mean"``), or (B,) per mesh (``"none"``)."""
         if verts.dim() != 3 or verts.shape[1:] != (self.neighbors.shape[0], 3):
             raise ValueError(f"verts must have shape (B, {self.neighbors.shape[0]}, 3), got {tuple(verts.shape)}")
         mean_nbr = (verts[:, self.neighbors] * self.weights.to(verts.dtype)[None, :, :, None]).sum(2)
-        return (mean_nbr - verts).norm(dim=-1).mean()
+        return _reduce((mean_nbr - verts).norm(dim=-1).mean(1), reduction)
+
+
+def _reduce(per_mesh: torch.Tensor, reduction: str) -> torch.Tensor:
+    """(B,) per-mesh values -> their mean (every mesh has the same edges and vertices: the mean over all) or
+    themselves."""
+    if reduction == "mean":
+        return per_mesh.mean()
+    if reduction == "none":
+        return per_mesh
+    raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")

@@ -1,0 +1,267 @@
+"""Test-time refinement: fit the network's prediction to each image, keeping the category prior.
+
+A network that predicts in one pass gives what it learnt of the category; refinement starts from its prediction
+and optimises, per image, a few variables against the training's 3D-step objective (the reconstruction terms of
+:func:`unicorn.model.objectives.reconstruction_terms` and the mesh regularisers, normal consistency and
+Laplacian, with the model's weights), plus a penalty on leaving the prediction (the prior). The model's weights
+stay frozen (eval mode: BatchNorm uses its running statistics); the encoders run once.
+
+The variables come in parts (:data:`PARTS`):
+
+- ``codes``: the shape, texture and background codes (a delta on each, decoded by the network's own
+  generators, so the result stays in what the network can express; masked like the codes);
+- ``texture``: a colour offset of the whole texture and a residual of every texel, added to the texture image
+  (clamped to [0, 1]); the offset carries a colour correction to the sides the image does not show;
+- ``vertices``: per-vertex offsets of the canonical mesh and a log-residual of the anisotropic scale;
+- ``pose``: a small rotation (Euler angles about the view axes, radians) and a translation residual.
+
+The default schedule refines the codes alone for the first ``codes_first`` share of the steps, then the codes and
+the residuals together: the codes move the whole object consistently (colour and shape on its hidden side too),
+the residuals then add what the codes cannot express.
+
+Backgrounds: a model with a background branch refines its background code with the other codes, so the
+background's pixels are explained by the background and the object keeps to its own. A model without one (trained
+on ShapeNet-style renderings on white) renders over the renderer's background colour: fitted to a photo with a
+background, the object would take the background's colour at its borders and grow into it. Give such a model the
+object cut out (a transparent PNG, composited on white by :mod:`unicorn.io.images`).
+
+Each image's variables are independent and the objective is a sum over images, so refining a batch gives the same
+result as refining its images one at a time (Adam is element-wise), up to floating-point rounding. Nothing is
+drawn at random: a refinement is deterministic on a given device.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
+
+import torch
+from tqdm.auto import tqdm
+
+from unicorn.geometry.rotations import euler_angles_to_matrix
+from unicorn.model import objectives
+from unicorn.model.generator import mean_texture
+
+if TYPE_CHECKING:
+    from unicorn.model.autoencoder import Prediction, Unicorn
+
+__all__ = ["PARTS", "RefineOptions", "Refinement", "refine"]
+
+#: the refinable parts: name -> what it optimises
+PARTS: dict[str, str] = {
+    "codes": "the shape, texture and background codes, decoded by the network",
+    "texture": "a colour offset of the whole texture and a residual of every texel",
+    "vertices": "per-vertex offsets of the canonical mesh and a log-residual of the scale",
+    "pose": "a small rotation and a translation residual of the selected pose",
+}
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """How to refine (defaults: the ones ``unicorn-reconstruct --refine N`` uses).
+
+    The default weights, learning rates and schedule were chosen on the validation cars of the synthetic benchmark
+    (``benchmarks/refine.py --split val``: refined on one view, scored on the 23 others).
+
+    Attributes:
+        steps: Adam steps (0: the prediction itself).
+        parts: names of :data:`PARTS` to optimise.
+        codes_first: share of the steps in which only the codes move (when ``codes`` is among the parts); the
+            residual parts join after it. 0: everything from the first step.
+        lr_codes, lr_texture, lr_vertices, lr_pose: Adam learning rates of each part's variables (codes in code
+            units, texture in colour units, vertices and translation in world units, rotation in radians).
+        code_weight: prior weight on the code deltas, times their squared norm (sum over code dimensions).
+        texture_weight: prior weight on the texture's colour offset and residual, times the squared offset (mean over
+            RGB) plus the residual's mean square over texels.
+        vertex_weight: prior weight on the vertex offsets and the log-scale residual, times their mean square.
+        pose_weight: prior weight on the rotation (radians) and translation residuals, times their squared norm.
+        progress: show a progress bar over the steps.
+    """
+
+    steps: int = 50
+    parts: tuple[str, ...] = ("codes", "texture", "vertices", "pose")
+    codes_first: float = 0.5
+    lr_codes: float = 0.1
+    lr_texture: float = 0.02
+    lr_vertices: float = 0.001
+    lr_pose: float = 0.005
+    code_weight: float = 0.001
+    texture_weight: float = 0.1
+    vertex_weight: float = 10.0
+    pose_weight: float = 0.1
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if self.steps < 0:
+            raise ValueError(f"steps must be >= 0, got {self.steps}")
+        unknown = [p for p in self.parts if p not in PARTS]
+        if unknown:
+            raise ValueError(f"unknown refinement parts {unknown}; choose from {list(PARTS)}")
+        if not 0.0 <= self.codes_first <= 1.0:
+            raise ValueError(f"codes_first must be in [0, 1], got {self.codes_first}")
+        for f in fields(self):
+            if f.name.startswith(("lr_", "code_weight", "texture_weight", "vertex_weight", "pose_weight")):
+                if getattr(self, f.name) < 0:
+                    raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+
+
+@dataclass
+class Refinement:
+    """The result of :func:`refine` for B images.
+
+    Attributes:
+        prediction: the refined :class:`~unicorn.model.Prediction` (codes, mesh, scale, texture, background, R, T;
+            ``poses`` keeps the network's candidates and probabilities), detached.
+        initial: the network's prediction it started from, detached.
+        losses: (steps + 1, B) each image's objective before every step and after the last.
+    """
+
+    prediction: Prediction
+    initial: Prediction
+    losses: torch.Tensor
+
+
+class _Variables:
+    """Each part's per-image variables (all zero: the prediction itself), on the prediction's device."""
+
+    def __init__(self, model: Unicorn, pred: Prediction, parts: Sequence[str]) -> None:
+        B = pred.verts.shape[0]
+
+        def zeros(*shape: int) -> torch.Tensor:
+            return pred.verts.new_zeros(B, *shape, requires_grad=True)
+
+        self.groups: dict[str, list[torch.Tensor]] = {}
+        self.shape = zeros(pred.shape_code.shape[1])
+        self.texture_code = zeros(pred.texture_code.shape[1])
+        self.background_code = zeros(pred.background_code.shape[1]) if pred.background_code is not None else None
+        self.colour = zeros(pred.texture.shape[1], 1, 1)
+        self.texture = zeros(*pred.texture.shape[1:])
+        self.offsets = zeros(*pred.canonical_verts.shape[1:])
+        self.log_scale = zeros(3)
+        self.rotation = zeros(3)
+        self.translation = zeros(3)
+        codes = [self.shape, self.texture_code] + ([self.background_code] if self.background_code is not None else [])
+        all_groups = {
+            "codes": codes,
+            "texture": [self.colour, self.texture],
+            "vertices": [self.offsets, self.log_scale],
+            "pose": [self.rotation, self.translation],
+        }
+        self.groups = {p: all_groups[p] for p in PARTS if p in parts}
+
+
+def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bool) -> Prediction:
+    """The prediction moved by the variables (with gradients to them)."""
+    z_sh = pred.shape_code + model.shape.mask(v.shape)
+    z_tx = pred.texture_code + model.texture.mask(v.texture_code)
+    canonical = model.template.verts + model.shape(model.template.verts, z_sh) + v.offsets
+    scale = pred.scale * v.log_scale.exp()
+    maps = model.texture(z_tx)
+    if average_texture:
+        maps = mean_texture(maps)
+    maps = (maps + v.colour + v.texture).clamp(0.0, 1.0)
+    z_bg = bkg = None
+    if model.background is not None and v.background_code is not None:
+        z_bg = pred.background_code + model.background.mask(v.background_code)
+        bkg = model.background(z_bg)
+    R = pred.R @ euler_angles_to_matrix(v.rotation, "XYZ")
+    return replace(
+        pred,
+        shape_code=z_sh,
+        texture_code=z_tx,
+        background_code=z_bg,
+        canonical_verts=canonical,
+        scale=scale,
+        verts=canonical * scale.unsqueeze(1),
+        texture=maps,
+        background=bkg,
+        R=R,
+        T=pred.T + v.translation,
+    )
+
+
+def _objective(model: Unicorn, images: torch.Tensor, p: Prediction, v: _Variables, o: RefineOptions) -> torch.Tensor:
+    """Each image's objective (B,): reconstruction terms + mesh regularisers + prior."""
+    rec, _ = model.render(p.verts, p.texture, p.R, p.T, p.background)
+    terms = objectives.reconstruction_terms(model, rec, images)
+    loss = sum(terms.values()) if terms else images.new_zeros(images.shape[0])
+    ls = model.config["loss"]
+    if ls["normal_weight"] > 0:
+        loss = loss + ls["normal_weight"] * model.normal_loss(p.verts, reduction="none")
+    if ls["laplacian_weight"] > 0:
+        loss = loss + ls["laplacian_weight"] * model.laplacian_loss(p.verts, reduction="none")
+    codes = [v.shape, v.texture_code] + ([v.background_code] if v.background_code is not None else [])
+    prior = o.code_weight * sum(c.square().sum(1) for c in codes)
+    prior = prior + o.texture_weight * (v.colour.square().flatten(1).mean(1) + v.texture.square().flatten(1).mean(1))
+    prior = prior + o.vertex_weight * (v.offsets.square().flatten(1).mean(1) + v.log_scale.square().mean(1))
+    prior = prior + o.pose_weight * (v.rotation.square().sum(1) + v.translation.square().sum(1))
+    return loss + prior
+
+
+def _detached(pred: Prediction) -> Prediction:
+    return replace(
+        pred,
+        **{
+            f.name: getattr(pred, f.name).detach()
+            for f in fields(pred)
+            if isinstance(getattr(pred, f.name), torch.Tensor)
+        },
+    )
+
+
+def refine(
+    model: Unicorn,
+    images: torch.Tensor,
+    options: RefineOptions | None = None,
+    initial: Prediction | None = None,
+    average_texture: bool = False,
+) -> Refinement:
+    """Refine the network's prediction of each image against that image (see the module docstring).
+
+    Args:
+        model: the model (its weights are not changed; it runs in eval mode and is put back in its mode).
+        images: (B, 3, S, S) in [0, 1], S the model's image size.
+        options: :class:`RefineOptions` (defaults when None).
+        initial: the network's prediction of ``images`` to start from (computed in eval mode when None).
+        average_texture: mean-colour textures (as the prediction was made); the texture residual comes on top.
+
+    Returns:
+        :class:`Refinement`; with 0 steps its ``prediction`` is the initial prediction itself.
+    """
+    o = RefineOptions() if options is None else options
+    model.check_images(images)
+    was_training = model.training
+    # frozen weights: no gradient is computed for them (the variables' are the only ones asked for)
+    trainable = [q for q in model.parameters() if q.requires_grad]
+    model.eval().requires_grad_(False)
+    try:
+        with torch.no_grad():
+            start = model.predict(images, average_texture) if initial is None else initial
+        start = _detached(start)
+        v = _Variables(model, start, o.parts)
+        params = v.groups
+        steps = o.steps if params else 0
+        lrs = {"codes": o.lr_codes, "texture": o.lr_texture, "vertices": o.lr_vertices, "pose": o.lr_pose}
+        opt = torch.optim.Adam([{"params": g, "lr": lrs[p]} for p, g in params.items()]) if params else None
+        warmup = round(o.codes_first * steps) if "codes" in params else 0
+        losses = []
+        for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
+            active = [t for p, g in params.items() if p == "codes" or step >= warmup for t in g]
+            loss = _objective(model, images, _decode(model, start, v, average_texture), v, o)
+            losses.append(loss.detach())
+            grads = torch.autograd.grad(loss.sum(), active)
+            for group in params.values():
+                for t in group:
+                    t.grad = None
+            for t, g in zip(active, grads, strict=True):
+                t.grad = g
+            opt.step()  # type: ignore[union-attr]  # parameters without a gradient (parts not yet active) are left alone
+        with torch.no_grad():
+            result = _decode(model, start, v, average_texture) if steps > 0 else start
+            losses.append(_objective(model, images, result, v, o))
+    finally:
+        model.train(was_training)
+        for q in trainable:
+            q.requires_grad_(True)
+    return Refinement(prediction=_detached(result), initial=start, losses=torch.stack(losses))

@@ -1,0 +1,138 @@
+"""Test-time refinement: the objective decreases, the prior holds, zero steps, determinism, batching, parts."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from tests.support.model import ellipsoid_images, randomize_heads, tiny_config
+from unicorn.model import Unicorn
+from unicorn.model.refine import PARTS, RefineOptions, refine
+
+pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
+
+FIELDS = ("shape_code", "texture_code", "background_code", "canonical_verts", "scale", "verts", "texture")
+FIELDS += ("background", "R", "T")
+
+
+@pytest.fixture(scope="module")
+def model() -> Unicorn:
+    torch.manual_seed(0)
+    m = Unicorn(tiny_config(template={"level": 2}, texture={"size": 16}))
+    randomize_heads(m)
+    m.set_active_dims(shape=m.shape.code_dim, texture=m.texture.code_dim, background=m.background.code_dim)
+    return m.eval()
+
+
+@pytest.fixture(scope="module")
+def targets() -> torch.Tensor:
+    return ellipsoid_images(3)
+
+
+def test_zero_steps_is_the_prediction(model: Unicorn, targets: torch.Tensor) -> None:
+    with torch.no_grad():
+        pred = model.predict(targets)
+    out = refine(model, targets, RefineOptions(steps=0))
+    for name in FIELDS:
+        assert torch.equal(getattr(out.prediction, name), getattr(pred, name)), name
+    assert out.losses.shape == (1, 3)
+
+
+def test_objective_decreases_and_weights_stay(model: Unicorn, targets: torch.Tensor) -> None:
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    model.train()
+    out = refine(model, targets, RefineOptions(steps=20, codes_first=0.25))
+    assert out.losses.shape == (21, 3)
+    assert (out.losses[-1] < 0.9 * out.losses[0]).all(), out.losses[[0, -1]]
+    assert model.training and all(p.requires_grad for p in model.parameters())  # mode and flags given back
+    model.eval()
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, state[k]), k
+
+
+def test_huge_prior_keeps_the_prediction(model: Unicorn, targets: torch.Tensor) -> None:
+    weights = dict(code_weight=1e8, texture_weight=1e8, vertex_weight=1e8, pose_weight=1e8)
+    out = refine(model, targets, RefineOptions(steps=30, codes_first=0.0, **weights))
+    free = refine(model, targets, RefineOptions(steps=30, codes_first=0.0))
+    for name in ("verts", "texture", "R", "T", "background"):
+        kept = (getattr(out.prediction, name) - getattr(out.initial, name)).abs().max()
+        moved = (getattr(free.prediction, name) - getattr(free.initial, name)).abs().max()
+        # Adam's first steps move every variable by about lr whatever the weight; the prior pulls them back
+        assert kept < 0.02 * moved, (name, kept, moved)
+
+
+def test_deterministic(model: Unicorn, targets: torch.Tensor) -> None:
+    a = refine(model, targets, RefineOptions(steps=6))
+    b = refine(model, targets, RefineOptions(steps=6))
+    for name in FIELDS:
+        assert torch.equal(getattr(a.prediction, name), getattr(b.prediction, name)), name
+
+
+def test_batch_equals_one_image_at_a_time(model: Unicorn, targets: torch.Tensor) -> None:
+    # in float64: Adam's normalised steps turn float32 rounding (batched kernels sum in another order) into
+    # visible differences on variables whose gradient is near 0
+    model, targets = copy.deepcopy(model).double(), targets.double()
+    options = RefineOptions(steps=6, codes_first=0.5)
+    batch = refine(model, targets, options)
+    for i in range(targets.shape[0]):
+        alone = refine(model, targets[i : i + 1], options)
+        for name in FIELDS:
+            torch.testing.assert_close(
+                getattr(alone.prediction, name)[0], getattr(batch.prediction, name)[i], atol=1e-7, rtol=1e-7
+            )
+        torch.testing.assert_close(alone.losses[:, 0], batch.losses[:, i], atol=1e-9, rtol=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("part", "moves", "stays"),
+    [
+        ("codes", ("shape_code", "texture_code", "background_code", "verts", "texture", "background"), ("R", "T")),
+        ("texture", ("texture",), ("verts", "R", "T", "background", "texture_code")),
+        ("vertices", ("verts", "scale"), ("texture", "R", "T", "shape_code")),
+        ("pose", ("R", "T"), ("verts", "texture", "background")),
+    ],
+)
+def test_each_part_moves_its_own_variables(
+    model: Unicorn, targets: torch.Tensor, part: str, moves: tuple[str, ...], stays: tuple[str, ...]
+) -> None:
+    out = refine(model, targets, RefineOptions(steps=3, parts=(part,)))
+    for name in moves:
+        assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    for name in stays:
+        assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+
+
+def test_codes_first_holds_the_residuals(model: Unicorn, targets: torch.Tensor) -> None:
+    # all steps on the codes: the mesh is exactly the decoded shape code, the pose the network's
+    out = refine(model, targets, RefineOptions(steps=4, codes_first=1.0))
+    p = out.prediction
+    with torch.no_grad():
+        canonical = model.template.verts + model.shape(model.template.verts, p.shape_code)
+    assert torch.equal(p.canonical_verts, canonical)
+    assert torch.equal(p.R, out.initial.R) and torch.equal(p.T, out.initial.T)
+    assert torch.equal(p.scale, out.initial.scale)
+
+
+def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
+    out = model.refine(targets[:1], steps=2, parts=("pose",), lr_pose=0.01)
+    assert out.losses.shape == (3, 1)
+    with pytest.raises(ValueError, match="unknown refinement parts"):
+        RefineOptions(parts=("colour",))
+    with pytest.raises(ValueError, match="steps"):
+        RefineOptions(steps=-1)
+    with pytest.raises(ValueError, match="images must have shape"):
+        refine(model, targets[:, :, :16])
+    assert set(PARTS) == {"codes", "texture", "vertices", "pose"}
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu(model: Unicorn, targets: torch.Tensor) -> None:
+    # float64, as the batching test: Adam's normalised steps would turn the devices' rounding into differences
+    model, targets, options = copy.deepcopy(model).double(), targets.double(), RefineOptions(steps=3)
+    cpu = refine(model, targets, options)
+    gpu = refine(model.cuda(), targets.cuda(), options)
+    assert gpu.prediction.verts.device.type == "cuda"
+    for name in ("verts", "texture", "R", "T"):
+        torch.testing.assert_close(getattr(gpu.prediction, name).cpu(), getattr(cpu.prediction, name))
