@@ -75,7 +75,7 @@ def test_a_shared_ground_truth_index_gives_the_same_scores(shape, backend):
         icp_only = evaluate_meshes(
             pred, f, gt, gt_n, num_points=1000, icp_iterations=15, run_direct=False, backend=backend
         )
-        assert set(icp_only) == {"chamfer-L1-ICP", "normal-cos-ICP"}
+        assert set(icp_only) == {"chamfer-L1-ICP", "normal-cos-ICP", "iou-3d-ICP"}
         torch.testing.assert_close(icp_only["chamfer-L1-ICP"], alone["chamfer-L1-ICP"], atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="gt_index"):
         evaluate_meshes(v, f, gt_points, gt_normals, gt_index=index)
