@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from unicorn.render import (
+    DEFAULT_MAX_RENDER_BYTES,
     MAX_RENDER_BYTES_ENV,
     LayeredRasterizer,
     MeshRasterizer,
@@ -235,7 +236,7 @@ def test_non_finite_textures_are_named(renderer, bad):
 @pytest.mark.parametrize("name", list_renderers())
 @pytest.mark.parametrize("size", [2.5, "abc", True, (16, 2.0), (16, 16, 16), -3])
 def test_bad_image_sizes_are_named(name, size):
-    with pytest.raises((TypeError, ValueError), match=r"^(bad options for renderer '\w+': )?image_size must be"):
+    with pytest.raises((TypeError, ValueError), match=r"^(bad options for renderer '[^']+': )?image_size must be"):
         build_renderer(name, image_size=size)
 
 
@@ -245,22 +246,38 @@ def test_image_size_accepts_ints_and_pairs():
     assert MeshRasterizer(image_size=torch.Size([8, 9])).image_size == (8, 9)
 
 
-@pytest.mark.parametrize("name", list_renderers())
-def test_a_render_too_large_for_memory_fails_before_allocating(name, monkeypatch):
+@pytest.mark.parametrize("name", ["layered", "softras", "hard"])
+def test_a_10000_pixel_render_fails_before_allocating(name, monkeypatch):
     monkeypatch.delenv(MAX_RENDER_BYTES_ENV, raising=False)
     verts, faces, R, T, _ = template_scene(batch=1)
-    tex = _tex(1, verts.shape[1])
     renderer = build_renderer(name, image_size=10000)
+    # never render for real if the defaults change: the bound must be over the default limit first
+    (H, W), K = renderer.raster_size, renderer.rasterizer.faces_per_pixel
+    assert H * W * K * 64 > DEFAULT_MAX_RENDER_BYTES
     with pytest.raises(ValueError, match=r"^image_size: 1 x \d+x\d+ pixels .* GiB of fragments .*MAX_RENDER_BYTES"):
+        renderer(verts, faces, _tex(1, verts.shape[1]), R=R, T=T)
+
+
+def test_every_backend_refuses_a_render_over_the_limit(renderer, monkeypatch):
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = _tex(1, verts.shape[1])
+    monkeypatch.setenv(MAX_RENDER_BYTES_ENV, "1000")  # the environment's limit, when the renderer is given none
+    with pytest.raises(ValueError, match=r"image_size: 1 x \d+x\d+ pixels .* over the limit of 9.31e-07 GiB"):
         renderer(verts, faces, tex, R=R, T=T)
-    # the limit is the renderer's option, else the environment's
-    small = build_renderer(name, image_size=16, max_bytes=1000)
-    with pytest.raises(ValueError, match=r"over the limit of 9.31e-07 GiB"):
-        small(verts, faces, tex, R=R, T=T)
-    monkeypatch.setenv(MAX_RENDER_BYTES_ENV, "1000")
-    with pytest.raises(ValueError, match="image_size: 1 x"):
-        build_renderer(name, image_size=16)(verts, faces, tex, R=R, T=T)
+    monkeypatch.setenv(MAX_RENDER_BYTES_ENV, "0")  # no limit
+    assert renderer(verts, faces, tex, R=R, T=T).shape == (1, 4, 16, 16)
+
+
+@pytest.mark.parametrize("name", ["layered", "softras", "hard"])
+def test_the_built_in_backends_take_the_memory_limit_as_an_option(name, monkeypatch):
+    monkeypatch.setenv(MAX_RENDER_BYTES_ENV, "1000")  # the option wins over the environment
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = _tex(1, verts.shape[1])
+    with pytest.raises(ValueError, match="over the limit of 1.86e-06 GiB"):
+        build_renderer(name, image_size=16, max_bytes=2000)(verts, faces, tex, R=R, T=T)
     assert build_renderer(name, image_size=16, max_bytes=0)(verts, faces, tex, R=R, T=T).shape == (1, 4, 16, 16)
+    with pytest.raises(ValueError, match="max_bytes must be >= 0"):
+        build_renderer(name, max_bytes=-1)
 
 
 def test_render_size_bound():
