@@ -132,3 +132,22 @@ def test_unknown_dataset(checkpoint: Path, capsys) -> None:
 def test_cuda_requested_without_cuda(checkpoint: Path, capsys) -> None:
     assert main([str(checkpoint), "--dataset", "synthetic", "--root", ".", "--device", "cuda"]) == 2
     assert "CUDA is not available" in capsys.readouterr().err
+
+
+def test_a_failure_while_writing_leaves_no_half_written_folder(
+    tmp_path: Path, synth: Path, checkpoint: Path, capsys, monkeypatch
+) -> None:
+    import errno
+
+    import unicorn.evaluation.session as session
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(session, "write_report", full_disk)  # the metrics files are written, then the disk is full
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "synthetic", "--root", str(synth), "--split", "train", "--max-images", "2"]
+    assert main([*args, "--report-samples", "1", "--device", "cpu", "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err == f"unicorn-eval: error: [Errno 28] No space left on device while writing the output folder {out}\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no metrics.csv without its report, no sibling

@@ -213,3 +213,38 @@ def test_refine_parts_are_checked(tmp_path: Path, checkpoint: Path, inputs: Path
     with pytest.raises(SystemExit):
         main([str(checkpoint), str(inputs), "--out", str(tmp_path / "neg"), *FAST, "--refine", "-1"])
     assert "--refine must be >= 0" in capsys.readouterr().err
+
+
+def test_a_full_disk_part_way_is_one_line_and_leaves_out_as_it_was(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, monkeypatch
+) -> None:
+    import errno
+    import importlib
+
+    rec = importlib.import_module("unicorn.evaluation.reconstruct")  # the package exports a function of that name
+
+    written = rec._write_one
+
+    def second_fails(*args, **kwargs):
+        if second_fails.calls == 1:
+            raise OSError(errno.ENOSPC, "No space left on device")  # a write() on a full disk names no file
+        second_fails.calls += 1
+        return written(*args, **kwargs)
+
+    second_fails.calls = 0
+    monkeypatch.setattr(rec, "_write_one", second_fails)
+    out = tmp_path / "out"
+    assert main([str(checkpoint), str(inputs), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err == f"unicorn-reconstruct: error: [Errno 28] No space left on device while writing the output folder {out}\n"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs"]  # no out, no half-written sibling
+    # an existing folder (--overwrite) keeps its files untouched
+    out.mkdir()
+    (out / "index.html").write_text("the user's own page")
+    second_fails.calls = 0
+    assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 2
+    assert [p.name for p in out.iterdir()] == ["index.html"] and (
+        out / "index.html"
+    ).read_text() == "the user's own page"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -267,6 +268,83 @@ def test_values_are_range_checked_where_declared(tmp_path):
         ("callbacks.checkpoint.keep=-2", r"callbacks\.checkpoint\.keep must be >= -1"),
         ("renderer.faces_per_pixel=0", r"renderer\.faces_per_pixel must be a finite number >= 1"),
         ("renderer.sigma=nan", r"renderer\.sigma must be a finite number >= 0"),
+        ("optim.lr=inf", r"optim\.lr must be a finite number > 0, got inf"),
+        ("optim.betas=[2,3]", r"optim\.betas must lie in \[0, 1\), got \[2\.0, 3\.0\]"),
+        ("optim.betas=[0.9,1.0]", r"optim\.betas must lie in \[0, 1\)"),
+        ("optim.eps=inf", r"optim\.eps must be a finite number >= 0, got inf"),
+        ("model.template.scale=nan", r"model\.template\.scale must be a finite number"),
+        ("dataset.on_error=maybe", r"dataset\.on_error must be one of \('skip', 'raise'\), got 'maybe'"),
+        ("init_from=m.pt", None),  # with ckpt_path below
     ]:
+        if message is None:
+            with pytest.raises(ConfigError, match="init_from and ckpt_path exclude each other"):
+                validate(compose_config([*base, override, "ckpt_path=last"]))
+            continue
         with pytest.raises(ConfigError, match=message):
             validate(compose_config([*base, override]))
+
+
+def test_dataset_without_its_root_is_one_line(tmp_path):
+    with pytest.raises(ConfigError, match=r"dataset\.root is required by dataset 'folder'"):
+        validate(compose_config(["dataset=folder", f"paths.output_dir={tmp_path}"]))
+
+
+def test_expected_failures_inside_training_are_one_line_and_leave_no_run_folder(synthetic_cache, tmp_path):
+    from tests.support.evaluation import tiny_checkpoint
+
+    run_dir = tmp_path / "run"
+    saved = tiny_checkpoint(tmp_path / "saved.pt")
+    cases = [
+        # found by Lightning when it loads the file, after the loggers made csv/ (and tensorboard/)
+        ([f"ckpt_path={saved}", "logger=csv"], rf"ckpt_path: {saved} is a unicorn.io.save_model file.*init_from="),
+        ([f"ckpt_path={tmp_path}"], "is a directory, not a checkpoint file"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append((["trainer.accelerator=gpu"], r"trainer \(accelerator=gpu.*\): No supported gpu backend"))
+    for overrides, message in cases:
+        result = unicorn_train(*TINY, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        lines = _error_lines(result.stderr)
+        assert result.returncode == 2, result.stderr[-3000:]
+        assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
+        assert re.search(message, lines[0]), lines
+        assert not run_dir.exists(), overrides
+
+
+def test_a_bug_keeps_its_traceback_and_the_folder_stays_usable(synthetic_cache, tmp_path):
+    run_dir = tmp_path / "run"
+    bug = "+callbacks.extra.bug={_target_: tests.lit.faults.Raise, step: 0}"
+    result = unicorn_train(*TINY, "logger=csv", bug, f"hydra.run.dir={run_dir}", cwd=REPO)
+    assert result.returncode == 1 and "Traceback" in result.stderr, result.stderr[-3000:]
+    assert "ZeroDivisionError: a bug injected at iteration 0" in result.stderr
+    assert not run_dir.exists()  # failed before its first iteration: nothing blocks the same command
+    again = unicorn_train(*TINY, "trainer.max_steps=1", f"hydra.run.dir={run_dir}", cwd=REPO)
+    assert again.returncode == 0, again.stderr[-3000:]
+
+
+def test_a_refused_run_touches_nothing_in_the_folder(synthetic_cache, tmp_path):
+    run_dir = tmp_path / "run"
+    first = unicorn_train(*TINY, "trainer.max_steps=1", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / ".hydra" / "overrides.yaml").is_file()
+    assert "output_subdir: .hydra" in (run_dir / ".hydra" / "hydra.yaml").read_text()
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in run_dir.rglob("*") if p.is_file()}
+    second = unicorn_train(*TINY, "trainer.max_steps=2", "seed=5", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    assert second.returncode == 2 and "already holds a run" in second.stderr, second.stderr[-3000:]
+    after = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in run_dir.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_a_read_only_run_folder_is_one_line(tmp_path):
+    # a PermissionError as a read-only disk gives, raised by Hydra while it creates the folder (before the task)
+    from unicorn.cli.train import _hydra_failure
+
+    report = (
+        'Error executing job with overrides: []\nTraceback (most recent call last):\n  File "x.py", line 1\n'
+        "OSError: [Errno 30] Read-only file system: '/ro/run'\n\nSet the environment variable HYDRA_FULL_ERROR=1 "
+        "for a complete stack trace.\n"
+    )
+    assert _hydra_failure(report) == "[Errno 30] Read-only file system: '/ro/run'"
+    assert _hydra_failure(report.replace("OSError", "ZeroDivisionError")) is None  # a bug: the traceback stays
+    assert _hydra_failure("Could not override 'optim.lrr'.\nKey 'lrr' is not in struct") == (
+        "Could not override 'optim.lrr'. Key 'lrr' is not in struct"
+    )

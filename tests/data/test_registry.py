@@ -58,3 +58,23 @@ def test_unknown_dataset_names_the_known_ones() -> None:
         build_dataset("imagenet", "train", "/nowhere")
     with pytest.raises(DatasetError, match="unknown dataset"):
         val_indices("imagenet", 10)
+
+
+def test_synthetic_data_is_generated_only_where_asked(tmp_path: Path, monkeypatch) -> None:
+    import unicorn.data.synthetic.writer as writer
+    from unicorn.data import DatasetNotFoundError
+    from unicorn.data.registry import prepare_dataset
+
+    generated = []
+    monkeypatch.setattr(writer, "ensure_synthetic_dataset", lambda **options: generated.append(options) or tmp_path)
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    missing = tmp_path / "nonexistent" / "dir"
+    with pytest.raises(DatasetNotFoundError, match=r"nonexistent/dir.*dataset\.synthetic\.generate=true"):
+        prepare_dataset("synthetic", missing)
+    assert not generated and not missing.exists()
+    prepare_dataset("synthetic", None)  # the cache
+    prepare_dataset("synthetic", tmp_path / "cache" / "synthetic_32px")  # a new folder in the cache
+    prepare_dataset("synthetic", tmp_path)  # an existing folder
+    prepare_dataset("synthetic", missing, synthetic={"generate": True})  # asked for
+    assert [g["root"] for g in generated] == [None, tmp_path / "cache" / "synthetic_32px", tmp_path, missing]
+    assert all("generate" not in g for g in generated)  # not a generator option

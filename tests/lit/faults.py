@@ -1,4 +1,4 @@
-"""Fault injection for the kill-and-resume test: a callback that SIGKILLs its own training process.
+"""Fault injection: a callback that SIGKILLs its own training process (the kill-and-resume test), one that raises.
 
 ``Kill(step, where)`` kills the process at iteration ``step``:
 
@@ -55,3 +55,14 @@ class Kill(L.Callback):
     def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
         if self.where == "iteration" and trainer.global_step == self.step:
             _die()
+
+
+class Raise(L.Callback):
+    """A bug at iteration ``step``: raises ``ZeroDivisionError`` as the iteration starts."""
+
+    def __init__(self, step: int = 0) -> None:
+        self.step = step
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args: Any) -> None:
+        if trainer.global_step == self.step:
+            raise ZeroDivisionError(f"a bug injected at iteration {self.step}")

@@ -53,6 +53,13 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     Raises:
         ConfigError: an unknown key, a wrong type or inconsistent values, with the offending key's name.
     """
+    dataset = cfg.get("dataset") if isinstance(cfg, DictConfig) else None
+    # a mandatory value left out (``???``): merging onto the schema would hide it behind the schema's default
+    _check(
+        not (isinstance(dataset, DictConfig) and OmegaConf.is_missing(dataset, "root")),
+        f"dataset.root is required by dataset {dataset.get('name') if dataset is not None else None!r}: give the "
+        "folder of its data (dataset.root=/path/to/data)",
+    )
     schema = OmegaConf.structured(TrainConfig)
     try:
         typed = OmegaConf.merge(schema, cfg)
@@ -81,11 +88,6 @@ def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:
 
 
 def _check_values(cfg: DictConfig) -> None:
-    _check(
-        not OmegaConf.is_missing(cfg.dataset, "root"),
-        f"dataset.root is required by dataset {cfg.dataset.name!r}: give the folder of its data "
-        "(dataset.root=/path/to/data)",
-    )
     try:
         check_ranges(cfg, TrainConfig)
     except ValueError as err:
