@@ -237,10 +237,10 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         shape_points=args.shape_points,
     )
     if device.type == "cpu" and get_protocol(protocol).meshes is not None and options.icp_iterations > 30:
-        # the ICP's nearest-neighbour searches dominate: about 1 s per iteration and image at 100k points on CPU
+        # the ICP's nearest-neighbour searches dominate: about 0.1 s of CPU per iteration, ICP and image at 100k points
         print(
             f"note: the full protocol ({options.num_points} points, {options.icp_iterations} ICP iterations) takes "
-            "one to two minutes per image on a CPU; --fast (UNICORN's validation setting) or a GPU is much quicker",
+            "tens of seconds per image on a CPU; --fast (UNICORN's validation setting) or a GPU is much quicker",
             flush=True,
         )
     extra = {"produced_by": produced_by} if produced_by else {}
