@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
 
 from unicorn.checks import (
     FaceIndexError,
+    ShapeError,
     check_faces,
     check_image_size,
     check_mesh,
     check_rotations,
     check_same_dtype,
+    check_shape,
 )
 
 FACES = torch.tensor([[0, 1, 2], [0, 2, 3]])
@@ -105,3 +109,39 @@ def test_rotations_name_the_expected_batch() -> None:
         check_rotations(torch.zeros(1, 3, 3), "R", 2)
     with pytest.raises(TypeError, match="R must be a floating point tensor, got torch.int64"):
         check_rotations(torch.zeros(2, 3, 3, dtype=torch.long), "R", 2)
+
+
+def test_check_shape_binds_symbolic_dimensions() -> None:
+    dims = check_shape(torch.zeros(4, 7, 3), "B, V, 3", "verts")
+    assert dims == {"B": 4, "V": 7}
+    check_shape(torch.zeros(4, 5), "B C", "codes", dims)  # same B, new C
+    assert dims == {"B": 4, "V": 7, "C": 5}
+    with pytest.raises(ShapeError, match=r"^textures must have shape \(4, 2\), got \(3, 2\)$"):
+        check_shape(torch.zeros(3, 2), "B, 2", "textures", dims)
+    with pytest.raises(ShapeError, match=r"square must have shape \(N, N\), got \(2, 3\)"):
+        check_shape(torch.zeros(2, 3), "N N", "square")  # a name recurring within one tensor
+
+
+@pytest.mark.parametrize(
+    ("shape", "good", "bad"),
+    [
+        ("B, 3", (2, 3), (2, 4)),
+        ("*, 3, 3", (5, 2, 3, 3), (3, 4)),
+        ("*, 6", (6,), (2, 5)),
+        ("F, 3", (0, 3), (3,)),
+    ],
+)
+def test_check_shape_contracts(shape: str, good: tuple[int, ...], bad: tuple[int, ...]) -> None:
+    check_shape(torch.zeros(good), shape, "x")
+    with pytest.raises(ShapeError, match=rf"got {re.escape(str(bad))}"):
+        check_shape(torch.zeros(bad), shape, "x")
+
+
+def test_check_shape_type_errors() -> None:
+    with pytest.raises(TypeError, match="x must be a torch.Tensor, got list"):
+        check_shape([1, 2, 3], "N", "x")
+    with pytest.raises(TypeError, match="x must be a floating point tensor, got torch.int64"):
+        check_shape(torch.zeros(2, dtype=torch.int64), "N", "x", floating=True)
+    with pytest.raises(ValueError, match="bad shape contract"):
+        check_shape(torch.zeros(2), "N, *", "x")  # '*' only leads
+    assert issubclass(ShapeError, ValueError)  # callers that catch ValueError keep working

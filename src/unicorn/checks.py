@@ -7,6 +7,7 @@ dtype, ``ValueError`` for a wrong shape or value, :class:`FaceIndexError` (an ``
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from numbers import Integral
 
@@ -14,6 +15,8 @@ import torch
 
 __all__ = [
     "FaceIndexError",
+    "ShapeError",
+    "check_shape",
     "check_faces",
     "check_image_size",
     "check_mesh",
@@ -30,20 +33,72 @@ class FaceIndexError(IndexError, ValueError):
     """Face indices outside ``[0, V)``: an index error, and a bad value of the argument."""
 
 
-def check_points(x: torch.Tensor, name: str, dim: int | None = 3) -> torch.Tensor:
-    """Check a batched cloud ``(B, N, D)``: floating point, non-empty, finite shape; returns it unchanged."""
+class ShapeError(ValueError):
+    """A tensor whose shape does not match its contract (a ``ValueError``, as a bad argument value)."""
+
+
+_DIM = re.compile(r"^(\*|\d+|[A-Za-z_][A-Za-z0-9_]*)$")
+
+
+def _parse_shape(shape: str) -> list[str]:
+    """``"B, V, 3"`` or ``"B V 3"`` -> ``["B", "V", "3"]``; ``*`` (first only) stands for any leading dimensions."""
+    tokens = shape.replace(",", " ").split()
+    if not all(_DIM.match(t) for t in tokens) or "*" in tokens[1:]:
+        raise ValueError(f"bad shape contract {shape!r}: use names, integers and a leading '*'")
+    return tokens
+
+
+def check_shape(
+    x: object, shape: str, name: str, dims: dict[str, int] | None = None, *, floating: bool = False
+) -> dict[str, int]:
+    """Check that ``x`` is a tensor of the contracted shape; returns the sizes bound to the symbolic dimensions.
+
+    Args:
+        x: the value to check.
+        shape: the contract, e.g. ``"B, V, 3"``: an integer is an exact size, a name is any size but the same
+            wherever the name recurs (within ``x`` and across the calls sharing ``dims``), and a leading ``*``
+            stands for any number of leading dimensions (``"*, 3, 3"``).
+        name: the argument's name, for the error.
+        dims: sizes already bound (``{"B": 4}``); updated in place with the new bindings.
+        floating: also require a floating point dtype.
+
+    Raises:
+        TypeError: ``x`` is not a tensor, or not floating point when ``floating``.
+        ShapeError: the shape does not match (the message states the contract with the sizes already known).
+    """
+    tokens = _parse_shape(shape)
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dim() != 3:
-        raise ValueError(f"{name} must have shape (B, N, {dim or 'D'}), got {tuple(x.shape)}")
-    if dim is not None and x.shape[-1] != dim:
-        raise ValueError(f"{name} must have shape (B, N, {dim}), got {tuple(x.shape)}")
-    if not x.is_floating_point():
+    bound = {} if dims is None else dims
+    leading = tokens[:1] == ["*"]
+    fixed = tokens[1:] if leading else tokens
+    actual = tuple(x.shape)
+    ok = len(actual) >= len(fixed) if leading else len(actual) == len(fixed)
+    new: dict[str, int] = {}
+    if ok:
+        for token, size in zip(fixed, actual[len(actual) - len(fixed) :]):
+            want = int(token) if token.isdigit() else bound.get(token, new.get(token))
+            if want is not None and want != size:
+                ok = False
+                break
+            if not token.isdigit():
+                new[token] = size
+    if not ok:
+        expected = ", ".join("..." if t == "*" else str(bound.get(t, t)) for t in tokens)
+        raise ShapeError(f"{name} must have shape ({expected}), got {actual}")
+    if floating and not x.is_floating_point():
         raise TypeError(f"{name} must be a floating point tensor, got {x.dtype}")
+    bound.update(new)
+    return bound
+
+
+def check_points(x: torch.Tensor, name: str, dim: int | None = 3) -> torch.Tensor:
+    """Check a batched cloud ``(B, N, D)``: floating point, non-empty, finite shape; returns it unchanged."""
+    check_shape(x, f"B, N, {dim or 'D'}", name, floating=True)
     if x.shape[0] == 0:
-        raise ValueError(f"{name} has an empty batch dimension")
+        raise ShapeError(f"{name} has an empty batch dimension")
     if x.shape[1] == 0:
-        raise ValueError(f"{name} is an empty point cloud (N = 0)")
+        raise ShapeError(f"{name} is an empty point cloud (N = 0)")
     return x
 
 
@@ -93,22 +148,12 @@ def check_normals(normals: torch.Tensor | None, points: torch.Tensor, name: str)
 
 def check_rotations(R: torch.Tensor, name: str, batch: int | None = None) -> None:
     """``R`` must be ``(B, 3, 3)`` floating point, with ``B == batch`` when given."""
-    if not isinstance(R, torch.Tensor) or R.dim() != 3 or R.shape[1:] != (3, 3):
-        shape = tuple(R.shape) if isinstance(R, torch.Tensor) else type(R).__name__
-        raise ValueError(f"{name} must have shape ({'B' if batch is None else batch}, 3, 3), got {shape}")
-    if batch is not None and R.shape[0] != batch:
-        raise ValueError(f"{name} must have shape ({batch}, 3, 3), got {tuple(R.shape)}")
-    if not R.is_floating_point():
-        raise TypeError(f"{name} must be a floating point tensor, got {R.dtype}")
+    check_shape(R, "B, 3, 3", name, {} if batch is None else {"B": batch}, floating=True)
 
 
 def check_translations(T: torch.Tensor, name: str, batch: int) -> None:
     """``T`` must be ``(B, 3)`` floating point with ``B == batch``."""
-    if not isinstance(T, torch.Tensor) or T.shape != (batch, 3):
-        shape = tuple(T.shape) if isinstance(T, torch.Tensor) else type(T).__name__
-        raise ValueError(f"{name} must have shape ({batch}, 3), got {shape}")
-    if not T.is_floating_point():
-        raise TypeError(f"{name} must be a floating point tensor, got {T.dtype}")
+    check_shape(T, "B, 3", name, {"B": batch}, floating=True)
 
 
 def _all_finite(t: torch.Tensor) -> torch.Tensor:
@@ -119,9 +164,7 @@ def _all_finite(t: torch.Tensor) -> torch.Tensor:
 
 
 def _check_face_layout(faces: torch.Tensor, allow_empty: bool) -> None:
-    if not isinstance(faces, torch.Tensor) or faces.dim() != 2 or faces.shape[1] != 3:
-        shape = tuple(faces.shape) if isinstance(faces, torch.Tensor) else type(faces).__name__
-        raise ValueError(f"faces must have shape (F, 3), got {shape}")
+    check_shape(faces, "F, 3", "faces")
     if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
         raise TypeError(f"faces must be an integer tensor, got {faces.dtype}")
     if faces.shape[0] == 0 and not allow_empty:
@@ -161,9 +204,7 @@ def check_mesh(
     The value checks (face range, finiteness) are reduced on the device and read back together: one host sync.
     """
     if allow_empty:
-        if not isinstance(verts, torch.Tensor) or verts.dim() != 3 or verts.shape[-1] != 3:
-            shape = tuple(verts.shape) if isinstance(verts, torch.Tensor) else type(verts).__name__
-            raise ValueError(f"verts must have shape (B, V, 3), got {shape}")
+        check_shape(verts, "B, V, 3", "verts")
     else:
         check_points(verts, "verts")
     if verts.dtype not in (torch.float32, torch.float64):
