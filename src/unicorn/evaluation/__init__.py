@@ -4,7 +4,8 @@
 - :mod:`~unicorn.evaluation.interface`: what a model must offer to be evaluated (:class:`EvaluableModel`);
 - :mod:`~unicorn.evaluation.protocols`: what each protocol scores (:data:`PROTOCOL_REGISTRY`), the options and
   the result records;
-- :mod:`~unicorn.evaluation.evaluator`: the evaluation loop (:func:`evaluate`);
+- :mod:`~unicorn.evaluation.evaluator`: the evaluation loop (:func:`evaluate`), with the measurements of each
+  family of metrics in :mod:`~unicorn.evaluation.measurements`;
 - :mod:`~unicorn.evaluation.session`: one evaluation into a folder, metrics and report (what ``unicorn-eval``
   and ``unicorn-train`` run);
 - :mod:`~unicorn.evaluation.rendering`: hard renders for masks, visibility, mesh views and turntables;
@@ -12,7 +13,8 @@
   the visual report (PNG grid, HTML), with :mod:`~unicorn.evaluation.pictures`;
 - :mod:`~unicorn.evaluation.reconstruct`: per-image meshes, pictures, masks, poses and turntables;
 - :mod:`~unicorn.evaluation.baselines`: the reference baselines (template at the anchor pose, mean training
-  shape) as :class:`FixedShapeModel` instances that :func:`evaluate` scores like any model.
+  shape) as :class:`FixedShapeModel` instances that :func:`evaluate` scores like any model; the mean shape's fit in
+  :mod:`~unicorn.evaluation.mean_shape`.
 
 Every function takes an :class:`EvaluableModel` (a :class:`~unicorn.model.Unicorn` or a baseline);
 :func:`unicorn.io.load_model` reads any checkpoint.
@@ -20,7 +22,6 @@ Every function takes an :class:`EvaluableModel` (a :class:`~unicorn.model.Unicor
 
 from unicorn.evaluation.baselines import (
     FixedShapeModel,
-    fit_mean_shape,
     fit_silhouettes,
     mean_shape_baseline,
     template_baseline,
@@ -28,6 +29,7 @@ from unicorn.evaluation.baselines import (
 )
 from unicorn.evaluation.evaluator import build_eval_dataset, candidate_shares, evaluate
 from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.mean_shape import fit_mean_shape
 from unicorn.evaluation.metric_files import format_table, write_metrics
 from unicorn.evaluation.protocols import (
     PROTOCOL_REGISTRY,

@@ -1,7 +1,8 @@
 """The evaluation loop: a model and a dataset in, per-image scores, a per-group table and report samples out.
 
-What each protocol scores is :mod:`unicorn.evaluation.protocols` (its docstring describes every metric); this
-module builds the evaluation items of a dataset and runs the loop.
+What each protocol scores is :mod:`unicorn.evaluation.protocols` (its docstring describes every metric); how each
+family of metrics is measured on a batch is :mod:`unicorn.evaluation.measurements`; this module builds the
+evaluation items of a dataset and runs the loop.
 """
 
 from __future__ import annotations
@@ -18,30 +19,10 @@ from tqdm.auto import tqdm
 from unicorn.data import build_dataset
 from unicorn.data.registry import dataset_spec
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
-from unicorn.evaluation.protocols import (
-    COLOR_INTERIOR,
-    EvalOptions,
-    EvaluationResult,
-    Protocol,
-    Sample,
-    get_protocol,
-)
-from unicorn.evaluation.rendering import hard_render, vertex_visibility
-from unicorn.evaluation.tables import (
-    Accumulator,
-    ShapeEntry,
-    candidate_shares,
-    color_scores,
-    object_samples,
-    shape_scores,
-    summary_table,
-)
-from unicorn.metrics import (
-    NearestNeighborIndex,
-    evaluate_meshes,
-    mask_iou,
-    mean_foreground_color,
-)
+from unicorn.evaluation.measurements import EvaluatedBatch, checked_shape_baseline, measurements_for
+from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, Sample, get_protocol
+from unicorn.evaluation.rendering import hard_render
+from unicorn.evaluation.tables import Accumulator, candidate_shares, color_scores, shape_scores, summary_table
 
 __all__ = ["build_eval_dataset", "candidate_shares", "collate", "evaluate", "group_namer"]
 
@@ -116,73 +97,6 @@ def _resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False, antialias=True).clamp(0, 1)
 
 
-def _mesh_scores(
-    model: EvaluableModel,
-    pred_verts: torch.Tensor,
-    batch: Mapping[str, Any],
-    device: torch.device,
-    options: EvalOptions,
-    with_pose: bool,
-    R_pred: torch.Tensor,
-    T_pred: torch.Tensor,
-    gt_index: NearestNeighborIndex | list[NearestNeighborIndex],
-    run_direct: bool = True,
-) -> dict[str, torch.Tensor]:
-    """:func:`evaluate_meshes` on a batch; ragged ground truths are scored one image at a time.
-
-    ``gt_index``: :func:`_gt_indices` of the batch, shared by the scorings of several meshes on it.
-    """
-    faces = model.template.faces
-    kwargs = dict(
-        num_points=options.num_points,
-        run_direct=run_direct,
-        run_icp=options.icp_iterations > 0,
-        icp_iterations=max(options.icp_iterations, 1),
-        seed=options.seed,
-    )
-    points, normals = batch["points"], batch.get("normals")
-    if isinstance(points, torch.Tensor):
-        assert isinstance(gt_index, NearestNeighborIndex)
-        pose = {}
-        if with_pose:
-            pose = dict(R_pred=R_pred, T_pred=T_pred, R_gt=batch["R"].to(device), T_gt=batch["T"].to(device))
-        return evaluate_meshes(
-            pred_verts,
-            faces,
-            gt_index.y,
-            None if normals is None else normals.to(device),
-            **pose,
-            **kwargs,
-            gt_index=gt_index,
-        )
-    per: list[dict[str, torch.Tensor]] = []
-    for i in range(pred_verts.shape[0]):
-        pose = {}
-        if with_pose:
-            pose = dict(
-                R_pred=R_pred[i : i + 1],
-                T_pred=T_pred[i : i + 1],
-                R_gt=batch["R"][i : i + 1].to(device),
-                T_gt=batch["T"][i : i + 1].to(device),
-            )
-        n_i = None if normals is None else normals[i][None].to(device)
-        index = gt_index[i]
-        per.append(evaluate_meshes(pred_verts[i : i + 1], faces, index.y, n_i, **pose, **kwargs, gt_index=index))
-    return {k: torch.cat([p[k] for p in per]) for k in per[0]}
-
-
-def _gt_indices(
-    batch: Mapping[str, Any], device: torch.device, dtype: torch.dtype, options: EvalOptions
-) -> NearestNeighborIndex | list[NearestNeighborIndex]:
-    """The search structure over the batch's ground-truth points (one per image when they are ragged), built
-    once for the scorings of the model and of the baselines."""
-    workers = torch.get_num_threads() if options.nn_workers is None else options.nn_workers
-    points = batch["points"]
-    if isinstance(points, torch.Tensor):
-        return NearestNeighborIndex(points.to(device=device, dtype=dtype), workers=workers)
-    return [NearestNeighborIndex(p[None].to(device=device, dtype=dtype), workers=workers) for p in points]
-
-
 def _require_poses(batch: Mapping[str, Any]) -> None:
     """Raise unless every item of the batch has a ground-truth pose (what ``oracle_pose`` substitutes)."""
     has_pose = batch.get("has_pose")
@@ -203,6 +117,9 @@ def evaluate(
     shape_baseline: torch.Tensor | None = None,
 ) -> EvaluationResult:
     """Run the evaluation protocol of ``options.protocol`` over ``dataset``.
+
+    Each batch is predicted and rendered once, then measured by the protocol's measurements
+    (:func:`~unicorn.evaluation.measurements.measurements_for`); the set-level metrics follow the loop.
 
     Per image, the index of the selected pose candidate (argmax of ``pred.poses.probs``, (K, B)) is recorded as
     ``candidate`` and summarised per group as ``cand-share-min`` / ``cand-share-max`` and
@@ -225,32 +142,23 @@ def evaluate(
 
     Raises:
         ValueError: an empty dataset, or ``oracle_pose`` with an item without a ground-truth pose.
+        ShapeError: ``shape_baseline`` is not (V, 3) on the model's template.
     """
     start = time.perf_counter()
     device = torch.device(device)
     model = model.to(device).eval()
     protocol = get_protocol(options.protocol)
-    size = model.config["image_size"]
-    faces = model.template.faces
     if shape_baseline is not None:
-        V = model.template.num_verts
-        if not isinstance(shape_baseline, torch.Tensor) or shape_baseline.shape != (V, 3):
-            shape = tuple(shape_baseline.shape) if isinstance(shape_baseline, torch.Tensor) else type(shape_baseline)
-            raise ValueError(f"shape_baseline must be a ({V}, 3) mesh on the model's template topology, got {shape}")
-        shape_baseline = shape_baseline.to(device=device, dtype=model.template.verts.dtype)
+        shape_baseline = checked_shape_baseline(shape_baseline, model, device)
     group_of = group_namer(dataset, dataset_name)
     loader = DataLoader(
         dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
     )
-    acc = Accumulator()
-    oracle = options.oracle_pose
-    # with the oracle pose every image is rendered at its ground-truth pose: no candidate is selected
-    record_candidates = model.n_candidates > 1 and not oracle
-    if record_candidates:
-        acc.n_candidates = model.n_candidates
     own_means = None
     if options.own_mean_shape and protocol.meshes is not None and options.icp_iterations > 0:
-        own_means = _own_mean_shapes(model, loader, group_of, size, options, device)
+        own_means = _own_mean_shapes(model, loader, group_of, model.config["image_size"], options, device)
+    measurements = measurements_for(protocol, options, model, shape_baseline, own_means)
+    acc = Accumulator()
     samples: list[Sample] = []
     bar = tqdm(
         total=len(dataset),
@@ -260,147 +168,74 @@ def evaluate(
         leave=options.progress_leave,
     )
     for batch in loader:
-        images = _resize_images(batch["image"].to(device), size)
-        B = images.shape[0]
-        if oracle:
-            _require_poses(batch)
-        pred = model.predict(images, average_texture=options.average_texture)
-        # the pose everything is rendered and aligned with: the prediction's, or the ground truth's (oracle)
-        if oracle:
-            R, T = batch["R"].to(device=device, dtype=pred.R.dtype), batch["T"].to(device=device, dtype=pred.T.dtype)
-        else:
-            R, T = pred.R, pred.T
-        rec, _ = model.render(pred.verts, pred.texture, R, T, pred.background)
-        scores: dict[str, torch.Tensor] = {"rec-mse": (rec - images).square().flatten(1).mean(1)}
-
-        has_mask = "mask" in batch and isinstance(batch.get("has_mask"), torch.Tensor) and bool(batch["has_mask"].all())
-        mask_size = batch["mask"].shape[-1] if has_mask else size
-        hard = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.mask_supersample)
-        alpha = hard.images[:, 3:]  # each pixel's coverage; mask_iou's silhouette: more than half covered
-        colors = None
-        if has_mask and protocol.masks:
-            gt_mask = batch["mask"].to(device)
-            scores["mask-iou"] = mask_iou(alpha, gt_mask, reduction="none")
-            # mean foreground colours: the input's inside its mask, the reconstruction's inside its silhouette,
-            # both without the one-input-pixel border where colours mix with the background (COLOR_INTERIOR)
-            small_mask = F.interpolate(gt_mask.float().reshape(B, 1, *gt_mask.shape[-2:]), size=(size, size))
-            r_hard = COLOR_INTERIOR * max(1, round(mask_size / size))
-            colors = (
-                mean_foreground_color(hard.images[:, :3], alpha, interior=r_hard),
-                mean_foreground_color(images, small_mask, interior=COLOR_INTERIOR),
-            )
-
-        groups = [group_of(batch, i) for i in range(B)]
-        if protocol.meshes is not None and "points" in batch:
-            with_pose = protocol.meshes == "posed"
-            gt_index = _gt_indices(batch, device, pred.verts.dtype, options)
-            # without a ground-truth pose only the ICP-registered numbers are meaningful: the rest is not computed
-            mesh = _mesh_scores(model, pred.verts, batch, device, options, with_pose, R, T, gt_index, with_pose)
-            if not with_pose:
-                # no ground-truth pose: only the ICP-registered numbers are meaningful
-                mesh = {k: v for k, v in mesh.items() if k.endswith("-ICP")}
-            scores.update(mesh)
-            if shape_baseline is not None and "chamfer-L1-ICP" in mesh:
-                base_verts = shape_baseline.unsqueeze(0).expand(B, -1, -1)
-                base = _mesh_scores(model, base_verts, batch, device, options, False, R, T, gt_index, False)
-                base = base["chamfer-L1-ICP"]
-                ours = mesh["chamfer-L1-ICP"]
-                scores["chamfer-L1-ICP-mean-shape"] = base
-                scores["shape-win"] = _wins(ours, base)
-            if own_means is not None and "chamfer-L1-ICP" in mesh:
-                # the same pose and alignment as the model's prediction: only the shape differs
-                own_verts = torch.stack([own_means[g] for g in groups])
-                own = _mesh_scores(model, own_verts, batch, device, options, with_pose, R, T, gt_index, False)
-                own = own["chamfer-L1-ICP"]
-                scores["chamfer-L1-ICP-own-mean"] = own
-                scores["shape-win-own"] = _wins(mesh["chamfer-L1-ICP"], own)
-        if _retrieves_shapes(protocol, options, batch):
-            for i, g in enumerate(groups):
-                obj = int(batch["model"][i])
-                objects = acc.objects.setdefault(g, {})
-                if obj not in objects:
-                    objects[obj] = object_samples(batch["points"][i], options.shape_points, options.seed + obj)
-                acc.shapes.setdefault(g, []).append(
-                    ShapeEntry(
-                        len(acc.rows) + i,  # the index its row will have
-                        obj,
-                        pred.verts[i].cpu(),
-                        pred.canonical_verts[i].cpu(),
-                        pred.scale[i].cpu(),
-                        R[i].cpu(),
-                        T[i].cpu(),
-                        batch["R"][i].cpu(),
-                    )
-                )
-        if protocol.poses and not oracle and bool(batch["has_pose"].all()):
-            for i, g in enumerate(groups):
-                # the index its row will have: the rows of this batch are appended below
-                acc.poses.setdefault(g, []).append((len(acc.rows) + i, pred.R[i].cpu(), batch["R"][i].cpu()))
-        chosen = pred.poses.probs.argmax(0).tolist() if record_candidates else None  # (B,) selected candidates
-        if chosen is not None:
-            for i, g in enumerate(groups):
-                acc.candidates.setdefault(g, []).append(int(chosen[i]))
-        if protocol.keypoints and isinstance(batch.get("keypoints"), torch.Tensor):
-            seen = hard
-            if options.visibility_supersample != options.mask_supersample:
-                seen = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.visibility_supersample)
-            visible = vertex_visibility(seen.face_ids, faces, pred.verts.shape[1])
-            for i, g in enumerate(groups):
-                acc.keypoint_frames[g] = int(mask_size)
-                acc.keypoints.setdefault(g, []).append(
-                    (pred.verts[i].cpu(), pred.R[i].cpu(), pred.T[i].cpu(), visible[i].cpu(), batch["keypoints"][i])
-                )
-
-        for i in range(B):
-            row: dict[str, Any] = {"index": int(batch["index"][i]), "group": groups[i]}
-            if chosen is not None:
-                row["candidate"] = int(chosen[i])
-            row.update({k: float(v[i]) for k, v in scores.items()})
-            if colors is not None:
-                acc.colors.setdefault(groups[i], []).append((len(acc.rows), colors[0][i].cpu(), colors[1][i].cpu()))
-            acc.rows.append(row)
-            if len(samples) < options.report_samples:
-                samples.append(
-                    Sample(
-                        index=row["index"],
-                        group=groups[i],
-                        image=images[i].cpu(),
-                        reconstruction=rec[i].cpu(),
-                        alpha=alpha[i].cpu(),
-                        mask=batch["mask"][i].cpu() if has_mask else None,
-                        verts=pred.verts[i].cpu(),
-                        texture=pred.texture[i].cpu(),
-                        R=R[i].cpu(),
-                        T=T[i].cpu(),
-                        scores={k: v for k, v in row.items() if k not in ("index", "group")},
-                    )
-                )
-        bar.update(B)
+        view = _predict_and_render(model, batch, options, group_of, len(acc.rows), device)
+        for measure in measurements:
+            measure(view, acc)
+        _append_rows(view, acc, samples, options.report_samples)
+        bar.update(view.images.shape[0])
     bar.close()
     if not acc.rows:
         raise ValueError("the dataset is empty: nothing to evaluate")
     color_scores(acc)
-    shape_scores(acc, faces, options)
+    shape_scores(acc, model.template.faces, options)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = summary_table(acc, model, options, shares)
     return EvaluationResult(protocol.name, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 
-def _retrieves_shapes(protocol: Protocol, options: EvalOptions, batch: Mapping[str, Any]) -> bool:
-    """Whether the batch enters the shape retrieval: ground-truth points and poses, and each item's object."""
-    return (
-        options.shape_points > 0
-        and protocol.meshes == "posed"
-        and isinstance(batch.get("model"), torch.Tensor)
-        and "points" in batch
-        and isinstance(batch.get("has_pose"), torch.Tensor)
-        and bool(batch["has_pose"].all())
-    )
+def _predict_and_render(
+    model: EvaluableModel,
+    batch: Mapping[str, Any],
+    options: EvalOptions,
+    group_of: Callable[[Mapping[str, Any], int], str],
+    first_row: int,
+    device: torch.device,
+) -> EvaluatedBatch:
+    """Predict a batch, render it soft (``rec-mse``) and hard (silhouettes at the ground-truth masks' side)."""
+    size = model.config["image_size"]
+    images = _resize_images(batch["image"].to(device), size)
+    if options.oracle_pose:
+        _require_poses(batch)
+    pred = model.predict(images, average_texture=options.average_texture)
+    # the pose everything is rendered and aligned with: the prediction's, or the ground truth's (oracle)
+    if options.oracle_pose:
+        R, T = batch["R"].to(device=device, dtype=pred.R.dtype), batch["T"].to(device=device, dtype=pred.T.dtype)
+    else:
+        R, T = pred.R, pred.T
+    rec, _ = model.render(pred.verts, pred.texture, R, T, pred.background)
+    has_mask = "mask" in batch and isinstance(batch.get("has_mask"), torch.Tensor) and bool(batch["has_mask"].all())
+    mask_size = batch["mask"].shape[-1] if has_mask else size
+    hard = hard_render(model, pred.verts, pred.texture, R, T, mask_size, options.mask_supersample)
+    groups = [group_of(batch, i) for i in range(images.shape[0])]
+    view = EvaluatedBatch(batch, images, pred, R, T, rec, hard, mask_size, has_mask, groups, first_row)
+    view.scores["rec-mse"] = (rec - images).square().flatten(1).mean(1)
+    return view
 
 
-def _wins(ours: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
-    """(B,) 1 where ``ours`` is the lower error, 0.5 on a tie, else 0."""
-    return (ours < base).to(ours.dtype) + 0.5 * (ours == base).to(ours.dtype)
+def _append_rows(view: EvaluatedBatch, acc: Accumulator, samples: list[Sample], report_samples: int) -> None:
+    """The batch's per-image rows into ``acc.rows``, and its first images into ``samples`` up to ``report_samples``."""
+    batch = view.batch
+    for i, group in enumerate(view.groups):
+        row: dict[str, Any] = {"index": int(batch["index"][i]), "group": group}
+        row.update({k: v[i] for k, v in view.labels.items()})
+        row.update({k: float(v[i]) for k, v in view.scores.items()})
+        acc.rows.append(row)
+        if len(samples) < report_samples:
+            samples.append(
+                Sample(
+                    index=row["index"],
+                    group=group,
+                    image=view.images[i].cpu(),
+                    reconstruction=view.rec[i].cpu(),
+                    alpha=view.alpha[i].cpu(),
+                    mask=batch["mask"][i].cpu() if view.has_mask else None,
+                    verts=view.pred.verts[i].cpu(),
+                    texture=view.pred.texture[i].cpu(),
+                    R=view.R[i].cpu(),
+                    T=view.T[i].cpu(),
+                    scores={k: v for k, v in row.items() if k not in ("index", "group")},
+                )
+            )
 
 
 def _own_mean_shapes(

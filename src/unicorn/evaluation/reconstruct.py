@@ -48,7 +48,7 @@ from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
 from unicorn.io.meshes import export_prediction, save_mesh
 from unicorn.model import Prediction, Unicorn
-from unicorn.model.refine import RefineOptions, refine
+from unicorn.model.refine import Refinement, RefineOptions, refine
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
@@ -266,16 +266,28 @@ def reconstruct(
                 model, pred, i, item, folder, view_size, turntable_frames, strip_views, device, provenance, network
             )
             if result is not None:
-                losses = result.losses[:, i]
-                record["refinement"] = {
-                    "steps": refine_options.steps,  # type: ignore[union-attr]
-                    "parts": list(refine_options.parts),  # type: ignore[union-attr]
-                    "objective_network": float(losses[0]),
-                    "objective_refined": float(losses[-1]),
-                }
+                record["refinement"] = _refinement_record(result, i, refine_options)  # type: ignore[arg-type]
             records.append(record)
             bar.update()
     bar.close()
+    _write_overview(out, records, view_size, provenance)
+    return records
+
+
+def _refinement_record(result: Refinement, i: int, options: RefineOptions) -> dict[str, Any]:
+    """What refining image ``i`` did: its settings and the objective before and after."""
+    losses = result.losses[:, i]
+    return {
+        "steps": options.steps,
+        "parts": list(options.parts),
+        "objective_network": float(losses[0]),
+        "objective_refined": float(losses[-1]),
+    }
+
+
+def _write_overview(out: Path, records: list[dict[str, Any]], view_size: int, provenance: Mapping[str, Any]) -> None:
+    """``overview.png`` and ``index.html`` from the records' pictures (popped from them), and
+    ``reconstructions.json`` (the records)."""
     rows = [r.pop("_row") for r in records]
     angles = records[0].pop("_angles") if records else []
     for r in records[1:]:
@@ -288,7 +300,6 @@ def reconstruct(
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
         _write_index(out, records, labels, view_size, provenance)
     (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
-    return records
 
 
 def _write_index(

@@ -154,27 +154,11 @@ def write_report(
             cells, labels = sample_views(model, sample, view_size, angles, device)
             grid_rows.append(cells)
             row_labels.append(_row_label(sample, result.columns))
-            names = []
-            for label, cell in zip(labels, cells):
-                slug = label.split(" (")[0].replace(" ", "_").replace("°", "")
-                name = f"sample{k:02d}_{slug}.png"
-                Image.fromarray(cell).save(assets / name)
-                names.append((label, name))
-            if turntable_frames > 0:
-                frames = turntable(
-                    model,
-                    sample.verts.to(device),
-                    sample.texture.to(device),
-                    sample.R.to(device),
-                    sample.T.to(device),
-                    turntable_frames,
-                    view_size,
-                )
-                names.append(("turntable", save_gif(frames, assets / f"sample{k:02d}_turntable.gif").name))
+            files = _save_sample_files(model, sample, k, cells, labels, assets, view_size, turntable_frames, device)
             caption = html.escape(_row_label(sample, result.columns, limit=len(result.columns)))
             cells_html = "".join(
                 f'<td><img src="report/{n}" width="{view_size}" height="{view_size}" alt="{html.escape(lb)}"></td>'
-                for lb, n in names
+                for lb, n in files
             )
             if interactive:
                 # first, beside the caption: visible without scrolling the wide table sideways
@@ -183,13 +167,66 @@ def write_report(
     if grid_rows:
         paths["png"] = out / "report.png"
         image_grid(grid_rows, labels, row_labels).save(paths["png"])
-    header_cells = "".join(f"<th>{html.escape(lb)}</th>" for lb in labels)
-    if turntable_frames > 0 and grid_rows:
-        header_cells += "<th>turntable</th>"
-    head_script, body_script = "", ""
-    if interactive and grid_rows:
-        header_cells = '<th title="drag to rotate, scroll to zoom">3D view (drag, scroll)</th>' + header_cells
-        head_script, body_script = viewer_script_tags(install_viewer(out))
+    scripts = ("", "")
+    samples_block = ""
+    if grid_rows:
+        header_cells = "".join(f"<th>{html.escape(lb)}</th>" for lb in labels)
+        if turntable_frames > 0:
+            header_cells += "<th>turntable</th>"
+        if interactive:
+            header_cells = '<th title="drag to rotate, scroll to zoom">3D view (drag, scroll)</th>' + header_cells
+            scripts = viewer_script_tags(install_viewer(out))
+        samples_block = _samples_block(header_cells, sample_html)
+    paths["html"] = out / "report.html"
+    paths["html"].write_text(_page(result, title, meta, samples_block, *scripts), encoding="utf-8")
+    return paths
+
+
+def _save_sample_files(
+    model: EvaluableModel,
+    sample: Sample,
+    k: int,
+    cells: Sequence[np.ndarray],
+    labels: Sequence[str],
+    assets: Path,
+    view_size: int,
+    turntable_frames: int,
+    device: torch.device,
+) -> list[tuple[str, str]]:
+    """Sample ``k``'s pictures (and turntable GIF) in ``assets``: ``(label, file name)`` of each."""
+    names = []
+    for label, cell in zip(labels, cells):
+        slug = label.split(" (")[0].replace(" ", "_").replace("°", "")
+        name = f"sample{k:02d}_{slug}.png"
+        Image.fromarray(cell).save(assets / name)
+        names.append((label, name))
+    if turntable_frames > 0:
+        v, tex, R, T = (x.to(device) for x in (sample.verts, sample.texture, sample.R, sample.T))
+        frames = turntable(model, v, tex, R, T, turntable_frames, view_size)
+        names.append(("turntable", save_gif(frames, assets / f"sample{k:02d}_turntable.gif").name))
+    return names
+
+
+def _samples_block(header_cells: str, sample_html: Sequence[str]) -> str:
+    """The report's samples section: an explanation and the table of sample rows under ``header_cells``."""
+    return (
+        f'<h2>Samples</h2><p class="sub">Mesh views spin the predicted mesh about its vertical axis in front of '
+        f"the predicted camera (0° = the input view). Mask: dark = predicted and ground truth, red = predicted "
+        f"only, blue = ground truth only.</p>"
+        f'<table class="samples"><thead><tr><th></th>{header_cells}</tr></thead><tbody>{"".join(sample_html)}'
+        f'</tbody></table><p><a href="report.png">All samples as one picture (report.png)</a></p>'
+    )
+
+
+def _page(
+    result: EvaluationResult,
+    title: str,
+    meta: Mapping[str, Any],
+    samples_block: str,
+    head_script: str,
+    body_script: str,
+) -> str:
+    """The HTML page: title, metric table, the columns' legend, the samples, the settings (``meta``)."""
     better = {"lower": " (lower is better)", "higher": " (higher is better)"}
     legend = "".join(
         f"<dt>{html.escape(c)}</dt>"
@@ -200,16 +237,7 @@ def write_report(
         f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(json.dumps(json_safe(v)))}</code></dd>"
         for k, v in meta.items()
     )
-    samples_block = (
-        f'<h2>Samples</h2><p class="sub">Mesh views spin the predicted mesh about its vertical axis in front of '
-        f"the predicted camera (0° = the input view). Mask: dark = predicted and ground truth, red = predicted "
-        f"only, blue = ground truth only.</p>"
-        f'<table class="samples"><thead><tr><th></th>{header_cells}</tr></thead><tbody>{"".join(sample_html)}'
-        f'</tbody></table><p><a href="report.png">All samples as one picture (report.png)</a></p>'
-        if grid_rows
-        else ""
-    )
-    page = f"""<!DOCTYPE html>
+    return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{_CSS}</style>
 {head_script}</head>
 <body><h1>{html.escape(title)}</h1>
@@ -223,6 +251,3 @@ def write_report(
 <a href="per_image.csv">per_image.csv</a></p>
 {body_script}</body></html>
 """
-    paths["html"] = out / "report.html"
-    paths["html"].write_text(page, encoding="utf-8")
-    return paths
