@@ -12,7 +12,8 @@ from PIL import Image
 
 from tests.support.datasets import make_record, save_with_orientation, write_struct_array
 from unicorn.data.cub import CUB200, CUB_FLIP_PERM
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError, hflip_keypoints
+from unicorn.data.framing import hflip_keypoints
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError
 from unicorn.data.matlab import load_struct_array
 from unicorn.data.p3d import Pascal3DCar
 

@@ -10,24 +10,20 @@ import pytest
 from PIL import Image
 
 from tests.support.datasets import bomb_png, save_with_orientation
+from unicorn.data.framing import crop_box, fit_and_pad, hflip_keypoints, pad_bbox, square_bbox
 from unicorn.data.images import (
     DEFAULT_MAX_IMAGE_BYTES,
     DEFAULT_MAX_IMAGE_PIXELS,
     MAX_IMAGE_BYTES_ENV,
     MAX_IMAGE_PIXELS_ENV,
     ImageLoadError,
-    crop_box,
     decode_image,
-    fit_and_pad,
-    hflip_keypoints,
     load_image,
     load_mask,
     max_image_bytes,
     max_image_pixels,
-    pad_bbox,
     set_max_image_bytes,
     set_max_image_pixels,
-    square_bbox,
 )
 
 

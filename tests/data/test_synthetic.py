@@ -13,8 +13,9 @@ import yaml
 
 from unicorn.cli import data as cli
 from unicorn.data.synthetic import writer
+from unicorn.data.synthetic.primitives import Texture
 from unicorn.data.synthetic.render import camera_rays, render_object
-from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, Texture, build_object
+from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, build_object
 from unicorn.data.synthetic.writer import (
     ensure_synthetic_dataset,
     generate_synthetic_dataset,

@@ -14,7 +14,8 @@ from PIL import Image
 
 from tests.support.datasets import save_with_orientation, write_photo
 from unicorn.data.folder import CompCars, ImageFolder
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError, fit_and_pad
+from unicorn.data.framing import fit_and_pad
+from unicorn.data.images import DatasetNotFoundError, ImageLoadError
 
 
 def _check_item(item: dict, size: int = 64) -> None:

@@ -9,7 +9,8 @@ import pytest
 from PIL import Image
 
 from tests.support.evaluation import write_inputs
-from unicorn.data.images import ImageLoadError, fit_and_pad, load_image
+from unicorn.data.framing import fit_and_pad
+from unicorn.data.images import ImageLoadError, load_image
 from unicorn.io import alpha_bbox, collect_inputs, load_input, preprocess
 
 

@@ -9,7 +9,8 @@ import pytest
 from PIL import Image
 
 from tests.support.datasets import save_with_orientation
-from unicorn.data.images import ImageLoadError, fit_and_pad
+from unicorn.data.framing import fit_and_pad
+from unicorn.data.images import ImageLoadError
 from unicorn.io import alpha_bbox, load_input, read_input
 
 

@@ -22,17 +22,16 @@ import numpy as np
 import torch
 
 from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
-from unicorn.data.images import (
+from unicorn.data.framing import (
     crop_box,
     hflip_keypoints,
     jitter_bbox,
-    load_image,
     pad_bbox,
     resize_image,
     resize_mask,
     square_bbox,
-    to_chw_tensor,
 )
+from unicorn.data.images import load_image, to_chw_tensor
 
 __all__ = ["BBoxCropDataset"]
 

@@ -14,7 +14,8 @@ import numpy as np
 import torch
 
 from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
-from unicorn.data.images import DatasetNotFoundError, fit_and_pad, load_image, require, to_chw_tensor
+from unicorn.data.framing import fit_and_pad
+from unicorn.data.images import DatasetNotFoundError, load_image, require, to_chw_tensor
 
 __all__ = ["IMAGE_EXTENSIONS", "CompCars", "ImageFolder", "list_images", "unannotated_item"]
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from unicorn.data.common import OnError, UnicornDataset, item_rng
 from unicorn.data.folder import unannotated_item
-from unicorn.data.images import DatasetError, ImageLoadError, crop_box, decode_image, jitter_bbox, pad_bbox, require
+from unicorn.data.framing import crop_box, jitter_bbox, pad_bbox
+from unicorn.data.images import DatasetError, ImageLoadError, decode_image, require
 
 __all__ = ["LSUN", "import_lmdb", "read_lsun_indices"]
 

@@ -1,6 +1,6 @@
 """User images for ``unicorn-reconstruct``: find them, read them and bring them to the training framing.
 
-The framing is the training one (:mod:`unicorn.data.images`):
+The framing is the training one (:mod:`unicorn.data.framing`):
 
 - an image whose alpha channel cuts the object out (a PNG with transparency) is cropped to the square box around
   its opaque pixels grown by ``padding`` on every side (as the CUB / Pascal3D+ loaders crop around their boxes),
@@ -26,17 +26,8 @@ import numpy as np
 import torch
 
 from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
-from unicorn.data.images import (
-    crop_box,
-    decoded,
-    fit_and_pad,
-    load_image,
-    open_image,
-    pad_bbox,
-    resize_image,
-    square_bbox,
-    to_chw_tensor,
-)
+from unicorn.data.framing import crop_box, fit_and_pad, pad_bbox, resize_image, square_bbox
+from unicorn.data.images import decoded, load_image, open_image, to_chw_tensor
 
 __all__ = [
     "IMAGE_EXTENSIONS",
