@@ -160,7 +160,7 @@ def test_fit_silhouettes_recovers_a_shape_from_its_masks(shapenet_model) -> None
     assert _chamfer(points(verts), points(target)) < 0.35 * _chamfer(points(template), points(target))
     with pytest.raises(ValueError, match=r"masks must have shape \(N, 1, 32, 32\)"):
         fit_silhouettes(model, masks[:, :, :16], R, T)
-    with pytest.raises(ValueError, match=r"R \(N, 3, 3\) and T \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"R must have shape \(\d+, 3, 3\)"):
         fit_silhouettes(model, masks, R[:7], T)
     with pytest.raises(ValueError, match="iterations >= 0"):
         fit_silhouettes(model, masks, R, T, iterations=-1)

@@ -183,12 +183,15 @@ def fit_silhouettes(
         (V, 3) fitted object-frame vertices (detached) and the (N,) mask IoU of their renders (alpha > 0.5).
 
     Raises:
-        ValueError: malformed masks or cameras, or invalid settings.
+        ShapeError: masks, R and T not of the shapes above.
+        ValueError: no views, or invalid settings.
     """
-    check_shape(masks, "N, 1, S, S", "masks", {"S": int(model.config["image_size"])})
-    N = masks.shape[0]
-    if N == 0 or R.shape != (N, 3, 3) or T.shape != (N, 3):
-        raise ValueError(f"need N >= 1 views with R (N, 3, 3) and T (N, 3), got {tuple(R.shape)} and {tuple(T.shape)}")
+    dims = check_shape(masks, "N, 1, S, S", "masks", {"S": int(model.config["image_size"])})
+    check_shape(R, "N, 3, 3", "R", dims)
+    check_shape(T, "N, 3", "T", dims)
+    N = dims["N"]
+    if N == 0:
+        raise ValueError("need N >= 1 views, got none")
     if iterations < 0 or not lr > 0 or regularisation < 0:
         raise ValueError(
             f"need iterations >= 0, lr > 0 and regularisation >= 0, got {iterations}, {lr}, {regularisation}"
