@@ -134,7 +134,7 @@ def evaluate(
         dataset_name: group name for datasets without categories, and the label of the progress bar.
         device: where the model and the metrics run.
         shape_baseline: (V, 3) one mesh on the model's template topology, e.g. the training set's mean shape
-            (:func:`~unicorn.evaluation.baselines.fit_mean_shape`), scored on every object beside the model
+            (:func:`~unicorn.evaluation.mean_shape.fit_mean_shape`), scored on every object beside the model
             (``chamfer-L1-ICP-mean-shape`` and ``shape-win``; needs ground-truth points and ICP).
 
     Returns:
