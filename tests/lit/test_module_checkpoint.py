@@ -57,9 +57,9 @@ def test_restored_training_module_gives_the_same_losses(expected):
     module.train()
     x = expected["input"]
     steps = {
-        "pose": lambda: module.model.pose_step(x),
-        "3d": lambda: module.model.step_3d(x),
-        "3d_average": lambda: module.model.step_3d(x, average_texture=True),
+        "pose": lambda: module.objectives("pose", module.model, x),
+        "3d": lambda: module.objectives("3d", module.model, x),
+        "3d_average": lambda: module.objectives("3d", module.model, x, average_texture=True),
     }
     for name, step in steps.items():
         losses = step()
