@@ -8,7 +8,7 @@ import torch
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn
-from unicorn.objectives import AssignedLoss, Objectives, StepLosses
+from unicorn.objectives import AssignedLoss, Objectives, StepLosses, build_pose_objective, list_pose_objectives
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -149,3 +149,25 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
     for name, values in history.items():
         first, last = sum(values[:4]) / 4, sum(values[-4:]) / 4
         assert last < 0.7 * first, (name, values)
+
+
+def test_pose_objectives_weight_the_candidates_terms():
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(3, 4, generator=g, requires_grad=True)  # K = 3 candidates, B = 4 images
+    log_probs = torch.log_softmax(logits, 0)
+    probs = log_probs.exp()
+    terms = {"rgb": torch.rand(12, generator=g), "perceptual": torch.rand(12, generator=g)}
+    expected = build_pose_objective("expected")(probs, log_probs, terms)
+    assigned = build_pose_objective("assigned", assignment_weight=0.5, uniform_weight=9.0)(probs, log_probs, terms)
+    for name, value in terms.items():
+        want = (probs * value.view(3, 4)).sum(0).mean()
+        torch.testing.assert_close(expected[name], want)
+        torch.testing.assert_close(assigned[name], want)
+    best = (terms["rgb"] + terms["perceptual"]).view(3, 4).argmin(0)
+    torch.testing.assert_close(assigned["assignment"], 0.5 * -log_probs[best, torch.arange(4)].mean())
+    assert set(expected) == {"rgb", "perceptual"}
+    # the assigned objective's reconstruction terms do not reach the probabilities
+    assert not assigned["rgb"].requires_grad and expected["rgb"].requires_grad
+    assert list_pose_objectives() == ["assigned", "expected"]
+    with pytest.raises(ValueError, match=r"unknown pose_objective 'best'; known: \['assigned', 'expected'\]"):
+        build_pose_objective("best")

@@ -102,6 +102,9 @@ def _set_rng_state(state: Mapping[str, Any]) -> None:
 class UnicornLitModule(L.LightningModule):
     """Trains UNICORN by alternating pose and 3D steps (see the module docstring).
 
+    It owns the model (``self.model``, :class:`unicorn.model.Unicorn`) and the training objectives built from the
+    model's ``loss`` group (``self.objectives``, :class:`unicorn.objectives.Objectives`, with the neighbour memory).
+
     Args:
         model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
