@@ -45,8 +45,9 @@ import torch
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
-from unicorn.model import Unicorn, objectives
+from unicorn.model import Unicorn
 from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
+from unicorn.objectives import Objectives
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
 COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")
@@ -125,8 +126,9 @@ def main_job_model_config() -> dict[str, Any]:
     return model_config(validate(cfg))
 
 
-def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim.Optimizer, int, int]:
-    """Model, optimizer (as the trainer builds it), batch size and image size of one benchmarked setting."""
+def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, Objectives, torch.optim.Optimizer, int, int]:
+    """Model, objectives, optimizer (as the trainer builds it), batch size and image size of one benchmarked
+    setting."""
     if name == "tiny":
         cfg, batch = main_job_model_config(), 16
     else:
@@ -134,10 +136,12 @@ def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim
         perceptual = "structural" if name == "small-structural" else None
         cfg, batch = model_preset("real", size, image_size=64, loss={"perceptual": perceptual}), 32
     model = Unicorn(cfg)
+    objectives = Objectives.from_config(cfg["loss"], model)
     if name in ("small", "big"):
         # the perceptual term is computed whenever the module exists: give it real or random VGG16 weights
-        model.perceptual = VGGPerceptualLoss(vgg if vgg else random_vgg_weights())
+        objectives.steps["pose"].reconstruction.perceptual = VGGPerceptualLoss(vgg if vgg else random_vgg_weights())
     model.to(device).train()
+    objectives.to(device)
     full = {"shape": cfg["shape"]["code_dim"], "texture": cfg["texture"]["code_dim"]}
     if cfg["background"] is not None:
         full["background"] = cfg["background"]["code_dim"]
@@ -145,14 +149,16 @@ def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, torch.optim
     from unicorn.lit.module import UnicornLitModule
 
     opt = UnicornLitModule.make_optimizer(model.parameters(), {"lr": 1e-4})
-    return model, opt, batch, cfg["image_size"]
+    return model, objectives, opt, batch, cfg["image_size"]
 
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
-def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor, device: str, args) -> dict:
+def time_steps(
+    model: Unicorn, objectives: Objectives, opt: torch.optim.Optimizer, images: torch.Tensor, device: str, args
+) -> dict:
     def sync() -> None:
         if device == "cuda":
             torch.cuda.synchronize()
@@ -163,18 +169,19 @@ def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor,
     for head in (model.shape, model.texture, model.background, model.pose, model.scale):
         timer.attach("generators", head)
     timer.attach("renderer", model.renderer)
-    timer.attach("perceptual", model.perceptual)
-    timer.attach("regularisers", model.normal_loss)
-    timer.attach("regularisers", model.laplacian_loss)
+    shape_step = objectives.steps["3d"]
+    timer.attach("perceptual", shape_step.reconstruction.perceptual)
+    timer.attach("regularisers", shape_step.regularizer)
 
     # the neighbour loss: its whole forward is one group; remember its output to backpropagate it separately
-    neighbour_loss = objectives.neighbor_loss
+    neighbors = shape_step.neighbors
+    neighbour_loss = neighbors.forward
 
     def timed_neighbour_loss(*a: Any, **kw: Any) -> torch.Tensor:
         with timer.region("neighbour"):
             return neighbour_loss(*a, **kw)
 
-    objectives.neighbor_loss = timed_neighbour_loss  # the 3D step looks it up in its module at each call
+    neighbors.forward = timed_neighbour_loss  # the 3D step calls the module, which calls this
 
     # the renderer's calls of the step, replayed afterwards to time its backward alone
     render_calls: list[tuple[tuple, dict]] = []
@@ -217,7 +224,11 @@ def time_steps(model: Unicorn, opt: torch.optim.Optimizer, images: torch.Tensor,
         return spent
 
     results = {}
-    for phase, fn in (("pose", model.pose_step), ("3d", model.step_3d)):
+    for phase in ("pose", "3d"):
+
+        def fn(images: torch.Tensor, phase: str = phase) -> Any:
+            return objectives(phase, model, images)
+
         rows = []
         for i in range(args.warmup + args.repeats):
             timer.reset()
@@ -281,9 +292,9 @@ def main() -> None:
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
     print(f"{'model':17s} {'batch':>5s} {'px':>3s} {'step':4s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:
-        model, opt, batch, image_size = build(size, args.vgg, args.device)
+        model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
         images = torch.rand(batch, 3, image_size, image_size, device=args.device)
-        for phase, row in time_steps(model, opt, images, args.device, args).items():
+        for phase, row in time_steps(model, objectives, opt, images, args.device, args).items():
             cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
             print(f"{size:17s} {batch:5d} {image_size:3d} {phase:4s} {cells}", flush=True)
 

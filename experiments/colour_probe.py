@@ -26,6 +26,7 @@ from unicorn.data import build_dataset
 from unicorn.evaluation.rendering import hard_render
 from unicorn.io import load_model
 from unicorn.metrics.instance import color_errors, mean_foreground_color
+from unicorn.model import ReconstructionLoss
 
 
 def colour_ratios(model, pred, maps: torch.Tensor, images: torch.Tensor, masks: torch.Tensor) -> dict[str, float]:
@@ -66,15 +67,16 @@ def main() -> None:
     code = pred.texture_code.clone().requires_grad_(True)
     logits = torch.logit(pred.texture.clamp(1e-3, 1 - 1e-3)).requires_grad_(True)
     fits = {"code-opt": (code, lambda: model.texture(code)), "map-opt": (logits, lambda: torch.sigmoid(logits))}
+    reconstruction = ReconstructionLoss.from_config(model.config["loss"])
     with torch.no_grad():
         rec, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, None)
-        loss = sum(model.reconstruction_terms(rec, images).values()).mean()
+        loss = sum(reconstruction(rec, images).values()).mean()
     rows = {"amortised": (colour_ratios(model, pred, pred.texture, images, masks), float(loss))}
     for name, (param, make) in fits.items():
         opt = torch.optim.Adam([param], lr=args.lr)
         for _ in range(args.steps):
             rec, _ = model.render(pred.verts, make(), pred.R, pred.T, None)
-            loss = sum(model.reconstruction_terms(rec, images).values()).mean()
+            loss = sum(reconstruction(rec, images).values()).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()

@@ -31,6 +31,7 @@ import torch
 
 from unicorn.metrics.instance import active_units, code_spread, color_errors, mean_foreground_color
 from unicorn.model import Unicorn
+from unicorn.objectives import Objectives
 
 
 @dataclass(frozen=True)
@@ -73,16 +74,24 @@ def gt_pose_step(model: Unicorn, batch: dict) -> tuple[torch.Tensor, dict]:
     """The 3D step's loss with the ground-truth camera instead of the predicted one."""
     images = batch["image"]
     feats = model.encode(images, model.branches())
-    z_sh, canonical, scale, z_tx, maps, _, bkg = model.predict_3d(feats, False)
-    verts = canonical * scale.unsqueeze(1)
-    rec, alpha = model.render(verts, maps, batch["R"], batch["T"], bkg)
-    loss = sum(v.mean() for v in model.reconstruction_terms(rec, images).values())
+    p = model.predict_3d(feats, False)
+    verts = p.verts
+    rec, alpha = model.render(verts, p.texture, batch["R"], batch["T"], p.background)
+    shape_step = objectives_of(model).steps["3d"]
+    loss = sum(v.mean() for v in shape_step.reconstruction(rec, images).values())
     if model.shape.mask.active_dims > 0:
-        ls = model.config["loss"]
-        loss = (
-            loss + ls["normal_weight"] * model.normal_loss(verts) + ls["laplacian_weight"] * model.laplacian_loss(verts)
-        )
-    return loss, {"rec": rec, "alpha": alpha, "shape_code": z_sh, "texture_code": z_tx}
+        loss = loss + sum(shape_step.regularizer(verts).values())
+    return loss, {"rec": rec, "alpha": alpha, "shape_code": p.shape_code, "texture_code": p.texture_code}
+
+
+_OBJECTIVES: dict[int, Objectives] = {}
+
+
+def objectives_of(model: Unicorn) -> Objectives:
+    """The training objectives of ``model`` (built once per model)."""
+    if id(model) not in _OBJECTIVES:
+        _OBJECTIVES[id(model)] = Objectives.from_config(model.config["loss"], model)
+    return _OBJECTIVES[id(model)]
 
 
 def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) -> dict[str, float]:
@@ -107,7 +116,11 @@ def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) 
             pose = control.pose_steps and it % 2 == 0
             opt = opt_pose if pose else opt_3d
             opt.zero_grad(set_to_none=True)
-            loss = model.pose_step(batch["image"])["total"] if pose else gt_pose_step(model, batch)[0]
+            loss = (
+                objectives_of(model).pose_step(model, batch["image"])["total"]
+                if pose
+                else gt_pose_step(model, batch)[0]
+            )
             loss.backward()
             opt.step()
             it += 1

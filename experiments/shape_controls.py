@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from unicorn.metrics import sample_points_from_meshes, shape_retrieval, shape_spread
-from unicorn.model import Unicorn
+from unicorn.model import NormalConsistencyLoss, ReconstructionLoss, Unicorn, UniformLaplacianLoss, world_verts
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
 
@@ -123,20 +123,22 @@ def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Uni
         data, batch_size=16, shuffle=True, drop_last=True, generator=torch.Generator().manual_seed(args.seed)
     )
     loss_cfg = model.config["loss"]
+    reconstruction = ReconstructionLoss.from_config(loss_cfg)
+    normal_loss = NormalConsistencyLoss(model.template.faces)
+    laplacian_loss = UniformLaplacianLoss(model.template.faces, model.template.num_verts)
     it = 0
     while it < args.iterations:
         for batch in loader:
             images = batch["image"]
             feats = model.encode(images, model.branches())
             average = bool(torch.rand(()) < row.mean_colour)
-            _, canonical, scale, _, maps, _, bkg = model.predict_3d(feats, average)
-            if row.per_object_codes:
-                canonical = model.template.verts + model.shape(model.template.verts, codes(batch["model"]))
-            verts = canonical * scale.unsqueeze(1)
-            rec, _ = model.render(verts, maps, batch["R"], batch["T"], bkg)
-            loss = sum(v.mean() for v in model.reconstruction_terms(rec, images).values())
-            loss = loss + loss_cfg["normal_weight"] * model.normal_loss(verts)
-            loss = loss + loss_cfg["laplacian_weight"] * model.laplacian_loss(verts)
+            p = model.predict_3d(feats, average)
+            canonical = model.deform(codes(batch["model"])) if row.per_object_codes else p.canonical_verts
+            verts = world_verts(canonical, p.scale)
+            rec, _ = model.render(verts, p.texture, batch["R"], batch["T"], p.background)
+            loss = sum(v.mean() for v in reconstruction(rec, images).values())
+            loss = loss + loss_cfg["normal_weight"] * normal_loss(verts)
+            loss = loss + loss_cfg["laplacian_weight"] * laplacian_loss(verts)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -1,7 +1,7 @@
 """The package's floors: a module imports only from its own floor or the floors below it.
 
-errors / checks / resources / geometry -> render / metrics / data -> model / config -> io -> evaluation -> lit
--> cli (README, "Layout").
+errors / checks / resources / geometry -> render / metrics / data -> model / config -> objectives -> io
+-> evaluation -> lit -> cli (README, "Layout").
 Checked on the source (every ``import`` / ``from`` statement, including the ones inside functions).
 """
 
@@ -17,6 +17,7 @@ FLOORS = [
     {"errors", "checks", "resources", "geometry"},
     {"render", "metrics", "data"},
     {"model", "config"},
+    {"objectives"},
     {"io"},
     {"evaluation"},
     {"lit"},

@@ -129,7 +129,7 @@ def test_resume_is_exact(synthetic_cache, tmp_path):
     assert a.keys() == b.keys()
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6, msg=key)
-    mem_a, mem_b = straight.module.model.memory.state(), second.module.model.memory.state()
+    mem_a, mem_b = straight.module.objectives.memory.state(), second.module.objectives.memory.state()
     for key in mem_a:
         torch.testing.assert_close(mem_a[key], mem_b[key], msg=key)
     opt_a = straight.trainer.optimizers[0].state_dict()
@@ -175,16 +175,16 @@ def test_resume_from_a_checkpoint_with_whole_kernel_moments(synthetic_cache, tmp
 
 def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monkeypatch):
     run = build_run(tmp_path)
-    model = run.module.model
-    original = model.step_3d
+    step = run.module.objectives.steps["3d"]
+    original = step.forward
 
-    def broken(images, average_texture=False):
-        out = original(images, average_texture)
+    def broken(model, images, average_texture=False):
+        out = original(model, images, average_texture)
         out["rgb"] = out["rgb"] * float("nan")
         out["total"] = out["total"] + out["rgb"]
         return out
 
-    monkeypatch.setattr(model, "step_3d", broken)
+    monkeypatch.setattr(step, "forward", broken)
     with pytest.raises(NonFiniteLossError, match=r"iteration 1 \(3d step\): rgb = nan"):
         fit(run)
     assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
@@ -205,17 +205,17 @@ def test_nonfinite_checkpoint_is_the_state_before_the_failing_iteration(syntheti
     from unicorn.io.serialization import load_checkpoint_file
 
     run = build_run(tmp_path)
-    model, n = run.module.model, 3  # iteration 3 is a 3D step
-    original = model.step_3d
+    step, n = run.module.objectives.steps["3d"], 3  # iteration 3 is a 3D step
+    original = step.forward
 
-    def nan_at_n(images, average_texture=False):
-        out = original(images, average_texture)  # the forward pass has updated the BatchNorm statistics
+    def nan_at_n(model, images, average_texture=False):
+        out = original(model, images, average_texture)  # the forward pass has updated the BatchNorm statistics
         if run.trainer.global_step == n:
             out["rgb"] = out["rgb"] * float("nan")
             out["total"] = out["total"] + out["rgb"]
         return out
 
-    monkeypatch.setattr(model, "step_3d", nan_at_n)
+    monkeypatch.setattr(step, "forward", nan_at_n)
     before = StateBefore(n)  # added last: after the stage callback's changes at iteration n
     run.trainer.callbacks.append(before)
     with pytest.raises(NonFiniteLossError, match=rf"iteration {n} \(3d step\): rgb = nan"):

@@ -7,7 +7,8 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import Unicorn, merge_config
+from unicorn.model import ReconstructionLoss, Unicorn, merge_config
+from unicorn.objectives import Objectives
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -22,8 +23,11 @@ def test_config_validation():
         merge_config({"shape": {"code_size": 3}})
     with pytest.raises(KeyError, match="unknown model config group"):
         merge_config({"shapes": {}})
+    # the model holds no loss: the perceptual loss's weights are needed by the training losses only
+    missing = merge_config(tiny_config(loss={"perceptual": "vgg", "vgg_weights": "/nonexistent/vgg16.pth"}))
+    Unicorn(missing)
     with pytest.raises(FileNotFoundError, match="vgg16-397923af.pth"):
-        Unicorn(tiny_config(loss={"perceptual": "vgg", "vgg_weights": "/nonexistent/vgg16.pth"}))
+        ReconstructionLoss.from_config(missing["loss"])
 
 
 def test_prediction_shapes_and_ranges(tiny_model, images):
@@ -106,7 +110,8 @@ def test_encoder_width_sets_the_features_every_head_reads():
     assert [e.out_features for e in model.encoders] == [128] * 4
     x = ellipsoid_images(2)
     assert tuple(model.encode(x, model.branches())["shape"].shape) == (2, 128)
-    pose, step = model.pose_step(x), model.step_3d(x)
+    objectives = Objectives.from_config(model.config["loss"], model)
+    pose, step = objectives.pose_step(model, x), objectives.step_3d(model, x)
     assert all(torch.isfinite(v) for v in [*pose.values(), *step.values()])
     with pytest.raises(ValueError, match="width"):
         merge_config(encoder={"width": 0})
@@ -119,5 +124,6 @@ def test_shapenet_model_without_background():
     assert model.shape.field.linear_x.out_features == 512
     assert model.config["renderer"]["focal_length"] > 3.7
     x = ellipsoid_images(2)
-    pose, step = model.pose_step(x), model.step_3d(x)
+    objectives = Objectives.from_config(model.config["loss"], model)
+    pose, step = objectives.pose_step(model, x), objectives.step_3d(model, x)
     assert all(torch.isfinite(v) for v in [*pose.values(), *step.values()])

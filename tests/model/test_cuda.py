@@ -1,4 +1,5 @@
-"""The CUDA path of the model: both training steps give the CPU's losses and gradients (run where CUDA is)."""
+"""The CUDA path of the model and its objectives: both training steps give the CPU's losses and gradients (run where
+CUDA is)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.model import Unicorn
+from unicorn.objectives import Objectives
 
 pytestmark = pytest.mark.gpu
 
@@ -20,12 +22,14 @@ def test_training_steps_match_cpu(family, images):
     randomize_heads(cpu)
     cpu.set_active_dims(shape=4, texture=4, background=4)
     gpu = copy.deepcopy(cpu).cuda()
-    for name in ("pose_step", "step_3d"):
+    objectives = {"cpu": Objectives.from_config(cpu.config["loss"], cpu)}
+    objectives["gpu"] = copy.deepcopy(objectives["cpu"]).cuda()
+    for name in ("pose", "3d"):
         for _ in range(2):  # the second 3D step finds neighbours in the memory filled by the first
             cpu.zero_grad(set_to_none=True)
             gpu.zero_grad(set_to_none=True)
-            a = getattr(cpu, name)(images)
-            b = getattr(gpu, name)(images.cuda())
+            a = objectives["cpu"](name, cpu, images)
+            b = objectives["gpu"](name, gpu, images.cuda())
             a["total"].backward()
             b["total"].backward()
         assert a.keys() == b.keys()

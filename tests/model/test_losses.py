@@ -10,13 +10,18 @@ import torch
 import torch.nn.functional as F
 
 from unicorn.errors import UserError
+from unicorn.geometry.mesh import ellipsoid
 from unicorn.model import (
+    MeshRegularizer,
     NormalConsistencyLoss,
+    ReconstructionLoss,
     StructuralLoss,
     TemplateMesh,
     UniformLaplacianLoss,
     VGGPerceptualLoss,
+    build_perceptual,
     candidate_assignment_loss,
+    list_perceptual_losses,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -212,3 +217,28 @@ def test_structural_loss():
     value = loss(a, b)
     assert value.shape == (2,) and (value > 0.1).all()
     assert float(loss(a, (a + 0.02).clamp(0, 1)).max()) < float(value.min())
+
+
+def test_perceptual_registry():
+    assert list_perceptual_losses() == ["structural", "vgg"]
+    assert isinstance(build_perceptual("structural", vgg_weights="/unused"), StructuralLoss)
+    assert build_perceptual(None) is None
+    with pytest.raises(ValueError, match=r"unknown perceptual loss 'lpips'; known: \['structural', 'vgg'\]"):
+        build_perceptual("lpips")
+
+
+def test_reconstruction_and_mesh_terms_are_the_weighted_losses():
+    g = torch.Generator().manual_seed(0)
+    rec, target = torch.rand(2, 2, 3, 16, 16, generator=g)
+    structural = StructuralLoss()
+    terms = ReconstructionLoss(0.5, structural, 2.0)(rec, target)
+    torch.testing.assert_close(terms["rgb"], 0.5 * ((rec - target) ** 2).mean((1, 2, 3)))
+    torch.testing.assert_close(terms["perceptual"], 2.0 * structural(rec, target))
+    assert list(ReconstructionLoss(0.0, structural, 1.0)(rec, target)) == ["perceptual"]  # weight 0: left out
+    assert list(ReconstructionLoss(1.0, structural, 0.0)(rec, target)) == ["rgb"]
+    verts, faces = ellipsoid(1, (1.0, 0.7, 0.7), 0.6)
+    bumpy = (verts * (1 + 0.1 * torch.rand(verts.shape, generator=g))).unsqueeze(0)
+    regularizer = MeshRegularizer(faces, verts.shape[0], 0.1, 0.0)
+    mesh = regularizer(bumpy, reduction="none")
+    assert list(mesh) == ["normal"]
+    torch.testing.assert_close(mesh["normal"], 0.1 * NormalConsistencyLoss(faces)(bumpy, reduction="none"))

@@ -202,13 +202,14 @@ def fit_silhouettes(
     maps = torch.full((N, 3, 4, 4), 0.5, device=base.device, dtype=base.dtype)  # the alpha ignores the colour
     offsets = torch.zeros_like(base, requires_grad=True)
     optimizer = torch.optim.Adam([offsets], lr=lr)
+    normal_loss = NormalConsistencyLoss(model.template.faces).to(base.device)
+    laplacian_loss = UniformLaplacianLoss(model.template.faces, model.template.num_verts).to(base.device)
     with torch.enable_grad():  # callers may be under no_grad
         for _ in range(iterations):
             verts = (base + offsets).unsqueeze(0)
             _, alpha = model.render(verts.expand(N, -1, -1), maps, R, T)
             loss = torch.nn.functional.mse_loss(alpha, masks) + regularisation * (
-                weights["normal_weight"] * model.normal_loss(verts)
-                + weights["laplacian_weight"] * model.laplacian_loss(verts)
+                weights["normal_weight"] * normal_loss(verts) + weights["laplacian_weight"] * laplacian_loss(verts)
             )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

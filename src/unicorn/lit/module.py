@@ -58,6 +58,7 @@ from unicorn.lit.loggers import logs_this_step
 from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
 from unicorn.model.encoder import crop_optimizer_state
+from unicorn.objectives import Objectives
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
 
@@ -66,6 +67,10 @@ log = logging.getLogger(__name__)
 #: the optimisation settings' defaults (:class:`unicorn.config.schema.OptimConfig`, where each is documented)
 OPTIM_DEFAULTS: dict[str, Any] = dataclasses.asdict(OptimConfig())
 _SEED_STRIDE = 1_000_003
+#: ``optim.idle_params`` -> how gradients are reset before a step (``zero_grad(set_to_none=...)``)
+_SET_TO_NONE = {"skip": True, "momentum": False}
+#: ``optim.adam_state`` -> which of the Adams (their index) each step kind uses
+_OPTIMIZER_OF_STEP = {"shared": {"pose": 0, "3d": 0}, "per_step": {"pose": 0, "3d": 1}}
 
 
 class NonFiniteLossError(UserError, FloatingPointError):
@@ -97,6 +102,9 @@ def _set_rng_state(state: Mapping[str, Any]) -> None:
 class UnicornLitModule(L.LightningModule):
     """Trains UNICORN by alternating pose and 3D steps (see the module docstring).
 
+    It owns the model (``self.model``, :class:`unicorn.model.Unicorn`) and the training objectives built from the
+    model's ``loss`` group (``self.objectives``, :class:`unicorn.objectives.Objectives`, with the neighbour memory).
+
     Args:
         model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
@@ -120,6 +128,9 @@ class UnicornLitModule(L.LightningModule):
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.model = Unicorn(model)
+        # the training objectives and their state (neighbour memory), built right after the model: the VGG
+        # perceptual loss draws its (then overwritten) initial weights from the random stream the run continues
+        self.objectives = Objectives.from_config(self.model.config["loss"], self.model)
         unknown = set(optim or {}) - set(OPTIM_DEFAULTS)
         if unknown:
             raise KeyError(f"unknown optim keys {sorted(unknown)}; known: {sorted(OPTIM_DEFAULTS)}")
@@ -162,10 +173,10 @@ class UnicornLitModule(L.LightningModule):
         phase = self.phase(step)
         average = self.average_texture(step)
         opt = self._optimizer(phase)
-        opt.zero_grad(set_to_none=self.optim["idle_params"] == "skip")
+        opt.zero_grad(set_to_none=_SET_TO_NONE[self.optim["idle_params"]])
         if self.optim["check_finite"]:
             self._snapshot_forward_state()
-        losses = (self.model.pose_step if phase == "pose" else self.model.step_3d)(images, average_texture=average)
+        losses = self.objectives(phase, self.model, images, average_texture=average)
         self.manual_backward(losses["total"])
         if self.optim["check_finite"]:
             self._check_finite(losses, step, phase)
@@ -209,14 +220,14 @@ class UnicornLitModule(L.LightningModule):
         live, saved = self._forward_buffers
         if live:
             torch._foreach_copy_(saved, live)
-        self._memory_before = self.model.memory.state()
+        self._memory_before = self.objectives.memory.state()
 
     def _restore_forward_state(self) -> None:
         live, saved = self._forward_buffers or ([], [])
         if live:
             torch._foreach_copy_(live, saved)
         if self._memory_before is not None:
-            self.model.memory.load_state(self._memory_before)
+            self.objectives.memory.load_state(self._memory_before)
 
     def _check_finite(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
         """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
@@ -288,9 +299,8 @@ class UnicornLitModule(L.LightningModule):
     def _optimizer(self, phase: str) -> Any:
         """The optimizer of a ``"pose"`` or ``"3d"`` step (the same one when ``adam_state`` is shared)."""
         opts = self.optimizers()
-        if isinstance(opts, list):
-            return opts[0] if phase == "pose" else opts[1]
-        return opts
+        opts = opts if isinstance(opts, list) else [opts]
+        return opts[_OPTIMIZER_OF_STEP[self.optim["adam_state"]][phase]]
 
     def _param_groups(self, o: Mapping[str, Any]) -> Any:
         """Fresh parameter groups for one Adam: all parameters, or the texture branch in its own group at
@@ -306,7 +316,7 @@ class UnicornLitModule(L.LightningModule):
     def configure_optimizers(self) -> Any:
         o = self.optim
         milestones = [] if o["lr_drop_step"] is None else [int(o["lr_drop_step"])]
-        n = 2 if o["adam_state"] == "per_step" else 1  # per_step: [pose step's, 3D step's]
+        n = len(set(_OPTIMIZER_OF_STEP[o["adam_state"]].values()))  # per_step: [pose step's, 3D step's]
         configs = []
         for _ in range(n):
             opt = self.make_optimizer(self._param_groups(o), o)
@@ -318,7 +328,7 @@ class UnicornLitModule(L.LightningModule):
     # ------------------------------------------------------------------ checkpoint state
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Add every rank's neighbour memory and random states (``checkpoint["unicorn"]``)."""
-        memory = {k: (None if v is None else v.detach().cpu()) for k, v in self.model.memory.state().items()}
+        memory = {k: (None if v is None else v.detach().cpu()) for k, v in self.objectives.memory.state().items()}
         state = {"memory": memory, "rng": _rng_state()}
         ranks = [state]
         if self.trainer.world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
@@ -341,6 +351,7 @@ class UnicornLitModule(L.LightningModule):
             return
         ranks = state["ranks"]
         mine = ranks[self.global_rank % len(ranks)]
-        self.model.memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
+        memory = self.objectives.memory
+        memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
         _set_rng_state(mine["rng"])
-        log.info("restored the neighbour memory (%d entries) and random states", len(self.model.memory))
+        log.info("restored the neighbour memory (%d entries) and random states", len(memory))

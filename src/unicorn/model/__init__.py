@@ -1,34 +1,48 @@
-"""UNICORN's structured autoencoder and its losses, as plain PyTorch modules.
+"""UNICORN's structured autoencoder, its building blocks and its loss functions, as plain PyTorch modules.
 
 - ``config``: the configuration's groups, defaults and checks (:class:`UnicornConfig`, :func:`merge_config`).
 - :class:`Unicorn` (``autoencoder``): image -> shape, texture, pose, background -> rendered image (assembly,
-  predict, render).
-- ``objectives``: the two training steps (pose step, 3D step) and the neighbour loss, each returning its loss
-  terms and the pose probabilities (:class:`StepLosses`); also :meth:`Unicorn.pose_step` / :meth:`Unicorn.step_3d`.
+  predict, render); typed predictions (:class:`Prediction`, :class:`Prediction3D`). It holds no training state:
+  the training objectives (pose step, 3D step, neighbour loss and memory) are :mod:`unicorn.objectives`'.
 - Building blocks: ``template`` (ellipsoid mesh and UVs), ``encoder`` (ResNet-18), ``field`` (shape),
-  ``generator`` (texture / background), ``pose`` (candidates and scale), ``progressive`` (code masks).
-- Losses: ``losses`` (MSE, normal consistency, Laplacian, pose prior), ``perceptual`` (VGG16 / structural),
-  ``neighbors`` (memory bank for the neighbour reconstruction).
+  ``generator`` (texture / background), ``pose`` (candidates and scale), ``progressive`` (code masks),
+  ``compositing`` (how the object is put over its background, by name: :func:`build_compositing`).
+- Loss functions: ``losses`` (MSE, reconstruction terms, normal consistency, Laplacian, pose prior),
+  ``perceptual`` (VGG16 / structural, by name: :func:`build_perceptual`).
 
 Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
-from unicorn.model.autoencoder import Prediction, Unicorn, count_parameters
+from unicorn.model.autoencoder import Prediction, Prediction3D, Unicorn, count_parameters, world_verts
+from unicorn.model.compositing import (
+    DirectCompositing,
+    ReferenceCompositing,
+    build_compositing,
+    list_compositings,
+    register_compositing,
+)
 from unicorn.model.config import DEFAULT_CONFIG, UnicornConfig, check_model_config, merge_config
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import DeformationField, ShapeHead
 from unicorn.model.generator import CodeGenerator, GiraffeGenerator
 from unicorn.model.losses import (
+    MeshRegularizer,
     NormalConsistencyLoss,
+    ReconstructionLoss,
     UniformLaplacianLoss,
     candidate_assignment_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
 from unicorn.model.mlp import MLP
-from unicorn.model.neighbors import NeighborMatch, NeighborMemory
-from unicorn.model.objectives import StepLosses
-from unicorn.model.perceptual import StructuralLoss, VGGPerceptualLoss, load_vgg16_weights
+from unicorn.model.perceptual import (
+    StructuralLoss,
+    VGGPerceptualLoss,
+    build_perceptual,
+    list_perceptual_losses,
+    load_vgg16_weights,
+    register_perceptual,
+)
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.progressive import ProgressiveMask, active_dims_at
 from unicorn.model.template import TemplateMesh
@@ -38,18 +52,20 @@ __all__ = [
     "MLP",
     "CodeGenerator",
     "DeformationField",
+    "DirectCompositing",
     "GiraffeGenerator",
-    "NeighborMatch",
-    "NeighborMemory",
+    "MeshRegularizer",
     "NormalConsistencyLoss",
     "PoseHead",
     "PoseOutput",
     "Prediction",
+    "Prediction3D",
     "ProgressiveMask",
+    "ReconstructionLoss",
+    "ReferenceCompositing",
     "ResNet18",
     "ScaleHead",
     "ShapeHead",
-    "StepLosses",
     "StructuralLoss",
     "TemplateMesh",
     "Unicorn",
@@ -57,13 +73,20 @@ __all__ = [
     "UniformLaplacianLoss",
     "VGGPerceptualLoss",
     "active_dims_at",
+    "build_compositing",
+    "build_perceptual",
     "candidate_assignment_loss",
     "check_model_config",
     "count_parameters",
+    "list_compositings",
+    "list_perceptual_losses",
     "load_vgg16_weights",
     "merge_config",
     "mse_per_sample",
+    "register_compositing",
+    "register_perceptual",
     "uniform_pose_prior",
+    "world_verts",
 ]
 
 # README.md documents these three to users as ``unicorn.model.*``: kept as re-exports of their home in

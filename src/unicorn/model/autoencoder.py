@@ -1,9 +1,13 @@
 """UNICORN's structured autoencoder: image -> (shape, texture, pose, background) -> rendered image.
 
-The model is a plain ``nn.Module``. A trainer calls :meth:`Unicorn.pose_step` and :meth:`Unicorn.step_3d`
-on alternate iterations (one optimizer over all parameters is enough: each step detaches what the paper
-says, so only its own branches receive gradients), and drives the progressive code sizes and stage-1
-switches with :meth:`Unicorn.set_active_dims` and :meth:`Unicorn.set_stage_switches`.
+The model is a plain ``nn.Module`` that predicts (:meth:`Unicorn.predict`, or its parts :meth:`Unicorn.encode`,
+:meth:`Unicorn.predict_3d` and the pose head) and renders (:meth:`Unicorn.render`); it holds no training state.
+The training objectives (pose step, 3D step, neighbour loss and its memory) are :mod:`unicorn.objectives`'s. A
+trainer drives the progressive code sizes and stage-1 switches with :meth:`Unicorn.set_active_dims` and
+:meth:`Unicorn.set_stage_switches`.
+
+The mesh is computed in one place each: the canonical mesh ``template + deformation(shape code)`` by
+:meth:`Unicorn.deform`, the world mesh ``scale * canonical`` by :func:`world_verts`.
 
 Configuration: a mapping of groups (image size, encoder, template, shape, texture, background, pose,
 renderer, loss), merged over the defaults; every key, default, range and allowed value is in
@@ -20,15 +24,13 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
+from unicorn.checks import check_shape
 from unicorn.geometry.cameras import PerspectiveCamera
-from unicorn.model import objectives
+from unicorn.model.compositing import build_compositing
 from unicorn.model.config import merge_config
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import ShapeHead
 from unicorn.model.generator import CodeGenerator, mean_texture
-from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
-from unicorn.model.neighbors import NeighborMemory
-from unicorn.model.perceptual import StructuralLoss, VGGPerceptualLoss
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV, build_renderer
@@ -36,9 +38,42 @@ from unicorn.render import TexturesUV, build_renderer
 if TYPE_CHECKING:
     from unicorn.model.refine import Refinement
 
-__all__ = ["BRANCHES", "Prediction", "Unicorn", "count_parameters"]
+__all__ = ["BRANCHES", "Prediction", "Prediction3D", "Unicorn", "count_parameters", "world_verts"]
 
 BRANCHES = ("shape", "texture", "pose", "background")
+
+
+def world_verts(canonical_verts: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """The world-space mesh (B, V, 3) ``scale * canonical``: canonical vertices (B, V, 3), anisotropic scales (B, 3)."""
+    return canonical_verts * scale.unsqueeze(1)
+
+
+@dataclass
+class Prediction3D:
+    """What the 3D branches predict for a batch of B images (:meth:`Unicorn.predict_3d`; no pose).
+
+    Attributes:
+        shape_code: (B, Cs) masked shape codes.
+        canonical_verts: (B, V, 3) deformed template (:meth:`Unicorn.deform`).
+        scale: (B, 3) anisotropic scales.
+        texture_code: (B, Ct) masked texture codes.
+        texture: (B, 3, Ht, Wt) UV texture images in [0, 1].
+        background_code: (B, Cb) masked background codes, or None without a background model.
+        background: (B, 3, S, S) background images in [0, 1], or None.
+    """
+
+    shape_code: torch.Tensor
+    canonical_verts: torch.Tensor
+    scale: torch.Tensor
+    texture_code: torch.Tensor
+    texture: torch.Tensor
+    background_code: torch.Tensor | None
+    background: torch.Tensor | None
+
+    @property
+    def verts(self) -> torch.Tensor:
+        """(B, V, 3) world-space mesh (:func:`world_verts`)."""
+        return world_verts(self.canonical_verts, self.scale)
 
 
 @dataclass
@@ -51,7 +86,7 @@ class Prediction:
         background_code: (B, Cb) masked background codes, or None without a background model.
         canonical_verts: (B, V, 3) deformed template ``template + displacement`` (before scaling).
         scale: (B, 3) anisotropic scales.
-        verts: (B, V, 3) world-space mesh ``scale * canonical_verts``.
+        verts: (B, V, 3) world-space mesh ``scale * canonical_verts`` (:func:`world_verts`).
         texture: (B, 3, Ht, Wt) UV texture images in [0, 1].
         background: (B, 3, H, W) background images in [0, 1], or None.
         poses: all K pose candidates (:class:`PoseOutput`, candidate-major).
@@ -145,7 +180,7 @@ class Unicorn(nn.Module):
         KeyError, ValueError: an unknown key, a value out of range or not allowed (named).
 
     Example:
-        >>> model = Unicorn(image_size=32, loss={"perceptual": None})
+        >>> model = Unicorn(image_size=32)
         >>> pred = model.predict(torch.rand(2, 3, 32, 32))
         >>> tuple(pred.verts.shape), tuple(pred.texture.shape)
         ((2, 642, 3), (2, 3, 64, 64))
@@ -179,17 +214,7 @@ class Unicorn(nn.Module):
             **dict(rd["options"] or {}),
         )
 
-        ls = cfg["loss"]
-        self.perceptual: nn.Module | None
-        if ls["perceptual"] == "vgg":
-            self.perceptual = VGGPerceptualLoss(ls["vgg_weights"])
-        elif ls["perceptual"] == "structural":
-            self.perceptual = StructuralLoss()
-        else:
-            self.perceptual = None
-        self.normal_loss = NormalConsistencyLoss(self.template.faces)
-        self.laplacian_loss = UniformLaplacianLoss(self.template.faces, self.template.num_verts)
-        self.memory = NeighborMemory(ls["memory_size"], ls["n_bins"], ls["min_angle"])
+        self.compositing = build_compositing(rd["composite"])
 
     # ------------------------------------------------------------------ configuration at run time
     @property
@@ -229,8 +254,7 @@ class Unicorn(nn.Module):
     def check_images(self, images: torch.Tensor) -> None:
         """Raise ValueError unless ``images`` is (B, 3, S, S) with S the model's image size."""
         s = self.config["image_size"]
-        if images.dim() != 4 or images.shape[1:] != (3, s, s):
-            raise ValueError(f"images must have shape (B, 3, {s}, {s}), got {tuple(images.shape)}")
+        check_shape(images, "B, 3, S, S", "images", {"S": s})
 
     def encode(self, images: torch.Tensor, branches: tuple[str, ...]) -> dict[str, torch.Tensor]:
         """Encoder features (B, 8 x width; 512 for ResNet-18) of the requested branches (one shared encoder or one
@@ -244,21 +268,19 @@ class Unicorn(nn.Module):
         """The branches this model predicts: shape, texture, pose, and background when it has one."""
         return BRANCHES if self.background is not None else BRANCHES[:3]
 
-    def predict_3d(
-        self, feats: dict[str, torch.Tensor], average_texture: bool
-    ) -> tuple[
-        torch.Tensor,
-        torch.Tensor,
-        torch.Tensor,
-        torch.Tensor,
-        torch.Tensor,
-        torch.Tensor | None,
-        torch.Tensor | None,
-    ]:
-        """The 3D branches from encoder features: shape code (B, Cs), canonical verts (B, V, 3), scale (B, 3),
-        texture code (B, Ct), texture (B, 3, Ht, Wt), background code (B, Cb) and background (B, 3, S, S) or None."""
+    def deform(self, shape_code: torch.Tensor) -> torch.Tensor:
+        """The canonical mesh (B, V, 3): the template deformed by the shape field for masked codes (B, Cs)."""
+        return self.template.verts + self.shape(self.template.verts, shape_code)
+
+    def predict_3d(self, feats: dict[str, torch.Tensor], average_texture: bool = False) -> Prediction3D:
+        """The 3D branches (shape, scale, texture, background) from encoder features (:meth:`encode`), each (B, F).
+
+        Args:
+            feats: the ``"shape"``, ``"texture"`` (and ``"background"``) features.
+            average_texture: replace every texture by its mean colour.
+        """
         z_sh = self.shape.code(feats["shape"])
-        canonical = self.template.verts + self.shape(self.template.verts, z_sh)
+        canonical = self.deform(z_sh)
         scale = self.scale(feats["shape"])
         z_tx = self.texture.code(feats["texture"])
         maps = self.texture(z_tx)
@@ -268,24 +290,24 @@ class Unicorn(nn.Module):
         if self.background is not None:
             z_bg = self.background.code(feats["background"])
             bkg = self.background(z_bg)
-        return z_sh, canonical, scale, z_tx, maps, z_bg, bkg
+        return Prediction3D(z_sh, canonical, scale, z_tx, maps, z_bg, bkg)
 
     def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
         """Predict everything for a batch (B, 3, S, S) of [0, 1] images (gradients kept)."""
         self.check_images(images)
         feats = self.encode(images, self.branches())
-        z_sh, canonical, scale, z_tx, maps, z_bg, bkg = self.predict_3d(feats, average_texture)
+        p = self.predict_3d(feats, average_texture)
         poses = self.pose(feats["pose"])
         R, T = poses.select()
         return Prediction(
-            shape_code=z_sh,
-            texture_code=z_tx,
-            background_code=z_bg,
-            canonical_verts=canonical,
-            scale=scale,
-            verts=canonical * scale.unsqueeze(1),
-            texture=maps,
-            background=bkg,
+            shape_code=p.shape_code,
+            texture_code=p.texture_code,
+            background_code=p.background_code,
+            canonical_verts=p.canonical_verts,
+            scale=p.scale,
+            verts=p.verts,
+            texture=p.texture,
+            background=p.background,
             poses=poses,
             R=R,
             T=T,
@@ -308,18 +330,13 @@ class Unicorn(nn.Module):
 
         Args:
             verts: (N, V, 3) world vertices; maps: (N, 3, Ht, Wt); R: (N, 3, 3); T: (N, 3);
-            background: (N, 3, S, S) or None (renderer's background colour).
+            background: (N, 3, S, S) or None (renderer's background colour); put under the object by the
+                configured compositing (``renderer.composite``, :mod:`unicorn.model.compositing`).
 
         Returns:
             rgb (N, 3, S, S) and alpha (N, 1, S, S).
         """
-        faces = self.template.faces
-        if self.config["renderer"]["composite"] == "direct" or background is None:
-            out = self.renderer(verts, faces, self.textures(maps), R=R, T=T, background=background)
-            return out[:, :3], out[:, 3:]
-        out = self.renderer(verts, faces, self.textures(maps), R=R, T=T)
-        rgb, alpha = out[:, :3], out[:, 3:]
-        return rgb * alpha + (1 - alpha) * background, alpha
+        return self.compositing(self.renderer, verts, self.template.faces, self.textures(maps), R, T, background)
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, Prediction]:
         """Reconstruct images (B, 3, S, S) with the most likely pose: ``(rec (B, 3, S, S), prediction)``."""
@@ -353,16 +370,3 @@ class Unicorn(nn.Module):
         if parts is not None:
             options["parts"] = tuple(parts)
         return refine(self, images, RefineOptions(steps=steps, **options), average_texture=average_texture)
-
-    # ------------------------------------------------------------------ training objectives
-    def reconstruction_terms(self, rec: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Weighted per-sample terms ``{"rgb": (N,), "perceptual": (N,)}`` (see :mod:`unicorn.model.objectives`)."""
-        return objectives.reconstruction_terms(self, rec, target)
-
-    def pose_step(self, images: torch.Tensor, average_texture: bool = False) -> objectives.StepLosses:
-        """The P-step's losses on images (B, 3, S, S) (:func:`unicorn.model.objectives.pose_step`)."""
-        return objectives.pose_step(self, images, average_texture)
-
-    def step_3d(self, images: torch.Tensor, average_texture: bool = False) -> objectives.StepLosses:
-        """The 3D-step's losses on images (B, 3, S, S) (:func:`unicorn.model.objectives.step_3d`)."""
-        return objectives.step_3d(self, images, average_texture)

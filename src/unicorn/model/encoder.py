@@ -14,6 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.checks import check_shape
+
 __all__ = ["BasicBlock", "Conv2d", "ResNet18", "crop_optimizer_state"]
 
 
@@ -208,8 +210,7 @@ class ResNet18(nn.Module):
             self._keep_taps_for(int(image_size))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"images must have shape (B, 3, H, W), got {tuple(x.shape)}")
+        check_shape(x, "B, 3, H, W", "images")
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
         x = self.layer4(self.layer3(self.layer2(self.layer1(x))))
         return self.avgpool(x).flatten(1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from unicorn.checks import check_shape
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
 
@@ -43,12 +44,10 @@ class DeformationField(nn.Module):
         Returns:
             (B, V, 3) displacements.
         """
-        if code.dim() != 2 or code.shape[1] != self.code_dim:
-            raise ValueError(f"code must have shape (B, {self.code_dim}), got {tuple(code.shape)}")
+        dims = check_shape(code, "B, C", "code", {"C": self.code_dim})
         if points.dim() == 2:
             points = points.unsqueeze(0).expand(code.shape[0], -1, -1)
-        if points.dim() != 3 or points.shape[0] != code.shape[0] or points.shape[2] != 3:
-            raise ValueError(f"points must have shape ({code.shape[0]}, V, 3), got {tuple(points.shape)}")
+        check_shape(points, "B, V, 3", "points", dims)
         z = code if self.code_dim > 0 else code.new_zeros(code.shape[0], 1)
         h = torch.relu(self.linear_x(points) + self.linear_z(z).unsqueeze(1))
         return self.mlp(h)

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.checks import check_shape
 from unicorn.model.filtering import separable_filter
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
@@ -69,8 +70,7 @@ class GiraffeGenerator(nn.Module):
 
     def forward(self, code: torch.Tensor) -> torch.Tensor:
         """(B, C) -> (B, 3, S, S) in [0, 1]."""
-        if code.dim() != 2 or code.shape[1] != self.code_dim:
-            raise ValueError(f"code must have shape (B, {self.code_dim}), got {tuple(code.shape)}")
+        check_shape(code, "B, C", "code", {"C": self.code_dim})
         net = code[:, :, None, None]
         rgb = self.upsample_rgb(self.conv_rgb[0](net))
         last = len(self.conv_layers) - 1

@@ -6,11 +6,19 @@ scalars unless asked per mesh (``reduction="none"``), the pose prior is a batch 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 from torch import nn
 
+from unicorn.checks import check_shape
+from unicorn.model.perceptual import build_perceptual
+
 __all__ = [
+    "MeshRegularizer",
     "NormalConsistencyLoss",
+    "ReconstructionLoss",
     "UniformLaplacianLoss",
     "candidate_assignment_loss",
     "mse_per_sample",
@@ -36,8 +44,7 @@ def uniform_pose_prior(probs: torch.Tensor, reduction: str = "sum") -> torch.Ten
     Returns:
         scalar.
     """
-    if probs.dim() != 2:
-        raise ValueError(f"probs must have shape (K, B), got {tuple(probs.shape)}")
+    check_shape(probs, "K, B", "probs")
     dev = (probs.mean(1) - 1.0 / probs.shape[0]).abs()
     if reduction == "sum":
         return dev.sum()
@@ -62,18 +69,15 @@ def candidate_assignment_loss(log_probs: torch.Tensor, losses: torch.Tensor) -> 
     Returns:
         scalar.
     """
-    if log_probs.dim() != 2 or log_probs.shape != losses.shape:
-        raise ValueError(
-            f"log_probs and losses must both have shape (K, B), got {tuple(log_probs.shape)} and {tuple(losses.shape)}"
-        )
+    dims = check_shape(log_probs, "K, B", "log_probs")
+    check_shape(losses, "K, B", "losses", dims)
     best = losses.detach().argmin(0)  # (B,)
     return -log_probs.gather(0, best.unsqueeze(0)).mean()
 
 
 def _edges_and_opposites(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unique edges (E, 2) of a closed manifold mesh and the vertices opposite each in its 2 faces (E, 2)."""
-    if faces.dim() != 2 or faces.shape[1] != 3:
-        raise ValueError(f"faces must have shape (F, 3), got {tuple(faces.shape)}")
+    check_shape(faces, "F, 3", "faces")
     faces = faces.long().cpu()
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     half = torch.cat([torch.stack([a, b], 1), torch.stack([b, c], 1), torch.stack([c, a], 1)])  # (3F, 2)
@@ -113,8 +117,7 @@ class NormalConsistencyLoss(nn.Module):
 
     def forward(self, verts: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
         """(B, V, 3) -> scalar (``reduction="mean"``), or (B,) per mesh (``"none"``)."""
-        if verts.dim() != 3 or verts.shape[-1] != 3:
-            raise ValueError(f"verts must have shape (B, V, 3), got {tuple(verts.shape)}")
+        check_shape(verts, "B, V, 3", "verts")
         v0, v1 = verts[:, self.edges[:, 0]], verts[:, self.edges[:, 1]]
         e = v1 - v0
         n0 = torch.cross(e, verts[:, self.opposite[:, 0]] - v0, dim=-1)
@@ -139,8 +142,7 @@ class UniformLaplacianLoss(nn.Module):
 
     def __init__(self, faces: torch.Tensor, num_verts: int | None = None) -> None:
         super().__init__()
-        if faces.dim() != 2 or faces.shape[1] != 3:
-            raise ValueError(f"faces must have shape (F, 3), got {tuple(faces.shape)}")
+        check_shape(faces, "F, 3", "faces")
         faces = faces.long().cpu()
         V = int(faces.max()) + 1 if num_verts is None else int(num_verts)
         pairs = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -160,8 +162,7 @@ class UniformLaplacianLoss(nn.Module):
 
     def forward(self, verts: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
         """(B, V, 3) -> scalar (``reduction="mean"``), or (B,) per mesh (``"none"``)."""
-        if verts.dim() != 3 or verts.shape[1:] != (self.neighbors.shape[0], 3):
-            raise ValueError(f"verts must have shape (B, {self.neighbors.shape[0]}, 3), got {tuple(verts.shape)}")
+        check_shape(verts, "B, V, 3", "verts", {"V": self.neighbors.shape[0]})
         mean_nbr = (verts[:, self.neighbors] * self.weights.to(verts.dtype)[None, :, :, None]).sum(2)
         return _reduce((mean_nbr - verts).norm(dim=-1).mean(1), reduction)
 
@@ -174,3 +175,68 @@ def _reduce(per_mesh: torch.Tensor, reduction: str) -> torch.Tensor:
     if reduction == "none":
         return per_mesh
     raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
+
+
+class ReconstructionLoss(nn.Module):
+    """Weighted per-sample reconstruction terms ``{"rgb": (N,), "perceptual": (N,)}`` of renders against targets.
+
+    Like the reference, a term whose weight is <= 0 is left out entirely (and so is the perceptual term without a
+    perceptual loss).
+
+    Args:
+        rgb_weight: weight of the pixel MSE (:func:`mse_per_sample`).
+        perceptual: a per-sample perceptual loss ``(N, 3, H, W) x 2 -> (N,)``, or None.
+        perceptual_weight: its weight.
+    """
+
+    def __init__(self, rgb_weight: float = 1.0, perceptual: nn.Module | None = None, perceptual_weight: float = 0.0):
+        super().__init__()
+        self.rgb_weight, self.perceptual_weight = rgb_weight, perceptual_weight
+        self.perceptual = perceptual
+
+    @classmethod
+    def from_config(cls, loss: Mapping[str, Any]) -> ReconstructionLoss:
+        """From a model configuration's ``loss`` group (the perceptual loss built by name,
+        :func:`unicorn.model.perceptual.build_perceptual`)."""
+        perceptual = build_perceptual(loss["perceptual"], **loss)
+        return cls(loss["rgb_weight"], perceptual, loss["perceptual_weight"])
+
+    def forward(self, rec: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(N, 3, H, W) renders and targets -> the weighted terms, each (N,)."""
+        terms = {}
+        if self.rgb_weight > 0:
+            terms["rgb"] = self.rgb_weight * mse_per_sample(rec, target)
+        if self.perceptual is not None and self.perceptual_weight > 0:
+            terms["perceptual"] = self.perceptual_weight * self.perceptual(rec, target)
+        return terms
+
+
+class MeshRegularizer(nn.Module):
+    """Weighted mesh regularisers ``{"normal": ..., "laplacian": ...}`` of meshes sharing the template's faces.
+
+    A term whose weight is <= 0 is left out.
+
+    Args:
+        faces: (F, 3) faces of a closed manifold mesh; num_verts: V.
+        normal_weight: weight of :class:`NormalConsistencyLoss`; laplacian_weight: of :class:`UniformLaplacianLoss`.
+    """
+
+    def __init__(self, faces: torch.Tensor, num_verts: int, normal_weight: float, laplacian_weight: float) -> None:
+        super().__init__()
+        self.normal_weight, self.laplacian_weight = normal_weight, laplacian_weight
+        self.normal = NormalConsistencyLoss(faces)
+        self.laplacian = UniformLaplacianLoss(faces, num_verts)
+
+    @classmethod
+    def from_config(cls, loss: Mapping[str, Any], faces: torch.Tensor, num_verts: int) -> MeshRegularizer:
+        """From a model configuration's ``loss`` group and the template's faces (F, 3) and vertex count."""
+        return cls(faces, num_verts, loss["normal_weight"], loss["laplacian_weight"])
+
+    def forward(self, verts: torch.Tensor, reduction: str = "mean") -> dict[str, torch.Tensor]:
+        """(B, V, 3) -> weighted scalars (``reduction="mean"``) or (B,) per mesh (``"none"``)."""
+        terms = {}
+        if self.normal_weight > 0:
+            terms["normal"] = self.normal_weight * self.normal(verts, reduction=reduction)
+        if self.laplacian_weight > 0:
+            terms["laplacian"] = self.laplacian_weight * self.laplacian(verts, reduction=reduction)
+        return terms

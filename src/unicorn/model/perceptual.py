@@ -18,14 +18,16 @@
 
 from __future__ import annotations
 
+import inspect
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.checks import check_shape
 from unicorn.errors import UserError
 from unicorn.model.filtering import separable_filter
 
@@ -36,7 +38,10 @@ __all__ = [
     "VGG16Relu33",
     "VGGPerceptualLoss",
     "VGGWeightsNotFoundError",
+    "build_perceptual",
+    "list_perceptual_losses",
     "load_vgg16_weights",
+    "register_perceptual",
     "sobel_gradient",
     "ssim_map",
     "vgg16_cache_path",
@@ -67,8 +72,8 @@ _POOLS = (4, 9)
 
 
 def _check_pair(rec: torch.Tensor, target: torch.Tensor) -> None:
-    if rec.dim() != 4 or rec.shape != target.shape or rec.shape[1] != 3:
-        raise ValueError(f"need two (B, 3, H, W) images of equal shape, got {tuple(rec.shape)}, {tuple(target.shape)}")
+    dims = check_shape(rec, "B, 3, H, W", "rec")
+    check_shape(target, "B, 3, H, W", "target", dims)
 
 
 class VGGWeightsNotFoundError(UserError, FileNotFoundError):
@@ -268,3 +273,53 @@ class StructuralLoss(nn.Module):
             grad = sobel_gradient(rec - target)
             total = total + ((1 - ssim) / 2).flatten(1).mean(1) + grad.abs().flatten(1).mean(1)
         return total / self.n_scales
+
+
+# ---------------------------------------------------------------------------------------------- registry
+_PERCEPTUAL_LOSSES: dict[str, Callable[..., nn.Module]] = {}
+
+
+def register_perceptual(name: str) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
+    """Decorator: make a perceptual-loss constructor available as ``loss.perceptual=name``.
+
+    The constructor receives the loss group's options it names (e.g. ``vgg_weights``) as keywords.
+    """
+
+    def add(factory: Callable[..., nn.Module]) -> Callable[..., nn.Module]:
+        if name in _PERCEPTUAL_LOSSES:
+            raise ValueError(f"perceptual loss {name!r} is already registered")
+        _PERCEPTUAL_LOSSES[name] = factory
+        return factory
+
+    return add
+
+
+def list_perceptual_losses() -> list[str]:
+    """The registered perceptual-loss names, sorted."""
+    return sorted(_PERCEPTUAL_LOSSES)
+
+
+def build_perceptual(name: str | None, **options: object) -> nn.Module | None:
+    """The perceptual loss registered as ``name`` (None: no perceptual loss), from the options its constructor names.
+
+    Raises:
+        ValueError: an unknown name (the known ones listed).
+        VGGWeightsNotFoundError: ``"vgg"`` without weights.
+    """
+    if name is None:
+        return None
+    if name not in _PERCEPTUAL_LOSSES:
+        raise ValueError(f"unknown perceptual loss {name!r}; known: {list_perceptual_losses()}")
+    factory = _PERCEPTUAL_LOSSES[name]
+    accepted = inspect.signature(factory).parameters
+    return factory(**{k: v for k, v in options.items() if k in accepted})
+
+
+@register_perceptual("vgg")
+def _vgg(vgg_weights: str | os.PathLike | None = None) -> nn.Module:
+    return VGGPerceptualLoss(vgg_weights)
+
+
+@register_perceptual("structural")
+def _structural() -> nn.Module:
+    return StructuralLoss()

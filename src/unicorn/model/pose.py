@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from unicorn.checks import check_shape
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model.mlp import MLP
 
@@ -150,8 +151,7 @@ class PoseHead(nn.Module):
 
     def forward(self, features: torch.Tensor) -> PoseOutput:
         """(B, in_features) -> :class:`PoseOutput` with K candidates."""
-        if features.dim() != 2:
-            raise ValueError(f"features must have shape (B, C), got {tuple(features.shape)}")
+        check_shape(features, "B, C", "features")
         rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
         trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
         log_probs = torch.log_softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)

@@ -2,7 +2,7 @@
 
 A network that predicts in one pass gives what it learnt of the category; refinement starts from its prediction
 and optimises, per image, a few variables against the training's 3D-step objective (the reconstruction terms of
-:func:`unicorn.model.objectives.reconstruction_terms` and the mesh regularisers, normal consistency and
+:class:`unicorn.model.losses.ReconstructionLoss` and the mesh regularisers, normal consistency and
 Laplacian, with the model's weights), plus a penalty on leaving the prediction (the prior). The model's weights
 stay frozen (eval mode: BatchNorm uses its running statistics); the encoders run once.
 
@@ -40,8 +40,9 @@ import torch
 from tqdm.auto import tqdm
 
 from unicorn.geometry.rotations import euler_angles_to_matrix
-from unicorn.model import objectives
+from unicorn.model.autoencoder import world_verts
 from unicorn.model.generator import mean_texture
+from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
 
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
@@ -155,7 +156,7 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
     """The prediction moved by the variables (with gradients to them)."""
     z_sh = pred.shape_code + model.shape.mask(v.shape)
     z_tx = pred.texture_code + model.texture.mask(v.texture_code)
-    canonical = model.template.verts + model.shape(model.template.verts, z_sh) + v.offsets
+    canonical = model.deform(z_sh) + v.offsets
     scale = pred.scale * v.log_scale.exp()
     maps = model.texture(z_tx)
     if average_texture:
@@ -173,7 +174,7 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
         background_code=z_bg,
         canonical_verts=canonical,
         scale=scale,
-        verts=canonical * scale.unsqueeze(1),
+        verts=world_verts(canonical, scale),
         texture=maps,
         background=bkg,
         R=R,
@@ -181,16 +182,25 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
     )
 
 
-def _objective(model: Unicorn, images: torch.Tensor, p: Prediction, v: _Variables, o: RefineOptions) -> torch.Tensor:
+class _Losses:
+    """The training's 3D-step loss functions for a model's configuration (built once per refinement)."""
+
+    def __init__(self, model: Unicorn) -> None:
+        loss, template = model.config["loss"], model.template
+        device = template.verts.device
+        self.reconstruction = ReconstructionLoss.from_config(loss).to(device)
+        self.regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts).to(device)
+
+
+def _objective(
+    model: Unicorn, fns: _Losses, images: torch.Tensor, p: Prediction, v: _Variables, o: RefineOptions
+) -> torch.Tensor:
     """Each image's objective (B,): reconstruction terms + mesh regularisers + prior."""
     rec, _ = model.render(p.verts, p.texture, p.R, p.T, p.background)
-    terms = objectives.reconstruction_terms(model, rec, images)
+    terms = fns.reconstruction(rec, images)
     loss = sum(terms.values()) if terms else images.new_zeros(images.shape[0])
-    ls = model.config["loss"]
-    if ls["normal_weight"] > 0:
-        loss = loss + ls["normal_weight"] * model.normal_loss(p.verts, reduction="none")
-    if ls["laplacian_weight"] > 0:
-        loss = loss + ls["laplacian_weight"] * model.laplacian_loss(p.verts, reduction="none")
+    for term in fns.regularizer(p.verts, reduction="none").values():
+        loss = loss + term
     codes = [v.shape, v.texture_code] + ([v.background_code] if v.background_code is not None else [])
     prior = o.code_weight * sum(c.square().sum(1) for c in codes)
     prior = prior + o.texture_weight * (v.colour.square().flatten(1).mean(1) + v.texture.square().flatten(1).mean(1))
@@ -240,6 +250,7 @@ def refine(
             start = model.predict(images, average_texture) if initial is None else initial
         start = _detached(start)
         v = _Variables(model, start, o.parts)
+        fns = _Losses(model)
         params = v.groups
         steps = o.steps if params else 0
         lrs = {"codes": o.lr_codes, "texture": o.lr_texture, "vertices": o.lr_vertices, "pose": o.lr_pose}
@@ -248,7 +259,7 @@ def refine(
         losses = []
         for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
             active = [t for p, g in params.items() if p == "codes" or step >= warmup for t in g]
-            loss = _objective(model, images, _decode(model, start, v, average_texture), v, o)
+            loss = _objective(model, fns, images, _decode(model, start, v, average_texture), v, o)
             losses.append(loss.detach())
             grads = torch.autograd.grad(loss.sum(), active)
             for group in params.values():
@@ -259,7 +270,7 @@ def refine(
             opt.step()  # type: ignore[union-attr]  # parameters without a gradient (parts not yet active) are left alone
         with torch.no_grad():
             result = _decode(model, start, v, average_texture) if steps > 0 else start
-            losses.append(_objective(model, images, result, v, o))
+            losses.append(_objective(model, fns, images, result, v, o))
     finally:
         model.train(was_training)
         for q in trainable:

@@ -7,10 +7,15 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import StepLosses, Unicorn, objectives
+from unicorn.model import Unicorn
+from unicorn.objectives import AssignedLoss, Objectives, StepLosses, build_pose_objective, list_pose_objectives
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
+
+
+def objectives_of(model: Unicorn) -> Objectives:
+    return Objectives.from_config(model.config["loss"], model)
 
 
 def grads_of(module: torch.nn.Module) -> float:
@@ -25,8 +30,9 @@ def test_both_steps_return_the_batch_pose_probabilities(size, images):
     model.set_active_dims(shape=2, texture=8)
     with torch.no_grad():
         expected = model.predict(images).poses.probs  # (K, B)
-    for step in (model.pose_step, model.step_3d):
-        losses = step(images)
+    objectives = objectives_of(model)
+    for step in (objectives.pose_step, objectives.step_3d):
+        losses = step(model, images)
         assert isinstance(losses, StepLosses)
         assert losses.probs.shape == (model.n_candidates, images.shape[0]) and not losses.probs.requires_grad
         assert torch.allclose(losses.probs, expected, atol=1e-6)
@@ -39,7 +45,7 @@ def test_pose_step_gradients_only_reach_the_pose_branch(size, images):
     model = Unicorn(tiny_config(size=size))
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
-    losses = model.pose_step(images)
+    losses = objectives_of(model).pose_step(model, images)
     assert set(losses) == {"rgb", "perceptual", "uniform", "total"}
     losses["total"].backward()
     for head in (*model.pose.rot_regressors, *model.pose.T_regressors, model.pose.proba_regressor):
@@ -58,7 +64,9 @@ def test_pose_step_assigned_objective(images):
     model = Unicorn(tiny_config(loss={"pose_objective": "assigned", "assignment_weight": 0.5}))
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
-    losses = model.pose_step(images)
+    objectives = objectives_of(model)
+    assert isinstance(objectives.steps["pose"].objective, AssignedLoss)
+    losses = objectives.pose_step(model, images)
     assert set(losses) == {"rgb", "perceptual", "uniform", "assignment", "total"}
     # the value: cross-entropy against the candidate with the lowest reconstruction loss, computed here from
     # the model's own predictions rendered candidate by candidate
@@ -67,7 +75,7 @@ def test_pose_step_assigned_objective(images):
         per_candidate = []
         for k in range(model.n_candidates):
             rec, _ = model.render(pred.verts, pred.texture, pred.poses.R[k], pred.poses.T[k], pred.background)
-            per_candidate.append(sum(model.reconstruction_terms(rec, images).values()))
+            per_candidate.append(sum(objectives.steps["pose"].reconstruction(rec, images).values()))
         best = torch.stack(per_candidate).argmin(0)
         expected = torch.nn.functional.cross_entropy(pred.poses.probs.log().T, best)
     assert torch.allclose(losses["assignment"], 0.5 * expected, rtol=1e-4)
@@ -87,7 +95,7 @@ def test_step_3d_gradients_skip_the_pose_branch(size, images):
     model = Unicorn(tiny_config(size=size))
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
-    losses = model.step_3d(images)
+    losses = objectives_of(model).step_3d(model, images)
     assert {"rgb", "perceptual", "normal", "laplacian", "total"} <= set(losses)
     assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
     losses["total"].backward()
@@ -104,19 +112,21 @@ def test_neighbor_term_gradients_reach_only_shape_and_texture(images):
     model = Unicorn(tiny_config())
     randomize_heads(model, std=0.1)
     model.set_active_dims(shape=2, texture=8)
-    assert "neighbor" not in Unicorn(tiny_config()).step_3d(images)  # shape code 0-dim: inactive
+    inactive = Unicorn(tiny_config())  # shape code 0-dim: inactive
+    assert "neighbor" not in objectives_of(inactive).step_3d(inactive, images)
+    objectives = objectives_of(model)
     # memory with other viewpoints so that every sample has neighbours
     with torch.no_grad():
         other = torch.rand(6, 3, IMAGE_SIZE, IMAGE_SIZE)
         pred = model.predict(other)
         turn = azim_elev_roll_to_rotation(torch.linspace(40, 160, 6), torch.zeros(6))
-        model.memory.push(other, pred.shape_code, pred.texture_code, turn)
-    losses = model.step_3d(images)
+        objectives.memory.push(other, pred.shape_code, pred.texture_code, turn)
+    losses = objectives.step_3d(model, images)
     assert "neighbor" in losses and losses["neighbor"].item() > 0
     losses["neighbor"].backward()  # the neighbour term alone
     assert grads_of(model.shape.field) > 0 and grads_of(model.texture.generator) > 0
     assert grads_of(model.background) == 0 and grads_of(model.scale) == 0 and grads_of(model.pose) == 0
-    assert len(model.memory) == 6 + images.shape[0]
+    assert len(objectives.memory) == 6 + images.shape[0]
 
 
 def test_both_steps_decrease_losses_on_synthetic_renders():
@@ -124,13 +134,14 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
     model = Unicorn(tiny_config(loss={"memory_size": 32}))
     model.set_active_dims(shape=2, texture=8)
     data = ellipsoid_images(8)
+    objectives = objectives_of(model)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
     history: dict[str, list[float]] = {"pose": [], "3d": []}
     g = torch.Generator().manual_seed(0)
     for it in range(24):
         batch = data[torch.randperm(8, generator=g)[:4]]
         optimizer.zero_grad(set_to_none=True)
-        losses = model.pose_step(batch) if it % 2 == 0 else model.step_3d(batch)
+        losses = objectives("pose" if it % 2 == 0 else "3d", model, batch)
         assert all(torch.isfinite(v) for v in losses.values()), losses
         losses["total"].backward()
         optimizer.step()
@@ -140,18 +151,23 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
         assert last < 0.7 * first, (name, values)
 
 
-def test_neighbour_parameters_equal_the_matching_parts_of_predict(tiny_model, images):
-    """The neighbour swaps compute only what they use; each part equals what predict() gives."""
-    randomize_heads(tiny_model)
-    tiny_model.set_active_dims(shape=4, texture=4, background=4)
-    batch = torch.cat([images, images.flip(0)])  # 2n images: n shape then n texture neighbours
-    n = images.shape[0]
-    with torch.no_grad():
-        full = tiny_model.predict(batch)
-        scale, maps, verts, R, T, bkg = objectives._neighbour_parameters(tiny_model, batch, n, average_texture=False)
-    torch.testing.assert_close(scale, full.scale[:n])
-    torch.testing.assert_close(maps, full.texture[:n])
-    torch.testing.assert_close(verts, full.verts[n:])
-    torch.testing.assert_close(R, full.R)
-    torch.testing.assert_close(T, full.T)
-    torch.testing.assert_close(bkg, full.background)
+def test_pose_objectives_weight_the_candidates_terms():
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(3, 4, generator=g, requires_grad=True)  # K = 3 candidates, B = 4 images
+    log_probs = torch.log_softmax(logits, 0)
+    probs = log_probs.exp()
+    terms = {"rgb": torch.rand(12, generator=g), "perceptual": torch.rand(12, generator=g)}
+    expected = build_pose_objective("expected")(probs, log_probs, terms)
+    assigned = build_pose_objective("assigned", assignment_weight=0.5, uniform_weight=9.0)(probs, log_probs, terms)
+    for name, value in terms.items():
+        want = (probs * value.view(3, 4)).sum(0).mean()
+        torch.testing.assert_close(expected[name], want)
+        torch.testing.assert_close(assigned[name], want)
+    best = (terms["rgb"] + terms["perceptual"]).view(3, 4).argmin(0)
+    torch.testing.assert_close(assigned["assignment"], 0.5 * -log_probs[best, torch.arange(4)].mean())
+    assert set(expected) == {"rgb", "perceptual"}
+    # the assigned objective's reconstruction terms do not reach the probabilities
+    assert not assigned["rgb"].requires_grad and expected["rgb"].requires_grad
+    assert list_pose_objectives() == ["assigned", "expected"]
+    with pytest.raises(ValueError, match=r"unknown pose_objective 'best'; known: \['assigned', 'expected'\]"):
+        build_pose_objective("best")

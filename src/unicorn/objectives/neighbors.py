@@ -1,14 +1,19 @@
-"""Memory bank and viewpoint-binned nearest-neighbour search for the neighbour reconstruction loss."""
+"""The neighbour reconstruction loss (:class:`NeighborLoss`) and its memory bank with viewpoint-binned
+nearest-neighbour search (:class:`NeighborMemory`): training state, owned by the trainer."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from unicorn.geometry.rotations import rotation_angle_between
+from unicorn.model import Prediction3D, Unicorn, world_verts
+from unicorn.model.generator import mean_texture
+from unicorn.model.losses import ReconstructionLoss
 
-__all__ = ["NeighborMatch", "NeighborMemory"]
+__all__ = ["NeighborLoss", "NeighborMatch", "NeighborMemory"]
 
 
 @dataclass
@@ -162,3 +167,95 @@ class NeighborMemory:
         """Restore tensors saved by :meth:`state`."""
         for name in self._FIELDS:
             setattr(self, name, state.get(name))
+
+
+@dataclass
+class _Neighbours:
+    """What the two swaps take from n shape neighbours and n texture neighbours (see :meth:`NeighborLoss.forward`):
+    the shape neighbours' scales (n, 3) and textures (n, 3, Ht, Wt), the texture neighbours' world meshes
+    (n, V, 3), and everyone's R (2n, 3, 3), T (2n, 3) and background (2n, 3, S, S) or None."""
+
+    scale: torch.Tensor
+    texture: torch.Tensor
+    verts: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    background: torch.Tensor | None
+
+
+def _neighbours(model: Unicorn, images: torch.Tensor, n: int, average_texture: bool) -> _Neighbours:
+    """The swaps' parameters from ``images`` (2n, 3, S, S): the n shape neighbours then the n texture neighbours.
+
+    The encoders see all 2n images together (their batch statistics are those of :meth:`Unicorn.predict` on the
+    same batch); the heads compute only what a swap uses. Call without gradient.
+    """
+    feats = model.encode(images, model.branches())
+    scale = model.scale(feats["shape"])
+    verts = world_verts(model.deform(model.shape.code(feats["shape"][n:])), scale[n:])
+    maps = model.texture(model.texture.code(feats["texture"][:n]))
+    if average_texture:
+        maps = mean_texture(maps)
+    bkg = None
+    if model.background is not None:
+        bkg = model.background(model.background.code(feats["background"]))
+    R, T = model.pose(feats["pose"]).select()
+    return _Neighbours(scale[:n], maps, verts, R, T, bkg)
+
+
+class NeighborLoss(nn.Module):
+    """Weighted neighbour reconstruction per sample (B,), with the memory bank it fills.
+
+    The batch is pushed to the memory first. For each sample a viewpoint bin is drawn and the nearest shape and
+    texture neighbours in it are found; their parameters are recomputed with the current network without
+    gradient. Swap 1 renders this sample's shape (with gradient) with the shape neighbour's scale, texture, pose
+    and background; swap 2 renders the texture neighbour's mesh with this sample's texture (with gradient). Each
+    is compared with the neighbour's image. Samples without a neighbour score 0.
+
+    Args:
+        reconstruction: the weighted per-sample reconstruction terms.
+        memory: the memory bank.
+        weight: weight of the loss (<= 0: never active).
+    """
+
+    def __init__(self, reconstruction: ReconstructionLoss, memory: NeighborMemory, weight: float) -> None:
+        super().__init__()
+        self.reconstruction, self.memory, self.weight = reconstruction, memory, weight
+
+    def active(self, model: Unicorn) -> bool:
+        """Whether the loss applies: a positive weight and active shape and texture code dimensions."""
+        return self.weight > 0 and model.shape.mask.active_dims > 0 and model.texture.mask.active_dims > 0
+
+    def forward(
+        self, model: Unicorn, images: torch.Tensor, pred: Prediction3D, R: torch.Tensor, average_texture: bool = False
+    ) -> torch.Tensor:
+        """The weighted loss (B,) of images (B, 3, S, S), their 3D prediction and hard-selected rotations (B, 3, 3).
+
+        ``average_texture`` applies to the neighbours' textures as it did to ``pred``'s.
+        """
+        return self.weight * self._unweighted(model, images, pred, R, average_texture)
+
+    def _unweighted(
+        self, model: Unicorn, images: torch.Tensor, pred: Prediction3D, R: torch.Tensor, average_texture: bool
+    ) -> torch.Tensor:
+        memory = self.memory
+        self_index = memory.push(images, pred.shape_code, pred.texture_code, R)
+        match = memory.search(pred.shape_code.detach(), pred.texture_code.detach(), R, self_index)
+        loss = images.new_zeros(images.shape[0])
+        # a host sync: the swaps run on the samples that found neighbours only (all of them once the memory
+        # holds a few batches); padding the others would change the neighbour batch's BatchNorm statistics
+        idx = match.valid.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return loss
+        assert memory.images is not None  # pushed above
+        nbr_images = torch.cat([memory.images[match.shape_index[idx]], memory.images[match.texture_index[idx]]])
+        n = idx.numel()
+        with torch.no_grad():
+            nbr = _neighbours(model, nbr_images, n, average_texture)
+        verts = torch.cat([world_verts(pred.canonical_verts[idx], nbr.scale), nbr.verts])
+        tex = torch.cat([nbr.texture, pred.texture[idx]])
+        rec, _ = model.render(verts, tex, nbr.R, nbr.T, nbr.background)
+        terms = self.reconstruction(rec, nbr_images)
+        if not terms:
+            return loss
+        per = sum(terms.values())
+        return loss.index_put((idx,), per[:n] + per[n:])

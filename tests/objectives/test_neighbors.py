@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
-from unicorn.model import NeighborMemory
+from unicorn.objectives import NeighborMemory
 
 
 def rotations(azims) -> torch.Tensor:

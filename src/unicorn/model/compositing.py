@@ -1,0 +1,114 @@
+"""How a rendered object is put over its background image: variants chosen by name (``renderer.composite``).
+
+- ``"direct"`` (:class:`DirectCompositing`): the background image is the renderer's background, blended where the
+  renderer blends (soft edges included).
+- ``"reference"`` (:class:`ReferenceCompositing`): render over the renderer's background colour, then
+  ``rgb * A + (1 - A) * background``, as the released UNICORN models did.
+
+Without a background image both render over the renderer's background colour. New variants register with
+:func:`register_compositing`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+import torch
+from torch import nn
+
+from unicorn.render import TexturesUV
+
+__all__ = [
+    "Compositing",
+    "DirectCompositing",
+    "ReferenceCompositing",
+    "build_compositing",
+    "list_compositings",
+    "register_compositing",
+]
+
+
+class Compositing(Protocol):
+    """Renders textured meshes over background images: ``(rgb (N, 3, S, S), alpha (N, 1, S, S))``."""
+
+    def __call__(
+        self,
+        renderer: nn.Module,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        textures: TexturesUV,
+        R: torch.Tensor,
+        T: torch.Tensor,
+        background: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+_COMPOSITINGS: dict[str, Callable[[], Compositing]] = {}
+
+
+def register_compositing(name: str) -> Callable[[type], type]:
+    """Class decorator: make a compositing (a no-argument constructor) available as ``renderer.composite=name``."""
+
+    def add(cls: type) -> type:
+        if name in _COMPOSITINGS:
+            raise ValueError(f"compositing {name!r} is already registered")
+        _COMPOSITINGS[name] = cls
+        return cls
+
+    return add
+
+
+def list_compositings() -> list[str]:
+    """The registered compositing names, sorted."""
+    return sorted(_COMPOSITINGS)
+
+
+def build_compositing(name: str) -> Compositing:
+    """The compositing registered as ``name``.
+
+    Raises:
+        ValueError: an unknown name (the known ones listed).
+    """
+    if name not in _COMPOSITINGS:
+        raise ValueError(f"unknown compositing {name!r}; known: {list_compositings()}")
+    return _COMPOSITINGS[name]()
+
+
+@register_compositing("direct")
+class DirectCompositing:
+    """The background image (or the renderer's background colour) is the renderer's background."""
+
+    def __call__(
+        self,
+        renderer: nn.Module,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        textures: TexturesUV,
+        R: torch.Tensor,
+        T: torch.Tensor,
+        background: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        out = renderer(verts, faces, textures, R=R, T=T, background=background)
+        return out[:, :3], out[:, 3:]
+
+
+@register_compositing("reference")
+class ReferenceCompositing:
+    """Render over the renderer's background colour, then ``rgb * A + (1 - A) * background``."""
+
+    def __call__(
+        self,
+        renderer: nn.Module,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        textures: TexturesUV,
+        R: torch.Tensor,
+        T: torch.Tensor,
+        background: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        out = renderer(verts, faces, textures, R=R, T=T)
+        rgb, alpha = out[:, :3], out[:, 3:]
+        if background is None:
+            return rgb, alpha
+        return rgb * alpha + (1 - alpha) * background, alpha

@@ -1,0 +1,73 @@
+"""The training objectives of a model configuration, by step kind, and the training state they hold."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from unicorn.model import Unicorn
+from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
+from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
+from unicorn.objectives.pose_step import PoseStep, build_pose_objective
+from unicorn.objectives.shape_step import ShapeStep
+from unicorn.objectives.step_losses import StepLosses
+
+__all__ = ["Objectives"]
+
+
+class Objectives(nn.Module):
+    """The pose step and the 3D step (``self.steps["pose"]``, ``self.steps["3d"]``), sharing their loss modules.
+
+    Args:
+        pose: the pose step; shape: the 3D step.
+
+    Example:
+        >>> model = Unicorn(image_size=32)
+        >>> objectives = Objectives.from_config(model.config["loss"], model)
+        >>> losses = objectives("pose", model, torch.rand(2, 3, 32, 32))
+        >>> sorted(losses)
+        ['rgb', 'total', 'uniform']
+    """
+
+    def __init__(self, pose: PoseStep, shape: ShapeStep) -> None:
+        super().__init__()
+        self.steps = nn.ModuleDict({"pose": pose, "3d": shape})
+
+    @classmethod
+    def from_config(cls, loss: Mapping[str, Any], model: Unicorn) -> Objectives:
+        """The objectives a ``loss`` group describes (:class:`unicorn.model.config.LossConfig`) for ``model``'s
+        template: perceptual loss and pose objective chosen by name, weights <= 0 leaving their terms out."""
+        reconstruction = ReconstructionLoss.from_config(loss)
+        template = model.template
+        regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts)
+        pose = PoseStep(
+            reconstruction,
+            build_pose_objective(loss["pose_objective"], **loss),
+            loss["uniform_weight"],
+            loss["uniform_reduction"],
+        )
+        memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
+        neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])
+        return cls(pose, ShapeStep(reconstruction, regularizer, neighbors))
+
+    @property
+    def memory(self) -> NeighborMemory:
+        """The neighbour memory bank (training state: a trainer saves it with its checkpoints)."""
+        neighbors = self.steps["3d"].neighbors
+        assert neighbors is not None
+        return neighbors.memory
+
+    def forward(self, kind: str, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+        """The losses of a ``"pose"`` or ``"3d"`` step on images (B, 3, S, S) in [0, 1]."""
+        return self.steps[kind](model, images, average_texture=average_texture)
+
+    def pose_step(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+        """The pose step's losses (:class:`PoseStep`)."""
+        return self("pose", model, images, average_texture)
+
+    def step_3d(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+        """The 3D step's losses (:class:`ShapeStep`)."""
+        return self("3d", model, images, average_texture)

@@ -1,0 +1,172 @@
+"""The pose step (P-step): all K pose candidates rendered with detached shapes, textures and backgrounds.
+
+How the candidates' reconstruction losses train the pose probabilities is a pose objective, chosen by name
+(``loss.pose_objective``):
+
+- ``"expected"`` (:class:`ExpectedLoss`, the paper's): ``mean_b sum_k p[k, b] * L_rec(k, b)``;
+- ``"assigned"`` (:class:`AssignedLoss`): the same sum with ``p`` detached, and the probabilities learn which
+  candidate reconstructs best from ``assignment_weight * candidate_assignment_loss`` (term ``assignment``).
+
+New objectives register with :func:`register_pose_objective`.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import torch
+from torch import nn
+
+from unicorn.model import Unicorn
+from unicorn.model.losses import ReconstructionLoss, candidate_assignment_loss, uniform_pose_prior
+from unicorn.objectives.step_losses import StepLosses, with_total
+
+__all__ = [
+    "AssignedLoss",
+    "ExpectedLoss",
+    "PoseObjective",
+    "PoseStep",
+    "build_pose_objective",
+    "list_pose_objectives",
+    "register_pose_objective",
+]
+
+
+class PoseObjective(Protocol):
+    """Turns per-candidate reconstruction terms into the pose step's weighted terms.
+
+    Called with the candidates' probabilities ``probs`` and ``log_probs`` (K, B) and the reconstruction terms
+    (name -> (K * B,), candidate-major); returns scalar terms.
+    """
+
+    def __call__(
+        self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]: ...
+
+
+_POSE_OBJECTIVES: dict[str, Callable[..., PoseObjective]] = {}
+
+
+def register_pose_objective(name: str) -> Callable[[type], type]:
+    """Class decorator: make a pose objective available as ``loss.pose_objective=name``; its constructor receives
+    the options of the ``loss`` group it names (e.g. ``assignment_weight``)."""
+
+    def add(cls: type) -> type:
+        if name in _POSE_OBJECTIVES:
+            raise ValueError(f"pose objective {name!r} is already registered")
+        _POSE_OBJECTIVES[name] = cls
+        return cls
+
+    return add
+
+
+def list_pose_objectives() -> list[str]:
+    """The registered pose-objective names, sorted."""
+    return sorted(_POSE_OBJECTIVES)
+
+
+def build_pose_objective(name: str, **options: Any) -> PoseObjective:
+    """The pose objective registered as ``name``, built from the options its constructor names.
+
+    Raises:
+        ValueError: an unknown name (the known ones listed).
+    """
+    if name not in _POSE_OBJECTIVES:
+        raise ValueError(f"unknown pose_objective {name!r}; known: {list_pose_objectives()}")
+    factory = _POSE_OBJECTIVES[name]
+    accepted = inspect.signature(factory).parameters
+    return factory(**{k: v for k, v in options.items() if k in accepted})
+
+
+def _weighted(weights: torch.Tensor, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``mean_b sum_k weights[k, b] * term[k, b]`` of every term (K * B,)."""
+    K, B = weights.shape
+    return {name: (weights * value.view(K, B)).sum(0).mean() for name, value in terms.items()}
+
+
+@register_pose_objective("expected")
+class ExpectedLoss:
+    """The paper's expected reconstruction loss: gradients reach the probabilities through ``p``."""
+
+    def __call__(
+        self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        return _weighted(probs, terms)
+
+
+@register_pose_objective("assigned")
+class AssignedLoss:
+    """Detached weights ``p``; the probabilities learn the best candidate (:func:`candidate_assignment_loss`).
+
+    Args:
+        assignment_weight: weight of the cross-entropy term ``assignment``.
+    """
+
+    def __init__(self, assignment_weight: float) -> None:
+        self.assignment_weight = assignment_weight
+
+    def __call__(
+        self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        out = _weighted(probs.detach(), terms)
+        if terms:
+            per_candidate = torch.stack(list(terms.values())).sum(0).view(probs.shape)
+            out["assignment"] = self.assignment_weight * candidate_assignment_loss(log_probs, per_candidate)
+        return out
+
+
+class PoseStep(nn.Module):
+    """P-step: every candidate rendered with the detached 3D prediction; gradients reach the pose branch only.
+
+    ``total = objective(p, L_rec) + uniform_weight * L_uni`` (:func:`uniform_pose_prior`); the rotation,
+    translation and probability heads and the encoder that feeds them receive gradients.
+
+    Args:
+        reconstruction: the weighted per-sample reconstruction terms.
+        objective: how the candidates' terms are weighted (:class:`ExpectedLoss`, :class:`AssignedLoss`, ...).
+        uniform_weight: weight of the candidate-balance prior (<= 0: left out); uniform_reduction: its reduction.
+    """
+
+    def __init__(
+        self,
+        reconstruction: ReconstructionLoss,
+        objective: PoseObjective,
+        uniform_weight: float,
+        uniform_reduction: str = "sum",
+    ) -> None:
+        super().__init__()
+        self.reconstruction, self.objective = reconstruction, objective
+        self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
+
+    def forward(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+        """The step's losses on images (B, 3, S, S) in [0, 1].
+
+        Args:
+            average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
+
+        Returns:
+            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms and ``uniform``
+            (they sum to ``total``); ``.probs``: the candidate probabilities (K, B), detached.
+        """
+        model.check_images(images)
+        branches = model.branches()
+        shared = len(model.encoders) == 1
+        feats = model.encode(images, ("pose",) if not shared else branches)
+        with torch.no_grad():
+            # detached 3D branches: computing them without autograd is the same and cheaper
+            other = feats if shared else model.encode(images, tuple(b for b in branches if b != "pose"))
+            other = {k: v.detach() for k, v in other.items()}
+            p = model.predict_3d(other, average_texture)
+            verts = p.verts
+        poses = model.pose(feats["pose"])
+        K = poses.probs.shape[0]
+        R, T = poses.flat()
+        bkg = None if p.background is None else p.background.repeat(K, 1, 1, 1)
+        rec, _ = model.render(verts.repeat(K, 1, 1), p.texture.repeat(K, 1, 1, 1), R, T, bkg)
+        terms = self.reconstruction(rec, images.repeat(K, 1, 1, 1))
+        out = self.objective(poses.probs, poses.log_probs, terms)
+        if self.uniform_weight > 0:
+            out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
+        return StepLosses(with_total(out, images), poses.probs.detach())

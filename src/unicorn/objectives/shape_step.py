@@ -1,0 +1,61 @@
+"""The 3D step: the most likely pose candidate rendered with a detached pose."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from unicorn.model import Unicorn
+from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
+from unicorn.objectives.neighbors import NeighborLoss
+from unicorn.objectives.step_losses import StepLosses, with_total
+
+__all__ = ["ShapeStep"]
+
+
+class ShapeStep(nn.Module):
+    """3D-step: ``total = mean_b [L_rec + w_nbr * L_nbr] + w_norm * L_norm + w_lap * L_lap``.
+
+    Gradients reach the shape, scale, texture and background branches (and their encoders) only. The neighbour
+    term is added while it is active (:meth:`NeighborLoss.active`).
+
+    Args:
+        reconstruction: the weighted per-sample reconstruction terms.
+        regularizer: the weighted mesh regularisers.
+        neighbors: the neighbour reconstruction loss and its memory, or None.
+    """
+
+    def __init__(
+        self, reconstruction: ReconstructionLoss, regularizer: MeshRegularizer, neighbors: NeighborLoss | None
+    ) -> None:
+        super().__init__()
+        self.reconstruction, self.regularizer, self.neighbors = reconstruction, regularizer, neighbors
+
+    def forward(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+        """The step's losses on images (B, 3, S, S) in [0, 1].
+
+        Args:
+            average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
+
+        Returns:
+            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), ``neighbor`` (when active),
+            ``normal``, ``laplacian``; they sum to ``total``; ``.probs``: the candidate probabilities (K, B) of
+            the pose prediction the step rendered with (computed without gradient).
+        """
+        model.check_images(images)
+        branches = model.branches()
+        shared = len(model.encoders) == 1
+        feats = model.encode(images, branches if shared else tuple(b for b in branches if b != "pose"))
+        with torch.no_grad():
+            pose_feats = feats["pose"] if shared else model.encode(images, ("pose",))["pose"]
+            poses = model.pose(pose_feats.detach())
+            R, T = poses.select()
+        pred = model.predict_3d(feats, average_texture)
+        verts = pred.verts
+        rec, _ = model.render(verts, pred.texture, R, T, pred.background)
+        per_sample = self.reconstruction(rec, images)
+        if self.neighbors is not None and self.neighbors.active(model):
+            per_sample["neighbor"] = self.neighbors(model, images, pred, R, average_texture)
+        out = {name: value.mean() for name, value in per_sample.items()}
+        out.update(self.regularizer(verts))
+        return StepLosses(with_total(out, images), poses.probs)

@@ -1,0 +1,43 @@
+"""Compositing variants, chosen by name: each against the renderer called directly."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.support.model import IMAGE_SIZE, randomize_heads, tiny_config
+from unicorn.model import ReferenceCompositing, Unicorn, build_compositing, list_compositings
+
+pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
+
+
+def test_registry_names_and_unknown_name():
+    assert list_compositings() == ["direct", "reference"]
+    assert isinstance(build_compositing("reference"), ReferenceCompositing)
+    with pytest.raises(ValueError, match=r"unknown compositing 'over'; known: \['direct', 'reference'\]"):
+        build_compositing("over")
+
+
+@pytest.mark.parametrize("composite", ["direct", "reference"])
+def test_model_renders_with_the_configured_compositing(composite, images):
+    torch.manual_seed(0)
+    cfg = tiny_config("real")
+    cfg["renderer"]["composite"] = composite
+    model = Unicorn(cfg).eval()
+    randomize_heads(model)
+    with torch.no_grad():
+        pred = model.predict(images)
+        rgb, alpha = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+        textures, faces = model.textures(pred.texture), model.template.faces
+        if composite == "direct":
+            want = model.renderer(pred.verts, faces, textures, R=pred.R, T=pred.T, background=pred.background)
+        else:
+            out = model.renderer(pred.verts, faces, textures, R=pred.R, T=pred.T)
+            want = torch.cat([out[:, :3] * out[:, 3:] + (1 - out[:, 3:]) * pred.background, out[:, 3:]], 1)
+        # without a background image both render over the renderer's background colour
+        plain = model.renderer(pred.verts, faces, textures, R=pred.R, T=pred.T)
+        no_bkg = model.render(pred.verts, pred.texture, pred.R, pred.T, None)
+    assert rgb.shape == (images.shape[0], 3, IMAGE_SIZE, IMAGE_SIZE)
+    torch.testing.assert_close(torch.cat([rgb, alpha], 1), want)
+    torch.testing.assert_close(torch.cat(no_bkg, 1), plain)
+    assert 0 < float(alpha.mean()) < 1  # an object and some background in view
