@@ -71,11 +71,11 @@ def compose(overrides: tuple[str, ...], cache: str | None) -> tuple[dict, str]:
     return model_config(cfg), str(prepare_dataset("synthetic", d.root, d.categories, dict(d.synthetic)))
 
 
-def scored_views(root: str, split: str, size: int) -> dict[str, torch.Tensor]:
+def scored_views(root: str, split: str, size: int, category: str) -> dict[str, torch.Tensor]:
     """Four views of every car of a split: images, cameras, object ids and ground-truth points."""
     from unicorn.data import build_dataset
 
-    ds = build_dataset("synthetic", split, root, size, "car", views="all", with_points=True)
+    ds = build_dataset("synthetic", split, root, size, category, views="all", with_points=True)
     n = len(ds.models)
     items = [ds[v * n + m] for m in range(n) for v in VIEWS]
     g = torch.Generator().manual_seed(0)
@@ -109,7 +109,7 @@ def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Uni
     from unicorn.data import build_dataset
 
     torch.manual_seed(args.seed)
-    data = build_dataset("synthetic", "train", root, cfg["image_size"], "car")
+    data = build_dataset("synthetic", "train", root, cfg["image_size"], args.category)
     model = Unicorn(cfg)
     model.set_active_dims(shape=model.shape.code_dim, texture=model.texture.mask.code_dim)
     model.set_stage_switches(translation=False, deformation=True, scale=True)
@@ -150,15 +150,15 @@ def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Uni
 
 @torch.no_grad()
 def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
-    cfg, root = compose(row.overrides, args.cache)
+    cfg, root = compose((*row.overrides, f"dataset.categories={args.category}"), args.cache)
     start = time.perf_counter()
     if row.silhouette_fit:
         from unicorn.data import build_dataset
         from unicorn.evaluation import fit_silhouettes
 
         model = Unicorn(cfg).eval()
-        views = scored_views(root, "test", cfg["image_size"])
-        ds = build_dataset("synthetic", "test", root, cfg["image_size"], "car", views="all")
+        views = scored_views(root, "test", cfg["image_size"], args.category)
+        ds = build_dataset("synthetic", "test", root, cfg["image_size"], args.category, views="all")
         n = len(ds.models)
         fitted = []
         for m in range(n):
@@ -170,7 +170,7 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
         return {**score(verts, verts, model.template.faces, views), "minutes": (time.perf_counter() - start) / 60}
     with torch.enable_grad():
         model, codes = train(row, cfg, root, args)
-    views = scored_views(root, "train" if row.per_object_codes else "test", cfg["image_size"])
+    views = scored_views(root, "train" if row.per_object_codes else "test", cfg["image_size"], args.category)
     pred = model.predict(views["image"])
     canonical = pred.canonical_verts
     if row.per_object_codes:
@@ -185,6 +185,7 @@ def main() -> None:
     p.add_argument("--fit-iterations", type=int, default=300, help="silhouette-fit Adam steps per car")
     p.add_argument("--lr", type=float, default=2e-4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--category", default="car", help="synthetic category (car, chair, table, lamp, mug, airplane)")
     p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
     args = p.parse_args()
