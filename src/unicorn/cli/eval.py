@@ -62,6 +62,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
     p.add_argument("--out", type=Path, help="output folder; default: see the description")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
+    _add_metric_arguments(p)
+    _add_report_arguments(p)
+    add_common_arguments(p)
+    return p
+
+
+def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
+    """What is scored and how finely (defaults: :class:`~unicorn.evaluation.EvalOptions`, the paper's protocol)."""
     p.add_argument("--max-images", type=int, help="evaluate at most N images, spread over the split")
     p.add_argument("--batch-size", type=int, default=EvalOptions.batch_size, help="images per forward pass")
     p.add_argument("--num-points", type=int, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer")
@@ -110,6 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="mean-colour textures; auto: as the checkpoint was being trained",
     )
+
+
+def _add_report_arguments(p: argparse.ArgumentParser) -> None:
+    """The visual report and how the evaluation runs."""
     p.add_argument(
         "--report-samples",
         type=int,
@@ -127,8 +139,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=EvalOptions.seed, help="seed of the view choice and point sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_common_arguments(p)
-    return p
 
 
 def add_common_arguments(p: argparse.ArgumentParser) -> None:

@@ -14,7 +14,6 @@ import typing
 from collections.abc import Mapping
 from typing import Any
 
-from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -168,35 +167,20 @@ def _check_callbacks_and_loggers(cfg: DictConfig) -> None:
         _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
 
 
-def _registry_name(cls: type) -> str:
-    """The registry name of a backend class: the model's config (saved in checkpoints) names its renderer by it.
-
-    ``hydra.utils.instantiate`` builds ``conf/renderer/*.yaml`` from ``_target_`` directly; this lookup only
-    translates the node into the model's settings.
-    """
-    for name in list_renderers():
-        if get_renderer_class(name) is cls:
-            return name
-    raise ConfigError(f"renderer._target_ {cls.__module__}.{cls.__qualname__} is not a registered renderer")
-
-
 def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     """The model's ``renderer`` group from a ``conf/renderer/*.yaml`` node.
 
-    The backend is the registered renderer whose class is ``_target_``; ``camera.fov`` /
+    ``name`` is the registered backend (:func:`unicorn.render.list_renderers`); ``camera.fov`` /
     ``camera.focal_length`` and ``background_color`` become the model's camera and colour, the remaining
     keys the backend's options. ``image_size`` is ignored (the model's image size wins).
 
     Raises:
-        ConfigError: no ``_target_``, an unregistered class, or an option the backend does not take.
+        ConfigError: no or an unregistered ``name``, or an option the backend does not take.
     """
     cfg = OmegaConf.to_container(renderer, resolve=True) if isinstance(renderer, DictConfig) else dict(renderer)
-    _check("_target_" in cfg, "renderer needs a _target_ (one of conf/renderer/*.yaml)")
-    try:
-        cls = get_class(cfg.pop("_target_"))
-    except Exception as err:
-        raise ConfigError(f"renderer._target_: {err}") from None
-    name = _registry_name(cls)
+    name = cfg.pop("name", None)
+    _check(name in list_renderers(), f"renderer.name must be one of {list_renderers()}, got {name!r}")
+    cls = get_renderer_class(name)
     cfg.pop("image_size", None)
     camera = dict(cfg.pop("camera", None) or {})
     camera.pop("_target_", None)

@@ -7,7 +7,7 @@ the backend accepts, ...).
 
 The ``model`` group is the model's own configuration groups (:mod:`unicorn.model.config`, where every model key
 and default is defined) plus ``name``, ``composite`` and ``stages``, the active code sizes of the four stages;
-``renderer`` is one of ``conf/renderer/*.yaml`` (a ``_target_`` backend class plus its options) and is turned
+``renderer`` is one of ``conf/renderer/*.yaml`` (a registered backend's ``name`` plus its options) and is turned
 into the model's renderer settings by :func:`unicorn.config.build.model_config`.
 """
 
