@@ -57,7 +57,7 @@ def test_training_config_uses_the_same_checks() -> None:
     base = {
         "model": {"image_size": 32},
         "dataset": {"img_size": 32},
-        "renderer": {"_target_": "unicorn.render.LayeredRasterizer", "camera": {"fov": 30.0}},
+        "renderer": {"name": "layered", "camera": {"fov": 30.0}},
     }
     with pytest.raises(ConfigError, match=r"model\.shape\.code_dim must be >= 1"):
         validate({**base, "model": {"image_size": 32, "shape": {"code_dim": 0}}})
