@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from unicorn.config.schema import EvalSettings, EvaluateConfig
+from unicorn.config.schema import EvaluateConfig
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
@@ -48,10 +48,14 @@ class EvalTarget:
     max_images: int | None = None
 
 
-def settings_options(settings: EvalSettings, dataset: str, **options: Any) -> EvalOptions:
-    """The evaluation options of shared evaluation settings (:class:`unicorn.config.schema.EvalSettings` or a
-    subclass: ``report_samples`` is taken where the settings have it) for ``dataset``'s protocol; ``options`` sets
-    the others (e.g. ``average_texture``)."""
+def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions:
+    """The evaluation options of shared evaluation settings for ``dataset``'s protocol; ``options`` sets the others
+    (e.g. ``average_texture``).
+
+    Args:
+        settings: an object with the attributes of :class:`unicorn.config.schema.EvalSettings` (a subclass, or the
+            held-out callback); its ``report_samples`` is taken where it has one.
+    """
     shared = ("batch_size", "num_points", "icp_iterations", "own_mean_shape", "shape_points", "report_samples")
     values = {name: getattr(settings, name) for name in shared if hasattr(settings, name)}
     return EvalOptions(protocol=protocol_for(dataset), **values, **options)

@@ -147,7 +147,7 @@ class HeldOutEvaluation(L.Callback):
         if self._dataset is None:
             self._build_dataset(trainer, pl_module)
         options = settings_options(
-            self,  # type: ignore[arg-type]  # the held-out settings, as attributes
+            self,  # the held-out settings, as attributes
             self._name,
             average_texture=pl_module.constant_mean_textures,
             report_samples=0,
