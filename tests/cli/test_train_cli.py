@@ -235,8 +235,8 @@ def test_missing_dataset_is_one_line(tmp_path):
 
 def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp_path):
     from tests.support.training import build_run
-    from unicorn.cli.train import fit
     from unicorn.io.run_folder import RunFolderError
+    from unicorn.lit.run import fit
 
     fit(build_run(tmp_path, "trainer.max_steps=2"))
     assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
@@ -251,7 +251,7 @@ def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp
 
 def test_progress_bar_can_be_disabled(synthetic_cache, tmp_path):
     from tests.support.training import build_run
-    from unicorn.cli.train import fit
+    from unicorn.lit.run import fit
 
     run = build_run(tmp_path, "trainer.enable_progress_bar=false", "trainer.max_steps=1")
     fit(run)
@@ -336,7 +336,7 @@ def test_a_refused_run_touches_nothing_in_the_folder(synthetic_cache, tmp_path):
 
 def test_a_read_only_run_folder_is_one_line(tmp_path):
     # a PermissionError as a read-only disk gives, raised by Hydra while it creates the folder (before the task)
-    from unicorn.cli.train import _hydra_failure
+    from unicorn.cli.hydra_app import hydra_failure as _hydra_failure
 
     report = (
         'Error executing job with overrides: []\nTraceback (most recent call last):\n  File "x.py", line 1\n'

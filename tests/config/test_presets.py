@@ -73,3 +73,11 @@ def test_small_yaml_lists_every_model_key() -> None:
     # unicorn-train overrides like model.pose.n_azim=2 need the key in the composed config
     listed = OmegaConf.to_container(OmegaConf.load(config_dir() / "model" / "small.yaml"))
     assert _keys(listed) == _keys(asdict(ModelConfig()))
+
+
+def test_every_renderer_preset_names_a_registered_renderer_and_its_file() -> None:
+    from unicorn.render import list_renderers
+
+    names = {p.stem: OmegaConf.load(p)["name"] for p in (config_dir() / "renderer").glob("*.yaml")}
+    assert names and all(stem == name for stem, name in names.items()), names
+    assert set(names) <= set(list_renderers())

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tests.support.training import build_run
-from unicorn.cli.train import fit
+from unicorn.lit.run import fit
 
 pytestmark = pytest.mark.gpu
 

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from tests.support.training import build_run, compose_config
-from unicorn.cli.train import fit
 from unicorn.config import ConfigError, validate
 from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
+from unicorn.lit.run import fit
 
 DIAGNOSTICS = ["callbacks.diagnostics.every_n_steps=4", "callbacks.diagnostics.max_images=8"]
 HELDOUT = [
@@ -111,7 +111,7 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
         ("callbacks.heldout={split:train}", "callbacks.heldout.split"),
         ("callbacks.heldout={every_n_steps:0}", "callbacks.heldout"),
         ("evaluate.split=everything", "evaluate.split"),
-        ("evaluate.max_images=0", "evaluate: max_images"),
+        ("evaluate.max_images=0", r"evaluate\.max_images must be >= 1"),
     ],
 )
 def test_bad_settings_are_named(tmp_path, override, message):
@@ -124,5 +124,5 @@ def test_bad_settings_are_named(tmp_path, override, message):
 def test_bad_arguments():
     with pytest.raises(ValueError, match="split"):
         HeldOutEvaluation(split="train")
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ValueError, match=r"every_n_steps must be >= 1, got 0"):
         HeldOutEvaluation(every_n_steps=0)

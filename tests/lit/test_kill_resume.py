@@ -33,7 +33,7 @@ OVERRIDES = [
 def _train(out: str, extra: list[str]) -> None:  # runs in a forked child
     from hydra import compose, initialize_config_dir
 
-    from unicorn.cli.train import build, fit
+    from unicorn.lit.run import build, fit
     from unicorn.resources import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
@@ -48,7 +48,7 @@ def _context() -> multiprocessing.context.BaseContext:
     Forking the test process itself could deadlock: other tests leave threads holding locks behind.
     """
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["torch", "lightning", "unicorn.cli.train", "tests.lit.test_kill_resume"])
+    context.set_forkserver_preload(["torch", "lightning", "unicorn.lit.run", "tests.lit.test_kill_resume"])
     return context
 
 

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from tests.support.training import build_run
-from unicorn.cli.train import build, fit
 from unicorn.io.serialization import atomic_save
 from unicorn.lit import NonFiniteLossError
+from unicorn.lit.run import build, fit
 from unicorn.model.encoder import Conv2d
 
 POSE_ONLY = ("model.pose.",)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 
 import pytest
 
@@ -11,10 +11,13 @@ from unicorn.model import DEFAULT_CONFIG, Unicorn, UnicornConfig, check_model_co
 from unicorn.model.config import CHOICES
 
 
-def test_default_config_is_the_dataclass_defaults() -> None:
-    assert DEFAULT_CONFIG == dataclasses.asdict(UnicornConfig())
-    assert merge_config() == DEFAULT_CONFIG
-    assert merge_config() is not DEFAULT_CONFIG  # a copy: callers may edit it
+def test_merge_config_changes_only_the_named_keys_of_a_copy() -> None:
+    merged = merge_config({"shape": {"code_dim": 16}}, loss={"rgb_weight": 2.0}, background=None)
+    expected = copy.deepcopy(DEFAULT_CONFIG)  # the oracle: the same edits made by hand
+    expected["shape"]["code_dim"], expected["loss"]["rgb_weight"], expected["background"] = 16, 2.0, None
+    assert merged == expected
+    merged["texture"]["size"] = 7  # callers may edit what they get
+    assert DEFAULT_CONFIG["texture"]["size"] == UnicornConfig().texture.size != 7
 
 
 @pytest.mark.parametrize(
@@ -54,7 +57,7 @@ def test_training_config_uses_the_same_checks() -> None:
     base = {
         "model": {"image_size": 32},
         "dataset": {"img_size": 32},
-        "renderer": {"_target_": "unicorn.render.LayeredRasterizer", "camera": {"fov": 30.0}},
+        "renderer": {"name": "layered", "camera": {"fov": 30.0}},
     }
     with pytest.raises(ConfigError, match=r"model\.shape\.code_dim must be >= 1"):
         validate({**base, "model": {"image_size": 32, "shape": {"code_dim": 0}}})

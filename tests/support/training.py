@@ -40,6 +40,6 @@ def compose_config(overrides: list[str]):
 
 def build_run(tmp_path: Path, *overrides: str):
     """A built (not yet trained) tiny run writing into ``tmp_path``."""
-    from unicorn.cli.train import build
+    from unicorn.lit.run import build
 
     return build(compose_config([*TINY, f"paths.output_dir={tmp_path}", *overrides]))

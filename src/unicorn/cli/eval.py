@@ -23,7 +23,10 @@ from typing import Any
 from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
+from unicorn.config.schema import FAST_EVAL, SPLITS, EvaluateConfig
 from unicorn.data.registry import DATASET_NAMES
+from unicorn.evaluation.protocols import EvalOptions
+from unicorn.model.config import describe_range, field_range
 
 __all__ = ["build_parser", "main"]
 
@@ -55,16 +58,31 @@ def build_parser() -> argparse.ArgumentParser:
         help="dataset name; default: the training run's dataset (from <run>/config.yaml)",
     )
     p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
-    p.add_argument("--split", default="test", choices=("train", "val", "test"), help="dataset split")
+    p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
     p.add_argument("--out", type=Path, help="output folder; default: see the description")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
+    _add_metric_arguments(p)
+    _add_report_arguments(p)
+    add_common_arguments(p)
+    return p
+
+
+def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
+    """What is scored and how finely (defaults: :class:`~unicorn.evaluation.EvalOptions`, the paper's protocol)."""
     p.add_argument("--max-images", type=int, help="evaluate at most N images, spread over the split")
-    p.add_argument("--batch-size", type=int, default=32, help="images per forward pass")
-    p.add_argument("--num-points", type=int, default=100_000, help="points sampled per mesh for Chamfer")
-    p.add_argument("--icp-iterations", type=int, default=100, help="ICP iterations (0: no -ICP metrics)")
-    p.add_argument("--fast", action="store_true", help="UNICORN's validation setting: 50k points and 30 ICP iterations")
-    p.add_argument("--num-pairs", type=int, default=10_000, help="keypoint-transfer pairs (CUB)")
+    p.add_argument("--batch-size", type=int, default=EvalOptions.batch_size, help="images per forward pass")
+    p.add_argument("--num-points", type=int, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer")
+    p.add_argument(
+        "--icp-iterations", type=int, default=EvalOptions.icp_iterations, help="ICP iterations (0: no -ICP metrics)"
+    )
+    p.add_argument(
+        "--fast",
+        action="store_true",
+        help=f"UNICORN's validation setting: {FAST_EVAL['num_points'] // 1000}k points and "
+        f"{FAST_EVAL['icp_iterations']} ICP iterations",
+    )
+    p.add_argument("--num-pairs", type=int, default=EvalOptions.num_pairs, help="keypoint-transfer pairs (CUB)")
     p.add_argument(
         "--mean-shape",
         type=int,
@@ -83,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--shape-points",
         type=int,
-        default=2000,
+        default=EvalOptions.shape_points,
         help="ShapeNet / synthetic: points per shape of the shape retrieval (shape-top1, shape-top3, shape-mrr, their "
         "-gt ceiling and -floor, shape-spread-ratio): is each reconstruction closest to its own object among the "
         "evaluated ones? 0: off",
@@ -100,20 +118,27 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="mean-colour textures; auto: as the checkpoint was being trained",
     )
-    p.add_argument("--report-samples", type=int, default=8, help="images shown in the report (0: no report)")
+
+
+def _add_report_arguments(p: argparse.ArgumentParser) -> None:
+    """The visual report and how the evaluation runs."""
+    p.add_argument(
+        "--report-samples",
+        type=int,
+        default=EvalOptions.report_samples,
+        help="images shown in the report (0: no report)",
+    )
     p.add_argument("--view-size", type=int, default=128, help="side of the report pictures")
     p.add_argument("--turntable-frames", type=int, default=16, help="frames of the report's turntables (0: none)")
-    p.add_argument("--workers", type=int, default=0, help="DataLoader workers")
+    p.add_argument("--workers", type=int, default=EvalOptions.num_workers, help="DataLoader workers")
     p.add_argument(
         "--nn-workers",
         type=int,
         default=None,
         help="threads of the CPU nearest-neighbour search (-1: all cores; default: torch's thread count)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the view choice and point sampling")
+    p.add_argument("--seed", type=int, default=EvalOptions.seed, help="seed of the view choice and point sampling")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_common_arguments(p)
-    return p
 
 
 def add_common_arguments(p: argparse.ArgumentParser) -> None:
@@ -136,6 +161,32 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
         "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
     )
     add_debug_argument(p)
+
+
+#: option -> the settings field that declares its range (:func:`unicorn.model.config.ranged`)
+_RANGED = {
+    "batch_size": (EvalOptions, "batch_size"),
+    "num_points": (EvalOptions, "num_points"),
+    "num_pairs": (EvalOptions, "num_pairs"),
+    "icp_iterations": (EvalOptions, "icp_iterations"),
+    "report_samples": (EvalOptions, "report_samples"),
+    "shape_points": (EvalOptions, "shape_points"),
+    "workers": (EvalOptions, "num_workers"),
+    "max_images": (EvaluateConfig, "max_images"),
+    "turntable_frames": (EvaluateConfig, "turntable_frames"),
+    "mean_shape": (EvaluateConfig, "mean_shape_iterations"),
+}
+
+
+def check_ranges(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse a value outside the range its evaluation setting declares (a usage error naming the option)."""
+    for name, (schema, field) in _RANGED.items():
+        low, high = field_range(schema, field)
+        value = getattr(args, name)
+        if value is not None and not ((low is None or value >= low) and (high is None or value <= high)):
+            parser.error(f"--{name.replace('_', '-')} must be {describe_range(low, high)}")
+    if args.view_size < 1:
+        parser.error("--view-size must be >= 1")
 
 
 def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -183,27 +234,13 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
     return str(dataset_root("synthetic", run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
 
 
-def run(args: argparse.Namespace, command: str | None = None, produced_by: str | None = None) -> int:
-    """Evaluate as ``args`` say (:func:`unicorn.evaluation.session.evaluate_to_folder` on the loaded checkpoint);
-    returns the exit status.
+def _target(args: argparse.Namespace, info: Any) -> Any:
+    """The dataset split to evaluate: the options, completed from the checkpoint's training run.
 
-    Args:
-        args: parsed arguments.
-        command: the ``unicorn-eval`` command line recorded as the results' provenance (default: this
-            process's arguments).
-        produced_by: the command that ran this evaluation when it is not ``unicorn-eval`` itself, recorded beside
-            ``command``.
+    Raises:
+        UsageError: no dataset or root given and none in the training run.
     """
-    # heavy imports here: --help and argument errors stay fast
-    from unicorn.evaluation import EvalOptions, format_table, get_protocol, protocol_for
-    from unicorn.evaluation.session import EvalTarget, evaluate_to_folder
-    from unicorn.io import load_model
-    from unicorn.io.provenance import command_line, provenance
-
-    device = _device(args.device)
-    overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
-    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
-    log.info("loaded %s", info.describe())
+    from unicorn.evaluation.session import EvalTarget
 
     run_data = info.dataset or {}
     dataset = args.dataset or run_data.get("name")
@@ -217,17 +254,21 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     categories = args.categories.split(",") if args.categories else None
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]
+    return EvalTarget(dataset, str(root), args.split, categories, args.max_images)
 
-    protocol = protocol_for(dataset)
-    average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
-    options = EvalOptions(
-        protocol=protocol,
+
+def _options(args: argparse.Namespace, dataset: str, average_texture: bool) -> EvalOptions:
+    """The evaluation options of the command line (``--fast``: :data:`~unicorn.config.schema.FAST_EVAL`)."""
+    from unicorn.evaluation import protocol_for
+
+    mesh_settings = FAST_EVAL if args.fast else {"num_points": args.num_points, "icp_iterations": args.icp_iterations}
+    return EvalOptions(
+        protocol=protocol_for(dataset),
         batch_size=args.batch_size,
-        num_points=50_000 if args.fast else args.num_points,
-        icp_iterations=30 if args.fast else args.icp_iterations,
+        **mesh_settings,
         num_pairs=args.num_pairs,
         align_pose=not args.no_align_pose,
-        average_texture=average,
+        average_texture=average_texture,
         report_samples=args.report_samples,
         num_workers=args.workers,
         nn_workers=args.nn_workers,
@@ -236,7 +277,33 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         own_mean_shape=args.own_mean_shape,
         shape_points=args.shape_points,
     )
-    if device.type == "cpu" and get_protocol(protocol).meshes is not None and options.icp_iterations > 30:
+
+
+def run(args: argparse.Namespace, command: str | None = None, produced_by: str | None = None) -> int:
+    """Evaluate as ``args`` say (:func:`unicorn.evaluation.session.evaluate_to_folder` on the loaded checkpoint);
+    returns the exit status.
+
+    Args:
+        args: parsed arguments.
+        command: the ``unicorn-eval`` command line recorded as the results' provenance (default: this
+            process's arguments).
+        produced_by: the command that ran this evaluation when it is not ``unicorn-eval`` itself, recorded beside
+            ``command``.
+    """
+    # heavy imports here: --help and argument errors stay fast
+    from unicorn.evaluation import format_table, get_protocol
+    from unicorn.evaluation.session import evaluate_to_folder
+    from unicorn.io import load_model
+    from unicorn.io.provenance import command_line, provenance
+
+    device = _device(args.device)
+    overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
+    model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
+    log.info("loaded %s", info.describe())
+    target = _target(args, info)
+    average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
+    options = _options(args, target.dataset, average)
+    if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:
         # the ICP's nearest-neighbour searches dominate: about 0.1 s of CPU per iteration, ICP and image at 100k points
         print(
             f"note: the full protocol ({options.num_points} points, {options.icp_iterations} ICP iterations) takes "
@@ -252,14 +319,14 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     }
     result, paths = evaluate_to_folder(
         model,
-        EvalTarget(dataset, str(root), args.split, categories, args.max_images),
+        target,
         options,
-        _out_dir(args, info, dataset),
+        _out_dir(args, info, target.dataset),
         meta,
         mean_shape_iterations=args.mean_shape,
         view_size=args.view_size,
         turntable_frames=args.turntable_frames,
-        title=f"{dataset} ({args.split}): {Path(args.checkpoint).name}",
+        title=f"{target.dataset} ({args.split}): {Path(args.checkpoint).name}",
         device=device,
     )
     print(format_table(result.table, result.columns))
@@ -276,14 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    for name in ("batch_size", "num_points", "num_pairs", "view_size"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be positive")
-    if args.max_images is not None and args.max_images < 1:
-        parser.error("--max-images must be positive")
-    for name in ("icp_iterations", "report_samples", "turntable_frames", "workers", "shape_points"):
-        if (getattr(args, name) or 0) < 0:
-            parser.error(f"--{name.replace('_', '-')} must be >= 0")
+    check_ranges(parser, args)
     check_common_arguments(parser, args)
     # ValueError and KeyError: what the dataset and protocol builders raise on unknown names and bad layouts
     return report_errors("unicorn-eval", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))

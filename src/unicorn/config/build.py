@@ -14,11 +14,10 @@ import typing
 from collections.abc import Mapping
 from typing import Any
 
-from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from unicorn.config.schema import OPTIM_CHOICES, TrainConfig
+from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
 from unicorn.errors import UserError
@@ -27,7 +26,6 @@ from unicorn.render import get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
-N_STAGES = 4
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
 
 
@@ -88,12 +86,28 @@ def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:
 
 
 def _check_values(cfg: DictConfig) -> None:
+    """The checks types cannot express: the ranges declared in the schema, then the relations between values."""
     try:
         check_ranges(cfg, TrainConfig)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    m, s, o = cfg.model, cfg.schedule, cfg.optim
-    # -- model: the model's own checks on the configuration it will get, then the relations to the rest
+    _check_model(cfg)
+    _check_schedule(cfg.schedule)
+    check_optim(cfg.optim)  # raises ConfigError itself
+    _check_trainer(cfg.trainer)
+    _check_callbacks_and_loggers(cfg)
+    _check(
+        cfg.init_from is None or cfg.ckpt_path is None,
+        "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights",
+    )
+    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
+    on_error, d = typing.get_args(OnError), cfg.dataset
+    _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")
+
+
+def _check_model(cfg: DictConfig) -> None:
+    """The model's own checks on the configuration it will get, then its relations to the data and the stages."""
+    m = cfg.model
     composites = CHOICES["renderer.composite"]
     _check(m.composite in composites, f"model.composite must be one of {composites}, got {m.composite!r}")
     try:
@@ -117,29 +131,16 @@ def _check_values(cfg: DictConfig) -> None:
         _check(len(dims) == N_STAGES, f"{key} needs {N_STAGES} sizes (one per stage), got {dims}")
         _check(all(0 <= d <= code_dim for d in dims), f"{key} = {dims} must lie in [0, {name} code_dim={code_dim}]")
         _check(all(a <= b for a, b in zip(dims, dims[1:])), f"{key} = {dims} must not decrease")
-    # -- schedule
-    _check(s.mode in ("fixed", "plateau"), f"schedule.mode must be fixed or plateau, got {s.mode!r}")
+
+
+def _check_schedule(s: DictConfig) -> None:
+    _check(s.mode in SCHEDULE_MODES, f"schedule.mode must be fixed or plateau, got {s.mode!r}")
     ms = list(s.milestones)
     _check(len(ms) == N_STAGES - 1, f"schedule.milestones needs {N_STAGES - 1} iterations (stages 2-4), got {ms}")
     _check(all(a < b for a, b in zip([0, *ms], ms)), f"schedule.milestones must increase from > 0, got {ms}")
-    _check(s.alternation_period >= 1, f"schedule.alternation_period must be >= 1, got {s.alternation_period}")
-    for key in ("translation", "deformation", "scale"):
-        _check(s.curriculum[key] >= 0, f"schedule.curriculum.{key} must be >= 0")
-    ta = s.texture_averaging
-    _check(0.0 <= ta.p <= 1.0, f"schedule.texture_averaging.p must be in [0, 1], got {ta.p}")
-    _check(0 <= ta.constant_stages <= N_STAGES, "schedule.texture_averaging.constant_stages must be in [0, 4]")
-    _check(
-        ta.random_until_stage is None or 1 <= ta.random_until_stage <= N_STAGES,
-        "schedule.texture_averaging.random_until_stage must be null or in [1, 4]",
-    )
-    pl = s.plateau
-    _check(pl.window >= 1 and pl.check_every >= 1 and pl.patience >= 1, "schedule.plateau counts must be >= 1")
-    _check(pl.min_steps >= 0 and pl.threshold >= 0, "schedule.plateau.min_steps and threshold must be >= 0")
-    # -- optimisation
-    check_optim(o)  # raises ConfigError itself
-    # -- trainer
-    t = cfg.trainer
-    _check(t.max_steps > 0, f"trainer.max_steps must be > 0 (training is counted in iterations), got {t.max_steps}")
+
+
+def _check_trainer(t: DictConfig) -> None:
     _check(
         t.val_check_interval is None or t.val_check_interval >= 1,
         "trainer.val_check_interval must be null (no validation) or a number of iterations >= 1",
@@ -150,82 +151,36 @@ def _check_values(cfg: DictConfig) -> None:
         f"trainer.strategy={strategy}: the pose / 3D alternation leaves half of the parameters without gradient "
         "at every step; use ddp_find_unused_parameters_true (or ddp_spawn_find_unused_parameters_true)",
     )
-    _check(cfg.callbacks.checkpoint.every_n_steps >= 1, "callbacks.checkpoint.every_n_steps must be >= 1")
-    if cfg.callbacks.images is not None:
-        _check(cfg.callbacks.images.every_n_steps >= 1, "callbacks.images.every_n_steps must be >= 1")
-    h = cfg.callbacks.heldout
+
+
+def _check_callbacks_and_loggers(cfg: DictConfig) -> None:
+    h, e = cfg.callbacks.heldout, cfg.evaluate
     if h is not None:
-        _check(h.split in ("val", "test"), f"callbacks.heldout.split must be val or test, got {h.split!r}")
+        _check(h.split in HELDOUT_SPLITS, f"callbacks.heldout.split must be val or test, got {h.split!r}")
+    _check(e.split in SPLITS, f"evaluate.split must be train, val or test, got {e.split!r}")
+    for name, node in cfg.logger.items():
         _check(
-            min(h.every_n_steps, h.max_images, h.num_points, h.batch_size, h.mean_shape_models) >= 1
-            and min(h.icp_iterations, h.mean_shape_iterations, h.shape_points) >= 0,
-            "callbacks.heldout: every_n_steps, max_images, num_points, batch_size and mean_shape_models must be >= 1, "
-            "icp_iterations, mean_shape_iterations and shape_points >= 0",
+            node is None or (isinstance(node, Mapping) and "_target_" in node),
+            f"logger.{name} must be null or have a _target_",
         )
-    d = cfg.callbacks.diagnostics
-    if d is not None:
-        _check(
-            d.every_n_steps >= 1 and d.max_images >= 2 and d.spread_tol >= 0 and d.shape_spread_ratio >= 0,
-            "callbacks.diagnostics: every_n_steps must be >= 1, max_images >= 2, spread_tol and shape_spread_ratio "
-            ">= 0",
-        )
-    e = cfg.evaluate
-    _check(e.split in ("train", "val", "test"), f"evaluate.split must be train, val or test, got {e.split!r}")
-    _check(
-        (e.max_images is None or e.max_images >= 1) and min(e.num_points, e.batch_size) >= 1,
-        "evaluate: max_images must be null or >= 1, num_points and batch_size >= 1",
-    )
-    _check(
-        min(e.icp_iterations, e.report_samples, e.turntable_frames, e.mean_shape_iterations, e.shape_points) >= 0,
-        "evaluate: counts must be >= 0",
-    )
-    for group in ("logger",):
-        for name, node in cfg[group].items():
-            _check(
-                node is None or (isinstance(node, Mapping) and "_target_" in node),
-                f"{group}.{name} must be null or have a _target_",
-            )
     for name, node in cfg.callbacks.extra.items():
         _check(isinstance(node, Mapping) and "_target_" in node, f"callbacks.extra.{name} needs a _target_")
-    _check(
-        cfg.init_from is None or cfg.ckpt_path is None,
-        "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights",
-    )
-    # -- data
-    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
-    on_error, d = typing.get_args(OnError), cfg.dataset
-    _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")
-
-
-def _registry_name(cls: type) -> str:
-    """The registry name of a backend class: the model's config (saved in checkpoints) names its renderer by it.
-
-    ``hydra.utils.instantiate`` builds ``conf/renderer/*.yaml`` from ``_target_`` directly; this lookup only
-    translates the node into the model's settings.
-    """
-    for name in list_renderers():
-        if get_renderer_class(name) is cls:
-            return name
-    raise ConfigError(f"renderer._target_ {cls.__module__}.{cls.__qualname__} is not a registered renderer")
 
 
 def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     """The model's ``renderer`` group from a ``conf/renderer/*.yaml`` node.
 
-    The backend is the registered renderer whose class is ``_target_``; ``camera.fov`` /
+    ``name`` is the registered backend (:func:`unicorn.render.list_renderers`); ``camera.fov`` /
     ``camera.focal_length`` and ``background_color`` become the model's camera and colour, the remaining
     keys the backend's options. ``image_size`` is ignored (the model's image size wins).
 
     Raises:
-        ConfigError: no ``_target_``, an unregistered class, or an option the backend does not take.
+        ConfigError: no or an unregistered ``name``, or an option the backend does not take.
     """
     cfg = OmegaConf.to_container(renderer, resolve=True) if isinstance(renderer, DictConfig) else dict(renderer)
-    _check("_target_" in cfg, "renderer needs a _target_ (one of conf/renderer/*.yaml)")
-    try:
-        cls = get_class(cfg.pop("_target_"))
-    except Exception as err:
-        raise ConfigError(f"renderer._target_: {err}") from None
-    name = _registry_name(cls)
+    name = cfg.pop("name", None)
+    _check(name in list_renderers(), f"renderer.name must be one of {list_renderers()}, got {name!r}")
+    cls = get_renderer_class(name)
     cfg.pop("image_size", None)
     camera = dict(cfg.pop("camera", None) or {})
     camera.pop("_target_", None)

@@ -7,7 +7,7 @@ the backend accepts, ...).
 
 The ``model`` group is the model's own configuration groups (:mod:`unicorn.model.config`, where every model key
 and default is defined) plus ``name``, ``composite`` and ``stages``, the active code sizes of the four stages;
-``renderer`` is one of ``conf/renderer/*.yaml`` (a ``_target_`` backend class plus its options) and is turned
+``renderer`` is one of ``conf/renderer/*.yaml`` (a registered backend's ``name`` plus its options) and is turned
 into the model's renderer settings by :func:`unicorn.config.build.model_config`.
 """
 
@@ -23,18 +23,39 @@ __all__ = [
     "CheckpointConfig",
     "CurriculumConfig",
     "DatasetConfig",
+    "DiagnosticsConfig",
+    "EvalSettings",
+    "EvaluateConfig",
+    "FAST_EVAL",
+    "HELDOUT_SPLITS",
+    "HeldOutConfig",
     "ImagesConfig",
     "ModelConfig",
+    "N_STAGES",
     "OPTIM_CHOICES",
     "OptimConfig",
     "PathsConfig",
     "PlateauConfig",
+    "SCHEDULE_MODES",
+    "SPLITS",
     "ScheduleConfig",
     "StageDimsConfig",
     "TextureAveragingConfig",
     "TrainConfig",
     "TrainerConfig",
 ]
+
+
+#: UNICORN's stages of progressive conditioning (code sizes per stage, ``schedule.milestones`` between them)
+N_STAGES = 4
+#: dataset splits; the held-out evaluation during training scores one of the last two
+SPLITS = ("train", "val", "test")
+HELDOUT_SPLITS = SPLITS[1:]
+#: ``schedule.mode``: fixed milestones, or a stage change when the 3D-step loss reaches a plateau
+SCHEDULE_MODES = ("fixed", "plateau")
+#: UNICORN's validation setting of the mesh metrics (its final protocol, ``unicorn-eval``'s default, is 100k points
+#: and 100 ICP iterations: :class:`unicorn.evaluation.EvalOptions`)
+FAST_EVAL = {"num_points": 50_000, "icp_iterations": 30}
 
 
 # ---------------------------------------------------------------------------------------------- model
@@ -85,9 +106,9 @@ class DatasetConfig:
 class CurriculumConfig:
     """Iteration at which each stage-1 switch turns on (0: from the start)."""
 
-    translation: int = 0
-    deformation: int = 0
-    scale: int = 0
+    translation: int = ranged(0, 0)
+    deformation: int = ranged(0, 0)
+    scale: int = ranged(0, 0)
 
 
 @dataclass
@@ -95,9 +116,9 @@ class TextureAveragingConfig:
     """Mean-colour textures: constant during the first ``constant_stages`` stages, then with probability ``p``
     per batch while the stage is below ``random_until_stage`` (null: for the whole run)."""
 
-    constant_stages: int = 0
-    p: float = 0.2
-    random_until_stage: int | None = 4
+    constant_stages: int = ranged(0, 0, N_STAGES)
+    p: float = ranged(0.2, 0, 1)
+    random_until_stage: int | None = ranged(N_STAGES, 1, N_STAGES)
 
 
 @dataclass
@@ -109,18 +130,18 @@ class PlateauConfig:
     ``patience`` checks in a row ends the stage, provided it lasted ``min_steps``.
     """
 
-    window: int = 2000
-    check_every: int = 1000
-    threshold: float = 0.01
-    patience: int = 3
-    min_steps: int = 10000
+    window: int = ranged(2000, 1)
+    check_every: int = ranged(1000, 1)
+    threshold: float = ranged(0.01, 0)
+    patience: int = ranged(3, 1)
+    min_steps: int = ranged(10000, 0)
 
 
 @dataclass
 class ScheduleConfig:
-    mode: str = "fixed"  # fixed | plateau
+    mode: str = "fixed"  # SCHEDULE_MODES
     milestones: list[int] = field(default_factory=lambda: [750000, 1500000, 2250000])
-    alternation_period: int = 1
+    alternation_period: int = ranged(1, 1)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)
@@ -158,7 +179,7 @@ class TrainerConfig:
     num_nodes: int = ranged(1, 1)
     strategy: Any = "auto"
     precision: Any = "32-true"
-    max_steps: int = 3000000
+    max_steps: int = ranged(3000000, 1)  # training is counted in iterations
     val_check_interval: int | None = 2000
     limit_val_batches: Any = 1.0
     num_sanity_val_steps: int = ranged(0, -1)
@@ -175,7 +196,8 @@ class TrainerConfig:
 class CheckpointConfig:
     """Periodic atomic checkpoints ``step=<N>.ckpt`` (the last ``keep`` kept) and ``last.ckpt``."""
 
-    every_n_steps: int = 10000
+    _target_: str = "unicorn.lit.callbacks.periodic_checkpoint"
+    every_n_steps: int = ranged(10000, 1)
     keep: int = ranged(2, -1)  # -1: all
     save_last: bool = True
 
@@ -184,27 +206,44 @@ class CheckpointConfig:
 class ImagesConfig:
     """Image logging: inputs, reconstructions, the mesh from ``n_views`` azimuths, textures, backgrounds."""
 
-    every_n_steps: int = 2000
+    _target_: str = "unicorn.lit.ImageLogger"
+    every_n_steps: int = ranged(2000, 1)
     n_images: int = ranged(8, 1)
     n_views: int = ranged(4, 1)
     save_png: bool = True
 
 
 @dataclass
-class HeldOutConfig:
-    """Held-out evaluation during training (:class:`unicorn.lit.HeldOutEvaluation`), rows in ``heldout.csv``."""
+class EvalSettings:
+    """What an evaluation scores and how finely: the settings ``unicorn-eval``, the evaluation after training
+    (:class:`EvaluateConfig`) and the held-out evaluation (:class:`HeldOutConfig`) share. The defaults are
+    UNICORN's validation setting (:data:`FAST_EVAL`); ``unicorn-eval``'s are the paper's final protocol
+    (:class:`unicorn.evaluation.EvalOptions`)."""
 
-    every_n_steps: int = 1000
+    split: str = "test"
+    max_images: int | None = ranged(None, 1)  # null: the whole split
+    num_points: int = ranged(FAST_EVAL["num_points"], 1)  # points per mesh for Chamfer
+    icp_iterations: int = ranged(FAST_EVAL["icp_iterations"], 0)  # 0: no -ICP metrics
+    batch_size: int = ranged(32, 1)
+    mean_shape_iterations: int = ranged(0, 0)  # > 0: score the training shapes' mean shape beside the model
+    own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
+    shape_points: int = ranged(2000, 0)  # > 0: shape retrieval among the evaluated objects, points per shape
+
+
+@dataclass
+class HeldOutConfig(EvalSettings):
+    """Held-out evaluation during training (:class:`unicorn.lit.HeldOutEvaluation`), rows in ``heldout.csv``:
+    small enough to run inside training."""
+
+    _target_: str = "unicorn.lit.HeldOutEvaluation"
+    every_n_steps: int = ranged(1000, 1)
     split: str = "val"
     max_images: int = 32
     num_points: int = 5000
     icp_iterations: int = 20
-    batch_size: int = 32
     at_start: bool = True
-    mean_shape_iterations: int = 0  # > 0: score the training shapes' mean shape beside the model (shape-win)
-    mean_shape_models: int = 200
-    own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
-    shape_points: int = 1000  # > 0: shape retrieval among the held-out objects (shape-top1, ...), points per shape
+    mean_shape_models: int = ranged(200, 1)
+    shape_points: int = 1000
 
 
 @dataclass
@@ -212,10 +251,11 @@ class DiagnosticsConfig:
     """Code spread and dead units of the code regressors (:class:`unicorn.lit.CodeDiagnostics`), rows in
     ``diagnostics.csv``, a loud warning when a branch collapses."""
 
-    every_n_steps: int = 100
-    max_images: int = 64
-    spread_tol: float = 1e-6
-    shape_spread_ratio: float = 0.05  # the shape code collapses below this fraction of the texture code's spread
+    _target_: str = "unicorn.lit.CodeDiagnostics"
+    every_n_steps: int = ranged(100, 1)
+    max_images: int = ranged(64, 2)
+    spread_tol: float = ranged(1e-6, 0)
+    shape_spread_ratio: float = ranged(0.05, 0)  # collapsed: a shape code spread below this x the texture code's
 
 
 @dataclass
@@ -229,20 +269,12 @@ class CallbacksConfig:
 
 
 @dataclass
-class EvaluateConfig:
+class EvaluateConfig(EvalSettings):
     """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s protocol), written to ``<run>/eval``."""
 
     enabled: bool = False
-    split: str = "test"
-    max_images: int | None = None
-    num_points: int = 50_000
-    icp_iterations: int = 30
-    batch_size: int = 32
-    report_samples: int = 10
-    turntable_frames: int = 16
-    mean_shape_iterations: int = 0  # > 0: the training shapes' mean shape scored beside the model (shape-win)
-    own_mean_shape: bool = False  # the model's own average shape scored beside it (shape-win-own)
-    shape_points: int = 2000  # > 0: shape retrieval among the evaluated objects (shape-top1, ...), points per shape
+    report_samples: int = ranged(10, 0)  # images in report.png / report.html
+    turntable_frames: int = ranged(16, 0)
 
 
 @dataclass

@@ -88,6 +88,7 @@ from typing import Any
 import torch
 
 from unicorn.data.registry import DATASETS, dataset_spec
+from unicorn.model.config import check_ranges, ranged
 
 __all__ = [
     "COLOR_INTERIOR",
@@ -307,16 +308,16 @@ class EvalOptions:
     """
 
     protocol: str = "shapenet"
-    batch_size: int = 32
-    num_points: int = 100_000
-    icp_iterations: int = 100
-    mask_supersample: int = 3
-    visibility_supersample: int = 2
-    num_pairs: int = 10_000
+    batch_size: int = ranged(32, 1)
+    num_points: int = ranged(100_000, 1)
+    icp_iterations: int = ranged(100, 0)
+    mask_supersample: int = ranged(3, 1)
+    visibility_supersample: int = ranged(2, 1)
+    num_pairs: int = ranged(10_000, 1)
     align_pose: bool = True
     average_texture: bool = False
-    report_samples: int = 8
-    num_workers: int = 0
+    report_samples: int = ranged(8, 0)
+    num_workers: int = ranged(0, 0)
     nn_workers: int | None = None
     seed: int = 0
     progress: bool = True
@@ -324,15 +325,11 @@ class EvalOptions:
     progress_leave: bool = True
     oracle_pose: bool = False
     own_mean_shape: bool = False
-    shape_points: int = 2000
+    shape_points: int = ranged(2000, 0)
 
     def __post_init__(self) -> None:
         protocol = get_protocol(self.protocol)
-        for name in ("batch_size", "num_points", "mask_supersample", "visibility_supersample", "num_pairs"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.icp_iterations < 0 or self.report_samples < 0 or self.shape_points < 0:
-            raise ValueError("icp_iterations, report_samples and shape_points must be >= 0")
+        check_ranges(vars(self), EvalOptions)
         if self.oracle_pose and not protocol.poses:
             # the other protocols have no ground-truth pose to substitute
             raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from unicorn.config.schema import EvaluateConfig
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
@@ -23,7 +24,7 @@ from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_prot
 from unicorn.evaluation.report import write_report
 from unicorn.io.staging import staged_folder
 
-__all__ = ["EvalTarget", "evaluate_to_folder"]
+__all__ = ["EvalTarget", "eval_command", "evaluate_to_folder", "settings_options"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,34 @@ class EvalTarget:
     split: str = "test"
     categories: str | list[str] | None = None
     max_images: int | None = None
+
+
+def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions:
+    """The evaluation options of shared evaluation settings for ``dataset``'s protocol; ``options`` sets the others
+    (e.g. ``average_texture``).
+
+    Args:
+        settings: an object with the attributes of :class:`unicorn.config.schema.EvalSettings` (a subclass, or the
+            held-out callback); its ``report_samples`` is taken where it has one.
+    """
+    shared = ("batch_size", "num_points", "icp_iterations", "own_mean_shape", "shape_points", "report_samples")
+    values = {name: getattr(settings, name) for name in shared if hasattr(settings, name)}
+    return EvalOptions(protocol=protocol_for(dataset), **values, **options)
+
+
+def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig) -> str:
+    """The ``unicorn-eval`` command that evaluates ``checkpoint`` into ``out`` as ``settings`` say (a provenance
+    record of the evaluation after training)."""
+    from unicorn.io.provenance import command_line
+
+    s = settings
+    argv = [str(checkpoint), f"--split={s.split}", f"--out={out}", f"--num-points={s.num_points}"]
+    argv += [f"--icp-iterations={s.icp_iterations}", f"--batch-size={s.batch_size}"]
+    argv += [f"--report-samples={s.report_samples}", f"--turntable-frames={s.turntable_frames}"]
+    argv += [f"--mean-shape={s.mean_shape_iterations}"] + (["--own-mean-shape"] if s.own_mean_shape else [])
+    argv += [f"--shape-points={s.shape_points}"]
+    argv += [f"--max-images={s.max_images}"] if s.max_images is not None else []
+    return command_line("unicorn-eval", argv)
 
 
 def evaluate_to_folder(
@@ -82,18 +111,7 @@ def evaluate_to_folder(
         ValueError: a protocol that does not match the dataset, or a mean shape asked where there are no
             training point clouds.
     """
-    protocol = protocol_for(target.dataset)
-    spec = get_protocol(protocol)
-    if options.protocol != protocol:
-        raise ValueError(
-            f"options.protocol is {options.protocol!r} but {target.dataset} is evaluated with {protocol!r}"
-        )
-    if mean_shape_iterations > 0 and not spec.training_clouds:
-        raise ValueError(
-            f"a mean shape needs a dataset with training point clouds (shapenet protocol), not {target.dataset}"
-        )
-    if options.own_mean_shape and spec.meshes is None:
-        raise ValueError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
+    _check_request(target, options, mean_shape_iterations)
     if device is None:
         device = next(model.parameters()).device  # type: ignore[attr-defined]
     data = build_eval_dataset(
@@ -106,15 +124,14 @@ def evaluate_to_folder(
         seed=options.seed,
     )
     log.info(
-        "evaluating %d %s images of %s (%s protocol) on %s", len(data), target.split, target.dataset, protocol, device
+        "evaluating %d %s images of %s (%s protocol) on %s",
+        len(data),
+        target.split,
+        target.dataset,
+        options.protocol,
+        device,
     )
-    mean_shape = None
-    if mean_shape_iterations > 0:
-        clouds = training_point_clouds(target.root, target.categories, max_models=200, num_points=5000)
-        log.info("fitting the mean shape of %d training shapes (%d iterations)", len(clouds), mean_shape_iterations)
-        mean_shape = fit_mean_shape(
-            model.template.verts, model.template.faces, clouds, iterations=mean_shape_iterations, seed=options.seed
-        )
+    mean_shape = _mean_shape(model, target, mean_shape_iterations, options.seed)
     result = evaluate(model, data, options, dataset_name=target.dataset, device=device, shape_baseline=mean_shape)
     full_meta = {
         **meta,
@@ -127,16 +144,44 @@ def evaluate_to_folder(
         paths = write_metrics(result, staging, full_meta)
         if result.samples:
             log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")
-            paths.update(
-                write_report(
-                    model,
-                    result,
-                    staging,
-                    title or f"{target.dataset} ({target.split})",
-                    full_meta,
-                    view_size=view_size,
-                    turntable_frames=turntable_frames,
-                    device=device,
-                )
+            report = write_report(
+                model,
+                result,
+                staging,
+                title or f"{target.dataset} ({target.split})",
+                full_meta,
+                view_size=view_size,
+                turntable_frames=turntable_frames,
+                device=device,
             )
+            paths.update(report)
     return result, {kind: Path(out) / path.relative_to(staging) for kind, path in paths.items()}
+
+
+def _check_request(target: EvalTarget, options: EvalOptions, mean_shape_iterations: int) -> None:
+    """Refuse options the dataset's protocol cannot serve.
+
+    Raises:
+        ValueError: the options' protocol is not the dataset's, or a baseline needs data the dataset lacks.
+    """
+    protocol = protocol_for(target.dataset)
+    spec = get_protocol(protocol)
+    if options.protocol != protocol:
+        raise ValueError(
+            f"options.protocol is {options.protocol!r} but {target.dataset} is evaluated with {protocol!r}"
+        )
+    if mean_shape_iterations > 0 and not spec.training_clouds:
+        raise ValueError(
+            f"a mean shape needs a dataset with training point clouds (shapenet protocol), not {target.dataset}"
+        )
+    if options.own_mean_shape and spec.meshes is None:
+        raise ValueError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
+
+
+def _mean_shape(model: EvaluableModel, target: EvalTarget, iterations: int, seed: int) -> torch.Tensor | None:
+    """The training shapes' mean shape (V, 3) on the model's template, fitted for ``iterations``; None for 0."""
+    if iterations <= 0:
+        return None
+    clouds = training_point_clouds(target.root, target.categories, max_models=200, num_points=5000)
+    log.info("fitting the mean shape of %d training shapes (%d iterations)", len(clouds), iterations)
+    return fit_mean_shape(model.template.verts, model.template.faces, clouds, iterations=iterations, seed=seed)

@@ -10,6 +10,8 @@
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`CodeDiagnostics` (``diagnostics``): code spread and dead units of the code regressors, with a loud
   :class:`CollapseWarning` when a branch stops depending on the image.
+- :func:`~unicorn.lit.run.build`, :func:`~unicorn.lit.run.fit` (``run``): one training run assembled from a
+  composed config (run folder, data, module, callbacks and loggers by ``_target_``, trainer), trained and evaluated.
 - :class:`UnicornDataModule` (``data``): the one LightningDataModule: a dataset's splits and loaders, training on an
   endless, resumable, rank-sharded stream of batches (:class:`StreamBatchSampler`).
 

@@ -18,6 +18,7 @@ several viewpoints, the textures and the backgrounds, to TensorBoard and as PNG 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -32,15 +33,23 @@ from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities import rank_zero_only
 
+from unicorn.config.schema import (
+    N_STAGES,
+    SCHEDULE_MODES,
+    CurriculumConfig,
+    ImagesConfig,
+    PlateauConfig,
+    TextureAveragingConfig,
+)
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.lit.checkpoint import PeriodicCheckpoint
 from unicorn.lit.loggers import logs_this_step
 
-__all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "render_overview"]
+__all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "periodic_checkpoint", "render_overview"]
 
 log = logging.getLogger(__name__)
 
-N_STAGES = 4
-_SWITCHES = ("translation", "deformation", "scale")
+_SWITCHES = tuple(f.name for f in dataclasses.fields(CurriculumConfig))
 
 
 class StageState(dict):
@@ -72,8 +81,8 @@ class StageCallback(L.Callback):
         mode: str = "fixed",
         plateau: Mapping[str, Any] | None = None,
     ) -> None:
-        if mode not in ("fixed", "plateau"):
-            raise ValueError(f"mode must be 'fixed' or 'plateau', got {mode!r}")
+        if mode not in SCHEDULE_MODES:
+            raise ValueError(f"mode must be one of {SCHEDULE_MODES}, got {mode!r}")
         if len(milestones) != N_STAGES - 1 or list(milestones) != sorted(milestones):
             raise ValueError(f"need {N_STAGES - 1} increasing milestones, got {list(milestones)}")
         for name, values in dims.items():
@@ -82,16 +91,35 @@ class StageCallback(L.Callback):
         self.dims = {k: [int(d) for d in v] for k, v in dims.items() if v is not None}
         self.milestones = [int(m) for m in milestones]
         self.curriculum = {k: 0 for k in _SWITCHES} | {k: int(v) for k, v in dict(curriculum or {}).items()}
-        ta = {"constant_stages": 0, "p": 0.2, "random_until_stage": N_STAGES} | dict(texture_averaging or {})
-        self.texture_averaging = ta
+        self.texture_averaging = dataclasses.asdict(TextureAveragingConfig()) | dict(texture_averaging or {})
         self.mode = mode
-        self.plateau = {"window": 2000, "check_every": 1000, "threshold": 0.01, "patience": 3, "min_steps": 10000}
-        self.plateau |= dict(plateau or {})
+        self.plateau = dataclasses.asdict(PlateauConfig()) | dict(plateau or {})
         # plateau bookkeeping (saved in the checkpoint)
         self._history: deque[float] = deque(maxlen=2 * int(self.plateau["window"]))
         self._strikes = 0
         self._stage_start = 0
         self._last: StageState | None = None
+
+    @classmethod
+    def from_config(cls, schedule: Any, model: Any) -> StageCallback:
+        """The callback of a validated training config's ``schedule`` and ``model`` groups (the stages' code sizes;
+        a model without background has no background sizes)."""
+        from omegaconf import OmegaConf
+
+        def plain(node: Any) -> Any:
+            return OmegaConf.to_container(node, resolve=True)
+
+        dims = plain(model.stages)
+        if model.background is None:
+            dims.pop("background")
+        return cls(
+            dims=dims,
+            milestones=list(schedule.milestones),
+            curriculum=plain(schedule.curriculum),
+            texture_averaging=plain(schedule.texture_averaging),
+            mode=schedule.mode,
+            plateau=plain(schedule.plateau),
+        )
 
     # ------------------------------------------------------------------ the schedule
     def fixed_stage(self, step: int) -> int:
@@ -271,7 +299,13 @@ class ImageLogger(L.Callback):
         save_png: also write PNG files into ``<default_root_dir>/images``.
     """
 
-    def __init__(self, every_n_steps: int = 2000, n_images: int = 8, n_views: int = 4, save_png: bool = True) -> None:
+    def __init__(
+        self,
+        every_n_steps: int = ImagesConfig.every_n_steps,
+        n_images: int = ImagesConfig.n_images,
+        n_views: int = ImagesConfig.n_views,
+        save_png: bool = ImagesConfig.save_png,
+    ) -> None:
         self.every_n_steps, self.n_images, self.n_views, self.save_png = every_n_steps, n_images, n_views, save_png
 
     @rank_zero_only
@@ -298,6 +332,21 @@ class ImageLogger(L.Callback):
             folder.mkdir(parents=True, exist_ok=True)
             array = (grid.permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
             Image.fromarray(array).save(folder / f"step={step:07d}.png")
+
+
+def periodic_checkpoint(dirpath: str | Path, every_n_steps: int, keep: int, save_last: bool) -> PeriodicCheckpoint:
+    """The run's checkpoints (``callbacks.checkpoint``): ``step=<N>.ckpt`` every ``every_n_steps`` iterations, the
+    ``keep`` latest kept (-1: all; ``"step"`` is always a monitor candidate), and ``last.ckpt`` with ``save_last``."""
+    return PeriodicCheckpoint(
+        dirpath=dirpath,
+        filename="step={step:07d}",
+        auto_insert_metric_name=False,
+        every_n_train_steps=every_n_steps,
+        monitor="step",
+        mode="max",
+        save_top_k=keep,
+        save_last=save_last,
+    )
 
 
 class ProgressBar(TQDMProgressBar):

@@ -39,15 +39,15 @@ import torch
 from lightning.pytorch.utilities import rank_zero_only
 from torch import nn
 
+from unicorn.config.schema import DiagnosticsConfig
 from unicorn.lit.heldout import append_csv_row
 from unicorn.metrics import active_units, code_spread
+from unicorn.model.config import CODE_BRANCHES, check_ranges
 
 __all__ = ["CodeDiagnostics", "CollapseWarning", "code_diagnostics"]
 
 log = logging.getLogger(__name__)
 
-#: the branches whose code regressors are watched (``background`` only when the model has one)
-BRANCHES = ("shape", "texture", "background")
 #: branch -> the branch whose code spread it is compared with (``CodeDiagnostics.shape_spread_ratio``)
 SPREAD_REFERENCE = {"shape": "texture"}
 
@@ -73,7 +73,8 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
     """
     if images.dim() != 4 or images.shape[0] < 2:
         raise ValueError(f"need a (B, 3, S, S) batch with B >= 2 images, got {tuple(images.shape)}")
-    heads = {b: getattr(model, b) for b in BRANCHES if getattr(model, b, None) is not None}
+    # the code branches' regressors (``background`` only when the model has one)
+    heads = {b: getattr(model, b) for b in CODE_BRANCHES if getattr(model, b, None) is not None}
     hidden: dict[str, list[torch.Tensor]] = {b: [] for b in heads}
     raw: dict[str, torch.Tensor] = {}
     handles = []
@@ -154,16 +155,13 @@ class CodeDiagnostics(L.Callback):
 
     def __init__(
         self,
-        every_n_steps: int = 100,
-        max_images: int = 64,
-        spread_tol: float = 1e-6,
-        shape_spread_ratio: float = 0.05,
+        every_n_steps: int = DiagnosticsConfig.every_n_steps,
+        max_images: int = DiagnosticsConfig.max_images,
+        spread_tol: float = DiagnosticsConfig.spread_tol,
+        shape_spread_ratio: float = DiagnosticsConfig.shape_spread_ratio,
         filename: str = "diagnostics.csv",
     ) -> None:
-        if every_n_steps < 1 or max_images < 2:
-            raise ValueError(f"need every_n_steps >= 1 and max_images >= 2, got {every_n_steps}, {max_images}")
-        if not (spread_tol >= 0 and shape_spread_ratio >= 0):
-            raise ValueError(f"spread_tol and shape_spread_ratio must be >= 0, got {spread_tol}, {shape_spread_ratio}")
+        check_ranges(locals(), DiagnosticsConfig)
         self.every_n_steps, self.max_images, self.spread_tol = int(every_n_steps), int(max_images), float(spread_tol)
         self.shape_spread_ratio = float(shape_spread_ratio)
         self.filename = filename

@@ -29,6 +29,9 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities import rank_zero_only
 
+from unicorn.config.schema import HELDOUT_SPLITS, HeldOutConfig
+from unicorn.model.config import check_ranges
+
 __all__ = ["HeldOutEvaluation", "append_csv_row"]
 
 log = logging.getLogger(__name__)
@@ -63,31 +66,23 @@ class HeldOutEvaluation(L.Callback):
 
     def __init__(
         self,
-        every_n_steps: int = 1000,
-        split: str = "val",
-        max_images: int = 32,
-        num_points: int = 5000,
-        icp_iterations: int = 20,
-        batch_size: int = 32,
-        at_start: bool = True,
+        every_n_steps: int = HeldOutConfig.every_n_steps,
+        split: str = HeldOutConfig.split,
+        max_images: int = HeldOutConfig.max_images,
+        num_points: int = HeldOutConfig.num_points,
+        icp_iterations: int = HeldOutConfig.icp_iterations,
+        batch_size: int = HeldOutConfig.batch_size,
+        at_start: bool = HeldOutConfig.at_start,
         filename: str = "heldout.csv",
-        mean_shape_iterations: int = 0,
-        mean_shape_models: int = 200,
-        own_mean_shape: bool = False,
-        shape_points: int = 1000,
+        mean_shape_iterations: int = HeldOutConfig.mean_shape_iterations,
+        mean_shape_models: int = HeldOutConfig.mean_shape_models,
+        own_mean_shape: bool = HeldOutConfig.own_mean_shape,
+        shape_points: int = HeldOutConfig.shape_points,
         progress: bool = True,
     ) -> None:
-        if every_n_steps < 1 or max_images < 1 or num_points < 1 or batch_size < 1:
-            raise ValueError("every_n_steps, max_images, num_points and batch_size must be positive")
-        if split not in ("val", "test"):
-            raise ValueError(f"split must be 'val' or 'test', got {split!r}")
-        if icp_iterations < 0 or shape_points < 0:
-            raise ValueError(f"icp_iterations and shape_points must be >= 0, got {icp_iterations}, {shape_points}")
-        if mean_shape_iterations < 0 or mean_shape_models < 1:
-            raise ValueError(
-                f"mean_shape_iterations must be >= 0 and mean_shape_models >= 1, got {mean_shape_iterations}, "
-                f"{mean_shape_models}"
-            )
+        if split not in HELDOUT_SPLITS:
+            raise ValueError(f"split must be one of {HELDOUT_SPLITS}, got {split!r}")
+        check_ranges(locals(), HeldOutConfig)
         self.every_n_steps, self.split, self.max_images = int(every_n_steps), split, int(max_images)
         self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
         self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
@@ -146,22 +141,19 @@ class HeldOutEvaluation(L.Callback):
 
     def evaluate_now(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
         """Score the current model, log and append the row; returns ``{"step": ..., metric: value}``."""
-        from unicorn.evaluation import EvalOptions, evaluate, protocol_for
+        from unicorn.evaluation import evaluate
+        from unicorn.evaluation.session import settings_options
 
         if self._dataset is None:
             self._build_dataset(trainer, pl_module)
-        options = EvalOptions(
-            protocol=protocol_for(self._name),
-            batch_size=self.batch_size,
-            num_points=self.num_points,
-            icp_iterations=self.icp_iterations,
+        options = settings_options(
+            self,  # the held-out settings, as attributes
+            self._name,
             average_texture=pl_module.constant_mean_textures,
             report_samples=0,
             progress=self.progress,
             progress_label=f"held-out {self.split}",
             progress_leave=False,
-            own_mean_shape=self.own_mean_shape,
-            shape_points=self.shape_points,
         )
         step = int(trainer.global_step)
         log.info("held-out %s: scoring %d images at iteration %d", self.split, len(self._dataset), step)

@@ -22,6 +22,7 @@ __all__ = [
     "DEFAULT_CONFIG",
     "BackgroundConfig",
     "CHOICES",
+    "CODE_BRANCHES",
     "EncoderConfig",
     "LossConfig",
     "ModelGroups",
@@ -34,10 +35,14 @@ __all__ = [
     "UnicornConfig",
     "check_model_config",
     "check_ranges",
+    "describe_range",
+    "field_range",
     "merge_config",
     "ranged",
 ]
 
+#: the branches with a latent code regressed from the image, whose active size grows stage by stage
+CODE_BRANCHES = ("shape", "texture", "background")
 #: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
 POSE_OBJECTIVES = ("expected", "assigned")
 #: allowed values of the model's string settings: ``group.key`` -> values
@@ -184,7 +189,18 @@ def _dataclass_of(hint: Any) -> type | None:
     return None
 
 
-def _describe_range(low: float | None, high: float | None) -> str:
+def field_range(schema: type, name: str) -> tuple[float | None, float | None]:
+    """The ``[low, high]`` range of a :func:`ranged` field (``(None, None)``: unchecked). A subclass that only
+    changes a field's default keeps the range its base class declares."""
+    for cls in schema.__mro__:
+        f = getattr(cls, "__dataclass_fields__", {}).get(name)
+        if f is not None and "range" in f.metadata:
+            return f.metadata["range"]
+    return None, None
+
+
+def describe_range(low: float | None, high: float | None) -> str:
+    """``">= 1"``, ``"<= 5"`` or ``"in [0, 1]"``."""
     if high is None:
         return f">= {low:g}"
     if low is None:
@@ -208,13 +224,13 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
             if value is not None:
                 check_ranges(value, nested, f"{key}.")
             continue
-        low, high = f.metadata.get("range", (None, None))
+        low, high = field_range(schema, f.name)
         if value is None or (low is None and high is None):
             continue
         if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-            raise ValueError(f"{key} must be a finite number {_describe_range(low, high)}, got {value!r}")
+            raise ValueError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
         if not ((low is None or value >= low) and (high is None or value <= high)):
-            raise ValueError(f"{key} must be {_describe_range(low, high)}, got {value}")
+            raise ValueError(f"{key} must be {describe_range(low, high)}, got {value}")
 
 
 def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:

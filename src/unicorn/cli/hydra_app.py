@@ -1,0 +1,150 @@
+"""A Hydra application whose errors are reported like every other command's (:mod:`unicorn.cli.errors`).
+
+:class:`HydraApp` runs a task under ``hydra.main`` and handles every error once:
+
+- before the task (Hydra's composition: a misspelt override or group, a run folder that cannot be created), what
+  Hydra printed is held back and reported as ``<prog>: error: <one line>``, exit status 2, unless it is a bug;
+- in the task, an expected failure (:func:`~unicorn.cli.errors.expected_error`) the same way, a bug with its
+  traceback.
+
+Hydra writes its record of the run (``.hydra/``) before the task starts, over the record of a run whose folder
+the task may then refuse; the app turns that off and the task writes the record once it accepted the folder
+(:meth:`HydraApp.save_record`).
+"""
+
+from __future__ import annotations
+
+import builtins
+import io
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from unicorn.cli.errors import debug_requested, expected_error, one_line
+
+__all__ = ["HydraApp", "hydra_failure"]
+
+#: the last line of a Python traceback: the exception's (qualified) name and message
+_EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
+
+
+def hydra_failure(text: str) -> str | None:
+    """The one line to print for what Hydra reported before the task ran, or None when it is a bug.
+
+    Without a traceback it is a composition error (a misspelt override or group); with one, an expected failure
+    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk).
+    """
+    lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
+    if not any(line.startswith("Traceback (most recent call last)") for line in lines):
+        return " ".join(lines) or "invalid command line"
+    match = _EXCEPTION_LINE.match(lines[-1])
+    cls = getattr(builtins, match.group(1), None) if match else None
+    if match and isinstance(cls, type) and issubclass(cls, OSError):
+        return match.group(2)
+    return None
+
+
+class _HeldStream(io.TextIOBase):
+    """Holds what is written to stderr until the task starts, so that Hydra's errors can be put on one line."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream, self.held, self.released = stream, io.StringIO(), False
+
+    def write(self, text: str) -> int:
+        # a handler created meanwhile may keep this object: after the release it writes through
+        return self.stream.write(text) if self.released else self.held.write(text)
+
+    def flush(self) -> None:
+        if self.released:
+            self.stream.flush()
+
+    def release(self) -> Any:
+        if not self.released:
+            self.released = True
+            self.stream.write(self.held.getvalue())
+        return self.stream
+
+
+class HydraApp:
+    """``hydra.main`` for a command, with its errors reported once (see the module docstring).
+
+    Args:
+        prog: the command's name (``<prog>: error: ...``).
+        config_dir: the primary config's folder.
+        config_name: the primary config.
+        debug: tracebacks for expected failures too (``--debug``).
+    """
+
+    def __init__(self, prog: str, config_dir: Path, config_name: str, debug: bool = False) -> None:
+        self.prog, self.config_dir, self.config_name, self.debug = prog, config_dir, config_name, debug
+        self.record_subdir: str | None = ".hydra"  # where the task writes Hydra's record (None: nowhere)
+        self.task_started = False
+
+    def hydra_args(self, args: list[str]) -> list[str]:
+        """The arguments with Hydra's own writing of ``.hydra/`` turned off; a ``hydra.output_subdir`` given by the
+        user is kept for :meth:`save_record`."""
+        rest = []
+        for arg in args:
+            key, _, value = arg.partition("=")
+            if key.lstrip("+~") == "hydra.output_subdir":
+                self.record_subdir = None if value in ("", "null") or key.startswith("~") else value
+            else:
+                rest.append(arg)
+        return [*rest, "hydra.output_subdir=null"]
+
+    def save_record(self, cfg: DictConfig, output_dir: Path) -> None:
+        """Hydra's record of the run (``config.yaml``, ``hydra.yaml``, ``overrides.yaml`` in ``.hydra/``), as
+        Hydra writes it, into a run folder the task accepted."""
+        from hydra.core.hydra_config import HydraConfig
+
+        if self.record_subdir is None or not HydraConfig.initialized():
+            return
+        # a plain copy (Hydra's is read-only), interpolations kept as Hydra saves them
+        hydra_cfg = OmegaConf.create(OmegaConf.to_container(HydraConfig.instance().cfg, resolve=False))
+        hydra_cfg.hydra.output_subdir = self.record_subdir
+        folder = output_dir / self.record_subdir
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, node in (("config", cfg), ("hydra", hydra_cfg), ("overrides", hydra_cfg.hydra.overrides.task)):
+            OmegaConf.save(node, folder / f"{name}.yaml")
+
+    def _run_task(self, task: Callable[[DictConfig], Any], cfg: DictConfig) -> None:
+        self.task_started = True
+        if isinstance(sys.stderr, _HeldStream):
+            sys.stderr = sys.stderr.release()
+        try:
+            task(cfg)
+        except Exception as err:
+            reported = expected_error(err)
+            if reported is None or debug_requested(self.debug):
+                raise  # a bug: Hydra prints the traceback, exit status 1
+            print(f"{self.prog}: error: {one_line(reported)}", file=sys.stderr, flush=True)
+            raise SystemExit(2) from None
+
+    def run(self, task: Callable[[DictConfig], Any], args: list[str]) -> None:
+        """Run ``task`` on the config Hydra composes from ``args`` (the command line after the program name)."""
+        sys.argv[1:] = self.hydra_args(args)
+        held = None if debug_requested(self.debug) else _HeldStream(sys.stderr)
+        if held is not None:
+            sys.stderr = held
+        main = hydra.main(config_path=str(self.config_dir), config_name=self.config_name, version_base="1.3")
+        try:
+            main(lambda cfg: self._run_task(task, cfg))()
+        except SystemExit as exit:
+            if held is None or self.task_started or not exit.code:
+                raise
+            sys.stderr = held.stream
+            # Hydra's own report of an error before the task: one line, status 2, unless it is a bug
+            line = hydra_failure(held.held.getvalue())
+            if line is None:
+                sys.stderr.write(held.held.getvalue())
+                raise
+            print(f"{self.prog}: error: {line}", file=sys.stderr)
+            raise SystemExit(2) from None
+        finally:
+            if isinstance(sys.stderr, _HeldStream):
+                sys.stderr = sys.stderr.release()

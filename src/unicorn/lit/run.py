@@ -1,0 +1,252 @@
+"""One training run assembled from a composed config: the run folder, data, module, callbacks, loggers, trainer.
+
+:func:`build` validates the config and builds everything (nothing is trained), :func:`fit` trains and, with
+``evaluate.enabled``, evaluates the trained model (:func:`evaluate_run`). ``unicorn-train`` is these two calls
+inside Hydra; tests and notebooks call them on a config from Hydra's compose API.
+
+Callbacks and loggers are config nodes built by their ``_target_`` (``conf/callbacks``, ``conf/logger``); the run
+adds the three that follow from other groups: the stage schedule (``schedule``, ``model.stages``), the log
+rewinding of a resumed run (``ckpt_path``) and the progress bar (``trainer.enable_progress_bar``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["Run", "build", "build_callbacks", "build_loggers", "evaluate_run", "fit"]
+
+log = logging.getLogger("unicorn.train")
+
+
+@dataclass
+class Run:
+    """Everything :func:`build` assembles for one training run."""
+
+    config: DictConfig
+    trainer: Any
+    module: Any
+    data: Any
+    output_dir: Path
+    checkpoint_dir: Path
+    ckpt_path: str | None
+
+
+def build(cfg: DictConfig) -> Run:
+    """Validate ``cfg`` and build the data, model, callbacks, loggers and trainer (nothing is trained).
+
+    Raises:
+        unicorn.config.ConfigError: an invalid config (unknown key, wrong type, inconsistent values).
+    """
+    from unicorn.config import validate
+
+    _route_lightning_logs()
+    typed = validate(cfg)
+    # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
+    warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
+    output_dir, checkpoint_dir, ckpt_path = prepare_run_folder(typed)
+    L.seed_everything(typed.seed, workers=True, verbose=False)
+    data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
+    module = build_module(typed)
+    trainer = build_trainer(typed, build_callbacks(typed, checkpoint_dir), build_loggers(typed), output_dir)
+    return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path)
+
+
+def _route_lightning_logs() -> None:
+    """Send Lightning's log records through the root logger's handlers only (each message printed once).
+
+    Lightning gives its loggers a stderr handler of their own; under Hydra, whose root handlers also print to the
+    console (and to train.log), every Lightning line would appear twice. Nothing changes without root handlers.
+    """
+    if not logging.getLogger().handlers:
+        return
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in list(logger.handlers):
+            if isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler):
+                logger.removeHandler(handler)
+        logger.propagate = True
+
+
+def prepare_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None]:
+    """Accept (or refuse) the run folder, write ``config.yaml`` and ``provenance.json`` into it.
+
+    Returns:
+        the run folder, its checkpoint folder and the checkpoint to resume from (None: a new run).
+    """
+    from unicorn.io.run_folder import prepare_folder, resolve_ckpt
+    from unicorn.io.serialization import remove_stale_temporaries
+
+    output_dir = Path(typed.paths.output_dir).expanduser().resolve()
+    checkpoint_dir = output_dir / "checkpoints"
+    ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    prepare_folder(output_dir, resume=typed.ckpt_path is not None, overwrite=typed.overwrite)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    if checkpoint_dir.is_dir():
+        for tmp in remove_stale_temporaries(checkpoint_dir):
+            log.info("removed %s, a partial checkpoint of a killed run", tmp)
+    (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
+    _write_provenance(output_dir, ckpt_path)
+    return output_dir, checkpoint_dir, ckpt_path
+
+
+def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
+    """``<run>/provenance.json``: the command, resumed checkpoint, version and commit behind the run's metrics files
+    (``heldout.csv``, ``csv/``, ``tensorboard/``); a resumed run keeps one record per start."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.io.provenance import command_line, provenance
+
+    if int(os.environ.get("LOCAL_RANK", "0")) != 0 or int(os.environ.get("NODE_RANK", "0")) != 0:
+        return  # DDP processes started by Lightning build the run again: one record per start
+    if HydraConfig.initialized():
+        command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
+    else:  # built from Python (e.g. with Hydra's compose API)
+        command = command_line(Path(sys.argv[0]).name, sys.argv[1:])
+    path = output_dir / "provenance.json"
+    starts = json.loads(path.read_text()) if path.is_file() else []
+    path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
+
+
+def build_module(typed: DictConfig) -> Any:
+    """The LightningModule of the validated config, from ``init_from``'s weights when it names a file."""
+    from unicorn.config import model_config
+    from unicorn.io.checkpoints import init_weights
+    from unicorn.io.serialization import check_checkpoint_path
+    from unicorn.lit.module import UnicornLitModule
+
+    module = UnicornLitModule(
+        model_config(typed),
+        optim=OmegaConf.to_container(typed.optim, resolve=True),
+        alternation_period=typed.schedule.alternation_period,
+        seed=typed.seed,
+    )
+    if typed.init_from is not None:
+        info = init_weights(module.model, check_checkpoint_path(typed.init_from, "init_from"), typed.trust_checkpoint)
+        log.info("init_from: starting from the weights of the %s", info.describe())
+    return module
+
+
+def build_callbacks(typed: DictConfig, checkpoint_dir: Path) -> list[L.Callback]:
+    """The run's callbacks, in this order: the stage schedule, ``callbacks.checkpoint`` (in ``checkpoint_dir``), the
+    log rewinding of a resumed run, the progress bar, then ``callbacks.images``, ``heldout``, ``diagnostics`` and
+    ``extra`` (each built by its ``_target_``; a null node is left out).
+
+    Lightning runs checkpoint callbacks after all others, wherever they stand in the list.
+    """
+    from unicorn.lit.callbacks import ProgressBar, StageCallback
+    from unicorn.lit.loggers import ResumeLogs
+
+    cb = typed.callbacks
+    callbacks: list[L.Callback] = [
+        StageCallback.from_config(typed.schedule, typed.model),
+        instantiate(cb.checkpoint, dirpath=checkpoint_dir),
+        ResumeLogs(resume=typed.ckpt_path is not None),
+    ]
+    if typed.trainer.enable_progress_bar:
+        # Lightning refuses a progress-bar callback with enable_progress_bar=False
+        callbacks.append(ProgressBar(refresh_rate=cb.progress_bar_refresh_rate))
+    nodes = [cb.images, cb.heldout, cb.diagnostics, *cb.extra.values()]
+    return callbacks + [instantiate(node) for node in nodes if node is not None]
+
+
+def build_loggers(typed: DictConfig) -> list[Any]:
+    """Every node of the ``logger`` group, built by its ``_target_`` (a null node is left out)."""
+    return [instantiate(node) for node in typed.logger.values() if node is not None]
+
+
+def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[Any], output_dir: Path) -> L.Trainer:
+    """Lightning's trainer for an iteration-counted run over an endless, self-sharding stream.
+
+    Raises:
+        unicorn.config.ConfigError: trainer flags this machine cannot honour (e.g. ``accelerator=gpu`` without one).
+    """
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    from unicorn.config import ConfigError
+    from unicorn.lit.checkpoint import AtomicCheckpointIO
+
+    trainer_kwargs = OmegaConf.to_container(typed.trainer, resolve=True)
+    assert isinstance(trainer_kwargs, dict)
+    if trainer_kwargs["val_check_interval"] is None:
+        trainer_kwargs["limit_val_batches"] = 0
+    try:
+        return L.Trainer(
+            **trainer_kwargs,
+            max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
+            check_val_every_n_epoch=None,
+            use_distributed_sampler=False,  # the stream shards itself across ranks
+            default_root_dir=str(output_dir),
+            callbacks=callbacks,
+            logger=loggers or False,
+            plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
+        )
+    except MisconfigurationException as err:
+        t = typed.trainer
+        raise ConfigError(
+            f"trainer (accelerator={t.accelerator}, devices={t.devices}, strategy={t.strategy}): {err}"
+        ) from err
+
+
+def fit(run: Run) -> dict[str, float]:
+    """Train a built run; returns the last values of the trainer's scalar callback metrics."""
+    trainer, typed = run.trainer, run.config
+    log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
+    trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
+    if not trainer.interrupted and typed.callbacks.checkpoint.save_last:
+        # the periodic checkpoints may not fall on the last iteration
+        trainer.save_checkpoint(run.checkpoint_dir / "last.ckpt", weights_only=False)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+    if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
+        evaluate_run(run)
+    return metrics
+
+
+def evaluate_run(run: Run) -> Path:
+    """The ``evaluate`` settings' evaluation of the trained model, in memory; returns the report folder.
+
+    The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go to
+    ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command.
+    """
+    from unicorn.config.schema import EvaluateConfig
+    from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, settings_options
+    from unicorn.io.provenance import command_line, provenance
+
+    settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
+    d = run.config.dataset
+    checkpoint = run.checkpoint_dir / "last.ckpt"
+    out = run.output_dir / "eval"
+    meta = {
+        **provenance(
+            eval_command(checkpoint, out, settings),
+            checkpoint if checkpoint.is_file() else None,
+            produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+        ),
+        "epoch": run.trainer.current_epoch,
+        "step": run.trainer.global_step,
+    }
+    categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
+    target = EvalTarget(d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images)
+    log.info("evaluating the trained model on the %s split", settings.split)
+    evaluate_to_folder(
+        run.module.model,
+        target,
+        settings_options(settings, d.name, average_texture=run.module.constant_mean_textures),
+        out,
+        meta,
+        mean_shape_iterations=settings.mean_shape_iterations,
+        turntable_frames=settings.turntable_frames,
+        title=f"{d.name} ({settings.split}): {checkpoint.name}",
+    )
+    log.info("evaluation report: %s", out / "report.html")
+    return out
