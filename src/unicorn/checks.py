@@ -1,8 +1,9 @@
 """Input checks shared by the renderer, the metrics and the evaluation (the ground floor: torch only).
 
 Each check raises one error naming the argument and what is wrong with it: ``TypeError`` for a wrong type or
-dtype, ``ValueError`` for a wrong shape or value, :class:`FaceIndexError` (an ``IndexError`` and a
-``ValueError``) for face indices outside the vertices.
+dtype, :class:`ShapeError` (a ``ValueError``) for a shape outside its contract (:func:`check_shape`), ``ValueError``
+for a wrong value, :class:`FaceIndexError` (an ``IndexError`` and a ``ValueError``) for face indices outside the
+vertices.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from numbers import Integral
 import torch
 
 __all__ = [
+    "Dims",
     "FaceIndexError",
     "ShapeError",
     "check_shape",
