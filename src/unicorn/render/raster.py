@@ -206,7 +206,7 @@ def _recompute(
     px_to_ndc2 = (2.0 / min(H, W)) ** 2
     vert_idx = kept.image.unsqueeze(1) * verts_ndc.shape[1] + faces.index_select(0, kept.face)  # (M, 3)
     tri = verts_ndc.reshape(-1, 3).index_select(0, vert_idx.reshape(-1)).view(-1, 3, 3)  # (M, 3, 3)
-    tri_px = ndc_to_pixel(tri, (H, W))
+    tri_px = ndc_to_pixel(tri[..., :2], (H, W))
     centre_x = (kept.pix % W).to(tri.dtype)
     centre_y = torch.div(kept.pix, W, rounding_mode="floor").remainder(H).to(tri.dtype)
     bary_raw, d2 = barycentric_and_distance(tri_px, centre_x, centre_y)

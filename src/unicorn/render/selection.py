@@ -104,7 +104,7 @@ def _project_faces(
     in front of the camera and not degenerate."""
     B, F = verts_ndc.shape[0], faces.shape[0]
     corners = verts_ndc.index_select(1, faces.reshape(-1)).view(B, F, 3, 3)
-    fpx = ndc_to_pixel(corners, image_size)  # (B, F, 3, 2)
+    fpx = ndc_to_pixel(corners[..., :2], image_size)  # (B, F, 3, 2)
     fz = corners[..., 2].contiguous()  # contiguous for fast row gathers
     e1 = fpx[:, :, 1] - fpx[:, :, 0]
     e2 = fpx[:, :, 2] - fpx[:, :, 0]
