@@ -79,12 +79,11 @@ def _run_config(args: tuple) -> dict:
         loss = ((renderer(v_, faces, TexturesUV(m_, uvs), R=R, T=T) - target) ** 2).mean()
         loss.backward()
 
+    base = _rss_mib()  # CPU: the high-water mark before any render (ru_maxrss cannot be reset)
     frags = renderer.rasterize(verts, faces, R, T)
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
         base = torch.cuda.memory_allocated() / 2**20
-    else:
-        base = _rss_mib()
     fwd = _median_time(forward, device, repeats)
     fb = _median_time(forward_backward, device, repeats)
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else _rss_mib()) - base
