@@ -8,17 +8,27 @@ memory is its own (CPU: peak RSS above the process's baseline after set-up; CUDA
     python benchmarks/bm_render.py                 # CPU, the full table
     python benchmarks/bm_render.py --device cuda   # on a GPU
     python benchmarks/bm_render.py --quick         # fewer rows and runs
+    python benchmarks/bm_render.py --quick --ref main   # this tree beside a git revision, row by row
+
+With ``--ref``, each configuration runs in this tree and in the revision one after the other (fresh processes,
+the revision's ``unicorn`` first on the path; see ``revisions.py``), and the table gains their time ratios.
 """
 
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
+import json
 import resource
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from revisions import REPO, child_env, tree_of  # noqa: E402
 
 
 def _sync(device: str) -> None:
@@ -69,12 +79,11 @@ def _run_config(args: tuple) -> dict:
         loss = ((renderer(v_, faces, TexturesUV(m_, uvs), R=R, T=T) - target) ** 2).mean()
         loss.backward()
 
+    base = _rss_mib()  # CPU: the high-water mark before any render (ru_maxrss cannot be reset)
     frags = renderer.rasterize(verts, faces, R, T)
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
         base = torch.cuda.memory_allocated() / 2**20
-    else:
-        base = _rss_mib()
     fwd = _median_time(forward, device, repeats)
     fb = _median_time(forward_backward, device, repeats)
     peak = (torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else _rss_mib()) - base
@@ -99,46 +108,77 @@ def _resnet_step(device: str, threads: int, repeats: int) -> float:
     return _median_time(step, device, repeats)
 
 
+def _in_process(tree: Path, threads: int, call: str) -> object:
+    """``call`` (an expression over this script's functions) evaluated in a fresh process importing ``tree``'s
+    ``unicorn``: each configuration's peak memory is its own."""
+    code = f"import json, bm_render; print(json.dumps(bm_render.{call}))"
+    env = child_env(tree, threads)
+    done = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _configs(quick: bool) -> list[tuple]:
+    configs = []
+    for backend in ["layered"] if quick else ["layered", "softras"]:
+        for level in [3] if quick else [3, 4]:
+            for K in [25] if quick else [25, 50]:
+                for batch in (32, 192):
+                    configs.append((backend, batch, level, K, 64))
+    configs.append(("layered", 32, 3, 25, 128))  # how time grows with pixels
+    configs.append(("layered", 32, 3, 25, 256))
+    return configs
+
+
+def _print_table(rows: list[dict], resnet: float, ref_rows: list[dict] | None) -> None:
+    header = (
+        f"{'backend':8} {'B':>4} {'lvl':>3} {'F':>5} {'K':>3} {'px':>4} {'fwd s':>7} {'fwd+bwd s':>9} "
+        f"{'x ResNet':>8} {'peak MiB':>8} {'pairs':>8} {'slots':>5} {'overflow':>8}"
+    )
+    if ref_rows:
+        header += f" {'ref fwd':>7} {'ref f+b':>7} {'ref MiB':>7} {'fwd/ref':>7} {'f+b/ref':>7}"
+    print(header)
+    print("-" * len(header))
+    for i, r in enumerate(rows):
+        line = (
+            f"{r['backend']:8} {r['batch']:>4} {r['level']:>3} {r['faces']:>5} {r['K']:>3} {r['size']:>4} "
+            f"{r['fwd']:>7.3f} {r['fb']:>9.3f} {r['fb'] / resnet:>8.2f} {r['peak_mib']:>8.0f} {r['pairs']:>8} "
+            f"{r['slots']:>5} {r['overflow']:>8}"
+        )
+        if ref_rows:
+            q = ref_rows[i]
+            line += (
+                f" {q['fwd']:>7.3f} {q['fb']:>7.3f} {q['peak_mib']:>7.0f} {r['fwd'] / q['fwd']:>7.2f} "
+                f"{r['fb'] / q['fb']:>7.2f}"
+            )
+        print(line)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="layered only at level 3, K = 25; 3 runs")
+    parser.add_argument("--ref", help="also run every configuration in this git revision (e.g. main), side by side")
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda asked for, but torch sees no CUDA device")
     repeats = 3 if args.quick else args.repeats
+    ref_tree = tree_of(args.ref) if args.ref else None
 
-    configs = []
-    backends = ["layered"] if args.quick else ["layered", "softras"]
-    for backend in backends:
-        for level in [3] if args.quick else [3, 4]:
-            for K in [25] if args.quick else [25, 50]:
-                for batch in (32, 192):
-                    configs.append((backend, batch, level, K, 64))
-    configs.append(("layered", 32, 3, 25, 128))  # how time grows with pixels
-    configs.append(("layered", 32, 3, 25, 256))
-
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(1, maxtasksperchild=1) as pool:
-        resnet = pool.apply(_resnet_step, (args.device, args.threads, repeats))
-        rows = [pool.apply(_run_config, ((*c, args.device, args.threads, repeats),)) for c in configs]
+    resnet = _in_process(REPO, args.threads, f"_resnet_step({args.device!r}, {args.threads}, {repeats})")
+    rows, ref_rows = [], []
+    for c in _configs(args.quick):
+        call = f"_run_config({(*c, args.device, args.threads, repeats)!r})"
+        rows.append(_in_process(REPO, args.threads, call))
+        if ref_tree is not None:
+            ref_rows.append(_in_process(ref_tree, args.threads, call))
 
     print(f"device={args.device} threads={args.threads} torch={torch.__version__} median of {repeats} runs, sigma=1e-4")
+    if ref_tree is not None:
+        print(f"ref: {args.ref} (ref columns; ratios are this tree / ref, each pair of runs back to back)")
     print(f"ResNet-18 forward+backward, 32 x 3 x 64 x 64: {resnet:.3f} s")
-    header = (
-        f"{'backend':8} {'B':>4} {'lvl':>3} {'F':>5} {'K':>3} {'px':>4} {'fwd s':>7} {'fwd+bwd s':>9} "
-        f"{'x ResNet':>8} {'peak MiB':>8} {'pairs':>8} {'slots':>5} {'overflow':>8}"
-    )
-    print(header)
-    print("-" * len(header))
-    for r in rows:
-        print(
-            f"{r['backend']:8} {r['batch']:>4} {r['level']:>3} {r['faces']:>5} {r['K']:>3} {r['size']:>4} "
-            f"{r['fwd']:>7.3f} {r['fb']:>9.3f} {r['fb'] / resnet:>8.2f} {r['peak_mib']:>8.0f} {r['pairs']:>8} "
-            f"{r['slots']:>5} {r['overflow']:>8}"
-        )
+    _print_table(rows, resnet, ref_rows or None)
     targets = [r for r in rows if (r["backend"], r["level"], r["K"], r["size"]) == ("layered", 3, 25, 64)]
     print("\ntargets (layered, level 3, K = 25, sigma = 1e-4, 64 px):")
     for r in targets:

@@ -18,6 +18,9 @@ from unicorn.checks import (
     check_same_dtype,
     check_shape,
 )
+from unicorn.geometry.mesh import ellipsoid
+from unicorn.geometry.rotations import look_at_view_transform
+from unicorn.render import TexturesVertex, build_renderer, list_renderers
 
 FACES = torch.tensor([[0, 1, 2], [0, 2, 3]])
 
@@ -32,9 +35,21 @@ def test_face_indices_outside_the_vertices() -> None:
         check_faces(torch.tensor([[-1, 1, 2]]), 4)
 
 
-@pytest.mark.parametrize("dtype", [torch.int16, torch.int32, torch.int64, torch.uint8])
-def test_any_integer_faces(dtype: torch.dtype) -> None:
-    check_mesh(torch.zeros(2, 4, 3), FACES.to(dtype))
+@pytest.mark.parametrize("renderer", list_renderers())
+@pytest.mark.parametrize("dtype", [torch.int16, torch.int32, torch.uint8])
+def test_any_integer_faces(dtype: torch.dtype, renderer: str) -> None:
+    # faces of any integer dtype that the checks accept index the same vertices as int64 ones: same images
+    verts, faces = ellipsoid(1, scale=0.6)  # 42 vertices: uint8 holds the indices
+    verts = verts[None].repeat(2, 1, 1)
+    R, T = look_at_view_transform(2.7, 20.0, torch.tensor([0.0, 130.0]))
+    colors = TexturesVertex(torch.rand(2, verts.shape[1], 3, generator=torch.Generator().manual_seed(0)))
+    check_mesh(verts, faces.to(dtype))
+    render = build_renderer(renderer, image_size=24)
+    expected = render(verts, faces, colors, R=R, T=T)
+    assert expected[:, -1].sum() > 50  # the meshes are in view
+    assert torch.equal(render(verts, faces.to(dtype), colors, R=R, T=T), expected)
+    with pytest.raises(FaceIndexError, match=r"got range \[0, 42\]"):
+        check_mesh(verts, torch.cat([faces, torch.tensor([[0, 1, 42]])]).to(dtype))
 
 
 def test_layout_and_type_errors() -> None:
@@ -145,3 +160,30 @@ def test_check_shape_type_errors() -> None:
     with pytest.raises(ValueError, match="bad shape contract"):
         check_shape(torch.zeros(2), "N, *", "x")  # '*' only leads
     assert issubclass(ShapeError, ValueError)  # callers that catch ValueError keep working
+
+
+def test_check_shape_alternatives_bind_the_first_that_matches() -> None:
+    contract = "B, H, W | B, 1, H, W"
+    assert check_shape(torch.zeros(2, 1, 5, 6), contract, "mask") == {"B": 2, "H": 5, "W": 6}
+    assert check_shape(torch.zeros(2, 5, 6), contract, "mask") == {"B": 2, "H": 5, "W": 6}
+    with pytest.raises(ShapeError, match=r"^mask must have shape \(B, H, W\) or \(B, 1, H, W\), got \(2, 3, 5, 6\)$"):
+        check_shape(torch.zeros(2, 3, 5, 6), contract, "mask")
+    dims = {"B": 3}
+    with pytest.raises(ShapeError, match=r"must have shape \(3, H, W\) or \(3, 1, H, W\), got \(2, 5, 6\)"):
+        check_shape(torch.zeros(2, 5, 6), contract, "mask", dims)
+    assert dims == {"B": 3}  # a failed check binds nothing
+
+
+def test_check_shape_named_leading_group() -> None:
+    dims = check_shape(torch.zeros(4, 7, 2), "*N, 2", "pred")
+    assert dims == {"N": (4, 7)}
+    check_shape(torch.zeros(4, 7), "*N", "valid", dims)
+    check_shape(torch.zeros(2), "*M, 2", "point")  # an empty group
+    with pytest.raises(ShapeError, match=r"^valid must have shape \(4, 7\), got \(4, 6\)$"):
+        check_shape(torch.zeros(4, 6), "*N", "valid", dims)
+    with pytest.raises(ShapeError, match=r"^gt must have shape \(4, 7, 2\), got \(7, 2\)$"):
+        check_shape(torch.zeros(7, 2), "*N, 2", "gt", dims)
+    with pytest.raises(ShapeError, match=r"^pred must have shape \(\.\.\., 2\), got \(3,\)$"):
+        check_shape(torch.zeros(3), "*N, 2", "pred")
+    with pytest.raises(ValueError, match="bad shape contract"):
+        check_shape(torch.zeros(2), "N, *M", "x")

@@ -1,12 +1,14 @@
 """Input checks shared by the renderer, the metrics and the evaluation (the ground floor: torch only).
 
 Each check raises one error naming the argument and what is wrong with it: ``TypeError`` for a wrong type or
-dtype, ``ValueError`` for a wrong shape or value, :class:`FaceIndexError` (an ``IndexError`` and a
-``ValueError``) for face indices outside the vertices.
+dtype, :class:`ShapeError` (a ``ValueError``) for a shape outside its contract (:func:`check_shape`), ``ValueError``
+for a wrong value, :class:`FaceIndexError` (an ``IndexError`` and a ``ValueError``) for face indices outside the
+vertices.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Mapping, Sequence
 from numbers import Integral
@@ -14,6 +16,7 @@ from numbers import Integral
 import torch
 
 __all__ = [
+    "Dims",
     "FaceIndexError",
     "ShapeError",
     "check_shape",
@@ -37,55 +40,86 @@ class ShapeError(ValueError):
     """A tensor whose shape does not match its contract (a ``ValueError``, as a bad argument value)."""
 
 
-_DIM = re.compile(r"^(\*|\d+|[A-Za-z_][A-Za-z0-9_]*)$")
+_DIM = re.compile(r"^(\*[A-Za-z_][A-Za-z0-9_]*|\*|\d+|[A-Za-z_][A-Za-z0-9_]*)$")
+#: a contract's bindings: a name's size, or a named ``*`` group's sizes
+Dims = dict[str, "int | tuple[int, ...]"]
 
 
-def _parse_shape(shape: str) -> list[str]:
-    """``"B, V, 3"`` or ``"B V 3"`` -> ``["B", "V", "3"]``; ``*`` (first only) stands for any leading dimensions."""
-    tokens = shape.replace(",", " ").split()
-    if not all(_DIM.match(t) for t in tokens) or "*" in tokens[1:]:
-        raise ValueError(f"bad shape contract {shape!r}: use names, integers and a leading '*'")
-    return tokens
+@functools.lru_cache(maxsize=512)
+def _parse_shape(shape: str) -> tuple[tuple[str, ...], ...]:
+    """``"B, V, 3"`` or ``"B V 3"`` -> ``(("B", "V", "3"),)``; alternatives are separated by ``|``; ``*`` or
+    ``*name`` (first only) stands for any leading dimensions."""
+    alternatives = tuple(tuple(alt.replace(",", " ").split()) for alt in shape.split("|"))
+    for tokens in alternatives:
+        if not tokens or not all(_DIM.match(t) for t in tokens) or any(t.startswith("*") for t in tokens[1:]):
+            raise ValueError(f"bad shape contract {shape!r}: use names, integers and a leading '*' or '*name'")
+    return alternatives
 
 
-def check_shape(
-    x: object, shape: str, name: str, dims: dict[str, int] | None = None, *, floating: bool = False
-) -> dict[str, int]:
+def _match(tokens: tuple[str, ...], actual: tuple[int, ...], bound: Dims) -> Dims | None:
+    """The new bindings of ``actual`` under one contract, or None when it does not match."""
+    lead = tokens[0] if tokens[0].startswith("*") else None
+    fixed = tokens[1:] if lead else tokens
+    if len(actual) < len(fixed) or (lead is None and len(actual) != len(fixed)):
+        return None
+    new: Dims = {}
+    if lead is not None and lead != "*":
+        sizes = actual[: len(actual) - len(fixed)]
+        if bound.get(lead[1:], sizes) != sizes:
+            return None
+        new[lead[1:]] = sizes
+    for token, size in zip(fixed, actual[len(actual) - len(fixed) :]):
+        want = int(token) if token.isdigit() else bound.get(token, new.get(token))
+        if want is not None and want != size:
+            return None
+        if not token.isdigit():
+            new[token] = size
+    return new
+
+
+def _describe(tokens: tuple[str, ...], bound: Dims) -> str:
+    """One contract with the sizes already known: ``("B", "V", "3")``, ``{"B": 4}`` -> ``"(4, V, 3)"``."""
+    parts = []
+    for t in tokens:
+        value = bound.get(t.lstrip("*"), t) if t != "*" else "..."
+        if isinstance(value, tuple):
+            parts.extend(map(str, value))
+        else:
+            parts.append("..." if isinstance(value, str) and value.startswith("*") else str(value))
+    return f"({parts[0]},)" if len(parts) == 1 else f"({', '.join(parts)})"  # as Python prints the shape
+
+
+def check_shape(x: object, shape: str, name: str, dims: Dims | None = None, *, floating: bool = False) -> Dims:
     """Check that ``x`` is a tensor of the contracted shape; returns the sizes bound to the symbolic dimensions.
 
     Args:
         x: the value to check.
         shape: the contract, e.g. ``"B, V, 3"``: an integer is an exact size, a name is any size but the same
             wherever the name recurs (within ``x`` and across the calls sharing ``dims``), and a leading ``*``
-            stands for any number of leading dimensions (``"*, 3, 3"``).
+            stands for any number of leading dimensions (``"*, 3, 3"``); a leading ``*name`` binds them as a
+            group (``"*N, 2"`` then ``"*N"``: the same leading sizes). Alternatives are separated by ``|``
+            (``"B, H, W | B, 1, H, W"``); the first that matches binds.
         name: the argument's name, for the error.
-        dims: sizes already bound (``{"B": 4}``); updated in place with the new bindings.
+        dims: sizes already bound (``{"B": 4}``; a ``*name`` group as a tuple); updated in place with the new
+            bindings.
         floating: also require a floating point dtype.
 
     Raises:
         TypeError: ``x`` is not a tensor, or not floating point when ``floating``.
         ShapeError: the shape does not match (the message states the contract with the sizes already known).
     """
-    tokens = _parse_shape(shape)
+    alternatives = _parse_shape(shape)
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     bound = {} if dims is None else dims
-    leading = tokens[:1] == ["*"]
-    fixed = tokens[1:] if leading else tokens
     actual = tuple(x.shape)
-    ok = len(actual) >= len(fixed) if leading else len(actual) == len(fixed)
-    new: dict[str, int] = {}
-    if ok:
-        for token, size in zip(fixed, actual[len(actual) - len(fixed) :]):
-            want = int(token) if token.isdigit() else bound.get(token, new.get(token))
-            if want is not None and want != size:
-                ok = False
-                break
-            if not token.isdigit():
-                new[token] = size
-    if not ok:
-        expected = ", ".join("..." if t == "*" else str(bound.get(t, t)) for t in tokens)
-        raise ShapeError(f"{name} must have shape ({expected}), got {actual}")
+    for tokens in alternatives:
+        new = _match(tokens, actual, bound)
+        if new is not None:
+            break
+    else:
+        expected = " or ".join(_describe(tokens, bound) for tokens in alternatives)
+        raise ShapeError(f"{name} must have shape {expected}, got {actual}")
     if floating and not x.is_floating_point():
         raise TypeError(f"{name} must be a floating point tensor, got {x.dtype}")
     bound.update(new)

@@ -39,7 +39,7 @@ def test_mean_foreground_color_matches_a_pixel_loop() -> None:
         np.testing.assert_allclose(got[b].numpy(), np.mean(picked, axis=0), rtol=1e-5, atol=1e-6)
     # (B, H, W) bool masks work the same
     torch.testing.assert_close(mean_foreground_color(images, masks[:, 0] >= 0.5), got, equal_nan=True)
-    with pytest.raises(ValueError, match="do not match"):
+    with pytest.raises(ValueError, match=r"^masks must have shape \(4, 7, 9\) or \(4, 1, 7, 9\), got \(4, 1, 3, 9\)$"):
         mean_foreground_color(images, masks[:, :, :3])
 
 

@@ -173,5 +173,5 @@ def test_point_cloud_shapes_and_errors():
     assert point_cloud_voxel_iou(cloud[None], cloud[None]).item() == 1.0
     with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
         point_cloud_voxel_iou(cloud, cloud)
-    with pytest.raises(ValueError, match="points must be"):
+    with pytest.raises(ValueError, match=r"^points must have shape \(B, P, 3\) or \(P, 3\), got \(20000, 2\)$"):
         voxelize_points(cloud[:, :2])

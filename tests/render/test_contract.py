@@ -142,11 +142,17 @@ def test_batch_of_192_and_level_4_mesh(renderer_name):
     v, f = ellipsoid(4, scale=0.6)
     B = 192
     R, T = look_at_view_transform(2.732, 10.0, torch.linspace(0, 360, B))
+    maps = torch.rand(B, 3, 8, 8, generator=torch.Generator().manual_seed(0))  # a texture of its own per image
+    uvs = spherical_face_uvs(v, f)
     renderer = build_renderer(renderer_name, image_size=32)
-    images = renderer(
-        v[None].expand(B, -1, -1), f, TexturesUV(torch.rand(B, 3, 8, 8), spherical_face_uvs(v, f)), R=R, T=T
-    )
-    assert images.shape == (B, 4, 32, 32) and torch.isfinite(images).all()
+    renderer.rasterizer.max_candidates = 1 << 19  # ~12k candidates an image: the batch is rasterized in chunks
+    images = renderer(v[None].expand(B, -1, -1), f, TexturesUV(maps, uvs), R=R, T=T)
+    assert images.shape == (B, 4, 32, 32)
+    assert (images[:, 3].sum(dim=(1, 2)) > 100).all()  # every view covers the image's centre
+    # each image as the same mesh, pose and texture rendered alone (every 4th: each chunk is sampled)
+    for b in range(0, B, 4):
+        alone = renderer(v[None], f, TexturesUV(maps[b : b + 1], uvs), R=R[b : b + 1], T=T[b : b + 1])
+        torch.testing.assert_close(images[b : b + 1], alone, atol=1e-6, rtol=1e-5, msg=f"image {b}")
 
 
 @pytest.mark.gpu

@@ -5,9 +5,7 @@ import torch
 
 from unicorn.geometry.mesh import icosphere, spherical_face_uvs
 from unicorn.geometry.rotations import look_at_view_transform
-from unicorn.render import TexturesUV, TexturesVertex, build_renderer, get_renderer_class, list_renderers
-
-BUILTIN = ["hard", "layered", "softras"]
+from unicorn.render import TexturesUV, TexturesVertex, build_renderer, list_renderers
 
 
 def _scene(dtype=torch.float64):
@@ -42,7 +40,7 @@ def test_position_gradients_match_finite_differences(name):
     assert v.grad.abs().sum() > 1e-2  # the check above compared a real, non-zero gradient
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", list_renderers())
 def test_color_and_background_gradients_match_finite_differences(name):
     verts, faces, R, T = _scene()
     renderer = build_renderer(name, image_size=10, **_options(name))
@@ -55,7 +53,7 @@ def test_color_and_background_gradients_match_finite_differences(name):
     assert torch.autograd.gradcheck(fn, (colors, bg), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
-@pytest.mark.parametrize("name", BUILTIN)
+@pytest.mark.parametrize("name", list_renderers())
 def test_texture_gradients_match_finite_differences(name):
     verts, faces, R, T = _scene()
     renderer = build_renderer(name, image_size=10, **_options(name))
@@ -68,7 +66,17 @@ def test_texture_gradients_match_finite_differences(name):
     assert torch.autograd.gradcheck(fn, (maps,), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
-def test_hard_renderer_declares_no_position_gradients():
-    assert not get_renderer_class("hard").position_gradients
-    assert all(get_renderer_class(n).position_gradients for n in ("layered", "softras"))
-    assert set(BUILTIN) <= set(list_renderers())
+@pytest.mark.parametrize("name", list_renderers())
+def test_position_gradients_says_whether_silhouettes_follow_the_vertices(name):
+    # the flag a caller reads (a pose must be fitted by silhouettes) against what autograd gives the alpha channel:
+    # the hard backend's colours still depend on the vertices through the barycentrics, its coverage does not
+    verts, faces, R, T = _scene()
+    renderer = build_renderer(name, image_size=12, **_options(name))
+    v = verts.clone().requires_grad_()
+    white = TexturesVertex(torch.ones(1, verts.shape[1], 3, dtype=torch.float64))
+    alpha = renderer(v, faces, white, R=R, T=T)[:, 3]
+    assert alpha.sum() > 10  # the mesh is in view
+    weights = torch.rand(alpha.shape, generator=torch.Generator().manual_seed(0), dtype=alpha.dtype)
+    (grad,) = torch.autograd.grad((alpha * weights).sum(), v, allow_unused=True)
+    moves = grad is not None and grad.abs().sum() > 1e-6
+    assert moves == renderer.position_gradients

@@ -25,5 +25,7 @@ def test_pytorch3d_channels_last_maps_render_like_channels_first():
 
 def test_other_shapes_are_refused_at_construction_naming_the_layouts():
     _, _, _, _, uvs = template_scene(batch=1)
-    with pytest.raises(ValueError, match=r"\(B, C, Ht, Wt\) or PyTorch3D's \(B, Ht, Wt, C\)"):
+    with pytest.raises(
+        ValueError, match=r"^maps must have shape \(B, C, Ht, Wt\) or \(B, Ht, Wt, C\), got \(16, 16, 3\)$"
+    ):
         TexturesUV(torch.rand(16, 16, 3), uvs)

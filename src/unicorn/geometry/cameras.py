@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-from unicorn.checks import check_image_size
+from unicorn.checks import check_image_size, check_shape
 
 __all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "pixel_to_ndc", "world_to_view"]
 
@@ -27,13 +27,9 @@ def image_hw(image_size: int | tuple[int, int]) -> tuple[int, int]:
 
 def world_to_view(verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
     """``verts @ R + T``: (B, V, 3) world points to view coordinates, with R (B, 3, 3) and T (B, 3)."""
-    if verts.dim() != 3 or verts.shape[-1] != 3:
-        raise ValueError(f"verts must have shape (B, V, 3), got {tuple(verts.shape)}")
-    B = verts.shape[0]
-    if R.shape != (B, 3, 3):
-        raise ValueError(f"R must have shape ({B}, 3, 3) to match verts, got {tuple(R.shape)}")
-    if T.shape != (B, 3):
-        raise ValueError(f"T must have shape ({B}, 3) to match verts, got {tuple(T.shape)}")
+    dims = check_shape(verts, "B, V, 3", "verts")
+    check_shape(R, "B, 3, 3", "R", dims)
+    check_shape(T, "B, 3", "T", dims)
     return verts @ R.to(verts) + T.to(verts).unsqueeze(1)
 
 

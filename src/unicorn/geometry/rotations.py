@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from unicorn.checks import check_shape
+
 __all__ = [
     "azim_elev_roll_to_rotation",
     "camera_position_from_spherical",
@@ -81,8 +83,7 @@ def euler_angles_to_matrix(angles: torch.Tensor, convention: str = "XYZ") -> tor
     """
     if len(convention) != 3 or any(c not in _AXES for c in convention):
         raise ValueError(f"convention must be three letters among 'X', 'Y', 'Z', got {convention!r}")
-    if angles.shape[-1] != 3:
-        raise ValueError(f"angles must have shape (..., 3), got {tuple(angles.shape)}")
+    check_shape(angles, "*, 3", "angles")
     batch = angles.shape[:-1]
     flat = angles.reshape(-1, 3)
     result = None
@@ -172,8 +173,8 @@ def look_at_view_parameters(R: torch.Tensor, T: torch.Tensor) -> dict[str, torch
         ``dist`` (...), ``elev`` (...) and ``azim`` (...) in degrees, ``at`` (..., 3) and ``up`` (..., 3) such
         that ``look_at_view_transform(dist, elev, azim, at, up)`` equals ``(R, T)`` (flattened to one batch).
     """
-    if R.shape[-2:] != (3, 3) or T.shape[-1] != 3 or R.shape[:-2] != T.shape[:-1]:
-        raise ValueError(f"need R (..., 3, 3) and T (..., 3), got {tuple(R.shape)}, {tuple(T.shape)}")
+    dims = check_shape(R, "*N, 3, 3", "R")
+    check_shape(T, "*N, 3", "T", dims)
     centre = -(T.unsqueeze(-2) @ R.transpose(-1, -2)).squeeze(-2)  # x_view = 0
     forward, up = R[..., :, 2], R[..., :, 1]  # the camera's +Z and +Y axes in world coordinates
     dist = T[..., 2]
@@ -190,8 +191,8 @@ def rotation_angle_between(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     Computed as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = R1^T R2``: accurate near 0 and 180
     degrees and never NaN, unlike ``acos`` of the trace (which the reference left unclamped).
     """
-    if R1.shape[-2:] != (3, 3) or R2.shape[-2:] != (3, 3):
-        raise ValueError(f"rotations must have shape (..., 3, 3), got {tuple(R1.shape)} and {tuple(R2.shape)}")
+    check_shape(R1, "*, 3, 3", "R1")
+    check_shape(R2, "*, 3, 3", "R2")
     M = R1.transpose(-1, -2) @ R2.to(R1)
     cos = (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     skew = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)

@@ -32,6 +32,7 @@ from typing import Any, Literal
 import torch
 
 from unicorn.io.reference_checkpoints import load_reference_checkpoint
+from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
     CheckpointError,
     CorruptCheckpointError,
@@ -239,24 +240,6 @@ def _load_weights(model: Unicorn, state: Mapping[str, torch.Tensor], path: Path)
         )
 
 
-def _run_dir(path: Path) -> Path | None:
-    return path.parent.parent if path.parent.name == "checkpoints" else None
-
-
-def _run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
-    """The ``dataset`` group of ``<run>/config.yaml`` (written by ``unicorn-train``), if any."""
-    if run_dir is None or not (run_dir / "config.yaml").is_file():
-        return None
-    import yaml
-
-    try:
-        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-    except yaml.YAMLError:
-        return None
-    dataset = cfg.get("dataset") if isinstance(cfg, Mapping) else None
-    return dict(dataset) if isinstance(dataset, Mapping) else None
-
-
 def load_model(
     path: str | os.PathLike,
     map_location: str | torch.device = "cpu",
@@ -282,63 +265,84 @@ def load_model(
     """
     path = Path(path).expanduser()
     data = read_checkpoint(path, map_location, trust=trust)
-    run_dir = _run_dir(path)
-    kind = checkpoint_format(data)
-    if kind == "reference":
-        try:
-            model = load_reference_checkpoint(data, **copy.deepcopy(dict(overrides or {})))
-        except (KeyError, ValueError) as err:
-            raise CheckpointError(f"released checkpoint {path} could not be converted: {err}") from err
-        info = CheckpointInfo(path, "reference", epoch=data.get("epoch"))
-    elif kind == "lightning":
-        hparams = _to_plain(data["hyper_parameters"]) or {}
-        if "model" not in hparams:
-            raise CheckpointError(
-                f"Lightning checkpoint {path} has no 'model' hyper-parameter: it was not written by unicorn-train"
-            )
-        state = data["state_dict"]
-        weights = {k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")}
-        if not weights:
-            raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
-        cfg = _model_overrides(hparams["model"], overrides)
-        check_model_size(cfg, path)
-        model = Unicorn(cfg)
-        _load_weights(model, weights, path)
-        p = state.get("texture_average_p")
-        stage = state.get("stage")
-        info = CheckpointInfo(
-            path,
-            "lightning",
-            epoch=data.get("epoch"),
-            step=data.get("global_step"),
-            average_texture=p is not None and float(p) >= 1.0,
-            extra={"stage": None if stage is None else int(stage)},
-        )
-    elif kind == "plain":
-        cfg = _model_overrides(data["config"], overrides)
-        check_model_size(cfg, path)
-        model = Unicorn(cfg)
-        _load_weights(model, data["state_dict"], path)
-        meta = dict(data.get("info") or {})
-        info = CheckpointInfo(
-            path,
-            "plain",
-            epoch=meta.pop("epoch", None),
-            step=meta.pop("step", None),
-            average_texture=bool(meta.pop("average_texture", False)),
-            dataset=meta.pop("dataset", None),
-            extra=meta,
-        )
-    else:
+    loader = _LOADERS.get(checkpoint_format(data))
+    if loader is None:
         keys = sorted(map(str, data))[:10]
         raise CheckpointError(
             f"{path} is not a UNICORN checkpoint (keys {keys}): expected a released .pkl (model_state), a "
             "unicorn-train .ckpt (state_dict + hyper_parameters) or a unicorn.io.save_model file"
         )
-    info.run_dir = run_dir
+    model, info = loader(data, path, overrides)
+    info.run_dir = run_of_checkpoint(path)
     if info.dataset is None:
-        info.dataset = _run_dataset(run_dir)
+        info.dataset = run_dataset(info.run_dir)
     return model.to(map_location).eval(), info
+
+
+def _load_reference(
+    data: Mapping[str, Any], path: Path, overrides: Mapping[str, Any] | None
+) -> tuple[Unicorn, CheckpointInfo]:
+    """A released ``.pkl``, converted (:func:`~unicorn.io.reference_checkpoints.load_reference_checkpoint`)."""
+    try:
+        model = load_reference_checkpoint(data, **copy.deepcopy(dict(overrides or {})))
+    except (KeyError, ValueError) as err:
+        raise CheckpointError(f"released checkpoint {path} could not be converted: {err}") from err
+    return model, CheckpointInfo(path, "reference", epoch=data.get("epoch"))
+
+
+def _load_lightning(
+    data: Mapping[str, Any], path: Path, overrides: Mapping[str, Any] | None
+) -> tuple[Unicorn, CheckpointInfo]:
+    """A ``unicorn-train`` ``.ckpt``: the model from its ``model`` hyper-parameter, the ``model.`` weights."""
+    hparams = _to_plain(data["hyper_parameters"]) or {}
+    if "model" not in hparams:
+        raise CheckpointError(
+            f"Lightning checkpoint {path} has no 'model' hyper-parameter: it was not written by unicorn-train"
+        )
+    state = data["state_dict"]
+    weights = {k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")}
+    if not weights:
+        raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
+    cfg = _model_overrides(hparams["model"], overrides)
+    check_model_size(cfg, path)
+    model = Unicorn(cfg)
+    _load_weights(model, weights, path)
+    p = state.get("texture_average_p")
+    stage = state.get("stage")
+    info = CheckpointInfo(
+        path,
+        "lightning",
+        epoch=data.get("epoch"),
+        step=data.get("global_step"),
+        average_texture=p is not None and float(p) >= 1.0,
+        extra={"stage": None if stage is None else int(stage)},
+    )
+    return model, info
+
+
+def _load_plain(
+    data: Mapping[str, Any], path: Path, overrides: Mapping[str, Any] | None
+) -> tuple[Unicorn, CheckpointInfo]:
+    """A :func:`save_model` file: its config, weights and ``info``."""
+    cfg = _model_overrides(data["config"], overrides)
+    check_model_size(cfg, path)
+    model = Unicorn(cfg)
+    _load_weights(model, data["state_dict"], path)
+    meta = dict(data.get("info") or {})
+    info = CheckpointInfo(
+        path,
+        "plain",
+        epoch=meta.pop("epoch", None),
+        step=meta.pop("step", None),
+        average_texture=bool(meta.pop("average_texture", False)),
+        dataset=meta.pop("dataset", None),
+        extra=meta,
+    )
+    return model, info
+
+
+#: how each checkpoint format (:func:`checkpoint_format`) is loaded
+_LOADERS = {"reference": _load_reference, "lightning": _load_lightning, "plain": _load_plain}
 
 
 def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -> CheckpointInfo:

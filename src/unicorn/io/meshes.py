@@ -15,6 +15,8 @@ import torch
 import trimesh
 from PIL import Image
 
+from unicorn.checks import check_shape
+
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
 
@@ -62,12 +64,10 @@ def textured_mesh(
     Returns:
         ``trimesh.Trimesh`` (not processed: vertex order kept) with ``TextureVisuals``.
     """
-    if verts.dim() != 2 or verts.shape[1] != 3 or faces.dim() != 2 or faces.shape[1] != 3:
-        raise ValueError(f"need verts (V, 3) and faces (F, 3), got {tuple(verts.shape)}, {tuple(faces.shape)}")
-    if face_uvs.shape != (faces.shape[0], 3, 2):
-        raise ValueError(f"face_uvs must have shape ({faces.shape[0]}, 3, 2), got {tuple(face_uvs.shape)}")
-    if texture.dim() != 3 or texture.shape[0] != 3:
-        raise ValueError(f"texture must have shape (3, Ht, Wt), got {tuple(texture.shape)}")
+    check_shape(verts, "V, 3", "verts")
+    dims = check_shape(faces, "F, 3", "faces")
+    check_shape(face_uvs, "F, 3, 2", "face_uvs", dims)
+    check_shape(texture, "3, Ht, Wt", "texture")
     v = verts.detach().cpu().double().numpy()
     f = faces.detach().cpu().numpy().astype(np.int64)
     uv = face_uvs.detach().cpu().double().numpy().reshape(-1, 2)

@@ -146,6 +146,22 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     has_bg = any(k.startswith("bkg_generator.") for k in state)
     shared = not any(k.startswith("encoder_sh.") for k in state)
     cfg = model_preset("real" if has_bg else "shapenet", "small" if shared else "big")
+    cfg["encoder"]["shared"] = shared
+    n_cand = _sizes_from_state(cfg, state)
+    _pose_from_kwargs(cfg, kwargs, n_cand)
+    _template_from_kwargs(cfg, kwargs)
+    if "img_size" in kwargs:
+        size = kwargs["img_size"]
+        cfg["image_size"] = int(size[0] if isinstance(size, list | tuple) else size)
+    _renderer_from_kwargs(cfg, kwargs)
+    cfg["loss"]["perceptual"] = None
+    _progressive_from_kwargs(cfg, kwargs, checkpoint.get("epoch") if "model_state" in checkpoint else None)
+    return merge_config(cfg, **overrides)
+
+
+def _sizes_from_state(cfg: dict[str, Any], state: Mapping[str, torch.Tensor]) -> int:
+    """Set the networks' sizes in ``cfg`` from the reference's tensor shapes; returns the number of pose
+    candidates."""
 
     def out_dim(prefix: str) -> int:
         return state[f"{prefix}{_last_linear_index(state, prefix)}.weight"].shape[0]
@@ -156,7 +172,6 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     def units(prefix: str) -> int:
         return state[f"{prefix}0.weight"].shape[0]
 
-    cfg["encoder"]["shared"] = shared
     cfg["shape"].update(
         code_dim=out_dim("deform_field.regressor."),
         n_reg_units=units("deform_field.regressor."),
@@ -176,14 +191,15 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
         )
         if group == "texture":
             cfg[group]["size"] = 2 ** len(convs)
-    n_cand = len({k.split(".")[1] for k in state if k.startswith("rot_regressors.")})
     cfg["pose"].update(n_units=units("T_regressors.0."), n_layers=n_hidden("T_regressors.0."))
-    if has_bg:
-        cfg["image_size"] = 2 ** len(
-            [k for k in state if re.match(r"bkg_generator\.generator\.conv_layers\.\d+\.weight$", k)]
-        )
+    bg_convs = [k for k in state if re.match(r"bkg_generator\.generator\.conv_layers\.\d+\.weight$", k)]
+    if bg_convs:  # the background generator's output is the image
+        cfg["image_size"] = 2 ** len(bg_convs)
+    return len({k.split(".")[1] for k in state if k.startswith("rot_regressors.")})
 
-    # ranges and scales from the saved YAML configuration
+
+def _pose_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], n_cand: int) -> None:
+    """The pose candidates' grid and the ranges of the saved ``rend_predictor`` section."""
     rp = _get(kwargs, "rend_predictor", default={}) or {}
     n_elev, n_azim = rp.get("n_elev_azim", (1, n_cand))
     cfg["pose"].update(n_elev=int(n_elev), n_azim=int(n_azim))
@@ -192,6 +208,10 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
             cfg["pose"][key] = rp[key]
     if int(n_elev) * int(n_azim) != n_cand:
         raise ValueError(f"checkpoint has {n_cand} pose candidates but n_elev_azim = {rp.get('n_elev_azim')}")
+
+
+def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> None:
+    """The template mesh of the saved ``mesh`` section, with the reference's per-vertex UVs."""
     mesh = _get(kwargs, "mesh", default={}) or {}
     if "scale" in mesh:
         cfg["template"]["scale"] = float(mesh["scale"])
@@ -199,9 +219,10 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     cfg["template"]["axes"] = (1.0, 0.7, 0.7) if init.startswith("ellipse") else (1.0, 1.0, 1.0)
     cfg["template"]["level"] = 4 if "hr" in init else 3
     cfg["template"]["uv_mode"] = "reference"
-    if "img_size" in kwargs:
-        size = kwargs["img_size"]
-        cfg["image_size"] = int(size[0] if isinstance(size, list | tuple) else size)
+
+
+def _renderer_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> None:
+    """Camera, blur and background colour of the saved ``renderer`` section, with the reference's compositing."""
     rd = _get(kwargs, "renderer", default={}) or {}
     cams = rd.get("cameras", {}) or {}
     if cams.get("name") == "perspective" and "focal_length" in cams:
@@ -215,10 +236,10 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     cfg["renderer"].update(options=options, composite="reference")
     if rd.get("background_color") is not None:
         cfg["renderer"]["background_color"] = tuple(rd["background_color"])
-    cfg["loss"]["perceptual"] = None
 
-    # progressive state at the saved epoch (fully conditioned when unknown)
-    epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
+
+def _progressive_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], epoch: int | None) -> None:
+    """The code dimensions active at the saved epoch (fully conditioned when unknown)."""
     for group, keys in (
         ("shape", ("mesh", "deform_fields")),
         ("texture", ("mesh", "texture_uv")),
@@ -231,7 +252,6 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
             cfg[group]["active_dims"] = min(active_dims_at(epoch, powers, milestones), cfg[group]["code_dim"])
         else:
             cfg[group]["active_dims"] = cfg[group]["code_dim"]
-    return merge_config(cfg, **overrides)
 
 
 def _stage_switches(checkpoint: Mapping[str, Any]) -> dict[str, bool]:

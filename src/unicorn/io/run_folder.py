@@ -8,12 +8,23 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from unicorn.errors import UserError
 from unicorn.io.serialization import check_checkpoint_path
 
-__all__ = ["RUN_OUTPUTS", "RunFolderError", "holds_nothing", "prepare_folder", "previous_run", "resolve_ckpt"]
+__all__ = [
+    "RUN_OUTPUTS",
+    "RunFolderError",
+    "holds_nothing",
+    "prepare_folder",
+    "previous_run",
+    "resolve_ckpt",
+    "run_dataset",
+    "run_of_checkpoint",
+]
 
 log = logging.getLogger("unicorn.train")
 
@@ -81,3 +92,22 @@ def holds_nothing(folder: Path) -> bool:
     if not folder.is_dir():
         return True
     return all(p.name in (".hydra", "train.log", "config.yaml") for p in folder.iterdir())
+
+
+def run_of_checkpoint(path: Path) -> Path | None:
+    """The run folder a checkpoint sits in (``<run>/checkpoints/x.ckpt`` -> ``<run>``), or None."""
+    return path.parent.parent if path.parent.name == RUN_OUTPUTS[0] else None
+
+
+def run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
+    """The ``dataset`` group of ``<run>/config.yaml`` (written by ``unicorn-train``), if any."""
+    if run_dir is None or not (run_dir / "config.yaml").is_file():
+        return None
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
+    except yaml.YAMLError:
+        return None
+    dataset = cfg.get("dataset") if isinstance(cfg, Mapping) else None
+    return dict(dataset) if isinstance(dataset, Mapping) else None

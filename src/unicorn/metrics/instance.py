@@ -27,7 +27,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from unicorn.checks import check_points
+from unicorn.checks import ShapeError, check_points, check_shape
 
 from .chamfer import chamfer_matrix
 from .nn import Backend
@@ -71,14 +71,10 @@ def mean_foreground_color(
         >>> mean_foreground_color(img, torch.tensor([[[1.0, 0.0]]])).tolist()
         [[0.0, 0.5, 1.0]]
     """
-    if images.dim() != 4:
-        raise ValueError(f"images must have shape (B, C, H, W), got {tuple(images.shape)}")
+    dims = check_shape(images, "B, C, H, W", "images")
+    check_shape(masks, "B, H, W | B, 1, H, W", "masks", dims)
     if masks.dim() == 4:
-        if masks.shape[1] != 1:
-            raise ValueError(f"masks must have shape (B, H, W) or (B, 1, H, W), got {tuple(masks.shape)}")
         masks = masks[:, 0]
-    if masks.shape != (images.shape[0], *images.shape[-2:]):
-        raise ValueError(f"masks {tuple(masks.shape)} do not match images {tuple(images.shape)}")
     if interior < 0:
         raise ValueError(f"interior must be >= 0, got {interior}")
     w = (masks.to(images.device).float() >= threshold).to(images.dtype)  # (B, H, W)
@@ -115,20 +111,16 @@ def color_errors(
         >>> model.tolist(), base.tolist()
         ([0.0, 0.0], [0.3333333432674408, 0.3333333432674408])
     """
-    if pred_colors.dim() != 2 or pred_colors.shape != gt_colors.shape:
-        raise ValueError(
-            f"pred_colors and gt_colors must both have shape (B, C), got {tuple(pred_colors.shape)} and "
-            f"{tuple(gt_colors.shape)}"
-        )
+    dims = check_shape(pred_colors, "B, C", "pred_colors")
+    check_shape(gt_colors, "B, C", "gt_colors", dims)
     gt_colors = gt_colors.to(pred_colors)
     if reference is None:
         valid = ~torch.isnan(gt_colors).any(dim=1)
         if not bool(valid.any()):
             raise ValueError("no image has a foreground colour: the mean colour is undefined")
         reference = gt_colors[valid].mean(dim=0)
+    check_shape(reference, "C", "reference", dims)
     reference = reference.to(pred_colors)
-    if reference.shape != gt_colors.shape[1:]:
-        raise ValueError(f"reference must have shape ({gt_colors.shape[1]},), got {tuple(reference.shape)}")
     model = (pred_colors - gt_colors).abs().mean(dim=1)
     baseline = (reference.unsqueeze(0) - gt_colors).abs().mean(dim=1)
     return model, baseline
@@ -151,11 +143,7 @@ def win_share(errors: torch.Tensor, baseline_errors: torch.Tensor) -> float:
         0.625
     """
     errors, baseline_errors = torch.as_tensor(errors), torch.as_tensor(baseline_errors)
-    if errors.dim() != 1 or errors.shape != baseline_errors.shape:
-        raise ValueError(
-            f"errors and baseline_errors must both have shape (N,), got {tuple(errors.shape)} and "
-            f"{tuple(baseline_errors.shape)}"
-        )
+    check_shape(baseline_errors, "N", "baseline_errors", check_shape(errors, "N", "errors"))
     baseline_errors = baseline_errors.to(errors)
     keep = ~(torch.isnan(errors) | torch.isnan(baseline_errors))
     if not bool(keep.any()):
@@ -166,7 +154,8 @@ def win_share(errors: torch.Tensor, baseline_errors: torch.Tensor) -> float:
 
 def _check_errors(errors: torch.Tensor) -> torch.Tensor:
     errors = torch.as_tensor(errors)
-    if errors.dim() != 1 or errors.numel() == 0:
+    check_shape(errors, "N", "errors")
+    if errors.numel() == 0:
         raise ValueError(f"errors must be a non-empty (N,) tensor of degrees, got shape {tuple(errors.shape)}")
     return errors
 
@@ -208,8 +197,8 @@ def code_spread(codes: torch.Tensor, active_dims: int | None = None) -> torch.Te
         >>> code_spread(torch.tensor([[0.0, 1.0], [2.0, 1.0]])).tolist()
         [1.0, 0.0]
     """
-    if codes.dim() != 2 or codes.shape[0] == 0:
-        raise ValueError(f"codes must have shape (B, C) with B >= 1, got {tuple(codes.shape)}")
+    if check_shape(codes, "B, C", "codes")["B"] == 0:
+        raise ShapeError(f"codes has an empty batch dimension, shape {tuple(codes.shape)}")
     if active_dims is not None:
         if not 0 <= active_dims <= codes.shape[1]:
             raise ValueError(f"active_dims must be in [0, {codes.shape[1]}], got {active_dims}")
@@ -233,8 +222,8 @@ def active_units(activations: torch.Tensor, threshold: float = 0.0) -> torch.Ten
         >>> active_units(torch.tensor([[0.0, 0.5, 0.0], [0.0, 0.0, 0.2]])).tolist()
         [False, True, True]
     """
-    if activations.dim() != 2 or activations.shape[0] == 0:
-        raise ValueError(f"activations must have shape (B, U) with B >= 1, got {tuple(activations.shape)}")
+    if check_shape(activations, "B, U", "activations")["B"] == 0:
+        raise ShapeError(f"activations has an empty batch dimension, shape {tuple(activations.shape)}")
     return (activations > threshold).any(dim=0)
 
 
@@ -291,11 +280,11 @@ def retrieval_scores(
         >>> s["top1"].tolist(), s["top2"].tolist(), [round(v, 3) for v in s["rr"].tolist()]
         ([1.0, 0.0], [1.0, 0.0], [1.0, 0.333])
     """
-    if distances.dim() != 2 or distances.shape[1] == 0:
-        raise ValueError(f"distances must have shape (Q, C) with C >= 1, got {tuple(distances.shape)}")
+    dims = check_shape(distances, "Q, C", "distances")
+    if dims["C"] == 0:
+        raise ShapeError(f"distances has no candidate (C = 0), shape {tuple(distances.shape)}")
     targets = torch.as_tensor(targets, device=distances.device).long()
-    if targets.shape != distances.shape[:1]:
-        raise ValueError(f"targets must have shape ({distances.shape[0]},), got {tuple(targets.shape)}")
+    check_shape(targets, "Q", "targets", dims)
     if targets.numel() and not (0 <= int(targets.min()) and int(targets.max()) < distances.shape[1]):
         raise ValueError(f"targets must index the {distances.shape[1]} candidates")
     d = distances.double()
@@ -343,8 +332,7 @@ def shape_retrieval(
     """
     check_points(queries, "queries")
     check_points(candidates, "candidates")
-    if rotations.shape != (queries.shape[0], 3, 3):
-        raise ValueError(f"rotations must have shape ({queries.shape[0]}, 3, 3), got {tuple(rotations.shape)}")
+    check_shape(rotations, "Q, 3, 3", "rotations", {"Q": queries.shape[0]})
     in_object_frame = normalize_shape(queries) @ rotations.to(queries).transpose(1, 2)
     distances = chamfer_matrix(
         in_object_frame, normalize_shape(candidates.to(queries)), factor=1.0, backend=backend, workers=workers
@@ -380,8 +368,7 @@ def shape_spread(
     check_points(clouds, "clouds")
     P = clouds.shape[0]
     objects = torch.arange(P) if objects is None else torch.as_tensor(objects).cpu()
-    if objects.shape != (P,):
-        raise ValueError(f"objects must have shape ({P},), got {tuple(objects.shape)}")
+    check_shape(objects, "P", "objects", {"P": P})
     pairs = objects[:, None] != objects[None, :]
     if not bool(pairs.any()):
         return math.nan

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from unicorn.checks import check_rotations, check_translations
+from unicorn.checks import check_rotations, check_shape, check_translations
 from unicorn.geometry.cameras import PerspectiveCamera, image_hw
 
 __all__ = ["keypoint_pairs", "keypoint_transfer_pck", "pck", "project_vertices", "transfer_keypoints"]
@@ -113,18 +113,13 @@ def transfer_keypoints(
         transferred: (P, K, 2) keypoints in the target images (NaN for a source without visible vertices).
         vertex_idx: (P, K) long index of the chosen vertex (-1 for a source without visible vertices).
     """
-    if src_keypoints.dim() != 3 or src_keypoints.shape[-1] != 2:
-        raise ValueError(f"src_keypoints must have shape (P, K, 2), got {tuple(src_keypoints.shape)}")
-    P = src_keypoints.shape[0]
-    if src_verts_2d.dim() != 3 or src_verts_2d.shape[0] != P or src_verts_2d.shape[-1] != 2:
-        raise ValueError(f"src_verts_2d must have shape ({P}, V, 2), got {tuple(src_verts_2d.shape)}")
-    if tgt_verts_2d.shape != src_verts_2d.shape:
-        raise ValueError(f"tgt_verts_2d must have shape {tuple(src_verts_2d.shape)}, got {tuple(tgt_verts_2d.shape)}")
-    if src_visible.shape != src_verts_2d.shape[:2] or src_visible.dtype != torch.bool:
-        raise ValueError(
-            f"src_visible must be a bool tensor of shape {tuple(src_verts_2d.shape[:2])}, "
-            f"got {src_visible.dtype} {tuple(src_visible.shape)}"
-        )
+    dims = check_shape(src_keypoints, "P, K, 2", "src_keypoints")
+    P = dims["P"]
+    check_shape(src_verts_2d, "P, V, 2", "src_verts_2d", dims)
+    check_shape(tgt_verts_2d, "P, V, 2", "tgt_verts_2d", dims)
+    check_shape(src_visible, "P, V", "src_visible", dims)
+    if src_visible.dtype != torch.bool:
+        raise ValueError(f"src_visible must be a bool tensor, got {src_visible.dtype}")
     kp = src_keypoints.to(src_verts_2d)
     d2 = (kp.unsqueeze(2) - src_verts_2d.unsqueeze(1)).square().sum(-1)  # (P, K, V)
     d2 = d2.masked_fill(~src_visible.unsqueeze(1), float("inf"))
@@ -161,11 +156,9 @@ def pck(
         >>> pck(pred, gt, torch.tensor([True, True]), [1.0, 5.0])[0].tolist()
         [0.5, 1.0]
     """
-    if pred.shape != gt.shape or pred.shape[-1] != 2 or valid.shape != pred.shape[:-1]:
-        raise ValueError(
-            f"need pred and gt of shape (..., 2) and valid of shape (...), got {tuple(pred.shape)}, "
-            f"{tuple(gt.shape)}, {tuple(valid.shape)}"
-        )
+    dims = check_shape(pred, "*N, 2", "pred")
+    check_shape(gt, "*N, 2", "gt", dims)
+    check_shape(valid, "*N", "valid", dims)
     hits, n = _hit_counts(pred, gt, valid, thresholds)
     fractions = hits.to(pred.dtype) / n if n > 0 else torch.full(hits.shape, float("nan"), dtype=pred.dtype)
     return fractions, n
@@ -215,18 +208,14 @@ def keypoint_transfer_pck(
         ``{"pck-5": ..., "pck-10": ..., "pck-15": ...}`` (keys ``pck-{100 alpha}``) and ``"num-valid"``, the
         number of keypoints that counted.
     """
-    if verts.dim() != 3 or verts.shape[-1] != 3:
-        raise ValueError(f"verts must have shape (N, V, 3), got {tuple(verts.shape)}")
-    N, V = verts.shape[:2]
+    dims = check_shape(verts, "N, V, 3", "verts")
+    N = verts.shape[0]
     check_rotations(R, "R", N)
     check_translations(T, "T", N)
-    if vertex_visibility.shape != (N, V) or vertex_visibility.dtype != torch.bool:
-        raise ValueError(
-            f"vertex_visibility must be a bool tensor of shape ({N}, {V}), "
-            f"got {vertex_visibility.dtype} {tuple(vertex_visibility.shape)}"
-        )
-    if keypoints.dim() != 3 or keypoints.shape[0] != N or keypoints.shape[-1] != 3:
-        raise ValueError(f"keypoints must have shape ({N}, K, 3), got {tuple(keypoints.shape)}")
+    check_shape(vertex_visibility, "N, V", "vertex_visibility", dims)
+    if vertex_visibility.dtype != torch.bool:
+        raise ValueError(f"vertex_visibility must be a bool tensor, got {vertex_visibility.dtype}")
+    check_shape(keypoints, "N, K, 3", "keypoints", dims)
     if chunk_size < 1:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     if pairs is None:

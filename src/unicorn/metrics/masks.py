@@ -7,18 +7,15 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 
+from ..checks import check_shape
+
 __all__ = ["mask_iou"]
 
 
 def _as_bhw(mask: torch.Tensor, name: str) -> torch.Tensor:
-    if not isinstance(mask, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(mask).__name__}")
+    check_shape(mask, "B, H, W | B, 1, H, W", name)
     if mask.dim() == 4:
-        if mask.shape[1] != 1:
-            raise ValueError(f"{name} must have shape (B, H, W) or (B, 1, H, W), got {tuple(mask.shape)}")
         mask = mask[:, 0]
-    if mask.dim() != 3:
-        raise ValueError(f"{name} must have shape (B, H, W) or (B, 1, H, W), got {tuple(mask.shape)}")
     if mask.numel() == 0:
         raise ValueError(f"{name} is empty, shape {tuple(mask.shape)}")
     if mask.dtype == torch.bool:

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from unicorn.checks import check_rotations
+from unicorn.checks import check_rotations, check_shape
 
 from ..geometry.rotations import rotation_angle_between
 from .instance import flip_rate, rotation_accuracy
@@ -64,8 +64,7 @@ def rotation_to_azim_elev_roll(R: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
         azim in (-180, 180], elev in [-90, 90], roll in (-180, 180], each (...) in degrees (azimuth and roll
         are undefined at elevation +-90).
     """
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    check_shape(R, "*, 3, 3", "R")
     azim = torch.rad2deg(torch.atan2(R[..., 0, 2], R[..., 2, 2]))
     elev = -torch.rad2deg(torch.asin(R[..., 1, 2].clamp(-1.0, 1.0)))
     roll = torch.rad2deg(torch.atan2(-R[..., 1, 0], R[..., 1, 1]))

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from unicorn.checks import check_mesh
+from unicorn.checks import check_mesh, check_shape
 
 from .sampling import sample_points_from_meshes
 
@@ -229,10 +229,9 @@ def voxelize_points(
         >>> bool(occ[8, 8, 8]), bool(occ[0, 0, 0])  # the centre is filled, the corner is outside
         (True, False)
     """
+    check_shape(points, "B, P, 3 | P, 3", "points")
     unbatched = points.dim() == 2
     batch = points.unsqueeze(0) if unbatched else points
-    if batch.dim() != 3 or batch.shape[-1] != 3:
-        raise ValueError(f"points must be (B, P, 3) or (P, 3), got {tuple(points.shape)}")
     out = []
     for cloud in batch:
         (grid,), start = _solid_grids([cloud], resolution, bounds)
@@ -265,10 +264,7 @@ def point_cloud_voxel_iou(
     Returns:
         (B,) float64 IoU.
     """
-    if pred_points.dim() != 3 or gt_points.dim() != 3 or pred_points.shape[0] != gt_points.shape[0]:
-        raise ValueError(
-            f"need (B, N, 3) and (B, M, 3) clouds, got {tuple(pred_points.shape)} and {tuple(gt_points.shape)}"
-        )
+    check_shape(gt_points, "B, M, 3", "gt_points", check_shape(pred_points, "B, N, 3", "pred_points"))
     scores = []
     for pred, gt in zip(pred_points, gt_points):
         (p, g), _ = _solid_grids([pred, gt], resolution, bounds)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..checks import check_shape
 from .fragments import Fragments
 
 __all__ = ["background_pixels", "gather_slots", "write_pixels"]
@@ -43,10 +44,7 @@ def background_pixels(
         if color.numel() != num_channels:
             raise ValueError(f"background_color has {color.numel()} channels, textures {num_channels}")
         return color.to(like).expand(batch_size * H * W, num_channels)
-    if background.shape != (batch_size, num_channels, H, W):
-        raise ValueError(
-            f"background must have shape ({batch_size}, {num_channels}, {H}, {W}), got {tuple(background.shape)}"
-        )
+    check_shape(background, "B, C, H, W", "background", {"B": batch_size, "C": num_channels, "H": H, "W": W})
     return background.to(like).permute(0, 2, 3, 1).reshape(-1, num_channels)
 
 

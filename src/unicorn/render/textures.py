@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..checks import check_same_dtype
+from ..checks import check_same_dtype, check_shape
 from .fragments import Fragments
 
 __all__ = ["Textures", "TexturesUV", "TexturesVertex", "interpolate_vertex_attributes"]
@@ -21,12 +21,11 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
     Returns:
         (M, D) interpolated attributes.
     """
+    check_shape(attrs, "B, V, D | V, D", "attrs", {"B": fragments.batch_size})
     if attrs.dim() == 2:
         vert_idx = faces.index_select(0, fragments.face)  # (M, 3)
         values = attrs.index_select(0, vert_idx.reshape(-1)).view(*vert_idx.shape, attrs.shape[-1])
-    elif attrs.dim() == 3:
-        if attrs.shape[0] != fragments.batch_size:
-            raise ValueError(f"attrs has batch size {attrs.shape[0]}, fragments {fragments.batch_size}")
+    else:
         V = attrs.shape[1]
         vert_idx = fragments.batch_index.unsqueeze(1) * V + faces.index_select(0, fragments.face)
         values = (
@@ -34,8 +33,6 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
             .index_select(0, vert_idx.reshape(-1))
             .view(*vert_idx.shape, attrs.shape[-1])
         )
-    else:
-        raise ValueError(f"attrs must have shape (B, V, D) or (V, D), got {tuple(attrs.shape)}")
     return (fragments.bary.unsqueeze(-1).to(values.dtype) * values).sum(1)
 
 
@@ -72,8 +69,7 @@ class TexturesVertex(Textures):
     """
 
     def __init__(self, colors: torch.Tensor) -> None:
-        if colors.dim() != 3:
-            raise ValueError(f"colors must have shape (B, V, C), got {tuple(colors.shape)}")
+        check_shape(colors, "B, V, C", "colors")
         if not colors.dtype.is_floating_point:
             raise TypeError(f"colors must be a float tensor, got {colors.dtype}")
         self.colors = colors
@@ -130,18 +126,14 @@ class TexturesUV(Textures):
         align_corners: bool = False,
         channels_last: bool | None = None,
     ) -> None:
-        if maps.dim() != 4:
-            raise ValueError(
-                f"maps must have shape (B, C, Ht, Wt) or PyTorch3D's (B, Ht, Wt, C), got {tuple(maps.shape)}"
-            )
+        check_shape(maps, "B, C, Ht, Wt | B, Ht, Wt, C", "maps")  # ours, or PyTorch3D's
         if channels_last is None:
             channels_last = maps.shape[-1] <= 4 < maps.shape[1]
         if channels_last:
             maps = maps.permute(0, 3, 1, 2)
         if not maps.dtype.is_floating_point:
             raise TypeError(f"maps must be a float tensor, got {maps.dtype}")
-        if face_uvs.dim() != 3 or face_uvs.shape[1:] != (3, 2):
-            raise ValueError(f"face_uvs must have shape (F, 3, 2), got {tuple(face_uvs.shape)}")
+        check_shape(face_uvs, "F, 3, 2", "face_uvs")
         if wrap_u and align_corners:
             raise ValueError("wrap_u=True needs align_corners=False (the period must be one texture width)")
         self.maps = maps

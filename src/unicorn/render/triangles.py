@@ -1,0 +1,74 @@
+"""2D triangle geometry of the rasterizer: barycentrics and squared distances to a triangle's boundary.
+
+Triangles are (N, 3, 2) in pixel units (column, row); points are (N,) ``px``, ``py`` paired with them.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "barycentric",
+    "barycentric_and_distance",
+    "barycentric_coefficients",
+    "boundary_distance2",
+    "clip_barycentric",
+]
+
+
+def _edge(ax, ay, bx, by, px, py):
+    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+def barycentric(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Unclipped screen-space barycentrics (N, 3) of points (px, py) in 2D triangles (N, 3, 2)."""
+    x0, x1, x2 = tri[..., 0].unbind(-1)
+    y0, y1, y2 = tri[..., 1].unbind(-1)
+    area = _edge(x0, y0, x1, y1, x2, y2).unsqueeze(-1)
+    w = torch.stack([_edge(x1, y1, x2, y2, px, py), _edge(x2, y2, x0, y0, px, py), _edge(x0, y0, x1, y1, px, py)], -1)
+    return w / area
+
+
+def barycentric_coefficients(tri: torch.Tensor) -> torch.Tensor:
+    """(N, 9) coefficients ``(a, b, c)`` of the affine maps ``w_i = a_i x + b_i y + c_i`` giving the unclipped
+    barycentrics of a point (x, y) in the 2D triangles (N, 3, 2)."""
+    x, y = tri[..., 0], tri[..., 1]
+    xj, yj = x.roll(-1, dims=-1), y.roll(-1, dims=-1)  # vertex i's opposite edge runs from j = i+1 to k = i+2
+    xk, yk = x.roll(-2, dims=-1), y.roll(-2, dims=-1)
+    area = _edge(x[..., 0], y[..., 0], x[..., 1], y[..., 1], x[..., 2], y[..., 2]).unsqueeze(-1)
+    a = -(yk - yj) / area
+    b = (xk - xj) / area
+    c = ((yk - yj) * xj - (xk - xj) * yj) / area
+    return torch.cat([a, b, c], dim=-1)
+
+
+def _segment_distance2(px, py, ax, ay, bx, by):
+    """Squared distance from points to segments [a, b], the segment parameter clamped to [0, 1]."""
+    ex, ey = bx - ax, by - ay
+    dx, dy = px - ax, py - ay
+    t = ((dx * ex + dy * ey) / (ex * ex + ey * ey).clamp_min(1e-20)).clamp(0.0, 1.0)
+    return (dx - t * ex) ** 2 + (dy - t * ey) ** 2
+
+
+def boundary_distance2(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
+    """Squared distance (N,) from points to the boundary of 2D triangles (N, 3, 2)."""
+    x0, x1, x2 = tri[..., 0].unbind(-1)
+    y0, y1, y2 = tri[..., 1].unbind(-1)
+    d01 = _segment_distance2(px, py, x0, y0, x1, y1)
+    d12 = _segment_distance2(px, py, x1, y1, x2, y2)
+    d20 = _segment_distance2(px, py, x2, y2, x0, y0)
+    return torch.minimum(torch.minimum(d01, d12), d20)
+
+
+def barycentric_and_distance(
+    tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unclipped barycentrics (N, 3) and squared distance (N,) to the boundary of 2D triangles (N, 3, 2)."""
+    return barycentric(tri, px, py), boundary_distance2(tri, px, py)
+
+
+def clip_barycentric(bary: torch.Tensor) -> torch.Tensor:
+    """Barycentrics (N, 3) clamped to >= 0 and renormalised to sum to 1 (a point of the triangle), as PyTorch3D's
+    ``clip_barycentric_coordinates``: depth and attributes at a near-miss pixel are read on the face."""
+    clipped = bary.clamp_min(0.0)
+    return clipped / clipped.sum(-1, keepdim=True).clamp_min(1e-5)
