@@ -20,9 +20,10 @@ query point (:meth:`~NearestNeighborIndex.query`) and the nearest query point of
 (ground-truth clouds stored in float16, as ShapeNet's are, repeat many points) and break ties between copies of
 a point by taking its first occurrence.
 
-The k-d tree backends visit query points in :func:`spatial_order` (a Z-order curve), which makes consecutive
-queries walk the same branches of a tree: the same neighbours, found 2x faster on 100k-point clouds. Callers that
-query one cloud many times under a similarity transform (an ICP) compute that order once and pass it along.
+The queries take an optional visiting order of the query points: in :func:`spatial_order` (a Z-order curve)
+consecutive queries walk the same branches of a tree and find the same neighbours 2x faster on 100k-point
+clouds. A cloud queried many times under a similarity transform (an ICP's source) keeps one order for all its
+queries. The reference clouds' distinct points are kept in that order.
 """
 
 from __future__ import annotations
@@ -227,7 +228,7 @@ class NearestNeighborIndex:
         return out
 
     def _check(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray] | None:
-        """Check a query cloud; the per-cloud visiting orders (numpy) for the k-d tree backends, else None."""
+        """Check a query cloud; for the k-d tree backends, the visiting order (numpy) of each of its clouds."""
         check_points(x, "x", dim=None)
         check_same_batch(x, self.y, "x", "y")
         if x.shape[-1] != self.y.shape[-1]:
@@ -235,7 +236,7 @@ class NearestNeighborIndex:
         if self._trees is None:
             return None
         if order is None:
-            order = spatial_order(x)
+            return [np.arange(x.shape[1])] * x.shape[0]
         check_shape(order, "B, N", "order", {"B": x.shape[0], "N": x.shape[1]})
         return list(order.to(device="cpu", dtype=torch.long).numpy())
 
@@ -243,8 +244,8 @@ class NearestNeighborIndex:
     def indices(self, x: torch.Tensor, order: torch.Tensor | None = None) -> torch.Tensor:
         """Indices (B, N) long into ``y`` of the nearest neighbours of ``x`` (B, N, D), without gradient.
 
-        ``order``: (B, N) permutations in which the k-d trees visit the points of ``x`` (speed only, see
-        :func:`spatial_order`, computed here when None); the torch backend ignores it.
+        ``order``: (B, N) permutations in which the k-d trees visit the points of ``x``, e.g.
+        :func:`spatial_order` (None: as given). It changes the speed, not the result; the torch backend ignores it.
         """
         orders = self._check(x, order)
         if self._trees is None or self._distinct is None or orders is None:
