@@ -229,6 +229,12 @@ def chamfer_matrix(
     P, Q = x.shape[0], y.shape[0]
     into_y = NearestNeighborIndex(y, backend=backend, workers=workers)
     into_x = NearestNeighborIndex(x, backend=backend, workers=workers)
-    accuracy = torch.stack([into_y.query(xp.expand(Q, -1, -1))[0].mean(dim=1) for xp in x])  # (P, Q)
-    completeness = torch.stack([into_x.query(yq.expand(P, -1, -1))[0].mean(dim=1) for yq in y], dim=1)  # (P, Q)
+    # each cloud visited in its own spatial order by all its queries
+    x_orders, y_orders = spatial_order(x), spatial_order(y)
+    accuracy = torch.stack(
+        [into_y.query(xp.expand(Q, -1, -1), o.expand(Q, -1))[0].mean(dim=1) for xp, o in zip(x, x_orders)]
+    )  # (P, Q)
+    completeness = torch.stack(
+        [into_x.query(yq.expand(P, -1, -1), o.expand(P, -1))[0].mean(dim=1) for yq, o in zip(y, y_orders)], dim=1
+    )  # (P, Q)
     return factor * 0.5 * (accuracy + completeness)
