@@ -20,11 +20,13 @@ load on the machine changes least; of wall time on CUDA):
 - ``gt search index`` (the ground truth's search structure, where the tree builds it apart), ``silhouettes``
   (hard renders and mask IoU), ``own-mean forward`` (the model's pass computing its own mean shapes), ``rest``
   (the model's forward pass and soft render, colours, tables);
-- ``total`` (wall) and ``total cpu``, and the speed-ups of each variant's totals over the first one's. The
-  mean shape's fit (once per evaluation, before it) is shown apart.
+- ``total`` (wall) and ``total cpu``, the speed-ups of this tree's totals over each revision's, and the largest
+  relative difference of the mean metrics. The mean shape's fit (once per evaluation, before it) is shown apart.
+
+``--ref`` may be given several times: each revision is a column, this tree the last.
 
     python benchmarks/bm_eval.py runs/synthetic/checkpoints/last.ckpt --ref main
-    python benchmarks/bm_eval.py CKPT --ref main --settings heldout,final,full --images 5
+    python benchmarks/bm_eval.py CKPT --ref v0.1 --ref main --settings heldout,final,full --images 5
     python benchmarks/bm_eval.py CKPT --ref main --device cuda --images 20
 """
 
@@ -237,22 +239,25 @@ def report(setting: str, results: dict[str, dict[str, Any]]) -> None:
     for key in ("total", "total cpu"):
         print(f"{key:28s}" + "".join(f"{1000 * r[key] / r['images']:24.1f}" for r in results.values()))
     print(f"{'mean-shape fit (once), ms':28s}" + "".join(f"{1000 * r['fit']:24.1f}" for r in results.values()))
-    for name in names[1:]:
-        wall = results[names[0]]["total"] / results[name]["total"]
-        cpu = results[names[0]]["total cpu"] / results[name]["total cpu"]
-        print(f"speed-up of {name} over {names[0]}: {wall:.2f}x wall, {cpu:.2f}x cpu")
-    for name in names[1:]:
-        a, b = results[names[0]]["means"], results[name]["means"]
+    mine = results[names[-1]]
+    for name in names[:-1]:
+        wall = results[name]["total"] / mine["total"]
+        cpu = results[name]["total cpu"] / mine["total cpu"]
+        print(f"speed-up of {names[-1]} over {name}: {wall:.2f}x wall, {cpu:.2f}x cpu")
+    for name in names[:-1]:
+        a, b = results[name]["means"], mine["means"]
         diffs = {k: abs(a[k] - b[k]) / max(abs(a[k]), 1e-12) for k in a if k in b and a[k] == a[k]}
         worst = max(diffs, key=diffs.get) if diffs else None
         if worst is not None:
-            print(f"largest relative difference of the mean metrics, {name}: {worst} {diffs[worst]:.1e}")
+            print(f"largest relative difference of the mean metrics from {name}: {worst} {diffs[worst]:.1e}")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", help="a trained checkpoint (unicorn-train .ckpt or unicorn.io.save_model file)")
-    parser.add_argument("--ref", default=None, help="git revision to compare with (the 'before' variant)")
+    parser.add_argument(
+        "--ref", action="append", default=[], help="git revision to compare with (repeatable: one column each)"
+    )
     parser.add_argument("--settings", default="heldout,full", help="comma-separated, of " + ", ".join(SETTINGS))
     parser.add_argument("--images", type=int, default=3, help="test images scored (default: 3)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
@@ -276,9 +281,7 @@ def main() -> None:
     if args.child:
         Path(args.child).write_text(json.dumps(measure(args)))
         return
-    variants = {"this tree": REPO}
-    if args.ref:
-        variants = {f"before ({args.ref})": tree_of(args.ref), **variants}
+    variants = {**{ref: tree_of(ref) for ref in args.ref}, "this tree": REPO}
     print(f"# evaluation cost per image: {args.checkpoint}, {args.split} split, device {args.device}", flush=True)
     with tempfile.TemporaryDirectory(prefix="bm_eval-") as tmp:
         for setting in args.settings:

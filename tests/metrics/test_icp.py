@@ -1,6 +1,9 @@
+import importlib.util
+
 import pytest
 import torch
 
+from unicorn.checks import ShapeError
 from unicorn.geometry.rotations import euler_angles_to_matrix
 from unicorn.metrics.chamfer import point_cloud_scores
 from unicorn.metrics.icp import (
@@ -102,7 +105,12 @@ def _reference_icp(src, tgt, src_normals, n_iter, lr=0.01, window=10):
         return ICPResult(points, transform_normals(src_normals, R, best[2]), R, best[1], best[2], best_loss)
 
 
-@pytest.mark.parametrize("backend", ["kdtree", "torch"])
+PYKDTREE = pytest.param(
+    "pykdtree", marks=pytest.mark.skipif(importlib.util.find_spec("pykdtree") is None, reason="pykdtree not installed")
+)
+
+
+@pytest.mark.parametrize("backend", ["kdtree", PYKDTREE, "torch"])
 @pytest.mark.parametrize("shared_index", [False, True])
 def test_icp_matches_the_brute_force_oracle(blob, backend, shared_index):
     v, f = blob
@@ -123,6 +131,10 @@ def test_icp_matches_the_brute_force_oracle(blob, backend, shared_index):
 
 
 def test_icp_invalid_inputs():
+    with pytest.raises(ShapeError, match=r"d6 must have shape \(\.\.\., 6\)"):
+        rotation_6d_to_matrix(torch.rand(2, 5))
+    with pytest.raises(ShapeError, match="R must have shape"):
+        matrix_to_rotation_6d(torch.rand(2, 3, 2))
     x = torch.rand(1, 10, 3)
     with pytest.raises(ValueError, match="n_iter"):
         gradient_icp(x, x, n_iter=0)

@@ -3,7 +3,9 @@ import importlib.util
 import pytest
 import torch
 
-from unicorn.metrics.nn import BACKENDS, NearestNeighborIndex, default_backend, nearest_neighbors
+from unicorn.checks import ShapeError
+from unicorn.geometry.rotations import euler_angles_to_matrix
+from unicorn.metrics.nn import BACKENDS, NearestNeighborIndex, default_backend, nearest_neighbors, spatial_order
 
 HAS_PYKDTREE = importlib.util.find_spec("pykdtree") is not None
 PYKDTREE = pytest.param("pykdtree", marks=pytest.mark.skipif(not HAS_PYKDTREE, reason="pykdtree not installed"))
@@ -58,6 +60,43 @@ def test_trees_take_the_first_copy_of_a_repeated_point(backend):
     d, j = NearestNeighborIndex(y, backend=backend).reverse_query(x)
     assert j.tolist() == [[0, 1, 0, 1, 2]]
     torch.testing.assert_close(d, torch.tensor([[0.1, 0.1414214, 0.1, 0.1414214, 1.0]]))
+
+
+def test_spatial_order_is_a_permutation_that_keeps_neighbours_close():
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(2, 2000, 3, generator=g) * torch.tensor([3.0, 1.0, 0.5])
+    order = spatial_order(x)
+    assert order.shape == (2, 2000) and order.dtype == torch.long
+    assert torch.equal(order.sort(dim=1).values, torch.arange(2000).expand(2, -1))
+
+    def mean_step(points):
+        return (points[:, 1:] - points[:, :-1]).norm(dim=-1).mean()
+
+    walked = torch.gather(x, 1, order.unsqueeze(-1).expand(-1, -1, 3))
+    assert mean_step(walked) < 0.2 * mean_step(x)
+    # a similarity transform of the cloud keeps that order a short walk
+    moved = 0.7 * x @ euler_angles_to_matrix(torch.tensor([0.3, -0.2, 0.5])) + 4.0
+    assert mean_step(torch.gather(moved, 1, order.unsqueeze(-1).expand(-1, -1, 3))) < 0.2 * mean_step(moved)
+    # a cloud of one repeated point keeps its order
+    assert spatial_order(torch.ones(1, 3, 3)).tolist() == [[0, 1, 2]]
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_visiting_order_changes_no_neighbour(backend):
+    g = torch.Generator().manual_seed(3)
+    y = torch.randn(2, 400, 3, generator=g)
+    y[:, 100:200] = y[:, :100]
+    x = torch.randn(2, 300, 3, generator=g) * 1.5
+    index = NearestNeighborIndex(y, backend=backend, block_elements=1000)
+    random_order = torch.stack([torch.randperm(300, generator=g) for _ in range(2)])
+    for order in (spatial_order(x), random_order):
+        for method in ("query", "reverse_query"):
+            d0, i0 = getattr(index, method)(x)
+            d1, i1 = getattr(index, method)(x, order)
+            assert torch.equal(i0, i1) and torch.equal(d0, d1)
+    if backend != "torch":  # the torch backend ignores the order
+        with pytest.raises(ShapeError, match="order"):
+            index.query(x, random_order[:, :10])
 
 
 def test_default_backend():

@@ -18,9 +18,9 @@ from typing import NamedTuple
 
 import torch
 
-from unicorn.checks import check_normals, check_points, check_same_batch
+from unicorn.checks import ShapeError, check_normals, check_points, check_same_batch
 
-from .nn import Backend, NearestNeighborIndex, gather_points, nearest_neighbors
+from .nn import Backend, NearestNeighborIndex, gather_points, nearest_neighbors, spatial_order
 
 __all__ = [
     "CHAMFER_FACTOR",
@@ -98,9 +98,10 @@ def point_cloud_scores(
         d_gt, idx_gt = nearest_neighbors(gt, pred, backend=backend, workers=workers)
     else:
         if gt_index.y.shape != gt.shape:
-            raise ValueError(f"gt_index must index gt {tuple(gt.shape)}, got one over {tuple(gt_index.y.shape)}")
-        d_pred, idx_pred = gt_index.query(pred)
-        d_gt, idx_gt = gt_index.reverse_query(pred)
+            raise ShapeError(f"gt_index must index gt {tuple(gt.shape)}, got one over {tuple(gt_index.y.shape)}")
+        order = spatial_order(pred)  # one visiting order of the prediction's points for both directions
+        d_pred, idx_pred = gt_index.query(pred, order)
+        d_gt, idx_gt = gt_index.reverse_query(pred, order)
     accuracy, completeness = d_pred.mean(dim=1), d_gt.mean(dim=1)
     normal_cos = None
     if pred_normals is not None and gt_normals is not None:
@@ -228,6 +229,12 @@ def chamfer_matrix(
     P, Q = x.shape[0], y.shape[0]
     into_y = NearestNeighborIndex(y, backend=backend, workers=workers)
     into_x = NearestNeighborIndex(x, backend=backend, workers=workers)
-    accuracy = torch.stack([into_y.query(xp.expand(Q, -1, -1))[0].mean(dim=1) for xp in x])  # (P, Q)
-    completeness = torch.stack([into_x.query(yq.expand(P, -1, -1))[0].mean(dim=1) for yq in y], dim=1)  # (P, Q)
+    # each cloud visited in its own spatial order by all its queries
+    x_orders, y_orders = spatial_order(x), spatial_order(y)
+    accuracy = torch.stack(
+        [into_y.query(xp.expand(Q, -1, -1), o.expand(Q, -1))[0].mean(dim=1) for xp, o in zip(x, x_orders)]
+    )  # (P, Q)
+    completeness = torch.stack(
+        [into_x.query(yq.expand(P, -1, -1), o.expand(P, -1))[0].mean(dim=1) for yq, o in zip(y, y_orders)], dim=1
+    )  # (P, Q)
     return factor * 0.5 * (accuracy + completeness)

@@ -23,9 +23,9 @@ from typing import NamedTuple
 
 import torch
 
-from unicorn.checks import check_normals, check_points, check_same_batch
+from unicorn.checks import ShapeError, check_normals, check_points, check_same_batch, check_shape
 
-from .nn import Backend, NearestNeighborIndex
+from .nn import Backend, NearestNeighborIndex, spatial_order
 
 __all__ = [
     "ICPResult",
@@ -53,8 +53,7 @@ def rotation_6d_to_matrix(d6: torch.Tensor) -> torch.Tensor:
         >>> rotation_6d_to_matrix(torch.tensor([2.0, 0.0, 0.0, 1.0, 3.0, 0.0])).tolist()
         [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
     """
-    if d6.shape[-1] != 6:
-        raise ValueError(f"d6 must have shape (..., 6), got {tuple(d6.shape)}")
+    check_shape(d6, "*, 6", "d6")
     a1, a2 = d6[..., :3], d6[..., 3:]
     b1 = torch.nn.functional.normalize(a1, dim=-1)
     b2 = torch.nn.functional.normalize(a2 - (b1 * a2).sum(-1, keepdim=True) * b1, dim=-1)
@@ -64,8 +63,7 @@ def rotation_6d_to_matrix(d6: torch.Tensor) -> torch.Tensor:
 
 def matrix_to_rotation_6d(R: torch.Tensor) -> torch.Tensor:
     """The 6D representation (..., 6) of rotations (..., 3, 3): their first two rows."""
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
+    check_shape(R, "*, 3, 3", "R")
     return R[..., :2, :].reshape(*R.shape[:-2], 6)
 
 
@@ -149,16 +147,7 @@ def gradient_icp(
         ValueError: on malformed inputs, non-positive ``n_iter``, ``window`` or ``lr``, or a ``tgt_index`` of
             another shape than ``tgt``.
     """
-    check_points(src, "src")
-    check_points(tgt, "tgt")
-    check_same_batch(src, tgt, "src", "tgt")
-    if tgt_index is not None and tgt_index.y.shape != tgt.shape:
-        raise ValueError(f"tgt_index must index tgt {tuple(tgt.shape)}, got one over {tuple(tgt_index.y.shape)}")
-    check_normals(src_normals, src, "src_normals")
-    if n_iter < 1 or window < 1:
-        raise ValueError(f"n_iter and window must be positive, got n_iter={n_iter}, window={window}")
-    if not lr > 0:
-        raise ValueError(f"lr must be positive, got {lr}")
+    _check_icp_args(src, tgt, src_normals, n_iter, lr, window, tgt_index)
     src, tgt = src.detach(), tgt.detach().to(src.dtype)
     B = src.shape[0]
     d6 = src.new_tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]).repeat(B, 1)
@@ -170,31 +159,74 @@ def gradient_icp(
     optimizer = torch.optim.Adam(params, lr=lr)
     if tgt_index is None:
         tgt_index = NearestNeighborIndex(tgt, backend=backend, workers=workers)
-
-    best_loss = src.new_full((B,), float("inf"))
-    best = [p.detach().clone() for p in (d6, T, s)]
-    window_losses: list[torch.Tensor] = []
+    # the source's Z-order stays a spatially coherent order of the moved points: computed once for all queries
+    order = spatial_order(src)
+    best = _KeepBest((d6, T, s), window, n_iter)
     with torch.enable_grad():
         for it in range(n_iter):
             optimizer.zero_grad(set_to_none=True)
             moved = apply_similarity(src, rotation_6d_to_matrix(d6), T, s.expand(B, 3))
-            d_src, _ = tgt_index.query(moved)
-            d_tgt, _ = tgt_index.reverse_query(moved)
-            loss = d_src.square().mean(dim=1) + d_tgt.square().mean(dim=1)  # (B,)
+            loss = _squared_chamfer(moved, tgt_index, order)
             loss.mean().backward()
             optimizer.step()
-            window_losses.append(loss.detach())
-            if (it + 1) % window == 0 or it + 1 == n_iter:
-                mean = torch.stack(window_losses).mean(dim=0)
-                window_losses = []
-                better = mean < best_loss
-                best_loss = torch.where(better, mean, best_loss)
-                for kept, current in zip(best, (d6, T, s)):
-                    kept.copy_(torch.where(better.view(B, 1), current.detach(), kept))
+            best.update(it, loss.detach(), (d6, T, s))
 
     with torch.no_grad():
-        R = rotation_6d_to_matrix(best[0])
-        scale = best[2].expand(B, 3).clone()
-        points = apply_similarity(src, R, best[1], scale)
+        d6, T, s = best.params
+        R = rotation_6d_to_matrix(d6)
+        scale = s.expand(B, 3).clone()
+        points = apply_similarity(src, R, T, scale)
         normals = None if src_normals is None else transform_normals(src_normals.to(src), R, scale)
-    return ICPResult(points, normals, R, best[1], scale, best_loss)
+    return ICPResult(points, normals, R, T, scale, best.loss)
+
+
+def _check_icp_args(
+    src: torch.Tensor,
+    tgt: torch.Tensor,
+    src_normals: torch.Tensor | None,
+    n_iter: int,
+    lr: float,
+    window: int,
+    tgt_index: NearestNeighborIndex | None,
+) -> None:
+    check_points(src, "src")
+    check_points(tgt, "tgt")
+    check_same_batch(src, tgt, "src", "tgt")
+    if tgt_index is not None and tgt_index.y.shape != tgt.shape:
+        raise ShapeError(f"tgt_index must index tgt {tuple(tgt.shape)}, got one over {tuple(tgt_index.y.shape)}")
+    check_normals(src_normals, src, "src_normals")
+    if n_iter < 1 or window < 1:
+        raise ValueError(f"n_iter and window must be positive, got n_iter={n_iter}, window={window}")
+    if not lr > 0:
+        raise ValueError(f"lr must be positive, got {lr}")
+
+
+def _squared_chamfer(moved: torch.Tensor, index: NearestNeighborIndex, order: torch.Tensor) -> torch.Tensor:
+    """(B,) mean squared NN distance of ``moved`` (B, N, 3) to the index's cloud plus that of the index's cloud
+    to ``moved``, differentiable w.r.t. ``moved``; ``order``: (B, N) visiting order of ``moved``'s points."""
+    d_src, _ = index.query(moved, order)
+    d_tgt, _ = index.reverse_query(moved, order)
+    return d_src.square().mean(dim=1) + d_tgt.square().mean(dim=1)
+
+
+class _KeepBest:
+    """The keep-best rule: every ``window`` iterations (and at the last one) the mean loss of the window is
+    compared per object with the best so far; the parameters of a better window are copied."""
+
+    def __init__(self, params: tuple[torch.Tensor, ...], window: int, n_iter: int) -> None:
+        self.params = [p.detach().clone() for p in params]
+        self.loss = params[0].new_full((params[0].shape[0],), float("inf"))
+        self.window, self.n_iter = window, n_iter
+        self._losses: list[torch.Tensor] = []
+
+    def update(self, it: int, loss: torch.Tensor, params: tuple[torch.Tensor, ...]) -> None:
+        """Record iteration ``it``'s (B,) loss; at a window's end keep ``params`` where the window is better."""
+        self._losses.append(loss)
+        if (it + 1) % self.window and it + 1 != self.n_iter:
+            return
+        mean = torch.stack(self._losses).mean(dim=0)
+        self._losses = []
+        better = mean < self.loss
+        self.loss = torch.where(better, mean, self.loss)
+        for kept, current in zip(self.params, params):
+            kept.copy_(torch.where(better.view(-1, 1), current.detach(), kept))

@@ -20,9 +20,11 @@ iterations. Average the per-object values over the test objects of a class, then
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
-from unicorn.checks import check_mesh, check_normals, check_points, check_same_batch
+from unicorn.checks import ShapeError, check_mesh, check_normals, check_points, check_same_batch
 
 from .alignment import align_with_gt_pose, normalize_to_unit_cube
 from .chamfer import CHAMFER_FACTOR, point_cloud_scores
@@ -91,49 +93,20 @@ def evaluate_meshes(
         ValueError: on malformed inputs, partial poses, a ground truth outside the unit cube, or a ``gt_index``
             of another shape than ``gt_points``.
     """
-    check_mesh(verts, faces)
-    check_points(gt_points, "gt_points")
-    check_same_batch(verts, gt_points, "verts", "gt_points")
-    check_normals(gt_normals, gt_points, "gt_normals")
     poses = (R_pred, T_pred, R_gt, T_gt)
-    if any(p is not None for p in poses) and any(p is None for p in poses):
-        raise ValueError("give all of R_pred, T_pred, R_gt, T_gt or none of them")
-    if check_gt_range:
-        extent = gt_points.detach().abs().amax(dim=(1, 2))
-        if ((extent - 0.5).abs() > 0.01).any():
-            raise ValueError(
-                f"ground-truth clouds must have max |coord| = 0.5 +- 0.01 (unit cube), got {extent.tolist()}"
-            )
-    if gt_index is not None and gt_index.y.shape != gt_points.shape:
-        raise ValueError(f"gt_index must index gt_points {tuple(gt_points.shape)}, got {tuple(gt_index.y.shape)}")
+    _check_inputs(verts, faces, gt_points, gt_normals, poses, check_gt_range, gt_index)
     with torch.no_grad():
         gt_points = gt_points.to(verts.dtype)
         if gt_index is None:
             # one search structure over the ground truth for the direct scores, the ICP and the scores after it
             gt_index = NearestNeighborIndex(gt_points, backend=backend, workers=workers)
-        gt_normals = None if gt_normals is None else gt_normals.to(verts.dtype)
+        gt = _GroundTruth(gt_points, None if gt_normals is None else gt_normals.to(verts.dtype), gt_index)
         if R_pred is not None:
             verts = align_with_gt_pose(verts, R_pred, T_pred, R_gt, T_gt)  # type: ignore[arg-type]
-        with_normals = gt_normals is not None
-
-        def scores(points: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-            s = point_cloud_scores(
-                points,
-                gt_points,
-                normals if with_normals else None,
-                gt_normals,
-                factor=CHAMFER_FACTOR,
-                gt_index=gt_index,
-            )
-            return s.chamfer_l1, s.normal_cos
-
         results: dict[str, torch.Tensor] = {}
         if run_direct:
             points, normals = sample_points_from_meshes(verts, faces, num_points, seed=seed)
-            results["chamfer-L1"], normal_cos = scores(points, normals)
-            if normal_cos is not None:
-                results["normal-cos"] = normal_cos
-            results["iou-3d"] = point_cloud_voxel_iou(points, gt_points, voxel_resolution)
+            results.update(_scores(points, normals, gt, voxel_resolution, suffix=""))
         if run_icp:
             normalized, _, _ = normalize_to_unit_cube(verts)
             points, normals = sample_points_from_meshes(normalized, faces, num_points, seed=seed + 1)
@@ -148,8 +121,58 @@ def evaluate_meshes(
                 tgt_index=gt_index,
             )
             assert icp.normals is not None
-            results["chamfer-L1-ICP"], normal_cos = scores(icp.points, icp.normals)
-            if normal_cos is not None:
-                results["normal-cos-ICP"] = normal_cos
-            results["iou-3d-ICP"] = point_cloud_voxel_iou(icp.points, gt_points, voxel_resolution)
+            results.update(_scores(icp.points, icp.normals, gt, voxel_resolution, suffix="-ICP"))
     return {k: results[k] for k in SHAPENET_METRICS if k in results}
+
+
+class _GroundTruth(NamedTuple):
+    """The ground truth of a batch: points (B, M, 3), normals (B, M, 3) or None, and the search index over them."""
+
+    points: torch.Tensor
+    normals: torch.Tensor | None
+    index: NearestNeighborIndex
+
+
+def _check_inputs(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    gt_points: torch.Tensor,
+    gt_normals: torch.Tensor | None,
+    poses: tuple[torch.Tensor | None, ...],
+    check_gt_range: bool,
+    gt_index: NearestNeighborIndex | None,
+) -> None:
+    check_mesh(verts, faces)
+    check_points(gt_points, "gt_points")
+    check_same_batch(verts, gt_points, "verts", "gt_points")
+    check_normals(gt_normals, gt_points, "gt_normals")
+    if any(p is not None for p in poses) and any(p is None for p in poses):
+        raise ValueError("give all of R_pred, T_pred, R_gt, T_gt or none of them")
+    if check_gt_range:
+        extent = gt_points.detach().abs().amax(dim=(1, 2))
+        if ((extent - 0.5).abs() > 0.01).any():
+            raise ValueError(
+                f"ground-truth clouds must have max |coord| = 0.5 +- 0.01 (unit cube), got {extent.tolist()}"
+            )
+    if gt_index is not None and gt_index.y.shape != gt_points.shape:
+        raise ShapeError(f"gt_index must index gt_points {tuple(gt_points.shape)}, got {tuple(gt_index.y.shape)}")
+
+
+def _scores(
+    points: torch.Tensor, normals: torch.Tensor, gt: _GroundTruth, voxel_resolution: int, suffix: str
+) -> dict[str, torch.Tensor]:
+    """``chamfer-L1``, ``normal-cos`` (with ground-truth normals) and ``iou-3d`` of predicted samples (B, N, 3)
+    with their normals, the keys ending in ``suffix``."""
+    s = point_cloud_scores(
+        points,
+        gt.points,
+        None if gt.normals is None else normals,
+        gt.normals,
+        factor=CHAMFER_FACTOR,
+        gt_index=gt.index,
+    )
+    out = {"chamfer-L1" + suffix: s.chamfer_l1}
+    if s.normal_cos is not None:
+        out["normal-cos" + suffix] = s.normal_cos
+    out["iou-3d" + suffix] = point_cloud_voxel_iou(points, gt.points, voxel_resolution)
+    return out
