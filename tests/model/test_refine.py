@@ -115,6 +115,20 @@ def test_codes_first_holds_the_residuals(model: Unicorn, targets: torch.Tensor) 
     assert torch.equal(p.scale, out.initial.scale)
 
 
+def test_kept_shape_code(model: Unicorn, targets: torch.Tensor) -> None:
+    # lr_shape_code=0: the codes part moves the texture and background codes, never the shape
+    out = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.0))
+    for name in ("shape_code", "canonical_verts", "verts"):
+        assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    for name in ("texture_code", "background_code", "texture"):
+        assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    # its own rate: a smaller one moves the shape code less than the other codes' rate does
+    slow = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.01, lr_codes=0.1))
+    fast = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.1, lr_codes=0.1))
+    moved = [(r.prediction.shape_code - r.initial.shape_code).abs().max() for r in (slow, fast)]
+    assert 0 < moved[0] < 0.2 * moved[1], moved
+
+
 def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
     out = model.refine(targets[:1], steps=2, parts=("pose",), lr_pose=0.01)
     assert out.losses.shape == (3, 1)

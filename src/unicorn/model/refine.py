@@ -70,7 +70,9 @@ class RefineOptions:
         codes_first: share of the steps in which only the codes move (when ``codes`` is among the parts); the
             residual parts join after it. 0: everything from the first step.
         lr_codes, lr_texture, lr_vertices, lr_pose: Adam learning rates of each part's variables (codes in code
-            units, texture in colour units, vertices and translation in world units, rotation in radians).
+            units, texture in colour units, vertices and translation in world units, rotation in radians); the
+            texture and background codes move at ``lr_codes``.
+        lr_shape_code: Adam learning rate of the shape code (part ``codes``; 0: the network's shape is kept).
         code_weight: prior weight on the code deltas, times their squared norm (sum over code dimensions).
         texture_weight: prior weight on the texture's colour offset and residual, times the squared offset (mean over
             RGB) plus the residual's mean square over texels.
@@ -83,6 +85,7 @@ class RefineOptions:
     parts: tuple[str, ...] = ("codes", "texture", "vertices", "pose")
     codes_first: float = 0.5
     lr_codes: float = 0.1
+    lr_shape_code: float = 0.1
     lr_texture: float = 0.02
     lr_vertices: float = 0.001
     lr_pose: float = 0.005
@@ -125,7 +128,7 @@ class Refinement:
 class _Variables:
     """Each part's per-image variables (all zero: the prediction itself), on the prediction's device."""
 
-    def __init__(self, model: Unicorn, pred: Prediction, parts: Sequence[str]) -> None:
+    def __init__(self, model: Unicorn, pred: Prediction, parts: Sequence[str], move_shape: bool = True) -> None:
         B = pred.verts.shape[0]
 
         def zeros(*shape: int) -> torch.Tensor:
@@ -141,7 +144,9 @@ class _Variables:
         self.log_scale = zeros(3)
         self.rotation = zeros(3)
         self.translation = zeros(3)
-        codes = [self.shape, self.texture_code] + ([self.background_code] if self.background_code is not None else [])
+        self.shape.requires_grad_(move_shape)  # a kept shape: no gradient through the shape network
+        codes = [self.shape] if move_shape else []
+        codes += [self.texture_code] + ([self.background_code] if self.background_code is not None else [])
         all_groups = {
             "codes": codes,
             "texture": [self.colour, self.texture],
@@ -239,11 +244,16 @@ def refine(
         with torch.no_grad():
             start = model.predict(images, average_texture) if initial is None else initial
         start = _detached(start)
-        v = _Variables(model, start, o.parts)
+        v = _Variables(model, start, o.parts, move_shape=o.lr_shape_code > 0)
         params = v.groups
         steps = o.steps if params else 0
         lrs = {"codes": o.lr_codes, "texture": o.lr_texture, "vertices": o.lr_vertices, "pose": o.lr_pose}
-        opt = torch.optim.Adam([{"params": g, "lr": lrs[p]} for p, g in params.items()]) if params else None
+        groups = [{"params": g, "lr": lrs[p]} for p, g in params.items()]
+        if "codes" in params and o.lr_shape_code > 0:  # the shape code at its own rate
+            groups = [{"params": [v.shape], "lr": o.lr_shape_code}] + [
+                {**grp, "params": [t for t in grp["params"] if t is not v.shape]} for grp in groups
+            ]
+        opt = torch.optim.Adam(groups) if params else None
         warmup = round(o.codes_first * steps) if "codes" in params else 0
         losses = []
         for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
