@@ -183,7 +183,8 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
 def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     photo = str(inputs / "photo.jpg")
     assert main([str(checkpoint), photo, "--out", str(tmp_path / "plain"), *FAST]) == 0
-    assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), "--refine", "6", *FAST]) == 0
+    refined_args = ["--refine", "6", "--refine-parts", "all"]  # every part, so that the pose moves too
+    assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), *refined_args, *FAST]) == 0
     plain, refined = tmp_path / "plain" / "photo", tmp_path / "refined" / "photo"
     # the network's own pictures beside the refined ones, identical to an unrefined run's
     for name in ("reconstruction_network.png", "turntable_network.png"):
