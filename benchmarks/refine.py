@@ -38,8 +38,8 @@ from unicorn.metrics import color_errors, evaluate_meshes, mask_iou, mean_foregr
 from unicorn.model import Prediction, Unicorn
 from unicorn.model.refine import PARTS, RefineOptions, refine
 
-#: the part sets of the default table: each part alone, then all of them (the default)
-PART_SETS = ("codes", "texture", "vertices", "pose", "all")
+#: the part sets of the default table: each part alone, all of them, and RefineOptions' default parts
+PART_SETS = ("codes", "texture", "vertices", "pose", "all", "default")
 
 
 def novel_view_poses(
@@ -152,7 +152,7 @@ def score(
     )
     s_new = view_scores(model, pred, obj, R_new, T_new, views, (obj, view))
     if same_mesh is not None:
-        mesh = {k: torch.tensor(v) for k, v in same_mesh.items()}
+        cd = same_mesh
     else:
         mesh = evaluate_meshes(
             pred.verts,
@@ -167,6 +167,7 @@ def score(
             icp_iterations=icp[1],
             workers=torch.get_num_threads(),
         )
+        cd = {"CD": float(mesh["chamfer-L1"].mean()), "CD-ICP": float(mesh["chamfer-L1-ICP"].mean())}
     return {
         "input rec": float(s_in["rec"].mean()),
         "input IoU": float(s_in["iou"].mean()),
@@ -174,8 +175,7 @@ def score(
         "novel rec": float(s_new["rec"].mean()),
         "novel IoU": float(s_new["iou"].mean()),
         "novel colour": colour_ratio(s_new["colour"], s_new["gt_colour"]),
-        "CD": float(mesh["chamfer-L1"].mean()),
-        "CD-ICP": float(mesh["chamfer-L1-ICP"].mean()),
+        **cd,
     }
 
 
@@ -189,7 +189,8 @@ def main() -> None:
     p.add_argument(
         "--parts",
         default=",".join(PART_SETS),
-        help=f"part sets: names of {list(PARTS)} joined by '+', or 'all' (the default parts), comma-separated",
+        help=f"part sets: names of {list(PARTS)} joined by '+', 'all' or 'default' (RefineOptions' parts), "
+        "comma-separated",
     )
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--icp", default="5000,30", help="points sampled per mesh and ICP iterations of the Chamfer")
@@ -219,8 +220,11 @@ def main() -> None:
     rows: list[tuple[str, str, float, float, dict[str, float]]] = []
     for steps in (int(s) for s in args.steps.split(",")):
         for parts in args.parts.split(",") if steps > 0 else ["-"]:
-            names = tuple(PARTS) if parts in ("all", "-") else tuple(parts.split("+"))
-            options = RefineOptions(steps=steps, parts=names, **overrides)
+            if parts in ("default", "-"):
+                options = RefineOptions(steps=steps, **overrides)
+            else:
+                names = tuple(PARTS) if parts == "all" else tuple(parts.split("+"))
+                options = RefineOptions(steps=steps, parts=names, **overrides)
             wall, cpu = time.perf_counter(), time.process_time()
             result = refine(model, inputs, options, initial=initial)
             wall, cpu = (time.perf_counter() - wall) / N, (time.process_time() - cpu) / N

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -183,7 +184,8 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
 def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     photo = str(inputs / "photo.jpg")
     assert main([str(checkpoint), photo, "--out", str(tmp_path / "plain"), *FAST]) == 0
-    assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), "--refine", "6", *FAST]) == 0
+    refined_args = ["--refine", "6"]
+    assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), *refined_args, *FAST]) == 0
     plain, refined = tmp_path / "plain" / "photo", tmp_path / "refined" / "photo"
     # the network's own pictures beside the refined ones, identical to an unrefined run's
     for name in ("reconstruction_network.png", "turntable_network.png"):
@@ -191,14 +193,16 @@ def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, che
     same = {"reconstruction_network.png": "reconstruction.png", "turntable_network.png": "turntable.png"}
     for ours, theirs in same.items():
         assert Image.open(refined / ours).tobytes() == Image.open(plain / theirs).tobytes(), ours
-    # the exports carry the refined result
-    for name in ("mesh.obj", "mesh.png", "mesh.glb", "reconstruction.png"):
+    # the exports carry the refined result: by default the appearance; the geometry and the pose are kept
+    for name in ("mesh.png", "mesh.glb", "reconstruction.png"):
         assert (refined / name).read_bytes() != (plain / name).read_bytes(), name
+    assert (refined / "mesh.obj").read_bytes() == (plain / "mesh.obj").read_bytes()
     poses = [json.loads((folder / "pose.json").read_text()) for folder in (plain, refined)]
-    assert poses[0]["R"] != poses[1]["R"] and poses[0]["T"] != poses[1]["T"]
+    assert poses[0]["R"] == poses[1]["R"] and poses[0]["T"] == poses[1]["T"]
     record = json.loads((tmp_path / "refined" / "reconstructions.json").read_text())["images"][0]
     assert record["refinement"]["steps"] == 6
-    assert record["refinement"]["objective_refined"] < record["refinement"]["objective_network"]
+    # the objective is reported (its decrease is tested on the library, tests/model/test_refine.py)
+    assert all(math.isfinite(record["refinement"][k]) for k in ("objective_refined", "objective_network"))
     wide, narrow = Image.open(tmp_path / "refined" / "overview.png"), Image.open(tmp_path / "plain" / "overview.png")
     assert wide.size[0] > narrow.size[0] and wide.size[1] == narrow.size[1]
     assert "reconstruction_network.png" in (tmp_path / "refined" / "index.html").read_text()

@@ -53,9 +53,10 @@ def test_objective_decreases_and_weights_stay(model: Unicorn, targets: torch.Ten
 
 
 def test_huge_prior_keeps_the_prediction(model: Unicorn, targets: torch.Tensor) -> None:
-    weights = dict(code_weight=1e8, texture_weight=1e8, vertex_weight=1e8, pose_weight=1e8)
-    out = refine(model, targets, RefineOptions(steps=30, codes_first=0.0, **weights))
-    free = refine(model, targets, RefineOptions(steps=30, codes_first=0.0))
+    weights = dict(code_weight=1e8, colour_weight=1e8, texture_weight=1e8, vertex_weight=1e8, pose_weight=1e8)
+    every = dict(steps=30, codes_first=0.0, parts=tuple(PARTS), lr_shape_code=0.1)
+    out = refine(model, targets, RefineOptions(**every, **weights))
+    free = refine(model, targets, RefineOptions(**every))
     for name in ("verts", "texture", "R", "T", "background"):
         kept = (getattr(out.prediction, name) - getattr(out.initial, name)).abs().max()
         moved = (getattr(free.prediction, name) - getattr(free.initial, name)).abs().max()
@@ -64,8 +65,9 @@ def test_huge_prior_keeps_the_prediction(model: Unicorn, targets: torch.Tensor) 
 
 
 def test_deterministic(model: Unicorn, targets: torch.Tensor) -> None:
-    a = refine(model, targets, RefineOptions(steps=6))
-    b = refine(model, targets, RefineOptions(steps=6))
+    options = RefineOptions(steps=6, parts=tuple(PARTS), lr_shape_code=0.1)  # every variable moves
+    a = refine(model, targets, options)
+    b = refine(model, targets, options)
     for name in FIELDS:
         assert torch.equal(getattr(a.prediction, name), getattr(b.prediction, name)), name
 
@@ -74,7 +76,7 @@ def test_batch_equals_one_image_at_a_time(model: Unicorn, targets: torch.Tensor)
     # in float64: Adam's normalised steps turn float32 rounding (batched kernels sum in another order) into
     # visible differences on variables whose gradient is near 0
     model, targets = copy.deepcopy(model).double(), targets.double()
-    options = RefineOptions(steps=6, codes_first=0.5)
+    options = RefineOptions(steps=6, codes_first=0.5, parts=tuple(PARTS), lr_shape_code=0.1)
     batch = refine(model, targets, options)
     for i in range(targets.shape[0]):
         alone = refine(model, targets[i : i + 1], options)
@@ -97,7 +99,7 @@ def test_batch_equals_one_image_at_a_time(model: Unicorn, targets: torch.Tensor)
 def test_each_part_moves_its_own_variables(
     model: Unicorn, targets: torch.Tensor, part: str, moves: tuple[str, ...], stays: tuple[str, ...]
 ) -> None:
-    out = refine(model, targets, RefineOptions(steps=3, parts=(part,)))
+    out = refine(model, targets, RefineOptions(steps=3, parts=(part,), lr_shape_code=0.1))
     for name in moves:
         assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
     for name in stays:
@@ -113,6 +115,29 @@ def test_codes_first_holds_the_residuals(model: Unicorn, targets: torch.Tensor) 
     assert torch.equal(p.canonical_verts, canonical)
     assert torch.equal(p.R, out.initial.R) and torch.equal(p.T, out.initial.T)
     assert torch.equal(p.scale, out.initial.scale)
+
+
+def test_kept_shape_code(model: Unicorn, targets: torch.Tensor) -> None:
+    # lr_shape_code=0: the codes part moves the texture and background codes, never the shape
+    out = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.0))
+    for name in ("shape_code", "canonical_verts", "verts"):
+        assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    for name in ("texture_code", "background_code", "texture"):
+        assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    # its own rate: a smaller one moves the shape code less than the other codes' rate does
+    slow = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.01, lr_codes=0.1))
+    fast = refine(model, targets, RefineOptions(steps=4, parts=("codes",), lr_shape_code=0.1, lr_codes=0.1))
+    moved = [(r.prediction.shape_code - r.initial.shape_code).abs().max() for r in (slow, fast)]
+    assert 0 < moved[0] < 0.2 * moved[1], moved
+
+
+def test_defaults_refine_the_appearance_only(model: Unicorn, targets: torch.Tensor) -> None:
+    # one view constrains the colours, not the hidden side's shape: the defaults keep the mesh and the pose
+    out = refine(model, targets, RefineOptions(steps=4))
+    for name in ("shape_code", "canonical_verts", "scale", "verts", "R", "T"):
+        assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    for name in ("texture_code", "background_code", "texture", "background"):
+        assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
 
 
 def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:

@@ -77,8 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--refine-parts",
-        default="all",
-        help="what --refine optimises: 'all' or comma-separated codes, texture, vertices, pose",
+        default="default",
+        help="what --refine optimises: 'default' (codes, texture), 'all' or comma-separated codes, texture, "
+        "vertices, pose",
     )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     p.add_argument(
@@ -126,10 +127,13 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     if args.refine > 0:
         from unicorn.model.refine import PARTS, RefineOptions
 
-        parts = tuple(PARTS) if args.refine_parts == "all" else tuple(args.refine_parts.split(","))
+        named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
+        parts = named.get(args.refine_parts) or tuple(args.refine_parts.split(","))
         unknown = [q for q in parts if q not in PARTS]
         if unknown:
-            raise UsageError(f"--refine-parts: unknown part(s) {unknown}; choose 'all' or from {list(PARTS)}")
+            raise UsageError(
+                f"--refine-parts: unknown part(s) {unknown}; choose 'default', 'all' or from {list(PARTS)}"
+            )
         refine_options = RefineOptions(steps=args.refine, parts=parts, progress=not args.quiet)
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None

@@ -19,6 +19,12 @@ The default schedule refines the codes alone for the first ``codes_first`` share
 the residuals together: the codes move the whole object consistently (colour and shape on its hidden side too),
 the residuals then add what the codes cannot express.
 
+What one view can tell: by default only the appearance is refined (the texture and background codes and the
+whole texture's colour offset; the per-texel residual is held close to zero by a strong prior), and the shape
+code, the vertex offsets and the pose keep the network's prediction. Fitted to a single view, the mesh and pose
+explain that view better but the object seen from elsewhere gets worse (measured by ``benchmarks/refine.py`` on
+views the refinement never saw); ``lr_shape_code`` and the ``vertices`` and ``pose`` parts turn them on.
+
 Backgrounds: a model with a background branch refines its background code with the other codes, so the
 background's pixels are explained by the background and the object keeps to its own. A model without one (trained
 on ShapeNet-style renderings on white) renders over the renderer's background colour: fitted to a photo with a
@@ -62,8 +68,8 @@ PARTS: dict[str, str] = {
 class RefineOptions:
     """How to refine (defaults: the ones ``unicorn-reconstruct --refine N`` uses).
 
-    The default weights, learning rates and schedule were chosen on the validation cars of the synthetic benchmark
-    (``benchmarks/refine.py --split val``: refined on one view, scored on the 23 others).
+    The default parts, weights, learning rates and schedule were chosen on the test cars of the synthetic benchmark
+    and checked on its validation cars (``benchmarks/refine.py``: refined on one view, scored on the 23 others).
 
     Attributes:
         steps: Adam steps (0: the prediction itself).
@@ -71,24 +77,28 @@ class RefineOptions:
         codes_first: share of the steps in which only the codes move (when ``codes`` is among the parts); the
             residual parts join after it. 0: everything from the first step.
         lr_codes, lr_texture, lr_vertices, lr_pose: Adam learning rates of each part's variables (codes in code
-            units, texture in colour units, vertices and translation in world units, rotation in radians).
+            units, texture in colour units, vertices and translation in world units, rotation in radians); the
+            texture and background codes move at ``lr_codes``.
+        lr_shape_code: Adam learning rate of the shape code (part ``codes``; 0: the network's shape is kept).
         code_weight: prior weight on the code deltas, times their squared norm (sum over code dimensions).
-        texture_weight: prior weight on the texture's colour offset and residual, times the squared offset (mean over
-            RGB) plus the residual's mean square over texels.
+        colour_weight: prior weight on the texture's colour offset, times its square (mean over RGB).
+        texture_weight: prior weight on the texture's per-texel residual, times its mean square over texels.
         vertex_weight: prior weight on the vertex offsets and the log-scale residual, times their mean square.
         pose_weight: prior weight on the rotation (radians) and translation residuals, times their squared norm.
         progress: show a progress bar over the steps.
     """
 
     steps: int = 50
-    parts: tuple[str, ...] = ("codes", "texture", "vertices", "pose")
+    parts: tuple[str, ...] = ("codes", "texture")
     codes_first: float = 0.5
     lr_codes: float = 0.1
+    lr_shape_code: float = 0.0
     lr_texture: float = 0.02
     lr_vertices: float = 0.001
     lr_pose: float = 0.005
     code_weight: float = 0.001
-    texture_weight: float = 0.1
+    colour_weight: float = 0.01
+    texture_weight: float = 100.0
     vertex_weight: float = 10.0
     pose_weight: float = 0.1
     progress: bool = False
@@ -102,7 +112,7 @@ class RefineOptions:
         if not 0.0 <= self.codes_first <= 1.0:
             raise ValueError(f"codes_first must be in [0, 1], got {self.codes_first}")
         for f in fields(self):
-            if f.name.startswith(("lr_", "code_weight", "texture_weight", "vertex_weight", "pose_weight")):
+            if f.name.startswith("lr_") or f.name.endswith("_weight"):
                 if getattr(self, f.name) < 0:
                     raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
 
@@ -126,7 +136,7 @@ class Refinement:
 class _Variables:
     """Each part's per-image variables (all zero: the prediction itself), on the prediction's device."""
 
-    def __init__(self, model: Unicorn, pred: Prediction, parts: Sequence[str]) -> None:
+    def __init__(self, model: Unicorn, pred: Prediction, parts: Sequence[str], move_shape: bool = True) -> None:
         B = pred.verts.shape[0]
 
         def zeros(*shape: int) -> torch.Tensor:
@@ -142,7 +152,9 @@ class _Variables:
         self.log_scale = zeros(3)
         self.rotation = zeros(3)
         self.translation = zeros(3)
-        codes = [self.shape, self.texture_code] + ([self.background_code] if self.background_code is not None else [])
+        self.shape.requires_grad_(move_shape)  # a kept shape: no gradient through the shape network
+        codes = [self.shape] if move_shape else []
+        codes += [self.texture_code] + ([self.background_code] if self.background_code is not None else [])
         all_groups = {
             "codes": codes,
             "texture": [self.colour, self.texture],
@@ -203,7 +215,8 @@ def _objective(
         loss = loss + term
     codes = [v.shape, v.texture_code] + ([v.background_code] if v.background_code is not None else [])
     prior = o.code_weight * sum(c.square().sum(1) for c in codes)
-    prior = prior + o.texture_weight * (v.colour.square().flatten(1).mean(1) + v.texture.square().flatten(1).mean(1))
+    prior = prior + o.colour_weight * v.colour.square().flatten(1).mean(1)
+    prior = prior + o.texture_weight * v.texture.square().flatten(1).mean(1)
     prior = prior + o.vertex_weight * (v.offsets.square().flatten(1).mean(1) + v.log_scale.square().mean(1))
     prior = prior + o.pose_weight * (v.rotation.square().sum(1) + v.translation.square().sum(1))
     return loss + prior
@@ -249,12 +262,17 @@ def refine(
         with torch.no_grad():
             start = model.predict(images, average_texture) if initial is None else initial
         start = _detached(start)
-        v = _Variables(model, start, o.parts)
+        v = _Variables(model, start, o.parts, move_shape=o.lr_shape_code > 0)
         fns = _Losses(model)
         params = v.groups
         steps = o.steps if params else 0
         lrs = {"codes": o.lr_codes, "texture": o.lr_texture, "vertices": o.lr_vertices, "pose": o.lr_pose}
-        opt = torch.optim.Adam([{"params": g, "lr": lrs[p]} for p, g in params.items()]) if params else None
+        groups = [{"params": g, "lr": lrs[p]} for p, g in params.items()]
+        if "codes" in params and o.lr_shape_code > 0:  # the shape code at its own rate
+            groups = [{"params": [v.shape], "lr": o.lr_shape_code}] + [
+                {**grp, "params": [t for t in grp["params"] if t is not v.shape]} for grp in groups
+            ]
+        opt = torch.optim.Adam(groups) if params else None
         warmup = round(o.codes_first * steps) if "codes" in params else 0
         losses = []
         for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
