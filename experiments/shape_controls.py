@@ -150,7 +150,7 @@ def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Uni
 
 @torch.no_grad()
 def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
-    cfg, root = compose((*row.overrides, f"dataset.categories={args.category}"), args.cache)
+    cfg, root = compose((*row.overrides, *args.override, f"dataset.categories={args.category}"), args.cache)
     start = time.perf_counter()
     if row.silhouette_fit:
         from unicorn.data import build_dataset
@@ -186,6 +186,7 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=2e-4)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--category", default="car", help="synthetic category (car, chair, table, lamp, mug, airplane)")
+    p.add_argument("--override", action="append", default=[], help="a config override for every row (repeatable)")
     p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
     args = p.parse_args()
@@ -195,7 +196,9 @@ def main() -> None:
         results[row.name] = run(row, args)
         print(row.name, {k: round(v, 3) for k, v in results[row.name].items()}, flush=True)
     cols = list(next(iter(results.values())))
-    print(f"\n{args.iterations} iterations (3D step, ground-truth cameras), Adam lr {args.lr}, seed {args.seed}\n")
+    extra = f", overrides {' '.join(args.override)}" if args.override else ""
+    setting = f"{args.iterations} iterations (3D step, ground-truth cameras), Adam lr {args.lr}, seed {args.seed}"
+    print(f"\n{setting}{extra}\n")
     print("| control | " + " | ".join(cols) + " |")
     print("|---|" + "---|" * len(cols))
     for name, row in results.items():
