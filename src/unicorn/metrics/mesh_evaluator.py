@@ -108,21 +108,30 @@ def evaluate_meshes(
             points, normals = sample_points_from_meshes(verts, faces, num_points, seed=seed)
             results.update(_scores(points, normals, gt, voxel_resolution, suffix=""))
         if run_icp:
-            normalized, _, _ = normalize_to_unit_cube(verts)
-            points, normals = sample_points_from_meshes(normalized, faces, num_points, seed=seed + 1)
-            icp = gradient_icp(
-                points,
-                gt_points,
-                normals,
-                n_iter=icp_iterations,
-                lr=icp_lr,
-                estimate_scale=True,
-                anisotropic_scale=True,
-                tgt_index=gt_index,
+            points, normals = sample_points_from_meshes(
+                normalize_to_unit_cube(verts)[0], faces, num_points, seed=seed + 1
             )
-            assert icp.normals is not None
-            results.update(_scores(icp.points, icp.normals, gt, voxel_resolution, suffix="-ICP"))
+            results.update(_scores_after_icp(points, normals, gt, icp_iterations, icp_lr, voxel_resolution))
     return {k: results[k] for k in SHAPENET_METRICS if k in results}
+
+
+def _scores_after_icp(
+    points: torch.Tensor, normals: torch.Tensor, gt: _GroundTruth, n_iter: int, lr: float, voxel_resolution: int
+) -> dict[str, torch.Tensor]:
+    """The ``-ICP`` scores: the unit-cube-normalised samples (B, N, 3) aligned to the ground truth by the
+    anisotropic-scale gradient ICP, then scored."""
+    icp = gradient_icp(
+        points,
+        gt.points,
+        normals,
+        n_iter=n_iter,
+        lr=lr,
+        estimate_scale=True,
+        anisotropic_scale=True,
+        tgt_index=gt.index,
+    )
+    assert icp.normals is not None
+    return _scores(icp.points, icp.normals, gt, voxel_resolution, suffix="-ICP")
 
 
 class _GroundTruth(NamedTuple):
