@@ -70,6 +70,31 @@ class _HeldStream(io.TextIOBase):
         return self.stream
 
 
+#: Hydra's options that take a value in the next argument (``--info``'s value is optional and one of its topics)
+_VALUE_OPTIONS = {
+    "--cfg",
+    "-c",
+    "--package",
+    "-p",
+    "--config-path",
+    "-cp",
+    "--config-name",
+    "-cn",
+    "--config-dir",
+    "-cd",
+    "--experimental-rerun",
+}
+_INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+
+
+def _is_override(args: list[str], i: int) -> bool:
+    """Whether ``args[i]`` is one of Hydra's positional overrides (not an option nor an option's value)."""
+    if args[i].startswith("-"):
+        return False
+    before = args[i - 1] if i else ""
+    return before not in _VALUE_OPTIONS and not (before == "--info" and args[i] in _INFO_TOPICS)
+
+
 class HydraApp:
     """``hydra.main`` for a command, with its errors reported once (see the module docstring).
 
@@ -95,7 +120,9 @@ class HydraApp:
                 self.record_subdir = None if value in ("", "null") or key.startswith("~") else value
             else:
                 rest.append(arg)
-        return [*rest, "hydra.output_subdir=null"]
+        # beside the user's overrides: argparse takes Hydra's overrides as one run of positional arguments
+        at = next((i for i in range(len(rest)) if _is_override(rest, i)), len(rest))
+        return [*rest[:at], "hydra.output_subdir=null", *rest[at:]]
 
     def save_record(self, cfg: DictConfig, output_dir: Path) -> None:
         """Hydra's record of the run (``config.yaml``, ``hydra.yaml``, ``overrides.yaml`` in ``.hydra/``), as

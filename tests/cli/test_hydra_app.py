@@ -1,0 +1,39 @@
+"""``HydraApp`` hands Hydra the user's command line with ``hydra.output_subdir=null`` added, in any order of
+options and overrides (Hydra's own argument parser is the oracle)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra._internal.utils import get_args_parser
+
+from unicorn.cli.hydra_app import HydraApp
+
+COMMAND_LINES = [
+    [],
+    ["experiment=cub"],
+    ["experiment=cub", "--cfg", "job"],
+    ["--cfg", "job", "experiment=cub", "seed=2"],
+    ["-m", "seed=0,1", "--cfg", "job"],
+    ["-cd", "my_conf", "experiment=mine", "--info", "defaults"],
+    ["--info", "defaults", "~callbacks.images"],
+    ["--cfg", "job", "~callbacks.images", "--package", "model"],
+    ["--config-dir=my_conf", "+experiment=mine", "--resolve"],
+]
+
+
+@pytest.mark.parametrize("args", COMMAND_LINES, ids=lambda a: " ".join(a) or "none")
+def test_hydra_parses_the_users_options_and_overrides_unchanged(args):
+    expected = get_args_parser().parse_args(args)
+    parsed = get_args_parser().parse_args(HydraApp("unicorn-train", Path("."), "train").hydra_args(args))
+    assert parsed.overrides == ["hydra.output_subdir=null", *expected.overrides]
+    assert {k: v for k, v in vars(parsed).items() if k != "overrides"} == {
+        k: v for k, v in vars(expected).items() if k != "overrides"
+    }
+
+
+def test_a_users_output_subdir_is_kept_for_the_record():
+    app = HydraApp("unicorn-train", Path("."), "train")
+    assert app.hydra_args(["hydra.output_subdir=rec", "seed=1"]) == ["hydra.output_subdir=null", "seed=1"]
+    assert app.record_subdir == "rec"
