@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from tests.support.training import TINY, compose_config
 from unicorn import __version__
@@ -53,9 +54,20 @@ def test_every_experiment_composes_and_validates(tmp_path):
     default = validate(compose_config(["experiment=synthetic", f"paths.output_dir={tmp_path}"]))
     assert wild.dataset.synthetic.mode == "wild" and wild.model.background is not None
     assert default.dataset.synthetic.mode == "nmr" and default.model.background is None
-    # the wild variant trains under the default's budget and schedule (benchmarks/quality.py compares them)
-    assert wild.trainer.max_steps == default.trainer.max_steps
-    assert wild.schedule.milestones == default.schedule.milestones
+    # one recipe: the wild variant is the default with the wild mode and the real family's settings, nothing else
+    by_hand = compose_config(
+        [
+            "experiment=synthetic",
+            "family=real",
+            "dataset.synthetic.mode=wild",
+            "task_name=synthetic_wild",
+            f"paths.output_dir={tmp_path}",
+        ]
+    )
+    assert OmegaConf.to_yaml(compose_config(["experiment=synthetic_wild", f"paths.output_dir={tmp_path}"])) == (
+        OmegaConf.to_yaml(by_hand)
+    )
+    assert wild.optim.lr == default.optim.lr and wild.model.shape.n_field_units == default.model.shape.n_field_units
     assert default.evaluate.enabled and default.callbacks.heldout is not None
     # the 64 px variant: its own cache folder (the generator's manifest would refuse the 32 px one), same budget
     big = validate(compose_config(["experiment=synthetic64", f"paths.output_dir={tmp_path}"]))
