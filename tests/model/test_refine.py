@@ -131,13 +131,17 @@ def test_kept_shape_code(model: Unicorn, targets: torch.Tensor) -> None:
     assert 0 < moved[0] < 0.2 * moved[1], moved
 
 
-def test_defaults_refine_the_appearance_only(model: Unicorn, targets: torch.Tensor) -> None:
-    # one view constrains the colours, not the hidden side's shape: the defaults keep the mesh and the pose
+def test_defaults_refine_the_appearance_and_outline(model: Unicorn, targets: torch.Tensor) -> None:
+    # one view constrains the colours and the outline, not the hidden side's shape: the defaults keep the shape
+    # code and the pose, and move the vertices only a little (a strong prior)
     out = refine(model, targets, RefineOptions(steps=4))
-    for name in ("shape_code", "canonical_verts", "scale", "verts", "R", "T"):
+    for name in ("shape_code", "R", "T"):
         assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
-    for name in ("texture_code", "background_code", "texture", "background"):
+    for name in ("texture_code", "background_code", "texture", "background", "verts"):
         assert not torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
+    weak = refine(model, targets, RefineOptions(steps=4, vertex_weight=0.0))
+    moved = (out.prediction.verts - out.initial.verts).norm(dim=-1).mean()
+    assert moved < (weak.prediction.verts - weak.initial.verts).norm(dim=-1).mean()
 
 
 def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:

@@ -78,8 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--refine-parts",
         default="default",
-        help="what --refine optimises: 'default' (codes, texture), 'all' or comma-separated codes, texture, "
-        "vertices, pose",
+        help="what --refine optimises: 'default' (codes, texture, vertices), 'all' or comma-separated codes, "
+        "texture, vertices, pose",
     )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     p.add_argument(

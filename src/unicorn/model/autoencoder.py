@@ -358,7 +358,7 @@ class Unicorn(nn.Module):
             images: (B, 3, S, S) in [0, 1].
             steps: Adam steps (0: the prediction itself).
             parts: names of :data:`unicorn.model.refine.PARTS` (None: the default parts of
-                :class:`~unicorn.model.refine.RefineOptions`, codes and texture).
+                :class:`~unicorn.model.refine.RefineOptions`: codes, texture, vertices).
             average_texture: mean-colour textures, as :meth:`predict`.
             **options: other :class:`~unicorn.model.refine.RefineOptions` fields (learning rates, prior weights,
                 ``codes_first``, ``progress``).

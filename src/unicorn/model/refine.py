@@ -15,15 +15,15 @@ The variables come in parts (:data:`PARTS`):
 - ``vertices``: per-vertex offsets of the canonical mesh and a log-residual of the anisotropic scale;
 - ``pose``: a small rotation (Euler angles about the view axes, radians) and a translation residual.
 
-The default schedule refines the codes alone for the first ``codes_first`` share of the steps, then the codes and
-the residuals together: the codes move the whole object consistently (colour and shape on its hidden side too),
-the residuals then add what the codes cannot express.
+With ``codes_first`` > 0 the codes move alone for that share of the steps before the residuals join (the
+default, 0, moves every part from the first step).
 
-What one view can tell: by default only the appearance is refined (the texture and background codes and the
-whole texture's colour offset; the per-texel residual is held close to zero by a strong prior), and the shape
-code, the vertex offsets and the pose keep the network's prediction. Fitted to a single view, the mesh and pose
-explain that view better but the object seen from elsewhere gets worse (measured by ``benchmarks/refine.py`` on
-views the refinement never saw); ``lr_shape_code`` and the ``vertices`` and ``pose`` parts turn them on.
+What one view can tell: by default the appearance and the silhouette are refined (the texture and background
+codes, the whole texture's colour offset, small vertex offsets held by a strong prior that bring the mesh's
+outline onto the image's, so the texture lands on the object's own pixels; the per-texel residual is held close to
+zero by a strong prior), and the shape code and the pose keep the network's prediction. Fitted to a single view,
+a free shape code or pose explains that view better but the object seen from elsewhere gets worse (measured by
+``benchmarks/refine.py`` on views the refinement never saw); ``lr_shape_code`` and the ``pose`` part turn them on.
 
 Backgrounds: a model with a background branch refines its background code with the other codes, so the
 background's pixels are explained by the background and the object keeps to its own. A model without one (trained
@@ -68,8 +68,9 @@ PARTS: dict[str, str] = {
 class RefineOptions:
     """How to refine (defaults: the ones ``unicorn-reconstruct --refine N`` uses).
 
-    The default parts, weights, learning rates and schedule were chosen on the test cars of the synthetic benchmark
-    and checked on its validation cars (``benchmarks/refine.py``: refined on one view, scored on the 23 others).
+    The default parts, weights, learning rates and schedule were chosen on the validation cars of the synthetic
+    benchmark and checked on its test cars (``benchmarks/refine.py``: refined on one view, scored on the 23 others),
+    with the main job's model (``experiment=synthetic``).
 
     Attributes:
         steps: Adam steps (0: the prediction itself).
@@ -89,8 +90,8 @@ class RefineOptions:
     """
 
     steps: int = 50
-    parts: tuple[str, ...] = ("codes", "texture")
-    codes_first: float = 0.5
+    parts: tuple[str, ...] = ("codes", "texture", "vertices")
+    codes_first: float = 0.0
     lr_codes: float = 0.1
     lr_shape_code: float = 0.0
     lr_texture: float = 0.02
@@ -99,7 +100,7 @@ class RefineOptions:
     code_weight: float = 0.001
     colour_weight: float = 0.01
     texture_weight: float = 100.0
-    vertex_weight: float = 10.0
+    vertex_weight: float = 100.0
     pose_weight: float = 0.1
     progress: bool = False
 
