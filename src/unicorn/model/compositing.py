@@ -17,6 +17,7 @@ from typing import Protocol
 import torch
 from torch import nn
 
+from unicorn.registry import Registry
 from unicorn.render import TexturesUV
 
 __all__ = [
@@ -44,24 +45,17 @@ class Compositing(Protocol):
     ) -> tuple[torch.Tensor, torch.Tensor]: ...
 
 
-_COMPOSITINGS: dict[str, Callable[[], Compositing]] = {}
+_COMPOSITINGS: Registry[Compositing] = Registry("compositing")
 
 
 def register_compositing(name: str) -> Callable[[type], type]:
     """Class decorator: make a compositing (a no-argument constructor) available as ``renderer.composite=name``."""
-
-    def add(cls: type) -> type:
-        if name in _COMPOSITINGS:
-            raise ValueError(f"compositing {name!r} is already registered")
-        _COMPOSITINGS[name] = cls
-        return cls
-
-    return add
+    return _COMPOSITINGS.register(name)
 
 
 def list_compositings() -> list[str]:
     """The registered compositing names, sorted."""
-    return sorted(_COMPOSITINGS)
+    return _COMPOSITINGS.names()
 
 
 def build_compositing(name: str) -> Compositing:
@@ -70,9 +64,7 @@ def build_compositing(name: str) -> Compositing:
     Raises:
         ValueError: an unknown name (the known ones listed).
     """
-    if name not in _COMPOSITINGS:
-        raise ValueError(f"unknown compositing {name!r}; known: {list_compositings()}")
-    return _COMPOSITINGS[name]()
+    return _COMPOSITINGS.build(name)
 
 
 @register_compositing("direct")

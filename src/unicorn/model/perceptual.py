@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import inspect
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -30,6 +29,7 @@ from torch import nn
 from unicorn.checks import check_shape
 from unicorn.errors import UserError
 from unicorn.model.filtering import separable_filter
+from unicorn.registry import Registry
 
 __all__ = [
     "VGG16_FILE",
@@ -276,7 +276,7 @@ class StructuralLoss(nn.Module):
 
 
 # ---------------------------------------------------------------------------------------------- registry
-_PERCEPTUAL_LOSSES: dict[str, Callable[..., nn.Module]] = {}
+_PERCEPTUAL_LOSSES: Registry[nn.Module] = Registry("perceptual loss")
 
 
 def register_perceptual(name: str) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
@@ -284,19 +284,12 @@ def register_perceptual(name: str) -> Callable[[Callable[..., nn.Module]], Calla
 
     The constructor receives the loss group's options it names (e.g. ``vgg_weights``) as keywords.
     """
-
-    def add(factory: Callable[..., nn.Module]) -> Callable[..., nn.Module]:
-        if name in _PERCEPTUAL_LOSSES:
-            raise ValueError(f"perceptual loss {name!r} is already registered")
-        _PERCEPTUAL_LOSSES[name] = factory
-        return factory
-
-    return add
+    return _PERCEPTUAL_LOSSES.register(name)
 
 
 def list_perceptual_losses() -> list[str]:
     """The registered perceptual-loss names, sorted."""
-    return sorted(_PERCEPTUAL_LOSSES)
+    return _PERCEPTUAL_LOSSES.names()
 
 
 def build_perceptual(name: str | None, **options: object) -> nn.Module | None:
@@ -306,13 +299,7 @@ def build_perceptual(name: str | None, **options: object) -> nn.Module | None:
         ValueError: an unknown name (the known ones listed).
         VGGWeightsNotFoundError: ``"vgg"`` without weights.
     """
-    if name is None:
-        return None
-    if name not in _PERCEPTUAL_LOSSES:
-        raise ValueError(f"unknown perceptual loss {name!r}; known: {list_perceptual_losses()}")
-    factory = _PERCEPTUAL_LOSSES[name]
-    accepted = inspect.signature(factory).parameters
-    return factory(**{k: v for k, v in options.items() if k in accepted})
+    return None if name is None else _PERCEPTUAL_LOSSES.build(name, **options)
 
 
 @register_perceptual("vgg")

@@ -12,7 +12,6 @@ New objectives register with :func:`register_pose_objective`.
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -22,6 +21,7 @@ from torch import nn
 from unicorn.model import Unicorn
 from unicorn.model.losses import ReconstructionLoss, candidate_assignment_loss, uniform_pose_prior
 from unicorn.objectives.step_losses import StepLosses, with_total
+from unicorn.registry import Registry
 
 __all__ = [
     "AssignedLoss",
@@ -46,25 +46,18 @@ class PoseObjective(Protocol):
     ) -> dict[str, torch.Tensor]: ...
 
 
-_POSE_OBJECTIVES: dict[str, Callable[..., PoseObjective]] = {}
+_POSE_OBJECTIVES: Registry[PoseObjective] = Registry("pose objective", key="pose_objective")
 
 
 def register_pose_objective(name: str) -> Callable[[type], type]:
     """Class decorator: make a pose objective available as ``loss.pose_objective=name``; its constructor receives
     the options of the ``loss`` group it names (e.g. ``assignment_weight``)."""
-
-    def add(cls: type) -> type:
-        if name in _POSE_OBJECTIVES:
-            raise ValueError(f"pose objective {name!r} is already registered")
-        _POSE_OBJECTIVES[name] = cls
-        return cls
-
-    return add
+    return _POSE_OBJECTIVES.register(name)
 
 
 def list_pose_objectives() -> list[str]:
     """The registered pose-objective names, sorted."""
-    return sorted(_POSE_OBJECTIVES)
+    return _POSE_OBJECTIVES.names()
 
 
 def build_pose_objective(name: str, **options: Any) -> PoseObjective:
@@ -73,11 +66,7 @@ def build_pose_objective(name: str, **options: Any) -> PoseObjective:
     Raises:
         ValueError: an unknown name (the known ones listed).
     """
-    if name not in _POSE_OBJECTIVES:
-        raise ValueError(f"unknown pose_objective {name!r}; known: {list_pose_objectives()}")
-    factory = _POSE_OBJECTIVES[name]
-    accepted = inspect.signature(factory).parameters
-    return factory(**{k: v for k, v in options.items() if k in accepted})
+    return _POSE_OBJECTIVES.build(name, **options)
 
 
 def _weighted(weights: torch.Tensor, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
