@@ -40,7 +40,8 @@ from .instance import (
 from .keypoints import keypoint_pairs, keypoint_transfer_pck, pck, project_vertices, transfer_keypoints
 from .masks import mask_iou
 from .mesh_evaluator import SHAPENET_METRICS, evaluate_meshes
-from .nn import NearestNeighborIndex, gather_points, nearest_neighbors
+from .moving import MovingQueries
+from .nn import NearestNeighborIndex, gather_points, nearest_neighbors, spatial_order
 from .pose import (
     align_canonical_frame,
     azimuth_error,
@@ -55,6 +56,7 @@ __all__ = [
     "CHAMFER_FACTOR",
     "SHAPENET_METRICS",
     "ICPResult",
+    "MovingQueries",
     "NearestNeighborIndex",
     "PointCloudScores",
     "active_units",
@@ -94,6 +96,7 @@ __all__ = [
     "sample_points_from_meshes",
     "shape_retrieval",
     "shape_spread",
+    "spatial_order",
     "transfer_keypoints",
     "transform_normals",
     "voxel_centers",

@@ -4,9 +4,11 @@ The source cloud ``P`` is moved by ``p' = (s * p) @ R + T`` with ``R`` from a 6D
 2019, Gram-Schmidt on two 3-vectors, initialised at the identity ``[1, 0, 0, 0, 1, 0]``), ``T`` (initialised
 at 0) and a per-axis scale ``s`` (initialised at 1). Adam (learning rate 0.01) minimises the squared Chamfer
 distance (mean squared NN distance in each direction, summed) for ``n_iter`` iterations, the nearest
-neighbours being searched again at every iteration. Keep-best rule: every ``window`` iterations the mean loss
-of the last window is compared with the best window so far and, if lower, the parameters at that moment (after
-the window's last step) become the result. The last, possibly partial, window is compared too.
+neighbours being found again at every iteration (exactly; the source's by
+:class:`~unicorn.metrics.moving.MovingQueries`, which searches the tree only for the points whose last
+candidates no longer prove their nearest). Keep-best rule: every ``window`` iterations the mean loss of the last
+window is compared with the best window so far and, if lower, the parameters at that moment (after the window's
+last step) become the result. The last, possibly partial, window is compared too.
 
 Differences from the reference, on purpose:
 
@@ -25,6 +27,7 @@ import torch
 
 from unicorn.checks import ShapeError, check_normals, check_points, check_same_batch, check_shape
 
+from .moving import MovingQueries
 from .nn import Backend, NearestNeighborIndex, spatial_order
 
 __all__ = [
@@ -161,12 +164,14 @@ def gradient_icp(
         tgt_index = NearestNeighborIndex(tgt, backend=backend, workers=workers)
     # the source's Z-order stays a spatially coherent order of the moved points: computed once for all queries
     order = spatial_order(src)
+    # the source moves by small steps: the nearest points change little from one step to the next
+    searches = MovingQueries(tgt_index)
     best = _KeepBest((d6, T, s), window, n_iter)
     with torch.enable_grad():
         for it in range(n_iter):
             optimizer.zero_grad(set_to_none=True)
             moved = apply_similarity(src, rotation_6d_to_matrix(d6), T, s.expand(B, 3))
-            loss = _squared_chamfer(moved, tgt_index, order)
+            loss = _squared_chamfer(moved, searches, order)
             loss.mean().backward()
             optimizer.step()
             best.update(it, loss.detach(), (d6, T, s))
@@ -201,11 +206,11 @@ def _check_icp_args(
         raise ValueError(f"lr must be positive, got {lr}")
 
 
-def _squared_chamfer(moved: torch.Tensor, index: NearestNeighborIndex, order: torch.Tensor) -> torch.Tensor:
-    """(B,) mean squared NN distance of ``moved`` (B, N, 3) to the index's cloud plus that of the index's cloud
-    to ``moved``, differentiable w.r.t. ``moved``; ``order``: (B, N) visiting order of ``moved``'s points."""
-    d_src, _ = index.query(moved, order)
-    d_tgt, _ = index.reverse_query(moved, order)
+def _squared_chamfer(moved: torch.Tensor, searches: MovingQueries, order: torch.Tensor) -> torch.Tensor:
+    """(B,) mean squared NN distance of ``moved`` (B, N, 3) to the target plus that of the target to ``moved``,
+    differentiable w.r.t. ``moved``; ``order``: (B, N) visiting order of ``moved``'s points."""
+    d_src, _ = searches.query(moved, order)
+    d_tgt, _ = searches.reverse_query(moved, order)
     return d_src.square().mean(dim=1) + d_tgt.square().mean(dim=1)
 
 

@@ -114,7 +114,8 @@ def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> tor
 
 # ---------------------------------------------------------------------------------------------- CPU k-d trees
 class _ScipyTree:
-    """A :class:`scipy.spatial.cKDTree` over (M, D) float64 points; ``nearest`` gives (N,) int64 indices."""
+    """A :class:`scipy.spatial.cKDTree` over (M, D) float64 points; ``nearest`` gives (N,) int64 indices,
+    ``knearest`` the (N, k) float64 distances and int64 indices of the k nearest, closest first."""
 
     def __init__(self, points: np.ndarray, workers: int) -> None:
         # sliding-midpoint trees with larger leaves: 3-4x faster than scipy's defaults for queries far
@@ -124,6 +125,10 @@ class _ScipyTree:
 
     def nearest(self, queries: np.ndarray) -> np.ndarray:
         return np.asarray(self.tree.query(queries, k=1, workers=self.workers)[1], dtype=np.int64)
+
+    def knearest(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        dists, idx = self.tree.query(queries, k=k, workers=self.workers)
+        return np.asarray(dists, dtype=np.float64).reshape(len(queries), k), np.asarray(idx, np.int64).reshape(-1, k)
 
 
 class _PyKDTree:
@@ -136,6 +141,20 @@ class _PyKDTree:
 
     def nearest(self, queries: np.ndarray) -> np.ndarray:
         return self.tree.query(queries, k=1, sqr_dists=True)[1].astype(np.int64)
+
+    def knearest(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        dists, idx = self.tree.query(queries, k=k)
+        return np.asarray(dists, dtype=np.float64).reshape(len(queries), k), idx.astype(np.int64).reshape(-1, k)
+
+
+class _FreshTree:
+    """Reverse searches by a tree of class ``tree`` built over each searched cloud."""
+
+    def __init__(self, tree: type[_ScipyTree] | type[_PyKDTree], workers: int) -> None:
+        self.tree, self.workers = tree, workers
+
+    def nearest_in(self, cloud: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        return self.tree(cloud, self.workers).nearest(queries)
 
 
 #: CPU k-d tree backends: name -> tree class
@@ -227,6 +246,18 @@ class NearestNeighborIndex:
             out._distinct = [self._distinct[r] for r in rows]
         return out
 
+    def trees(self) -> list[tuple[_ScipyTree | _PyKDTree, np.ndarray]] | None:
+        """Per cloud of ``y``, its k-d tree and the (U, D) float64 distinct points the tree holds (the indices its
+        searches return point into them); None with the torch backend."""
+        if self._trees is None or self._distinct is None:
+            return None
+        return [(tree, d.points) for tree, d in zip(self._trees, self._distinct)]
+
+    def tree_builder(self) -> _FreshTree | None:
+        """The reverse searcher :meth:`reverse_search` uses by default (a k-d tree built over each searched cloud);
+        None with the torch backend."""
+        return None if self._trees is None else _FreshTree(_TREES[self.backend], self.workers)
+
     def _check(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray] | None:
         """Check a query cloud; for the k-d tree backends, the visiting order (numpy) of each of its clouds."""
         check_points(x, "x", dim=None)
@@ -247,13 +278,19 @@ class NearestNeighborIndex:
         ``order``: (B, N) permutations in which the k-d trees visit the points of ``x``, e.g.
         :func:`spatial_order` (None: as given). It changes the speed, not the result; the torch backend ignores it.
         """
+        return self.search(x, order, self._trees)
+
+    def search(self, x: torch.Tensor, order: torch.Tensor | None, searchers: list | None) -> torch.Tensor:
+        """:meth:`indices` with other searchers over the distinct points of each cloud of ``y`` (objects with a
+        ``nearest((N, D) float64) -> (N,) int64`` method, e.g. :class:`~unicorn.metrics.moving.MovingQueries`'
+        trackers), or this index's trees when None. The torch backend ignores them."""
         orders = self._check(x, order)
         if self._trees is None or self._distinct is None or orders is None:
             return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
         out = []
-        for xb, d, tree, ob in zip(x, self._distinct, self._trees, orders):
+        for xb, d, searcher, ob in zip(x, self._distinct, searchers or self._trees, orders):
             found = np.empty(len(ob), dtype=np.int64)
-            found[ob] = d.first[tree.nearest(_numpy64(xb)[ob])]
+            found[ob] = d.first[searcher.nearest(_numpy64(xb)[ob])]
             out.append(torch.from_numpy(found))
         return torch.stack(out).to(x.device)
 
@@ -264,13 +301,20 @@ class NearestNeighborIndex:
         The k-d tree backends build a tree over each cloud of ``x``, its points taken in ``order`` (as in
         :meth:`indices`), and query the distinct points of ``y``.
         """
+        return self.reverse_search(x, order, None)
+
+    def reverse_search(self, x: torch.Tensor, order: torch.Tensor | None, searchers: list | None) -> torch.Tensor:
+        """:meth:`reverse_indices` with other searchers, one per cloud: objects with a
+        ``nearest_in(cloud (N, D) float64, queries (U, D) float64) -> (U,) int64`` method giving the rows of
+        ``cloud`` (a cloud of ``x`` in ``order``) nearest to the distinct points of ``y``; when None, a k-d tree
+        is built over each cloud. The torch backend ignores them."""
         orders = self._check(x, order)
         if self._trees is None or self._distinct is None or orders is None:
             return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
-        tree = _TREES[self.backend]
+        searchers = searchers or [self.tree_builder()] * x.shape[0]
         out = [
-            torch.from_numpy(ob[tree(_numpy64(xb)[ob], self.workers).nearest(d.points)][d.inverse])
-            for xb, d, ob in zip(x, self._distinct, orders)
+            torch.from_numpy(ob[searcher.nearest_in(_numpy64(xb)[ob], d.points)][d.inverse])
+            for xb, d, ob, searcher in zip(x, self._distinct, orders, searchers)
         ]
         return torch.stack(out).to(x.device)
 
@@ -278,16 +322,24 @@ class NearestNeighborIndex:
         """For each point of ``x`` (B, N, D): distances (B, N), differentiable w.r.t. ``x`` and ``y``, and indices
         (B, N) into ``y`` of its nearest neighbour (``order``: see :meth:`indices`)."""
         idx = self.indices(x, order)
-        dists = torch.linalg.vector_norm(x - gather_points(self.y.to(x.dtype), idx), dim=-1)
-        return dists, idx
+        return self.distances(x, idx), idx
+
+    def distances(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Distances (B, N) from ``x`` (B, N, D) to ``y[b, idx[b, n]]`` (idx (B, N) long), differentiable w.r.t.
+        ``x`` and ``y``."""
+        return torch.linalg.vector_norm(x - gather_points(self.y.to(x.dtype), idx), dim=-1)
 
     def reverse_query(self, x: torch.Tensor, order: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """For each point of ``y``: distances (B, M) to its nearest neighbour in ``x`` (B, N, D), differentiable
         w.r.t. ``x`` and ``y``, and its indices (B, M) into ``x``; ``nearest_neighbors(y, x)`` with ``y`` in
         ``x``'s dtype (``order``: see :meth:`indices`)."""
         idx = self.reverse_indices(x, order)
-        dists = torch.linalg.vector_norm(self.y.to(x.dtype) - gather_points(x, idx), dim=-1)
-        return dists, idx
+        return self.reverse_distances(x, idx), idx
+
+    def reverse_distances(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Distances (B, M) from ``y`` to ``x[b, idx[b, m]]`` (x (B, N, D), idx (B, M) long), differentiable w.r.t.
+        ``x`` and ``y``."""
+        return torch.linalg.vector_norm(self.y.to(x.dtype) - gather_points(x, idx), dim=-1)
 
 
 def nearest_neighbors(
