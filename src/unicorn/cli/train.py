@@ -122,6 +122,9 @@ def main() -> None:
             flush=True,
         )
     tune_allocator()
+    from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
+
+    store_schema()  # conf/train.yaml's defaults list starts with the schema
     _app = HydraApp("unicorn-train", config_dir(), "train", debug=debug)
     _app.run(_task, hydra_argv(args))
 

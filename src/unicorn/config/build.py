@@ -51,18 +51,18 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     Raises:
         ConfigError: an unknown key, a wrong type or inconsistent values, with the offending key's name.
     """
-    dataset = cfg.get("dataset") if isinstance(cfg, DictConfig) else None
-    # a mandatory value left out (``???``): merging onto the schema would hide it behind the schema's default
-    _check(
-        not (isinstance(dataset, DictConfig) and OmegaConf.is_missing(dataset, "root")),
-        f"dataset.root is required by dataset {dataset.get('name') if dataset is not None else None!r}: give the "
-        "folder of its data (dataset.root=/path/to/data)",
-    )
-    schema = OmegaConf.structured(TrainConfig)
+    # plain values: a config Hydra composed is already typed, but a key added with `+key=value` bypassed the schema
+    values = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else cfg
     try:
-        typed = OmegaConf.merge(schema, cfg)
+        typed = OmegaConf.merge(OmegaConf.structured(TrainConfig), values)
     except OmegaConfBaseException as err:
         raise ConfigError(f"invalid training config: {err}") from None
+    # the schema has no default root: every dataset preset names one (`???`: to be given on the command line)
+    _check(
+        not OmegaConf.is_missing(typed.dataset, "root"),
+        f"dataset.root is required by dataset {typed.dataset.name!r}: give the folder of its data "
+        "(dataset.root=/path/to/data)",
+    )
     try:
         _check_values(typed)
     except OmegaConfBaseException as err:
