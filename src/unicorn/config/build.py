@@ -21,7 +21,7 @@ from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHED
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
 from unicorn.errors import UserError
-from unicorn.model.config import CHOICES, check_model_config, check_ranges
+from unicorn.model.config import CHOICES, CODE_BRANCHES, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
@@ -122,9 +122,7 @@ def _check_model(cfg: DictConfig) -> None:
         cfg.dataset.batch_size <= m.loss.memory_size,
         f"dataset.batch_size ({cfg.dataset.batch_size}) exceeds model.loss.memory_size ({m.loss.memory_size})",
     )
-    codes = {"shape": m.shape.code_dim, "texture": m.texture.code_dim}
-    if m.background is not None:
-        codes["background"] = m.background.code_dim
+    codes = {name: m[name].code_dim for name in CODE_BRANCHES if m[name] is not None}  # no background model: None
     for name, code_dim in codes.items():
         dims = list(m.stages[name])
         key = f"model.stages.{name}"
@@ -226,10 +224,9 @@ def model_config(cfg: DictConfig) -> dict[str, Any]:
     renderer = renderer_settings(cfg.renderer)
     renderer["composite"] = model.pop("composite")
     model["renderer"] = renderer
-    model["shape"]["active_dims"] = stages["shape"][0]
-    model["texture"]["active_dims"] = stages["texture"][0]
-    if model["background"] is not None:
-        model["background"]["active_dims"] = stages["background"][0]
+    for name in CODE_BRANCHES:
+        if model[name] is not None:  # no background model: None
+            model[name]["active_dims"] = stages[name][0]
     for group in ("template", "pose"):
         for key, value in model[group].items():
             if isinstance(value, list):

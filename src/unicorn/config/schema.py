@@ -33,6 +33,7 @@ __all__ = [
     "EvalSettings",
     "EvaluateConfig",
     "FAST_EVAL",
+    "FINAL_EVAL",
     "HELDOUT_SPLITS",
     "HeldOutConfig",
     "ImagesConfig",
@@ -42,6 +43,8 @@ __all__ = [
     "OptimConfig",
     "PathsConfig",
     "PlateauConfig",
+    "REPORT_SAMPLES",
+    "REPORT_TURNTABLE_FRAMES",
     "SCHEDULE_MODES",
     "SCHEMA_NAME",
     "SPLITS",
@@ -61,9 +64,16 @@ SPLITS = ("train", "val", "test")
 HELDOUT_SPLITS = SPLITS[1:]
 #: ``schedule.mode``: fixed milestones, or a stage change when the 3D-step loss reaches a plateau
 SCHEDULE_MODES = ("fixed", "plateau")
-#: UNICORN's validation setting of the mesh metrics (its final protocol, ``unicorn-eval``'s default, is 100k points
-#: and 100 ICP iterations: :class:`unicorn.evaluation.EvalOptions`)
+# The evaluation's defaults, here (the lowest floor the training config and unicorn.evaluation share) so that
+# ``unicorn-eval`` (:class:`unicorn.evaluation.EvalOptions`) and the evaluations of a training run import them.
+#: UNICORN's final protocol of the mesh metrics (``unicorn-eval``'s default)
+FINAL_EVAL = {"num_points": 100_000, "icp_iterations": 100}
+#: UNICORN's validation setting of the mesh metrics (``unicorn-eval --fast``, the evaluation after training)
 FAST_EVAL = {"num_points": 50_000, "icp_iterations": 30}
+#: images shown in an evaluation report (``report.png`` / ``report.html``): input, reconstruction, mask, views
+REPORT_SAMPLES = 10
+#: frames of each sample's turntable GIF in an evaluation report
+REPORT_TURNTABLE_FRAMES = 16
 
 
 # ---------------------------------------------------------------------------------------------- model
@@ -238,8 +248,8 @@ class ImagesConfig:
 class EvalSettings:
     """What an evaluation scores and how finely: the settings ``unicorn-eval``, the evaluation after training
     (:class:`EvaluateConfig`) and the held-out evaluation (:class:`HeldOutConfig`) share. The defaults are
-    UNICORN's validation setting (:data:`FAST_EVAL`); ``unicorn-eval``'s are the paper's final protocol
-    (:class:`unicorn.evaluation.EvalOptions`)."""
+    UNICORN's validation setting (:data:`FAST_EVAL`); ``unicorn-eval``'s (:class:`unicorn.evaluation.EvalOptions`)
+    are its final protocol (:data:`FINAL_EVAL`)."""
 
     split: str = "test"
     max_images: int | None = ranged(None, 1)  # null: the whole split
@@ -297,8 +307,8 @@ class EvaluateConfig(EvalSettings):
     """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s protocol), written to ``<run>/eval``."""
 
     enabled: bool = False
-    report_samples: int = ranged(10, 0)  # images in report.png / report.html: input, reconstruction, mask, views
-    turntable_frames: int = ranged(16, 0)  # frames of each sample's turntable GIF in the report (0: none)
+    report_samples: int = ranged(REPORT_SAMPLES, 0)
+    turntable_frames: int = ranged(REPORT_TURNTABLE_FRAMES, 0)  # 0: no turntables in the report
 
 
 @dataclass
