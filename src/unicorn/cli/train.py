@@ -91,7 +91,7 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
     Rewriting the ``+`` form is the one change that makes both forms compose the same run, in single runs, sweeps
     (``-m +experiment=a,b``; the sweep value is kept as written) and with ``-cd DIR``, whose ``DIR/experiment/``
     presets join the same group. A ``train.yaml`` of your own in ``DIR`` replaces ours and must keep the
-    ``experiment: null`` entry. Every other argument is returned unchanged.
+    ``train_schema`` and ``experiment: null`` entries. Every other argument is returned unchanged.
     """
     prefix = "+experiment="
     return [arg[1:] if arg.startswith(prefix) else arg for arg in overrides]
