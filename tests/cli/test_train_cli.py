@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from tests.support.training import TINY, compose_config
@@ -113,10 +112,8 @@ def test_bad_values_are_named(tmp_path):
     base = ["experiment=synthetic", f"paths.output_dir={tmp_path}"]
     with pytest.raises(ConfigError, match=r"optim\.lrr"):
         validate(compose_config([*base, "+optim.lrr=1"]))
-    # train.yaml extends the schema: Hydra refuses a value of the wrong type while composing, naming the key
-    with pytest.raises(ConfigCompositionException, match=r"optim\.lr=fast") as caught:
-        compose_config([*base, "optim.lr=fast"])
-    assert "full_key: optim.lr" in str(caught.value.__cause__)
+    with pytest.raises(ConfigError, match=r"optim\.lr"):
+        validate(compose_config([*base, "optim.lr=fast"]))
     with pytest.raises(ConfigError, match=r"schedule\.milestones"):
         validate(compose_config([*base, "schedule.milestones=[5,3,8]"]))
     with pytest.raises(ConfigError, match="find_unused_parameters"):
@@ -225,8 +222,6 @@ def test_user_errors_are_one_line_and_leave_no_run_folder(synthetic_cache, tmp_p
         (["dataset.batch_size=0"], "dataset.batch_size must be >= 1, got 0"),
         ([f"ckpt_path={tmp_path / 'missing.ckpt'}"], "ckpt_path: no checkpoint file at"),
         (["optim.lrr=1"], "lrr"),  # Hydra's own composition error, put on one line
-        (["optim.lr=fast"], "full_key: optim.lr "),  # a wrong type: refused while Hydra composes onto the schema
-        (["+optim.lrr=1"], "Key 'lrr' not in 'OptimConfig'"),  # `+` bypasses the schema in Hydra: validate() refuses
     ]
     for overrides, message in cases:
         result = unicorn_train(*TINY, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from typing import Any
 
 import pytest
@@ -11,7 +10,6 @@ from omegaconf import OmegaConf
 from tests.support.training import compose_config
 from unicorn.config import list_presets, model_config, model_preset, validate
 from unicorn.config.schema import (
-    SCHEMA_NAME,
     CallbacksConfig,
     DatasetConfig,
     ModelConfig,
@@ -87,14 +85,6 @@ def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
     if not isinstance(node, dict) or not node:
         return {prefix[:-1]: node}
     return {k: v for key, value in node.items() for k, v in _leaves(value, f"{prefix}{key}.").items()}
-
-
-def test_every_model_key_exists_in_a_composed_config(tmp_path) -> None:
-    # train.yaml extends the schema: overrides like model.pose.n_azim=2 find every key, whatever the presets list
-    composed = compose_config(["model=big", f"paths.output_dir={tmp_path}"])
-    keys = set(_leaves(OmegaConf.to_container(composed.model)))
-    assert keys == set(_leaves(asdict(ModelConfig()))) and composed.model.pose.n_azim == ModelConfig().pose.n_azim
-    assert OmegaConf.load(config_dir() / "train.yaml").defaults[0] == SCHEMA_NAME
 
 
 #: the schema node of each group whose presets are merged onto it, and the key that names a preset's choice

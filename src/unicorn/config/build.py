@@ -51,10 +51,8 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     Raises:
         ConfigError: an unknown key, a wrong type or inconsistent values, with the offending key's name.
     """
-    # plain values: a config Hydra composed is already typed, but a key added with `+key=value` bypassed the schema
-    values = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else cfg
     try:
-        typed = OmegaConf.merge(OmegaConf.structured(TrainConfig), values)
+        typed = OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg)
     except OmegaConfBaseException as err:
         raise ConfigError(f"invalid training config: {err}") from None
     # the schema has no default root: every dataset preset names one (`???`: to be given on the command line)

@@ -2,11 +2,11 @@
 
 :class:`TrainConfig` holds every key of a training run with its default. Importing this module registers it in
 Hydra's ConfigStore as :data:`SCHEMA_NAME`, the first entry of ``conf/train.yaml``'s defaults list: a composed
-config starts from the schema, so every key exists (and can be overridden on the command line) while the YAML
-files hold only what differs from these defaults, and a misspelt key or a value of the wrong type fails with the
-key's full name while Hydra composes. :func:`unicorn.config.validate` merges a config onto the schema again (for
-configs composed elsewhere) and checks what types cannot express (milestones in order, code sizes within the
-code, renderer options the backend accepts, ...).
+config starts from the schema's defaults, so every key exists (and can be overridden on the command line, a
+misspelt one fails naming it) while the YAML files hold only what differs from these defaults.
+:func:`unicorn.config.validate` merges the composed config onto the typed schema (a value of the wrong type or a
+key added with ``+`` fails with the key's full name) and checks what types cannot express (milestones in order,
+code sizes within the code, renderer options the backend accepts, ...).
 
 The ``model`` group is the model's own configuration groups (:mod:`unicorn.model.config`, where every model key
 and default is defined) plus ``name``, ``composite`` and ``stages``, the active code sizes of the four stages;
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, OmegaConf
 
 from unicorn.model.config import ModelGroups, RendererConfig, ranged
 
@@ -351,8 +351,15 @@ SCHEMA_NAME = "train_schema"
 
 
 def store_schema() -> None:
-    """Register :class:`TrainConfig` in Hydra's ConfigStore as :data:`SCHEMA_NAME` (again: harmless)."""
-    ConfigStore.instance().store(name=SCHEMA_NAME, node=TrainConfig)
+    """Register :class:`TrainConfig`'s defaults in Hydra's ConfigStore as :data:`SCHEMA_NAME` (again: harmless).
+
+    Stored as plain values rather than as the typed structured config: OmegaConf cannot merge a mapping given on
+    the command line into an optional group whose typed value is null (``callbacks.heldout={every_n_steps: 1000}``,
+    ``model.background={...}`` after the ShapeNet family; omegaconf issues 1035 and 1360). Hydra still refuses a
+    key that is not there; :func:`unicorn.config.validate` merges the composed config onto the typed schema
+    (types, keys added with ``+``) and checks the values.
+    """
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=OmegaConf.to_container(OmegaConf.structured(TrainConfig)))
 
 
 # on import, so that composing conf/train.yaml after importing unicorn.config works in any script (hydra.compose)
