@@ -1,9 +1,9 @@
 """Structured schema of the training configuration (``conf/train.yaml`` and its groups).
 
-:class:`TrainConfig` holds every key of a training run with its default. Importing this module registers it in
-Hydra's ConfigStore as :data:`SCHEMA_NAME`, the first entry of ``conf/train.yaml``'s defaults list: a composed
-config starts from the schema's defaults, so every key exists (and can be overridden on the command line, a
-misspelt one fails naming it) while the YAML files hold only what differs from these defaults.
+:class:`TrainConfig` holds every key of a training run with its default. Importing this module registers its
+defaults in Hydra's ConfigStore as :data:`SCHEMA_NAME`, the first entry of ``conf/train.yaml``'s defaults list:
+a composed config starts from the schema's defaults, so every key exists (and can be overridden on the command
+line, a misspelt one fails naming it) while the YAML files hold only what differs from these defaults.
 :func:`unicorn.config.validate` merges the composed config onto the typed schema (a value of the wrong type or a
 key added with ``+`` fails with the key's full name) and checks what types cannot express (milestones in order,
 code sizes within the code, renderer options the backend accepts, ...).
