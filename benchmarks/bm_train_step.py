@@ -46,6 +46,7 @@ import torch
 from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.model import Unicorn
+from unicorn.model.config import CODE_BRANCHES
 from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
 from unicorn.objectives import Objectives
 
@@ -142,10 +143,7 @@ def build(name: str, vgg: str | None, device: str) -> tuple[Unicorn, Objectives,
         objectives.steps["pose"].reconstruction.perceptual = VGGPerceptualLoss(vgg if vgg else random_vgg_weights())
     model.to(device).train()
     objectives.to(device)
-    full = {"shape": cfg["shape"]["code_dim"], "texture": cfg["texture"]["code_dim"]}
-    if cfg["background"] is not None:
-        full["background"] = cfg["background"]["code_dim"]
-    model.set_active_dims(**full)
+    model.set_active_dims(**{name: cfg[name]["code_dim"] for name in CODE_BRANCHES if cfg[name] is not None})
     from unicorn.lit.module import UnicornLitModule
 
     opt = UnicornLitModule.make_optimizer(model.parameters(), {"lr": 1e-4})

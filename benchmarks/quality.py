@@ -720,6 +720,8 @@ def ablation_rows(
 ) -> tuple[dict[str, Row], dict[str, Row], dict[str, dict[int, Row]], Any]:
     """The ablations table: each category's baselines, every run scored beside its category's mean shape; the
     rows (mean over the seeds), their standard deviations, every run's row and the pictures' report."""
+    from unicorn.config.schema import REPORT_SAMPLES
+
     baseline_rows: dict[str, Row] = {}
     mean_shapes: dict[str, torch.Tensor] = {}
     per_seed: dict[str, dict[int, Row]] = {name: {} for name in args.runs}
@@ -734,7 +736,12 @@ def ablation_rows(
             baseline_rows.update(rows_c)
         pictures = run.name == "full" and report is None
         row, result = score(
-            model, root, args, report_samples=10 if pictures else 0, mean_shape=mean_shapes[category], own_mean=True
+            model,
+            root,
+            args,
+            report_samples=REPORT_SAMPLES if pictures else 0,
+            mean_shape=mean_shapes[category],
+            own_mean=True,
         )
         row["train-minutes"] = minutes[run]
         per_seed[run.name][run.seed] = row

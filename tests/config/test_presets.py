@@ -2,30 +2,49 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from typing import Any
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from tests.support.training import compose_config
 from unicorn.config import list_presets, model_config, model_preset, validate
-from unicorn.config.schema import ModelConfig
+from unicorn.config.schema import (
+    CallbacksConfig,
+    DatasetConfig,
+    ModelConfig,
+    PathsConfig,
+    ScheduleConfig,
+    TrainConfig,
+    TrainerConfig,
+)
 from unicorn.model import DEFAULT_CONFIG, Unicorn
 from unicorn.resources import config_dir
 
 
-def _composed(overrides: list[str]):
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return validate(compose("train", overrides=overrides))
-
-
 @pytest.mark.parametrize("family", list_presets("family"))
 @pytest.mark.parametrize("size", list_presets("model"))
-def test_model_preset_is_what_unicorn_train_composes(family: str, size: str, tmp_path) -> None:
-    # the oracle: Hydra's own composition of train.yaml with the model group and the family file
+def test_model_preset_is_what_unicorn_train_composes(family: str, size: str, tmp_path, monkeypatch) -> None:
+    # the oracle: a training run's composition of train.yaml with the model group and the family file
+    monkeypatch.delenv("UNICORN_VGG16", raising=False)  # a preset names no weights file
     overrides = [f"model={size}", f"+family={family}", "dataset.img_size=64", f"paths.output_dir={tmp_path}"]
-    expected = model_config(_composed(overrides))
+    expected = model_config(validate(compose_config(overrides)))
     assert model_preset(family, size) == expected
+
+
+def test_model_preset_inside_a_hydra_application(tmp_path) -> None:
+    """unicorn-train init_from=<released .pkl> reads a preset while Hydra runs: the application's Hydra is kept."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from unicorn.config.presets import _composed_preset
+
+    (tmp_path / "app.yaml").write_text("answer: 42\n")
+    with initialize_config_dir(config_dir=str(tmp_path), version_base="1.3"):
+        running = GlobalHydra.instance().hydra
+        _composed_preset.cache_clear()  # compose again
+        assert model_preset("shapenet", "tiny")["template"]["level"] == 2
+        assert GlobalHydra.instance().hydra is running and compose("app").answer == 42
 
 
 def test_small_real_preset_is_the_model_default() -> None:
@@ -62,17 +81,32 @@ def test_unknown_override_key_fails() -> None:
         model_preset("real", "small", shape={"code_size": 3})
 
 
-def _keys(node, prefix=""):
-    out = set()
-    for key, value in node.items():
-        out |= _keys(value, f"{prefix}{key}.") if isinstance(value, dict) and key != "options" else {prefix + key}
-    return out
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(node, dict) or not node:
+        return {prefix[:-1]: node}
+    return {k: v for key, value in node.items() for k, v in _leaves(value, f"{prefix}{key}.").items()}
 
 
-def test_small_yaml_lists_every_model_key() -> None:
-    # unicorn-train overrides like model.pose.n_azim=2 need the key in the composed config
-    listed = OmegaConf.to_container(OmegaConf.load(config_dir() / "model" / "small.yaml"))
-    assert _keys(listed) == _keys(asdict(ModelConfig()))
+#: the schema node of each group whose presets are merged onto it, and the key that names a preset's choice
+SCHEMA_OF_GROUP = {
+    "model": (ModelConfig, "name"),
+    "dataset": (DatasetConfig, "name"),
+    "schedule": (ScheduleConfig, "mode"),
+    "trainer": (TrainerConfig, None),
+    "callbacks": (CallbacksConfig, None),
+    "paths": (PathsConfig, None),
+    "family": (TrainConfig, None),  # @package _global_
+}
+
+
+@pytest.mark.parametrize("group", sorted(SCHEMA_OF_GROUP))
+def test_presets_hold_only_what_differs_from_the_schema(group: str) -> None:
+    schema, name_key = SCHEMA_OF_GROUP[group]
+    defaults = _leaves(OmegaConf.to_container(OmegaConf.structured(schema)))
+    for preset in list_presets(group):
+        values = _leaves(OmegaConf.to_container(OmegaConf.load(config_dir() / group / f"{preset}.yaml")))
+        restated = [k for k, v in values.items() if k not in ("", name_key) and k in defaults and defaults[k] == v]
+        assert not restated, f"conf/{group}/{preset}.yaml restates the schema's defaults of {restated}"
 
 
 def test_every_renderer_preset_names_a_registered_renderer_and_its_file() -> None:

@@ -32,23 +32,34 @@ def _losses(tmp_path, *overrides: str):
     return run, recorder.rows
 
 
-def test_training_iterations_on_cuda_match_the_cpu(synthetic_cache, tmp_path, monkeypatch):
-    # full float32 on both sides (no TF32 convolutions or matrix products), so that the runs differ by rounding only
-    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
-    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
-    # the neighbour loss draws its viewpoint bins from the device's random stream: left out of the comparison
-    same = "model.loss.neighbor_weight=0"
-    cpu_run, cpu = _losses(tmp_path / "cpu", same)
-    gpu_run, gpu = _losses(tmp_path / "gpu", same, "trainer.accelerator=gpu", "trainer.devices=1")
-    assert next(gpu_run.module.parameters()).is_cuda and not next(cpu_run.module.parameters()).is_cuda
+def _compare(cpu: list[dict[str, float]], gpu: list[dict[str, float]]) -> None:
     for step, (a, b) in enumerate(zip(cpu, gpu, strict=True)):
         assert a.keys() == b.keys(), step
         for name in a:
             assert b[name] == pytest.approx(a[name], rel=1e-3, abs=1e-5), (step, name)
 
 
-def test_training_iterations_on_cuda_with_the_neighbour_loss(synthetic_cache, tmp_path):
-    run, rows = _losses(tmp_path, "trainer.accelerator=gpu", "trainer.devices=1")
+@pytest.fixture
+def full_float32(monkeypatch):
+    """No TF32 convolutions or matrix products, so that a CUDA run differs from the CPU's by rounding only."""
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
+
+
+def test_training_iterations_on_cuda_match_the_cpu(synthetic_cache, tmp_path, full_float32):
+    # the neighbour loss draws its viewpoint bins from the device's random stream: left out of the comparison
+    same = "model.loss.neighbor_weight=0"
+    cpu_run, cpu = _losses(tmp_path / "cpu", same)
+    gpu_run, gpu = _losses(tmp_path / "gpu", same, "trainer.accelerator=gpu", "trainer.devices=1")
+    assert next(gpu_run.module.parameters()).is_cuda and not next(cpu_run.module.parameters()).is_cuda
+    _compare(cpu, gpu)
+
+
+def test_training_iterations_on_cuda_with_the_neighbour_loss_match_the_cpu(synthetic_cache, tmp_path, full_float32):
+    # one viewpoint bin: the bin drawn from the device's random stream is the same on both devices
+    one_bin = "model.loss.n_bins=1"
+    _, cpu = _losses(tmp_path / "cpu", one_bin)
+    run, gpu = _losses(tmp_path / "gpu", one_bin, "trainer.accelerator=gpu", "trainer.devices=1")
     assert next(run.module.parameters()).is_cuda
-    assert any("neighbor" in row for row in rows)  # the milestones [3, 5, 7] activate it
-    assert all(torch.isfinite(torch.tensor(list(row.values()))).all() for row in rows)
+    assert any(row.get("neighbor", 0) > 0 for row in gpu)  # the milestones [3, 5, 7] activate it
+    _compare(cpu, gpu)

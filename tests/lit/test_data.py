@@ -9,6 +9,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from tests.support.training import compose_config
 from unicorn.lit import StreamBatchSampler, UnicornDataModule
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
@@ -109,7 +110,8 @@ def test_errors() -> None:
 
 @pytest.mark.parametrize("path", sorted(CONF.glob("*.yaml")), ids=lambda p: p.stem)
 def test_hydra_configs_instantiate(path: Path, tmp_path: Path) -> None:
-    cfg = OmegaConf.load(path)
+    # the dataset group as unicorn-train composes it: the preset over the schema's defaults
+    cfg = compose_config([f"dataset={path.stem}", f"paths.output_dir={tmp_path}"]).dataset
     if OmegaConf.is_missing(cfg, "root"):
         cfg.root = str(tmp_path)
     dm = instantiate(cfg)

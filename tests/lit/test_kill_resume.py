@@ -31,14 +31,10 @@ OVERRIDES = [
 
 
 def _train(out: str, extra: list[str]) -> None:  # runs in a forked child
-    from hydra import compose, initialize_config_dir
-
+    from tests.support.training import compose_config
     from unicorn.lit.run import build, fit
-    from unicorn.resources import config_dir
 
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("train", overrides=[*OVERRIDES, f"paths.output_dir={out}", *extra])
-    fit(build(cfg))
+    fit(build(compose_config([*OVERRIDES, f"paths.output_dir={out}", *extra])))
     os._exit(0)
 
 

@@ -2,22 +2,30 @@
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 
 import pytest
 
 from unicorn.config import ConfigError, validate
+from unicorn.config.schema import StageDimsConfig
 from unicorn.model import DEFAULT_CONFIG, Unicorn, UnicornConfig, check_model_config, merge_config
-from unicorn.model.config import CHOICES
+from unicorn.model.config import BRANCHES, CHOICES, CODE_BRANCHES, LossConfig, ShapeConfig, TextureConfig
 
 
 def test_merge_config_changes_only_the_named_keys_of_a_copy() -> None:
     merged = merge_config({"shape": {"code_dim": 16}}, loss={"rgb_weight": 2.0}, background=None)
-    expected = copy.deepcopy(DEFAULT_CONFIG)  # the oracle: the same edits made by hand
-    expected["shape"]["code_dim"], expected["loss"]["rgb_weight"], expected["background"] = 16, 2.0, None
-    assert merged == expected
+    # the oracle: the dataclasses built with the same values, every other key at its declared default
+    expected = UnicornConfig(shape=ShapeConfig(code_dim=16), loss=LossConfig(rgb_weight=2.0), background=None)
+    assert merged == dataclasses.asdict(expected)
+    assert merged["shape"]["n_field_units"] == ShapeConfig.n_field_units and merged["loss"]["rgb_weight"] == 2.0
     merged["texture"]["size"] = 7  # callers may edit what they get
-    assert DEFAULT_CONFIG["texture"]["size"] == UnicornConfig().texture.size != 7
+    assert DEFAULT_CONFIG["texture"]["size"] == merge_config()["texture"]["size"] == TextureConfig.size != 7
+
+
+def test_code_branches_are_the_branches_but_the_pose_and_the_stage_sizes() -> None:
+    assert CODE_BRANCHES == ("shape", "texture", "background") and BRANCHES[-1] == "background"
+    assert set(BRANCHES) - set(CODE_BRANCHES) == {"pose"}
+    assert tuple(f.name for f in dataclasses.fields(StageDimsConfig)) == CODE_BRANCHES  # one size list per code
 
 
 @pytest.mark.parametrize(
@@ -56,7 +64,7 @@ def test_training_config_uses_the_same_checks() -> None:
     # the same range and choice, reported under the training config's key
     base = {
         "model": {"image_size": 32},
-        "dataset": {"img_size": 32},
+        "dataset": {"img_size": 32, "root": None},
         "renderer": {"name": "layered", "camera": {"fov": 30.0}},
     }
     with pytest.raises(ConfigError, match=r"model\.shape\.code_dim must be >= 1"):

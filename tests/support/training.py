@@ -32,8 +32,10 @@ def compose_config(overrides: list[str]):
     """The composed (unvalidated) training config for ``overrides``."""
     from hydra import compose, initialize_config_dir
 
+    from unicorn.config.schema import store_schema
     from unicorn.resources import config_dir
 
+    store_schema()  # train.yaml's defaults list starts with the schema
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose("train", overrides=overrides)
 

@@ -23,7 +23,7 @@ from typing import Any
 from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
-from unicorn.config.schema import FAST_EVAL, SPLITS, EvaluateConfig
+from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
 from unicorn.data.registry import DATASET_NAMES
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.config import describe_range, field_range
@@ -129,7 +129,12 @@ def _add_report_arguments(p: argparse.ArgumentParser) -> None:
         help="images shown in the report (0: no report)",
     )
     p.add_argument("--view-size", type=int, default=128, help="side of the report pictures")
-    p.add_argument("--turntable-frames", type=int, default=16, help="frames of the report's turntables (0: none)")
+    p.add_argument(
+        "--turntable-frames",
+        type=int,
+        default=REPORT_TURNTABLE_FRAMES,
+        help="frames of the report's turntables (0: none)",
+    )
     p.add_argument("--workers", type=int, default=EvalOptions.num_workers, help="DataLoader workers")
     p.add_argument(
         "--nn-workers",

@@ -91,7 +91,7 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
     Rewriting the ``+`` form is the one change that makes both forms compose the same run, in single runs, sweeps
     (``-m +experiment=a,b``; the sweep value is kept as written) and with ``-cd DIR``, whose ``DIR/experiment/``
     presets join the same group. A ``train.yaml`` of your own in ``DIR`` replaces ours and must keep the
-    ``experiment: null`` entry. Every other argument is returned unchanged.
+    ``train_schema`` and ``experiment: null`` entries. Every other argument is returned unchanged.
     """
     prefix = "+experiment="
     return [arg[1:] if arg.startswith(prefix) else arg for arg in overrides]
@@ -122,6 +122,9 @@ def main() -> None:
             flush=True,
         )
     tune_allocator()
+    from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
+
+    store_schema()  # conf/train.yaml's defaults list starts with the schema
     _app = HydraApp("unicorn-train", config_dir(), "train", debug=debug)
     _app.run(_task, hydra_argv(args))
 

@@ -21,7 +21,7 @@ from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHED
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
 from unicorn.errors import UserError
-from unicorn.model.config import CHOICES, check_model_config, check_ranges
+from unicorn.model.config import CHOICES, CODE_BRANCHES, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
@@ -51,18 +51,16 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     Raises:
         ConfigError: an unknown key, a wrong type or inconsistent values, with the offending key's name.
     """
-    dataset = cfg.get("dataset") if isinstance(cfg, DictConfig) else None
-    # a mandatory value left out (``???``): merging onto the schema would hide it behind the schema's default
-    _check(
-        not (isinstance(dataset, DictConfig) and OmegaConf.is_missing(dataset, "root")),
-        f"dataset.root is required by dataset {dataset.get('name') if dataset is not None else None!r}: give the "
-        "folder of its data (dataset.root=/path/to/data)",
-    )
-    schema = OmegaConf.structured(TrainConfig)
     try:
-        typed = OmegaConf.merge(schema, cfg)
+        typed = OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg)
     except OmegaConfBaseException as err:
         raise ConfigError(f"invalid training config: {err}") from None
+    # the schema has no default root: every dataset preset names one (`???`: to be given on the command line)
+    _check(
+        not OmegaConf.is_missing(typed.dataset, "root"),
+        f"dataset.root is required by dataset {typed.dataset.name!r}: give the folder of its data "
+        "(dataset.root=/path/to/data)",
+    )
     try:
         _check_values(typed)
     except OmegaConfBaseException as err:
@@ -122,9 +120,7 @@ def _check_model(cfg: DictConfig) -> None:
         cfg.dataset.batch_size <= m.loss.memory_size,
         f"dataset.batch_size ({cfg.dataset.batch_size}) exceeds model.loss.memory_size ({m.loss.memory_size})",
     )
-    codes = {"shape": m.shape.code_dim, "texture": m.texture.code_dim}
-    if m.background is not None:
-        codes["background"] = m.background.code_dim
+    codes = {name: m[name].code_dim for name in CODE_BRANCHES if m[name] is not None}  # no background model: None
     for name, code_dim in codes.items():
         dims = list(m.stages[name])
         key = f"model.stages.{name}"
@@ -226,10 +222,9 @@ def model_config(cfg: DictConfig) -> dict[str, Any]:
     renderer = renderer_settings(cfg.renderer)
     renderer["composite"] = model.pop("composite")
     model["renderer"] = renderer
-    model["shape"]["active_dims"] = stages["shape"][0]
-    model["texture"]["active_dims"] = stages["texture"][0]
-    if model["background"] is not None:
-        model["background"]["active_dims"] = stages["background"][0]
+    for name in CODE_BRANCHES:
+        if model[name] is not None:  # no background model: None
+            model[name]["active_dims"] = stages[name][0]
     for group in ("template", "pose"):
         for key, value in model[group].items():
             if isinstance(value, list):

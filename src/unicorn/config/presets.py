@@ -1,19 +1,24 @@
 """The shipped presets (``conf/``) as model configurations, for code that builds a model without a training run.
 
 ``conf/`` is the only place presets live: ``conf/model/<size>.yaml`` (small, big, tiny), the dataset family's
-``conf/family/<family>.yaml`` (real, shapenet) and ``conf/renderer/<renderer>.yaml``. :func:`model_preset` reads
-those three files the way ``unicorn-train model=<size> renderer=<renderer>`` with a family's experiment composes
-them (tests check that the two agree) and returns the mapping :class:`unicorn.model.Unicorn` takes.
+``conf/family/<family>.yaml`` (real, shapenet) and ``conf/renderer/<renderer>.yaml``. :func:`model_preset` has
+Hydra compose ``conf/train.yaml`` with ``model=<size> renderer=<renderer> +family=<family>`` (Hydra's own defaults
+list and schema, as ``unicorn-train`` composes a run of that family's experiments) and returns the mapping
+:class:`unicorn.model.Unicorn` takes.
 """
 
 from __future__ import annotations
 
+import copy
+import functools
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 
 from unicorn.config.build import model_config
-from unicorn.config.schema import TrainConfig
 from unicorn.model.config import merge_config
 from unicorn.resources import config_dir
 
@@ -25,19 +30,32 @@ def list_presets(group: str) -> list[str]:
     return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
 
 
-def _group_file(group: str, name: str) -> DictConfig:
-    """``conf/<group>/<name>.yaml`` with its defaults list applied (entries of the same group and ``_self_``)."""
-    if name not in list_presets(group):
-        raise ValueError(f"no {group} preset {name!r}; known: {list_presets(group)}")
-    node = OmegaConf.load(config_dir() / group / f"{name}.yaml")
-    assert isinstance(node, DictConfig)
-    defaults = list(node.pop("defaults", None) or [])
-    if defaults and "_self_" not in defaults:
-        raise ValueError(f"conf/{group}/{name}.yaml: a defaults list needs _self_ (Hydra's order is then explicit)")
-    parts = [node if entry == "_self_" else _group_file(group, str(entry)) for entry in defaults] or [node]
-    merged = OmegaConf.merge(*parts)
-    assert isinstance(merged, DictConfig)
-    return merged
+@contextmanager
+def _shipped_configs() -> Iterator[None]:
+    """Hydra's compose API on ``conf/``, also inside a running Hydra application (``unicorn-train init_from=`` a
+    released model reads its preset), whose global state is put back afterwards."""
+    running = GlobalHydra.instance().hydra
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            yield
+    finally:
+        if running is not None:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(running)
+
+
+@functools.cache
+def _composed_preset(family: str, size: str, renderer: str) -> dict[str, Any]:
+    """The model configuration Hydra composes for the three presets (read once per process)."""
+    for group, name in (("family", family), ("model", size), ("renderer", renderer)):
+        if name not in list_presets(group):
+            raise ValueError(f"no {group} preset {name!r}; known: {list_presets(group)}")
+    # paths.vgg16=null: a preset names no weights file (UNICORN_VGG16 is a training run's setting)
+    overrides = [f"model={size}", f"renderer={renderer}", f"+family={family}", "paths.vgg16=null"]
+    with _shipped_configs():
+        cfg = compose("train", overrides=overrides)
+    return model_config(cfg)
 
 
 def model_preset(
@@ -55,11 +73,4 @@ def model_preset(
         ValueError: an unknown preset name (the known ones are listed).
         KeyError: an unknown override group or key.
     """
-    family_node = _group_file("family", family)
-    cfg = OmegaConf.merge(
-        OmegaConf.structured(TrainConfig),
-        {"model": _group_file("model", size), "renderer": _group_file("renderer", renderer)},
-        {"model": family_node.get("model", {}), "renderer": family_node.get("renderer", {})},
-    )
-    assert isinstance(cfg, DictConfig)
-    return merge_config(model_config(cfg), **overrides)
+    return merge_config(copy.deepcopy(_composed_preset(family, size, renderer)), **overrides)

@@ -1,9 +1,12 @@
 """Structured schema of the training configuration (``conf/train.yaml`` and its groups).
 
-The composed Hydra config is merged onto :class:`TrainConfig` (an OmegaConf structured config), so a misspelt
-key or a value of the wrong type fails with the key's full name before anything is built; :func:`validate`
-then checks what types cannot express (milestones in order, code sizes within the code, renderer options
-the backend accepts, ...).
+:class:`TrainConfig` holds every key of a training run with its default. Importing this module registers its
+defaults in Hydra's ConfigStore as :data:`SCHEMA_NAME`, the first entry of ``conf/train.yaml``'s defaults list:
+a composed config starts from the schema's defaults, so every key exists (and can be overridden on the command
+line, a misspelt one fails naming it) while the YAML files hold only what differs from these defaults.
+:func:`unicorn.config.validate` merges the composed config onto the typed schema (a value of the wrong type or a
+key added with ``+`` fails with the key's full name) and checks what types cannot express (milestones in order,
+code sizes within the code, renderer options the backend accepts, ...).
 
 The ``model`` group is the model's own configuration groups (:mod:`unicorn.model.config`, where every model key
 and default is defined) plus ``name``, ``composite`` and ``stages``, the active code sizes of the four stages;
@@ -16,6 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+
 from unicorn.model.config import ModelGroups, RendererConfig, ranged
 
 __all__ = [
@@ -27,6 +33,7 @@ __all__ = [
     "EvalSettings",
     "EvaluateConfig",
     "FAST_EVAL",
+    "FINAL_EVAL",
     "HELDOUT_SPLITS",
     "HeldOutConfig",
     "ImagesConfig",
@@ -36,13 +43,17 @@ __all__ = [
     "OptimConfig",
     "PathsConfig",
     "PlateauConfig",
+    "REPORT_SAMPLES",
+    "REPORT_TURNTABLE_FRAMES",
     "SCHEDULE_MODES",
+    "SCHEMA_NAME",
     "SPLITS",
     "ScheduleConfig",
     "StageDimsConfig",
     "TextureAveragingConfig",
     "TrainConfig",
     "TrainerConfig",
+    "store_schema",
 ]
 
 
@@ -53,9 +64,16 @@ SPLITS = ("train", "val", "test")
 HELDOUT_SPLITS = SPLITS[1:]
 #: ``schedule.mode``: fixed milestones, or a stage change when the 3D-step loss reaches a plateau
 SCHEDULE_MODES = ("fixed", "plateau")
-#: UNICORN's validation setting of the mesh metrics (its final protocol, ``unicorn-eval``'s default, is 100k points
-#: and 100 ICP iterations: :class:`unicorn.evaluation.EvalOptions`)
+# The evaluation's defaults, here (the lowest floor the training config and unicorn.evaluation share) so that
+# ``unicorn-eval`` (:class:`unicorn.evaluation.EvalOptions`) and the evaluations of a training run import them.
+#: UNICORN's final protocol of the mesh metrics (``unicorn-eval``'s default)
+FINAL_EVAL = {"num_points": 100_000, "icp_iterations": 100}
+#: UNICORN's validation setting of the mesh metrics (``unicorn-eval --fast``, the evaluation after training)
 FAST_EVAL = {"num_points": 50_000, "icp_iterations": 30}
+#: images shown in an evaluation report (``report.png`` / ``report.html``): input, reconstruction, mask, views
+REPORT_SAMPLES = 10
+#: frames of each sample's turntable GIF in an evaluation report
+REPORT_TURNTABLE_FRAMES = 16
 
 
 # ---------------------------------------------------------------------------------------------- model
@@ -81,11 +99,12 @@ class ModelConfig(ModelGroups):
 # ---------------------------------------------------------------------------------------------- data
 @dataclass
 class DatasetConfig:
-    """Arguments of :class:`unicorn.lit.UnicornDataModule` (``_target_`` may name a subclass)."""
+    """Arguments of :class:`unicorn.lit.UnicornDataModule` (``_target_`` may name a subclass). ``root`` has no
+    default: every dataset preset says where its data is (``null``: the synthetic set in the cache)."""
 
     _target_: str = "unicorn.lit.UnicornDataModule"
     name: str = "synthetic"
-    root: str | None = None
+    root: str | None = MISSING
     categories: Any = None  # one name or a list
     img_size: int = ranged(64, 8)
     batch_size: int = ranged(32, 1)
@@ -97,8 +116,11 @@ class DatasetConfig:
     cache_items: bool = False
     synthetic: dict[str, Any] | None = None
     options: dict[str, Any] | None = None
-    max_image_pixels: int | None = ranged(None, 0)  # null: $UNICORN_MAX_IMAGE_PIXELS or PIL's limit; 0: none
-    max_image_bytes: int | None = ranged(None, 0)  # decoded bytes; null: $UNICORN_MAX_IMAGE_BYTES or 1 GiB; 0: none
+    # images above this many pixels are bad images; null: $UNICORN_MAX_IMAGE_PIXELS or PIL's ~179M; 0: no limit
+    max_image_pixels: int | None = ranged(None, 0)
+    # images decoding to more bytes (float32 RGB: 12 per pixel) are bad images; null: $UNICORN_MAX_IMAGE_BYTES or
+    # 1 GiB; 0: no limit
+    max_image_bytes: int | None = ranged(None, 0)
 
 
 # ---------------------------------------------------------------------------------------------- schedule
@@ -139,9 +161,12 @@ class PlateauConfig:
 
 @dataclass
 class ScheduleConfig:
+    """Progressive conditioning, all in iterations (one iteration: one pose or one 3D step); the defaults are the
+    paper's real-image design, 4 stages x 750k iterations."""
+
     mode: str = "fixed"  # SCHEDULE_MODES
-    milestones: list[int] = field(default_factory=lambda: [750000, 1500000, 2250000])
-    alternation_period: int = ranged(1, 1)
+    milestones: list[int] = field(default_factory=lambda: [750000, 1500000, 2250000])  # stages 2, 3 and 4 start
+    alternation_period: int = ranged(1, 1)  # pose and 3D steps alternate every this many iterations
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)
@@ -153,18 +178,24 @@ OPTIM_CHOICES: dict[str, tuple[str, ...]] = {"idle_params": ("skip", "momentum")
 
 @dataclass
 class OptimConfig:
-    """Adam over all parameters; ``idle_params``: ``skip`` or ``momentum``; ``adam_state``: ``shared`` (one Adam,
-    the paper's) or ``per_step`` (one per step kind) (see :mod:`unicorn.lit.module`)."""
+    """Adam over all parameters (the paper's learning rate 1e-4); see :mod:`unicorn.lit.module`.
+
+    ``idle_params``: what the half of the parameters that a pose / 3D step does not reach does: ``skip`` (grad
+    None, Adam leaves them alone) or ``momentum`` (zero grad, Adam moves them along their first moment, the
+    reference's PyTorch-1.10 behaviour). ``adam_state``: ``shared`` (one Adam, the paper's) or ``per_step`` (one
+    Adam per step kind: the shared encoder's 3D updates are then not scaled down by the pose step's larger
+    gradients).
+    """
 
     lr: float = 1e-4
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
     eps: float = ranged(1e-8, 0)
     weight_decay: float = ranged(0.0, 0)
-    lr_drop_step: int | None = None
+    lr_drop_step: int | None = None  # iteration at which the learning rate is multiplied by lr_drop_gamma
     lr_drop_gamma: float = ranged(0.2, 0)
     idle_params: str = "skip"
-    check_finite: bool = True
-    fused: bool = True
+    check_finite: bool = True  # stop on a NaN / inf loss or gradient (after saving a checkpoint)
+    fused: bool = True  # torch's fused Adam kernel (same update up to rounding, several times faster on CPU)
     adam_state: str = "shared"
     texture_lr_scale: float = ranged(1.0, 1e-6)  # the texture branch's learning rate over lr (paper: 1)
 
@@ -180,7 +211,7 @@ class TrainerConfig:
     strategy: Any = "auto"
     precision: Any = "32-true"
     max_steps: int = ranged(3000000, 1)  # training is counted in iterations
-    val_check_interval: int | None = 2000
+    val_check_interval: int | None = 2000  # validation every this many iterations (null: none)
     limit_val_batches: Any = 1.0
     num_sanity_val_steps: int = ranged(0, -1)
     log_every_n_steps: int = ranged(50, 1)
@@ -207,18 +238,18 @@ class ImagesConfig:
     """Image logging: inputs, reconstructions, the mesh from ``n_views`` azimuths, textures, backgrounds."""
 
     _target_: str = "unicorn.lit.ImageLogger"
-    every_n_steps: int = ranged(2000, 1)
+    every_n_steps: int = ranged(2000, 1)  # (and after iteration 1)
     n_images: int = ranged(8, 1)
     n_views: int = ranged(4, 1)
-    save_png: bool = True
+    save_png: bool = True  # also <run>/images/step=N.png
 
 
 @dataclass
 class EvalSettings:
     """What an evaluation scores and how finely: the settings ``unicorn-eval``, the evaluation after training
     (:class:`EvaluateConfig`) and the held-out evaluation (:class:`HeldOutConfig`) share. The defaults are
-    UNICORN's validation setting (:data:`FAST_EVAL`); ``unicorn-eval``'s are the paper's final protocol
-    (:class:`unicorn.evaluation.EvalOptions`)."""
+    UNICORN's validation setting (:data:`FAST_EVAL`); ``unicorn-eval``'s (:class:`unicorn.evaluation.EvalOptions`)
+    are its final protocol (:data:`FINAL_EVAL`)."""
 
     split: str = "test"
     max_images: int | None = ranged(None, 1)  # null: the whole split
@@ -253,13 +284,16 @@ class DiagnosticsConfig:
 
     _target_: str = "unicorn.lit.CodeDiagnostics"
     every_n_steps: int = ranged(100, 1)
-    max_images: int = ranged(64, 2)
-    spread_tol: float = ranged(1e-6, 0)
+    max_images: int = ranged(64, 2)  # the most recent training images
+    spread_tol: float = ranged(1e-6, 0)  # collapsed: a code whose active dimensions vary less across the images
     shape_spread_ratio: float = ranged(0.05, 0)  # collapsed: a shape code spread below this x the texture code's
 
 
 @dataclass
 class CallbacksConfig:
+    """Every callback is a node built by its ``_target_``; null leaves it out (``heldout``: off by default, e.g.
+    ``{every_n_steps: 1000, split: val, max_images: 32}``; its rows are the learning curves in ``heldout.csv``)."""
+
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     images: ImagesConfig | None = field(default_factory=ImagesConfig)
     heldout: HeldOutConfig | None = None
@@ -273,13 +307,16 @@ class EvaluateConfig(EvalSettings):
     """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s protocol), written to ``<run>/eval``."""
 
     enabled: bool = False
-    report_samples: int = ranged(10, 0)  # images in report.png / report.html
-    turntable_frames: int = ranged(16, 0)
+    report_samples: int = ranged(REPORT_SAMPLES, 0)
+    turntable_frames: int = ranged(REPORT_TURNTABLE_FRAMES, 0)  # 0: no turntables in the report
 
 
 @dataclass
 class PathsConfig:
-    log_dir: str = "outputs"
+    """Where runs and downloads go (``conf/paths/default.yaml`` sets the run's folder, the cache and the VGG16
+    weights from Hydra and the environment)."""
+
+    log_dir: str = "outputs"  # parent of every run directory (relative to the launch directory)
     output_dir: str = "outputs"
     cache_dir: str = "~/.cache/unicorn"
     vgg16: str | None = None
@@ -287,12 +324,16 @@ class PathsConfig:
 
 @dataclass
 class TrainConfig:
-    task_name: str = "train"
-    seed: int = 0
-    ckpt_path: str | None = None
-    init_from: str | None = None  # start from these weights (any checkpoint), at iteration 0 with fresh optimizers
-    trust_checkpoint: bool = False
-    overwrite: bool = False
+    """A training run: the schema of ``conf/train.yaml`` and its groups (registered as :data:`SCHEMA_NAME`)."""
+
+    task_name: str = "train"  # names the output folder: outputs/<task_name>/...
+    seed: int = 0  # seeds weights, data order, texture-averaging draws
+    ckpt_path: str | None = None  # resume: a checkpoint file, or "last" (this run directory's checkpoints/last.ckpt)
+    # start a new run from the weights of a released .pkl, a save_model file or a .ckpt (iteration 0, fresh
+    # optimizers; the model settings must match its architecture)
+    init_from: str | None = None
+    trust_checkpoint: bool = False  # read ckpt_path with full unpickling: it can run code, only for files you trust
+    overwrite: bool = False  # train in a folder holding an earlier run (not resumed): its checkpoints and logs go
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     renderer: dict[str, Any] = field(default_factory=dict)
@@ -303,3 +344,23 @@ class TrainConfig:
     callbacks: CallbacksConfig = field(default_factory=CallbacksConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
+
+
+#: the schema's name in Hydra's ConfigStore: the first entry of ``conf/train.yaml``'s defaults list
+SCHEMA_NAME = "train_schema"
+
+
+def store_schema() -> None:
+    """Register :class:`TrainConfig`'s defaults in Hydra's ConfigStore as :data:`SCHEMA_NAME` (again: harmless).
+
+    Stored as plain values rather than as the typed structured config: OmegaConf cannot merge a mapping given on
+    the command line into an optional group whose typed value is null (``callbacks.heldout={every_n_steps: 1000}``,
+    ``model.background={...}`` after the ShapeNet family; omegaconf issues 1035 and 1360). Hydra still refuses a
+    key that is not there; :func:`unicorn.config.validate` merges the composed config onto the typed schema
+    (types, keys added with ``+``) and checks the values.
+    """
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=OmegaConf.to_container(OmegaConf.structured(TrainConfig)))
+
+
+# on import, so that composing conf/train.yaml after importing unicorn.config works in any script (hydra.compose)
+store_schema()

@@ -87,6 +87,7 @@ from typing import Any
 
 import torch
 
+from unicorn.config.schema import FINAL_EVAL, REPORT_SAMPLES
 from unicorn.data.registry import DATASETS, dataset_spec
 from unicorn.model.config import check_ranges, ranged
 
@@ -309,14 +310,14 @@ class EvalOptions:
 
     protocol: str = "shapenet"
     batch_size: int = ranged(32, 1)
-    num_points: int = ranged(100_000, 1)
-    icp_iterations: int = ranged(100, 0)
+    num_points: int = ranged(FINAL_EVAL["num_points"], 1)
+    icp_iterations: int = ranged(FINAL_EVAL["icp_iterations"], 0)
     mask_supersample: int = ranged(3, 1)
     visibility_supersample: int = ranged(2, 1)
     num_pairs: int = ranged(10_000, 1)
     align_pose: bool = True
     average_texture: bool = False
-    report_samples: int = ranged(8, 0)
+    report_samples: int = ranged(REPORT_SAMPLES, 0)
     num_workers: int = ranged(0, 0)
     nn_workers: int | None = None
     seed: int = 0

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from unicorn.config.schema import REPORT_TURNTABLE_FRAMES
 from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.metric_files import format_value, json_safe
 from unicorn.evaluation.pictures import image_grid, mask_overlay, save_gif, to_uint8
@@ -118,7 +119,7 @@ def write_report(
     meta: Mapping[str, Any],
     view_size: int = 128,
     angles: Sequence[float] | None = None,
-    turntable_frames: int = 16,
+    turntable_frames: int = REPORT_TURNTABLE_FRAMES,
     device: str | torch.device = "cpu",
     interactive: bool = True,
 ) -> dict[str, Path]:

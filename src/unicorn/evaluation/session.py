@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from unicorn.config.schema import EvaluateConfig
+from unicorn.config.schema import REPORT_TURNTABLE_FRAMES, EvaluateConfig
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
@@ -85,7 +85,7 @@ def evaluate_to_folder(
     *,
     mean_shape_iterations: int = 0,
     view_size: int = 256,
-    turntable_frames: int = 16,
+    turntable_frames: int = REPORT_TURNTABLE_FRAMES,
     title: str | None = None,
     device: torch.device | str | None = None,
 ) -> tuple[EvaluationResult, dict[str, Path]]:

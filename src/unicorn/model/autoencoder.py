@@ -27,7 +27,7 @@ from torch import nn
 from unicorn.checks import check_shape
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.model.compositing import build_compositing
-from unicorn.model.config import merge_config
+from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import ShapeHead
 from unicorn.model.generator import CodeGenerator, mean_texture
@@ -39,8 +39,6 @@ if TYPE_CHECKING:
     from unicorn.model.refine import Refinement
 
 __all__ = ["BRANCHES", "Prediction", "Prediction3D", "Unicorn", "count_parameters", "world_verts"]
-
-BRANCHES = ("shape", "texture", "pose", "background")
 
 
 def world_verts(canonical_verts: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -106,10 +104,15 @@ class Prediction:
     T: torch.Tensor
 
 
+def _branches(has_background: bool) -> tuple[str, ...]:
+    """The branches of a model with or without a background model (:data:`BRANCHES` ends with the background)."""
+    return BRANCHES if has_background else BRANCHES[:-1]
+
+
 def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     """The learned networks of a merged configuration: encoders, shape, texture, background, pose and scale heads
     (the only parts whose size grows with the configuration: :func:`count_parameters` builds them on no memory)."""
-    n_enc = 1 if cfg["encoder"]["shared"] else (4 if cfg["background"] is not None else 3)
+    n_enc = 1 if cfg["encoder"]["shared"] else len(_branches(cfg["background"] is not None))
     encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], cfg["image_size"]) for _ in range(n_enc)])
     nf = encoders[0].out_features
 
@@ -234,10 +237,8 @@ class Unicorn(nn.Module):
 
     def active_dims(self) -> dict[str, int]:
         """Current active code sizes."""
-        dims = {"shape": self.shape.mask.active_dims, "texture": self.texture.mask.active_dims}
-        if self.background is not None:
-            dims["background"] = self.background.mask.active_dims
-        return dims
+        heads = {branch: getattr(self, branch) for branch in CODE_BRANCHES}
+        return {branch: head.mask.active_dims for branch, head in heads.items() if head is not None}
 
     def set_stage_switches(
         self, translation: bool | None = None, deformation: bool | None = None, scale: bool | None = None
@@ -266,7 +267,7 @@ class Unicorn(nn.Module):
 
     def branches(self) -> tuple[str, ...]:
         """The branches this model predicts: shape, texture, pose, and background when it has one."""
-        return BRANCHES if self.background is not None else BRANCHES[:3]
+        return _branches(self.background is not None)
 
     def deform(self, shape_code: torch.Tensor) -> torch.Tensor:
         """The canonical mesh (B, V, 3): the template deformed by the shape field for masked codes (B, Cs)."""

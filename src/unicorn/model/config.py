@@ -20,6 +20,7 @@ from typing import Any
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "BRANCHES",
     "BackgroundConfig",
     "CHOICES",
     "CODE_BRANCHES",
@@ -41,8 +42,12 @@ __all__ = [
     "ranged",
 ]
 
-#: the branches with a latent code regressed from the image, whose active size grows stage by stage
-CODE_BRANCHES = ("shape", "texture", "background")
+#: the model's branches, in the order of its encoders when each has its own (the big model); the background is
+#: last: a model without a background model has the first three
+BRANCHES = ("shape", "texture", "pose", "background")
+#: the branches with a latent code regressed from the image, whose active size grows stage by stage: all but the
+#: pose, whose candidates and their probabilities are regressed directly (no code to grow)
+CODE_BRANCHES = tuple(branch for branch in BRANCHES if branch != "pose")
 #: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
 POSE_OBJECTIVES = ("expected", "assigned")
 #: allowed values of the model's string settings: ``group.key`` -> values
