@@ -1,17 +1,24 @@
-"""Exact nearest neighbours of a point cloud that moves a little between searches, such as an ICP's source.
+"""Exact nearest neighbours of a 3D point cloud that moves a little between searches, such as an ICP's source.
 
-An ICP searches the nearest ground-truth point of each source point at every iteration, while the source moves
-by small steps. :class:`MovingQueries` gives the same answers with far fewer k-d tree searches. Each query point
-keeps the ``k`` nearest reference points that its last tree search found (its candidates), the distance ``d_k``
-of the farthest of them, and the position it was searched from. When the point has moved by ``delta`` since, no
-reference point outside its candidates is nearer than ``d_k - delta`` (triangle inequality). So when the nearest
-candidate is nearer than that, it is the nearest reference point, and only the points that fail this test are
-searched again. Both tests are computed in float64 with a relative margin of ``1e-12``, so rounding can only send
-a point back to the tree.
+An ICP searches, at every iteration, the nearest target point of each source point and the nearest source point
+of each target point, while the source moves by small steps. :class:`MovingQueries` gives the same answers as
+the k-d trees of :class:`~unicorn.metrics.nn.NearestNeighborIndex` from the previous step's answers and uniform
+grids, after one tree search at the first step:
 
-The answers are the k-d tree's: the same nearest distances, and the same indices except where two reference
-points are exactly as near (then either may be returned). With the torch backend (CUDA) the queries go to the
-index unchanged.
+- source to target: each source point keeps the ``k`` nearest target points found for it last (its candidates),
+  the distance ``d_k`` of the farthest of them and the position it was found from. When the point has moved by
+  ``delta`` since, no target point outside its candidates is nearer than ``d_k - delta`` (triangle inequality):
+  if the nearest candidate is nearer than that, it is the nearest target point. Otherwise the ``k`` nearest are
+  found again among the target points of the grid cells within the distance of the farthest old candidate,
+  which holds at least ``k`` points;
+- target to source: each target point keeps the source point nearest to it at the last step. That point's
+  distance now bounds the nearest one's, so the nearest is found among the source points of the grid cells
+  (a grid over the moved source, built at every step) within that distance.
+
+The distances are computed in float64 and the tests and cell ranges carry a relative margin of ``1e-12``, so
+rounding can only make a search wider. The answers have the k-d tree's nearest distances, and its indices
+except where two points are exactly as near (then either may be returned). Clouds that are not 3D, and the
+torch backend (CUDA), are searched by the index as it is.
 """
 
 from __future__ import annotations
@@ -26,46 +33,13 @@ from .nn import NearestNeighborIndex
 
 __all__ = ["MovingQueries"]
 
-#: relative margin of the candidate test: a point whose test is closer than this is searched in the tree again
+#: relative margin of the distance tests and of the scanned cell ranges
 _MARGIN = 1e-12
 
 
-@numba.njit(cache=True, nogil=True)
-def _nearest_candidates(
-    queries: np.ndarray,
-    points: np.ndarray,
-    anchors: np.ndarray,
-    reach: np.ndarray,
-    candidates: np.ndarray,
-    out: np.ndarray,
-) -> np.ndarray:
-    """For each query (N, D), its nearest candidate (``candidates`` (N, k) rows into ``points`` (U, D)) into
-    ``out`` (N,) where the test of the module docstring proves it the nearest point; returns the (F,) rows of
-    the queries that fail (``anchors`` (N, D): where each was last searched, ``reach`` (N,): its ``d_k``)."""
-    n, dim = queries.shape
-    failed = np.empty(n, np.int64)
-    n_failed = 0
-    for i in range(n):
-        moved = 0.0
-        for c in range(dim):
-            t = queries[i, c] - anchors[i, c]
-            moved += t * t
-        best, best_j = np.inf, -1
-        for m in range(candidates.shape[1]):
-            j = candidates[i, m]
-            d = 0.0
-            for c in range(dim):
-                t = queries[i, c] - points[j, c]
-                d += t * t
-            if d < best:
-                best, best_j = d, j
-        bound = reach[i] - np.sqrt(moved)
-        if bound > 0.0 and np.sqrt(best) <= bound * (1.0 - _MARGIN):
-            out[i] = best_j
-        else:
-            failed[n_failed] = i
-            n_failed += 1
-    return failed[:n_failed]
+def _cells(n: int) -> int:
+    """Grid cells per axis for ``n`` surface points: about 8 points per occupied cell (6 x cells^2 of them)."""
+    return int(min(max(np.sqrt(n / 48.0), 2), 96))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -86,8 +60,8 @@ def _grid(cloud: np.ndarray, cells: int) -> tuple[np.ndarray, float, np.ndarray,
             key = key * cells + min(int((cloud[i, c] - lo[c]) * inv), cells - 1)
         cell[i] = key
         start[key + 1] += 1
-    for k in range(cells**3):
-        start[k + 1] += start[k]
+    for key in range(cells**3):
+        start[key + 1] += start[key]
     fill = start[:-1].copy()
     members = np.empty(len(cloud), np.int64)
     for i in range(len(cloud)):
@@ -97,79 +71,116 @@ def _grid(cloud: np.ndarray, cells: int) -> tuple[np.ndarray, float, np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_nearest(
-    cloud: np.ndarray,
-    cells: int,
-    grid: tuple[np.ndarray, float, np.ndarray, np.ndarray],
-    queries: np.ndarray,
-    guess: np.ndarray,
-    out: np.ndarray,
-) -> None:
-    """For each query (U, 3), the row of ``cloud`` (N, 3) nearest to it into ``out`` (U,): the nearest point of the
-    grid cells that overlap the ball through its ``guess`` (U,) (the nearest point lies in that ball)."""
+def _cell_range(q: np.ndarray, r: float, lo: np.ndarray, inv: float, cells: int, first: np.ndarray, last: np.ndarray):
+    """The cells (``first`` to ``last`` per axis, (3,) each) of a grid that overlap the cube around the ball of
+    radius ``r`` at ``q`` (3,), the radius widened by the margin."""
+    r = r * (1.0 + _MARGIN) + _MARGIN
+    for c in range(3):
+        first[c] = min(max(int(np.floor((q[c] - r - lo[c]) * inv)), 0), cells - 1)
+        last[c] = min(max(int(np.floor((q[c] + r - lo[c]) * inv)), 0), cells - 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _dist2(a: np.ndarray, b: np.ndarray) -> float:
+    d = 0.0
+    for c in range(3):
+        t = a[c] - b[c]
+        d += t * t
+    return d
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan(q, cloud, grid, cells, r, best_d, best_j, work) -> None:
+    """Insert the points of ``cloud`` in the grid cells within ``r`` of ``q`` into the sorted lists ``best_d``
+    (squared distances, (k,)) and ``best_j`` (rows) of the k nearest found so far. ``work``: (2, 3) int64
+    scratch, allocated once per kernel call (an allocation per query costs more than the scan)."""
     lo, inv, start, members = grid
-    first = np.empty(3, np.int64)
-    last = np.empty(3, np.int64)
+    first, last = work[0], work[1]
+    _cell_range(q, r, lo, inv, cells, first, last)
+    k = len(best_d)
+    for a in range(first[0], last[0] + 1):
+        for b in range(first[1], last[1] + 1):
+            for e in range(first[2], last[2] + 1):
+                key = (a * cells + b) * cells + e
+                for m in range(start[key], start[key + 1]):
+                    j = members[m]
+                    d = _dist2(q, cloud[j])
+                    if d < best_d[k - 1]:
+                        pos = k - 1
+                        while pos > 0 and best_d[pos - 1] > d:
+                            best_d[pos], best_j[pos] = best_d[pos - 1], best_j[pos - 1]
+                            pos -= 1
+                        best_d[pos], best_j[pos] = d, j
+
+
+@numba.njit(cache=True, nogil=True)
+def _follow(queries, points, grid, cells, anchors, reach, candidates, out, every) -> None:
+    """Source to target (module docstring): for each query (N, 3) its nearest row of ``points`` (U, 3) into
+    ``out`` (N,), updating the ``anchors`` (N, 3), ``reach`` (N,) (``d_k``; inf when ``every`` point is a
+    candidate) and ``candidates`` (N, k) of the queries found again."""
+    k = candidates.shape[1]
+    best_d, best_j, work = np.empty(k), np.empty(k, np.int64), np.empty((2, 3), np.int64)
     for i in range(len(queries)):
-        g = guess[i]
-        best = 0.0
-        for c in range(3):
-            t = queries[i, c] - cloud[g, c]
-            best += t * t
-        # the ball's radius, widened so that rounding cannot leave its nearest point's cell out
-        r = np.sqrt(best) * (1.0 + _MARGIN) + _MARGIN
-        for c in range(3):
-            first[c] = min(max(int(np.floor((queries[i, c] - r - lo[c]) * inv)), 0), cells - 1)
-            last[c] = min(max(int(np.floor((queries[i, c] + r - lo[c]) * inv)), 0), cells - 1)
-        best_j = g
-        for a in range(first[0], last[0] + 1):
-            for b in range(first[1], last[1] + 1):
-                for e in range(first[2], last[2] + 1):
-                    key = (a * cells + b) * cells + e
-                    for m in range(start[key], start[key + 1]):
-                        j = members[m]
-                        d = 0.0
-                        for c in range(3):
-                            t = queries[i, c] - cloud[j, c]
-                            d += t * t
-                        if d < best:
-                            best, best_j = d, j
-        out[i] = best_j
+        q = queries[i]
+        near, near_j, far = np.inf, -1, 0.0
+        for m in range(k):
+            d = _dist2(q, points[candidates[i, m]])
+            if d < near:
+                near, near_j = d, candidates[i, m]
+            far = max(far, d)
+        bound = reach[i] - np.sqrt(_dist2(q, anchors[i]))
+        if bound > 0.0 and np.sqrt(near) <= bound * (1.0 - _MARGIN):
+            out[i] = near_j
+            continue
+        # the ball through the farthest old candidate holds k points, hence the k nearest
+        best_d[:] = far * (1.0 + _MARGIN) + _MARGIN
+        best_j[:] = -1
+        _scan(q, points, grid, cells, np.sqrt(far), best_d, best_j, work)
+        anchors[i] = q
+        reach[i] = np.inf if every else np.sqrt(best_d[k - 1])
+        candidates[i] = best_j
+        out[i] = best_j[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_from(cloud, grid, cells, queries, guess, out) -> None:
+    """Target to source (module docstring): for each query (U, 3) the row of ``cloud`` (N, 3) nearest to it into
+    ``out`` (U,), found within the distance of its ``guess`` (U,)."""
+    best_d, best_j, work = np.empty(1), np.empty(1, np.int64), np.empty((2, 3), np.int64)
+    for i in range(len(queries)):
+        best_d[0] = _dist2(queries[i], cloud[guess[i]])
+        best_j[0] = guess[i]
+        _scan(queries[i], cloud, grid, cells, np.sqrt(best_d[0]), best_d, best_j, work)
+        out[i] = best_j[0]
 
 
 class _TrackedTree:
-    """One k-d tree (``tree.knearest``) over (U, D) float64 ``points`` and the candidates of one moving cloud."""
+    """Source-to-target searches of one moving cloud in the fixed (U, 3) float64 ``points`` of a k-d ``tree``
+    (which finds the first step's candidates) and of a grid built here."""
 
     def __init__(self, tree: Any, points: np.ndarray, k: int) -> None:
         self.tree, self.points = tree, points
         self.k = min(k, len(points))
-        self.anchors = np.empty((0, points.shape[1]))
-        self.reach = np.empty(0)
-        self.candidates = np.empty((0, self.k), dtype=np.int64)
+        self.cells = _cells(len(points))
+        self.grid = _grid(points, self.cells)
+        self.anchors: np.ndarray | None = None
 
     def nearest(self, queries: np.ndarray) -> np.ndarray:
-        """(N,) int64 rows of ``points`` nearest to ``queries`` (N, D) float64 (the same N points every call)."""
-        n = len(queries)
-        if self.anchors.shape != queries.shape:  # the first call: every point is searched
-            self.anchors = np.empty_like(queries)
-            self.reach = np.full(n, -1.0)
-            self.candidates = np.zeros((n, self.k), dtype=np.int64)
-        out = np.empty(n, dtype=np.int64)
-        failed = _nearest_candidates(queries, self.points, self.anchors, self.reach, self.candidates, out)
-        if len(failed):
-            dists, idx = self.tree.knearest(queries[failed], self.k)
-            self.anchors[failed] = queries[failed]
-            # when the candidates are all the points, none can be outside them
-            self.reach[failed] = dists[:, -1] if self.k < len(self.points) else np.inf
-            self.candidates[failed] = idx
-            out[failed] = idx[:, 0]
+        """(N,) int64 rows of ``points`` nearest to ``queries`` (N, 3) float64 (the same N points every call)."""
+        every = self.k == len(self.points)  # no point can lie outside the candidates
+        if self.anchors is None or self.anchors.shape != queries.shape:
+            dists, self.candidates = self.tree.knearest(queries, self.k)
+            self.anchors = queries.copy()
+            self.reach = np.full(len(queries), np.inf) if every else dists[:, -1].copy()
+            return self.candidates[:, 0].copy()
+        out = np.empty(len(queries), dtype=np.int64)
+        _follow(queries, self.points, self.grid, self.cells, self.anchors, self.reach, self.candidates, out, every)
         return out
 
 
 class _TrackedCloud:
-    """Reverse searches into one moving cloud: each fixed query starts from the cloud point nearest to it at the
-    last call (the same points, moved: its distance bounds the nearest one's) and scans the cells of a uniform
-    grid over the cloud within that distance. The first call, and clouds that are not 3D, use ``fallback``."""
+    """Target-to-source searches into one moving cloud: the first step (or a cloud of another size) by
+    ``fallback`` (a k-d tree over the cloud), then by a grid over the cloud from the last step's answers."""
 
     def __init__(self, fallback: Any) -> None:
         self.fallback = fallback
@@ -178,13 +189,12 @@ class _TrackedCloud:
     def nearest_in(self, cloud: np.ndarray, queries: np.ndarray) -> np.ndarray:
         """(U,) int64 rows of ``cloud`` (N, 3) float64 nearest to ``queries`` (U, 3) float64 (the same N points,
         moved, and the same queries every call)."""
-        if self.guess is None or cloud.shape[1] != 3 or self.guess.max(initial=-1) >= len(cloud):
+        if self.guess is None or self.guess.max(initial=-1) >= len(cloud):
             found = self.fallback.nearest_in(cloud, queries)
         else:
-            # about 8 points per occupied cell on a surface (6 x cells^2 occupied cells)
-            cells = int(min(max(np.sqrt(len(cloud) / 48.0), 2), 96))
+            cells = _cells(len(cloud))
             found = np.empty(len(queries), dtype=np.int64)
-            _grid_nearest(cloud, cells, _grid(cloud, cells), queries, self.guess, found)
+            _nearest_from(cloud, _grid(cloud, cells), cells, queries, self.guess, found)
         self.guess = found
         return found
 
@@ -218,7 +228,7 @@ class MovingQueries:
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
         self.index = index
-        trees = index.trees()
+        trees = index.trees() if index.y.shape[-1] == 3 else None
         self._forward = None if trees is None else [_TrackedTree(tree, points, k) for tree, points in trees]
         self._reverse = None if trees is None else [_TrackedCloud(index.tree_builder()) for _ in trees]
 
