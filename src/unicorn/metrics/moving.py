@@ -23,6 +23,7 @@ torch backend (CUDA), are searched by the index as it is.
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numba
@@ -33,8 +34,15 @@ from .nn import NearestNeighborIndex
 
 __all__ = ["MovingQueries"]
 
+if "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+    # OpenMP first (as torch and pykdtree use): numba's default tries TBB first and warns when an installed TBB is
+    # too old for it
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
 #: relative margin of the distance tests and of the scanned cell ranges
 _MARGIN = 1e-12
+#: query chunks of a kernel call, shared out among the threads (each allocates its scratch once)
+_CHUNKS = 64
 
 
 def _cells(n: int) -> int:
@@ -113,45 +121,53 @@ def _scan(q, cloud, grid, cells, r, best_d, best_j, work) -> None:
                         best_d[pos], best_j[pos] = d, j
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _follow(queries, points, grid, cells, anchors, reach, candidates, out, every) -> None:
     """Source to target (module docstring): for each query (N, 3) its nearest row of ``points`` (U, 3) into
     ``out`` (N,), updating the ``anchors`` (N, 3), ``reach`` (N,) (``d_k``; inf when ``every`` point is a
     candidate) and ``candidates`` (N, k) of the queries found again."""
-    k = candidates.shape[1]
-    best_d, best_j, work = np.empty(k), np.empty(k, np.int64), np.empty((2, 3), np.int64)
-    for i in range(len(queries)):
-        q = queries[i]
-        near, near_j, far = np.inf, -1, 0.0
-        for m in range(k):
-            d = _dist2(q, points[candidates[i, m]])
-            if d < near:
-                near, near_j = d, candidates[i, m]
-            far = max(far, d)
-        bound = reach[i] - np.sqrt(_dist2(q, anchors[i]))
-        if bound > 0.0 and np.sqrt(near) <= bound * (1.0 - _MARGIN):
-            out[i] = near_j
-            continue
-        # the ball through the farthest old candidate holds k points, hence the k nearest
-        best_d[:] = far * (1.0 + _MARGIN) + _MARGIN
-        best_j[:] = -1
-        _scan(q, points, grid, cells, np.sqrt(far), best_d, best_j, work)
-        anchors[i] = q
-        reach[i] = np.inf if every else np.sqrt(best_d[k - 1])
-        candidates[i] = best_j
-        out[i] = best_j[0]
+    n, k = len(queries), candidates.shape[1]
+    for chunk in numba.prange(_CHUNKS):
+        best_d, best_j, work = np.empty(k), np.empty(k, np.int64), np.empty((2, 3), np.int64)
+        for i in range(chunk * n // _CHUNKS, (chunk + 1) * n // _CHUNKS):
+            q = queries[i]
+            near, near_j, far = np.inf, -1, 0.0
+            for m in range(k):
+                d = _dist2(q, points[candidates[i, m]])
+                if d < near:
+                    near, near_j = d, candidates[i, m]
+                far = max(far, d)
+            bound = reach[i] - np.sqrt(_dist2(q, anchors[i]))
+            if bound > 0.0 and np.sqrt(near) <= bound * (1.0 - _MARGIN):
+                out[i] = near_j
+                continue
+            # the ball through the farthest old candidate holds k points, hence the k nearest
+            best_d[:] = far * (1.0 + _MARGIN) + _MARGIN
+            best_j[:] = -1
+            _scan(q, points, grid, cells, np.sqrt(far), best_d, best_j, work)
+            anchors[i] = q
+            reach[i] = np.inf if every else np.sqrt(best_d[k - 1])
+            candidates[i] = best_j
+            out[i] = best_j[0]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _nearest_from(cloud, grid, cells, queries, guess, out) -> None:
     """Target to source (module docstring): for each query (U, 3) the row of ``cloud`` (N, 3) nearest to it into
     ``out`` (U,), found within the distance of its ``guess`` (U,)."""
-    best_d, best_j, work = np.empty(1), np.empty(1, np.int64), np.empty((2, 3), np.int64)
-    for i in range(len(queries)):
-        best_d[0] = _dist2(queries[i], cloud[guess[i]])
-        best_j[0] = guess[i]
-        _scan(queries[i], cloud, grid, cells, np.sqrt(best_d[0]), best_d, best_j, work)
-        out[i] = best_j[0]
+    n = len(queries)
+    for chunk in numba.prange(_CHUNKS):
+        best_d, best_j, work = np.empty(1), np.empty(1, np.int64), np.empty((2, 3), np.int64)
+        for i in range(chunk * n // _CHUNKS, (chunk + 1) * n // _CHUNKS):
+            best_d[0] = _dist2(queries[i], cloud[guess[i]])
+            best_j[0] = guess[i]
+            _scan(queries[i], cloud, grid, cells, np.sqrt(best_d[0]), best_d, best_j, work)
+            out[i] = best_j[0]
+
+
+def _use_torch_threads() -> None:
+    """Run the kernels on as many threads as torch (``OMP_NUM_THREADS``, ``torch.set_num_threads``) uses."""
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
 
 
 class _TrackedTree:
@@ -174,6 +190,7 @@ class _TrackedTree:
             self.reach = np.full(len(queries), np.inf) if every else dists[:, -1].copy()
             return self.candidates[:, 0].copy()
         out = np.empty(len(queries), dtype=np.int64)
+        _use_torch_threads()
         _follow(queries, self.points, self.grid, self.cells, self.anchors, self.reach, self.candidates, out, every)
         return out
 
@@ -194,6 +211,7 @@ class _TrackedCloud:
         else:
             cells = _cells(len(cloud))
             found = np.empty(len(queries), dtype=np.int64)
+            _use_torch_threads()
             _nearest_from(cloud, _grid(cloud, cells), cells, queries, self.guess, found)
         self.guess = found
         return found

@@ -192,6 +192,14 @@ def _distinct(cloud: torch.Tensor) -> _DistinctPoints:
     return _DistinctPoints(points[first], first.astype(np.int64), rank[inverse.reshape(-1)].astype(np.int64))
 
 
+def _ordered(values: np.ndarray, order: np.ndarray | None, rows: bool = False) -> np.ndarray:
+    """``values`` in ``order`` (None: as they are); with ``rows``, ``values`` are rows of the ordered cloud, mapped
+    back to rows of the cloud as given."""
+    if order is None:
+        return values
+    return order[values] if rows else values[order]
+
+
 def _numpy64(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(device="cpu", dtype=torch.float64).numpy())
 
@@ -258,8 +266,9 @@ class NearestNeighborIndex:
         None with the torch backend."""
         return None if self._trees is None else _FreshTree(_TREES[self.backend], self.workers)
 
-    def _check(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray] | None:
-        """Check a query cloud; for the k-d tree backends, the visiting order (numpy) of each of its clouds."""
+    def _check(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray | None] | None:
+        """Check a query cloud; for the k-d tree backends, the visiting order (numpy; None: as given) of each of its
+        clouds."""
         check_points(x, "x", dim=None)
         check_same_batch(x, self.y, "x", "y")
         if x.shape[-1] != self.y.shape[-1]:
@@ -267,7 +276,7 @@ class NearestNeighborIndex:
         if self._trees is None:
             return None
         if order is None:
-            return [np.arange(x.shape[1])] * x.shape[0]
+            return [None] * x.shape[0]
         check_shape(order, "B, N", "order", {"B": x.shape[0], "N": x.shape[1]})
         return list(order.to(device="cpu", dtype=torch.long).numpy())
 
@@ -289,8 +298,9 @@ class NearestNeighborIndex:
             return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
         out = []
         for xb, d, searcher, ob in zip(x, self._distinct, searchers or self._trees, orders):
-            found = np.empty(len(ob), dtype=np.int64)
-            found[ob] = d.first[searcher.nearest(_numpy64(xb)[ob])]
+            found = d.first[searcher.nearest(_ordered(_numpy64(xb), ob))]
+            if ob is not None:
+                found[ob] = found.copy()
             out.append(torch.from_numpy(found))
         return torch.stack(out).to(x.device)
 
@@ -313,7 +323,9 @@ class NearestNeighborIndex:
             return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
         searchers = searchers or [self.tree_builder()] * x.shape[0]
         out = [
-            torch.from_numpy(ob[searcher.nearest_in(_numpy64(xb)[ob], d.points)][d.inverse])
+            torch.from_numpy(
+                _ordered(searcher.nearest_in(_ordered(_numpy64(xb), ob), d.points), ob, rows=True)[d.inverse]
+            )
             for xb, d, ob, searcher in zip(x, self._distinct, orders, searchers)
         ]
         return torch.stack(out).to(x.device)
