@@ -312,7 +312,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         # the ICP's nearest-neighbour searches dominate: about 0.1 s of CPU per iteration, ICP and image at 100k points
         print(
             f"note: {options.num_points} points and {options.icp_iterations} ICP iterations per image (the full "
-            "protocol, 100k and 100, takes about 13 s of CPU time per image); --fast (UNICORN's validation setting) "
+            "protocol, 100k and 100, takes about 10 s of CPU time per image); --fast (UNICORN's validation setting) "
             "or a GPU is much quicker",
             flush=True,
         )
