@@ -4,9 +4,8 @@ The source cloud ``P`` is moved by ``p' = (s * p) @ R + T`` with ``R`` from a 6D
 2019, Gram-Schmidt on two 3-vectors, initialised at the identity ``[1, 0, 0, 0, 1, 0]``), ``T`` (initialised
 at 0) and a per-axis scale ``s`` (initialised at 1). Adam (learning rate 0.01) minimises the squared Chamfer
 distance (mean squared NN distance in each direction, summed) for ``n_iter`` iterations, the nearest
-neighbours being found again at every iteration (exactly; the source's by
-:class:`~unicorn.metrics.moving.MovingQueries`, which searches the tree only for the points whose last
-candidates no longer prove their nearest). Keep-best rule: every ``window`` iterations the mean loss of the last
+neighbours being found again at every iteration (exactly, by :class:`~unicorn.metrics.moving.MovingQueries`
+from the previous iteration's answers). Keep-best rule: every ``window`` iterations the mean loss of the last
 window is compared with the best window so far and, if lower, the parameters at that moment (after the window's
 last step) become the result. The last, possibly partial, window is compared too.
 

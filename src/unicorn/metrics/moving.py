@@ -177,21 +177,21 @@ class _TrackedTree:
     def __init__(self, tree: Any, points: np.ndarray, k: int) -> None:
         self.tree, self.points = tree, points
         self.k = min(k, len(points))
+        self.every = self.k == len(points)  # no point can lie outside the candidates
         self.cells = _cells(len(points))
         self.grid = _grid(points, self.cells)
         self.anchors: np.ndarray | None = None
 
     def nearest(self, queries: np.ndarray) -> np.ndarray:
         """(N,) int64 rows of ``points`` nearest to ``queries`` (N, 3) float64 (the same N points every call)."""
-        every = self.k == len(self.points)  # no point can lie outside the candidates
         if self.anchors is None or self.anchors.shape != queries.shape:
             dists, self.candidates = self.tree.knearest(queries, self.k)
             self.anchors = queries.copy()
-            self.reach = np.full(len(queries), np.inf) if every else dists[:, -1].copy()
+            self.reach = np.full(len(queries), np.inf) if self.every else dists[:, -1].copy()
             return self.candidates[:, 0].copy()
         out = np.empty(len(queries), dtype=np.int64)
         _use_torch_threads()
-        _follow(queries, self.points, self.grid, self.cells, self.anchors, self.reach, self.candidates, out, every)
+        _follow(queries, self.points, self.grid, self.cells, self.anchors, self.reach, self.candidates, out, self.every)
         return out
 
 
@@ -201,19 +201,20 @@ class _TrackedCloud:
 
     def __init__(self, fallback: Any) -> None:
         self.fallback = fallback
-        self.guess: np.ndarray | None = None
+        self.guess: np.ndarray | None = None  # rows of a cloud of ``size`` points
+        self.size = 0
 
     def nearest_in(self, cloud: np.ndarray, queries: np.ndarray) -> np.ndarray:
         """(U,) int64 rows of ``cloud`` (N, 3) float64 nearest to ``queries`` (U, 3) float64 (the same N points,
         moved, and the same queries every call)."""
-        if self.guess is None or self.guess.max(initial=-1) >= len(cloud):
+        if self.guess is None or len(cloud) != self.size:
             found = self.fallback.nearest_in(cloud, queries)
         else:
             cells = _cells(len(cloud))
             found = np.empty(len(queries), dtype=np.int64)
             _use_torch_threads()
             _nearest_from(cloud, _grid(cloud, cells), cells, queries, self.guess, found)
-        self.guess = found
+        self.guess, self.size = found, len(cloud)
         return found
 
 
@@ -224,12 +225,12 @@ class MovingQueries:
 
     Every call must pass the same B x N points (moved) and the same ``order``. :meth:`query` keeps each point's
     candidates (module docstring); :meth:`reverse_query` starts each point of ``y`` from the point of ``x``
-    nearest to it at the last call and scans a uniform grid over ``x`` around it (3D clouds; others, and the
-    first call, build a k-d tree over ``x``). With the torch backend both go to the index unchanged.
+    nearest to it at the last call and scans a uniform grid over ``x`` around it (the first call builds a k-d tree
+    over ``x``). Clouds that are not 3D, and the torch backend, go to the index unchanged.
 
     Args:
         index: the index over the fixed reference clouds ``y`` (B, M, D).
-        k: candidates kept per query point: more make the tree searches rarer and each one slower (8 suits an
+        k: candidates kept per query point: more make the grid searches rarer and each one slower (8 suits an
             ICP's steps on clouds of 3k to 100k surface points).
 
     Example:

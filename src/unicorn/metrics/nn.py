@@ -192,12 +192,14 @@ def _distinct(cloud: torch.Tensor) -> _DistinctPoints:
     return _DistinctPoints(points[first], first.astype(np.int64), rank[inverse.reshape(-1)].astype(np.int64))
 
 
-def _ordered(values: np.ndarray, order: np.ndarray | None, rows: bool = False) -> np.ndarray:
-    """``values`` in ``order`` (None: as they are); with ``rows``, ``values`` are rows of the ordered cloud, mapped
-    back to rows of the cloud as given."""
-    if order is None:
-        return values
-    return order[values] if rows else values[order]
+def _in_order(cloud: np.ndarray, order: np.ndarray | None) -> np.ndarray:
+    """The rows of ``cloud`` in visiting ``order`` (None: as they are)."""
+    return cloud if order is None else cloud[order]
+
+
+def _rows_as_given(rows: np.ndarray, order: np.ndarray | None) -> np.ndarray:
+    """Rows of a cloud taken in ``order`` (:func:`_in_order`) as rows of the cloud as given."""
+    return rows if order is None else order[rows]
 
 
 def _numpy64(x: torch.Tensor) -> np.ndarray:
@@ -287,7 +289,7 @@ class NearestNeighborIndex:
         ``order``: (B, N) permutations in which the k-d trees visit the points of ``x``, e.g.
         :func:`spatial_order` (None: as given). It changes the speed, not the result; the torch backend ignores it.
         """
-        return self.search(x, order, self._trees)
+        return self.search(x, order, None)
 
     def search(self, x: torch.Tensor, order: torch.Tensor | None, searchers: list | None) -> torch.Tensor:
         """:meth:`indices` with other searchers over the distinct points of each cloud of ``y`` (objects with a
@@ -298,7 +300,7 @@ class NearestNeighborIndex:
             return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
         out = []
         for xb, d, searcher, ob in zip(x, self._distinct, searchers or self._trees, orders):
-            found = d.first[searcher.nearest(_ordered(_numpy64(xb), ob))]
+            found = d.first[searcher.nearest(_in_order(_numpy64(xb), ob))]
             if ob is not None:
                 found[ob] = found.copy()
             out.append(torch.from_numpy(found))
@@ -323,9 +325,7 @@ class NearestNeighborIndex:
             return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
         searchers = searchers or [self.tree_builder()] * x.shape[0]
         out = [
-            torch.from_numpy(
-                _ordered(searcher.nearest_in(_ordered(_numpy64(xb), ob), d.points), ob, rows=True)[d.inverse]
-            )
+            torch.from_numpy(_rows_as_given(searcher.nearest_in(_in_order(_numpy64(xb), ob), d.points), ob)[d.inverse])
             for xb, d, ob, searcher in zip(x, self._distinct, orders, searchers)
         ]
         return torch.stack(out).to(x.device)
