@@ -1,5 +1,6 @@
 """MovingQueries against brute force and against the index's own searches, over clouds that move."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -101,3 +102,45 @@ def test_gradients_and_invalid_k(surfaces):
     assert x.grad is not None and x.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="k must be positive"):
         MovingQueries(NearestNeighborIndex(tgt), k=0)
+
+
+def _scan_every_cell(q, cloud, grid, cells, r, best_d, best_j):
+    """The oracle of ``_scan``: every point of the cells in range, in key order, then the k first by squared
+    distance among those nearer than the list's last (stable: the first scanned of equally near points first)."""
+    from unicorn.metrics.moving import _MARGIN
+
+    lo, inv, start, members = grid
+    r = r * (1.0 + _MARGIN) + _MARGIN
+    first = np.clip(np.floor((q - r - lo) * inv).astype(int), 0, cells - 1)
+    last = np.clip(np.floor((q + r - lo) * inv).astype(int), 0, cells - 1)
+    found = []
+    for a in range(first[0], last[0] + 1):
+        for b in range(first[1], last[1] + 1):
+            for e in range(first[2], last[2] + 1):
+                key = (a * cells + b) * cells + e
+                for j in members[start[key] : start[key + 1]]:
+                    d = float(((q - cloud[j]) ** 2).sum())
+                    if d < best_d[-1]:
+                        found.append((d, j))
+    found = sorted(list(zip(best_d, best_j)) + found, key=lambda f: f[0])[: len(best_d)]
+    return np.array([f[0] for f in found]), np.array([f[1] for f in found])
+
+
+@pytest.mark.parametrize("k", [1, 4, 8])
+def test_scan_skips_only_points_that_cannot_enter(k):
+    """The scan's row pruning against a scan of every cell, on a lattice (exact ties, points on cell borders)."""
+    from unicorn.metrics.moving import _grid, _scan
+
+    rng = np.random.default_rng(k)
+    # integer points, extent 12, cells of side 2: duplicates, equal distances, points on the cells' borders
+    cloud = np.concatenate([[[0, 0, 0], [12, 12, 12]], rng.integers(0, 13, size=(600, 3))]).astype(np.float64)
+    cells = 6
+    grid = _grid(cloud, cells)
+    queries = np.concatenate([rng.integers(-2, 15, size=(100, 3)), rng.uniform(-1, 13, size=(100, 3))])
+    for q in queries:
+        for r in (0.0, 1.0, 2.0, 3.5, 8.0):
+            start_d = np.full(k, r * r * (1.0 + 1e-12) + 1e-12)
+            best_d, best_j = start_d.copy(), np.full(k, -1, np.int64)
+            _scan(q, cloud, grid, cells, r, best_d, best_j, np.empty((2, 3), np.int64))
+            ref_d, ref_j = _scan_every_cell(q, cloud, grid, cells, r, start_d, np.full(k, -1))
+            assert np.array_equal(best_d, ref_d) and np.array_equal(best_j, ref_j), (q, r)

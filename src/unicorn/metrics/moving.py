@@ -98,27 +98,57 @@ def _dist2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
+def _gap2(t: float, cell: int, side: float) -> float:
+    """A lower bound of the squared distance along one axis from a query at ``t`` (in cell sides from the grid's
+    corner) to the members of cell ``cell``: the gap is shortened by 1e-9 of a side, far more than the rounding
+    of the members' cell assignment."""
+    g = max(cell - t, t - (cell + 1), 0.0) - 1e-9
+    return g * g * side * side if g > 0.0 else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
 def _scan(q, cloud, grid, cells, r, best_d, best_j, work) -> None:
     """Insert the points of ``cloud`` in the grid cells within ``r`` of ``q`` into the sorted lists ``best_d``
     (squared distances, (k,)) and ``best_j`` (rows) of the k nearest found so far. ``work``: (2, 3) int64
-    scratch, allocated once per kernel call (an allocation per query costs more than the scan)."""
+    scratch, allocated once per kernel call (an allocation per query costs more than the scan).
+
+    The cells are visited in key order; each row of cells (first two cell coordinates fixed) is narrowed to the
+    cells within the k-th distance found so far, or skipped. The points left out could not have entered the lists
+    (the bounds carry the relative margin), so the answers are those of a scan of every cell in range, ties
+    included."""
     lo, inv, start, members = grid
     first, last = work[0], work[1]
     _cell_range(q, r, lo, inv, cells, first, last)
     k = len(best_d)
+    # the k-th squared distance, widened: no point farther than it can enter the lists
+    limit = best_d[k - 1] * (1.0 + _MARGIN)
+    side = 1.0 / inv if inv > 0.0 else 0.0  # a cloud of one point: a single cell, no gaps
+    t0, t1 = (q[0] - lo[0]) * inv, (q[1] - lo[1]) * inv
     for a in range(first[0], last[0] + 1):
+        gap_a = _gap2(t0, a, side)
+        if gap_a > limit:
+            continue
         for b in range(first[1], last[1] + 1):
-            for e in range(first[2], last[2] + 1):
-                key = (a * cells + b) * cells + e
-                for m in range(start[key], start[key + 1]):
-                    j = members[m]
-                    d = _dist2(q, cloud[j])
-                    if d < best_d[k - 1]:
-                        pos = k - 1
-                        while pos > 0 and best_d[pos - 1] > d:
-                            best_d[pos], best_j[pos] = best_d[pos - 1], best_j[pos - 1]
-                            pos -= 1
-                        best_d[pos], best_j[pos] = d, j
+            gap_ab = gap_a + _gap2(t1, b, side)
+            if gap_ab > limit:
+                continue
+            # the cells of the row within what is left of the k-th distance, widened as in _cell_range
+            rest = np.sqrt(limit - gap_ab) * (1.0 + _MARGIN) + _MARGIN
+            e0 = max(int(np.floor((q[2] - rest - lo[2]) * inv)), first[2])
+            e1 = min(int(np.floor((q[2] + rest - lo[2]) * inv)), last[2])
+            if e0 > e1:
+                continue
+            row = (a * cells + b) * cells
+            for m in range(start[row + e0], start[row + e1 + 1]):
+                j = members[m]
+                d = _dist2(q, cloud[j])
+                if d < best_d[k - 1]:
+                    pos = k - 1
+                    while pos > 0 and best_d[pos - 1] > d:
+                        best_d[pos], best_j[pos] = best_d[pos - 1], best_j[pos - 1]
+                        pos -= 1
+                    best_d[pos], best_j[pos] = d, j
+                    limit = best_d[k - 1] * (1.0 + _MARGIN)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
