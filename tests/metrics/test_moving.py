@@ -70,6 +70,25 @@ def test_reverse_equals_brute_force_at_every_step(surfaces, backend):
         assert torch.equal(i, index.reverse_indices(x, order))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("ordered", [True, False])
+def test_both_directions_at_once(surfaces, dtype, ordered):
+    """both_indices gives the two directions' answers, for float32 and float64 clouds, with and without an order,
+    and for a cloud that is not contiguous in memory."""
+    src, tgt = surfaces
+    tgt = tgt.to(dtype)
+    index = NearestNeighborIndex(tgt)
+    moving = MovingQueries(index)
+    order = spatial_order(src) if ordered else None
+    for x in _walk(src, 8, seed=4):
+        x = x.to(dtype)
+        x = x.transpose(1, 2).contiguous().transpose(1, 2) if ordered else x
+        i_y, i_x = moving.both_indices(x, order)
+        assert torch.equal(i_y, brute_force(x, tgt)[1])  # no exact ties here
+        torch.testing.assert_close(index.reverse_distances(x, i_x).double(), brute_force(tgt, x)[0], atol=1e-6, rtol=0)
+        assert torch.equal(i_x, index.reverse_indices(x, order))
+
+
 def test_far_jumps_and_degenerate_clouds():
     """A cloud collapsed to a plane, then to one point, then spread again: the grid and the candidates adapt."""
     g = torch.Generator().manual_seed(5)

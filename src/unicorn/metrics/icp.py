@@ -208,8 +208,9 @@ def _check_icp_args(
 def _squared_chamfer(moved: torch.Tensor, searches: MovingQueries, order: torch.Tensor) -> torch.Tensor:
     """(B,) mean squared NN distance of ``moved`` (B, N, 3) to the target plus that of the target to ``moved``,
     differentiable w.r.t. ``moved``; ``order``: (B, N) visiting order of ``moved``'s points."""
-    d_src, _ = searches.query(moved, order)
-    d_tgt, _ = searches.reverse_query(moved, order)
+    idx_src, idx_tgt = searches.both_indices(moved, order)
+    d_src = searches.index.distances(moved, idx_src)
+    d_tgt = searches.index.reverse_distances(moved, idx_tgt)
     return d_src.square().mean(dim=1) + d_tgt.square().mean(dim=1)
 
 

@@ -256,21 +256,25 @@ class NearestNeighborIndex:
             out._distinct = [self._distinct[r] for r in rows]
         return out
 
-    def trees(self) -> list[tuple[_ScipyTree | _PyKDTree, np.ndarray]] | None:
-        """Per cloud of ``y``, its k-d tree and the (U, D) float64 distinct points the tree holds (the indices its
-        searches return point into them); None with the torch backend."""
+    def trees(self) -> list[tuple[_ScipyTree | _PyKDTree, _DistinctPoints]] | None:
+        """Per cloud of ``y``, its k-d tree and the distinct points the tree holds (the indices its searches return
+        point into them; ``first`` maps them to rows of the cloud); None with the torch backend."""
         if self._trees is None or self._distinct is None:
             return None
-        return [(tree, d.points) for tree, d in zip(self._trees, self._distinct)]
+        return list(zip(self._trees, self._distinct))
 
     def tree_builder(self) -> _FreshTree | None:
-        """The reverse searcher :meth:`reverse_search` uses by default (a k-d tree built over each searched cloud);
-        None with the torch backend."""
+        """The reverse searcher of :meth:`reverse_indices` (a k-d tree built over each searched cloud), None with the
+        torch backend."""
         return None if self._trees is None else _FreshTree(_TREES[self.backend], self.workers)
 
-    def _check(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray | None] | None:
-        """Check a query cloud; for the k-d tree backends, the visiting order (numpy; None: as given) of each of its
-        clouds."""
+    def visiting_orders(self, x: torch.Tensor, order: torch.Tensor | None) -> list[np.ndarray | None] | None:
+        """Check a query cloud ``x`` (B, N, D) and its ``order`` (B, N) (see :meth:`indices`); for the k-d tree
+        backends, the visiting order of each of its clouds ((N,) int64 numpy; None: as given), None otherwise.
+
+        Raises:
+            ValueError: when ``x`` does not match ``y`` or ``order`` does not match ``x``.
+        """
         check_points(x, "x", dim=None)
         check_same_batch(x, self.y, "x", "y")
         if x.shape[-1] != self.y.shape[-1]:
@@ -289,18 +293,12 @@ class NearestNeighborIndex:
         ``order``: (B, N) permutations in which the k-d trees visit the points of ``x``, e.g.
         :func:`spatial_order` (None: as given). It changes the speed, not the result; the torch backend ignores it.
         """
-        return self.search(x, order, None)
-
-    def search(self, x: torch.Tensor, order: torch.Tensor | None, searchers: list | None) -> torch.Tensor:
-        """:meth:`indices` with other searchers over the distinct points of each cloud of ``y`` (objects with a
-        ``nearest((N, D) float64) -> (N,) int64`` method, e.g. :class:`~unicorn.metrics.moving.MovingQueries`'
-        trackers), or this index's trees when None. The torch backend ignores them."""
-        orders = self._check(x, order)
+        orders = self.visiting_orders(x, order)
         if self._trees is None or self._distinct is None or orders is None:
             return _torch_indices(x, self.y.to(x.dtype), self.block_elements)
         out = []
-        for xb, d, searcher, ob in zip(x, self._distinct, searchers or self._trees, orders):
-            found = d.first[searcher.nearest(_in_order(_numpy64(xb), ob))]
+        for xb, d, tree, ob in zip(x, self._distinct, self._trees, orders):
+            found = d.first[tree.nearest(_in_order(_numpy64(xb), ob))]
             if ob is not None:
                 found[ob] = found.copy()
             out.append(torch.from_numpy(found))
@@ -313,20 +311,13 @@ class NearestNeighborIndex:
         The k-d tree backends build a tree over each cloud of ``x``, its points taken in ``order`` (as in
         :meth:`indices`), and query the distinct points of ``y``.
         """
-        return self.reverse_search(x, order, None)
-
-    def reverse_search(self, x: torch.Tensor, order: torch.Tensor | None, searchers: list | None) -> torch.Tensor:
-        """:meth:`reverse_indices` with other searchers, one per cloud: objects with a
-        ``nearest_in(cloud (N, D) float64, queries (U, D) float64) -> (U,) int64`` method giving the rows of
-        ``cloud`` (a cloud of ``x`` in ``order``) nearest to the distinct points of ``y``; when None, a k-d tree
-        is built over each cloud. The torch backend ignores them."""
-        orders = self._check(x, order)
+        orders = self.visiting_orders(x, order)
         if self._trees is None or self._distinct is None or orders is None:
             return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
-        searchers = searchers or [self.tree_builder()] * x.shape[0]
+        builder = _FreshTree(_TREES[self.backend], self.workers)
         out = [
-            torch.from_numpy(_rows_as_given(searcher.nearest_in(_in_order(_numpy64(xb), ob), d.points), ob)[d.inverse])
-            for xb, d, ob, searcher in zip(x, self._distinct, orders, searchers)
+            torch.from_numpy(_rows_as_given(builder.nearest_in(_in_order(_numpy64(xb), ob), d.points), ob)[d.inverse])
+            for xb, d, ob in zip(x, self._distinct, orders)
         ]
         return torch.stack(out).to(x.device)
 
