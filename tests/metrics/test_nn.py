@@ -5,7 +5,14 @@ import torch
 
 from unicorn.checks import ShapeError
 from unicorn.geometry.rotations import euler_angles_to_matrix
-from unicorn.metrics.nn import BACKENDS, NearestNeighborIndex, default_backend, nearest_neighbors, spatial_order
+from unicorn.metrics.nn import (
+    BACKENDS,
+    NearestNeighborIndex,
+    default_backend,
+    gather_points,
+    nearest_neighbors,
+    spatial_order,
+)
 
 HAS_PYKDTREE = importlib.util.find_spec("pykdtree") is not None
 PYKDTREE = pytest.param("pykdtree", marks=pytest.mark.skipif(not HAS_PYKDTREE, reason="pykdtree not installed"))
@@ -114,6 +121,21 @@ def test_gradients_flow_through_distances():
     diff = x.detach()[0] - y.detach()[0, i[0]]
     torch.testing.assert_close(x.grad[0], diff / diff.norm(dim=-1, keepdim=True))
     assert y.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("contiguous", [True, False])
+def test_gather_points_is_a_gather_with_its_gradient(contiguous):
+    """The same values and gradients as torch.gather, repeated indices included (summed in the same order)."""
+    g = torch.Generator().manual_seed(0)
+    y = torch.randn(3, 3, 40, generator=g).transpose(1, 2)  # (3, 40, 3), not contiguous
+    y = (y.contiguous() if contiguous else y).requires_grad_(True)
+    idx = torch.randint(0, 40, (3, 500), generator=g)
+    w = torch.randn(3, 500, 3, generator=g)
+    (gather_points(y, idx) * w).sum().backward()
+    ref_y = y.detach().clone().requires_grad_(True)
+    ref = torch.gather(ref_y, 1, idx.unsqueeze(-1).expand(-1, -1, 3))
+    (ref * w).sum().backward()
+    assert torch.equal(gather_points(y, idx), ref) and torch.equal(y.grad, ref_y.grad)
 
 
 def test_reusable_index_and_dtype_mix():

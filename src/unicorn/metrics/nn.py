@@ -53,7 +53,12 @@ Backend = Literal["auto", "kdtree", "pykdtree", "torch"]
 
 def gather_points(y: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """Pick ``y[b, idx[b, n]]``: y (B, M, D), idx (B, N) long -> (B, N, D)."""
-    return torch.gather(y, 1, idx.unsqueeze(-1).expand(-1, -1, y.shape[-1]))
+    if not y.is_contiguous():
+        return torch.gather(y, 1, idx.unsqueeze(-1).expand(-1, -1, y.shape[-1]))
+    # whole rows of the flattened batch: twice as fast as a gather of each coordinate
+    B, M, D = y.shape
+    rows = idx + torch.arange(0, B * M, M, device=idx.device).unsqueeze(1)
+    return y.view(B * M, D).index_select(0, rows.view(-1)).view(B, -1, D)
 
 
 #: bits per axis of the Z-order codes of :func:`spatial_order` (3 x 10 bits: 1024 cells per axis)
