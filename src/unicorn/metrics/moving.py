@@ -132,12 +132,15 @@ def _scan(q, cloud, grid, cells, r, best_d, best_j, work) -> None:
             gap_ab = gap_a + _gap2(t1, b, side)
             if gap_ab > limit:
                 continue
-            # the cells of the row within what is left of the k-th distance, widened as in _cell_range
-            rest = np.sqrt(limit - gap_ab) * (1.0 + _MARGIN) + _MARGIN
-            e0 = max(int(np.floor((q[2] - rest - lo[2]) * inv)), first[2])
-            e1 = min(int(np.floor((q[2] + rest - lo[2]) * inv)), last[2])
-            if e0 > e1:
-                continue
+            e0, e1 = first[2], last[2]
+            if gap_ab > 0.0:
+                # a row off the query's: its cells within what is left of the k-th distance, widened as in
+                # _cell_range (the query's own rows keep the whole range: narrowing them costs more than it saves)
+                rest = np.sqrt(limit - gap_ab) * (1.0 + _MARGIN) + _MARGIN
+                e0 = max(int(np.floor((q[2] - rest - lo[2]) * inv)), e0)
+                e1 = min(int(np.floor((q[2] + rest - lo[2]) * inv)), e1)
+                if e0 > e1:
+                    continue
             row = (a * cells + b) * cells
             for m in range(start[row + e0], start[row + e1 + 1]):
                 j = members[m]
