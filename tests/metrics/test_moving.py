@@ -1,5 +1,8 @@
 """MovingQueries against brute force and against the index's own searches, over clouds that move."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -163,3 +166,20 @@ def test_scan_skips_only_points_that_cannot_enter(k):
             _scan(q, cloud, grid, cells, r, best_d, best_j, np.empty((2, 3), np.int64))
             ref_d, ref_j = _scan_every_cell(q, cloud, grid, cells, r, start_d, np.full(k, -1))
             assert np.array_equal(best_d, ref_d) and np.array_equal(best_j, ref_j), (q, r)
+
+
+def test_torch_keeps_its_thread_count():
+    """The kernels' first use (which starts numba's OpenMP threads) leaves torch's thread count as it was; run in a
+    fresh process, where numba has not started them yet."""
+    code = (
+        "import torch\n"
+        "from unicorn.metrics.moving import MovingQueries\n"
+        "from unicorn.metrics.nn import NearestNeighborIndex\n"
+        "torch.set_num_threads(1)\n"
+        "moving = MovingQueries(NearestNeighborIndex(torch.rand(1, 300, 3)))\n"
+        "for step in range(3):\n"
+        "    moving.both_indices(torch.rand(1, 200, 3))\n"
+        "print(torch.get_num_threads())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["1"]

@@ -211,7 +211,12 @@ def _take(cloud, order, out) -> None:
 
 def _use_torch_threads() -> None:
     """Run the kernels on as many threads as torch (``OMP_NUM_THREADS``, ``torch.set_num_threads``) uses."""
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    threads = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    if torch.get_num_threads() != threads:
+        # starting numba's OpenMP pool (at its first use) sets the OpenMP thread count it shares with torch to
+        # all of numba's threads: torch would then run on every core whatever OMP_NUM_THREADS says
+        torch.set_num_threads(threads)
 
 
 class _TrackedTree:
