@@ -32,6 +32,7 @@ __all__ = [
     "DiagnosticsConfig",
     "EvalSettings",
     "EvaluateConfig",
+    "EVAL_BATCH_SIZE",
     "FAST_EVAL",
     "FINAL_EVAL",
     "HELDOUT_SPLITS",
@@ -47,6 +48,7 @@ __all__ = [
     "REPORT_TURNTABLE_FRAMES",
     "SCHEDULE_MODES",
     "SCHEMA_NAME",
+    "SHAPE_POINTS",
     "SPLITS",
     "ScheduleConfig",
     "StageDimsConfig",
@@ -74,6 +76,10 @@ FAST_EVAL = {"num_points": 50_000, "icp_iterations": 30}
 REPORT_SAMPLES = 10
 #: frames of each sample's turntable GIF in an evaluation report
 REPORT_TURNTABLE_FRAMES = 16
+#: images per forward pass of an evaluation
+EVAL_BATCH_SIZE = 32
+#: points per shape of the shape retrieval (``shape-top1`` ...; training's held-out scoring uses fewer)
+SHAPE_POINTS = 2000
 
 
 # ---------------------------------------------------------------------------------------------- model
@@ -255,10 +261,10 @@ class EvalSettings:
     max_images: int | None = ranged(None, 1)  # null: the whole split
     num_points: int = ranged(FAST_EVAL["num_points"], 1)  # points per mesh for Chamfer
     icp_iterations: int = ranged(FAST_EVAL["icp_iterations"], 0)  # 0: no -ICP metrics
-    batch_size: int = ranged(32, 1)
+    batch_size: int = ranged(EVAL_BATCH_SIZE, 1)
     mean_shape_iterations: int = ranged(0, 0)  # > 0: score the training shapes' mean shape beside the model
     own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
-    shape_points: int = ranged(2000, 0)  # > 0: shape retrieval among the evaluated objects, points per shape
+    shape_points: int = ranged(SHAPE_POINTS, 0)  # > 0: shape retrieval among the evaluated objects, points per shape
 
 
 @dataclass

@@ -87,7 +87,7 @@ from typing import Any
 
 import torch
 
-from unicorn.config.schema import FINAL_EVAL, REPORT_SAMPLES
+from unicorn.config.schema import EVAL_BATCH_SIZE, FINAL_EVAL, REPORT_SAMPLES, SHAPE_POINTS
 from unicorn.data.registry import DATASETS, dataset_spec
 from unicorn.model.config import check_ranges, ranged
 
@@ -309,7 +309,7 @@ class EvalOptions:
     """
 
     protocol: str = "shapenet"
-    batch_size: int = ranged(32, 1)
+    batch_size: int = ranged(EVAL_BATCH_SIZE, 1)
     num_points: int = ranged(FINAL_EVAL["num_points"], 1)
     icp_iterations: int = ranged(FINAL_EVAL["icp_iterations"], 0)
     mask_supersample: int = ranged(3, 1)
@@ -326,7 +326,7 @@ class EvalOptions:
     progress_leave: bool = True
     oracle_pose: bool = False
     own_mean_shape: bool = False
-    shape_points: int = ranged(2000, 0)
+    shape_points: int = ranged(SHAPE_POINTS, 0)
 
     def __post_init__(self) -> None:
         protocol = get_protocol(self.protocol)
