@@ -319,7 +319,8 @@ class NearestNeighborIndex:
         orders = self.visiting_orders(x, order)
         if self._trees is None or self._distinct is None or orders is None:
             return _torch_indices(self.y.to(x.dtype), x, self.block_elements)
-        builder = _FreshTree(_TREES[self.backend], self.workers)
+        builder = self.tree_builder()
+        assert builder is not None  # k-d tree backends only here
         out = [
             torch.from_numpy(_rows_as_given(builder.nearest_in(_in_order(_numpy64(xb), ob), d.points), ob)[d.inverse])
             for xb, d, ob in zip(x, self._distinct, orders)
