@@ -1,8 +1,8 @@
 """Does unicorn learn? Reconstruction quality on the synthetic benchmark, against baselines and ablations.
 
 Trains the README's default experiment (``experiment=synthetic``: procedural cars, ShapeNet-NMR layout,
-32 px, the tiny model), or the one ``--experiment`` names (``synthetic_long``: the recipe that meets the colour
-bar, 200 cars and 4800 iterations; ``synthetic64``), with the same iteration budget in five variants, each with
+32 px, the tiny model), or the one ``--experiment`` names (``synthetic_long``: 200 cars and a wider texture
+branch; ``synthetic64``), with the same iteration budget in five variants, each with
 ``unicorn-train`` as a user would run it, then scores every final checkpoint on the held-out test models:
 
 - ``full``: the experiment as it is;
@@ -64,9 +64,10 @@ times), ``curves.png`` (held-out metrics against iterations, from each run's ``h
 ``pictures/report.png`` (input, reconstruction, mask, the mesh from three viewpoints, for ten held-out images of
 the ``full`` model's first seed) into ``--out``; training logs in ``<out>/logs``.
 
-Time: a 2400-iteration run takes about 9-10 minutes on a quiet 2-core CPU with 2 threads (``synthetic_long``:
-about twice that); scoring about 2 minutes per run, plus about 3 minutes of baselines per category. All five
-variants with one seed: a little over an hour; with ``--seeds 0,1,2``, about three hours.
+Time: a run of ``experiment=synthetic`` (4800 iterations) takes about 10-11 minutes on a quiet 2-core CPU with
+2 threads, 12-16 minutes with one thread (``synthetic_long``: about 26 minutes with 2 threads); scoring about
+2 minutes per run, plus about 3 minutes of baselines per category. All five variants with one seed: about an
+hour and a half with ``--jobs 2``; with ``--seeds 0,1,2``, about four hours.
 
 The categories table (``--table categories``): one recipe (``--experiment``) trained on each synthetic
 category in the NMR views, car, chair, table, lamp and mug, and on cars in the ``wild`` mode; only the category
