@@ -14,8 +14,9 @@ from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
-from unicorn.lit.diagnostics import collapse_reasons
+from unicorn.lit.diagnostics import collapse_reasons, pose_diagnostics
 from unicorn.model import Unicorn
+from unicorn.model.pose import PoseOutput
 
 
 def _model() -> Unicorn:
@@ -42,7 +43,7 @@ def test_numbers_match_a_hand_run_forward_pass() -> None:
     model = _model()
     images = torch.rand(6, 3, 32, 32, generator=torch.Generator().manual_seed(1))
     stats = code_diagnostics(model, images)
-    assert set(stats) == {"shape", "texture", "background"}
+    assert set(stats) == {"shape", "texture", "background", "pose"}
     with torch.no_grad():
         feats = model.encoders[0](images)  # the small model's shared encoder
     for branch in ("shape", "texture", "background"):
@@ -137,7 +138,7 @@ def test_a_shape_code_far_less_spread_than_the_texture_code_warns(tmp_path) -> N
     for threshold, warns in ((0.05, True), (0.0, False)):
         callback = CodeDiagnostics(every_n_steps=1, max_images=8, shape_spread_ratio=threshold)
         callback._images.extend(images.unbind(0))
-        callback._dims = {b: base[b]["active-dims"] for b in base}  # code sizes settled
+        callback._dims = {b: base[b]["active-dims"] for b in ("shape", "texture", "background")}  # sizes settled
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             row = callback.check(trainer, module)
@@ -146,6 +147,42 @@ def test_a_shape_code_far_less_spread_than_the_texture_code_warns(tmp_path) -> N
         assert any(issubclass(w.category, CollapseWarning) for w in caught) is warns
     with pytest.raises(ValueError, match="shape_spread_ratio"):
         CodeDiagnostics(shape_spread_ratio=-1.0)
+
+
+def _poses(azim: list[list[float]], probs: list[list[float]]) -> PoseOutput:
+    angles = torch.zeros(len(azim), len(azim[0]), 3)
+    angles[..., 0] = torch.tensor(azim)
+    p = torch.tensor(probs)
+    return PoseOutput(
+        angles=angles, R=torch.eye(3).expand(*p.shape, 3, 3), T=torch.zeros(*p.shape, 3), probs=p, log_probs=p.log()
+    )
+
+
+def test_pose_diagnostics_against_a_loop() -> None:
+    # 3 candidates, 5 images: images 0, 1, 3 choose candidate 0, image 2 candidate 2, image 4 candidate 1
+    azim = [[10.0, 20.0, 0.0, 40.0, 0.0], [60.0, 60.0, 60.0, 60.0, 75.0], [120.0, 120.0, 130.0, 120.0, 120.0]]
+    probs = [[0.6, 0.5, 0.1, 0.7, 0.2], [0.2, 0.3, 0.2, 0.1, 0.5], [0.2, 0.2, 0.7, 0.2, 0.3]]
+    out = pose_diagnostics(_poses(azim, probs), azim_half_range=30.0)
+    assert out["share-min"] == pytest.approx(0.2) and out["share-max"] == pytest.approx(0.6)
+    # only candidate 0 is chosen twice or more: azimuths 10, 20, 40
+    assert out["azim-spread"] == pytest.approx(float(np.std([10.0, 20.0, 40.0])) / 30.0)
+    # every image on its own candidate: no spread to measure; a fixed azimuth: no spread at all
+    assert math.isnan(pose_diagnostics(_poses([[0.0, 5.0], [0.0, 9.0]], [[0.9, 0.1], [0.1, 0.9]]), 30.0)["azim-spread"])
+    assert pose_diagnostics(_poses([[0.0, 5.0]], [[1.0, 1.0]]), 0.0)["azim-spread"] == 0.0
+
+
+def test_pose_numbers_in_the_model_diagnostics(tmp_path) -> None:
+    model = _model()
+    images = torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(4))
+    stats = code_diagnostics(model, images)
+    with torch.no_grad():
+        poses = model.predict(images).poses
+    assert stats["pose"] == pose_diagnostics(poses, float(model.pose.R_range[0]))
+    assert stats["pose"]["azim-spread"] > 0 or math.isnan(stats["pose"]["azim-spread"])  # randomised heads vary
+    callback = CodeDiagnostics(every_n_steps=1, max_images=8)
+    callback._images.extend(images.unbind(0))
+    row = callback.check(SimpleNamespace(global_step=1, loggers=[], default_root_dir=str(tmp_path)), _LitStandIn(model))
+    assert row["pose/share-max"] == stats["pose"]["share-max"] and "pose" not in callback.collapsed
 
 
 # in a training run (rows in diagnostics.csv, training unchanged): tests/lit/test_heldout.py
