@@ -66,7 +66,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
     rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
     assert [float(r["step"]) for r in rows] == [4.0, 8.0]
-    assert {"shape/code-std", "texture/alive-last", "texture/units-last"} <= set(rows[0])
+    assert {"shape/code-std", "texture/alive-last", "texture/units-last", "pose/azim-spread"} <= set(rows[0])
     diagnostics = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
     assert not diagnostics.collapsed and not (plain.output_dir / "diagnostics.csv").exists()
 
