@@ -13,8 +13,8 @@ import torch
 from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
-from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics
-from unicorn.lit.diagnostics import collapse_reasons, pose_diagnostics
+from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
+from unicorn.lit.diagnostics import collapse_reasons
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 

@@ -25,7 +25,7 @@ rank ``r mod saved_world_size``.
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
 from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint
 from unicorn.lit.data import SeededItems, StreamBatchSampler, UnicornDataModule
-from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics
+from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
@@ -49,5 +49,6 @@ __all__ = [
     "UnicornDataModule",
     "UnicornLitModule",
     "code_diagnostics",
+    "pose_diagnostics",
     "render_overview",
 ]
