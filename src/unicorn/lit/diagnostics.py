@@ -17,8 +17,8 @@ N iterations on the most recent training images:
   candidate is each candidate; ``pose/azim-spread``: how much each candidate's azimuth offset varies across the
   images it is chosen for (std over those images divided by the offset's half range, averaged over the
   candidates chosen at least twice; :func:`pose_diagnostics`). Near 0, the pose branch picks one of K fixed
-  viewpoints whatever the image: the views between them come out up to half a candidate's sector wrong (about
-  0.5-0.7 on the synthetic cars in NMR views, whose poses are right).
+  viewpoints whatever the image, and the views between them come out up to half a candidate's sector wrong; on
+  the synthetic cars in NMR views, whose poses are right, it is about 0.5-0.7.
 
 Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
 check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its
