@@ -46,6 +46,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from torch import nn
 
 from unicorn.config.schema import DiagnosticsConfig
+from unicorn.evaluation.tables import candidate_shares
 from unicorn.lit.heldout import append_csv_row
 from unicorn.metrics import active_units, code_spread
 from unicorn.model.config import CODE_BRANCHES, check_ranges
@@ -76,13 +77,14 @@ def pose_diagnostics(poses: PoseOutput, azim_half_range: float) -> dict[str, flo
     """
     K, B = poses.probs.shape
     best = poses.best
-    shares = torch.bincount(best, minlength=K).double() / B
+    shares = candidate_shares(best.tolist(), K)
     azim = poses.angles[best, torch.arange(B, device=best.device), 0].double()
-    spreads = [azim[best == k].std(correction=0) for k in range(K) if int((best == k).sum()) >= 2]
+    chosen = [azim[best == k] for k in range(K)]
+    spreads = [a.std(correction=0) for a in chosen if len(a) >= 2]
     spread = math.nan
     if spreads:
         spread = float(torch.stack(spreads).mean() / azim_half_range) if azim_half_range > 0 else 0.0
-    return {"share-min": float(shares.min()), "share-max": float(shares.max()), "azim-spread": spread}
+    return {"share-min": min(shares), "share-max": max(shares), "azim-spread": spread}
 
 
 @torch.no_grad()
@@ -244,10 +246,7 @@ class CodeDiagnostics(L.Callback):
         row: dict[str, float] = {"step": float(step)}
         for branch, values in stats.items():
             row.update({f"{branch}/{k}": v for k, v in values.items()})
-        for branch in CODE_BRANCHES:
-            if branch not in stats:
-                continue
-            values = stats[branch]
+        for branch, values in ((b, stats[b]) for b in CODE_BRANCHES if b in stats):
             settled = self._dims.get(branch) == values["active-dims"]
             self._dims[branch] = values["active-dims"]
             other = SPREAD_REFERENCE.get(branch)
