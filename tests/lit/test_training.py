@@ -33,6 +33,7 @@ class Recorder(L.Callback):
                 "dims": model.active_dims(),
                 "translation": bool(model.pose.use_translation),
                 "scale": bool(model.scale.use_scale),
+                "elevation_roll": bool(model.pose.use_elevation_roll),
                 "texture_p": float(pl_module.texture_average_p),
                 "phase": pl_module.phase(trainer.global_step),
             }
@@ -58,6 +59,7 @@ def test_stages_masks_and_alternation(synthetic_cache, tmp_path):
     run = build_run(
         tmp_path,
         "schedule.curriculum.translation=1",
+        "schedule.curriculum.elevation_roll=4",
         "model.stages.texture=[2,4,8,16]",
         "schedule.texture_averaging.constant_stages=1",
     )
@@ -73,6 +75,7 @@ def test_stages_masks_and_alternation(synthetic_cache, tmp_path):
     assert "background" not in rows[0]["dims"]
     assert [r["translation"] for r in rows[:3]] == [False, True, True]
     assert [r["scale"] for r in rows[:3]] == [False, False, True]
+    assert [r["elevation_roll"] for r in rows] == [False] * 4 + [True] * 4
     # ShapeNet-style texture averaging: constant in stage 1, then p = 0.2 for the rest of the run
     assert [r["texture_p"] for r in rows] == pytest.approx([1.0] * 3 + [0.2] * 5)
     # the masks really zero the trailing code dimensions

@@ -29,13 +29,14 @@ def test_stage_schedule():
     cb = StageCallback(
         dims={"shape": [0, 2, 8, 32], "texture": [2, 8, 32, 128], "background": [4, 8, 32, 128]},
         milestones=[100, 200, 300],
-        curriculum={"translation": 10, "deformation": 20, "scale": 50},
+        curriculum={"translation": 10, "deformation": 20, "scale": 50, "elevation_roll": 30},
         texture_averaging={"constant_stages": 0, "p": 0.2, "random_until_stage": 4},
     )
     assert [cb.fixed_stage(s) for s in (0, 99, 100, 199, 200, 300, 10**6)] == [1, 1, 2, 2, 3, 4, 4]
     s0, s1 = cb.state_at(0, 1), cb.state_at(20, 1)
-    assert s0["switches"] == {"translation": False, "deformation": False, "scale": False}
-    assert s1["switches"] == {"translation": True, "deformation": True, "scale": False}
+    assert s0["switches"] == {"translation": False, "deformation": False, "scale": False, "elevation_roll": False}
+    assert s1["switches"] == {"translation": True, "deformation": True, "scale": False, "elevation_roll": False}
+    assert cb.state_at(30, 1)["switches"]["elevation_roll"] and not cb.state_at(30, 1)["switches"]["scale"]
     assert s0["dims"] == {"shape": 0, "texture": 2, "background": 4} and s0["texture_p"] == 0.2
     assert cb.state_at(300, 4)["texture_p"] == 0.0 and cb.state_at(300, 4)["dims"]["texture"] == 128
     lines = cb._describe(cb.state_at(99, 1), cb.state_at(100, 2), 100)

@@ -167,6 +167,31 @@ def test_pose_offsets_are_bounded_and_translation_switch():
     assert "use_translation" in head.state_dict()
 
 
+def test_pose_elevation_roll_switch_holds_them_at_the_anchors():
+    head = PoseHead(16, elev_range=(-10, 30), roll_range=(-30, 30), n_units=8)
+    with torch.no_grad():
+        for mlp in head.rot_regressors:
+            mlp[-1].bias.fill_(100.0)  # saturate tanh: every offset at its bound
+    features = torch.randn(3, 16)
+    free = head(features).angles
+    head.use_elevation_roll.fill_(False)
+    held = head(features).angles
+    anchors = head.R_init.unsqueeze(1).expand(6, 3, 3)
+    assert torch.allclose(free, (head.R_init + head.R_range).unsqueeze(1).expand(6, 3, 3), atol=1e-4)
+    assert torch.equal(held[..., 0], free[..., 0]) and torch.equal(held[..., 1:], anchors[..., 1:])
+    assert torch.equal(head.R_init[:, 1:], torch.tensor([10.0, 0.0]).expand(6, 2))  # the middle of the ranges
+    # held off, the elevation and roll outputs get no gradient; the azimuth's does
+    with torch.no_grad():
+        for mlp in head.rot_regressors:
+            mlp[-1].bias.zero_()  # away from saturation
+    head(features).angles.sum().backward()
+    grad = head.rot_regressors[0][-1].weight.grad
+    assert grad[1:].abs().sum() == 0 and grad[0].abs().sum() > 0
+    # set by the stage callback every iteration, so checkpoints written without it still load
+    assert "use_elevation_roll" not in head.state_dict()
+    head.load_state_dict(PoseHead(16, n_units=8).state_dict())
+
+
 def test_pose_shapenet_ranges_fix_elevation_and_roll():
     head = PoseHead(16, elev_range=(30, 30), roll_range=(0, 0), n_units=8)
     assert torch.allclose(head.R_init[:, 1:], torch.tensor([30.0, 0.0]).expand(6, 2))

@@ -132,11 +132,18 @@ class DatasetConfig:
 # ---------------------------------------------------------------------------------------------- schedule
 @dataclass
 class CurriculumConfig:
-    """Iteration at which each stage-1 switch turns on (0: from the start)."""
+    """Iteration at which each stage-1 switch turns on (0: from the start).
+
+    ``translation``, ``deformation`` and ``scale`` are the paper's curriculum. ``elevation_roll`` is not in the
+    paper (0 keeps its setting): until then every pose candidate keeps the elevation and roll of its anchor and
+    regresses only its azimuth, so that early, up-down symmetric shapes are not placed seen from below by some
+    candidates and from above by others when the elevation range allows both (the ``real`` family's).
+    """
 
     translation: int = ranged(0, 0)
     deformation: int = ranged(0, 0)
     scale: int = ranged(0, 0)
+    elevation_roll: int = ranged(0, 0)
 
 
 @dataclass

@@ -63,7 +63,7 @@ class StageCallback(L.Callback):
     Args:
         dims: active code sizes per stage, ``{"shape": [0, 2, 8, 32], "texture": [...], "background": [...]}``.
         milestones: iterations at which stages 2, 3 and 4 start (``fixed`` mode).
-        curriculum: iteration at which ``translation``, ``deformation`` and ``scale`` turn on.
+        curriculum: iteration at which each switch of :class:`CurriculumConfig` turns on.
         texture_averaging: ``constant_stages`` (constant mean-colour textures during the first stages),
             ``p`` and ``random_until_stage`` (averaging with probability p per batch while the stage is below
             it; None: for the whole run).

@@ -241,11 +241,18 @@ class Unicorn(nn.Module):
         return {branch: head.mask.active_dims for branch, head in heads.items() if head is not None}
 
     def set_stage_switches(
-        self, translation: bool | None = None, deformation: bool | None = None, scale: bool | None = None
+        self,
+        translation: bool | None = None,
+        deformation: bool | None = None,
+        scale: bool | None = None,
+        elevation_roll: bool | None = None,
     ) -> None:
-        """Enable or hold off (stage-1 curriculum) the translation offsets, the deformation and the scale."""
+        """Enable or hold off (stage-1 curriculum) the translation offsets, the deformation, the scale and the
+        elevation and roll offsets; None leaves one as is."""
         if translation is not None:
             self.pose.use_translation.fill_(bool(translation))
+        if elevation_roll is not None:
+            self.pose.use_elevation_roll.fill_(bool(elevation_roll))
         if deformation is not None:
             self.shape.use_deformation.fill_(bool(deformation))
         if scale is not None:

@@ -105,7 +105,9 @@ class PoseHead(nn.Module):
     For candidate k: ``angles = tanh(rot_regressors[k](f)) * R_range + R_init`` (azim, elev, roll),
     ``T = tanh(T_regressors[k](f)) * T_range + prior_translation`` and ``p = softmax_k(proba_regressor(f))``.
     The rotation and translation heads are zero-initialised (anchor poses at init), the probability head
-    is not. ``use_translation`` (a buffer) holds the translation at its prior during the first stage.
+    is not. ``use_translation`` (a buffer) holds the translation at its prior during the first stage, and
+    ``use_elevation_roll`` (a buffer) each candidate's elevation and roll at its anchor, the middle of their ranges
+    (``schedule.curriculum``).
 
     Args:
         in_features: encoder feature size (512).
@@ -121,6 +123,7 @@ class PoseHead(nn.Module):
     T_range: torch.Tensor
     T_init: torch.Tensor
     use_translation: torch.Tensor
+    use_elevation_roll: torch.Tensor
 
     def __init__(
         self,
@@ -144,6 +147,9 @@ class PoseHead(nn.Module):
         self.register_buffer("T_range", torch.tensor(_triple(T_range, "T_range")), persistent=False)
         self.register_buffer("T_init", torch.tensor(_triple(prior_translation, "prior_translation")), persistent=False)
         self.register_buffer("use_translation", torch.tensor(True))
+        # set by the stage callback every iteration; kept out of the state dict so that checkpoints written
+        # without it load unchanged
+        self.register_buffer("use_elevation_roll", torch.tensor(True), persistent=False)
         K = self.n_candidates
         self.rot_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
         self.T_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
@@ -159,7 +165,9 @@ class PoseHead(nn.Module):
 
     def _compose(self, rot: torch.Tensor, trans: torch.Tensor, log_probs: torch.Tensor) -> PoseOutput:
         """Candidates from offsets in [-1, 1]: rot (K, B, 3), trans (K, B, 3), log_probs (K, B)."""
-        angles = rot * self.R_range + self.R_init.unsqueeze(1)
+        tilt = self.use_elevation_roll.to(rot.dtype)
+        held = torch.stack([torch.ones_like(tilt), tilt, tilt])  # (3,): azimuth offsets are never held
+        angles = rot * (self.R_range * held) + self.R_init.unsqueeze(1)
         R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
         t_off = trans * self.T_range * self.use_translation.to(trans.dtype)
         return PoseOutput(angles=angles, R=R, T=t_off + self.T_init, probs=log_probs.exp(), log_probs=log_probs)
