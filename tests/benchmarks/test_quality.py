@@ -7,8 +7,10 @@ import json
 import math
 
 import pytest
+from omegaconf import OmegaConf
 
 from tests.support.benchmarks import load_script, unload_script
+from tests.support.training import compose_config
 
 
 @pytest.fixture(scope="module")
@@ -165,6 +167,7 @@ def test_categories_table_commands_change_only_the_category_and_the_mode(quality
         assert f"seed={seed}" in command and f"hydra.run.dir={(tmp_path / 'runs' / name / f'seed{seed}').resolve()}"
     # the wild mode takes the real family's settings; nothing else differs between two categories' commands
     assert "family=real" in commands[("car-wild", 0)] and "family=real" not in commands[("car", 0)]
+    assert set(quality.MODE_OVERRIDES["wild"]) <= set(commands[("car-wild", 0)])
     chair, mug = commands[("chair", 0)], commands[("mug", 0)]
     assert [a for a, b in zip(chair, mug) if a != b] == ["dataset.categories=chair", f"hydra.run.dir={runs[3].dir}"]
     # picking entries and seeds
@@ -235,3 +238,13 @@ def test_prepare_data_generates_each_dataset_once_with_the_runs_settings(quality
         ("synthetic", "/d", "mug", "nmr"),
         ("synthetic", "/d", "car", "wild"),
     ]
+
+
+def test_categories_table_wild_entry_is_the_shipped_wild_experiment(quality, tmp_path):
+    # with the default recipe, the wild entry trains what `unicorn-train experiment=synthetic_wild` trains
+    args = quality.parse_args(["--table", "categories", "--categories", "car-wild"])
+    overrides = quality.recipe("car-wild", args)
+    assert overrides[0] == "experiment=synthetic"
+    common = [f"paths.output_dir={tmp_path}", "task_name=synthetic_wild"]
+    table = OmegaConf.to_yaml(compose_config([*overrides, *common]))
+    assert table == OmegaConf.to_yaml(compose_config(["experiment=synthetic_wild", *common]))

@@ -54,12 +54,14 @@ def test_every_experiment_composes_and_validates(tmp_path):
     default = validate(compose_config(["experiment=synthetic", f"paths.output_dir={tmp_path}"]))
     assert wild.dataset.synthetic.mode == "wild" and wild.model.background is not None
     assert default.dataset.synthetic.mode == "nmr" and default.model.background is None
-    # one recipe: the wild variant is the default with the wild mode and the real family's settings, nothing else
+    # one recipe: the wild variant is the default with the wild mode, the real family's settings and the scale held
+    # through stage 1, nothing else
     by_hand = compose_config(
         [
             "experiment=synthetic",
             "family=real",
             "dataset.synthetic.mode=wild",
+            f"schedule.curriculum.scale={default.schedule.milestones[0]}",
             "task_name=synthetic_wild",
             f"paths.output_dir={tmp_path}",
         ]
