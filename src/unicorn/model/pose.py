@@ -106,8 +106,8 @@ class PoseHead(nn.Module):
     ``T = tanh(T_regressors[k](f)) * T_range + prior_translation`` and ``p = softmax_k(proba_regressor(f))``.
     The rotation and translation heads are zero-initialised (anchor poses at init), the probability head
     is not. ``use_translation`` (a buffer) holds the translation at its prior during the first stage, and
-    ``use_elevation_roll`` (a buffer) each candidate's elevation and roll at its anchor, the middle of their ranges
-    (``schedule.curriculum``).
+    ``use_elevation_roll`` (a buffer) each candidate's elevation and roll at its anchor (with one elevation row, the
+    middle of their ranges) while ``schedule.curriculum.elevation_roll`` says so.
 
     Args:
         in_features: encoder feature size (512).
