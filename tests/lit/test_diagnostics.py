@@ -14,7 +14,9 @@ from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
+from unicorn.config.schema import DiagnosticsConfig
 from unicorn.lit.diagnostics import collapse_reasons
+from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 
@@ -68,6 +70,10 @@ def test_numbers_match_a_hand_run_forward_pass() -> None:
         assert s["units-last"] == last.shape[1]
         alive = sum(int((h > 0).any(axis=0).sum()) for h in hidden)
         assert s["alive-frac"] == pytest.approx(alive / sum(h.shape[1] for h in hidden))
+    with torch.no_grad():
+        canonical = model.predict(images).canonical_verts
+    assert stats["shape"]["mesh-spread"] == pytest.approx(mesh_spread(canonical))
+    assert stats["shape"]["mesh-spread"] > 0  # randomised heads: the shapes follow the images
     # hooks are removed and nothing in the model changed
     assert all(not layer._forward_hooks for layer in model.modules())
 
@@ -135,7 +141,7 @@ def test_a_shape_code_far_less_spread_than_the_texture_code_warns(tmp_path) -> N
         model.shape.regressor[-1].weight.mul_(0.01 * 0.05 / ratio)
     trainer = SimpleNamespace(global_step=5, loggers=[], default_root_dir=str(tmp_path))
     module = _LitStandIn(model)
-    for threshold, warns in ((0.05, True), (0.0, False)):
+    for threshold, warns in ((DiagnosticsConfig.shape_spread_ratio, True), (0.0, False)):
         callback = CodeDiagnostics(every_n_steps=1, max_images=8, shape_spread_ratio=threshold)
         callback._images.extend(images.unbind(0))
         callback._dims = {b: base[b]["active-dims"] for b in ("shape", "texture", "background")}  # sizes settled

@@ -15,6 +15,7 @@ from unicorn.metrics import (
     color_errors,
     flip_rate,
     mean_foreground_color,
+    mesh_spread,
     normalize_shape,
     retrieval_scores,
     rotation_accuracy,
@@ -263,3 +264,21 @@ def test_shape_spread_against_a_pair_loop() -> None:
     axes = normalize_shape(stretched, per_axis=True)
     torch.testing.assert_close(axes.square().mean(dim=1), torch.full((4, 3), 1 / 3, dtype=torch.float64))
     assert math.isnan(shape_spread(clouds[:2], torch.tensor([7, 7])))
+
+
+def test_mesh_spread_against_a_vertex_loop() -> None:
+    g = torch.Generator().manual_seed(5)
+    verts = torch.randn(4, 12, 3, generator=g, dtype=torch.float64)
+    for per_axis in (False, True):
+        meshes = [m.numpy() - m.numpy().mean(axis=0) for m in verts]
+        if per_axis:
+            meshes = [m / np.sqrt(3 * (m**2).mean(axis=0)) for m in meshes]
+        else:
+            meshes = [m / np.sqrt((m**2).sum(axis=1).mean()) for m in meshes]
+        want = np.mean([np.linalg.norm(m[v] - np.mean([n[v] for n in meshes], axis=0)) for m in meshes for v in range(12)])
+        assert mesh_spread(verts, per_axis=per_axis) == pytest.approx(want, rel=1e-9)
+    # one shape at several sizes and stretches, moved about: no spread beyond its proportions; with them, some
+    stretched = verts[:1] * (0.5 + torch.rand(3, 1, 3, generator=g, dtype=torch.float64)) + torch.randn(3, 1, 3)
+    assert mesh_spread(stretched) == pytest.approx(0.0, abs=1e-12)
+    assert mesh_spread(stretched, per_axis=False) > 0.01
+    assert mesh_spread(verts[:1]) == 0.0

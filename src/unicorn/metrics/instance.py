@@ -12,7 +12,8 @@ image would get:
   (e.g. Chamfer-L1 after ICP of the model and of the best single mean shape); :func:`shape_retrieval`, whether
   each reconstruction is closer to its own object than to the other evaluated objects (top-k and reciprocal
   rank of the right object, ranked by Chamfer distance after :func:`normalize_shape`), which a model emitting one
-  shape for every image scores at chance; :func:`shape_spread`, how much the shapes of a set differ;
+  shape for every image scores at chance; :func:`shape_spread`, how much the shapes of a set differ, and
+  :func:`mesh_spread`, the same for meshes of one topology, vertex by vertex (no ground truth needed);
 - pose: :func:`rotation_accuracy` (error below a threshold) and :func:`flip_rate` (error above a threshold
   near 180 degrees: the object predicted turned round), on per-image geodesic errors;
 - codes: :func:`code_spread` (standard deviation of each code dimension across a batch: 0 for a code that
@@ -38,6 +39,7 @@ __all__ = [
     "color_errors",
     "flip_rate",
     "mean_foreground_color",
+    "mesh_spread",
     "normalize_shape",
     "retrieval_scores",
     "rotation_accuracy",
@@ -375,3 +377,28 @@ def shape_spread(
     normed = normalize_shape(clouds, per_axis)
     distances = chamfer_matrix(normed, normed, factor=1.0, backend=backend, workers=workers).cpu()
     return float(distances.double()[pairs].mean())
+
+
+def mesh_spread(verts: torch.Tensor, per_axis: bool = True) -> float:
+    """How much meshes of one topology differ: the mean distance of a vertex to its mean position over the set.
+
+    Each mesh is normalised with :func:`normalize_shape` first, so the figure is in units of the RMS radius and
+    a set of one shape at several sizes (``per_axis``: also stretched along the axes) spreads 0. It needs no
+    ground truth: on the template meshes a model predicts for a batch of images, it says whether the shape
+    follows the image beyond the proportions.
+
+    Args:
+        verts: (B, V, 3) B meshes with the same vertex order (e.g. deformed templates).
+        per_axis: normalise each axis (:func:`normalize_shape`): the spread beyond the proportions.
+
+    Returns:
+        ``mean_b mean_v |x_bv - mean_b' x_b'v|`` over the normalised meshes; 0 for a single mesh.
+
+    Example:
+        >>> box = torch.tensor([[[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])
+        >>> mesh_spread(torch.cat([box, 2 * box]))
+        0.0
+    """
+    check_points(verts, "verts")
+    normed = normalize_shape(verts.double(), per_axis)
+    return float((normed - normed.mean(dim=0, keepdim=True)).norm(dim=-1).mean())
