@@ -13,8 +13,8 @@ import torch
 from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
-from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
 from unicorn.config.schema import DiagnosticsConfig
+from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
 from unicorn.lit.diagnostics import collapse_reasons
 from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn

@@ -275,7 +275,8 @@ def test_mesh_spread_against_a_vertex_loop() -> None:
             meshes = [m / np.sqrt(3 * (m**2).mean(axis=0)) for m in meshes]
         else:
             meshes = [m / np.sqrt((m**2).sum(axis=1).mean()) for m in meshes]
-        want = np.mean([np.linalg.norm(m[v] - np.mean([n[v] for n in meshes], axis=0)) for m in meshes for v in range(12)])
+        mean = [np.mean([n[v] for n in meshes], axis=0) for v in range(12)]
+        want = np.mean([np.linalg.norm(m[v] - mean[v]) for m in meshes for v in range(12)])
         assert mesh_spread(verts, per_axis=per_axis) == pytest.approx(want, rel=1e-9)
     # one shape at several sizes and stretches, moved about: no spread beyond its proportions; with them, some
     stretched = verts[:1] * (0.5 + torch.rand(3, 1, 3, generator=g, dtype=torch.float64)) + torch.randn(3, 1, 3)
