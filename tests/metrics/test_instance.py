@@ -279,7 +279,8 @@ def test_mesh_spread_against_a_vertex_loop() -> None:
         want = np.mean([np.linalg.norm(m[v] - mean[v]) for m in meshes for v in range(12)])
         assert mesh_spread(verts, per_axis=per_axis) == pytest.approx(want, rel=1e-9)
     # one shape at several sizes and stretches, moved about: no spread beyond its proportions; with them, some
-    stretched = verts[:1] * (0.5 + torch.rand(3, 1, 3, generator=g, dtype=torch.float64)) + torch.randn(3, 1, 3)
+    shift = torch.randn(3, 1, 3, generator=g, dtype=torch.float64)
+    stretched = verts[:1] * (0.5 + torch.rand(3, 1, 3, generator=g, dtype=torch.float64)) + shift
     assert mesh_spread(stretched) == pytest.approx(0.0, abs=1e-12)
     assert mesh_spread(stretched, per_axis=False) > 0.01
     assert mesh_spread(verts[:1]) == 0.0

@@ -300,7 +300,7 @@ class DiagnosticsConfig:
     max_images: int = ranged(64, 2)  # the most recent training images
     spread_tol: float = ranged(1e-6, 0)  # collapsed: a code whose active dimensions vary less across the images
     # collapsed: a shape code spread below this x the texture code's (one blob for every car: 0.01; trained cars,
-    # tables and mugs whose shapes follow the image, mesh-spread 0.01-0.13: 0.03-0.07)
+    # tables and mugs whose shapes follow the image: 0.03-0.07)
     shape_spread_ratio: float = ranged(0.02, 0)
 
 
