@@ -241,10 +241,22 @@ def test_prepare_data_generates_each_dataset_once_with_the_runs_settings(quality
 
 
 def test_categories_table_wild_entry_is_the_shipped_wild_experiment(quality, tmp_path):
-    # with the default recipe, the wild entry trains what `unicorn-train experiment=synthetic_wild` trains
-    args = quality.parse_args(["--table", "categories", "--categories", "car-wild"])
+    # with the main job's recipe, the wild entry trains what `unicorn-train experiment=synthetic_wild` trains
+    args = quality.parse_args(["--table", "categories", "--categories", "car-wild", "--experiment", "synthetic"])
     overrides = quality.recipe("car-wild", args)
     assert overrides[0] == "experiment=synthetic"
     common = [f"paths.output_dir={tmp_path}", "task_name=synthetic_wild"]
     table = OmegaConf.to_yaml(compose_config([*overrides, *common]))
     assert table == OmegaConf.to_yaml(compose_config(["experiment=synthetic_wild", *common]))
+
+
+def test_categories_table_trains_twice_as_long_and_holds_the_wild_scale_through_its_stage_1(quality):
+    args = quality.parse_args(["--table", "categories"])
+    assert quality.parse_args([]).experiment == "synthetic" and args.experiment == "synthetic_9600"
+    main, table = compose_config(["experiment=synthetic"]), compose_config(quality.recipe("car", args))
+    assert table.trainer.max_steps == 2 * main.trainer.max_steps
+    assert table.optim.lr_drop_step == 2 * main.optim.lr_drop_step
+    assert list(table.schedule.milestones) == [2 * m for m in main.schedule.milestones]
+    wild = compose_config(quality.recipe("car-wild", args))
+    assert wild.schedule.curriculum.scale == wild.schedule.milestones[0] == 3200
+    assert table.schedule.curriculum.scale == main.schedule.curriculum.scale == 150  # NMR views: from iteration 150

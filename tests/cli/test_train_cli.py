@@ -39,7 +39,11 @@ def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.Compl
 def test_every_experiment_composes_and_validates(tmp_path):
     shipped = sorted(p.stem for p in (config_dir() / "experiment").glob("*.yaml"))
     assert shipped == sorted(
-        ["synthetic", "synthetic64", "synthetic_long", "synthetic_wild", *REAL, *(f"shapenet_{c}" for c in SHAPENET)]
+        [
+            *("synthetic", "synthetic64", "synthetic_9600", "synthetic_long", "synthetic_wild"),
+            *REAL,
+            *(f"shapenet_{c}" for c in SHAPENET),
+        ]
     )
     for name in shipped:
         for model in ("small", "big"):
@@ -61,7 +65,7 @@ def test_every_experiment_composes_and_validates(tmp_path):
             "experiment=synthetic",
             "family=real",
             "dataset.synthetic.mode=wild",
-            f"schedule.curriculum.scale={default.schedule.milestones[0]}",
+            "schedule.curriculum.scale=${schedule.milestones[0]}",
             "task_name=synthetic_wild",
             f"paths.output_dir={tmp_path}",
         ]
@@ -69,6 +73,7 @@ def test_every_experiment_composes_and_validates(tmp_path):
     assert OmegaConf.to_yaml(compose_config(["experiment=synthetic_wild", f"paths.output_dir={tmp_path}"])) == (
         OmegaConf.to_yaml(by_hand)
     )
+    assert wild.schedule.curriculum.scale == default.schedule.milestones[0]
     assert wild.optim.lr == default.optim.lr and wild.model.shape.n_field_units == default.model.shape.n_field_units
     assert default.evaluate.enabled and default.callbacks.heldout is not None
     # the 64 px variant: its own cache folder (the generator's manifest would refuse the 32 px one), same budget
