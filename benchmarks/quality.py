@@ -264,7 +264,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument(
         "--experiment",
         choices=experiments(),
-        help=f"the recipe of every run but the ablations' wild variant (default: {DEFAULT_EXPERIMENT})",
+        help="the recipe of every run but the ablations' wild variant (default: "
+        + ", ".join(f"{e} for the {t} table" for t, e in DEFAULT_EXPERIMENT.items())
+        + ")",
     )
     p.add_argument("--steps", type=int, help="training iterations (default: the experiment's)")
     p.add_argument("--retrain", action="store_true", help="train again even where a finished run exists")
