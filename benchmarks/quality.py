@@ -82,8 +82,9 @@ category's datasets are generated before training starts (once, not by concurren
 silhouette fit with ground-truth poses (what these views allow), then the model (mean ± std over its seeds).
 Columns: the shape retrieval among the test objects (``shape-top3``, the right object among the 3 closest
 normalised shapes in the image's view, and its floor ``shape-top3-floor``, the model's mean canonical shape times
-each image's scale; chance 3 / test objects), Chamfer-L1 after ICP, colour ratio, rotation accuracy at 30
-degrees, flipped views and mask IoU. ``--dry-run`` prints the training commands and stops.
+each image's scale; chance 3 / test objects), Chamfer-L1 after ICP, colour ratio, the colour ratio over the pixels
+both silhouettes cover (``color-ratio-overlap``: the texture's colour without what a wrong silhouette paints),
+rotation accuracy at 30 degrees, flipped views and mask IoU. ``--dry-run`` prints the training commands and stops.
 
     python benchmarks/quality.py                                  # five variants, seed 0
     python benchmarks/quality.py --runs full,no-neighbor,no-progressive --seeds 0,1,2 --jobs 2
@@ -221,6 +222,7 @@ CATEGORY_COLUMNS = [
     ("shape-top3-floor", "top-3 floor (scale only)", "{:.2f}"),
     ("chamfer-L1-ICP", "Chamfer-L1 ICP", "{:.3f}"),
     ("color-ratio", "colour ratio", "{:.2f}"),
+    ("color-ratio-overlap", "colour ratio, overlap", "{:.2f}"),
     ("rot-acc-30", "rot. acc. 30 deg", "{:.3f}"),
     ("rot-flip-150", "flipped (> 150 deg)", "{:.3f}"),
     ("mask-iou", "mask IoU", "{:.3f}"),

@@ -93,6 +93,7 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
     # colours, with pixel loops over the same hard renders and the input masks
     batches = [collate([data[i] for i in range(0, 3)]), collate([data[i] for i in range(3, len(data))])]
     pred_colors, gt_colors, groups = [], [], []
+    pred_both, gt_both = [], []  # the same over the pixels both silhouettes cover
     for batch in batches:
         with torch.no_grad():
             pred = shapenet_model.predict(batch["image"])
@@ -106,6 +107,13 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
             gt = [image[:, y, x] for y, x in _interior(mask >= 0.5, 1)]
             pred_colors.append(torch.stack(pix).mean(0) if pix else torch.full((3,), math.nan))
             gt_colors.append(torch.stack(gt).mean(0))
+            both = (alpha >= 0.5) & (mask >= 0.5)
+            M, S = both.shape[-1], image.shape[-1]
+            both_small = torch.tensor([[bool(both[y * M // S, x * M // S]) for x in range(S)] for y in range(S)])
+            pix = [rgb[:, y, x] for y, x in _interior(both, r_hard)] if both.any() else []
+            gt = [image[:, y, x] for y, x in _interior(both_small, 1)] if both_small.any() else []
+            pred_both.append(torch.stack(pix).mean(0) if pix else torch.full((3,), math.nan))
+            gt_both.append(torch.stack(gt).mean(0) if gt else torch.full((3,), math.nan))
             groups.append(result.per_image[len(groups)]["group"])
     for g in ("chair", "mug"):
         members = [i for i, x in enumerate(groups) if x == g]
@@ -121,6 +129,20 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
             base_errors.append(want_base)
         table = next(r for r in result.table if r["group"] == g)
         assert table["color-ratio"] == pytest.approx(sum(model_errors) / sum(base_errors), rel=1e-4)
+        # over the overlap: the input colours of the same pixels, their mean as the one-colour prediction
+        seen = [i for i in members if not torch.isnan(gt_both[i]).any()]
+        assert seen, "the test needs reconstructions that overlap their masks"
+        reference = torch.stack([gt_both[i] for i in seen]).mean(0)
+        model_errors, base_errors = [], []
+        for i in seen:
+            row = result.per_image[i]
+            want = (pred_both[i] - gt_both[i]).abs().mean().item()
+            want_base = (reference - gt_both[i]).abs().mean().item()
+            assert row["color-err-overlap"] == pytest.approx(want, abs=1e-5)
+            assert row["color-err-mean-overlap"] == pytest.approx(want_base, abs=1e-5)
+            model_errors.append(want)
+            base_errors.append(want_base)
+        assert table["color-ratio-overlap"] == pytest.approx(sum(model_errors) / sum(base_errors), rel=1e-4)
 
     # shape: the baseline mesh scored with the metric function, the win decided per object
     batch = batches[0]
@@ -267,7 +289,8 @@ def test_cub_protocol(real_model, cub_root) -> None:
     result = evaluate(real_model, data, options, "cub_200")
     assert result.columns == [
         "mask-iou", "pck-5", "pck-10", "pck-15", "cand-share-min", "cand-share-max",
-        "color-err", "color-err-mean", "color-ratio", "rec-mse",
+        "color-err", "color-err-mean", "color-ratio", "color-err-overlap", "color-err-mean-overlap",
+        "color-ratio-overlap", "rec-mse",
     ]  # fmt: skip
     # the numbers are the metric functions' on the same predictions: mask IoU of the 3x3-supersampled silhouettes
     # at the masks' 256 px, PCK by keypoint transfer with the vertices seen in the 2x2-supersampled hard render
@@ -299,7 +322,8 @@ def test_p3d_protocol(real_model, p3d_root) -> None:
     # without ground-truth poses only the ICP-registered shape metrics mean something
     assert result.columns == [
         "chamfer-L1-ICP", "normal-cos-ICP", "iou-3d-ICP", "mask-iou", "cand-share-min", "cand-share-max",
-        "color-err", "color-err-mean", "color-ratio", "rec-mse",
+        "color-err", "color-err-mean", "color-ratio", "color-err-overlap", "color-err-mean-overlap",
+        "color-ratio-overlap", "rec-mse",
     ]  # fmt: skip
     # each image against its own CAD cloud, registered by ICP as the metric function does (the fixture's clouds
     # have one size: stacked, they are scored as one batch, with one draw of surface samples)

@@ -109,8 +109,16 @@ class MaskScores:
         r_hard = COLOR_INTERIOR * max(1, round(view.mask_size / size))
         ours = mean_foreground_color(view.hard.images[:, :3], view.alpha, interior=r_hard)
         theirs = mean_foreground_color(view.images, small_mask, interior=COLOR_INTERIOR)
+        # the same over the pixels both silhouettes cover: the texture's error alone, without what the
+        # reconstruction paints outside the object (e.g. an open chair back a genus-0 mesh cannot open)
+        both = ((view.alpha >= 0.5) & (gt_mask.reshape(view.alpha.shape) >= 0.5)).float()
+        ours_both = mean_foreground_color(view.hard.images[:, :3], both, interior=r_hard)
+        small_both = F.interpolate(both, size=(size, size))
+        theirs_both = mean_foreground_color(view.images, small_both, interior=COLOR_INTERIOR)
         for i, g in enumerate(view.groups):
-            acc.colors.setdefault(g, []).append((view.first_row + i, ours[i].cpu(), theirs[i].cpu()))
+            row = view.first_row + i
+            acc.colors[""].setdefault(g, []).append((row, ours[i].cpu(), theirs[i].cpu()))
+            acc.colors["-overlap"].setdefault(g, []).append((row, ours_both[i].cpu(), theirs_both[i].cpu()))
 
 
 class MeshScores:

@@ -37,7 +37,10 @@ outputs the category mean:
   mixes object and background, and its colour depends on where each silhouette runs), and ``color-err-mean``,
   the same for a predictor of one colour for every image (the average input foreground colour of the group's
   evaluated images); per group ``color-ratio``, the ratio of their means (below 1 only when reconstructions
-  carry their image's colour);
+  carry their image's colour); and the same three over the pixels both the reconstruction's silhouette and the
+  input's mask cover, ``color-err-overlap``, ``color-err-mean-overlap`` and ``color-ratio-overlap``: the texture's
+  colour alone, where ``color-ratio`` also counts what a wrong silhouette paints (a genus-0 mesh covering the
+  open frame of a chair back paints it; the input shows the background there);
 - shape (with ``shape_baseline``, a mean shape, see :func:`evaluate`): per image ``chamfer-L1-ICP-mean-shape``,
   Chamfer-L1 after ICP of that one mesh on the same object, and ``shape-win``, 1 where the model's
   ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model wins;
@@ -93,6 +96,7 @@ from unicorn.model.config import check_ranges, ranged
 
 __all__ = [
     "COLOR_INTERIOR",
+    "COLOR_SUFFIXES",
     "METRICS",
     "METRIC_HELP",
     "METRIC_ORDER",
@@ -111,6 +115,8 @@ __all__ = [
 # (a trained model's textures optimised per image against its inputs): colour ratio 0.32 on whole masks, 0.07 on
 # the interiors, i.e. the borders alone, where silhouettes differ and colours mix with the background, kept a floor
 COLOR_INTERIOR = 1
+#: the colour columns' variants: "" each image inside its own silhouette, "-overlap" inside the pixels both cover
+COLOR_SUFFIXES = ("", "-overlap")
 
 #: dataset name -> protocol (from the dataset registry, :data:`unicorn.data.registry.DATASETS`)
 PROTOCOLS = {name: spec.protocol for name, spec in DATASETS.items()}
@@ -162,6 +168,16 @@ METRICS: dict[str, tuple[str, str]] = {
     "color-ratio": (
         "lower",
         "color-err / color-err-mean over the group: below 1 only when reconstructions carry their image's colour",
+    ),
+    "color-err-overlap": (
+        "lower",
+        "color-err over the interior of the pixels both the reconstruction and the input mask cover",
+    ),
+    "color-err-mean-overlap": ("lower", "color-err-mean over the same pixels"),
+    "color-ratio-overlap": (
+        "lower",
+        "color-err-overlap / color-err-mean-overlap: the texture's colour alone, without what the reconstruction "
+        "paints outside the object or leaves out of it",
     ),
     "chamfer-L1-ICP-mean-shape": (
         "lower",

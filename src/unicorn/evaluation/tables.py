@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from unicorn.evaluation.interface import EvaluableModel
-from unicorn.evaluation.protocols import METRIC_ORDER, ROW_INFO, EvalOptions
+from unicorn.evaluation.protocols import COLOR_SUFFIXES, METRIC_ORDER, ROW_INFO, EvalOptions
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import (
     align_canonical_frame,
@@ -70,8 +70,11 @@ class Accumulator:
         # selected pose-candidate index per image, grouped, and the number K of candidates (0: not recorded)
         self.candidates: dict[str, list[int]] = {}
         self.n_candidates = 0
-        # per group: (row number, reconstruction's mean foreground colour (3,), input's (3,))
-        self.colors: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}
+        # per column suffix ("": each inside its own silhouette; "-overlap": both inside the pixels both
+        # silhouettes cover), per group: (row number, reconstruction's mean foreground colour (3,), input's (3,))
+        self.colors: dict[str, dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]]] = {
+            suffix: {} for suffix in COLOR_SUFFIXES
+        }
         # shape retrieval, per group: each image's entry, and each object's ground-truth points, (2 n, 3): the
         # candidates' n then the ceiling's n (two independent samples of its surface)
         self.shapes: dict[str, list[ShapeEntry]] = {}
@@ -105,15 +108,17 @@ def candidate_shares(chosen: Sequence[int], n_candidates: int) -> list[float]:
 
 
 def color_scores(acc: Accumulator) -> None:
-    """Per-image ``color-err`` and ``color-err-mean`` (the group's average input colour as the prediction)."""
-    for entries in acc.colors.values():
-        rows, pred, gt = zip(*entries)
-        pred_colors, gt_colors = torch.stack(pred).double(), torch.stack(gt).double()
-        if bool(torch.isnan(gt_colors).any(dim=1).all()):
-            continue  # no input foreground at all: nothing to compare
-        model, base = color_errors(pred_colors, gt_colors)
-        for r, m, b in zip(rows, model.tolist(), base.tolist()):
-            acc.rows[r]["color-err"], acc.rows[r]["color-err-mean"] = m, b
+    """Per-image ``color-err`` and ``color-err-mean`` (the group's average input colour as the prediction), and
+    the same over the pixels both silhouettes cover, ``color-err-overlap`` and ``color-err-mean-overlap``."""
+    for suffix, groups in acc.colors.items():
+        for entries in groups.values():
+            rows, pred, gt = zip(*entries)
+            pred_colors, gt_colors = torch.stack(pred).double(), torch.stack(gt).double()
+            if bool(torch.isnan(gt_colors).any(dim=1).all()):
+                continue  # no input foreground at all: nothing to compare
+            model, base = color_errors(pred_colors, gt_colors)
+            for r, m, b in zip(rows, model.tolist(), base.tolist()):
+                acc.rows[r][f"color-err{suffix}"], acc.rows[r][f"color-err-mean{suffix}"] = m, b
 
 
 def object_samples(points: torch.Tensor, n: int, seed: int) -> torch.Tensor:
@@ -194,11 +199,13 @@ def _set_metrics(
     out: dict[str, float] = {}
     if group in shares:
         out["cand-share-min"], out["cand-share-max"] = min(shares[group]), max(shares[group])
-    errors = [(r["color-err"], r["color-err-mean"]) for r in acc.rows if r["group"] == group and "color-err" in r]
-    errors = [(m, b) for m, b in errors if not (math.isnan(m) or math.isnan(b))]
-    if errors:
-        model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
-        out["color-ratio"] = model_mean / base_mean if base_mean > 0 else float("nan")
+    for suffix in COLOR_SUFFIXES:
+        err, err_mean = f"color-err{suffix}", f"color-err-mean{suffix}"
+        errors = [(r[err], r[err_mean]) for r in acc.rows if r["group"] == group and err in r]
+        errors = [(m, b) for m, b in errors if not (math.isnan(m) or math.isnan(b))]
+        if errors:
+            model_mean, base_mean = (float(np.mean(x)) for x in zip(*errors))
+            out[f"color-ratio{suffix}"] = model_mean / base_mean if base_mean > 0 else float("nan")
     if group in acc.spread_ratio:
         out.update(acc.spread_ratio[group])
     if group in acc.poses:
