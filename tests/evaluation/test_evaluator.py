@@ -115,34 +115,26 @@ def test_instance_metrics_against_a_direct_computation(shapenet_model, synth_roo
             pred_both.append(torch.stack(pix).mean(0) if pix else torch.full((3,), math.nan))
             gt_both.append(torch.stack(gt).mean(0) if gt else torch.full((3,), math.nan))
             groups.append(result.per_image[len(groups)]["group"])
+    # each variant against the input colours of its own pixels, their mean as the one-colour prediction
+    variants = (("", pred_colors, gt_colors), ("-overlap", pred_both, gt_both))
     for g in ("chair", "mug"):
         members = [i for i, x in enumerate(groups) if x == g]
-        reference = torch.stack([gt_colors[i] for i in members]).mean(0)
-        model_errors, base_errors = [], []
-        for i in members:
-            row = result.per_image[i]
-            want = (pred_colors[i] - gt_colors[i]).abs().mean().item()
-            want_base = (reference - gt_colors[i]).abs().mean().item()
-            assert row["color-err"] == pytest.approx(want, abs=1e-5)
-            assert row["color-err-mean"] == pytest.approx(want_base, abs=1e-5)
-            model_errors.append(want)
-            base_errors.append(want_base)
         table = next(r for r in result.table if r["group"] == g)
-        assert table["color-ratio"] == pytest.approx(sum(model_errors) / sum(base_errors), rel=1e-4)
-        # over the overlap: the input colours of the same pixels, their mean as the one-colour prediction
-        seen = [i for i in members if not torch.isnan(gt_both[i]).any()]
-        assert seen, "the test needs reconstructions that overlap their masks"
-        reference = torch.stack([gt_both[i] for i in seen]).mean(0)
-        model_errors, base_errors = [], []
-        for i in seen:
-            row = result.per_image[i]
-            want = (pred_both[i] - gt_both[i]).abs().mean().item()
-            want_base = (reference - gt_both[i]).abs().mean().item()
-            assert row["color-err-overlap"] == pytest.approx(want, abs=1e-5)
-            assert row["color-err-mean-overlap"] == pytest.approx(want_base, abs=1e-5)
-            model_errors.append(want)
-            base_errors.append(want_base)
-        assert table["color-ratio-overlap"] == pytest.approx(sum(model_errors) / sum(base_errors), rel=1e-4)
+        for suffix, preds, gts in variants:
+            seen = [i for i in members if not torch.isnan(gts[i]).any()]
+            assert seen, "the test needs reconstructions that overlap their masks"
+            reference = torch.stack([gts[i] for i in seen]).mean(0)
+            model_errors, base_errors = [], []
+            for i in seen:
+                row = result.per_image[i]
+                want = (preds[i] - gts[i]).abs().mean().item()
+                want_base = (reference - gts[i]).abs().mean().item()
+                assert row[f"color-err{suffix}"] == pytest.approx(want, abs=1e-5)
+                assert row[f"color-err-mean{suffix}"] == pytest.approx(want_base, abs=1e-5)
+                model_errors.append(want)
+                base_errors.append(want_base)
+            ratio = sum(model_errors) / sum(base_errors)
+            assert table[f"color-ratio{suffix}"] == pytest.approx(ratio, rel=1e-4)
 
     # shape: the baseline mesh scored with the metric function, the win decided per object
     batch = batches[0]
