@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 import yaml
+from PIL import Image
 
 from unicorn.cli import data as cli
 from unicorn.data.synthetic import writer
@@ -172,6 +173,29 @@ def test_generation_is_deterministic(tmp_path: Path) -> None:
     assert sorted(sum(lists, [])) == [f"mug_5_{i:05d}" for i in range(3)]
 
 
+def test_backgrounds_follow_the_mode_unless_given(tmp_path: Path) -> None:
+    options = {**TINY, "n_models": 3, "seed": 1}
+
+    def outside(root: Path) -> np.ndarray:  # pixels at least 2 px from every mask (N, 3), in [0, 255]
+        pixels = []
+        for image in sorted(root.rglob("image/*.png")):
+            near = np.pad(np.asarray(Image.open(image.parent.parent / "mask" / image.name)) > 0, 2)
+            near = np.stack([np.roll(near, (dy, dx), (0, 1)) for dy in range(-2, 3) for dx in range(-2, 3)]).any(0)
+            pixels.append(np.asarray(Image.open(image))[~near[2:-2, 2:-2]])
+        return np.concatenate(pixels)
+
+    wild = generate_synthetic_dataset(tmp_path / "wild", "car", "wild", **options)
+    white = generate_synthetic_dataset(tmp_path / "white", "car", "wild", backgrounds=False, **options)
+    nmr_bg = generate_synthetic_dataset(tmp_path / "nmr", "car", "nmr", backgrounds=True, **options)
+    assert (outside(wild) < 250).mean() > 0.5 and (outside(nmr_bg) < 250).mean() > 0.5
+    assert (outside(white) >= 250).all()
+    # the same views: the cameras depend on the mode only
+    for cams in sorted(wild.rglob("cameras.npz")):
+        other = np.load(white / cams.relative_to(wild))
+        assert all(np.array_equal(v, other[k]) for k, v in np.load(cams).items())
+    assert json.loads((white / "synthetic.json").read_text())["backgrounds"] is False
+
+
 def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
     options = {k: v for k, v in TINY.items() if k != "n_models"}
@@ -243,6 +267,9 @@ def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.Monk
     # an option left out means the generator's default (64 px), which this dataset was not made with
     with pytest.raises(writer.StaleSyntheticDataset, match="image_size"):
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, n_views=2, n_points=200, supersample=2, progress=False)
+    # so does one asked for with backgrounds it was not made with
+    with pytest.raises(writer.StaleSyntheticDataset, match="backgrounds=None \\(asked: True\\)"):
+        ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **options, backgrounds=True)
     # a dataset written by another generator version is refused even under the current folder name
     settings = json.loads((path / "synthetic.json").read_text())
     settings["generator_version"] = writer.GENERATOR_VERSION - 1

@@ -30,6 +30,7 @@ def _synth(args: argparse.Namespace) -> int:
         "n_views": args.views,
         "supersample": args.supersample,
         "n_points": args.points,
+        "backgrounds": {"random": True, "white": False}.get(args.backgrounds),
         "progress": not args.quiet,
     }
     if args.out is None:
@@ -66,6 +67,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"category (repeat or comma-separate); one of {sorted(CATEGORIES)}; default chair",
     )
     synth.add_argument("--mode", choices=["nmr", "wild"], default="nmr")
+    synth.add_argument(
+        "--backgrounds", choices=["random", "white"], default=None, help="default: the mode's (wild random, nmr white)"
+    )
     synth.add_argument("--models", type=int, default=200, help="models per category (70/10/20%% train/val/test)")
     synth.add_argument("--out", default=None, help="output folder; default: the cache ($UNICORN_CACHE)")
     synth.add_argument("--seed", type=int, default=0)

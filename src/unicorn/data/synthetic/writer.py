@@ -152,12 +152,12 @@ def _write_model(
     n_points: int,
     rng_bg: np.random.Generator,
     rng_points: np.random.Generator,
-    mode: Mode,
+    random_backgrounds: bool,
 ) -> None:
     R, T = views_to_cameras(views)
     V = len(R)
     backgrounds = None
-    if mode == "wild":
+    if random_backgrounds:
         backgrounds = np.stack([random_background(rng_bg, image_size) for _ in range(V)])
     images, coverage = render_object(
         obj, R, T, image_size=image_size, fov=NMR_FOV, supersample=supersample, backgrounds=backgrounds
@@ -204,6 +204,7 @@ def generate_synthetic_dataset(
     n_views: int = 24,
     supersample: int = 3,
     n_points: int = 20000,
+    backgrounds: bool | None = None,
     progress: bool = True,
 ) -> Path:
     """Generate the synthetic benchmark into ``out`` (created; existing model folders are an error).
@@ -218,6 +219,9 @@ def generate_synthetic_dataset(
         n_views: views per model (24 for NMR).
         supersample: rays per pixel along each axis.
         n_points: ground-truth surface points per model.
+        backgrounds: random backgrounds (solid, gradient, checker, noise) behind the object, or white; None: the
+            mode's (``wild`` random, ``nmr`` white). The other choice separates the viewpoints from the
+            backgrounds in a control run.
         progress: show a progress bar.
 
     Returns:
@@ -229,6 +233,7 @@ def generate_synthetic_dataset(
         if cat not in CATEGORIES:
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
     n_train, n_val, n_test = split_sizes(n_models)
+    random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     out.mkdir(parents=True, exist_ok=True)
     meta_path = out / "metadata.yaml"
     metadata = yaml.safe_load(meta_path.read_text()) if meta_path.exists() else {}
@@ -245,7 +250,7 @@ def generate_synthetic_dataset(
             obj = build_object(cat, streams[0])
             obj.params.update(category=cat, seed=seed, index=i)
             views = sample_views(mode, n_views, streams[1])
-            _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, streams[2], streams[3], mode)
+            _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], random_bg)
             bar.update()
         order = np.random.default_rng([seed, cat_index]).permutation(n_models)
         lists = {
@@ -268,6 +273,7 @@ def generate_synthetic_dataset(
         "n_views": n_views,
         "supersample": supersample,
         "n_points": n_points,
+        "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
         "fov": NMR_FOV,
     }
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
@@ -359,7 +365,7 @@ def ensure_synthetic_dataset(
     defaults = {
         name: param.default
         for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
-        if name in ("image_size", "n_views", "supersample", "n_points")
+        if name in ("image_size", "n_views", "supersample", "n_points", "backgrounds")
     }
     expected = {"categories": category, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **kwargs}
     if (final / "synthetic.json").exists():
