@@ -225,6 +225,7 @@ CATEGORY_COLUMNS = [
     ("color-ratio-overlap", "colour ratio, overlap", "{:.2f}"),
     ("rot-acc-30", "rot. acc. 30 deg", "{:.3f}"),
     ("rot-flip-150", "flipped (> 150 deg)", "{:.3f}"),
+    ("rot-acc-30-any", "some candidate within 30 deg", "{:.3f}"),
     ("mask-iou", "mask IoU", "{:.3f}"),
     ("train-minutes", "train (min)", "{:.1f}"),
 ]

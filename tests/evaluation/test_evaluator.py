@@ -23,7 +23,9 @@ from unicorn.evaluation.evaluator import collate
 from unicorn.evaluation.interface import spread_indices
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.metrics import (
+    align_canonical_frame,
     evaluate_meshes,
+    geodesic_error,
     keypoint_transfer_pck,
     mask_iou,
     sample_points_from_meshes,
@@ -432,6 +434,17 @@ def test_candidate_usage(shapenet_model, synth_root) -> None:
         assert sum(shares) == pytest.approx(1.0)
         # 2 images per group over 6 candidates: at least 4 candidates are never chosen
         assert row["cand-share-min"] == 0.0 and row["cand-share-max"] == max(shares) >= 0.5
+    # rot-acc-30-any: some candidate within 30 degrees, in the frame aligned on the selected candidates (a loop)
+    items = collate([data[i] for i in range(len(data))])
+    with torch.no_grad():
+        poses = shapenet_model.predict(items["image"]).poses
+    for row in result.table[:-1]:
+        idx = [i for i, r in enumerate(result.per_image) if r["group"] == row["group"]]
+        chosen = [poses.R[probs[:, i].argmax(), i] for i in idx]
+        Q = align_canonical_frame(torch.stack(chosen), items["R"][idx])
+        hits = [any(geodesic_error(Q @ poses.R[k, i], items["R"][i]) < 30 for k in range(K)) for i in idx]
+        assert row["rot-acc-30-any"] == pytest.approx(sum(hits) / len(hits))
+        assert row["rot-acc-30-any"] >= row["rot-acc-30"]
     # the per-image candidate index is not a metric: never averaged into the table
     assert "candidate" not in result.columns and all("candidate" not in row for row in result.table)
     order = [result.columns.index(c) for c in ("rot-acc-30", "cand-share-min", "cand-share-max", "rec-mse")]

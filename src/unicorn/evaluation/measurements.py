@@ -206,13 +206,16 @@ class ShapeRetrievalRecords:
 
 
 class PoseRecords:
-    """Records the predicted and ground-truth rotations for the pose errors (after the canonical-frame alignment)."""
+    """Records the selected, every candidate's and the ground-truth rotations for the pose errors (after the
+    canonical-frame alignment)."""
 
     def __call__(self, view: EvaluatedBatch, acc: Accumulator) -> None:
         if not bool(view.batch["has_pose"].all()):
             return
         for i, g in enumerate(view.groups):
-            acc.poses.setdefault(g, []).append((view.first_row + i, view.pred.R[i].cpu(), view.batch["R"][i].cpu()))
+            R_all = view.pred.poses.R[:, i].cpu()  # (K, 3, 3) every candidate
+            record = (view.first_row + i, view.pred.R[i].cpu(), view.batch["R"][i].cpu(), R_all)
+            acc.poses.setdefault(g, []).append(record)
 
 
 class CandidateRecords:

@@ -69,7 +69,10 @@ outputs the category mean:
   proportions, 0 for a model emitting one shape stretched by a per-image scale;
 - pose: ``rot-acc-30`` and, separately, ``rot-flip-150``, the share of images predicted turned round; each
   image's own error after the alignment is kept in its row (``rot-err``, degrees), so that one can see, e.g.,
-  whether the flipped views are whole objects turned round or scattered views.
+  whether the flipped views are whole objects turned round or scattered views. For models with K > 1 candidates,
+  ``rot-acc-30-any``: the share of images for which some candidate is within 30 degrees (the frame aligned on the
+  selected ones), the accuracy of a perfect choice among the candidates. Well above ``rot-acc-30``, the error is
+  the choice (the probabilities); near it, the candidates themselves.
 
 Two diagnostics complete them:
 
@@ -153,6 +156,11 @@ METRICS: dict[str, tuple[str, str]] = {
     "rot-err-median": ("lower", "median geodesic camera rotation error (degrees)"),
     "rot-acc-30": ("higher", "fraction of images with a rotation error below 30 degrees"),
     "rot-flip-150": ("lower", "fraction of images with a rotation error above 150 degrees (predicted turned round)"),
+    "rot-acc-30-any": (
+        "higher",
+        "fraction of images with some pose candidate within 30 degrees (same alignment): rot-acc-30 if the most "
+        "likely candidate were always the best one",
+    ),
     "azim-err-mean": ("lower", "mean camera azimuth error (degrees)"),
     "azim-err-median": ("lower", "median camera azimuth error (degrees)"),
     "cand-share-min": (

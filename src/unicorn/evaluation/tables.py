@@ -26,6 +26,7 @@ from unicorn.metrics import (
     geodesic_error,
     keypoint_transfer_pck,
     pose_errors,
+    rotation_accuracy,
     sample_points_from_meshes,
     shape_retrieval,
     shape_spread,
@@ -63,7 +64,8 @@ class Accumulator:
 
     def __init__(self) -> None:
         self.rows: list[dict[str, Any]] = []
-        self.poses: dict[str, list[tuple[int, torch.Tensor, torch.Tensor]]] = {}  # (row, R_pred, R_gt)
+        # (row, R_pred (3, 3), R_gt (3, 3), every candidate's R (K, 3, 3))
+        self.poses: dict[str, list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]] = {}
         self.keypoints: dict[str, list[tuple[torch.Tensor, ...]]] = {}
         # side of the keypoint frame per group (the ground-truth mask side, 256 for CUB's evaluation items)
         self.keypoint_frames: dict[str, int] = {}
@@ -209,11 +211,15 @@ def _set_metrics(
     if group in acc.spread_ratio:
         out.update(acc.spread_ratio[group])
     if group in acc.poses:
-        rows, R_pred, R_gt = zip(*acc.poses[group])
-        R_pred, R_gt = torch.stack(R_pred), torch.stack(R_gt)
+        rows, R_pred, R_gt, R_all = zip(*acc.poses[group])
+        R_pred, R_gt, R_all = torch.stack(R_pred), torch.stack(R_gt), torch.stack(R_all)  # R_all (N, K, 3, 3)
         if options.align_pose:  # once, for the summary and the per-image errors
-            R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred
+            Q = align_canonical_frame(R_pred, R_gt).to(R_pred)
+            R_pred, R_all = Q @ R_pred, Q @ R_all
         out.update(pose_errors(R_pred, R_gt))
+        if R_all.shape[1] > 1:  # the best of the candidates: what a perfect choice among them would score
+            best = geodesic_error(R_all, R_gt.unsqueeze(1)).min(1).values
+            out["rot-acc-30-any"] = rotation_accuracy(best, 30.0)
         for r, err in zip(rows, geodesic_error(R_pred, R_gt).tolist()):
             acc.rows[r]["rot-err"] = err
     kps = acc.keypoints.get(group, [])
