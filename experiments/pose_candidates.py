@@ -1,0 +1,121 @@
+"""Where a trained model's pose error comes from: its candidates, the choice among them, or the loss that trains it?
+
+For every test view of a dataset with ground-truth poses, the model's K pose candidates are compared with the
+ground truth in the learned canonical frame aligned on the selected candidates (``align_canonical_frame``, as the
+evaluation does), and each candidate's reconstruction is scored with the training's reconstruction loss
+(``ReconstructionLoss`` of the model's own ``loss`` settings, over its predicted background). Printed per model:
+
+- ``selected``: the share of views whose most likely candidate is within 30 degrees (the evaluation's
+  ``rot-acc-30``), and ``turned round`` (above 150 degrees);
+- ``any``: the share with some candidate within 30 degrees (``rot-acc-30-any``): what a perfect choice would give;
+- ``loss-best``: the share whose best-reconstructing candidate is within 30 degrees: what the pose step's loss
+  can tell apart (the ``assigned`` pose objective trains the probabilities towards that candidate);
+- ``head = loss-best``: how often the most likely candidate is the best-reconstructing one;
+- ``max prob``: the mean probability of the selected candidate (1 / K: no preference);
+- ``azim 30`` / ``half turn``: the share with the azimuth within 30 degrees, and within 30 degrees of it or of
+  its half turn; ``elev`` / ``roll``: the median absolute elevation and roll errors (degrees);
+- the same shares per ground-truth elevation band when the elevations vary.
+
+Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
+there but the reconstruction loss cannot tell the right one from the others.
+
+    python experiments/pose_candidates.py RUN/checkpoints/last.ckpt [RUN2/checkpoints/last.ckpt ...]
+
+The dataset is the one each run was trained on (its synthetic settings), or ``--root``. About a minute per model
+on a 2-core CPU for the 480 test views of the default experiment.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from unicorn.data import build_dataset, dataset_root
+from unicorn.io.checkpoints import load_model
+from unicorn.metrics.pose import align_canonical_frame, azimuth_error, geodesic_error, rotation_to_azim_elev_roll
+from unicorn.model.losses import ReconstructionLoss
+
+
+@torch.no_grad()
+def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
+    """Every view's candidate rotations (K, N, 3, 3), probabilities (K, N), reconstruction losses (K, N) and
+    ground-truth rotation (N, 3, 3)."""
+    loss = ReconstructionLoss.from_config(model.config["loss"])
+    out: dict[str, list[torch.Tensor]] = {"R": [], "probs": [], "loss": [], "R_gt": []}
+    for start in range(0, len(data), batch_size):
+        items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
+        images = torch.stack([it["image"] for it in items])
+        pred = model.predict(images)
+        K, B = pred.poses.probs.shape
+        R, T = pred.poses.flat()
+        bkg = None if pred.background is None else pred.background.repeat(K, 1, 1, 1)
+        rec, _ = model.render(pred.verts.repeat(K, 1, 1), pred.texture.repeat(K, 1, 1, 1), R, T, bkg)
+        terms = loss(rec, images.repeat(K, 1, 1, 1))
+        out["R"].append(pred.poses.R)
+        out["probs"].append(pred.poses.probs)
+        out["loss"].append(torch.stack(list(terms.values())).sum(0).view(K, B))
+        out["R_gt"].append(torch.stack([it["R"] for it in items]))
+    return {k: torch.cat(v, dim=0 if k == "R_gt" else 1) for k, v in out.items()}
+
+
+def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
+    """The shares and errors listed in the module docstring, from :func:`candidates`."""
+    K, N = c["probs"].shape
+    views = torch.arange(N)
+    chosen = c["probs"].argmax(0)
+    Q = align_canonical_frame(c["R"][chosen, views], c["R_gt"])
+    R = Q @ c["R"]  # (K, N, 3, 3) in the ground truth's frame
+    err = geodesic_error(R, c["R_gt"].unsqueeze(0))  # (K, N)
+    loss_best = c["loss"].argmin(0)
+    selected = err[chosen, views]
+    azim, elev, roll = rotation_to_azim_elev_roll(R[chosen, views])
+    azim_gt, elev_gt, roll_gt = rotation_to_azim_elev_roll(c["R_gt"])
+    azim_err = azimuth_error(azim, azim_gt)
+    share = lambda mask: float(mask.float().mean())  # noqa: E731
+    result: dict[str, float] = {
+        "selected": share(selected < 30),
+        "turned round": share(selected > 150),
+        "any": share(err.min(0).values < 30),
+        "loss-best": share(err[loss_best, views] < 30),
+        "head = loss-best": share(chosen == loss_best),
+        "max prob": float(c["probs"].max(0).values.mean()),
+        "azim 30": share(azim_err < 30),
+        "half turn": share((azim_err < 30) | (azim_err > 150)),
+        "elev": float((elev - elev_gt).abs().median()),
+        "roll": float((roll - roll_gt).abs().median()),
+    }
+    if float(elev_gt.max() - elev_gt.min()) > 1.0:
+        edges = torch.linspace(float(elev_gt.min()), float(elev_gt.max()) + 1e-3, 5).round().tolist()
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            band = (elev_gt >= lo) & (elev_gt < hi)
+            result[f"selected, elevation {lo:.0f} to {hi:.0f}"] = share(selected[band] < 30)
+    return result
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("checkpoints", nargs="+")
+    p.add_argument("--root", default=None, help="the dataset folder (default: each run's own synthetic dataset)")
+    p.add_argument("--dataset", default="synthetic", choices=("synthetic", "shapenet_nmr"), help="every test view")
+    p.add_argument("--batch-size", type=int, default=64)
+    args = p.parse_args()
+
+    results = {}
+    for path in args.checkpoints:
+        model, info = load_model(path)
+        model.eval()
+        d = info.dataset
+        root = args.root or dataset_root("synthetic", d.get("root"), d.get("categories"), d.get("synthetic"))
+        size, categories = model.config["image_size"], d.get("categories")
+        data = build_dataset(args.dataset, "test", str(root), img_size=size, categories=categories, views="all")
+        results[path] = breakdown(candidates(model, data, args.batch_size))
+    keys = list(dict.fromkeys(k for r in results.values() for k in r))
+    print("| model | " + " | ".join(keys) + " |")
+    print("|---" * (len(keys) + 1) + "|")
+    for path, r in results.items():
+        print(f"| {path} | " + " | ".join(f"{r[k]:.3f}" if k in r else "–" for k in keys) + " |")
+
+
+if __name__ == "__main__":
+    main()
