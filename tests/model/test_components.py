@@ -192,30 +192,6 @@ def test_pose_elevation_roll_switch_holds_them_at_the_anchors():
     head.load_state_dict(PoseHead(16, n_units=8).state_dict())
 
 
-def test_pose_shared_tilt_gives_every_candidate_one_elevation_and_roll():
-    torch.manual_seed(0)
-    head = PoseHead(16, n_units=8, shared_tilt=True)
-    with torch.no_grad():  # random last layers: offsets that differ per sample and per candidate
-        for mlp in [*head.rot_regressors, head.tilt_regressor]:
-            mlp[-1].weight.normal_()
-    features = torch.randn(5, 16)
-    angles = head(features).angles  # (6, 5, 3)
-    expected_tilt = torch.tanh(head.tilt_regressor(features)) * head.R_range[1:] + head.R_init[0, 1:]
-    assert torch.allclose(angles[..., 1:], expected_tilt.expand(6, 5, 2), atol=1e-5)
-    assert expected_tilt[:, 0].std() > 1.0  # elevation follows the image
-    own = torch.stack([torch.tanh(m(features))[:, 0] for m in head.rot_regressors]) * head.R_range[0]
-    assert torch.allclose(angles[..., 0], own + head.R_init[:, :1], atol=1e-4)
-    assert all(m[-1].out_features == 1 for m in head.rot_regressors)
-    # the hold still applies, and the elevation's gradient reaches the one shared regressor
-    head.use_elevation_roll.fill_(False)
-    assert torch.equal(head(features).angles[..., 1:], head.R_init[:, 1:].unsqueeze(1).expand(6, 5, 2))
-    head.use_elevation_roll.fill_(True)
-    head(features).angles[..., 1].sum().backward()
-    assert head.tilt_regressor[-1].weight.grad.abs().sum() > 0
-    assert all(m[-1].weight.grad is None or m[-1].weight.grad.abs().sum() == 0 for m in head.rot_regressors)
-    assert PoseHead(16, n_units=8).tilt_regressor is None
-
-
 def test_pose_shapenet_ranges_fix_elevation_and_roll():
     head = PoseHead(16, elev_range=(30, 30), roll_range=(0, 0), n_units=8)
     assert torch.allclose(head.R_init[:, 1:], torch.tensor([30.0, 0.0]).expand(6, 2))

@@ -121,7 +121,6 @@ class PoseConfig:
     scale_range: Any = 0.3  # one float or (x, y, z)
     n_units: int = ranged(128, 1)
     n_layers: int = ranged(3, 0)
-    shared_tilt: bool = False  # one elevation / roll regressor for all candidates (the paper: one per candidate)
 
 
 @dataclass

@@ -109,11 +109,6 @@ class PoseHead(nn.Module):
     ``use_elevation_roll`` (a buffer) each candidate's elevation and roll at its anchor (with one elevation row, the
     middle of their ranges) while ``schedule.curriculum.elevation_roll`` says so.
 
-    With ``shared_tilt`` (not the paper's), one regressor ``tilt_regressor`` predicts the elevation and roll
-    offsets for every candidate and each candidate's own regressor only its azimuth offset: a candidate at the
-    wrong azimuth cannot tilt or roll itself into the silhouette on its own, and every candidate agrees on which
-    way is up.
-
     Args:
         in_features: encoder feature size (512).
         n_elev, n_azim: candidates = n_elev * n_azim (UNICORN: 1 x 6).
@@ -121,7 +116,6 @@ class PoseHead(nn.Module):
         T_range: maximal translation offsets (x, y, z) (0.3 real images, (0.2, 0.2, 0) ShapeNet).
         prior_translation: translation at zero offset ((0, 0, 2.732): the object 2.732 in front).
         n_units, n_layers: MLP width and hidden depth.
-        shared_tilt: one elevation and roll regressor for all candidates (UNICORN: one per candidate).
     """
 
     R_init: torch.Tensor
@@ -143,7 +137,6 @@ class PoseHead(nn.Module):
         prior_translation: Sequence[float] = (0.0, 0.0, 2.732),
         n_units: int = 128,
         n_layers: int = 3,
-        shared_tilt: bool = False,
     ) -> None:
         super().__init__()
         init, half_range = anchor_angles(n_elev, n_azim, azim_range, elev_range, roll_range)
@@ -158,21 +151,14 @@ class PoseHead(nn.Module):
         # without it load unchanged
         self.register_buffer("use_elevation_roll", torch.tensor(True), persistent=False)
         K = self.n_candidates
-        n_own = 1 if shared_tilt else 3  # the angles each candidate regresses: azimuth (, elevation, roll)
-        self.rot_regressors = nn.ModuleList(
-            [MLP(in_features, n_own, n_units, n_layers, zero_last=True) for _ in range(K)]
-        )
-        self.tilt_regressor = MLP(in_features, 2, n_units, n_layers, zero_last=True) if shared_tilt else None
+        self.rot_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
         self.T_regressors = nn.ModuleList([MLP(in_features, 3, n_units, n_layers, zero_last=True) for _ in range(K)])
         self.proba_regressor = MLP(in_features, K, n_units, n_layers)
 
     def forward(self, features: torch.Tensor) -> PoseOutput:
         """(B, in_features) -> :class:`PoseOutput` with K candidates."""
         check_shape(features, "B, C", "features")
-        rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3 or 1)
-        if self.tilt_regressor is not None:
-            tilt = torch.tanh(self.tilt_regressor(features))  # (B, 2) elevation and roll, every candidate's
-            rot = torch.cat([rot, tilt.expand(rot.shape[0], -1, -1)], dim=-1)
+        rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
         trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
         log_probs = torch.log_softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
         return self._compose(rot, trans, log_probs)
