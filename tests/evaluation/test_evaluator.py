@@ -421,8 +421,10 @@ def test_oracle_pose_validation(shapenet_model, synth_root) -> None:
 def test_candidate_usage(shapenet_model, synth_root) -> None:
     data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
     result = evaluate(shapenet_model, data, EvalOptions("shapenet", **FAST), "synthetic")
+    items = collate([data[i] for i in range(len(data))])
     with torch.no_grad():
-        probs = shapenet_model.predict(collate([data[i] for i in range(len(data))])["image"]).poses.probs  # (K, B)
+        poses = shapenet_model.predict(items["image"]).poses
+    probs = poses.probs  # (K, B)
     K = shapenet_model.n_candidates
     assert probs.shape[0] == K == 6
     assert [row["candidate"] for row in result.per_image] == probs.argmax(0).tolist()
@@ -435,9 +437,6 @@ def test_candidate_usage(shapenet_model, synth_root) -> None:
         # 2 images per group over 6 candidates: at least 4 candidates are never chosen
         assert row["cand-share-min"] == 0.0 and row["cand-share-max"] == max(shares) >= 0.5
     # rot-acc-30-any: some candidate within 30 degrees, in the frame aligned on the selected candidates (a loop)
-    items = collate([data[i] for i in range(len(data))])
-    with torch.no_grad():
-        poses = shapenet_model.predict(items["image"]).poses
     for row in result.table[:-1]:
         idx = [i for i, r in enumerate(result.per_image) if r["group"] == row["group"]]
         chosen = [poses.R[probs[:, i].argmax(), i] for i in idx]
