@@ -282,26 +282,50 @@ def test_adam_state_per_step(synthetic_cache, tmp_path):
             torch.testing.assert_close(p_a["exp_avg"], p_b["exp_avg"], rtol=1e-5, atol=1e-7)
 
 
-def test_texture_lr_scale(synthetic_cache, tmp_path):
-    """optim.texture_lr_scale: the texture branch (regressor and generator) in its own group at lr x scale, every
-    other parameter at lr, in each Adam; the first 3D step moves a texture weight by about its own lr (Adam)."""
-    run = build_run(tmp_path, "optim.adam_state=per_step", "optim.texture_lr_scale=5", "trainer.max_steps=2")
-    model = run.module.model
-    # the code regressor's zero-initialised last layer: the only texture weights with a gradient at first
-    weight = [p for p in model.texture.regressor.parameters() if p.dim() == 2][-1]
+@pytest.mark.parametrize(
+    "branch, overrides", [("texture", ()), ("background", ("family=real",))], ids=["texture", "background"]
+)
+def test_branch_lr_scale(synthetic_cache, tmp_path, branch, overrides):
+    """optim.<branch>_lr_scale: the branch (code regressor and generator) in its own group at lr x scale, every
+    other parameter at lr, in each Adam; the first 3D step moves a weight of the branch by about its own lr (Adam)."""
+    run = build_run(
+        tmp_path, *overrides, "optim.adam_state=per_step", f"optim.{branch}_lr_scale=5", "trainer.max_steps=2"
+    )
+    module = getattr(run.module.model, branch)
+    # the code regressor's zero-initialised last layer: the only weights of the branch with a gradient at first
+    weight = [p for p in module.regressor.parameters() if p.dim() == 2][-1]
     before = weight.detach().clone()
     fit(run)
-    texture = {id(p) for p in model.texture.parameters()}
+    own = {id(p) for p in module.parameters()}
     for opt in run.trainer.optimizers:
-        rest, tex = opt.param_groups
-        assert {id(p) for p in tex["params"]} == texture
-        assert not texture & {id(p) for p in rest["params"]}
-        assert len(rest["params"]) + len(tex["params"]) == len(list(model.parameters()))
-        assert tex["lr"] == pytest.approx(5 * rest["lr"])
-    # iteration 0 is a pose step (no texture gradient), iteration 1 the 3D step: Adam's first step is ~lr per weight
+        rest, group = opt.param_groups
+        assert {id(p) for p in group["params"]} == own
+        assert not own & {id(p) for p in rest["params"]}
+        assert len(rest["params"]) + len(group["params"]) == len(list(run.module.model.parameters()))
+        assert group["lr"] == pytest.approx(5 * rest["lr"])
+    # iteration 0 is a pose step (no gradient for the branch), iteration 1 the 3D step: Adam's first step is ~lr
     step = (weight.detach() - before).abs()
     lr = run.trainer.optimizers[1].param_groups[1]["lr"]
     assert step.max() == pytest.approx(lr, rel=0.05)
+
+
+def test_both_lr_scales_make_three_groups(synthetic_cache, tmp_path):
+    run = build_run(
+        tmp_path,
+        "family=real",
+        "optim.texture_lr_scale=3",
+        "optim.background_lr_scale=5",
+        "trainer.max_steps=1",
+    )
+    fit(run)
+    model = run.module.model
+    for opt in run.trainer.optimizers:  # one per step kind (the experiment's adam_state=per_step)
+        rest, texture, background = opt.param_groups
+        assert {id(p) for p in texture["params"]} == {id(p) for p in model.texture.parameters()}
+        assert {id(p) for p in background["params"]} == {id(p) for p in model.background.parameters()}
+        n = len(rest["params"]) + len(texture["params"]) + len(background["params"])
+        assert n == len(list(model.parameters()))
+        assert (texture["lr"], background["lr"]) == (pytest.approx(3 * rest["lr"]), pytest.approx(5 * rest["lr"]))
 
 
 def test_adam_state_is_checked(tmp_path):

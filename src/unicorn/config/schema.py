@@ -211,6 +211,7 @@ class OptimConfig:
     fused: bool = True  # torch's fused Adam kernel (same update up to rounding, several times faster on CPU)
     adam_state: str = "shared"
     texture_lr_scale: float = ranged(1.0, 1e-6)  # the texture branch's learning rate over lr (paper: 1)
+    background_lr_scale: float = ranged(1.0, 1e-6)  # the background branch's learning rate over lr (paper: 1)
 
 
 # ---------------------------------------------------------------------------------------------- run

@@ -109,7 +109,8 @@ class UnicornLitModule(L.LightningModule):
         model: configuration of :class:`unicorn.model.Unicorn` (e.g. :func:`unicorn.config.model_config`).
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
             ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``,
-            ``adam_state``, ``texture_lr_scale``: the texture branch's learning rate over ``lr``).
+            ``adam_state``, ``texture_lr_scale`` and ``background_lr_scale``: those branches' learning rates over
+            ``lr``).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
         seed: seeds the per-batch texture-averaging draws (a pure function of seed and iteration).
     """
@@ -303,15 +304,21 @@ class UnicornLitModule(L.LightningModule):
         return opts[_OPTIMIZER_OF_STEP[self.optim["adam_state"]][phase]]
 
     def _param_groups(self, o: Mapping[str, Any]) -> Any:
-        """Fresh parameter groups for one Adam: all parameters, or the texture branch in its own group at
-        ``lr * texture_lr_scale`` (fresh each call: an optimizer takes ownership of its group dicts)."""
-        scale = float(o.get("texture_lr_scale", 1.0))
-        if scale == 1.0:
+        """Fresh parameter groups for one Adam: all parameters at ``lr``, except the texture and background
+        branches at ``lr * texture_lr_scale`` and ``lr * background_lr_scale`` in their own groups where the scale
+        is not 1 (fresh each call: an optimizer takes ownership of its group dicts)."""
+        branches = {"texture": self.model.texture, "background": self.model.background}
+        groups, taken = [], set()
+        for name, module in branches.items():
+            scale = float(o.get(f"{name}_lr_scale", 1.0))
+            if module is None or scale == 1.0:
+                continue
+            params = list(module.parameters())
+            taken |= {id(p) for p in params}
+            groups.append({"params": params, "lr": o["lr"] * scale})
+        if not groups:
             return self.model.parameters()
-        texture = list(self.model.texture.parameters())
-        ids = {id(p) for p in texture}
-        rest = [p for p in self.model.parameters() if id(p) not in ids]
-        return [{"params": rest}, {"params": texture, "lr": o["lr"] * scale}]
+        return [{"params": [p for p in self.model.parameters() if id(p) not in taken]}, *groups]
 
     def configure_optimizers(self) -> Any:
         o = self.optim
