@@ -328,6 +328,11 @@ def test_both_lr_scales_make_three_groups(synthetic_cache, tmp_path):
         assert (texture["lr"], background["lr"]) == (pytest.approx(3 * rest["lr"]), pytest.approx(5 * rest["lr"]))
 
 
+def test_background_lr_scale_needs_a_background(tmp_path):
+    with pytest.raises(ValueError, match="background_lr_scale=5.0 but the model has no background"):
+        build_run(tmp_path, "optim.background_lr_scale=5")  # the shapenet family: no background model
+
+
 def test_adam_state_is_checked(tmp_path):
     with pytest.raises(Exception, match="adam_state"):
         build_run(tmp_path, "optim.adam_state=both")

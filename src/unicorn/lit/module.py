@@ -51,7 +51,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from unicorn.config.build import check_optim
+from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
 from unicorn.errors import UserError
 from unicorn.lit.loggers import logs_this_step
@@ -137,6 +137,11 @@ class UnicornLitModule(L.LightningModule):
             raise KeyError(f"unknown optim keys {sorted(unknown)}; known: {sorted(OPTIM_DEFAULTS)}")
         self.optim = {**OPTIM_DEFAULTS, **dict(optim or {})}
         check_optim(self.optim, prefix="")
+        if self.model.background is None and float(self.optim["background_lr_scale"]) != 1.0:
+            raise ConfigError(
+                f"optim.background_lr_scale={self.optim['background_lr_scale']} but the model has no background "
+                "branch (model.background is null)"
+            )
         if alternation_period < 1:
             raise ValueError(f"alternation_period must be >= 1, got {alternation_period}")
         self.alternation_period, self.seed = int(alternation_period), int(seed)
