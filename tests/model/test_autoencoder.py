@@ -117,6 +117,31 @@ def test_encoder_width_sets_the_features_every_head_reads():
         merge_config(encoder={"width": 0})
 
 
+def test_own_encoders_beside_the_shared_one():
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(encoder={"own": ["background", "texture"], "width": 16}))
+    assert model.encoder_index == {"shape": 0, "texture": 1, "pose": 0, "background": 2}
+    assert len(model.encoders) == 3 and model.encoder_mates("pose") == ("shape",)
+    assert model.encoder_mates("texture") == ()
+    x = ellipsoid_images(2)
+    feats = model.encode(x, model.branches())
+    assert feats["shape"] is feats["pose"]
+    for branch, i in model.encoder_index.items():
+        assert torch.equal(feats[branch], model.encoders[i](x))
+    assert not torch.allclose(feats["texture"], feats["background"])
+    bad = {
+        "needs encoder.shared=true": {"shared": False, "own": ["pose"]},
+        "'wheels' is not a branch": {"own": ["wheels"]},
+        "names a branch twice": {"own": ["pose", "pose"]},
+        "set encoder.shared=false": {"own": ["shape", "texture", "pose", "background"]},
+    }
+    for message, encoder in bad.items():
+        with pytest.raises(ValueError, match=message):
+            merge_config(encoder=encoder)
+    with pytest.raises(ValueError, match="'background' is not a branch"):
+        merge_config(encoder={"own": ["background"]}, background=None)
+
+
 def test_shapenet_model_without_background():
     torch.manual_seed(0)
     model = Unicorn(tiny_config("shapenet", "big"))

@@ -22,10 +22,24 @@ def grads_of(module: torch.nn.Module) -> float:
     return sum(float(p.grad.abs().sum()) for p in module.parameters() if p.grad is not None)
 
 
-@pytest.mark.parametrize("size", ["small", "big"])
-def test_both_steps_return_the_batch_pose_probabilities(size, images):
+#: encoder layouts: the paper's small (one shared) and big (one per branch) models, and a shared encoder with one
+#: branch reading its own (``encoder.own``)
+LAYOUTS = {
+    "small": {},
+    "big": {"size": "big"},
+    "own background": {"encoder": {"own": ["background"]}},
+    "own pose": {"encoder": {"own": ["pose"]}},
+}
+
+
+def encoders_read_by(model: Unicorn, branches) -> set[int]:
+    return {model.encoder_index[b] for b in branches}
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_both_steps_return_the_batch_pose_probabilities(layout, images):
     torch.manual_seed(0)
-    model = Unicorn(tiny_config(size=size)).eval()  # eval: batch norm is the same in every call
+    model = Unicorn(tiny_config(**LAYOUTS[layout])).eval()  # eval: batch norm is the same in every call
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
     with torch.no_grad():
@@ -39,10 +53,10 @@ def test_both_steps_return_the_batch_pose_probabilities(size, images):
         assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
 
 
-@pytest.mark.parametrize("size", ["small", "big"])
-def test_pose_step_gradients_only_reach_the_pose_branch(size, images):
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_pose_step_gradients_only_reach_the_pose_branch(layout, images):
     torch.manual_seed(0)
-    model = Unicorn(tiny_config(size=size))
+    model = Unicorn(tiny_config(**LAYOUTS[layout]))
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
     losses = objectives_of(model).pose_step(model, images)
@@ -52,11 +66,10 @@ def test_pose_step_gradients_only_reach_the_pose_branch(size, images):
         assert grads_of(head) > 0
     for module in (model.shape, model.texture, model.background, model.scale):
         assert grads_of(module) == 0
-    if size == "small":
-        assert grads_of(model.encoders[0]) > 0
-    else:
-        assert grads_of(model.encoders[2]) > 0
-        assert all(grads_of(model.encoders[i]) == 0 for i in (0, 1, 3))
+    pose_encoder = model.encoder_index["pose"]
+    assert len(model.encoders) == {"small": 1, "big": 4}.get(layout, 2)
+    for i, encoder in enumerate(model.encoders):
+        assert (grads_of(encoder) > 0) == (i == pose_encoder)
 
 
 def test_pose_step_assigned_objective(images):
@@ -89,10 +102,10 @@ def test_pose_step_assigned_objective(images):
         Unicorn(tiny_config(loss={"pose_objective": "best"}))
 
 
-@pytest.mark.parametrize("size", ["small", "big"])
-def test_step_3d_gradients_skip_the_pose_branch(size, images):
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_step_3d_gradients_skip_the_pose_branch(layout, images):
     torch.manual_seed(0)
-    model = Unicorn(tiny_config(size=size))
+    model = Unicorn(tiny_config(**LAYOUTS[layout]))
     randomize_heads(model)
     model.set_active_dims(shape=2, texture=8)
     losses = objectives_of(model).step_3d(model, images)
@@ -102,9 +115,9 @@ def test_step_3d_gradients_skip_the_pose_branch(size, images):
     assert grads_of(model.pose) == 0
     for module in (model.shape.field, model.shape.regressor, model.texture, model.background, model.scale):
         assert grads_of(module) > 0
-    if size == "big":
-        assert grads_of(model.encoders[2]) == 0
-        assert all(grads_of(model.encoders[i]) > 0 for i in (0, 1, 3))
+    read_3d = encoders_read_by(model, ("shape", "texture", "background"))
+    for i, encoder in enumerate(model.encoders):
+        assert (grads_of(encoder) > 0) == (i in read_3d)
 
 
 def test_neighbor_term_gradients_reach_only_shape_and_texture(images):

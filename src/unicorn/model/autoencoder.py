@@ -38,7 +38,7 @@ from unicorn.render import TexturesUV, build_renderer
 if TYPE_CHECKING:
     from unicorn.model.refine import Refinement
 
-__all__ = ["BRANCHES", "Prediction", "Prediction3D", "Unicorn", "count_parameters", "world_verts"]
+__all__ = ["BRANCHES", "Prediction", "Prediction3D", "Unicorn", "count_parameters", "encoder_index", "world_verts"]
 
 
 def world_verts(canonical_verts: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -109,10 +109,21 @@ def _branches(has_background: bool) -> tuple[str, ...]:
     return BRANCHES if has_background else BRANCHES[:-1]
 
 
+def encoder_index(cfg: Mapping[str, Any]) -> dict[str, int]:
+    """Which of the model's encoders each branch reads, for a merged configuration: the big model's one per
+    branch in :data:`BRANCHES` order (``encoder.shared`` false); otherwise encoder 0, shared, for every branch
+    but those of ``encoder.own``, which read encoders 1, 2, ... in :data:`BRANCHES` order."""
+    branches = _branches(cfg["background"] is not None)
+    if not cfg["encoder"]["shared"]:
+        return {b: i for i, b in enumerate(branches)}
+    own = [b for b in branches if b in cfg["encoder"]["own"]]
+    return {b: 1 + own.index(b) if b in own else 0 for b in branches}
+
+
 def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     """The learned networks of a merged configuration: encoders, shape, texture, background, pose and scale heads
     (the only parts whose size grows with the configuration: :func:`count_parameters` builds them on no memory)."""
-    n_enc = 1 if cfg["encoder"]["shared"] else len(_branches(cfg["background"] is not None))
+    n_enc = 1 + max(encoder_index(cfg).values())
     encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], cfg["image_size"]) for _ in range(n_enc)])
     nf = encoders[0].out_features
 
@@ -206,6 +217,7 @@ class Unicorn(nn.Module):
 
         for name, module in _networks(cfg).items():  # encoders, shape, texture, background, pose, scale
             setattr(self, name, module)
+        self.encoder_index = encoder_index(cfg)
 
         rd = cfg["renderer"]
         camera = PerspectiveCamera(fov=rd["fov"], focal_length=rd["focal_length"])
@@ -265,12 +277,15 @@ class Unicorn(nn.Module):
         check_shape(images, "B, 3, S, S", "images", {"S": s})
 
     def encode(self, images: torch.Tensor, branches: tuple[str, ...]) -> dict[str, torch.Tensor]:
-        """Encoder features (B, 8 x width; 512 for ResNet-18) of the requested branches (one shared encoder or one
-        per branch)."""
-        if len(self.encoders) == 1:
-            f = self.encoders[0](images)
-            return {b: f for b in branches}
-        return {b: self.encoders[BRANCHES.index(b)](images) for b in branches}
+        """Encoder features (B, 8 x width; 512 for ResNet-18) of the requested branches; each encoder they read
+        (:func:`encoder_index`) runs once."""
+        feats = {i: self.encoders[i](images) for i in sorted({self.encoder_index[b] for b in branches})}
+        return {b: feats[self.encoder_index[b]] for b in branches}
+
+    def encoder_mates(self, branch: str) -> tuple[str, ...]:
+        """The other branches that read ``branch``'s encoder (none when it has its own)."""
+        i = self.encoder_index[branch]
+        return tuple(b for b in self.branches() if b != branch and self.encoder_index[b] == i)
 
     def branches(self) -> tuple[str, ...]:
         """The branches this model predicts: shape, texture, pose, and background when it has one."""

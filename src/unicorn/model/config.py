@@ -70,6 +70,9 @@ def ranged(default: Any, low: float | None = None, high: float | None = None) ->
 class EncoderConfig:
     shared: bool = True  # one ResNet-18 for all branches (False: one per branch, the big model)
     width: int = ranged(64, 1)  # channels of its first stage (64: ResNet-18; features are 8 x width)
+    # with a shared encoder, the branches that read an encoder of their own instead (e.g. [background]); the
+    # paper's models have none (small) or all (big, ``shared: false``)
+    own: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -252,6 +255,25 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     renderer = cfg["renderer"]
     if (renderer["fov"] is None) == (renderer["focal_length"] is None):
         raise ValueError(f"{prefix}renderer needs exactly one of fov and focal_length")
+    _check_own_encoders(cfg, prefix)
+
+
+def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
+    """``encoder.own`` names distinct branches the model has, not all of them, and only with a shared encoder."""
+    own = list(cfg["encoder"]["own"])
+    if not own:
+        return
+    branches = BRANCHES if cfg["background"] is not None else BRANCHES[:-1]
+    key = f"{prefix}encoder.own"
+    if not cfg["encoder"]["shared"]:
+        raise ValueError(f"{key}={own} needs encoder.shared=true (without it every branch has its own encoder)")
+    unknown = [b for b in own if b not in branches]
+    if unknown:
+        raise ValueError(f"{key}: {unknown[0]!r} is not a branch of this model; branches: {list(branches)}")
+    if len(set(own)) != len(own):
+        raise ValueError(f"{key} names a branch twice: {own}")
+    if len(own) == len(branches):
+        raise ValueError(f"{key} gives every branch its own encoder; set encoder.shared=false instead")
 
 
 def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> dict[str, Any]:

@@ -141,11 +141,11 @@ class PoseStep(nn.Module):
         """
         model.check_images(images)
         branches = model.branches()
-        shared = len(model.encoders) == 1
-        feats = model.encode(images, ("pose",) if not shared else branches)
+        with_pose = ("pose", *model.encoder_mates("pose"))
+        feats = model.encode(images, with_pose)
         with torch.no_grad():
-            # detached 3D branches: computing them without autograd is the same and cheaper
-            other = feats if shared else model.encode(images, tuple(b for b in branches if b != "pose"))
+            # detached 3D branches: computing those of the other encoders without autograd is the same and cheaper
+            other = {**feats, **model.encode(images, tuple(b for b in branches if b not in with_pose))}
             other = {k: v.detach() for k, v in other.items()}
             p = model.predict_3d(other, average_texture)
             verts = p.verts

@@ -44,10 +44,10 @@ class ShapeStep(nn.Module):
         """
         model.check_images(images)
         branches = model.branches()
-        shared = len(model.encoders) == 1
-        feats = model.encode(images, branches if shared else tuple(b for b in branches if b != "pose"))
+        feats = model.encode(images, tuple(b for b in branches if b != "pose"))
+        mates = model.encoder_mates("pose")
         with torch.no_grad():
-            pose_feats = feats["pose"] if shared else model.encode(images, ("pose",))["pose"]
+            pose_feats = feats[mates[0]] if mates else model.encode(images, ("pose",))["pose"]
             poses = model.pose(pose_feats.detach())
             R, T = poses.select()
         pred = model.predict_3d(feats, average_texture)
