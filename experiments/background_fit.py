@@ -5,9 +5,11 @@ The synthetic wild mode puts its objects in front of random backgrounds (solid, 
 per image. This probe separates the generator from the code regression: it fits a :class:`GiraffeGenerator` of the
 given size together with one free code per background (no encoder) by Adam on the mean squared error, and prints
 the error per background kind beside the error of one flat colour per image (the mean of each background, the best
-a flat background can do).
+a flat background can do). ``--active-dims`` masks the codes as a training stage does (the tiny model's background
+code: 4, 8 and 16 entries in stages 1, 2 and 3-4).
 
     python experiments/background_fit.py --lr 2e-4 1e-3
+    python experiments/background_fit.py --lr 2e-4 --active-dims 4
 """
 
 from __future__ import annotations
@@ -34,19 +36,31 @@ def backgrounds(n: int, size: int, seed: int) -> tuple[torch.Tensor, list[str]]:
     return torch.tensor(np.stack(images), dtype=torch.float32).permute(0, 3, 1, 2), kinds
 
 
-def fit(target: torch.Tensor, code_dim: int, min_features: int, lr: float, steps: int, seed: int) -> torch.Tensor:
-    """Per-image mean squared error (N,) after fitting the generator and a free code per image."""
+def fit(
+    target: torch.Tensor,
+    code_dim: int,
+    min_features: int,
+    lr: float,
+    steps: int,
+    seed: int,
+    code_std: float = 0.1,
+    active_dims: int | None = None,
+) -> torch.Tensor:
+    """Per-image mean squared error (N,) after fitting the generator and a free code per image (initial codes
+    ``code_std`` x a standard normal; only the first ``active_dims`` entries of each code reach the generator)."""
     torch.manual_seed(seed)
     gen = GiraffeGenerator(code_dim, target.shape[-1], min_features)
-    codes = torch.nn.Parameter(0.1 * torch.randn(target.shape[0], code_dim))
+    codes = torch.nn.Parameter(code_std * torch.randn(target.shape[0], code_dim))
+    mask = torch.zeros(code_dim)
+    mask[: active_dims or code_dim] = 1
     opt = torch.optim.Adam([*gen.parameters(), codes], lr=lr)
     for _ in range(steps):
-        loss = (gen(codes) - target).pow(2).mean()
+        loss = (gen(codes * mask) - target).pow(2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        return (gen(codes) - target).pow(2).mean((1, 2, 3))
+        return (gen(codes * mask) - target).pow(2).mean((1, 2, 3))
 
 
 def main() -> None:
@@ -57,6 +71,10 @@ def main() -> None:
     parser.add_argument("--min-features", type=int, default=8, help="generator's smallest width (tiny: 8)")
     parser.add_argument("--lr", type=float, nargs="+", default=[2e-4, 1e-3], help="Adam learning rates to compare")
     parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--code-std", type=float, default=0.1, help="initial codes' std (0: a regressor's zero start)")
+    parser.add_argument(
+        "--active-dims", type=int, default=None, help="code entries the generator sees (tiny: 4, 8, 16 by stage)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
@@ -65,18 +83,16 @@ def main() -> None:
     target, kinds = backgrounds(args.n, args.size, args.seed)
     flat = (target - target.mean((2, 3), keepdim=True)).pow(2).mean((1, 2, 3))
     rows = [("one flat colour per image", flat)]
+    sizes = (args.code_dim, args.min_features)
     for lr in args.lr:
-        rows.append(
-            (
-                f"generator + free codes, lr {lr:g}, {args.steps} steps",
-                fit(target, args.code_dim, args.min_features, lr, args.steps, args.seed),
-            )
-        )
+        err = fit(target, *sizes, lr, args.steps, args.seed, args.code_std, args.active_dims)
+        rows.append((f"generator + free codes, lr {lr:g}, {args.steps} steps", err))
     present = [k for k in KINDS if k in kinds]
     mask = {k: torch.tensor([c == k for c in kinds]) for k in present}
     print(
         f"{args.n} backgrounds at {args.size} px ({', '.join(f'{k} {int(mask[k].sum())}' for k in present)}); "
-        f"code {args.code_dim}, min features {args.min_features}; mean squared error"
+        f"code {args.code_dim} ({args.active_dims or args.code_dim} active), min features {args.min_features}; "
+        "mean squared error"
     )
     print("| fit | all | " + " | ".join(present) + " |")
     print("|---|---|" + "---|" * len(present))
