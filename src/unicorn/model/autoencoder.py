@@ -27,7 +27,7 @@ from torch import nn
 from unicorn.checks import check_shape
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.model.compositing import build_compositing
-from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config
+from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config, model_branches
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import ShapeHead
 from unicorn.model.generator import CodeGenerator, mean_texture
@@ -104,16 +104,11 @@ class Prediction:
     T: torch.Tensor
 
 
-def _branches(has_background: bool) -> tuple[str, ...]:
-    """The branches of a model with or without a background model (:data:`BRANCHES` ends with the background)."""
-    return BRANCHES if has_background else BRANCHES[:-1]
-
-
 def encoder_index(cfg: Mapping[str, Any]) -> dict[str, int]:
     """Which of the model's encoders each branch reads, for a merged configuration: the big model's one per
     branch in :data:`BRANCHES` order (``encoder.shared`` false); otherwise encoder 0, shared, for every branch
     but those of ``encoder.own``, which read encoders 1, 2, ... in :data:`BRANCHES` order."""
-    branches = _branches(cfg["background"] is not None)
+    branches = model_branches(cfg["background"] is not None)
     if not cfg["encoder"]["shared"]:
         return {b: i for i, b in enumerate(branches)}
     own = [b for b in branches if b in cfg["encoder"]["own"]]
@@ -289,7 +284,7 @@ class Unicorn(nn.Module):
 
     def branches(self) -> tuple[str, ...]:
         """The branches this model predicts: shape, texture, pose, and background when it has one."""
-        return _branches(self.background is not None)
+        return model_branches(self.background is not None)
 
     def deform(self, shape_code: torch.Tensor) -> torch.Tensor:
         """The canonical mesh (B, V, 3): the template deformed by the shape field for masked codes (B, Cs)."""

@@ -39,6 +39,7 @@ __all__ = [
     "describe_range",
     "field_range",
     "merge_config",
+    "model_branches",
     "ranged",
 ]
 
@@ -48,6 +49,13 @@ BRANCHES = ("shape", "texture", "pose", "background")
 #: the branches with a latent code regressed from the image, whose active size grows stage by stage: all but the
 #: pose, whose candidates and their probabilities are regressed directly (no code to grow)
 CODE_BRANCHES = tuple(branch for branch in BRANCHES if branch != "pose")
+
+
+def model_branches(has_background: bool) -> tuple[str, ...]:
+    """The branches of a model with or without a background model (:data:`BRANCHES` ends with the background)."""
+    return BRANCHES if has_background else BRANCHES[:-1]
+
+
 #: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
 POSE_OBJECTIVES = ("expected", "assigned")
 #: allowed values of the model's string settings: ``group.key`` -> values
@@ -263,7 +271,7 @@ def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
     own = list(cfg["encoder"]["own"])
     if not own:
         return
-    branches = BRANCHES if cfg["background"] is not None else BRANCHES[:-1]
+    branches = model_branches(cfg["background"] is not None)
     key = f"{prefix}encoder.own"
     if not cfg["encoder"]["shared"]:
         raise ValueError(f"{key}={own} needs encoder.shared=true (without it every branch has its own encoder)")
