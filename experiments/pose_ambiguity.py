@@ -23,35 +23,17 @@ import argparse
 import numpy as np
 
 from unicorn.data.synthetic.render import render_object
-from unicorn.data.synthetic.shapes import CATEGORIES, build_object
-from unicorn.data.synthetic.writer import NMR_DISTANCE, NMR_ELEVATION, NMR_FOV, split_sizes, views_to_cameras
-
-
-def test_objects(category: str, n_models: int, seed: int) -> list[int]:
-    """Indices of the test objects of the synthetic benchmark (``generate_synthetic_dataset``'s split)."""
-    cat_index = sorted(CATEGORIES).index(category)
-    n_train, n_val, _ = split_sizes(n_models)
-    order = np.random.default_rng([seed, cat_index]).permutation(n_models)
-    return sorted(int(i) for i in order[n_train + n_val :])
+from unicorn.data.synthetic.shapes import build_object
+from unicorn.data.synthetic.writer import NMR_FOV, model_streams, sample_views, split_indices, views_to_cameras
 
 
 def renders(
-    category: str, index: int, seed: int, azims: np.ndarray, size: int, key_light: np.ndarray | None = None
+    category: str, index: int, seed: int, azims: int, size: int, key_light: np.ndarray | None = None
 ) -> np.ndarray:
-    """(A, size, size, 3) renderings of one object at the NMR elevation and distance, one per azimuth (the
-    dataset's lighting, or ``key_light``)."""
-    cat_index = sorted(CATEGORIES).index(category)
-    obj = build_object(category, np.random.default_rng([seed, cat_index, index, 0]))
-    zeros = np.zeros(len(azims))
-    views = {
-        "azim": azims,
-        "elev": zeros + NMR_ELEVATION,
-        "roll": zeros,
-        "dist": zeros + NMR_DISTANCE,
-        "tx": zeros,
-        "ty": zeros,
-    }
-    R, T = views_to_cameras(views)
+    """(azims, size, size, 3) renderings of one object from the NMR views' elevation and distance, every
+    ``360 / azims`` degrees of azimuth (the dataset's lighting, or ``key_light``)."""
+    obj = build_object(category, model_streams(seed, category, index)[0])
+    R, T = views_to_cameras(sample_views("nmr", azims, np.random.default_rng()))
     images, _ = render_object(obj, R, T, image_size=size, fov=NMR_FOV, key_light=key_light)
     return images
 
@@ -94,7 +76,9 @@ def main() -> None:
     view_every = int(round(15.0 / args.step))  # the dataset's 24 views are every 15 degrees
     if abs(view_every * args.step - 15.0) > 1e-9:
         raise SystemExit(f"--step must divide 15, got {args.step}")
-    azims = np.arange(0.0, 360.0, args.step)
+    n_azims = int(round(360.0 / args.step))
+    azims = 360.0 * np.arange(n_azims) / n_azims  # sample_views("nmr", n_azims)'s
+    light = np.array([0.0, 1.0, 0.0]) if args.vertical_light else None
 
     columns = [f"ceiling {t:g}" for t in taus] + [f"ambiguous {t:g}" for t in taus]
     print(
@@ -111,10 +95,9 @@ def main() -> None:
     print("|---|---|" + "---|" * (2 * len(taus) + 1))
     for category in args.categories.split(","):
         per_view: dict[str, list[np.ndarray]] = {}
-        objects = test_objects(category, args.n_models, args.seed)
+        objects = sorted(split_indices(args.seed, category, args.n_models)["test"])
         for index in objects:
-            light = np.array([0.0, 1.0, 0.0]) if args.vertical_light else None
-            images = renders(category, index, args.seed, azims, args.size, light)
+            images = renders(category, int(index), args.seed, n_azims, args.size, light)
             res = ceiling(images, azims, view_every, taus)
             for k, v in res.items():
                 per_view.setdefault(k, []).append(v)

@@ -46,8 +46,10 @@ __all__ = [
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
+    "model_streams",
     "sample_surface_points",
     "sample_views",
+    "split_indices",
     "split_sizes",
     "synthetic_dataset_path",
 ]
@@ -132,6 +134,19 @@ def sample_surface_points(
     idx = np.flatnonzero(keep)
     idx = rng.choice(idx, n_points, replace=len(idx) < n_points)
     return points[idx], mesh.face_normals[faces[idx]]
+
+
+def model_streams(seed: int, category: str, index: int) -> list[np.random.Generator]:
+    """The four random streams of one model: its object, its views, its backgrounds and its surface points."""
+    cat_index = sorted(CATEGORIES).index(category)  # stable across runs whatever the order given
+    return [np.random.default_rng([seed, cat_index, index, k]) for k in range(4)]
+
+
+def split_indices(seed: int, category: str, n_models: int) -> dict[str, np.ndarray]:
+    """The model indices of the ``train``, ``val`` and ``test`` splits of one category (:func:`split_sizes`)."""
+    n_train, n_val, _ = split_sizes(n_models)
+    order = np.random.default_rng([seed, sorted(CATEGORIES).index(category)]).permutation(n_models)
+    return {"train": order[:n_train], "val": order[n_train : n_train + n_val], "test": order[n_train + n_val :]}
 
 
 def split_sizes(n_models: int) -> tuple[int, int, int]:
@@ -232,7 +247,7 @@ def generate_synthetic_dataset(
     for cat in categories:
         if cat not in CATEGORIES:
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
-    n_train, n_val, n_test = split_sizes(n_models)
+    split_sizes(n_models)  # refuses too few models before anything is written
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     out.mkdir(parents=True, exist_ok=True)
     meta_path = out / "metadata.yaml"
@@ -242,23 +257,16 @@ def generate_synthetic_dataset(
     bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
     for cat in categories:
         synset, _ = CATEGORIES[cat]
-        cat_index = sorted(CATEGORIES).index(cat)  # stable across runs whatever the order given
         cat_dir = out / synset
         names = [f"{cat}_{seed}_{i:05d}" for i in range(n_models)]
         for i, name in enumerate(names):
-            streams = [np.random.default_rng([seed, cat_index, i, k]) for k in range(4)]
+            streams = model_streams(seed, cat, i)
             obj = build_object(cat, streams[0])
             obj.params.update(category=cat, seed=seed, index=i)
             views = sample_views(mode, n_views, streams[1])
             _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], random_bg)
             bar.update()
-        order = np.random.default_rng([seed, cat_index]).permutation(n_models)
-        lists = {
-            "train": order[:n_train],
-            "val": order[n_train : n_train + n_val],
-            "test": order[n_train + n_val :],
-        }
-        for split, idx in lists.items():
+        for split, idx in split_indices(seed, cat, n_models).items():
             (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
         metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
     bar.close()
