@@ -11,7 +11,12 @@ each test car's template fitted to the silhouettes of all 24 of its views at the
 Score: shape retrieval (:func:`unicorn.metrics.shape_retrieval`): each reconstruction, posed in its view,
 normalised, compared by Chamfer-L1 with every scored car seen in the same view; top-1 / top-3 hits of the right
 car, beside chance, and ``detail``, the mean normalised distance between the canonical shapes of two cars
-(per-axis normalisation: what varies beyond the anisotropic scale), 0 for one shape for every car.
+(per-axis normalisation: what varies beyond the anisotropic scale), 0 for one shape for every car; and
+``loss-pose`` / ``loss-gap`` (:func:`loss_picks_pose`): whether the reconstruction loss, on the model's own
+reconstruction, prefers the right pose to every pose turned more than 30 degrees away: what the pose step could
+learn from reconstructions this good.
+
+``--experiment synthetic_wild`` trains the wild mode's model (with its background branch) on its data.
 
     python experiments/shape_controls.py --rows all --iterations 1200   # about 10 minutes per row on one core
 """
@@ -24,10 +29,19 @@ from dataclasses import dataclass, field
 
 import torch
 
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.metrics import sample_points_from_meshes, shape_retrieval, shape_spread
-from unicorn.model import NormalConsistencyLoss, ReconstructionLoss, Unicorn, UniformLaplacianLoss, world_verts
+from unicorn.model import (
+    NormalConsistencyLoss,
+    Prediction,
+    ReconstructionLoss,
+    Unicorn,
+    UniformLaplacianLoss,
+    world_verts,
+)
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
+TURN_STEP = 5.0  # degrees of azimuth between the poses loss_picks_pose compares
 
 
 @dataclass(frozen=True)
@@ -51,8 +65,9 @@ ROWS = [
 ]
 
 
-def compose(overrides: tuple[str, ...], cache: str | None) -> tuple[dict, str]:
-    """The main job's model config with ``overrides`` and its synthetic dataset folder."""
+def compose(overrides: tuple[str, ...], cache: str | None, experiment: str = "synthetic") -> tuple[dict, str]:
+    """An experiment's model config (the main job's by default) with ``overrides`` and its synthetic dataset
+    folder."""
     import tempfile
 
     from hydra import compose as hydra_compose
@@ -62,7 +77,7 @@ def compose(overrides: tuple[str, ...], cache: str | None) -> tuple[dict, str]:
     from unicorn.data import prepare_dataset
     from unicorn.resources import config_dir
 
-    args = ["experiment=synthetic", f"paths.output_dir={tempfile.gettempdir()}", *overrides]
+    args = [f"experiment={experiment}", f"paths.output_dir={tempfile.gettempdir()}", *overrides]
     if cache:
         args.append(f"paths.cache_dir={cache}")
     with initialize_config_dir(str(config_dir()), version_base=None):
@@ -102,6 +117,39 @@ def score(verts: torch.Tensor, canonical: torch.Tensor, faces: torch.Tensor, vie
         "chance top-3": min(3, C) / C,
         "detail": shape_spread(canon_points, views["object"], per_axis=True),
     }
+
+
+def loss_picks_pose(
+    model: Unicorn, pred: Prediction, views: dict, reconstruction: ReconstructionLoss
+) -> dict[str, float]:
+    """Can the reconstruction loss tell each view's pose, given the model's own reconstruction of it?
+
+    Each reconstruction (mesh, texture and background predicted from the view) is rendered at the view's
+    ground-truth camera turned about the object's vertical axis every ``TURN_STEP`` degrees and scored against the
+    view with the training's reconstruction loss. ``loss-pose`` is the share of views for which some turn within 30
+    degrees of the right pose reconstructs better than every turn beyond (a tie counts as a miss): what the
+    ``assigned`` pose objective could learn from such reconstructions (``experiments/pose_ambiguity.py`` asks the
+    same of the ground-truth objects). ``loss-gap`` is the median of the lowest loss more than 30 degrees away over
+    the loss at the right pose, minus 1 (0 or below: the loss does not prefer the right pose).
+    """
+    turns = torch.arange(0.0, 360.0, TURN_STEP)
+    turn = azim_elev_roll_to_rotation(turns, torch.zeros_like(turns))  # (A, 3, 3), x @ turn @ R
+    near = torch.minimum(turns, 360.0 - turns) <= 30.0
+    verts = world_verts(pred.canonical_verts, pred.scale)
+    A, hits, gaps = len(turns), [], []
+    for q in range(len(views["image"])):
+        background = None if pred.background is None else pred.background[q].expand(A, -1, -1, -1)
+        rec, _ = model.render(
+            verts[q].expand(A, -1, -1),
+            pred.texture[q].expand(A, -1, -1, -1),
+            turn @ views["R"][q],
+            views["T"][q].expand(A, -1),
+            background,
+        )
+        loss = sum(reconstruction(rec, views["image"][q].expand(A, -1, -1, -1)).values())
+        hits.append(bool(loss[near].min() < loss[~near].min()))  # a tie (a symmetric reconstruction) misses
+        gaps.append(float(loss[~near].min() / loss[0] - 1.0))
+    return {"loss-pose": sum(hits) / len(hits), "loss-gap": float(torch.tensor(gaps).median())}
 
 
 def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Unicorn, torch.nn.Embedding]:
@@ -150,7 +198,8 @@ def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Uni
 
 @torch.no_grad()
 def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
-    cfg, root = compose((*row.overrides, *args.override, f"dataset.categories={args.category}"), args.cache)
+    overrides = (*row.overrides, *args.override, f"dataset.categories={args.category}")
+    cfg, root = compose(overrides, args.cache, args.experiment)
     start = time.perf_counter()
     if row.silhouette_fit:
         from unicorn.data import build_dataset
@@ -167,7 +216,8 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
             with torch.enable_grad():
                 fitted.append(fit_silhouettes(model, masks, R, T, iterations=args.fit_iterations)[0])
         verts = torch.stack(fitted)[views["object"]]
-        return {**score(verts, verts, model.template.faces, views), "minutes": (time.perf_counter() - start) / 60}
+        no_texture = {"loss-pose": float("nan"), "loss-gap": float("nan")}
+        return {**score(verts, verts, model.template.faces, views), **no_texture, "minutes": _minutes(start)}
     with torch.enable_grad():
         model, codes = train(row, cfg, root, args)
     views = scored_views(root, "train" if row.per_object_codes else "test", cfg["image_size"], args.category)
@@ -176,7 +226,14 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
     if row.per_object_codes:
         canonical = model.template.verts + model.shape(model.template.verts, codes(views["object"]))
     verts = canonical * pred.scale.unsqueeze(1)
-    return {**score(verts, canonical, model.template.faces, views), "minutes": (time.perf_counter() - start) / 60}
+    choice = {"loss-pose": float("nan"), "loss-gap": float("nan")}
+    if not row.per_object_codes:
+        choice = loss_picks_pose(model, pred, views, ReconstructionLoss.from_config(model.config["loss"]))
+    return {**score(verts, canonical, model.template.faces, views), **choice, "minutes": _minutes(start)}
+
+
+def _minutes(start: float) -> float:
+    return (time.perf_counter() - start) / 60
 
 
 def main() -> None:
@@ -189,6 +246,9 @@ def main() -> None:
     p.add_argument("--override", action="append", default=[], help="a config override for every row (repeatable)")
     p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
+    p.add_argument(
+        "--experiment", default="synthetic", help="the experiment whose model and data (e.g. synthetic_wild)"
+    )
     args = p.parse_args()
     chosen = ROWS if args.rows == "all" else [ROWS[int(i)] for i in args.rows.split(",")]
     results = {}
