@@ -14,6 +14,10 @@ evaluation does), and each candidate's reconstruction is scored with the trainin
 - ``max prob``: the mean probability of the selected candidate (1 / K: no preference);
 - ``azim 30`` / ``half turn``: the share with the azimuth within 30 degrees, and within 30 degrees of it or of
   its half turn; ``elev`` / ``roll``: the median absolute elevation and roll errors (degrees);
+- ``own pose by loss`` / ``own pose gap``: whether each reconstruction, turned about its vertical axis, fits its
+  image better within 30 degrees of the selected pose than beyond (``experiments/shape_controls.py``'s
+  ``loss-pose`` / ``loss-gap`` at the model's own pose): a reconstruction symmetric enough to look alike from
+  every side scores low, whatever the pose;
 - the same shares per ground-truth elevation band when the elevations vary.
 
 Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
@@ -30,6 +34,7 @@ from __future__ import annotations
 import argparse
 
 import torch
+from shape_controls import loss_picks_pose, turn_losses  # a sibling script
 
 from unicorn.data import build_dataset, dataset_root
 from unicorn.io.checkpoints import load_model
@@ -39,10 +44,11 @@ from unicorn.model.losses import ReconstructionLoss
 
 @torch.no_grad()
 def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
-    """Every view's candidate rotations (K, N, 3, 3), probabilities (K, N), reconstruction losses (K, N) and
-    ground-truth rotation (N, 3, 3)."""
+    """Every view's candidate rotations (K, N, 3, 3), probabilities (K, N), reconstruction losses (K, N),
+    ground-truth rotation (N, 3, 3) and the losses of its reconstruction at the selected pose turned about the
+    vertical axis (N, A; :func:`shape_controls.turn_losses`)."""
     loss = ReconstructionLoss.from_config(model.config["loss"])
-    out: dict[str, list[torch.Tensor]] = {"R": [], "probs": [], "loss": [], "R_gt": []}
+    out: dict[str, list[torch.Tensor]] = {"R": [], "probs": [], "loss": [], "R_gt": [], "turns": []}
     for start in range(0, len(data), batch_size):
         items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
         images = torch.stack([it["image"] for it in items])
@@ -56,7 +62,8 @@ def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
         out["probs"].append(pred.poses.probs)
         out["loss"].append(torch.stack(list(terms.values())).sum(0).view(K, B))
         out["R_gt"].append(torch.stack([it["R"] for it in items]))
-    return {k: torch.cat(v, dim=0 if k == "R_gt" else 1) for k, v in out.items()}
+        out["turns"].append(turn_losses(model, pred, images, pred.R, pred.T, loss))
+    return {k: torch.cat(v, dim=0 if k in ("R_gt", "turns") else 1) for k, v in out.items()}
 
 
 def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -85,6 +92,8 @@ def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
         "elev": float((elev - elev_gt).abs().median()),
         "roll": float((roll - roll_gt).abs().median()),
     }
+    own = loss_picks_pose(c["turns"])
+    result["own pose by loss"], result["own pose gap"] = own["loss-pose"], own["loss-gap"]
     if float(elev_gt.max() - elev_gt.min()) > 1.0:
         edges = torch.linspace(float(elev_gt.min()), float(elev_gt.max()) + 1e-3, 5).round().tolist()
         for lo, hi in zip(edges[:-1], edges[1:]):

@@ -119,37 +119,46 @@ def score(verts: torch.Tensor, canonical: torch.Tensor, faces: torch.Tensor, vie
     }
 
 
-def loss_picks_pose(
-    model: Unicorn, pred: Prediction, views: dict, reconstruction: ReconstructionLoss
-) -> dict[str, float]:
-    """Can the reconstruction loss tell each view's pose, given the model's own reconstruction of it?
+def turn_losses(
+    model: Unicorn,
+    pred: Prediction,
+    images: torch.Tensor,
+    R: torch.Tensor,
+    T: torch.Tensor,
+    reconstruction: ReconstructionLoss,
+) -> torch.Tensor:
+    """(N, A) reconstruction losses of each image's reconstruction turned about the object's vertical axis.
 
-    Each reconstruction (mesh, texture and background predicted from the view) is rendered at the view's
-    ground-truth camera turned about the object's vertical axis every ``TURN_STEP`` degrees and scored against the
-    view with the training's reconstruction loss. ``loss-pose`` is the share of views for which some turn within 30
-    degrees of the right pose reconstructs better than every turn beyond (a tie counts as a miss): what the
-    ``assigned`` pose objective could learn from such reconstructions (``experiments/pose_ambiguity.py`` asks the
-    same of the ground-truth objects). ``loss-gap`` is the median of the lowest loss more than 30 degrees away over
-    the loss at the right pose, minus 1 (0 or below: the loss does not prefer the right pose).
+    The reconstruction (mesh, texture and background predicted from the image, ``pred``) is rendered at the
+    view's camera ``R`` (N, 3, 3), ``T`` (N, 3) turned by each of the ``A = 360 / TURN_STEP`` azimuths
+    ``TURN_STEP * a`` and scored against the image (N, 3, S, S) with the training's reconstruction loss.
     """
     turns = torch.arange(0.0, 360.0, TURN_STEP)
     turn = azim_elev_roll_to_rotation(turns, torch.zeros_like(turns))  # (A, 3, 3), x @ turn @ R
-    near = torch.minimum(turns, 360.0 - turns) <= 30.0
     verts = world_verts(pred.canonical_verts, pred.scale)
-    A, hits, gaps = len(turns), [], []
-    for q in range(len(views["image"])):
+    A, losses = len(turns), []
+    for q in range(len(images)):
         background = None if pred.background is None else pred.background[q].expand(A, -1, -1, -1)
-        rec, _ = model.render(
-            verts[q].expand(A, -1, -1),
-            pred.texture[q].expand(A, -1, -1, -1),
-            turn @ views["R"][q],
-            views["T"][q].expand(A, -1),
-            background,
-        )
-        loss = sum(reconstruction(rec, views["image"][q].expand(A, -1, -1, -1)).values())
-        hits.append(bool(loss[near].min() < loss[~near].min()))  # a tie (a symmetric reconstruction) misses
-        gaps.append(float(loss[~near].min() / loss[0] - 1.0))
-    return {"loss-pose": sum(hits) / len(hits), "loss-gap": float(torch.tensor(gaps).median())}
+        maps = pred.texture[q].expand(A, -1, -1, -1)
+        rec, _ = model.render(verts[q].expand(A, -1, -1), maps, turn @ R[q], T[q].expand(A, -1), background)
+        losses.append(sum(reconstruction(rec, images[q].expand(A, -1, -1, -1)).values()))
+    return torch.stack(losses)
+
+
+def loss_picks_pose(losses: torch.Tensor) -> dict[str, float]:
+    """Does the reconstruction loss tell each view's pose from :func:`turn_losses` (N, A)?
+
+    ``loss-pose``: the share of views for which some turn within 30 degrees reconstructs better than every turn
+    beyond (a tie counts as a miss). At the ground-truth camera, what the ``assigned`` pose objective could learn
+    from such reconstructions (``experiments/pose_ambiguity.py`` asks the same of the ground-truth objects); at the
+    model's own pose, whether its reconstruction tells that pose from the others. ``loss-gap``: the median of the
+    lowest loss more than 30 degrees away over the loss at no turn, minus 1 (0 or below: no preference).
+    """
+    turns = torch.arange(0.0, 360.0, TURN_STEP)
+    near = torch.minimum(turns, 360.0 - turns) <= 30.0
+    far_best = losses[:, ~near].min(1).values
+    hits = losses[:, near].min(1).values < far_best
+    return {"loss-pose": float(hits.float().mean()), "loss-gap": float((far_best / losses[:, 0] - 1.0).median())}
 
 
 def train(row: Row, cfg: dict, root: str, args: argparse.Namespace) -> tuple[Unicorn, torch.nn.Embedding]:
@@ -228,7 +237,8 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
     verts = canonical * pred.scale.unsqueeze(1)
     choice = {"loss-pose": float("nan"), "loss-gap": float("nan")}
     if not row.per_object_codes:
-        choice = loss_picks_pose(model, pred, views, ReconstructionLoss.from_config(model.config["loss"]))
+        loss = ReconstructionLoss.from_config(model.config["loss"])
+        choice = loss_picks_pose(turn_losses(model, pred, views["image"], views["R"], views["T"], loss))
     return {**score(verts, canonical, model.template.faces, views), **choice, "minutes": _minutes(start)}
 
 
