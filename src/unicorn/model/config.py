@@ -57,7 +57,8 @@ def model_branches(has_background: bool) -> tuple[str, ...]:
 
 
 #: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
-POSE_OBJECTIVES = ("expected", "assigned")
+#: (with every candidate's pose refined, or the best one's only); :mod:`unicorn.objectives.pose_step` implements them
+POSE_OBJECTIVES = ("expected", "assigned", "assigned_best")
 #: allowed values of the model's string settings: ``group.key`` -> values
 CHOICES: dict[str, tuple[Any, ...]] = {
     "template.uv_mode": ("seamless", "reference"),

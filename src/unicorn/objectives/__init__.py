@@ -7,7 +7,7 @@ says, so only its own branches receive gradients.
 - :class:`Objectives`: the two steps built from a model configuration's ``loss`` group, by step kind
   (``"pose"``, ``"3d"``), and the training state they hold (the neighbour memory).
 - ``pose_step``: :class:`PoseStep` and the pose objectives chosen by name (``loss.pose_objective``:
-  :class:`ExpectedLoss`, :class:`AssignedLoss`; :func:`register_pose_objective`).
+  :class:`ExpectedLoss`, :class:`AssignedLoss`, :class:`AssignedBestLoss`; :func:`register_pose_objective`).
 - ``shape_step``: :class:`ShapeStep` (the 3D step).
 - ``neighbors``: :class:`NeighborLoss` and its memory bank (:class:`NeighborMemory`).
 
@@ -18,6 +18,7 @@ and :mod:`unicorn.model.perceptual`'s, shared with test-time refinement.
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMatch, NeighborMemory
 from unicorn.objectives.objectives import Objectives
 from unicorn.objectives.pose_step import (
+    AssignedBestLoss,
     AssignedLoss,
     ExpectedLoss,
     PoseObjective,
@@ -30,6 +31,7 @@ from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 
 __all__ = [
+    "AssignedBestLoss",
     "AssignedLoss",
     "ExpectedLoss",
     "NeighborLoss",

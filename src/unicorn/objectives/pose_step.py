@@ -5,7 +5,9 @@ How the candidates' reconstruction losses train the pose probabilities is a pose
 
 - ``"expected"`` (:class:`ExpectedLoss`, the paper's): ``mean_b sum_k p[k, b] * L_rec(k, b)``;
 - ``"assigned"`` (:class:`AssignedLoss`): the same sum with ``p`` detached, and the probabilities learn which
-  candidate reconstructs best from ``assignment_weight * candidate_assignment_loss`` (term ``assignment``).
+  candidate reconstructs best from ``assignment_weight * candidate_assignment_loss`` (term ``assignment``);
+- ``"assigned_best"`` (:class:`AssignedBestLoss`): as ``"assigned"``, with only the best-reconstructing
+  candidate's pose refined (weight 1 for it, 0 for the others).
 
 New objectives register with :func:`register_pose_objective`.
 """
@@ -24,6 +26,7 @@ from unicorn.objectives.step_losses import StepLosses, with_total
 from unicorn.registry import Registry
 
 __all__ = [
+    "AssignedBestLoss",
     "AssignedLoss",
     "ExpectedLoss",
     "PoseObjective",
@@ -103,6 +106,35 @@ class AssignedLoss:
         if terms:
             per_candidate = torch.stack(list(terms.values())).sum(0).view(probs.shape)
             out["assignment"] = self.assignment_weight * candidate_assignment_loss(log_probs, per_candidate)
+        return out
+
+
+@register_pose_objective("assigned_best")
+class AssignedBestLoss:
+    """The probabilities learn the best candidate as with :class:`AssignedLoss`; only that candidate's pose is refined.
+
+    The weighted terms ``mean_b L_rec(k*(b), b)``, ``k*(b) = argmin_k`` of the summed terms, leave the other
+    candidates' poses without gradient. Weighted by the probabilities, every candidate is also pulled towards the
+    pose that the (detached) reconstruction was fitted to, which is the selected candidate's; where the silhouette
+    barely changes with the azimuth (a body of revolution), that pull draws the candidates onto their neighbours'.
+
+    Args:
+        assignment_weight: weight of the cross-entropy term ``assignment``.
+    """
+
+    def __init__(self, assignment_weight: float) -> None:
+        self.assignment_weight = assignment_weight
+
+    def __call__(
+        self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        if not terms:
+            return {}
+        per_candidate = torch.stack(list(terms.values())).sum(0).view(probs.shape)
+        best = per_candidate.detach().argmin(0)  # (B,)
+        weights = torch.nn.functional.one_hot(best, probs.shape[0]).T.to(probs.dtype)  # (K, B)
+        out = _weighted(weights, terms)
+        out["assignment"] = self.assignment_weight * candidate_assignment_loss(log_probs, per_candidate)
         return out
 
 
