@@ -18,6 +18,8 @@ evaluation does), and each candidate's reconstruction is scored with the trainin
   image better within 30 degrees of the selected pose than beyond (``experiments/shape_controls.py``'s
   ``loss-pose`` / ``loss-gap`` at the model's own pose): a reconstruction symmetric enough to look alike from
   every side scores low, whatever the pose;
+- ``cand. azim std min`` / ``max``: the smallest and largest standard deviation of a candidate's azimuth over the
+  views (degrees): a candidate pinned at the edge of its sector predicts one azimuth for every image;
 - the same shares per ground-truth elevation band when the elevations vary.
 
 Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
@@ -44,11 +46,11 @@ from unicorn.model.losses import ReconstructionLoss
 
 @torch.no_grad()
 def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
-    """Every view's candidate rotations (K, N, 3, 3), probabilities (K, N), reconstruction losses (K, N),
-    ground-truth rotation (N, 3, 3) and the losses of its reconstruction at the selected pose turned about the
-    vertical axis (N, A; :func:`shape_controls.turn_losses`)."""
+    """Every view's candidate rotations (K, N, 3, 3), azimuths (K, N), probabilities (K, N), reconstruction
+    losses (K, N), ground-truth rotation (N, 3, 3) and the losses of its reconstruction at the selected pose turned
+    about the vertical axis (N, A; :func:`shape_controls.turn_losses`)."""
     loss = ReconstructionLoss.from_config(model.config["loss"])
-    out: dict[str, list[torch.Tensor]] = {"R": [], "probs": [], "loss": [], "R_gt": [], "turns": []}
+    out: dict[str, list[torch.Tensor]] = {"R": [], "azim": [], "probs": [], "loss": [], "R_gt": [], "turns": []}
     for start in range(0, len(data), batch_size):
         items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
         images = torch.stack([it["image"] for it in items])
@@ -59,6 +61,7 @@ def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
         rec, _ = model.render(pred.verts.repeat(K, 1, 1), pred.texture.repeat(K, 1, 1, 1), R, T, bkg)
         terms = loss(rec, images.repeat(K, 1, 1, 1))
         out["R"].append(pred.poses.R)
+        out["azim"].append(pred.poses.angles[..., 0])
         out["probs"].append(pred.poses.probs)
         out["loss"].append(torch.stack(list(terms.values())).sum(0).view(K, B))
         out["R_gt"].append(torch.stack([it["R"] for it in items]))
@@ -92,6 +95,8 @@ def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
         "elev": float((elev - elev_gt).abs().median()),
         "roll": float((roll - roll_gt).abs().median()),
     }
+    spread = c["azim"].std(1)  # (K,) degrees: a candidate that no longer turns with the image has ~0
+    result["cand. azim std min"], result["cand. azim std max"] = float(spread.min()), float(spread.max())
     own = loss_picks_pose(c["turns"])
     result["own pose by loss"], result["own pose gap"] = own["loss-pose"], own["loss-gap"]
     if float(elev_gt.max() - elev_gt.min()) > 1.0:
