@@ -99,31 +99,9 @@ class AssignedLoss:
     def __init__(self, assignment_weight: float) -> None:
         self.assignment_weight = assignment_weight
 
-    def __call__(
-        self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
-    ) -> dict[str, torch.Tensor]:
-        out = _weighted(probs.detach(), terms)
-        if terms:
-            per_candidate = torch.stack(list(terms.values())).sum(0).view(probs.shape)
-            out["assignment"] = self.assignment_weight * candidate_assignment_loss(log_probs, per_candidate)
-        return out
-
-
-@register_pose_objective("assigned_best")
-class AssignedBestLoss:
-    """The probabilities learn the best candidate as with :class:`AssignedLoss`; only that candidate's pose is refined.
-
-    The weighted terms ``mean_b L_rec(k*(b), b)``, ``k*(b) = argmin_k`` of the summed terms, leave the other
-    candidates' poses without gradient. Weighted by the probabilities, every candidate is also pulled towards the
-    pose that the (detached) reconstruction was fitted to, which is the selected candidate's; where the silhouette
-    barely changes with the azimuth (a body of revolution), that pull draws the candidates onto their neighbours'.
-
-    Args:
-        assignment_weight: weight of the cross-entropy term ``assignment``.
-    """
-
-    def __init__(self, assignment_weight: float) -> None:
-        self.assignment_weight = assignment_weight
+    def weights(self, probs: torch.Tensor, per_candidate: torch.Tensor) -> torch.Tensor:
+        """(K, B) weights of the candidates' terms from the probabilities and the summed terms, both (K, B)."""
+        return probs.detach()
 
     def __call__(
         self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
@@ -131,11 +109,24 @@ class AssignedBestLoss:
         if not terms:
             return {}
         per_candidate = torch.stack(list(terms.values())).sum(0).view(probs.shape)
-        best = per_candidate.detach().argmin(0)  # (B,)
-        weights = torch.nn.functional.one_hot(best, probs.shape[0]).T.to(probs.dtype)  # (K, B)
-        out = _weighted(weights, terms)
+        out = _weighted(self.weights(probs, per_candidate.detach()), terms)
         out["assignment"] = self.assignment_weight * candidate_assignment_loss(log_probs, per_candidate)
         return out
+
+
+@register_pose_objective("assigned_best")
+class AssignedBestLoss(AssignedLoss):
+    """As :class:`AssignedLoss`, with weight 1 for the best-reconstructing candidate and 0 for the others: only
+    that candidate's pose is refined. (Weighted by the probabilities, every candidate's pose is also pulled towards
+    the pose the detached reconstruction was fitted to, the selected candidate's.)
+
+    Args:
+        assignment_weight: weight of the cross-entropy term ``assignment``.
+    """
+
+    def weights(self, probs: torch.Tensor, per_candidate: torch.Tensor) -> torch.Tensor:
+        best = per_candidate.argmin(0)  # (B,)
+        return torch.nn.functional.one_hot(best, probs.shape[0]).T.to(probs.dtype)
 
 
 class PoseStep(nn.Module):
