@@ -42,6 +42,7 @@ from unicorn.model import (
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
 TURN_STEP = 5.0  # degrees of azimuth between the poses loss_picks_pose compares
+NO_CHOICE = {"loss-pose": float("nan"), "loss-gap": float("nan")}  # rows without an encoder's texture
 
 
 @dataclass(frozen=True)
@@ -225,8 +226,7 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
             with torch.enable_grad():
                 fitted.append(fit_silhouettes(model, masks, R, T, iterations=args.fit_iterations)[0])
         verts = torch.stack(fitted)[views["object"]]
-        no_texture = {"loss-pose": float("nan"), "loss-gap": float("nan")}
-        return {**score(verts, verts, model.template.faces, views), **no_texture, "minutes": _minutes(start)}
+        return {**score(verts, verts, model.template.faces, views), **NO_CHOICE, "minutes": _minutes(start)}
     with torch.enable_grad():
         model, codes = train(row, cfg, root, args)
     views = scored_views(root, "train" if row.per_object_codes else "test", cfg["image_size"], args.category)
@@ -235,7 +235,7 @@ def run(row: Row, args: argparse.Namespace) -> dict[str, float]:
     if row.per_object_codes:
         canonical = model.template.verts + model.shape(model.template.verts, codes(views["object"]))
     verts = canonical * pred.scale.unsqueeze(1)
-    choice = {"loss-pose": float("nan"), "loss-gap": float("nan")}
+    choice = NO_CHOICE
     if not row.per_object_codes:
         loss = ReconstructionLoss.from_config(model.config["loss"])
         choice = loss_picks_pose(turn_losses(model, pred, views["image"], views["R"], views["T"], loss))
@@ -257,7 +257,9 @@ def main() -> None:
     p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
     p.add_argument(
-        "--experiment", default="synthetic", help="the experiment whose model and data (e.g. synthetic_wild)"
+        "--experiment",
+        default="synthetic",
+        help="the experiment whose model and data the rows use (e.g. synthetic_wild)",
     )
     args = p.parse_args()
     chosen = ROWS if args.rows == "all" else [ROWS[int(i)] for i in args.rows.split(",")]
