@@ -19,7 +19,7 @@ evaluation does), and each candidate's reconstruction is scored with the trainin
   ``loss-pose`` / ``loss-gap`` at the model's own pose): a reconstruction symmetric enough to look alike from
   every side scores low, whatever the pose;
 - ``cand. azim std min`` / ``max``: the smallest and largest standard deviation of a candidate's azimuth over the
-  views (degrees): a candidate pinned at the edge of its sector predicts one azimuth for every image;
+  views (degrees): near 0 for a candidate that predicts one azimuth for every image;
 - the same shares per ground-truth elevation band when the elevations vary.
 
 Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
