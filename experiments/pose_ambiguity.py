@@ -28,13 +28,12 @@ from unicorn.data.synthetic.writer import NMR_FOV, model_streams, sample_views, 
 
 
 def renders(
-    category: str, index: int, seed: int, azims: int, size: int, key_light: np.ndarray | None = None
+    category: str, index: int, seed: int, cameras: tuple, size: int, key_light: np.ndarray | None = None
 ) -> np.ndarray:
-    """(azims, size, size, 3) renderings of one object from the NMR views' elevation and distance, every
-    ``360 / azims`` degrees of azimuth (the dataset's lighting, or ``key_light``)."""
+    """(A, size, size, 3) renderings of one object from the cameras ``(R (A, 3, 3), T (A, 3))`` of
+    :func:`views_to_cameras` (the dataset's lighting, or ``key_light``)."""
     obj = build_object(category, model_streams(seed, category, index)[0])
-    R, T = views_to_cameras(sample_views("nmr", azims, np.random.default_rng()))
-    images, _ = render_object(obj, R, T, image_size=size, fov=NMR_FOV, key_light=key_light)
+    images, _ = render_object(obj, *cameras, image_size=size, fov=NMR_FOV, key_light=key_light)
     return images
 
 
@@ -76,8 +75,8 @@ def main() -> None:
     view_every = int(round(15.0 / args.step))  # the dataset's 24 views are every 15 degrees
     if abs(view_every * args.step - 15.0) > 1e-9:
         raise SystemExit(f"--step must divide 15, got {args.step}")
-    n_azims = int(round(360.0 / args.step))
-    azims = 360.0 * np.arange(n_azims) / n_azims  # sample_views("nmr", n_azims)'s
+    views = sample_views("nmr", int(round(360.0 / args.step)), np.random.default_rng())  # every step degrees
+    azims, cameras = views["azim"], views_to_cameras(views)
     light = np.array([0.0, 1.0, 0.0]) if args.vertical_light else None
 
     columns = [f"ceiling {t:g}" for t in taus] + [f"ambiguous {t:g}" for t in taus]
@@ -97,7 +96,7 @@ def main() -> None:
         per_view: dict[str, list[np.ndarray]] = {}
         objects = sorted(split_indices(args.seed, category, args.n_models)["test"])
         for index in objects:
-            images = renders(category, int(index), args.seed, n_azims, args.size, light)
+            images = renders(category, int(index), args.seed, cameras, args.size, light)
             res = ceiling(images, azims, view_every, taus)
             for k, v in res.items():
                 per_view.setdefault(k, []).append(v)

@@ -42,6 +42,7 @@ from unicorn.model import (
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
 TURN_STEP = 5.0  # degrees of azimuth between the poses loss_picks_pose compares
+TURNS = torch.arange(0.0, 360.0, TURN_STEP)  # (A,) the turns of turn_losses, in degrees
 NO_CHOICE = {"loss-pose": float("nan"), "loss-gap": float("nan")}  # rows without an encoder's texture
 
 
@@ -131,13 +132,11 @@ def turn_losses(
     """(N, A) reconstruction losses of each image's reconstruction turned about the object's vertical axis.
 
     The reconstruction (mesh, texture and background predicted from the image, ``pred``) is rendered at the
-    view's camera ``R`` (N, 3, 3), ``T`` (N, 3) turned by each of the ``A = 360 / TURN_STEP`` azimuths
-    ``TURN_STEP * a`` and scored against the image (N, 3, S, S) with the training's reconstruction loss.
+    view's camera ``R`` (N, 3, 3), ``T`` (N, 3) turned by each of the ``A`` azimuths of ``TURNS`` and scored
+    against the image (N, 3, S, S) with the training's reconstruction loss.
     """
-    turns = torch.arange(0.0, 360.0, TURN_STEP)
-    turn = azim_elev_roll_to_rotation(turns, torch.zeros_like(turns))  # (A, 3, 3), x @ turn @ R
-    verts = world_verts(pred.canonical_verts, pred.scale)
-    A, losses = len(turns), []
+    turn = azim_elev_roll_to_rotation(TURNS, torch.zeros_like(TURNS))  # (A, 3, 3), x @ turn @ R
+    verts, A, losses = pred.verts, len(TURNS), []
     for q in range(len(images)):
         background = None if pred.background is None else pred.background[q].expand(A, -1, -1, -1)
         maps = pred.texture[q].expand(A, -1, -1, -1)
@@ -155,8 +154,7 @@ def loss_picks_pose(losses: torch.Tensor) -> dict[str, float]:
     model's own pose, whether its reconstruction tells that pose from the others. ``loss-gap``: the median of the
     lowest loss more than 30 degrees away over the loss at no turn, minus 1 (0 or below: no preference).
     """
-    turns = torch.arange(0.0, 360.0, TURN_STEP)
-    near = torch.minimum(turns, 360.0 - turns) <= 30.0
+    near = torch.minimum(TURNS, 360.0 - TURNS) <= 30.0
     far_best = losses[:, ~near].min(1).values
     hits = losses[:, near].min(1).values < far_best
     return {"loss-pose": float(hits.float().mean()), "loss-gap": float((far_best / losses[:, 0] - 1.0).median())}
