@@ -9,7 +9,18 @@ import pytest
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import StageDimsConfig
 from unicorn.model import DEFAULT_CONFIG, Unicorn, UnicornConfig, check_model_config, merge_config
-from unicorn.model.config import BRANCHES, CHOICES, CODE_BRANCHES, LossConfig, ShapeConfig, TextureConfig
+from unicorn.model.compositing import list_compositings
+from unicorn.model.config import (
+    BRANCHES,
+    CHOICES,
+    CODE_BRANCHES,
+    LossConfig,
+    ShapeConfig,
+    TextureConfig,
+    allowed_values,
+)
+from unicorn.model.perceptual import list_perceptual_losses
+from unicorn.objectives import ExpectedLoss, list_pose_objectives, pose_step
 
 
 def test_merge_config_changes_only_the_named_keys_of_a_copy() -> None:
@@ -49,9 +60,20 @@ def test_bad_values_fail_naming_the_key(groups, message) -> None:
 
 
 def test_every_choice_names_a_string_setting() -> None:
-    for key, allowed in CHOICES.items():
+    for key in CHOICES:
         group, name = key.split(".")
-        assert DEFAULT_CONFIG[group][name] in allowed, key
+        assert DEFAULT_CONFIG[group][name] in allowed_values(key), key
+
+
+def test_registered_constructors_are_the_allowed_values(monkeypatch) -> None:
+    assert allowed_values("renderer.composite") == tuple(list_compositings())
+    assert allowed_values("loss.perceptual") == (*list_perceptual_losses(), None)
+    assert allowed_values("loss.pose_objective") == tuple(list_pose_objectives())
+    # an objective registered by the user's code is accepted by the check with no list to update
+    with pytest.raises(ValueError, match=r"loss\.pose_objective must be one of"):
+        merge_config(loss={"pose_objective": "mine"})
+    monkeypatch.setitem(pose_step._POSE_OBJECTIVES._factories, "mine", ExpectedLoss)
+    assert merge_config(loss={"pose_objective": "mine"})["loss"]["pose_objective"] == "mine"
 
 
 def test_background_none_skips_its_checks() -> None:

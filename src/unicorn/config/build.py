@@ -21,7 +21,7 @@ from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHED
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
 from unicorn.errors import UserError
-from unicorn.model.config import CHOICES, CODE_BRANCHES, check_model_config, check_ranges
+from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
@@ -106,7 +106,7 @@ def _check_values(cfg: DictConfig) -> None:
 def _check_model(cfg: DictConfig) -> None:
     """The model's own checks on the configuration it will get, then its relations to the data and the stages."""
     m = cfg.model
-    composites = CHOICES["renderer.composite"]
+    composites = allowed_values("renderer.composite")
     _check(m.composite in composites, f"model.composite must be one of {composites}, got {m.composite!r}")
     try:
         check_model_config(model_config(cfg), prefix="model.")

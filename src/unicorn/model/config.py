@@ -14,7 +14,7 @@ import dataclasses
 import math
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,13 +27,13 @@ __all__ = [
     "EncoderConfig",
     "LossConfig",
     "ModelGroups",
-    "POSE_OBJECTIVES",
     "PoseConfig",
     "RendererConfig",
     "ShapeConfig",
     "TemplateConfig",
     "TextureConfig",
     "UnicornConfig",
+    "allowed_values",
     "check_model_config",
     "check_ranges",
     "describe_range",
@@ -56,17 +56,44 @@ def model_branches(has_background: bool) -> tuple[str, ...]:
     return BRANCHES if has_background else BRANCHES[:-1]
 
 
-#: ``loss.pose_objective`` values: the paper's expected loss, or probabilities trained towards the best candidate
-#: (with every candidate's pose refined, or the best one's only); :mod:`unicorn.objectives.pose_step` implements them
-POSE_OBJECTIVES = ("expected", "assigned", "assigned_best")
-#: allowed values of the model's string settings: ``group.key`` -> values
-CHOICES: dict[str, tuple[Any, ...]] = {
+# The settings that name a registered constructor take their allowed values from its registry, looked up when a
+# configuration is checked: the registries' modules import torch, and unicorn.objectives imports this package.
+
+
+def _compositings() -> tuple[str, ...]:
+    from unicorn.model.compositing import list_compositings
+
+    return tuple(list_compositings())
+
+
+def _perceptual_losses() -> tuple[str | None, ...]:
+    from unicorn.model.perceptual import list_perceptual_losses
+
+    return (*list_perceptual_losses(), None)
+
+
+def _pose_objectives() -> tuple[str, ...]:
+    from unicorn.objectives.pose_step import list_pose_objectives
+
+    return tuple(list_pose_objectives())
+
+
+#: allowed values of the model's string settings: ``group.key`` -> the values, or a function listing a registry's
+#: names (:func:`allowed_values` resolves both)
+CHOICES: dict[str, tuple[Any, ...] | Callable[[], tuple[Any, ...]]] = {
     "template.uv_mode": ("seamless", "reference"),
-    "renderer.composite": ("direct", "reference"),
-    "loss.perceptual": ("vgg", "structural", None),
+    "renderer.composite": _compositings,
+    "loss.perceptual": _perceptual_losses,
     "loss.uniform_reduction": ("sum", "mean"),
-    "loss.pose_objective": POSE_OBJECTIVES,
+    "loss.pose_objective": _pose_objectives,
 }
+
+
+def allowed_values(key: str) -> tuple[Any, ...]:
+    """The allowed values of the string setting ``key`` (``group.key`` of :data:`CHOICES`), registered ones
+    included (e.g. a pose objective added with :func:`unicorn.objectives.register_pose_objective`)."""
+    allowed = CHOICES[key]
+    return allowed() if callable(allowed) else allowed
 
 
 def ranged(default: Any, low: float | None = None, high: float | None = None) -> Any:
@@ -257,9 +284,9 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
         ValueError: the first bad value, named with its key (``prefix`` + ``group.key``).
     """
     check_ranges(cfg, UnicornConfig, prefix)
-    for key, allowed in CHOICES.items():
+    for key in CHOICES:
         group, name = key.split(".")
-        if cfg.get(group) is not None and cfg[group][name] not in allowed:
+        if cfg.get(group) is not None and cfg[group][name] not in (allowed := allowed_values(key)):
             raise ValueError(f"{prefix}{key} must be one of {allowed}, got {cfg[group][name]!r}")
     renderer = cfg["renderer"]
     if (renderer["fov"] is None) == (renderer["focal_length"] is None):
