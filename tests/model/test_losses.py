@@ -11,6 +11,7 @@ import torch.nn.functional as F
 
 from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import (
     MeshRegularizer,
     NormalConsistencyLoss,
@@ -21,6 +22,7 @@ from unicorn.model import (
     VGGPerceptualLoss,
     build_perceptual,
     candidate_assignment_loss,
+    candidate_spacing_loss,
     list_perceptual_losses,
     mse_per_sample,
     uniform_pose_prior,
@@ -103,6 +105,30 @@ def test_candidate_assignment_loss_hand_values_and_gradient():
     assert float(logits.grad[1, 1]) < -0.49
     with pytest.raises(ValueError, match="shape"):
         candidate_assignment_loss(log_probs, losses[:, :1])
+
+
+def test_candidate_spacing_loss_against_azimuth_differences():
+    # candidates that differ in azimuth only: their geodesic angle is the azimuth difference on the circle
+    azim = torch.tensor([[0.0, 10.0], [50.0, 350.0], [52.0, 200.0], [144.0, 90.0]], requires_grad=True)  # (K=4, B=2)
+    zeros = torch.zeros_like(azim)
+    R = azim_elev_roll_to_rotation(azim, zeros + 10.0, zeros)
+    value = candidate_spacing_loss(R, min_angle=30.0)
+    expected = 0.0
+    for b in range(2):
+        for k in range(4):
+            for l in range(k + 1, 4):
+                d = abs(float(azim[k, b] - azim[l, b])) % 360
+                expected += max(0.0, 1 - min(d, 360 - d) / 30.0) / 2  # mean over the 2 images
+    assert math.isclose(float(value), expected, rel_tol=1e-5) and math.isclose(expected, (28 / 30 + 10 / 30) / 2)
+    value.backward()
+    # the near pairs (50 and 52; 10 and 350) pushed apart at 1 / 30 per degree, halved by the mean over images
+    push = torch.zeros(4, 2)
+    push[1, 0], push[2, 0], push[0, 1], push[1, 1] = 1, -1, -1, 1
+    assert torch.allclose(azim.grad, push / 60, atol=1e-4)
+    with pytest.raises(ValueError, match="min_angle"):
+        candidate_spacing_loss(R, min_angle=0.0)
+    with pytest.raises(ValueError, match="shape"):
+        candidate_spacing_loss(R[0], min_angle=30.0)
 
 
 def test_uniform_laplacian_hand_values():

@@ -7,7 +7,7 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import Unicorn
+from unicorn.model import Unicorn, candidate_spacing_loss
 from unicorn.objectives import AssignedLoss, Objectives, StepLosses, build_pose_objective, list_pose_objectives
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
@@ -100,6 +100,25 @@ def test_pose_step_assigned_objective(images):
     assert grads_of(model.pose.proba_regressor) > 0
     with pytest.raises(ValueError, match="pose_objective"):
         Unicorn(tiny_config(loss={"pose_objective": "best"}))
+
+
+def test_pose_step_spacing_term_moves_the_candidates_only(images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"spacing_weight": 0.5, "spacing_angle": 90.0}))
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    losses = objectives_of(model).pose_step(model, images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "spacing", "total"}
+    with torch.no_grad():
+        expected = 0.5 * candidate_spacing_loss(model.predict(images).poses.R, 90.0)
+    assert float(expected) > 0 and torch.allclose(losses["spacing"], expected, rtol=1e-5)
+    assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
+    losses["spacing"].backward()
+    assert grads_of(model.pose.proba_regressor) == 0
+    assert all(grads_of(head) > 0 for head in model.pose.rot_regressors)
+    assert all(grads_of(head) == 0 for head in model.pose.T_regressors)
+    # left out at weight 0 (the default, the paper's)
+    assert "spacing" not in objectives_of(Unicorn(tiny_config())).pose_step(model, images)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)

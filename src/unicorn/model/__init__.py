@@ -31,6 +31,7 @@ from unicorn.model.losses import (
     ReconstructionLoss,
     UniformLaplacianLoss,
     candidate_assignment_loss,
+    candidate_spacing_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "build_compositing",
     "build_perceptual",
     "candidate_assignment_loss",
+    "candidate_spacing_loss",
     "check_model_config",
     "count_parameters",
     "list_compositings",

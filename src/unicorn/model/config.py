@@ -188,6 +188,10 @@ class LossConfig:
     laplacian_weight: float = ranged(0.01, 0)
     uniform_weight: float = ranged(0.02, 0)
     uniform_reduction: str = "sum"  # sum (the paper) | mean (the reference code)
+    # pose step: each pair of an image's candidates nearer than spacing_angle degrees costs up to spacing_weight
+    # (unicorn.model.losses.candidate_spacing_loss); 0: left out (the paper)
+    spacing_weight: float = ranged(0.0, 0)
+    spacing_angle: float = ranged(30.0, 1, 180)
     # expected (the paper): the probability-weighted loss trains the probabilities; assigned: the reconstruction
     # terms are weighted by the detached probabilities and the probabilities learn from assignment_weight x the
     # cross-entropy against the best-reconstructing candidate (unicorn.model.losses.candidate_assignment_loss)

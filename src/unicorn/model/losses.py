@@ -13,6 +13,7 @@ import torch
 from torch import nn
 
 from unicorn.checks import check_shape
+from unicorn.geometry.rotations import rotation_angle_between
 from unicorn.model.perceptual import build_perceptual
 
 __all__ = [
@@ -21,6 +22,7 @@ __all__ = [
     "ReconstructionLoss",
     "UniformLaplacianLoss",
     "candidate_assignment_loss",
+    "candidate_spacing_loss",
     "mse_per_sample",
     "uniform_pose_prior",
 ]
@@ -73,6 +75,29 @@ def candidate_assignment_loss(log_probs: torch.Tensor, losses: torch.Tensor) -> 
     check_shape(losses, "K, B", "losses", dims)
     best = losses.detach().argmin(0)  # (B,)
     return -log_probs.gather(0, best.unsqueeze(0)).mean()
+
+
+def candidate_spacing_loss(R: torch.Tensor, min_angle: float) -> torch.Tensor:
+    """How close each image's pose candidates are to one another: ``mean_b sum_{k<l} relu(1 - d[k, l, b] /
+    min_angle)``, ``d`` the geodesic angle between candidates k and l in degrees.
+
+    Each pair of candidates nearer than ``min_angle`` adds up to 1 (two equal candidates: 1); pairs further apart
+    add nothing. The gradient pushes near candidates apart, so that neighbouring candidates cannot both settle on
+    the azimuth their sectors share.
+
+    Args:
+        R: (K, B, 3, 3) candidate rotations.
+        min_angle: the angle in degrees (> 0) from which a pair adds nothing.
+
+    Returns:
+        scalar.
+    """
+    K = check_shape(R, "K, B, 3, 3", "R")["K"]
+    if min_angle <= 0:
+        raise ValueError(f"min_angle must be > 0, got {min_angle}")
+    k, l = torch.triu_indices(K, K, offset=1, device=R.device)
+    angles = rotation_angle_between(R[k], R[l])  # (pairs, B)
+    return torch.relu(1 - angles / min_angle).sum(0).mean()
 
 
 def _edges_and_opposites(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -48,6 +48,8 @@ class Objectives(nn.Module):
             build_pose_objective(loss["pose_objective"], **loss),
             loss["uniform_weight"],
             loss["uniform_reduction"],
+            loss["spacing_weight"],
+            loss["spacing_angle"],
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])

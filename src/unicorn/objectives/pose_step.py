@@ -21,7 +21,12 @@ import torch
 from torch import nn
 
 from unicorn.model import Unicorn
-from unicorn.model.losses import ReconstructionLoss, candidate_assignment_loss, uniform_pose_prior
+from unicorn.model.losses import (
+    ReconstructionLoss,
+    candidate_assignment_loss,
+    candidate_spacing_loss,
+    uniform_pose_prior,
+)
 from unicorn.objectives.step_losses import StepLosses, with_total
 from unicorn.registry import Registry
 
@@ -132,13 +137,16 @@ class AssignedBestLoss(AssignedLoss):
 class PoseStep(nn.Module):
     """P-step: every candidate rendered with the detached 3D prediction; gradients reach the pose branch only.
 
-    ``total = objective(p, L_rec) + uniform_weight * L_uni`` (:func:`uniform_pose_prior`); the rotation,
-    translation and probability heads and the encoder that feeds them receive gradients.
+    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing``
+    (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`); the rotation, translation and probability heads
+    and the encoder that feeds them receive gradients.
 
     Args:
         reconstruction: the weighted per-sample reconstruction terms.
         objective: how the candidates' terms are weighted (:class:`ExpectedLoss`, :class:`AssignedLoss`, ...).
         uniform_weight: weight of the candidate-balance prior (<= 0: left out); uniform_reduction: its reduction.
+        spacing_weight: weight of the candidates' spacing term (<= 0: left out, the paper); spacing_angle: the
+            angle in degrees from which a pair of candidates adds nothing to it.
     """
 
     def __init__(
@@ -147,10 +155,13 @@ class PoseStep(nn.Module):
         objective: PoseObjective,
         uniform_weight: float,
         uniform_reduction: str = "sum",
+        spacing_weight: float = 0.0,
+        spacing_angle: float = 30.0,
     ) -> None:
         super().__init__()
         self.reconstruction, self.objective = reconstruction, objective
         self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
+        self.spacing_weight, self.spacing_angle = spacing_weight, spacing_angle
 
     def forward(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
         """The step's losses on images (B, 3, S, S) in [0, 1].
@@ -159,8 +170,9 @@ class PoseStep(nn.Module):
             average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
 
         Returns:
-            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms and ``uniform``
-            (they sum to ``total``); ``.probs``: the candidate probabilities (K, B), detached.
+            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``
+            and ``spacing`` (if enabled; they sum to ``total``); ``.probs``: the candidate probabilities (K, B),
+            detached.
         """
         model.check_images(images)
         branches = model.branches()
@@ -181,4 +193,6 @@ class PoseStep(nn.Module):
         out = self.objective(poses.probs, poses.log_probs, terms)
         if self.uniform_weight > 0:
             out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
+        if self.spacing_weight > 0:
+            out["spacing"] = self.spacing_weight * candidate_spacing_loss(poses.R, self.spacing_angle)
         return StepLosses(with_total(out, images), poses.probs.detach())
