@@ -152,6 +152,8 @@ class UnicornLitModule(L.LightningModule):
         # the forward pass's changes besides the parameters, kept to be undone (see _snapshot_forward_state)
         self._forward_buffers: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
         self._memory_before: dict[str, torch.Tensor | None] | None = None
+        # each step kind's terms of its latest iteration, logged together (see training_step)
+        self._latest_terms: dict[str, dict[str, torch.Tensor]] = {}
 
     # ------------------------------------------------------------------ schedule helpers
     def phase(self, step: int) -> str:
@@ -202,10 +204,14 @@ class UnicornLitModule(L.LightningModule):
                 scheduler.step()
 
         terms = {name: value.detach() for name, value in losses.items()}
+        self._latest_terms[phase] = terms
         self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)
         if not logs_this_step(self.trainer):
             return terms  # Lightning would drop these step values: skip the ~20 log calls (4 % of a CPU step)
-        self.log_dict({f"train/{phase}/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=False)
+        # every step kind's latest terms: with steps alternating and an even log_every_n_steps, every logged
+        # iteration is of the same kind, and the other kind's terms would never reach the loggers
+        for kind, latest in self._latest_terms.items():
+            self.log_dict({f"train/{kind}/{k}": v for k, v in latest.items()}, on_step=True, on_epoch=False)
         self.log("train/lr", opt.param_groups[0]["lr"], on_step=True, on_epoch=False)
         self.log("train/average_texture", float(average), on_step=True, on_epoch=False)
         probs = losses.probs  # (K, B), detached: the batch's pose probabilities, whichever the step
