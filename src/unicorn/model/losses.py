@@ -81,9 +81,9 @@ def candidate_spacing_loss(R: torch.Tensor, min_angle: float) -> torch.Tensor:
     """How close each image's pose candidates are to one another: ``mean_b sum_{k<l} relu(1 - d[k, l, b] /
     min_angle)``, ``d`` the geodesic angle between candidates k and l in degrees.
 
-    Each pair of candidates nearer than ``min_angle`` adds up to 1 (two equal candidates: 1); pairs further apart
-    add nothing. The gradient pushes near candidates apart, so that neighbouring candidates cannot both settle on
-    the azimuth their sectors share.
+    Each pair of candidates nearer than ``min_angle`` adds up to 1; pairs further apart add nothing. The gradient
+    pushes near candidates apart (e.g. two neighbours on the azimuth their sectors share), at ``1 / min_angle`` per
+    degree; two exactly equal rotations add 1 without a push (the angle's gradient is 0 there).
 
     Args:
         R: (K, B, 3, 3) candidate rotations.
