@@ -8,7 +8,7 @@ import pytest
 
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import StageDimsConfig
-from unicorn.model import DEFAULT_CONFIG, Unicorn, UnicornConfig, check_model_config, merge_config
+from unicorn.model import DEFAULT_CONFIG, Unicorn, UnicornConfig, check_model_config, merge_config, pose_objectives
 from unicorn.model.compositing import list_compositings
 from unicorn.model.config import (
     BRANCHES,
@@ -20,7 +20,7 @@ from unicorn.model.config import (
     allowed_values,
 )
 from unicorn.model.perceptual import list_perceptual_losses
-from unicorn.objectives import ExpectedLoss, list_pose_objectives, pose_step
+from unicorn.model.pose_objectives import ExpectedLoss, list_pose_objectives
 
 
 def test_merge_config_changes_only_the_named_keys_of_a_copy() -> None:
@@ -72,7 +72,7 @@ def test_registered_constructors_are_the_allowed_values(monkeypatch) -> None:
     # an objective registered by the user's code is accepted by the check with no list to update
     with pytest.raises(ValueError, match=r"loss\.pose_objective must be one of"):
         merge_config(loss={"pose_objective": "mine"})
-    monkeypatch.setitem(pose_step._POSE_OBJECTIVES._factories, "mine", ExpectedLoss)
+    monkeypatch.setitem(pose_objectives._POSE_OBJECTIVES._factories, "mine", ExpectedLoss)
     assert merge_config(loss={"pose_objective": "mine"})["loss"]["pose_objective"] == "mine"
 
 

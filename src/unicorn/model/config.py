@@ -57,7 +57,7 @@ def model_branches(has_background: bool) -> tuple[str, ...]:
 
 
 # The settings that name a registered constructor take their allowed values from its registry, looked up when a
-# configuration is checked: the registries' modules import torch, and unicorn.objectives imports this package.
+# configuration is checked: the registries' modules import torch, which this module does not need.
 
 
 def _compositings() -> tuple[str, ...]:
@@ -73,7 +73,7 @@ def _perceptual_losses() -> tuple[str | None, ...]:
 
 
 def _pose_objectives() -> tuple[str, ...]:
-    from unicorn.objectives.pose_step import list_pose_objectives
+    from unicorn.model.pose_objectives import list_pose_objectives
 
     return tuple(list_pose_objectives())
 
@@ -91,7 +91,7 @@ CHOICES: dict[str, tuple[Any, ...] | Callable[[], tuple[Any, ...]]] = {
 
 def allowed_values(key: str) -> tuple[Any, ...]:
     """The allowed values of the string setting ``key`` (``group.key`` of :data:`CHOICES`), registered ones
-    included (e.g. a pose objective added with :func:`unicorn.objectives.register_pose_objective`)."""
+    included (e.g. a pose objective added with :func:`unicorn.model.pose_objectives.register_pose_objective`)."""
     allowed = CHOICES[key]
     return allowed() if callable(allowed) else allowed
 

@@ -15,18 +15,18 @@ The loss functions themselves (reconstruction, perceptual, mesh regularisers) ar
 and :mod:`unicorn.model.perceptual`'s, shared with test-time refinement.
 """
 
-from unicorn.objectives.neighbors import NeighborLoss, NeighborMatch, NeighborMemory
-from unicorn.objectives.objectives import Objectives
-from unicorn.objectives.pose_step import (
+from unicorn.model.pose_objectives import (
     AssignedBestLoss,
     AssignedLoss,
     ExpectedLoss,
     PoseObjective,
-    PoseStep,
     build_pose_objective,
     list_pose_objectives,
     register_pose_objective,
 )
+from unicorn.objectives.neighbors import NeighborLoss, NeighborMatch, NeighborMemory
+from unicorn.objectives.objectives import Objectives
+from unicorn.objectives.pose_step import PoseStep
 from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 

@@ -10,8 +10,9 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
+from unicorn.model.pose_objectives import build_pose_objective
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
-from unicorn.objectives.pose_step import PoseStep, build_pose_objective
+from unicorn.objectives.pose_step import PoseStep
 from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 
