@@ -1,6 +1,6 @@
 """Named constructors of one kind (timm-style registries): a decorator registers them, ``build`` makes one by name.
 
-The model's compositings, perceptual losses and the objectives' pose objectives are each one :class:`Registry`;
+The model's compositings, perceptual losses and pose objectives are each one :class:`Registry`;
 their modules expose ``register_*``, ``list_*`` and ``build_*`` functions bound to it.
 """
 
