@@ -1,6 +1,16 @@
+import math
+
+import pytest
 import torch
 
-from unicorn.geometry.mesh import ellipsoid, icosphere, spherical_face_uvs, spherical_vertex_uvs
+from unicorn.geometry.mesh import (
+    ellipsoid,
+    icosphere,
+    mirror_points,
+    mirror_spherical_map,
+    spherical_face_uvs,
+    spherical_vertex_uvs,
+)
 
 
 def test_icosphere_sizes_and_orientation():
@@ -28,3 +38,40 @@ def test_reference_uvs_straddle_the_seam_and_ours_do_not():
     assert span.max() < 0.25
     assert ours[..., 0].min() >= 0 and ours[..., 0].max() < 1.5
     assert torch.allclose(ours[..., 1], spherical_vertex_uvs(v)[f][..., 1])
+
+
+def _periodic_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Naive texel-centred bilinear lookup of ``image`` (C, H, W) at ``uv`` (N, 2), periodic in u: (N, C)."""
+    c, h, w = image.shape
+    out = []
+    for u, v in uv.tolist():
+        x, y = u * w - 0.5, min(max(v * h - 0.5, 0.0), h - 1.0)
+        x0, y0 = math.floor(x), min(math.floor(y), h - 2)
+        fx, fy = x - x0, y - y0
+        value = torch.zeros(c)
+        for dx, wx in ((0, 1 - fx), (1, fx)):
+            for dy, wy in ((0, 1 - fy), (1, fy)):
+                value += wx * wy * image[:, y0 + dy, (x0 + dx) % w]
+        out.append(value)
+    return torch.stack(out)
+
+
+def test_icosphere_is_mirror_symmetric_in_z():
+    v, _ = icosphere(3, dtype=torch.float64)
+    mirrored = mirror_points(v)
+    assert torch.cdist(mirrored, v).min(dim=1).values.max() < 1e-5
+    assert torch.equal(mirror_points(v)[:, :2], v[:, :2]) and torch.equal(mirror_points(v)[:, 2], -v[:, 2])
+
+
+def test_mirrored_map_shows_at_a_point_what_the_map_shows_at_its_mirror():
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(3, 8, 16, generator=g)
+    points = torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=-1)
+    seen = _periodic_bilinear(image, spherical_vertex_uvs(points))
+    mirrored = _periodic_bilinear(mirror_spherical_map(image), spherical_vertex_uvs(mirror_points(points)))
+    assert torch.allclose(mirrored, seen, atol=1e-5)
+    # the lookup is not mirror-symmetric by itself: the oracle can tell the maps apart
+    assert not torch.allclose(_periodic_bilinear(image, spherical_vertex_uvs(mirror_points(points))), seen, atol=0.1)
+    assert torch.equal(mirror_spherical_map(mirror_spherical_map(image)), image)
+    with pytest.raises(ValueError, match="even width"):
+        mirror_spherical_map(torch.rand(3, 8, 15))

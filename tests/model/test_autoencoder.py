@@ -152,3 +152,34 @@ def test_shapenet_model_without_background():
     objectives = Objectives.from_config(model.config["loss"], model)
     pose, step = objectives.pose_step(model, x), objectives.step_3d(model, x)
     assert all(torch.isfinite(v) for v in [*pose.values(), *step.values()])
+
+
+@pytest.mark.parametrize(("shape", "texture"), [(True, True), (True, False), (False, True)])
+def test_symmetric_shape_and_texture_render_mirrored_views_as_mirrored_images(shape, texture):
+    # a scene symmetric through z = 0 seen with R' = M R F (M mirrors z, F flips the view's x) is the view of its
+    # mirror image flipped left-right: the mirrored camera's picture is the first picture flipped
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(shape={"symmetric": shape, "active_dims": 4}, texture={"symmetric": texture})).eval()
+    randomize_heads(model, std=0.3)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # texture maps far from one colour, so that an asymmetric one shows
+        for module in model.texture.generator.modules():
+            if isinstance(module, torch.nn.Conv2d):
+                module.weight.copy_(torch.randn(module.weight.shape, generator=g) * 0.5)
+    mirror, flip = torch.diag(torch.tensor([1.0, 1.0, -1.0])), torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+    R = azim_elev_roll_to_rotation(torch.tensor([40.0]), torch.tensor([20.0]), torch.tensor([10.0]))
+    T = torch.tensor([[0.1, -0.05, 2.732]])
+    with torch.no_grad():
+        pred = model.predict(ellipsoid_images(1))
+        rgb, alpha = model.render(pred.verts, pred.texture, R, T)
+        rgb_m, alpha_m = model.render(pred.verts, pred.texture, mirror @ R @ flip, T @ flip)
+    assert alpha.sum() > 50 and pred.texture.std() > 0.2  # the object covers part of the image, in many colours
+    assert (torch.allclose(alpha_m, alpha.flip(-1), atol=1e-4)) == shape
+    assert (torch.allclose(rgb_m, rgb.flip(-1), atol=1e-4)) == (shape and texture)
+
+
+def test_symmetric_texture_needs_the_seamless_uvs_and_an_even_size():
+    with pytest.raises(ValueError, match="texture.symmetric needs template.uv_mode='seamless'"):
+        merge_config(texture={"symmetric": True}, template={"uv_mode": "reference"})
+    with pytest.raises(ValueError, match="texture.symmetric needs an even texture.size"):
+        merge_config(texture={"symmetric": True, "size": 15})

@@ -10,7 +10,14 @@ import math
 import torch
 import trimesh
 
-__all__ = ["ellipsoid", "icosphere", "spherical_face_uvs", "spherical_vertex_uvs"]
+__all__ = [
+    "ellipsoid",
+    "icosphere",
+    "mirror_points",
+    "mirror_spherical_map",
+    "spherical_face_uvs",
+    "spherical_vertex_uvs",
+]
 
 
 def icosphere(level: int = 3, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,3 +82,26 @@ def spherical_face_uvs(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
         straddles = (u.max(dim=1).values - u.min(dim=1).values) > 0.5
         u = torch.where(straddles.unsqueeze(1) & (u < 0.5), u + 1.0, u)
     return torch.stack([u, uv[..., 1]], dim=-1)
+
+
+# The template's mirror plane is z = 0, the plane of its long axis (X) and its up axis (Y): the plane of left-right
+# symmetry of a car, a chair or a mug whose length or handle lies along X.
+
+
+def mirror_points(points: torch.Tensor) -> torch.Tensor:
+    """Mirror points (..., 3) through the template's plane of symmetry z = 0."""
+    return points * points.new_tensor((1.0, 1.0, -1.0))
+
+
+def mirror_spherical_map(maps: torch.Tensor) -> torch.Tensor:
+    """Mirror texture maps (..., H, W) sampled through :func:`spherical_vertex_uvs` with a horizontally wrapping,
+    texel-centred lookup (``TexturesUV(wrap_u=True)``), so that the mirrored map seen at a point shows what the
+    map shows at its mirror image (:func:`mirror_points`).
+
+    Mirroring z flips the azimuth ``atan2(x, z)`` about the X axis, ``u -> 0.5 - u`` (mod 1): texel column ``j``
+    (centre ``(j + 0.5) / W``) takes column ``W/2 - 1 - j`` (mod W). ``W`` must be even.
+    """
+    width = maps.shape[-1]
+    if width % 2:
+        raise ValueError(f"a spherical texture map needs an even width to be mirrored, got {width}")
+    return torch.roll(maps.flip(-1), width // 2, dims=-1)

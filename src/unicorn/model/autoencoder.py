@@ -136,6 +136,7 @@ def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
         tx["n_reg_units"],
         tx["n_reg_layers"],
         tx["active_dims"],
+        tx["symmetric"],
     )
     background = None
     if cfg["background"] is not None:

@@ -127,6 +127,9 @@ class ShapeConfig:
     n_field_layers: int = ranged(2, 0)
     n_reg_units: int = ranged(128, 1)
     n_reg_layers: int = ranged(3, 0)
+    # mirror-symmetric through the template's plane z = 0 (unicorn.model.field.ShapeHead); False: the paper, which
+    # uses no symmetry prior
+    symmetric: bool = False
 
 
 @dataclass
@@ -137,6 +140,9 @@ class TextureConfig:
     min_features: int = ranged(16, 1)
     n_reg_units: int = ranged(128, 1)
     n_reg_layers: int = ranged(3, 0)
+    # mirror-symmetric maps (unicorn.model.generator.CodeGenerator; needs template.uv_mode=seamless and an even
+    # size); False: the paper
+    symmetric: bool = False
 
 
 @dataclass
@@ -296,6 +302,19 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     if (renderer["fov"] is None) == (renderer["focal_length"] is None):
         raise ValueError(f"{prefix}renderer needs exactly one of fov and focal_length")
     _check_own_encoders(cfg, prefix)
+    _check_symmetric_texture(cfg, prefix)
+
+
+def _check_symmetric_texture(cfg: Mapping[str, Any], prefix: str) -> None:
+    """A mirror-symmetric texture needs the seamless spherical UVs (mirrored by a horizontal flip of the map) and
+    an even map width."""
+    texture = cfg["texture"]
+    if not texture["symmetric"]:
+        return
+    if (uv_mode := cfg["template"]["uv_mode"]) != "seamless":
+        raise ValueError(f"{prefix}texture.symmetric needs template.uv_mode='seamless', got {uv_mode!r}")
+    if texture["size"] % 2:
+        raise ValueError(f"{prefix}texture.symmetric needs an even texture.size, got {texture['size']}")
 
 
 def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:

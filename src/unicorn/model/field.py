@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from unicorn.checks import check_shape
+from unicorn.geometry.mesh import mirror_points
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
 
@@ -65,6 +66,9 @@ class ShapeHead(nn.Module):
         code_dim: full shape code size (32 small / 64 big).
         n_field_units, n_field_layers: deformation field width and depth.
         n_reg_units, n_reg_layers: code regressor width and depth (zero-initialised last layer).
+        symmetric: mirror-symmetric displacements through the plane z = 0 (the mean of the field at a point and
+            the mirror of the field at the point's mirror image), so a template symmetric in z stays so; the
+            paper uses no symmetry prior (False).
     """
 
     use_deformation: torch.Tensor
@@ -77,8 +81,10 @@ class ShapeHead(nn.Module):
         n_field_layers: int = 2,
         n_reg_units: int = 128,
         n_reg_layers: int = 3,
+        symmetric: bool = False,
     ) -> None:
         super().__init__()
+        self.symmetric = symmetric
         self.regressor = MLP(in_features, code_dim, n_reg_units, n_reg_layers, zero_last=True)
         self.mask = ProgressiveMask(code_dim, active_dims=0)
         self.field = DeformationField(code_dim, n_field_units, n_field_layers)
@@ -96,4 +102,6 @@ class ShapeHead(nn.Module):
     def forward(self, template: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """Displacements (B, V, 3) of ``template`` (V, 3) for masked codes (B, code_dim)."""
         delta = self.field(template, code)
+        if self.symmetric:
+            delta = (delta + mirror_points(self.field(mirror_points(template), code))) / 2
         return delta * self.use_deformation.to(delta.dtype)

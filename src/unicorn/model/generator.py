@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from unicorn.checks import check_shape
+from unicorn.geometry.mesh import mirror_spherical_map
 from unicorn.model.filtering import separable_filter
 from unicorn.model.mlp import MLP
 from unicorn.model.progressive import ProgressiveMask
@@ -95,6 +96,9 @@ class CodeGenerator(nn.Module):
         min_features: generator's smallest width (16 small, 64 big).
         n_reg_units, n_reg_layers: code regressor width and depth (zero-initialised last layer).
         active_dims: initial active code size.
+        symmetric: a texture map mirror-symmetric through the template's plane z = 0 (the mean of the generated
+            map and its mirror, :func:`unicorn.geometry.mesh.mirror_spherical_map`; needs the seamless spherical
+            UVs); the paper uses no symmetry prior (False).
     """
 
     def __init__(
@@ -106,8 +110,10 @@ class CodeGenerator(nn.Module):
         n_reg_units: int = 128,
         n_reg_layers: int = 3,
         active_dims: int | None = None,
+        symmetric: bool = False,
     ) -> None:
         super().__init__()
+        self.symmetric = symmetric
         self.regressor = MLP(in_features, code_dim, n_reg_units, n_reg_layers, zero_last=True)
         self.mask = ProgressiveMask(code_dim, active_dims)
         self.generator = GiraffeGenerator(code_dim, img_size, min_features)
@@ -122,7 +128,8 @@ class CodeGenerator(nn.Module):
 
     def forward(self, code: torch.Tensor) -> torch.Tensor:
         """Masked code (B, code_dim) -> image (B, 3, S, S) in [0, 1]."""
-        return self.generator(code)
+        image = self.generator(code)
+        return (image + mirror_spherical_map(image)) / 2 if self.symmetric else image
 
 
 def mean_texture(maps: torch.Tensor) -> torch.Tensor:
