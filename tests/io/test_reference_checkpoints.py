@@ -6,7 +6,13 @@ import pytest
 import torch
 
 from tests.support.checkpoints import reference_state
-from unicorn.io import config_from_reference, convert_reference_state_dict, load_reference_checkpoint
+from unicorn.errors import UserError
+from unicorn.io import (
+    ReferenceCheckpointError,
+    config_from_reference,
+    convert_reference_state_dict,
+    load_reference_checkpoint,
+)
 
 
 def real_kwargs() -> dict:
@@ -109,3 +115,7 @@ def test_shapenet_checkpoint_and_key_checks():
     del missing["scale_regressor.0.weight"]
     with pytest.raises(KeyError, match="scale.regressor.0.weight"):
         load_reference_checkpoint(missing, image_size=32)
+    with pytest.raises(ReferenceCheckpointError, match="^the checkpoint holds no perceptual_loss weights"):
+        without_vgg = {k: v for k, v in state.items() if not k.startswith("perceptual_loss.")}
+        load_reference_checkpoint(without_vgg, image_size=32, with_perceptual=True)
+    assert issubclass(ReferenceCheckpointError, UserError) and issubclass(ReferenceCheckpointError, KeyError)

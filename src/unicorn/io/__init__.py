@@ -28,6 +28,7 @@ from unicorn.io.images import (
 )
 from unicorn.io.meshes import export_prediction, glb_bytes, save_mesh, textured_mesh
 from unicorn.io.reference_checkpoints import (
+    ReferenceCheckpointError,
     config_from_reference,
     convert_reference_state_dict,
     load_reference_checkpoint,
@@ -39,6 +40,7 @@ __all__ = [
     "CorruptCheckpointError",
     "InputImage",
     "RawInput",
+    "ReferenceCheckpointError",
     "UnsafeCheckpointError",
     "alpha_bbox",
     "collect_inputs",

@@ -38,13 +38,25 @@ from typing import Any
 import torch
 
 from unicorn.config.presets import model_preset
-from unicorn.io.serialization import load_checkpoint_file
+from unicorn.io.serialization import CheckpointError, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
 from unicorn.model.config import merge_config
 from unicorn.model.perceptual import VGGPerceptualLoss
 from unicorn.model.progressive import active_dims_at
 
-__all__ = ["config_from_reference", "convert_reference_state_dict", "load_reference_checkpoint"]
+__all__ = [
+    "ReferenceCheckpointError",
+    "config_from_reference",
+    "convert_reference_state_dict",
+    "load_reference_checkpoint",
+]
+
+
+class ReferenceCheckpointError(CheckpointError, KeyError):
+    """A released checkpoint whose keys do not fit the model it describes (also a ``KeyError``: a key problem)."""
+
+    __str__ = Exception.__str__  # the message as written, not KeyError's quoted repr
+
 
 _RESNET_CHILDREN = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
 _ENCODER_INDEX = {"encoder": 0, "encoder_sh": 0, "encoder_tx": 1, "encoder_pose": 2, "encoder_bg": 3}
@@ -86,7 +98,7 @@ def convert_reference_state_dict(
         the configuration) and the VGG16 perceptual weights under torchvision names (empty if absent).
 
     Raises:
-        KeyError: unknown keys (``strict``).
+        ReferenceCheckpointError: unknown keys (``strict``).
     """
     state = _state_dict_of(state)
     ours: dict[str, torch.Tensor] = {}
@@ -120,7 +132,9 @@ def convert_reference_state_dict(
                     value = value[_ROT_SWAP]
             ours[new_key] = value
     if unknown and strict:
-        raise KeyError(f"unrecognised keys in the reference checkpoint ({len(unknown)}): {unknown[:10]}")
+        raise ReferenceCheckpointError(
+            f"unrecognised keys in the reference checkpoint ({len(unknown)}): {unknown[:10]}"
+        )
     return ours, vgg
 
 
@@ -295,6 +309,8 @@ def load_reference_checkpoint(
 
     Raises:
         unicorn.io.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
+        ReferenceCheckpointError: keys that do not fit the model (``strict``), or ``with_perceptual`` on a file
+            without the VGG weights.
     """
     if not isinstance(checkpoint, Mapping):
         # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
@@ -304,7 +320,9 @@ def load_reference_checkpoint(
     model = Unicorn(cfg)
     if with_perceptual:
         if not vgg:
-            raise KeyError("the checkpoint holds no perceptual_loss weights")
+            raise ReferenceCheckpointError(
+                "the checkpoint holds no perceptual_loss weights (load it without with_perceptual)"
+            )
         model.perceptual = VGGPerceptualLoss(vgg).to(next(model.parameters()).device)
         model.config["loss"]["perceptual"] = "vgg"
     missing, unexpected = model.load_state_dict(state, strict=False)
@@ -312,6 +330,8 @@ def load_reference_checkpoint(
     allowed = re.compile(r"(\.mask\.active|use_translation|use_deformation|use_scale|^renderer\.)")
     missing = [k for k in missing if not allowed.search(k)]
     if strict and (missing or unexpected):
-        raise KeyError(f"checkpoint does not fit the model: missing {missing[:10]}, unexpected {unexpected[:10]}")
+        raise ReferenceCheckpointError(
+            f"checkpoint does not fit the model: missing {missing[:10]}, unexpected {unexpected[:10]}"
+        )
     model.set_stage_switches(**_stage_switches(checkpoint))
     return model.eval()
