@@ -84,8 +84,9 @@ def spherical_face_uvs(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
     return torch.stack([u, uv[..., 1]], dim=-1)
 
 
-# The template's mirror plane is z = 0, the plane of its long axis (X) and its up axis (Y): the plane of left-right
-# symmetry of a car, a chair or a mug whose length or handle lies along X.
+# The template's mirror plane is z = 0, the plane of its long axis (X) and its up axis (Y): with the model's symmetry
+# prior on (unicorn.model.field.ShapeHead, unicorn.model.generator.CodeGenerator), a learned canonical frame must put
+# an object's own plane of symmetry there (a car's length, a mug's handle along X).
 
 
 def mirror_points(points: torch.Tensor) -> torch.Tensor:
