@@ -86,6 +86,23 @@ def test_deformation_field_zero_init_and_shapes():
         field(pts, torch.randn(4, 7))
 
 
+def test_symmetric_shape_head_is_the_mean_of_the_field_and_its_mirror():
+    torch.manual_seed(0)
+    head = ShapeHead(512, code_dim=8, n_field_units=32, symmetric=True)
+    for p in head.field.parameters():  # the field starts at zero: give it something to mirror
+        torch.nn.init.normal_(p, std=0.3)
+    template, code = torch.randn(10, 3), torch.randn(4, 8)
+    flip = torch.tensor([1.0, 1.0, -1.0])  # the mirror through z = 0, written out
+    expected = (head.field(template, code) + head.field(template * flip, code) * flip) / 2
+    delta = head(template, code)
+    assert delta.shape == (4, 10, 3) and delta.abs().amax() > 1e-3
+    torch.testing.assert_close(delta, expected)
+    # a template symmetric in z keeps its symmetry: the mirror point's displacement is the mirrored displacement
+    pair = torch.cat([template, template * flip])
+    both = head(pair, code)
+    torch.testing.assert_close(both[:, 10:], both[:, :10] * flip)
+
+
 @pytest.mark.parametrize(
     ("code_dim", "min_features", "widths"),
     [(128, 16, [64, 32, 16, 16, 16, 16]), (512, 64, [256, 128, 64, 64, 64, 64]), (256, 64, [128, 64, 64, 64, 64, 64])],

@@ -101,7 +101,11 @@ class ShapeHead(nn.Module):
 
     def forward(self, template: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """Displacements (B, V, 3) of ``template`` (V, 3) for masked codes (B, code_dim)."""
-        delta = self.field(template, code)
         if self.symmetric:
-            delta = (delta + mirror_points(self.field(mirror_points(template), code))) / 2
+            # one field call on the points and their mirror images, split after
+            both = self.field(torch.cat([template, mirror_points(template)], dim=-2), code)
+            delta, delta_of_mirror = both.split(template.shape[-2], dim=1)
+            delta = (delta + mirror_points(delta_of_mirror)) / 2
+        else:
+            delta = self.field(template, code)
         return delta * self.use_deformation.to(delta.dtype)
