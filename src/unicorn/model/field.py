@@ -104,7 +104,7 @@ class ShapeHead(nn.Module):
         if self.symmetric:
             # one field call on the points and their mirror images, split after
             both = self.field(torch.cat([template, mirror_points(template)], dim=-2), code)
-            delta, delta_of_mirror = both.split(template.shape[-2], dim=1)
+            delta, delta_of_mirror = both.split(template.shape[-2], dim=-2)
             delta = (delta + mirror_points(delta_of_mirror)) / 2
         else:
             delta = self.field(template, code)
