@@ -1,7 +1,7 @@
 """Where does a trained model's colour error come from: the metric, the texture generator, or the encoder?
 
-For test views of the synthetic benchmark, the model's predicted shape and pose are kept fixed and the textures
-are re-fitted per image with the training's reconstruction loss (Adam, ``--steps``):
+For views of the synthetic benchmark (the test split, or ``--split train`` for the objects the model was trained
+on), the model's predicted shape and pose are kept fixed and the textures are re-fitted per image with the training's reconstruction loss (Adam, ``--steps``):
 
 - ``amortised``: the model's own textures (what ``unicorn-eval`` scores);
 - ``code-opt``: the texture *code* optimised per image, through the model's generator: what the generator can
@@ -47,7 +47,13 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
     p.add_argument("--root", required=True, help="the synthetic dataset folder (with metadata.yaml)")
-    p.add_argument("--views", type=int, default=96, help="test views (a fixed random choice)")
+    p.add_argument("--views", type=int, default=96, help="views of the split (a fixed random choice)")
+    p.add_argument(
+        "--split",
+        choices=("train", "test"),
+        default="test",
+        help="the test objects, or the training objects (amortised much better there: a generalisation gap)",
+    )
     p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
     p.add_argument("--lr", type=float, default=1e-2)
     args = p.parse_args()
@@ -55,7 +61,7 @@ def main() -> None:
     model, _ = load_model(args.checkpoint)
     model.eval().requires_grad_(False)
     size = model.config["image_size"]
-    data = build_dataset("synthetic", "test", args.root, img_size=size, views="all")
+    data = build_dataset("synthetic", args.split, args.root, img_size=size, views="all")
     idx = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[: args.views].tolist()
     batch = torch.utils.data.default_collate([data[i] for i in idx])
     images = batch["image"]
@@ -82,7 +88,7 @@ def main() -> None:
             opt.step()
         rows[name] = (colour_ratios(model, pred, make().detach(), images, masks), float(loss.detach()))
 
-    print(f"{len(idx)} test views, {args.steps} Adam steps per fit\n")
+    print(f"{len(idx)} {args.split} views, {args.steps} Adam steps per fit\n")
     print("| textures | colour ratio, whole masks | colour ratio, interiors | reconstruction loss (last step) |")
     print("|---|---|---|---|")
     for name, (r, loss) in rows.items():
