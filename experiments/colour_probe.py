@@ -1,7 +1,8 @@
 """Where does a trained model's colour error come from: the metric, the texture generator, or the encoder?
 
 For views of the synthetic benchmark (the test split, or ``--split train`` for the objects the model was trained
-on), the model's predicted shape and pose are kept fixed and the textures are re-fitted per image with the training's reconstruction loss (Adam, ``--steps``):
+on), the model's predicted shape and pose are kept fixed and the textures are re-fitted per image with the
+training's reconstruction loss (Adam, ``--steps``):
 
 - ``amortised``: the model's own textures (what ``unicorn-eval`` scores);
 - ``code-opt``: the texture *code* optimised per image, through the model's generator: what the generator can
