@@ -10,6 +10,9 @@ training's reconstruction loss (Adam, ``--steps``):
 - ``map-opt``: the texture *image* optimised per image, every texel free: what the loss can reach at this shape
   and pose.
 
+After the table, the spread of the regressed texture codes against the codes fitted per image (``code-opt``): a
+regressor that shrinks the codes towards their mean gives textures nearer the category's average colour.
+
 Each row is scored with the colour ratio (:func:`unicorn.metrics.instance.color_errors`: error of the mean
 foreground colour over the error of predicting the views' average colour) on whole masks and on mask interiors
 (each mask eroded by one pixel, ``interior=1``, what ``unicorn-eval`` reports).
@@ -44,6 +47,23 @@ def colour_ratios(model, pred, maps: torch.Tensor, images: torch.Tensor, masks: 
     return out
 
 
+def code_spread(regressed: torch.Tensor, fitted: torch.Tensor) -> dict[str, float]:
+    """How far the regressed texture codes (N, C) are shrunk against the codes fitted per image (N, C).
+
+    ``spread``: the standard deviation over the images of each code entry, averaged over the entries; ``r2``: the
+    share of the fitted codes' variance that an affine map of the regressed codes explains (least squares).
+    """
+    regressed, fitted = regressed.double(), fitted.double()
+    X = torch.cat([regressed, torch.ones_like(regressed[:, :1])], 1)
+    residual = X @ torch.linalg.lstsq(X, fitted).solution - fitted
+    r2 = 1 - residual.pow(2).sum() / (fitted - fitted.mean(0)).pow(2).sum()
+    return {
+        "regressed": float(regressed.std(0).mean()),
+        "fitted": float(fitted.std(0).mean()),
+        "r2": float(r2),
+    }
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
@@ -71,7 +91,8 @@ def main() -> None:
     with torch.no_grad():
         pred = model.predict(images)
 
-    code = pred.texture_code.clone().requires_grad_(True)
+    regressed = pred.texture_code.clone()
+    code = regressed.clone().requires_grad_(True)
     logits = torch.logit(pred.texture.clamp(1e-3, 1 - 1e-3)).requires_grad_(True)
     fits = {"code-opt": (code, lambda: model.texture(code)), "map-opt": (logits, lambda: torch.sigmoid(logits))}
     reconstruction = ReconstructionLoss.from_config(model.config["loss"])
@@ -94,6 +115,11 @@ def main() -> None:
     print("|---|---|---|---|")
     for name, (r, loss) in rows.items():
         print(f"| {name} | {r['whole masks']:.3f} | {r['interiors']:.3f} | {loss:.5f} |")
+    spread = code_spread(regressed, code.detach())
+    print(
+        f"\ntexture code spread (std per entry, mean over entries): regressed {spread['regressed']:.3f}, fitted per "
+        f"image {spread['fitted']:.3f}; fitted explained by an affine map of the regressed: R^2 {spread['r2']:.3f}"
+    )
 
 
 if __name__ == "__main__":
