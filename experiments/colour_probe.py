@@ -29,6 +29,7 @@ import torch
 from unicorn.data import build_dataset
 from unicorn.evaluation.rendering import hard_render
 from unicorn.io import load_model
+from unicorn.metrics import code_spread
 from unicorn.metrics.instance import color_errors, mean_foreground_color
 from unicorn.model import ReconstructionLoss
 
@@ -47,19 +48,20 @@ def colour_ratios(model, pred, maps: torch.Tensor, images: torch.Tensor, masks: 
     return out
 
 
-def code_spread(regressed: torch.Tensor, fitted: torch.Tensor) -> dict[str, float]:
+def code_shrinkage(regressed: torch.Tensor, fitted: torch.Tensor) -> dict[str, float]:
     """How far the regressed texture codes (N, C) are shrunk against the codes fitted per image (N, C).
 
-    ``spread``: the standard deviation over the images of each code entry, averaged over the entries; ``r2``: the
-    share of the fitted codes' variance that an affine map of the regressed codes explains (least squares).
+    ``regressed`` and ``fitted``: each set's spread (:func:`unicorn.metrics.code_spread` per entry, averaged over the
+    entries); ``r2``: the share of the fitted codes' variance that an affine map of the regressed codes explains
+    (least squares).
     """
     regressed, fitted = regressed.double(), fitted.double()
     X = torch.cat([regressed, torch.ones_like(regressed[:, :1])], 1)
     residual = X @ torch.linalg.lstsq(X, fitted).solution - fitted
     r2 = 1 - residual.pow(2).sum() / (fitted - fitted.mean(0)).pow(2).sum()
     return {
-        "regressed": float(regressed.std(0).mean()),
-        "fitted": float(fitted.std(0).mean()),
+        "regressed": float(code_spread(regressed).mean()),
+        "fitted": float(code_spread(fitted).mean()),
         "r2": float(r2),
     }
 
@@ -73,7 +75,7 @@ def main() -> None:
         "--split",
         choices=("train", "test"),
         default="test",
-        help="the test objects, or the training objects (amortised much better there: a generalisation gap)",
+        help="the test objects, or the training objects (a gap between the two is a generalisation gap)",
     )
     p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
     p.add_argument("--lr", type=float, default=1e-2)
@@ -91,8 +93,7 @@ def main() -> None:
     with torch.no_grad():
         pred = model.predict(images)
 
-    regressed = pred.texture_code.clone()
-    code = regressed.clone().requires_grad_(True)
+    code = pred.texture_code.clone().requires_grad_(True)
     logits = torch.logit(pred.texture.clamp(1e-3, 1 - 1e-3)).requires_grad_(True)
     fits = {"code-opt": (code, lambda: model.texture(code)), "map-opt": (logits, lambda: torch.sigmoid(logits))}
     reconstruction = ReconstructionLoss.from_config(model.config["loss"])
@@ -115,7 +116,7 @@ def main() -> None:
     print("|---|---|---|---|")
     for name, (r, loss) in rows.items():
         print(f"| {name} | {r['whole masks']:.3f} | {r['interiors']:.3f} | {loss:.5f} |")
-    spread = code_spread(regressed, code.detach())
+    spread = code_shrinkage(pred.texture_code, code.detach())
     print(
         f"\ntexture code spread (std per entry, mean over entries): regressed {spread['regressed']:.3f}, fitted per "
         f"image {spread['fitted']:.3f}; fitted explained by an affine map of the regressed: R^2 {spread['r2']:.3f}"
