@@ -11,7 +11,11 @@ training's reconstruction loss (Adam, ``--steps``):
   and pose.
 
 After the table, the spread of the regressed texture codes against the codes fitted per image (``code-opt``): a
-regressor that shrinks the codes towards their mean gives textures nearer the category's average colour.
+regressor that shrinks the codes towards their mean gives textures nearer the category's average colour. Last, a
+``readout``: an affine map from the texture branch's encoder features to the ground-truth colour (interiors), fitted
+by ridge regression on the training views (its penalty chosen by cross-validation over the training objects), and
+scored on the probed views: whether the encoder's features carry the colour of these objects at all (on the
+training split the views it was fitted on are among the probed ones).
 
 Each row is scored with the colour ratio (:func:`unicorn.metrics.instance.color_errors`: error of the mean
 foreground colour over the error of predicting the views' average colour) on whole masks and on mask interiors
@@ -32,6 +36,9 @@ from unicorn.io import load_model
 from unicorn.metrics import code_spread
 from unicorn.metrics.instance import color_errors, mean_foreground_color
 from unicorn.model import ReconstructionLoss
+
+FOLDS = 5  # cross-validation folds of the readout's penalty, over the training objects
+PENALTIES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)  # the readout's ridge penalties tried (times the number of views)
 
 
 def colour_ratios(model, pred, maps: torch.Tensor, images: torch.Tensor, masks: torch.Tensor) -> dict[str, float]:
@@ -66,6 +73,55 @@ def code_shrinkage(regressed: torch.Tensor, fitted: torch.Tensor) -> dict[str, f
     }
 
 
+def ridge_readout(
+    features: torch.Tensor, targets: torch.Tensor, groups: torch.Tensor, penalties: tuple[float, ...] = PENALTIES
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """An affine map from ``features`` (N, F) to ``targets`` (N, 3) by ridge regression on standardised features,
+    its penalty (times N) the one of ``penalties`` with the least squared error over ``FOLDS`` folds of the
+    ``groups`` (N,) (objects: views of one object are never split between fit and score).
+
+    Returns the weights (F + 1, 3), the features' mean and std (2, F) and the chosen penalty.
+    """
+    x, y = features.double(), targets.double()
+    stats = torch.stack([x.mean(0), x.std(0).clamp(min=1e-6)])
+
+    def design(f: torch.Tensor) -> torch.Tensor:
+        z = (f.double() - stats[0]) / stats[1]
+        return torch.cat([z, torch.ones_like(z[:, :1])], 1)
+
+    def fit(a: torch.Tensor, b: torch.Tensor, penalty: float) -> torch.Tensor:
+        eye = torch.eye(a.shape[1], dtype=a.dtype)
+        eye[-1, -1] = 0  # the offset is not penalised
+        return torch.linalg.solve(a.T @ a + penalty * len(a) * eye, a.T @ b)
+
+    X = design(x)
+    fold = torch.remainder(groups, FOLDS)
+    errors = []
+    for penalty in penalties:
+        err = 0.0
+        for k in range(FOLDS):
+            held = fold == k
+            err += float((X[held] @ fit(X[~held], y[~held], penalty) - y[held]).pow(2).sum())
+        errors.append(err)
+    best = penalties[min(range(len(penalties)), key=errors.__getitem__)]
+    return fit(X, y, best), stats, best
+
+
+def readout_colours(weights: torch.Tensor, stats: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """The colours (N, 3) that :func:`ridge_readout`'s map gives features (N, F)."""
+    z = (features.double() - stats[0]) / stats[1]
+    return torch.cat([z, torch.ones_like(z[:, :1])], 1) @ weights
+
+
+def views(data, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Images (N, 3, S, S), masks (N, 1, S, S) at the images' size and object indices (N,) of views ``idx``."""
+    batch = torch.utils.data.default_collate([data[i] for i in idx])
+    images = batch["image"]
+    masks = batch["mask"].float().reshape(len(idx), 1, *batch["mask"].shape[-2:])
+    masks = torch.nn.functional.interpolate(masks, size=images.shape[-2:])  # nearest, as unicorn-eval
+    return images, masks, batch["model"]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
@@ -79,6 +135,7 @@ def main() -> None:
     )
     p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
     p.add_argument("--lr", type=float, default=1e-2)
+    p.add_argument("--readout-views", type=int, default=1200, help="training views the readout is fitted on")
     args = p.parse_args()
 
     model, _ = load_model(args.checkpoint)
@@ -86,10 +143,7 @@ def main() -> None:
     size = model.config["image_size"]
     data = build_dataset("synthetic", args.split, args.root, img_size=size, views="all")
     idx = torch.randperm(len(data), generator=torch.Generator().manual_seed(0))[: args.views].tolist()
-    batch = torch.utils.data.default_collate([data[i] for i in idx])
-    images = batch["image"]
-    masks = batch["mask"].float().reshape(len(idx), 1, *batch["mask"].shape[-2:])
-    masks = torch.nn.functional.interpolate(masks, size=images.shape[-2:])  # nearest, as unicorn-eval
+    images, masks, _ = views(data, idx)
     with torch.no_grad():
         pred = model.predict(images)
 
@@ -120,6 +174,24 @@ def main() -> None:
     print(
         f"\ntexture code spread (std per entry, mean over entries): regressed {spread['regressed']:.3f}, fitted per "
         f"image {spread['fitted']:.3f}; fitted explained by an affine map of the regressed: R^2 {spread['r2']:.3f}"
+    )
+
+    train = build_dataset("synthetic", "train", args.root, img_size=size, views="all")
+    fit_idx = torch.randperm(len(train), generator=torch.Generator().manual_seed(1))[: args.readout_views].tolist()
+    fit_images, fit_masks, objects = views(train, fit_idx)
+    fit_colours = mean_foreground_color(fit_images, fit_masks, interior=1).double()
+    with torch.no_grad():
+        fit_features = torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])
+        features = model.encode(images, ("texture",))["texture"]
+    seen = ~torch.isnan(fit_colours).any(1)  # views whose interior is empty have no colour to fit
+    weights, stats, penalty = ridge_readout(fit_features[seen], fit_colours[seen], objects[seen])
+    p = readout_colours(weights, stats, features)
+    g = mean_foreground_color(images, masks, interior=1).double()
+    ok = ~torch.isnan(g).any(1)
+    err, base = color_errors(p[ok], g[ok])
+    print(
+        f"readout (encoder features -> colour, ridge fitted on {len(fit_idx)} training views, penalty {penalty:g}): "
+        f"colour ratio, interiors {float(err.mean() / base.mean()):.3f}"
     )
 
 
