@@ -85,16 +85,12 @@ def ridge_readout(
     x, y = features.double(), targets.double()
     stats = torch.stack([x.mean(0), x.std(0).clamp(min=1e-6)])
 
-    def design(f: torch.Tensor) -> torch.Tensor:
-        z = (f.double() - stats[0]) / stats[1]
-        return torch.cat([z, torch.ones_like(z[:, :1])], 1)
-
     def fit(a: torch.Tensor, b: torch.Tensor, penalty: float) -> torch.Tensor:
         eye = torch.eye(a.shape[1], dtype=a.dtype)
         eye[-1, -1] = 0  # the offset is not penalised
         return torch.linalg.solve(a.T @ a + penalty * len(a) * eye, a.T @ b)
 
-    X = design(x)
+    X = _design(x, stats)
     fold = torch.remainder(groups, FOLDS)
     errors = []
     for penalty in penalties:
@@ -107,10 +103,15 @@ def ridge_readout(
     return fit(X, y, best), stats, best
 
 
+def _design(features: torch.Tensor, stats: torch.Tensor) -> torch.Tensor:
+    """Features (N, F) standardised with ``stats`` (2, F: mean, std), a column of ones appended: (N, F + 1)."""
+    z = (features.double() - stats[0]) / stats[1]
+    return torch.cat([z, torch.ones_like(z[:, :1])], 1)
+
+
 def readout_colours(weights: torch.Tensor, stats: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
     """The colours (N, 3) that :func:`ridge_readout`'s map gives features (N, F)."""
-    z = (features.double() - stats[0]) / stats[1]
-    return torch.cat([z, torch.ones_like(z[:, :1])], 1) @ weights
+    return _design(features, stats) @ weights
 
 
 def views(data, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -185,10 +186,10 @@ def main() -> None:
         features = model.encode(images, ("texture",))["texture"]
     seen = ~torch.isnan(fit_colours).any(1)  # views whose interior is empty have no colour to fit
     weights, stats, penalty = ridge_readout(fit_features[seen], fit_colours[seen], objects[seen])
-    p = readout_colours(weights, stats, features)
-    g = mean_foreground_color(images, masks, interior=1).double()
-    ok = ~torch.isnan(g).any(1)
-    err, base = color_errors(p[ok], g[ok])
+    readout = readout_colours(weights, stats, features)
+    truth = mean_foreground_color(images, masks, interior=1).double()
+    ok = ~torch.isnan(truth).any(1)
+    err, base = color_errors(readout[ok], truth[ok])
     print(
         f"readout (encoder features -> colour, ridge fitted on {len(fit_idx)} training views, penalty {penalty:g}): "
         f"colour ratio, interiors {float(err.mean() / base.mean()):.3f}"
