@@ -63,7 +63,7 @@ def code_shrinkage(regressed: torch.Tensor, fitted: torch.Tensor) -> dict[str, f
     (least squares).
     """
     regressed, fitted = regressed.double(), fitted.double()
-    X = torch.cat([regressed, torch.ones_like(regressed[:, :1])], 1)
+    X = _with_offset(regressed)
     residual = X @ torch.linalg.lstsq(X, fitted).solution - fitted
     r2 = 1 - residual.pow(2).sum() / (fitted - fitted.mean(0)).pow(2).sum()
     return {
@@ -103,10 +103,14 @@ def ridge_readout(
     return fit(X, y, best), stats, best
 
 
+def _with_offset(x: torch.Tensor) -> torch.Tensor:
+    """``x`` (N, F) with a column of ones appended (N, F + 1): the design matrix of an affine map."""
+    return torch.cat([x, torch.ones_like(x[:, :1])], 1)
+
+
 def _design(features: torch.Tensor, stats: torch.Tensor) -> torch.Tensor:
     """Features (N, F) standardised with ``stats`` (2, F: mean, std), a column of ones appended: (N, F + 1)."""
-    z = (features.double() - stats[0]) / stats[1]
-    return torch.cat([z, torch.ones_like(z[:, :1])], 1)
+    return _with_offset((features.double() - stats[0]) / stats[1])
 
 
 def readout_colours(weights: torch.Tensor, stats: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
@@ -177,7 +181,9 @@ def main() -> None:
         f"image {spread['fitted']:.3f}; fitted explained by an affine map of the regressed: R^2 {spread['r2']:.3f}"
     )
 
-    train = build_dataset("synthetic", "train", args.root, img_size=size, views="all")
+    train = (
+        data if args.split == "train" else build_dataset("synthetic", "train", args.root, img_size=size, views="all")
+    )
     fit_idx = torch.randperm(len(train), generator=torch.Generator().manual_seed(1))[: args.readout_views].tolist()
     fit_images, fit_masks, objects = views(train, fit_idx)
     fit_colours = mean_foreground_color(fit_images, fit_masks, interior=1).double()
