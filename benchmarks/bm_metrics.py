@@ -3,9 +3,11 @@
 Usage::
 
     OMP_NUM_THREADS=2 python benchmarks/bm_metrics.py [--device cpu|cuda] [--points 100000] [--icp-iters 100]
+    python benchmarks/bm_metrics.py --device cuda --backends auto,torch      # the k-d trees beside the brute force
 
 Prints the wall time and the peak memory (CPU: peak resident set size increase, CUDA: peak allocated) of a
-Chamfer-L1 + normal consistency evaluation between two clouds of ``--points`` points, and of the gradient ICP.
+Chamfer-L1 + normal consistency evaluation between two clouds of ``--points`` points, and of the gradient ICP,
+for each nearest-neighbour backend of ``--backends`` (see :mod:`unicorn.metrics.nn`) in turn.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import torch
 
 from unicorn.geometry.mesh import icosphere
 from unicorn.metrics import gradient_icp, point_cloud_scores, sample_points_from_meshes
+from unicorn.metrics.nn import BACKENDS
 
 
 def _peak_rss_mib() -> float:
@@ -44,13 +47,17 @@ def _run(name: str, fn, device: torch.device) -> None:
     print(f"{name:<48s} {elapsed:8.2f} s   {mem}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--points", type=int, default=100_000)
     parser.add_argument("--icp-iters", type=int, default=100)
     parser.add_argument("--skip-icp", action="store_true")
-    args = parser.parse_args()
+    parser.add_argument("--backends", default="auto", help="comma-separated, of auto, " + ", ".join(BACKENDS))
+    args = parser.parse_args(argv)
+    backends = args.backends.split(",")
+    if unknown := [b for b in backends if b not in ("auto", *BACKENDS)]:
+        parser.error(f"--backends: unknown {unknown}; known: auto, {', '.join(BACKENDS)}")
     device = torch.device(args.device)
     print(f"device={device} threads={torch.get_num_threads()} points={args.points} torch={torch.__version__}")
 
@@ -61,19 +68,22 @@ def main() -> None:
     pred, pred_n = sample_points_from_meshes(deformed[None], faces, args.points, seed=1)
     gt, gt_n, pred, pred_n = (t.to(device) for t in (gt, gt_n, pred, pred_n))
 
-    def chamfer() -> None:
-        s = point_cloud_scores(pred, gt, pred_n, gt_n)
-        print(f"    chamfer-L1={s.chamfer_l1.item():.4f} normal-cos={s.normal_cos.item():.4f}")
+    moved = pred * torch.tensor([1.1, 0.9, 1.0], device=device) + 0.05
+    for backend in backends:
 
-    _run(f"chamfer-L1 + normal-cos {args.points} x {args.points}", chamfer, device)
-    if not args.skip_icp:
-        moved = pred * torch.tensor([1.1, 0.9, 1.0], device=device) + 0.05
+        def chamfer(backend: str = backend) -> None:
+            s = point_cloud_scores(pred, gt, pred_n, gt_n, backend=backend)
+            print(f"    chamfer-L1={s.chamfer_l1.item():.4f} normal-cos={s.normal_cos.item():.4f}")
 
-        def icp() -> None:
-            r = gradient_icp(moved, gt, pred_n, n_iter=args.icp_iters)
+        def icp(backend: str = backend) -> None:
+            r = gradient_icp(moved, gt, pred_n, n_iter=args.icp_iters, backend=backend)
             print(f"    icp loss={r.loss.item():.3e} scale={[round(x, 3) for x in r.scale[0].tolist()]}")
 
-        _run(f"gradient ICP {args.icp_iters} it, {args.points} pts", icp, device)
+        # untimed: load (or compile, on first use) the search kernels, which a process does once
+        gradient_icp(moved[:, :1000], gt[:, :1000], n_iter=2, backend=backend)
+        _run(f"[{backend}] chamfer-L1 + normal-cos {args.points} x {args.points}", chamfer, device)
+        if not args.skip_icp:
+            _run(f"[{backend}] gradient ICP {args.icp_iters} it, {args.points} pts", icp, device)
 
 
 if __name__ == "__main__":

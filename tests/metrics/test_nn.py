@@ -108,9 +108,8 @@ def test_visiting_order_changes_no_neighbour(backend):
 
 def test_default_backend():
     assert set(BACKENDS) == {"kdtree", "pykdtree", "torch"}
-    assert default_backend("cpu") == ("pykdtree" if HAS_PYKDTREE else "kdtree")
-    assert default_backend(torch.device("cuda", 0)) == "torch"
-    assert NearestNeighborIndex(torch.rand(1, 5, 3)).backend == default_backend("cpu")
+    assert default_backend() == ("pykdtree" if HAS_PYKDTREE else "kdtree")
+    assert NearestNeighborIndex(torch.rand(1, 5, 3)).backend == default_backend()
 
 
 def test_gradients_flow_through_distances():
@@ -169,23 +168,24 @@ def test_integer_and_unknown_backend_rejected():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.gpu
-def test_cuda_matches_cpu():
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_cuda_matches_cpu(backend):
     x, y = torch.rand(1, 3000, 3), torch.rand(1, 2000, 3)
     d_cpu, _ = nearest_neighbors(x, y)
-    d_gpu, i_gpu = nearest_neighbors(x.cuda(), y.cuda())
+    d_gpu, i_gpu = nearest_neighbors(x.cuda(), y.cuda(), backend=backend)
     assert i_gpu.device.type == "cuda"
     torch.testing.assert_close(d_gpu.cpu(), d_cpu, atol=1e-6, rtol=0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.gpu
-def test_cuda_index_both_directions_match_cpu():
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_cuda_index_both_directions_match_cpu(backend):
     g = torch.Generator().manual_seed(3)
     y = torch.rand(2, 5000, 3, generator=g)
     y[:, 2500:] = y[:, :2500]  # repeated reference points
     x = torch.rand(2, 7000, 3, generator=g) * 1.2
-    cpu, gpu = NearestNeighborIndex(y), NearestNeighborIndex(y.cuda())
-    assert gpu.backend == "torch"
+    cpu, gpu = NearestNeighborIndex(y), NearestNeighborIndex(y.cuda(), backend=backend)
     for name in ("query", "reverse_query"):
         d_cpu, _ = getattr(cpu, name)(x)
         d_gpu, i_gpu = getattr(gpu, name)(x.cuda())

@@ -18,7 +18,7 @@ grids, after one tree search at the first step:
 The distances are computed in float64 and the tests and cell ranges carry a relative margin of ``1e-12``, so
 rounding can only make a search wider. The answers have the k-d tree's nearest distances, and its indices
 except where two points are exactly as near (then either may be returned). Clouds that are not 3D, and the
-torch backend (CUDA), are searched by the index as it is.
+torch backend, are searched by the index as it is.
 """
 
 from __future__ import annotations

@@ -5,13 +5,14 @@ matched pairs, so they are exact (no ``|x|^2 - 2 x.y + |y|^2`` cancellation) and
 to both clouds.
 
 - ``"pykdtree"``: :mod:`pykdtree` k-d trees on the CPU (float64; queries use the OpenMP threads,
-  ``OMP_NUM_THREADS``). The default for CPU tensors when it is installed.
-- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default for CPU tensors otherwise.
+  ``OMP_NUM_THREADS``). The default when it is installed, for CPU and CUDA tensors alike: CUDA clouds are copied
+  to the CPU for the search and the indices copied back, a small cost beside the brute force's O(N M) work.
+- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default otherwise.
   ``benchmarks/bm_eval.py`` compares the two on the evaluation's clouds.
-- ``"torch"``: brute force in blocks of at most ``block_elements`` pairwise distances (a running minimum over
-  blocks of ``y``), so memory stays bounded whatever the cloud sizes, each distance from the coordinate
-  differences (the neighbours the k-d trees find, up to float32 rounding of near-ties). It is the default for
-  CUDA tensors, where it avoids a device round trip.
+- ``"torch"``: brute force on the tensors' device, in blocks of at most ``block_elements`` pairwise distances (a
+  running minimum over blocks of ``y``), so memory stays bounded whatever the cloud sizes, each distance from the
+  coordinate differences (the neighbours the k-d trees find, up to float32 rounding of near-ties). No host round
+  trip, but quadratic: ``benchmarks/bm_metrics.py --device cuda`` compares it with the trees.
 
 :class:`NearestNeighborIndex` holds a fixed reference cloud (a ground truth) and answers both directions of a
 Chamfer distance against clouds that change (an ICP's moving source): the nearest reference point of each
@@ -93,6 +94,19 @@ def spatial_order(points: torch.Tensor) -> torch.Tensor:
     return torch.sort(code, dim=1, stable=True).indices
 
 
+def _squared_distances(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(N, M) squared distances between (N, D) and (M, D) points, summed from the coordinate differences.
+
+    Not the matrix-product form (|x|^2 - 2 x.y + |y|^2): its cancellation picks another neighbour among near-ties
+    often enough to move an ICP's result by 1e-4 to 1e-3. One coordinate at a time, in place, rather than
+    ``torch.cdist``'s coordinate-difference kernel, which is many times slower on CUDA.
+    """
+    d = (x[:, None, 0] - y[None, :, 0]).square_()
+    for k in range(1, x.shape[1]):
+        d.add_((x[:, None, k] - y[None, :, k]).square_())
+    return d
+
+
 def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> torch.Tensor:
     x, y = x.detach(), y.detach()
     B, N, _ = x.shape
@@ -107,9 +121,7 @@ def _torch_indices(x: torch.Tensor, y: torch.Tensor, block_elements: int) -> tor
             best = torch.full((xs.shape[0],), float("inf"), dtype=x.dtype, device=x.device)
             best_idx = torch.zeros(xs.shape[0], dtype=torch.long, device=x.device)
             for c0 in range(0, M, cols):
-                # from coordinate differences: the matrix-product form's cancellation (|x|^2 - 2 x.y + |y|^2)
-                # picks another neighbour among near-ties often enough to move an ICP's result by 1e-4 to 1e-3
-                d, j = torch.cdist(xs, yb[c0 : c0 + cols], compute_mode="donot_use_mm_for_euclid_dist").min(dim=1)
+                d, j = _squared_distances(xs, yb[c0 : c0 + cols]).min(dim=1)
                 better = d < best
                 best = torch.where(better, d, best)
                 best_idx = torch.where(better, j + c0, best_idx)
@@ -169,10 +181,8 @@ _TREES = {"kdtree": _ScipyTree, "pykdtree": _PyKDTree}
 BACKENDS = (*_TREES, "torch")
 
 
-def default_backend(device: torch.device | str) -> str:
-    """``"torch"`` on CUDA; on the CPU ``"pykdtree"`` when installed, else ``"kdtree"``."""
-    if torch.device(device).type == "cuda":
-        return "torch"
+def default_backend() -> str:
+    """``"pykdtree"`` when installed, else ``"kdtree"``: the k-d trees, whatever the clouds' device."""
     return "pykdtree" if importlib.util.find_spec("pykdtree") is not None else "kdtree"
 
 
@@ -234,7 +244,7 @@ class NearestNeighborIndex:
     ) -> None:
         check_points(y, "y", dim=None)
         if backend == "auto":
-            backend = default_backend(y.device)  # type: ignore[assignment]
+            backend = default_backend()  # type: ignore[assignment]
         if backend not in BACKENDS:
             raise ValueError(f"backend must be 'auto' or one of {BACKENDS}, got {backend!r}")
         if block_elements is None:
@@ -364,8 +374,8 @@ def nearest_neighbors(
     Args:
         x: (B, N, D) float query points.
         y: (B, M, D) float reference points, same batch size, dtype family and device as ``x``.
-        backend: ``"pykdtree"`` or ``"kdtree"`` (scipy) (CPU), ``"torch"`` (blocked brute force, any device) or
-            ``"auto"`` (:func:`default_backend` of ``y``'s device).
+        backend: ``"pykdtree"`` or ``"kdtree"`` (scipy) (k-d trees searched on the CPU), ``"torch"`` (blocked
+            brute force on the tensors' device) or ``"auto"`` (:func:`default_backend`).
         block_elements: torch backend only, the largest number of pairwise distances held at once
             (default 2**22 on the CPU, 2**26 on CUDA, i.e. 16 MiB / 256 MiB in float32).
         workers: ``"kdtree"`` backend only, threads used by the query (-1 for all cores).
