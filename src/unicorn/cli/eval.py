@@ -313,7 +313,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         print(
             f"note: {options.num_points} points and {options.icp_iterations} ICP iterations per image (the full "
             "protocol, 100k and 100, takes about 10 s of CPU time per image); --fast (UNICORN's validation setting) "
-            "or a GPU is much quicker",
+            "is much quicker",
             flush=True,
         )
     extra = {"produced_by": produced_by} if produced_by else {}
