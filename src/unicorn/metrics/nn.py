@@ -377,7 +377,8 @@ def nearest_neighbors(
         backend: ``"pykdtree"`` or ``"kdtree"`` (scipy) (k-d trees searched on the CPU), ``"torch"`` (blocked
             brute force on the tensors' device) or ``"auto"`` (:func:`default_backend`).
         block_elements: torch backend only, the largest number of pairwise distances held at once
-            (default 2**22 on the CPU, 2**26 on CUDA, i.e. 16 MiB / 256 MiB in float32).
+            (default 2**22 on the CPU, 2**26 on CUDA, i.e. 16 MiB / 256 MiB in float32; twice that at the peak,
+            with one coordinate's differences beside the sums).
         workers: ``"kdtree"`` backend only, threads used by the query (-1 for all cores).
 
     Returns:
