@@ -119,12 +119,13 @@ def test_idle_parameters_skip_vs_momentum(synthetic_cache, tmp_path):
     assert moved == {"skip": False, "momentum": True}
 
 
-def test_resume_is_exact(synthetic_cache, tmp_path):
-    straight = build_run(tmp_path / "straight")
+@pytest.mark.parametrize("extra", [[], ["schedule.hue_shift=0.5"]], ids=["plain", "hue-shift"])
+def test_resume_is_exact(synthetic_cache, tmp_path, extra):
+    straight = build_run(tmp_path / "straight", *extra)
     fit(straight)
-    first = build_run(tmp_path / "resumed", "trainer.max_steps=4")
+    first = build_run(tmp_path / "resumed", "trainer.max_steps=4", *extra)
     fit(first)
-    second = build_run(tmp_path / "resumed", "ckpt_path=last")
+    second = build_run(tmp_path / "resumed", "ckpt_path=last", *extra)
     assert second.ckpt_path is not None
     fit(second)
     assert second.trainer.global_step == 8
@@ -140,6 +141,38 @@ def test_resume_is_exact(synthetic_cache, tmp_path):
     assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"]
     for index, state in opt_a["state"].items():
         torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+class BatchRecorder(L.Callback):
+    """The images of every training batch as the loader gives them."""
+
+    def __init__(self) -> None:
+        self.images: list[torch.Tensor] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.images.append(batch["image"].clone())
+
+
+def test_hue_shift_changes_what_both_steps_train_on(synthetic_cache, tmp_path, monkeypatch):
+    run = build_run(tmp_path, "schedule.hue_shift=0.5", "trainer.max_steps=4")
+    module, recorder, seen = run.module, BatchRecorder(), []
+    forward = module.objectives.forward
+
+    def spy(phase, model, images, **kwargs):
+        seen.append((phase, images.detach().clone()))
+        return forward(phase, model, images, **kwargs)
+
+    monkeypatch.setattr(module.objectives, "forward", spy)
+    run.trainer.callbacks.append(recorder)
+    fit(run)
+    assert [phase for phase, _ in seen] == ["pose", "3d", "pose", "3d"]
+    for step, ((_, images), loaded) in enumerate(zip(seen, recorder.images, strict=True)):
+        assert not torch.allclose(images, loaded)  # the synthetic objects are coloured: a hue shift shows
+        torch.testing.assert_close(images, module.training_images(loaded, step))  # a pure function of the step
+        torch.testing.assert_close(images.amax(1), loaded.amax(1), atol=1e-5, rtol=0)  # HSV value kept
+    x = recorder.images[0]
+    assert not torch.allclose(module.training_images(x, 0), module.training_images(x, 1))
+    assert build_run(tmp_path / "off").module.training_images(x, 0) is x
 
 
 def test_resume_from_a_checkpoint_with_whole_kernel_moments(synthetic_cache, tmp_path):

@@ -180,6 +180,9 @@ class ScheduleConfig:
     mode: str = "fixed"  # SCHEDULE_MODES
     milestones: list[int] = field(default_factory=lambda: [750000, 1500000, 2250000])  # stages 2, 3 and 4 start
     alternation_period: int = ranged(1, 1)  # pose and 3D steps alternate every this many iterations
+    # each training image's hue rotated by a random fraction of the hue circle in [-hue_shift, hue_shift], input and
+    # target alike (unicorn.data.augment.random_hue_shift); 0: off, the paper's setting
+    hue_shift: float = ranged(0.0, 0, 0.5)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)

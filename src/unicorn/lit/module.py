@@ -53,6 +53,7 @@ import torch.nn.functional as F
 
 from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
+from unicorn.data.augment import random_hue_shift
 from unicorn.errors import UserError
 from unicorn.lit.loggers import logs_this_step
 from unicorn.metrics import mask_iou
@@ -112,7 +113,10 @@ class UnicornLitModule(L.LightningModule):
             ``adam_state``, ``texture_lr_scale`` and ``background_lr_scale``: those branches' learning rates over
             ``lr``).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
-        seed: seeds the per-batch texture-averaging draws (a pure function of seed and iteration).
+        hue_shift: each training image's hue is rotated by a random fraction of the hue circle in ``[-hue_shift,
+            hue_shift]`` before both steps read it, as input and as target
+            (:func:`unicorn.data.augment.random_hue_shift`); 0 (the paper's setting): images as they are.
+        seed: seeds the per-batch texture-averaging and hue draws (pure functions of seed, iteration and rank).
     """
 
     stage: torch.Tensor
@@ -123,6 +127,7 @@ class UnicornLitModule(L.LightningModule):
         model: Mapping[str, Any],
         optim: Mapping[str, Any] | None = None,
         alternation_period: int = 1,
+        hue_shift: float = 0.0,
         seed: int = 0,
     ) -> None:
         super().__init__()
@@ -144,7 +149,9 @@ class UnicornLitModule(L.LightningModule):
             )
         if alternation_period < 1:
             raise ValueError(f"alternation_period must be >= 1, got {alternation_period}")
-        self.alternation_period, self.seed = int(alternation_period), int(seed)
+        if not 0.0 <= hue_shift <= 0.5:
+            raise ValueError(f"hue_shift must be in [0, 0.5] (a fraction of the hue circle), got {hue_shift}")
+        self.alternation_period, self.hue_shift, self.seed = int(alternation_period), float(hue_shift), int(seed)
         # training state that must survive a checkpoint: buffers
         self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
         self.register_buffer("texture_average_p", torch.tensor(0.0))
@@ -173,11 +180,19 @@ class UnicornLitModule(L.LightningModule):
         g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + step)
         return bool(torch.rand((), generator=g) < p)
 
+    def training_images(self, images: torch.Tensor, step: int) -> torch.Tensor:
+        """The images iteration ``step`` trains on: (B, 3, S, S) hue-shifted when ``hue_shift`` > 0."""
+        if self.hue_shift == 0.0:
+            return images
+        # its own stream (not the texture-averaging one), drawn per rank: DDP ranks shift their own images
+        seed = np.random.SeedSequence([self.seed, step, self.global_rank, 1]).generate_state(1)[0]
+        return random_hue_shift(images, self.hue_shift, torch.Generator().manual_seed(int(seed)))
+
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
         """One iteration: a pose or a 3D step on ``batch["image"]`` (B, 3, S, S); returns the detached terms."""
-        images = batch["image"]
         step = self.global_step
+        images = self.training_images(batch["image"], step)
         phase = self.phase(step)
         average = self.average_texture(step)
         opt = self._optimizer(phase)

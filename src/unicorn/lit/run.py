@@ -129,6 +129,7 @@ def build_module(typed: DictConfig) -> Any:
         model_config(typed),
         optim=OmegaConf.to_container(typed.optim, resolve=True),
         alternation_period=typed.schedule.alternation_period,
+        hue_shift=typed.schedule.hue_shift,
         seed=typed.seed,
     )
     if typed.init_from is not None:
