@@ -10,6 +10,12 @@ training's reconstruction loss (Adam, ``--steps``):
 - ``map-opt``: the texture *image* optimised per image, every texel free: what the loss can reach at this shape
   and pose.
 
+With ``--refit-steps N``, a fourth row, ``regressor-refit``: the texture code regressor (encoder features -> code)
+trained again from the model's weights for N Adam steps, alone, with the reconstruction loss on training views at the
+model's own shapes and poses (encoder and generator fixed), then scored on the probed views: what the amortised
+textures reach when the regressor is optimised for colour alone, on the features the model has. Near ``code-opt``:
+the joint training leaves the regression short; near ``amortised``: the features or the regressor's form limit it.
+
 After the table, the spread of the regressed texture codes against the codes fitted per image (``code-opt``): a
 regressor that shrinks the codes towards their mean gives textures nearer the category's average colour. Last, a
 ``readout``: an affine map from the texture branch's encoder features to the ground-truth colour (interiors), fitted
@@ -27,6 +33,7 @@ foreground colour over the error of predicting the views' average colour) on who
 from __future__ import annotations
 
 import argparse
+import copy
 
 import torch
 
@@ -127,6 +134,30 @@ def views(data, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
     return images, masks, batch["model"]
 
 
+def refit_regressor(model, reconstruction, images: torch.Tensor, steps: int, lr: float, batch: int = 16):
+    """A copy of the texture code regressor trained ``steps`` Adam steps on ``images`` (N, 3, S, S) with the
+    reconstruction loss, at the model's predicted shapes and poses; everything else fixed."""
+    with torch.no_grad():
+        feats, verts, R, T = [], [], [], []
+        for x in images.split(64):
+            pred = model.predict(x)
+            feats.append(model.encode(x, ("texture",))["texture"])
+            verts.append(pred.verts), R.append(pred.R), T.append(pred.T)
+        feats, verts, R, T = (torch.cat(t) for t in (feats, verts, R, T))
+    regressor = copy.deepcopy(model.texture.regressor).requires_grad_(True)
+    opt = torch.optim.Adam(regressor.parameters(), lr=lr)
+    g = torch.Generator().manual_seed(2)
+    for _ in range(steps):
+        b = torch.randint(len(images), (batch,), generator=g)
+        maps = model.texture(model.texture.mask(regressor(feats[b])))
+        rec, _ = model.render(verts[b], maps, R[b], T[b], None)
+        loss = sum(reconstruction(rec, images[b]).values()).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return regressor.requires_grad_(False)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
@@ -141,6 +172,10 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
     p.add_argument("--lr", type=float, default=1e-2)
     p.add_argument("--readout-views", type=int, default=1200, help="training views the readout is fitted on")
+    p.add_argument(
+        "--refit-steps", type=int, default=0, help="Adam steps of the regressor refit on the readout's views (0: none)"
+    )
+    p.add_argument("--refit-lr", type=float, default=1e-3)
     args = p.parse_args()
 
     model, _ = load_model(args.checkpoint)
@@ -170,6 +205,19 @@ def main() -> None:
             opt.step()
         rows[name] = (colour_ratios(model, pred, make().detach(), images, masks), float(loss.detach()))
 
+    train = (
+        data if args.split == "train" else build_dataset("synthetic", "train", args.root, img_size=size, views="all")
+    )
+    fit_idx = torch.randperm(len(train), generator=torch.Generator().manual_seed(1))[: args.readout_views].tolist()
+    fit_images, fit_masks, objects = views(train, fit_idx)
+    if args.refit_steps > 0:
+        regressor = refit_regressor(model, reconstruction, fit_images, args.refit_steps, args.refit_lr)
+        with torch.no_grad():
+            maps = model.texture(model.texture.mask(regressor(model.encode(images, ("texture",))["texture"])))
+            rec, _ = model.render(pred.verts, maps, pred.R, pred.T, None)
+            loss = sum(reconstruction(rec, images).values()).mean()
+        rows["regressor-refit"] = (colour_ratios(model, pred, maps, images, masks), float(loss))
+
     print(f"{len(idx)} {args.split} views, {args.steps} Adam steps per fit\n")
     print("| textures | colour ratio, whole masks | colour ratio, interiors | reconstruction loss (last step) |")
     print("|---|---|---|---|")
@@ -181,11 +229,6 @@ def main() -> None:
         f"image {spread['fitted']:.3f}; fitted explained by an affine map of the regressed: R^2 {spread['r2']:.3f}"
     )
 
-    train = (
-        data if args.split == "train" else build_dataset("synthetic", "train", args.root, img_size=size, views="all")
-    )
-    fit_idx = torch.randperm(len(train), generator=torch.Generator().manual_seed(1))[: args.readout_views].tolist()
-    fit_images, fit_masks, objects = views(train, fit_idx)
     fit_colours = mean_foreground_color(fit_images, fit_masks, interior=1).double()
     with torch.no_grad():
         fit_features = torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])

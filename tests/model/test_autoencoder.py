@@ -117,6 +117,20 @@ def test_encoder_width_sets_the_features_every_head_reads():
         merge_config(encoder={"width": 0})
 
 
+def test_pooled_stages_set_the_features_every_head_reads():
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(encoder={"pooled": ["layer3", "layer4"], "width": 16, "own": ["texture"]}))
+    assert [e.out_features for e in model.encoders] == [64 + 128] * 2  # layer3: 4 x width, layer4: 8 x width
+    x = ellipsoid_images(2)
+    assert tuple(model.encode(x, model.branches())["texture"].shape) == (2, 192)
+    objectives = Objectives.from_config(model.config["loss"], model)
+    pose, step = objectives.pose_step(model, x), objectives.step_3d(model, x)
+    assert all(torch.isfinite(v) for v in [*pose.values(), *step.values()])
+    for pooled in ([], ["layer0"], ["layer4", "layer4"]):
+        with pytest.raises(ValueError, match=r"encoder.pooled must name distinct stages"):
+            merge_config(encoder={"pooled": pooled})
+
+
 def test_own_encoders_beside_the_shared_one():
     torch.manual_seed(0)
     model = Unicorn(tiny_config(encoder={"own": ["background", "texture"], "width": 16}))

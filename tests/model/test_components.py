@@ -153,6 +153,34 @@ def test_narrow_resnet18_scales_every_channel_count(width):
         ResNet18(0)
 
 
+@pytest.mark.parametrize("pooled", [["layer3", "layer4"], ["layer4", "layer1"], ["layer2"]])
+def test_resnet18_pools_the_named_stages_side_by_side(pooled):
+    torch.manual_seed(0)
+    enc = ResNet18(8, pooled=pooled).eval()
+    x = torch.rand(2, 3, 32, 32)
+    # the stages run one after the other by hand, each output averaged over its map
+    h = enc.maxpool(enc.relu(enc.bn1(enc.conv1(x))))
+    means = {}
+    for name in ("layer1", "layer2", "layer3", "layer4"):
+        h = getattr(enc, name)(h)
+        means[name] = h.mean((2, 3))
+    order = [name for name in ("layer1", "layer2", "layer3", "layer4") if name in pooled]
+    expected = torch.cat([means[name] for name in order], 1)
+    channels = {"layer1": 8, "layer2": 16, "layer3": 32, "layer4": 64}
+    assert enc.out_features == expected.shape[1] == sum(channels[name] for name in pooled)
+    torch.testing.assert_close(enc(x), expected)
+    # the same weights give the paper's features (the last stage's) by default
+    default = ResNet18(8).eval()
+    default.load_state_dict(enc.state_dict())
+    torch.testing.assert_close(default(x), means["layer4"])
+
+
+@pytest.mark.parametrize("pooled", [[], ["layer5"], ["layer3", "layer3"]])
+def test_resnet18_pooled_stages_are_checked(pooled):
+    with pytest.raises(ValueError, match="pooled stages must be distinct names"):
+        ResNet18(8, pooled=pooled)
+
+
 def test_pose_anchors_zero_init():
     head = PoseHead(16, n_units=8)
     assert torch.allclose(head.R_init[:, 0], torch.tensor([0.0, 60, 120, 180, 240, 300]))

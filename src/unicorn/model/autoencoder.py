@@ -119,7 +119,8 @@ def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     """The learned networks of a merged configuration: encoders, shape, texture, background, pose and scale heads
     (the only parts whose size grows with the configuration: :func:`count_parameters` builds them on no memory)."""
     n_enc = 1 + max(encoder_index(cfg).values())
-    encoders = nn.ModuleList([ResNet18(cfg["encoder"]["width"], cfg["image_size"]) for _ in range(n_enc)])
+    enc = cfg["encoder"]
+    encoders = nn.ModuleList([ResNet18(enc["width"], cfg["image_size"], enc["pooled"]) for _ in range(n_enc)])
     nf = encoders[0].out_features
 
     sh = dict(cfg["shape"])

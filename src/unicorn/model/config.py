@@ -109,6 +109,9 @@ class EncoderConfig:
     # with a shared encoder, the branches that read an encoder of their own instead (e.g. [background]); the
     # paper's models have none (small) or all (big, ``shared: false``)
     own: list[str] = field(default_factory=list)
+    # the ResNet stages whose averaged outputs make the features, side by side (layer1 ... layer4); the paper's
+    # features are the last stage's alone
+    pooled: list[str] = field(default_factory=lambda: ["layer4"])
 
 
 @dataclass
@@ -302,7 +305,17 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     if (renderer["fov"] is None) == (renderer["focal_length"] is None):
         raise ValueError(f"{prefix}renderer needs exactly one of fov and focal_length")
     _check_own_encoders(cfg, prefix)
+    _check_pooled_stages(cfg, prefix)
     _check_symmetric_texture(cfg, prefix)
+
+
+def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
+    """``encoder.pooled`` names distinct ResNet stages, at least one."""
+    from unicorn.model.encoder import STAGES
+
+    pooled = list(cfg["encoder"]["pooled"])
+    if not pooled or len(set(pooled)) != len(pooled) or any(name not in STAGES for name in pooled):
+        raise ValueError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
 
 
 def _check_symmetric_texture(cfg: Mapping[str, Any], prefix: str) -> None:

@@ -16,7 +16,10 @@ from torch import nn
 
 from unicorn.checks import check_shape
 
-__all__ = ["BasicBlock", "Conv2d", "ResNet18", "crop_optimizer_state"]
+__all__ = ["STAGES", "BasicBlock", "Conv2d", "ResNet18", "crop_optimizer_state"]
+
+#: ResNet-18's four stages, in network order; stage ``i`` (from 0) has ``width * 2**i`` channels
+STAGES = ("layer1", "layer2", "layer3", "layer4")
 
 
 class Conv2d(nn.Conv2d):
@@ -171,6 +174,10 @@ class BasicBlock(nn.Module):
 class ResNet18(nn.Module):
     """ResNet-18 features: stem (7x7/2 conv, BN, ReLU, 3x3/2 max-pool), 4 stages, global average pool.
 
+    The features are the globally averaged output of the last stage (the paper's), or of several stages side by
+    side (``pooled``): an earlier stage keeps more of what pixel statistics say (e.g. an object's colour) than the
+    last, whose 1 x 1 map at 32 px is what the pose and shape need.
+
     Args:
         width: channels of the stem and the first stage, doubled at each later stage (64: ResNet-18 as
             published and as UNICORN uses it). Half the width is a quarter of the multiply-adds, but measured
@@ -180,17 +187,24 @@ class ResNet18(nn.Module):
             output pixel meets zero padding at that size then train only the taps that meet the image
             (:meth:`Conv2d.keep_taps_for`; layer 4 at 32 px). The outputs, gradients and state dict are those
             of the full network; images of other sizes still run it whole.
+        pooled: the stages (:data:`STAGES`) whose globally averaged outputs are concatenated, in network order,
+            into the features; ``("layer4",)``: the paper's.
 
     Shapes:
-        (B, 3, H, W) -> (B, 8 * width), ``out_features``. A 64x64 input gives a 2x2 map before pooling.
+        (B, 3, H, W) -> (B, F), ``out_features`` F the pooled stages' channels (``8 * width`` for the last alone).
+        A 64x64 input gives a 2x2 map before pooling.
     """
 
-    def __init__(self, width: int = 64, image_size: int | None = None) -> None:
+    def __init__(self, width: int = 64, image_size: int | None = None, pooled: Sequence[str] = ("layer4",)) -> None:
         super().__init__()
         if width < 1:
             raise ValueError(f"encoder width must be at least 1, got {width}")
+        unknown = [name for name in pooled if name not in STAGES]
+        if unknown or not pooled or len(set(pooled)) != len(pooled):
+            raise ValueError(f"encoder pooled stages must be distinct names of {list(STAGES)}, got {list(pooled)}")
         w = int(width)
-        self.out_features = 8 * w
+        self.pooled = tuple(name for name in STAGES if name in pooled)
+        self.out_features = sum(w * 2 ** STAGES.index(name) for name in self.pooled)
         self.conv1 = Conv2d(3, w, 7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(w)
         self.relu = nn.ReLU(inplace=True)
@@ -212,8 +226,12 @@ class ResNet18(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         check_shape(x, "B, 3, H, W", "images")
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
-        x = self.layer4(self.layer3(self.layer2(self.layer1(x))))
-        return self.avgpool(x).flatten(1)
+        out = []
+        for name in STAGES[: STAGES.index(self.pooled[-1]) + 1]:
+            x = getattr(self, name)(x)
+            if name in self.pooled:
+                out.append(self.avgpool(x).flatten(1))
+        return torch.cat(out, 1) if len(out) > 1 else out[0]
 
     def _keep_taps_for(self, size: int) -> None:
         """Apply :meth:`Conv2d.keep_taps_for` to every convolution with its input size at ``size`` px images."""
