@@ -21,7 +21,9 @@ regressor that shrinks the codes towards their mean gives textures nearer the ca
 ``readout``: an affine map from the texture branch's encoder features to the ground-truth colour (interiors), fitted
 by ridge regression on the training views (its penalty chosen by cross-validation over the training objects), and
 scored on the probed views: whether the encoder's features carry the colour of these objects at all (on the
-training split the views it was fitted on are among the probed ones).
+training split the views it was fitted on are among the probed ones); then the same from each stage of that encoder
+(its output averaged over the map, as ``model.encoder.pooled`` would take it): where in the network the colour of
+new objects is lost.
 
 Each row is scored with the colour ratio (:func:`unicorn.metrics.instance.color_errors`: error of the mean
 foreground colour over the error of predicting the views' average colour) on whole masks and on mask interiors
@@ -43,6 +45,7 @@ from unicorn.io import load_model
 from unicorn.metrics import code_spread
 from unicorn.metrics.instance import color_errors, mean_foreground_color
 from unicorn.model import ReconstructionLoss
+from unicorn.model.encoder import STAGES
 
 FOLDS = 5  # cross-validation folds of the readout's penalty, over the training objects
 PENALTIES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)  # the readout's ridge penalties tried (times the number of views)
@@ -158,6 +161,26 @@ def refit_regressor(model, reconstruction, images: torch.Tensor, steps: int, lr:
     return regressor.requires_grad_(False)
 
 
+def stage_features(encoder, images: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each ResNet stage's output averaged over its map, (N, C_stage), for images (N, 3, S, S)."""
+    x = encoder.maxpool(encoder.relu(encoder.bn1(encoder.conv1(images))))
+    out = {}
+    for name in STAGES:
+        x = getattr(encoder, name)(x)
+        out[name] = x.mean((2, 3))
+    return out
+
+
+def readout_ratio(fit_features, fit_colours, objects, features, truth) -> tuple[float, float]:
+    """The colour ratio (interiors) of a ridge readout fitted on ``fit_features`` (N, F) -> ``fit_colours`` (N, 3)
+    and applied to ``features`` (M, F) against ``truth`` (M, 3), and its penalty."""
+    seen = ~torch.isnan(fit_colours).any(1)  # views whose interior is empty have no colour to fit
+    weights, stats, penalty = ridge_readout(fit_features[seen], fit_colours[seen], objects[seen])
+    ok = ~torch.isnan(truth).any(1)
+    err, base = color_errors(readout_colours(weights, stats, features)[ok], truth[ok])
+    return float(err.mean() / base.mean()), penalty
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("checkpoint")
@@ -230,19 +253,19 @@ def main() -> None:
     )
 
     fit_colours = mean_foreground_color(fit_images, fit_masks, interior=1).double()
-    with torch.no_grad():
-        fit_features = torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])
-        features = model.encode(images, ("texture",))["texture"]
-    seen = ~torch.isnan(fit_colours).any(1)  # views whose interior is empty have no colour to fit
-    weights, stats, penalty = ridge_readout(fit_features[seen], fit_colours[seen], objects[seen])
-    readout = readout_colours(weights, stats, features)
     truth = mean_foreground_color(images, masks, interior=1).double()
-    ok = ~torch.isnan(truth).any(1)
-    err, base = color_errors(readout[ok], truth[ok])
-    print(
-        f"readout (encoder features -> colour, ridge fitted on {len(fit_idx)} training views, penalty {penalty:g}): "
-        f"colour ratio, interiors {float(err.mean() / base.mean()):.3f}"
-    )
+    encoder = model.encoders[model.encoder_index["texture"]]
+    with torch.no_grad():
+        fit_features = {"features": torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])}
+        features = {"features": model.encode(images, ("texture",))["texture"]}
+        fit_stages = [stage_features(encoder, x) for x in fit_images.split(64)]
+        fit_features |= {name: torch.cat([f[name] for f in fit_stages]) for name in STAGES}
+        features |= stage_features(encoder, images)
+    print(f"readout (-> colour, ridge fitted on {len(fit_idx)} training views), colour ratio, interiors:")
+    for name, fitted in fit_features.items():
+        ratio, penalty = readout_ratio(fitted, fit_colours, objects, features[name], truth)
+        what = "the texture branch's features" if name == "features" else f"{name}, averaged"
+        print(f"- {what}: {ratio:.3f} (penalty {penalty:g})")
 
 
 if __name__ == "__main__":
