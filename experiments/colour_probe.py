@@ -137,38 +137,25 @@ def views(data, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
     return images, masks, batch["model"]
 
 
-def refit_regressor(model, reconstruction, images: torch.Tensor, steps: int, lr: float, batch: int = 16):
-    """A copy of the texture code regressor trained ``steps`` Adam steps on ``images`` (N, 3, S, S) with the
-    reconstruction loss, at the model's predicted shapes and poses; everything else fixed."""
+def refit_regressor(model, reconstruction, images: torch.Tensor, features: torch.Tensor, steps: int, lr: float):
+    """A copy of the texture code regressor trained ``steps`` Adam steps (batches of 16) on ``images`` (N, 3, S, S)
+    and their texture features (N, F) with the reconstruction loss, at the model's predicted shapes and poses;
+    everything else fixed."""
     with torch.no_grad():
-        feats, verts, R, T = [], [], [], []
-        for x in images.split(64):
-            pred = model.predict(x)
-            feats.append(model.encode(x, ("texture",))["texture"])
-            verts.append(pred.verts), R.append(pred.R), T.append(pred.T)
-        feats, verts, R, T = (torch.cat(t) for t in (feats, verts, R, T))
+        preds = [model.predict(x) for x in images.split(64)]
+        verts, R, T = (torch.cat([getattr(p, name) for p in preds]) for name in ("verts", "R", "T"))
     regressor = copy.deepcopy(model.texture.regressor).requires_grad_(True)
     opt = torch.optim.Adam(regressor.parameters(), lr=lr)
     g = torch.Generator().manual_seed(2)
     for _ in range(steps):
-        b = torch.randint(len(images), (batch,), generator=g)
-        maps = model.texture(model.texture.mask(regressor(feats[b])))
+        b = torch.randint(len(images), (16,), generator=g)
+        maps = model.texture(model.texture.mask(regressor(features[b])))
         rec, _ = model.render(verts[b], maps, R[b], T[b], None)
         loss = sum(reconstruction(rec, images[b]).values()).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     return regressor.requires_grad_(False)
-
-
-def stage_features(encoder, images: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Each ResNet stage's output averaged over its map, (N, C_stage), for images (N, 3, S, S)."""
-    x = encoder.maxpool(encoder.relu(encoder.bn1(encoder.conv1(images))))
-    out = {}
-    for name in STAGES:
-        x = getattr(encoder, name)(x)
-        out[name] = x.mean((2, 3))
-    return out
 
 
 def readout_ratio(fit_features, fit_colours, objects, features, truth) -> tuple[float, float]:
@@ -233,10 +220,21 @@ def main() -> None:
     )
     fit_idx = torch.randperm(len(train), generator=torch.Generator().manual_seed(1))[: args.readout_views].tolist()
     fit_images, fit_masks, objects = views(train, fit_idx)
+    # the texture branch's encoder features of the readout's training views and of the probed views, and each of
+    # its stages averaged (the readouts' inputs; the regressor refit reads the first)
+    encoder = model.encoders[model.encoder_index["texture"]]
+    with torch.no_grad():
+        fit_features = {"features": torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])}
+        features = {"features": model.encode(images, ("texture",))["texture"]}
+        fit_stages = [encoder.stage_means(x, STAGES) for x in fit_images.split(64)]
+        fit_features |= {name: torch.cat([f[name] for f in fit_stages]) for name in STAGES}
+        features |= encoder.stage_means(images, STAGES)
     if args.refit_steps > 0:
-        regressor = refit_regressor(model, reconstruction, fit_images, args.refit_steps, args.refit_lr)
+        regressor = refit_regressor(
+            model, reconstruction, fit_images, fit_features["features"], args.refit_steps, args.refit_lr
+        )
         with torch.no_grad():
-            maps = model.texture(model.texture.mask(regressor(model.encode(images, ("texture",))["texture"])))
+            maps = model.texture(model.texture.mask(regressor(features["features"])))
             rec, _ = model.render(pred.verts, maps, pred.R, pred.T, None)
             loss = sum(reconstruction(rec, images).values()).mean()
         rows["regressor-refit"] = (colour_ratios(model, pred, maps, images, masks), float(loss))
@@ -254,13 +252,6 @@ def main() -> None:
 
     fit_colours = mean_foreground_color(fit_images, fit_masks, interior=1).double()
     truth = mean_foreground_color(images, masks, interior=1).double()
-    encoder = model.encoders[model.encoder_index["texture"]]
-    with torch.no_grad():
-        fit_features = {"features": torch.cat([model.encode(x, ("texture",))["texture"] for x in fit_images.split(64)])}
-        features = {"features": model.encode(images, ("texture",))["texture"]}
-        fit_stages = [stage_features(encoder, x) for x in fit_images.split(64)]
-        fit_features |= {name: torch.cat([f[name] for f in fit_stages]) for name in STAGES}
-        features |= stage_features(encoder, images)
     print(f"readout (-> colour, ridge fitted on {len(fit_idx)} training views), colour ratio, interiors:")
     for name, fitted in fit_features.items():
         ratio, penalty = readout_ratio(fitted, fit_colours, objects, features[name], truth)

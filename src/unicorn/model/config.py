@@ -311,10 +311,10 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
 
 def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
     """``encoder.pooled`` names distinct ResNet stages, at least one."""
-    from unicorn.model.encoder import STAGES
+    from unicorn.model.encoder import STAGES, distinct_stages
 
     pooled = list(cfg["encoder"]["pooled"])
-    if not pooled or len(set(pooled)) != len(pooled) or any(name not in STAGES for name in pooled):
+    if not distinct_stages(pooled):
         raise ValueError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
 
 

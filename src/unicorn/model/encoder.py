@@ -22,6 +22,11 @@ __all__ = ["STAGES", "BasicBlock", "Conv2d", "ResNet18", "crop_optimizer_state"]
 STAGES = ("layer1", "layer2", "layer3", "layer4")
 
 
+def distinct_stages(names: Sequence[str]) -> bool:
+    """Whether ``names`` are one or more distinct names of :data:`STAGES`."""
+    return bool(names) and len(set(names)) == len(names) and all(name in STAGES for name in names)
+
+
 class Conv2d(nn.Conv2d):
     """``nn.Conv2d`` that can train only the kernel taps which meet image values at one input size.
 
@@ -199,8 +204,7 @@ class ResNet18(nn.Module):
         super().__init__()
         if width < 1:
             raise ValueError(f"encoder width must be at least 1, got {width}")
-        unknown = [name for name in pooled if name not in STAGES]
-        if unknown or not pooled or len(set(pooled)) != len(pooled):
+        if not distinct_stages(pooled):
             raise ValueError(f"encoder pooled stages must be distinct names of {list(STAGES)}, got {list(pooled)}")
         w = int(width)
         self.pooled = tuple(name for name in STAGES if name in pooled)
@@ -225,13 +229,19 @@ class ResNet18(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         check_shape(x, "B, 3, H, W", "images")
-        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
-        out = []
-        for name in STAGES[: STAGES.index(self.pooled[-1]) + 1]:
-            x = getattr(self, name)(x)
-            if name in self.pooled:
-                out.append(self.avgpool(x).flatten(1))
+        out = list(self.stage_means(x, self.pooled).values())
         return torch.cat(out, 1) if len(out) > 1 else out[0]
+
+    def stage_means(self, x: torch.Tensor, names: Sequence[str]) -> dict[str, torch.Tensor]:
+        """The named stages' outputs, each averaged over its map: (B, 3, H, W) -> {name: (B, C_name)}, in network
+        order; the stages after the last named one do not run."""
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        out = {}
+        for name in STAGES[: max(STAGES.index(n) for n in names) + 1]:
+            x = getattr(self, name)(x)
+            if name in names:
+                out[name] = self.avgpool(x).flatten(1)
+        return out
 
     def _keep_taps_for(self, size: int) -> None:
         """Apply :meth:`Conv2d.keep_taps_for` to every convolution with its input size at ``size`` px images."""
