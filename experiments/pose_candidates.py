@@ -20,6 +20,10 @@ evaluation does), and each candidate's reconstruction is scored with the trainin
   every side scores low, whatever the pose;
 - ``cand. azim std min`` / ``max``: the smallest and largest standard deviation of a candidate's azimuth over the
   views (degrees): near 0 for a candidate that predicts one azimuth for every image;
+- ``mask IoU``: the evaluation's mask IoU (``unicorn-eval``'s hard render at the masks' side, ``mask_supersample``
+  of the default protocol) of the selected candidate's reconstruction, over every view, over the views whose
+  selected candidate is within 30 degrees, and over the others: how much of a model's mask IoU its pose misses
+  cost;
 - the same shares per ground-truth elevation band when the elevations vary.
 
 Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
@@ -39,7 +43,10 @@ import torch
 from shape_controls import loss_picks_pose, turn_losses  # a sibling script
 
 from unicorn.data import build_dataset, dataset_root
+from unicorn.evaluation import EvalOptions
+from unicorn.evaluation.rendering import hard_render
 from unicorn.io.checkpoints import load_model
+from unicorn.metrics import mask_iou
 from unicorn.metrics.pose import align_canonical_frame, azimuth_error, geodesic_error, rotation_to_azim_elev_roll
 from unicorn.model.losses import ReconstructionLoss
 
@@ -48,9 +55,11 @@ from unicorn.model.losses import ReconstructionLoss
 def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
     """Every view's candidate rotations (K, N, 3, 3), azimuths (K, N), probabilities (K, N), reconstruction
     losses (K, N), ground-truth rotation (N, 3, 3) and the losses of its reconstruction at the selected pose turned
-    about the vertical axis (N, A; :func:`shape_controls.turn_losses`)."""
+    about the vertical axis (N, A; :func:`shape_controls.turn_losses`) and the selected candidate's mask IoU (N,)."""
     loss = ReconstructionLoss.from_config(model.config["loss"])
+    supersample = EvalOptions().mask_supersample
     out: dict[str, list[torch.Tensor]] = {"R": [], "azim": [], "probs": [], "loss": [], "R_gt": [], "turns": []}
+    out["iou"] = []
     for start in range(0, len(data), batch_size):
         items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
         images = torch.stack([it["image"] for it in items])
@@ -66,7 +75,10 @@ def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
         out["loss"].append(torch.stack(list(terms.values())).sum(0).view(K, B))
         out["R_gt"].append(torch.stack([it["R"] for it in items]))
         out["turns"].append(turn_losses(model, pred, images, pred.R, pred.T, loss))
-    return {k: torch.cat(v, dim=0 if k in ("R_gt", "turns") else 1) for k, v in out.items()}
+        masks = torch.stack([it["mask"] for it in items])
+        hard = hard_render(model, pred.verts, pred.texture, pred.R, pred.T, masks.shape[-1], supersample)
+        out["iou"].append(mask_iou(hard.images[:, 3:], masks, reduction="none"))
+    return {k: torch.cat(v, dim=0 if k in ("R_gt", "turns", "iou") else 1) for k, v in out.items()}
 
 
 def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
@@ -97,6 +109,10 @@ def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
     }
     spread = c["azim"].std(1)  # (K,) degrees: a candidate that no longer turns with the image has ~0
     result["cand. azim std min"], result["cand. azim std max"] = float(spread.min()), float(spread.max())
+    right = selected < 30
+    result["mask IoU"] = float(c["iou"].mean())
+    result["mask IoU, selected within 30"] = float(c["iou"][right].mean()) if right.any() else float("nan")
+    result["mask IoU, the others"] = float(c["iou"][~right].mean()) if (~right).any() else float("nan")
     own = loss_picks_pose(c["turns"])
     result["own pose by loss"], result["own pose gap"] = own["loss-pose"], own["loss-gap"]
     if float(elev_gt.max() - elev_gt.min()) > 1.0:
