@@ -250,6 +250,11 @@ def test_shape_retrieval_against_a_direct_computation(shapenet_model, synth_root
             assert result.per_image[i]["shape-top1"] == pytest.approx(float(direct["top1"][k]))
             assert result.per_image[i]["shape-mrr"] == pytest.approx(float(direct["rr"][k]))
         assert 0 < next(r for r in result.table if r["group"] == group)["shape-spread-ratio"]
+    # the retrieval alone: the same per-image scores, no spread
+    alone = evaluate(model, data, EvalOptions("shapenet", shape_points=300, shape_spread=False, **FAST), "synthetic")
+    assert not {"shape-spread-ratio", "shape-detail-ratio"} & set(alone.columns)
+    for a, b in zip(alone.per_image, result.per_image, strict=True):
+        assert {k: a[k] for k in SHAPE_COLUMNS} == {k: b[k] for k in SHAPE_COLUMNS}
 
 
 def test_shape_retrieval_of_a_one_shape_model_is_its_floor(shapenet_model, synth_root) -> None:

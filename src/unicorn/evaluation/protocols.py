@@ -330,6 +330,9 @@ class EvalOptions:
             It costs ``3 Q C + 4 Q^2`` Chamfer distances between clouds of this size per group of Q images of C
             objects (retrieval of three reconstructions, two spreads of the predicted and ground-truth shapes), so
             it grows with the square of the group's size: meant for sets of tens to a few hundred images.
+        shape_spread: with ``shape_points``, also each group's ``shape-spread-ratio`` and ``shape-detail-ratio``
+            (the ``4 Q^2`` above); False scores the retrieval alone, whose cost grows with ``Q C``: every view of a
+            test set.
     """
 
     protocol: str = "shapenet"
@@ -351,6 +354,7 @@ class EvalOptions:
     oracle_pose: bool = False
     own_mean_shape: bool = False
     shape_points: int = ranged(SHAPE_POINTS, 0)
+    shape_spread: bool = True
 
     def __post_init__(self) -> None:
         protocol = get_protocol(self.protocol)

@@ -145,7 +145,7 @@ def shape_scores(acc: Accumulator, faces: torch.Tensor, options: EvalOptions) ->
     :func:`~unicorn.metrics.shape_retrieval` for three reconstructions placed at the image's pose: the model's
     (``shape-*``), an independent sample of the ground truth (``shape-*-gt``, the ceiling) and the model's mean
     canonical mesh over the group's images times the image's scale (``shape-*-floor``, the scale-only
-    predictor). Per group, in :attr:`Accumulator.spread_ratio`: the predicted meshes'
+    predictor). Per group with ``options.shape_spread``, in :attr:`Accumulator.spread_ratio`: the predicted meshes'
     :func:`~unicorn.metrics.shape_spread` over the ground truth's, ``shape-spread-ratio`` (proportions count) and
     ``shape-detail-ratio`` (each axis normalised: the predicted meshes in their canonical frame, whose axes the
     anisotropic scale stretches, the ground truths in their object frame). A group of one object is left out
@@ -180,6 +180,8 @@ def shape_scores(acc: Accumulator, faces: torch.Tensor, options: EvalOptions) ->
                 row[f"shape-top1{suffix}"] = float(got["top1"][i])
                 row[f"shape-top3{suffix}"] = float(got["top3"][i])
                 row[f"shape-mrr{suffix}"] = float(got["rr"][i])
+        if not options.shape_spread:
+            continue
         image_objects = torch.tensor([e.obj for e in entries])
         # the detail: the canonical meshes (one canonical mesh at any scale: one cloud, no spread)
         canonical = _sample(torch.stack([e.canonical for e in entries]).double(), faces_, n, seed)
