@@ -58,8 +58,8 @@ def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
     about the vertical axis (N, A; :func:`shape_controls.turn_losses`) and the selected candidate's mask IoU (N,)."""
     loss = ReconstructionLoss.from_config(model.config["loss"])
     supersample = EvalOptions().mask_supersample
-    out: dict[str, list[torch.Tensor]] = {"R": [], "azim": [], "probs": [], "loss": [], "R_gt": [], "turns": []}
-    out["iou"] = []
+    per_view = ("R_gt", "turns", "iou")  # (N, ...); the others are per candidate, (K, N, ...)
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("R", "azim", "probs", "loss", *per_view)}
     for start in range(0, len(data), batch_size):
         items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
         images = torch.stack([it["image"] for it in items])
@@ -78,7 +78,7 @@ def candidates(model, data, batch_size: int) -> dict[str, torch.Tensor]:
         masks = torch.stack([it["mask"] for it in items])
         hard = hard_render(model, pred.verts, pred.texture, pred.R, pred.T, masks.shape[-1], supersample)
         out["iou"].append(mask_iou(hard.images[:, 3:], masks, reduction="none"))
-    return {k: torch.cat(v, dim=0 if k in ("R_gt", "turns", "iou") else 1) for k, v in out.items()}
+    return {k: torch.cat(v, dim=0 if k in per_view else 1) for k, v in out.items()}
 
 
 def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
