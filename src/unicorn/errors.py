@@ -7,8 +7,20 @@ from the built-in exception callers already catch (``ValueError``, ``FileNotFoun
 
 from __future__ import annotations
 
-__all__ = ["UserError"]
+__all__ = ["Interrupted", "UserError"]
 
 
 class UserError(Exception):
     """A mistake in the user's input or environment; the message says what is wrong and how to fix it."""
+
+
+class Interrupted(Exception):
+    """A command stopped early by a signal (SIGTERM, SIGINT) after saving what it needs to go on.
+
+    Command-line entry points print the message on one line and exit with :attr:`exit_status` (``128 + signal``,
+    as a shell reports a process killed by that signal), not 0: a scheduler sees that the job did not finish.
+    """
+
+    def __init__(self, message: str, exit_status: int) -> None:
+        super().__init__(message)
+        self.exit_status = exit_status

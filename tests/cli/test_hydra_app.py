@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from hydra._internal.utils import get_args_parser
 
-from unicorn.cli.hydra_app import HydraApp
+from unicorn.cli.hydra_app import APP_OVERRIDES, HydraApp
 
 COMMAND_LINES = [
     [],
@@ -27,7 +27,7 @@ COMMAND_LINES = [
 def test_hydra_parses_the_users_options_and_overrides_unchanged(args):
     expected = get_args_parser().parse_args(args)
     parsed = get_args_parser().parse_args(HydraApp("unicorn-train", Path("."), "train").hydra_args(args))
-    assert parsed.overrides == ["hydra.output_subdir=null", *expected.overrides]
+    assert parsed.overrides == [*APP_OVERRIDES, *expected.overrides]
     assert {k: v for k, v in vars(parsed).items() if k != "overrides"} == {
         k: v for k, v in vars(expected).items() if k != "overrides"
     }
@@ -35,5 +35,5 @@ def test_hydra_parses_the_users_options_and_overrides_unchanged(args):
 
 def test_a_users_output_subdir_is_kept_for_the_record():
     app = HydraApp("unicorn-train", Path("."), "train")
-    assert app.hydra_args(["hydra.output_subdir=rec", "seed=1"]) == ["hydra.output_subdir=null", "seed=1"]
+    assert app.hydra_args(["hydra.output_subdir=rec", "seed=1"]) == [*APP_OVERRIDES, "seed=1"]
     assert app.record_subdir == "rec"

@@ -1,11 +1,24 @@
-"""A training run's folder: which checkpoint ``ckpt_path`` names."""
+"""A training run's folder: which checkpoint ``ckpt_path`` names, what a resume would replace, the folder's lock,
+undoing what a failed run wrote."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
 
 import pytest
 
 from unicorn.errors import UserError
-from unicorn.io.run_folder import resolve_ckpt
+from unicorn.io.run_folder import (
+    LOCK_NAME,
+    FolderChanges,
+    RunFolderBusyError,
+    RunFolderError,
+    lock_folder,
+    plan_folder,
+    resolve_ckpt,
+)
 
 
 def test_ckpt_path_must_be_a_file(tmp_path) -> None:
@@ -18,3 +31,78 @@ def test_ckpt_path_must_be_a_file(tmp_path) -> None:
     (tmp_path / "a.ckpt").write_bytes(b"x")
     assert resolve_ckpt(str(tmp_path / "a.ckpt"), tmp_path / "checkpoints") == str(tmp_path / "a.ckpt")
     assert resolve_ckpt("last", tmp_path / "checkpoints") is None  # no last.ckpt yet: from scratch
+
+
+def test_last_without_last_ckpt_is_the_newest_step_file(tmp_path) -> None:
+    checkpoints = tmp_path / "checkpoints"
+    checkpoints.mkdir()
+    for name in ("step=0000005.ckpt", "step=0000010.ckpt", "nonfinite-step=0000012.ckpt"):
+        (checkpoints / name).write_bytes(b"x")
+    assert resolve_ckpt("last", checkpoints) == str(checkpoints / "step=0000010.ckpt")
+    (checkpoints / "last.ckpt").write_bytes(b"x")
+    assert resolve_ckpt("last", checkpoints) == str(checkpoints / "last.ckpt")
+
+
+def test_a_resume_from_an_earlier_checkpoint_names_the_later_ones(tmp_path) -> None:
+    checkpoints = tmp_path / "checkpoints"
+    checkpoints.mkdir()
+    for name in ("step=0000005.ckpt", "step=0000010.ckpt", "step=0000020.ckpt"):
+        (checkpoints / name).write_bytes(b"x")
+    (checkpoints / "last.ckpt").write_bytes(b"unreadable: counts as later")
+    earlier = str(checkpoints / "step=0000010.ckpt")
+    with pytest.raises(RunFolderError, match=r"step=0000020\.ckpt, checkpoints/last\.ckpt; pass overwrite=true"):
+        plan_folder(tmp_path, earlier, earlier, overwrite=False)
+    assert plan_folder(tmp_path, earlier, earlier, overwrite=True) == []  # the resumed run deletes them itself
+    assert plan_folder(tmp_path, "last", str(checkpoints / "last.ckpt"), overwrite=False) == []
+
+
+def test_a_users_config_is_not_a_run(tmp_path) -> None:
+    (tmp_path / "config.yaml").write_text("mine")
+    with pytest.raises(RunFolderError, match="holds config.yaml but no run"):
+        plan_folder(tmp_path, None, None, overwrite=False)
+
+
+def test_a_locked_folder_refuses_a_second_lock_and_a_dead_owner_is_taken_over(tmp_path) -> None:
+    lock = lock_folder(tmp_path / "run")
+    assert (tmp_path / "run" / LOCK_NAME).read_text().split()[0] == str(os.getpid())
+    with pytest.raises(RunFolderBusyError, match=rf"in use by another unicorn-train \(pid {os.getpid()} on "):
+        lock_folder(tmp_path / "run")
+    lock.release()
+    assert not (tmp_path / "run" / LOCK_NAME).exists()
+    (tmp_path / "run" / LOCK_NAME).write_text("999999999 elsewhere\n")  # left by a process that died
+    lock_folder(tmp_path / "run").release()
+    # a lock held by another process
+    child = subprocess.Popen(
+        [sys.executable, "-c", f"from unicorn.io.run_folder import lock_folder; import pathlib, sys, time; "
+         f"lock_folder(pathlib.Path({str(tmp_path / 'run')!r})); print('locked', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert child.stdout.readline().strip() == "locked"
+        with pytest.raises(RunFolderBusyError, match=rf"pid {child.pid} "):
+            lock_folder(tmp_path / "run")
+    finally:
+        child.kill()
+        child.wait()
+    lock_folder(tmp_path / "run").release()  # the kernel released the killed owner's lock
+
+
+def test_folder_changes_put_an_existing_folder_back(tmp_path) -> None:
+    (tmp_path / "config.yaml").write_text("mine")
+    (tmp_path / "train.log").write_text("old lines\n")
+    (tmp_path / "notes").mkdir()
+    changes = FolderChanges(tmp_path, {p.name for p in tmp_path.iterdir()})
+    (tmp_path / "config.yaml").write_text("the run's")
+    with open(tmp_path / "train.log", "a") as f:
+        f.write("new lines\n")
+    (tmp_path / "csv").mkdir()
+    (tmp_path / "csv" / "metrics.csv").write_text("x")
+    changes.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml", "notes", "train.log"]
+    assert (tmp_path / "config.yaml").read_text() == "mine" and (tmp_path / "train.log").read_text() == "old lines\n"
+    created = tmp_path / "new"
+    changes = FolderChanges(created, None)
+    created.mkdir()
+    (created / "train.log").write_text("x")
+    changes.undo()
+    assert not created.exists()

@@ -9,7 +9,7 @@ Examples::
 
 Writes ``metrics.csv``, ``metrics.json``, ``per_image.csv``, ``report.html`` and ``report.png`` to ``--out``
 (default ``<run>/eval/<dataset>_<split>`` for a checkpoint inside a training run, else
-``eval/<checkpoint>_<dataset>_<split>``).
+``eval/<checkpoint>_<dataset>_<split>``); a folder that is not empty is refused unless ``--overwrite`` is given.
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
     p.add_argument("--out", type=Path, help="output folder; default: see the description")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
+    add_overwrite_argument(p, "once the evaluation is complete")
     _add_metric_arguments(p)
     _add_report_arguments(p)
     add_common_arguments(p)
@@ -166,6 +167,28 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
         "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
     )
     add_debug_argument(p)
+
+
+def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
+    """Add ``--overwrite``: write into a non-empty ``--out`` (:func:`check_out_folder`); ``what``: when the files
+    are replaced."""
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help=f"write into a non-empty --out (same-named files are replaced, {what})",
+    )
+
+
+def check_out_folder(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder that is a file, or that holds files when ``--overwrite`` is not given.
+
+    Raises:
+        UsageError: the message names the folder and the option.
+    """
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UsageError(f"--out {out} is not empty; choose another folder or pass --overwrite to write into it")
 
 
 #: option -> the settings field that declares its range (:func:`unicorn.model.config.ranged`)
@@ -302,10 +325,14 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     from unicorn.io.provenance import command_line, provenance
 
     device = _device(args.device)
+    if args.out is not None:
+        check_out_folder(args.out.expanduser(), args.overwrite)  # before the model is read: a mistake fails fast
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
     target = _target(args, info)
+    out = _out_dir(args, info, target.dataset)
+    check_out_folder(out, args.overwrite)
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = _options(args, target.dataset, average)
     if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:
@@ -327,7 +354,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         model,
         target,
         options,
-        _out_dir(args, info, target.dataset),
+        out,
         meta,
         mean_shape_iterations=args.mean_shape,
         view_size=args.view_size,

@@ -10,6 +10,13 @@
 Hydra writes its record of the run (``.hydra/``) before the task starts, over the record of a run whose folder
 the task may then refuse; the app turns that off and the task writes the record once it accepted the folder
 (:meth:`HydraApp.save_record`).
+
+Hydra creates a job's folder before the task starts; :class:`NoteExistingFolders`, a Hydra callback the app adds,
+notes beforehand which folders existed, so that the task can tell a folder it created (and may remove again)
+from one the user made (:func:`existed_before`).
+
+A task stopped by a signal (:class:`unicorn.errors.Interrupted`) prints its message as ``<prog>: <message>`` and
+exits with the error's status.
 """
 
 from __future__ import annotations
@@ -23,11 +30,52 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from unicorn.cli.errors import debug_requested, expected_error, one_line
+from unicorn.errors import Interrupted
 
-__all__ = ["HydraApp", "hydra_failure"]
+__all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
+
+
+class NoteExistingFolders(Callback):
+    """A Hydra callback noting, before Hydra creates any job folder or log, which of them exist already and what
+    they hold: a single run's ``hydra.run.dir``; a sweep's ``hydra.sweep.dir`` and the folders in it."""
+
+    #: the noted folder, whether its sub-folders are the jobs' (a sweep), and each existing folder's entries
+    noted: tuple[Path, bool, dict[Path, set[str]]] | None = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._note(Path(str(config.hydra.run.dir)), jobs_inside=False)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._note(Path(str(config.hydra.sweep.dir)), jobs_inside=True)
+
+    @staticmethod
+    def _note(folder: Path, jobs_inside: bool) -> None:
+        folder = folder.expanduser().resolve()
+        folders = [folder, *(folder.iterdir() if jobs_inside and folder.is_dir() else [])]
+        entries = {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
+        NoteExistingFolders.noted = (folder, jobs_inside, entries)
+
+
+#: what the app adds to the overrides: no ``.hydra/`` record written by Hydra, the :class:`NoteExistingFolders`
+APP_OVERRIDES = (
+    "hydra.output_subdir=null",
+    f"++hydra.callbacks.existing_folders._target_={__name__}.NoteExistingFolders",  # ++: DDP processes repeat it
+)
+
+
+def entries_before(folder: Path) -> set[str] | None:
+    """The names ``folder`` held before Hydra created this process's job folders and logs; None when it did not
+    exist then. A folder Hydra does not make (or when nothing was noted): what it holds now, None if missing."""
+    folder = folder.resolve()
+    noted = NoteExistingFolders.noted
+    if noted is not None and (folder == noted[0] or (noted[1] and folder.parent == noted[0])):
+        return noted[2].get(folder)
+    return {p.name for p in folder.iterdir()} if folder.is_dir() else None
+
 
 #: the last line of a Python traceback: the exception's (qualified) name and message
 _EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
@@ -122,7 +170,7 @@ class HydraApp:
                 rest.append(arg)
         # beside the user's overrides: argparse takes Hydra's overrides as one run of positional arguments
         at = next((i for i in range(len(rest)) if _is_override(rest, i)), len(rest))
-        return [*rest[:at], "hydra.output_subdir=null", *rest[at:]]
+        return [*rest[:at], *APP_OVERRIDES, *rest[at:]]
 
     def save_record(self, cfg: DictConfig, output_dir: Path) -> None:
         """Hydra's record of the run (``config.yaml``, ``hydra.yaml``, ``overrides.yaml`` in ``.hydra/``), as
@@ -145,6 +193,9 @@ class HydraApp:
             sys.stderr = sys.stderr.release()
         try:
             task(cfg)
+        except Interrupted as err:
+            print(f"{self.prog}: {one_line(err)}", file=sys.stderr, flush=True)
+            raise SystemExit(err.exit_status) from None
         except Exception as err:
             reported = expected_error(err)
             if reported is None or debug_requested(self.debug):

@@ -23,7 +23,13 @@ from pathlib import Path
 
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, report_errors
-from unicorn.cli.eval import HelpFormatter, add_common_arguments, apply_common_arguments, check_common_arguments
+from unicorn.cli.eval import (
+    HelpFormatter,
+    add_common_arguments,
+    add_overwrite_argument,
+    apply_common_arguments,
+    check_common_arguments,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -82,11 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
         "texture, vertices, pose",
     )
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="write into a non-empty --out (same-named files are replaced, once every image is reconstructed)",
-    )
+    add_overwrite_argument(p, "once every image is reconstructed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_common_arguments(p)
     return p
@@ -94,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace, command: str | None = None) -> int:
     """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
-    from unicorn.cli.eval import _device
+    from unicorn.cli.eval import _device, check_out_folder
     from unicorn.data.images import ImageLoadError
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
@@ -102,10 +104,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.io.staging import staged_folder
 
     out = args.out.expanduser()
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
-        raise UsageError(f"--out {out} is not empty; choose another folder or pass --overwrite to write into it")
+    check_out_folder(out, args.overwrite)
     files = collect_inputs(args.inputs)
     if args.bbox is not None and len(files) != 1:
         raise UsageError(f"--bbox needs exactly one input image, got {len(files)}")

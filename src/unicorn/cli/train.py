@@ -21,26 +21,28 @@ Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for s
 (the validated, resolved config), ``provenance.json`` (command, version, git commit), ``train.log``,
 ``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
 A folder that already holds a run is only trained in again to resume it (``ckpt_path=last``: the logs are
-appended to) or with ``overwrite=true`` (its checkpoints and logs are deleted first).
+appended to) or with ``overwrite=true`` (its checkpoints and logs are deleted first). One run trains in a folder
+at a time (a lock file holding its pid); SIGTERM or SIGINT stops a run at the next step boundary with
+``last.ckpt`` written, and the command exits with ``128 + signal`` (:mod:`unicorn.lit.signals`).
 
 The run itself is assembled and trained by :mod:`unicorn.lit.run` (``build``, ``fit``); this module only turns the
 command line into Hydra's, and :class:`~unicorn.cli.hydra_app.HydraApp` reports errors.
 
 Mistakes the user can fix (a bad value, a missing dataset or checkpoint, an unsafe checkpoint, a diverged run)
-end the command with one line on stderr and exit status 2; a run folder that holds nothing yet is removed
-again. ``--debug`` or ``HYDRA_FULL_ERROR=1`` shows the traceback.
+end the command with one line on stderr and exit status 2; a run that fails before its first iteration leaves
+its folder as it was (a folder it created is removed again, nothing the user made is touched). ``--debug`` or
+``HYDRA_FULL_ERROR=1`` shows the traceback.
 """
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 
 from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.hydra_app import HydraApp, hydra_failure
+from unicorn.cli.hydra_app import HydraApp, entries_before, hydra_failure
 from unicorn.resources import config_dir
 
 __all__ = ["DEFAULT_EXPERIMENT", "config_dir", "experiment_overrides", "hydra_argv", "hydra_failure", "main"]
@@ -53,19 +55,28 @@ _app: HydraApp | None = None
 
 
 def _task(cfg: DictConfig) -> None:
-    """Build and train the run (:mod:`unicorn.lit.run`); a run that fails before its first iteration leaves no
-    folder behind that held nothing before."""
+    """Lock the run folder, then build and train the run (:mod:`unicorn.lit.run`).
+
+    A run that fails before its first iteration leaves its folders as it found them
+    (:class:`~unicorn.io.run_folder.FolderChanges`): a folder this process created is removed, an existing one
+    gets back the bytes it had. A second ``unicorn-train`` into a locked folder is refused and touches nothing.
+    """
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.io.run_folder import holds_nothing
-    from unicorn.lit.run import build, fit
+    from unicorn.io.run_folder import FolderChanges, lock_folder
+    from unicorn.lit.run import build, fit, is_first_process
 
-    folders = {Path(HydraConfig.get().runtime.output_dir).resolve()}
+    hydra_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:
-        folders.add(Path(str(cfg.paths.output_dir)).expanduser().resolve())
+        output_dir = Path(str(cfg.paths.output_dir)).expanduser().resolve()
     except Exception:  # an invalid paths group: validate() reports it
-        pass
-    empty_before = [f for f in folders if holds_nothing(f)]
+        output_dir = hydra_dir
+    if not is_first_process():  # a DDP process Lightning started: the first one owns the folder
+        fit(build(cfg))
+        return
+    entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
+    lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
+    changes = [FolderChanges(folder, names) for folder, names in entries.items()]
     run = None
     try:
         run = build(cfg)
@@ -73,11 +84,13 @@ def _task(cfg: DictConfig) -> None:
             _app.save_record(cfg, run.output_dir)
         fit(run)
     except Exception:
-        if run is None or run.trainer.global_step == 0:
-            for folder in empty_before:
-                if not any((folder / "checkpoints").glob("*.ckpt")):
-                    shutil.rmtree(folder, ignore_errors=True)
+        if run is None or run.stopper.steps_run == 0:
+            lock.release()
+            for change in changes:
+                change.undo()
         raise
+    finally:
+        lock.release()
 
 
 def experiment_overrides(overrides: list[str]) -> list[str]:

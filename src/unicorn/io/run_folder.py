@@ -1,13 +1,26 @@
-"""A training run's folder: what a run writes there, resuming from it, and refusing to overwrite an earlier run.
+"""A training run's folder: what a run writes there, resuming from it, refusing to overwrite an earlier run, the
+lock that keeps a second run out, and undoing what a run that fails before its first iteration wrote.
 
-A folder that already holds a run is only trained in again to resume it (``ckpt_path=last``) or with
-``overwrite=true`` (its outputs are deleted first); ``unicorn-train`` (:mod:`unicorn.cli.train`) applies these rules.
+A folder that already holds a run is only trained in again to resume it (``ckpt_path``) or with
+``overwrite=true`` (its outputs are deleted first); ``unicorn-train`` (:mod:`unicorn.cli.train`) applies these rules:
+
+- :func:`plan_folder` checks a folder before anything is built and returns what the run will delete; nothing is
+  written or deleted until the whole run is built (:func:`clear`);
+- :func:`lock_folder` holds the folder for one process at a time;
+- :class:`FolderChanges` undoes what a run wrote into a folder when it fails before its first iteration: it removes
+  a folder the run created, or in an existing folder only what the run added, and restores the records it
+  rewrote.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
+import os
+import re
 import shutil
+import socket
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -16,37 +29,114 @@ from unicorn.errors import UserError
 from unicorn.io.serialization import check_checkpoint_path
 
 __all__ = [
+    "LOCK_NAME",
+    "RUN_LOG",
     "RUN_OUTPUTS",
+    "RUN_RECORDS",
+    "STEP_CHECKPOINT",
+    "FolderChanges",
+    "FolderLock",
+    "RunFolderBusyError",
     "RunFolderError",
-    "holds_nothing",
-    "prepare_folder",
+    "checkpoint_step",
+    "clear",
+    "later_checkpoints",
+    "lock_folder",
+    "plan_folder",
     "previous_run",
     "resolve_ckpt",
     "run_dataset",
     "run_of_checkpoint",
+    "step_checkpoints",
 ]
 
 log = logging.getLogger("unicorn.train")
 
-#: what a run writes into its folder (besides Hydra's ``.hydra/`` and ``train.log``, and ``config.yaml``)
+#: what a run writes into its folder as its outputs (deleted by ``overwrite=true``)
 RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv")
+#: the records of the run a folder holds (its config, its starts, Hydra's record): a resumed run rewrites them
+RUN_RECORDS = ("config.yaml", "provenance.json", ".hydra")
+#: the log Hydra appends to (``<hydra.job.name>.log``)
+RUN_LOG = "train.log"
+#: the lock file of a folder a run is training in (:func:`lock_folder`)
+LOCK_NAME = ".unicorn-train.lock"
+#: the periodic checkpoints' names (``step=<N>.ckpt``; ``-v<k>`` for Lightning's copies of a name in use)
+STEP_CHECKPOINT = re.compile(r"step=(\d+)(-v\d+)?\.ckpt")
 
 
 class RunFolderError(UserError, FileExistsError):
-    """A new run was started in a folder that already holds one."""
+    """A new run was started in a folder that already holds one, or a resume would delete later checkpoints."""
+
+
+class RunFolderBusyError(UserError, BlockingIOError):
+    """Another process is training in the run folder."""
+
+
+def step_checkpoints(checkpoint_dir: Path) -> list[tuple[int, Path]]:
+    """The periodic checkpoints (``step=<N>.ckpt``) in ``checkpoint_dir`` as ``(N, path)``, oldest first."""
+    if not checkpoint_dir.is_dir():
+        return []
+    found = []
+    for path in checkpoint_dir.iterdir():
+        match = STEP_CHECKPOINT.fullmatch(path.name)
+        if match and path.is_file():
+            found.append((int(match.group(1)), path))
+    return sorted(found)
+
+
+def checkpoint_step(path: Path) -> int | None:
+    """The iteration a checkpoint was saved at (``step=<N>.ckpt`` by its name, any other file by its stored
+    ``global_step``, read without loading its tensors), or None when it cannot be read safely."""
+    match = STEP_CHECKPOINT.fullmatch(path.name)
+    if match:
+        return int(match.group(1))
+    import torch
+
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # unreadable without trust, or not a checkpoint: the step is unknown
+        return None
+    step = data.get("global_step") if isinstance(data, Mapping) else None
+    return step if isinstance(step, int) else None
 
 
 def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
-    """``None``, ``"last"`` (this run directory's last.ckpt if it exists) or an existing file."""
+    """The checkpoint to resume from: None for ``None``; for ``"last"`` this run folder's ``last.ckpt``, else its
+    newest ``step=<N>.ckpt`` (a run with ``callbacks.checkpoint.save_last=false``), else None (nothing to resume:
+    training starts from scratch); otherwise the existing file ``ckpt_path`` names.
+
+    Raises:
+        unicorn.io.serialization.CheckpointNotFoundError: ``ckpt_path`` names no file.
+    """
     if ckpt_path is None:
         return None
     if ckpt_path == "last":
         last = checkpoint_dir / "last.ckpt"
         if last.is_file():
             return str(last)
-        log.info("ckpt_path=last: no %s yet, training from scratch", last)
+        steps = step_checkpoints(checkpoint_dir)
+        if steps:
+            log.info("ckpt_path=last: no %s, resuming from the newest checkpoint %s", last, steps[-1][1])
+            return str(steps[-1][1])
+        log.info("ckpt_path=last: no checkpoint in %s yet, training from scratch", checkpoint_dir)
         return None
     return str(check_checkpoint_path(Path(ckpt_path).expanduser().resolve(), "ckpt_path"))
+
+
+def later_checkpoints(checkpoint_dir: Path, ckpt: Path) -> list[Path]:
+    """The checkpoints in ``checkpoint_dir`` saved after the iteration of ``ckpt``: what a run resumed from
+    ``ckpt`` deletes (``step=<N>.ckpt``) or replaces (``last.ckpt``). A ``last.ckpt`` whose iteration cannot be
+    read counts as later."""
+    step = checkpoint_step(ckpt)
+    if step is None:
+        return []  # Lightning reports an unreadable checkpoint when it loads it
+    later = [path for n, path in step_checkpoints(checkpoint_dir) if n > step and path != ckpt]
+    last = checkpoint_dir / "last.ckpt"
+    if last.is_file() and last != ckpt:
+        last_step = checkpoint_step(last)
+        if last_step is None or last_step > step:
+            later.append(last)
+    return later
 
 
 def previous_run(output_dir: Path) -> Path | None:
@@ -63,35 +153,153 @@ def previous_run(output_dir: Path) -> Path | None:
     return None
 
 
-def prepare_folder(output_dir: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse to start a new run over an earlier one, or delete the earlier one's outputs when told to.
+def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwrite: bool) -> list[Path]:
+    """Check that a run may train in ``output_dir``; returns what it deletes first (:func:`clear`). Reads only.
+
+    Args:
+        output_dir: the run folder.
+        ckpt_arg: the ``ckpt_path`` setting (None: a new run; ``"last"``: continue the run this folder holds).
+        ckpt: the checkpoint it resolved to (:func:`resolve_ckpt`).
+        overwrite: the ``overwrite`` setting.
 
     Raises:
-        RunFolderError: ``output_dir`` holds a run and neither ``resume`` nor ``overwrite`` is set.
+        RunFolderError: a new run in a folder holding a run, or holding the records of one (``config.yaml``...);
+            a resume from a checkpoint older than checkpoints of this folder; each unless ``overwrite``.
     """
+    rel = lambda p: p.relative_to(output_dir) if p.is_relative_to(output_dir) else p  # noqa: E731
     previous = previous_run(output_dir)
-    if previous is None or resume:
-        return
-    if not overwrite:
-        raise RunFolderError(
-            f"{output_dir} already holds a run ({previous.relative_to(output_dir)}); resume it with "
-            "ckpt_path=last, replace it with overwrite=true, or train elsewhere (hydra.run.dir=...)"
-        )
-    log.warning("overwrite=true: deleting the earlier run's outputs in %s", output_dir)
-    for name in RUN_OUTPUTS:
-        path = output_dir / name
-        if path.is_dir():
+    if ckpt_arg is None and previous is not None:
+        if not overwrite:
+            raise RunFolderError(
+                f"{output_dir} already holds a run ({rel(previous)}); resume it with ckpt_path=last, replace it "
+                "with overwrite=true, or train elsewhere (hydra.run.dir=...)"
+            )
+        return [output_dir / name for name in RUN_OUTPUTS if (output_dir / name).exists()]
+    if ckpt_arg != "last" and previous is None and not overwrite:
+        records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
+        if records:
+            raise RunFolderError(
+                f"{output_dir} holds {', '.join(records)} but no run; train elsewhere (hydra.run.dir=...), remove "
+                "them, or replace them with overwrite=true"
+            )
+    if ckpt_arg not in (None, "last") and ckpt is not None:
+        later = later_checkpoints(output_dir / RUN_OUTPUTS[0], Path(ckpt))
+        if later and not overwrite:
+            names = ", ".join(str(rel(p)) for p in later)
+            raise RunFolderError(
+                f"resuming from {rel(Path(ckpt))} would delete or replace the later checkpoints {names}; pass "
+                "overwrite=true to go on, or train elsewhere (hydra.run.dir=...)"
+            )
+    return []
+
+
+def clear(paths: list[Path]) -> None:
+    """Delete ``paths`` (an earlier run's outputs that ``overwrite=true`` replaces: :func:`plan_folder`)."""
+    for path in paths:
+        log.warning("overwrite=true: deleting the earlier run's %s", path)
+        if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
-        elif path.exists():
+        elif path.exists() or path.is_symlink():
             path.unlink()
 
 
-def holds_nothing(folder: Path) -> bool:
-    """Whether ``folder`` holds only what Hydra and ``unicorn-train``'s build write before training (or does not
-    exist): such a folder can be removed again when the run fails before training."""
-    if not folder.is_dir():
-        return True
-    return all(p.name in (".hydra", "train.log", "config.yaml") for p in folder.iterdir())
+class FolderLock:
+    """A held :func:`lock_folder` lock; :meth:`release` gives it up (also when the process ends)."""
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path, self.fd = path, fd
+
+    def release(self) -> None:
+        """Remove the lock file and let the folder go (idempotent)."""
+        if self.fd < 0:
+            return
+        with contextlib.suppress(OSError):
+            self.path.unlink()  # while still held: a process waiting on it finds the file gone and retries
+        os.close(self.fd)
+        self.fd = -1
+
+
+def lock_folder(folder: Path) -> FolderLock:
+    """Lock ``folder`` (created if missing) for this process: an exclusive ``flock`` on
+    ``<folder>/.unicorn-train.lock``, which holds the owner's pid and host. The kernel drops the lock when its
+    process ends, however it ends, so a lock file left by a dead process is taken over.
+
+    Raises:
+        RunFolderBusyError: another live process holds the lock.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_NAME
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = os.read(fd, 200).decode(errors="replace").split() or ["?"]
+            os.close(fd)
+            raise RunFolderBusyError(
+                f"{folder} is in use by another unicorn-train (pid {' on '.join(owner[:2])}); wait for it to end "
+                "or train elsewhere (hydra.run.dir=...)"
+            ) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the owner removed the file while we waited for it: lock the new one
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()} {socket.gethostname()}\n".encode())
+    return FolderLock(path, fd)
+
+
+class FolderChanges:
+    """What a run changes in a folder, to undo it when the run fails before its first iteration.
+
+    Create it before the run writes anything, with the names the folder held before this process touched it
+    (``entries``; None: it did not exist). :meth:`undo` removes a folder that did not exist before (everything in
+    it is the run's); in an existing folder it removes only the files and folders the run added and restores the
+    records it rewrote (:data:`RUN_RECORDS`), so that the folder is as it was, byte for byte (the lines the run
+    appended to ``train.log`` included).
+    """
+
+    def __init__(self, folder: Path, entries: set[str] | None) -> None:
+        self.folder, self.existed = folder, entries is not None and folder.is_dir()
+        present = self._written() if self.existed else []
+        self.paths = {p for p in present if _top(folder, p) in (entries or set())}
+        self.records = {p: p.read_bytes() for p in self.paths if p.is_file() and _top(folder, p) in RUN_RECORDS}
+        log_file = folder / RUN_LOG
+        self.log_size = log_file.stat().st_size if log_file in self.paths and log_file.is_file() else None
+
+    def _written(self) -> list[Path]:
+        """What a run can write: the folder's entries, and everything inside its outputs and records."""
+        entries = list(self.folder.iterdir())
+        return entries + [
+            p for e in entries if e.name in RUN_OUTPUTS + RUN_RECORDS and e.is_dir() for p in e.rglob("*")
+        ]
+
+    def undo(self) -> None:
+        """Put the folder back as it was (see the class docstring)."""
+        if not self.existed:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            return
+        added = [p for p in self._written() if p not in self.paths and p.name != LOCK_NAME]
+        for path in sorted(added, key=lambda p: len(p.parts), reverse=True):
+            with contextlib.suppress(FileNotFoundError):
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+        for path, data in self.records.items():
+            if not path.is_file() or path.read_bytes() != data:
+                path.write_bytes(data)
+        log_file = self.folder / RUN_LOG
+        if self.log_size is not None and log_file.is_file() and log_file.stat().st_size != self.log_size:
+            os.truncate(self.folder / RUN_LOG, self.log_size)  # the lines this run appended
+
+
+def _top(folder: Path, path: Path) -> str:
+    """The name of the entry of ``folder`` that holds ``path``."""
+    return path.relative_to(folder).parts[0]
 
 
 def run_of_checkpoint(path: Path) -> Path | None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from unicorn.io.checkpoints import check_training_checkpoint
+from unicorn.io.run_folder import step_checkpoints
 from unicorn.io.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
 
 __all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint"]
@@ -79,18 +79,15 @@ class PeriodicCheckpoint(ModelCheckpoint):
         remove_stale_temporaries(self.dirpath)
         if self.monitor != "step" or self.save_top_k < 0:
             return
-        for path in Path(self.dirpath).glob("step=*.ckpt"):
-            match = re.fullmatch(r"step=(\d+)(-v\d+)?\.ckpt", path.name)
-            if not match:
-                continue
-            if int(match.group(1)) > trainer.global_step:
+        for step, path in step_checkpoints(Path(self.dirpath)):
+            if step > trainer.global_step:
                 # written after the checkpoint this run resumes from by an attempt that was then killed: it is
                 # about to be written again (Lightning would otherwise write a "-v1" copy beside it)
                 self.best_k_models.pop(str(path), None)
                 log.info("removing %s, newer than the resumed iteration %d", path, trainer.global_step)
                 trainer.strategy.remove_checkpoint(path)
             elif str(path) not in self.best_k_models:
-                self.best_k_models[str(path)] = torch.tensor(float(match.group(1)))
+                self.best_k_models[str(path)] = torch.tensor(float(step))
         ranked = sorted(self.best_k_models, key=lambda p: float(self.best_k_models[p]))
         for stale in ranked[: max(0, len(ranked) - self.save_top_k)]:
             self.best_k_models.pop(stale)

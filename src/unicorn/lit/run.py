@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import warnings
 from dataclasses import dataclass
@@ -22,9 +23,22 @@ from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["Run", "build", "build_callbacks", "build_loggers", "evaluate_run", "fit"]
+from unicorn.errors import Interrupted
+
+__all__ = [
+    "Run",
+    "build",
+    "build_callbacks",
+    "build_loggers",
+    "check_run_folder",
+    "evaluate_run",
+    "fit",
+    "is_first_process",
+    "write_run_folder",
+]
 
 log = logging.getLogger("unicorn.train")
 
@@ -40,26 +54,35 @@ class Run:
     output_dir: Path
     checkpoint_dir: Path
     ckpt_path: str | None
+    stopper: Any  # the run's GracefulStop: signals, and the iterations this process ran
 
 
 def build(cfg: DictConfig) -> Run:
     """Validate ``cfg`` and build the data, model, callbacks, loggers and trainer (nothing is trained).
 
+    The run folder is checked first and written only once everything is built: a run refused here changes
+    nothing on disk (:func:`check_run_folder`, :func:`write_run_folder`).
+
     Raises:
         unicorn.config.ConfigError: an invalid config (unknown key, wrong type, inconsistent values).
+        unicorn.io.run_folder.RunFolderError: the folder holds a run this one may not replace.
     """
     from unicorn.config import validate
+    from unicorn.lit.signals import GracefulStop
 
     _route_lightning_logs()
     typed = validate(cfg)
     # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
-    output_dir, checkpoint_dir, ckpt_path = prepare_run_folder(typed)
+    output_dir, checkpoint_dir, ckpt_path, outdated = check_run_folder(typed)
     L.seed_everything(typed.seed, workers=True, verbose=False)
     data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
     module = build_module(typed)
-    trainer = build_trainer(typed, build_callbacks(typed, checkpoint_dir), build_loggers(typed), output_dir)
-    return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path)
+    stopper = GracefulStop(checkpoint_dir / "last.ckpt")
+    callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]
+    trainer = build_trainer(typed, callbacks, build_loggers(typed), output_dir)
+    write_run_folder(typed, output_dir, ckpt_path, outdated)
+    return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path, stopper)
 
 
 def _route_lightning_logs() -> None:
@@ -78,26 +101,45 @@ def _route_lightning_logs() -> None:
         logger.propagate = True
 
 
-def prepare_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None]:
-    """Accept (or refuse) the run folder, write ``config.yaml`` and ``provenance.json`` into it.
+def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Path]]:
+    """Accept (or refuse) the run folder; reads only (:func:`unicorn.io.run_folder.plan_folder`).
 
     Returns:
-        the run folder, its checkpoint folder and the checkpoint to resume from (None: a new run).
+        the run folder, its checkpoint folder, the checkpoint to resume from (None: a new run) and the earlier
+        run's outputs that ``overwrite=true`` deletes.
     """
-    from unicorn.io.run_folder import prepare_folder, resolve_ckpt
-    from unicorn.io.serialization import remove_stale_temporaries
+    from unicorn.io.run_folder import plan_folder, resolve_ckpt
 
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
     checkpoint_dir = output_dir / "checkpoints"
     ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir)
-    prepare_folder(output_dir, resume=typed.ckpt_path is not None, overwrite=typed.overwrite)
+    if not is_first_process():  # a DDP process Lightning started, after the first one accepted the folder
+        return output_dir, checkpoint_dir, ckpt_path, []
+    outdated = plan_folder(output_dir, typed.ckpt_path, ckpt_path, typed.overwrite)
+    return output_dir, checkpoint_dir, ckpt_path, outdated
+
+
+def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None, outdated: list[Path]) -> None:
+    """Delete ``outdated`` (an earlier run that ``overwrite=true`` replaces), then write ``config.yaml`` and
+    ``provenance.json`` into the run folder (on the first process only)."""
+    from unicorn.io.run_folder import clear
+    from unicorn.io.serialization import remove_stale_temporaries
+
+    if not is_first_process():
+        return  # DDP processes started by Lightning build the run again
+    clear(outdated)
     output_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint_dir = output_dir / "checkpoints"
     if checkpoint_dir.is_dir():
         for tmp in remove_stale_temporaries(checkpoint_dir):
             log.info("removed %s, a partial checkpoint of a killed run", tmp)
     (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
     _write_provenance(output_dir, ckpt_path)
-    return output_dir, checkpoint_dir, ckpt_path
+
+
+def is_first_process() -> bool:
+    """Whether this is the process the user started (not one that Lightning started for another DDP rank)."""
+    return int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
 
 
 def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
@@ -107,8 +149,6 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
 
     from unicorn.io.provenance import command_line, provenance
 
-    if int(os.environ.get("LOCAL_RANK", "0")) != 0 or int(os.environ.get("NODE_RANK", "0")) != 0:
-        return  # DDP processes started by Lightning build the run again: one record per start
     if HydraConfig.initialized():
         command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
     else:  # built from Python (e.g. with Hydra's compose API)
@@ -200,10 +240,20 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
 
 
 def fit(run: Run) -> dict[str, float]:
-    """Train a built run; returns the last values of the trainer's scalar callback metrics."""
+    """Train a built run; returns the last values of the trainer's scalar callback metrics.
+
+    Raises:
+        unicorn.errors.Interrupted: stopped by SIGTERM or SIGINT (:class:`~unicorn.lit.signals.GracefulStop`).
+    """
     trainer, typed = run.trainer, run.config
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
-    trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
+    try:
+        trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
+    except SIGTERMException as err:  # Lightning's, outside the step boundaries GracefulStop stops at
+        raise Interrupted(
+            f"stopped by SIGTERM at iteration {trainer.global_step} (not at a step boundary: no checkpoint written)",
+            128 + signal.SIGTERM,
+        ) from err
     if not trainer.interrupted and typed.callbacks.checkpoint.save_last:
         # the periodic checkpoints may not fall on the last iteration
         trainer.save_checkpoint(run.checkpoint_dir / "last.ckpt", weights_only=False)

@@ -1,0 +1,83 @@
+"""Stopping a run cleanly on SIGTERM or SIGINT: at the next step boundary, with ``last.ckpt`` written.
+
+Schedulers (SLURM, Kubernetes...) send SIGTERM before they preempt or requeue a job; Ctrl-C sends SIGINT.
+:class:`GracefulStop` lets the iteration under way finish, writes ``last.ckpt`` atomically
+(:class:`~unicorn.lit.checkpoint.AtomicCheckpointIO`), whatever ``callbacks.checkpoint.save_last`` says, and stops
+training with :class:`unicorn.errors.Interrupted`: ``unicorn-train`` then exits with status ``128 + signal`` (143
+for SIGTERM, 130 for SIGINT), never 0. The same command with ``ckpt_path=last`` (a requeued SLURM job) resumes
+from that file exactly.
+
+SIGTERM is received by Lightning's own handler (``trainer.received_sigterm``, which also forwards it to the
+processes Lightning started); the callback replaces Python's SIGINT handler during training, and a second
+SIGINT stops at once (``KeyboardInterrupt``, no checkpoint). Under DDP every rank stops at the same iteration:
+the decision is reduced across ranks at each step boundary.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+
+from unicorn.errors import Interrupted
+
+__all__ = ["GracefulStop"]
+
+log = logging.getLogger("unicorn.train")
+
+
+class GracefulStop(L.Callback):
+    """Stop at the step boundary after SIGTERM or SIGINT, writing ``last_path`` first (see the module docstring).
+
+    Also counts the iterations this process ran (:attr:`steps_run`): a run that fails before its first one leaves
+    its folder as it found it (:mod:`unicorn.cli.train`).
+
+    Args:
+        last_path: where the checkpoint of an interrupted run goes (the run's ``checkpoints/last.ckpt``).
+    """
+
+    def __init__(self, last_path: str | Path) -> None:
+        self.last_path = Path(last_path)
+        self.steps_run = 0
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.received = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        if self.received is not None:  # asked twice: stop now
+            self._restore()
+            raise KeyboardInterrupt
+        self.received = signum
+        log.warning("%s: stopping after this iteration (again to stop at once)", signal.Signals(signum).name)
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        self.steps_run += 1
+        signum = self.received or (signal.SIGTERM if trainer.received_sigterm else None)
+        if not trainer.strategy.reduce_boolean_decision(signum is not None, all=False):
+            return
+        name = signal.Signals(signum or signal.SIGTERM).name
+        trainer.save_checkpoint(self.last_path, weights_only=False)
+        raise Interrupted(
+            f"stopped by {name} after iteration {trainer.global_step}; {self.last_path} written: resume with "
+            "ckpt_path=last in the same folder",
+            128 + (signum or signal.SIGTERM),
+        )
+
+    def _restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous = {}
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._restore()
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._restore()
