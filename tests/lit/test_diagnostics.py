@@ -14,11 +14,12 @@ from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.config.schema import DiagnosticsConfig
-from unicorn.lit import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
-from unicorn.lit.diagnostics import collapse_reasons
+from unicorn.lit import CodeDiagnostics, CollapseWarning, ViewpointWarning, code_diagnostics, pose_diagnostics
+from unicorn.lit.diagnostics import VIEWPOINT_SEED, collapse_reasons, viewpoint_reasons
 from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
+from unicorn.model.viewpoint import viewpoint_check
 
 
 def _model() -> Unicorn:
@@ -30,11 +31,12 @@ def _model() -> Unicorn:
 
 
 class _LitStandIn(nn.Module):
-    """What the callback uses of a UnicornLitModule: ``model``, ``device``, train / eval."""
+    """What the callback uses of a UnicornLitModule: ``model``, ``stage``, ``device``, train / eval."""
 
-    def __init__(self, model: Unicorn) -> None:
+    def __init__(self, model: Unicorn, stage: int = 1) -> None:
         super().__init__()
         self.model = model
+        self.stage = torch.tensor(stage)
 
     @property
     def device(self) -> torch.device:
@@ -183,7 +185,9 @@ def test_pose_numbers_in_the_model_diagnostics(tmp_path) -> None:
     stats = code_diagnostics(model, images)
     with torch.no_grad():
         poses = model.predict(images).poses
-    assert stats["pose"] == pose_diagnostics(poses, float(model.pose.R_range[0]))
+    want = pose_diagnostics(poses, float(model.pose.R_range[0]))
+    want.update(viewpoint_check(model, images, torch.Generator().manual_seed(VIEWPOINT_SEED)))
+    assert stats["pose"] == want
     assert stats["pose"]["azim-spread"] > 0 or math.isnan(stats["pose"]["azim-spread"])  # randomised heads vary
     callback = CodeDiagnostics(every_n_steps=1, max_images=8)
     callback._images.extend(images.unbind(0))
@@ -192,3 +196,45 @@ def test_pose_numbers_in_the_model_diagnostics(tmp_path) -> None:
 
 
 # in a training run (rows in diagnostics.csv, training unchanged): tests/lit/test_heldout.py
+
+
+def test_pose_shares_and_azimuth_bins_against_a_loop() -> None:
+    azim = [[10.0, 40.0, 200.0, 350.0], [95.0, 100.0, 110.0, 300.0]]  # K = 2 candidates, B = 4 images
+    probs = [[0.9, 0.2, 0.8, 0.7], [0.1, 0.8, 0.2, 0.3]]
+    out = pose_diagnostics(_poses(azim, probs), 30.0)
+    assert (out["share-0"], out["share-1"]) == (0.75, 0.25)
+    # selected azimuths 10, 100, 200, 350: bins 0, 3, 6, 11 of twelve
+    assert out["azim-bins"] == 4 / 12
+
+
+def test_viewpoint_reasons() -> None:
+    healthy = {"render-acc": 0.8, "render-azim-error": 12.0, "render-chance": 1 / 6, "share-max": 0.3}
+    assert viewpoint_reasons(healthy, 0.5, 0.9) == []
+    misread = viewpoint_reasons({**healthy, "render-acc": 0.2}, 0.5, 0.9)
+    assert len(misread) == 1 and "20%" in misread[0] and "a guess 17%" in misread[0]
+    one = viewpoint_reasons({**healthy, "share-max": 0.95}, 0.5, 0.9)
+    assert one == ["one candidate is the most likely for 95% of the images"]
+    assert viewpoint_reasons({**healthy, "render-acc": 0.0, "share-max": 1.0}, 0.0, 1.0) == []  # not judged
+
+
+@pytest.mark.parametrize("stage", [1, 2])
+def test_a_viewpoint_collapse_warns_from_stage_2(tmp_path, stage: int) -> None:
+    """An untrained pose branch misreads renders at known views: judged (and warned about once) from stage 2 on."""
+    model = _model()
+    callback = CodeDiagnostics(every_n_steps=1, max_images=8, viewpoint_acc_tol=0.9)
+    callback._images.extend(torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(2)).unbind(0))
+    trainer = SimpleNamespace(global_step=5, loggers=[], default_root_dir=str(tmp_path))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        row = callback.check(trainer, _LitStandIn(model, stage=stage))
+        trainer.global_step = 6
+        callback.check(trainer, _LitStandIn(model, stage=stage))
+    assert row is not None and row["pose/render-acc"] < 0.9
+    viewpoint = [w for w in caught if issubclass(w.category, ViewpointWarning)]
+    assert len(viewpoint) == (1 if stage == 2 else 0)
+    assert bool(callback.viewpoint_collapsed) is (stage == 2)
+    if stage == 2:
+        assert "VIEWPOINT COLLAPSE: viewpoint learning collapsed at iteration 5" in str(viewpoint[0].message)
+        assert callback.state_dict()["viewpoint_collapsed"] == callback.viewpoint_collapsed
+        header = (tmp_path / "diagnostics.csv").read_text().splitlines()[0].split(",")
+        assert {"pose/render-acc", "pose/render-azim-error", "pose/share-0", "pose/azim-bins"} <= set(header)

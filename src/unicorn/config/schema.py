@@ -306,6 +306,11 @@ class DiagnosticsConfig:
     # collapsed: a shape code spread below this x the texture code's (one blob for every car: 0.01; trained cars,
     # tables and mugs whose shapes follow the image: 0.03-0.07)
     shape_spread_ratio: float = ranged(0.02, 0)
+    # viewpoint learning collapsed (from stage 2 on): the pose branch's accuracy on renders of the model's own
+    # reconstructions at drawn viewpoints below this (0: not judged), or one candidate the most likely for more
+    # than share_max_tol of the images (1: not judged)
+    viewpoint_acc_tol: float = ranged(0.5, 0, 1)
+    share_max_tol: float = ranged(0.9, 0, 1)
 
 
 @dataclass

@@ -9,7 +9,8 @@
 - :class:`CSVLogger`, :class:`TensorBoardLogger`, :class:`ResumeLogs` (``loggers``): logs a resume appends to.
 - :class:`HeldOutEvaluation` (``heldout``): held-out metrics every N iterations (learning curves).
 - :class:`CodeDiagnostics` (``diagnostics``): code spread and dead units of the code regressors, with a loud
-  :class:`CollapseWarning` when a branch stops depending on the image.
+  :class:`CollapseWarning` when a branch stops depending on the image, and the viewpoint health (the pose branch
+  on renders at known views, the candidates' shares), with a :class:`ViewpointWarning` when it collapses.
 - :func:`~unicorn.lit.run.build`, :func:`~unicorn.lit.run.fit` (``run``): one training run assembled from a
   composed config (run folder, data, module, callbacks and loggers by ``_target_``, trainer), trained and evaluated.
 - :class:`UnicornDataModule` (``data``): the one LightningDataModule: a dataset's splits and loaders, training on an
@@ -25,7 +26,13 @@ rank ``r mod saved_world_size``.
 from unicorn.lit.callbacks import ImageLogger, ProgressBar, StageCallback, render_overview
 from unicorn.lit.checkpoint import AtomicCheckpointIO, PeriodicCheckpoint
 from unicorn.lit.data import SeededItems, StreamBatchSampler, UnicornDataModule
-from unicorn.lit.diagnostics import CodeDiagnostics, CollapseWarning, code_diagnostics, pose_diagnostics
+from unicorn.lit.diagnostics import (
+    CodeDiagnostics,
+    CollapseWarning,
+    ViewpointWarning,
+    code_diagnostics,
+    pose_diagnostics,
+)
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
@@ -35,6 +42,7 @@ __all__ = [
     "AtomicCheckpointIO",
     "CodeDiagnostics",
     "CollapseWarning",
+    "ViewpointWarning",
     "CSVLogger",
     "HeldOutEvaluation",
     "ImageLogger",

@@ -22,7 +22,14 @@ N iterations on the most recent training images:
   images it is chosen for (std over those images divided by the offset's half range, averaged over the
   candidates chosen at least twice; :func:`pose_diagnostics`). Near 0, the pose branch picks one of K fixed
   viewpoints whatever the image, and the views between them come out up to half a candidate's sector wrong; on
-  the synthetic cars in NMR views, whose poses are right, it is about 0.5-0.7.
+  the synthetic cars in NMR views, whose poses are right, it is about 0.5-0.7; ``pose/share-<k>``: the share of the
+  images whose most likely candidate is candidate k; ``pose/azim-bins``: the share of twelve 30-degree azimuth bins
+  that the images' selected azimuths reach;
+- ``pose/render-acc``, ``pose/render-azim-error``: the pose branch read on renders of the model's own
+  reconstructions of the images at viewpoints drawn over the pose ranges (:func:`unicorn.model.viewpoint.
+  viewpoint_check`, the same draws at every check): the share whose most likely candidate is the drawn view's,
+  and the median azimuth error (degrees) of that candidate. No ground truth is needed: a model that reads
+  viewpoints finds most renders' candidates; ``pose/render-chance`` (1 / K) is what a guess scores.
 
 Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
 check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its
@@ -33,6 +40,11 @@ an absolute tolerance near 0 does not catch (the spreads are not judged on the f
 changed: a newly unmasked dimension starts at 0 and needs a few iterations to move). The callback then emits a
 :class:`CollapseWarning` and a log error naming the branch, the step and the numbers, once when it happens (and
 again at the end of training if it has not recovered).
+
+Viewpoint learning *collapses* when, from stage 2 on (the first stage's end, when the reference tells its users to
+look), the render accuracy stays below ``viewpoint_acc_tol`` or one candidate is the most likely for more than
+``share_max_tol`` of the images: the callback then emits a :class:`ViewpointWarning` and a log error with the
+numbers and what to try, once when it happens and again at the end of training if it has not recovered.
 """
 
 from __future__ import annotations
@@ -55,8 +67,16 @@ from unicorn.lit.heldout import append_csv_row
 from unicorn.metrics import active_units, code_spread, mesh_spread
 from unicorn.model.config import CODE_BRANCHES, check_ranges
 from unicorn.model.pose import PoseOutput
+from unicorn.model.viewpoint import viewpoint_check
 
-__all__ = ["CodeDiagnostics", "CollapseWarning", "code_diagnostics", "pose_diagnostics"]
+__all__ = [
+    "CodeDiagnostics",
+    "CollapseWarning",
+    "ViewpointWarning",
+    "code_diagnostics",
+    "pose_diagnostics",
+    "viewpoint_reasons",
+]
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +84,18 @@ log = logging.getLogger(__name__)
 SPREAD_REFERENCE = {"shape": "texture"}
 
 
+#: the azimuth bins of ``pose/azim-bins`` (degrees)
+AZIM_BIN = 30.0
+#: the seed of the viewpoint check's draws: every check renders the same viewpoints
+VIEWPOINT_SEED = 0
+
+
 class CollapseWarning(UserWarning):
     """A code branch no longer depends on the image (dead regressor units or a constant code)."""
+
+
+class ViewpointWarning(UserWarning):
+    """The pose branch no longer tells viewpoints apart (renders at known views misread, or one candidate for all)."""
 
 
 def pose_diagnostics(poses: PoseOutput, azim_half_range: float) -> dict[str, float]:
@@ -77,7 +107,9 @@ def pose_diagnostics(poses: PoseOutput, azim_half_range: float) -> dict[str, flo
             fixed azimuth) gives a spread of 0.
 
     Returns:
-        ``share-min``, ``share-max`` and ``azim-spread`` (NaN when no candidate is chosen twice).
+        ``share-min``, ``share-max``, ``azim-spread`` (NaN when no candidate is chosen twice), ``share-<k>`` for
+        every candidate and ``azim-bins`` (the share of the :data:`AZIM_BIN`-degree azimuth bins that the selected
+        azimuths reach).
     """
     K, B = poses.probs.shape
     best = poses.best
@@ -88,7 +120,12 @@ def pose_diagnostics(poses: PoseOutput, azim_half_range: float) -> dict[str, flo
     spread = math.nan
     if spreads:
         spread = float(torch.stack(spreads).mean() / azim_half_range) if azim_half_range > 0 else 0.0
-    return {"share-min": min(shares), "share-max": max(shares), "azim-spread": spread}
+    n_bins = round(360.0 / AZIM_BIN)
+    bins = torch.floor(torch.remainder(azim, 360.0) / AZIM_BIN).long().clamp(0, n_bins - 1)
+    out = {"share-min": min(shares), "share-max": max(shares), "azim-spread": spread}
+    out.update({f"share-{k}": share for k, share in enumerate(shares)})
+    out["azim-bins"] = len(set(bins.tolist())) / n_bins
+    return out
 
 
 @torch.no_grad()
@@ -105,7 +142,7 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
     Returns:
         branch -> ``active-dims``, ``code-std``, ``code-std-min`` (NaN without active dimensions), ``raw-std``,
         ``alive-last``, ``units-last`` and ``alive-frac`` (``shape`` also ``mesh-spread``), and ``pose`` ->
-        :func:`pose_diagnostics` (see the module docstring).
+        :func:`pose_diagnostics` and :func:`~unicorn.model.viewpoint.viewpoint_check` (see the module docstring).
     """
     if images.dim() != 4 or images.shape[0] < 2:
         raise ValueError(f"need a (B, 3, S, S) batch with B >= 2 images, got {tuple(images.shape)}")
@@ -142,7 +179,22 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
         out[b] = row
     out["shape"]["mesh-spread"] = mesh_spread(pred.canonical_verts)
     out["pose"] = pose_diagnostics(pred.poses, float(model.pose.R_range[0]))
+    out["pose"].update(viewpoint_check(model, images, torch.Generator().manual_seed(VIEWPOINT_SEED)))
     return out
+
+
+def viewpoint_reasons(stats: dict[str, float], acc_tol: float, share_max_tol: float) -> list[str]:
+    """Why the ``pose`` entry of :func:`code_diagnostics` says viewpoint learning collapsed; empty when it did not."""
+    reasons = []
+    if stats["render-acc"] < acc_tol:
+        reasons.append(
+            f"on renders of its own reconstructions at known viewpoints the pose branch picks the right candidate "
+            f"for {stats['render-acc']:.0%} (tolerance {acc_tol:.0%}, a guess {stats['render-chance']:.0%}; median "
+            f"azimuth error {stats['render-azim-error']:.0f} degrees)"
+        )
+    if stats["share-max"] > share_max_tol:
+        reasons.append(f"one candidate is the most likely for {stats['share-max']:.0%} of the images")
+    return reasons
 
 
 def collapse_reasons(
@@ -188,6 +240,10 @@ class CodeDiagnostics(L.Callback):
         spread_tol: a code whose active dimensions' std across the images is below this on average has collapsed.
         shape_spread_ratio: so has a shape code whose spread is below this fraction of the texture code's
             (:data:`SPREAD_REFERENCE`); 0: no relative check.
+        viewpoint_acc_tol: from stage 2 on, viewpoint learning has collapsed when the render accuracy is below
+            this (0: not judged).
+        share_max_tol: ... or when one candidate is the most likely for more than this share of the images
+            (1: not judged).
         filename: the CSV file, relative to the run directory.
     """
 
@@ -197,9 +253,13 @@ class CodeDiagnostics(L.Callback):
         max_images: int = DiagnosticsConfig.max_images,
         spread_tol: float = DiagnosticsConfig.spread_tol,
         shape_spread_ratio: float = DiagnosticsConfig.shape_spread_ratio,
+        viewpoint_acc_tol: float = DiagnosticsConfig.viewpoint_acc_tol,
+        share_max_tol: float = DiagnosticsConfig.share_max_tol,
         filename: str = "diagnostics.csv",
     ) -> None:
         check_ranges(locals(), DiagnosticsConfig)
+        self.viewpoint_acc_tol, self.share_max_tol = float(viewpoint_acc_tol), float(share_max_tol)
+        self.viewpoint_collapsed: list[str] = []  # reasons, while collapsed
         self.every_n_steps, self.max_images, self.spread_tol = int(every_n_steps), int(max_images), float(spread_tol)
         self.shape_spread_ratio = float(shape_spread_ratio)
         self.filename = filename
@@ -211,13 +271,19 @@ class CodeDiagnostics(L.Callback):
     def state_dict(self) -> dict[str, Any]:
         """The kept images and the collapse state, saved in checkpoints so a resumed run measures the same."""
         images = torch.stack(list(self._images)).cpu() if self._images else torch.zeros(0)
-        return {"images": images, "dims": dict(self._dims), "collapsed": dict(self.collapsed)}
+        return {
+            "images": images,
+            "dims": dict(self._dims),
+            "collapsed": dict(self.collapsed),
+            "viewpoint_collapsed": list(self.viewpoint_collapsed),
+        }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self._images.clear()
         self._images.extend(state_dict["images"].unbind(0) if state_dict["images"].numel() else [])
         self._dims = dict(state_dict["dims"])
         self.collapsed = {k: list(v) for k, v in state_dict["collapsed"].items()}
+        self.viewpoint_collapsed = list(state_dict.get("viewpoint_collapsed", []))  # absent from older checkpoints
 
     @rank_zero_only
     def on_train_batch_end(
@@ -234,6 +300,9 @@ class CodeDiagnostics(L.Callback):
             self.check(trainer, pl_module)
         for branch, reasons in self.collapsed.items():
             self._warn(f"at the end of training the {branch} branch is still collapsed: " + "; ".join(reasons))
+        if self.viewpoint_collapsed:
+            prefix = "at the end of training viewpoint learning is still collapsed: "
+            self._warn_viewpoint(prefix, self.viewpoint_collapsed)
 
     def check(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float] | None:
         """Measure the current model on the kept images, log, append the CSV row and warn on a new collapse."""
@@ -269,12 +338,33 @@ class CodeDiagnostics(L.Callback):
                 self.collapsed[branch] = reasons
             else:
                 self.collapsed.pop(branch, None)
+        self._judge_viewpoints(stats["pose"], step, int(getattr(pl_module, "stage", 2)))
         self.history.append(row)
         metrics = {f"diagnostics/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
         for logger in trainer.loggers:
             logger.log_metrics(metrics, step=step)
         append_csv_row(Path(trainer.default_root_dir) / self.filename, row)
         return row
+
+    def _judge_viewpoints(self, stats: dict[str, float], step: int, stage: int) -> None:
+        """Warn when viewpoint learning collapses from stage 2 on; log when it recovers."""
+        if stage < 2:
+            return
+        reasons = viewpoint_reasons(stats, self.viewpoint_acc_tol, self.share_max_tol)
+        if reasons and not self.viewpoint_collapsed:
+            self._warn_viewpoint(f"viewpoint learning collapsed at iteration {step}: ", reasons)
+        elif not reasons and self.viewpoint_collapsed:
+            log.info("code diagnostics: the pose branch tells viewpoints apart again at iteration %d", step)
+        self.viewpoint_collapsed = reasons
+
+    @staticmethod
+    def _warn_viewpoint(prefix: str, reasons: list[str]) -> None:
+        text = (
+            f"VIEWPOINT COLLAPSE: {prefix}{'; '.join(reasons)}. The poses, and the shapes fitted to them, are likely "
+            "wrong for many images: relaunch with another seed, or train with model.loss.viewpoint=renders"
+        )
+        log.error(text)
+        warnings.warn(text, ViewpointWarning, stacklevel=2)
 
     @staticmethod
     def _warn(message: str) -> None:

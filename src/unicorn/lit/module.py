@@ -199,7 +199,7 @@ class UnicornLitModule(L.LightningModule):
         opt.zero_grad(set_to_none=_SET_TO_NONE[self.optim["idle_params"]])
         if self.optim["check_finite"]:
             self._snapshot_forward_state()
-        losses = self.objectives(phase, self.model, images, average_texture=average)
+        losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
         self.manual_backward(losses["total"])
         if self.optim["check_finite"]:
             self._check_finite(losses, step, phase)
@@ -219,7 +219,7 @@ class UnicornLitModule(L.LightningModule):
                 scheduler.step()
 
         terms = {name: value.detach() for name, value in losses.items()}
-        self._latest_terms[phase] = terms
+        self._latest_terms[phase] = {**terms, **losses.stats}
         self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)
         if not logs_this_step(self.trainer):
             return terms  # Lightning would drop these step values: skip the ~20 log calls (4 % of a CPU step)

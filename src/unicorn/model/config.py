@@ -72,6 +72,12 @@ def _perceptual_losses() -> tuple[str | None, ...]:
     return (*list_perceptual_losses(), None)
 
 
+def _viewpoint_supervisions() -> tuple[str | None, ...]:
+    from unicorn.model.viewpoint import list_viewpoint_supervisions
+
+    return (*list_viewpoint_supervisions(), None)
+
+
 def _pose_objectives() -> tuple[str, ...]:
     from unicorn.model.pose_objectives import list_pose_objectives
 
@@ -86,6 +92,7 @@ CHOICES: dict[str, tuple[Any, ...] | Callable[[], tuple[Any, ...]]] = {
     "loss.perceptual": _perceptual_losses,
     "loss.uniform_reduction": ("sum", "mean"),
     "loss.pose_objective": _pose_objectives,
+    "loss.viewpoint": _viewpoint_supervisions,
 }
 
 
@@ -206,6 +213,16 @@ class LossConfig:
     # cross-entropy against the best-reconstructing candidate (unicorn.model.losses.candidate_assignment_loss)
     pose_objective: str = "expected"
     assignment_weight: float = ranged(0.02, 0)
+    # pose step: the pose branch also learns from the model's reconstructions rendered at drawn viewpoints
+    # (unicorn.model.viewpoint; "renders"), or not (None, the paper): the cross-entropy toward the drawn view's
+    # candidate x viewpoint_weight, its angles and translation regressed x viewpoint_pose_weight, from iteration
+    # viewpoint_start at every viewpoint_every-th pose step, a share viewpoint_mix of the renders blending two images
+    viewpoint: str | None = None
+    viewpoint_weight: float = ranged(0.1, 0)
+    viewpoint_pose_weight: float = ranged(0.1, 0)
+    viewpoint_start: int = ranged(0, 0)
+    viewpoint_every: int = ranged(1, 1)
+    viewpoint_mix: float = ranged(0.5, 0, 1)
     neighbor_weight: float = ranged(1.0, 0)
     memory_size: int = ranged(1024, 1)
     n_bins: int = ranged(5, 1)

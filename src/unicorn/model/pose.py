@@ -105,7 +105,8 @@ class PoseHead(nn.Module):
     For candidate k: ``angles = tanh(rot_regressors[k](f)) * R_range + R_init`` (azim, elev, roll),
     ``T = tanh(T_regressors[k](f)) * T_range + prior_translation`` and ``p = softmax_k(proba_regressor(f))``.
     The rotation and translation heads are zero-initialised (anchor poses at init), the probability head
-    is not. ``use_translation`` (a buffer) holds the translation at its prior during the first stage, and
+    is not. ``angle_ranges`` (3, 2) keeps the (min, max) azimuth, elevation and roll. ``use_translation`` (a
+    buffer) holds the translation at its prior during the first stage, and
     ``use_elevation_roll`` (a buffer) each candidate's elevation and roll at its anchor (with one elevation row, the
     middle of their ranges) while ``schedule.curriculum.elevation_roll`` says so.
 
@@ -120,6 +121,7 @@ class PoseHead(nn.Module):
 
     R_init: torch.Tensor
     R_range: torch.Tensor
+    angle_ranges: torch.Tensor
     T_range: torch.Tensor
     T_init: torch.Tensor
     use_translation: torch.Tensor
@@ -144,6 +146,8 @@ class PoseHead(nn.Module):
         # derived from the configuration: kept out of the state dict
         self.register_buffer("R_init", init, persistent=False)
         self.register_buffer("R_range", half_range, persistent=False)
+        ranges = [_pair(azim_range, "azim_range"), _pair(elev_range, "elev_range"), _pair(roll_range, "roll_range")]
+        self.register_buffer("angle_ranges", torch.tensor(ranges), persistent=False)  # (3, 2): (min, max) degrees
         self.register_buffer("T_range", torch.tensor(_triple(T_range, "T_range")), persistent=False)
         self.register_buffer("T_init", torch.tensor(_triple(prior_translation, "prior_translation")), persistent=False)
         self.register_buffer("use_translation", torch.tensor(True))

@@ -11,6 +11,7 @@ from torch import nn
 from unicorn.model import Unicorn
 from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
 from unicorn.model.pose_objectives import build_pose_objective
+from unicorn.model.viewpoint import build_viewpoint_supervision
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
 from unicorn.objectives.pose_step import PoseStep
 from unicorn.objectives.shape_step import ShapeStep
@@ -40,7 +41,8 @@ class Objectives(nn.Module):
     @classmethod
     def from_config(cls, loss: Mapping[str, Any], model: Unicorn) -> Objectives:
         """The objectives a ``loss`` group describes (:class:`unicorn.model.config.LossConfig`) for ``model``'s
-        template: perceptual loss and pose objective chosen by name, weights <= 0 leaving their terms out."""
+        template: perceptual loss, pose objective and viewpoint supervision chosen by name, weights <= 0 leaving
+        their terms out."""
         reconstruction = ReconstructionLoss.from_config(loss)
         template = model.template
         regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts)
@@ -51,6 +53,7 @@ class Objectives(nn.Module):
             loss["uniform_reduction"],
             loss["spacing_weight"],
             loss["spacing_angle"],
+            None if loss["viewpoint"] is None else build_viewpoint_supervision(loss["viewpoint"], **loss),
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])
@@ -63,9 +66,16 @@ class Objectives(nn.Module):
         assert neighbors is not None
         return neighbors.memory
 
-    def forward(self, kind: str, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
-        """The losses of a ``"pose"`` or ``"3d"`` step on images (B, 3, S, S) in [0, 1]."""
-        return self.steps[kind](model, images, average_texture=average_texture)
+    def forward(
+        self,
+        kind: str,
+        model: Unicorn,
+        images: torch.Tensor,
+        average_texture: bool = False,
+        iteration: int | None = None,
+    ) -> StepLosses:
+        """The losses of a ``"pose"`` or ``"3d"`` step on images (B, 3, S, S) in [0, 1] at training ``iteration``."""
+        return self.steps[kind](model, images, average_texture=average_texture, iteration=iteration)
 
     def pose_step(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
         """The pose step's losses (:class:`PoseStep`)."""

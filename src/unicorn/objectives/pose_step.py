@@ -1,7 +1,8 @@
 """The pose step (P-step): all K pose candidates rendered with detached shapes, textures and backgrounds.
 
 How the candidates' reconstruction losses train the pose probabilities is a pose objective, chosen by name
-(``loss.pose_objective``; :mod:`unicorn.model.pose_objectives`).
+(``loss.pose_objective``; :mod:`unicorn.model.pose_objectives`); whether the pose branch also learns from the
+model's renders at drawn viewpoints is a viewpoint supervision (``loss.viewpoint``; :mod:`unicorn.model.viewpoint`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from torch import nn
 from unicorn.model import Unicorn
 from unicorn.model.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
 from unicorn.model.pose_objectives import PoseObjective
+from unicorn.model.viewpoint import ViewpointSupervision
 from unicorn.objectives.step_losses import StepLosses, with_total
 
 __all__ = ["PoseStep"]
@@ -20,9 +22,10 @@ __all__ = ["PoseStep"]
 class PoseStep(nn.Module):
     """P-step: every candidate rendered with the detached 3D prediction; gradients reach the pose branch only.
 
-    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing``
-    (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`); the rotation, translation and probability heads
-    and the encoder that feeds them receive gradients.
+    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
+    (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`,
+    :class:`~unicorn.model.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
+    the encoder that feeds them receive gradients.
 
     Args:
         reconstruction: the weighted per-sample reconstruction terms.
@@ -30,6 +33,7 @@ class PoseStep(nn.Module):
         uniform_weight: weight of the candidate-balance prior (<= 0: left out); uniform_reduction: its reduction.
         spacing_weight: weight of the candidates' spacing term (<= 0: left out, the paper); spacing_angle: the
             angle in degrees from which a pair of candidates adds nothing to it.
+        viewpoint: the viewpoint supervision from renders at drawn views, or None (the paper).
     """
 
     def __init__(
@@ -40,22 +44,27 @@ class PoseStep(nn.Module):
         uniform_reduction: str = "sum",
         spacing_weight: float = 0.0,
         spacing_angle: float = 30.0,
+        viewpoint: ViewpointSupervision | None = None,
     ) -> None:
         super().__init__()
+        self.viewpoint = viewpoint
         self.reconstruction, self.objective = reconstruction, objective
         self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
         self.spacing_weight, self.spacing_angle = spacing_weight, spacing_angle
 
-    def forward(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+    def forward(
+        self, model: Unicorn, images: torch.Tensor, average_texture: bool = False, iteration: int | None = None
+    ) -> StepLosses:
         """The step's losses on images (B, 3, S, S) in [0, 1].
 
         Args:
             average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
+            iteration: the training iteration (the viewpoint supervision's schedule; None: it is active).
 
         Returns:
             weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``
-            and ``spacing`` (if enabled; they sum to ``total``); ``.probs``: the candidate probabilities (K, B),
-            detached.
+            and ``spacing`` (if enabled) and the viewpoint supervision's (when active; they sum to ``total``);
+            ``.probs``: the candidate probabilities (K, B), detached; ``.stats``: the viewpoint supervision's.
         """
         model.check_images(images)
         branches = model.branches()
@@ -78,4 +87,8 @@ class PoseStep(nn.Module):
             out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
         if self.spacing_weight > 0:
             out["spacing"] = self.spacing_weight * candidate_spacing_loss(poses.R, self.spacing_angle)
-        return StepLosses(with_total(out, images), poses.probs.detach())
+        stats: dict[str, torch.Tensor] = {}
+        if self.viewpoint is not None and self.viewpoint.active(iteration):
+            terms, stats = self.viewpoint(model, p)
+            out.update(terms)
+        return StepLosses(with_total(out, images), poses.probs.detach(), stats)

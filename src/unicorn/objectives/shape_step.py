@@ -31,11 +31,14 @@ class ShapeStep(nn.Module):
         super().__init__()
         self.reconstruction, self.regularizer, self.neighbors = reconstruction, regularizer, neighbors
 
-    def forward(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
+    def forward(
+        self, model: Unicorn, images: torch.Tensor, average_texture: bool = False, iteration: int | None = None
+    ) -> StepLosses:
         """The step's losses on images (B, 3, S, S) in [0, 1].
 
         Args:
             average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
+            iteration: the training iteration (the pose step's signature; this step's terms do not depend on it).
 
         Returns:
             weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), ``neighbor`` (when active),

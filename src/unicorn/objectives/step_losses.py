@@ -8,12 +8,16 @@ __all__ = ["StepLosses", "with_total"]
 
 
 class StepLosses(dict):
-    """A step's weighted loss terms (name -> scalar tensor, summing to ``"total"``) and ``probs``, the batch's
-    pose-candidate probabilities (K, B), detached."""
+    """A step's weighted loss terms (name -> scalar tensor, summing to ``"total"``), ``probs``, the batch's
+    pose-candidate probabilities (K, B), detached, and ``stats``: other detached scalars worth logging (name ->
+    scalar tensor, not part of the total)."""
 
-    def __init__(self, terms: dict[str, torch.Tensor], probs: torch.Tensor) -> None:
+    def __init__(
+        self, terms: dict[str, torch.Tensor], probs: torch.Tensor, stats: dict[str, torch.Tensor] | None = None
+    ) -> None:
         super().__init__(terms)
         self.probs = probs
+        self.stats = dict(stats or {})
 
 
 def with_total(terms: dict[str, torch.Tensor], like: torch.Tensor) -> dict[str, torch.Tensor]:
