@@ -13,7 +13,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from tests.support.training import TINY, compose_config
+from tests.support.training import TINY, compose_config, error_lines, unicorn_train
 from unicorn import __version__
 from unicorn.cli.train import hydra_argv
 from unicorn.config import ConfigError, validate
@@ -22,18 +22,6 @@ from unicorn.resources import config_dir
 REPO = Path(__file__).resolve().parents[2]
 SHAPENET = "airplane bench cabinet car chair display lamp phone rifle sofa speaker table vessel".split()
 REAL = ["cub", "p3d_car", "compcars", "lsun_horse", "lsun_motorbike"]
-
-
-def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    return subprocess.run(
-        [sys.executable, "-m", "unicorn.cli.train", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
 
 
 def test_every_experiment_composes_and_validates(tmp_path):
@@ -219,11 +207,6 @@ def test_configs_ship_in_the_wheel(tmp_path):
     assert "task_name: cub" in job.stdout and "cub_200" in job.stdout
 
 
-def _error_lines(stderr: str) -> list[str]:
-    """stderr without Lightning's start-up notes (``INFO: GPU available...``)."""
-    return [line for line in stderr.splitlines() if line.strip() and not line.startswith("INFO: ")]
-
-
 def test_user_errors_are_one_line_and_leave_no_run_folder(synthetic_cache, tmp_path):
     run_dir = tmp_path / "run"
     cases = [
@@ -233,7 +216,7 @@ def test_user_errors_are_one_line_and_leave_no_run_folder(synthetic_cache, tmp_p
     ]
     for overrides, message in cases:
         result = unicorn_train(*TINY, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
-        lines = _error_lines(result.stderr)
+        lines = error_lines(result.stderr)
         assert result.returncode == 2, result.stderr[-2000:]
         assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: ") and message in lines[0], lines
         assert not run_dir.exists(), overrides
@@ -248,7 +231,7 @@ def test_missing_dataset_is_one_line(tmp_path):
         "experiment=cub", "model=tiny", "logger=default", f"dataset.root={tmp_path / 'nothing'}",
         f"hydra.run.dir={run_dir}", cwd=tmp_path,
     )  # fmt: skip
-    lines = _error_lines(result.stderr)
+    lines = error_lines(result.stderr)
     assert result.returncode == 2 and len(lines) == 1 and "nothing" in lines[0], result.stderr[-3000:]
     assert not run_dir.exists()  # not even the loggers' folders
 
@@ -323,7 +306,7 @@ def test_expected_failures_inside_training_are_one_line_and_leave_no_run_folder(
         cases.append((["trainer.accelerator=gpu"], r"trainer \(accelerator=gpu.*\): No supported gpu backend"))
     for overrides, message in cases:
         result = unicorn_train(*TINY, *overrides, f"hydra.run.dir={run_dir}", cwd=tmp_path)
-        lines = _error_lines(result.stderr)
+        lines = error_lines(result.stderr)
         assert result.returncode == 2, result.stderr[-3000:]
         assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
         assert re.search(message, lines[0]), lines

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 #: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
@@ -45,3 +48,21 @@ def build_run(tmp_path: Path, *overrides: str):
     from unicorn.lit.run import build
 
     return build(compose_config([*TINY, f"paths.output_dir={tmp_path}", *overrides]))
+
+
+def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.CompletedProcess:
+    """``unicorn-train ARGS`` in ``cwd`` (one thread, one-line errors), its output captured."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    return subprocess.run(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def error_lines(stderr: str) -> list[str]:
+    """stderr without Lightning's start-up notes (``INFO: GPU available...``)."""
+    return [line for line in stderr.splitlines() if line.strip() and not line.startswith("INFO: ")]

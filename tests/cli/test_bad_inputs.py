@@ -1,0 +1,179 @@
+"""A refused or interrupted command never deletes, overwrites or half-writes anything (issue 61's probe).
+
+Each refusal is checked for its exit status, its one line on stderr, and that every file present before the
+command is byte-identical after it (and that nothing was added or removed). The signal tests stop a real
+``unicorn-train`` and resume from the ``last.ckpt`` it wrote.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.support.training import TINY, error_lines, unicorn_train
+
+#: a refusal that happens once the folder was accepted, while the trainer is built
+LATE_FAILURE = "trainer.devices=0"
+
+
+def snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every path under ``folder`` (hidden ones included), with the bytes of each file."""
+    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None for p in sorted(folder.rglob("*"))}
+
+
+@pytest.fixture(scope="module")
+def finished_run(synthetic_cache, tmp_path_factory) -> Path:
+    """A finished tiny run: ``step=0000004.ckpt``, ``step=0000008.ckpt``, ``last.ckpt`` (iteration 8)."""
+    run = tmp_path_factory.mktemp("finished") / "run"
+    result = unicorn_train(*TINY, f"hydra.run.dir={run}", cwd=run.parent)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return run
+
+
+def _users_folder(tmp_path: Path, finished_run: Path, kind: str) -> Path:
+    """The folder a case runs in, as the user left it."""
+    folder = tmp_path / "myproj"
+    if kind == "finished":
+        shutil.copytree(finished_run, folder)
+    elif kind == "cwd":
+        folder = tmp_path  # hydra.run.dir=. : the directory the user works in
+        (folder / "notes.txt").write_text("mine")
+    else:
+        folder.mkdir()
+        for name in kind.split("+") if kind != "empty" else []:
+            target = folder / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(f"the user's {name}\n")
+    return folder
+
+
+#: (id, what the folder holds, overrides, the error's pattern)
+TRAIN_CASES = [
+    ("users-config", "config.yaml", [], r"holds config\.yaml but no run"),
+    ("users-hydra-record", ".hydra/config.yaml", [], r"holds \.hydra but no run"),
+    ("empty-folder-late-failure", "empty", [LATE_FAILURE], r"devices=0"),
+    ("log-only-late-failure", "train.log", [LATE_FAILURE], r"devices=0"),
+    ("cwd-late-failure", "cwd", [LATE_FAILURE], r"devices=0"),
+    ("new-run-over-a-run", "finished", [], r"already holds a run \(checkpoints/last\.ckpt\)"),
+    ("refused-resume", "finished", ["ckpt_path=last", LATE_FAILURE], r"devices=0"),
+    (
+        "resume-from-an-earlier-checkpoint",
+        "finished",
+        ['ckpt_path="{run}/checkpoints/step=0000004.ckpt"', "trainer.max_steps=12"],
+        r"would delete or replace the later checkpoints checkpoints/step=0000008\.ckpt, checkpoints/last\.ckpt; "
+        r"pass overwrite=true",
+    ),
+]
+
+
+@pytest.mark.parametrize("kind, overrides, message", [c[1:] for c in TRAIN_CASES], ids=[c[0] for c in TRAIN_CASES])
+def test_a_refused_run_leaves_the_folder_as_it_was(finished_run, tmp_path, kind, overrides, message):
+    folder = _users_folder(tmp_path, finished_run, kind)
+    before = snapshot(folder)
+    run_dir = "." if kind == "cwd" else str(folder)
+    args = [o.format(run=folder) for o in overrides]
+    result = unicorn_train(*TINY, *args, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
+    assert re.search(message, lines[0]), lines
+    assert folder.is_dir() and snapshot(folder) == before
+
+
+def test_a_locked_folder_refuses_a_second_run(finished_run, tmp_path):
+    folder = _users_folder(tmp_path, finished_run, "finished")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import pathlib, sys, time; from unicorn.io.run_folder import lock_folder; "
+         f"lock_folder(pathlib.Path({str(folder)!r})); print('locked', flush=True); time.sleep(300)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        before = snapshot(folder)
+        result = unicorn_train(*TINY, "ckpt_path=last", f"hydra.run.dir={folder}", cwd=tmp_path)
+        lines = error_lines(result.stderr)
+        assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
+        assert f"is in use by another unicorn-train (pid {holder.pid} on " in lines[0], lines
+        assert snapshot(folder) == before
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_last_without_last_ckpt_resumes_from_the_newest_step_file(finished_run, tmp_path):
+    folder = _users_folder(tmp_path, finished_run, "finished")
+    (folder / "checkpoints" / "last.ckpt").unlink()
+    steps = {p.name: p.read_bytes() for p in (folder / "checkpoints").glob("step=*.ckpt")}
+    result = unicorn_train(
+        *TINY, "ckpt_path=last", "callbacks.checkpoint.save_last=false", "trainer.max_steps=10",
+        f"hydra.run.dir={folder}", cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "resuming from the newest checkpoint" in (folder / "train.log").read_text()
+    assert "training from scratch" not in (folder / "train.log").read_text()
+    assert {p.name: p.read_bytes() for p in (folder / "checkpoints").glob("step=*.ckpt")} == steps
+
+
+def test_eval_refuses_a_non_empty_out(tmp_path):
+    from tests.support.evaluation import tiny_checkpoint
+
+    checkpoint = tiny_checkpoint(tmp_path / "model.pt")
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "metrics.csv").write_text("the user's table\n")
+    before = snapshot(out)
+    result = subprocess.run(
+        [sys.executable, "-m", "unicorn.cli.eval", str(checkpoint), "--dataset", "synthetic", "--root", str(tmp_path),
+         "--device", "cpu", "--out", str(out)],
+        capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert result.stderr.splitlines() == [
+        f"unicorn-eval: error: --out {out} is not empty; choose another folder or pass --overwrite to write into it"
+    ]
+    assert snapshot(out) == before
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path, signum):
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    args = [*TINY, "trainer.max_steps=100000", "callbacks.checkpoint.every_n_steps=1", "callbacks.checkpoint.keep=1"]
+    args += ["callbacks.checkpoint.save_last=false", f"hydra.run.dir={run}"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 180
+        while not list((run / "checkpoints").glob("step=*.ckpt")):  # an iteration has run
+            assert proc.poll() is None and time.monotonic() < deadline, "no iteration ran"
+            time.sleep(0.2)
+        proc.send_signal(signum)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    name = signal.Signals(signum).name
+    assert proc.returncode == 128 + signum, stderr[-3000:]
+    last_line = stderr.strip().splitlines()[-1]
+    pattern = rf"unicorn-train: stopped by {name} after iteration (\d+); \S+last\.ckpt written: .*"
+    match = re.fullmatch(pattern, last_line)
+    assert match, last_line
+    step = int(match.group(1))
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert saved["global_step"] == step >= 1
+    assert not (run / ".unicorn-train.lock").exists()
+    resumed = unicorn_train(*args, "ckpt_path=last", f"trainer.max_steps={step + 1}", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "Restored all states from the checkpoint" in (run / "train.log").read_text()
+    newest = run / "checkpoints" / f"step={step + 1:07d}.ckpt"  # save_last=false: the periodic file
+    assert torch.load(newest, weights_only=True)["global_step"] == step + 1
