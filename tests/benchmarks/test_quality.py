@@ -156,7 +156,8 @@ def test_categories_table_commands_change_only_the_category_and_the_mode(quality
     runs = quality.plan(args)
     # cars over three seeds, the others over one
     assert [(r.name, r.seed) for r in runs] == [
-        ("car", 0), ("car", 1), ("car", 2), ("chair", 0), ("table", 0), ("lamp", 0), ("mug", 0), ("car-wild", 0)
+        ("car", 0), ("car", 1), ("car", 2), ("chair", 0), ("table", 0), ("lamp", 0), ("mug", 0),
+        ("car-wild", 0), ("car-wild", 1), ("car-wild", 2), ("chair-wild", 0),
     ]  # fmt: skip
     commands = {(r.name, r.seed): quality.train_command(r, args) for r in runs}
     recipe = {"experiment=synthetic_long", "dataset.root=/d", "evaluate.enabled=false"}
@@ -167,6 +168,7 @@ def test_categories_table_commands_change_only_the_category_and_the_mode(quality
         assert f"seed={seed}" in command and f"hydra.run.dir={(tmp_path / 'runs' / name / f'seed{seed}').resolve()}"
     # the wild mode takes the real family's settings; nothing else differs between two categories' commands
     assert "family=real" in commands[("car-wild", 0)] and "family=real" not in commands[("car", 0)]
+    assert "dataset.categories=chair" in commands[("chair-wild", 0)] and "family=real" in commands[("chair-wild", 0)]
     assert set(quality.MODE_OVERRIDES["wild"]) <= set(commands[("car-wild", 0)])
     chair, mug = commands[("chair", 0)], commands[("mug", 0)]
     assert [a for a, b in zip(chair, mug) if a != b] == ["dataset.categories=chair", f"hydra.run.dir={runs[3].dir}"]
@@ -185,7 +187,7 @@ def test_categories_table_commands_change_only_the_category_and_the_mode(quality
 
 def test_dry_run_prints_one_command_per_run(quality, tmp_path, capsys):
     argv = ["--table", "categories", "--categories", "chair,car-wild", "--jobs", "2", "--threads", "1"]
-    assert quality.main([*argv, "--out", str(tmp_path / "q"), "--dry-run"]) == 0
+    assert quality.main([*argv, "--car-seeds", "0", "--out", str(tmp_path / "q"), "--dry-run"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("# 2 training runs, up to 2 at once, 1 thread(s) each")
     assert lines[1].startswith("OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m unicorn.cli.train experiment=synthetic")
@@ -263,3 +265,19 @@ def test_categories_table_trains_twice_as_long_and_holds_the_wild_scale_through_
     wild = compose_config(quality.recipe("car-wild", args))
     assert wild.schedule.curriculum.scale == wild.schedule.milestones[0] == 3200
     assert table.schedule.curriculum.scale == main.schedule.curriculum.scale == 150  # NMR views: from iteration 150
+
+
+def test_wild_bars(quality):
+    rows = {
+        "car-wild": {"rot-acc-30": 0.81, "rot-flip-150": 0.06, "mask-iou": 0.86, "color-ratio": 0.5},
+        "chair-wild": {"rot-acc-30": 0.69, "mask-iou": 0.8},
+    }
+    bars = {bar: ok for bar, _, _, ok in quality.check_category_bars(rows)}
+    assert bars == {
+        "car-wild: rot-acc-30 >= 0.8": True,
+        "car-wild: rot-flip-150 <= 0.05": False,
+        "car-wild: mask-iou >= 0.85": True,
+        "car-wild: color-ratio <= 0.6": True,
+        "chair-wild: rot-acc-30 >= 0.7": False,
+        "chair-wild: mask-iou >= 0.75": True,
+    }
