@@ -9,14 +9,19 @@ vertices.
 from __future__ import annotations
 
 import functools
+import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from numbers import Integral
 
 import torch
 
+from unicorn.errors import UserError
+
 __all__ = [
     "Dims",
+    "EnvironmentLimitError",
     "FaceIndexError",
     "ShapeError",
     "check_shape",
@@ -29,11 +34,35 @@ __all__ = [
     "check_same_batch",
     "check_same_dtype",
     "check_translations",
+    "env_limit",
 ]
 
 
 class FaceIndexError(IndexError, ValueError):
     """Face indices outside ``[0, V)``: an index error, and a bad value of the argument."""
+
+
+class EnvironmentLimitError(UserError, ValueError):
+    """A size limit in the environment (``UNICORN_MAX_*``) that is not a whole number >= 0."""
+
+
+def env_limit(name: str, default: int, unit: str) -> int | None:
+    """The size limit the environment variable ``name`` sets: ``default`` when it is unset or empty, None (no
+    limit) for 0; ``1e9`` is read as 1000000000.
+
+    Raises:
+        EnvironmentLimitError: a value that is not a finite number >= 0 (the message names the variable).
+    """
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value < 0:
+        raise EnvironmentLimitError(f"{name}={text!r} is not a number of {unit} >= 0 (0: no limit)")
+    return int(value) or None
 
 
 class ShapeError(ValueError):

@@ -177,3 +177,49 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     assert "Restored all states from the checkpoint" in (run / "train.log").read_text()
     newest = run / "checkpoints" / f"step={step + 1:07d}.ckpt"  # save_last=false: the periodic file
     assert torch.load(newest, weights_only=True)["global_step"] == step + 1
+
+
+#: (id, environment or arguments for unicorn-reconstruct on one photo, the error's pattern)
+RECONSTRUCT_CASES = [
+    ("bbox-nan", {}, ["--bbox", "nan,0,10,10"], r"bbox nan,0,10,10: need four finite numbers"),
+    ("bbox-inf", {}, ["--bbox", "0,0,inf,10"], r"bbox 0,0,inf,10: need four finite numbers"),
+    ("bbox-outside", {}, ["--bbox", "5000,5000,6000,6000"], r"bbox 5000,5000,6000,6000 does not overlap .*photo\.jpg"),
+    ("bbox-huge", {}, ["--bbox", "0,0,1e9,1e9"], r"frames a crop of \d+ x \d+ pixels, above the image limit"),
+    ("render-bytes-negative", {"UNICORN_MAX_RENDER_BYTES": "-1"}, [], r"UNICORN_MAX_RENDER_BYTES='-1' is not a number"),
+    ("render-bytes-text", {"UNICORN_MAX_RENDER_BYTES": "abc"}, [], r"UNICORN_MAX_RENDER_BYTES='abc' is not a number"),
+    ("image-pixels-negative", {"UNICORN_MAX_IMAGE_PIXELS": "-5"}, [], r"UNICORN_MAX_IMAGE_PIXELS='-5' is not a number"),
+    ("model-params-nan", {"UNICORN_MAX_MODEL_PARAMS": "nan"}, [], r"UNICORN_MAX_MODEL_PARAMS='nan' is not a number"),
+]
+
+
+@pytest.mark.parametrize(
+    "env, args, message", [c[1:] for c in RECONSTRUCT_CASES], ids=[c[0] for c in RECONSTRUCT_CASES]
+)
+def test_reconstruct_refuses_a_bad_box_or_limit(tmp_path, capsys, monkeypatch, env, args, message):
+    from tests.support.evaluation import tiny_checkpoint, write_inputs
+    from unicorn.cli.reconstruct import main
+
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    checkpoint = tiny_checkpoint(tmp_path / "model.pt")
+    write_inputs(tmp_path / "inputs")
+    before = snapshot(tmp_path)
+    out = tmp_path / "out"
+    fast = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
+    assert main([str(checkpoint), str(tmp_path / "inputs" / "photo.jpg"), *args, "--out", str(out), *fast]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("unicorn-reconstruct: error: "), lines
+    assert re.search(message, lines[0]), lines
+    assert snapshot(tmp_path) == before  # no output folder, no partial sibling
+
+
+@pytest.mark.parametrize("option", ["--views", "--size", "--models", "--points"])
+def test_synth_refuses_an_empty_dataset(tmp_path, capsys, option):
+    from unicorn.cli.data import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["synth", "--out", str(tmp_path / "data"), option, "0", "--quiet"])
+    assert exit_info.value.code == 2
+    last = capsys.readouterr().err.splitlines()[-1]  # after argparse's usage lines
+    assert last == f"unicorn-data synth: error: argument {option}: must be a whole number >= 1, got '0'"
+    assert list(tmp_path.iterdir()) == []

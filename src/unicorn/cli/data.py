@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import torch
 
 from unicorn import __version__
-from unicorn.cli.errors import add_debug_argument, report_errors
+from unicorn.cli.errors import add_debug_argument, positive_int, report_errors
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 
@@ -70,13 +70,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     synth.add_argument(
         "--backgrounds", choices=["random", "white"], default=None, help="default: the mode's (wild random, nmr white)"
     )
-    synth.add_argument("--models", type=int, default=200, help="models per category (70/10/20%% train/val/test)")
+    synth.add_argument(
+        "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"
+    )
     synth.add_argument("--out", default=None, help="output folder; default: the cache ($UNICORN_CACHE)")
     synth.add_argument("--seed", type=int, default=0)
-    synth.add_argument("--size", type=int, default=64, help="image side in pixels")
-    synth.add_argument("--views", type=int, default=24, help="views per model")
-    synth.add_argument("--supersample", type=int, default=3, help="rays per pixel along each axis")
-    synth.add_argument("--points", type=int, default=20000, help="ground-truth surface points per model")
+    synth.add_argument("--size", type=positive_int, default=64, help="image side in pixels")
+    synth.add_argument("--views", type=positive_int, default=24, help="views per model")
+    synth.add_argument("--supersample", type=positive_int, default=3, help="rays per pixel along each axis")
+    synth.add_argument("--points", type=positive_int, default=20000, help="ground-truth surface points per model")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_synth)
 

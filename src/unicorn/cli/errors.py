@@ -32,6 +32,7 @@ __all__ = [
     "debug_requested",
     "expected_error",
     "one_line",
+    "positive_int",
     "report_errors",
 ]
 
@@ -114,6 +115,17 @@ def one_line(err: BaseException) -> str:
     else:
         text = err
     return " ".join(str(text).split()) or type(err).__name__
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type``: a whole number >= 1 (a usage error, exit status 2, otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
+    return value
 
 
 def add_debug_argument(parser: argparse.ArgumentParser) -> None:

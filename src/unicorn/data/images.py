@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from PIL import ExifTags, Image, ImageOps
 
+from unicorn.checks import env_limit
 from unicorn.errors import UserError
 
 __all__ = [
@@ -108,14 +109,7 @@ class ImageLimitError(UserError, ValueError):
 
 
 def _read_limit(env: str, default: int, unit: str) -> int | None:
-    text = os.environ.get(env, "").strip()
-    if not text:
-        return default
-    try:
-        value = int(float(text))
-    except ValueError:
-        raise ImageLimitError(f"{env}={text!r} is not a number of {unit}") from None
-    return value if value > 0 else None
+    return env_limit(env, default, unit)
 
 
 def _write_limit(env: str, limit: int | None, what: str) -> None:

@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 import torch
 
+from unicorn.checks import env_limit
 from unicorn.io.reference_checkpoints import load_reference_checkpoint
 from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
@@ -110,11 +111,7 @@ def check_training_checkpoint(data: Mapping[str, Any], path: str | os.PathLike) 
 
 
 def _max_model_params() -> int:
-    value = os.environ.get("UNICORN_MAX_MODEL_PARAMS", "")
-    try:
-        return int(value) if value.strip() else MAX_MODEL_PARAMS
-    except ValueError:
-        raise CheckpointError(f"UNICORN_MAX_MODEL_PARAMS must be an integer, got {value!r}") from None
+    return env_limit("UNICORN_MAX_MODEL_PARAMS", MAX_MODEL_PARAMS, "parameters") or 0
 
 
 def check_model_size(config: Mapping[str, Any], path: str | os.PathLike, limit: int | None = None) -> None:

@@ -27,13 +27,16 @@ import torch
 
 from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
 from unicorn.data.framing import crop_box, fit_and_pad, pad_bbox, resize_image, square_bbox
-from unicorn.data.images import decoded, load_image, open_image, to_chw_tensor
+from unicorn.data.images import RGB_BYTES_PER_PIXEL, decoded, load_image, max_image_bytes, open_image, to_chw_tensor
+from unicorn.errors import UserError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "BoxError",
     "InputImage",
     "RawInput",
     "alpha_bbox",
+    "check_box",
     "collect_inputs",
     "frame_input",
     "load_input",
@@ -87,10 +90,34 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
     return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
 
 
+class BoxError(UserError, ValueError):
+    """An object box that is not finite, does not overlap its image, or frames a crop above the image limit."""
+
+
+def check_box(bbox: Sequence[float], width: int, height: int, where: str) -> np.ndarray:
+    """The box ``(x1, y1, x2, y2)`` (0-based, inclusive) as an array, checked against a ``width`` x ``height``
+    image (``where`` names it in the message).
+
+    Raises:
+        BoxError: a box that is not four finite numbers with ``x2 > x1`` and ``y2 > y1``, or that does not overlap
+            the image.
+    """
+    box = np.asarray(bbox, dtype=np.float64).reshape(-1)
+    text = ",".join(f"{v:g}" for v in box)
+    if box.shape != (4,) or not np.isfinite(box).all() or box[2] <= box[0] or box[3] <= box[1]:
+        raise BoxError(f"bbox {text}: need four finite numbers x1,y1,x2,y2 with x2 > x1 and y2 > y1")
+    if box[0] > width - 1 or box[1] > height - 1 or box[2] < 0 or box[3] < 0:
+        raise BoxError(f"bbox {text} does not overlap {where} ({width} x {height} pixels)")
+    return box
+
+
 def preprocess(
     image: np.ndarray, size: int, bbox: np.ndarray | Sequence[float] | None = None, padding: float = DEFAULT_PADDING
 ) -> np.ndarray:
     """Frame an image as the training data was: square crop around ``bbox`` or fit-and-pad, then resize.
+
+    Raises:
+        BoxError: the padded square crop would exceed the image byte limit (``UNICORN_MAX_IMAGE_BYTES``).
 
     Args:
         image: (H, W, 3) float array in [0, 1].
@@ -104,6 +131,13 @@ def preprocess(
     if bbox is None:
         return fit_and_pad(image, size).astype(np.float32)
     box = square_bbox(pad_bbox(np.asarray(bbox, dtype=np.float64), padding))
+    side = int(box[2] - box[0] + 1)
+    limit = max_image_bytes()
+    if limit is not None and side * side * RGB_BYTES_PER_PIXEL > limit:
+        raise BoxError(
+            f"the box with its padding frames a crop of {side} x {side} pixels, above the image limit of {limit} "
+            "bytes (UNICORN_MAX_IMAGE_BYTES); give a smaller bbox or padding"
+        )
     crop, _ = crop_box(image, box)
     return resize_image(crop.astype(np.float32), (size, size))
 
@@ -140,10 +174,11 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
 
     Raises:
         ImageLoadError: the file is not a readable image.
+        BoxError: ``bbox`` is not finite or does not overlap the image.
     """
     path = Path(path)
     image = load_image(path)
-    box = None if bbox is None else np.asarray(bbox, dtype=np.float64)
+    box = None if bbox is None else check_box(bbox, image.shape[1], image.shape[0], str(path))
     if box is None and use_alpha:
         box = alpha_bbox(path)
     return RawInput(path, image, box)

@@ -25,13 +25,12 @@ Memory: a render is refused before anything is allocated when its fragments coul
 from __future__ import annotations
 
 import math
-import os
 import warnings
 from collections.abc import Mapping
 
 import torch
 
-from ..checks import check_mesh, check_rotations, check_translations
+from ..checks import check_mesh, check_rotations, check_translations, env_limit
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from .fragments import Fragments
 from .selection import Selection, select_pairs
@@ -62,15 +61,12 @@ MAX_RENDER_BYTES_ENV = "UNICORN_MAX_RENDER_BYTES"
 
 
 def max_render_bytes() -> int | None:
-    """The limit on a render's fragment bytes: ``$UNICORN_MAX_RENDER_BYTES``, else 16 GiB (None: no limit)."""
-    text = os.environ.get(MAX_RENDER_BYTES_ENV, "").strip()
-    if not text:
-        return DEFAULT_MAX_RENDER_BYTES
-    try:
-        value = int(float(text))
-    except ValueError:
-        raise ValueError(f"{MAX_RENDER_BYTES_ENV}={text!r} is not a number of bytes") from None
-    return value if value > 0 else None
+    """The limit on a render's fragment bytes: ``$UNICORN_MAX_RENDER_BYTES``, else 16 GiB (None: no limit).
+
+    Raises:
+        unicorn.checks.EnvironmentLimitError: the variable is not a number >= 0.
+    """
+    return env_limit(MAX_RENDER_BYTES_ENV, DEFAULT_MAX_RENDER_BYTES, "bytes")
 
 
 def check_render_size(
