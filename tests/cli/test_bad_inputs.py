@@ -223,3 +223,20 @@ def test_synth_refuses_an_empty_dataset(tmp_path, capsys, option):
     last = capsys.readouterr().err.splitlines()[-1]  # after argparse's usage lines
     assert last == f"unicorn-data synth: error: argument {option}: must be a whole number >= 1, got '0'"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_reconstruct_overwrite_with_a_file_in_the_way_changes_nothing(tmp_path, capsys):
+    from tests.support.evaluation import tiny_checkpoint, write_inputs
+    from unicorn.cli.reconstruct import main
+
+    checkpoint = tiny_checkpoint(tmp_path / "model.pt")
+    write_inputs(tmp_path / "inputs")  # cutout.png and photo.jpg: outputs in <out>/cutout/ and <out>/photo/
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "photo").write_text("the user's file, where photo.jpg's folder goes\n")
+    before = snapshot(tmp_path)
+    fast = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
+    assert main([str(checkpoint), str(tmp_path / "inputs"), "--out", str(out), "--overwrite", *fast]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and f"{out / 'photo'} is in the way" in lines[0], lines
+    assert snapshot(tmp_path) == before  # not half-updated: no cutout/, no overview

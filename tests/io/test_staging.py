@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from unicorn.io.staging import PARTIAL_MARK, staged_folder
+from unicorn.io.staging import PARTIAL_MARK, OutputConflictError, staged_folder
 
 
 def _siblings(folder):
@@ -66,3 +66,24 @@ def test_a_sibling_of_a_killed_process_is_removed(tmp_path) -> None:
     with staged_folder(out):
         pass
     assert not dead.exists() and live.exists()
+
+
+def test_a_file_in_the_way_of_a_folder_leaves_the_folder_as_it_was(tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("old")
+    (out / "b").write_text("a file of the user's, where a folder goes")
+    (out / "c").mkdir()  # a folder of the user's, where a file goes
+    (out / "c" / "keep.txt").write_text("mine")
+    for clash in ("b", "c"):
+        with pytest.raises(OutputConflictError, match=rf"{out / clash} is in the way"):
+            with staged_folder(out) as staging:
+                (staging / "a.txt").write_text("new")
+                if clash == "b":
+                    (staging / "b").mkdir()
+                    (staging / "b" / "x.txt").write_text("new")
+                else:
+                    (staging / "c").write_text("a file")
+        assert (out / "a.txt").read_text() == "old"  # nothing moved
+        assert (out / "b").read_text().startswith("a file of the user's")
+        assert (out / "c" / "keep.txt").read_text() == "mine" and not _siblings(out)

@@ -15,9 +15,10 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
+from unicorn.errors import UserError
 from unicorn.io.serialization import _alive
 
-__all__ = ["PARTIAL_MARK", "staged_folder"]
+__all__ = ["PARTIAL_MARK", "OutputConflictError", "staged_folder"]
 
 #: infix of the temporary siblings (``.<name>.partial-<pid>``)
 PARTIAL_MARK = ".partial-"
@@ -36,15 +37,37 @@ def _remove_stale_siblings(out: Path) -> None:
             shutil.rmtree(sibling, ignore_errors=True)
 
 
-def _merge(source: Path, target: Path) -> None:
-    """Move ``source``'s entries into the folder ``target``: files replace same-named ones, folders are merged."""
+class OutputConflictError(UserError, FileExistsError):
+    """A file of the output folder stands where the command writes a folder, or a folder where it writes a file."""
+
+
+def _is_folder(path: Path) -> bool:
+    return path.is_dir() and not path.is_symlink()
+
+
+def _conflicts(source: Path, target: Path) -> list[Path]:
+    """The entries of ``target`` that ``source``'s entries cannot replace: a file (or link) where ``source`` has a
+    folder, a folder where it has a file."""
+    found = []
     for entry in sorted(source.iterdir()):
         dest = target / entry.name
-        if entry.is_dir() and dest.is_dir() and not dest.is_symlink():
+        if not (dest.exists() or dest.is_symlink()):
+            continue
+        if _is_folder(entry) and _is_folder(dest):
+            found += _conflicts(entry, dest)
+        elif _is_folder(entry) or _is_folder(dest):
+            found.append(dest)
+    return found
+
+
+def _merge(source: Path, target: Path) -> None:
+    """Move ``source``'s entries into the folder ``target``: files replace same-named files, folders are merged
+    (:func:`_conflicts` must be empty)."""
+    for entry in sorted(source.iterdir()):
+        dest = target / entry.name
+        if _is_folder(entry) and _is_folder(dest):
             _merge(entry, dest)
         else:
-            if dest.is_dir() and not dest.is_symlink():
-                shutil.rmtree(dest)
             os.replace(entry, dest)
 
 
@@ -59,6 +82,8 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
 
     Raises:
         OSError: the temporary folder cannot be created (a read-only or full disk, a missing permission).
+        OutputConflictError: an entry of ``out`` is a file where a folder is written or a folder where a file is
+            (nothing is moved: ``out`` is as it was).
     """
     out = Path(out).expanduser()
     if out.exists() and not out.is_dir():
@@ -76,6 +101,12 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
         if not out.exists():
             os.replace(tmp, out)
             return
+        conflicts = _conflicts(tmp, out)
+        if conflicts:  # checked before anything moves: the folder is updated whole or not at all
+            raise OutputConflictError(
+                f"cannot write the output folder {out}: {conflicts[0]} is in the way (a file where a folder goes, "
+                "or a folder where a file goes); move it away or choose another folder"
+            )
         _merge(tmp, out)
     except OSError as err:
         if err.filename is None and err.errno in _DISK_ERRORS:  # e.g. a write() on a full disk names no file
