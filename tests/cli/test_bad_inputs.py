@@ -240,3 +240,16 @@ def test_reconstruct_overwrite_with_a_file_in_the_way_changes_nothing(tmp_path, 
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and f"{out / 'photo'} is in the way" in lines[0], lines
     assert snapshot(tmp_path) == before  # not half-updated: no cutout/, no overview
+
+
+def test_an_unreadable_limit_in_training_is_one_line_and_leaves_no_folder(synthetic_cache, tmp_path, monkeypatch):
+    monkeypatch.setenv("UNICORN_MAX_RENDER_BYTES", "abc")  # read at the first render, inside the first iteration
+    run = tmp_path / "run"
+    result = unicorn_train(*TINY, f"hydra.run.dir={run}", cwd=tmp_path)
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2, result.stderr[-3000:]
+    # the last line (Lightning may warn about its own deprecations once training starts)
+    message = "UNICORN_MAX_RENDER_BYTES='abc' is not a number of bytes >= 0 (0: no limit)"
+    assert lines[-1] == f"unicorn-train: error: {message}"
+    assert "Traceback" not in result.stderr
+    assert not run.exists()

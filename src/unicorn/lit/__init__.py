@@ -13,6 +13,8 @@
   on renders at known views, the candidates' shares), with a :class:`ViewpointWarning` when it collapses.
 - :func:`~unicorn.lit.run.build`, :func:`~unicorn.lit.run.fit` (``run``): one training run assembled from a
   composed config (run folder, data, module, callbacks and loggers by ``_target_``, trainer), trained and evaluated.
+- :class:`GracefulStop` (``signals``): SIGTERM and SIGINT stop training at the next step boundary with
+  ``last.ckpt`` written.
 - :class:`UnicornDataModule` (``data``): the one LightningDataModule: a dataset's splits and loaders, training on an
   endless, resumable, rank-sharded stream of batches (:class:`StreamBatchSampler`).
 
@@ -36,6 +38,7 @@ from unicorn.lit.diagnostics import (
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
+from unicorn.lit.signals import GracefulStop
 
 __all__ = [
     "OPTIM_DEFAULTS",
@@ -44,6 +47,7 @@ __all__ = [
     "CollapseWarning",
     "ViewpointWarning",
     "CSVLogger",
+    "GracefulStop",
     "HeldOutEvaluation",
     "ImageLogger",
     "NonFiniteLossError",
