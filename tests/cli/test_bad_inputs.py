@@ -253,3 +253,17 @@ def test_an_unreadable_limit_in_training_is_one_line_and_leaves_no_folder(synthe
     assert lines[-1] == f"unicorn-train: error: {message}"
     assert "Traceback" not in result.stderr
     assert not run.exists()
+
+
+@pytest.mark.parametrize("text", ["- a list of mine\n", "key: [unclosed\n"], ids=["a-list", "not-yaml"])
+def test_synth_refuses_a_folder_with_a_foreign_metadata_yaml(tmp_path, capsys, text):
+    from unicorn.cli.data import main
+
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "metadata.yaml").write_text(text)
+    before = snapshot(tmp_path)
+    assert main(["synth", "--out", str(out), "--models", "10", "--views", "1", "--size", "8", "--quiet"]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "metadata.yaml is not a dataset's metadata.yaml" in lines[0], lines
+    assert snapshot(tmp_path) == before

@@ -249,10 +249,9 @@ def generate_synthetic_dataset(
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
     split_sizes(n_models)  # refuses too few models before anything is written
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
-    out.mkdir(parents=True, exist_ok=True)
     meta_path = out / "metadata.yaml"
-    metadata = yaml.safe_load(meta_path.read_text()) if meta_path.exists() else {}
-    metadata = metadata or {}
+    metadata = _read_metadata(meta_path)  # before anything is written: a folder of something else is refused
+    out.mkdir(parents=True, exist_ok=True)
 
     bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
     for cat in categories:
@@ -286,6 +285,26 @@ def generate_synthetic_dataset(
     }
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
+
+
+def _read_metadata(path: Path) -> dict[str, dict]:
+    """The category table of an existing ``metadata.yaml`` (ShapeNet-NMR's: synset -> ``{id, name}``), else {}.
+
+    Raises:
+        DatasetError: the file is not such a table (the folder holds something else).
+    """
+    if not path.exists():
+        return {}
+    try:
+        metadata = yaml.safe_load(path.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError, OSError):
+        metadata = None  # not YAML, not text
+    if not isinstance(metadata, dict) or not all(isinstance(v, dict) and "id" in v for v in metadata.values()):
+        raise DatasetError(
+            f"{path} is not a dataset's metadata.yaml (a table synset: {{id, name}}): the folder holds something "
+            "else; generate into another folder"
+        )
+    return metadata
 
 
 class StaleSyntheticDataset(UserError, ValueError):
