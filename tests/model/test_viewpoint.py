@@ -56,17 +56,17 @@ def test_wrap_degrees() -> None:
     torch.testing.assert_close(got, torch.tensor([-1.0, 179.0, -180.0, 10.0]))
 
 
-@pytest.mark.parametrize("curriculum", [True, False])
-def test_draws_cover_the_ranges_and_follow_the_switches(curriculum: bool) -> None:
+@pytest.mark.parametrize(("curriculum", "azimuth_only"), [(True, False), (False, False), (False, True)])
+def test_draws_cover_the_ranges_and_follow_the_switches(curriculum: bool, azimuth_only: bool) -> None:
     head = PoseHead(16, n_azim=6, elev_range=(-10, 30), roll_range=(-30, 30), T_range=0.3)
     head.use_elevation_roll.fill_(not curriculum)
     head.use_translation.fill_(not curriculum)
-    views = draw_views(head, 2000, torch.Generator().manual_seed(1))
+    views = draw_views(head, 2000, torch.Generator().manual_seed(1), azimuth_only=azimuth_only)
     a = views.angles
     assert float(a[:, 0].min()) >= 0 and float(a[:, 0].max()) <= 360 and float(a[:, 0].max() - a[:, 0].min()) > 350
     torch.testing.assert_close(views.R, azim_elev_roll_to_rotation(a[:, 0], a[:, 1], a[:, 2]))
     torch.testing.assert_close(views.candidate, candidate_of(head, a))
-    if curriculum:  # what the head holds is drawn held: every view is one the head can express
+    if curriculum or azimuth_only:  # held as the head holds them: every view is one the head can express
         torch.testing.assert_close(a[:, 1:], head.R_init[views.candidate, 1:])
         torch.testing.assert_close(views.T, head.T_init.expand(2000, 3))
     else:

@@ -216,13 +216,15 @@ class LossConfig:
     # pose step: the pose branch also learns from the model's reconstructions rendered at drawn viewpoints
     # (unicorn.model.viewpoint; "renders"), or not (None, the paper): the cross-entropy toward the drawn view's
     # candidate x viewpoint_weight, its angles and translation regressed x viewpoint_pose_weight, from iteration
-    # viewpoint_start at every viewpoint_every-th pose step, a share viewpoint_mix of the renders blending two images
+    # viewpoint_start at every viewpoint_every-th pose step, a share viewpoint_mix of the renders blending two images;
+    # viewpoint_azimuth_only: only the azimuth drawn (elevation, roll and translation at the candidate's anchor)
     viewpoint: str | None = None
     viewpoint_weight: float = ranged(0.1, 0)
     viewpoint_pose_weight: float = ranged(0.1, 0)
     viewpoint_start: int = ranged(0, 0)
     viewpoint_every: int = ranged(1, 1)
     viewpoint_mix: float = ranged(0.5, 0, 1)
+    viewpoint_azimuth_only: bool = False
     neighbor_weight: float = ranged(1.0, 0)
     memory_size: int = ranged(1024, 1)
     n_bins: int = ranged(5, 1)

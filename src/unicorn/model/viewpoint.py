@@ -91,7 +91,9 @@ def candidate_of(head: PoseHead, angles: torch.Tensor) -> torch.Tensor:
     return scaled.square().sum(-1).argmin(1)
 
 
-def draw_views(head: PoseHead, batch_size: int, generator: torch.Generator | None = None) -> DrawnViews:
+def draw_views(
+    head: PoseHead, batch_size: int, generator: torch.Generator | None = None, azimuth_only: bool = False
+) -> DrawnViews:
     """Viewpoints drawn uniformly over the head's azimuth, elevation and roll ranges and its translation offsets.
 
     What the head cannot express yet is drawn as the head holds it: the elevation and roll at the candidate's
@@ -101,6 +103,8 @@ def draw_views(head: PoseHead, batch_size: int, generator: torch.Generator | Non
         head: the pose head whose ranges and switches the views follow.
         batch_size: B.
         generator: a CPU generator for the draws (None: torch's global one).
+        azimuth_only: draw the azimuth alone, the elevation and roll at the candidate's anchor and the translation
+            at its prior, whatever the head's switches.
 
     Returns:
         :class:`DrawnViews` on the head's device.
@@ -110,9 +114,10 @@ def draw_views(head: PoseHead, batch_size: int, generator: torch.Generator | Non
     low, high = head.angle_ranges[:, 0], head.angle_ranges[:, 1]
     angles = low + u[:, :3] * (high - low)
     candidate = candidate_of(head, angles)
-    held = ~head.use_elevation_roll
+    held = ~head.use_elevation_roll | azimuth_only
     angles = torch.cat([angles[:, :1], torch.where(held, head.R_init[candidate, 1:], angles[:, 1:])], 1)
-    offsets = (2 * u[:, 3:] - 1) * head.T_range * head.use_translation.to(dtype)
+    moves = head.use_translation & (not azimuth_only)
+    offsets = (2 * u[:, 3:] - 1) * head.T_range * moves.to(dtype)
     R = azim_elev_roll_to_rotation(angles[:, 0], angles[:, 1], angles[:, 2])
     return DrawnViews(angles=angles, R=R, T=head.T_init + offsets, candidate=candidate)
 
@@ -271,6 +276,8 @@ class RenderedViewpoints:
         viewpoint_every: add them at every n-th pose step from ``viewpoint_start`` (pose and 3D steps alternating
             every iteration: the iterations with ``(iteration - start) // 2`` a multiple of n).
         viewpoint_mix: share of renders that blend two images' reconstructions.
+        viewpoint_azimuth_only: draw only the azimuth (elevation and roll at the candidate's anchor, translation at
+            its prior; :func:`draw_views`); false: every angle and the translation over their ranges.
     """
 
     def __init__(
@@ -280,6 +287,7 @@ class RenderedViewpoints:
         viewpoint_start: int = 0,
         viewpoint_every: int = 1,
         viewpoint_mix: float = 0.5,
+        viewpoint_azimuth_only: bool = False,
     ) -> None:
         if viewpoint_every < 1 or viewpoint_start < 0 or not 0.0 <= viewpoint_mix <= 1.0:
             raise ValueError(
@@ -288,6 +296,7 @@ class RenderedViewpoints:
             )
         self.weight, self.pose_weight = float(viewpoint_weight), float(viewpoint_pose_weight)
         self.start, self.every, self.mix = int(viewpoint_start), int(viewpoint_every), float(viewpoint_mix)
+        self.azimuth_only = bool(viewpoint_azimuth_only)
 
     def active(self, iteration: int | None) -> bool:
         """Whether the pose step of ``iteration`` adds the terms (None: an iteration-less call, always)."""
@@ -299,7 +308,7 @@ class RenderedViewpoints:
     def __call__(
         self, model: Unicorn, pred: Prediction3D
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        views = draw_views(model.pose, pred.canonical_verts.shape[0])
+        views = draw_views(model.pose, pred.canonical_verts.shape[0], azimuth_only=self.azimuth_only)
         renders = render_views(model, pred, views, self.mix)
         poses = model.pose(model.encode(renders, ("pose",))["pose"])
         t = viewpoint_terms(poses, views, model.pose)
