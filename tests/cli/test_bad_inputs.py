@@ -267,3 +267,21 @@ def test_synth_refuses_a_folder_with_a_foreign_metadata_yaml(tmp_path, capsys, t
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and "metadata.yaml is not a dataset's metadata.yaml" in lines[0], lines
     assert snapshot(tmp_path) == before
+
+
+def test_a_bogus_device_is_one_line(tmp_path, capsys):
+    from unicorn.cli.eval import main
+
+    assert main([str(tmp_path / "model.pt"), "--device", "bogus", "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == (
+        "unicorn-eval: error: --device 'bogus' is not a device; use 'auto', 'cpu', 'cuda' or 'cuda:N'\n"
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_unquoted_step_file_says_to_quote_it(tmp_path):
+    result = unicorn_train(*TINY, "ckpt_path=run/checkpoints/step=0000010.ckpt", "hydra.run.dir=run", cwd=tmp_path)
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
+    assert "mismatched input '='" in lines[0] and "must be quoted for Hydra" in lines[0], lines
+    assert list(tmp_path.iterdir()) == []

@@ -89,7 +89,10 @@ def hydra_failure(text: str) -> str | None:
     """
     lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
     if not any(line.startswith("Traceback (most recent call last)") for line in lines):
-        return " ".join(lines) or "invalid command line"
+        line = " ".join(lines) or "invalid command line"
+        if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
+            line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=10.ckpt\"')"
+        return line
     match = _EXCEPTION_LINE.match(lines[-1])
     cls = getattr(builtins, match.group(1), None) if match else None
     if match and isinstance(cls, type) and issubclass(cls, OSError):
