@@ -7,6 +7,7 @@ command is byte-identical after it (and that nothing was added or removed). The 
 
 from __future__ import annotations
 
+import csv
 import os
 import re
 import shutil
@@ -148,7 +149,7 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     run = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
     args = [*TINY, "trainer.max_steps=100000", "callbacks.checkpoint.every_n_steps=1", "callbacks.checkpoint.keep=1"]
-    args += ["callbacks.checkpoint.save_last=false", f"hydra.run.dir={run}"]
+    args += ["callbacks.checkpoint.save_last=false", "logger=csv", f"hydra.run.dir={run}"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "unicorn.cli.train", *args],
         cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -177,6 +178,10 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     assert "Restored all states from the checkpoint" in (run / "train.log").read_text()
     newest = run / "checkpoints" / f"step={step + 1:07d}.ckpt"  # save_last=false: the periodic file
     assert torch.load(newest, weights_only=True)["global_step"] == step + 1
+    # the metric log reads as one run's: every iteration once (TINY logs every iteration)
+    with open(run / "csv" / "metrics.csv", newline="") as f:
+        logged = [int(row["step"]) for row in csv.DictReader(f) if row.get("train/lr")]
+    assert logged == list(range(step + 1)), logged
 
 
 #: (id, environment or arguments for unicorn-reconstruct on one photo, the error's pattern)

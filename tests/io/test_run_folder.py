@@ -33,14 +33,18 @@ def test_ckpt_path_must_be_a_file(tmp_path) -> None:
     assert resolve_ckpt("last", tmp_path / "checkpoints") is None  # no last.ckpt yet: from scratch
 
 
-def test_last_without_last_ckpt_is_the_newest_step_file(tmp_path) -> None:
+def test_last_without_last_ckpt_is_the_newest_step_file_when_none_is_written(tmp_path) -> None:
     checkpoints = tmp_path / "checkpoints"
     checkpoints.mkdir()
     for name in ("step=0000005.ckpt", "step=0000010.ckpt", "nonfinite-step=0000012.ckpt"):
         (checkpoints / name).write_bytes(b"x")
-    assert resolve_ckpt("last", checkpoints) == str(checkpoints / "step=0000010.ckpt")
+    assert resolve_ckpt("last", checkpoints, save_last=False) == str(checkpoints / "step=0000010.ckpt")
+    # a run writing last.ckpt killed before its first one: started again (its logs lag the step file)
+    assert resolve_ckpt("last", checkpoints, save_last=True) is None
     (checkpoints / "last.ckpt").write_bytes(b"x")
-    assert resolve_ckpt("last", checkpoints) == str(checkpoints / "last.ckpt")
+    assert resolve_ckpt("last", checkpoints, save_last=True) == str(checkpoints / "last.ckpt")
+    # save_last=false: last.ckpt is a signal's, older than the step files written after it was resumed
+    assert resolve_ckpt("last", checkpoints, save_last=False) == str(checkpoints / "step=0000010.ckpt")
 
 
 def test_a_resume_from_an_earlier_checkpoint_names_the_later_ones(tmp_path) -> None:

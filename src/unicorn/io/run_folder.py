@@ -100,10 +100,15 @@ def checkpoint_step(path: Path) -> int | None:
     return step if isinstance(step, int) else None
 
 
-def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
-    """The checkpoint to resume from: None for ``None``; for ``"last"`` this run folder's ``last.ckpt``, else its
-    newest ``step=<N>.ckpt`` (a run with ``callbacks.checkpoint.save_last=false``), else None (nothing to resume:
-    training starts from scratch); otherwise the existing file ``ckpt_path`` names.
+def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = True) -> str | None:
+    """The checkpoint to resume from: None for ``None``; for ``"last"`` this run folder's ``last.ckpt``, or, for a
+    run that writes it only when a signal stops it (``save_last=False``, ``callbacks.checkpoint.save_last``), the
+    newest of it and the ``step=<N>.ckpt`` files; None when there is none (training starts from scratch);
+    otherwise the existing file ``ckpt_path`` names.
+
+    A run that writes ``last.ckpt`` but has none was killed before its first one was complete: it starts again,
+    and its periodic checkpoints of that attempt are written again (:class:`~unicorn.lit.PeriodicCheckpoint`),
+    so that its metric logs, which lag its checkpoints by an iteration, hold every iteration once.
 
     Raises:
         unicorn.io.serialization.CheckpointNotFoundError: ``ckpt_path`` names no file.
@@ -112,13 +117,16 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path) -> str | None:
         return None
     if ckpt_path == "last":
         last = checkpoint_dir / "last.ckpt"
-        if last.is_file():
+        if save_last and last.is_file():
             return str(last)
-        steps = step_checkpoints(checkpoint_dir)
-        if steps:
-            log.info("ckpt_path=last: no %s, resuming from the newest checkpoint %s", last, steps[-1][1])
-            return str(steps[-1][1])
-        log.info("ckpt_path=last: no checkpoint in %s yet, training from scratch", checkpoint_dir)
+        found = [(n, path) for n, path in step_checkpoints(checkpoint_dir)] if not save_last else []
+        if not save_last and last.is_file():  # written when a signal stopped the run: it may be the newest
+            found.append((checkpoint_step(last) or 0, last))
+        if found:
+            newest = max(found, key=lambda item: item[0])[1]
+            log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
+            return str(newest)
+        log.info("ckpt_path=last: no %s yet, training from scratch", last)
         return None
     return str(check_checkpoint_path(Path(ckpt_path).expanduser().resolve(), "ckpt_path"))
 

@@ -112,7 +112,7 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
 
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
     checkpoint_dir = output_dir / "checkpoints"
-    ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir)
+    ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir, typed.callbacks.checkpoint.save_last)
     if not is_first_process():  # a DDP process Lightning started, after the first one accepted the folder
         return output_dir, checkpoint_dir, ckpt_path, []
     outdated = plan_folder(output_dir, typed.ckpt_path, ckpt_path, typed.overwrite)
@@ -249,11 +249,13 @@ def fit(run: Run) -> dict[str, float]:
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
-    except SIGTERMException as err:  # Lightning's, outside the step boundaries GracefulStop stops at
-        raise Interrupted(
+    except SIGTERMException as err:  # Lightning's, at the end of the iteration GracefulStop saved, or elsewhere
+        raise run.stopper.stopped or Interrupted(
             f"stopped by SIGTERM at iteration {trainer.global_step} (not at a step boundary: no checkpoint written)",
             128 + signal.SIGTERM,
         ) from err
+    if run.stopper.stopped is not None:  # the signal came during the last iteration
+        raise run.stopper.stopped
     if not trainer.interrupted and typed.callbacks.checkpoint.save_last:
         # the periodic checkpoints may not fall on the last iteration
         trainer.save_checkpoint(run.checkpoint_dir / "last.ckpt", weights_only=False)

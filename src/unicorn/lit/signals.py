@@ -2,10 +2,11 @@
 
 Schedulers (SLURM, Kubernetes...) send SIGTERM before they preempt or requeue a job; Ctrl-C sends SIGINT.
 :class:`GracefulStop` lets the iteration under way finish, writes ``last.ckpt`` atomically
-(:class:`~unicorn.lit.checkpoint.AtomicCheckpointIO`), whatever ``callbacks.checkpoint.save_last`` says, and stops
-training with :class:`unicorn.errors.Interrupted`: ``unicorn-train`` then exits with status ``128 + signal`` (143
-for SIGTERM, 130 for SIGINT), never 0. The same command with ``ckpt_path=last`` (a requeued SLURM job) resumes
-from that file exactly.
+(:class:`~unicorn.lit.checkpoint.AtomicCheckpointIO`), whatever ``callbacks.checkpoint.save_last`` says, at the
+point of the iteration where the periodic checkpoints are written, and stops before the next iteration (once
+the loggers have the iteration's values, as a resume expects them) with :class:`unicorn.errors.Interrupted`:
+``unicorn-train`` then exits with status ``128 + signal`` (143 for SIGTERM, 130 for SIGINT), never 0. The same
+command with ``ckpt_path=last`` (a requeued SLURM job) resumes from that file exactly.
 
 SIGTERM is received by Lightning's own handler (``trainer.received_sigterm``, which also forwards it to the
 processes Lightning started); the callback replaces Python's SIGINT handler during training, and a second
@@ -44,10 +45,13 @@ class GracefulStop(L.Callback):
         self.last_path = Path(last_path)
         self.steps_run = 0
         self.received: int | None = None
+        #: the error ending an interrupted run, once its checkpoint is written (raised by :func:`unicorn.lit.run.fit`
+        #: or before the next iteration)
+        self.stopped: Interrupted | None = None
         self._previous: dict[int, Any] = {}
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.received = None
+        self.received, self.stopped = None, None
         if threading.current_thread() is threading.main_thread():
             self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_signal)
 
@@ -63,13 +67,18 @@ class GracefulStop(L.Callback):
         signum = self.received or (signal.SIGTERM if trainer.received_sigterm else None)
         if not trainer.strategy.reduce_boolean_decision(signum is not None, all=False):
             return
-        name = signal.Signals(signum or signal.SIGTERM).name
+        signum = signum or signal.SIGTERM
         trainer.save_checkpoint(self.last_path, weights_only=False)
-        raise Interrupted(
-            f"stopped by {name} after iteration {trainer.global_step}; {self.last_path} written: resume with "
-            "ckpt_path=last in the same folder",
-            128 + (signum or signal.SIGTERM),
+        self.stopped = Interrupted(
+            f"stopped by {signal.Signals(signum).name} after iteration {trainer.global_step}; {self.last_path} "
+            "written: resume with ckpt_path=last in the same folder",
+            128 + signum,
         )
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args: Any) -> None:
+        # the iteration that saw the signal has been logged like any other: stop before the next one runs
+        if self.stopped is not None:
+            raise self.stopped
 
     def _restore(self) -> None:
         for signum, handler in self._previous.items():
