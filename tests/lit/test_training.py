@@ -214,8 +214,8 @@ def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monk
     step = run.module.objectives.steps["3d"]
     original = step.forward
 
-    def broken(model, images, average_texture=False):
-        out = original(model, images, average_texture)
+    def broken(model, images, average_texture=False, iteration=None):
+        out = original(model, images, average_texture, iteration)
         out["rgb"] = out["rgb"] * float("nan")
         out["total"] = out["total"] + out["rgb"]
         return out
@@ -244,8 +244,9 @@ def test_nonfinite_checkpoint_is_the_state_before_the_failing_iteration(syntheti
     step, n = run.module.objectives.steps["3d"], 3  # iteration 3 is a 3D step
     original = step.forward
 
-    def nan_at_n(model, images, average_texture=False):
-        out = original(model, images, average_texture)  # the forward pass has updated the BatchNorm statistics
+    def nan_at_n(model, images, average_texture=False, iteration=None):
+        # the forward pass has updated the BatchNorm statistics
+        out = original(model, images, average_texture, iteration)
         if run.trainer.global_step == n:
             out["rgb"] = out["rgb"] * float("nan")
             out["total"] = out["total"] + out["rgb"]

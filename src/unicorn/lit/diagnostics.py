@@ -26,10 +26,11 @@ N iterations on the most recent training images:
   images whose most likely candidate is candidate k; ``pose/azim-bins``: the share of twelve 30-degree azimuth bins
   that the images' selected azimuths reach;
 - ``pose/render-acc``, ``pose/render-azim-error``: the pose branch read on renders of the model's own
-  reconstructions of the images at viewpoints drawn over the pose ranges (:func:`unicorn.model.viewpoint.
-  viewpoint_check`, the same draws at every check): the share whose most likely candidate is the drawn view's,
-  and the median azimuth error (degrees) of that candidate. No ground truth is needed: a model that reads
-  viewpoints finds most renders' candidates; ``pose/render-chance`` (1 / K) is what a guess scores.
+  reconstructions of the images at azimuths drawn over the azimuth range
+  (:func:`unicorn.model.viewpoint.viewpoint_check`, the same draws at every check): the share whose most likely
+  candidate is the drawn view's, and the median azimuth error (degrees) of that candidate. No ground truth is
+  needed: a model that reads viewpoints finds most renders' candidates; ``pose/render-chance`` (1 / K) is what a
+  guess scores.
 
 Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
 check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its

@@ -195,7 +195,8 @@ def viewpoint_terms(poses: PoseOutput, views: DrawnViews, head: PoseHead) -> dic
 def viewpoint_check(
     model: Unicorn, images: torch.Tensor, generator: torch.Generator | None = None
 ) -> dict[str, float]:
-    """The pose branch's accuracy on renders of the model's reconstructions of ``images`` at drawn views.
+    """The pose branch's accuracy on renders of the model's reconstructions of ``images`` at drawn azimuths (each
+    at its candidate's anchor elevation and roll and the prior translation: the azimuth is what the candidates split).
 
     A model whose pose branch reads viewpoints finds the candidate of most renders; one whose viewpoints have
     collapsed (one candidate for every view, or each view's turned-round twin) scores near ``1 / K`` or lower.
@@ -212,7 +213,7 @@ def viewpoint_check(
     """
     model.check_images(images)
     pred = model.predict_3d(model.encode(images, model.branches()))
-    views = draw_views(model.pose, images.shape[0], generator)
+    views = draw_views(model.pose, images.shape[0], generator, azimuth_only=True)
     renders = render_views(model, pred, views)
     poses = model.pose(model.encode(renders, ("pose",))["pose"])
     terms = viewpoint_terms(poses, views, model.pose)
