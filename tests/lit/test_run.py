@@ -5,7 +5,15 @@ from __future__ import annotations
 from lightning.pytorch.callbacks import Timer
 
 from tests.support.training import build_run
-from unicorn.lit import CodeDiagnostics, ImageLogger, PeriodicCheckpoint, ProgressBar, ResumeLogs, StageCallback
+from unicorn.lit import (
+    CodeDiagnostics,
+    GracefulStop,
+    ImageLogger,
+    PeriodicCheckpoint,
+    ProgressBar,
+    ResumeLogs,
+    StageCallback,
+)
 from unicorn.lit.loggers import CSVLogger
 
 
@@ -19,7 +27,9 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
     )
     # Lightning moves checkpoint callbacks last
     kinds = [type(cb) for cb in run.trainer.callbacks]
-    expected = [StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer, PeriodicCheckpoint]
+    expected = [
+        StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer, GracefulStop, PeriodicCheckpoint
+    ]  # fmt: skip
     assert kinds == expected
     images = run.trainer.callbacks[3]
     assert (images.every_n_steps, images.n_views, images.n_images) == (3, 2, 8)  # n_images: the schema's default
@@ -31,4 +41,4 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
 
 def test_a_null_node_is_left_out(tmp_path) -> None:
     run = build_run(tmp_path, "callbacks.diagnostics=null", "trainer.enable_progress_bar=false")
-    assert [type(cb) for cb in run.trainer.callbacks] == [StageCallback, ResumeLogs, PeriodicCheckpoint]
+    assert [type(cb) for cb in run.trainer.callbacks] == [StageCallback, ResumeLogs, GracefulStop, PeriodicCheckpoint]
