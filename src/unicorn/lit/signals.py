@@ -8,10 +8,11 @@ the loggers have the iteration's values, as a resume expects them) with :class:`
 ``unicorn-train`` then exits with status ``128 + signal`` (143 for SIGTERM, 130 for SIGINT), never 0. The same
 command with ``ckpt_path=last`` (a requeued SLURM job) resumes from that file exactly.
 
-SIGTERM is received by Lightning's own handler (``trainer.received_sigterm``, which also forwards it to the
-processes Lightning started); the callback replaces Python's SIGINT handler during training, and a second
-SIGINT stops at once (``KeyboardInterrupt``, no checkpoint). Under DDP every rank stops at the same iteration:
-the decision is reduced across ranks at each step boundary.
+During training the callback handles SIGTERM and SIGINT itself, in place of Lightning's SIGTERM handler (which
+raises as soon as it sees its flag, with no checkpoint written when the signal arrives after this callback's
+check); a SIGTERM that Lightning's handler still records (``trainer.received_sigterm``) is honoured the same way,
+and a second signal stops at once (``KeyboardInterrupt``, no checkpoint). Under DDP every rank stops at the same
+iteration: the decision is reduced across ranks at each step boundary.
 """
 
 from __future__ import annotations
@@ -53,7 +54,9 @@ class GracefulStop(L.Callback):
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.received, self.stopped = None, None
         if threading.current_thread() is threading.main_thread():
-            self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._on_signal)
+            # SIGTERM too, in place of Lightning's handler (see the module docstring)
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._on_signal)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         if self.received is not None:  # asked twice: stop now
