@@ -180,7 +180,7 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
         out[b] = row
     out["shape"]["mesh-spread"] = mesh_spread(pred.canonical_verts)
     out["pose"] = pose_diagnostics(pred.poses, float(model.pose.R_range[0]))
-    out["pose"].update(viewpoint_check(model, images, torch.Generator().manual_seed(VIEWPOINT_SEED)))
+    out["pose"].update(viewpoint_check(model, images, torch.Generator().manual_seed(VIEWPOINT_SEED), pred))
     return out
 
 

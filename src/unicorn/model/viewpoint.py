@@ -193,7 +193,10 @@ def viewpoint_terms(poses: PoseOutput, views: DrawnViews, head: PoseHead) -> dic
 
 @torch.no_grad()
 def viewpoint_check(
-    model: Unicorn, images: torch.Tensor, generator: torch.Generator | None = None
+    model: Unicorn,
+    images: torch.Tensor,
+    generator: torch.Generator | None = None,
+    pred: Prediction3D | None = None,
 ) -> dict[str, float]:
     """The pose branch's accuracy on renders of the model's reconstructions of ``images`` at drawn azimuths (each
     at its candidate's anchor elevation and roll and the prior translation: the azimuth is what the candidates split).
@@ -206,13 +209,16 @@ def viewpoint_check(
         model: a :class:`~unicorn.model.Unicorn`.
         images: (B, 3, S, S) in [0, 1].
         generator: a CPU generator for the views (None: torch's global one).
+        pred: the model's prediction for ``images`` when the caller has it (a :class:`~unicorn.model.Prediction`
+            serves too); None: predicted here.
 
     Returns:
         ``render-acc`` (share of renders whose most likely candidate holds their view), ``render-azim-error``
         (median absolute azimuth error in degrees of the most likely candidate) and ``render-chance`` (1 / K).
     """
     model.check_images(images)
-    pred = model.predict_3d(model.encode(images, model.branches()))
+    if pred is None:
+        pred = model.predict_3d(model.encode(images, model.branches()))
     views = draw_views(model.pose, images.shape[0], generator, azimuth_only=True)
     renders = render_views(model, pred, views)
     poses = model.pose(model.encode(renders, ("pose",))["pose"])
