@@ -24,6 +24,7 @@ __all__ = [
     "EnvironmentLimitError",
     "FaceIndexError",
     "ShapeError",
+    "SizeLimitError",
     "check_shape",
     "check_faces",
     "check_image_size",
@@ -33,6 +34,7 @@ __all__ = [
     "check_rotations",
     "check_same_batch",
     "check_same_dtype",
+    "check_limit",
     "check_translations",
     "env_limit",
 ]
@@ -63,6 +65,40 @@ def env_limit(name: str, default: int, unit: str) -> int | None:
     if not math.isfinite(value) or value < 0:
         raise EnvironmentLimitError(f"{name}={text!r} is not a number of {unit} >= 0 (0: no limit)")
     return int(value) or None
+
+
+class SizeLimitError(UserError, ValueError):
+    """A size asked for (an option, a setting) whose allocation would exceed a limit, refused before it is made."""
+
+
+def check_limit(
+    setting: str,
+    what: str,
+    amount: int,
+    limit: int | None,
+    unit: str,
+    source: str,
+    error: type[SizeLimitError] = SizeLimitError,
+) -> None:
+    """Refuse ``amount`` ``unit`` above ``limit`` before anything is allocated: the one bound of every size a
+    command is asked for (image sides, texture sizes, pictures, model widths, points, steps).
+
+    Args:
+        setting: the option or config key with its value, as the user gave it (``"--turntable-frames 1000000"``).
+        what: what the amount is (``"frames of 48 x 48 float32 RGBA"``).
+        amount: how much of ``unit`` the setting asks for.
+        limit: the most allowed; None: no limit.
+        unit: ``"bytes"``, ``"parameters"``, ``"points"``...
+        source: where the limit comes from: the environment variable that sets it (``"UNICORN_MAX_IMAGE_BYTES;
+            0: no limit"``), or the documented maximum.
+        error: the class raised, :class:`SizeLimitError` or a subclass.
+
+    Raises:
+        SizeLimitError: ``amount > limit``, in one line: ``<setting> needs <amount> <unit> (<what>), above the limit
+            of <limit> <unit> (<source>)``.
+    """
+    if limit is not None and amount > limit:
+        raise error(f"{setting} needs {amount:,} {unit} ({what}), above the limit of {limit:,} {unit} ({source})")
 
 
 class ShapeError(ValueError):

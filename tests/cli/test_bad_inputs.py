@@ -43,8 +43,11 @@ def finished_run(synthetic_cache, tmp_path_factory) -> Path:
 def _users_folder(tmp_path: Path, finished_run: Path, kind: str) -> Path:
     """The folder a case runs in, as the user left it."""
     folder = tmp_path / "myproj"
-    if kind == "finished":
+    if kind.startswith("finished"):
         shutil.copytree(finished_run, folder)
+        if kind == "finished-truncated-provenance":
+            record = folder / "provenance.json"
+            record.write_bytes(record.read_bytes()[:40])  # cut off mid-record, as by a full disk
     elif kind == "cwd":
         folder = tmp_path  # hydra.run.dir=. : the directory the user works in
         (folder / "notes.txt").write_text("mine")
@@ -73,6 +76,12 @@ TRAIN_CASES = [
         r"would delete or replace the later checkpoints checkpoints/step=0000008\.ckpt, checkpoints/last\.ckpt; "
         r"pass overwrite=true",
     ),
+    (
+        "resume-with-a-truncated-provenance",
+        "finished-truncated-provenance",
+        ["ckpt_path=last", "trainer.max_steps=12"],
+        r"myproj/provenance\.json is not the list of this run's starts \(Unterminated string .*\); repair it",
+    ),
 ]
 
 
@@ -88,6 +97,63 @@ def test_a_refused_run_leaves_the_folder_as_it_was(finished_run, tmp_path, kind,
     assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
     assert re.search(message, lines[0]), lines
     assert folder.is_dir() and snapshot(folder) == before
+
+
+#: (id, overrides, the error's pattern): refused while the config is checked, before any folder is made
+SETTING_CASES = [
+    ("img-size-not-the-datas", ["dataset.img_size=64"], r"dataset\.img_size=64, but the synthetic images are 32 px"),
+    ("devices-negative", ["trainer.devices=-3"], r"trainer\.devices must be 'auto', a number of devices .*got -3$"),
+    ("devices-text", ["trainer.devices=abc"], r"trainer\.devices must be .*got 'abc'$"),
+    ("seed-negative", ["seed=-5"], r"seed must be a whole number in \[0, 4294967295\] \(numpy's seeds\), got -5$"),
+    ("seed-huge", ["seed=4294967296"], r"seed must be a whole number in \[0, 4294967295\].*got 4294967296$"),
+    ("precision", ["trainer.precision=bogus"], r"trainer\.precision must be one of \(.*'32-true'.*\), got 'bogus'$"),
+    ("strategy", ["trainer.strategy=bogus"], r"trainer\.strategy must be one of \['auto', 'ddp'.*got 'bogus'$"),
+    (
+        "background-color",
+        ["renderer.background_color=[2,3]"],
+        r"renderer\.background_color must be three numbers in \[0, 1\] \(RGB\), got \[2, 3\]$",
+    ),
+    (
+        "azim-range-reversed",
+        ["model.pose.azim_range=[360,0]"],
+        r"model\.pose\.azim_range must be two finite numbers \[min, max\] with min <= max, got \[360\.0, 0\.0\]$",
+    ),
+    (
+        "img-size-huge",
+        ["dataset.img_size=100000"],
+        r"dataset\.img_size=100000 needs 10,000,000,000 pixels .*\(UNICORN_MAX_IMAGE_PIXELS; 0: no limit\)$",
+    ),
+    (
+        "encoder-width-huge",
+        ["model.encoder.width=100000"],
+        r"model needs [\d,]+ parameters \(.*encoder\.width=100000\), above the limit of 500,000,000 parameters "
+        r"\(UNICORN_MAX_MODEL_PARAMS; 0: no limit\)$",
+    ),
+    (
+        "texture-size-huge",
+        ["model.texture.size=65536"],
+        r"model\.texture\.size=65536 needs 4,294,967,296 pixels .*\(UNICORN_MAX_IMAGE_PIXELS; 0: no limit\)$",
+    ),
+    ("checkpoint-dev-zero", ["ckpt_path=/dev/zero"], r"ckpt_path: /dev/zero is not a regular file"),
+    (
+        "checkpoint-of-another-model",
+        ["model=small", "model.loss.perceptual=structural", 'ckpt_path="{finished}/checkpoints/last.ckpt"'],
+        r"ckpt_path: the weights of \S+last\.ckpt do not fit the configured model .*: missing \[",
+    ),
+]
+
+
+@pytest.mark.parametrize("overrides, message", [c[1:] for c in SETTING_CASES], ids=[c[0] for c in SETTING_CASES])
+def test_a_bad_setting_is_one_line_and_writes_nothing(finished_run, tmp_path, overrides, message):
+    (tmp_path / "notes.txt").write_text("mine")
+    before, finished = snapshot(tmp_path), snapshot(finished_run)
+    args = [o.format(finished=finished_run) for o in overrides]
+    result = unicorn_train(*TINY, *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
+    assert re.search(message, lines[0]), lines
+    assert snapshot(tmp_path) == before and snapshot(finished_run) == finished
 
 
 def test_a_locked_folder_refuses_a_second_run(finished_run, tmp_path):
@@ -194,9 +260,20 @@ RECONSTRUCT_CASES = [
     ("render-bytes-text", {"UNICORN_MAX_RENDER_BYTES": "abc"}, [], r"UNICORN_MAX_RENDER_BYTES='abc' is not a number"),
     ("image-pixels-negative", {"UNICORN_MAX_IMAGE_PIXELS": "-5"}, [], r"UNICORN_MAX_IMAGE_PIXELS='-5' is not a number"),
     ("model-params-nan", {"UNICORN_MAX_MODEL_PARAMS": "nan"}, [], r"UNICORN_MAX_MODEL_PARAMS='nan' is not a number"),
+    (
+        "turntable-frames-huge",
+        {},
+        ["--turntable-frames", "1000000"],
+        r"--turntable-frames 1000000 needs 36,864,000,000 bytes \(a turntable's frames at --view-size 48: .*\), "
+        r"above the limit of 17,179,869,184 bytes \(UNICORN_MAX_RENDER_BYTES; 0: no limit\)$",
+    ),
+    ("refine-huge", {}, ["--refine", "1000000000"], r"--refine 1000000000: steps must be in \[0, 10,000\]"),
+    ("padding-huge", {}, ["--padding", "1e9"], r"--padding 1e\+09: must be a finite number in \[0, 10\]"),
+    ("padding-nan", {}, ["--padding", "nan"], r"--padding nan: must be a finite number in \[0, 10\]"),
 ]
 
 
+@pytest.mark.timeout(120)  # an unbounded turntable or refinement would run for hours
 @pytest.mark.parametrize(
     "env, args, message", [c[1:] for c in RECONSTRUCT_CASES], ids=[c[0] for c in RECONSTRUCT_CASES]
 )
@@ -211,7 +288,7 @@ def test_reconstruct_refuses_a_bad_box_or_limit(tmp_path, capsys, monkeypatch, e
     before = snapshot(tmp_path)
     out = tmp_path / "out"
     fast = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
-    assert main([str(checkpoint), str(tmp_path / "inputs" / "photo.jpg"), *args, "--out", str(out), *fast]) == 2
+    assert main([str(checkpoint), str(tmp_path / "inputs" / "photo.jpg"), "--out", str(out), *fast, *args]) == 2
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("unicorn-reconstruct: error: "), lines
     assert re.search(message, lines[0]), lines
@@ -258,6 +335,94 @@ def test_an_unreadable_limit_in_training_is_one_line_and_leaves_no_folder(synthe
     assert lines[-1] == f"unicorn-train: error: {message}"
     assert "Traceback" not in result.stderr
     assert not run.exists()
+
+
+#: (arguments of unicorn-eval, the error's pattern)
+EVAL_CASES = [
+    (
+        ["--num-points", "10000000000"],
+        r"--num-points 10000000000 needs 10,000,000,000 points .*above the limit of 10,000,000",
+    ),
+    (["--num-points", "1e10"], r"--num-points 10000000000 needs 10,000,000,000 points"),
+    (["--shape-points", "10000000000"], r"--shape-points 10000000000 needs 10,000,000,000 points"),
+    (
+        ["--turntable-frames", "100000"],
+        r"--turntable-frames 100000 needs 26,214,400,000 bytes .*\(UNICORN_MAX_RENDER_BYTES; 0: no limit\)$",
+    ),
+]
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("args, message", EVAL_CASES, ids=[" ".join(c[0]) for c in EVAL_CASES])
+def test_eval_refuses_a_size_above_its_limit(tmp_path, capsys, args, message):
+    from tests.support.evaluation import synthetic_data, tiny_checkpoint
+    from unicorn.cli.eval import main
+
+    checkpoint = tiny_checkpoint(tmp_path / "model.pt")
+    synthetic_data(tmp_path / "data")
+    before = snapshot(tmp_path)
+    common = ["--dataset", "synthetic", "--root", str(tmp_path / "data"), "--device", "cpu", "--max-images", "2"]
+    assert main([str(checkpoint), *common, "--quiet", "--out", str(tmp_path / "out"), *args]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("unicorn-eval: error: "), lines
+    assert re.search(message, lines[0]), lines
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["--size", "100000"],
+            r"--size 100000 with --supersample 3 needs 90,000,000,000 pixels .*UNICORN_MAX_IMAGE_PIXELS",
+        ),
+        (["--points", "1e10"], r"--points 10000000000 needs 10,000,000,000 points .*above the limit of 10,000,000"),
+        (["--points", "10000000000"], r"--points 10000000000 needs 10,000,000,000 points"),
+    ],
+    ids=["size", "points-1e10", "points"],
+)
+def test_synth_refuses_a_size_above_its_limit(tmp_path, capsys, args, message):
+    from unicorn.cli.data import main
+
+    assert main(["synth", "--out", str(tmp_path / "data"), "--models", "10", "--views", "1", "--quiet", *args]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("unicorn-data: error: "), lines
+    assert re.search(message, lines[0]), lines
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["eval", "reconstruct", "data"])
+def test_every_command_has_the_same_error_boundary(tmp_path, capsys, monkeypatch, command):
+    """A UserError (a renderer's or a model config's check included) is one line and status 2; a ValueError or
+    KeyError that is not one is a bug: its traceback, status 1 (unicorn-train: :func:`expected_error` too)."""
+    import importlib
+
+    from unicorn.cli.errors import expected_error
+    from unicorn.model.config import ModelConfigError, merge_config
+    from unicorn.render import RenderError, build_renderer
+
+    module = importlib.import_module(f"unicorn.cli.{command}")
+    args = {
+        "eval": ["model.pt", "--device", "cpu", "--out", str(tmp_path / "out")],
+        "reconstruct": ["model.pt", "photo.jpg", "--device", "cpu", "--out", str(tmp_path / "out")],
+        "data": ["synth", "--out", str(tmp_path / "data"), "--quiet"],
+    }[command]
+    entry = "_synth" if command == "data" else "run"
+    with pytest.raises(RenderError) as render_error:
+        build_renderer("layered", image_size=8, sigma=-1.0)
+    with pytest.raises(ModelConfigError) as config_error:
+        merge_config(pose={"azim_range": (360.0, 0.0)})
+    for error in (render_error.value, config_error.value):
+        assert isinstance(error, ValueError) and expected_error(error) is error
+        monkeypatch.setattr(module, entry, lambda *a, error=error, **k: (_ for _ in ()).throw(error))
+        assert module.main(args) == 2
+        assert capsys.readouterr().err == f"unicorn-{command}: error: {error}\n"
+    for bug in (ValueError("a bug"), KeyError("a bug")):
+        assert expected_error(bug) is None
+        monkeypatch.setattr(module, entry, lambda *a, bug=bug, **k: (_ for _ in ()).throw(bug))
+        with pytest.raises(type(bug)):
+            module.main(args)
 
 
 @pytest.mark.parametrize("text", ["- a list of mine\n", "key: [unclosed\n"], ids=["a-list", "not-yaml"])

@@ -21,8 +21,13 @@ from unicorn.data.synthetic.shapes import CATEGORIES
 
 
 def _synth(args: argparse.Namespace) -> int:
-    from unicorn.data.synthetic.writer import ensure_synthetic_dataset, generate_synthetic_dataset
+    from unicorn.data.synthetic.writer import (
+        check_generation_sizes,
+        ensure_synthetic_dataset,
+        generate_synthetic_dataset,
+    )
 
+    check_generation_sizes(args.size, args.supersample, args.points, ("--size", "--supersample", "--points"))
     categories = [c for arg in args.category for c in arg.split(",") if c]
     start = time.perf_counter()
     options = {

@@ -18,6 +18,7 @@ Anything else is a bug and keeps its traceback (exit status 1). ``--debug`` (or 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -34,6 +35,7 @@ __all__ = [
     "one_line",
     "positive_int",
     "report_errors",
+    "whole_number",
 ]
 
 
@@ -117,11 +119,27 @@ def one_line(err: BaseException) -> str:
     return " ".join(str(text).split()) or type(err).__name__
 
 
-def positive_int(text: str) -> int:
-    """An argparse ``type``: a whole number >= 1 (a usage error, exit status 2, otherwise)."""
+def whole_number(text: str) -> int:
+    """An argparse ``type``: a whole number, also written as ``1e6`` (a usage error, exit status 2, otherwise).
+    How large it may be is for the command to say (:func:`unicorn.checks.check_limit`)."""
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value.is_integer()):
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}")
+    return int(value)
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type``: a whole number >= 1 (``1e6`` included; a usage error, exit status 2, otherwise)."""
+    try:
+        value = whole_number(text)
+    except argparse.ArgumentTypeError:
         value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
@@ -139,18 +157,17 @@ def report_errors(
     prog: str,
     func: Callable[[], int],
     debug: bool = False,
-    extra: tuple[type[BaseException], ...] = (),
     cleanup: Callable[[], None] | None = None,
 ) -> int:
-    """Run ``func``; a user error is printed as ``<prog>: error: <message>`` and gives exit status 2.
+    """Run ``func``; an expected failure (:func:`expected_error`, the same for every command) is printed as
+    ``<prog>: error: <message>`` and gives exit status 2.
 
-    Any other exception (a bug) propagates with its traceback, after ``cleanup``.
+    Any other exception (a bug) propagates with its traceback (exit status 1), after ``cleanup``.
 
     Args:
         prog: the command's name.
         func: the command; returns its exit status.
         debug: re-raise user errors (traceback) instead.
-        extra: more exception types this command reports as user errors.
         cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
     try:
@@ -158,7 +175,7 @@ def report_errors(
     except Exception as err:
         if cleanup is not None:
             cleanup()
-        reported = err if isinstance(err, extra) else expected_error(err)
+        reported = expected_error(err)
         if reported is None or debug_requested(debug):
             raise
         print(f"{prog}: error: {one_line(reported)}", file=sys.stderr)

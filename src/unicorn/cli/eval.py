@@ -22,7 +22,7 @@ from typing import Any
 
 from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.errors import UsageError, add_debug_argument, report_errors
+from unicorn.cli.errors import UsageError, add_debug_argument, report_errors, whole_number
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
 from unicorn.data.registry import DATASET_NAMES
 from unicorn.evaluation.protocols import EvalOptions
@@ -73,7 +73,9 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     """What is scored and how finely (defaults: :class:`~unicorn.evaluation.EvalOptions`, the paper's protocol)."""
     p.add_argument("--max-images", type=int, help="evaluate at most N images, spread over the split")
     p.add_argument("--batch-size", type=int, default=EvalOptions.batch_size, help="images per forward pass")
-    p.add_argument("--num-points", type=int, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer")
+    p.add_argument(
+        "--num-points", type=whole_number, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer"
+    )
     p.add_argument(
         "--icp-iterations", type=int, default=EvalOptions.icp_iterations, help="ICP iterations (0: no -ICP metrics)"
     )
@@ -101,7 +103,7 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--shape-points",
-        type=int,
+        type=whole_number,
         default=EvalOptions.shape_points,
         help="ShapeNet / synthetic: points per shape of the shape retrieval (shape-top1, shape-top3, shape-mrr, their "
         "-gt ceiling and -floor, shape-spread-ratio): is each reconstruction closest to its own object among the "
@@ -132,7 +134,7 @@ def _add_report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--view-size", type=int, default=128, help="side of the report pictures")
     p.add_argument(
         "--turntable-frames",
-        type=int,
+        type=whole_number,
         default=REPORT_TURNTABLE_FRAMES,
         help="frames of the report's turntables (0: none)",
     )
@@ -222,6 +224,25 @@ def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Names
     for name in ("max_image_pixels", "max_image_bytes"):
         if (getattr(args, name) or 0) < 0:
             parser.error(f"--{name.replace('_', '-')} must be >= 0")
+
+
+def check_picture_sizes(args: argparse.Namespace) -> None:
+    """Refuse pictures above the render memory limit before any is made: one RGBA view of ``--view-size``, and
+    the ``--turntable-frames`` frames of a turntable at that size, held together until its GIF is written
+    (float32; ``UNICORN_MAX_RENDER_BYTES``, the limit of the renders they are made of).
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names the option and the limit.
+    """
+    from unicorn.checks import check_limit
+    from unicorn.render import MAX_RENDER_BYTES_ENV, max_render_bytes
+
+    size, frames = args.view_size, args.turntable_frames
+    limit, source = max_render_bytes(), f"{MAX_RENDER_BYTES_ENV}; 0: no limit"
+    picture = 4 * size * size * 4
+    check_limit(f"--view-size {size}", f"a picture: 4 x {size} x {size} float32", picture, limit, "bytes", source)
+    what = f"a turntable's frames at --view-size {size}: {frames} x 4 x {size} x {size} float32"
+    check_limit(f"--turntable-frames {frames}", what, frames * picture, limit, "bytes", source)
 
 
 def apply_common_arguments(args: argparse.Namespace) -> None:
@@ -326,7 +347,11 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     from unicorn.evaluation.session import evaluate_to_folder
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
+    from unicorn.metrics.sampling import check_point_count
 
+    check_point_count(f"--num-points {args.num_points}", args.num_points)
+    check_point_count(f"--shape-points {args.shape_points}", args.shape_points)
+    check_picture_sizes(args)
     device = _device(args.device)
     if args.out is not None:
         check_out_folder(args.out.expanduser(), args.overwrite)  # before the model is read: a mistake fails fast
@@ -381,8 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     check_ranges(parser, args)
     check_common_arguments(parser, args)
-    # ValueError and KeyError: what the dataset and protocol builders raise on unknown names and bad layouts
-    return report_errors("unicorn-eval", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
+    return report_errors("unicorn-eval", lambda: _run(args, argv), args.debug)
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:

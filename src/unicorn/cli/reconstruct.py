@@ -20,16 +20,22 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from unicorn import __version__
-from unicorn.cli.errors import UsageError, report_errors
+from unicorn.cli.errors import UsageError, report_errors, whole_number
 from unicorn.cli.eval import (
     HelpFormatter,
     add_common_arguments,
     add_overwrite_argument,
     apply_common_arguments,
     check_common_arguments,
+    check_picture_sizes,
 )
+from unicorn.io.images import DEFAULT_PADDING, MAX_PADDING
+
+if TYPE_CHECKING:
+    from unicorn.model.refine import RefineOptions
 
 __all__ = ["build_parser", "main"]
 
@@ -62,10 +68,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
     p.add_argument("--batch-size", type=int, default=16, help="images per forward pass")
     p.add_argument("--view-size", type=int, default=256, help="side of the pictures")
-    p.add_argument("--turntable-frames", type=int, default=24, help="frames of turntable.gif (0: no GIF)")
+    p.add_argument("--turntable-frames", type=whole_number, default=24, help="frames of turntable.gif (0: no GIF)")
     p.add_argument("--strip-views", type=int, default=4, help="views in turntable.png")
     p.add_argument("--bbox", type=_bbox, help="object box x1,y1,x2,y2 in pixels (one input image only)")
-    p.add_argument("--padding", type=float, default=0.1, help="margin around an alpha cut-out or --bbox (fraction)")
+    p.add_argument(
+        "--padding",
+        type=float,
+        default=DEFAULT_PADDING,
+        help=f"margin around an alpha cut-out or --bbox (fraction of its side, at most {MAX_PADDING:g})",
+    )
     p.add_argument("--no-alpha-crop", action="store_true", help="do not crop transparent images to their object")
     p.add_argument("--template-level", type=int, help="icosphere level of the mesh (3: 642 vertices, 4: 2562)")
     p.add_argument(
@@ -76,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--refine",
-        type=int,
+        type=whole_number,
         default=0,
         metavar="STEPS",
         help="refine each prediction against its image for this many steps (0: the network's prediction); the "
@@ -101,9 +112,13 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.data.images import ImageLoadError
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
+    from unicorn.io.images import check_padding
     from unicorn.io.provenance import command_line, provenance
     from unicorn.io.staging import staged_folder
 
+    check_padding(args.padding, "--padding")
+    check_picture_sizes(args)
+    refine_options = _refine_options(args)
     out = args.out.expanduser()
     check_out_folder(out, args.overwrite)
     files = collect_inputs(args.inputs)
@@ -123,18 +138,6 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
         readable.append((path, name))
     if not readable:
         raise UsageError("none of the inputs could be read")
-    refine_options = None
-    if args.refine > 0:
-        from unicorn.model.refine import PARTS, RefineOptions
-
-        named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
-        parts = named.get(args.refine_parts) or tuple(args.refine_parts.split(","))
-        unknown = [q for q in parts if q not in PARTS]
-        if unknown:
-            raise UsageError(
-                f"--refine-parts: unknown part(s) {unknown}; choose 'default', 'all' or from {list(PARTS)}"
-            )
-        refine_options = RefineOptions(steps=args.refine, parts=parts, progress=not args.quiet)
     device = _device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
@@ -167,6 +170,27 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     return 0
 
 
+def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
+    """The :class:`~unicorn.model.refine.RefineOptions` of ``--refine`` and ``--refine-parts`` (None: no refinement).
+
+    Raises:
+        UsageError: an unknown part, or more steps than :data:`unicorn.model.refine.MAX_STEPS`.
+    """
+    if args.refine <= 0:
+        return None
+    from unicorn.model.refine import PARTS, RefineOptions, RefineOptionsError
+
+    named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
+    parts = named.get(args.refine_parts) or tuple(args.refine_parts.split(","))
+    unknown = [q for q in parts if q not in PARTS]
+    if unknown:
+        raise UsageError(f"--refine-parts: unknown part(s) {unknown}; choose 'default', 'all' or from {list(PARTS)}")
+    try:
+        return RefineOptions(steps=args.refine, parts=parts, progress=not args.quiet)
+    except RefineOptionsError as err:
+        raise UsageError(f"--refine {args.refine}: {err}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point; errors the user can fix are reported in one line with exit status 2."""
     parser = build_parser()
@@ -175,10 +199,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("batch_size", "view_size", "strip_views"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
-    if args.turntable_frames < 0 or args.padding < 0 or args.refine < 0:
-        parser.error("--turntable-frames, --padding and --refine must be >= 0")
+    if args.turntable_frames < 0 or args.refine < 0:
+        parser.error("--turntable-frames and --refine must be >= 0")
     check_common_arguments(parser, args)
-    return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug, extra=(ValueError, KeyError))
+    return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug)
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import inspect
 import math
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -20,6 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
+from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
@@ -27,6 +28,8 @@ from unicorn.render import get_renderer_class, list_renderers
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
+#: the largest ``seed``: numpy's seeds are whole numbers in [0, 2**32 - 1]
+MAX_SEED = 2**32 - 1
 
 
 class ConfigError(UserError, ValueError):
@@ -89,7 +92,18 @@ def _check_values(cfg: DictConfig) -> None:
         check_ranges(cfg, TrainConfig)
     except ValueError as err:
         raise ConfigError(str(err)) from None
+    _check(
+        isinstance(cfg.seed, int) and 0 <= cfg.seed <= MAX_SEED,
+        f"seed must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {cfg.seed}",
+    )
     _check_model(cfg)
+    _check_sizes(cfg)
+    stored = stored_image_size(cfg.dataset.name, cfg.dataset.synthetic)
+    _check(
+        stored is None or stored == cfg.dataset.img_size,
+        f"dataset.img_size={cfg.dataset.img_size}, but the {cfg.dataset.name} images are {stored} px "
+        f"(dataset.synthetic.image_size); set both to the same size",
+    )
     _check_schedule(cfg.schedule)
     check_optim(cfg.optim)  # raises ConfigError itself
     _check_trainer(cfg.trainer)
@@ -129,6 +143,42 @@ def _check_model(cfg: DictConfig) -> None:
         _check(all(a <= b for a, b in zip(dims, dims[1:])), f"{key} = {dims} must not decrease")
 
 
+def _check_sizes(cfg: DictConfig) -> None:
+    """Bound what the settings make the run allocate, before anything is built (the limits the commands share:
+    :func:`unicorn.checks.check_limit`): a training image and a texture map against the image limits, the model
+    against ``UNICORN_MAX_MODEL_PARAMS``, the pose step's render (a batch times the pose candidates) against the
+    renderer's fragment limit.
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names the setting and the limit.
+    """
+    from unicorn.checks import SizeLimitError
+    from unicorn.data.images import check_image_size
+    from unicorn.geometry.cameras import PerspectiveCamera
+    from unicorn.io.checkpoints import check_model_size
+    from unicorn.render import RenderSizeError, build_renderer, check_render_size
+
+    d, m = cfg.dataset, cfg.model
+    check_image_size(f"dataset.img_size={d.img_size}", "a training image", d.img_size)
+    check_image_size(f"model.texture.size={m.texture.size}", "a texture map", m.texture.size)
+    config = model_config(cfg)
+    check_model_size(config, "model", error=SizeLimitError)
+    settings = config["renderer"]
+    camera = PerspectiveCamera(fov=settings["fov"], focal_length=settings["focal_length"])
+    renderer = build_renderer(settings["name"], image_size=d.img_size, camera=camera, **settings["options"])
+    rasterizer = renderer.rasterizer
+    candidates = m.pose.n_elev * m.pose.n_azim
+    try:
+        check_render_size(
+            d.batch_size * candidates, rasterizer.raster_size, rasterizer.faces_per_pixel, rasterizer.max_bytes
+        )
+    except RenderSizeError as err:
+        raise ConfigError(
+            f"dataset.img_size={d.img_size}: the pose step renders dataset.batch_size={d.batch_size} images x "
+            f"{candidates} pose candidates at once: {err}"
+        ) from None
+
+
 def _check_schedule(s: DictConfig) -> None:
     _check(s.mode in SCHEDULE_MODES, f"schedule.mode must be fixed or plateau, got {s.mode!r}")
     ms = list(s.milestones)
@@ -137,6 +187,18 @@ def _check_schedule(s: DictConfig) -> None:
 
 
 def _check_trainer(t: DictConfig) -> None:
+    _check(
+        _devices_ok(t.devices),
+        f"trainer.devices must be 'auto', a number of devices (-1: all) or a list of device indices such as [0, 1], "
+        f"got {t.devices!r}",
+    )
+    precisions = _lightning_precisions()
+    _check(t.precision in precisions, f"trainer.precision must be one of {precisions}, got {t.precision!r}")
+    if isinstance(t.strategy, str):
+        from lightning.pytorch.strategies import StrategyRegistry
+
+        strategies = ["auto", *StrategyRegistry.available_strategies()]
+        _check(t.strategy in strategies, f"trainer.strategy must be one of {strategies}, got {t.strategy!r}")
     _check(
         t.val_check_interval is None or t.val_check_interval >= 1,
         "trainer.val_check_interval must be null (no validation) or a number of iterations >= 1",
@@ -147,6 +209,32 @@ def _check_trainer(t: DictConfig) -> None:
         f"trainer.strategy={strategy}: the pose / 3D alternation leaves half of the parameters without gradient "
         "at every step; use ddp_find_unused_parameters_true (or ddp_spawn_find_unused_parameters_true)",
     )
+
+
+def _devices_ok(devices: Any) -> bool:
+    """Lightning's forms of ``devices``: ``"auto"``, a count (-1: all; 0 is refused when the trainer is built), a
+    list of indices, or these as a string (``"2"``, ``"0,1"``)."""
+    if isinstance(devices, str):
+        text = devices.strip()
+        if text == "auto":
+            return True
+        if "," in text:
+            return all(part.strip().isdigit() for part in text.split(",") if part.strip())
+        return text.lstrip("-").isdigit() and int(text) >= -1
+    if isinstance(devices, bool):
+        return False
+    if isinstance(devices, int):
+        return devices >= -1
+    if isinstance(devices, Sequence):
+        return len(devices) > 0 and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in devices)
+    return False
+
+
+def _lightning_precisions() -> tuple[Any, ...]:
+    """Every ``precision`` Lightning's trainer takes (``"32-true"``, ``"bf16-mixed"``, ``16``...)."""
+    from lightning.fabric.connector import _PRECISION_INPUT
+
+    return tuple(value for literal in typing.get_args(_PRECISION_INPUT) for value in typing.get_args(literal))
 
 
 def _check_callbacks_and_loggers(cfg: DictConfig) -> None:

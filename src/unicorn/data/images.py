@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from PIL import ExifTags, Image, ImageOps
 
-from unicorn.checks import env_limit
+from unicorn.checks import check_limit, env_limit
 from unicorn.errors import UserError
 
 __all__ = [
@@ -46,6 +46,7 @@ __all__ = [
     "DatasetError",
     "DatasetNotFoundError",
     "ImageLoadError",
+    "check_image_size",
     "decode_image",
     "decoded",
     "load_image",
@@ -145,6 +146,22 @@ def set_max_image_bytes(limit: int | None) -> None:
         ImageLimitError: a negative limit.
     """
     _write_limit(MAX_IMAGE_BYTES_ENV, limit, "byte")
+
+
+def check_image_size(setting: str, what: str, side: int, channels: int = 3, count: int = 1) -> None:
+    """Refuse images a command would make (training images, texture maps, pictures, turntable frames) that the
+    image limits would refuse to read, before they are allocated: ``count`` square images of ``side`` pixels and
+    ``channels`` float32 channels, each above :func:`max_image_pixels` pixels, or together above
+    :func:`max_image_bytes` bytes.
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names ``setting``, the size and the limit's variable.
+    """
+    pixels, source = side * side, f"{MAX_IMAGE_PIXELS_ENV}; 0: no limit"
+    check_limit(setting, f"{what} of {side} x {side}", pixels, max_image_pixels(), "pixels", source)
+    nbytes, source = count * pixels * channels * 4, f"{MAX_IMAGE_BYTES_ENV}; 0: no limit"
+    what = f"{what}: {count} x {channels} x {side} x {side} float32"
+    check_limit(setting, what, nbytes, max_image_bytes(), "bytes", source)
 
 
 @contextlib.contextmanager

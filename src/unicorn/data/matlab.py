@@ -13,7 +13,13 @@ from typing import Any
 import numpy as np
 import scipy.io
 
-__all__ = ["load_struct_array"]
+from unicorn.errors import UserError
+
+__all__ = ["MissingVariableError", "load_struct_array"]
+
+
+class MissingVariableError(UserError, KeyError):
+    """A MATLAB annotation file without the variable its dataset needs (a malformed or foreign file)."""
 
 
 def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, Any]]:
@@ -32,7 +38,7 @@ def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, 
     data = scipy.io.loadmat(path, simplify_cells=True)
     if variable not in data:
         names = sorted(k for k in data if not k.startswith("__"))
-        raise KeyError(f"{path} has no variable {variable!r} (it has {names})")
+        raise MissingVariableError(f"{path} has no variable {variable!r} (it has {names})")
     records = data[variable]
     if isinstance(records, dict):  # a single record
         return [records]

@@ -10,6 +10,7 @@ at the dataset size. The Lightning DataModule built on these is :class:`unicorn.
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ __all__ = [
     "dataset_root",
     "dataset_spec",
     "prepare_dataset",
+    "stored_image_size",
     "synthetic_options",
     "val_indices",
 ]
@@ -187,6 +189,19 @@ def synthetic_options(
     """
     category = SYNTHETIC_DEFAULTS["category"] if categories is None else categories
     return {**SYNTHETIC_DEFAULTS, "root": root, "category": category, **dict(synthetic or {})}
+
+
+def stored_image_size(name: str, synthetic: Mapping[str, Any] | None = None) -> int | None:
+    """The side of the images a dataset returns as stored, not resized to ``img_size``: for ``synthetic`` its
+    ``image_size`` (the generator's default unless ``synthetic`` gives one); None for the datasets whose loaders
+    resize to ``img_size``, and for ShapeNet-NMR (64 px as published, but a synthetic set of another size may be
+    read as one)."""
+    if name != "synthetic":
+        return None
+    from unicorn.data.synthetic.writer import generate_synthetic_dataset  # open3d: only for synthetic data
+
+    default = inspect.signature(generate_synthetic_dataset).parameters["image_size"].default
+    return int(dict(synthetic or {}).get("image_size", default))
 
 
 def dataset_root(

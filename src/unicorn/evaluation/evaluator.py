@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from unicorn.data import build_dataset
+from unicorn.data.images import DatasetError
 from unicorn.data.registry import dataset_spec
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
 from unicorn.evaluation.measurements import EvaluatedBatch, checked_shape_baseline, measurements_for
@@ -175,7 +176,7 @@ def evaluate(
         bar.update(view.images.shape[0])
     bar.close()
     if not acc.rows:
-        raise ValueError("the dataset is empty: nothing to evaluate")
+        raise DatasetError("the dataset is empty: nothing to evaluate")
     color_scores(acc)
     shape_scores(acc, model.template.faces, options)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}

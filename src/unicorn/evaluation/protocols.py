@@ -95,6 +95,7 @@ import torch
 
 from unicorn.config.schema import EVAL_BATCH_SIZE, FINAL_EVAL, REPORT_SAMPLES, SHAPE_POINTS
 from unicorn.data.registry import DATASETS, dataset_spec
+from unicorn.metrics.sampling import check_point_count
 from unicorn.model.config import check_ranges, ranged
 
 __all__ = [
@@ -359,6 +360,8 @@ class EvalOptions:
     def __post_init__(self) -> None:
         protocol = get_protocol(self.protocol)
         check_ranges(vars(self), EvalOptions)
+        check_point_count(f"num_points={self.num_points}", self.num_points)
+        check_point_count(f"shape_points={self.shape_points}", self.shape_points)
         if self.oracle_pose and not protocol.poses:
             # the other protocols have no ground-truth pose to substitute
             raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from unicorn.config.schema import REPORT_TURNTABLE_FRAMES, EvaluateConfig
+from unicorn.errors import UserError
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
@@ -24,7 +25,7 @@ from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_prot
 from unicorn.evaluation.report import write_report
 from unicorn.io.staging import staged_folder
 
-__all__ = ["EvalTarget", "eval_command", "evaluate_to_folder", "settings_options"]
+__all__ = ["EvalRequestError", "EvalTarget", "eval_command", "evaluate_to_folder", "settings_options"]
 
 log = logging.getLogger(__name__)
 
@@ -158,24 +159,28 @@ def evaluate_to_folder(
     return result, {kind: Path(out) / path.relative_to(staging) for kind, path in paths.items()}
 
 
+class EvalRequestError(UserError, ValueError):
+    """Evaluation options the dataset cannot serve (a mean shape without training point clouds...)."""
+
+
 def _check_request(target: EvalTarget, options: EvalOptions, mean_shape_iterations: int) -> None:
     """Refuse options the dataset's protocol cannot serve.
 
     Raises:
-        ValueError: the options' protocol is not the dataset's, or a baseline needs data the dataset lacks.
+        EvalRequestError: the options' protocol is not the dataset's, or a baseline needs data the dataset lacks.
     """
     protocol = protocol_for(target.dataset)
     spec = get_protocol(protocol)
     if options.protocol != protocol:
-        raise ValueError(
+        raise EvalRequestError(
             f"options.protocol is {options.protocol!r} but {target.dataset} is evaluated with {protocol!r}"
         )
     if mean_shape_iterations > 0 and not spec.training_clouds:
-        raise ValueError(
+        raise EvalRequestError(
             f"a mean shape needs a dataset with training point clouds (shapenet protocol), not {target.dataset}"
         )
     if options.own_mean_shape and spec.meshes is None:
-        raise ValueError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
+        raise EvalRequestError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
 
 
 def _mean_shape(model: EvaluableModel, target: EvalTarget, iterations: int, seed: int) -> torch.Tensor | None:

@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 import torch
 
-from unicorn.checks import env_limit
+from unicorn.checks import SizeLimitError, check_limit, env_limit
 from unicorn.io.reference_checkpoints import load_reference_checkpoint
 from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
@@ -52,6 +52,7 @@ __all__ = [
     "NotATrainingCheckpointError",
     "UnsafeCheckpointError",
     "check_model_size",
+    "check_weights_fit",
     "checkpoint_format",
     "check_training_checkpoint",
     "init_weights",
@@ -67,11 +68,13 @@ Format = Literal["reference", "lightning", "plain"]
 #: its weights are loaded: ten times the paper's big model (49 M); ``$UNICORN_MAX_MODEL_PARAMS`` sets another
 #: limit (0: none). A file of a few MB can describe a model of hundreds of GB.
 MAX_MODEL_PARAMS = 500_000_000
+#: the environment variable that sets another limit
+MAX_MODEL_PARAMS_ENV = "UNICORN_MAX_MODEL_PARAMS"
 #: what a training run's checkpoint holds beside the weights (written by Lightning)
 _TRAINING_KEY = "pytorch-lightning_version"
 
 
-class ModelTooLargeError(CheckpointError):
+class ModelTooLargeError(CheckpointError, SizeLimitError):
     """A checkpoint's stored configuration describes a model above the size limit."""
 
 
@@ -111,31 +114,30 @@ def check_training_checkpoint(data: Mapping[str, Any], path: str | os.PathLike) 
 
 
 def _max_model_params() -> int:
-    return env_limit("UNICORN_MAX_MODEL_PARAMS", MAX_MODEL_PARAMS, "parameters") or 0
+    return env_limit(MAX_MODEL_PARAMS_ENV, MAX_MODEL_PARAMS, "parameters") or 0
 
 
-def check_model_size(config: Mapping[str, Any], path: str | os.PathLike, limit: int | None = None) -> None:
-    """Refuse a stored model configuration whose networks exceed ``limit`` elements, before allocating them.
+def check_model_size(
+    config: Mapping[str, Any], setting: str, limit: int | None = None, error: type[SizeLimitError] = ModelTooLargeError
+) -> None:
+    """Refuse a model configuration whose networks exceed ``limit`` elements, before allocating them.
 
     Args:
         config: a merged model configuration.
-        path: the checkpoint (named in the message).
+        setting: what asks for the model, named in the message (``"checkpoint PATH"``, ``"model"``).
         limit: the most parameters and buffers; None: ``$UNICORN_MAX_MODEL_PARAMS`` or :data:`MAX_MODEL_PARAMS`;
             0: no limit.
+        error: the class raised (a checkpoint's stored configuration: :class:`ModelTooLargeError`).
 
     Raises:
-        ModelTooLargeError: the model is larger.
+        SizeLimitError: the model is larger (:func:`unicorn.checks.check_limit`).
     """
     limit = _max_model_params() if limit is None else limit
     if limit <= 0:
         return
     n = count_parameters(config)
-    if n > limit:
-        raise ModelTooLargeError(
-            f"checkpoint {path}: its stored configuration describes a model of {n:,} parameters "
-            f"({4 * n / 2**30:.1f} GiB as float32), above the limit of {limit:,} (encoder.width="
-            f"{config['encoder']['width']}); if you trust the file, raise the limit with UNICORN_MAX_MODEL_PARAMS"
-        )
+    what = f"its networks, {4 * n / 2**30:.1f} GiB as float32, at encoder.width={config['encoder']['width']}"
+    check_limit(setting, what, n, limit, "parameters", f"{MAX_MODEL_PARAMS_ENV}; 0: no limit", error)
 
 
 @dataclass
@@ -301,7 +303,7 @@ def _load_lightning(
     if not weights:
         raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
     cfg = _model_overrides(hparams["model"], overrides)
-    check_model_size(cfg, path)
+    check_model_size(cfg, f"checkpoint {path}")
     model = Unicorn(cfg)
     _load_weights(model, weights, path)
     p = state.get("texture_average_p")
@@ -322,7 +324,7 @@ def _load_plain(
 ) -> tuple[Unicorn, CheckpointInfo]:
     """A :func:`save_model` file: its config, weights and ``info``."""
     cfg = _model_overrides(data["config"], overrides)
-    check_model_size(cfg, path)
+    check_model_size(cfg, f"checkpoint {path}")
     model = Unicorn(cfg)
     _load_weights(model, data["state_dict"], path)
     meta = dict(data.get("info") or {})
@@ -354,20 +356,38 @@ def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -
     source, info = load_model(path, trust=trust)
     state = {k: v for k, v in source.state_dict().items() if not k.startswith("perceptual.")}
     own = {k: v for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
-    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    check_weights_fit(state, own, "init_from", path)
+    model.load_state_dict(state, strict=False)  # every key checked above; the perceptual loss keeps its own
+    return info
+
+
+def check_weights_fit(
+    saved: Mapping[str, torch.Tensor], own: Mapping[str, torch.Tensor], option: str, path: str | os.PathLike
+) -> None:
+    """Refuse saved weights that do not fit a model's: the same names, the same shapes (what a strict
+    ``load_state_dict`` needs), in one line naming the first few differences.
+
+    Args:
+        saved: the checkpoint's weights by name.
+        own: the configured model's (``state_dict()``).
+        option: the setting that named the file (``"init_from"``, ``"ckpt_path"``).
+        path: the file.
+
+    Raises:
+        CheckpointError: names that are missing or unexpected, or weights of other shapes.
+    """
+    missing, unexpected = sorted(set(own) - set(saved)), sorted(set(saved) - set(own))
     misfit = [
-        f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
+        f"{k} {tuple(saved[k].shape)} != {tuple(v.shape)}"
         for k, v in own.items()
-        if k in state and state[k].shape != v.shape
+        if k in saved and saved[k].shape != v.shape
     ]
     if missing or unexpected or misfit:
         raise CheckpointError(
-            f"init_from: the weights of {path} do not fit the configured model (choose the model and dataset "
+            f"{option}: the weights of {path} do not fit the configured model (choose the model and dataset "
             f"settings it was trained with, e.g. model=big): missing {missing[:4]}, unexpected {unexpected[:4]}, "
             f"other sizes {misfit[:4]}"
         )
-    model.load_state_dict(state, strict=False)  # every key checked above; the perceptual loss keeps its own
-    return info
 
 
 def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:

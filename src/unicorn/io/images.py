@@ -18,6 +18,7 @@ most of the square, on its natural background (or on white for models trained on
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,11 +33,13 @@ from unicorn.errors import UserError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "MAX_PADDING",
     "BoxError",
     "InputImage",
     "RawInput",
     "alpha_bbox",
     "check_box",
+    "check_padding",
     "collect_inputs",
     "frame_input",
     "load_input",
@@ -46,6 +49,8 @@ __all__ = [
 
 #: box growth around an alpha cut-out, as a fraction of the box size on every side (CUB's 0.05 plus margin)
 DEFAULT_PADDING = 0.1
+#: the most padding: the framed square is then at most 21 times the box's side
+MAX_PADDING = 10.0
 
 
 def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
@@ -111,6 +116,20 @@ def check_box(bbox: Sequence[float], width: int, height: int, where: str) -> np.
     return box
 
 
+def check_padding(padding: float, name: str = "padding") -> float:
+    """``padding`` if it is a finite fraction in [0, :data:`MAX_PADDING`]; ``name`` names it in the error.
+
+    Raises:
+        BoxError: anything else (NaN and infinity included).
+    """
+    if not (isinstance(padding, int | float) and math.isfinite(padding) and 0 <= padding <= MAX_PADDING):
+        raise BoxError(
+            f"{name} {padding:g}: must be a finite number in [0, {MAX_PADDING:g}] (the margin added on every side of "
+            "the object's box, as a fraction of its side)"
+        )
+    return float(padding)
+
+
 def preprocess(
     image: np.ndarray, size: int, bbox: np.ndarray | Sequence[float] | None = None, padding: float = DEFAULT_PADDING
 ) -> np.ndarray:
@@ -130,7 +149,7 @@ def preprocess(
     """
     if bbox is None:
         return fit_and_pad(image, size).astype(np.float32)
-    box = square_bbox(pad_bbox(np.asarray(bbox, dtype=np.float64), padding))
+    box = square_bbox(pad_bbox(np.asarray(bbox, dtype=np.float64), check_padding(padding)))
     side = int(box[2] - box[0] + 1)
     limit = max_image_bytes()
     if limit is not None and side * side * RGB_BYTES_PER_PIXEL > limit:

@@ -7,6 +7,7 @@ traced back to the exact command and code that produced it.
 from __future__ import annotations
 
 import datetime
+import json
 import os
 import shlex
 import subprocess
@@ -15,7 +16,34 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-__all__ = ["command_line", "git_commit", "provenance"]
+from unicorn.errors import UserError
+
+__all__ = ["ProvenanceError", "command_line", "git_commit", "provenance", "read_run_starts"]
+
+
+class ProvenanceError(UserError, ValueError):
+    """A run folder's ``provenance.json`` that is not the list of the run's starts (truncated, edited by hand)."""
+
+
+def read_run_starts(path: Path) -> list[Any]:
+    """The records of a run folder's ``provenance.json``, one per start of the run; [] when there is none.
+
+    Raises:
+        ProvenanceError: the file is not a JSON list (the message names it and says what to do).
+    """
+    if not path.exists():
+        return []
+    try:
+        starts = json.loads(path.read_text(encoding="utf-8"))
+        reason = "" if isinstance(starts, list) else f"a JSON {type(starts).__name__}"
+    except (ValueError, OSError) as err:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        reason = str(err)
+    if reason:
+        raise ProvenanceError(
+            f"{path} is not the list of this run's starts ({reason}); repair it or move it away to train in "
+            "this folder, or train elsewhere (hydra.run.dir=...)"
+        )
+    return starts
 
 
 def command_line(prog: str, argv: Sequence[str]) -> str:

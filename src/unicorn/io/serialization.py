@@ -36,6 +36,7 @@ __all__ = [
     "TRUST_HINT",
     "CheckpointError",
     "CheckpointIsADirectoryError",
+    "CheckpointNotAFileError",
     "CheckpointNotFoundError",
     "CorruptCheckpointError",
     "UnsafeCheckpointError",
@@ -136,16 +137,26 @@ class CheckpointIsADirectoryError(UserError, IsADirectoryError):
     """A folder was given where a checkpoint file is expected."""
 
 
+class CheckpointNotAFileError(CheckpointError):
+    """Something other than a regular file or a folder (a device such as ``/dev/zero``, a pipe, a socket) was given
+    where a checkpoint file is expected."""
+
+
 def check_checkpoint_path(path: str | os.PathLike, option: str | None = None) -> Path:
     """``path`` if it is a file; ``option`` (e.g. ``"ckpt_path"``) names where it was given in the message.
 
     Raises:
         CheckpointIsADirectoryError: ``path`` is a folder.
+        CheckpointNotAFileError: ``path`` is not a regular file (a device, a pipe, a socket).
         CheckpointNotFoundError: nothing is there.
     """
     path = Path(path).expanduser()
     if path.is_dir():
         raise CheckpointIsADirectoryError(f"{option or 'checkpoint'}: {path} is a directory, not a checkpoint file")
+    if path.exists() and not path.is_file():
+        raise CheckpointNotAFileError(
+            f"{option or 'checkpoint'}: {path} is not a regular file (a device, pipe or socket), not a checkpoint file"
+        )
     if not path.is_file():
         raise CheckpointNotFoundError(
             f"checkpoint not found: {path}" if option is None else f"{option}: no checkpoint file at {path}"

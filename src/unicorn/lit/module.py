@@ -370,6 +370,16 @@ class UnicornLitModule(L.LightningModule):
         checkpoint["unicorn"] = {"version": 1, "ranks": ranks}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Check that the checkpoint's weights fit this model (Lightning loads them strictly after this hook) and
+        keep its neighbour memory and random states for :meth:`on_train_start`.
+
+        Raises:
+            unicorn.io.serialization.CheckpointError: weights of another model (``ckpt_path`` with other settings).
+        """
+        from unicorn.io.checkpoints import check_weights_fit
+
+        path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
+        check_weights_fit(checkpoint.get("state_dict", {}), self.state_dict(), "ckpt_path", path or "the checkpoint")
         # applied in on_train_start: the random state must be set after everything that precedes training
         self._resume_state = checkpoint.get("unicorn")
         # Lightning loads the optimizer states after this hook: fit older checkpoints' whole-kernel moments

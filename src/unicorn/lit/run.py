@@ -107,7 +107,12 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
     Returns:
         the run folder, its checkpoint folder, the checkpoint to resume from (None: a new run) and the earlier
         run's outputs that ``overwrite=true`` deletes.
+
+    Raises:
+        unicorn.io.run_folder.RunFolderError: a folder this run may not train in.
+        unicorn.io.provenance.ProvenanceError: a ``provenance.json`` this run could not add its start to.
     """
+    from unicorn.io.provenance import read_run_starts
     from unicorn.io.run_folder import plan_folder, resolve_ckpt
 
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
@@ -116,6 +121,7 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
     if not is_first_process():  # a DDP process Lightning started, after the first one accepted the folder
         return output_dir, checkpoint_dir, ckpt_path, []
     outdated = plan_folder(output_dir, typed.ckpt_path, ckpt_path, typed.overwrite)
+    read_run_starts(output_dir / "provenance.json")  # the run adds its start to them
     return output_dir, checkpoint_dir, ckpt_path, outdated
 
 
@@ -147,14 +153,14 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
     (``heldout.csv``, ``csv/``, ``tensorboard/``); a resumed run keeps one record per start."""
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.io.provenance import command_line, provenance
+    from unicorn.io.provenance import command_line, provenance, read_run_starts
 
     if HydraConfig.initialized():
         command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
     else:  # built from Python (e.g. with Hydra's compose API)
         command = command_line(Path(sys.argv[0]).name, sys.argv[1:])
     path = output_dir / "provenance.json"
-    starts = json.loads(path.read_text()) if path.is_file() else []
+    starts = read_run_starts(path)  # checked before anything was written (check_run_folder)
     path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
 
 

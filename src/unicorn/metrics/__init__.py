@@ -50,13 +50,14 @@ from .pose import (
     pose_errors,
     rotation_to_azim_elev_roll,
 )
-from .sampling import face_areas_normals, sample_points_from_meshes
+from .sampling import MAX_POINTS, check_point_count, face_areas_normals, sample_points_from_meshes
 from .voxels import mesh_voxel_iou, voxel_centers, voxel_iou, voxelize_mesh
 
 __all__ = [
     "CHAMFER_FACTOR",
     "SHAPENET_METRICS",
     "ICPResult",
+    "MAX_POINTS",
     "MovingQueries",
     "NearestNeighborIndex",
     "PointCloudScores",
@@ -95,6 +96,7 @@ __all__ = [
     "retrieval_scores",
     "rotation_accuracy",
     "rotation_to_azim_elev_roll",
+    "check_point_count",
     "sample_points_from_meshes",
     "shape_retrieval",
     "shape_spread",

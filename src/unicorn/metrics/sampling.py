@@ -4,9 +4,22 @@ from __future__ import annotations
 
 import torch
 
-from unicorn.checks import check_mesh
+from unicorn.checks import check_limit, check_mesh
 
-__all__ = ["face_areas_normals", "sample_points_from_meshes"]
+__all__ = ["MAX_POINTS", "check_point_count", "face_areas_normals", "sample_points_from_meshes"]
+
+#: the most points sampled on one mesh (evaluation's ``num_points`` and ``shape_points``, the synthetic set's
+#: ground-truth points): 100 times UNICORN's evaluation protocol (100k)
+MAX_POINTS = 10_000_000
+
+
+def check_point_count(setting: str, n: int) -> None:
+    """Refuse more than :data:`MAX_POINTS` points per mesh before they are sampled.
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names ``setting`` (e.g. ``"--num-points 10000000000"``).
+    """
+    check_limit(setting, "points sampled on each mesh", n, MAX_POINTS, "points", "unicorn.metrics.MAX_POINTS")
 
 
 def face_areas_normals(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

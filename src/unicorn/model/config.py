@@ -14,9 +14,11 @@ import dataclasses
 import math
 import types
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+from unicorn.errors import UserError
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -26,6 +28,7 @@ __all__ = [
     "CODE_BRANCHES",
     "EncoderConfig",
     "LossConfig",
+    "ModelConfigError",
     "ModelGroups",
     "PoseConfig",
     "RendererConfig",
@@ -49,6 +52,11 @@ BRANCHES = ("shape", "texture", "pose", "background")
 #: the branches with a latent code regressed from the image, whose active size grows stage by stage: all but the
 #: pose, whose candidates and their probabilities are regressed directly (no code to grow)
 CODE_BRANCHES = tuple(branch for branch in BRANCHES if branch != "pose")
+
+
+class ModelConfigError(UserError, ValueError):
+    """A model configuration value out of its range, not among the allowed ones, or not fitting another value
+    (the message names the key)."""
 
 
 def model_branches(has_background: bool) -> tuple[str, ...]:
@@ -289,7 +297,8 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
     within its bounds.
 
     Raises:
-        ValueError: the first value out of its range (or not finite), named with its full key (``prefix`` + path).
+        ModelConfigError: the first value out of its range (or not finite), named with its full key (``prefix``
+            + path).
     """
     hints = typing.get_type_hints(schema)
     for f in dataclasses.fields(schema):
@@ -304,28 +313,58 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
         if value is None or (low is None and high is None):
             continue
         if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-            raise ValueError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
+            raise ModelConfigError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
         if not ((low is None or value >= low) and (high is None or value <= high)):
-            raise ValueError(f"{key} must be {describe_range(low, high)}, got {value}")
+            raise ModelConfigError(f"{key} must be {describe_range(low, high)}, got {value}")
 
 
 def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges and choices.
 
     Raises:
-        ValueError: the first bad value, named with its key (``prefix`` + ``group.key``).
+        ModelConfigError: the first bad value, named with its key (``prefix`` + ``group.key``).
     """
     check_ranges(cfg, UnicornConfig, prefix)
     for key in CHOICES:
         group, name = key.split(".")
         if cfg.get(group) is not None and cfg[group][name] not in (allowed := allowed_values(key)):
-            raise ValueError(f"{prefix}{key} must be one of {allowed}, got {cfg[group][name]!r}")
+            raise ModelConfigError(f"{prefix}{key} must be one of {allowed}, got {cfg[group][name]!r}")
     renderer = cfg["renderer"]
     if (renderer["fov"] is None) == (renderer["focal_length"] is None):
-        raise ValueError(f"{prefix}renderer needs exactly one of fov and focal_length")
+        raise ModelConfigError(f"{prefix}renderer needs exactly one of fov and focal_length")
     _check_own_encoders(cfg, prefix)
     _check_pooled_stages(cfg, prefix)
     _check_symmetric_texture(cfg, prefix)
+    _check_pose_ranges(cfg, prefix)
+    _check_background_color(renderer)
+
+
+def _finite_numbers(value: Any, n: int) -> bool:
+    """``value`` is a sequence of ``n`` finite numbers (not bools)."""
+    return (
+        isinstance(value, Sequence)
+        and not isinstance(value, str)
+        and len(value) == n
+        and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+    )
+
+
+def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The candidates' angle ranges are ``(min, max)`` degrees with ``min <= max``."""
+    for name in ("azim_range", "elev_range", "roll_range"):
+        value = list(cfg["pose"][name])
+        if not _finite_numbers(value, 2) or value[1] < value[0]:
+            raise ModelConfigError(
+                f"{prefix}pose.{name} must be two finite numbers [min, max] with min <= max, got {value}"
+            )
+
+
+def _check_background_color(renderer: Mapping[str, Any]) -> None:
+    """The renderer's background colour is RGB in [0, 1] (``renderer.background_color`` in the model's and in
+    the training configuration alike)."""
+    color = list(renderer["background_color"])
+    if not _finite_numbers(color, 3) or not all(0 <= c <= 1 for c in color):
+        raise ModelConfigError(f"renderer.background_color must be three numbers in [0, 1] (RGB), got {color}")
 
 
 def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
@@ -334,7 +373,7 @@ def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
 
     pooled = list(cfg["encoder"]["pooled"])
     if not distinct_stages(pooled):
-        raise ValueError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
+        raise ModelConfigError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
 
 
 def _check_symmetric_texture(cfg: Mapping[str, Any], prefix: str) -> None:
@@ -344,9 +383,9 @@ def _check_symmetric_texture(cfg: Mapping[str, Any], prefix: str) -> None:
     if not texture["symmetric"]:
         return
     if (uv_mode := cfg["template"]["uv_mode"]) != "seamless":
-        raise ValueError(f"{prefix}texture.symmetric needs template.uv_mode='seamless', got {uv_mode!r}")
+        raise ModelConfigError(f"{prefix}texture.symmetric needs template.uv_mode='seamless', got {uv_mode!r}")
     if texture["size"] % 2:
-        raise ValueError(f"{prefix}texture.symmetric needs an even texture.size, got {texture['size']}")
+        raise ModelConfigError(f"{prefix}texture.symmetric needs an even texture.size, got {texture['size']}")
 
 
 def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
@@ -357,14 +396,14 @@ def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
     branches = model_branches(cfg["background"] is not None)
     key = f"{prefix}encoder.own"
     if not cfg["encoder"]["shared"]:
-        raise ValueError(f"{key}={own} needs encoder.shared=true (without it every branch has its own encoder)")
+        raise ModelConfigError(f"{key}={own} needs encoder.shared=true (without it every branch has its own encoder)")
     unknown = [b for b in own if b not in branches]
     if unknown:
-        raise ValueError(f"{key}: {unknown[0]!r} is not a branch of this model; branches: {list(branches)}")
+        raise ModelConfigError(f"{key}: {unknown[0]!r} is not a branch of this model; branches: {list(branches)}")
     if len(set(own)) != len(own):
-        raise ValueError(f"{key} names a branch twice: {own}")
+        raise ModelConfigError(f"{key} names a branch twice: {own}")
     if len(own) == len(branches):
-        raise ValueError(f"{key} gives every branch its own encoder; set encoder.shared=false instead")
+        raise ModelConfigError(f"{key} gives every branch its own encoder; set encoder.shared=false instead")
 
 
 def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> dict[str, Any]:
@@ -372,7 +411,7 @@ def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> d
 
     Raises:
         KeyError: an unknown group or key (typos fail loudly).
-        ValueError: a value out of range or not among the allowed ones (:func:`check_model_config`).
+        ModelConfigError: a value out of range or not among the allowed ones (:func:`check_model_config`).
     """
     merged = copy.deepcopy(DEFAULT_CONFIG)
     for source in (config or {}, overrides):

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING
 import torch
 from tqdm.auto import tqdm
 
+from unicorn.errors import UserError
 from unicorn.geometry.rotations import euler_angles_to_matrix
 from unicorn.model.autoencoder import world_verts
 from unicorn.model.generator import mean_texture
@@ -53,7 +54,14 @@ from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
 
-__all__ = ["PARTS", "RefineOptions", "Refinement", "refine"]
+__all__ = ["MAX_STEPS", "PARTS", "RefineOptionsError", "RefineOptions", "Refinement", "refine"]
+
+#: the most refinement steps (``RefineOptions.steps``, ``unicorn-reconstruct --refine``): 200 times the usual 50
+MAX_STEPS = 10_000
+
+
+class RefineOptionsError(UserError, ValueError):
+    """A refinement setting out of its range (the message names it)."""
 
 #: the refinable parts: name -> what it optimises
 PARTS: dict[str, str] = {
@@ -105,17 +113,18 @@ class RefineOptions:
     progress: bool = False
 
     def __post_init__(self) -> None:
-        if self.steps < 0:
-            raise ValueError(f"steps must be >= 0, got {self.steps}")
+        """Raises :class:`RefineOptionsError` for a value out of its range (``steps`` in [0, :data:`MAX_STEPS`])."""
+        if not 0 <= self.steps <= MAX_STEPS:
+            raise RefineOptionsError(f"steps must be in [0, {MAX_STEPS:,}] (refine.MAX_STEPS), got {self.steps:,}")
         unknown = [p for p in self.parts if p not in PARTS]
         if unknown:
-            raise ValueError(f"unknown refinement parts {unknown}; choose from {list(PARTS)}")
+            raise RefineOptionsError(f"unknown refinement parts {unknown}; choose from {list(PARTS)}")
         if not 0.0 <= self.codes_first <= 1.0:
-            raise ValueError(f"codes_first must be in [0, 1], got {self.codes_first}")
+            raise RefineOptionsError(f"codes_first must be in [0, 1], got {self.codes_first}")
         for f in fields(self):
             if f.name.startswith("lr_") or f.name.endswith("_weight"):
                 if getattr(self, f.name) < 0:
-                    raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+                    raise RefineOptionsError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
 
 
 @dataclass

@@ -17,6 +17,8 @@ from .layered import LayeredBlend, layered_blend, layered_occupancy
 from .raster import (
     DEFAULT_MAX_RENDER_BYTES,
     MAX_RENDER_BYTES_ENV,
+    RenderError,
+    RenderSizeError,
     blur_radius_from_sigma,
     check_render_size,
     max_render_bytes,
@@ -45,7 +47,9 @@ __all__ = [
     "LayeredRasterizer",
     "MeshRasterizer",
     "MeshRenderer",
+    "RenderError",
     "RenderOutput",
+    "RenderSizeError",
     "SoftRasBlend",
     "SoftRasRenderer",
     "Textures",

@@ -13,6 +13,7 @@ from torch import nn
 
 from .fragments import Fragments
 from .layered import layered_blend
+from .raster import RenderError
 
 __all__ = ["HardBlend", "hard_blend"]
 
@@ -54,7 +55,7 @@ class HardBlend(nn.Module):
     def __init__(self, supersample: int = 1) -> None:
         super().__init__()
         if supersample < 1:
-            raise ValueError(f"supersample must be >= 1, got {supersample}")
+            raise RenderError(f"supersample must be >= 1, got {supersample}")
         self.supersample = int(supersample)
 
     def extra_repr(self) -> str:

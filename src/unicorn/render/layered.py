@@ -15,6 +15,7 @@ from torch import nn
 
 from .compositing import write_pixels
 from .fragments import Fragments
+from .raster import RenderError
 
 __all__ = ["LayeredBlend", "layered_blend", "layered_occupancy"]
 
@@ -77,7 +78,7 @@ class LayeredBlend(nn.Module):
     def __init__(self, sigma: float = 1e-4) -> None:
         super().__init__()
         if not 0 <= sigma < math.inf:
-            raise ValueError(f"sigma must be finite and >= 0, got {sigma}")
+            raise RenderError(f"sigma must be finite and >= 0, got {sigma}")
         self.sigma = float(sigma)
 
     def extra_repr(self) -> str:

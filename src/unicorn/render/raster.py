@@ -30,7 +30,8 @@ from collections.abc import Mapping
 
 import torch
 
-from ..checks import check_mesh, check_rotations, check_translations, env_limit
+from ..checks import SizeLimitError, check_mesh, check_rotations, check_translations, env_limit
+from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from .fragments import Fragments
 from .selection import Selection, select_pairs
@@ -40,6 +41,8 @@ __all__ = [
     "DEFAULT_MAX_RENDER_BYTES",
     "MAX_RENDER_BYTES_ENV",
     "PAIR_BYTES",
+    "RenderError",
+    "RenderSizeError",
     "blur_radius_from_sigma",
     "check_mesh_inputs",
     "check_pose_inputs",
@@ -58,6 +61,15 @@ PAIR_BYTES = 64
 DEFAULT_MAX_RENDER_BYTES = 16 << 30
 #: environment variable holding that limit; 0 means no limit
 MAX_RENDER_BYTES_ENV = "UNICORN_MAX_RENDER_BYTES"
+
+
+class RenderError(UserError, ValueError):
+    """A renderer setting that cannot be used (a bad ``sigma``, ``faces_per_pixel``, ``supersample``, background
+    colour...): a mistake in what was asked for, named in the message; still a ``ValueError``."""
+
+
+class RenderSizeError(RenderError, SizeLimitError):
+    """A render whose fragments could exceed the memory limit (:func:`check_render_size`)."""
 
 
 def max_render_bytes() -> int | None:
@@ -86,13 +98,13 @@ def check_render_size(
         max_bytes: the limit; None: :func:`max_render_bytes`; 0: no limit.
 
     Raises:
-        ValueError: over the limit (naming ``image_size``, the estimate and how to raise the limit).
+        RenderSizeError: over the limit (naming ``image_size``, the estimate and how to raise the limit).
     """
     limit = max_render_bytes() if max_bytes is None else (max_bytes or None)
     H, W = image_size
     need = batch_size * H * W * faces_per_pixel * PAIR_BYTES
     if limit is not None and need > limit:
-        raise ValueError(
+        raise RenderSizeError(
             f"image_size: {batch_size} x {H}x{W} pixels (supersampled where the renderer is) with "
             f"faces_per_pixel={faces_per_pixel} may need {need / 2**30:.3g} GiB of fragments (B x H x W x K x "
             f"{PAIR_BYTES} bytes), over the limit of {limit / 2**30:.3g} GiB; render smaller or raise the limit "
@@ -107,7 +119,7 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
     face stops mattering (1e-4 by default, as in the reference).
     """
     if not (math.isfinite(sigma) and sigma >= 0):
-        raise ValueError(f"sigma must be finite and >= 0, got {sigma}")
+        raise RenderError(f"sigma must be finite and >= 0, got {sigma}")
     return math.log(1.0 / eps - 1.0) * sigma
 
 
@@ -173,9 +185,9 @@ def rasterize_meshes(
     if check_inputs:
         check_mesh_inputs(verts_ndc, faces)
     if faces_per_pixel < 1:
-        raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
+        raise RenderError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
     if not (math.isfinite(blur_radius) and blur_radius >= 0):
-        raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
+        raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
     H, W = image_hw(image_size)
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)

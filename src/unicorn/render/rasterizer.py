@@ -14,7 +14,7 @@ from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from .fragments import Fragments
-from .raster import check_mesh_inputs, check_pose_inputs, rasterize_meshes
+from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 
 __all__ = ["MeshRasterizer"]
 
@@ -50,19 +50,19 @@ class MeshRasterizer(nn.Module):
         super().__init__()
         self.image_size = image_hw(image_size)
         if faces_per_pixel < 1:
-            raise ValueError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
+            raise RenderError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
         self.faces_per_pixel = int(faces_per_pixel)
         if not (math.isfinite(blur_radius) and blur_radius >= 0):
-            raise ValueError(f"blur_radius must be finite and >= 0, got {blur_radius}")
+            raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
         self.blur_radius = float(blur_radius)
         self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
         self.truncate_opaque = bool(truncate_opaque)
         if supersample < 1:
-            raise ValueError(f"supersample must be >= 1, got {supersample}")
+            raise RenderError(f"supersample must be >= 1, got {supersample}")
         self.supersample = int(supersample)
         self.max_candidates = int(max_candidates)
         if max_bytes is not None and max_bytes < 0:
-            raise ValueError(f"max_bytes must be >= 0 (0: no limit), got {max_bytes}")
+            raise RenderError(f"max_bytes must be >= 0 (0: no limit), got {max_bytes}")
         self.max_bytes = max_bytes
 
     def extra_repr(self) -> str:

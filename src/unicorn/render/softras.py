@@ -15,6 +15,7 @@ from torch import nn
 
 from .compositing import gather_slots, write_pixels
 from .fragments import Fragments
+from .raster import RenderError
 
 __all__ = ["SoftRasBlend", "check_temperatures", "softras_blend"]
 
@@ -22,7 +23,7 @@ __all__ = ["SoftRasBlend", "check_temperatures", "softras_blend"]
 def check_temperatures(sigma: float, gamma: float) -> None:
     """Raise ValueError unless the occupancy and depth temperatures are finite and > 0."""
     if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-        raise ValueError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+        raise RenderError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
 
 
 def softras_blend(
@@ -79,7 +80,7 @@ class SoftRasBlend(nn.Module):
         super().__init__()
         check_temperatures(sigma, gamma)
         if not 0 <= znear < zfar:
-            raise ValueError(f"need 0 <= znear < zfar, got {znear}, {zfar}")
+            raise RenderError(f"need 0 <= znear < zfar, got {znear}, {zfar}")
         self.sigma, self.gamma, self.eps = float(sigma), float(gamma), float(eps)
         self.znear, self.zfar = float(znear), float(zfar)
 

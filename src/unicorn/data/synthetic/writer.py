@@ -31,17 +31,19 @@ import yaml
 from PIL import Image
 from tqdm.auto import tqdm
 
-from unicorn.data.images import DatasetError
+from unicorn.data.images import DatasetError, check_image_size
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
 from unicorn.data.synthetic.render import random_background, render_object
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
 from unicorn.errors import UserError
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
     "GENERATOR_VERSION",
     "Mode",
     "StaleSyntheticDataset",
+    "check_generation_sizes",
     "check_manifest",
     "default_cache_dir",
     "ensure_synthetic_dataset",
@@ -209,6 +211,26 @@ def _write_model(
     (folder / "params.json").write_text(json.dumps(obj.params, indent=1))
 
 
+def check_generation_sizes(
+    image_size: int,
+    supersample: int,
+    n_points: int,
+    names: tuple[str, str, str] = ("image_size", "supersample", "n_points"),
+) -> None:
+    """Refuse sizes whose arrays would exceed the limits, before anything is written: a view is rendered at
+    ``image_size * supersample`` pixels a side (bounded like an image: :func:`unicorn.data.images.check_image_size`),
+    and ``n_points`` ground-truth points are sampled per model (:data:`unicorn.metrics.MAX_POINTS`). ``names``:
+    what the three settings are called in the message (the options of ``unicorn-data synth``).
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names the setting and the limit.
+    """
+    side = image_size * supersample
+    setting = f"{names[0]} {image_size} with {names[1]} {supersample}"
+    check_image_size(setting, "a view rendered supersampled", side, channels=3)
+    check_point_count(f"{names[2]} {n_points}", n_points)
+
+
 def generate_synthetic_dataset(
     out: str | os.PathLike,
     categories: str | Sequence[str] = "chair",
@@ -248,6 +270,7 @@ def generate_synthetic_dataset(
         if cat not in CATEGORIES:
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
     split_sizes(n_models)  # refuses too few models before anything is written
+    check_generation_sizes(image_size, supersample, n_points)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     meta_path = out / "metadata.yaml"
     metadata = _read_metadata(meta_path)  # before anything is written: a folder of something else is refused
