@@ -289,6 +289,9 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
                 isinstance(value, int | float) and math.isfinite(value) and value >= low,
                 f"renderer.{key} must be a finite number >= {low}, got {value!r}",
             )
+    if "perspective_correct" in cfg:
+        value = cfg["perspective_correct"]
+        _check(isinstance(value, bool), f"renderer.perspective_correct must be true or false, got {value!r}")
     return {
         "name": name,
         "fov": fov,

@@ -35,7 +35,7 @@ class LayeredRasterizer(MeshRenderer):
         image_size: H or (H, W).
         sigma: occupancy temperature (1e-4 in the reference); 0 renders hard edges.
         faces_per_pixel: K (25 for real images, 50 for ShapeNet in the reference).
-        camera, max_candidates, max_bytes: see :class:`MeshRasterizer`.
+        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
         background_color: see :class:`MeshRenderer`.
 
     Example:
@@ -60,10 +60,11 @@ class LayeredRasterizer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
         max_bytes: int | None = None,
+        perspective_correct: bool = False,
     ) -> None:
         rasterizer = MeshRasterizer(
             image_size, faces_per_pixel, blur_radius_from_sigma(sigma), camera, truncate_opaque=True,
-            max_candidates=max_candidates, max_bytes=max_bytes,
+            max_candidates=max_candidates, max_bytes=max_bytes, perspective_correct=perspective_correct,
         )  # fmt: skip
         super().__init__(rasterizer, LayeredBlend(sigma), background_color)
 
@@ -80,7 +81,7 @@ class SoftRasRenderer(MeshRenderer):
             complexity within the blur radius.
         eps: normalised inverse depth of the background layer.
         znear, zfar: depth normalisation; the camera's when None.
-        camera, max_candidates, max_bytes: see :class:`MeshRasterizer`.
+        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
         background_color: see :class:`MeshRenderer`.
     """
 
@@ -97,11 +98,12 @@ class SoftRasRenderer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
         max_bytes: int | None = None,
+        perspective_correct: bool = False,
     ) -> None:
         check_temperatures(sigma, gamma)
         rasterizer = MeshRasterizer(
             image_size, faces_per_pixel, blur_radius_from_sigma(sigma), camera, max_candidates=max_candidates,
-            max_bytes=max_bytes,
+            max_bytes=max_bytes, perspective_correct=perspective_correct,
         )  # fmt: skip
         znear = rasterizer.camera.znear if znear is None else znear
         zfar = rasterizer.camera.zfar if zfar is None else zfar
@@ -119,7 +121,7 @@ class HardRenderer(MeshRenderer):
     Args:
         image_size: H or (H, W) of the output.
         supersample: integer supersampling factor (1 = none).
-        camera, max_candidates, max_bytes: see :class:`MeshRasterizer`.
+        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
         background_color: see :class:`MeshRenderer`.
     """
 
@@ -133,9 +135,10 @@ class HardRenderer(MeshRenderer):
         background_color: Sequence[float] = (1.0, 1.0, 1.0),
         max_candidates: int = 1 << 23,
         max_bytes: int | None = None,
+        perspective_correct: bool = False,
     ) -> None:
         rasterizer = MeshRasterizer(
             image_size, 1, 0.0, camera, truncate_opaque=True, supersample=supersample, max_candidates=max_candidates,
-            max_bytes=max_bytes,
+            max_bytes=max_bytes, perspective_correct=perspective_correct,
         )  # fmt: skip
         super().__init__(rasterizer, HardBlend(supersample), background_color)

@@ -42,10 +42,12 @@ class Fragments:
         slot: (M,) long, rank of the pair among the pixel's faces by increasing depth (0 = nearest).
         face: (M,) long, face index in [0, F).
         inside: (M,) bool, whether the pixel centre lies strictly inside the projected face.
-        bary: (M, 3) screen-space barycentrics, clipped to >= 0 and renormalised (differentiable).
+        bary: (M, 3) barycentrics, clipped to >= 0 and renormalised (differentiable): screen-space, or those
+            of the 3D point seen at the pixel when the rasterizer is ``perspective_correct``.
         dists: (M,) signed squared distance in NDC units from the pixel centre to the face boundary,
             negative inside (differentiable).
-        zbuf: (M,) view-space depth at the pixel, interpolated with the clipped barycentrics (differentiable).
+        zbuf: (M,) view-space depth at the pixel, interpolated with the clipped barycentrics (differentiable;
+            with perspective-correct ones, the face's depth along the pixel's ray wherever the face contains it).
         batch_size: B.
         image_size: (H, W).
         num_slots: K, the largest number of pairs kept for one pixel (at most ``faces_per_pixel``).

@@ -35,7 +35,7 @@ from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from .fragments import Fragments
 from .selection import Selection, select_pairs
-from .triangles import barycentric_and_distance, clip_barycentric
+from .triangles import barycentric_and_distance, clip_barycentric, perspective_correct_barycentric
 
 __all__ = [
     "DEFAULT_MAX_RENDER_BYTES",
@@ -156,6 +156,7 @@ def rasterize_meshes(
     max_candidates: int = 1 << 23,
     check_inputs: bool = True,
     max_bytes: int | None = None,
+    perspective_correct: bool = False,
 ) -> Fragments:
     """Rasterize a batch of projected meshes into packed top-K fragments.
 
@@ -178,6 +179,11 @@ def rasterize_meshes(
         check_inputs: validate shapes, dtypes, index ranges and finiteness.
         max_bytes: refuse, before allocating, a render whose fragments could exceed this many bytes
             (:func:`check_render_size`); None: :func:`max_render_bytes`; 0: no limit.
+        perspective_correct: barycentrics of the 3D point of the face seen at the pixel centre (PyTorch3D's
+            ``perspective_correct``: ``(b_i / z_i) / sum_j (b_j / z_j)`` of the screen-space ``b`` and the corner
+            depths ``z``) instead of the screen-space ones, then clipped likewise; depth, colours and UVs are
+            interpolated with them, so the depth is the face's true depth at the pixel. False (the default, the
+            UNICORN reference's): screen-space barycentrics, which interpolate affinely across the projected face.
 
     Returns:
         :class:`~unicorn.render.fragments.Fragments`.
@@ -192,8 +198,10 @@ def rasterize_meshes(
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)
     faces = faces.long()
-    kept = select_pairs(verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates)
-    bary, dists, zbuf = _recompute(verts_ndc, faces, kept, (H, W))
+    kept = select_pairs(
+        verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct
+    )
+    bary, dists, zbuf = _recompute(verts_ndc, faces, kept, (H, W), perspective_correct)
     # one host read for both counts (the packed layout's sizes are data-dependent: see unicorn.render.selection)
     slot = kept.slot
     overflow, num_slots = torch.stack([kept.overflow, slot.max() + 1 if slot.numel() else slot.new_zeros(())]).tolist()
@@ -206,10 +214,15 @@ def rasterize_meshes(
 
 
 def _recompute(
-    verts_ndc: torch.Tensor, faces: torch.Tensor, kept: Selection, image_size: tuple[int, int]
+    verts_ndc: torch.Tensor,
+    faces: torch.Tensor,
+    kept: Selection,
+    image_size: tuple[int, int],
+    perspective_correct: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Stage 2, differentiable: clipped barycentrics (M, 3), signed squared NDC distances (M,) (negative inside)
-    and depths (M,) of the kept pairs, recomputed from the vertices so that gradients reach them."""
+    """Stage 2, differentiable: clipped barycentrics (M, 3) (perspective-corrected before clipping when asked),
+    signed squared NDC distances (M,) (negative inside) and depths (M,) of the kept pairs, recomputed from the
+    vertices so that gradients reach them."""
     H, W = image_size
     px_to_ndc2 = (2.0 / min(H, W)) ** 2
     vert_idx = kept.image.unsqueeze(1) * verts_ndc.shape[1] + faces.index_select(0, kept.face)  # (M, 3)
@@ -218,6 +231,8 @@ def _recompute(
     centre_x = (kept.pix % W).to(tri.dtype)
     centre_y = torch.div(kept.pix, W, rounding_mode="floor").remainder(H).to(tri.dtype)
     bary_raw, d2 = barycentric_and_distance(tri_px, centre_x, centre_y)
+    if perspective_correct:
+        bary_raw = perspective_correct_barycentric(bary_raw, tri[..., 2])
     bary = clip_barycentric(bary_raw)
     d2 = d2 * px_to_ndc2
     dists = torch.where(kept.inside, -d2, d2)

@@ -34,6 +34,8 @@ class MeshRasterizer(nn.Module):
         max_bytes: refuse renders whose fragments could exceed this many bytes, ``B x H x W x K x 64`` at the
             raster size (:func:`~unicorn.render.raster.check_render_size`); None: ``$UNICORN_MAX_RENDER_BYTES``
             or 16 GiB; 0: no limit.
+        perspective_correct: perspective-correct barycentrics (the 3D point seen at the pixel, PyTorch3D's
+            option of that name) instead of screen-space ones; see :func:`~unicorn.render.raster.rasterize_meshes`.
     """
 
     def __init__(
@@ -46,6 +48,7 @@ class MeshRasterizer(nn.Module):
         supersample: int = 1,
         max_candidates: int = 1 << 23,
         max_bytes: int | None = None,
+        perspective_correct: bool = False,
     ) -> None:
         super().__init__()
         self.image_size = image_hw(image_size)
@@ -64,12 +67,15 @@ class MeshRasterizer(nn.Module):
         if max_bytes is not None and max_bytes < 0:
             raise RenderError(f"max_bytes must be >= 0 (0: no limit), got {max_bytes}")
         self.max_bytes = max_bytes
+        if not isinstance(perspective_correct, bool):
+            raise RenderError(f"perspective_correct must be True or False, got {perspective_correct!r}")
+        self.perspective_correct = perspective_correct
 
     def extra_repr(self) -> str:
         return (
             f"image_size={self.image_size}, faces_per_pixel={self.faces_per_pixel}, "
             f"blur_radius={self.blur_radius:.3g}, truncate_opaque={self.truncate_opaque}, "
-            f"supersample={self.supersample}"
+            f"supersample={self.supersample}, perspective_correct={self.perspective_correct}"
         )
 
     @property
@@ -111,5 +117,5 @@ class MeshRasterizer(nn.Module):
         return rasterize_meshes(
             self.project(verts, R, T), faces, image_size or self.raster_size, self.blur_radius,
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
-            max_bytes=self.max_bytes,
+            max_bytes=self.max_bytes, perspective_correct=self.perspective_correct,
         )  # fmt: skip

@@ -21,7 +21,12 @@ from typing import NamedTuple
 import torch
 
 from ..geometry.cameras import ndc_to_pixel
-from .triangles import barycentric_coefficients, boundary_distance2, clip_barycentric
+from .triangles import (
+    barycentric_coefficients,
+    boundary_distance2,
+    clip_barycentric,
+    perspective_correct_barycentric,
+)
 
 __all__ = ["Selection", "select_pairs"]
 
@@ -58,6 +63,7 @@ def select_pairs(
     faces_per_pixel: int,
     truncate_opaque: bool,
     max_candidates: int,
+    perspective_correct: bool = False,
 ) -> Selection:
     """The nearest ``faces_per_pixel`` faces of every pixel (see :func:`~unicorn.render.raster.rasterize_meshes`).
 
@@ -69,6 +75,8 @@ def select_pairs(
         faces_per_pixel: K >= 1.
         truncate_opaque: drop the faces behind the nearest face that contains the pixel.
         max_candidates: the most candidate pairs of a chunk of images (a single image is never split).
+        perspective_correct: rank the faces by the depth read with perspective-correct barycentrics (the true
+            depth of the face at the pixel) instead of the screen-space ones.
     """
     H, W = image_size
     B, V, _ = verts_ndc.shape
@@ -85,7 +93,7 @@ def select_pairs(
         for sl in _chunks(counts.sum(1).tolist(), max_candidates):  # one host read: the per-image work
             *piece, n_over = _select_chunk(
                 fpx[sl], fz[sl], counts[sl], tuple(b[sl] for b in boxes), sl.start, (H, W),
-                px_to_ndc2, blur_radius, faces_per_pixel, truncate_opaque,
+                px_to_ndc2, blur_radius, faces_per_pixel, truncate_opaque, perspective_correct,
             )  # fmt: skip
             overflow += n_over
             if piece[0].numel():
@@ -149,6 +157,7 @@ def _select_chunk(
     blur_radius: float,
     faces_per_pixel: int,
     truncate_opaque: bool,
+    perspective_correct: bool,
 ) -> tuple[torch.Tensor, ...]:
     """Stage 1 for a chunk of images: ``(pix, slot, (face, image) stacked, inside, overflow)``, pixels and images
     numbered in the whole batch."""
@@ -166,8 +175,11 @@ def _select_chunk(
     if idx.numel() == 0:
         return nothing
     flat_face, px, py, inside, bary = (t.index_select(0, idx) for t in (flat_face, px, py, inside, bary))
-    z = (clip_barycentric(bary) * fz.reshape(-1, 3).index_select(0, flat_face)).sum(-1)
-    del bary
+    corner_z = fz.reshape(-1, 3).index_select(0, flat_face)
+    if perspective_correct:
+        bary = perspective_correct_barycentric(bary, corner_z)
+    z = (clip_barycentric(bary) * corner_z).sum(-1)
+    del bary, corner_z
 
     image = torch.div(flat_face, F, rounding_mode="floor")
     pix_local = (image * H + py.long()) * W + px.long()

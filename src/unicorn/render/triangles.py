@@ -13,6 +13,7 @@ __all__ = [
     "barycentric_coefficients",
     "boundary_distance2",
     "clip_barycentric",
+    "perspective_correct_barycentric",
 ]
 
 
@@ -65,6 +66,19 @@ def barycentric_and_distance(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Unclipped barycentrics (N, 3) and squared distance (N,) to the boundary of 2D triangles (N, 3, 2)."""
     return barycentric(tri, px, py), boundary_distance2(tri, px, py)
+
+
+def perspective_correct_barycentric(bary: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """Screen-space barycentrics (N, 3) to those of the 3D point seen there, for triangles whose corners have the
+    view depths ``z`` (N, 3), all > 0: ``(b_i / z_i) / sum_j (b_j / z_j)``, as PyTorch3D's ``perspective_correct``.
+
+    Computed as ``b_i z_j z_k / sum(...)`` with the denominator clamped to >= 1e-8 (PyTorch3D's), which only a
+    point far outside its face, beyond the horizon of the face's plane, can reach. Signs are kept: a point inside
+    its face (every ``b_i > 0``) stays inside.
+    """
+    z0, z1, z2 = z.unbind(-1)
+    weighted = bary * torch.stack([z1 * z2, z2 * z0, z0 * z1], -1)
+    return weighted / weighted.sum(-1, keepdim=True).clamp_min(1e-8)
 
 
 def clip_barycentric(bary: torch.Tensor) -> torch.Tensor:
