@@ -199,7 +199,10 @@ class RendererConfig:
     focal_length: float | None = None
     background_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
     composite: str = "direct"
-    options: dict[str, Any] = field(default_factory=lambda: {"sigma": 1e-4, "faces_per_pixel": 25})
+    # the backend's options (the other keys of conf/renderer/<name>.yaml; unicorn.render.MeshRasterizer)
+    options: dict[str, Any] = field(
+        default_factory=lambda: {"sigma": 1e-4, "faces_per_pixel": 25, "perspective_correct": False}
+    )
 
 
 @dataclass
