@@ -23,12 +23,16 @@ __all__ = [
 
 
 def resize_image(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Resize an (H, W, 3) [0, 1] image to ``size = (H', W')`` with antialiased bilinear filtering."""
+    """Resize an (H, W, 3) [0, 1] image to ``size = (H', W')`` with antialiased bilinear filtering.
+
+    Each channel is resized as a float32 PIL image; the channels are made contiguous planes once, so that PIL reads
+    each without another copy.
+    """
     if arr.shape[:2] == tuple(size):
         return arr
+    planes = np.ascontiguousarray(np.moveaxis(arr, -1, 0))  # (3, H, W)
     channels = [
-        np.asarray(Image.fromarray(arr[..., c]).resize((size[1], size[0]), Image.Resampling.BILINEAR))
-        for c in range(arr.shape[2])
+        np.asarray(Image.fromarray(plane).resize((size[1], size[0]), Image.Resampling.BILINEAR)) for plane in planes
     ]
     return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
 
@@ -71,12 +75,18 @@ def square_bbox(bbox: np.ndarray) -> np.ndarray:
 
 
 def _crop_padded(arr: np.ndarray, bbox: np.ndarray, edge: bool) -> np.ndarray:
-    """Crop ``arr[y1:y2+1, x1:x2+1]`` where the box may leave the array.
+    """Crop ``arr[y1:y2+1, x1:x2+1]`` where the box may leave the array; always a new array.
 
     Outside pixels replicate the nearest border pixel (``edge=True``) or are zero.
     """
     x1, y1, x2, y2 = (int(v) for v in bbox)
     H, W = arr.shape[:2]
+    top, bottom, left, right = max(y1, 0), min(y2 + 1, H), max(x1, 0), min(x2 + 1, W)
+    if top < bottom and left < right:
+        # the part inside the array, padded: one slice and one copy
+        widths = [(top - y1, y2 + 1 - bottom), (left - x1, x2 + 1 - right)] + [(0, 0)] * (arr.ndim - 2)
+        return np.pad(arr[top:bottom, left:right], widths, mode="edge" if edge else "constant")
+    # a box that misses the array entirely
     rows, cols = np.arange(y1, y2 + 1), np.arange(x1, x2 + 1)
     # clipped indices are exactly numpy's 'edge' padding, for any box, even one entirely outside
     crop = arr[np.clip(rows, 0, H - 1)][:, np.clip(cols, 0, W - 1)]

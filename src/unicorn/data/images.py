@@ -247,7 +247,9 @@ def _pil_to_rgb(img: Image.Image) -> np.ndarray:
         rgba = np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0
         alpha = rgba[..., 3:]
         return rgba[..., :3] * alpha + (1.0 - alpha)
-    return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+    rgb = np.asarray(img if img.mode == "RGB" else img.convert("RGB"), dtype=np.float32)  # a new array
+    rgb /= 255.0
+    return rgb
 
 
 def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
