@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 
 from tests.support.training import compose_config
 from unicorn.lit import StreamBatchSampler, UnicornDataModule
+from unicorn.lit.data import MAX_AUTO_WORKERS, auto_num_workers, usable_cpus
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "dataset"
 
@@ -106,6 +107,70 @@ def test_errors() -> None:
         UnicornDataModule("imagenet", "x")
     with pytest.raises(ValueError, match="needs a root"):
         UnicornDataModule("cub_200")
+
+
+def test_auto_num_workers_follows_the_machine() -> None:
+    assert auto_num_workers("cpu", cpus=64) == 0  # the training's threads use the cores
+    assert auto_num_workers("cuda", cpus=16) == 15  # one core left for the training process
+    assert auto_num_workers("cuda", cpus=16, processes=4) == 3
+    assert auto_num_workers("cuda", cpus=2) == auto_num_workers("cuda", cpus=1) == 1
+    assert auto_num_workers("cuda", cpus=256) == MAX_AUTO_WORKERS
+    assert auto_num_workers("cuda") == max(1, min(MAX_AUTO_WORKERS, usable_cpus() - 1))
+
+
+class _Strategy:
+    def __init__(self, device: str) -> None:
+        self.root_device = torch.device(device)
+
+
+class _Trainer:
+    """What the loaders read of a Lightning trainer."""
+
+    global_step, global_rank, world_size = 0, 0, 1
+
+    def __init__(self, device: str, num_devices: int = 1) -> None:
+        self.strategy, self.num_devices = _Strategy(device), num_devices
+
+
+@pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 7 workers on this machine: never started
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_loaders_choose_workers_and_pinning_from_the_training_device(cub_root: Path, device: str, monkeypatch) -> None:
+    monkeypatch.setattr("unicorn.lit.data.usable_cpus", lambda: 16)
+    dm = UnicornDataModule("cub_200", str(cub_root), batch_size=2, stream_seed=0)
+    assert (dm.num_workers, dm.pin_memory) == ("auto", "auto")  # the defaults
+    dm.trainer = _Trainer(device, num_devices=2)
+    dm.setup("fit")
+    workers, pin = (7, True) if device == "cuda" else (0, False)
+    assert dm.loader_settings() == (workers, pin)
+    for loader in (dm.train_dataloader(), dm.val_dataloader()):  # the stream and the plain loader
+        assert (loader.num_workers, loader.pin_memory, loader.persistent_workers) == (workers, pin, workers > 0)
+    given = UnicornDataModule("cub_200", str(cub_root), num_workers=3, pin_memory=False)
+    given.trainer = _Trainer(device)
+    assert given.loader_settings() == (3, False)
+    assert UnicornDataModule("cub_200", str(cub_root), num_workers=None, pin_memory=None).num_workers == "auto"
+
+
+def test_bad_loader_settings_are_refused(cub_root: Path, tmp_path: Path) -> None:
+    from unicorn.config import ConfigError, validate
+
+    for kw, message in [
+        ({"num_workers": -1}, "num_workers must be a number >= 0, 'auto' or None"),
+        ({"num_workers": "many"}, "num_workers must be a number >= 0"),
+        ({"num_workers": True}, "num_workers must be a number >= 0"),
+        ({"pin_memory": "yes"}, "pin_memory must be true or false, 'auto' or None"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            UnicornDataModule("cub_200", str(cub_root), **kw)
+    out = f"paths.output_dir={tmp_path}"
+    for override in ("dataset.num_workers=auto", "dataset.num_workers=null", "dataset.num_workers=3"):
+        validate(compose_config([override, out]))
+    for override, message in [
+        ("dataset.num_workers=-1", r"dataset\.num_workers must be >= 0, or auto"),
+        ("dataset.num_workers=some", r"dataset\.num_workers must be >= 0, or auto \(chosen from the machine\)"),
+        ("dataset.pin_memory=maybe", r"dataset\.pin_memory must be true, false or auto"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            validate(compose_config([override, out]))
 
 
 @pytest.mark.parametrize("path", sorted(CONF.glob("*.yaml")), ids=lambda p: p.stem)

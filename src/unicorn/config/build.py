@@ -115,6 +115,15 @@ def _check_values(cfg: DictConfig) -> None:
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     on_error, d = typing.get_args(OnError), cfg.dataset
     _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")
+    workers, pin = d.num_workers, d.pin_memory
+    _check(
+        workers is None or workers == "auto" or (type(workers) is int and workers >= 0),
+        f"dataset.num_workers must be >= 0, or auto (chosen from the machine), got {workers!r}",
+    )
+    _check(
+        pin is None or pin == "auto" or isinstance(pin, bool),
+        f"dataset.pin_memory must be true, false or auto (when training on CUDA), got {pin!r}",
+    )
 
 
 def _check_model(cfg: DictConfig) -> None:

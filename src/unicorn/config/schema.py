@@ -114,11 +114,13 @@ class DatasetConfig:
     categories: Any = None  # one name or a list
     img_size: int = ranged(64, 8)
     batch_size: int = ranged(32, 1)
-    num_workers: int = ranged(4, 0)
+    # DataLoader workers: a number, or auto (null too): on a GPU one per CPU core of the process less one (at most
+    # 16), on the CPU none (unicorn.lit.data.auto_num_workers)
+    num_workers: Any = "auto"
     seed: int = 0
     val_size: int | None = ranged(None, 1)
     on_error: str = "raise"
-    pin_memory: bool = False
+    pin_memory: Any = "auto"  # true, false, or auto (null too): pinned when training on CUDA
     cache_items: bool = False
     synthetic: dict[str, Any] | None = None
     options: dict[str, Any] | None = None

@@ -11,9 +11,10 @@ function of the sample's stream position too, so a resumed run sees the very sam
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import lightning as L
 import torch
@@ -23,9 +24,56 @@ from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, set_max_image_bytes, set_max_image_pixels
 from unicorn.data.registry import Split, build_dataset, dataset_root, dataset_spec, prepare_dataset, val_indices
 
-__all__ = ["SeededItems", "StreamBatchSampler", "UnicornDataModule"]
+__all__ = [
+    "MAX_AUTO_WORKERS",
+    "SeededItems",
+    "StreamBatchSampler",
+    "UnicornDataModule",
+    "auto_num_workers",
+    "usable_cpus",
+]
 
 _SEED_STRIDE = 1_000_003
+#: the most DataLoader workers ``num_workers="auto"`` starts for one training process
+MAX_AUTO_WORKERS = 16
+
+
+def usable_cpus() -> int:
+    """The CPU cores this process may run on (its affinity where the platform has one, else the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def auto_num_workers(device_type: str, cpus: int | None = None, processes: int = 1) -> int:
+    """DataLoader workers per training process for ``num_workers="auto"``, chosen from the machine.
+
+    Training on a GPU (``device_type="cuda"``): the CPU cores this process may use (``cpus``, default
+    :func:`usable_cpus`), shared by the node's ``processes`` training processes, less one core for each training
+    process itself; at least 1 and at most :data:`MAX_AUTO_WORKERS`. Training on the CPU: 0, the batches are loaded
+    in the training process: its threads already use every core, and workers would take their time from them.
+
+    Example:
+        >>> auto_num_workers("cuda", cpus=16), auto_num_workers("cuda", cpus=16, processes=4), auto_num_workers("cpu")
+        (15, 3, 0)
+    """
+    if device_type != "cuda":
+        return 0
+    cpus = usable_cpus() if cpus is None else int(cpus)
+    return max(1, min(MAX_AUTO_WORKERS, cpus // max(int(processes), 1) - 1))
+
+
+def _check_auto(value: Any, name: str, kind: type) -> None:
+    """``value`` must be ``"auto"``, None (the same) or of ``kind`` (a bool is no count)."""
+    if value is None or value == "auto":
+        return
+    if kind is int and isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return
+    if kind is bool and isinstance(value, bool):
+        return
+    expected = "a number >= 0" if kind is int else "true or false"
+    raise ValueError(f"{name} must be {expected}, 'auto' or None (chosen from the machine), got {value!r}")
 
 
 class StreamBatchSampler(Sampler[list[tuple[int, int]]]):
@@ -107,12 +155,15 @@ class UnicornDataModule(L.LightningDataModule):
         categories: ShapeNet categories (names or synsets); for ``synthetic`` the generated categories.
         img_size: image side.
         batch_size: training batch size (evaluation uses the same).
-        num_workers: DataLoader worker processes.
+        num_workers: DataLoader worker processes; ``"auto"`` or None: chosen from the machine when the loaders
+            are made (:func:`auto_num_workers`: on a GPU one per CPU core of the training process less one, at
+            most :data:`MAX_AUTO_WORKERS`; on the CPU none). Workers stay alive between passes (persistent).
         seed: seeds the one-pass training shuffle and the evaluation view choice.
         val_size: validation subset size, default :data:`~unicorn.data.registry.VAL_SIZES` (capped at the split
             size).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
-        pin_memory: pin batches (for GPU training).
+        pin_memory: pin batches in page-locked memory, for faster and asynchronous copies to a GPU; ``"auto"`` or
+            None: when training on CUDA.
         cache_items: keep the training items in memory once read (:meth:`UnicornDataset.cache_items
             <unicorn.data.common.UnicornDataset.cache_items>`; datasets without augmentation only, e.g. the
             synthetic default). Each worker process holds its own copy. Validation and test items (read a few
@@ -136,11 +187,11 @@ class UnicornDataModule(L.LightningDataModule):
         categories: str | list[str] | None = None,
         img_size: int = 64,
         batch_size: int = 32,
-        num_workers: int = 4,
+        num_workers: int | Literal["auto"] | None = "auto",
         seed: int = 0,
         val_size: int | None = None,
         on_error: OnError = "raise",
-        pin_memory: bool = False,
+        pin_memory: bool | Literal["auto"] | None = "auto",
         cache_items: bool = False,
         synthetic: dict[str, Any] | None = None,
         options: dict[str, Any] | None = None,
@@ -149,6 +200,8 @@ class UnicornDataModule(L.LightningDataModule):
         stream_seed: int | None = None,
     ) -> None:
         super().__init__()
+        _check_auto(num_workers, "num_workers", int)
+        _check_auto(pin_memory, "pin_memory", bool)
         if max_image_pixels is not None:
             set_max_image_pixels(max_image_pixels)
         if max_image_bytes is not None:
@@ -162,8 +215,10 @@ class UnicornDataModule(L.LightningDataModule):
             self.categories = categories
         else:
             self.categories = [str(c) for c in categories]
-        self.batch_size, self.num_workers, self.seed = int(batch_size), int(num_workers), int(seed)
-        self.val_size, self.on_error, self.pin_memory = val_size, on_error, pin_memory
+        self.batch_size, self.seed = int(batch_size), int(seed)
+        self.num_workers: int | Literal["auto"] = "auto" if num_workers in (None, "auto") else int(num_workers)
+        self.pin_memory: bool | Literal["auto"] = "auto" if pin_memory in (None, "auto") else bool(pin_memory)
+        self.val_size, self.on_error = val_size, on_error
         self.cache_items = bool(cache_items)
         self.synthetic = dict(synthetic or {})
         self.options = dict(options or {})
@@ -210,17 +265,32 @@ class UnicornDataModule(L.LightningDataModule):
         if stage in (None, "test", "predict") and self.test_set is None:
             self.test_set = self.build("test")
 
+    def loader_settings(self) -> tuple[int, bool]:
+        """``(num_workers, pin_memory)`` of the loaders, ``"auto"`` resolved for the device the trainer trains on
+        (without a trainer: CUDA where it is available) and its processes per node."""
+        trainer = self.trainer
+        if trainer is None:
+            device_type, processes = ("cuda" if torch.cuda.is_available() else "cpu"), 1
+        else:
+            device_type, processes = trainer.strategy.root_device.type, max(int(trainer.num_devices), 1)
+        workers = self.num_workers
+        if workers == "auto":
+            workers = auto_num_workers(device_type, processes=processes)
+        pin = device_type == "cuda" if self.pin_memory == "auto" else bool(self.pin_memory)
+        return int(workers), pin
+
     def _loader(self, dataset: Dataset | None, train: bool) -> DataLoader:
         if dataset is None:
             raise RuntimeError("call setup() before asking for a dataloader")
+        workers, pin = self.loader_settings()
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
             shuffle=train,
             drop_last=train and len(dataset) >= self.batch_size,  # type: ignore[arg-type]
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            persistent_workers=self.num_workers > 0,
+            num_workers=workers,
+            pin_memory=pin,
+            persistent_workers=workers > 0,
             generator=torch.Generator().manual_seed(self.seed) if train else None,
         )
 
@@ -232,12 +302,13 @@ class UnicornDataModule(L.LightningDataModule):
             (0, 0, 1) if trainer is None else (trainer.global_step, trainer.global_rank, trainer.world_size)
         )
         sampler = StreamBatchSampler(len(dataset), self.batch_size, seed, start, rank, world)  # type: ignore[arg-type]
+        workers, pin = self.loader_settings()
         return DataLoader(
             SeededItems(dataset, seed),
             batch_sampler=sampler,
-            num_workers=self.num_workers,
-            pin_memory=bool(self.pin_memory),
-            persistent_workers=self.num_workers > 0,
+            num_workers=workers,
+            pin_memory=pin,
+            persistent_workers=workers > 0,
             # a private generator: creating the iterator must not consume the global RNG
             generator=torch.Generator().manual_seed(seed),
         )
