@@ -10,19 +10,19 @@ The data is generated in the loaders' real on-disk formats, into a temporary fol
 
 - ``folder``: a folder of JPEG photos (:class:`unicorn.data.folder.ImageFolder`, also CompCars' loader);
 - ``cub_200``: CUB-200-2011's layout, ``images/<class>/<file>.jpg`` and CMR's annotations
-  ``cachedir/cub/data/{train,val,test}_cub_cleaned.mat`` (boxes, full-size masks, 15 keypoints; val and test
-  hold the first five images) (:class:`unicorn.data.cub.CUB200`,
-  whose crop-and-resize path Pascal3D+ shares).
+  ``cachedir/cub/data/{train,val,test}_cub_cleaned.mat`` with boxes, full-size masks and 15 keypoints (val and test
+  hold the first five images) (:class:`unicorn.data.cub.CUB200`; Pascal3D+ shares its crop-and-resize path).
 
 Every photo is a JPEG of ``--source-size`` pixels (CUB's photos are about 500 x 375), a smooth random colour field with
 fine noise so that it decodes like a photo. For each loader and worker count the script iterates the training loader
 as ``unicorn-train`` builds it (:class:`unicorn.lit.UnicornDataModule` with its endless seeded stream: decoding,
 cropping, resizing, augmentation, collation into batches of ``--batch-size``) and prints, over ``--batches`` batches
 after ``--warmup`` (the workers' start-up), images per second of wall time in total and per worker (with 0 workers:
-the main process), and images per CPU second of the process that loads them (the workers', or the main process's).
-On a machine shared with other work the second figure is the per-worker rate a dedicated core gives. Beside them:
+the main process), and images per CPU second of the processes that load them (the workers, or the main process):
+on a machine shared with other work, the per-worker rate a core of its own gives. Beside them:
 the rate a GPU training step consumes, ``--step-images`` images per ``--step-seconds`` (32 per 0.02 s = 1600 images
-per second by default), and the number of workers that rate needs at the measured per-worker rate.
+per second by default), and the number of workers that rate needs at the measured per-worker rate (per CPU second
+where it is known). With ``--repeats N`` each row is the best of N measurements, the one least slowed by other work.
 """
 
 from __future__ import annotations
@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--batches", type=int, default=12, help="timed batches per measurement")
     parser.add_argument("--warmup", type=int, default=2, help="batches before the timing (worker start-up)")
+    parser.add_argument("--repeats", type=int, default=1, help="measurements per row; the best is printed")
     parser.add_argument("--images", type=int, default=128, help="images per generated dataset")
     parser.add_argument("--source-size", type=_size, default=(500, 375), help="WIDTHxHEIGHT of the stored photos")
     parser.add_argument("--step-images", type=int, default=32, help="images a GPU training step consumes")
@@ -171,7 +172,9 @@ def main(argv: list[str] | None = None) -> None:
         print(header)
         for name in loaders:
             for workers in worker_counts:
-                rate, per_cpu = measure(name, roots[name], workers, args)
+                runs = [measure(name, roots[name], workers, args) for _ in range(max(args.repeats, 1))]
+                rate = max(r for r, _ in runs)
+                per_cpu = max((c for _, c in runs if c is not None), default=None)
                 per_worker = rate / max(workers, 1)
                 best = per_cpu if per_cpu is not None else per_worker
                 cpu_text = f"{per_cpu:9.0f}" if per_cpu is not None else f"{'-':>9}"
