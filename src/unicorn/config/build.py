@@ -22,6 +22,7 @@ from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
 from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
+from unicorn.model import check_model_size
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config, check_ranges
 from unicorn.render import get_renderer_class, list_renderers
 
@@ -164,7 +165,6 @@ def _check_sizes(cfg: DictConfig) -> None:
     from unicorn.checks import SizeLimitError
     from unicorn.data.images import check_image_size
     from unicorn.geometry.cameras import PerspectiveCamera
-    from unicorn.io.checkpoints import check_model_size
     from unicorn.render import RenderSizeError, build_renderer, check_render_size
 
     d, m = cfg.dataset, cfg.model

@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 import torch
 
-from unicorn.checks import SizeLimitError, check_limit, env_limit
+from unicorn.checks import SizeLimitError
 from unicorn.io.reference_checkpoints import load_reference_checkpoint
 from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
@@ -41,7 +41,8 @@ from unicorn.io.serialization import (
     atomic_save,
     load_checkpoint_file,
 )
-from unicorn.model import Unicorn, count_parameters, merge_config
+from unicorn.model import MAX_MODEL_PARAMS, Unicorn, merge_config
+from unicorn.model import check_model_size as _check_model_size
 
 __all__ = [
     "MAX_MODEL_PARAMS",
@@ -64,12 +65,6 @@ __all__ = [
 PLAIN_FORMAT = "unicorn-model"
 Format = Literal["reference", "lightning", "plain"]
 
-#: the largest model (parameters and buffers of its networks) a checkpoint's stored configuration may build before
-#: its weights are loaded: ten times the paper's big model (49 M); ``$UNICORN_MAX_MODEL_PARAMS`` sets another
-#: limit (0: none). A file of a few MB can describe a model of hundreds of GB.
-MAX_MODEL_PARAMS = 500_000_000
-#: the environment variable that sets another limit
-MAX_MODEL_PARAMS_ENV = "UNICORN_MAX_MODEL_PARAMS"
 #: what a training run's checkpoint holds beside the weights (written by Lightning)
 _TRAINING_KEY = "pytorch-lightning_version"
 
@@ -113,31 +108,11 @@ def check_training_checkpoint(data: Mapping[str, Any], path: str | os.PathLike) 
     )
 
 
-def _max_model_params() -> int:
-    return env_limit(MAX_MODEL_PARAMS_ENV, MAX_MODEL_PARAMS, "parameters") or 0
-
-
 def check_model_size(
     config: Mapping[str, Any], setting: str, limit: int | None = None, error: type[SizeLimitError] = ModelTooLargeError
 ) -> None:
-    """Refuse a model configuration whose networks exceed ``limit`` elements, before allocating them.
-
-    Args:
-        config: a merged model configuration.
-        setting: what asks for the model, named in the message (``"checkpoint PATH"``, ``"model"``).
-        limit: the most parameters and buffers; None: ``$UNICORN_MAX_MODEL_PARAMS`` or :data:`MAX_MODEL_PARAMS`;
-            0: no limit.
-        error: the class raised (a checkpoint's stored configuration: :class:`ModelTooLargeError`).
-
-    Raises:
-        SizeLimitError: the model is larger (:func:`unicorn.checks.check_limit`).
-    """
-    limit = _max_model_params() if limit is None else limit
-    if limit <= 0:
-        return
-    n = count_parameters(config)
-    what = f"its networks, {4 * n / 2**30:.1f} GiB as float32, at encoder.width={config['encoder']['width']}"
-    check_limit(setting, what, n, limit, "parameters", f"{MAX_MODEL_PARAMS_ENV}; 0: no limit", error)
+    """:func:`unicorn.model.check_model_size`, raising :class:`ModelTooLargeError` for a checkpoint by default."""
+    _check_model_size(config, setting, limit, error)
 
 
 @dataclass

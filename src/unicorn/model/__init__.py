@@ -13,7 +13,16 @@
 Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
-from unicorn.model.autoencoder import Prediction, Prediction3D, Unicorn, count_parameters, world_verts
+from unicorn.model.autoencoder import (
+    MAX_MODEL_PARAMS,
+    MAX_MODEL_PARAMS_ENV,
+    Prediction,
+    Prediction3D,
+    Unicorn,
+    check_model_size,
+    count_parameters,
+    world_verts,
+)
 from unicorn.model.compositing import (
     DirectCompositing,
     ReferenceCompositing,
@@ -49,6 +58,9 @@ from unicorn.model.progressive import ProgressiveMask, active_dims_at
 from unicorn.model.template import TemplateMesh
 
 __all__ = [
+    "MAX_MODEL_PARAMS",
+    "MAX_MODEL_PARAMS_ENV",
+    "check_model_size",
     "DEFAULT_CONFIG",
     "MLP",
     "CodeGenerator",

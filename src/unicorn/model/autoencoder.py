@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from unicorn.checks import check_shape
+from unicorn.checks import SizeLimitError, check_limit, check_shape, env_limit
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.model.compositing import build_compositing
 from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config, model_branches
@@ -38,7 +38,18 @@ from unicorn.render import TexturesUV, build_renderer
 if TYPE_CHECKING:
     from unicorn.model.refine import Refinement
 
-__all__ = ["BRANCHES", "Prediction", "Prediction3D", "Unicorn", "count_parameters", "encoder_index", "world_verts"]
+__all__ = [
+    "BRANCHES",
+    "MAX_MODEL_PARAMS",
+    "MAX_MODEL_PARAMS_ENV",
+    "Prediction",
+    "Prediction3D",
+    "Unicorn",
+    "check_model_size",
+    "count_parameters",
+    "encoder_index",
+    "world_verts",
+]
 
 
 def world_verts(canonical_verts: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -178,6 +189,38 @@ def count_parameters(config: Mapping[str, Any] | None = None, **groups: Any) -> 
     with torch.device("meta"):
         networks = [m for m in _networks(cfg).values() if m is not None]
     return sum(t.numel() for m in networks for t in [*m.parameters(), *m.buffers()])
+
+
+#: the largest model (parameters and buffers of its networks) a stored or composed configuration may build: ten
+#: times the paper's big model (49 M); ``$UNICORN_MAX_MODEL_PARAMS`` sets another limit (0: none). A checkpoint of a
+#: few MB can describe a model of hundreds of GB.
+MAX_MODEL_PARAMS = 500_000_000
+#: the environment variable that sets another limit
+MAX_MODEL_PARAMS_ENV = "UNICORN_MAX_MODEL_PARAMS"
+
+
+def check_model_size(
+    config: Mapping[str, Any], setting: str, limit: int | None = None, error: type[SizeLimitError] = SizeLimitError
+) -> None:
+    """Refuse a model configuration whose networks exceed ``limit`` elements, before allocating them.
+
+    Args:
+        config: a merged model configuration.
+        setting: what asks for the model, named in the message (``"checkpoint PATH"``, ``"model"``).
+        limit: the most parameters and buffers; None: ``$UNICORN_MAX_MODEL_PARAMS`` or :data:`MAX_MODEL_PARAMS`;
+            0: no limit.
+        error: the class raised (a subclass of :class:`~unicorn.checks.SizeLimitError`).
+
+    Raises:
+        SizeLimitError: the model is larger (:func:`unicorn.checks.check_limit`).
+    """
+    if limit is None:
+        limit = env_limit(MAX_MODEL_PARAMS_ENV, MAX_MODEL_PARAMS, "parameters") or 0
+    if limit <= 0:
+        return
+    n = count_parameters(config)
+    what = f"its networks, {4 * n / 2**30:.1f} GiB as float32, at encoder.width={config['encoder']['width']}"
+    check_limit(setting, what, n, limit, "parameters", f"{MAX_MODEL_PARAMS_ENV}; 0: no limit", error)
 
 
 class Unicorn(nn.Module):
