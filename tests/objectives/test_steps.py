@@ -121,6 +121,44 @@ def test_pose_step_spacing_term_moves_the_candidates_only(images):
     assert "spacing" not in objectives_of(Unicorn(tiny_config())).pose_step(model, images)
 
 
+def test_sampled_schedule_renders_the_picked_candidate_in_both_steps(images):
+    torch.manual_seed(0)
+    loss = {"pose_objective": "sampled", "uniform_weight": 0.0, "score_weight": 0.5, "sample_uniform_until": 0}
+    model = Unicorn(tiny_config(loss=loss)).eval()  # eval: batch norm is the same in every call
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    objectives = objectives_of(model)
+    sampled = objectives.steps["pose"].objective
+    assert objectives.steps["3d"].sampler is sampled
+    reconstruction = objectives.steps["pose"].reconstruction
+    B = images.shape[0]
+    with torch.no_grad():
+        pred = model.predict(images)
+    logits = pred.poses.logits
+    for kind in ("pose", "3d"):
+        # the same draws as the step's: the pick uses torch's global generator
+        torch.manual_seed(7)
+        picked = sampled.pick(logits, 300)
+        torch.manual_seed(7)
+        losses = objectives(kind, model, images, iteration=300)
+        with torch.no_grad():
+            R, T = pred.poses.select(picked)
+            rec, _ = model.render(pred.verts, pred.texture, R, T, pred.background)
+            terms = reconstruction(rec, images)
+            w = sampled.weights(logits, picked, 300)
+        for name in ("rgb", "perceptual"):
+            assert torch.allclose(losses[name], (w * terms[name]).mean(), rtol=1e-4)
+        if kind == "pose":
+            target = sum(terms.values())
+            score = 0.5 * (-logits[picked, torch.arange(B)] - target).square().mean()
+            assert torch.allclose(losses["score"], score, rtol=1e-4)
+            losses["total"].backward()
+            assert grads_of(model.pose.proba_regressor) > 0
+            assert grads_of(model.texture) == 0
+        else:
+            assert "score" not in losses
+
+
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_step_3d_gradients_skip_the_pose_branch(layout, images):
     torch.manual_seed(0)

@@ -224,6 +224,16 @@ class LossConfig:
     # cross-entropy against the best-reconstructing candidate (unicorn.model.losses.candidate_assignment_loss)
     pose_objective: str = "expected"
     assignment_weight: float = ranged(0.02, 0)
+    # sampled (MagicPony's schedule; unicorn.model.pose_objectives.SampledCandidates): one candidate rendered per
+    # image in both steps, random until sample_random_until, then the most likely for all but a share falling to
+    # sample_random_share over sample_ramp iterations; uniform probabilities until sample_uniform_until; the rendered
+    # candidate's score (-logit) regresses its loss x score_weight; temperature 1 / clip(it / sample_tau_period, 1, 100)
+    score_weight: float = ranged(0.1, 0)
+    sample_random_until: int = ranged(800, 0)
+    sample_ramp: int = ranged(400, 0)
+    sample_random_share: float = ranged(0.2, 0, 1)
+    sample_uniform_until: int = ranged(400, 0)
+    sample_tau_period: int = ranged(200, 1)
     # pose step: the pose branch also learns from the model's reconstructions rendered at drawn viewpoints
     # (unicorn.model.viewpoint; "renders"), or not (None, the paper): the cross-entropy toward the drawn view's
     # candidate x viewpoint_weight, its angles and translation regressed x viewpoint_pose_weight, from iteration

@@ -74,6 +74,7 @@ class PoseOutput:
         T: (K, B, 3) translations.
         probs: (K, B) candidate probabilities (softmax over K).
         log_probs: (K, B) their logarithms, from the logits (``probs`` is derived from them).
+        logits: (K, B) the probability head's raw outputs (``log_probs`` up to a per-sample constant), or None.
     """
 
     angles: torch.Tensor
@@ -81,6 +82,7 @@ class PoseOutput:
     T: torch.Tensor
     probs: torch.Tensor
     log_probs: torch.Tensor
+    logits: torch.Tensor | None = None
 
     @property
     def best(self) -> torch.Tensor:
@@ -164,17 +166,21 @@ class PoseHead(nn.Module):
         check_shape(features, "B, C", "features")
         rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
         trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
-        log_probs = torch.log_softmax(self.proba_regressor(features), dim=-1).transpose(0, 1)  # (K, B)
-        return self._compose(rot, trans, log_probs)
+        logits = self.proba_regressor(features).transpose(0, 1)  # (K, B)
+        return self._compose(rot, trans, torch.log_softmax(logits, dim=0), logits)
 
-    def _compose(self, rot: torch.Tensor, trans: torch.Tensor, log_probs: torch.Tensor) -> PoseOutput:
+    def _compose(
+        self, rot: torch.Tensor, trans: torch.Tensor, log_probs: torch.Tensor, logits: torch.Tensor | None = None
+    ) -> PoseOutput:
         """Candidates from offsets in [-1, 1]: rot (K, B, 3), trans (K, B, 3), log_probs (K, B)."""
         tilt = self.use_elevation_roll.to(rot.dtype)
         held = torch.stack([torch.ones_like(tilt), tilt, tilt])  # (3,): azimuth offsets are never held
         angles = rot * (self.R_range * held) + self.R_init.unsqueeze(1)
         R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
         t_off = trans * self.T_range * self.use_translation.to(trans.dtype)
-        return PoseOutput(angles=angles, R=R, T=t_off + self.T_init, probs=log_probs.exp(), log_probs=log_probs)
+        return PoseOutput(
+            angles=angles, R=R, T=t_off + self.T_init, probs=log_probs.exp(), log_probs=log_probs, logits=logits
+        )
 
     def anchor_poses(self, batch_size: int, selected: int = 0) -> PoseOutput:
         """The K candidates at their anchors (zero offsets) for ``batch_size`` samples, probability 1 on

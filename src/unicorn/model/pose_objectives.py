@@ -122,3 +122,98 @@ class AssignedBestLoss(AssignedLoss):
     def weights(self, probs: torch.Tensor, per_candidate: torch.Tensor) -> torch.Tensor:
         best = per_candidate.argmin(0)  # (B,)
         return torch.nn.functional.one_hot(best, probs.shape[0]).T.to(probs.dtype)
+
+
+@register_pose_objective("sampled")
+class SampledCandidates:
+    """MagicPony's candidate schedule: one candidate rendered per image, its score regressing its loss.
+
+    Each step renders one candidate per image (:meth:`pick`): a uniformly random one until ``sample_random_until``;
+    from then on the most likely one for all but a share of the images that falls linearly from 1 to
+    ``sample_random_share`` over ``sample_ramp`` iterations and stays there, a random one for that share. Until
+    ``sample_uniform_until`` the probabilities are uniform. The probability head's outputs are negative scores:
+    ``p = softmax(logits / tau)`` with the temperature ``tau = 1 / clip(iteration / sample_tau_period, 1, 100)``,
+    and in the pose step the rendered candidate's ``-logit`` regresses its detached loss (term ``score``, weight
+    ``score_weight``). The rendered candidate's terms are weighted by ``min(1, K * p)`` (detached), so an unlikely
+    random candidate moves the pose and the 3D branches little (:meth:`weights`).
+
+    Args:
+        score_weight: weight of the score regression.
+        sample_random_until, sample_ramp, sample_random_share, sample_uniform_until, sample_tau_period: the schedule
+            (iterations, and the random share in [0, 1]).
+    """
+
+    def __init__(
+        self,
+        score_weight: float = 0.1,
+        sample_random_until: int = 800,
+        sample_ramp: int = 400,
+        sample_random_share: float = 0.2,
+        sample_uniform_until: int = 400,
+        sample_tau_period: int = 200,
+    ) -> None:
+        if not 0.0 <= sample_random_share <= 1.0 or min(sample_random_until, sample_ramp, sample_uniform_until) < 0:
+            raise ValueError(
+                "sample_random_share must be in [0, 1] and the schedule's iterations >= 0, got "
+                f"{sample_random_share}, {sample_random_until}, {sample_ramp}, {sample_uniform_until}"
+            )
+        if sample_tau_period < 1:
+            raise ValueError(f"sample_tau_period must be >= 1, got {sample_tau_period}")
+        self.score_weight = float(score_weight)
+        self.random_until, self.ramp = int(sample_random_until), int(sample_ramp)
+        self.final_share, self.uniform_until = float(sample_random_share), int(sample_uniform_until)
+        self.tau_period = int(sample_tau_period)
+
+    def random_share(self, iteration: int | None) -> float:
+        """The share of images rendered with a random candidate at ``iteration`` (None: the final share)."""
+        if iteration is None:
+            return self.final_share
+        if iteration < self.random_until:
+            return 1.0
+        t = 1.0 if self.ramp == 0 else min(1.0, (iteration - self.random_until) / self.ramp)
+        return 1.0 - t * (1.0 - self.final_share)
+
+    def temperature(self, iteration: int | None) -> float:
+        """``tau = 1 / clip(iteration / sample_tau_period, 1, 100)`` (None: the final 0.01)."""
+        if iteration is None:
+            return 0.01
+        return 1.0 / min(max(iteration / self.tau_period, 1.0), 100.0)
+
+    def probabilities(self, logits: torch.Tensor, iteration: int | None) -> torch.Tensor:
+        """(K, B) probabilities at ``iteration`` from the head's logits (K, B): uniform until
+        ``sample_uniform_until``, ``softmax(logits / tau)`` after."""
+        if iteration is not None and iteration < self.uniform_until:
+            return torch.full_like(logits, 1.0 / logits.shape[0])
+        return torch.softmax(logits / self.temperature(iteration), dim=0)
+
+    def pick(self, logits: torch.Tensor, iteration: int | None) -> torch.Tensor:
+        """(B,) the candidate rendered for each image, from the head's logits (K, B) (torch's global generator)."""
+        K, B = logits.shape
+        random = torch.randint(K, (B,), device=logits.device)
+        if iteration is not None and iteration < self.uniform_until:
+            return random
+        explore = torch.rand(B, device=logits.device) < self.random_share(iteration)
+        return torch.where(explore, random, logits.argmax(0))
+
+    def weights(self, logits: torch.Tensor, picked: torch.Tensor, iteration: int | None) -> torch.Tensor:
+        """(B,) detached weights ``min(1, K * p[picked])`` of the rendered candidates' terms."""
+        p = self.probabilities(logits.detach(), iteration)
+        b = torch.arange(picked.shape[0], device=picked.device)
+        return (p.shape[0] * p[picked, b]).clamp(max=1.0)
+
+    def __call__(
+        self,
+        logits: torch.Tensor,
+        picked: torch.Tensor,
+        terms: dict[str, torch.Tensor],
+        iteration: int | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """The pose step's terms for the rendered candidates ``picked`` (B,): each term (B,) weighted by
+        :meth:`weights` and averaged, and ``score``: the mean squared error of ``-logits[picked]`` against the
+        summed terms (detached)."""
+        w = self.weights(logits, picked, iteration)
+        out = {name: (w * value).mean() for name, value in terms.items()}
+        b = torch.arange(picked.shape[0], device=picked.device)
+        loss = torch.stack(list(terms.values())).sum(0).detach()
+        out["score"] = self.score_weight * (-logits[picked, b] - loss).square().mean()
+        return out

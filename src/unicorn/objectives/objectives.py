@@ -10,7 +10,7 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
-from unicorn.model.pose_objectives import build_pose_objective
+from unicorn.model.pose_objectives import SampledCandidates, build_pose_objective
 from unicorn.model.viewpoint import build_viewpoint_supervision
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
 from unicorn.objectives.pose_step import PoseStep
@@ -46,9 +46,10 @@ class Objectives(nn.Module):
         reconstruction = ReconstructionLoss.from_config(loss)
         template = model.template
         regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts)
+        objective = build_pose_objective(loss["pose_objective"], **loss)
         pose = PoseStep(
             reconstruction,
-            build_pose_objective(loss["pose_objective"], **loss),
+            objective,
             loss["uniform_weight"],
             loss["uniform_reduction"],
             loss["spacing_weight"],
@@ -57,7 +58,9 @@ class Objectives(nn.Module):
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])
-        return cls(pose, ShapeStep(reconstruction, regularizer, neighbors))
+        sampler = objective if isinstance(objective, SampledCandidates) else None
+        shape = ShapeStep(reconstruction, regularizer, neighbors, sampler)
+        return cls(pose, shape)
 
     @property
     def memory(self) -> NeighborMemory:

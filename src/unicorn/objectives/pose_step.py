@@ -11,8 +11,10 @@ import torch
 from torch import nn
 
 from unicorn.model import Unicorn
+from unicorn.model.autoencoder import Prediction3D
 from unicorn.model.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
-from unicorn.model.pose_objectives import PoseObjective
+from unicorn.model.pose import PoseOutput
+from unicorn.model.pose_objectives import PoseObjective, SampledCandidates
 from unicorn.model.viewpoint import ViewpointSupervision
 from unicorn.objectives.step_losses import StepLosses, with_total
 
@@ -20,9 +22,10 @@ __all__ = ["PoseStep"]
 
 
 class PoseStep(nn.Module):
-    """P-step: every candidate rendered with the detached 3D prediction; gradients reach the pose branch only.
+    """P-step: the pose candidates rendered with the detached 3D prediction; gradients reach the pose branch only.
 
-    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
+    Every candidate is rendered, or with the ``sampled`` objective (:class:`SampledCandidates`) the one it picks per
+    image. ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
     (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`,
     :class:`~unicorn.model.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
     the encoder that feeds them receive gradients.
@@ -75,14 +78,11 @@ class PoseStep(nn.Module):
             other = {**feats, **model.encode(images, tuple(b for b in branches if b not in with_pose))}
             other = {k: v.detach() for k, v in other.items()}
             p = model.predict_3d(other, average_texture)
-            verts = p.verts
         poses = model.pose(feats["pose"])
-        K = poses.probs.shape[0]
-        R, T = poses.flat()
-        bkg = None if p.background is None else p.background.repeat(K, 1, 1, 1)
-        rec, _ = model.render(verts.repeat(K, 1, 1), p.texture.repeat(K, 1, 1, 1), R, T, bkg)
-        terms = self.reconstruction(rec, images.repeat(K, 1, 1, 1))
-        out = self.objective(poses.probs, poses.log_probs, terms)
+        if isinstance(self.objective, SampledCandidates):
+            out = self._sampled(model, images, p, poses, iteration)
+        else:
+            out = self._all_candidates(model, images, p, poses)
         if self.uniform_weight > 0:
             out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
         if self.spacing_weight > 0:
@@ -92,3 +92,32 @@ class PoseStep(nn.Module):
             terms, stats = self.viewpoint(model, p)
             out.update(terms)
         return StepLosses(with_total(out, images), poses.probs.detach(), stats)
+
+    def _sampled(
+        self, model: Unicorn, images: torch.Tensor, p: Prediction3D, poses: PoseOutput, iteration: int | None
+    ) -> dict[str, torch.Tensor]:
+        """One candidate per image rendered (:class:`SampledCandidates`)."""
+        assert isinstance(self.objective, SampledCandidates) and poses.logits is not None
+        picked = self.objective.pick(poses.logits.detach(), iteration)
+        R, T = poses.select(picked)
+        terms = self._terms(model, images, p, R, T, 1)
+        return self.objective(poses.logits, picked, terms, iteration)
+
+    def _all_candidates(
+        self, model: Unicorn, images: torch.Tensor, p: Prediction3D, poses: PoseOutput
+    ) -> dict[str, torch.Tensor]:
+        """Every candidate rendered; the pose objective weights their terms."""
+        R, T = poses.flat()
+        terms = self._terms(model, images, p, R, T, poses.probs.shape[0])
+        return self.objective(poses.probs, poses.log_probs, terms)
+
+    def _terms(
+        self, model: Unicorn, images: torch.Tensor, p: Prediction3D, R: torch.Tensor, T: torch.Tensor, n: int
+    ) -> dict[str, torch.Tensor]:
+        """Reconstruction terms (n * B,) of the detached prediction rendered at n poses per image: R (n * B, 3, 3),
+        T (n * B, 3), pose-major."""
+        verts = p.verts.repeat(n, 1, 1)
+        bkg = None if p.background is None else p.background.repeat(n, 1, 1, 1)
+        targets = images.repeat(n, 1, 1, 1)
+        rec, _ = model.render(verts, p.texture.repeat(n, 1, 1, 1), R, T, bkg)
+        return self.reconstruction(rec, targets)

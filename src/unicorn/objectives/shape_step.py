@@ -7,6 +7,7 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
+from unicorn.model.pose_objectives import SampledCandidates
 from unicorn.objectives.neighbors import NeighborLoss
 from unicorn.objectives.step_losses import StepLosses, with_total
 
@@ -16,6 +17,9 @@ __all__ = ["ShapeStep"]
 class ShapeStep(nn.Module):
     """3D-step: ``total = mean_b [L_rec + w_nbr * L_nbr] + w_norm * L_norm + w_lap * L_lap``.
 
+    The most likely pose candidate is rendered; with a ``sampler`` (the ``sampled`` pose objective) the candidate it
+    picks, each image's terms weighted by :meth:`SampledCandidates.weights`.
+
     Gradients reach the shape, scale, texture and background branches (and their encoders) only. The neighbour
     term is added while it is active (:meth:`NeighborLoss.active`).
 
@@ -23,12 +27,18 @@ class ShapeStep(nn.Module):
         reconstruction: the weighted per-sample reconstruction terms.
         regularizer: the weighted mesh regularisers.
         neighbors: the neighbour reconstruction loss and its memory, or None.
+        sampler: the ``sampled`` pose objective, whose picks this step renders, or None.
     """
 
     def __init__(
-        self, reconstruction: ReconstructionLoss, regularizer: MeshRegularizer, neighbors: NeighborLoss | None
+        self,
+        reconstruction: ReconstructionLoss,
+        regularizer: MeshRegularizer,
+        neighbors: NeighborLoss | None,
+        sampler: SampledCandidates | None = None,
     ) -> None:
         super().__init__()
+        self.sampler = sampler
         self.reconstruction, self.regularizer, self.neighbors = reconstruction, regularizer, neighbors
 
     def forward(
@@ -38,7 +48,7 @@ class ShapeStep(nn.Module):
 
         Args:
             average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
-            iteration: the training iteration (the pose step's signature; this step's terms do not depend on it).
+            iteration: the training iteration (the sampler's schedule; otherwise unused).
 
         Returns:
             weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), ``neighbor`` (when active),
@@ -52,13 +62,21 @@ class ShapeStep(nn.Module):
         with torch.no_grad():
             pose_feats = feats[mates[0]] if mates else model.encode(images, ("pose",))["pose"]
             poses = model.pose(pose_feats.detach())
-            R, T = poses.select()
+            weights = None
+            if self.sampler is not None and poses.logits is not None:
+                picked = self.sampler.pick(poses.logits, iteration)
+                weights = self.sampler.weights(poses.logits, picked, iteration)
+                R, T = poses.select(picked)
+            else:
+                R, T = poses.select()
         pred = model.predict_3d(feats, average_texture)
         verts = pred.verts
         rec, _ = model.render(verts, pred.texture, R, T, pred.background)
         per_sample = self.reconstruction(rec, images)
         if self.neighbors is not None and self.neighbors.active(model):
             per_sample["neighbor"] = self.neighbors(model, images, pred, R, average_texture)
+        if weights is not None:
+            per_sample = {name: weights * value for name, value in per_sample.items()}
         out = {name: value.mean() for name, value in per_sample.items()}
         out.update(self.regularizer(verts))
         return StepLosses(with_total(out, images), poses.probs)
