@@ -8,7 +8,24 @@ from pathlib import Path
 
 import pytest
 
-from unicorn.data.registry import build_dataset, dataset_root, val_indices
+import unicorn.data.synthetic.writer as writer
+from unicorn.cli.eval import build_parser
+from unicorn.data import DatasetNotFoundError
+from unicorn.data.images import DatasetError
+from unicorn.data.registry import DATASET_NAMES, build_dataset, dataset_root, prepare_dataset, val_indices
+from unicorn.evaluation import PROTOCOLS
+
+#: every dataset a user can name (README, docs/datasets.md), in the order the commands list them, with the
+#: reference's validation subset size and the evaluation protocol that scores it
+EXPECTED_DATASETS = {
+    "shapenet_nmr": (32, "shapenet"),
+    "synthetic": (32, "shapenet"),
+    "cub_200": (5, "cub"),
+    "p3d_car": (5, "p3d"),
+    "compcars": (5, "images"),
+    "lsun": (5, "images"),
+    "folder": (5, "images"),
+}
 
 
 def test_val_indices_reference_sizes_capped() -> None:
@@ -42,18 +59,16 @@ def test_data_does_not_import_lightning() -> None:
 
 
 def test_one_registry_names_every_dataset_for_training_evaluation_and_the_cli() -> None:
-    from unicorn.cli.eval import build_parser
-    from unicorn.data.registry import DATASET_NAMES, DATASETS, VAL_SIZES
-    from unicorn.evaluation import PROTOCOLS
-
     choices = next(a.choices for a in build_parser()._actions if a.dest == "dataset")
-    assert list(choices) == list(DATASET_NAMES) == list(DATASETS) == list(PROTOCOLS) == list(VAL_SIZES)
-    assert set(PROTOCOLS.values()) == {"shapenet", "cub", "p3d", "images"}
+    assert list(choices) == list(DATASET_NAMES) == list(EXPECTED_DATASETS)
+    assert dict(PROTOCOLS) == {name: protocol for name, (_, protocol) in EXPECTED_DATASETS.items()}
+    # the validation subset each dataset gets from a split larger than it
+    assert {name: len(val_indices(name, 1000)) for name in DATASET_NAMES} == {
+        name: size for name, (size, _) in EXPECTED_DATASETS.items()
+    }
 
 
 def test_unknown_dataset_names_the_known_ones() -> None:
-    from unicorn.data.images import DatasetError
-
     with pytest.raises(DatasetError, match=r"unknown dataset 'imagenet'; choose from \['shapenet_nmr'"):
         build_dataset("imagenet", "train", "/nowhere")
     with pytest.raises(DatasetError, match="unknown dataset"):
@@ -61,10 +76,6 @@ def test_unknown_dataset_names_the_known_ones() -> None:
 
 
 def test_synthetic_data_is_generated_only_where_asked(tmp_path: Path, monkeypatch) -> None:
-    import unicorn.data.synthetic.writer as writer
-    from unicorn.data import DatasetNotFoundError
-    from unicorn.data.registry import prepare_dataset
-
     generated = []
     monkeypatch.setattr(writer, "ensure_synthetic_dataset", lambda **options: generated.append(options) or tmp_path)
     monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
