@@ -17,12 +17,11 @@ import pytest
 import torch
 from PIL import Image
 
+from tests.support.chromium import EXECUTABLE, Chromium
 from tests.support.evaluation import report_result, tiny_checkpoint, tiny_model, write_inputs
 from unicorn.cli.reconstruct import main as reconstruct_main
 from unicorn.evaluation import write_report
 from unicorn.evaluation.viewer import VIEWER_SCRIPT
-
-from .chromium import EXECUTABLE, Chromium
 
 pytestmark = pytest.mark.skipif(
     EXECUTABLE is None, reason="headless Chromium is not installed (Debian: apt-get install chromium; .ci/run does)"

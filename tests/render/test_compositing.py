@@ -5,10 +5,9 @@ import math
 import pytest
 import torch
 
+from tests.support.render import posed_ellipsoids
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.render import blur_radius_from_sigma, hard_blend, layered_blend, rasterize_meshes, softras_blend
-
-from .helpers import posed_ellipsoids
 
 SIZE = 16
 

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from tests.support.render import template_scene
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.render import (
     HardBlend,
@@ -20,8 +21,6 @@ from unicorn.render import (
     register_renderer,
     unregister_renderer,
 )
-
-from .helpers import template_scene
 
 
 @register_renderer("test-flat")

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from tests.support.render import template_scene
 from unicorn.render import (
     DEFAULT_MAX_RENDER_BYTES,
     MAX_RENDER_BYTES_ENV,
@@ -14,8 +15,6 @@ from unicorn.render import (
     list_renderers,
     rasterize_meshes,
 )
-
-from .helpers import template_scene
 
 
 @pytest.fixture(params=list_renderers())

@@ -6,10 +6,9 @@ import pytest
 import torch
 import trimesh
 
+from tests.support.render import posed_ellipsoids, random_rotations
 from unicorn.geometry.cameras import PerspectiveCamera, pixel_to_ndc, world_to_view
 from unicorn.render import Fragments, blur_radius_from_sigma, rasterize_meshes
-
-from .helpers import posed_ellipsoids, random_rotations
 
 
 def _raycast(view_verts: np.ndarray, faces: np.ndarray, focal: float, size: int):

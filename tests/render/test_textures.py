@@ -3,9 +3,8 @@
 import pytest
 import torch
 
+from tests.support.render import template_scene
 from unicorn.render import TexturesUV, build_renderer
-
-from .helpers import template_scene
 
 
 def test_pytorch3d_channels_last_maps_render_like_channels_first():

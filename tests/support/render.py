@@ -1,4 +1,4 @@
-"""Scenes shared by the renderer tests."""
+"""Scenes shared by the renderer tests: posed ellipsoids, random rotations, a textured template scene."""
 
 from __future__ import annotations
 
