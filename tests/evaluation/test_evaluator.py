@@ -478,3 +478,34 @@ def test_protocol_registry_says_what_each_protocol_scores() -> None:
         EvalOptions(protocol="kitti")
     with pytest.raises(ValueError, match="oracle_pose needs"):
         EvalOptions(protocol="p3d", oracle_pose=True)
+
+
+def test_overflow_note_says_the_share_once_per_block(caplog) -> None:
+    import warnings
+
+    from unicorn.evaluation.session import overflow_note
+    from unicorn.render import rasterize_meshes
+
+    # four triangles at depths 1-4, each covering the whole 16 x 16 image: with K = 2 every pixel overflows
+    tri = torch.tensor([[-9.0, -9.0], [9.0, -9.0], [0.0, 9.0]])
+    verts = torch.cat([torch.cat([tri, torch.full((3, 1), z)], 1) for z in (1.0, 2.0, 3.0, 4.0)])[None]
+    faces = torch.arange(12).reshape(4, 3)
+    with caplog.at_level("INFO", logger="unicorn.evaluation.session"), warnings.catch_warnings():
+        warnings.simplefilter("error")  # the renders in the block do not warn by themselves
+        with overflow_note("unicorn-eval"):
+            for _ in range(3):
+                rasterize_meshes(verts, faces, 16, 0.0, 2)
+                rasterize_meshes(verts, faces, 16, 0.0, 1)  # another setting: counted apart
+            rasterize_meshes(verts, faces, 16, 0.0, 8)  # no overflow with this setting: not in the share
+        with overflow_note("unicorn-reconstruct"):
+            rasterize_meshes(verts, faces, 16, 0.0, 8)  # nothing to say
+        with pytest.raises(RuntimeError), overflow_note("unicorn-reconstruct"):
+            rasterize_meshes(verts, faces, 16, 0.0, 2)
+            raise RuntimeError("the command failed: its error is what matters")
+    notes = [r.getMessage() for r in caplog.records if "faces_per_pixel" in r.getMessage()]
+    assert notes == [
+        "note: unicorn-eval: 100% of the 768 pixels rendered with faces_per_pixel=1 had more candidate faces within "
+        "the blur radius, and lost their farthest ones; 100% of the 768 pixels rendered with faces_per_pixel=2 had "
+        "more candidate faces within the blur radius, and lost their farthest ones (faces_per_pixel is the "
+        "checkpoint's renderer setting: renderer.faces_per_pixel in training)"
+    ]

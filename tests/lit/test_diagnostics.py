@@ -13,13 +13,17 @@ import torch
 from torch import nn
 
 from tests.support.model import randomize_heads, tiny_config
+from tests.support.training import build_run
 from unicorn.config.schema import DiagnosticsConfig
+from unicorn.geometry.cameras import pixel_to_ndc
 from unicorn.lit import CodeDiagnostics, CollapseWarning, ViewpointWarning, code_diagnostics, pose_diagnostics
 from unicorn.lit.diagnostics import VIEWPOINT_SEED, collapse_reasons, viewpoint_reasons
+from unicorn.lit.run import fit
 from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 from unicorn.model.viewpoint import viewpoint_check
+from unicorn.render import RenderOverflowWarning, rasterize_meshes
 
 
 def _model() -> Unicorn:
@@ -238,3 +242,93 @@ def test_a_viewpoint_collapse_warns_from_stage_2(tmp_path, stage: int) -> None:
         assert callback.state_dict()["viewpoint_collapsed"] == callback.viewpoint_collapsed
         header = (tmp_path / "diagnostics.csv").read_text().splitlines()[0].split(",")
         assert {"pose/render-acc", "pose/render-azim-error", "pose/share-0", "pose/azim-bins"} <= set(header)
+
+
+def _overlapping_triangles(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` random triangles given in NDC at depths 1..n: verts (1, 3n, 3) float64 and faces (n, 3)."""
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(n, 3, 2, generator=g, dtype=torch.float64) * 2.4 - 1.2
+    z = torch.arange(1, n + 1, dtype=torch.float64)[:, None, None].expand(n, 3, 1)
+    return torch.cat([xy, z], -1).reshape(1, 3 * n, 3), torch.arange(3 * n).reshape(n, 3)
+
+
+def _naive_overflow(verts: torch.Tensor, faces: torch.Tensor, size: int, K: int) -> int:
+    """Pixels whose centre lies in more than K of the triangles (a loop over pixels and triangles)."""
+    tris = verts[0, :, :2][faces].tolist()
+    count = 0
+    for row in range(size):
+        for col in range(size):
+            px, py = pixel_to_ndc(torch.tensor([float(col), float(row)], dtype=torch.float64), size).tolist()
+            inside = 0
+            for a, b, c in tris:
+                d = [(v[0] - u[0]) * (py - u[1]) - (v[1] - u[1]) * (px - u[0]) for u, v in ((a, b), (b, c), (c, a))]
+                inside += all(x > 0 for x in d) or all(x < 0 for x in d)
+            count += inside > K
+    return count
+
+
+def test_the_overflow_share_is_logged_and_said_once_per_run(tmp_path) -> None:
+    model = _model()
+    callback = CodeDiagnostics(every_n_steps=1, max_images=8)
+    callback._images.extend(torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(5)).unbind(0))
+    logged: list[dict[str, float]] = []
+    logger = SimpleNamespace(log_metrics=lambda metrics, step: logged.append(metrics))
+    trainer = SimpleNamespace(global_step=0, loggers=[logger], default_root_dir=str(tmp_path))
+    module = _LitStandIn(model)
+    size, K = 16, 2
+    callback.on_fit_start(trainer, module)
+    try:
+        shares, caught_all = [], []
+        for seed, step in ((0, 3), (1, 6)):
+            verts, faces = _overlapping_triangles(8, seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # a render during fit does not warn by itself
+                for _ in range(2):  # two renders of the same meshes between the checks
+                    rasterize_meshes(verts, faces, size, 0.0, K)
+            shares.append(_naive_overflow(verts, faces, size, K) / (size * size))
+            trainer.global_step = step
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                callback.check(trainer, module)
+            caught_all += [w for w in caught if issubclass(w.category, RenderOverflowWarning)]
+        trainer.global_step = 7
+        callback.check(trainer, module)  # nothing rendered since the previous check
+    finally:
+        callback.on_fit_end(trainer, module)
+    assert min(shares) > 0
+    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv")))
+    assert [float(r["render/overflow-share"]) for r in rows[:2]] == pytest.approx(shares, abs=1e-12)
+    assert rows[2]["render/overflow-share"] == "nan"
+    assert [m["diagnostics/render/overflow-share"] for m in logged[:2]] == pytest.approx(shares, abs=1e-12)
+    # once per run, with the share and the setting to change; not again at the second check
+    assert len(caught_all) == 1
+    text = str(caught_all[0].message)
+    assert f"iterations 0-3, {100 * shares[0]:.2g}% of the 512 pixels rendered with faces_per_pixel=2" in text
+    assert "renderer.faces_per_pixel=N above 2" in text
+    # after fit the renderer warns by itself again
+    with pytest.warns(RenderOverflowWarning):
+        from unicorn.render import overflow
+
+        overflow._WARNED.discard(K)
+        rasterize_meshes(*_overlapping_triangles(8, 0), size, 0.0, K)
+
+
+def test_a_training_run_says_the_overflow_once(synthetic_cache, tmp_path) -> None:
+    run = build_run(
+        tmp_path,
+        "renderer.faces_per_pixel=1",
+        "callbacks.diagnostics.every_n_steps=2",
+        "callbacks.diagnostics.max_images=8",
+        "trainer.max_steps=4",
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit(run)
+    # none from the training steps' renders: one, from the first check, naming the share it logged
+    overflow = [w for w in caught if issubclass(w.category, RenderOverflowWarning)]
+    assert len(overflow) == 1 and overflow[0].filename.endswith("diagnostics.py"), [str(w.message) for w in overflow]
+    rows = list(csv.DictReader(open(run.output_dir / "diagnostics.csv")))
+    share = float(rows[0]["render/overflow-share"])
+    assert [r["step"] for r in rows] == ["2.0", "4.0"] and 0 < share < 1
+    assert f"iterations 0-2, {100 * share:.2g}% of the" in str(overflow[0].message)
+    assert "renderer.faces_per_pixel=N above 1 (e.g. 2" in str(overflow[0].message)

@@ -1,5 +1,7 @@
 """Rasterizer against independent oracles: open3d ray casting and a brute-force per-pixel loop."""
 
+import math
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -128,7 +130,7 @@ def test_fragments_match_brute_force(K):
 def test_overflow_counts_the_pixels_with_too_many_faces(K, monkeypatch):
     import warnings
 
-    from unicorn.render import raster
+    from unicorn.render import RenderOverflowWarning, overflow
 
     verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
     size, blur = 20, blur_radius_from_sigma(5e-4)
@@ -136,15 +138,51 @@ def test_overflow_counts_the_pixels_with_too_many_faces(K, monkeypatch):
     every = _brute_force(ndc.numpy(), faces.numpy(), size, blur, K=10**9)  # every candidate of every pixel
     expected = sum(len(cands) > K for image in every for cands in image)
     assert expected > 0
-    monkeypatch.setattr(raster, "_OVERFLOW_WARNED", set())
+    monkeypatch.setattr(overflow, "_WARNED", set())
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         for _ in range(3):
             frags = rasterize_meshes(ndc, faces, size, blur, K)
             assert frags.overflow == expected
             warnings.filterwarnings("ignore", message="unrelated")  # as Lightning does, which resets the registry
-    # reported once per setting and process, however often the filters change
+    # reported once per setting and process, however often the filters change, with the render's share
     assert [str(w.message).count(f"faces_per_pixel={K} ") for w in caught] == [1]
+    assert caught[0].category is RenderOverflowWarning and caught[0].filename == __file__
+    assert f"{100 * expected / (2 * size * size):.2g}% of this render's {2 * size * size} pixels" in str(
+        caught[0].message
+    )
+
+
+def test_an_overflow_counter_collects_the_renders_without_warning(monkeypatch):
+    import warnings
+
+    from unicorn.render import OverflowCounter, overflow
+
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
+    size, blur, K = 20, blur_radius_from_sigma(5e-4), 2
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    every = _brute_force(ndc.numpy(), faces.numpy(), size, blur, K=10**9)
+    expected = sum(len(cands) > K for image in every for cands in image)
+    monkeypatch.setattr(overflow, "_WARNED", set())
+    outer, inner = OverflowCounter(), OverflowCounter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails
+        with outer:
+            rasterize_meshes(ndc, faces, size, blur, K)
+            with inner:  # the innermost active counter takes the render
+                rasterize_meshes(ndc[:1], faces, size, blur, K + 1)
+            rasterize_meshes(ndc, faces, size, blur, 1000)  # nothing overflows: pixels only
+    assert (outer.overflow, outer.pixels, outer.faces_per_pixel) == (expected, 4 * size * size, K)
+    # the share is over the renders with the setting that overflowed: the others do not dilute it
+    assert outer.counts == {K: (expected, 2 * size * size), 1000: (0, 2 * size * size)}
+    assert outer.share == expected / (2 * size * size)
+    assert inner.pixels == size * size and inner.faces_per_pixel == (K + 1 if inner.overflow else 0)
+    assert outer.describe().startswith(f"{100 * outer.share:.2g}% of the 800 pixels rendered with faces_per_pixel={K}")
+    counts = outer.take()
+    assert counts.overflow == expected and outer == OverflowCounter() and math.isnan(outer.share)
+    outer.stop()  # not active: nothing happens
+    with pytest.warns(overflow.RenderOverflowWarning):  # no counter active any more: the warning is back
+        rasterize_meshes(ndc, faces, size, blur, K)
 
 
 def test_opaque_truncation_is_exact():

@@ -344,7 +344,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     """
     # heavy imports here: --help and argument errors stay fast
     from unicorn.evaluation import format_table, get_protocol
-    from unicorn.evaluation.session import evaluate_to_folder
+    from unicorn.evaluation.session import evaluate_to_folder, overflow_note
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
     from unicorn.metrics.sampling import check_point_count
@@ -378,18 +378,19 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
         "epoch": info.epoch,
         "step": info.step,
     }
-    result, paths = evaluate_to_folder(
-        model,
-        target,
-        options,
-        out,
-        meta,
-        mean_shape_iterations=args.mean_shape,
-        view_size=args.view_size,
-        turntable_frames=args.turntable_frames,
-        title=f"{target.dataset} ({args.split}): {Path(args.checkpoint).name}",
-        device=device,
-    )
+    with overflow_note("unicorn-eval"):  # once, instead of the renderer's warning
+        result, paths = evaluate_to_folder(
+            model,
+            target,
+            options,
+            out,
+            meta,
+            mean_shape_iterations=args.mean_shape,
+            view_size=args.view_size,
+            turntable_frames=args.turntable_frames,
+            title=f"{target.dataset} ({args.split}): {Path(args.checkpoint).name}",
+            device=device,
+        )
     print(format_table(result.table, result.columns))
     per_image = result.seconds / max(1, len(result.per_image))
     print(f"\n{len(result.per_image)} images in {result.seconds:.1f} s ({per_image:.3f} s/image)")

@@ -111,6 +111,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.cli.eval import _device, check_out_folder
     from unicorn.data.images import ImageLoadError
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
+    from unicorn.evaluation.session import overflow_note
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.images import check_padding
     from unicorn.io.provenance import command_line, provenance
@@ -149,7 +150,8 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     ]
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     start = time.perf_counter()
-    with staged_folder(out) as staging:  # a failure part-way leaves --out as it was
+    # a failure part-way leaves --out as it was; the renders' overflow is said once, not by the renderer
+    with overflow_note("unicorn-reconstruct"), staged_folder(out) as staging:
         records = reconstruct(
             model,
             items,

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,8 +25,9 @@ from unicorn.evaluation.metric_files import write_metrics
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
 from unicorn.evaluation.report import write_report
 from unicorn.io.staging import staged_folder
+from unicorn.render import OverflowCounter
 
-__all__ = ["EvalRequestError", "EvalTarget", "eval_command", "evaluate_to_folder", "settings_options"]
+__all__ = ["EvalRequestError", "EvalTarget", "eval_command", "evaluate_to_folder", "overflow_note", "settings_options"]
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +159,20 @@ def evaluate_to_folder(
             )
             paths.update(report)
     return result, {kind: Path(out) / path.relative_to(staging) for kind, path in paths.items()}
+
+
+@contextmanager
+def overflow_note(command: str) -> Iterator[OverflowCounter]:
+    """Count the block's renders that had more candidate faces than the renderer's ``faces_per_pixel`` (in place of
+    the renderer's warning) and log, once at its end, the share of pixels they make; nothing when there were none."""
+    with OverflowCounter() as counter:
+        yield counter
+    if counter.overflow:
+        log.warning(
+            "note: %s: %s (faces_per_pixel is the checkpoint's renderer setting: renderer.faces_per_pixel in training)",
+            command,
+            counter.describe(),
+        )
 
 
 class EvalRequestError(UserError, ValueError):

@@ -15,22 +15,23 @@ N iterations on the most recent training images:
 - ``active-dims``: the code size the schedule currently uses;
 - ``shape/mesh-spread``: how much the deformed templates of the images differ beyond their proportions
   (:func:`~unicorn.metrics.mesh_spread`, in units of their RMS radius): what the shape code does to the meshes,
-  whatever its own scale. On the synthetic benchmark's 20 test objects after training: about 0.03 for the cars
-  and 0.01 for the mugs (similar objects), 0.1-0.2 for tables, lamps and chairs;
+  whatever its own scale (typical figures: ``docs/training.md``, "Outputs");
 - ``pose/share-min``, ``pose/share-max``: the smallest and largest share of the images whose most likely pose
   candidate is each candidate; ``pose/azim-spread``: how much each candidate's azimuth offset varies across the
   images it is chosen for (std over those images divided by the offset's half range, averaged over the
   candidates chosen at least twice; :func:`pose_diagnostics`). Near 0, the pose branch picks one of K fixed
-  viewpoints whatever the image, and the views between them come out up to half a candidate's sector wrong; on
-  the synthetic cars in NMR views, whose poses are right, it is about 0.5-0.7; ``pose/share-<k>``: the share of the
-  images whose most likely candidate is candidate k; ``pose/azim-bins``: the share of twelve 30-degree azimuth bins
-  that the images' selected azimuths reach;
+  viewpoints whatever the image, and the views between them come out up to half a candidate's sector wrong;
+  ``pose/share-<k>``: the share of the images whose most likely candidate is candidate k; ``pose/azim-bins``: the
+  share of twelve 30-degree azimuth bins that the images' selected azimuths reach;
 - ``pose/render-acc``, ``pose/render-azim-error``: the pose branch read on renders of the model's own
   reconstructions of the images at azimuths drawn over the azimuth range
   (:func:`unicorn.model.viewpoint.viewpoint_check`, the same draws at every check): the share whose most likely
   candidate is the drawn view's, and the median azimuth error (degrees) of that candidate. No ground truth is
   needed: a model that reads viewpoints finds most renders' candidates; ``pose/render-chance`` (1 / K) is what a
-  guess scores.
+  guess scores;
+- ``render/overflow-share``: the share of the pixels rendered since the previous check (by the training steps,
+  validation and held-out scoring, not by the checks) that had more candidate faces than the renderer's
+  ``faces_per_pixel``; the first check that finds any warns once per run (:mod:`unicorn.lit.overflow`).
 
 Each goes to the loggers as ``diagnostics/<branch>/<name>`` and to ``<run>/diagnostics.csv`` (one row per
 check, columns ``<branch>/<name>``). A branch *collapses* when its last hidden layer has no active unit (its
@@ -65,10 +66,12 @@ from torch import nn
 from unicorn.config.schema import DiagnosticsConfig
 from unicorn.evaluation.tables import candidate_shares
 from unicorn.lit.heldout import append_csv_row
+from unicorn.lit.overflow import TrainingOverflow
 from unicorn.metrics import active_units, code_spread, mesh_spread
 from unicorn.model.config import CODE_BRANCHES, check_ranges
 from unicorn.model.pose import PoseOutput
 from unicorn.model.viewpoint import viewpoint_check
+from unicorn.render import OverflowCounter
 
 __all__ = [
     "CodeDiagnostics",
@@ -268,6 +271,7 @@ class CodeDiagnostics(L.Callback):
         self.collapsed: dict[str, list[str]] = {}  # branch -> reasons, while collapsed
         self._dims: dict[str, float] = {}  # branch -> active code size at the previous check
         self.history: list[dict[str, float]] = []
+        self.overflow = TrainingOverflow()  # the renders of fit, counted in place of the renderer's warning
 
     def state_dict(self) -> dict[str, Any]:
         """The kept images and the collapse state, saved in checkpoints so a resumed run measures the same."""
@@ -285,6 +289,14 @@ class CodeDiagnostics(L.Callback):
         self._dims = dict(state_dict["dims"])
         self.collapsed = {k: list(v) for k, v in state_dict["collapsed"].items()}
         self.viewpoint_collapsed = list(state_dict.get("viewpoint_collapsed", []))  # absent from older checkpoints
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.overflow.start(trainer.global_step)  # on every rank: no render warns by itself during fit
+
+    def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *exception: BaseException) -> None:
+        self.overflow.stop()
+
+    on_exception = on_fit_end  # a failed fit stops counting too
 
     @rank_zero_only
     def on_train_batch_end(
@@ -310,15 +322,17 @@ class CodeDiagnostics(L.Callback):
         if len(self._images) < 2:
             return None
         step = int(trainer.global_step)
+        overflow_share = self.overflow.share(step)
         images = torch.stack(list(self._images)).to(pl_module.device)
         was_training = pl_module.training
         pl_module.eval()  # batch-norm statistics must not see these images twice
         try:
-            with torch.random.fork_rng(devices=[pl_module.device] if pl_module.device.type == "cuda" else []):
+            devices = [pl_module.device] if pl_module.device.type == "cuda" else []
+            with torch.random.fork_rng(devices=devices), OverflowCounter():  # the check's own renders: not counted
                 stats = code_diagnostics(pl_module.model, images)
         finally:
             pl_module.train(was_training)
-        row: dict[str, float] = {"step": float(step)}
+        row: dict[str, float] = {"step": float(step), "render/overflow-share": overflow_share}
         for branch, values in stats.items():
             row.update({f"{branch}/{k}": v for k, v in values.items()})
         for branch, values in ((b, stats[b]) for b in CODE_BRANCHES if b in stats):

@@ -278,7 +278,7 @@ def evaluate_run(run: Run) -> Path:
     ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command.
     """
     from unicorn.config.schema import EvaluateConfig
-    from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, settings_options
+    from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, overflow_note, settings_options
     from unicorn.io.provenance import command_line, provenance
 
     settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
@@ -297,15 +297,16 @@ def evaluate_run(run: Run) -> Path:
     categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
     target = EvalTarget(d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images)
     log.info("evaluating the trained model on the %s split", settings.split)
-    evaluate_to_folder(
-        run.module.model,
-        target,
-        settings_options(settings, d.name, average_texture=run.module.constant_mean_textures),
-        out,
-        meta,
-        mean_shape_iterations=settings.mean_shape_iterations,
-        turntable_frames=settings.turntable_frames,
-        title=f"{d.name} ({settings.split}): {checkpoint.name}",
-    )
+    with overflow_note("the evaluation after training"):  # once, instead of the renderer's warning
+        evaluate_to_folder(
+            run.module.model,
+            target,
+            settings_options(settings, d.name, average_texture=run.module.constant_mean_textures),
+            out,
+            meta,
+            mean_shape_iterations=settings.mean_shape_iterations,
+            turntable_frames=settings.turntable_frames,
+            title=f"{d.name} ({settings.split}): {checkpoint.name}",
+        )
     log.info("evaluation report: %s", out / "report.html")
     return out

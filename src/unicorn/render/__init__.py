@@ -14,6 +14,7 @@ from .backends import HardRenderer, LayeredRasterizer, SoftRasRenderer
 from .fragments import DenseFragments, Fragments
 from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
+from .overflow import OverflowCounter, RenderOverflowWarning
 from .raster import (
     DEFAULT_MAX_RENDER_BYTES,
     MAX_RENDER_BYTES_ENV,
@@ -47,8 +48,10 @@ __all__ = [
     "LayeredRasterizer",
     "MeshRasterizer",
     "MeshRenderer",
+    "OverflowCounter",
     "RenderError",
     "RenderOutput",
+    "RenderOverflowWarning",
     "RenderSizeError",
     "SoftRasBlend",
     "SoftRasRenderer",

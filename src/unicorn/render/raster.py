@@ -25,7 +25,6 @@ Memory: a render is refused before anything is allocated when its fragments coul
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping
 
 import torch
@@ -34,6 +33,7 @@ from ..checks import SizeLimitError, check_mesh, check_rotations, check_translat
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from .fragments import Fragments
+from .overflow import note_overflow
 from .selection import Selection, select_pairs
 from .triangles import barycentric_and_distance, clip_barycentric, perspective_correct_barycentric
 
@@ -51,8 +51,6 @@ __all__ = [
     "rasterize_meshes",
 ]
 
-#: the faces_per_pixel settings whose overflow was already reported in this process (see rasterize_meshes)
-_OVERFLOW_WARNED: set[int] = set()
 #: bytes of one packed (pixel, face) pair, rounded up: four int64 indices, the inside flag, and barycentrics,
 #: distance and depth in float32 (53 bytes); autograd and the aggregators keep a few times that while rendering
 PAIR_BYTES = 64
@@ -186,7 +184,10 @@ def rasterize_meshes(
             UNICORN reference's): screen-space barycentrics, which interpolate affinely across the projected face.
 
     Returns:
-        :class:`~unicorn.render.fragments.Fragments`.
+        :class:`~unicorn.render.fragments.Fragments`. A pixel with more than ``faces_per_pixel`` candidates keeps
+        the nearest; ``Fragments.overflow`` counts such pixels, and the count goes to the active
+        :class:`~unicorn.render.overflow.OverflowCounter`, or else to a warning
+        (:class:`~unicorn.render.overflow.RenderOverflowWarning`) once per ``faces_per_pixel`` setting and process.
     """
     if check_inputs:
         check_mesh_inputs(verts_ndc, faces)
@@ -205,8 +206,7 @@ def rasterize_meshes(
     # one host read for both counts (the packed layout's sizes are data-dependent: see unicorn.render.selection)
     slot = kept.slot
     overflow, num_slots = torch.stack([kept.overflow, slot.max() + 1 if slot.numel() else slot.new_zeros(())]).tolist()
-    if overflow:
-        _warn_overflow(faces_per_pixel)
+    note_overflow(overflow, B * H * W, faces_per_pixel)
     return Fragments(
         pix=kept.pix, slot=slot, face=kept.face, inside=kept.inside, bary=bary, dists=dists, zbuf=zbuf,
         batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow,
@@ -238,20 +238,3 @@ def _recompute(
     dists = torch.where(kept.inside, -d2, d2)
     zbuf = (bary * tri[..., 2]).sum(-1)
     return bary, dists, zbuf
-
-
-def _warn_overflow(faces_per_pixel: int) -> None:
-    """Warn once per ``faces_per_pixel`` setting and process that some pixels dropped their farthest faces.
-
-    Python's own once-per-location registry is reset whenever any library changes the warning filters (Lightning
-    does, every step), which would repeat the line thousands of times in a training log; ``Fragments.overflow``
-    has the count of every call.
-    """
-    if faces_per_pixel in _OVERFLOW_WARNED:
-        return
-    _OVERFLOW_WARNED.add(faces_per_pixel)
-    warnings.warn(
-        f"some pixels had more than faces_per_pixel={faces_per_pixel} candidate faces and the farthest were "
-        "dropped (Fragments.overflow counts them; raise faces_per_pixel if it matters)",
-        stacklevel=3,
-    )

@@ -1,0 +1,56 @@
+"""The renderer's ``faces_per_pixel`` overflow during training: counted, logged as a share, said once per run.
+
+During fit every render adds to an :class:`unicorn.render.OverflowCounter` instead of warning by itself; each
+diagnostics check (:class:`unicorn.lit.CodeDiagnostics`) takes the share of the pixels rendered since the previous
+check that had more candidate faces than ``faces_per_pixel`` (``render/overflow-share`` in ``diagnostics.csv`` and
+the loggers), and the first check that finds any warns, with that share and the setting to raise.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+from unicorn.render import OverflowCounter, RenderOverflowWarning
+
+__all__ = ["TrainingOverflow"]
+
+
+class TrainingOverflow:
+    """The renders of one training run, counted between :meth:`start` and :meth:`stop`.
+
+    The counts come from the rasterizer's own host read (``Fragments.overflow``): counting adds no device
+    synchronisation to a training step. Renders in other threads, and those made inside another active
+    :class:`~unicorn.render.OverflowCounter` (the diagnostics' own, :meth:`CodeDiagnostics.check
+    <unicorn.lit.CodeDiagnostics.check>`), are not counted here.
+    """
+
+    def __init__(self) -> None:
+        self.counter = OverflowCounter()
+        self.since = 0  # the iteration of the previous share
+        self.warned = False  # once per run
+
+    def start(self, step: int) -> None:
+        """Count every render of this thread from iteration ``step`` on."""
+        self.since = int(step)
+        self.counter.start()
+
+    def stop(self) -> None:
+        """Stop counting (the renders warn by themselves again)."""
+        self.counter.stop()
+
+    def share(self, step: int) -> float:
+        """The share of the pixels rendered since the previous call that overflowed ``faces_per_pixel`` (NaN when
+        nothing was rendered); the first call that finds any emits a :class:`RenderOverflowWarning`."""
+        counts, since = self.counter.take(), self.since
+        self.since = int(step)
+        if counts.overflow and not self.warned:
+            self.warned = True
+            K = counts.faces_per_pixel
+            warnings.warn(
+                f"renderer: in the training renders of iterations {since}-{step}, {counts.describe()}. If that "
+                f"matters, train with renderer.faces_per_pixel=N above {K} (e.g. {2 * K}; memory and time grow "
+                "with it). diagnostics.csv and the loggers follow the share (render/overflow-share); said once per run",
+                RenderOverflowWarning,
+                stacklevel=2,
+            )
+        return counts.share
