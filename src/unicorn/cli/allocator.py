@@ -3,8 +3,7 @@
 A training step allocates and frees the same large buffers every iteration (parameter gradients, activations,
 the full-size weight gradients of the encoder's cropped 1-pixel convolutions). glibc hands every block above
 its mmap threshold (128 KiB at first, raised only to the size of the largest block freed so far) to the kernel
-and back, so each step page-faults those buffers in again (on a 2-core CPU: the tiny model's encoder forward +
-backward 112 ms with glibc's defaults, 93 ms without the round trips).
+and back, so each step page-faults those buffers in again (what that costs: ``docs/performance.md``).
 Raising the threshold to glibc's maximum (32 MiB) and the trim threshold to 256 MiB keeps them in the heap; the
 values computed are the same, the process may hold up to the trim threshold of freed memory.
 """

@@ -1,6 +1,6 @@
 """The evaluation protocols and the records of an evaluation: options, per-image samples, results.
 
-Protocols (UNICORN's, see ``datasets-and-eval.md`` section 2 and :mod:`unicorn.metrics`):
+Protocols (UNICORN's, see ``docs/evaluation.md`` and :mod:`unicorn.metrics`):
 
 - ``"shapenet"`` (``shapenet_nmr``, ``synthetic``): one fixed random view per test model. Per image:
   ``chamfer-L1`` / ``normal-cos`` after mapping the prediction into the ground-truth object frame with the
@@ -115,9 +115,8 @@ __all__ = [
     "protocol_for",
 ]
 
-# colour metrics leave out this many border pixels (input resolution) of each mask: measured on the synthetic cars
-# (a trained model's textures optimised per image against its inputs): colour ratio 0.32 on whole masks, 0.07 on
-# the interiors, i.e. the borders alone, where silhouettes differ and colours mix with the background, kept a floor
+#: colour metrics leave out this many border pixels (input resolution) of each mask: there silhouettes differ and
+#: colours mix with the background (why one: ``docs/evaluation.md``, "Instance columns")
 COLOR_INTERIOR = 1
 #: the colour columns' variants: "" each image inside its own silhouette, "-overlap" inside the pixels both cover
 COLOR_SUFFIXES = ("", "-overlap")
@@ -304,9 +303,9 @@ class EvalOptions:
         icp_iterations: ICP iterations (UNICORN: 100); 0 skips the ``-ICP`` metrics.
         mask_supersample: samples per pixel side of the hard renders scored against ground-truth masks (IoU,
             colours); a pixel is in the silhouette when more than half of its samples hit. Odd, so that no pixel
-            is exactly half covered: with 2 x 2 samples a half-covered pixel averages 0.5 and drops out, which
-            shrank 32 px silhouettes by 8 % of their area (IoU 0.893 instead of 0.912 for the main job's cars);
-            3 is also how the synthetic masks are made (3 x 3 rays per pixel).
+            is exactly half covered (with 2 x 2 samples a half-covered pixel averages 0.5 and drops out, which
+            shrinks silhouettes: ``docs/evaluation.md``, "Masks and keypoints"); 3 is also how the synthetic
+            masks are made (3 x 3 rays per pixel).
         visibility_supersample: supersampling of the hard render whose faces make the visible vertices of the
             keypoint transfer (UNICORN: 2).
         num_pairs: keypoint-transfer pairs (UNICORN: 10,000).

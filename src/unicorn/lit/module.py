@@ -23,10 +23,8 @@ Adam's moments are ``optim.adam_state``:
 - ``"shared"`` (the paper's and the reference's one Adam): both steps update one set of moments;
 - ``"per_step"``: one Adam per step kind over the same parameters. A parameter that both steps reach (the
   shared encoder) then gets each step's update normalised by that step's own gradient scale. With one set of
-  moments the pose step's larger encoder gradients set the second moment, the 3D step's encoder updates shrink
-  accordingly, and the encoder learns little of what only the 3D branches need (the object's colours and
-  proportions): measured on the synthetic cars, ground-truth poses in the 3D step, 400 3D steps, the colour
-  error ratio is 0.84 with shared moments and 0.53 with moments per step (experiments/instance_controls.py).
+  moments the pose step's larger encoder gradients set the second moment, and the 3D step's encoder updates
+  shrink accordingly (what that does to the colours: ``docs/training.md``, "Optimiser options").
 
 Stage state. The stage (1-4) and the texture-averaging probability are buffers of this module, and the code
 sizes and stage-1 switches are buffers of the model, so a checkpoint alone restores them (the stage callback,

@@ -22,9 +22,9 @@ query point (:meth:`~NearestNeighborIndex.query`) and the nearest query point of
 a point by taking its first occurrence.
 
 The queries take an optional visiting order of the query points: in :func:`spatial_order` (a Z-order curve)
-consecutive queries walk the same branches of a tree and find the same neighbours 2x faster on 100k-point
-clouds. A cloud queried many times under a similarity transform (an ICP's source) keeps one order for all its
-queries. The reference clouds' distinct points are kept in that order.
+consecutive queries walk the same branches of a tree and find the same neighbours faster
+(``docs/performance.md``, "Evaluation"). A cloud queried many times under a similarity transform (an ICP's source)
+keeps one order for all its queries. The reference clouds' distinct points are kept in that order.
 """
 
 from __future__ import annotations

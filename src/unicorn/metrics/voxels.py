@@ -24,10 +24,10 @@ Closed meshes (:func:`voxelize_mesh`, :func:`mesh_voxel_iou`) by ray parity at t
 Grid: ``resolution`` cells per axis over the cube ``[lo, hi]^3`` (default 32^3 over the unit cube
 [-0.5, 0.5]^3, the frame of ShapeNet-NMR objects and of SoftRas/Kato's voxel IoU); cell ``(i, j, k)`` (indexed
 x, y, z) has its centre at ``lo + (index + 0.5) * (hi - lo) / resolution``. A cell is occupied when its centre
-is inside the mesh, decided by ray parity with open3d's ``RaycastingScene.compute_occupancy`` (Embree; float32,
-about 25 times faster than a float64 torch ray caster, with identical grids on the test meshes). Meshes must
-be closed (watertight); for self-intersecting meshes parity counts regions covered an
-even number of times as outside. No gradient flows through occupancy, so nothing here needs torch.
+is inside the mesh, decided by ray parity with open3d's ``RaycastingScene.compute_occupancy`` (Embree; float32;
+against a float64 torch ray caster: ``docs/performance.md``, "The metrics"). Meshes must be closed (watertight);
+for self-intersecting meshes parity counts regions covered an even number of times as outside. No gradient flows
+through occupancy, so nothing here needs torch.
 
 Thin parts with no cell centre inside them vanish from a solid grid; pass ``surface_samples`` to also mark the
 cells that contain area-uniform surface samples (closer to the surface-then-fill voxelisation of Kato et al.).

@@ -37,7 +37,7 @@ class Conv2d(nn.Conv2d):
     untrained, beside it: :meth:`full_weight` and the state dict give the whole kernel (ResNet-18's shapes;
     a full kernel loads back into both parts), and inputs of any other size run the ordinary convolution with
     it. Training the full kernels instead means zero-filling, copying and updating (Adam) 512 x 512 x 3 x 3
-    gradients that are 8/9 zero: the main job runs 8 % slower at stage 4 (docs/performance.md).
+    gradients that are 8/9 zero (the cost: ``docs/performance.md``, "What keeps training fast on a CPU").
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -185,9 +185,8 @@ class ResNet18(nn.Module):
 
     Args:
         width: channels of the stem and the first stage, doubled at each later stage (64: ResNet-18 as
-            published and as UNICORN uses it). Half the width is a quarter of the multiply-adds, but measured
-            on the synthetic main job it reconstructs the colours worse and turns more views round
-            (docs/performance.md), so every preset keeps 64.
+            published and as UNICORN uses it). Half the width is a quarter of the multiply-adds; every preset
+            keeps 64 (the two compared: ``docs/performance.md``, "Settings that trade speed").
         image_size: the side of the square images it will be trained on, if known: convolutions whose single
             output pixel meets zero padding at that size then train only the taps that meet the image
             (:meth:`Conv2d.keep_taps_for`; layer 4 at 32 px). The outputs, gradients and state dict are those

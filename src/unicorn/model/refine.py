@@ -21,9 +21,9 @@ default, 0, moves every part from the first step).
 What one view can tell: by default the appearance and the silhouette are refined (the texture and background
 codes, the whole texture's colour offset, small vertex offsets held by a strong prior that bring the mesh's
 outline onto the image's, so the texture lands on the object's own pixels; the per-texel residual is held close to
-zero by a strong prior), and the shape code and the pose keep the network's prediction. Fitted to a single view,
-a free shape code or pose explains that view better but the object seen from elsewhere gets worse (measured by
-``benchmarks/refine.py`` on views the refinement never saw); ``lr_shape_code`` and the ``pose`` part turn them on.
+zero by a strong prior), and the shape code and the pose keep the network's prediction: fitted to a single view,
+they can explain that view at the expense of the others (``docs/reconstruct.md`` has the measurements on views the
+refinement never saw, ``benchmarks/refine.py``); ``lr_shape_code`` and the ``pose`` part turn them on.
 
 Backgrounds: a model with a background branch refines its background code with the other codes, so the
 background's pixels are explained by the background and the object keeps to its own. A model without one (trained
@@ -76,9 +76,8 @@ PARTS: dict[str, str] = {
 class RefineOptions:
     """How to refine (defaults: the ones ``unicorn-reconstruct --refine N`` uses).
 
-    The default parts, weights, learning rates and schedule were chosen on the validation cars of the synthetic
-    benchmark and checked on its test cars (``benchmarks/refine.py``: refined on one view, scored on the 23 others),
-    with the main job's model (``experiment=synthetic``).
+    How the defaults were chosen, and what they do on views the refinement never saw: ``docs/reconstruct.md``
+    (``benchmarks/refine.py``).
 
     Attributes:
         steps: Adam steps (0: the prediction itself).
