@@ -23,7 +23,7 @@ from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
 from unicorn.model.viewpoint import viewpoint_check
-from unicorn.render import RenderOverflowWarning, rasterize_meshes
+from unicorn.render import RenderOverflowWarning, overflow, rasterize_meshes
 
 
 def _model() -> Unicorn:
@@ -267,7 +267,8 @@ def _naive_overflow(verts: torch.Tensor, faces: torch.Tensor, size: int, K: int)
     return count
 
 
-def test_the_overflow_share_is_logged_and_said_once_per_run(tmp_path) -> None:
+def test_the_overflow_share_is_logged_and_said_once_per_run(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(overflow, "_WARNED", set())  # a render outside a counter would warn, whatever ran before
     model = _model()
     callback = CodeDiagnostics(every_n_steps=1, max_images=8)
     callback._images.extend(torch.rand(8, 3, 32, 32, generator=torch.Generator().manual_seed(5)).unbind(0))
@@ -307,13 +308,11 @@ def test_the_overflow_share_is_logged_and_said_once_per_run(tmp_path) -> None:
     assert "renderer.faces_per_pixel=N above 2" in text
     # after fit the renderer warns by itself again
     with pytest.warns(RenderOverflowWarning):
-        from unicorn.render import overflow
-
-        overflow._WARNED.discard(K)
         rasterize_meshes(*_overlapping_triangles(8, 0), size, 0.0, K)
 
 
-def test_a_training_run_says_the_overflow_once(synthetic_cache, tmp_path) -> None:
+def test_a_training_run_says_the_overflow_once(synthetic_cache, tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(overflow, "_WARNED", set())  # a render outside a counter would warn, whatever ran before
     run = build_run(
         tmp_path,
         "renderer.faces_per_pixel=1",
@@ -325,10 +324,10 @@ def test_a_training_run_says_the_overflow_once(synthetic_cache, tmp_path) -> Non
         warnings.simplefilter("always")
         fit(run)
     # none from the training steps' renders: one, from the first check, naming the share it logged
-    overflow = [w for w in caught if issubclass(w.category, RenderOverflowWarning)]
-    assert len(overflow) == 1 and overflow[0].filename.endswith("diagnostics.py"), [str(w.message) for w in overflow]
+    said = [w for w in caught if issubclass(w.category, RenderOverflowWarning)]
+    assert len(said) == 1 and said[0].filename.endswith("diagnostics.py"), [str(w.message) for w in said]
     rows = list(csv.DictReader(open(run.output_dir / "diagnostics.csv")))
     share = float(rows[0]["render/overflow-share"])
     assert [r["step"] for r in rows] == ["2.0", "4.0"] and 0 < share < 1
-    assert f"iterations 0-2, {100 * share:.2g}% of the" in str(overflow[0].message)
-    assert "renderer.faces_per_pixel=N above 1 (e.g. 2" in str(overflow[0].message)
+    assert f"iterations 0-2, {100 * share:.2g}% of the" in str(said[0].message)
+    assert "renderer.faces_per_pixel=N above 1 (e.g. 2" in str(said[0].message)
