@@ -24,12 +24,16 @@ evaluation does), and each candidate's reconstruction is scored with the trainin
   of the default protocol) of the selected candidate's reconstruction, over every view, over the views whose
   selected candidate is within 30 degrees, and over the others: how much of a model's mask IoU its pose misses
   cost;
-- the same shares per ground-truth elevation band when the elevations vary.
+- the same shares per ground-truth elevation band when the elevations vary;
+- with ``--by-azimuth``, a table per band of ground-truth azimuth: the share within 30 degrees, the share turned
+  round, and the views that select each candidate (:func:`by_azimuth`): a candidate selected for two bands half a
+  turn apart (side views seen from the left and from the right, say) is a fold.
 
 Wide gaps between ``any`` and ``selected`` with ``loss-best`` close to ``selected`` say that the candidates are
 there but the reconstruction loss cannot tell the right one from the others.
 
     python experiments/pose_candidates.py RUN/checkpoints/last.ckpt [RUN2/checkpoints/last.ckpt ...]
+    python experiments/pose_candidates.py --by-azimuth RUN/checkpoints/last.ckpt
 
 The dataset is the one each run was trained on (its synthetic settings), or ``--root``. About a minute per model
 on a 2-core CPU for the 480 test views of the default experiment.
@@ -123,12 +127,41 @@ def breakdown(c: dict[str, torch.Tensor]) -> dict[str, float]:
     return result
 
 
+def by_azimuth(c: dict[str, torch.Tensor], bins: int = 12) -> list[dict[str, object]]:
+    """Per band of ground-truth azimuth (``bins`` equal bands from 0 degrees): the views, the share whose selected
+    candidate is within 30 degrees, the share turned round, and how many views select each candidate (after the
+    global alignment, as :func:`breakdown`). A candidate selected for two bands half a turn apart is a fold: the
+    model sees those views as one."""
+    K, N = c["probs"].shape
+    chosen = c["probs"].argmax(0)
+    views = torch.arange(N)
+    Q = align_canonical_frame(c["R"][chosen, views], c["R_gt"])
+    selected = geodesic_error(Q @ c["R"][chosen, views], c["R_gt"])
+    azim_gt, _, _ = rotation_to_azim_elev_roll(c["R_gt"])
+    band = (torch.remainder(azim_gt, 360.0) * bins / 360.0).long().clamp(max=bins - 1)
+    rows = []
+    for b in range(bins):
+        m = band == b
+        n = int(m.sum())
+        rows.append(
+            {
+                "azimuth": f"{b * 360 // bins}-{(b + 1) * 360 // bins}",
+                "views": n,
+                "within 30": float((selected[m] < 30).float().mean()) if n else float("nan"),
+                "turned round": float((selected[m] > 150).float().mean()) if n else float("nan"),
+                "views per candidate": torch.bincount(chosen[m], minlength=K).tolist(),
+            }
+        )
+    return rows
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("checkpoints", nargs="+")
     p.add_argument("--root", default=None, help="the dataset folder (default: each run's own synthetic dataset)")
     p.add_argument("--dataset", default="synthetic", choices=("synthetic", "shapenet_nmr"), help="every test view")
     p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--by-azimuth", action="store_true", help="also a table per band of ground-truth azimuth")
     args = p.parse_args()
 
     results = {}
@@ -139,7 +172,16 @@ def main() -> None:
         root = args.root or dataset_root("synthetic", d.get("root"), d.get("categories"), d.get("synthetic"))
         size, categories = model.config["image_size"], d.get("categories")
         data = build_dataset(args.dataset, "test", str(root), img_size=size, categories=categories, views="all")
-        results[path] = breakdown(candidates(model, data, args.batch_size))
+        c = candidates(model, data, args.batch_size)
+        results[path] = breakdown(c)
+        if args.by_azimuth:
+            rows = by_azimuth(c)
+            print(f"{path}, per ground-truth azimuth band (degrees):")
+            print("| " + " | ".join(rows[0]) + " |")
+            print("|---" * len(rows[0]) + "|")
+            for row in rows:
+                cells = [f"{v:.2f}" if isinstance(v, float) else str(v) for v in row.values()]
+                print("| " + " | ".join(cells) + " |")
     keys = list(dict.fromkeys(k for r in results.values() for k in r))
     print("| model | " + " | ".join(keys) + " |")
     print("|---" * (len(keys) + 1) + "|")
