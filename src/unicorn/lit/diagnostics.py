@@ -274,13 +274,14 @@ class CodeDiagnostics(L.Callback):
         self.overflow = TrainingOverflow()  # the renders of fit, counted in place of the renderer's warning
 
     def state_dict(self) -> dict[str, Any]:
-        """The kept images and the collapse state, saved in checkpoints so a resumed run measures the same."""
+        """The kept images, the collapse state and the overflow counts, saved in checkpoints so a resumed run measures the same."""
         images = torch.stack(list(self._images)).cpu() if self._images else torch.zeros(0)
         return {
             "images": images,
             "dims": dict(self._dims),
             "collapsed": dict(self.collapsed),
             "viewpoint_collapsed": list(self.viewpoint_collapsed),
+            "overflow": self.overflow.state_dict(),
         }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
@@ -289,6 +290,8 @@ class CodeDiagnostics(L.Callback):
         self._dims = dict(state_dict["dims"])
         self.collapsed = {k: list(v) for k, v in state_dict["collapsed"].items()}
         self.viewpoint_collapsed = list(state_dict.get("viewpoint_collapsed", []))  # absent from older checkpoints
+        if "overflow" in state_dict:  # absent from older checkpoints
+            self.overflow.load_state_dict(state_dict["overflow"])
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.overflow.start(trainer.global_step)  # on every rank: no render warns by itself during fit

@@ -9,6 +9,7 @@ the loggers), and the first check that finds any warns, with that share and the 
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 from unicorn.render import OverflowCounter, RenderOverflowWarning
 
@@ -26,12 +27,23 @@ class TrainingOverflow:
 
     def __init__(self) -> None:
         self.counter = OverflowCounter()
-        self.since = 0  # the iteration of the previous share
+        self.since: int | None = None  # the iteration of the previous share
         self.warned = False  # once per run
 
+    def state_dict(self) -> dict[str, Any]:
+        """The counts since the previous share and whether the run warned: a resumed run's shares and its one
+        warning are those of an uninterrupted run."""
+        counts = {int(k): [int(over), int(rendered)] for k, (over, rendered) in self.counter.counts.items()}
+        return {"counts": counts, "since": self.since, "warned": self.warned}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.counter.counts = {int(k): (int(over), int(rendered)) for k, (over, rendered) in state["counts"].items()}
+        self.since, self.warned = state["since"], bool(state["warned"])
+
     def start(self, step: int) -> None:
-        """Count every render of this thread from iteration ``step`` on."""
-        self.since = int(step)
+        """Count every render of this thread from iteration ``step`` on (a restored run goes on from its state)."""
+        if self.since is None:
+            self.since = int(step)
         self.counter.start()
 
     def stop(self) -> None:
@@ -41,7 +53,7 @@ class TrainingOverflow:
     def share(self, step: int) -> float:
         """The share of the pixels rendered since the previous call that overflowed ``faces_per_pixel`` (NaN when
         nothing was rendered); the first call that finds any emits a :class:`RenderOverflowWarning`."""
-        counts, since = self.counter.take(), self.since
+        counts, since = self.counter.take(), self.since if self.since is not None else 0
         self.since = int(step)
         if counts.overflow and not self.warned:
             self.warned = True
