@@ -1,22 +1,133 @@
-"""``Registry``: register by name, refuse a second registration, build with the options a constructor names."""
+"""``Registry``: register by name, refuse a second registration, one error for an unknown name, options checked."""
 
 from __future__ import annotations
 
+from importlib.metadata import EntryPoint
+from string import Template
+
 import pytest
 
-from unicorn.registry import Registry
+import unicorn.registry as registry
+from unicorn.data.registry import build_dataset
+from unicorn.errors import UserError
+from unicorn.evaluation import get_protocol
+from unicorn.model.compositing import build_compositing
+from unicorn.model.config import LOSS_KEYS
+from unicorn.model.perceptual import build_perceptual
+from unicorn.model.pose_objectives import AssignedLoss, build_pose_objective
+from unicorn.model.viewpoint import build_viewpoint_supervision
+from unicorn.registry import Registry, UnknownNameError, UnknownOptionError
+from unicorn.render import build_renderer
 
 
-def test_register_list_and_build_with_the_named_options() -> None:
+def _things() -> Registry[tuple]:
     things: Registry[tuple] = Registry("thing", key="loss.thing")
 
     @things.register("pair")
     def pair(a: int, b: int = 2) -> tuple:
         return (a, b)
 
-    assert things.names() == ["pair"]
-    assert things.build("pair", a=1, c=3) == (1, 2)  # c is not pair's: ignored
+    return things
+
+
+def test_register_list_get_and_build() -> None:
+    things = _things()
+    assert things.names() == ["pair"] and "pair" in things and list(things) == ["pair"] and len(things) == 1
+    assert things.build("pair", {"a": 1}) == (1, 2)
+    assert things.get("pair")(3, 4) == (3, 4)
+    things.add("pair", things.get("pair"))  # the same entry again: nothing changes
     with pytest.raises(ValueError, match=r"thing 'pair' is already registered"):
-        things.register("pair")(pair)
-    with pytest.raises(ValueError, match=r"unknown loss.thing 'trio'; known: \['pair'\]"):
-        things.build("trio")
+        things.register("pair")(lambda: None)
+    with pytest.warns(UserWarning, match="replacing thing 'pair'"):
+        things.add("pair", lambda: "new", overwrite=True)
+    assert things.build("pair") == "new"
+    things.remove("pair")
+    assert things.names() == []
+
+
+def test_an_unknown_name_is_one_user_error_listing_the_known_ones() -> None:
+    with pytest.raises(UnknownNameError, match=r"unknown loss.thing 'trio'; known: \['pair'\]") as err:
+        _things().build("trio")
+    assert isinstance(err.value, UserError) and isinstance(err.value, ValueError)
+
+
+def test_unknown_options_are_refused_unless_they_are_keys_of_the_group() -> None:
+    things = _things()
+    with pytest.raises(UnknownOptionError, match=r"thing 'pair' takes no option 'c'; its options: \['a', 'b'\]") as err:
+        things.build("pair", {"a": 1, "c": 3})
+    assert isinstance(err.value, TypeError) and isinstance(err.value, UserError)
+    # a flat configuration group feeds several constructors, each taking its part: the group's other keys are left
+    # out, a key of no one's is still refused
+    assert things.build("pair", {"a": 1, "c": 3}, group_keys=("a", "b", "c")) == (1, 2)
+    with pytest.raises(UnknownOptionError, match="no option 'typo'"):
+        things.build("pair", {"a": 1, "typo": 3}, group_keys=("a", "b", "c"))
+
+
+def test_a_base_class_is_enforced_and_values_can_be_registered() -> None:
+    classes: Registry[type] = Registry("backend", base=Exception)
+    with pytest.raises(TypeError, match="must be a subclass of Exception"):
+        classes.add("x", object)
+    values: Registry[int] = Registry("size")
+    values.add("small", 1)
+    assert values.get("small") == 1 and values.items() == [("small", 1)]
+    with pytest.raises(ValueError, match="non-empty string"):
+        values.add("", 2)
+
+
+def _build_dataset(name: str, **options: object) -> object:
+    return build_dataset(name, "train", "/nowhere", **options)
+
+
+#: every family's build-by-name function, with a name that family has
+FAMILIES = {
+    "renderer": (build_renderer, "layered"),
+    "dataset": (_build_dataset, "lsun"),
+    "perceptual loss": (build_perceptual, "structural"),
+    "pose_objective": (build_pose_objective, "expected"),
+    "viewpoint": (build_viewpoint_supervision, "renders"),
+}
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_every_family_refuses_an_unknown_option_naming_it(family: str) -> None:
+    build, name = FAMILIES[family]
+    with pytest.raises(UnknownOptionError, match=rf"'{name}' takes no option 'colour'; its options: \[") as err:
+        build(name, colour=1)  # refused before anything is built or read
+    assert "\n" not in str(err.value) and isinstance(err.value, UserError)
+
+
+@pytest.mark.parametrize(
+    ("lookup", "message"),
+    [
+        (lambda: build_renderer("nope"), r"unknown renderer 'nope'; known: \['hard', 'layered', 'softras'"),
+        (lambda: _build_dataset("nope"), r"unknown dataset 'nope'; known: \['compcars', 'cub_200', 'folder', 'lsun'"),
+        (lambda: get_protocol("nope"), r"unknown protocol 'nope'; known: \['cub', 'images', 'p3d', 'shapenet'\]"),
+        (lambda: build_perceptual("nope"), r"unknown perceptual loss 'nope'; known: \['structural', 'vgg'\]"),
+        (lambda: build_pose_objective("nope"), r"unknown pose_objective 'nope'; known: \['assigned', 'assigned_best'"),
+        (lambda: build_viewpoint_supervision("nope"), r"unknown viewpoint 'nope'; known: \['renders'\]"),
+        (lambda: build_compositing("nope"), r"unknown compositing 'nope'; known: \['direct', 'reference'\]"),
+    ],
+)
+def test_every_family_names_the_known_ones_for_an_unknown_name(lookup, message: str) -> None:
+    with pytest.raises(UnknownNameError, match=message) as err:
+        lookup()
+    assert "\n" not in str(err.value)
+
+
+def test_the_loss_group_feeds_each_constructor_its_part() -> None:
+    loss = {key: None for key in LOSS_KEYS}
+    assert isinstance(build_pose_objective("assigned", **{**loss, "assignment_weight": 0.5}), AssignedLoss)
+    with pytest.raises(UnknownOptionError, match="no option 'assignment_wieght'"):
+        build_pose_objective("assigned", **loss, assignment_wieght=0.5)
+
+
+def test_entry_points_register_on_first_lookup_and_a_broken_one_warns(monkeypatch) -> None:
+    points = [
+        EntryPoint("template", "string:Template", "unicorn.things"),
+        EntryPoint("missing", "string:NoSuchThing", "unicorn.things"),
+    ]
+    monkeypatch.setattr(registry, "entry_points", lambda group: points if group == "unicorn.things" else [])
+    things: Registry[type] = Registry("thing", base=Template, entry_points="unicorn.things")
+    with pytest.warns(UserWarning, match=r"could not load thing entry point 'missing' \(string:NoSuchThing\)"):
+        assert things.names() == ["template"]
+    assert things.build("template", {"template": "$x"}).substitute(x=1) == "1"

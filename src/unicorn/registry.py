@@ -1,61 +1,171 @@
-"""Named constructors of one kind (timm-style registries): a decorator registers them, ``build`` makes one by name.
+"""Named things of one family, timm-style: a decorator (or :meth:`Registry.add`) registers them by name, and
+:meth:`Registry.get` / :meth:`Registry.build` look them up.
 
-The model's compositings, perceptual losses and pose objectives are each one :class:`Registry`;
-their modules expose ``register_*``, ``list_*`` and ``build_*`` functions bound to it.
+Every named family of the library is one :class:`Registry`: the renderer backends (:mod:`unicorn.render`, with the
+``unicorn.renderers`` entry points), the datasets (:mod:`unicorn.data.registry`), the evaluation protocols
+(:mod:`unicorn.evaluation.protocols`), the compositings (:mod:`unicorn.model.compositing`), the perceptual losses,
+the pose objectives and the viewpoint supervisions. Their modules expose ``register_*``, ``list_*`` and ``build_*``
+functions bound to it. An unknown name is one error everywhere, :class:`UnknownNameError`, whose message lists the
+known names; an option that a constructor does not take is :class:`UnknownOptionError`, whose message names it and
+lists the options taken.
 """
 
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
+from importlib.metadata import entry_points
 from typing import Any, Generic, TypeVar
 
-__all__ = ["Registry"]
+from unicorn.errors import UserError
 
-F = TypeVar("F", bound=Callable[..., Any])
+__all__ = ["Registry", "UnknownNameError", "UnknownOptionError", "check_options", "keyword_options"]
+
 T = TypeVar("T")
+F = TypeVar("F")
+
+
+class UnknownNameError(UserError, ValueError):
+    """A name that no entry of a registry has (the message lists the known ones)."""
+
+
+class UnknownOptionError(UserError, TypeError):
+    """An option that the named constructor does not take (the message names it and lists the ones it takes); a
+    ``TypeError``, as Python's own unexpected keyword argument."""
+
+
+def keyword_options(factory: Callable[..., Any]) -> list[str] | None:
+    """The names ``factory`` takes as keyword arguments, in order; None when it takes any (``**kwargs``)."""
+    params = inspect.signature(factory).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return [p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+
+
+def check_options(what: str, options: Iterable[str], accepted: Collection[str]) -> None:
+    """Refuse the first of ``options`` that is not ``accepted``.
+
+    Args:
+        what: the thing that takes the options, in the message (``"renderer 'layered'"``).
+
+    Raises:
+        UnknownOptionError: an option not in ``accepted`` (named; the accepted ones listed).
+    """
+    unknown = [key for key in options if key not in accepted]
+    if unknown:
+        raise UnknownOptionError(f"{what} takes no option {unknown[0]!r}; its options: {sorted(accepted)}")
 
 
 class Registry(Generic[T]):
-    """Constructors of one kind by name.
+    """Entries of one family by name: constructors (called by :meth:`build`) or plain values (read by :meth:`get`).
 
     Args:
         kind: what is registered, in the messages (``"compositing"``).
-        key: the config key that names one, in the unknown-name message (default: ``kind``).
+        key: the setting that names one, in the unknown-name message (default: ``kind``).
+        base: a class every entry must subclass (``nn.Module`` for renderers), or None.
+        entry_points: an entry-point group whose entries (``name = "package.module:Object"``) are registered on the
+            first lookup, or None. A broken entry point warns and is skipped.
     """
 
-    def __init__(self, kind: str, key: str | None = None) -> None:
-        self.kind, self.key = kind, key or kind
-        self._factories: dict[str, Callable[..., T]] = {}
+    def __init__(
+        self, kind: str, key: str | None = None, *, base: type | None = None, entry_points: str | None = None
+    ) -> None:
+        self.kind, self.key, self.base = kind, key or kind, base
+        self._entries: dict[str, T] = {}
+        self._entry_point_group = entry_points
 
-    def register(self, name: str) -> Callable[[F], F]:
-        """Decorator: register a constructor (a class or a function) as ``name``.
+    def add(self, name: str, entry: F, *, overwrite: bool = False) -> F:
+        """Register ``entry`` as ``name`` and return it. Registering the same entry again changes nothing.
 
         Raises:
-            ValueError: ``name`` is already registered.
+            ValueError: an empty name, or ``name`` registered to another entry (unless ``overwrite``, which warns).
+            TypeError: an entry that is not a subclass of ``base``.
         """
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a {self.kind} name must be a non-empty string, got {name!r}")
+        if self.base is not None and not (isinstance(entry, type) and issubclass(entry, self.base)):
+            raise TypeError(f"a {self.kind} must be a subclass of {self.base.__name__}, got {entry!r}")
+        old = self._entries.get(name)
+        if old is not None and old is not entry:
+            if not overwrite:
+                raise ValueError(
+                    f"{self.kind} {name!r} is already registered ({getattr(old, '__qualname__', old)}); "
+                    "pass overwrite=True to replace it"
+                )
+            warnings.warn(f"replacing {self.kind} {name!r}", stacklevel=3)
+        self._entries[name] = entry  # type: ignore[assignment]
+        return entry
 
-        def add(factory: F) -> F:
-            if name in self._factories:
-                raise ValueError(f"{self.kind} {name!r} is already registered")
-            self._factories[name] = factory
-            return factory
+    def register(self, name: str, *, overwrite: bool = False) -> Callable[[F], F]:
+        """Decorator: register a constructor (a class or a function) as ``name`` (see :meth:`add`)."""
+        return lambda entry: self.add(name, entry, overwrite=overwrite)
 
-        return add
+    def remove(self, name: str) -> None:
+        """Forget ``name`` (nothing happens when it is not registered)."""
+        self._entries.pop(name, None)
 
     def names(self) -> list[str]:
         """The registered names, sorted."""
-        return sorted(self._factories)
+        return sorted(self._loaded())
 
-    def build(self, name: str, **options: Any) -> T:
-        """The constructor registered as ``name``, called with the ``options`` its signature names (others are
-        ignored, so one config group can feed constructors that each take a part of it).
+    def __iter__(self) -> Iterator[str]:
+        """The registered names, in the order they were registered."""
+        return iter(list(self._loaded()))
+
+    def __len__(self) -> int:
+        return len(self._loaded())
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._loaded()
+
+    def items(self) -> list[tuple[str, T]]:
+        """``(name, entry)`` pairs, in the order they were registered."""
+        return list(self._loaded().items())
+
+    def get(self, name: str) -> T:
+        """The entry registered as ``name``.
 
         Raises:
-            ValueError: an unknown name (the known ones listed).
+            UnknownNameError: an unknown name (the known ones listed).
         """
-        if name not in self._factories:
-            raise ValueError(f"unknown {self.key} {name!r}; known: {self.names()}")
-        factory = self._factories[name]
-        accepted = inspect.signature(factory).parameters
+        entries = self._loaded()
+        if name not in entries:
+            raise UnknownNameError(f"unknown {self.key} {name!r}; known: {self.names()}")
+        return entries[name]
+
+    def build(self, name: str, options: Mapping[str, Any] | None = None, *, group_keys: Collection[str] = ()) -> Any:
+        """Call the constructor registered as ``name`` with ``options``.
+
+        Args:
+            name: a registered name.
+            options: keyword arguments of the constructor.
+            group_keys: the keys of the configuration group that ``options`` is, when one group feeds several
+                constructors that each take a part (the ``loss`` group): those the constructor does not take are
+                left out. Any other option it does not take is refused.
+
+        Raises:
+            UnknownNameError: an unknown name (the known ones listed).
+            UnknownOptionError: an option that is neither the constructor's nor one of ``group_keys``.
+        """
+        factory: Callable[..., Any] = self.get(name)  # type: ignore[assignment]
+        options = dict(options or {})
+        accepted = keyword_options(factory)
+        if accepted is None:  # it takes any keyword: it checks its own options
+            return factory(**options)
+        check_options(f"{self.kind} {name!r}", (k for k in options if k not in group_keys), accepted)
         return factory(**{k: v for k, v in options.items() if k in accepted})
+
+    def _loaded(self) -> dict[str, T]:
+        """The entries, after registering the entry points' on first use."""
+        if self._entry_point_group is not None:
+            group, self._entry_point_group = self._entry_point_group, None
+            for ep in entry_points(group=group):
+                if ep.name in self._entries:
+                    continue
+                try:
+                    self.add(ep.name, ep.load())
+                except Exception as err:  # a broken plugin must not break the built-in entries
+                    message = f"could not load {self.kind} entry point {ep.name!r} ({ep.value}): {err}"
+                    warnings.warn(message, stacklevel=3)
+        return self._entries

@@ -11,9 +11,16 @@ import pytest
 import unicorn.data.synthetic.writer as writer
 from unicorn.cli.eval import build_parser
 from unicorn.data import DatasetNotFoundError
-from unicorn.data.images import DatasetError
-from unicorn.data.registry import DATASET_NAMES, build_dataset, dataset_root, prepare_dataset, val_indices
-from unicorn.evaluation import PROTOCOLS
+from unicorn.data.registry import (
+    DATASET_NAMES,
+    build_dataset,
+    dataset_root,
+    dataset_spec,
+    prepare_dataset,
+    val_indices,
+)
+from unicorn.evaluation import protocol_for
+from unicorn.registry import UnknownNameError, UnknownOptionError
 
 #: every dataset a user can name (README, docs/datasets.md), in the order the commands list them, with the
 #: reference's validation subset size and the evaluation protocol that scores it
@@ -61,7 +68,9 @@ def test_data_does_not_import_lightning() -> None:
 def test_one_registry_names_every_dataset_for_training_evaluation_and_the_cli() -> None:
     choices = next(a.choices for a in build_parser()._actions if a.dest == "dataset")
     assert list(choices) == list(DATASET_NAMES) == list(EXPECTED_DATASETS)
-    assert dict(PROTOCOLS) == {name: protocol for name, (_, protocol) in EXPECTED_DATASETS.items()}
+    assert {name: protocol_for(name) for name in DATASET_NAMES} == {
+        name: protocol for name, (_, protocol) in EXPECTED_DATASETS.items()
+    }
     # the validation subset each dataset gets from a split larger than it
     assert {name: len(val_indices(name, 1000)) for name in DATASET_NAMES} == {
         name: size for name, (size, _) in EXPECTED_DATASETS.items()
@@ -69,10 +78,11 @@ def test_one_registry_names_every_dataset_for_training_evaluation_and_the_cli() 
 
 
 def test_unknown_dataset_names_the_known_ones() -> None:
-    with pytest.raises(DatasetError, match=r"unknown dataset 'imagenet'; choose from \['shapenet_nmr'"):
+    with pytest.raises(UnknownNameError, match=r"unknown dataset 'imagenet'; known: \['compcars', 'cub_200', 'folder'"):
         build_dataset("imagenet", "train", "/nowhere")
-    with pytest.raises(DatasetError, match="unknown dataset"):
-        val_indices("imagenet", 10)
+    for lookup in (lambda: val_indices("imagenet", 10), lambda: dataset_root("imagenet", "/nowhere")):
+        with pytest.raises(UnknownNameError, match="unknown dataset"):
+            lookup()
 
 
 def test_synthetic_data_is_generated_only_where_asked(tmp_path: Path, monkeypatch) -> None:
@@ -89,3 +99,13 @@ def test_synthetic_data_is_generated_only_where_asked(tmp_path: Path, monkeypatc
     prepare_dataset("synthetic", missing, synthetic={"generate": True})  # asked for
     assert [g["root"] for g in generated] == [None, tmp_path / "cache" / "synthetic_32px", tmp_path, missing]
     assert all("generate" not in g for g in generated)  # not a generator option
+
+
+def test_each_dataset_takes_its_evaluation_options_and_refuses_others() -> None:
+    for name in DATASET_NAMES:
+        spec = dataset_spec(name)
+        assert set(spec.eval_options) <= set(spec.options), name
+        assert not {"root", "split", "img_size", "on_error"} & set(spec.options), name  # set by the registry
+    assert dataset_spec("lsun").options == ("tag", "cleaned", "padding", "jitter")
+    with pytest.raises(UnknownOptionError, match=r"dataset 'compcars' takes no option 'tag'; its options: \[\]"):
+        build_dataset("compcars", "train", "/nowhere", tag="car")

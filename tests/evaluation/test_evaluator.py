@@ -469,12 +469,15 @@ def test_candidate_shares_helper() -> None:
 def test_protocol_registry_says_what_each_protocol_scores() -> None:
     from unicorn.data.registry import DATASETS
     from unicorn.evaluation import PROTOCOL_REGISTRY, get_protocol
+    from unicorn.registry import UnknownNameError
 
-    assert {spec.protocol for spec in DATASETS.values()} == set(PROTOCOL_REGISTRY)
+    assert {spec.protocol for _, spec in DATASETS.items()} == set(PROTOCOL_REGISTRY)
     shapenet, cub, p3d, images = (get_protocol(n) for n in ("shapenet", "cub", "p3d", "images"))
     assert shapenet.meshes == "posed" and shapenet.poses and shapenet.training_clouds
     assert p3d.meshes == "icp" and not p3d.poses and cub.keypoints and not images.masks
-    with pytest.raises(ValueError, match=r"protocol must be one of \['cub', 'images', 'p3d', 'shapenet'\]"):
+    with pytest.raises(
+        UnknownNameError, match=r"unknown protocol 'kitti'; known: \['cub', 'images', 'p3d', 'shapenet'\]"
+    ):
         EvalOptions(protocol="kitti")
     with pytest.raises(ValueError, match="oracle_pose needs"):
         EvalOptions(protocol="p3d", oracle_pose=True)

@@ -92,7 +92,7 @@ def test_a_registered_pose_objective_is_allowed(monkeypatch) -> None:
     # an objective registered by the user's code is accepted by the check with no list to update
     with pytest.raises(ValueError, match=r"loss\.pose_objective must be one of"):
         merge_config(loss={"pose_objective": "mine"})
-    monkeypatch.setitem(pose_objectives._POSE_OBJECTIVES._factories, "mine", ExpectedLoss)
+    monkeypatch.setitem(pose_objectives._POSE_OBJECTIVES._entries, "mine", ExpectedLoss)
     assert merge_config(loss={"pose_objective": "mine"})["loss"]["pose_objective"] == "mine"
 
 

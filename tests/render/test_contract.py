@@ -5,6 +5,7 @@ import torch
 
 from tests.support.render import template_scene
 from unicorn.geometry.cameras import PerspectiveCamera
+from unicorn.registry import UnknownNameError, UnknownOptionError
 from unicorn.render import (
     HardBlend,
     LayeredBlend,
@@ -39,13 +40,15 @@ def test_registry_round_trip_and_third_party_backend():
     assert {"layered", "softras", "hard", "test-flat"} <= set(names)
     assert get_renderer_class("layered") is LayeredRasterizer
     assert isinstance(build_renderer("test-flat", image_size=16), FlatRenderer)
-    with pytest.raises(KeyError, match="already registered"):
+    with pytest.raises(ValueError, match="already registered"):
         register_renderer("layered")(FlatRenderer)
-    with pytest.raises(KeyError, match="unknown renderer 'nope'; available: .*layered"):
+    with pytest.raises(UnknownNameError, match=r"unknown renderer 'nope'; known: \[.*'layered'"):
         build_renderer("nope")
-    with pytest.raises(TypeError, match="bad options for renderer 'layered'"):
+    with pytest.raises(UnknownNameError, match=r"unknown renderer 'nope'"):
+        get_renderer_class("nope")
+    with pytest.raises(UnknownOptionError, match="renderer 'layered' takes no option 'sigmaa'"):
         build_renderer("layered", sigmaa=1.0)
-    with pytest.raises(TypeError, match="nn.Module"):
+    with pytest.raises(TypeError, match="must be a subclass of Module"):
         register_renderer("broken")(object)
     register_renderer("tmp")(FlatRenderer)
     unregister_renderer("tmp")

@@ -235,7 +235,7 @@ def test_non_finite_textures_are_named(renderer, bad):
 @pytest.mark.parametrize("name", list_renderers())
 @pytest.mark.parametrize("size", [2.5, "abc", True, (16, 2.0), (16, 16, 16), -3])
 def test_bad_image_sizes_are_named(name, size):
-    with pytest.raises((TypeError, ValueError), match=r"^(bad options for renderer '[^']+': )?image_size must be"):
+    with pytest.raises((TypeError, ValueError), match=r"^image_size must be"):
         build_renderer(name, image_size=size)
 
 

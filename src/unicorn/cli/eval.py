@@ -24,7 +24,7 @@ from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import UsageError, add_debug_argument, report_errors, whole_number
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
-from unicorn.data.registry import DATASET_NAMES
+from unicorn.data.registry import DATASET_NAMES, DATASETS, dataset_root
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.config import describe_range, field_range
 
@@ -278,12 +278,11 @@ def _out_dir(args: argparse.Namespace, info: Any, dataset: str) -> Path:
 
 
 def _run_root(run_data: dict[str, Any]) -> str | None:
-    """The dataset folder of a training run's ``dataset`` config (synthetic runs name the cache's parent folder)."""
-    if run_data.get("name") != "synthetic":
+    """The dataset folder of a training run's ``dataset`` config (runs on generated data name the parent folder)."""
+    name = run_data.get("name")
+    if name not in DATASETS or not DATASETS.get(name).generated:
         return run_data.get("root")
-    from unicorn.data import dataset_root
-
-    return str(dataset_root("synthetic", run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
+    return str(dataset_root(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
 
 
 def _target(args: argparse.Namespace, info: Any) -> Any:

@@ -97,6 +97,7 @@ def _check_values(cfg: DictConfig) -> None:
         isinstance(cfg.seed, int) and 0 <= cfg.seed <= MAX_SEED,
         f"seed must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {cfg.seed}",
     )
+    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     _check_model(cfg)
     _check_sizes(cfg)
     stored = stored_image_size(cfg.dataset.name, cfg.dataset.synthetic)
@@ -113,7 +114,6 @@ def _check_values(cfg: DictConfig) -> None:
         cfg.init_from is None or cfg.ckpt_path is None,
         "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights",
     )
-    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     on_error, d = typing.get_args(OnError), cfg.dataset
     _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")
     workers, pin = d.num_workers, d.pin_memory

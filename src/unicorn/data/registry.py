@@ -10,6 +10,7 @@ at the dataset size. The Lightning DataModule built on these is :class:`unicorn.
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
 from collections.abc import Callable, Mapping
@@ -27,6 +28,7 @@ from unicorn.data.images import DatasetError, DatasetNotFoundError
 from unicorn.data.lsun import LSUN
 from unicorn.data.p3d import Pascal3DCar
 from unicorn.data.shapenet import ShapeNetNMR
+from unicorn.registry import Registry, check_options, keyword_options
 
 __all__ = [
     "DATASETS",
@@ -92,35 +94,99 @@ def _unsplit(cls: type) -> Callable[..., Dataset]:
     return build
 
 
+def _options(cls: type, *set_here: str) -> tuple[str, ...]:
+    """The keyword arguments of a dataset class that are a user's options: all but ``set_here``, which the
+    registry's builder sets."""
+    return tuple(key for key in keyword_options(cls) or () if key not in set_here)
+
+
+_SHAPENET_OPTIONS = _options(ShapeNetNMR, "root", "categories", "split", "seed", "on_error")
+_UNSPLIT_SET = ("root", "img_size", "augment", "on_error")
+
+
+def _stored_as_is(root: Any, categories: Any = None, synthetic: Any = None) -> Path:
+    return Path(str(root))
+
+
+def _no_stored_size(synthetic: Mapping[str, Any] | None) -> int | None:
+    return None
+
+
 @dataclass(frozen=True)
 class DatasetSpec:
-    """One dataset: how to build a split, the validation subset, and what evaluation does with it.
+    """One dataset: how to build a split, where it is read from, the validation subset, and what evaluation does
+    with it.
 
     Attributes:
         build: ``(root, split, img_size, categories, seed, on_error, **options) -> Dataset``.
         val_size: the reference's validation subset size.
-        val_pick: ``(n, size) -> indices`` of the validation subset of a split of n items.
         protocol: the evaluation protocol (:mod:`unicorn.evaluation`): ``shapenet``, ``cub``, ``p3d``, ``images``.
+        options: the names of the ``**options`` that ``build`` takes (the dataset class's other arguments).
+        val_pick: ``(n, size) -> indices`` of the validation subset of a split of n items.
         eval_options: extra dataset options when evaluating (ground-truth points, the keypoint frame).
+        folder: ``(root, categories, synthetic) -> Path``, the folder the dataset is read from (default: ``root``).
+        prepare: ``(root, categories, synthetic) -> Path``, the folder after making the data where it is made on
+            first use (default: :attr:`folder`; the data is read as it is).
+        stored_size: ``(synthetic) -> int | None``, the side of the images as stored when the loader does not
+            resize them to ``img_size`` (default: None).
     """
 
     build: Callable[..., Dataset]
     val_size: int
     protocol: str
+    options: tuple[str, ...] = ()
     val_pick: Callable[[int, int], list[int]] = _first
     eval_options: Mapping[str, Any] = field(default_factory=dict)
+    folder: Callable[..., Path] = _stored_as_is
+    prepare: Callable[..., Path] | None = None
+    stored_size: Callable[[Mapping[str, Any] | None], int | None] = _no_stored_size
+
+    @property
+    def generated(self) -> bool:
+        """Whether the data is made on first use (under a default folder: no root needed)."""
+        return self.prepare is not None
 
 
-#: every dataset by name: the one list of names, validation sizes and protocols
-DATASETS: dict[str, DatasetSpec] = {
-    "shapenet_nmr": DatasetSpec(_shapenet, 32, "shapenet", eval_options={"with_points": True}),
-    "synthetic": DatasetSpec(_shapenet, 32, "shapenet", eval_options={"with_points": True}),  # read as ShapeNet-NMR
-    "cub_200": DatasetSpec(_cub, 5, "cub", val_pick=_shuffled, eval_options={"eval_size": 256}),
-    "p3d_car": DatasetSpec(_p3d, 5, "p3d"),
-    "compcars": DatasetSpec(_unsplit(CompCars), 5, "images"),
-    "lsun": DatasetSpec(_unsplit(LSUN), 5, "images", val_pick=_from_offset),
-    "folder": DatasetSpec(_unsplit(ImageFolder), 5, "images"),
-}
+def _synthetic_folder(root: Any, categories: Any = None, synthetic: Mapping[str, Any] | None = None) -> Path:
+    # imported here: the generator pulls in open3d, which real-data training never needs
+    from unicorn.data.synthetic.writer import synthetic_dataset_path
+
+    args = synthetic_options(root, categories, synthetic)
+    return synthetic_dataset_path(args["category"], args["mode"], args["n_models"], args["seed"], args["root"])
+
+
+def _synthetic_prepare(root: Any, categories: Any = None, synthetic: Mapping[str, Any] | None = None) -> Path:
+    from unicorn.data.synthetic.writer import ensure_synthetic_dataset
+
+    options = synthetic_options(root, categories, synthetic)
+    _check_generation_root(options["root"], bool(options.pop("generate", False)))
+    return ensure_synthetic_dataset(**options)
+
+
+def _synthetic_stored_size(synthetic: Mapping[str, Any] | None) -> int:
+    from unicorn.data.synthetic.writer import generate_synthetic_dataset
+
+    default = inspect.signature(generate_synthetic_dataset).parameters["image_size"].default
+    return int(dict(synthetic or {}).get("image_size", default))
+
+
+#: every dataset by name: the one list of names, validation sizes, protocols and folders
+DATASETS: Registry[DatasetSpec] = Registry("dataset")
+_SHAPENET = DatasetSpec(_shapenet, 32, "shapenet", _SHAPENET_OPTIONS, eval_options={"with_points": True})
+DATASETS.add("shapenet_nmr", _SHAPENET)
+# generated on first use, then read as ShapeNet-NMR
+DATASETS.add(
+    "synthetic",
+    dataclasses.replace(
+        _SHAPENET, folder=_synthetic_folder, prepare=_synthetic_prepare, stored_size=_synthetic_stored_size
+    ),
+)
+_CUB_OPTIONS = _options(CUB200, "root", "split", "img_size", "on_error")
+DATASETS.add("cub_200", DatasetSpec(_cub, 5, "cub", _CUB_OPTIONS, _shuffled, eval_options={"eval_size": 256}))
+DATASETS.add("p3d_car", DatasetSpec(_p3d, 5, "p3d", _options(Pascal3DCar, "split", *_UNSPLIT_SET)))
+DATASETS.add("compcars", DatasetSpec(_unsplit(CompCars), 5, "images", _options(CompCars, *_UNSPLIT_SET)))
+DATASETS.add("lsun", DatasetSpec(_unsplit(LSUN), 5, "images", _options(LSUN, *_UNSPLIT_SET), _from_offset))
+DATASETS.add("folder", DatasetSpec(_unsplit(ImageFolder), 5, "images", _options(ImageFolder, *_UNSPLIT_SET)))
 DATASET_NAMES = tuple(DATASETS)
 #: the reference's validation subset sizes
 VAL_SIZES = {name: spec.val_size for name, spec in DATASETS.items()}
@@ -130,12 +196,9 @@ def dataset_spec(name: str) -> DatasetSpec:
     """The registry entry of a dataset name.
 
     Raises:
-        DatasetError: an unknown name (the known ones are listed).
+        unicorn.registry.UnknownNameError: an unknown name (the known ones are listed).
     """
-    try:
-        return DATASETS[name]
-    except KeyError:
-        raise DatasetError(f"unknown dataset {name!r}; choose from {list(DATASET_NAMES)}") from None
+    return DATASETS.get(name)
 
 
 def build_dataset(
@@ -158,11 +221,19 @@ def build_dataset(
         categories: ShapeNet / synthetic categories.
         seed: seed of the fixed evaluation view choice (ShapeNet).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
-        **options: extra constructor arguments of the dataset class (e.g. ``tag`` for LSUN, ``eval_size``).
+        **options: extra constructor arguments of the dataset class (e.g. ``tag`` for LSUN, ``eval_size``): its
+            entry's :attr:`DatasetSpec.options`.
+
+    Raises:
+        unicorn.registry.UnknownNameError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownOptionError: an option that the dataset does not take (its options listed).
+        DatasetError: an unknown split.
     """
+    spec = dataset_spec(name)
+    check_options(f"dataset {name!r}", options, spec.options)
     if split not in ("train", "val", "test"):
         raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
-    return dataset_spec(name).build(root, split, img_size, categories, seed, on_error, **options)
+    return spec.build(root, split, img_size, categories, seed, on_error, **options)
 
 
 def val_indices(name: str, n: int, size: int | None = None) -> list[int]:
@@ -196,12 +267,7 @@ def stored_image_size(name: str, synthetic: Mapping[str, Any] | None = None) -> 
     ``image_size`` (the generator's default unless ``synthetic`` gives one); None for the datasets whose loaders
     resize to ``img_size``, and for ShapeNet-NMR (64 px as published, but a synthetic set of another size may be
     read as one)."""
-    if name != "synthetic":
-        return None
-    from unicorn.data.synthetic.writer import generate_synthetic_dataset  # open3d: only for synthetic data
-
-    default = inspect.signature(generate_synthetic_dataset).parameters["image_size"].default
-    return int(dict(synthetic or {}).get("image_size", default))
+    return dataset_spec(name).stored_size(synthetic)
 
 
 def dataset_root(
@@ -211,13 +277,7 @@ def dataset_root(
     synthetic: dict[str, Any] | None = None,
 ) -> Path:
     """Folder a dataset is read from: ``root``, or for ``synthetic`` the generated dataset's folder under it."""
-    if name == "synthetic":
-        # imported here: the generator pulls in open3d, which real-data training never needs
-        from unicorn.data.synthetic.writer import synthetic_dataset_path
-
-        args = synthetic_options(root, categories, synthetic)
-        return synthetic_dataset_path(args["category"], args["mode"], args["n_models"], args["seed"], args["root"])
-    return Path(str(root))
+    return dataset_spec(name).folder(root, categories, synthetic)
 
 
 def prepare_dataset(
@@ -228,13 +288,8 @@ def prepare_dataset(
 ) -> Path:
     """Generate the ``synthetic`` dataset if it is absent (other datasets are read as they are); returns
     :func:`dataset_root`."""
-    if name == "synthetic":
-        from unicorn.data.synthetic.writer import ensure_synthetic_dataset
-
-        options = synthetic_options(root, categories, synthetic)
-        _check_generation_root(options["root"], bool(options.pop("generate", False)))
-        return ensure_synthetic_dataset(**options)
-    return dataset_root(name, root)
+    spec = dataset_spec(name)
+    return (spec.prepare or spec.folder)(root, categories, synthetic)
 
 
 def _check_generation_root(root: str | os.PathLike | None, generate: bool) -> None:

@@ -33,7 +33,6 @@ from unicorn.evaluation.mean_shape import fit_mean_shape
 from unicorn.evaluation.metric_files import format_table, write_metrics
 from unicorn.evaluation.protocols import (
     PROTOCOL_REGISTRY,
-    PROTOCOLS,
     EvalOptions,
     EvaluationResult,
     Protocol,
@@ -46,7 +45,6 @@ from unicorn.evaluation.rendering import hard_render, shaded_render, turntable, 
 from unicorn.evaluation.report import write_report
 
 __all__ = [
-    "PROTOCOLS",
     "PROTOCOL_REGISTRY",
     "EvalOptions",
     "EvaluableModel",

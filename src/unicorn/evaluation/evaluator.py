@@ -44,7 +44,7 @@ def build_eval_dataset(
     With ``max_images``, that many items spread evenly over the split (so every category is represented).
 
     Args:
-        name: a dataset name of :data:`PROTOCOLS`.
+        name: a registered dataset name (:data:`unicorn.data.registry.DATASETS`).
         root: its root folder (for ``synthetic``, the generated dataset, which holds ``metadata.yaml``).
         split: ``"train"``, ``"val"`` or ``"test"``.
         img_size: the model's input side (ShapeNet images keep their size and are resized in :func:`evaluate`).

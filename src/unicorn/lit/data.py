@@ -206,8 +206,8 @@ class UnicornDataModule(L.LightningDataModule):
             set_max_image_pixels(max_image_pixels)
         if max_image_bytes is not None:
             set_max_image_bytes(max_image_bytes)
-        dataset_spec(name)  # an unknown name fails here, naming the known ones
-        if name != "synthetic" and root is None:
+        spec = dataset_spec(name)  # an unknown name fails here, naming the known ones
+        if not spec.generated and root is None:
             raise DatasetError(f"dataset {name!r} needs a root folder (dataset.root)")
         self.name, self.root, self.img_size = name, root, int(img_size)
         # Hydra passes lists as ListConfig: normalise to plain str / list[str]

@@ -95,7 +95,7 @@ class HeldOutEvaluation(L.Callback):
 
     # ------------------------------------------------------------------ data
     def _build_dataset(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        from unicorn.evaluation import build_eval_dataset
+        from unicorn.evaluation import build_eval_dataset, get_protocol, protocol_for
 
         data = trainer.datamodule
         if data is None or not hasattr(data, "name"):
@@ -110,7 +110,8 @@ class HeldOutEvaluation(L.Callback):
             categories=data.categories,
             max_images=self.max_images,
         )
-        if self.mean_shape_iterations > 0 and self.icp_iterations > 0 and data.name in ("shapenet_nmr", "synthetic"):
+        clouds_known = get_protocol(protocol_for(data.name)).training_clouds
+        if self.mean_shape_iterations > 0 and self.icp_iterations > 0 and clouds_known:
             from unicorn.evaluation import fit_mean_shape, training_point_clouds
 
             clouds = training_point_clouds(root, data.categories, self.mean_shape_models, num_points=self.num_points)

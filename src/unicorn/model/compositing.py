@@ -62,7 +62,7 @@ def build_compositing(name: str) -> Compositing:
     """The compositing registered as ``name``.
 
     Raises:
-        ValueError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownNameError: an unknown name (the known ones listed).
     """
     return _COMPOSITINGS.build(name)
 

@@ -27,6 +27,7 @@ __all__ = [
     "CHOICES",
     "CODE_BRANCHES",
     "EncoderConfig",
+    "LOSS_KEYS",
     "LossConfig",
     "ModelConfigError",
     "ModelGroups",
@@ -250,6 +251,11 @@ class LossConfig:
     memory_size: int = ranged(1024, 1)
     n_bins: int = ranged(5, 1)
     min_angle: float = ranged(20.0, 0, 180)
+
+
+#: the keys of the ``loss`` group: the options of the constructors it names (perceptual loss, pose objective,
+#: viewpoint supervision), each of which takes its part of the group
+LOSS_KEYS = tuple(f.name for f in dataclasses.fields(LossConfig))
 
 
 @dataclass

@@ -28,6 +28,7 @@ from torch import nn
 
 from unicorn.checks import check_shape
 from unicorn.errors import UserError
+from unicorn.model.config import LOSS_KEYS
 from unicorn.model.filtering import separable_filter
 from unicorn.registry import Registry
 
@@ -293,13 +294,15 @@ def list_perceptual_losses() -> list[str]:
 
 
 def build_perceptual(name: str | None, **options: object) -> nn.Module | None:
-    """The perceptual loss registered as ``name`` (None: no perceptual loss), from the options its constructor names.
+    """The perceptual loss registered as ``name`` (None: no perceptual loss), from the options its constructor names;
+    the other keys of the ``loss`` group (:data:`~unicorn.model.config.LOSS_KEYS`) are left out.
 
     Raises:
-        ValueError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownNameError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownOptionError: an option that is neither the constructor's nor a ``loss`` key.
         VGGWeightsNotFoundError: ``"vgg"`` without weights.
     """
-    return None if name is None else _PERCEPTUAL_LOSSES.build(name, **options)
+    return None if name is None else _PERCEPTUAL_LOSSES.build(name, options, group_keys=LOSS_KEYS)
 
 
 @register_perceptual("vgg")

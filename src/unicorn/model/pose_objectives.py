@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 import torch
 
+from unicorn.model.config import LOSS_KEYS
 from unicorn.model.losses import candidate_assignment_loss
 from unicorn.registry import Registry
 
@@ -59,12 +60,14 @@ def list_pose_objectives() -> list[str]:
 
 
 def build_pose_objective(name: str, **options: Any) -> PoseObjective:
-    """The pose objective registered as ``name``, built from the options its constructor names.
+    """The pose objective registered as ``name``, built from the options its constructor names; the other keys of
+    the ``loss`` group (:data:`~unicorn.model.config.LOSS_KEYS`) are left out.
 
     Raises:
-        ValueError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownNameError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownOptionError: an option that is neither the constructor's nor a ``loss`` key.
     """
-    return _POSE_OBJECTIVES.build(name, **options)
+    return _POSE_OBJECTIVES.build(name, options, group_keys=LOSS_KEYS)
 
 
 def _weighted(weights: torch.Tensor, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

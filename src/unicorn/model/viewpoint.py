@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import torch
 
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.model.config import LOSS_KEYS
 from unicorn.model.pose import PoseHead, PoseOutput
 from unicorn.registry import Registry
 
@@ -260,12 +261,14 @@ def list_viewpoint_supervisions() -> list[str]:
 
 
 def build_viewpoint_supervision(name: str, **options: Any) -> ViewpointSupervision:
-    """The viewpoint supervision registered as ``name``, built from the options its constructor names.
+    """The viewpoint supervision registered as ``name``, built from the options its constructor names; the other
+    keys of the ``loss`` group (:data:`~unicorn.model.config.LOSS_KEYS`) are left out.
 
     Raises:
-        ValueError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownNameError: an unknown name (the known ones listed).
+        unicorn.registry.UnknownOptionError: an option that is neither the constructor's nor a ``loss`` key.
     """
-    return _SUPERVISIONS.build(name, **options)
+    return _SUPERVISIONS.build(name, options, group_keys=LOSS_KEYS)
 
 
 @register_viewpoint_supervision("renders")

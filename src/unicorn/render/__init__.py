@@ -27,6 +27,7 @@ from .raster import (
 )
 from .rasterizer import MeshRasterizer
 from .registry import (
+    RENDERERS,
     build_renderer,
     get_renderer_class,
     list_renderers,
@@ -49,6 +50,7 @@ __all__ = [
     "MeshRasterizer",
     "MeshRenderer",
     "OverflowCounter",
+    "RENDERERS",
     "RenderError",
     "RenderOutput",
     "RenderOverflowWarning",
