@@ -179,8 +179,10 @@ def test_non_finite_blur_radius_and_sigma_are_named(bad):
         LayeredRasterizer(sigma=bad)
     with pytest.raises(ValueError, match="sigma"):
         build_renderer("softras", sigma=bad)
-    with pytest.raises(ValueError, match="sigma and gamma must be > 0"):
+    with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
         build_renderer("softras", gamma=bad)
+    with pytest.raises(ValueError, match="sigma and gamma must be > 0"):  # SoftRas' own bound: 0 is refused too
+        build_renderer("softras", gamma=0.0)
 
 
 def test_texture_sizes_must_match_the_mesh(renderer):
@@ -275,7 +277,7 @@ def test_the_built_in_backends_take_the_memory_limit_as_an_option(name, monkeypa
     with pytest.raises(ValueError, match="over the limit of 1.86e-06 GiB"):
         build_renderer(name, image_size=16, max_bytes=2000)(verts, faces, tex, R=R, T=T)
     assert build_renderer(name, image_size=16, max_bytes=0)(verts, faces, tex, R=R, T=T).shape == (1, 4, 16, 16)
-    with pytest.raises(ValueError, match="max_bytes must be >= 0"):
+    with pytest.raises(ValueError, match="max_bytes must be a finite number >= 0, got -1"):
         build_renderer(name, max_bytes=-1)
 
 

@@ -131,5 +131,5 @@ def test_a_perspective_correct_that_is_not_a_boolean_is_refused_at_composition(t
     from tests.support.training import compose_config
     from unicorn.config import ConfigError, validate
 
-    with pytest.raises(ConfigError, match="renderer.perspective_correct must be true or false, got 'maybe'"):
+    with pytest.raises(ConfigError, match="renderer.perspective_correct must be True or False, got 'maybe'"):
         validate(compose_config(["renderer.perspective_correct=maybe", f"paths.output_dir={tmp_path}"]))

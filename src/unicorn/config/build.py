@@ -24,7 +24,7 @@ from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
 from unicorn.model import check_model_size
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config, check_ranges
-from unicorn.render import get_renderer_class, list_renderers
+from unicorn.render import BACKGROUND_COLOR, RenderError, check_render_option, get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
@@ -288,19 +288,14 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
                 key in _CAMERA_DEFAULTS and value == _CAMERA_DEFAULTS[key],
                 f"renderer.camera.{key}={value} is not supported by the model's camera",
             )
-    background_color = cfg.pop("background_color", (1.0, 1.0, 1.0))
+    background_color = cfg.pop("background_color", BACKGROUND_COLOR)
     unknown = sorted(set(cfg) - accepted)
     _check(not unknown, f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)})")
-    for key, low in (("faces_per_pixel", 1), ("supersample", 1), ("sigma", 0), ("gamma", 0), ("eps", 0)):
-        if key in cfg:
-            value = cfg[key]
-            _check(
-                isinstance(value, int | float) and math.isfinite(value) and value >= low,
-                f"renderer.{key} must be a finite number >= {low}, got {value!r}",
-            )
-    if "perspective_correct" in cfg:
-        value = cfg["perspective_correct"]
-        _check(isinstance(value, bool), f"renderer.perspective_correct must be true or false, got {value!r}")
+    for key, value in cfg.items():
+        try:
+            check_render_option(key, value)
+        except RenderError as err:
+            raise ConfigError(f"renderer.{err}") from None
     return {
         "name": name,
         "fov": fov,

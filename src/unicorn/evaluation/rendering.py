@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import torch
 
 from unicorn.evaluation.interface import EvaluableModel
-from unicorn.render import RenderOutput, TexturesVertex, build_renderer
+from unicorn.render import BACKGROUND_COLOR, RenderOutput, TexturesVertex, build_renderer
 
 __all__ = [
     "SHADE_COLOR",
@@ -38,7 +38,7 @@ def _hard(model: EvaluableModel, image_size: int, supersample: int, device: torc
         image_size=image_size,
         supersample=supersample,
         camera=model.renderer.camera,
-        background_color=(1.0, 1.0, 1.0),
+        background_color=BACKGROUND_COLOR,
     ).to(device)
 
 

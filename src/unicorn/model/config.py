@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from unicorn.errors import UserError
+from unicorn.render.settings import BACKGROUND_COLOR, DEFAULT_SETTINGS
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -187,6 +188,10 @@ class PoseConfig:
     n_layers: int = ranged(3, 0)
 
 
+#: the backend options a model configuration names by default (the layered backend's that the presets set)
+_LAYERED_OPTIONS = ("sigma", "faces_per_pixel", "perspective_correct")
+
+
 @dataclass
 class RendererConfig:
     """The model's renderer: a registered backend (:func:`unicorn.render.build_renderer`) and its camera.
@@ -198,11 +203,11 @@ class RendererConfig:
     name: str = "layered"
     fov: float | None = 30.0  # exactly one of fov and focal_length
     focal_length: float | None = None
-    background_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background_color: tuple[float, float, float] = BACKGROUND_COLOR
     composite: str = "direct"
-    # the backend's options (the other keys of conf/renderer/<name>.yaml; unicorn.render.MeshRasterizer)
+    # the backend's options (the other keys of conf/renderer/<name>.yaml; unicorn.render.RenderSettings)
     options: dict[str, Any] = field(
-        default_factory=lambda: {"sigma": 1e-4, "faces_per_pixel": 25, "perspective_correct": False}
+        default_factory=lambda: {key: getattr(DEFAULT_SETTINGS, key) for key in _LAYERED_OPTIONS}
     )
 
 

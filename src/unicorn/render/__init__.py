@@ -4,13 +4,13 @@ Pieces, PyTorch3D-style: a :class:`MeshRasterizer` turns projected meshes into p
 (:func:`rasterize_meshes`); textures give every fragment a colour; an aggregator (:class:`LayeredBlend`,
 :class:`SoftRasBlend`, :class:`HardBlend`, each with its function) composites them into images. A
 :class:`MeshRenderer` composes a rasterizer and an aggregator; the built-in compositions are registered by
-name::
+name, and take their options (defaults and ranges: :class:`RenderSettings`) as keywords::
 
     from unicorn.render import build_renderer, list_renderers
     renderer = build_renderer("layered", image_size=64, sigma=1e-4)
 """
 
-from .backends import HardRenderer, LayeredRasterizer, SoftRasRenderer
+from .backends import HardRenderer, LayeredRasterizer, LayeredRenderer, SoftRasRenderer
 from .fragments import DenseFragments, Fragments
 from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
@@ -35,10 +35,13 @@ from .registry import (
     unregister_renderer,
 )
 from .renderer import MeshRenderer, RenderOutput
+from .settings import BACKGROUND_COLOR, DEFAULT_SETTINGS, RenderSettings, check_render_option
 from .softras import SoftRasBlend, softras_blend
 from .textures import Textures, TexturesUV, TexturesVertex, interpolate_vertex_attributes
 
 __all__ = [
+    "BACKGROUND_COLOR",
+    "DEFAULT_SETTINGS",
     "DEFAULT_MAX_RENDER_BYTES",
     "MAX_RENDER_BYTES_ENV",
     "DenseFragments",
@@ -47,6 +50,7 @@ __all__ = [
     "HardRenderer",
     "LayeredBlend",
     "LayeredRasterizer",
+    "LayeredRenderer",
     "MeshRasterizer",
     "MeshRenderer",
     "OverflowCounter",
@@ -54,6 +58,7 @@ __all__ = [
     "RenderError",
     "RenderOutput",
     "RenderOverflowWarning",
+    "RenderSettings",
     "RenderSizeError",
     "SoftRasBlend",
     "SoftRasRenderer",
@@ -62,6 +67,7 @@ __all__ = [
     "TexturesVertex",
     "blur_radius_from_sigma",
     "build_renderer",
+    "check_render_option",
     "check_render_size",
     "get_renderer_class",
     "hard_blend",

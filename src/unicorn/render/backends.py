@@ -1,8 +1,11 @@
 """The built-in backends, registered by name: named compositions of a rasterizer and an aggregator.
 
-Each is a :class:`MeshRenderer` whose constructor takes the backend's options and builds the two parts:
+Each is a :class:`MeshRenderer` whose constructor takes the backend's options, checks them as one
+:class:`~unicorn.render.settings.RenderSettings` (kept as ``renderer.settings``; defaults and ranges are defined
+there) and builds the two parts:
 
-- ``layered`` (:class:`LayeredRasterizer`): soft top-K rasterization + :class:`LayeredBlend`.
+- ``layered`` (:class:`LayeredRenderer`, also importable as ``LayeredRasterizer``): soft top-K rasterization +
+  :class:`LayeredBlend`.
 - ``softras`` (:class:`SoftRasRenderer`): soft top-K rasterization, nothing truncated + :class:`SoftRasBlend`.
 - ``hard`` (:class:`HardRenderer`): supersampled hard rasterization + :class:`HardBlend`.
 """
@@ -18,13 +21,15 @@ from .raster import blur_radius_from_sigma
 from .rasterizer import MeshRasterizer
 from .registry import register_renderer
 from .renderer import MeshRenderer
+from .settings import DEFAULT_SETTINGS as D
+from .settings import RenderSettings
 from .softras import SoftRasBlend, check_temperatures
 
-__all__ = ["HardRenderer", "LayeredRasterizer", "SoftRasRenderer"]
+__all__ = ["HardRenderer", "LayeredRasterizer", "LayeredRenderer", "SoftRasRenderer"]
 
 
 @register_renderer("layered")
-class LayeredRasterizer(MeshRenderer):
+class LayeredRenderer(MeshRenderer):
     """UNICORN's renderer: soft top-K rasterization and layered alpha compositing.
 
     Occupancy ``exp(min(0, -d) / sigma)`` on squared NDC distances: 1 inside a face, fading over about a pixel
@@ -32,20 +37,18 @@ class LayeredRasterizer(MeshRenderer):
     edge), and faces behind the first opaque one are dropped exactly.
 
     Args:
-        image_size: H or (H, W).
-        sigma: occupancy temperature (1e-4 in the reference); 0 renders hard edges.
-        faces_per_pixel: K (25 for real images, 50 for ShapeNet in the reference).
-        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
-        background_color: see :class:`MeshRenderer`.
+        image_size, sigma, faces_per_pixel, background_color, max_candidates, max_bytes, perspective_correct: see
+            :class:`~unicorn.render.settings.RenderSettings` (sigma 0 renders hard edges).
+        camera: see :class:`MeshRasterizer`.
 
     Example:
         >>> import torch
         >>> from unicorn.geometry.mesh import icosphere
         >>> from unicorn.geometry.rotations import look_at_view_transform
-        >>> from unicorn.render import LayeredRasterizer, TexturesVertex
+        >>> from unicorn.render import LayeredRenderer, TexturesVertex
         >>> verts, faces = icosphere(2)
         >>> R, T = look_at_view_transform(dist=2.7, elev=30.0, azim=45.0)
-        >>> renderer = LayeredRasterizer(image_size=32)
+        >>> renderer = LayeredRenderer(image_size=32)
         >>> images = renderer(verts[None] * 0.5, faces, TexturesVertex(torch.rand(1, len(verts), 3)), R=R, T=T)
         >>> tuple(images.shape)
         (1, 4, 32, 32)
@@ -53,20 +56,29 @@ class LayeredRasterizer(MeshRenderer):
 
     def __init__(
         self,
-        image_size: int | Sequence[int] = 64,
-        sigma: float = 1e-4,
-        faces_per_pixel: int = 25,
+        image_size: int | Sequence[int] = D.image_size,
+        sigma: float = D.sigma,
+        faces_per_pixel: int = D.faces_per_pixel,
         camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-        max_bytes: int | None = None,
-        perspective_correct: bool = False,
+        background_color: Sequence[float] = D.background_color,
+        max_candidates: int = D.max_candidates,
+        max_bytes: int | None = D.max_bytes,
+        perspective_correct: bool = D.perspective_correct,
     ) -> None:
-        rasterizer = MeshRasterizer(
-            image_size, faces_per_pixel, blur_radius_from_sigma(sigma), camera, truncate_opaque=True,
+        s = RenderSettings(
+            image_size=image_size, sigma=sigma, faces_per_pixel=faces_per_pixel, background_color=background_color,
             max_candidates=max_candidates, max_bytes=max_bytes, perspective_correct=perspective_correct,
         )  # fmt: skip
-        super().__init__(rasterizer, LayeredBlend(sigma), background_color)
+        rasterizer = MeshRasterizer(
+            s.image_size, s.faces_per_pixel, blur_radius_from_sigma(s.sigma), camera, truncate_opaque=True,
+            max_candidates=s.max_candidates, max_bytes=s.max_bytes, perspective_correct=s.perspective_correct,
+        )  # fmt: skip
+        super().__init__(rasterizer, LayeredBlend(s.sigma), s.background_color)
+        self.settings = s
+
+
+#: the layered renderer's earlier name (it is a whole renderer, not a rasterizer), kept for the users who import it
+LayeredRasterizer = LayeredRenderer
 
 
 @register_renderer("softras")
@@ -74,40 +86,43 @@ class SoftRasRenderer(MeshRenderer):
     """SoftRasterizer-style aggregation (sigmoid occupancy, depth softmax with a background layer).
 
     Args:
-        image_size: H or (H, W).
-        sigma: occupancy temperature on squared NDC distances.
-        gamma: depth softmax temperature.
-        faces_per_pixel: K; unlike the layered renderer nothing is exactly hidden, so K must cover the depth
-            complexity within the blur radius.
-        eps: normalised inverse depth of the background layer.
+        image_size, sigma, gamma, eps, background_color, max_candidates, max_bytes, perspective_correct: see
+            :class:`~unicorn.render.settings.RenderSettings` (sigma and gamma > 0).
+        faces_per_pixel: K (50 here); unlike the layered renderer nothing is exactly hidden, so K must cover the
+            depth complexity within the blur radius.
         znear, zfar: depth normalisation; the camera's when None.
-        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
-        background_color: see :class:`MeshRenderer`.
+        camera: see :class:`MeshRasterizer`.
     """
 
     def __init__(
         self,
-        image_size: int | Sequence[int] = 64,
-        sigma: float = 1e-4,
-        gamma: float = 1e-4,
+        image_size: int | Sequence[int] = D.image_size,
+        sigma: float = D.sigma,
+        gamma: float = D.gamma,
         faces_per_pixel: int = 50,
-        eps: float = 1e-3,
+        eps: float = D.eps,
         znear: float | None = None,
         zfar: float | None = None,
         camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-        max_bytes: int | None = None,
-        perspective_correct: bool = False,
+        background_color: Sequence[float] = D.background_color,
+        max_candidates: int = D.max_candidates,
+        max_bytes: int | None = D.max_bytes,
+        perspective_correct: bool = D.perspective_correct,
     ) -> None:
-        check_temperatures(sigma, gamma)
+        s = RenderSettings(
+            image_size=image_size, sigma=sigma, gamma=gamma, faces_per_pixel=faces_per_pixel, eps=eps,
+            background_color=background_color, max_candidates=max_candidates, max_bytes=max_bytes,
+            perspective_correct=perspective_correct,
+        )  # fmt: skip
+        check_temperatures(s.sigma, s.gamma)
         rasterizer = MeshRasterizer(
-            image_size, faces_per_pixel, blur_radius_from_sigma(sigma), camera, max_candidates=max_candidates,
-            max_bytes=max_bytes, perspective_correct=perspective_correct,
+            s.image_size, s.faces_per_pixel, blur_radius_from_sigma(s.sigma), camera,
+            max_candidates=s.max_candidates, max_bytes=s.max_bytes, perspective_correct=s.perspective_correct,
         )  # fmt: skip
         znear = rasterizer.camera.znear if znear is None else znear
         zfar = rasterizer.camera.zfar if zfar is None else zfar
-        super().__init__(rasterizer, SoftRasBlend(sigma, gamma, znear, zfar, eps), background_color)
+        super().__init__(rasterizer, SoftRasBlend(s.sigma, s.gamma, znear, zfar, s.eps), s.background_color)
+        self.settings = s
 
 
 @register_renderer("hard")
@@ -119,26 +134,30 @@ class HardRenderer(MeshRenderer):
     ``render(...).fragments`` are at the supersampled resolution.
 
     Args:
-        image_size: H or (H, W) of the output.
-        supersample: integer supersampling factor (1 = none).
-        camera, max_candidates, max_bytes, perspective_correct: see :class:`MeshRasterizer`.
-        background_color: see :class:`MeshRenderer`.
+        image_size, supersample, background_color, max_candidates, max_bytes, perspective_correct: see
+            :class:`~unicorn.render.settings.RenderSettings` (``image_size`` is the output's).
+        camera: see :class:`MeshRasterizer`.
     """
 
     position_gradients = False
 
     def __init__(
         self,
-        image_size: int | Sequence[int] = 64,
-        supersample: int = 2,
+        image_size: int | Sequence[int] = D.image_size,
+        supersample: int = D.supersample,
         camera: PerspectiveCamera | None = None,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
-        max_candidates: int = 1 << 23,
-        max_bytes: int | None = None,
-        perspective_correct: bool = False,
+        background_color: Sequence[float] = D.background_color,
+        max_candidates: int = D.max_candidates,
+        max_bytes: int | None = D.max_bytes,
+        perspective_correct: bool = D.perspective_correct,
     ) -> None:
-        rasterizer = MeshRasterizer(
-            image_size, 1, 0.0, camera, truncate_opaque=True, supersample=supersample, max_candidates=max_candidates,
-            max_bytes=max_bytes, perspective_correct=perspective_correct,
+        s = RenderSettings(
+            image_size=image_size, supersample=supersample, background_color=background_color,
+            max_candidates=max_candidates, max_bytes=max_bytes, perspective_correct=perspective_correct,
         )  # fmt: skip
-        super().__init__(rasterizer, HardBlend(supersample), background_color)
+        rasterizer = MeshRasterizer(
+            s.image_size, 1, 0.0, camera, truncate_opaque=True, supersample=s.supersample,
+            max_candidates=s.max_candidates, max_bytes=s.max_bytes, perspective_correct=s.perspective_correct,
+        )  # fmt: skip
+        super().__init__(rasterizer, HardBlend(s.supersample), s.background_color)
+        self.settings = s

@@ -15,12 +15,15 @@ from torch import nn
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from .fragments import Fragments
 from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
+from .settings import DEFAULT_SETTINGS, check_render_option
 
 __all__ = ["MeshRasterizer"]
 
 
 class MeshRasterizer(nn.Module):
     """Meshes seen from a camera to packed :class:`Fragments`.
+
+    The options' ranges are those of :class:`~unicorn.render.settings.RenderSettings`.
 
     Args:
         image_size: H or (H, W), the size of the images rendered from the fragments.
@@ -46,29 +49,25 @@ class MeshRasterizer(nn.Module):
         camera: PerspectiveCamera | None = None,
         truncate_opaque: bool = False,
         supersample: int = 1,
-        max_candidates: int = 1 << 23,
+        max_candidates: int = DEFAULT_SETTINGS.max_candidates,
         max_bytes: int | None = None,
         perspective_correct: bool = False,
     ) -> None:
         super().__init__()
         self.image_size = image_hw(image_size)
-        if faces_per_pixel < 1:
-            raise RenderError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
+        settings = {"faces_per_pixel": faces_per_pixel, "supersample": supersample, "max_candidates": max_candidates}
+        settings.update(max_bytes=max_bytes, perspective_correct=perspective_correct)
+        for name, value in settings.items():
+            check_render_option(name, value)
         self.faces_per_pixel = int(faces_per_pixel)
         if not (math.isfinite(blur_radius) and blur_radius >= 0):
             raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
         self.blur_radius = float(blur_radius)
         self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
         self.truncate_opaque = bool(truncate_opaque)
-        if supersample < 1:
-            raise RenderError(f"supersample must be >= 1, got {supersample}")
         self.supersample = int(supersample)
         self.max_candidates = int(max_candidates)
-        if max_bytes is not None and max_bytes < 0:
-            raise RenderError(f"max_bytes must be >= 0 (0: no limit), got {max_bytes}")
         self.max_bytes = max_bytes
-        if not isinstance(perspective_correct, bool):
-            raise RenderError(f"perspective_correct must be True or False, got {perspective_correct!r}")
         self.perspective_correct = perspective_correct
 
     def extra_repr(self) -> str:

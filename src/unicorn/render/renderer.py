@@ -21,6 +21,7 @@ from .compositing import background_pixels
 from .fragments import Fragments
 from .raster import check_mesh_inputs, check_pose_inputs
 from .rasterizer import MeshRasterizer
+from .settings import BACKGROUND_COLOR, check_render_option
 from .textures import Textures
 
 __all__ = ["MeshRenderer", "RenderOutput"]
@@ -66,9 +67,10 @@ class MeshRenderer(nn.Module):
         self,
         rasterizer: MeshRasterizer,
         blend: nn.Module,
-        background_color: Sequence[float] = (1.0, 1.0, 1.0),
+        background_color: Sequence[float] = BACKGROUND_COLOR,
     ) -> None:
         super().__init__()
+        check_render_option("background_color", background_color)
         self.rasterizer = rasterizer
         self.blend = blend
         self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32))
