@@ -274,7 +274,8 @@ class CodeDiagnostics(L.Callback):
         self.overflow = TrainingOverflow()  # the renders of fit, counted in place of the renderer's warning
 
     def state_dict(self) -> dict[str, Any]:
-        """The kept images, the collapse state and the overflow counts, saved in checkpoints so a resumed run measures the same."""
+        """The kept images, the collapse state and the overflow counts, saved in checkpoints so a resumed run
+        measures the same."""
         images = torch.stack(list(self._images)).cpu() if self._images else torch.zeros(0)
         return {
             "images": images,
