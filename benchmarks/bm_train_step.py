@@ -23,9 +23,14 @@ Each step is split into
 Medians over ``--repeats`` steps, after ``--warmup`` steps of each kind. The VGG16 of the perceptual loss gets
 random weights unless ``--vgg`` names torchvision's file (the time is the same).
 
+``--precision`` lists Lightning precisions to time side by side, one row per model, step and precision:
+``32-true`` (the default) or ``bf16-mixed`` (the step's forward under ``torch.autocast`` in bfloat16, as Lightning's
+``trainer.precision=bf16-mixed`` runs it; the renderer stays in float32).
+
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
     python benchmarks/bm_train_step.py --device cuda --models small big
+    python benchmarks/bm_train_step.py --device cuda --models small --precision 32-true bf16-mixed
 """
 
 from __future__ import annotations
@@ -53,6 +58,14 @@ from unicorn.objectives import Objectives
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
 COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")
 MODELS = ("tiny", "small", "small-structural", "big")
+#: Lightning precisions the benchmark times: their autocast dtype (None: no autocast)
+PRECISIONS: dict[str, torch.dtype | None] = {"32-true": None, "bf16-mixed": torch.bfloat16}
+
+
+def autocast(device: str, precision: str) -> contextlib.AbstractContextManager[Any]:
+    """The forward's context under Lightning's ``precision``: autocast to its dtype, or nothing."""
+    dtype = PRECISIONS[precision]
+    return contextlib.nullcontext() if dtype is None else torch.autocast(device_type=device, dtype=dtype)
 
 
 class ComponentTimer:
@@ -155,7 +168,13 @@ def peak_rss_mb() -> float:
 
 
 def time_steps(
-    model: Unicorn, objectives: Objectives, opt: torch.optim.Optimizer, images: torch.Tensor, device: str, args
+    model: Unicorn,
+    objectives: Objectives,
+    opt: torch.optim.Optimizer,
+    images: torch.Tensor,
+    device: str,
+    args: argparse.Namespace,
+    precision: str = "32-true",
 ) -> dict:
     def sync() -> None:
         if device == "cuda":
@@ -210,7 +229,8 @@ def time_steps(
                     align_corners=textures.align_corners,
                 )
                 a2 = (*a2[:2], textures, *a2[3:])
-            out = model.renderer(*a2, **kw2)
+            with autocast(device, precision):  # the recorded textures may be bfloat16: cast as in the step
+                out = model.renderer(*a2, **kw2)
             if not out.requires_grad:
                 continue
             grad = torch.randn_like(out)
@@ -225,7 +245,8 @@ def time_steps(
     for phase in ("pose", "3d"):
 
         def fn(images: torch.Tensor, phase: str = phase) -> Any:
-            return objectives(phase, model, images)
+            with autocast(device, precision):
+                return objectives(phase, model, images)
 
         rows = []
         for i in range(args.warmup + args.repeats):
@@ -277,6 +298,9 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3, help="untimed steps of each kind (fill the memory)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--vgg", default=None, help="torchvision's vgg16-397923af.pth (random weights otherwise)")
+    parser.add_argument(
+        "--precision", nargs="+", default=["32-true"], choices=list(PRECISIONS), help="rows per Lightning precision"
+    )
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         sys.exit("bm_train_step.py: error: --device cuda but CUDA is not available")
@@ -288,13 +312,17 @@ def main() -> None:
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
-    print(f"{'model':17s} {'batch':>5s} {'px':>3s} {'step':4s} " + " ".join(f"{c:>12s}" for c in COLUMNS))
+    head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'step':4s} "
+    print(head + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:
-        model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
-        images = torch.rand(batch, 3, image_size, image_size, device=args.device)
-        for phase, row in time_steps(model, objectives, opt, images, args.device, args).items():
-            cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
-            print(f"{size:17s} {batch:5d} {image_size:3d} {phase:4s} {cells}", flush=True)
+        for precision in args.precision:
+            # a fresh model per precision, from the same seed: both rows time the same weights and memory
+            torch.manual_seed(0)
+            model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
+            images = torch.rand(batch, 3, image_size, image_size, device=args.device)
+            for phase, row in time_steps(model, objectives, opt, images, args.device, args, precision).items():
+                cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
+                print(f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {phase:4s} {cells}", flush=True)
 
 
 if __name__ == "__main__":

@@ -85,6 +85,14 @@ TRAIN_CASES = [
 ]
 
 
+def _assert_one_error_line(result: subprocess.CompletedProcess, message: str) -> None:
+    """Exit status 2 and one stderr line, ``unicorn-train: error: ...``, matching ``message``."""
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
+    assert re.search(message, lines[0]), lines
+
+
 @pytest.mark.parametrize("kind, overrides, message", [c[1:] for c in TRAIN_CASES], ids=[c[0] for c in TRAIN_CASES])
 def test_a_refused_run_leaves_the_folder_as_it_was(finished_run, tmp_path, kind, overrides, message):
     folder = _users_folder(tmp_path, finished_run, kind)
@@ -92,10 +100,7 @@ def test_a_refused_run_leaves_the_folder_as_it_was(finished_run, tmp_path, kind,
     run_dir = "." if kind == "cwd" else str(folder)
     args = [o.format(run=folder) for o in overrides]
     result = unicorn_train(*TINY, *args, f"hydra.run.dir={run_dir}", cwd=tmp_path)
-    lines = error_lines(result.stderr)
-    assert result.returncode == 2, result.stderr[-3000:]
-    assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
-    assert re.search(message, lines[0]), lines
+    _assert_one_error_line(result, message)
     assert folder.is_dir() and snapshot(folder) == before
 
 
@@ -149,10 +154,7 @@ def test_a_bad_setting_is_one_line_and_writes_nothing(finished_run, tmp_path, ov
     before, finished = snapshot(tmp_path), snapshot(finished_run)
     args = [o.format(finished=finished_run) for o in overrides]
     result = unicorn_train(*TINY, *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
-    lines = error_lines(result.stderr)
-    assert result.returncode == 2, result.stderr[-3000:]
-    assert len(lines) == 1 and lines[0].startswith("unicorn-train: error: "), lines
-    assert re.search(message, lines[0]), lines
+    _assert_one_error_line(result, message)
     assert snapshot(tmp_path) == before and snapshot(finished_run) == finished
 
 

@@ -24,13 +24,15 @@ from typing import TYPE_CHECKING
 
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, report_errors, whole_number
-from unicorn.cli.eval import (
+from unicorn.cli.options import (
     HelpFormatter,
     add_common_arguments,
     add_overwrite_argument,
     apply_common_arguments,
     check_common_arguments,
+    check_out_folder,
     check_picture_sizes,
+    parse_device,
 )
 from unicorn.io.images import DEFAULT_PADDING, MAX_PADDING
 
@@ -108,7 +110,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace, command: str | None = None) -> int:
     """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
-    from unicorn.cli.eval import _device, check_out_folder
     from unicorn.data.images import ImageLoadError
     from unicorn.evaluation.reconstruct import reconstruct, unique_names
     from unicorn.evaluation.session import overflow_note
@@ -139,7 +140,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
         readable.append((path, name))
     if not readable:
         raise UsageError("none of the inputs could be read")
-    device = _device(args.device)
+    device = parse_device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())

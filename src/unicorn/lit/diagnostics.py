@@ -380,7 +380,7 @@ class CodeDiagnostics(L.Callback):
     def _warn_viewpoint(prefix: str, reasons: list[str]) -> None:
         text = (
             f"VIEWPOINT COLLAPSE: {prefix}{'; '.join(reasons)}. The poses, and the shapes fitted to them, are likely "
-            "wrong for many images: relaunch with another seed, or train with model.loss.viewpoint=renders"
+            "wrong for many images: relaunching with another seed costs less than finishing this run"
         )
         log.error(text)
         warnings.warn(text, ViewpointWarning, stacklevel=2)

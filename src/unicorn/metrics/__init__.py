@@ -30,12 +30,7 @@ from .instance import (
     color_errors,
     flip_rate,
     mean_foreground_color,
-    mesh_spread,
-    normalize_shape,
-    retrieval_scores,
     rotation_accuracy,
-    shape_retrieval,
-    shape_spread,
     win_share,
 )
 from .keypoints import keypoint_pairs, keypoint_transfer_pck, pck, project_vertices, transfer_keypoints
@@ -51,6 +46,7 @@ from .pose import (
     rotation_to_azim_elev_roll,
 )
 from .sampling import MAX_POINTS, check_point_count, face_areas_normals, sample_points_from_meshes
+from .shapes import mesh_spread, normalize_shape, retrieval_scores, shape_retrieval, shape_spread
 from .voxels import mesh_voxel_iou, voxel_centers, voxel_iou, voxelize_mesh
 
 __all__ = [

@@ -11,6 +11,7 @@ from torch import nn
 from unicorn.checks import check_shape
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model.mlp import MLP
+from unicorn.render.precision import full_precision, to_full_precision
 
 __all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles"]
 
@@ -162,12 +163,17 @@ class PoseHead(nn.Module):
         self.proba_regressor = MLP(in_features, K, n_units, n_layers)
 
     def forward(self, features: torch.Tensor) -> PoseOutput:
-        """(B, in_features) -> :class:`PoseOutput` with K candidates."""
+        """(B, in_features) -> :class:`PoseOutput` with K candidates.
+
+        Under autocast the MLPs run in reduced precision and the candidates (angles, rotations, translations,
+        probabilities) are composed from their float32-cast outputs with autocast off: rotations stay orthonormal
+        to float32 rounding."""
         check_shape(features, "B, C", "features")
-        rot = torch.stack([torch.tanh(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
-        trans = torch.stack([torch.tanh(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
-        logits = self.proba_regressor(features).transpose(0, 1)  # (K, B)
-        return self._compose(rot, trans, torch.log_softmax(logits, dim=0), logits)
+        rot = torch.stack([to_full_precision(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
+        trans = torch.stack([to_full_precision(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
+        logits = to_full_precision(self.proba_regressor(features)).transpose(0, 1)  # (K, B)
+        with full_precision(features.device.type):
+            return self._compose(rot.tanh(), trans.tanh(), torch.log_softmax(logits, dim=0), logits)
 
     def _compose(
         self, rot: torch.Tensor, trans: torch.Tensor, log_probs: torch.Tensor, logits: torch.Tensor | None = None
@@ -220,6 +226,6 @@ class ScaleHead(nn.Module):
         self.register_buffer("use_scale", torch.tensor(True))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """(B, in_features) -> (B, 3) scales."""
-        offset = torch.tanh(self.regressor(features)) * self.scale_range
+        """(B, in_features) -> (B, 3) scales, float32 at least (under autocast too: they scale every vertex)."""
+        offset = torch.tanh(to_full_precision(self.regressor(features))) * self.scale_range
         return 1.0 + offset * self.use_scale.to(offset.dtype)

@@ -12,6 +12,7 @@ from unicorn.geometry.rotations import rotation_angle_between
 from unicorn.model import Prediction3D, Unicorn, world_verts
 from unicorn.model.generator import mean_texture
 from unicorn.model.losses import ReconstructionLoss
+from unicorn.render.precision import full_precision, to_full_precision
 
 __all__ = ["NeighborLoss", "NeighborMatch", "NeighborMemory"]
 
@@ -90,7 +91,7 @@ class NeighborMemory:
         new = {"images": images, "shape_codes": shape_codes, "texture_codes": texture_codes, "R": R}
         for name, value in new.items():
             old = getattr(self, name)
-            value = value.detach()
+            value = to_full_precision(value.detach())  # float32 under autocast too: the same state in checkpoints
             if old is not None:
                 old = old.to(value.device)  # the model may have moved since the last push
             if old is not None and old.shape[1:] != value.shape[1:]:
@@ -125,6 +126,17 @@ class NeighborMemory:
         """
         if len(self) == 0:
             raise RuntimeError("the neighbour memory is empty; push a batch first")
+        with full_precision(R.device.type):  # angles and distances in float32 under autocast too
+            return self._search(shape_codes, texture_codes, R, self_index, generator)
+
+    def _search(
+        self,
+        shape_codes: torch.Tensor,
+        texture_codes: torch.Tensor,
+        R: torch.Tensor,
+        self_index: torch.Tensor | None,
+        generator: torch.Generator | None,
+    ) -> NeighborMatch:
         B = R.shape[0]
         angles = rotation_angle_between(self.R.unsqueeze(1), R.unsqueeze(0))  # (M, B)
         entry_bins = self.bin_of(angles)

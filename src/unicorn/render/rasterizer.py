@@ -14,6 +14,7 @@ from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from .fragments import Fragments
+from .precision import autocast_active, full_precision, to_full_precision
 from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 from .settings import DEFAULT_SETTINGS, check_render_option
 
@@ -109,7 +110,25 @@ class MeshRasterizer(nn.Module):
             image_size: (H, W) of the fragments; :attr:`raster_size` when None.
             check_inputs: validate the meshes and the pose (False when the caller did: each check is a host
                 sync on CUDA).
+
+        Under ``torch.autocast`` float16 and bfloat16 vertices and poses are cast to float32 and the projection and
+        depth tests run with autocast off (:mod:`unicorn.render.precision`).
         """
+        device_type = verts.device.type if isinstance(verts, torch.Tensor) else "cpu"
+        if autocast_active(device_type):
+            verts, R, T = (to_full_precision(t) for t in (verts, R, T))
+        with full_precision(device_type):
+            return self._rasterize(verts, faces, R, T, image_size, check_inputs)
+
+    def _rasterize(
+        self,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        R: torch.Tensor | None,
+        T: torch.Tensor | None,
+        image_size: tuple[int, int] | None,
+        check_inputs: bool,
+    ) -> Fragments:
         if check_inputs:
             check_mesh_inputs(verts, faces)
             check_pose_inputs(R, T, verts.shape[0])

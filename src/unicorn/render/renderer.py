@@ -19,6 +19,7 @@ from torch import nn
 from ..geometry.cameras import PerspectiveCamera
 from .compositing import background_pixels
 from .fragments import Fragments
+from .precision import autocast_active, full_precision, to_full_precision
 from .raster import check_mesh_inputs, check_pose_inputs
 from .rasterizer import MeshRasterizer
 from .settings import BACKGROUND_COLOR, check_render_option
@@ -109,6 +110,23 @@ class MeshRenderer(nn.Module):
         """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
         if not isinstance(textures, Textures):
             raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
+        device_type = verts.device.type if isinstance(verts, torch.Tensor) else "cpu"
+        if autocast_active(device_type):
+            # mixed precision: the depth tests and the compositing run in float32 (unicorn.render.precision)
+            verts, R, T, background = (to_full_precision(t) for t in (verts, R, T, background))
+            textures = textures.full_precision()
+        with full_precision(device_type):
+            return self._render(verts, faces, textures, R, T, background)
+
+    def _render(
+        self,
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        textures: Textures,
+        R: torch.Tensor | None,
+        T: torch.Tensor | None,
+        background: torch.Tensor | None,
+    ) -> RenderOutput:
         # the textures' finiteness is read with the mesh's (one host read): NaN colours would give NaN pixels
         check_mesh_inputs(verts, faces, finite_also=textures.tensors())
         textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0], verts=verts)
@@ -136,13 +154,16 @@ class MeshRenderer(nn.Module):
                 None), finite.
             faces: (F, 3) long, shared by the batch.
             textures: :class:`TexturesUV` or :class:`TexturesVertex` with batch size B and C channels, finite, of
-                the vertices' dtype (no silent promotion: a mismatch is a TypeError naming both).
+                the vertices' dtype (no silent promotion: a mismatch is a TypeError naming both). Under
+                ``torch.autocast`` every float16 or bfloat16 input (vertices, textures, pose, background) is cast to
+                float32 first and the render runs with autocast off (:mod:`unicorn.render.precision`).
             R: (B, 3, 3) floating point world-to-view rotation, ``x_view = x @ R + T``, finite.
             T: (B, 3) floating point world-to-view translation, finite.
             background: (B, C, H, W) background images; ``background_color`` when None.
 
         Returns:
-            (B, C + 1, H, W) images, the last channel alpha.
+            (B, C + 1, H, W) images, the last channel alpha, of the (cast) vertices' dtype: float32 at least under
+            autocast.
 
         Raises:
             TypeError, ValueError: a bad argument, named in the one-line message; ValueError also when the

@@ -6,6 +6,7 @@ import torch
 
 from ..checks import check_same_dtype, check_shape
 from .fragments import Fragments
+from .precision import to_full_precision
 
 __all__ = ["Textures", "TexturesUV", "TexturesVertex", "interpolate_vertex_attributes"]
 
@@ -60,6 +61,11 @@ class Textures:
         host read it makes anyway). None by default."""
         return {}
 
+    def full_precision(self) -> Textures:
+        """These textures with float16 and bfloat16 tensors in float32 (the renderer's inputs under autocast);
+        ``self`` by default."""
+        return self
+
 
 class TexturesVertex(Textures):
     """Per-vertex colours, interpolated with the barycentrics.
@@ -91,6 +97,9 @@ class TexturesVertex(Textures):
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {"colors": self.colors}
+
+    def full_precision(self) -> TexturesVertex:
+        return TexturesVertex(to_full_precision(self.colors))
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
         return interpolate_vertex_attributes(fragments, faces, self.colors)
@@ -158,6 +167,10 @@ class TexturesUV(Textures):
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {"maps": self.maps, "face_uvs": self.face_uvs}
+
+    def full_precision(self) -> TexturesUV:
+        maps, face_uvs = to_full_precision(self.maps), to_full_precision(self.face_uvs)
+        return TexturesUV(maps, face_uvs, self.wrap_u, self.align_corners, channels_last=False)
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
         corner_uvs = self.face_uvs.to(fragments.bary).reshape(-1, 6).index_select(0, fragments.face).view(-1, 3, 2)

@@ -1,0 +1,124 @@
+"""The options that ``unicorn-eval`` and ``unicorn-reconstruct`` share: the help format, checkpoint trust, image
+limits, ``--overwrite`` with its output-folder check, picture sizes and ``--device``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from unicorn.cli.errors import UsageError, add_debug_argument
+
+__all__ = [
+    "HelpFormatter",
+    "add_common_arguments",
+    "add_overwrite_argument",
+    "apply_common_arguments",
+    "check_common_arguments",
+    "check_out_folder",
+    "check_picture_sizes",
+    "parse_device",
+]
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default only when it says something (not None or False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def add_common_arguments(p: argparse.ArgumentParser) -> None:
+    """The options every checkpoint-reading tool shares: trust, image pixel and byte limits, debug."""
+    p.add_argument(
+        "--trust-checkpoint",
+        action="store_true",
+        help="read a checkpoint that needs full unpickling (it can run code: only for files you trust)",
+    )
+    p.add_argument(
+        "--max-image-pixels",
+        type=int,
+        help="refuse images with more pixels (decompression bombs); 0: no limit; default: "
+        "$UNICORN_MAX_IMAGE_PIXELS or 178956970",
+    )
+    p.add_argument(
+        "--max-image-bytes",
+        type=int,
+        help="refuse images whose decoded array has more bytes (width x height x 12 for float32 RGB); 0: no limit; "
+        "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
+    )
+    add_debug_argument(p)
+
+
+def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
+    """Add ``--overwrite``: write into a non-empty ``--out`` (:func:`check_out_folder`); ``what``: when the files
+    are replaced."""
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help=f"write into a non-empty --out (same-named files are replaced, {what})",
+    )
+
+
+def check_out_folder(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder that is a file, or that holds files when ``--overwrite`` is not given.
+
+    Raises:
+        UsageError: the message names the folder and the option.
+    """
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UsageError(f"--out {out} is not empty; choose another folder or pass --overwrite to write into it")
+
+
+def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse negative image limits (a usage error)."""
+    for name in ("max_image_pixels", "max_image_bytes"):
+        if (getattr(args, name) or 0) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0")
+
+
+def check_picture_sizes(args: argparse.Namespace) -> None:
+    """Refuse pictures above the render memory limit before any is made: one RGBA view of ``--view-size``, and
+    the ``--turntable-frames`` frames of a turntable at that size, held together until its GIF is written
+    (float32; ``UNICORN_MAX_RENDER_BYTES``, the limit of the renders they are made of).
+
+    Raises:
+        unicorn.checks.SizeLimitError: the message names the option and the limit.
+    """
+    from unicorn.checks import check_limit
+    from unicorn.render import MAX_RENDER_BYTES_ENV, max_render_bytes
+
+    size, frames = args.view_size, args.turntable_frames
+    limit, source = max_render_bytes(), f"{MAX_RENDER_BYTES_ENV}; 0: no limit"
+    picture = 4 * size * size * 4
+    check_limit(f"--view-size {size}", f"a picture: 4 x {size} x {size} float32", picture, limit, "bytes", source)
+    what = f"a turntable's frames at --view-size {size}: {frames} x 4 x {size} x {size} float32"
+    check_limit(f"--turntable-frames {frames}", what, frames * picture, limit, "bytes", source)
+
+
+def apply_common_arguments(args: argparse.Namespace) -> None:
+    """Set the image limits given on the command line for this process and its workers."""
+    from unicorn.data.images import set_max_image_bytes, set_max_image_pixels
+
+    if args.max_image_pixels is not None:
+        set_max_image_pixels(args.max_image_pixels)
+    if args.max_image_bytes is not None:
+        set_max_image_bytes(args.max_image_bytes)
+
+
+def parse_device(name: str) -> Any:
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"--device {name!r} is not a device; use 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {name}: CUDA is not available on this machine")
+    return device
