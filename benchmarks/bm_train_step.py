@@ -52,8 +52,8 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.model import Unicorn
 from unicorn.model.config import CODE_BRANCHES
-from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
 from unicorn.objectives import Objectives
+from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
 COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")

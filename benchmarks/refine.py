@@ -2,7 +2,7 @@
 
 The synthetic benchmark renders every object from 24 views with known cameras. Each object is reconstructed from
 one view (unicorn-eval's fixed random view of the object, seed 0) and refined on it
-(:func:`unicorn.model.refine.refine`); the refined mesh, texture and pose are then scored
+(:func:`unicorn.objectives.refine.refine`); the refined mesh, texture and pose are then scored
 
 - on the input view (what the refinement fitted): reconstruction error, mask IoU, colour ratio;
 - on the 23 other views (what it must not overfit): the same three, with the object placed at each novel
@@ -36,7 +36,7 @@ from unicorn.evaluation.rendering import hard_render
 from unicorn.io import load_model
 from unicorn.metrics import color_errors, evaluate_meshes, mask_iou, mean_foreground_color
 from unicorn.model import Prediction, Unicorn
-from unicorn.model.refine import PARTS, RefineOptions, refine
+from unicorn.objectives.refine import PARTS, RefineOptions, refine
 
 #: the part sets of the default table: each part alone, all of them, and RefineOptions' default parts
 PART_SETS = ("codes", "texture", "vertices", "pose", "all", "default")

@@ -44,8 +44,8 @@ from unicorn.evaluation.rendering import hard_render
 from unicorn.io import load_model
 from unicorn.metrics import code_spread
 from unicorn.metrics.instance import color_errors, mean_foreground_color
-from unicorn.model import ReconstructionLoss
 from unicorn.model.encoder import STAGES
+from unicorn.objectives import ReconstructionLoss
 
 FOLDS = 5  # cross-validation folds of the readout's penalty, over the training objects
 PENALTIES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)  # the readout's ridge penalties tried (times the number of views)

@@ -52,7 +52,7 @@ from unicorn.evaluation.rendering import hard_render
 from unicorn.io.checkpoints import load_model
 from unicorn.metrics import mask_iou
 from unicorn.metrics.pose import align_canonical_frame, azimuth_error, geodesic_error, rotation_to_azim_elev_roll
-from unicorn.model.losses import ReconstructionLoss
+from unicorn.objectives.losses import ReconstructionLoss
 
 
 @torch.no_grad()

@@ -32,13 +32,11 @@ import torch
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.metrics import sample_points_from_meshes, shape_retrieval, shape_spread
 from unicorn.model import (
-    NormalConsistencyLoss,
     Prediction,
-    ReconstructionLoss,
     Unicorn,
-    UniformLaplacianLoss,
     world_verts,
 )
+from unicorn.objectives import NormalConsistencyLoss, ReconstructionLoss, UniformLaplacianLoss
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
 TURN_STEP = 5.0  # degrees of azimuth between the poses loss_picks_pose compares

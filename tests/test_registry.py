@@ -13,9 +13,9 @@ from unicorn.errors import UserError
 from unicorn.evaluation import get_protocol
 from unicorn.model.compositing import build_compositing
 from unicorn.model.config import LOSS_KEYS
-from unicorn.model.perceptual import build_perceptual
-from unicorn.model.pose_objectives import AssignedLoss, build_pose_objective
-from unicorn.model.viewpoint import build_viewpoint_supervision
+from unicorn.objectives.perceptual import build_perceptual
+from unicorn.objectives.pose_objectives import AssignedLoss, build_pose_objective
+from unicorn.objectives.viewpoint import build_viewpoint_supervision
 from unicorn.registry import Registry, UnknownNameError, UnknownOptionError
 from unicorn.render import build_renderer
 

@@ -22,7 +22,7 @@ from unicorn.lit.run import fit
 from unicorn.metrics import mesh_spread
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseOutput
-from unicorn.model.viewpoint import viewpoint_check
+from unicorn.objectives.viewpoint import viewpoint_check
 from unicorn.render import RenderOverflowWarning, overflow, rasterize_meshes
 
 

@@ -7,8 +7,8 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import ReconstructionLoss, Unicorn, merge_config
-from unicorn.objectives import Objectives
+from unicorn.model import Unicorn, merge_config
+from unicorn.objectives import Objectives, ReconstructionLoss
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from unicorn.model.filtering import separable_filter
 from unicorn.model.generator import Blur
-from unicorn.model.perceptual import StructuralLoss, sobel_gradient, ssim_map
+from unicorn.objectives.perceptual import StructuralLoss, sobel_gradient, ssim_map
 
 
 def _conv_reference(x: torch.Tensor, ty: list[float], tx: list[float], mode: str) -> torch.Tensor:

@@ -18,8 +18,8 @@ import torch
 from tests.support.model import ellipsoid_images, randomize_heads, tiny_config
 from unicorn.model import Unicorn
 from unicorn.model.config import CODE_BRANCHES
-from unicorn.model.perceptual import _CONVS, VGGPerceptualLoss
 from unicorn.objectives import Objectives
+from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
 
 #: the largest relative difference of a step's total loss under bfloat16 autocast
 LOSS_RTOL = 5e-3

@@ -7,8 +7,8 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import Unicorn, candidate_spacing_loss
-from unicorn.objectives import AssignedLoss, Objectives, StepLosses
+from unicorn.model import Unicorn
+from unicorn.objectives import AssignedLoss, Objectives, StepLosses, candidate_spacing_loss
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -99,7 +99,7 @@ def test_pose_step_assigned_objective(images):
     losses["assignment"].backward()
     assert grads_of(model.pose.proba_regressor) > 0
     with pytest.raises(ValueError, match="pose_objective"):
-        Unicorn(tiny_config(loss={"pose_objective": "best"}))
+        Objectives.from_config({**model.config["loss"], "pose_objective": "best"}, model)
 
 
 def test_pose_step_spacing_term_moves_the_candidates_only(images):

@@ -36,7 +36,7 @@ from unicorn.cli.options import (
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
 from unicorn.data.registry import DATASET_NAMES, DATASETS, dataset_root
 from unicorn.evaluation.protocols import EvalOptions
-from unicorn.model.config import describe_range, field_range
+from unicorn.model.ranges import describe_range, field_range
 
 __all__ = ["build_parser", "main"]
 
@@ -150,7 +150,7 @@ def _add_report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-#: option -> the settings field that declares its range (:func:`unicorn.model.config.ranged`)
+#: option -> the settings field that declares its range (:func:`unicorn.model.ranges.ranged`)
 _RANGED = {
     "batch_size": (EvalOptions, "batch_size"),
     "num_points": (EvalOptions, "num_points"),

@@ -37,7 +37,7 @@ from unicorn.cli.options import (
 from unicorn.io.images import DEFAULT_PADDING, MAX_PADDING
 
 if TYPE_CHECKING:
-    from unicorn.model.refine import RefineOptions
+    from unicorn.objectives.refine import RefineOptions
 
 __all__ = ["build_parser", "main"]
 
@@ -174,14 +174,15 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
 
 
 def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
-    """The :class:`~unicorn.model.refine.RefineOptions` of ``--refine`` and ``--refine-parts`` (None: no refinement).
+    """The :class:`~unicorn.objectives.refine.RefineOptions` of ``--refine`` and ``--refine-parts`` (None: no
+    refinement).
 
     Raises:
-        UsageError: an unknown part, or more steps than :data:`unicorn.model.refine.MAX_STEPS`.
+        UsageError: an unknown part, or more steps than :data:`unicorn.objectives.refine.MAX_STEPS`.
     """
     if args.refine <= 0:
         return None
-    from unicorn.model.refine import PARTS, RefineOptions, RefineOptionsError
+    from unicorn.objectives.refine import PARTS, RefineOptions, RefineOptionsError
 
     named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
     parts = named.get(args.refine_parts) or tuple(args.refine_parts.split(","))

@@ -23,7 +23,9 @@ from unicorn.data.common import OnError
 from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
 from unicorn.model import check_model_size
-from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config, check_ranges
+from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config
+from unicorn.model.ranges import check_ranges
+from unicorn.objectives.loss_factory import check_loss_choices
 from unicorn.render import BACKGROUND_COLOR, RenderError, check_render_option, get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
@@ -133,7 +135,9 @@ def _check_model(cfg: DictConfig) -> None:
     composites = allowed_values("renderer.composite")
     _check(m.composite in composites, f"model.composite must be one of {composites}, got {m.composite!r}")
     try:
-        check_model_config(model_config(cfg), prefix="model.")
+        config = model_config(cfg)
+        check_model_config(config, prefix="model.")
+        check_loss_choices(config["loss"], prefix="model.")
     except ValueError as err:
         raise ConfigError(str(err)) from None
     _check(

@@ -22,7 +22,8 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from unicorn.model.config import ModelGroups, RendererConfig, ranged
+from unicorn.model.config import ModelGroups, RendererConfig
+from unicorn.model.ranges import ranged
 
 __all__ = [
     "CallbacksConfig",

@@ -30,8 +30,8 @@ from unicorn.evaluation.interface import spread_indices
 from unicorn.evaluation.mean_shape import fit_mean_shape
 from unicorn.metrics import mask_iou
 from unicorn.model import Prediction, Unicorn
-from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
 from unicorn.model.template import TemplateMesh
+from unicorn.objectives.losses import NormalConsistencyLoss, UniformLaplacianLoss
 from unicorn.render import TexturesUV
 
 __all__ = [

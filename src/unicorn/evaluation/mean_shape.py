@@ -11,7 +11,7 @@ from tqdm.auto import tqdm
 
 from unicorn.checks import ShapeError, check_faces, check_shape
 from unicorn.metrics import NearestNeighborIndex, gather_points, sample_points_from_meshes
-from unicorn.model.losses import NormalConsistencyLoss, UniformLaplacianLoss
+from unicorn.objectives.losses import NormalConsistencyLoss, UniformLaplacianLoss
 
 __all__ = ["fit_mean_shape"]
 
@@ -67,9 +67,9 @@ def fit_mean_shape(
     ``chamfer_L1`` is the symmetric mean nearest-neighbour distance ``(accuracy + completeness) / 2`` (no x10
     factor) between ``num_points`` area-uniform samples of the mesh (redrawn every iteration, differentiable
     w.r.t. the vertices) and the shape's points, and the regularisers are the training losses
-    :class:`~unicorn.model.losses.UniformLaplacianLoss` and :class:`~unicorn.model.losses.NormalConsistencyLoss`,
-    which keep the mesh smooth and unfolded. Each iteration uses a random mini-batch of ``shapes_per_step``
-    shapes (all of them when there are fewer).
+    :class:`~unicorn.objectives.losses.UniformLaplacianLoss` and
+    :class:`~unicorn.objectives.losses.NormalConsistencyLoss`, which keep the mesh smooth and unfolded. Each
+    iteration uses a random mini-batch of ``shapes_per_step`` shapes (all of them when there are fewer).
 
     Args:
         template_verts: (V, 3) initial vertices (e.g. ``model.template.verts``); the fit runs on their device.

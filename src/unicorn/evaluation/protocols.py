@@ -97,7 +97,7 @@ from unicorn.config.schema import EVAL_BATCH_SIZE, FINAL_EVAL, REPORT_SAMPLES, S
 from unicorn.data.registry import dataset_spec
 from unicorn.evaluation.columns import COLOR_INTERIOR, COLOR_SUFFIXES, METRIC_HELP, METRIC_ORDER, METRICS, ROW_INFO
 from unicorn.metrics.sampling import check_point_count
-from unicorn.model.config import check_ranges, ranged
+from unicorn.model.ranges import check_ranges, ranged
 from unicorn.registry import Registry
 
 __all__ = [

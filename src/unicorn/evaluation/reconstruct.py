@@ -15,7 +15,7 @@ Per input image ``<out>/<name>/``:
   and the probabilities of all pose candidates;
 - ``turntable.gif`` and ``turntable.png`` (a strip of views): the mesh spinning about its vertical axis.
 
-With refinement (``refine``, :func:`unicorn.model.refine.refine`) every file above carries the refined result,
+With refinement (``refine``, :func:`unicorn.objectives.refine.refine`) every file above carries the refined result,
 and ``reconstruction_network.png`` and ``turntable_network.png`` keep the network's own prediction beside it.
 
 The folder also gets ``overview.png`` (one row per image; with refinement the network's reconstruction and views
@@ -48,7 +48,7 @@ from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import InputImage
 from unicorn.io.meshes import export_prediction, save_mesh
 from unicorn.model import Prediction, Unicorn
-from unicorn.model.refine import Refinement, RefineOptions, refine
+from unicorn.objectives.refine import Refinement, RefineOptions, refine
 
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
@@ -229,7 +229,7 @@ def reconstruct(
         progress: show a progress bar.
         provenance: where the results come from (:func:`unicorn.io.provenance.provenance`: command,
             checkpoint, versions), recorded in every JSON file and the HTML page; default: the calling process.
-        refine_options: refine each prediction against its image (:func:`unicorn.model.refine.refine`) and write
+        refine_options: refine each prediction against its image (:func:`unicorn.objectives.refine.refine`) and write
             the refined result, the network's beside it; None (or 0 steps): the network's prediction.
 
     Returns:

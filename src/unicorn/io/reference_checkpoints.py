@@ -41,8 +41,8 @@ from unicorn.config.presets import model_preset
 from unicorn.io.serialization import CheckpointError, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
 from unicorn.model.config import merge_config
-from unicorn.model.perceptual import VGGPerceptualLoss
 from unicorn.model.progressive import active_dims_at
+from unicorn.objectives.perceptual import VGGPerceptualLoss
 
 __all__ = [
     "ReferenceCheckpointError",

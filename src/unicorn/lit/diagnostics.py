@@ -25,7 +25,7 @@ N iterations on the most recent training images:
   share of twelve 30-degree azimuth bins that the images' selected azimuths reach;
 - ``pose/render-acc``, ``pose/render-azim-error``: the pose branch read on renders of the model's own
   reconstructions of the images at azimuths drawn over the azimuth range
-  (:func:`unicorn.model.viewpoint.viewpoint_check`, the same draws at every check): the share whose most likely
+  (:func:`unicorn.objectives.viewpoint.viewpoint_check`, the same draws at every check): the share whose most likely
   candidate is the drawn view's, and the median azimuth error (degrees) of that candidate. No ground truth is
   needed: a model that reads viewpoints finds most renders' candidates; ``pose/render-chance`` (1 / K) is what a
   guess scores;
@@ -68,9 +68,10 @@ from unicorn.evaluation.tables import candidate_shares
 from unicorn.lit.heldout import append_csv_row
 from unicorn.lit.overflow import TrainingOverflow
 from unicorn.metrics import active_units, code_spread, mesh_spread
-from unicorn.model.config import CODE_BRANCHES, check_ranges
+from unicorn.model.config import CODE_BRANCHES
 from unicorn.model.pose import PoseOutput
-from unicorn.model.viewpoint import viewpoint_check
+from unicorn.model.ranges import check_ranges
+from unicorn.objectives.viewpoint import viewpoint_check
 from unicorn.render import OverflowCounter
 
 __all__ = [
@@ -146,7 +147,7 @@ def code_diagnostics(model: nn.Module, images: torch.Tensor) -> dict[str, dict[s
     Returns:
         branch -> ``active-dims``, ``code-std``, ``code-std-min`` (NaN without active dimensions), ``raw-std``,
         ``alive-last``, ``units-last`` and ``alive-frac`` (``shape`` also ``mesh-spread``), and ``pose`` ->
-        :func:`pose_diagnostics` and :func:`~unicorn.model.viewpoint.viewpoint_check` (see the module docstring).
+        :func:`pose_diagnostics` and :func:`~unicorn.objectives.viewpoint.viewpoint_check` (see the module docstring).
     """
     if images.dim() != 4 or images.shape[0] < 2:
         raise ValueError(f"need a (B, 3, S, S) batch with B >= 2 images, got {tuple(images.shape)}")

@@ -30,7 +30,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_only
 
 from unicorn.config.schema import HELDOUT_SPLITS, HeldOutConfig
-from unicorn.model.config import check_ranges
+from unicorn.model.ranges import check_ranges
 
 __all__ = ["HeldOutEvaluation", "append_csv_row"]
 

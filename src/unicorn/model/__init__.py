@@ -1,28 +1,21 @@
-"""UNICORN's structured autoencoder, its building blocks and its loss functions, as plain PyTorch modules.
+"""UNICORN's structured autoencoder and its building blocks, as plain PyTorch modules: it predicts and renders.
 
 - ``config``: the configuration's groups, defaults and checks (:class:`UnicornConfig`, :func:`merge_config`).
+- ``ranges``: dataclass fields declared with their range (``ranged``) and checked once (``check_ranges``).
 - :class:`Unicorn` (``autoencoder``): image -> shape, texture, pose, background -> rendered image (assembly,
   predict, render); typed predictions (:class:`Prediction`, :class:`Prediction3D`). It holds no training state:
   the training objectives (pose step, 3D step, neighbour loss and memory) are :mod:`unicorn.objectives`'.
 - Building blocks: ``template`` (ellipsoid mesh and UVs), ``encoder`` (ResNet-18), ``field`` (shape),
   ``generator`` (texture / background), ``pose`` (candidates and scale), ``progressive`` (code masks),
   ``compositing`` (how the object is put over its background, by name: :func:`build_compositing`).
-- Loss functions: ``losses`` (MSE, reconstruction terms, normal consistency, Laplacian, pose prior),
-  ``perceptual`` (VGG16 / structural, by name: :func:`build_perceptual`).
+
+The loss functions, the pose objectives and test-time refinement are the training floor's
+(:mod:`unicorn.objectives`).
 
 Files in and out (released checkpoints, textured meshes) are :mod:`unicorn.io`'s.
 """
 
-from unicorn.model.autoencoder import (
-    MAX_MODEL_PARAMS,
-    MAX_MODEL_PARAMS_ENV,
-    Prediction,
-    Prediction3D,
-    Unicorn,
-    check_model_size,
-    count_parameters,
-    world_verts,
-)
+from unicorn.model.autoencoder import Prediction, Prediction3D, Unicorn, world_verts
 from unicorn.model.compositing import (
     DirectCompositing,
     ReferenceCompositing,
@@ -34,27 +27,10 @@ from unicorn.model.config import DEFAULT_CONFIG, UnicornConfig, check_model_conf
 from unicorn.model.encoder import ResNet18
 from unicorn.model.field import DeformationField, ShapeHead
 from unicorn.model.generator import CodeGenerator, GiraffeGenerator
-from unicorn.model.losses import (
-    MeshRegularizer,
-    NormalConsistencyLoss,
-    ReconstructionLoss,
-    UniformLaplacianLoss,
-    candidate_assignment_loss,
-    candidate_spacing_loss,
-    mse_per_sample,
-    uniform_pose_prior,
-)
 from unicorn.model.mlp import MLP
-from unicorn.model.perceptual import (
-    StructuralLoss,
-    VGGPerceptualLoss,
-    build_perceptual,
-    list_perceptual_losses,
-    load_vgg16_weights,
-    register_perceptual,
-)
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.progressive import ProgressiveMask, active_dims_at
+from unicorn.model.size import MAX_MODEL_PARAMS, MAX_MODEL_PARAMS_ENV, check_model_size, count_parameters
 from unicorn.model.template import TemplateMesh
 
 __all__ = [
@@ -67,39 +43,25 @@ __all__ = [
     "DeformationField",
     "DirectCompositing",
     "GiraffeGenerator",
-    "MeshRegularizer",
-    "NormalConsistencyLoss",
     "PoseHead",
     "PoseOutput",
     "Prediction",
     "Prediction3D",
     "ProgressiveMask",
-    "ReconstructionLoss",
     "ReferenceCompositing",
     "ResNet18",
     "ScaleHead",
     "ShapeHead",
-    "StructuralLoss",
     "TemplateMesh",
     "Unicorn",
     "UnicornConfig",
-    "UniformLaplacianLoss",
-    "VGGPerceptualLoss",
     "active_dims_at",
     "build_compositing",
-    "build_perceptual",
-    "candidate_assignment_loss",
-    "candidate_spacing_loss",
     "check_model_config",
     "count_parameters",
     "list_compositings",
-    "list_perceptual_losses",
-    "load_vgg16_weights",
     "merge_config",
-    "mse_per_sample",
     "register_compositing",
-    "register_perceptual",
-    "uniform_pose_prior",
     "world_verts",
 ]
 

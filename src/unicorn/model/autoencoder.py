@@ -19,12 +19,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import nn
 
-from unicorn.checks import SizeLimitError, check_limit, check_shape, env_limit
+from unicorn.checks import check_shape
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.model.compositing import build_compositing
 from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config, model_branches
@@ -35,18 +35,12 @@ from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV, build_renderer
 
-if TYPE_CHECKING:
-    from unicorn.model.refine import Refinement
-
 __all__ = [
     "BRANCHES",
-    "MAX_MODEL_PARAMS",
-    "MAX_MODEL_PARAMS_ENV",
     "Prediction",
     "Prediction3D",
     "Unicorn",
-    "check_model_size",
-    "count_parameters",
+    "build_networks",
     "encoder_index",
     "world_verts",
 ]
@@ -126,9 +120,10 @@ def encoder_index(cfg: Mapping[str, Any]) -> dict[str, int]:
     return {b: 1 + own.index(b) if b in own else 0 for b in branches}
 
 
-def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
+def build_networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     """The learned networks of a merged configuration: encoders, shape, texture, background, pose and scale heads
-    (the only parts whose size grows with the configuration: :func:`count_parameters` builds them on no memory)."""
+    (the only parts whose size grows with the configuration: :func:`unicorn.model.size.count_parameters` builds
+    them on no memory)."""
     n_enc = 1 + max(encoder_index(cfg).values())
     enc = cfg["encoder"]
     encoders = nn.ModuleList([ResNet18(enc["width"], cfg["image_size"], enc["pooled"]) for _ in range(n_enc)])
@@ -177,52 +172,6 @@ def _networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     }
 
 
-def count_parameters(config: Mapping[str, Any] | None = None, **groups: Any) -> int:
-    """Parameters and buffers (elements) of the learned networks a configuration describes, counted without
-    allocating them (built on the ``meta`` device): what a stored configuration would make :class:`Unicorn`
-    allocate, checked before building it (:func:`unicorn.io.load_model`).
-
-    Raises:
-        KeyError, ValueError: as :func:`unicorn.model.config.merge_config`.
-    """
-    cfg = merge_config(config, **groups)
-    with torch.device("meta"):
-        networks = [m for m in _networks(cfg).values() if m is not None]
-    return sum(t.numel() for m in networks for t in [*m.parameters(), *m.buffers()])
-
-
-#: the largest model (parameters and buffers of its networks) a stored or composed configuration may build: ten
-#: times the paper's big model (49 M); ``$UNICORN_MAX_MODEL_PARAMS`` sets another limit (0: none). A checkpoint of a
-#: few MB can describe a model of hundreds of GB.
-MAX_MODEL_PARAMS = 500_000_000
-#: the environment variable that sets another limit
-MAX_MODEL_PARAMS_ENV = "UNICORN_MAX_MODEL_PARAMS"
-
-
-def check_model_size(
-    config: Mapping[str, Any], setting: str, limit: int | None = None, error: type[SizeLimitError] = SizeLimitError
-) -> None:
-    """Refuse a model configuration whose networks exceed ``limit`` elements, before allocating them.
-
-    Args:
-        config: a merged model configuration.
-        setting: what asks for the model, named in the message (``"checkpoint PATH"``, ``"model"``).
-        limit: the most parameters and buffers; None: ``$UNICORN_MAX_MODEL_PARAMS`` or :data:`MAX_MODEL_PARAMS`;
-            0: no limit.
-        error: the class raised (a subclass of :class:`~unicorn.checks.SizeLimitError`).
-
-    Raises:
-        SizeLimitError: the model is larger (:func:`unicorn.checks.check_limit`).
-    """
-    if limit is None:
-        limit = env_limit(MAX_MODEL_PARAMS_ENV, MAX_MODEL_PARAMS, "parameters") or 0
-    if limit <= 0:
-        return
-    n = count_parameters(config)
-    what = f"its networks, {4 * n / 2**30:.1f} GiB as float32, at encoder.width={config['encoder']['width']}"
-    check_limit(setting, what, n, limit, "parameters", f"{MAX_MODEL_PARAMS_ENV}; 0: no limit", error)
-
-
 class Unicorn(nn.Module):
     """The structured autoencoder (see the module docstring for the configuration keys).
 
@@ -255,7 +204,7 @@ class Unicorn(nn.Module):
 
         self.template = TemplateMesh(**cfg["template"])
 
-        for name, module in _networks(cfg).items():  # encoders, shape, texture, background, pose, scale
+        for name, module in build_networks(cfg).items():  # encoders, shape, texture, background, pose, scale
             setattr(self, name, module)
         self.encoder_index = encoder_index(cfg)
 
@@ -406,31 +355,3 @@ class Unicorn(nn.Module):
         pred = self.predict(images)
         rec, _ = self.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
         return rec, pred
-
-    def refine(
-        self,
-        images: torch.Tensor,
-        steps: int = 50,
-        parts: tuple[str, ...] | None = None,
-        average_texture: bool = False,
-        **options: Any,
-    ) -> Refinement:
-        """Fit the prediction of images (B, 3, S, S) to each image (:func:`unicorn.model.refine.refine`).
-
-        Args:
-            images: (B, 3, S, S) in [0, 1].
-            steps: Adam steps (0: the prediction itself).
-            parts: names of :data:`unicorn.model.refine.PARTS` (None: the default parts of
-                :class:`~unicorn.model.refine.RefineOptions`: codes, texture, vertices).
-            average_texture: mean-colour textures, as :meth:`predict`.
-            **options: other :class:`~unicorn.model.refine.RefineOptions` fields (learning rates, prior weights,
-                ``codes_first``, ``progress``).
-
-        Returns:
-            :class:`~unicorn.model.refine.Refinement`: ``prediction`` (refined), ``initial``, ``losses``.
-        """
-        from unicorn.model.refine import RefineOptions, refine
-
-        if parts is not None:
-            options["parts"] = tuple(parts)
-        return refine(self, images, RefineOptions(steps=steps, **options), average_texture=average_texture)

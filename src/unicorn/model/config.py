@@ -4,7 +4,9 @@
 :data:`DEFAULT_CONFIG` / :func:`merge_config`); the training schema (:mod:`unicorn.config.schema`) reuses the
 same group classes for its ``model`` group, and the presets (small, big, tiny; real-image and ShapeNet families)
 are the YAML files of ``conf/`` (:func:`unicorn.config.model_preset`). Every value check of a model
-configuration is :func:`check_model_config`, run by :func:`merge_config` and by the training config's validation.
+configuration is :func:`check_model_config`, run by :func:`merge_config` and by the training config's validation,
+but for the ``loss`` group's names of a registered loss, which the training floor checks
+(:func:`unicorn.objectives.loss_factory.check_loss_choices`).
 """
 
 from __future__ import annotations
@@ -12,13 +14,11 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import types
-import typing
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from unicorn.errors import UserError
+from unicorn.model.ranges import ModelConfigError, check_ranges, ranged
 from unicorn.render.settings import BACKGROUND_COLOR, DEFAULT_SETTINGS
 
 __all__ = [
@@ -40,12 +40,8 @@ __all__ = [
     "UnicornConfig",
     "allowed_values",
     "check_model_config",
-    "check_ranges",
-    "describe_range",
-    "field_range",
     "merge_config",
     "model_branches",
-    "ranged",
 ]
 
 #: the model's branches, in the order of its encoders when each has its own (the big model); the background is
@@ -54,11 +50,6 @@ BRANCHES = ("shape", "texture", "pose", "background")
 #: the branches with a latent code regressed from the image, whose active size grows stage by stage: all but the
 #: pose, whose candidates and their probabilities are regressed directly (no code to grow)
 CODE_BRANCHES = tuple(branch for branch in BRANCHES if branch != "pose")
-
-
-class ModelConfigError(UserError, ValueError):
-    """A model configuration value out of its range, not among the allowed ones, or not fitting another value
-    (the message names the key)."""
 
 
 def model_branches(has_background: bool) -> tuple[str, ...]:
@@ -76,47 +67,22 @@ def _compositings() -> tuple[str, ...]:
     return tuple(list_compositings())
 
 
-def _perceptual_losses() -> tuple[str | None, ...]:
-    from unicorn.model.perceptual import list_perceptual_losses
-
-    return (*list_perceptual_losses(), None)
-
-
-def _viewpoint_supervisions() -> tuple[str | None, ...]:
-    from unicorn.model.viewpoint import list_viewpoint_supervisions
-
-    return (*list_viewpoint_supervisions(), None)
-
-
-def _pose_objectives() -> tuple[str, ...]:
-    from unicorn.model.pose_objectives import list_pose_objectives
-
-    return tuple(list_pose_objectives())
-
-
 #: allowed values of the model's string settings: ``group.key`` -> the values, or a function listing a registry's
-#: names (:func:`allowed_values` resolves both)
+#: names (:func:`allowed_values` resolves both). The ``loss`` settings that name a training loss (perceptual loss,
+#: pose objective, viewpoint supervision) are checked against the training floor's registries by
+#: :func:`unicorn.objectives.loss_factory.check_loss_choices`.
 CHOICES: dict[str, tuple[Any, ...] | Callable[[], tuple[Any, ...]]] = {
     "template.uv_mode": ("seamless", "reference"),
     "renderer.composite": _compositings,
-    "loss.perceptual": _perceptual_losses,
     "loss.uniform_reduction": ("sum", "mean"),
-    "loss.pose_objective": _pose_objectives,
-    "loss.viewpoint": _viewpoint_supervisions,
 }
 
 
 def allowed_values(key: str) -> tuple[Any, ...]:
     """The allowed values of the string setting ``key`` (``group.key`` of :data:`CHOICES`), registered ones
-    included (e.g. a pose objective added with :func:`unicorn.model.pose_objectives.register_pose_objective`)."""
+    included (e.g. a compositing added with :func:`unicorn.model.compositing.register_compositing`)."""
     allowed = CHOICES[key]
     return allowed() if callable(allowed) else allowed
-
-
-def ranged(default: Any, low: float | None = None, high: float | None = None) -> Any:
-    """A dataclass field whose value must lie in ``[low, high]`` (either bound may be None), checked by
-    :func:`check_ranges`. ``None`` values (optional fields) are not checked."""
-    return field(default=default, metadata={"range": (low, high)})
 
 
 @dataclass
@@ -213,6 +179,10 @@ class RendererConfig:
 
 @dataclass
 class LossConfig:
+    """The training objectives' settings (the ``loss`` group): carried in the model's configuration, so that a
+    checkpoint keeps them, and read by :mod:`unicorn.objectives`, never by the model. Its names of a registered loss
+    are checked there (:func:`unicorn.objectives.loss_factory.check_loss_choices`)."""
+
     rgb_weight: float = ranged(1.0, 0)
     perceptual: str | None = "vgg"  # vgg | structural | None
     perceptual_weight: float = ranged(10.0, 0)
@@ -222,15 +192,15 @@ class LossConfig:
     uniform_weight: float = ranged(0.02, 0)
     uniform_reduction: str = "sum"  # sum (the paper) | mean (the reference code)
     # pose step: each pair of an image's candidates nearer than spacing_angle degrees costs up to spacing_weight
-    # (unicorn.model.losses.candidate_spacing_loss); 0: left out (the paper)
+    # (unicorn.objectives.losses.candidate_spacing_loss); 0: left out (the paper)
     spacing_weight: float = ranged(0.0, 0)
     spacing_angle: float = ranged(30.0, 1, 180)
     # expected (the paper): the probability-weighted loss trains the probabilities; assigned: the reconstruction
     # terms are weighted by the detached probabilities and the probabilities learn from assignment_weight x the
-    # cross-entropy against the best-reconstructing candidate (unicorn.model.losses.candidate_assignment_loss)
+    # cross-entropy against the best-reconstructing candidate (unicorn.objectives.losses.candidate_assignment_loss)
     pose_objective: str = "expected"
     assignment_weight: float = ranged(0.02, 0)
-    # sampled (MagicPony's schedule; unicorn.model.pose_objectives.SampledCandidates): one candidate rendered per
+    # sampled (MagicPony's schedule; unicorn.objectives.pose_objectives.SampledCandidates): one candidate rendered per
     # image in both steps, random until sample_random_until, then the most likely for all but a share falling to
     # sample_random_share over sample_ramp iterations; uniform probabilities until sample_uniform_until; the rendered
     # candidate's score (-logit) regresses its loss x score_weight; temperature 1 / clip(it / sample_tau_period, 1, 100)
@@ -241,7 +211,7 @@ class LossConfig:
     sample_uniform_until: int = ranged(400, 0)
     sample_tau_period: int = ranged(200, 1)
     # pose step: the pose branch also learns from the model's reconstructions rendered at drawn viewpoints
-    # (unicorn.model.viewpoint; "renders"), or not (None, the paper): the cross-entropy toward the drawn view's
+    # (unicorn.objectives.viewpoint; "renders"), or not (None, the paper): the cross-entropy toward the drawn view's
     # candidate x viewpoint_weight, its angles and translation regressed x viewpoint_pose_weight, from iteration
     # viewpoint_start at every viewpoint_every-th pose step, a share viewpoint_mix of the renders blending two images;
     # viewpoint_azimuth_only: only the azimuth drawn (elevation, roll and translation at the candidate's anchor)
@@ -286,60 +256,6 @@ class UnicornConfig(ModelGroups):
 
 #: the default configuration as a plain mapping (groups of keys), see :class:`UnicornConfig`
 DEFAULT_CONFIG: dict[str, Any] = dataclasses.asdict(UnicornConfig())
-
-
-def _dataclass_of(hint: Any) -> type | None:
-    """The dataclass in a type hint (``X`` or ``X | None``), or None."""
-    if dataclasses.is_dataclass(hint):
-        return hint  # type: ignore[return-value]
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        return next((a for a in typing.get_args(hint) if dataclasses.is_dataclass(a)), None)
-    return None
-
-
-def field_range(schema: type, name: str) -> tuple[float | None, float | None]:
-    """The ``[low, high]`` range of a :func:`ranged` field (``(None, None)``: unchecked). A subclass that only
-    changes a field's default keeps the range its base class declares."""
-    for cls in schema.__mro__:
-        f = getattr(cls, "__dataclass_fields__", {}).get(name)
-        if f is not None and "range" in f.metadata:
-            return f.metadata["range"]
-    return None, None
-
-
-def describe_range(low: float | None, high: float | None) -> str:
-    """``">= 1"``, ``"<= 5"`` or ``"in [0, 1]"``."""
-    if high is None:
-        return f">= {low:g}"
-    if low is None:
-        return f"<= {high:g}"
-    return f"in [{low:g}, {high:g}]"
-
-
-def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> None:
-    """Check every field of ``schema`` declared with :func:`ranged`, recursing into nested groups: a finite number
-    within its bounds.
-
-    Raises:
-        ModelConfigError: the first value out of its range (or not finite), named with its full key (``prefix``
-            + path).
-    """
-    hints = typing.get_type_hints(schema)
-    for f in dataclasses.fields(schema):
-        value = values.get(f.name)
-        key = f"{prefix}{f.name}"
-        nested = _dataclass_of(hints[f.name])
-        if nested is not None:
-            if value is not None:
-                check_ranges(value, nested, f"{key}.")
-            continue
-        low, high = field_range(schema, f.name)
-        if value is None or (low is None and high is None):
-            continue
-        if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-            raise ModelConfigError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
-        if not ((low is None or value >= low) and (high is None or value <= high)):
-            raise ModelConfigError(f"{key} must be {describe_range(low, high)}, got {value}")
 
 
 def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:

@@ -11,7 +11,7 @@ from torch import nn
 from unicorn.geometry.rotations import rotation_angle_between
 from unicorn.model import Prediction3D, Unicorn, world_verts
 from unicorn.model.generator import mean_texture
-from unicorn.model.losses import ReconstructionLoss
+from unicorn.objectives.losses import ReconstructionLoss
 from unicorn.render.precision import full_precision, to_full_precision
 
 __all__ = ["NeighborLoss", "NeighborMatch", "NeighborMemory"]

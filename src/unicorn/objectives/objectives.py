@@ -9,13 +9,13 @@ import torch
 from torch import nn
 
 from unicorn.model import Unicorn
-from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
-from unicorn.model.pose_objectives import SampledCandidates, build_pose_objective
-from unicorn.model.viewpoint import build_viewpoint_supervision
+from unicorn.objectives.loss_factory import build_losses
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
+from unicorn.objectives.pose_objectives import SampledCandidates, build_pose_objective
 from unicorn.objectives.pose_step import PoseStep
 from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
+from unicorn.objectives.viewpoint import build_viewpoint_supervision
 
 __all__ = ["Objectives"]
 
@@ -41,11 +41,9 @@ class Objectives(nn.Module):
     @classmethod
     def from_config(cls, loss: Mapping[str, Any], model: Unicorn) -> Objectives:
         """The objectives a ``loss`` group describes (:class:`unicorn.model.config.LossConfig`) for ``model``'s
-        template: perceptual loss, pose objective and viewpoint supervision chosen by name, weights <= 0 leaving
-        their terms out."""
-        reconstruction = ReconstructionLoss.from_config(loss)
-        template = model.template
-        regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts)
+        template: the loss modules of :func:`unicorn.objectives.loss_factory.build_losses`, the pose objective and
+        the viewpoint supervision chosen by name, weights <= 0 leaving their terms out."""
+        reconstruction, regularizer = build_losses(loss, model.template)
         objective = build_pose_objective(loss["pose_objective"], **loss)
         pose = PoseStep(
             reconstruction,

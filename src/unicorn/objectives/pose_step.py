@@ -1,8 +1,9 @@
 """The pose step (P-step): all K pose candidates rendered with detached shapes, textures and backgrounds.
 
 How the candidates' reconstruction losses train the pose probabilities is a pose objective, chosen by name
-(``loss.pose_objective``; :mod:`unicorn.model.pose_objectives`); whether the pose branch also learns from the
-model's renders at drawn viewpoints is a viewpoint supervision (``loss.viewpoint``; :mod:`unicorn.model.viewpoint`).
+(``loss.pose_objective``; :mod:`unicorn.objectives.pose_objectives`); whether the pose branch also learns from the
+model's renders at drawn viewpoints is a viewpoint supervision (``loss.viewpoint``;
+:mod:`unicorn.objectives.viewpoint`).
 """
 
 from __future__ import annotations
@@ -12,11 +13,11 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.autoencoder import Prediction3D
-from unicorn.model.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
 from unicorn.model.pose import PoseOutput
-from unicorn.model.pose_objectives import PoseObjective, SampledCandidates
-from unicorn.model.viewpoint import ViewpointSupervision
+from unicorn.objectives.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
+from unicorn.objectives.pose_objectives import PoseObjective, SampledCandidates
 from unicorn.objectives.step_losses import StepLosses, with_total
+from unicorn.objectives.viewpoint import ViewpointSupervision
 
 __all__ = ["PoseStep"]
 
@@ -27,7 +28,7 @@ class PoseStep(nn.Module):
     Every candidate is rendered, or with the ``sampled`` objective (:class:`SampledCandidates`) the one it picks per
     image. ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
     (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`,
-    :class:`~unicorn.model.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
+    :class:`~unicorn.objectives.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
     the encoder that feeds them receive gradients.
 
     Args:

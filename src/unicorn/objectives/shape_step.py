@@ -6,9 +6,9 @@ import torch
 from torch import nn
 
 from unicorn.model import Unicorn
-from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
-from unicorn.model.pose_objectives import SampledCandidates
+from unicorn.objectives.losses import MeshRegularizer, ReconstructionLoss
 from unicorn.objectives.neighbors import NeighborLoss
+from unicorn.objectives.pose_objectives import SampledCandidates
 from unicorn.objectives.step_losses import StepLosses, with_total
 
 __all__ = ["ShapeStep"]

@@ -14,7 +14,7 @@ from torch import nn
 
 from unicorn.checks import check_shape
 from unicorn.geometry.rotations import rotation_angle_between
-from unicorn.model.perceptual import build_perceptual
+from unicorn.objectives.perceptual import build_perceptual
 
 __all__ = [
     "MeshRegularizer",
@@ -222,7 +222,7 @@ class ReconstructionLoss(nn.Module):
     @classmethod
     def from_config(cls, loss: Mapping[str, Any]) -> ReconstructionLoss:
         """From a model configuration's ``loss`` group (the perceptual loss built by name,
-        :func:`unicorn.model.perceptual.build_perceptual`)."""
+        :func:`unicorn.objectives.perceptual.build_perceptual`)."""
         perceptual = build_perceptual(loss["perceptual"], **loss)
         return cls(loss["rgb_weight"], perceptual, loss["perceptual_weight"])
 

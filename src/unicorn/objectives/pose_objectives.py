@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import torch
 
 from unicorn.model.config import LOSS_KEYS
-from unicorn.model.losses import candidate_assignment_loss
+from unicorn.objectives.losses import candidate_assignment_loss
 from unicorn.registry import Registry
 
 __all__ = [

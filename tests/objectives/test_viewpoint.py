@@ -1,4 +1,4 @@
-"""Viewpoint self-supervision (unicorn.model.viewpoint): draws, renders, terms against direct computations, and
+"""Viewpoint self-supervision (unicorn.objectives.viewpoint): draws, renders, terms against direct computations, and
 a pose branch trained on renders at known views learning their candidates."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from tests.support.model import randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn
 from unicorn.model.pose import PoseHead, PoseOutput
-from unicorn.model.viewpoint import (
+from unicorn.objectives import Objectives
+from unicorn.objectives.viewpoint import (
     DrawnViews,
     RenderedViewpoints,
     build_viewpoint_supervision,
@@ -23,7 +24,6 @@ from unicorn.model.viewpoint import (
     viewpoint_terms,
     wrap_degrees,
 )
-from unicorn.objectives import Objectives
 
 
 def _model(**loss) -> Unicorn:
@@ -137,8 +137,9 @@ def test_registry_schedule_and_config() -> None:
     assert not sup.active(8) and sup.active(None)
     with pytest.raises(ValueError, match="viewpoint_every"):
         RenderedViewpoints(viewpoint_every=0)
+    model = Unicorn(tiny_config("real"))
     with pytest.raises(ValueError, match=r"loss.viewpoint must be one of \('renders', None\)"):
-        Unicorn(tiny_config("real", loss={"viewpoint": "render"}))
+        Objectives.from_config({**model.config["loss"], "viewpoint": "render"}, model)
 
 
 def test_the_pose_step_adds_the_terms_and_reaches_only_the_pose_branch() -> None:

@@ -2,7 +2,8 @@
 
 A network that predicts in one pass gives what it learnt of the category; refinement starts from its prediction
 and optimises, per image, a few variables against the training's 3D-step objective (the reconstruction terms of
-:class:`unicorn.model.losses.ReconstructionLoss` and the mesh regularisers, normal consistency and
+:class:`unicorn.objectives.losses.ReconstructionLoss` and the mesh regularisers, built by
+:func:`unicorn.objectives.loss_factory.build_losses`, normal consistency and
 Laplacian, with the model's weights), plus a penalty on leaving the prediction (the prior). The model's weights
 stay frozen (eval mode: BatchNorm uses its running statistics); the encoders run once.
 
@@ -40,19 +41,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from typing import TYPE_CHECKING
 
 import torch
 from tqdm.auto import tqdm
 
 from unicorn.errors import UserError
 from unicorn.geometry.rotations import euler_angles_to_matrix
-from unicorn.model.autoencoder import world_verts
+from unicorn.model.autoencoder import Prediction, Unicorn, world_verts
 from unicorn.model.generator import mean_texture
-from unicorn.model.losses import MeshRegularizer, ReconstructionLoss
-
-if TYPE_CHECKING:
-    from unicorn.model.autoencoder import Prediction, Unicorn
+from unicorn.objectives.loss_factory import ImageLosses, build_losses
 
 __all__ = ["MAX_STEPS", "PARTS", "RefineOptionsError", "RefineOptions", "Refinement", "refine"]
 
@@ -203,18 +200,15 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
     )
 
 
-class _Losses:
-    """The training's 3D-step loss functions for a model's configuration (built once per refinement)."""
-
-    def __init__(self, model: Unicorn) -> None:
-        loss, template = model.config["loss"], model.template
-        device = template.verts.device
-        self.reconstruction = ReconstructionLoss.from_config(loss).to(device)
-        self.regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts).to(device)
+def _losses(model: Unicorn) -> ImageLosses:
+    """The training's 3D-step loss modules for a model's configuration, on its device (built once per refinement)."""
+    reconstruction, regularizer = build_losses(model.config["loss"], model.template)
+    device = model.template.verts.device
+    return ImageLosses(reconstruction.to(device), regularizer.to(device))
 
 
 def _objective(
-    model: Unicorn, fns: _Losses, images: torch.Tensor, p: Prediction, v: _Variables, o: RefineOptions
+    model: Unicorn, fns: ImageLosses, images: torch.Tensor, p: Prediction, v: _Variables, o: RefineOptions
 ) -> torch.Tensor:
     """Each image's objective (B,): reconstruction terms + mesh regularisers + prior."""
     rec, _ = model.render(p.verts, p.texture, p.R, p.T, p.background)
@@ -272,7 +266,7 @@ def refine(
             start = model.predict(images, average_texture) if initial is None else initial
         start = _detached(start)
         v = _Variables(model, start, o.parts, move_shape=o.lr_shape_code > 0)
-        fns = _Losses(model)
+        fns = _losses(model)
         params = v.groups
         steps = o.steps if params else 0
         lrs = {"codes": o.lr_codes, "texture": o.lr_texture, "vertices": o.lr_vertices, "pose": o.lr_pose}

@@ -1,11 +1,11 @@
-"""The pose objectives (unicorn.model.pose_objectives): how each weights the candidates' terms."""
+"""The pose objectives (unicorn.objectives.pose_objectives): how each weights the candidates' terms."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from unicorn.model.pose_objectives import build_pose_objective, list_pose_objectives
+from unicorn.objectives.pose_objectives import build_pose_objective, list_pose_objectives
 
 
 def test_pose_objectives_weight_the_candidates_terms():

@@ -9,7 +9,7 @@ import torch
 
 from tests.support.model import ellipsoid_images, randomize_heads, tiny_config
 from unicorn.model import Unicorn
-from unicorn.model.refine import PARTS, RefineOptions, refine
+from unicorn.objectives.refine import PARTS, RefineOptions, refine
 
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
 
@@ -144,8 +144,8 @@ def test_defaults_refine_the_appearance_and_outline(model: Unicorn, targets: tor
     assert moved < (weak.prediction.verts - weak.initial.verts).norm(dim=-1).mean()
 
 
-def test_method_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
-    out = model.refine(targets[:1], steps=2, parts=("pose",), lr_pose=0.01)
+def test_pose_part_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
+    out = refine(model, targets[:1], RefineOptions(steps=2, parts=("pose",), lr_pose=0.01))
     assert out.losses.shape == (3, 1)
     with pytest.raises(ValueError, match="unknown refinement parts"):
         RefineOptions(parts=("colour",))

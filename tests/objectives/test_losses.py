@@ -12,12 +12,12 @@ import torch.nn.functional as F
 from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
-from unicorn.model import (
+from unicorn.model import TemplateMesh
+from unicorn.objectives import (
     MeshRegularizer,
     NormalConsistencyLoss,
     ReconstructionLoss,
     StructuralLoss,
-    TemplateMesh,
     UniformLaplacianLoss,
     VGGPerceptualLoss,
     build_perceptual,
@@ -27,7 +27,7 @@ from unicorn.model import (
     mse_per_sample,
     uniform_pose_prior,
 )
-from unicorn.model.perceptual import (
+from unicorn.objectives.perceptual import (
     VGG16_URL,
     VGGWeightsNotFoundError,
     load_vgg16_weights,
