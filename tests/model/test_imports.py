@@ -1,4 +1,4 @@
-"""unicorn.model stays below unicorn.io; the names README.md documents as ``unicorn.model.*`` still resolve."""
+"""unicorn.model stays below unicorn.io and holds no alias of its file functions."""
 
 from __future__ import annotations
 
@@ -17,10 +17,9 @@ def test_model_does_not_import_io_or_lightning() -> None:
 
 
 @pytest.mark.parametrize("name", ["load_reference_checkpoint", "export_prediction", "save_mesh"])
-def test_readme_names_are_the_io_functions(name: str) -> None:
+def test_file_functions_are_io_names_only(name: str) -> None:
     import unicorn.io
     import unicorn.model
 
-    assert getattr(unicorn.model, name) is getattr(unicorn.io, name)
-    with pytest.raises(AttributeError):
-        unicorn.model.textured_mesh  # noqa: B018  (not documented as unicorn.model.*: moved without a re-export)
+    assert callable(getattr(unicorn.io, name))
+    assert not hasattr(unicorn.model, name)  # files in and out are unicorn.io's: no alias on the model floor

@@ -64,19 +64,3 @@ __all__ = [
     "register_compositing",
     "world_verts",
 ]
-
-# README.md documents these three to users as ``unicorn.model.*``: kept as re-exports of their home in
-# unicorn.io, imported on first use so that importing unicorn.model never imports unicorn.io (a higher floor).
-_MOVED_TO_IO = {
-    "load_reference_checkpoint": "unicorn.io.reference_checkpoints",
-    "export_prediction": "unicorn.io.meshes",
-    "save_mesh": "unicorn.io.meshes",
-}
-
-
-def __getattr__(name: str) -> object:
-    if name in _MOVED_TO_IO:
-        import importlib
-
-        return getattr(importlib.import_module(_MOVED_TO_IO[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
