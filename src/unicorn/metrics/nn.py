@@ -4,11 +4,9 @@ The backends find the neighbour indices without gradient; the distances are then
 matched pairs, so they are exact (no ``|x|^2 - 2 x.y + |y|^2`` cancellation) and differentiable with respect
 to both clouds.
 
-- ``"pykdtree"``: :mod:`pykdtree` k-d trees on the CPU (float64; queries use the OpenMP threads,
-  ``OMP_NUM_THREADS``). The default when it is installed, for CPU and CUDA tensors alike: CUDA clouds are copied
-  to the CPU for the search and the indices copied back, a small cost beside the brute force's O(N M) work.
-- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default otherwise.
-  ``benchmarks/bm_eval.py`` compares the two on the evaluation's clouds.
+- ``"pykdtree"``: :mod:`pykdtree` k-d trees on the CPU (float64, ``OMP_NUM_THREADS`` threads). The default when it
+  is installed, for CPU and CUDA tensors alike: CUDA clouds are copied to the CPU and the indices back.
+- ``"kdtree"``: :class:`scipy.spatial.cKDTree` on the CPU (float64), the default otherwise (``bm_eval.py`` compares).
 - ``"torch"``: brute force on the tensors' device, in blocks of at most ``block_elements`` pairwise distances (a
   running minimum over blocks of ``y``), so memory stays bounded whatever the cloud sizes, each distance from the
   coordinate differences (the neighbours the k-d trees find, up to float32 rounding of near-ties). No host round
@@ -21,10 +19,9 @@ query point (:meth:`~NearestNeighborIndex.query`) and the nearest query point of
 (ground-truth clouds stored in float16, as ShapeNet's are, repeat many points) and break ties between copies of
 a point by taking its first occurrence.
 
-The queries take an optional visiting order of the query points: in :func:`spatial_order` (a Z-order curve)
-consecutive queries walk the same branches of a tree and find the same neighbours faster
-(``docs/performance.md``, "Evaluation"). A cloud queried many times under a similarity transform (an ICP's source)
-keeps one order for all its queries. The reference clouds' distinct points are kept in that order.
+The queries take an optional visiting order: in :func:`spatial_order` (a Z-order curve) consecutive queries walk
+the same branches of a tree (``docs/performance.md``, "Evaluation"). A cloud queried many times under a similarity
+transform (an ICP's source) keeps one order; the reference clouds' distinct points are kept in that order.
 """
 
 from __future__ import annotations
