@@ -129,7 +129,7 @@ def test_sampled_schedule_renders_the_picked_candidate_in_both_steps(images):
     model.set_active_dims(shape=2, texture=8)
     objectives = objectives_of(model)
     sampled = objectives.steps["pose"].objective
-    assert objectives.steps["3d"].sampler is sampled
+    assert objectives.steps["3d"].objective is sampled
     reconstruction = objectives.steps["pose"].reconstruction
     B = images.shape[0]
     with torch.no_grad():

@@ -43,10 +43,12 @@ from unicorn.objectives.perceptual import (
     register_perceptual,
 )
 from unicorn.objectives.pose_objectives import (
+    AllCandidates,
     AssignedBestLoss,
     AssignedLoss,
     ExpectedLoss,
     PoseObjective,
+    SampledCandidates,
     build_pose_objective,
     list_pose_objectives,
     register_pose_objective,
@@ -57,6 +59,7 @@ from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 
 __all__ = [
+    "AllCandidates",
     "AssignedBestLoss",
     "AssignedLoss",
     "ExpectedLoss",
@@ -72,6 +75,7 @@ __all__ = [
     "ReconstructionLoss",
     "RefineOptions",
     "Refinement",
+    "SampledCandidates",
     "ShapeStep",
     "StepLosses",
     "StructuralLoss",

@@ -60,6 +60,7 @@ MAX_STEPS = 10_000
 class RefineOptionsError(UserError, ValueError):
     """A refinement setting out of its range (the message names it)."""
 
+
 #: the refinable parts: name -> what it optimises
 PARTS: dict[str, str] = {
     "codes": "the shape, texture and background codes, decoded by the network",
