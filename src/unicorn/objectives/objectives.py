@@ -53,6 +53,7 @@ class Objectives(nn.Module):
             loss["spacing_weight"],
             loss["spacing_angle"],
             None if loss["viewpoint"] is None else build_viewpoint_supervision(loss["viewpoint"], **loss),
+            loss["flip_weight"],
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])

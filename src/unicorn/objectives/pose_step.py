@@ -13,7 +13,12 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.autoencoder import Prediction3D
-from unicorn.objectives.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
+from unicorn.objectives.losses import (
+    ReconstructionLoss,
+    candidate_spacing_loss,
+    flip_consistency_loss,
+    uniform_pose_prior,
+)
 from unicorn.objectives.pose_objectives import PoseObjective
 from unicorn.objectives.step_losses import StepLosses, with_total
 from unicorn.objectives.viewpoint import ViewpointSupervision
@@ -26,8 +31,8 @@ class PoseStep(nn.Module):
 
     The pose objective renders the candidates it chooses (:meth:`PoseObjective.pose_terms`: every one, or with
     ``sampled`` the one it picks per image).
-    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
-    (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`,
+    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing + flip_weight * L_flip
+    [+ viewpoint terms]`` (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`, :func:`flip_consistency_loss`,
     :class:`~unicorn.objectives.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
     the encoder that feeds them receive gradients.
 
@@ -38,6 +43,8 @@ class PoseStep(nn.Module):
         spacing_weight: weight of the candidates' spacing term (<= 0: left out, the paper); spacing_angle: the
             angle in degrees from which a pair of candidates adds nothing to it.
         viewpoint: the viewpoint supervision from renders at drawn views, or None (the paper).
+        flip_weight: weight of the flipped images' pose consistency (<= 0: left out, the paper); it encodes the
+            flipped batch once more with the pose branch's encoder.
     """
 
     def __init__(
@@ -49,8 +56,10 @@ class PoseStep(nn.Module):
         spacing_weight: float = 0.0,
         spacing_angle: float = 30.0,
         viewpoint: ViewpointSupervision | None = None,
+        flip_weight: float = 0.0,
     ) -> None:
         super().__init__()
+        self.flip_weight = flip_weight
         self.viewpoint = viewpoint
         self.reconstruction, self.objective = reconstruction, objective
         self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
@@ -66,8 +75,8 @@ class PoseStep(nn.Module):
             iteration: the training iteration (the viewpoint supervision's schedule; None: it is active).
 
         Returns:
-            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``
-            and ``spacing`` (if enabled) and the viewpoint supervision's (when active; they sum to ``total``);
+            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``,
+            ``spacing`` and ``flip`` (if enabled) and the viewpoint supervision's (when active; they sum to ``total``);
             ``.probs``: the candidate probabilities (K, B), detached; ``.stats``: the viewpoint supervision's.
         """
         model.check_images(images)
@@ -85,6 +94,9 @@ class PoseStep(nn.Module):
             out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
         if self.spacing_weight > 0:
             out["spacing"] = self.spacing_weight * candidate_spacing_loss(poses.R, self.spacing_angle)
+        if self.flip_weight > 0:
+            flipped = model.pose(model.encode(images.flip(-1), ("pose",))["pose"])
+            out["flip"] = self.flip_weight * flip_consistency_loss(poses, flipped, model.pose.mirror_index())
         stats: dict[str, torch.Tensor] = {}
         if self.viewpoint is not None and self.viewpoint.active(iteration):
             terms, stats = self.viewpoint(model, p)
