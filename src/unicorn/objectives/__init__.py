@@ -29,6 +29,7 @@ from unicorn.objectives.losses import (
     UniformLaplacianLoss,
     candidate_assignment_loss,
     candidate_spacing_loss,
+    flip_consistency_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -86,6 +87,7 @@ __all__ = [
     "build_pose_objective",
     "candidate_assignment_loss",
     "candidate_spacing_loss",
+    "flip_consistency_loss",
     "list_perceptual_losses",
     "list_pose_objectives",
     "load_vgg16_weights",
