@@ -23,6 +23,8 @@ from unicorn.model import (
     TemplateMesh,
     active_dims_at,
 )
+from unicorn.model.pose import mirrored_pose
+from unicorn.render import TexturesVertex, build_renderer
 
 
 def random_state(shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
@@ -393,9 +395,6 @@ def test_mirror_index_pairs_each_anchor_with_its_mirror(n_azim):
 def test_a_flipped_render_is_the_render_at_the_mirrored_pose():
     """The ray-cast oracle: a mesh symmetric through z = 0 (but not through x = 0), coloured by x and y, shows at
     mirrored_pose(R, T) exactly the horizontal flip of what it shows at (R, T)."""
-    from unicorn.model.pose import mirrored_pose
-    from unicorn.render import TexturesVertex, build_renderer
-
     verts, faces = ellipsoid(2, scale=0.6)
     verts = verts * torch.tensor([1.0, 0.7, 0.5])
     verts = verts + (verts[:, :1] > 0) * torch.tensor([0.3, 0.1, 0.0])  # a longer, higher front: no x symmetry

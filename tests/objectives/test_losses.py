@@ -13,6 +13,7 @@ from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import TemplateMesh
+from unicorn.model.pose import PoseOutput, mirrored_pose
 from unicorn.objectives import (
     MeshRegularizer,
     NormalConsistencyLoss,
@@ -272,15 +273,11 @@ def test_reconstruction_and_mesh_terms_are_the_weighted_losses():
 
 
 def _candidates(R, T, logits):
-    from unicorn.model.pose import PoseOutput
-
     log_probs = torch.log_softmax(logits, 0)
     return PoseOutput(angles=torch.zeros(*R.shape[:2], 3), R=R, T=T, probs=log_probs.exp(), log_probs=log_probs)
 
 
 def test_flip_consistency_is_zero_for_mirrored_candidates_and_grows_with_the_difference():
-    from unicorn.model.pose import mirrored_pose
-
     g = torch.Generator().manual_seed(0)
     K, B = 4, 3
     mirror = torch.tensor([2, 1, 0, 3])
