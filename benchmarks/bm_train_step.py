@@ -27,8 +27,8 @@ random weights unless ``--vgg`` names torchvision's file (the time is the same).
 ``32-true`` (the default) or ``bf16-mixed`` (the step's forward under ``torch.autocast`` in bfloat16, as Lightning's
 ``trainer.precision=bf16-mixed`` runs it; the renderer stays in float32). ``--compile`` does the same for
 ``model.compile`` (``none``: eager; a mode: the networks compiled by :func:`unicorn.model.compile.compile_networks`,
-compiled during the warm-up steps; the per-group columns then include the hooks' graph breaks, the total is the
-figure to compare).
+compiled during the warm-up steps; their encoder and generator times are part of ``other``, and with compiled rows
+every row runs its backward in one pass: the totals are the figures to compare).
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import resource
 import statistics
 import sys
@@ -180,16 +181,24 @@ def time_steps(
     device: str,
     args: argparse.Namespace,
     precision: str = "32-true",
+    compiled: bool = False,
+    split: bool = True,
 ) -> dict:
+    """Median timings of each step kind. ``compiled``: the networks are compiled, so they are timed as part of
+    ``other`` (a timing hook inside a compiled network would break its graph). ``split``: the neighbour term is
+    backpropagated first, with the graph kept (``bwd-nbr``); without it, or compiled (a compiled backward runs once
+    per graph), one backward (``bwd-nbr`` NaN)."""
+
     def sync() -> None:
         if device == "cuda":
             torch.cuda.synchronize()
 
     timer = ComponentTimer(sync)
-    for encoder in model.encoders:
-        timer.attach("encoder", encoder)
-    for head in (model.shape, model.texture, model.background, model.pose, model.scale):
-        timer.attach("generators", head)
+    if not compiled:
+        for encoder in model.encoders:
+            timer.attach("encoder", encoder)
+        for head in (model.shape, model.texture, model.background, model.pose, model.scale):
+            timer.attach("generators", head)
     timer.attach("renderer", model.renderer)
     shape_step = objectives.steps["3d"]
     timer.attach("perceptual", shape_step.reconstruction.perceptual)
@@ -267,7 +276,7 @@ def time_steps(
             sync()
             t1 = time.perf_counter()
             nbr = losses.get("neighbor")
-            if nbr is not None and nbr.requires_grad:
+            if nbr is not None and nbr.requires_grad and split and not compiled:
                 nbr.backward(retain_graph=True)
                 sync()
                 tn = time.perf_counter()
@@ -285,8 +294,10 @@ def time_steps(
                 continue
             row = {g: timer.totals.get(g, 0.0) for g in GROUPS}
             row.update(forward=t1 - t0, backward=t2 - t1, optimizer=t3 - t2, total=t3 - t0)
-            row["bwd-nbr"] = tn - t1
-            row["other"] = row["forward"] - sum(row[g] for g in GROUPS)
+            row["bwd-nbr"] = tn - t1 if split and not compiled else float("nan")
+            if compiled:
+                row.update(encoder=float("nan"), generators=float("nan"))
+            row["other"] = row["forward"] - sum(row[g] for g in GROUPS if not math.isnan(row[g]))
             row["peak MB"] = peak
             row["bwd-render"] = replay_render_backward()
             rows.append(row)
@@ -331,7 +342,10 @@ def main() -> None:
                 if mode != "none" and not compile_networks(model, mode, args.device):
                     continue  # the warning says why
                 images = torch.rand(batch, 3, image_size, image_size, device=args.device)
-                for phase, row in time_steps(model, objectives, opt, images, args.device, args, precision).items():
+                # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare
+                split = all(m == "none" for m in args.compile)
+                rows = time_steps(model, objectives, opt, images, args.device, args, precision, mode != "none", split)
+                for phase, row in rows.items():
                     cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
                     label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {phase:4s}"
                     print(f"{label} {cells}", flush=True)
