@@ -32,6 +32,7 @@ import torch
 from ..checks import SizeLimitError, check_mesh, check_rotations, check_translations, env_limit
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
+from ..hostsync import is_sync_free
 from .fragments import Fragments
 from .overflow import note_overflow
 from .selection import Selection, select_pairs
@@ -122,13 +123,16 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
 
 
 def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size: int) -> None:
-    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None."""
+    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None (the
+    finiteness is one host read, skipped inside :func:`unicorn.hostsync.sync_free`)."""
     if (R is None) != (T is None):
         raise ValueError("give both R and T, or neither (verts already in view coordinates)")
     if R is None or T is None:
         return
     check_rotations(R, "R", batch_size)  # an integer R would be cast and render a wrong pose
     check_translations(T, "T", batch_size)
+    if is_sync_free():
+        return
     finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync
     for name, ok in zip("RT", finite):
         if not ok:
