@@ -19,16 +19,7 @@ from typing import Any
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-__all__ = ["RASTERIZER", "Sync", "SyncRecorder", "outside", "record_syncs"]
-
-#: the source files of the rasterizer's packed fragments, whose sizes depend on the data
-RASTERIZER = (
-    "render/selection.py",
-    "render/raster.py",
-    "render/rasterizer.py",
-    "render/fragments.py",
-    "render/layered.py",
-)
+__all__ = ["Sync", "SyncRecorder", "outside", "record_syncs"]
 
 #: aten ops that read the device back (by their overload packet's name)
 _ALWAYS = {
@@ -63,7 +54,7 @@ class Sync:
 
 
 def _caller() -> str:
-    stack = traceback.extract_stack()[:-3]  # without this module's frames
+    stack = [f for f in traceback.extract_stack() if not f.filename.endswith("support/syncs.py")]
     ours = [f for f in stack if "/src/unicorn/" in f.filename]
     f = (ours or [f for f in stack if "/torch/" not in f.filename] or stack)[-1]
     return f"{f.filename.rsplit('/src/unicorn/', 1)[-1]}:{f.lineno} ({f.name})"
@@ -120,6 +111,6 @@ def record_syncs() -> Iterator[SyncRecorder]:
             setattr(torch.Tensor, name, method)
 
 
-def outside(syncs: list[Sync], files: tuple[str, ...] = RASTERIZER) -> list[str]:
-    """The syncs (as text) not made in ``files`` (paths under ``src/unicorn``)."""
-    return [str(s) for s in syncs if not s.where.startswith(files)]
+def outside(syncs: list[Sync], files: tuple[str, ...] = ()) -> list[str]:
+    """The syncs (as text) not made in ``files`` (paths under ``src/unicorn``; none: every sync)."""
+    return [str(s) for s in syncs if not (files and s.where.startswith(files))]

@@ -59,6 +59,7 @@ from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
 from unicorn.model.encoder import crop_optimizer_state
 from unicorn.objectives import Objectives
+from unicorn.render.rasterizer import MeshRasterizer
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
 
@@ -215,6 +216,16 @@ class UnicornLitModule(L.LightningModule):
         last = trainer.max_steps is not None and step + 1 >= trainer.max_steps
         return logs_this_step(trainer) or last or (every > 0 and (step + 1) % every == 0)
 
+    def _logging_reads(self, step: int) -> None:
+        """What the steps without host reads left on the device: the finite-loss flag, and the sizes the
+        rasterizers' fixed buffers needed (grown where too small)."""
+        if self.optim["check_finite"]:
+            self.finite.verify(step)
+        for module in self.model.modules():
+            if isinstance(module, MeshRasterizer):
+                for line in module.grow_buffers():
+                    log.warning("rasterizer buffers at iteration %d: %s", step, line)
+
     def _step(self, images: torch.Tensor, step: int, deferred: bool) -> tuple[Any, Any, bool]:
         """Iteration ``step``'s forward, backward and optimizer step: (its losses, the optimizer, the averaging)."""
         images = self.training_images(images, step)
@@ -257,8 +268,8 @@ class UnicornLitModule(L.LightningModule):
             for scheduler in schedulers:
                 scheduler.step()
 
-        if deferred and self.optim["check_finite"] and self._verifies(step):
-            self.finite.verify(step)
+        if deferred and self._verifies(step):
+            self._logging_reads(step)
         terms = {name: value.detach() for name, value in losses.items()}
         self._latest_terms[self.phase(step)] = {**terms, **losses.stats}
         self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)

@@ -33,6 +33,7 @@ from ..checks import SizeLimitError, check_mesh, check_rotations, check_translat
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from ..hostsync import is_sync_free
+from .fixed import select_fixed
 from .fragments import Fragments
 from .overflow import note_overflow
 from .selection import Selection, select_pairs
@@ -159,6 +160,7 @@ def rasterize_meshes(
     check_inputs: bool = True,
     max_bytes: int | None = None,
     perspective_correct: bool = False,
+    capacity: tuple[int, int] | None = None,
 ) -> Fragments:
     """Rasterize a batch of projected meshes into packed top-K fragments.
 
@@ -186,6 +188,10 @@ def rasterize_meshes(
             depths ``z``) instead of the screen-space ones, then clipped likewise; depth, colours and UVs are
             interpolated with them, so the depth is the face's true depth at the pixel. False (the default, the
             UNICORN reference's): screen-space barycentrics, which interpolate affinely across the projected face.
+        capacity: None (default), or ``(candidates, pairs)``: select in buffers of that fixed size without reading
+            the device back (:mod:`unicorn.render.fixed`; ``max_candidates`` is then unused): the fragments hold
+            ``pairs`` rows, the last transparent padding (``Fragments.valid``), and ``Fragments.sizes`` says on the
+            device what the batch needed.
 
     Returns:
         :class:`~unicorn.render.fragments.Fragments`. A pixel with more than ``faces_per_pixel`` candidates keeps
@@ -203,6 +209,10 @@ def rasterize_meshes(
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)
     faces = faces.long()
+    if capacity is not None:
+        return _rasterize_fixed(
+            verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
+        )
     kept = select_pairs(
         verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct
     )
@@ -213,7 +223,33 @@ def rasterize_meshes(
     note_overflow(overflow, B * H * W, faces_per_pixel)
     return Fragments(
         pix=kept.pix, slot=slot, face=kept.face, inside=kept.inside, bary=bary, dists=dists, zbuf=zbuf,
-        batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow,
+        batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow, sizes=kept.sizes,
+    )  # fmt: skip
+
+
+def _rasterize_fixed(
+    verts_ndc: torch.Tensor,
+    faces: torch.Tensor,
+    image_size: tuple[int, int],
+    blur_radius: float,
+    faces_per_pixel: int,
+    truncate_opaque: bool,
+    capacity: tuple[int, int],
+    perspective_correct: bool,
+) -> Fragments:
+    """:func:`rasterize_meshes` in fixed buffers: no host read; the padding rows made transparent."""
+    B = verts_ndc.shape[0]
+    kept = select_fixed(
+        verts_ndc, faces, image_size, blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
+    )
+    bary, dists, zbuf = _recompute(verts_ndc, faces, kept, image_size, perspective_correct)
+    # where, not a product: the padding's geometry gets no gradient
+    dists, zbuf = (torch.where(kept.valid, t, torch.inf) for t in (dists, zbuf))
+    note_overflow(kept.overflow, B * image_size[0] * image_size[1], faces_per_pixel)
+    return Fragments(
+        pix=kept.pix, slot=kept.slot, face=kept.face, inside=kept.inside, bary=bary, dists=dists, zbuf=zbuf,
+        batch_size=B, image_size=image_size, num_slots=faces_per_pixel, overflow=kept.overflow, valid=kept.valid,
+        sizes=kept.sizes,
     )  # fmt: skip
 
 
