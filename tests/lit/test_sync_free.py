@@ -82,24 +82,39 @@ def test_sync_free_steps_give_the_default_losses(synthetic_cache, tmp_path):
             assert b[name] == pytest.approx(a[name], rel=1e-6, abs=1e-9), (step, name)
 
 
+class SyncErrors(L.Callback):
+    """Runs the training steps after the checked ones, except the logging steps, under
+    ``torch.cuda.set_sync_debug_mode("error")``: a host read in them raises."""
+
+    def __init__(self, log_every: int) -> None:
+        self.log_every = log_every
+        self.plain: list[int] = []
+
+    def on_train_start(self, trainer, pl_module):
+        step_fn = pl_module.training_step
+
+        def strict(batch, batch_idx):
+            step = trainer.global_step
+            plain = step >= pl_module.checked_steps and (step + 1) % self.log_every != 0
+            torch.cuda.set_sync_debug_mode("error" if plain else "default")
+            try:
+                out = step_fn(batch, batch_idx)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+            if plain:
+                self.plain.append(step)
+            return out
+
+        pl_module.training_step = strict
+
+
 @pytest.mark.gpu
 def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path):
     run = build_run(tmp_path, "trainer.log_every_n_steps=4", "trainer.accelerator=gpu", "trainer.devices=1")
-
-    class SyncError(L.Callback):
-        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-            plain = trainer.global_step >= pl_module.checked_steps and (trainer.global_step + 1) % 4
-            torch.cuda.set_sync_debug_mode("error" if plain else "default")
-
-        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-            torch.cuda.set_sync_debug_mode("default")
-
-    run.trainer.callbacks.append(SyncError())
-    try:
-        fit(run)
-    finally:
-        torch.cuda.set_sync_debug_mode("default")
-    assert run.trainer.global_step == 8
+    errors = SyncErrors(4)
+    run.trainer.callbacks.append(errors)
+    fit(run)
+    assert run.trainer.global_step == 8 and errors.plain == [2, 4, 5, 6]
 
 
 class StateBefore(L.Callback):

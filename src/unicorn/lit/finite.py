@@ -43,9 +43,9 @@ def _finite(losses: Mapping[str, torch.Tensor], grads: list[torch.Tensor]) -> to
     return finite
 
 
-def _clone(state: Any) -> Any:
-    """A copy of a (nested) state dict whose tensors are cloned on their device."""
-    return copy.deepcopy(state) if not isinstance(state, torch.Tensor) else state.detach().clone()
+def _listed(items: Any) -> list[Any]:
+    """Lightning's one-or-several (or None) as a list."""
+    return [] if items is None else items if isinstance(items, list) else [items]
 
 
 class FiniteCheck:
@@ -156,12 +156,10 @@ class FiniteCheck:
         """The state to roll back to, copied on the device: the module's weights and buffers, the optimizers'
         and schedulers' states and the neighbour memory (replaced, not changed in place: references suffice)."""
         module = self.module
-        opts = module.optimizers()
-        scheds = module.lr_schedulers()
         return {
             "module": {k: v.detach().clone() for k, v in module.state_dict().items()},
-            "optimizers": [_clone(o.optimizer.state_dict()) for o in (opts if isinstance(opts, list) else [opts])],
-            "schedulers": [copy.deepcopy(s.state_dict()) for s in (scheds if isinstance(scheds, list) else [scheds])],
+            "optimizers": [copy.deepcopy(o.optimizer.state_dict()) for o in _listed(module.optimizers())],
+            "schedulers": [copy.deepcopy(s.state_dict()) for s in _listed(module.lr_schedulers())],
             "memory": module.objectives.memory.state(),
         }
 
@@ -169,10 +167,9 @@ class FiniteCheck:
         """Put ``state`` (kept before iteration ``step``) back and save it as the checkpoint of iteration ``step``."""
         module = self.module
         module.load_state_dict(state["module"])
-        opts, scheds = module.optimizers(), module.lr_schedulers()
-        for opt, saved in zip(opts if isinstance(opts, list) else [opts], state["optimizers"]):
+        for opt, saved in zip(_listed(module.optimizers()), state["optimizers"]):
             opt.optimizer.load_state_dict(saved)
-        for sched, saved in zip(scheds if isinstance(scheds, list) else [scheds], state["schedulers"]):
+        for sched, saved in zip(_listed(module.lr_schedulers()), state["schedulers"]):
             sched.load_state_dict(saved)
         module.objectives.memory.load_state(state["memory"])
         progress = module.trainer.fit_loop.epoch_loop.manual_optimization.optim_step_progress.total

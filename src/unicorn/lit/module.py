@@ -118,7 +118,7 @@ class UnicornLitModule(L.LightningModule):
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
             ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``,
             ``adam_state``, ``texture_lr_scale`` and ``background_lr_scale``: those branches' learning rates over
-            ``lr``).
+            ``lr``; ``sync_free``: steps without host reads, :mod:`unicorn.lit.finite` and :mod:`unicorn.hostsync`).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
         hue_shift: each training image's hue is rotated by a random fraction of the hue circle in ``[-hue_shift,
             hue_shift]`` before both steps read it, as input and as target
@@ -164,9 +164,8 @@ class UnicornLitModule(L.LightningModule):
         self.register_buffer("texture_average_p", torch.tensor(0.0))
         self._resume_state: dict[str, Any] | None = None
         self.finite = FiniteCheck(self)
-        #: steps without host reads (:mod:`unicorn.hostsync`): None (default) on CUDA only; False: every step reads
-        #: its inputs' values and its finite flag (a debugging aid on CUDA)
-        self.sync_free: bool | None = None
+        #: steps without host reads (:mod:`unicorn.hostsync`; ``optim.sync_free``): None on CUDA only
+        self.sync_free: bool | None = self.optim["sync_free"]
         #: the iterations of each process that check their inputs' values and read their flag before sync_free
         self.checked_steps = 2
         #: the texture-averaging probability as the stage callback last wrote it (read instead of the buffer)
