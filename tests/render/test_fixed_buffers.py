@@ -85,3 +85,28 @@ def test_fixed_buffer_renders_give_the_default_images_and_gradients(kind):
     assert renderer.rasterizer.buffers  # sized by the default render, used by the other
     for a, b, name in zip(out[False], out[True], ("image", "verts.grad", "colors.grad")):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12, msg=name)
+
+
+def test_fixed_buffers_of_nothing_to_draw():
+    ndc, faces = _scene()
+    for verts, f in ((ndc[:0], faces), (ndc, faces[:0])):
+        frags = rasterize_meshes(verts, f, 24, 0.0, 2, capacity=(64, 64))
+        assert frags.num_pairs == 0 and frags.overflow == 0
+
+
+def test_rasterizer_sizes_its_buffers_and_grows_them_when_read():
+    verts, faces, R, T = posed_ellipsoids(2, level=2)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    rasterizer = renderer.rasterizer
+    colors = TexturesVertex(torch.ones(2, verts.shape[1], 3))
+    with sync_free():  # no buffers yet for this size: rendered as usual, and they are sized
+        renderer(verts, faces, colors, R=R, T=T)
+    ((key, (n_cand, n_pairs)),) = rasterizer.buffers.items()
+    assert key == (2, 16, 16) and n_cand % 1024 == 0 and n_pairs % 1024 == 0
+    rasterizer.buffers[key] = (n_cand, 8)  # too small: the render loses pairs, and says so when read
+    with sync_free(), record_syncs() as rec, OverflowCounter():
+        renderer(verts, faces, colors, R=R, T=T)
+    assert not rec.syncs
+    (line,) = rasterizer.grow_buffers()
+    assert "lost some" in line and rasterizer.buffers[key] == (n_cand, n_pairs)
+    assert rasterizer.grow_buffers() == []  # read once

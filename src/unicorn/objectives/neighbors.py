@@ -138,12 +138,11 @@ class NeighborMemory:
         self_index: torch.Tensor | None,
         generator: torch.Generator | None,
     ) -> NeighborMatch:
-        B = R.shape[0]
         angles = rotation_angle_between(self.R.unsqueeze(1), R.unsqueeze(0))  # (M, B)
         entry_bins = self.bin_of(angles)
         usable = entry_bins >= 0
-        if self_index is not None:
-            usable[self_index, torch.arange(B, device=R.device)] = False
+        if self_index is not None:  # a comparison, not an assignment of a host scalar: nothing copied to the device
+            usable &= torch.arange(usable.shape[0], device=R.device).unsqueeze(1) != self_index.unsqueeze(0)
         # which bins hold at least one usable entry, per query: (B, n_bins)
         # a comparison, not one_hot: one_hot reads the bins' range back on the CPU
         bin_ids = torch.arange(self.n_bins, device=R.device)

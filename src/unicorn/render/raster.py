@@ -209,7 +209,7 @@ def rasterize_meshes(
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)
     faces = faces.long()
-    if capacity is not None:
+    if capacity is not None and B * faces.shape[0] * verts_ndc.shape[1] > 0:  # (nothing to draw: the sizes are known)
         return _rasterize_fixed(
             verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
         )
