@@ -212,7 +212,7 @@ class UnicornLitModule(L.LightningModule):
         """Whether iteration ``step`` reads the deferred finite flag: a logging step, a checkpoint's or the last."""
         trainer = self.trainer
         every = int(getattr(trainer.checkpoint_callback, "_every_n_train_steps", 0) or 0)
-        last = trainer.max_steps is not None and step + 1 >= trainer.max_steps
+        last = (trainer.max_steps or -1) > 0 and step + 1 >= trainer.max_steps  # -1: no limit
         return logs_this_step(trainer) or last or (every > 0 and (step + 1) % every == 0)
 
     def _logging_reads(self, step: int) -> None:
