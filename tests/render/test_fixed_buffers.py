@@ -110,3 +110,15 @@ def test_rasterizer_sizes_its_buffers_and_grows_them_when_read():
     (line,) = rasterizer.grow_buffers()
     assert "lost some" in line and rasterizer.buffers[key] == (n_cand, n_pairs)
     assert rasterizer.grow_buffers() == []  # read once
+
+
+def test_padding_sends_no_gradient_when_nothing_is_drawn():
+    verts, faces, R, T = posed_ellipsoids(2, level=2, dtype=torch.float64)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    renderer.rasterizer.buffers[(2, 16, 16)] = (1024, 1024)
+    v = verts.clone().requires_grad_(True)
+    behind = T * torch.tensor([1.0, 1.0, -1.0], dtype=T.dtype)  # every face behind the camera: nothing to draw
+    with sync_free(), OverflowCounter():
+        image = renderer(v, faces, TexturesVertex(torch.ones_like(verts)), R=R, T=behind)
+    image.sum().backward()
+    assert image[:, 3].abs().max() == 0 and torch.equal(v.grad, torch.zeros_like(v))

@@ -4,8 +4,8 @@
 advance: at most ``capacity = (candidates, pairs)`` (pixel, face) candidates are enumerated (each one's face found by
 a search in the faces' running candidate counts instead of ``repeat_interleave`` over the drawable faces), every one
 is tested and sorted (those not kept with keys past every pixel), and the kept pairs are gathered with
-``nonzero_static`` into ``pairs`` rows. The rows past the kept ones are padding: copies of the first kept pair at the
-last pixel, in an extra slot, marked by ``valid``; the rasterizer makes them transparent. Nothing is read back: the
+``nonzero_static`` into ``pairs`` rows. The rows past the kept ones are padding at the last pixel, in an extra slot,
+marked by ``valid``; the rasterizer makes them transparent. Nothing is read back: the
 sizes (candidates and kept pairs, the capacity needed) stay on the device, in :attr:`Selection.sizes`.
 
 Where the capacity suffices, the kept pairs are those of :func:`~unicorn.render.selection.select_pairs` in the same
@@ -47,38 +47,26 @@ def select_fixed(
     H, W = image_size
     B, F = verts_ndc.shape[0], faces.shape[0]
     n_cand, n_pairs = (max(int(c), 1) for c in capacity)
-    S = min(H, W)
-    px_to_ndc2 = (2.0 / S) ** 2
-    fpx, fz, drawable = _project_faces(verts_ndc.detach(), faces, (H, W), px_to_ndc2)
-    boxes = _face_boxes(fpx[..., 0], fpx[..., 1], math.sqrt(blur_radius) * S / 2.0, H, W)
-    counts = (boxes[2] * boxes[3] * drawable).reshape(-1)  # (B F,) candidates of each face
-    ends = torch.cumsum(counts, 0)
-    total = ends[-1] if ends.numel() else counts.new_zeros(())
-    p = torch.arange(n_cand, device=fpx.device)
-    # the face of candidate p: the first whose running count passes p (faces without candidates are skipped)
-    flat_face = torch.searchsorted(ends, p, right=True).clamp_(max=max(B * F - 1, 0))
-    local = (p - (ends - counts).index_select(0, flat_face)).int()
-    px, py, bary = _candidate_coordinates(fpx, flat_face, local, boxes)
-    keep, inside = _coverage_all(fpx, flat_face, px, py, bary, px_to_ndc2, blur_radius)
-    keep &= p < total
-    corner_z = fz.reshape(-1, 3).index_select(0, flat_face)
-    z = _depth(bary, corner_z, perspective_correct)
+    flat_face, px, py, inside, keep, z, total = _candidates(
+        verts_ndc.detach(), faces, image_size, blur_radius, n_cand, perspective_correct
+    )
     image = torch.div(flat_face, F, rounding_mode="floor")
     pix = (image * H + py.long()) * W + px.long()
     # the candidates not kept sort last, each at its own pixel past the batch's (rank 0: never an overflow)
+    p = torch.arange(n_cand, device=pix.device)
     pix = torch.where(keep, pix, B * H * W + p)
     order = _depth_key(pix, z, keep).sort(stable=True).indices
     pix, flat_face, inside, keep = (t.index_select(0, order) for t in (pix, flat_face, inside, keep))
     rank, kept, overflow = _slots(pix, inside, faces_per_pixel, truncate_opaque)
     kept &= keep
     n_kept = kept.sum()
-    sel = torch.nonzero_static(kept, size=n_pairs, fill_value=-1).squeeze(1)
+    # padding: row 0 of the candidates at the last pixel, in slot faces_per_pixel (the rasterizer makes it
+    # transparent and draws it from a fixed triangle)
+    sel = torch.nonzero_static(kept, size=n_pairs, fill_value=0).squeeze(1)
     valid = torch.arange(n_pairs, device=sel.device) < n_kept
-    sel = torch.where(valid, sel, sel[0].clamp(min=0))  # padding: copies of the first kept pair
     flat_face = flat_face.index_select(0, sel)
-    last = torch.full_like(sel, max(B * H * W - 1, 0))
     return Selection(
-        pix=torch.where(valid, pix.index_select(0, sel), last),
+        pix=torch.where(valid, pix.index_select(0, sel), max(B * H * W - 1, 0)),
         slot=torch.where(valid, rank.index_select(0, sel), faces_per_pixel),
         face=flat_face % max(F, 1),
         image=torch.div(flat_face, max(F, 1), rounding_mode="floor"),
@@ -87,6 +75,36 @@ def select_fixed(
         valid=valid,
         sizes=torch.stack([total, n_kept]),
     )
+
+
+def _candidates(
+    verts_ndc: torch.Tensor,
+    faces: torch.Tensor,
+    image_size: tuple[int, int],
+    blur_radius: float,
+    n_cand: int,
+    perspective_correct: bool,
+) -> tuple[torch.Tensor, ...]:
+    """The first ``n_cand`` (pixel, face) candidates of the batch, in ``_candidate_pixels``' order: ``(flat_face,
+    px, py, inside, keep, z, total)``, each (n_cand,) but ``total``, the 0-dim count of candidates; ``keep`` is
+    False past it."""
+    H, W = image_size
+    S = min(H, W)
+    px_to_ndc2 = (2.0 / S) ** 2
+    fpx, fz, drawable = _project_faces(verts_ndc, faces, (H, W), px_to_ndc2)
+    boxes = _face_boxes(fpx[..., 0], fpx[..., 1], math.sqrt(blur_radius) * S / 2.0, H, W)
+    counts = (boxes[2] * boxes[3] * drawable).reshape(-1)  # (B F,) candidates of each face
+    ends = torch.cumsum(counts, 0)
+    total = ends[-1]
+    p = torch.arange(n_cand, device=fpx.device)
+    # the face of candidate p: the first whose running count passes p (faces without candidates are skipped)
+    flat_face = torch.searchsorted(ends, p, right=True).clamp_(max=counts.numel() - 1)
+    local = (p - (ends - counts).index_select(0, flat_face)).int()
+    px, py, bary = _candidate_coordinates(fpx, flat_face, local, boxes)
+    keep, inside = _coverage_all(fpx, flat_face, px, py, bary, px_to_ndc2, blur_radius)
+    keep &= p < total
+    z = _depth(bary, fz.reshape(-1, 3).index_select(0, flat_face), perspective_correct)
+    return flat_face, px, py, inside, keep, z, total
 
 
 def _candidate_coordinates(
