@@ -5,11 +5,14 @@ depends on the data (``nonzero``, boolean-mask indexing) makes the host wait unt
 queued so far: the next kernels are launched only after that, and a step whose model is small is bound by its
 launches. Inside ``with sync_free():`` the code that has another way takes it:
 
+- the rasterizer selects into fixed buffers sized by its earlier renders (:mod:`unicorn.render.fixed`,
+  :class:`~unicorn.render.rasterizer.MeshRasterizer`), its overflow counted on the device;
 - the mesh, pose and colour input checks skip their value reads (face range, finiteness; shapes and dtypes are
   still checked): the trainer runs them on its first iterations only (:mod:`unicorn.lit.module`);
 - the neighbour swaps run on every sample with a mask instead of selecting the samples that found neighbours
   (:mod:`unicorn.objectives.neighbors`);
-- the trainer reads the finite-loss flag and the texture-averaging schedule only on its logging steps.
+- the trainer takes the texture-averaging probability from the stage callback instead of its buffer, and reads the
+  finite-loss flag (:mod:`unicorn.lit.finite`) and the buffers' needs on its logging and checkpoint steps only.
 
 Outside the block (the default, and what the CPU uses) the code keeps its exact algorithms and reads where it
 must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`).
