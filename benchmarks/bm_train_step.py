@@ -25,12 +25,16 @@ random weights unless ``--vgg`` names torchvision's file (the time is the same).
 
 ``--precision`` lists Lightning precisions to time side by side, one row per model, step and precision:
 ``32-true`` (the default) or ``bf16-mixed`` (the step's forward under ``torch.autocast`` in bfloat16, as Lightning's
-``trainer.precision=bf16-mixed`` runs it; the renderer stays in float32).
+``trainer.precision=bf16-mixed`` runs it; the renderer stays in float32). ``--compile`` does the same for
+``model.compile`` (``none``: eager; a mode: the networks compiled by :func:`unicorn.model.compile.compile_networks`,
+compiled during the warm-up steps; the per-group columns then include the hooks' graph breaks, the total is the
+figure to compare).
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
     python benchmarks/bm_train_step.py --device cuda --models small big
     python benchmarks/bm_train_step.py --device cuda --models small --precision 32-true bf16-mixed
+    python benchmarks/bm_train_step.py --device cuda --models small --compile none default reduce-overhead
     python benchmarks/bm_train_step.py --models tiny --paths default sync-free
 
 ``--paths`` lists the step paths to time side by side: ``default`` (the CPU's: exact sizes, reading the device back
@@ -58,6 +62,7 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.hostsync import sync_free
 from unicorn.model import Unicorn
+from unicorn.model.compile import COMPILE_MODES, compile_networks
 from unicorn.model.config import CODE_BRANCHES
 from unicorn.objectives import Objectives
 from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
@@ -309,6 +314,9 @@ def main() -> None:
     parser.add_argument(
         "--precision", nargs="+", default=["32-true"], choices=list(PRECISIONS), help="rows per Lightning precision"
     )
+    parser.add_argument(
+        "--compile", nargs="+", default=["none"], choices=["none", *COMPILE_MODES], help="rows per model.compile"
+    )
     parser.add_argument("--paths", nargs="+", default=["default"], choices=["default", "sync-free"])
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -321,17 +329,19 @@ def main() -> None:
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
-    head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'path':>9s} {'step':4s} "
+    head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'path':>9s} {'step':4s} "
     print(head + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:
-        for precision, path in itertools.product(args.precision, args.paths):
+        for precision, mode, path in itertools.product(args.precision, args.compile, args.paths):
             # a fresh model per row group, from the same seed: every row times the same weights and memory
             torch.manual_seed(0)
             model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
+            if mode != "none" and not compile_networks(model, mode, args.device):
+                continue  # the warning says why
             images = torch.rand(batch, 3, image_size, image_size, device=args.device)
             for phase, row in time_steps(model, objectives, opt, images, args.device, args, precision, path).items():
                 cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
-                label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {path:>9s} {phase:4s}"
+                label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {path:>9s} {phase:4s}"
                 print(f"{label} {cells}", flush=True)
 
 

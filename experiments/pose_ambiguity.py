@@ -23,8 +23,8 @@ import argparse
 import numpy as np
 
 from unicorn.data.synthetic.render import render_object
+from unicorn.data.synthetic.sampling import NMR_FOV, model_streams, sample_views, split_indices, views_to_cameras
 from unicorn.data.synthetic.shapes import build_object
-from unicorn.data.synthetic.writer import NMR_FOV, model_streams, sample_views, split_indices, views_to_cameras
 
 
 def renders(

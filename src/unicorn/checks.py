@@ -174,7 +174,8 @@ def check_shape(x: object, shape: str, name: str, dims: Dims | None = None, *, f
         TypeError: ``x`` is not a tensor, or not floating point when ``floating``.
         ShapeError: the shape does not match (the message states the contract with the sizes already known).
     """
-    alternatives = _parse_shape(shape)
+    # traced by torch.compile the parse is run, not looked up (the compiled graph holds its result)
+    alternatives = _parse_shape.__wrapped__(shape) if torch.compiler.is_compiling() else _parse_shape(shape)
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     bound = {} if dims is None else dims

@@ -18,7 +18,7 @@ from unicorn.data.shapenet import (
     unicorn_to_dvr_points,
     unicorn_to_dvr_world_mat,
 )
-from unicorn.data.synthetic.writer import views_to_cameras
+from unicorn.data.synthetic.sampling import views_to_cameras
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.geometry.rotations import look_at_view_transform
 

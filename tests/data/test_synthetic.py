@@ -16,14 +16,9 @@ from unicorn.cli import data as cli
 from unicorn.data.synthetic import writer
 from unicorn.data.synthetic.primitives import Texture
 from unicorn.data.synthetic.render import camera_rays, render_object
+from unicorn.data.synthetic.sampling import sample_surface_points, sample_views, views_to_cameras
 from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, build_object
-from unicorn.data.synthetic.writer import (
-    ensure_synthetic_dataset,
-    generate_synthetic_dataset,
-    sample_surface_points,
-    synthetic_dataset_path,
-    views_to_cameras,
-)
+from unicorn.data.synthetic.writer import ensure_synthetic_dataset, generate_synthetic_dataset, synthetic_dataset_path
 from unicorn.geometry.cameras import PerspectiveCamera
 
 TINY = {"n_models": 3, "n_views": 2, "n_points": 200, "supersample": 2, "image_size": 32, "progress": False}
@@ -151,7 +146,7 @@ def test_camera_rays_follow_the_pixel_convention() -> None:
 
 def test_render_white_background_and_coverage() -> None:
     obj = build_object("car", np.random.default_rng(0))
-    R, T = views_to_cameras(writer.sample_views("nmr", 2, np.random.default_rng(0)))
+    R, T = views_to_cameras(sample_views("nmr", 2, np.random.default_rng(0)))
     images, cover = render_object(obj, R, T, image_size=32, supersample=2)
     assert images.shape == (2, 32, 32, 3) and cover.shape == (2, 32, 32)
     assert np.allclose(images[:, 0, 0], 1.0) and cover[:, 0, 0].max() == 0  # corner: background

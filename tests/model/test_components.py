@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from tests.support.checkpoints import torchvision_resnet18_shapes
+from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import (
     MLP,
@@ -22,6 +23,8 @@ from unicorn.model import (
     TemplateMesh,
     active_dims_at,
 )
+from unicorn.model.pose import mirrored_pose
+from unicorn.render import TexturesVertex, build_renderer
 
 
 def random_state(shapes: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
@@ -377,3 +380,31 @@ def test_resnet18_at_its_image_size_trains_like_the_whole_network():
     x64 = torch.rand(2, 3, 64, 64, generator=g, dtype=torch.float64)
     whole.eval(), kept.eval()
     torch.testing.assert_close(whole(x64), kept(x64))
+
+
+@pytest.mark.parametrize("n_azim", [1, 4, 6, 12])
+def test_mirror_index_pairs_each_anchor_with_its_mirror(n_azim):
+    head = PoseHead(n_azim=n_azim, roll_range=(-15.0, 15.0))
+    mirror = head.mirror_index()
+    assert torch.equal(mirror[mirror], torch.arange(n_azim))  # an involution
+    # anchors at a = 360 k / n: the mirror of a is 180 - a
+    expected = [round(((180.0 - 360.0 * k / n_azim) % 360.0) * n_azim / 360.0) % n_azim for k in range(n_azim)]
+    assert mirror.tolist() == expected
+
+
+def test_a_flipped_render_is_the_render_at_the_mirrored_pose():
+    """The ray-cast oracle: a mesh symmetric through z = 0 (but not through x = 0), coloured by x and y, shows at
+    mirrored_pose(R, T) exactly the horizontal flip of what it shows at (R, T)."""
+    verts, faces = ellipsoid(2, scale=0.6)
+    verts = verts * torch.tensor([1.0, 0.7, 0.5])
+    verts = verts + (verts[:, :1] > 0) * torch.tensor([0.3, 0.1, 0.0])  # a longer, higher front: no x symmetry
+    colors = torch.stack([verts[:, 0].sigmoid(), verts[:, 1].sigmoid(), torch.full_like(verts[:, 0], 0.5)], 1)
+    R = azim_elev_roll_to_rotation(torch.tensor([35.0, 250.0]), torch.tensor([20.0, -5.0]), torch.tensor([8.0, -3.0]))
+    T = torch.tensor([[0.1, -0.05, 2.7], [-0.08, 0.02, 2.9]])
+    renderer = build_renderer("hard", image_size=32)
+    batch = (verts[None].repeat(2, 1, 1), faces, TexturesVertex(colors[None].repeat(2, 1, 1)))
+    seen = renderer(*batch, R=R, T=T)
+    R_m, T_m = mirrored_pose(R, T)
+    mirrored = renderer(*batch, R=R_m, T=T_m)
+    assert torch.allclose(mirrored, seen.flip(-1), atol=1e-4)
+    assert not torch.allclose(seen, seen.flip(-1), atol=1e-2)  # the views are not symmetric themselves

@@ -13,6 +13,7 @@ from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import TemplateMesh
+from unicorn.model.pose import PoseOutput, mirrored_pose
 from unicorn.objectives import (
     MeshRegularizer,
     NormalConsistencyLoss,
@@ -23,6 +24,7 @@ from unicorn.objectives import (
     build_perceptual,
     candidate_assignment_loss,
     candidate_spacing_loss,
+    flip_consistency_loss,
     list_perceptual_losses,
     mse_per_sample,
     uniform_pose_prior,
@@ -268,3 +270,32 @@ def test_reconstruction_and_mesh_terms_are_the_weighted_losses():
     mesh = regularizer(bumpy, reduction="none")
     assert list(mesh) == ["normal"]
     torch.testing.assert_close(mesh["normal"], 0.1 * NormalConsistencyLoss(faces)(bumpy, reduction="none"))
+
+
+def _candidates(R, T, logits):
+    log_probs = torch.log_softmax(logits, 0)
+    return PoseOutput(angles=torch.zeros(*R.shape[:2], 3), R=R, T=T, probs=log_probs.exp(), log_probs=log_probs)
+
+
+def test_flip_consistency_is_zero_for_mirrored_candidates_and_grows_with_the_difference():
+    g = torch.Generator().manual_seed(0)
+    K, B = 4, 3
+    mirror = torch.tensor([2, 1, 0, 3])
+    angles = torch.rand(K, B, 3, generator=g) * 60
+    R = azim_elev_roll_to_rotation(angles[..., 0], angles[..., 1], angles[..., 2])
+    T, logits = torch.rand(K, B, 3, generator=g), torch.randn(K, B, generator=g)
+    R_m, T_m = mirrored_pose(R, T)
+    poses = _candidates(R, T, logits)
+    # the flipped image's candidate mirror[k] is candidate k's mirror (mirror is an involution)
+    consistent = _candidates(R_m[mirror], T_m[mirror], logits[mirror])
+    assert float(flip_consistency_loss(poses, consistent, mirror)) == pytest.approx(0.0, abs=1e-6)
+    # a naive sum of the four parts
+    other = _candidates(R, T + 0.1, logits.flip(0))
+    p, q = poses.probs, other.probs[mirror]
+    kl = (p * (p.log() - q.log())).sum(0).mean() + (q * (q.log() - p.log())).sum(0).mean()
+    geometry = sum(
+        float(((other.R[mirror[k], b] - R_m[k, b]) ** 2).sum() + ((other.T[mirror[k], b] - T_m[k, b]) ** 2).sum())
+        for k in range(K)
+        for b in range(B)
+    ) / (K * B)
+    assert float(flip_consistency_loss(poses, other, mirror)) == pytest.approx(geometry + float(kl), rel=1e-5)

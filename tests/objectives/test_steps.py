@@ -8,7 +8,7 @@ import torch
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn
-from unicorn.objectives import AssignedLoss, Objectives, StepLosses, candidate_spacing_loss
+from unicorn.objectives import AssignedLoss, Objectives, StepLosses, candidate_spacing_loss, flip_consistency_loss
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -129,7 +129,7 @@ def test_sampled_schedule_renders_the_picked_candidate_in_both_steps(images):
     model.set_active_dims(shape=2, texture=8)
     objectives = objectives_of(model)
     sampled = objectives.steps["pose"].objective
-    assert objectives.steps["3d"].sampler is sampled
+    assert objectives.steps["3d"].objective is sampled
     reconstruction = objectives.steps["pose"].reconstruction
     B = images.shape[0]
     with torch.no_grad():
@@ -219,3 +219,21 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
     for name, values in history.items():
         first, last = sum(values[:4]) / 4, sum(values[-4:]) / 4
         assert last < 0.7 * first, (name, values)
+
+
+def test_pose_step_flip_term_is_the_flipped_batch_consistency(images):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"flip_weight": 0.5})).eval()  # eval: batch norm is the same in every call
+    randomize_heads(model)
+    losses = objectives_of(model).pose_step(model, images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "flip", "total"}
+    with torch.no_grad():
+        expected = 0.5 * flip_consistency_loss(
+            model.predict(images).poses, model.predict(images.flip(-1)).poses, model.pose.mirror_index()
+        )
+    assert float(expected) > 0 and torch.allclose(losses["flip"], expected, rtol=1e-5)
+    losses["flip"].backward()
+    assert grads_of(model.pose.proba_regressor) > 0 and grads_of(model.encoders[0]) > 0
+    assert grads_of(model.texture) == 0
+    # left out at weight 0 (the default, the paper's)
+    assert "flip" not in objectives_of(Unicorn(tiny_config())).pose_step(model, images)

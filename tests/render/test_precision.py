@@ -7,7 +7,7 @@ import torch
 
 from tests.support.render import template_scene
 from unicorn.render import TexturesUV, TexturesVertex, build_renderer, list_renderers
-from unicorn.render.precision import autocast_active, full_precision, to_full_precision
+from unicorn.render.precision import autocast_active, float32_boundary, full_precision, to_full_precision
 
 
 def bf16_autocast():
@@ -78,3 +78,24 @@ def test_outside_autocast_nothing_is_cast():
         assert autocast_active("cpu")
     assert to_full_precision(x).dtype == torch.float32
     assert to_full_precision(x.double()).dtype == torch.float64 and to_full_precision(None) is None
+
+
+class _Probe:
+    """Records what a method behind the boundary receives."""
+
+    @float32_boundary
+    def run(self, verts, textures, scale=None, name="x"):
+        mm = verts @ verts.transpose(-1, -2)  # a matmul: bfloat16 if autocast were still on
+        return verts.dtype, textures.maps.dtype, None if scale is None else scale.dtype, name, mm.dtype
+
+
+def test_the_boundary_casts_16_bit_arguments_and_turns_autocast_off():
+    verts = torch.rand(1, 4, 3)
+    maps, uvs = torch.rand(1, 3, 4, 4), torch.rand(2, 3, 2)
+    probe = _Probe()
+    with bf16_autocast():
+        got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs), scale=torch.ones(2).double(), name="y")
+    assert got == (torch.float32, torch.float32, torch.float64, "y", torch.float32)
+    # outside autocast the arguments pass untouched
+    got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs))
+    assert got[:3] == (torch.bfloat16, torch.float16, None) and got[4] == torch.bfloat16

@@ -23,6 +23,7 @@ from unicorn.data.common import OnError
 from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
 from unicorn.model import check_model_size
+from unicorn.model.compile import COMPILE_MODES
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config
 from unicorn.model.ranges import check_ranges
 from unicorn.objectives.loss_factory import check_loss_choices
@@ -134,6 +135,10 @@ def _check_model(cfg: DictConfig) -> None:
     m = cfg.model
     composites = allowed_values("renderer.composite")
     _check(m.composite in composites, f"model.composite must be one of {composites}, got {m.composite!r}")
+    _check(
+        m.compile is None or m.compile in COMPILE_MODES,
+        f"model.compile must be null or one of {COMPILE_MODES}, got {m.compile!r}",
+    )
     try:
         config = model_config(cfg)
         check_model_config(config, prefix="model.")
@@ -318,6 +323,7 @@ def model_config(cfg: DictConfig) -> dict[str, Any]:
     assert isinstance(model, dict)
     stages = model.pop("stages")
     model.pop("name")
+    model.pop("compile")  # how the networks run, not what they are: unicorn.lit.run.fit applies it
     renderer = renderer_settings(cfg.renderer)
     renderer["composite"] = model.pop("composite")
     model["renderer"] = renderer

@@ -101,6 +101,9 @@ class ModelConfig(ModelGroups):
     name: str = "small"
     composite: str = RendererConfig.composite  # direct | reference
     stages: StageDimsConfig = field(default_factory=StageDimsConfig)
+    # torch.compile of the networks (unicorn.model.compile): null (eager) or a mode, default | reduce-overhead |
+    # max-autotune | max-autotune-no-cudagraphs; where it cannot run, a warning says why and they run eagerly
+    compile: str | None = None
 
 
 # ---------------------------------------------------------------------------------------------- data

@@ -252,6 +252,11 @@ def fit(run: Run) -> dict[str, float]:
         unicorn.errors.Interrupted: stopped by SIGTERM or SIGINT (:class:`~unicorn.lit.signals.GracefulStop`).
     """
     trainer, typed = run.trainer, run.config
+    if typed.model.compile is not None:
+        from unicorn.model.compile import compile_networks
+
+        if compile_networks(run.module.model, typed.model.compile, trainer.strategy.root_device):
+            log.info("the networks are compiled (torch.compile, mode %s) at their first call", typed.model.compile)
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)

@@ -1,7 +1,8 @@
 """UNICORN's structured autoencoder: image -> (shape, texture, pose, background) -> rendered image.
 
 The model is a plain ``nn.Module`` that predicts (:meth:`Unicorn.predict`, or its parts :meth:`Unicorn.encode`,
-:meth:`Unicorn.predict_3d` and the pose head) and renders (:meth:`Unicorn.render`); it holds no training state.
+:meth:`Unicorn.predict_3d` and the pose head), decodes codes (:meth:`Unicorn.decode`, which the training steps
+and the refinement share) and renders (:meth:`Unicorn.render`); it holds no training state.
 The training objectives (pose step, 3D step, neighbour loss and its memory) are :mod:`unicorn.objectives`'s. A
 trainer drives the progressive code sizes and stage-1 switches with :meth:`Unicorn.set_active_dims` and
 :meth:`Unicorn.set_stage_switches`.
@@ -284,25 +285,42 @@ class Unicorn(nn.Module):
         """The canonical mesh (B, V, 3): the template deformed by the shape field for masked codes (B, Cs)."""
         return self.template.verts + self.shape(self.template.verts, shape_code)
 
+    def decode(
+        self,
+        shape_code: torch.Tensor,
+        texture_code: torch.Tensor,
+        background_code: torch.Tensor | None = None,
+        average_texture: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """What masked codes describe: the canonical mesh (B, V, 3) of shape codes (B, Cs), the texture images
+        (B, 3, Ht, Wt) of texture codes (B, Ct) and the backgrounds (B, 3, S, S) of background codes (B, Cb), None
+        without them or without a background model. Each code is decoded on its own: the three batches may differ.
+
+        Args:
+            average_texture: replace every texture by its mean colour.
+        """
+        canonical = self.deform(shape_code)
+        maps = self.texture(texture_code)
+        if average_texture:
+            maps = mean_texture(maps)
+        bkg = None
+        if self.background is not None and background_code is not None:
+            bkg = self.background(background_code)
+        return canonical, maps, bkg
+
     def predict_3d(self, feats: dict[str, torch.Tensor], average_texture: bool = False) -> Prediction3D:
-        """The 3D branches (shape, scale, texture, background) from encoder features (:meth:`encode`), each (B, F).
+        """The 3D branches (shape, scale, texture, background) from encoder features (:meth:`encode`), each (B, F):
+        the codes regressed from them, decoded by :meth:`decode`.
 
         Args:
             feats: the ``"shape"``, ``"texture"`` (and ``"background"``) features.
             average_texture: replace every texture by its mean colour.
         """
         z_sh = self.shape.code(feats["shape"])
-        canonical = self.deform(z_sh)
-        scale = self.scale(feats["shape"])
         z_tx = self.texture.code(feats["texture"])
-        maps = self.texture(z_tx)
-        if average_texture:
-            maps = mean_texture(maps)
-        z_bg = bkg = None
-        if self.background is not None:
-            z_bg = self.background.code(feats["background"])
-            bkg = self.background(z_bg)
-        return Prediction3D(z_sh, canonical, scale, z_tx, maps, z_bg, bkg)
+        z_bg = None if self.background is None else self.background.code(feats["background"])
+        canonical, maps, bkg = self.decode(z_sh, z_tx, z_bg, average_texture)
+        return Prediction3D(z_sh, canonical, self.scale(feats["shape"]), z_tx, maps, z_bg, bkg)
 
     def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
         """Predict everything for a batch (B, 3, S, S) of [0, 1] images (gradients kept)."""

@@ -195,6 +195,9 @@ class LossConfig:
     # (unicorn.objectives.losses.candidate_spacing_loss); 0: left out (the paper)
     spacing_weight: float = ranged(0.0, 0)
     spacing_angle: float = ranged(30.0, 1, 180)
+    # pose step: the candidates of each horizontally flipped image should mirror the image's own, x flip_weight
+    # (unicorn.objectives.losses.flip_consistency_loss; one more pose-encoder pass a pose step); 0: left out (paper)
+    flip_weight: float = ranged(0.0, 0)
     # expected (the paper): the probability-weighted loss trains the probabilities; assigned: the reconstruction
     # terms are weighted by the detached probabilities and the probabilities learn from assignment_weight x the
     # cross-entropy against the best-reconstructing candidate (unicorn.objectives.losses.candidate_assignment_loss)

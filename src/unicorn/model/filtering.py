@@ -25,7 +25,9 @@ def filter_matrix(n: int, taps: list[float], mode: str, like: torch.Tensor) -> t
     """
     if len(taps) % 2 == 0:
         raise ValueError(f"need an odd number of taps, got {len(taps)}")
-    return _filter_matrix(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
+    # traced by torch.compile the matrix is built inside the graph, not looked up
+    build = _filter_matrix.__wrapped__ if torch.compiler.is_compiling() else _filter_matrix
+    return build(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
 
 
 @functools.lru_cache(maxsize=128)

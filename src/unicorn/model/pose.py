@@ -9,11 +9,11 @@ import torch
 from torch import nn
 
 from unicorn.checks import check_shape
-from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
 from unicorn.model.mlp import MLP
 from unicorn.render.precision import full_precision, to_full_precision
 
-__all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles"]
+__all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles", "mirrored_pose"]
 
 
 def _pair(r: Sequence[float], name: str) -> tuple[float, float]:
@@ -63,6 +63,24 @@ def anchor_angles(
     ratio = 0.52 if n_elev * n_azim > 1 else 0.5
     half_range = torch.tensor([ratio * da, ratio * de, ratio * (r1 - r0)], dtype=torch.float32)
     return init, half_range
+
+
+def mirrored_pose(R: torch.Tensor, T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pose at which an object symmetric through the template's plane z = 0
+    (:func:`unicorn.geometry.mesh.mirror_points`) shows the horizontally flipped image of its view at (R, T).
+
+    Flipping the image negates the view's x, ``M_v = diag(-1, 1, 1)``; mirroring the object, ``M_o = diag(1, 1, -1)``,
+    leaves a symmetric object as it is, so ``x @ R @ M_v + T @ M_v = (x @ M_o) @ (M_o @ R @ M_v) + T @ M_v``. In
+    angles: azimuth ``180 - a``, the same elevation, roll ``-r``; ``tx -> -tx``.
+
+    Args:
+        R: (..., 3, 3) rotations (``x_view = x @ R + T``); T: (..., 3) translations.
+
+    Returns:
+        ``(M_o @ R @ M_v, T @ M_v)``, of the inputs' shapes.
+    """
+    flip = R.new_tensor((-1.0, 1.0, 1.0))
+    return R * flip * R.new_tensor((1.0, 1.0, -1.0)).unsqueeze(-1), T * flip
 
 
 @dataclass
@@ -187,6 +205,14 @@ class PoseHead(nn.Module):
         return PoseOutput(
             angles=angles, R=R, T=t_off + self.T_init, probs=log_probs.exp(), log_probs=log_probs, logits=logits
         )
+
+    def mirror_index(self) -> torch.Tensor:
+        """(K,) long: for each candidate, the candidate whose anchor is nearest to its anchor's mirror
+        (:func:`mirrored_pose`), the one that should take the horizontally flipped image."""
+        angles = self.R_init
+        R = azim_elev_roll_to_rotation(angles[:, 0], angles[:, 1], angles[:, 2])  # (K, 3, 3)
+        mirrored, _ = mirrored_pose(R, R.new_zeros(R.shape[0], 3))
+        return rotation_angle_between(mirrored.unsqueeze(1), R.unsqueeze(0)).argmin(1)
 
     def anchor_poses(self, batch_size: int, selected: int = 0) -> PoseOutput:
         """The K candidates at their anchors (zero offsets) for ``batch_size`` samples, probability 1 on

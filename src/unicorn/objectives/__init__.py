@@ -29,6 +29,7 @@ from unicorn.objectives.losses import (
     UniformLaplacianLoss,
     candidate_assignment_loss,
     candidate_spacing_loss,
+    flip_consistency_loss,
     mse_per_sample,
     uniform_pose_prior,
 )
@@ -43,10 +44,12 @@ from unicorn.objectives.perceptual import (
     register_perceptual,
 )
 from unicorn.objectives.pose_objectives import (
+    AllCandidates,
     AssignedBestLoss,
     AssignedLoss,
     ExpectedLoss,
     PoseObjective,
+    SampledCandidates,
     build_pose_objective,
     list_pose_objectives,
     register_pose_objective,
@@ -57,6 +60,7 @@ from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 
 __all__ = [
+    "AllCandidates",
     "AssignedBestLoss",
     "AssignedLoss",
     "ExpectedLoss",
@@ -72,6 +76,7 @@ __all__ = [
     "ReconstructionLoss",
     "RefineOptions",
     "Refinement",
+    "SampledCandidates",
     "ShapeStep",
     "StepLosses",
     "StructuralLoss",
@@ -82,6 +87,7 @@ __all__ = [
     "build_pose_objective",
     "candidate_assignment_loss",
     "candidate_spacing_loss",
+    "flip_consistency_loss",
     "list_perceptual_losses",
     "list_pose_objectives",
     "load_vgg16_weights",

@@ -14,6 +14,7 @@ from torch import nn
 
 from unicorn.checks import check_shape
 from unicorn.geometry.rotations import rotation_angle_between
+from unicorn.model.pose import PoseOutput, mirrored_pose
 from unicorn.objectives.perceptual import build_perceptual
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "UniformLaplacianLoss",
     "candidate_assignment_loss",
     "candidate_spacing_loss",
+    "flip_consistency_loss",
     "mse_per_sample",
     "uniform_pose_prior",
 ]
@@ -98,6 +100,34 @@ def candidate_spacing_loss(R: torch.Tensor, min_angle: float) -> torch.Tensor:
     k, l = torch.triu_indices(K, K, offset=1, device=R.device)
     angles = rotation_angle_between(R[k], R[l])  # (pairs, B)
     return torch.relu(1 - angles / min_angle).sum(0).mean()
+
+
+def flip_consistency_loss(poses: PoseOutput, flipped: PoseOutput, mirror: torch.Tensor) -> torch.Tensor:
+    """How far the pose candidates of horizontally flipped images are from the mirrors of the images' own:
+    candidate ``mirror[k]`` of a flipped image should be candidate k's :func:`~unicorn.model.pose.mirrored_pose`,
+    with its probability. A model that sees two mirror views (a car from its left and from its right) as one view
+    pays it; a category symmetric through the plane z = 0 of its canonical frame pays nothing.
+
+    ``mean_{k,b} (|R_f[m_k] - R'_k|^2_F + |T_f[m_k] - T'_k|^2) + mean_b KL(p || p_f[m]) + mean_b KL(p_f[m] || p)``,
+    each KL with its first argument detached, so that both predictions move toward each other.
+
+    Args:
+        poses: the images' K candidates (R (K, B, 3, 3), T (K, B, 3), log_probs (K, B)).
+        flipped: the flipped images' candidates, of the same shapes.
+        mirror: (K,) long, :meth:`unicorn.model.pose.PoseHead.mirror_index`.
+
+    Returns:
+        scalar.
+    """
+    K = check_shape(poses.R, "K, B, 3, 3", "poses.R")["K"]
+    check_shape(mirror, "K", "mirror", {"K": K})
+    R_target, T_target = mirrored_pose(poses.R, poses.T)
+    R_f, T_f, lp_f = flipped.R[mirror], flipped.T[mirror], flipped.log_probs[mirror]
+    geometry = (R_f - R_target).square().sum((-2, -1)).mean() + (T_f - T_target).square().sum(-1).mean()
+    lp = poses.log_probs
+    kl = (lp.exp().detach() * (lp.detach() - lp_f)).sum(0).mean()
+    kl = kl + (lp_f.exp().detach() * (lp_f.detach() - lp)).sum(0).mean()
+    return geometry + kl
 
 
 def _edges_and_opposites(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -11,7 +11,6 @@ from torch import nn
 from unicorn.geometry.rotations import rotation_angle_between
 from unicorn.hostsync import is_sync_free
 from unicorn.model import Prediction3D, Unicorn, world_verts
-from unicorn.model.generator import mean_texture
 from unicorn.objectives.losses import ReconstructionLoss
 from unicorn.render.precision import full_precision, to_full_precision
 
@@ -204,13 +203,11 @@ def _neighbours(model: Unicorn, images: torch.Tensor, n: int, average_texture: b
     """
     feats = model.encode(images, model.branches())
     scale = model.scale(feats["shape"])
-    verts = world_verts(model.deform(model.shape.code(feats["shape"][n:])), scale[n:])
-    maps = model.texture(model.texture.code(feats["texture"][:n]))
-    if average_texture:
-        maps = mean_texture(maps)
-    bkg = None
-    if model.background is not None:
-        bkg = model.background(model.background.code(feats["background"]))
+    z_bg = None if model.background is None else model.background.code(feats["background"])
+    canonical, maps, bkg = model.decode(
+        model.shape.code(feats["shape"][n:]), model.texture.code(feats["texture"][:n]), z_bg, average_texture
+    )
+    verts = world_verts(canonical, scale[n:])
     R, T = model.pose(feats["pose"]).select()
     return _Neighbours(scale[:n], maps, verts, R, T, bkg)
 

@@ -11,7 +11,7 @@ from torch import nn
 from unicorn.model import Unicorn
 from unicorn.objectives.loss_factory import build_losses
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
-from unicorn.objectives.pose_objectives import SampledCandidates, build_pose_objective
+from unicorn.objectives.pose_objectives import build_pose_objective
 from unicorn.objectives.pose_step import PoseStep
 from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
@@ -53,11 +53,11 @@ class Objectives(nn.Module):
             loss["spacing_weight"],
             loss["spacing_angle"],
             None if loss["viewpoint"] is None else build_viewpoint_supervision(loss["viewpoint"], **loss),
+            loss["flip_weight"],
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])
-        sampler = objective if isinstance(objective, SampledCandidates) else None
-        shape = ShapeStep(reconstruction, regularizer, neighbors, sampler)
+        shape = ShapeStep(reconstruction, regularizer, neighbors, objective)
         return cls(pose, shape)
 
     @property

@@ -7,8 +7,14 @@
 - ``"assigned_best"`` (:class:`AssignedBestLoss`): as ``"assigned"``, with only the best-reconstructing
   candidate's pose refined (weight 1 for it, 0 for the others).
 
-New objectives register with :func:`register_pose_objective`; the model configuration's check accepts every
-registered name. The pose step itself is :class:`unicorn.objectives.PoseStep`.
+- ``"sampled"`` (:class:`SampledCandidates`, MagicPony's schedule): one candidate rendered per image in both
+  steps, its score regressing its loss.
+
+An objective also says which candidates each step renders (:meth:`PoseObjective.pose_terms`,
+:meth:`PoseObjective.shape_pose`); :class:`AllCandidates` is the default of the first three: every candidate in
+the pose step, the most likely one in the 3D step. New objectives register with :func:`register_pose_objective`;
+the model configuration's check accepts every registered name. The steps themselves are
+:class:`unicorn.objectives.PoseStep` and :class:`unicorn.objectives.ShapeStep`.
 """
 
 from __future__ import annotations
@@ -19,30 +25,65 @@ from typing import Any, Protocol
 import torch
 
 from unicorn.model.config import LOSS_KEYS
+from unicorn.model.pose import PoseOutput
 from unicorn.objectives.losses import candidate_assignment_loss
 from unicorn.registry import Registry
 
 __all__ = [
+    "AllCandidates",
     "AssignedBestLoss",
     "AssignedLoss",
     "ExpectedLoss",
     "PoseObjective",
+    "Reconstruct",
+    "SampledCandidates",
     "build_pose_objective",
     "list_pose_objectives",
     "register_pose_objective",
 ]
 
 
-class PoseObjective(Protocol):
-    """Turns per-candidate reconstruction terms into the pose step's weighted terms.
+#: renders the pose step's detached prediction at n poses per image, R (n * B, 3, 3) and T (n * B, 3) pose-major,
+#: and returns its reconstruction terms, name -> (n * B,)
+Reconstruct = Callable[[torch.Tensor, torch.Tensor, int], dict[str, torch.Tensor]]
 
-    Called with the candidates' probabilities ``probs`` and ``log_probs`` (K, B) and the reconstruction terms
-    (name -> (K * B,), candidate-major); returns scalar terms.
-    """
+
+class PoseObjective(Protocol):
+    """Which pose candidates the two steps render, and how the pose step weights their reconstruction terms."""
+
+    def pose_terms(self, poses: PoseOutput, reconstruct: Reconstruct, iteration: int | None) -> dict[str, torch.Tensor]:
+        """The pose step's scalar terms for the candidates ``poses`` (with gradients), rendering the candidates it
+        chooses with ``reconstruct``."""
+        ...
+
+    def shape_pose(
+        self, poses: PoseOutput, iteration: int | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The 3D step's pose R (B, 3, 3), T (B, 3) from detached candidates, and each image's weight (B,) of its
+        terms, or None (weight 1)."""
+        ...
+
+
+class AllCandidates:
+    """Every candidate rendered in the pose step, its terms weighted by :meth:`__call__`; the most likely one in
+    the 3D step."""
 
     def __call__(
         self, probs: torch.Tensor, log_probs: torch.Tensor, terms: dict[str, torch.Tensor]
-    ) -> dict[str, torch.Tensor]: ...
+    ) -> dict[str, torch.Tensor]:
+        """Scalar terms from the probabilities ``probs`` and ``log_probs`` (K, B) and the candidates' terms
+        (name -> (K * B,), candidate-major)."""
+        raise NotImplementedError
+
+    def pose_terms(self, poses: PoseOutput, reconstruct: Reconstruct, iteration: int | None) -> dict[str, torch.Tensor]:
+        R, T = poses.flat()
+        return self(poses.probs, poses.log_probs, reconstruct(R, T, poses.probs.shape[0]))
+
+    def shape_pose(
+        self, poses: PoseOutput, iteration: int | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        R, T = poses.select()
+        return R, T, None
 
 
 _POSE_OBJECTIVES: Registry[PoseObjective] = Registry("pose objective", key="pose_objective")
@@ -77,7 +118,7 @@ def _weighted(weights: torch.Tensor, terms: dict[str, torch.Tensor]) -> dict[str
 
 
 @register_pose_objective("expected")
-class ExpectedLoss:
+class ExpectedLoss(AllCandidates):
     """The paper's expected reconstruction loss: gradients reach the probabilities through ``p``."""
 
     def __call__(
@@ -87,7 +128,7 @@ class ExpectedLoss:
 
 
 @register_pose_objective("assigned")
-class AssignedLoss:
+class AssignedLoss(AllCandidates):
     """Detached weights ``p``; the probabilities learn the best candidate (:func:`candidate_assignment_loss`).
 
     Args:
@@ -220,3 +261,22 @@ class SampledCandidates:
         loss = torch.stack(list(terms.values())).sum(0).detach()
         out["score"] = self.score_weight * (-logits[picked, b] - loss).square().mean()
         return out
+
+    def pose_terms(self, poses: PoseOutput, reconstruct: Reconstruct, iteration: int | None) -> dict[str, torch.Tensor]:
+        """The picked candidate of each image rendered (:meth:`pick`), its terms as :meth:`__call__` weights them."""
+        if poses.logits is None:
+            raise ValueError("the sampled pose objective needs the probability head's logits")
+        picked = self.pick(poses.logits.detach(), iteration)
+        R, T = poses.select(picked)
+        return self(poses.logits, picked, reconstruct(R, T, 1), iteration)
+
+    def shape_pose(
+        self, poses: PoseOutput, iteration: int | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The picked candidate of each image (a fresh draw), weighted by :meth:`weights`."""
+        if poses.logits is None:  # one candidate: nothing to pick
+            R, T = poses.select()
+            return R, T, None
+        picked = self.pick(poses.logits, iteration)
+        R, T = poses.select(picked)
+        return R, T, self.weights(poses.logits, picked, iteration)

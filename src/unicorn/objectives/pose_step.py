@@ -13,9 +13,13 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.autoencoder import Prediction3D
-from unicorn.model.pose import PoseOutput
-from unicorn.objectives.losses import ReconstructionLoss, candidate_spacing_loss, uniform_pose_prior
-from unicorn.objectives.pose_objectives import PoseObjective, SampledCandidates
+from unicorn.objectives.losses import (
+    ReconstructionLoss,
+    candidate_spacing_loss,
+    flip_consistency_loss,
+    uniform_pose_prior,
+)
+from unicorn.objectives.pose_objectives import PoseObjective
 from unicorn.objectives.step_losses import StepLosses, with_total
 from unicorn.objectives.viewpoint import ViewpointSupervision
 
@@ -25,9 +29,10 @@ __all__ = ["PoseStep"]
 class PoseStep(nn.Module):
     """P-step: the pose candidates rendered with the detached 3D prediction; gradients reach the pose branch only.
 
-    Every candidate is rendered, or with the ``sampled`` objective (:class:`SampledCandidates`) the one it picks per
-    image. ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing [+ viewpoint terms]``
-    (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`,
+    The pose objective renders the candidates it chooses (:meth:`PoseObjective.pose_terms`: every one, or with
+    ``sampled`` the one it picks per image).
+    ``total = objective(p, L_rec) + uniform_weight * L_uni + spacing_weight * L_spacing + flip_weight * L_flip
+    [+ viewpoint terms]`` (:func:`uniform_pose_prior`, :func:`candidate_spacing_loss`, :func:`flip_consistency_loss`,
     :class:`~unicorn.objectives.viewpoint.ViewpointSupervision`); the rotation, translation and probability heads and
     the encoder that feeds them receive gradients.
 
@@ -38,6 +43,8 @@ class PoseStep(nn.Module):
         spacing_weight: weight of the candidates' spacing term (<= 0: left out, the paper); spacing_angle: the
             angle in degrees from which a pair of candidates adds nothing to it.
         viewpoint: the viewpoint supervision from renders at drawn views, or None (the paper).
+        flip_weight: weight of the flipped images' pose consistency (<= 0: left out, the paper); it encodes the
+            flipped batch once more with the pose branch's encoder.
     """
 
     def __init__(
@@ -49,8 +56,10 @@ class PoseStep(nn.Module):
         spacing_weight: float = 0.0,
         spacing_angle: float = 30.0,
         viewpoint: ViewpointSupervision | None = None,
+        flip_weight: float = 0.0,
     ) -> None:
         super().__init__()
+        self.flip_weight = flip_weight
         self.viewpoint = viewpoint
         self.reconstruction, self.objective = reconstruction, objective
         self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
@@ -66,8 +75,8 @@ class PoseStep(nn.Module):
             iteration: the training iteration (the viewpoint supervision's schedule; None: it is active).
 
         Returns:
-            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``
-            and ``spacing`` (if enabled) and the viewpoint supervision's (when active; they sum to ``total``);
+            weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), the objective's terms, ``uniform``,
+            ``spacing`` and ``flip`` (if enabled) and the viewpoint supervision's (when active; they sum to ``total``);
             ``.probs``: the candidate probabilities (K, B), detached; ``.stats``: the viewpoint supervision's.
         """
         model.check_images(images)
@@ -80,37 +89,19 @@ class PoseStep(nn.Module):
             other = {k: v.detach() for k, v in other.items()}
             p = model.predict_3d(other, average_texture)
         poses = model.pose(feats["pose"])
-        if isinstance(self.objective, SampledCandidates):
-            out = self._sampled(model, images, p, poses, iteration)
-        else:
-            out = self._all_candidates(model, images, p, poses)
+        out = self.objective.pose_terms(poses, lambda R, T, n: self._terms(model, images, p, R, T, n), iteration)
         if self.uniform_weight > 0:
             out["uniform"] = self.uniform_weight * uniform_pose_prior(poses.probs, self.uniform_reduction)
         if self.spacing_weight > 0:
             out["spacing"] = self.spacing_weight * candidate_spacing_loss(poses.R, self.spacing_angle)
+        if self.flip_weight > 0:
+            flipped = model.pose(model.encode(images.flip(-1), ("pose",))["pose"])
+            out["flip"] = self.flip_weight * flip_consistency_loss(poses, flipped, model.pose.mirror_index())
         stats: dict[str, torch.Tensor] = {}
         if self.viewpoint is not None and self.viewpoint.active(iteration):
             terms, stats = self.viewpoint(model, p)
             out.update(terms)
         return StepLosses(with_total(out, images), poses.probs.detach(), stats)
-
-    def _sampled(
-        self, model: Unicorn, images: torch.Tensor, p: Prediction3D, poses: PoseOutput, iteration: int | None
-    ) -> dict[str, torch.Tensor]:
-        """One candidate per image rendered (:class:`SampledCandidates`)."""
-        assert isinstance(self.objective, SampledCandidates) and poses.logits is not None
-        picked = self.objective.pick(poses.logits.detach(), iteration)
-        R, T = poses.select(picked)
-        terms = self._terms(model, images, p, R, T, 1)
-        return self.objective(poses.logits, picked, terms, iteration)
-
-    def _all_candidates(
-        self, model: Unicorn, images: torch.Tensor, p: Prediction3D, poses: PoseOutput
-    ) -> dict[str, torch.Tensor]:
-        """Every candidate rendered; the pose objective weights their terms."""
-        R, T = poses.flat()
-        terms = self._terms(model, images, p, R, T, poses.probs.shape[0])
-        return self.objective(poses.probs, poses.log_probs, terms)
 
     def _terms(
         self, model: Unicorn, images: torch.Tensor, p: Prediction3D, R: torch.Tensor, T: torch.Tensor, n: int

@@ -48,7 +48,6 @@ from tqdm.auto import tqdm
 from unicorn.errors import UserError
 from unicorn.geometry.rotations import euler_angles_to_matrix
 from unicorn.model.autoencoder import Prediction, Unicorn, world_verts
-from unicorn.model.generator import mean_texture
 from unicorn.objectives.loss_factory import ImageLosses, build_losses
 
 __all__ = ["MAX_STEPS", "PARTS", "RefineOptionsError", "RefineOptions", "Refinement", "refine"]
@@ -59,6 +58,7 @@ MAX_STEPS = 10_000
 
 class RefineOptionsError(UserError, ValueError):
     """A refinement setting out of its range (the message names it)."""
+
 
 #: the refinable parts: name -> what it optimises
 PARTS: dict[str, str] = {
@@ -174,16 +174,13 @@ def _decode(model: Unicorn, pred: Prediction, v: _Variables, average_texture: bo
     """The prediction moved by the variables (with gradients to them)."""
     z_sh = pred.shape_code + model.shape.mask(v.shape)
     z_tx = pred.texture_code + model.texture.mask(v.texture_code)
-    canonical = model.deform(z_sh) + v.offsets
-    scale = pred.scale * v.log_scale.exp()
-    maps = model.texture(z_tx)
-    if average_texture:
-        maps = mean_texture(maps)
-    maps = (maps + v.colour + v.texture).clamp(0.0, 1.0)
-    z_bg = bkg = None
+    z_bg = None
     if model.background is not None and v.background_code is not None:
         z_bg = pred.background_code + model.background.mask(v.background_code)
-        bkg = model.background(z_bg)
+    canonical, maps, bkg = model.decode(z_sh, z_tx, z_bg, average_texture)
+    canonical = canonical + v.offsets
+    scale = pred.scale * v.log_scale.exp()
+    maps = (maps + v.colour + v.texture).clamp(0.0, 1.0)
     R = pred.R @ euler_angles_to_matrix(v.rotation, "XYZ")
     return replace(
         pred,

@@ -8,7 +8,7 @@ from torch import nn
 from unicorn.model import Unicorn
 from unicorn.objectives.losses import MeshRegularizer, ReconstructionLoss
 from unicorn.objectives.neighbors import NeighborLoss
-from unicorn.objectives.pose_objectives import SampledCandidates
+from unicorn.objectives.pose_objectives import PoseObjective
 from unicorn.objectives.step_losses import StepLosses, with_total
 
 __all__ = ["ShapeStep"]
@@ -17,8 +17,8 @@ __all__ = ["ShapeStep"]
 class ShapeStep(nn.Module):
     """3D-step: ``total = mean_b [L_rec + w_nbr * L_nbr] + w_norm * L_norm + w_lap * L_lap``.
 
-    The most likely pose candidate is rendered; with a ``sampler`` (the ``sampled`` pose objective) the candidate it
-    picks, each image's terms weighted by :meth:`SampledCandidates.weights`.
+    The pose the pose objective chooses is rendered (:meth:`PoseObjective.shape_pose`: the most likely candidate,
+    or with ``sampled`` the candidate it picks, each image's terms weighted).
 
     Gradients reach the shape, scale, texture and background branches (and their encoders) only. The neighbour
     term is added while it is active (:meth:`NeighborLoss.active`).
@@ -27,7 +27,7 @@ class ShapeStep(nn.Module):
         reconstruction: the weighted per-sample reconstruction terms.
         regularizer: the weighted mesh regularisers.
         neighbors: the neighbour reconstruction loss and its memory, or None.
-        sampler: the ``sampled`` pose objective, whose picks this step renders, or None.
+        objective: the pose objective, which chooses the rendered pose.
     """
 
     def __init__(
@@ -35,10 +35,10 @@ class ShapeStep(nn.Module):
         reconstruction: ReconstructionLoss,
         regularizer: MeshRegularizer,
         neighbors: NeighborLoss | None,
-        sampler: SampledCandidates | None = None,
+        objective: PoseObjective,
     ) -> None:
         super().__init__()
-        self.sampler = sampler
+        self.objective = objective
         self.reconstruction, self.regularizer, self.neighbors = reconstruction, regularizer, neighbors
 
     def forward(
@@ -48,7 +48,7 @@ class ShapeStep(nn.Module):
 
         Args:
             average_texture: replace every texture by its mean colour (drawn once per batch by the trainer).
-            iteration: the training iteration (the sampler's schedule; otherwise unused).
+            iteration: the training iteration (the pose objective's schedule).
 
         Returns:
             weighted scalars ``total``, ``rgb``, ``perceptual`` (if enabled), ``neighbor`` (when active),
@@ -62,13 +62,7 @@ class ShapeStep(nn.Module):
         with torch.no_grad():
             pose_feats = feats[mates[0]] if mates else model.encode(images, ("pose",))["pose"]
             poses = model.pose(pose_feats.detach())
-            weights = None
-            if self.sampler is not None and poses.logits is not None:
-                picked = self.sampler.pick(poses.logits, iteration)
-                weights = self.sampler.weights(poses.logits, picked, iteration)
-                R, T = poses.select(picked)
-            else:
-                R, T = poses.select()
+            R, T, weights = self.objective.shape_pose(poses, iteration)
         pred = model.predict_3d(feats, average_texture)
         verts = pred.verts
         rec, _ = model.render(verts, pred.texture, R, T, pred.background)

@@ -315,9 +315,7 @@ class RenderedViewpoints:
         # pose steps fall on every other iteration: count them, not iterations
         return iteration >= self.start and ((iteration - self.start) // 2) % self.every == 0
 
-    def __call__(
-        self, model: Unicorn, pred: Prediction3D
-    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    def __call__(self, model: Unicorn, pred: Prediction3D) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         views = draw_views(model.pose, pred.canonical_verts.shape[0], azimuth_only=self.azimuth_only)
         renders = render_views(model, pred, views, self.mix)
         poses = model.pose(model.encode(renders, ("pose",))["pose"])

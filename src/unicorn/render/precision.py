@@ -4,16 +4,22 @@ Under autocast a matmul or a convolution runs in bfloat16 or float16, whose 8 or
 the depth tests, the barycentrics near a face's edge or the occupancy ``exp(-d / sigma)`` with ``sigma = 1e-4``.
 The renderer therefore runs with autocast disabled and its 16-bit floating inputs cast to float32: its images are
 what a float32 run makes from the same inputs. float32 and float64 inputs are left as they are.
+:func:`float32_boundary` puts a renderer's entry point behind that boundary.
 """
 
 from __future__ import annotations
 
 import contextlib
-from typing import overload
+import functools
+from collections.abc import Callable
+from typing import Any, ParamSpec, TypeVar, overload
 
 import torch
 
-__all__ = ["autocast_active", "full_precision", "to_full_precision"]
+__all__ = ["autocast_active", "float32_boundary", "full_precision", "to_full_precision"]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 _REDUCED = (torch.float16, torch.bfloat16)
 
@@ -39,3 +45,31 @@ def to_full_precision(tensor: torch.Tensor | None) -> torch.Tensor | None:
     if tensor is not None and tensor.dtype in _REDUCED:
         return tensor.float()
     return tensor
+
+
+def _cast(value: Any) -> Any:
+    """A 16-bit floating tensor in float32, textures (anything with ``full_precision()``) in float32; else as is."""
+    if isinstance(value, torch.Tensor):
+        return to_full_precision(value)
+    if callable(getattr(value, "full_precision", None)):
+        return value.full_precision()
+    return value
+
+
+def float32_boundary(method: Callable[_P, _R]) -> Callable[_P, _R]:
+    """Run ``method(self, verts, ...)`` in float32 under autocast: with autocast off for the device of its first
+    argument after ``self`` (a tensor), and its float16 and bfloat16 tensor arguments and its textures cast to
+    float32 first. Without autocast the call is unchanged."""
+
+    @functools.wraps(method)
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        first = args[1] if len(args) > 1 else None
+        device_type = first.device.type if isinstance(first, torch.Tensor) else "cpu"
+        if not autocast_active(device_type):
+            return method(*args, **kwargs)
+        args = tuple(_cast(a) for a in args)  # type: ignore[assignment]
+        kwargs = {k: _cast(v) for k, v in kwargs.items()}  # type: ignore[assignment]
+        with torch.autocast(device_type=device_type, enabled=False):
+            return method(*args, **kwargs)
+
+    return wrapper

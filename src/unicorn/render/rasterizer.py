@@ -15,7 +15,7 @@ from torch import nn
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from ..hostsync import is_sync_free
 from .fragments import Fragments
-from .precision import autocast_active, full_precision, to_full_precision
+from .precision import float32_boundary
 from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 from .settings import DEFAULT_SETTINGS, check_render_option
 
@@ -96,6 +96,7 @@ class MeshRasterizer(nn.Module):
         view = verts if R is None else world_to_view(verts, R, T)
         return self.camera.project(view)
 
+    @float32_boundary
     def forward(
         self,
         verts: torch.Tensor,
@@ -117,23 +118,8 @@ class MeshRasterizer(nn.Module):
                 sync on CUDA).
 
         Under ``torch.autocast`` float16 and bfloat16 vertices and poses are cast to float32 and the projection and
-        depth tests run with autocast off (:mod:`unicorn.render.precision`).
+        depth tests run with autocast off (:func:`unicorn.render.precision.float32_boundary`).
         """
-        device_type = verts.device.type if isinstance(verts, torch.Tensor) else "cpu"
-        if autocast_active(device_type):
-            verts, R, T = (to_full_precision(t) for t in (verts, R, T))
-        with full_precision(device_type):
-            return self._rasterize(verts, faces, R, T, image_size, check_inputs)
-
-    def _rasterize(
-        self,
-        verts: torch.Tensor,
-        faces: torch.Tensor,
-        R: torch.Tensor | None,
-        T: torch.Tensor | None,
-        image_size: tuple[int, int] | None,
-        check_inputs: bool,
-    ) -> Fragments:
         if check_inputs:
             check_mesh_inputs(verts, faces)
             check_pose_inputs(R, T, verts.shape[0])

@@ -19,7 +19,7 @@ from torch import nn
 from ..geometry.cameras import PerspectiveCamera
 from .compositing import background_pixels
 from .fragments import Fragments
-from .precision import autocast_active, full_precision, to_full_precision
+from .precision import float32_boundary
 from .raster import check_mesh_inputs, check_pose_inputs
 from .rasterizer import MeshRasterizer
 from .settings import BACKGROUND_COLOR, check_render_option
@@ -98,6 +98,7 @@ class MeshRenderer(nn.Module):
         ``self.rasterizer(...)`` for others."""
         return self.rasterizer(verts, faces, R, T, self.image_size)
 
+    @float32_boundary
     def render(
         self,
         verts: torch.Tensor,
@@ -107,26 +108,10 @@ class MeshRenderer(nn.Module):
         T: torch.Tensor | None = None,
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
-        """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`."""
+        """Render and keep the fragments (for depth and face ids). Arguments as :meth:`forward`; under autocast
+        the depth tests and the compositing run in float32 (:func:`~unicorn.render.precision.float32_boundary`)."""
         if not isinstance(textures, Textures):
             raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
-        device_type = verts.device.type if isinstance(verts, torch.Tensor) else "cpu"
-        if autocast_active(device_type):
-            # mixed precision: the depth tests and the compositing run in float32 (unicorn.render.precision)
-            verts, R, T, background = (to_full_precision(t) for t in (verts, R, T, background))
-            textures = textures.full_precision()
-        with full_precision(device_type):
-            return self._render(verts, faces, textures, R, T, background)
-
-    def _render(
-        self,
-        verts: torch.Tensor,
-        faces: torch.Tensor,
-        textures: Textures,
-        R: torch.Tensor | None,
-        T: torch.Tensor | None,
-        background: torch.Tensor | None,
-    ) -> RenderOutput:
         # the textures' finiteness is read with the mesh's (one host read): NaN colours would give NaN pixels
         check_mesh_inputs(verts, faces, finite_also=textures.tensors())
         textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0], verts=verts)

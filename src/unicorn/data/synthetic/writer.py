@@ -21,11 +21,8 @@ import shutil
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-import open3d as o3d
-import torch
 import trimesh
 import yaml
 from PIL import Image
@@ -34,132 +31,34 @@ from tqdm.auto import tqdm
 from unicorn.data.images import DatasetError, check_image_size
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
 from unicorn.data.synthetic.render import random_background, render_object
+from unicorn.data.synthetic.sampling import (
+    NMR_FOV,
+    Mode,
+    model_streams,
+    sample_surface_points,
+    sample_views,
+    split_indices,
+    split_sizes,
+    views_to_cameras,
+)
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
 from unicorn.errors import UserError
-from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
     "GENERATOR_VERSION",
-    "Mode",
     "StaleSyntheticDataset",
     "check_generation_sizes",
     "check_manifest",
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
-    "model_streams",
-    "sample_surface_points",
-    "sample_views",
-    "split_indices",
-    "split_sizes",
     "synthetic_dataset_path",
 ]
 
 #: bump when the output changes: it is part of the cache folder's name and of ``synthetic.json``, so that a
 #: dataset of an older generator is never reused (2: every category has a front, wider instance variation)
 GENERATOR_VERSION = 2
-NMR_DISTANCE, NMR_ELEVATION, NMR_FOV = 2.732, 30.0, 30.0
-
-Mode = Literal["nmr", "wild"]
-
-
-def sample_views(mode: Mode, n_views: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Camera parameters of one model's views.
-
-    ``nmr``: azimuth ``360 k / n_views``, elevation 30, no roll, distance 2.732, centred. ``wild``: azimuth
-    U[0, 360), elevation U[-10, 30], roll U[-15, 15], distance 2.732 * U[0.9, 1.1] and an off-centre shift
-    (``tx``, ``ty``) U[-0.1, 0.1] in view units.
-
-    Returns:
-        dict of (n_views,) float64 arrays ``azim``, ``elev``, ``roll`` (degrees), ``dist``, ``tx``, ``ty``.
-    """
-    zeros = np.zeros(n_views)
-    if mode == "nmr":
-        return {
-            "azim": 360.0 * np.arange(n_views) / n_views,
-            "elev": zeros + NMR_ELEVATION,
-            "roll": zeros,
-            "dist": zeros + NMR_DISTANCE,
-            "tx": zeros,
-            "ty": zeros,
-        }
-    if mode == "wild":
-        return {
-            "azim": rng.uniform(0, 360, n_views),
-            "elev": rng.uniform(-10, 30, n_views),
-            "roll": rng.uniform(-15, 15, n_views),
-            "dist": NMR_DISTANCE * rng.uniform(0.9, 1.1, n_views),
-            "tx": rng.uniform(-0.1, 0.1, n_views),
-            "ty": rng.uniform(-0.1, 0.1, n_views),
-        }
-    raise DatasetError(f"mode must be 'nmr' or 'wild', got {mode!r}")
-
-
-def views_to_cameras(views: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """UNICORN's pose parametrisation: ``R = Az @ El @ Ro`` and ``T = (tx, ty, dist)``; (V, 3, 3), (V, 3)."""
-    R = azim_elev_roll_to_rotation(
-        torch.as_tensor(views["azim"], dtype=torch.float64),
-        torch.as_tensor(views["elev"], dtype=torch.float64),
-        torch.as_tensor(views["roll"], dtype=torch.float64),
-    ).numpy()
-    T = np.stack([views["tx"], views["ty"], views["dist"]], axis=1)
-    return R, T
-
-
-def sample_surface_points(
-    obj: ProceduralObject, n_points: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """Area-uniform surface samples of an object, without the surface buried inside other parts.
-
-    Parts are unions of watertight primitives that may interpenetrate; samples lying inside another primitive
-    (e.g. the top of a leg inside a seat) are dropped so the point cloud is the visible outer surface, like
-    ONet's samples of watertight ShapeNet meshes.
-
-    Returns:
-        points (n_points, 3) and unit face normals (n_points, 3), float64, in the object frame.
-    """
-    components = [c for part in obj.parts for c in part.mesh.split(only_watertight=False)]
-    mesh = trimesh.util.concatenate(components)
-    face_comp = np.concatenate([np.full(len(c.faces), i) for i, c in enumerate(components)])
-    points, faces = trimesh.sample.sample_surface(mesh, int(n_points * 1.5) + 64, seed=rng)
-    comp = face_comp[faces]
-    keep = np.ones(len(points), dtype=bool)
-    for i, c in enumerate(components):
-        if not c.is_watertight:  # an open surface has no inside
-            continue
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(c.vertices.astype(np.float32)), o3d.core.Tensor(c.faces.astype(np.uint32)))
-        others = comp != i
-        occupied = scene.compute_occupancy(o3d.core.Tensor(points[others].astype(np.float32)), nsamples=3).numpy()
-        keep[np.flatnonzero(others)[occupied > 0.5]] = False
-    idx = np.flatnonzero(keep)
-    idx = rng.choice(idx, n_points, replace=len(idx) < n_points)
-    return points[idx], mesh.face_normals[faces[idx]]
-
-
-def model_streams(seed: int, category: str, index: int) -> list[np.random.Generator]:
-    """The four random streams of one model: its object, its views, its backgrounds and its surface points."""
-    cat_index = sorted(CATEGORIES).index(category)  # stable across runs whatever the order given
-    return [np.random.default_rng([seed, cat_index, index, k]) for k in range(4)]
-
-
-def split_indices(seed: int, category: str, n_models: int) -> dict[str, np.ndarray]:
-    """The model indices of the ``train``, ``val`` and ``test`` splits of one category (:func:`split_sizes`)."""
-    n_train, n_val, _ = split_sizes(n_models)
-    order = np.random.default_rng([seed, sorted(CATEGORIES).index(category)]).permutation(n_models)
-    return {"train": order[:n_train], "val": order[n_train : n_train + n_val], "test": order[n_train + n_val :]}
-
-
-def split_sizes(n_models: int) -> tuple[int, int, int]:
-    """(train, val, test) model counts: 10% val and 20% test, at least one model each."""
-    if n_models < 3:
-        raise DatasetError(f"need at least 3 models (one per split), got {n_models}")
-    n_val = max(1, round(0.1 * n_models))
-    n_test = max(1, round(0.2 * n_models))
-    return n_models - n_val - n_test, n_val, n_test
-
-
 def _write_model(
     folder: Path,
     obj: ProceduralObject,

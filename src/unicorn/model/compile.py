@@ -1,0 +1,82 @@
+"""``torch.compile`` for the model's networks, with a fallback that says why.
+
+The networks (the encoders, the shape field, the texture and background generators, the pose and scale heads) are
+compiled in place (``nn.Module.compile``: their parameter names, hence checkpoints, stay the same); the renderer and
+the losses run eagerly (the rasterizer's packed fragments have data-dependent sizes). Where ``torch.compile`` cannot
+run (no C++ compiler for the CPU backend, no Triton for CUDA, an unsupported platform), :func:`compile_networks`
+warns once with the reason (:class:`CompileWarning`) and leaves the networks eager: the results are the same, only
+slower or faster.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+
+import torch
+from torch import nn
+
+from unicorn.model.autoencoder import Unicorn
+
+__all__ = ["COMPILE_MODES", "CompileWarning", "compile_networks", "compile_unavailable", "networks"]
+
+#: ``torch.compile`` modes (``mode=``); ``reduce-overhead`` captures CUDA graphs of each compiled network
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+class CompileWarning(UserWarning):
+    """``torch.compile`` cannot run here: the networks run eagerly (the message says why)."""
+
+
+def networks(model: Unicorn) -> Iterator[tuple[str, nn.Module]]:
+    """The model's learned networks by attribute name (``encoders.0``, ``shape``, ``texture``, ``background``,
+    ``pose``, ``scale``); a model without a background has none."""
+    for i, encoder in enumerate(model.encoders):
+        yield f"encoders.{i}", encoder
+    for name in ("shape", "texture", "background", "pose", "scale"):
+        module = getattr(model, name)
+        if module is not None:
+            yield name, module
+
+
+def compile_unavailable(device: torch.device | str) -> str | None:
+    """None where ``torch.compile`` compiles and runs a small function on ``device``; otherwise why not, in one
+    line (the exception's type and first line)."""
+
+    def probe(x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(x * 2.0 + 1.0)
+
+    try:
+        probe_compiled = torch.compile(probe, dynamic=False)
+        probe_compiled(torch.ones(4, device=device))
+    except Exception as error:  # any failure of the toolchain means: run eagerly
+        first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        return f"{type(error).__name__}: {first}"[:300]
+    return None
+
+
+def compile_networks(model: Unicorn, mode: str = "default", device: torch.device | str | None = None) -> bool:
+    """Compile the model's networks in place (:func:`networks`, ``nn.Module.compile(mode=mode)``).
+
+    Compilation itself happens at each network's first call. Where ``torch.compile`` cannot run on ``device`` (the
+    model's by default; :func:`compile_unavailable`), nothing is compiled and a :class:`CompileWarning` names the
+    reason.
+
+    Returns:
+        Whether the networks were compiled.
+
+    Raises:
+        ValueError: ``mode`` is not one of :data:`COMPILE_MODES`.
+    """
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
+    device = model.template.verts.device if device is None else device
+    reason = compile_unavailable(device)
+    if reason is not None:
+        warnings.warn(
+            f"torch.compile cannot run on {device} ({reason}): the networks run eagerly", CompileWarning, stacklevel=2
+        )
+        return False
+    for _, module in networks(model):
+        module.compile(mode=mode)
+    return True
