@@ -35,12 +35,18 @@ every row runs its backward in one pass: the totals are the figures to compare).
     python benchmarks/bm_train_step.py --device cuda --models small big
     python benchmarks/bm_train_step.py --device cuda --models small --precision 32-true bf16-mixed
     python benchmarks/bm_train_step.py --device cuda --models small --compile none default reduce-overhead
+    python benchmarks/bm_train_step.py --models tiny --paths default sync-free
+
+``--paths`` lists the step paths to time side by side: ``default`` (the CPU's: exact sizes, reading the device back
+where they depend on the data) and ``sync-free`` (the timed steps inside :func:`unicorn.hostsync.sync_free`, as
+training runs them on CUDA: fixed rasterizer buffers sized by the warm-up steps, no host read).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import math
 import resource
 import statistics
@@ -55,6 +61,7 @@ import torch
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
+from unicorn.hostsync import sync_free
 from unicorn.model import Unicorn
 from unicorn.model.compile import COMPILE_MODES, compile_networks
 from unicorn.model.config import CODE_BRANCHES
@@ -181,6 +188,7 @@ def time_steps(
     device: str,
     args: argparse.Namespace,
     precision: str = "32-true",
+    path: str = "default",
     compiled: bool = False,
     split: bool = True,
 ) -> dict:
@@ -258,8 +266,8 @@ def time_steps(
     results = {}
     for phase in ("pose", "3d"):
 
-        def fn(images: torch.Tensor, phase: str = phase) -> Any:
-            with autocast(device, precision):
+        def fn(images: torch.Tensor, phase: str = phase, free: bool = False) -> Any:
+            with autocast(device, precision), sync_free(free):
                 return objectives(phase, model, images)
 
         rows = []
@@ -272,7 +280,7 @@ def time_steps(
             rss0 = peak_rss_mb()
             sync()
             t0 = time.perf_counter()
-            losses = fn(images)
+            losses = fn(images, free=path == "sync-free" and i >= args.warmup)  # the warm-up sizes the buffers
             sync()
             t1 = time.perf_counter()
             nbr = losses.get("neighbor")
@@ -320,6 +328,7 @@ def main() -> None:
     parser.add_argument(
         "--compile", nargs="+", default=["none"], choices=["none", *COMPILE_MODES], help="rows per model.compile"
     )
+    parser.add_argument("--paths", nargs="+", default=["default"], choices=["default", "sync-free"])
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
         sys.exit("bm_train_step.py: error: --device cuda but CUDA is not available")
@@ -331,24 +340,23 @@ def main() -> None:
     name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
-    head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'step':4s} "
+    head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'path':>9s} {'step':4s} "
     print(head + " ".join(f"{c:>12s}" for c in COLUMNS))
     for size in args.models:
-        for precision in args.precision:
-            for mode in args.compile:
-                # a fresh model per row, from the same seed: every row times the same weights and memory
-                torch.manual_seed(0)
-                model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
-                if mode != "none" and not compile_networks(model, mode, args.device):
-                    continue  # the warning says why
-                images = torch.rand(batch, 3, image_size, image_size, device=args.device)
-                # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare
-                split = all(m == "none" for m in args.compile)
-                rows = time_steps(model, objectives, opt, images, args.device, args, precision, mode != "none", split)
-                for phase, row in rows.items():
-                    cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
-                    label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {phase:4s}"
-                    print(f"{label} {cells}", flush=True)
+        for precision, mode, path in itertools.product(args.precision, args.compile, args.paths):
+            # a fresh model per row group, from the same seed: every row times the same weights and memory
+            torch.manual_seed(0)
+            model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
+            if mode != "none" and not compile_networks(model, mode, args.device):
+                continue  # the warning says why
+            images = torch.rand(batch, 3, image_size, image_size, device=args.device)
+            # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare
+            split = all(m == "none" for m in args.compile)
+            rows = time_steps(model, objectives, opt, images, args.device, args, precision, path, mode != "none", split)
+            for phase, row in rows.items():
+                cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
+                label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {path:>9s} {phase:4s}"
+                print(f"{label} {cells}", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# The checks that need a CUDA device, in one run: the tests marked gpu, then the CUDA benchmarks (training step in
-# 32-true and bf16-mixed side by side, eager and compiled side by side, the main job's loop eager and compiled,
-# the renderer). Logs go to $OUT (default: ./gpu-checks).
+# The checks that need a CUDA device, in one run: the tests marked gpu (the training steps without host reads among
+# them, under torch.cuda.set_sync_debug_mode("error")), then the CUDA benchmarks (training step in 32-true and
+# bf16-mixed, default and sync-free paths, eager and compiled, side by side; the main job's loop eager, compiled and
+# syncing; the renderer). Logs go to $OUT (default: ./gpu-checks).
 # Run from the repository root on a machine where unicorn's dependencies are importable:
 #   bash benchmarks/gpu_checks.sh
 set -uo pipefail
@@ -11,7 +12,7 @@ export PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/device.txt"
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name())" | tee -a "$out/device.txt"
 python3 -m pytest -m gpu tests -q -p no:cacheprovider 2>&1 | tee "$out/gpu_tests.log"
-python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed 2>&1 | tee "$out/bm_train_step.log"
+python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed --paths default sync-free 2>&1 | tee "$out/bm_train_step.log"
 python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log"
 python3 benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log"
-python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log"
+python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log"

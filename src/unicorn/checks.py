@@ -18,6 +18,7 @@ from numbers import Integral
 import torch
 
 from unicorn.errors import UserError
+from unicorn.hostsync import is_sync_free
 
 __all__ = [
     "Dims",
@@ -276,9 +277,10 @@ def _check_face_range(lo: int, hi: int, num_verts: int) -> None:
 
 
 def check_faces(faces: torch.Tensor, num_verts: int, *, allow_empty: bool = False) -> None:
-    """Faces ``(F, 3)`` of any integer dtype indexing ``num_verts`` vertices (one host sync when F > 0)."""
+    """Faces ``(F, 3)`` of any integer dtype indexing ``num_verts`` vertices (one host sync when F > 0; the range
+    is not read inside :func:`unicorn.hostsync.sync_free`)."""
     _check_face_layout(faces, allow_empty)
-    if faces.numel():
+    if faces.numel() and not is_sync_free():
         _check_face_range(*torch.stack([faces.min(), faces.max()]).tolist(), num_verts)
 
 
@@ -300,7 +302,8 @@ def check_mesh(
         finite_also: other tensors, by argument name, that must be finite (a renderer's colours), checked in
             the same read.
 
-    The value checks (face range, finiteness) are reduced on the device and read back together: one host sync.
+    The value checks (face range, finiteness) are reduced on the device and read back together: one host sync,
+    skipped inside :func:`unicorn.hostsync.sync_free` (shapes, dtypes and devices are checked there too).
     """
     if allow_empty:
         check_shape(verts, "B, V, 3", "verts")
@@ -311,6 +314,8 @@ def check_mesh(
     _check_face_layout(faces, allow_empty)
     if faces.device != verts.device:
         raise ValueError(f"verts is on {verts.device} but faces is on {faces.device}")
+    if is_sync_free():
+        return
     values = [faces.min(), faces.max()] if faces.numel() else []
     named = {"verts": verts} if finite else {}
     named.update(finite_also or {})

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
+from unicorn.hostsync import sync_free
 from unicorn.lit import StageCallback, StreamBatchSampler
 
 
@@ -74,6 +76,14 @@ def test_texture_averaging_draws():
     draws = [module.average_texture(step) for step in range(2000)]
     assert draws == [module.average_texture(step) for step in range(2000)]  # a pure function of the step
     assert 0.17 < sum(draws) / len(draws) < 0.23
+    for p in (0.2, 0.5, 0.3333333333):  # each the draw of a generator seeded by the iteration, in float32
+        module.texture_average_p.fill_(p)
+        for step in [*range(250, 270), 1999]:
+            g = torch.Generator().manual_seed(5 * 1_000_003 + step)
+            assert module.average_texture(step) == bool(torch.rand((), generator=g) < p), (p, step)
+    module.texture_average_host = 0.0  # the stage callback's copy, read by the steps without host reads
+    with sync_free():
+        assert not any(module.average_texture(s) for s in range(10))
     module.texture_average_p.fill_(1.0)
     assert all(module.average_texture(s) for s in range(10))
     assert [module.phase(s) for s in range(4)] == ["pose", "3d", "pose", "3d"]

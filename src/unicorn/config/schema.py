@@ -217,6 +217,9 @@ class OptimConfig:
     lr_drop_gamma: float = ranged(0.2, 0)
     idle_params: str = "skip"
     check_finite: bool = True  # stop on a NaN / inf loss or gradient (after saving a checkpoint)
+    # steps without host reads (unicorn.hostsync): null (default) on CUDA only; false: every step reads its inputs'
+    # values and its finite flag (a debugging aid on CUDA); true: on the CPU too (to compare)
+    sync_free: bool | None = None
     fused: bool = True  # torch's fused Adam kernel (same update up to rounding, several times faster on CPU)
     adam_state: str = "shared"
     texture_lr_scale: float = ranged(1.0, 1e-6)  # the texture branch's learning rate over lr (paper: 1)

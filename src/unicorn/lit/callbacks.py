@@ -146,6 +146,7 @@ class StageCallback(L.Callback):
         """Write ``state`` into the module (stage and texture buffers) and its model (code sizes, switches)."""
         pl_module.stage.fill_(state["stage"])
         pl_module.texture_average_p.fill_(state["texture_p"])
+        pl_module.texture_average_host = float(state["texture_p"])  # read by the steps without host reads
         pl_module.model.set_active_dims(**state["dims"])
         pl_module.model.set_stage_switches(**state["switches"])
 

@@ -37,11 +37,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 import random
 import warnings
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -52,12 +52,14 @@ import torch.nn.functional as F
 from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
 from unicorn.data.augment import random_hue_shift
-from unicorn.errors import UserError
+from unicorn.hostsync import is_sync_free, sync_free
+from unicorn.lit.finite import FiniteCheck, NonFiniteLossError
 from unicorn.lit.loggers import logs_this_step
 from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
 from unicorn.model.encoder import crop_optimizer_state
 from unicorn.objectives import Objectives
+from unicorn.render.rasterizer import MeshRasterizer
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
 
@@ -66,14 +68,12 @@ log = logging.getLogger(__name__)
 #: the optimisation settings' defaults (:class:`unicorn.config.schema.OptimConfig`, where each is documented)
 OPTIM_DEFAULTS: dict[str, Any] = dataclasses.asdict(OptimConfig())
 _SEED_STRIDE = 1_000_003
+#: the texture-averaging draws are made for this many iterations at once (one host read of a host tensor)
+_DRAWS = 256
 #: ``optim.idle_params`` -> how gradients are reset before a step (``zero_grad(set_to_none=...)``)
 _SET_TO_NONE = {"skip": True, "momentum": False}
 #: ``optim.adam_state`` -> which of the Adams (their index) each step kind uses
 _OPTIMIZER_OF_STEP = {"shared": {"pose": 0, "3d": 0}, "per_step": {"pose": 0, "3d": 1}}
-
-
-class NonFiniteLossError(UserError, FloatingPointError):
-    """A loss term or a gradient became NaN or infinite; the message names the iteration and the term."""
 
 
 def _rng_state() -> dict[str, Any]:
@@ -98,6 +98,15 @@ def _set_rng_state(state: Mapping[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+@functools.lru_cache(maxsize=4)
+def _averaging_draws(base: int, chunk: int) -> tuple[float, ...]:
+    """The texture-averaging draws of iterations ``chunk * _DRAWS`` to ``(chunk + 1) * _DRAWS - 1``: each the first
+    ``torch.rand(())`` (float32) of a generator seeded with ``base`` plus the iteration."""
+    first = chunk * _DRAWS
+    draws = [torch.rand((), generator=torch.Generator().manual_seed(base + first + i)) for i in range(_DRAWS)]
+    return tuple(torch.stack(draws).tolist())
+
+
 class UnicornLitModule(L.LightningModule):
     """Trains UNICORN by alternating pose and 3D steps (see the module docstring).
 
@@ -109,7 +118,7 @@ class UnicornLitModule(L.LightningModule):
         optim: Adam and learning-rate settings, over :data:`OPTIM_DEFAULTS` (``lr``, ``betas``, ``eps``,
             ``weight_decay``, ``lr_drop_step``, ``lr_drop_gamma``, ``idle_params``, ``check_finite``, ``fused``,
             ``adam_state``, ``texture_lr_scale`` and ``background_lr_scale``: those branches' learning rates over
-            ``lr``).
+            ``lr``; ``sync_free``: steps without host reads, :mod:`unicorn.lit.finite` and :mod:`unicorn.hostsync`).
         alternation_period: iterations per phase (1: pose and 3D steps alternate every iteration).
         hue_shift: each training image's hue is rotated by a random fraction of the hue circle in ``[-hue_shift,
             hue_shift]`` before both steps read it, as input and as target
@@ -154,9 +163,14 @@ class UnicornLitModule(L.LightningModule):
         self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
         self.register_buffer("texture_average_p", torch.tensor(0.0))
         self._resume_state: dict[str, Any] | None = None
-        # the forward pass's changes besides the parameters, kept to be undone (see _snapshot_forward_state)
-        self._forward_buffers: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
-        self._memory_before: dict[str, torch.Tensor | None] | None = None
+        self.finite = FiniteCheck(self)
+        #: steps without host reads (:mod:`unicorn.hostsync`; ``optim.sync_free``): None on CUDA only
+        self.sync_free: bool | None = self.optim["sync_free"]
+        #: the iterations of each process that check their inputs' values and read their flag before sync_free
+        self.checked_steps = 2
+        #: the texture-averaging probability as the stage callback last wrote it (read instead of the buffer)
+        self.texture_average_host: float | None = None
+        self._steps_run = 0
         # each step kind's terms of its latest iteration, logged together (see training_step)
         self._latest_terms: dict[str, dict[str, torch.Tensor]] = {}
 
@@ -172,11 +186,13 @@ class UnicornLitModule(L.LightningModule):
 
     def average_texture(self, step: int) -> bool:
         """Whether iteration ``step`` renders mean-colour textures (constant, or drawn once per batch)."""
-        p = float(self.texture_average_p)  # one 0-dim read per step: the choice is a Python branch
+        p = self.texture_average_host if is_sync_free() else None
+        if p is None:
+            p = float(self.texture_average_p)  # a 0-dim read: the choice is a Python branch
         if p >= 1.0 or p <= 0.0:
             return p >= 1.0
-        g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + step)
-        return bool(torch.rand((), generator=g) < p)
+        # the draw of torch.rand((), generator=...) (float32) seeded by the iteration, against p in float32
+        return _averaging_draws(self.seed * _SEED_STRIDE, step // _DRAWS)[step % _DRAWS] < float(np.float32(p))
 
     def training_images(self, images: torch.Tensor, step: int) -> torch.Tensor:
         """The images iteration ``step`` trains on: (B, 3, S, S) hue-shifted when ``hue_shift`` > 0."""
@@ -187,21 +203,56 @@ class UnicornLitModule(L.LightningModule):
         return random_hue_shift(images, self.hue_shift, torch.Generator().manual_seed(int(seed)))
 
     # ------------------------------------------------------------------ training
-    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
-        """One iteration: a pose or a 3D step on ``batch["image"]`` (B, 3, S, S); returns the detached terms."""
-        step = self.global_step
-        images = self.training_images(batch["image"], step)
+    def _sync_free_step(self) -> bool:
+        """Whether this step runs without host reads (:attr:`sync_free`, after :attr:`checked_steps` checked ones)."""
+        enabled = self.sync_free if self.sync_free is not None else self.device.type == "cuda"
+        return bool(enabled) and self._steps_run >= self.checked_steps
+
+    def _verifies(self, step: int) -> bool:
+        """Whether iteration ``step`` reads the deferred finite flag: a logging step, a checkpoint's or the last."""
+        trainer = self.trainer
+        every = int(getattr(trainer.checkpoint_callback, "_every_n_train_steps", 0) or 0)
+        last = (trainer.max_steps or -1) > 0 and step + 1 >= trainer.max_steps  # -1: no limit
+        return logs_this_step(trainer) or last or (every > 0 and (step + 1) % every == 0)
+
+    def _logging_reads(self, step: int) -> None:
+        """What the steps without host reads left on the device: the finite-loss flag, and the sizes the
+        rasterizers' fixed buffers needed (grown where too small)."""
+        if self.optim["check_finite"]:
+            self.finite.verify(step)
+        for module in self.model.modules():
+            if isinstance(module, MeshRasterizer):
+                for line in module.grow_buffers():
+                    log.warning("rasterizer buffers at iteration %d: %s", step, line)
+
+    def _step(self, images: torch.Tensor, step: int, deferred: bool) -> tuple[Any, Any, bool]:
+        """Iteration ``step``'s forward, backward and optimizer step: (its losses, the optimizer, the averaging)."""
+        images = self.training_images(images, step)
         phase = self.phase(step)
         average = self.average_texture(step)
         opt = self._optimizer(phase)
         opt.zero_grad(set_to_none=_SET_TO_NONE[self.optim["idle_params"]])
-        if self.optim["check_finite"]:
-            self._snapshot_forward_state()
+        check = self.optim["check_finite"]
+        if check and deferred:
+            self.finite.begin(step)
+        elif check:
+            self.finite.snapshot()
         losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
         self.manual_backward(losses["total"])
-        if self.optim["check_finite"]:
-            self._check_finite(losses, step, phase)
+        if check and deferred:
+            self.finite.defer(losses, step)
+        elif check:
+            self.finite.now(losses, step, phase)
         opt.step()
+        return losses, opt, average
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """One iteration: a pose or a 3D step on ``batch["image"]`` (B, 3, S, S); returns the detached terms."""
+        step = self.global_step
+        deferred = self._sync_free_step()
+        self._steps_run += 1
+        with sync_free(deferred):
+            losses, opt, average = self._step(batch["image"], step, deferred)
         schedulers = self.lr_schedulers()
         if not isinstance(schedulers, list):
             schedulers = [] if schedulers is None else [schedulers]
@@ -216,8 +267,10 @@ class UnicornLitModule(L.LightningModule):
             for scheduler in schedulers:
                 scheduler.step()
 
+        if deferred and self._verifies(step):
+            self._logging_reads(step)
         terms = {name: value.detach() for name, value in losses.items()}
-        self._latest_terms[phase] = {**terms, **losses.stats}
+        self._latest_terms[self.phase(step)] = {**terms, **losses.stats}
         self.log("loss", terms["total"], on_step=True, on_epoch=False, prog_bar=True, logger=False)
         if not logs_this_step(self.trainer):
             return terms  # Lightning would drop these step values: skip the ~20 log calls (4 % of a CPU step)
@@ -233,66 +286,6 @@ class UnicornLitModule(L.LightningModule):
             self.log(f"pose/share_{k}", shares[k], on_step=True, on_epoch=False)
             self.log(f"pose/prob_{k}", probs[k].mean(), on_step=True, on_epoch=False)
         return terms
-
-    def _snapshot_forward_state(self) -> None:
-        """Keep what the forward pass changes besides the parameters: the BatchNorm running statistics (copied
-        into buffers kept for it, one fused copy per step) and the neighbour memory (replaced, not changed in
-        place, by each push: references suffice). :meth:`_restore_forward_state` puts them back."""
-        if self._forward_buffers is None:
-            norms = [m for m in self.model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
-            live = [b for m in norms for b in (m.running_mean, m.running_var, m.num_batches_tracked) if b is not None]
-            self._forward_buffers = (live, [b.clone() for b in live])
-        live, saved = self._forward_buffers
-        if live:
-            torch._foreach_copy_(saved, live)
-        self._memory_before = self.objectives.memory.state()
-
-    def _restore_forward_state(self) -> None:
-        live, saved = self._forward_buffers or ([], [])
-        if live:
-            torch._foreach_copy_(live, saved)
-        if self._memory_before is not None:
-            self.objectives.memory.load_state(self._memory_before)
-
-    def _check_finite(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
-        """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
-
-        The parameters are still those before this iteration and the forward pass's other changes (BatchNorm
-        statistics, neighbour memory) are undone before saving, so the checkpoint is the state after the last good
-        iteration. The decision is reduced over ranks so that every process stops (and saves) together.
-        """
-        # everything reduced to one flag on the device and read once: the single host sync of a step, needed
-        # because the optimizer must not apply a non-finite update
-        values = torch.stack([v.detach() for v in losses.values()])
-        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
-        finite = torch.isfinite(values).all()
-        if grads:
-            finite = finite & torch.isfinite(torch.nn.utils.get_total_norm(grads))
-        flag = (~finite).float()
-        if self.trainer.world_size > 1:
-            flag = self.trainer.strategy.reduce(flag, reduce_op="max")
-        if float(flag) == 0:
-            return
-        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
-        if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
-            bad.append("gradients of 'total' (finite loss)")
-        where = ", ".join(bad) if bad else "a term on another rank"
-        self._restore_forward_state()
-        path = self._save_last_good(step)
-        saved = f"; the state before this iteration was saved to {path}" if path else ""
-        raise NonFiniteLossError(f"non-finite loss at iteration {step} ({phase} step): {where}{saved}")
-
-    def _save_last_good(self, step: int) -> str | None:
-        trainer = self.trainer
-        callback = trainer.checkpoint_callback
-        folder = getattr(callback, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
-        path = Path(folder) / f"nonfinite-step={step}.ckpt"
-        try:
-            trainer.save_checkpoint(path)
-        except Exception as err:  # saving is best effort: the error message matters more
-            log.error("could not save a checkpoint before stopping: %s", err)
-            return None
-        return str(path)
 
     # ------------------------------------------------------------------ validation
     def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:

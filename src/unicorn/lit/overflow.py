@@ -19,10 +19,10 @@ __all__ = ["TrainingOverflow"]
 class TrainingOverflow:
     """The renders of one training run, counted between :meth:`start` and :meth:`stop`.
 
-    The counts come from the rasterizer's own host read (``Fragments.overflow``): counting adds no device
-    synchronisation to a training step. Renders in other threads, and those made inside another active
-    :class:`~unicorn.render.OverflowCounter` (the diagnostics' own, :meth:`CodeDiagnostics.check
-    <unicorn.lit.CodeDiagnostics.check>`), are not counted here.
+    The counts come from the rasterizer's own host read (``Fragments.overflow``), or stay on the device in the steps
+    without host reads until :meth:`share` takes them: counting adds no device synchronisation to a training step.
+    Renders in other threads, and those made inside another active :class:`~unicorn.render.OverflowCounter` (the
+    diagnostics' own, :meth:`CodeDiagnostics.check <unicorn.lit.CodeDiagnostics.check>`), are not counted here.
     """
 
     def __init__(self) -> None:

@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from unicorn.geometry.rotations import rotation_angle_between
+from unicorn.hostsync import is_sync_free
 from unicorn.model import Prediction3D, Unicorn, world_verts
 from unicorn.objectives.losses import ReconstructionLoss
 from unicorn.render.precision import full_precision, to_full_precision
@@ -136,18 +137,18 @@ class NeighborMemory:
         self_index: torch.Tensor | None,
         generator: torch.Generator | None,
     ) -> NeighborMatch:
-        B = R.shape[0]
         angles = rotation_angle_between(self.R.unsqueeze(1), R.unsqueeze(0))  # (M, B)
         entry_bins = self.bin_of(angles)
         usable = entry_bins >= 0
-        if self_index is not None:
-            usable[self_index, torch.arange(B, device=R.device)] = False
+        if self_index is not None:  # a comparison, not an assignment of a host scalar: nothing copied to the device
+            usable &= torch.arange(usable.shape[0], device=R.device).unsqueeze(1) != self_index.unsqueeze(0)
         # which bins hold at least one usable entry, per query: (B, n_bins)
-        onehot = torch.nn.functional.one_hot(entry_bins.clamp(min=0), self.n_bins).bool() & usable.unsqueeze(-1)
+        # a comparison, not one_hot: one_hot reads the bins' range back on the CPU
+        bin_ids = torch.arange(self.n_bins, device=R.device)
+        onehot = (entry_bins.clamp(min=0).unsqueeze(-1) == bin_ids) & usable.unsqueeze(-1)
         nonempty = onehot.any(0)
         valid = nonempty.any(1)
-        weights = nonempty.float()
-        weights[~valid] = 1.0  # placeholder row, ignored below
+        weights = torch.where(valid.unsqueeze(1), nonempty.float(), 1.0)  # a placeholder row where invalid
         # drawn where the weights are (no host round trip) unless the caller's generator lives elsewhere
         on = weights if generator is None or generator.device == weights.device else weights.cpu()
         bins = torch.multinomial(on, 1, generator=generator).squeeze(1).to(R.device)
@@ -250,11 +251,30 @@ class NeighborLoss(nn.Module):
         self_index = memory.push(images, pred.shape_code, pred.texture_code, R)
         match = memory.search(pred.shape_code.detach(), pred.texture_code.detach(), R, self_index)
         loss = images.new_zeros(images.shape[0])
+        if is_sync_free():
+            # every sample swaps (those without neighbours with memory entry 0) and their loss is masked out: no
+            # host read, the same loss as below whenever every sample found neighbours
+            idx = torch.arange(images.shape[0], device=images.device)
+            return torch.where(match.valid, self._swapped(model, images, pred, match, idx, average_texture), loss)
         # a host sync: the swaps run on the samples that found neighbours only (all of them once the memory
         # holds a few batches); padding the others would change the neighbour batch's BatchNorm statistics
         idx = match.valid.nonzero().squeeze(1)
         if idx.numel() == 0:
             return loss
+        return loss.index_put((idx,), self._swapped(model, images, pred, match, idx, average_texture))
+
+    def _swapped(
+        self,
+        model: Unicorn,
+        images: torch.Tensor,
+        pred: Prediction3D,
+        match: NeighborMatch,
+        idx: torch.Tensor,
+        average_texture: bool,
+    ) -> torch.Tensor:
+        """The swap losses (n,) of the samples ``idx`` (n,): their shape with the neighbour's texture and the
+        other way round, against the neighbours' images."""
+        memory = self.memory
         assert memory.images is not None  # pushed above
         nbr_images = torch.cat([memory.images[match.shape_index[idx]], memory.images[match.texture_index[idx]]])
         n = idx.numel()
@@ -265,6 +285,6 @@ class NeighborLoss(nn.Module):
         rec, _ = model.render(verts, tex, nbr.R, nbr.T, nbr.background)
         terms = self.reconstruction(rec, nbr_images)
         if not terms:
-            return loss
+            return images.new_zeros(n)
         per = sum(terms.values())
-        return loss.index_put((idx,), per[:n] + per[n:])
+        return per[:n] + per[n:]

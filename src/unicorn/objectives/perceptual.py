@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -210,11 +211,12 @@ class VGGPerceptualLoss(nn.Module):
         return (feats[:B] - feats[B:]).pow(2).flatten(1).mean(1)
 
 
-def _gaussian_taps(window_size: int, sigma: float = 1.5) -> list[float]:
-    """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size)."""
+@functools.cache
+def _gaussian_taps(window_size: int, sigma: float = 1.5) -> tuple[float, ...]:
+    """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size), computed once per size."""
     x = torch.arange(window_size, dtype=torch.float64) - window_size // 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    return (g / g.sum()).tolist()
+    return tuple((g / g.sum()).tolist())
 
 
 def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: float = 1.0) -> torch.Tensor:

@@ -23,7 +23,7 @@ def gather_slots(fragments: Fragments, *values: torch.Tensor, fill: float = 0.0)
         ``row_pix`` (R,) flat indices of the covered pixels, then one (R, K, ...) tensor per value.
     """
     row, row_pix = fragments.rows()
-    R, K = row_pix.shape[0], max(fragments.num_slots, 1)
+    R, K = row_pix.shape[0], fragments.slot_columns
     out = []
     for value in values:
         dense = value.new_full((R, K, *value.shape[1:]), fill)

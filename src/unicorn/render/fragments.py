@@ -52,7 +52,13 @@ class Fragments:
         image_size: (H, W).
         num_slots: K, the largest number of pairs kept for one pixel (at most ``faces_per_pixel``).
         overflow: number of pixels that had more candidate faces than ``faces_per_pixel`` (the farthest
-            were dropped); 0 means nothing was truncated.
+            were dropped); 0 means nothing was truncated. A 0-dim tensor on the device for the fragments in fixed
+            buffers.
+        valid: None, or (M,) bool for fragments in fixed buffers (the rasterizer without host reads,
+            :mod:`unicorn.render.fixed`): False on the padding rows, which sit after the others at the last pixel,
+            in slot ``num_slots`` (one past the last), and are transparent (``dists`` and ``zbuf`` infinite, not
+            ``inside``). Every pixel is then a row of :meth:`rows`.
+        sizes: (2,) long, the candidates and kept pairs the render needed (on the device for fixed buffers).
     """
 
     pix: torch.Tensor
@@ -65,7 +71,9 @@ class Fragments:
     batch_size: int
     image_size: tuple[int, int]
     num_slots: int
-    overflow: int
+    overflow: int | torch.Tensor
+    valid: torch.Tensor | None = None
+    sizes: torch.Tensor | None = None
 
     @property
     def num_pairs(self) -> int:
@@ -79,12 +87,20 @@ class Fragments:
 
     def rows(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Compact per-pixel layout: ``row`` (M,) in [0, R) for every pair and ``row_pix`` (R,) covered pixels."""
+        if self.valid is not None:  # fixed buffers: every pixel is a row (no data-dependent size)
+            H, W = self.image_size
+            return self.pix, torch.arange(self.batch_size * H * W, device=self.pix.device)
         row_pix, row = torch.unique_consecutive(self.pix, return_inverse=True)
         return row, row_pix
 
+    @property
+    def slot_columns(self) -> int:
+        """Slots of the per-pixel layouts: ``num_slots``, one more for the padding of fixed buffers (at least 1)."""
+        return max(self.num_slots, 1) + (self.valid is not None)
+
     def to_dense(self) -> DenseFragments:
         """Padded (B, H, W, K) tensors as PyTorch3D returns them (differentiable in bary, dists and zbuf)."""
-        B, (H, W), K = self.batch_size, self.image_size, max(self.num_slots, 1)
+        B, (H, W), K = self.batch_size, self.image_size, self.slot_columns
         n = B * H * W
         flat = (self.pix, self.slot)
         dev, dt = self.bary.device, self.bary.dtype
@@ -92,11 +108,12 @@ class Fragments:
         zbuf = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.zbuf)
         dists = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.dists)
         bary = torch.full((n, K, 3), -1.0, dtype=dt, device=dev).index_put(flat, self.bary)
+        k = max(self.num_slots, 1)  # without the padding's column
         return DenseFragments(
-            pix_to_face=pix_to_face.view(B, H, W, K),
-            zbuf=zbuf.view(B, H, W, K),
-            bary_coords=bary.view(B, H, W, K, 3),
-            dists=dists.view(B, H, W, K),
+            pix_to_face=pix_to_face[:, :k].reshape(B, H, W, k),
+            zbuf=zbuf[:, :k].reshape(B, H, W, k),
+            bary_coords=bary[:, :k].reshape(B, H, W, k, 3),
+            dists=dists[:, :k].reshape(B, H, W, k),
         )
 
     def first_layer(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -47,15 +47,22 @@ def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Te
     occupancy = layered_occupancy(fragments, sigma)
     row, row_pix = fragments.rows()
     R = row_pix.shape[0]
-    counts = torch.bincount(row, minlength=R)
+    # counted by index_add, not bincount, which reads its size back on CUDA; rows without pairs (fixed buffers)
+    # read pair 0 below, and their sums are zeroed
+    counts = torch.zeros(R, dtype=torch.long, device=row.device).index_add_(0, row, torch.ones_like(row))
     first = torch.cumsum(counts, 0) - counts  # index of each pixel's nearest pair
     last = first + counts - 1
+    if fragments.valid is not None:
+        first, last = first.clamp(max=max(row.numel() - 1, 0)), last.clamp(min=0)
 
     def exclusive_in_pixel(values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per pair: the sum over the pairs in front of it in its pixel; per pixel: the sum over all its pairs."""
         running = torch.cumsum(values, 0)
         before_pixel = (running - values).index_select(0, first)
-        return running - values - before_pixel.index_select(0, row), running.index_select(0, last) - before_pixel
+        total = running.index_select(0, last) - before_pixel
+        if fragments.valid is not None:
+            total = torch.where(counts > 0, total, 0)
+        return running - values - before_pixel.index_select(0, row), total
 
     # an opaque pair (inside its face) contributes through the mask below, not through log(0)
     log_clear = torch.where(

@@ -10,7 +10,9 @@ Every rasterization reports its count here (:func:`note_overflow`; the count of 
   warn once per run; ``unicorn-reconstruct`` and ``unicorn-eval`` say it once per command).
 
 Counting costs no device synchronisation of its own: the rasterizer reads the count in the host read it makes
-anyway (the packed layout's size, see :mod:`unicorn.render.raster`).
+anyway (the packed layout's size, see :mod:`unicorn.render.raster`). The rasterizer without host reads
+(:mod:`unicorn.render.fixed`) reports a count on the device: a counter adds it up there and reads the sum when it is
+taken (:meth:`OverflowCounter.take`), on the logging steps of training.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import warnings
 from contextvars import ContextVar
 from dataclasses import dataclass, field
 from types import TracebackType
+
+import torch
 
 __all__ = ["OverflowCounter", "RenderOverflowWarning", "note_overflow"]
 
@@ -48,10 +52,12 @@ class OverflowCounter:
 
     counts: dict[int, tuple[int, int]] = field(default_factory=dict)
 
-    def add(self, overflow: int, pixels: int, faces_per_pixel: int) -> None:
-        """Count one render: ``overflow`` of its ``pixels`` pixels had more than ``faces_per_pixel`` candidates."""
+    def add(self, overflow: int | torch.Tensor, pixels: int, faces_per_pixel: int) -> None:
+        """Count one render: ``overflow`` of its ``pixels`` pixels had more than ``faces_per_pixel`` candidates (a
+        0-dim tensor is summed where it is, and read by :meth:`take`)."""
         before, rendered = self.counts.get(int(faces_per_pixel), (0, 0))
-        self.counts[int(faces_per_pixel)] = (before + int(overflow), rendered + int(pixels))
+        over = overflow.detach() if isinstance(overflow, torch.Tensor) else int(overflow)
+        self.counts[int(faces_per_pixel)] = (before + over, rendered + int(pixels))
 
     @property
     def overflow(self) -> int:
@@ -80,8 +86,8 @@ class OverflowCounter:
 
     def take(self) -> OverflowCounter:
         """The counts so far, as a new counter; this one starts again from zero (and stays active if it was)."""
-        taken, self.counts = OverflowCounter(self.counts), {}
-        return taken
+        counts, self.counts = self.counts, {}
+        return OverflowCounter({k: (int(over), rendered) for k, (over, rendered) in counts.items()})
 
     def describe(self) -> str:
         """``"<share> of the <N> pixels rendered with faces_per_pixel=<K> had more candidate faces ..."``, for each

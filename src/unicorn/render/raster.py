@@ -32,6 +32,8 @@ import torch
 from ..checks import SizeLimitError, check_mesh, check_rotations, check_translations, env_limit
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
+from ..hostsync import is_sync_free
+from .fixed import select_fixed
 from .fragments import Fragments
 from .overflow import note_overflow
 from .selection import Selection, select_pairs
@@ -59,6 +61,8 @@ PAIR_BYTES = 64
 DEFAULT_MAX_RENDER_BYTES = 16 << 30
 #: environment variable holding that limit; 0 means no limit
 MAX_RENDER_BYTES_ENV = "UNICORN_MAX_RENDER_BYTES"
+#: the triangle (x_ndc, y_ndc, z_view) of the padding rows of fixed buffers: no gradient, and no NaN, reaches the mesh
+_PADDING_TRIANGLE = torch.tensor([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 1.0, 1.0]])
 
 
 class RenderError(UserError, ValueError):
@@ -122,13 +126,16 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
 
 
 def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size: int) -> None:
-    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None."""
+    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None (the
+    finiteness is one host read, skipped inside :func:`unicorn.hostsync.sync_free`)."""
     if (R is None) != (T is None):
         raise ValueError("give both R and T, or neither (verts already in view coordinates)")
     if R is None or T is None:
         return
     check_rotations(R, "R", batch_size)  # an integer R would be cast and render a wrong pose
     check_translations(T, "T", batch_size)
+    if is_sync_free():
+        return
     finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync
     for name, ok in zip("RT", finite):
         if not ok:
@@ -155,6 +162,7 @@ def rasterize_meshes(
     check_inputs: bool = True,
     max_bytes: int | None = None,
     perspective_correct: bool = False,
+    capacity: tuple[int, int] | None = None,
 ) -> Fragments:
     """Rasterize a batch of projected meshes into packed top-K fragments.
 
@@ -182,6 +190,10 @@ def rasterize_meshes(
             depths ``z``) instead of the screen-space ones, then clipped likewise; depth, colours and UVs are
             interpolated with them, so the depth is the face's true depth at the pixel. False (the default, the
             UNICORN reference's): screen-space barycentrics, which interpolate affinely across the projected face.
+        capacity: None (default), or ``(candidates, pairs)``: select in buffers of that fixed size without reading
+            the device back (:mod:`unicorn.render.fixed`; ``max_candidates`` is then unused): the fragments hold
+            ``pairs`` rows, the last transparent padding (``Fragments.valid``), and ``Fragments.sizes`` says on the
+            device what the batch needed.
 
     Returns:
         :class:`~unicorn.render.fragments.Fragments`. A pixel with more than ``faces_per_pixel`` candidates keeps
@@ -199,6 +211,10 @@ def rasterize_meshes(
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)
     faces = faces.long()
+    if capacity is not None and B * faces.shape[0] * verts_ndc.shape[1] > 0:  # (nothing to draw: the sizes are known)
+        return _rasterize_fixed(
+            verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
+        )
     kept = select_pairs(
         verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct
     )
@@ -209,7 +225,33 @@ def rasterize_meshes(
     note_overflow(overflow, B * H * W, faces_per_pixel)
     return Fragments(
         pix=kept.pix, slot=slot, face=kept.face, inside=kept.inside, bary=bary, dists=dists, zbuf=zbuf,
-        batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow,
+        batch_size=B, image_size=(H, W), num_slots=num_slots, overflow=overflow, sizes=kept.sizes,
+    )  # fmt: skip
+
+
+def _rasterize_fixed(
+    verts_ndc: torch.Tensor,
+    faces: torch.Tensor,
+    image_size: tuple[int, int],
+    blur_radius: float,
+    faces_per_pixel: int,
+    truncate_opaque: bool,
+    capacity: tuple[int, int],
+    perspective_correct: bool,
+) -> Fragments:
+    """:func:`rasterize_meshes` in fixed buffers: no host read; the padding rows made transparent."""
+    B = verts_ndc.shape[0]
+    kept = select_fixed(
+        verts_ndc, faces, image_size, blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
+    )
+    bary, dists, zbuf = _recompute(verts_ndc, faces, kept, image_size, perspective_correct)
+    # where, not a product: the padding's geometry gets no gradient
+    dists, zbuf = (torch.where(kept.valid, t, torch.inf) for t in (dists, zbuf))
+    note_overflow(kept.overflow, B * image_size[0] * image_size[1], faces_per_pixel)
+    return Fragments(
+        pix=kept.pix, slot=kept.slot, face=kept.face, inside=kept.inside, bary=bary, dists=dists, zbuf=zbuf,
+        batch_size=B, image_size=image_size, num_slots=faces_per_pixel, overflow=kept.overflow, valid=kept.valid,
+        sizes=kept.sizes,
     )  # fmt: skip
 
 
@@ -227,6 +269,8 @@ def _recompute(
     px_to_ndc2 = (2.0 / min(H, W)) ** 2
     vert_idx = kept.image.unsqueeze(1) * verts_ndc.shape[1] + faces.index_select(0, kept.face)  # (M, 3)
     tri = verts_ndc.reshape(-1, 3).index_select(0, vert_idx.reshape(-1)).view(-1, 3, 3)  # (M, 3, 3)
+    if kept.valid is not None:  # the padding of fixed buffers: a fixed triangle, finite whatever the mesh
+        tri = torch.where(kept.valid.view(-1, 1, 1), tri, _PADDING_TRIANGLE.to(tri))
     tri_px = ndc_to_pixel(tri[..., :2], (H, W))
     centre_x = (kept.pix % W).to(tri.dtype)
     centre_y = torch.div(kept.pix, W, rounding_mode="floor").remainder(H).to(tri.dtype)

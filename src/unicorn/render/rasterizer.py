@@ -13,6 +13,7 @@ import torch
 from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
+from ..hostsync import is_sync_free
 from .fragments import Fragments
 from .precision import float32_boundary
 from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
@@ -70,6 +71,10 @@ class MeshRasterizer(nn.Module):
         self.max_candidates = int(max_candidates)
         self.max_bytes = max_bytes
         self.perspective_correct = perspective_correct
+        #: (B, H, W) -> the fixed buffers (candidates, pairs) of renders inside unicorn.hostsync.sync_free, sized
+        #: from the renders outside it (and grown by :meth:`grow_buffers`); a size not seen yet renders as usual
+        self.buffers: dict[tuple[int, int, int], tuple[int, int]] = {}
+        self._needed: dict[tuple[int, int, int], torch.Tensor] = {}  # what the fixed renders needed, on the device
 
     def extra_repr(self) -> str:
         return (
@@ -118,8 +123,44 @@ class MeshRasterizer(nn.Module):
         if check_inputs:
             check_mesh_inputs(verts, faces)
             check_pose_inputs(R, T, verts.shape[0])
-        return rasterize_meshes(
-            self.project(verts, R, T), faces, image_size or self.raster_size, self.blur_radius,
+        size = image_size or self.raster_size
+        key = (verts.shape[0], *size)
+        capacity = self.buffers.get(key) if is_sync_free() else None
+        fragments = rasterize_meshes(
+            self.project(verts, R, T), faces, size, self.blur_radius,
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
-            max_bytes=self.max_bytes, perspective_correct=self.perspective_correct,
+            max_bytes=self.max_bytes, perspective_correct=self.perspective_correct, capacity=capacity,
         )  # fmt: skip
+        if fragments.sizes is not None and capacity is None:  # on the host: sizes the fixed buffers
+            self._fit(key, fragments.sizes.tolist())
+        elif fragments.sizes is not None:
+            before = self._needed.get(key)
+            self._needed[key] = fragments.sizes if before is None else torch.maximum(before, fragments.sizes)
+        return fragments
+
+    def _fit(self, key: tuple[int, int, int], needed: list[int]) -> bool:
+        """Grow the buffers of ``key`` to hold ``needed`` (candidates, pairs) with a margin; whether they grew."""
+        have = self.buffers.get(key, (0, 0))
+        if all(n <= h for n, h in zip(needed, have)):
+            return False
+        # a quarter more, in steps of 1024: a few sizes for the whole run
+        self.buffers[key] = tuple(max(h, -(-int(n * 1.25) // 1024) * 1024) for n, h in zip(needed, have))
+        return True
+
+    def grow_buffers(self) -> list[str]:
+        """Read what the fixed-buffer renders since the previous call needed (one host read) and grow the buffers
+        that were too small (those renders dropped candidates or pairs); a line for each of them."""
+        needed, self._needed = self._needed, {}
+        if not needed:
+            return []
+        keys = list(needed)
+        read = torch.stack([needed[k] for k in keys]).tolist()
+        lines = []
+        for key, sizes in zip(keys, read):
+            have = self.buffers.get(key, (0, 0))
+            if self._fit(key, sizes) and any(n > h for n, h in zip(sizes, have)):
+                lines.append(
+                    f"renders of {key[0]} x {key[1]}x{key[2]} needed {sizes[0]} candidates and {sizes[1]} pairs, over "
+                    f"the buffers of {have[0]} and {have[1]}, and lost some; grown to {self.buffers[key]}"
+                )
+        return lines

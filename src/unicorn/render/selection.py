@@ -43,7 +43,9 @@ class Selection(NamedTuple):
 
     ``pix`` (M,) flat pixel index over (B, H, W); ``slot`` (M,) the pair's depth rank at its pixel; ``face`` (M,)
     and ``image`` (M,) the face and the image; ``inside`` (M,) bool, the face contains the pixel centre;
-    ``overflow`` a 0-dim count of the pixels that had more than ``faces_per_pixel`` candidates.
+    ``overflow`` a 0-dim count of the pixels that had more than ``faces_per_pixel`` candidates. The selection in
+    fixed buffers (:func:`unicorn.render.fixed.select_fixed`) adds ``valid`` (M,) bool, False on its padding rows,
+    and ``sizes`` (2,) the candidates and pairs the batch needed.
     """
 
     pix: torch.Tensor
@@ -52,6 +54,8 @@ class Selection(NamedTuple):
     image: torch.Tensor
     inside: torch.Tensor
     overflow: torch.Tensor
+    valid: torch.Tensor | None = None
+    sizes: torch.Tensor | None = None
 
 
 @torch.no_grad()
@@ -83,6 +87,7 @@ def select_pairs(
     F = faces.shape[0]
     dev = verts_ndc.device
     overflow = torch.zeros((), dtype=torch.long, device=dev)
+    n_candidates = 0
     pieces: list[tuple[torch.Tensor, ...]] = []
     if B > 0 and F > 0 and V > 0:
         S = min(H, W)
@@ -90,7 +95,9 @@ def select_pairs(
         fpx, fz, valid = _project_faces(verts_ndc.detach(), faces, (H, W), px_to_ndc2)
         boxes = _face_boxes(fpx[..., 0], fpx[..., 1], math.sqrt(blur_radius) * S / 2.0, H, W)
         counts = boxes[2] * boxes[3] * valid
-        for sl in _chunks(counts.sum(1).tolist(), max_candidates):  # one host read: the per-image work
+        per_image = counts.sum(1).tolist()  # one host read: the per-image work
+        n_candidates = sum(per_image)
+        for sl in _chunks(per_image, max_candidates):
             *piece, n_over = _select_chunk(
                 fpx[sl], fz[sl], counts[sl], tuple(b[sl] for b in boxes), sl.start, (H, W),
                 px_to_ndc2, blur_radius, faces_per_pixel, truncate_opaque, perspective_correct,
@@ -100,9 +107,10 @@ def select_pairs(
                 pieces.append(tuple(piece))
     if not pieces:
         empty = torch.zeros(0, dtype=torch.long, device=dev)
-        return Selection(empty, empty, empty, empty, empty.bool(), overflow)
+        return Selection(empty, empty, empty, empty, empty.bool(), overflow, sizes=torch.tensor([n_candidates, 0]))
     pix, slot, face_image, inside = (torch.cat(parts, dim=-1) for parts in zip(*pieces))
-    return Selection(pix, slot, face_image[0], face_image[1], inside, overflow)
+    sizes = torch.tensor([n_candidates, pix.numel()])  # on the host: what select_fixed's buffers need
+    return Selection(pix, slot, face_image[0], face_image[1], inside, overflow, sizes=sizes)
 
 
 def _project_faces(

@@ -1,0 +1,44 @@
+"""Whether the code may read the device back (a host synchronisation) in the middle of a training step.
+
+On CUDA a read of a tensor's value on the host (``.item()``, ``bool()``, ``.tolist()``) or an op whose output size
+depends on the data (``nonzero``, boolean-mask indexing) makes the host wait until the device has run everything
+queued so far: the next kernels are launched only after that, and a step whose model is small is bound by its
+launches. Inside ``with sync_free():`` the code that has another way takes it:
+
+- the rasterizer selects into fixed buffers sized by its earlier renders (:mod:`unicorn.render.fixed`,
+  :class:`~unicorn.render.rasterizer.MeshRasterizer`), its overflow counted on the device;
+- the mesh, pose and colour input checks skip their value reads (face range, finiteness; shapes and dtypes are
+  still checked): the trainer runs them on its first iterations only (:mod:`unicorn.lit.module`);
+- the neighbour swaps run on every sample with a mask instead of selecting the samples that found neighbours
+  (:mod:`unicorn.objectives.neighbors`);
+- the trainer takes the texture-averaging probability from the stage callback instead of its buffer, and reads the
+  finite-loss flag (:mod:`unicorn.lit.finite`) and the buffers' needs on its logging and checkpoint steps only.
+
+Outside the block (the default, and what the CPU uses) the code keeps its exact algorithms and reads where it
+must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+
+__all__ = ["is_sync_free", "sync_free"]
+
+_SYNC_FREE: ContextVar[bool] = ContextVar("unicorn_sync_free", default=False)
+
+
+def is_sync_free() -> bool:
+    """Whether the current code runs inside :func:`sync_free` (enabled)."""
+    return _SYNC_FREE.get()
+
+
+@contextmanager
+def sync_free(enabled: bool = True) -> Iterator[None]:
+    """Take the paths without host reads in this block (``enabled=False``: the default paths)."""
+    token = _SYNC_FREE.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _SYNC_FREE.reset(token)

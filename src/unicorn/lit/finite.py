@@ -1,0 +1,189 @@
+"""The trainer's finite-loss check: stop on a NaN or infinite loss or gradient, keeping the last good state.
+
+Two ways, the same verdict on the iteration that went wrong:
+
+- :meth:`FiniteCheck.now` (the default, and the CPU's): every step reduces the terms and the gradients to one flag
+  on the device and reads it before the optimizer steps, so a non-finite update is never applied; the forward
+  pass's other changes (BatchNorm statistics, neighbour memory) are undone and the state before the iteration is
+  saved to ``nonfinite-step=<N>.ckpt``;
+- :meth:`FiniteCheck.defer` then :meth:`FiniteCheck.verify` (the trainer's steps without host reads, on CUDA): each
+  step folds its flag into one on the device and notes the first bad iteration there; the logging steps read it.
+  Each good verification keeps a copy on the device of the module's state, the optimizers' and schedulers' states
+  and the neighbour memory, the state to roll back to; a bad one restores it and saves it (as
+  ``nonfinite-step=<N>.ckpt``, N the verified iteration) before stopping.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+
+from unicorn.errors import UserError
+
+__all__ = ["FiniteCheck", "NonFiniteLossError"]
+
+log = logging.getLogger(__name__)
+
+
+class NonFiniteLossError(UserError, FloatingPointError):
+    """A loss term or a gradient became NaN or infinite; the message names the iteration and the term."""
+
+
+def _finite(losses: Mapping[str, torch.Tensor], grads: list[torch.Tensor]) -> torch.Tensor:
+    """0-dim bool on the device: every term (each 0-dim) and the gradients' total norm finite."""
+    finite = torch.isfinite(torch.stack([v.detach() for v in losses.values()])).all()
+    if grads:
+        finite = finite & torch.isfinite(torch.nn.utils.get_total_norm(grads))
+    return finite
+
+
+def _listed(items: Any) -> list[Any]:
+    """Lightning's one-or-several (or None) as a list."""
+    return [] if items is None else items if isinstance(items, list) else [items]
+
+
+class FiniteCheck:
+    """The finite-loss check of one :class:`~unicorn.lit.UnicornLitModule` (see the module docstring)."""
+
+    def __init__(self, module: L.LightningModule) -> None:
+        self.module = module
+        # the forward pass's changes besides the parameters, kept to be undone (see snapshot)
+        self._buffers: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+        self._memory: dict[str, torch.Tensor | None] | None = None
+        # the deferred check: its flag, first bad iteration and phase (on the device) and the state to roll back to
+        self._bad: torch.Tensor | None = None
+        self._good: tuple[int, dict[str, Any]] | None = None
+
+    # ------------------------------------------------------------------ every step
+    def snapshot(self) -> None:
+        """Keep what the forward pass changes besides the parameters: the BatchNorm running statistics (copied
+        into buffers kept for it, one fused copy per step) and the neighbour memory (replaced, not changed in
+        place, by each push: references suffice). :meth:`restore_forward` puts them back."""
+        if self._buffers is None:
+            model = self.module.model
+            norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+            live = [b for m in norms for b in (m.running_mean, m.running_var, m.num_batches_tracked) if b is not None]
+            self._buffers = (live, [b.clone() for b in live])
+        live, saved = self._buffers
+        if live:
+            torch._foreach_copy_(saved, live)
+        self._memory = self.module.objectives.memory.state()
+
+    def restore_forward(self) -> None:
+        live, saved = self._buffers or ([], [])
+        if live:
+            torch._foreach_copy_(live, saved)
+        if self._memory is not None:
+            self.module.objectives.memory.load_state(self._memory)
+
+    def _grads(self) -> list[torch.Tensor]:
+        return [p.grad for p in self.module.model.parameters() if p.grad is not None]
+
+    def now(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
+        """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
+
+        The parameters are still those before this iteration and the forward pass's other changes are undone
+        before saving, so the checkpoint is the state after the last good iteration. The decision is reduced over
+        ranks so that every process stops (and saves) together.
+        """
+        # everything reduced to one flag on the device and read once: the single host sync of a step, needed
+        # because the optimizer must not apply a non-finite update
+        grads = self._grads()
+        flag = (~_finite(losses, grads)).float()
+        trainer = self.module.trainer
+        if trainer.world_size > 1:
+            flag = trainer.strategy.reduce(flag, reduce_op="max")
+        if float(flag) == 0:
+            return
+        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
+        if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
+            bad.append("gradients of 'total' (finite loss)")
+        where = ", ".join(bad) if bad else "a term on another rank"
+        self.restore_forward()
+        path = self._save(step)
+        saved = f"; the state before this iteration was saved to {path}" if path else ""
+        raise NonFiniteLossError(f"non-finite loss at iteration {step} ({phase} step): {where}{saved}")
+
+    # ------------------------------------------------------------------ deferred to the logging steps
+    def begin(self, step: int) -> None:
+        """Before the forward pass of iteration ``step``: keep the state to roll back to if there is none yet."""
+        if self._good is None:
+            self._good = (step, self._state())
+
+    def defer(self, losses: Mapping[str, torch.Tensor], step: int) -> None:
+        """Fold iteration ``step``'s flag into the device's record (no host read): the first bad iteration, and
+        which of its terms were not finite."""
+        values = torch.stack([v.detach() for v in losses.values()])
+        bad = ~_finite(losses, self._grads())
+        if self._bad is None:
+            self._bad = torch.full((), -1, dtype=torch.long, device=values.device)
+            self._terms: dict[str, tuple[list[str], torch.Tensor]] = {}
+        first = bad & (self._bad < 0)
+        self._bad = torch.where(first, step, self._bad)
+        names, before = self._terms.get(self.module.phase(step), (list(losses), torch.zeros_like(values, dtype=bool)))
+        self._terms[self.module.phase(step)] = (names, torch.where(first, ~torch.isfinite(values), before))
+
+    def verify(self, step: int) -> None:
+        """After iteration ``step``: read the record (one host read); keep the state as the one to roll back to,
+        or restore and save the kept one and raise :class:`NonFiniteLossError`."""
+        if self._bad is None:
+            return
+        first = self._bad
+        trainer = self.module.trainer
+        if trainer.world_size > 1:
+            first = trainer.strategy.reduce(first.float(), reduce_op="max").long()
+        first = int(first)
+        if first < 0:
+            self._good = (step + 1, self._state())
+            return
+        names, flags = self._terms.get(self.module.phase(first), ([], torch.zeros(0)))
+        bad = [name for name, flag in zip(names, flags.tolist()) if flag] or ["gradients of 'total' or another rank"]
+        good_step, state = self._good or (0, None)
+        path = self._roll_back(good_step, state) if state is not None else None
+        saved = f"; the state after iteration {good_step - 1} was saved to {path}" if path else ""
+        raise NonFiniteLossError(
+            f"non-finite loss at iteration {first} ({self.module.phase(first)} step), found at iteration {step}: "
+            f"{', '.join(bad)}{saved}"
+        )
+
+    def _state(self) -> dict[str, Any]:
+        """The state to roll back to, copied on the device: the module's weights and buffers, the optimizers'
+        and schedulers' states and the neighbour memory (replaced, not changed in place: references suffice)."""
+        module = self.module
+        return {
+            "module": {k: v.detach().clone() for k, v in module.state_dict().items()},
+            "optimizers": [copy.deepcopy(o.optimizer.state_dict()) for o in _listed(module.optimizers())],
+            "schedulers": [copy.deepcopy(s.state_dict()) for s in _listed(module.lr_schedulers())],
+            "memory": module.objectives.memory.state(),
+        }
+
+    def _roll_back(self, step: int, state: dict[str, Any]) -> str | None:
+        """Put ``state`` (kept before iteration ``step``) back and save it as the checkpoint of iteration ``step``."""
+        module = self.module
+        module.load_state_dict(state["module"])
+        for opt, saved in zip(_listed(module.optimizers()), state["optimizers"]):
+            opt.optimizer.load_state_dict(saved)
+        for sched, saved in zip(_listed(module.lr_schedulers()), state["schedulers"]):
+            sched.load_state_dict(saved)
+        module.objectives.memory.load_state(state["memory"])
+        progress = module.trainer.fit_loop.epoch_loop.manual_optimization.optim_step_progress.total
+        progress.completed = progress.ready = step  # the checkpoint's global_step: the iteration it resumes at
+        return self._save(step)
+
+    def _save(self, step: int) -> str | None:
+        trainer = self.module.trainer
+        callback = trainer.checkpoint_callback
+        folder = getattr(callback, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
+        path = Path(folder) / f"nonfinite-step={step}.ckpt"
+        try:
+            trainer.save_checkpoint(path)
+        except Exception as err:  # saving is best effort: the error message matters more
+            log.error("could not save a checkpoint before stopping: %s", err)
+            return None
+        return str(path)

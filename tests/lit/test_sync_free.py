@@ -1,0 +1,160 @@
+"""Training steps without host reads (:mod:`unicorn.hostsync`): none recorded after the checked steps, the same
+losses as the default steps, and the deferred finite-loss check.
+
+The CPU oracle (:mod:`tests.support.syncs`) records what would wait for the device on CUDA; the CUDA twin runs the
+same steps under ``torch.cuda.set_sync_debug_mode("error")``.
+"""
+
+from __future__ import annotations
+
+import collections
+
+import lightning as L
+import pytest
+import torch
+
+from tests.support.syncs import outside, record_syncs
+from tests.support.training import build_run
+from unicorn.lit.run import fit
+
+
+class StepSyncs(L.Callback):
+    """The syncs of each training step (``training_step`` only; the callbacks' logging reads are not steps'),
+    and the terms each step returned."""
+
+    def __init__(self) -> None:
+        self.syncs: dict[int, list] = {}
+        self.rows: list[dict[str, float]] = []
+
+    def on_train_start(self, trainer, pl_module):
+        step_fn = pl_module.training_step
+
+        def recorded(batch, batch_idx):
+            with record_syncs() as rec:
+                out = step_fn(batch, batch_idx)
+            self.syncs[trainer.global_step - 1] = rec.syncs
+            return out
+
+        pl_module.training_step = recorded
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.rows.append({name: float(value) for name, value in outputs.items()})
+
+
+def _train(tmp_path, sync_free: bool | None, *overrides: str) -> StepSyncs:
+    # logging every 4 iterations: the iterations in between are plain steps
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4", "callbacks.checkpoint.every_n_steps=8", *overrides)
+    run.module.sync_free = sync_free
+    recorder = StepSyncs()
+    run.trainer.callbacks.append(recorder)
+    fit(run)
+    return recorder
+
+
+def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_path):
+    rec = _train(tmp_path, True)
+    assert len(rec.syncs) == 8
+    # the checked steps (0, 1) read the inputs' values and the finite flag, the logging steps (3, 7) the deferred
+    # flag, the rasterizers' needed sizes and the logged values; the others nothing
+    for step in (0, 1):
+        assert any(s.where.startswith("lit/finite.py") and "(now)" in s.where for s in rec.syncs[step]), step
+    for step in (3, 7):
+        left = outside(rec.syncs[step])
+        assert any("(verify)" in s for s in left) and any("(grow_buffers)" in s for s in left), (step, left)
+        assert all("lit/" in s or "(grow_buffers)" in s for s in left), (step, left)
+    for step in (2, 4, 5, 6):
+        left = outside(rec.syncs[step])
+        assert not left, (step, collections.Counter(left))
+
+
+def test_default_steps_are_those_of_today(synthetic_cache, tmp_path):
+    rec = _train(tmp_path, False)
+    # every step reads its inputs' values and its finite flag
+    assert all(any(s.where.startswith("lit/finite.py") for s in rec.syncs[step]) for step in range(8))
+
+
+def test_sync_free_steps_give_the_default_losses(synthetic_cache, tmp_path):
+    default = _train(tmp_path / "default", False)
+    free = _train(tmp_path / "free", True)
+    for step, (a, b) in enumerate(zip(default.rows, free.rows, strict=True)):
+        assert a.keys() == b.keys(), step
+        for name in a:
+            assert b[name] == pytest.approx(a[name], rel=1e-6, abs=1e-9), (step, name)
+
+
+class SyncErrors(L.Callback):
+    """Runs the training steps after the checked ones, except the logging steps, under
+    ``torch.cuda.set_sync_debug_mode("error")``: a host read in them raises."""
+
+    def __init__(self, log_every: int) -> None:
+        self.log_every = log_every
+        self.plain: list[int] = []
+
+    def on_train_start(self, trainer, pl_module):
+        step_fn = pl_module.training_step
+
+        def strict(batch, batch_idx):
+            step = trainer.global_step
+            plain = step >= pl_module.checked_steps and (step + 1) % self.log_every != 0
+            torch.cuda.set_sync_debug_mode("error" if plain else "default")
+            try:
+                out = step_fn(batch, batch_idx)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+            if plain:
+                self.plain.append(step)
+            return out
+
+        pl_module.training_step = strict
+
+
+@pytest.mark.gpu
+def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path):
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4", "trainer.accelerator=gpu", "trainer.devices=1")
+    errors = SyncErrors(4)
+    run.trainer.callbacks.append(errors)
+    fit(run)
+    assert run.trainer.global_step == 8 and errors.plain == [2, 4, 5, 6]
+
+
+class StateBefore(L.Callback):
+    """The module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
+
+    def __init__(self, step: int) -> None:
+        self.step, self.state = step, None
+
+    def on_train_batch_start(self, trainer, pl_module, *args):
+        if trainer.global_step == self.step:
+            self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
+
+
+def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch):
+    from unicorn.io.serialization import load_checkpoint_file
+    from unicorn.lit import NonFiniteLossError
+
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4")
+    run.module.sync_free = True
+    step, n = run.module.objectives.steps["3d"], 5  # iteration 5 is a 3D step, between the checks at 3 and 7
+    original = step.forward
+
+    def nan_at_n(model, images, average_texture=False, iteration=None):
+        out = original(model, images, average_texture, iteration)
+        if run.trainer.global_step == n:
+            out["rgb"] = out["rgb"] * float("nan")
+            out["total"] = out["total"] + out["rgb"]
+        return out
+
+    monkeypatch.setattr(step, "forward", nan_at_n)
+    before = StateBefore(4)  # the state verified at iteration 3
+    run.trainer.callbacks.append(before)
+    with pytest.raises(
+        NonFiniteLossError, match=r"iteration 5 \(3d step\), found at iteration 7: rgb, total; .*step=4"
+    ):
+        fit(run)
+    saved = load_checkpoint_file(run.checkpoint_dir / "nonfinite-step=4.ckpt")
+    assert saved["global_step"] == 4 and before.state is not None
+    state = saved["state_dict"]
+    assert state.keys() == before.state.keys()
+    for key, value in state.items():
+        assert torch.equal(value, before.state[key]), key
+    assert all(torch.isfinite(p).all() for p in run.module.parameters())  # rolled back in memory too

@@ -1,0 +1,124 @@
+"""The rasterizer in fixed buffers (:mod:`unicorn.render.fixed`, the renders inside
+:func:`unicorn.hostsync.sync_free`): the default fragments, images and gradients, and no host read."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.support.render import posed_ellipsoids
+from tests.support.syncs import record_syncs
+from unicorn.geometry.cameras import PerspectiveCamera
+from unicorn.hostsync import sync_free
+from unicorn.render import OverflowCounter, TexturesVertex, build_renderer
+from unicorn.render.raster import blur_radius_from_sigma, rasterize_meshes
+
+#: (blur_radius, faces_per_pixel, truncate_opaque, perspective_correct)
+CASES = {
+    "hard": (0.0, 1, False, False),
+    "blur top-4": (blur_radius_from_sigma(1e-4), 4, False, False),
+    "blur top-3 truncated": (blur_radius_from_sigma(1e-4), 3, True, False),
+    "perspective top-5": (blur_radius_from_sigma(2e-4), 5, True, True),
+}
+
+
+def _scene(batch: int = 3, dtype=torch.float64):
+    verts, faces, R, T = posed_ellipsoids(batch, level=2, dtype=dtype)
+    ndc = PerspectiveCamera(fov=30.0).project(verts @ R + T[:, None]).requires_grad_(True)
+    return ndc, faces
+
+
+def _valid(frags):
+    keep = frags.valid if frags.valid is not None else torch.ones_like(frags.pix, dtype=torch.bool)
+    return {name: getattr(frags, name)[keep] for name in ("pix", "slot", "face", "inside", "bary", "dists", "zbuf")}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_fixed_buffers_keep_the_default_pairs(case):
+    blur, K, truncate, perspective = CASES[case]
+    ndc, faces = _scene()
+    default = rasterize_meshes(ndc, faces, 24, blur, K, truncate, perspective_correct=perspective)
+    P, M = default.sizes.tolist()
+    # without the input checks' reads, counting the overflow on the device
+    with sync_free(), OverflowCounter() as counter, record_syncs() as rec:
+        fixed = rasterize_meshes(
+            ndc, faces, 24, blur, K, truncate, perspective_correct=perspective, capacity=(P, M + 7)
+        )
+    assert not rec.syncs, [str(s) for s in rec.syncs]
+    assert counter.take().overflow == default.overflow
+    assert fixed.num_pairs == M + 7 and int(fixed.valid.sum()) == M
+    assert fixed.sizes.tolist() == [P, M] and int(fixed.overflow) == default.overflow
+    a, b = _valid(default), _valid(fixed)
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    # the padding: at the last pixel, in the extra slot, transparent
+    pad = ~fixed.valid
+    assert (fixed.pix[pad] == fixed.pix.max()).all() and (fixed.slot[pad] == K).all()
+    assert torch.isinf(fixed.dists[pad]).all() and not fixed.inside[pad].any()
+    dense_a, dense_b = default.to_dense(), fixed.to_dense()
+    for name in ("pix_to_face", "zbuf", "bary_coords", "dists"):
+        assert torch.equal(getattr(dense_a, name), getattr(dense_b, name)[:, :, :, : default.num_slots]), name
+
+
+def test_fixed_buffers_too_small_drop_pairs_and_say_what_they_needed():
+    ndc, faces = _scene()
+    default = rasterize_meshes(ndc, faces, 24, blur_radius_from_sigma(1e-4), 4)
+    P, M = default.sizes.tolist()
+    fixed = rasterize_meshes(ndc, faces, 24, blur_radius_from_sigma(1e-4), 4, capacity=(P, M // 2))
+    assert int(fixed.valid.sum()) == M // 2 and fixed.sizes.tolist() == [P, M]
+    assert torch.equal(fixed.pix, default.pix[: M // 2])
+
+
+@pytest.mark.parametrize("kind", ["layered", "softras", "hard"])
+def test_fixed_buffer_renders_give_the_default_images_and_gradients(kind):
+    verts, faces, R, T = posed_ellipsoids(3, level=2, dtype=torch.float64)
+    colors = torch.rand(3, verts.shape[1], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    options = {"hard": {}, "layered": {"sigma": 1e-4, "faces_per_pixel": 6}, "softras": {"faces_per_pixel": 6}}
+    renderer = build_renderer(kind, image_size=20, **options[kind])
+    out = {}
+    for free in (False, True):
+        v, c = verts.clone().requires_grad_(True), colors.clone().requires_grad_(True)
+        with sync_free(free):
+            image = renderer(v, faces, TexturesVertex(c), R=R, T=T)
+        (image * torch.linspace(0, 1, image.numel(), dtype=image.dtype).view_as(image)).sum().backward()
+        out[free] = (image.detach(), v.grad, c.grad)
+    assert renderer.rasterizer.buffers  # sized by the default render, used by the other
+    for a, b, name in zip(out[False], out[True], ("image", "verts.grad", "colors.grad")):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12, msg=name)
+
+
+def test_fixed_buffers_of_nothing_to_draw():
+    ndc, faces = _scene()
+    for verts, f in ((ndc[:0], faces), (ndc, faces[:0])):
+        frags = rasterize_meshes(verts, f, 24, 0.0, 2, capacity=(64, 64))
+        assert frags.num_pairs == 0 and frags.overflow == 0
+
+
+def test_rasterizer_sizes_its_buffers_and_grows_them_when_read():
+    verts, faces, R, T = posed_ellipsoids(2, level=2)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    rasterizer = renderer.rasterizer
+    colors = TexturesVertex(torch.ones(2, verts.shape[1], 3))
+    with sync_free():  # no buffers yet for this size: rendered as usual, and they are sized
+        renderer(verts, faces, colors, R=R, T=T)
+    ((key, (n_cand, n_pairs)),) = rasterizer.buffers.items()
+    assert key == (2, 16, 16) and n_cand % 1024 == 0 and n_pairs % 1024 == 0
+    rasterizer.buffers[key] = (n_cand, 8)  # too small: the render loses pairs, and says so when read
+    with sync_free(), record_syncs() as rec, OverflowCounter():
+        renderer(verts, faces, colors, R=R, T=T)
+    assert not rec.syncs
+    (line,) = rasterizer.grow_buffers()
+    assert "lost some" in line and rasterizer.buffers[key] == (n_cand, n_pairs)
+    assert rasterizer.grow_buffers() == []  # read once
+
+
+def test_padding_sends_no_gradient_when_nothing_is_drawn():
+    verts, faces, R, T = posed_ellipsoids(2, level=2, dtype=torch.float64)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    renderer.rasterizer.buffers[(2, 16, 16)] = (1024, 1024)
+    v = verts.clone().requires_grad_(True)
+    behind = T * torch.tensor([1.0, 1.0, -1.0], dtype=T.dtype)  # every face behind the camera: nothing to draw
+    with sync_free(), OverflowCounter():
+        image = renderer(v, faces, TexturesVertex(torch.ones_like(verts)), R=R, T=behind)
+    image.sum().backward()
+    assert image[:, 3].abs().max() == 0 and torch.equal(v.grad, torch.zeros_like(v))
