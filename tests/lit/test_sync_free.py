@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tests.support.syncs import outside, record_syncs
-from tests.support.training import build_run
+from tests.support.training import StateBefore, build_run
 from unicorn.lit.run import fit
 
 
@@ -115,17 +115,6 @@ def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path):
     run.trainer.callbacks.append(errors)
     fit(run)
     assert run.trainer.global_step == 8 and errors.plain == [2, 4, 5, 6]
-
-
-class StateBefore(L.Callback):
-    """The module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
-
-    def __init__(self, step: int) -> None:
-        self.step, self.state = step, None
-
-    def on_train_batch_start(self, trainer, pl_module, *args):
-        if trainer.global_step == self.step:
-            self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
 
 
 def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch):

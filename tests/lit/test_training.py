@@ -8,7 +8,7 @@ import lightning as L
 import pytest
 import torch
 
-from tests.support.training import build_run
+from tests.support.training import StateBefore, build_run
 from unicorn.io.serialization import atomic_save
 from unicorn.lit import NonFiniteLossError
 from unicorn.lit.run import build, fit
@@ -224,17 +224,6 @@ def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monk
     with pytest.raises(NonFiniteLossError, match=r"iteration 1 \(3d step\): rgb = nan"):
         fit(run)
     assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
-
-
-class StateBefore(L.Callback):
-    """Records the module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
-
-    def __init__(self, step: int) -> None:
-        self.step, self.state = step, None
-
-    def on_train_batch_start(self, trainer, pl_module, *args):
-        if trainer.global_step == self.step:
-            self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
 
 
 def test_nonfinite_checkpoint_is_the_state_before_the_failing_iteration(synthetic_cache, tmp_path, monkeypatch):

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import lightning as L
+
 #: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
     "experiment=synthetic",
@@ -66,3 +68,14 @@ def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.Compl
 def error_lines(stderr: str) -> list[str]:
     """stderr without Lightning's start-up notes (``INFO: GPU available...``)."""
     return [line for line in stderr.splitlines() if line.strip() and not line.startswith("INFO: ")]
+
+
+class StateBefore(L.Callback):
+    """Records the module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
+
+    def __init__(self, step: int) -> None:
+        self.step, self.state = step, None
+
+    def on_train_batch_start(self, trainer, pl_module, *args):
+        if trainer.global_step == self.step:
+            self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
