@@ -26,9 +26,10 @@ random weights unless ``--vgg`` names torchvision's file (the time is the same).
 ``--precision`` lists Lightning precisions to time side by side, one row per model, step and precision:
 ``32-true`` (the default) or ``bf16-mixed`` (the step's forward under ``torch.autocast`` in bfloat16, as Lightning's
 ``trainer.precision=bf16-mixed`` runs it; the renderer stays in float32). ``--compile`` does the same for
-``model.compile`` (``none``: eager; a mode: the networks compiled by :func:`unicorn.model.compile.compile_networks`,
-compiled during the warm-up steps; their encoder and generator times are part of ``other``, and with compiled rows
-every row runs its backward in one pass: the totals are the figures to compare).
+``model.compile`` (``none``: eager; a mode: the networks and the reconstruction loss compiled as ``unicorn-train``
+compiles them (:func:`unicorn.model.compile.compile_modules`), during the warm-up steps; their encoder, generator and
+perceptual times are part of ``other``, and with compiled rows every row runs its backward in one pass: the totals
+are the figures to compare).
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
@@ -63,7 +64,7 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.hostsync import sync_free
 from unicorn.model import Unicorn
-from unicorn.model.compile import COMPILE_MODES, compile_networks
+from unicorn.model.compile import COMPILE_MODES, compile_modules, networks
 from unicorn.model.config import CODE_BRANCHES
 from unicorn.objectives import Objectives
 from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
@@ -192,10 +193,10 @@ def time_steps(
     compiled: bool = False,
     split: bool = True,
 ) -> dict:
-    """Median timings of each step kind. ``compiled``: the networks are compiled, so they are timed as part of
-    ``other`` (a timing hook inside a compiled network would break its graph). ``split``: the neighbour term is
-    backpropagated first, with the graph kept (``bwd-nbr``); without it, or compiled (a compiled backward runs once
-    per graph), one backward (``bwd-nbr`` NaN)."""
+    """Median timings of each step kind. ``compiled``: the networks and the reconstruction loss are compiled, so
+    they are timed as part of ``other`` (a timing hook inside a compiled module would break its graph).
+    ``split``: the neighbour term is backpropagated first, with the graph kept (``bwd-nbr``); without it, or
+    compiled (a compiled backward runs once per graph), one backward (``bwd-nbr`` NaN)."""
 
     def sync() -> None:
         if device == "cuda":
@@ -209,7 +210,8 @@ def time_steps(
             timer.attach("generators", head)
     timer.attach("renderer", model.renderer)
     shape_step = objectives.steps["3d"]
-    timer.attach("perceptual", shape_step.reconstruction.perceptual)
+    if not compiled:
+        timer.attach("perceptual", shape_step.reconstruction.perceptual)
     timer.attach("regularisers", shape_step.regularizer)
 
     # the neighbour loss: its whole forward is one group; remember its output to backpropagate it separately
@@ -347,7 +349,8 @@ def main() -> None:
             # a fresh model per row group, from the same seed: every row times the same weights and memory
             torch.manual_seed(0)
             model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
-            if mode != "none" and not compile_networks(model, mode, args.device):
+            compiled = [m for _, m in (*networks(model), *objectives.networks())]  # as unicorn.lit.run.fit does
+            if mode != "none" and not compile_modules(compiled, mode, args.device):
                 continue  # the warning says why
             images = torch.rand(batch, 3, image_size, image_size, device=args.device)
             # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare

@@ -1,4 +1,5 @@
-"""torch.compile of the networks: the same predictions and parameter names, or eager networks and a warning."""
+"""torch.compile of the networks and of other modules (the reconstruction loss): the same results and parameter names,
+or eager modules and a warning."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import torch
 from tests.support.model import tiny_config
 from unicorn.model import Unicorn
 from unicorn.model import compile as compile_module
-from unicorn.model.compile import CompileWarning, compile_networks, networks
+from unicorn.model.compile import CompileWarning, compile_modules, compile_networks, networks
+from unicorn.objectives import Objectives
 
 
 def test_the_networks_are_every_learned_module():
@@ -44,3 +46,22 @@ def test_without_a_working_compiler_the_networks_stay_eager_and_a_warning_says_w
     assert compiled == []
     with pytest.raises(ValueError, match="compile mode must be one of"):
         compile_networks(model, "fastest")
+
+
+def test_a_compiled_reconstruction_loss_gives_the_eager_terms_and_gradients():
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config())  # the structural perceptual term: multi-scale SSIM and Sobel gradients
+    loss = Objectives.from_config(model.config["loss"], model).steps["pose"].reconstruction
+    target = torch.rand(4, 3, 32, 32)
+    rec = torch.rand(4, 3, 32, 32, requires_grad=True)
+    expected = loss(rec, target)
+    (expected_grad,) = torch.autograd.grad(sum(t.sum() for t in expected.values()), rec)
+    if not compile_modules([loss]):
+        pytest.skip("torch.compile cannot run on this machine (the warning says why)")
+    got = loss(rec, target)
+    (grad,) = torch.autograd.grad(sum(t.sum() for t in got.values()), rec)
+    assert sorted(got) == sorted(expected) == ["perceptual", "rgb"]
+    for name in got:
+        torch.testing.assert_close(got[name], expected[name], atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(grad, expected_grad, atol=1e-6, rtol=1e-4)
+

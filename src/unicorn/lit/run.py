@@ -253,10 +253,15 @@ def fit(run: Run) -> dict[str, float]:
     """
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:
-        from unicorn.model.compile import compile_networks
+        from unicorn.model.compile import compile_modules, networks
 
-        if compile_networks(run.module.model, typed.model.compile, trainer.strategy.root_device):
-            log.info("the networks are compiled (torch.compile, mode %s) at their first call", typed.model.compile)
+        named = [*networks(run.module.model), *run.module.objectives.networks()]
+        if compile_modules([module for _, module in named], typed.model.compile, trainer.strategy.root_device):
+            log.info(
+                "compiled at their first call (torch.compile, mode %s): %s",
+                typed.model.compile,
+                ", ".join(name for name, _ in named),
+            )
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)

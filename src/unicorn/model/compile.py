@@ -1,24 +1,24 @@
 """``torch.compile`` for the model's networks, with a fallback that says why.
 
 The networks (the encoders, the shape field, the texture and background generators, the pose and scale heads) are
-compiled in place (``nn.Module.compile``: their parameter names, hence checkpoints, stay the same); the renderer and
-the losses run eagerly (the rasterizer's packed fragments have data-dependent sizes). Where ``torch.compile`` cannot
-run (no C++ compiler for the CPU backend, no Triton for CUDA, an unsupported platform), :func:`compile_networks`
-warns once with the reason (:class:`CompileWarning`) and leaves the networks eager: the results are the same, only
-slower or faster.
+compiled in place (``nn.Module.compile``: their parameter names, hence checkpoints, stay the same); so can be other
+modules a trainer names (:func:`compile_modules`: the reconstruction loss, ``Objectives.networks``). The renderer runs
+eagerly (the rasterizer's packed fragments have data-dependent sizes). Where ``torch.compile`` cannot run (no C++
+compiler for the CPU backend, no Triton for CUDA, an unsupported platform), :func:`compile_modules` warns once with
+the reason (:class:`CompileWarning`) and leaves the modules eager: the results are the same, only slower or faster.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 import torch
 from torch import nn
 
 from unicorn.model.autoencoder import Unicorn
 
-__all__ = ["COMPILE_MODES", "CompileWarning", "compile_networks", "compile_unavailable", "networks"]
+__all__ = ["COMPILE_MODES", "CompileWarning", "compile_modules", "compile_networks", "compile_unavailable", "networks"]
 
 #: ``torch.compile`` modes (``mode=``); ``reduce-overhead`` captures CUDA graphs of each compiled network
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
@@ -55,12 +55,34 @@ def compile_unavailable(device: torch.device | str) -> str | None:
     return None
 
 
-def compile_networks(model: Unicorn, mode: str = "default", device: torch.device | str | None = None) -> bool:
-    """Compile the model's networks in place (:func:`networks`, ``nn.Module.compile(mode=mode)``).
+def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device: torch.device | str = "cpu") -> bool:
+    """Compile modules in place (``nn.Module.compile(mode=mode)``; each compiles at its first call).
 
-    Compilation itself happens at each network's first call. Where ``torch.compile`` cannot run on ``device`` (the
-    model's by default; :func:`compile_unavailable`), nothing is compiled and a :class:`CompileWarning` names the
-    reason.
+    Where ``torch.compile`` cannot run on ``device`` (:func:`compile_unavailable`), nothing is compiled and one
+    :class:`CompileWarning` names the reason.
+
+    Returns:
+        Whether the modules were compiled.
+
+    Raises:
+        ValueError: ``mode`` is not one of :data:`COMPILE_MODES`.
+    """
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
+    reason = compile_unavailable(device)
+    if reason is not None:
+        warnings.warn(
+            f"torch.compile cannot run on {device} ({reason}): the networks run eagerly", CompileWarning, stacklevel=2
+        )
+        return False
+    for module in modules:
+        module.compile(mode=mode)
+    return True
+
+
+def compile_networks(model: Unicorn, mode: str = "default", device: torch.device | str | None = None) -> bool:
+    """Compile the model's networks in place (:func:`networks`; :func:`compile_modules`), on ``device`` (the
+    model's by default).
 
     Returns:
         Whether the networks were compiled.
@@ -68,15 +90,5 @@ def compile_networks(model: Unicorn, mode: str = "default", device: torch.device
     Raises:
         ValueError: ``mode`` is not one of :data:`COMPILE_MODES`.
     """
-    if mode not in COMPILE_MODES:
-        raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
     device = model.template.verts.device if device is None else device
-    reason = compile_unavailable(device)
-    if reason is not None:
-        warnings.warn(
-            f"torch.compile cannot run on {device} ({reason}): the networks run eagerly", CompileWarning, stacklevel=2
-        )
-        return False
-    for _, module in networks(model):
-        module.compile(mode=mode)
-    return True
+    return compile_modules([module for _, module in networks(model)], mode, device)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import torch
@@ -59,6 +59,12 @@ class Objectives(nn.Module):
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])
         shape = ShapeStep(reconstruction, regularizer, neighbors, objective)
         return cls(pose, shape)
+
+    def networks(self) -> Iterator[tuple[str, nn.Module]]:
+        """The loss modules worth compiling with the model's networks (``model.compile``): the reconstruction loss
+        that every step and the neighbour term share (the pixel MSE and the perceptual network; the renderer and the
+        regularisers stay eager)."""
+        yield "reconstruction", self.steps["pose"].reconstruction
 
     @property
     def memory(self) -> NeighborMemory:
