@@ -73,9 +73,12 @@ def train(session: nox.Session) -> None:
 
 @nox.session(python=PYTHON)
 def lint(session: nox.Session) -> None:
-    """ruff on the package, tests, benchmarks, experiments, the docs site's extension and this file."""
+    """ruff's rules and its formatting on the package, tests, benchmarks, experiments, the docs site's extension and
+    this file."""
     session.install("ruff>=0.5")
-    session.run("ruff", "check", "src", "tests", "benchmarks", "experiments", "docs/_ext", "noxfile.py")
+    paths = ("src", "tests", "benchmarks", "experiments", "docs/_ext", "noxfile.py")
+    session.run("ruff", "check", *paths)
+    session.run("ruff", "format", "--check", *paths)
 
 
 @nox.session(python=PYTHON)

@@ -64,4 +64,3 @@ def test_a_compiled_reconstruction_loss_gives_the_eager_terms_and_gradients():
     for name in got:
         torch.testing.assert_close(got[name], expected[name], atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(grad, expected_grad, atol=1e-6, rtol=1e-4)
-

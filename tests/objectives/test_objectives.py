@@ -15,4 +15,3 @@ def test_the_objectives_compile_the_reconstruction_loss_every_step_shares():
     shared = named["reconstruction"]
     assert objectives.steps["3d"].reconstruction is shared
     assert objectives.steps["3d"].neighbors.reconstruction is shared
-

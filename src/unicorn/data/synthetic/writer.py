@@ -59,6 +59,8 @@ __all__ = [
 #: bump when the output changes: it is part of the cache folder's name and of ``synthetic.json``, so that a
 #: dataset of an older generator is never reused (2: every category has a front, wider instance variation)
 GENERATOR_VERSION = 2
+
+
 def _write_model(
     folder: Path,
     obj: ProceduralObject,
