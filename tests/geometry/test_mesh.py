@@ -29,6 +29,21 @@ def test_ellipsoid_axes():
     assert torch.allclose(v.abs().amax(0), torch.tensor([0.6, 0.42, 0.42]), atol=1e-3)
 
 
+def test_ellipsoid_bottom_squashes_the_lower_half_only():
+    full, faces = ellipsoid(3, scale=0.6)
+    dome, dome_faces = ellipsoid(3, scale=0.6, bottom=0.25)
+    assert torch.equal(faces, dome_faces)
+    upper = full[:, 1] >= 0
+    assert torch.equal(dome[upper], full[upper])
+    assert torch.allclose(dome[~upper], full[~upper] * torch.tensor([1.0, 0.25, 1.0]))
+    assert dome[:, 1].min() == pytest.approx(-0.42 * 0.25, abs=1e-3) and dome[:, 1].max() == pytest.approx(
+        0.42, abs=1e-3
+    )
+    # no longer up-down symmetric: the flipped dome is not the dome
+    flipped = dome * torch.tensor([1.0, -1.0, 1.0])
+    assert torch.cdist(flipped, dome).amin(1).max() > 0.1
+
+
 def test_reference_uvs_straddle_the_seam_and_ours_do_not():
     v, f = ellipsoid(3, scale=0.6)
     ref = spherical_vertex_uvs(v)[f][..., 0]

@@ -48,6 +48,7 @@ def test_small_checkpoint_maps_every_tensor():
     assert torch.equal(model.pose.rot_regressors[2][4].weight, state["rot_regressors.2.4.weight"])
     cfg = model.config
     assert cfg["template"]["uv_mode"] == "reference" and cfg["renderer"]["composite"] == "reference"
+    assert cfg["template"]["bottom"] == 1.0  # the reference's whole ellipsoid, whatever the presets' template
     assert model.active_dims() == {"shape": 32, "texture": 128, "background": 128}  # no epoch: final stage
     assert cfg["image_size"] == 32 and cfg["texture"]["size"] == 16
 

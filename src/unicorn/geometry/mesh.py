@@ -37,15 +37,18 @@ def icosphere(level: int = 3, dtype: torch.dtype = torch.float32) -> tuple[torch
 
 
 def ellipsoid(
-    level: int = 3, axes: tuple[float, float, float] = (1.0, 0.7, 0.7), scale: float = 1.0
+    level: int = 3, axes: tuple[float, float, float] = (1.0, 0.7, 0.7), scale: float = 1.0, bottom: float = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Icosphere stretched by ``scale * axes`` (UNICORN's template: long axis X).
+    """Icosphere stretched by ``scale * axes`` (UNICORN's template: long axis X), its lower half (y < 0) squashed
+    to ``bottom`` times its height (1: an ellipsoid; below 1: a dome on a flatter base, not up-down symmetric).
 
     Returns:
         verts: (V, 3) and faces: (F, 3) long.
     """
     verts, faces = icosphere(level)
-    return verts * torch.tensor(axes, dtype=verts.dtype) * scale, faces
+    verts = verts * torch.tensor(axes, dtype=verts.dtype) * scale
+    verts[:, 1] = torch.where(verts[:, 1] < 0, verts[:, 1] * bottom, verts[:, 1])
+    return verts, faces
 
 
 def spherical_vertex_uvs(verts: torch.Tensor) -> torch.Tensor:

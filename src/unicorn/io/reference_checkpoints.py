@@ -232,6 +232,7 @@ def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> Non
     init = str(mesh.get("init", "ellipse"))
     cfg["template"]["axes"] = (1.0, 0.7, 0.7) if init.startswith("ellipse") else (1.0, 1.0, 1.0)
     cfg["template"]["level"] = 4 if "hr" in init else 3
+    cfg["template"]["bottom"] = 1.0  # the reference's templates are whole ellipsoids and spheres
     cfg["template"]["uv_mode"] = "reference"
 
 

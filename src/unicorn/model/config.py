@@ -103,6 +103,7 @@ class TemplateConfig:
     axes: tuple[float, float, float] = (1.0, 0.7, 0.7)
     scale: float = ranged(0.6, 1e-6)  # 0.6 real images, 0.4 ShapeNet
     uv_mode: str = "seamless"  # seamless | reference (see unicorn.model.template)
+    bottom: float = ranged(1.0, 1e-3, 1)  # the lower half's height as a share of the upper's (1: an ellipsoid)
 
 
 @dataclass

@@ -18,7 +18,8 @@ UV_MODES = ("seamless", "reference")
 
 
 class TemplateMesh(nn.Module):
-    """Icosphere of the given level scaled by ``scale * axes`` (UNICORN: axes (1, 0.7), scale 0.6 / 0.4).
+    """Icosphere of the given level scaled by ``scale * axes`` (UNICORN: axes (1, 0.7), scale 0.6 / 0.4), its lower half
+    squashed by ``bottom``.
 
     All tensors are derived from the configuration, so they are non-persistent buffers (they follow
     ``.to(device)`` but stay out of the state dict).
@@ -28,6 +29,8 @@ class TemplateMesh(nn.Module):
         axes: anisotropic stretch, long axis X.
         scale: global scale (0.6 for real-image datasets, 0.4 for ShapeNet).
         uv_mode: one of :data:`UV_MODES`.
+        bottom: the lower half's height as a share of the upper half's (1: the paper's ellipsoid; below 1: a dome
+            on a flatter base, which is not up-down symmetric).
 
     Attributes:
         verts: (V, 3) template vertices.
@@ -47,6 +50,7 @@ class TemplateMesh(nn.Module):
         axes: Sequence[float] = (1.0, 0.7, 0.7),
         scale: float = 0.6,
         uv_mode: str = "seamless",
+        bottom: float = 1.0,
     ) -> None:
         super().__init__()
         if uv_mode not in UV_MODES:
@@ -59,7 +63,8 @@ class TemplateMesh(nn.Module):
             float(scale),
             uv_mode,
         )
-        verts, faces = ellipsoid(self.level, self.axes, self.scale)
+        self.bottom = float(bottom)
+        verts, faces = ellipsoid(self.level, self.axes, self.scale, self.bottom)
         vertex_uvs = spherical_vertex_uvs(verts)
         face_uvs = spherical_face_uvs(verts, faces) if uv_mode == "seamless" else vertex_uvs[faces]
         self.register_buffer("verts", verts, persistent=False)
@@ -87,6 +92,6 @@ class TemplateMesh(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"level={self.level}, V={self.num_verts}, F={self.num_faces}, axes={self.axes}, "
-            f"scale={self.scale}, "
+            f"scale={self.scale}, bottom={self.bottom}, "
             f"uv_mode={self.uv_mode!r}"
         )
