@@ -227,7 +227,8 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: fl
     """
     C = x.shape[1]
     moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    taps = _gaussian_taps(window_size)
+    # torch.compile traces the uncached function (dynamo warns on a functools.cache it cannot see into)
+    taps = _gaussian_taps.__wrapped__(window_size) if torch.compiler.is_compiling() else _gaussian_taps(window_size)
     f = separable_filter(moments, taps, taps, "reflect")
     mu_x, mu_y, xx, yy, xy = f.split(C, dim=1)
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
