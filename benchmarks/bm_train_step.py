@@ -64,9 +64,9 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.hostsync import sync_free
 from unicorn.model import Unicorn
-from unicorn.model.compile import COMPILE_MODES, compile_modules, networks
+from unicorn.model.compile import COMPILE_MODES, compile_modules
 from unicorn.model.config import CODE_BRANCHES
-from unicorn.objectives import Objectives
+from unicorn.objectives import Objectives, training_networks
 from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
@@ -349,7 +349,7 @@ def main() -> None:
             # a fresh model per row group, from the same seed: every row times the same weights and memory
             torch.manual_seed(0)
             model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
-            compiled = [m for _, m in (*networks(model), *objectives.networks())]  # as unicorn.lit.run.fit does
+            compiled = [module for _, module in training_networks(model, objectives)]
             if mode != "none" and not compile_modules(compiled, mode, args.device):
                 continue  # the warning says why
             images = torch.rand(batch, 3, image_size, image_size, device=args.device)

@@ -253,9 +253,10 @@ def fit(run: Run) -> dict[str, float]:
     """
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:
-        from unicorn.model.compile import compile_modules, networks
+        from unicorn.model.compile import compile_modules
+        from unicorn.objectives import training_networks
 
-        named = [*networks(run.module.model), *run.module.objectives.networks()]
+        named = training_networks(run.module.model, run.module.objectives)
         if compile_modules([module for _, module in named], typed.model.compile, trainer.strategy.root_device):
             log.info(
                 "compiled at their first call (torch.compile, mode %s): %s",

@@ -34,7 +34,7 @@ from unicorn.objectives.losses import (
     uniform_pose_prior,
 )
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMatch, NeighborMemory
-from unicorn.objectives.objectives import Objectives
+from unicorn.objectives.objectives import Objectives, training_networks
 from unicorn.objectives.perceptual import (
     StructuralLoss,
     VGGPerceptualLoss,
@@ -94,5 +94,6 @@ __all__ = [
     "mse_per_sample",
     "register_perceptual",
     "register_pose_objective",
+    "training_networks",
     "uniform_pose_prior",
 ]

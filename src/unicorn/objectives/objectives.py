@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from unicorn.model import Unicorn
+from unicorn.model.compile import networks
 from unicorn.objectives.loss_factory import build_losses
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
 from unicorn.objectives.pose_objectives import build_pose_objective
@@ -17,7 +18,7 @@ from unicorn.objectives.shape_step import ShapeStep
 from unicorn.objectives.step_losses import StepLosses
 from unicorn.objectives.viewpoint import build_viewpoint_supervision
 
-__all__ = ["Objectives"]
+__all__ = ["Objectives", "training_networks"]
 
 
 class Objectives(nn.Module):
@@ -91,3 +92,9 @@ class Objectives(nn.Module):
     def step_3d(self, model: Unicorn, images: torch.Tensor, average_texture: bool = False) -> StepLosses:
         """The 3D step's losses (:class:`ShapeStep`)."""
         return self("3d", model, images, average_texture)
+
+
+def training_networks(model: Unicorn, objectives: Objectives) -> list[tuple[str, nn.Module]]:
+    """What ``model.compile`` compiles, by name: the model's networks (:func:`unicorn.model.compile.networks`), then
+    the objectives' (:meth:`Objectives.networks`)."""
+    return [*networks(model), *objectives.networks()]
