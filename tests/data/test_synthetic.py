@@ -15,7 +15,8 @@ from PIL import Image
 from unicorn.cli import data as cli
 from unicorn.data.synthetic import writer
 from unicorn.data.synthetic.primitives import Texture
-from unicorn.data.synthetic.render import camera_rays, render_object
+from unicorn.data.images import DatasetError
+from unicorn.data.synthetic.render import BACKGROUND_KINDS, camera_rays, random_background, render_object
 from unicorn.data.synthetic.sampling import sample_surface_points, sample_views, views_to_cameras
 from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, build_object
 from unicorn.data.synthetic.writer import ensure_synthetic_dataset, generate_synthetic_dataset, synthetic_dataset_path
@@ -168,27 +169,62 @@ def test_generation_is_deterministic(tmp_path: Path) -> None:
     assert sorted(sum(lists, [])) == [f"mug_5_{i:05d}" for i in range(3)]
 
 
+def outside(image: Path) -> np.ndarray:
+    """The pixels (N, 3) of a generated view at least 2 px from its mask, in [0, 255]."""
+    near = np.pad(np.asarray(Image.open(image.parent.parent / "mask" / image.name)) > 0, 2)
+    near = np.stack([np.roll(near, (dy, dx), (0, 1)) for dy in range(-2, 3) for dx in range(-2, 3)]).any(0)
+    return np.asarray(Image.open(image))[~near[2:-2, 2:-2]]
+
+
 def test_backgrounds_follow_the_mode_unless_given(tmp_path: Path) -> None:
     options = {**TINY, "n_models": 3, "seed": 1}
 
-    def outside(root: Path) -> np.ndarray:  # pixels at least 2 px from every mask (N, 3), in [0, 255]
-        pixels = []
-        for image in sorted(root.rglob("image/*.png")):
-            near = np.pad(np.asarray(Image.open(image.parent.parent / "mask" / image.name)) > 0, 2)
-            near = np.stack([np.roll(near, (dy, dx), (0, 1)) for dy in range(-2, 3) for dx in range(-2, 3)]).any(0)
-            pixels.append(np.asarray(Image.open(image))[~near[2:-2, 2:-2]])
-        return np.concatenate(pixels)
+    def outside_all(root: Path) -> np.ndarray:
+        return np.concatenate([outside(image) for image in sorted(root.rglob("image/*.png"))])
 
     wild = generate_synthetic_dataset(tmp_path / "wild", "car", "wild", **options)
     white = generate_synthetic_dataset(tmp_path / "white", "car", "wild", backgrounds=False, **options)
     nmr_bg = generate_synthetic_dataset(tmp_path / "nmr", "car", "nmr", backgrounds=True, **options)
-    assert (outside(wild) < 250).mean() > 0.5 and (outside(nmr_bg) < 250).mean() > 0.5
-    assert (outside(white) >= 250).all()
+    assert (outside_all(wild) < 250).mean() > 0.5 and (outside_all(nmr_bg) < 250).mean() > 0.5
+    assert (outside_all(white) >= 250).all()
     # the same views: the cameras depend on the mode only
     for cams in sorted(wild.rglob("cameras.npz")):
         other = np.load(white / cams.relative_to(wild))
         assert all(np.array_equal(v, other[k]) for k, v in np.load(cams).items())
     assert json.loads((white / "synthetic.json").read_text())["backgrounds"] is False
+
+
+@pytest.mark.parametrize("kind", BACKGROUND_KINDS)
+def test_random_background_draws_only_the_kinds_asked_for(kind: str) -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(8):
+        bg = random_background(rng, 24, (kind,))
+        assert bg.shape == (24, 24, 3) and bg.min() >= 0.0 and bg.max() <= 1.0
+        colours = np.unique(bg.reshape(-1, 3).round(6), axis=0)
+        if kind == "solid":
+            assert len(colours) == 1
+        elif kind == "checker":
+            assert len(colours) == 2
+        elif kind == "gradient":  # many colours, all on the line through two of them
+            singular = np.linalg.svd(colours - colours.mean(0), compute_uv=False)
+            assert len(colours) > 2 and singular[1] < 1e-4 * singular[0]
+        else:  # smooth noise: many colours, neighbouring pixels close
+            assert len(colours) > 100
+            assert np.abs(np.diff(bg, axis=0)).max() < 0.5 and np.abs(np.diff(bg, axis=1)).max() < 0.5
+
+
+def test_background_kinds_are_checked_and_recorded(tmp_path: Path) -> None:
+    options = {**TINY, "n_models": 3, "seed": 1}
+    solid = generate_synthetic_dataset(tmp_path / "solid", "car", "wild", background_kinds=["solid"], **options)
+    for image in sorted(solid.rglob("image/*.png")):
+        behind = outside(image).astype(int)
+        assert len(behind) and (np.abs(behind - behind[0]) <= 1).all()  # one colour behind the object
+    assert json.loads((solid / "synthetic.json").read_text())["background_kinds"] == ["solid"]
+    with pytest.raises(DatasetError, match="some of .*'stripes'"):
+        generate_synthetic_dataset(tmp_path / "bad", "car", "wild", background_kinds=["stripes"], **options)
+    with pytest.raises(DatasetError, match="but they are white"):
+        generate_synthetic_dataset(tmp_path / "white", "car", "nmr", background_kinds=["noise"], **options)
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "white").exists()
 
 
 def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -36,6 +36,7 @@ def _synth(args: argparse.Namespace) -> int:
         "supersample": args.supersample,
         "n_points": args.points,
         "backgrounds": {"random": True, "white": False}.get(args.backgrounds),
+        "background_kinds": None if args.background_kinds is None else args.background_kinds.split(","),
         "progress": not args.quiet,
     }
     if args.out is None:
@@ -74,6 +75,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     synth.add_argument("--mode", choices=["nmr", "wild"], default="nmr")
     synth.add_argument(
         "--backgrounds", choices=["random", "white"], default=None, help="default: the mode's (wild random, nmr white)"
+    )
+    synth.add_argument(
+        "--background-kinds",
+        default=None,
+        help="random backgrounds of these kinds only, comma-separated: solid, gradient, checker, noise (default: all)",
     )
     synth.add_argument(
         "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"

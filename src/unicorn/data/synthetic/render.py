@@ -10,13 +10,15 @@ masks.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import open3d as o3d
 
+from unicorn.data.images import DatasetError
 from unicorn.data.synthetic.shapes import ProceduralObject
 
-__all__ = ["camera_rays", "random_background", "render_object"]
+__all__ = ["BACKGROUND_KINDS", "camera_rays", "check_background_kinds", "random_background", "render_object"]
 
 # world-space key light (from above, in front and to the side) and its weight; the rest is ambient + headlight
 _KEY_LIGHT = np.array([0.4, 1.0, 0.6]) / np.linalg.norm([0.4, 1.0, 0.6])
@@ -48,9 +50,27 @@ def camera_rays(
     return np.broadcast_to(origin, d_world.shape), d_world
 
 
-def random_background(rng: np.random.Generator, size: int) -> np.ndarray:
-    """A random (size, size, 3) background in [0, 1]: solid, gradient, checker or smooth noise."""
-    kind = rng.choice(["solid", "gradient", "checker", "noise"])
+#: the kinds of random background, in the order :func:`random_background` draws from
+BACKGROUND_KINDS = ("solid", "gradient", "checker", "noise")
+
+
+def check_background_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
+    """``kinds`` as a tuple, once checked to be some of :data:`BACKGROUND_KINDS`.
+
+    Raises:
+        DatasetError: no kinds, or one that is not a kind of background (the message lists them).
+    """
+    kinds = (kinds,) if isinstance(kinds, str) else tuple(kinds)
+    if not kinds or not set(kinds) <= set(BACKGROUND_KINDS):
+        raise DatasetError(f"background kinds must be some of {list(BACKGROUND_KINDS)}, got {list(kinds)}")
+    return kinds
+
+
+def random_background(rng: np.random.Generator, size: int, kinds: Sequence[str] = BACKGROUND_KINDS) -> np.ndarray:
+    """A random (size, size, 3) background in [0, 1] of one of ``kinds`` (:data:`BACKGROUND_KINDS`, drawn
+    uniformly): one colour, a linear gradient between two, a checkerboard of two, or smooth colour noise (a
+    coarse grid of random colours, 3 to 7 cells a side, interpolated bilinearly)."""
+    kind = rng.choice(check_background_kinds(kinds))
     c0, c1 = rng.uniform(0.05, 0.95, size=(2, 3))
     if kind == "solid":
         return np.broadcast_to(c0, (size, size, 3)).copy()

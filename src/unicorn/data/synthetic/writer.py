@@ -30,7 +30,12 @@ from tqdm.auto import tqdm
 
 from unicorn.data.images import DatasetError, check_image_size
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
-from unicorn.data.synthetic.render import random_background, render_object
+from unicorn.data.synthetic.render import (
+    BACKGROUND_KINDS,
+    check_background_kinds,
+    random_background,
+    render_object,
+)
 from unicorn.data.synthetic.sampling import (
     NMR_FOV,
     Mode,
@@ -70,13 +75,15 @@ def _write_model(
     n_points: int,
     rng_bg: np.random.Generator,
     rng_points: np.random.Generator,
-    random_backgrounds: bool,
+    background_kinds: Sequence[str] | None,
 ) -> None:
+    """Write one model's views, masks, cameras, points and mesh; ``background_kinds``: the kinds of random
+    background to draw from, or None for white."""
     R, T = views_to_cameras(views)
     V = len(R)
     backgrounds = None
-    if random_backgrounds:
-        backgrounds = np.stack([random_background(rng_bg, image_size) for _ in range(V)])
+    if background_kinds is not None:
+        backgrounds = np.stack([random_background(rng_bg, image_size, background_kinds) for _ in range(V)])
     images, coverage = render_object(
         obj, R, T, image_size=image_size, fov=NMR_FOV, supersample=supersample, backgrounds=backgrounds
     )
@@ -143,6 +150,7 @@ def generate_synthetic_dataset(
     supersample: int = 3,
     n_points: int = 20000,
     backgrounds: bool | None = None,
+    background_kinds: Sequence[str] | None = None,
     progress: bool = True,
 ) -> Path:
     """Generate the synthetic benchmark into ``out`` (created; existing model folders are an error).
@@ -160,6 +168,9 @@ def generate_synthetic_dataset(
         backgrounds: random backgrounds (solid, gradient, checker, noise) behind the object, or white; None: the
             mode's (``wild`` random, ``nmr`` white). The other choice separates the viewpoints from the
             backgrounds in a control run.
+        background_kinds: the kinds of random background drawn from (some of
+            :data:`~unicorn.data.synthetic.render.BACKGROUND_KINDS`: ``solid``, ``gradient``, ``checker``,
+            ``noise``); None: all four. Only with random backgrounds.
         progress: show a progress bar.
 
     Returns:
@@ -173,6 +184,7 @@ def generate_synthetic_dataset(
     split_sizes(n_models)  # refuses too few models before anything is written
     check_generation_sizes(image_size, supersample, n_points)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
+    kinds = _background_kinds(background_kinds, random_bg)
     meta_path = out / "metadata.yaml"
     metadata = _read_metadata(meta_path)  # before anything is written: a folder of something else is refused
     out.mkdir(parents=True, exist_ok=True)
@@ -187,7 +199,7 @@ def generate_synthetic_dataset(
             obj = build_object(cat, streams[0])
             obj.params.update(category=cat, seed=seed, index=i)
             views = sample_views(mode, n_views, streams[1])
-            _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], random_bg)
+            _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], kinds)
             bar.update()
         for split, idx in split_indices(seed, cat, n_models).items():
             (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
@@ -205,10 +217,25 @@ def generate_synthetic_dataset(
         "supersample": supersample,
         "n_points": n_points,
         "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
+        "background_kinds": None if background_kinds is None else list(kinds),  # as given (None: all), likewise
         "fov": NMR_FOV,
     }
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
+
+
+def _background_kinds(kinds: Sequence[str] | None, random_backgrounds: bool) -> tuple[str, ...] | None:
+    """The kinds of random background to draw from (all of them for None), or None for white backgrounds.
+
+    Raises:
+        DatasetError: unknown or no kinds, or kinds asked for with white backgrounds.
+    """
+    if kinds is None:
+        return BACKGROUND_KINDS if random_backgrounds else None
+    kinds = check_background_kinds(kinds)
+    if not random_backgrounds:
+        raise DatasetError(f"background_kinds {list(kinds)} asks for random backgrounds, but they are white")
+    return kinds
 
 
 def _read_metadata(path: Path) -> dict[str, dict]:
@@ -316,7 +343,7 @@ def ensure_synthetic_dataset(
     defaults = {
         name: param.default
         for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
-        if name in ("image_size", "n_views", "supersample", "n_points", "backgrounds")
+        if name in ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds")
     }
     expected = {"categories": category, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **kwargs}
     if (final / "synthetic.json").exists():
