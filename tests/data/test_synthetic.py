@@ -13,9 +13,9 @@ import yaml
 from PIL import Image
 
 from unicorn.cli import data as cli
+from unicorn.data.images import DatasetError
 from unicorn.data.synthetic import writer
 from unicorn.data.synthetic.primitives import Texture
-from unicorn.data.images import DatasetError
 from unicorn.data.synthetic.render import BACKGROUND_KINDS, camera_rays, random_background, render_object
 from unicorn.data.synthetic.sampling import sample_surface_points, sample_views, views_to_cameras
 from unicorn.data.synthetic.shapes import CATEGORIES, Part, ProceduralObject, build_object
