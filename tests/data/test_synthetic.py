@@ -227,6 +227,47 @@ def test_background_kinds_are_checked_and_recorded(tmp_path: Path) -> None:
     assert not (tmp_path / "bad").exists() and not (tmp_path / "white").exists()
 
 
+def test_wild_roll_and_shift_change_only_their_draws() -> None:
+    default = sample_views("wild", 64, np.random.default_rng(3))
+    flat = sample_views("wild", 64, np.random.default_rng(3), roll=0, shift=0)
+    narrow = sample_views("wild", 64, np.random.default_rng(3), roll=5.0, shift=0.05)
+    for key in ("azim", "elev", "dist"):
+        assert np.array_equal(default[key], flat[key]) and np.array_equal(default[key], narrow[key])
+    assert not flat["roll"].any() and not flat["tx"].any() and not flat["ty"].any()
+    assert np.abs(default["roll"]).max() > 10  # the default's +-15 degrees
+    # a uniform draw scaled: the same views, turned and shifted a third and a half as far
+    assert np.allclose(narrow["roll"], default["roll"] / 3) and np.allclose(narrow["tx"], default["tx"] / 2)
+
+
+def _project(cameras: np.lib.npyio.NpzFile, view: int, point: list[float]) -> np.ndarray:
+    """A DVR-frame point projected through a view's stored camera, (2,) in normalised image units."""
+    q = cameras[f"camera_mat_{view}"] @ cameras[f"world_mat_{view}"] @ np.array([*point, 1.0])
+    return q[:2] / q[2]
+
+
+def test_upright_centred_wild_views(tmp_path: Path) -> None:
+    options = {**TINY, "n_views": 4}
+    flat = generate_synthetic_dataset(tmp_path / "flat", "car", "wild", roll=0, shift=0, **options)
+    default = generate_synthetic_dataset(tmp_path / "default", "car", "wild", **options)
+    for path in sorted(flat.rglob("cameras.npz")):
+        cams, other = np.load(path), np.load(default / path.relative_to(flat))
+        for view in range(4):
+            # the object's centre in the middle of the image, its vertical axis (DVR y) drawn vertical
+            assert np.allclose(_project(cams, view, [0, 0, 0]), 0, atol=1e-6)
+            assert abs(_project(cams, view, [0, 0.3, 0])[0]) < 1e-6
+            assert not np.allclose(_project(other, view, [0, 0, 0]), 0, atol=1e-3)
+    assert json.loads((flat / "synthetic.json").read_text())["roll"] == 0
+    with pytest.raises(DatasetError, match="roll=5 is for the wild mode"):
+        generate_synthetic_dataset(tmp_path / "nmr", "car", "nmr", roll=5, **options)
+    with pytest.raises(DatasetError, match="shift must be a number in \\[0, 1\\], got -0.1"):
+        generate_synthetic_dataset(tmp_path / "neg", "car", "wild", shift=-0.1, **options)
+    assert not (tmp_path / "nmr").exists() and not (tmp_path / "neg").exists()
+    # a dataset is not reused for other ranges
+    ensure_synthetic_dataset(tmp_path / "cache", "car", "wild", **options, roll=0)
+    with pytest.raises(writer.StaleSyntheticDataset, match="roll=0 \\(asked: None\\)"):
+        ensure_synthetic_dataset(tmp_path / "cache", "car", "wild", **options)
+
+
 def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
     options = {k: v for k, v in TINY.items() if k != "n_models"}
@@ -285,6 +326,18 @@ def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert len(list((out / "90000002").glob("*/image/0001.png"))) == 3
     assert cli.main(["check", "synthetic", "--root", str(out), "--categories", "table"]) == 0
     assert "image: (3, 32, 32) torch.float32" in capsys.readouterr().out
+
+
+def test_cli_synth_view_ranges(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    small = ["--category", "car", "--models", "3", "--views", "2", "--size", "32", "--points", "100", "--quiet"]
+    out = tmp_path / "flat"
+    assert cli.main(["synth", "--mode", "wild", "--roll", "0", "--shift", "0", "--out", str(out), *small]) == 0
+    settings = json.loads((out / "synthetic.json").read_text())
+    assert (settings["roll"], settings["shift"]) == (0, 0)
+    assert all(not np.load(p)["roll"].any() for p in out.rglob("views.npz"))
+    capsys.readouterr()
+    assert cli.main(["synth", "--mode", "nmr", "--roll", "5", "--out", str(tmp_path / "nmr"), *small]) != 0
+    assert "roll=5.0 is for the wild mode" in capsys.readouterr().err
 
 
 def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

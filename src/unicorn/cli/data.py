@@ -37,6 +37,8 @@ def _synth(args: argparse.Namespace) -> int:
         "n_points": args.points,
         "backgrounds": {"random": True, "white": False}.get(args.backgrounds),
         "background_kinds": None if args.background_kinds is None else args.background_kinds.split(","),
+        "roll": args.roll,
+        "shift": args.shift,
         "progress": not args.quiet,
     }
     if args.out is None:
@@ -80,6 +82,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--background-kinds",
         default=None,
         help="random backgrounds of these kinds only, comma-separated: solid, gradient, checker, noise (default: all)",
+    )
+    synth.add_argument("--roll", type=float, default=None, help="wild mode: largest roll in degrees (default 15)")
+    synth.add_argument(
+        "--shift", type=float, default=None, help="wild mode: largest off-centre shift in view units (default 0.1)"
     )
     synth.add_argument(
         "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"

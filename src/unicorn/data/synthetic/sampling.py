@@ -18,10 +18,13 @@ __all__ = [
     "NMR_DISTANCE",
     "NMR_ELEVATION",
     "NMR_FOV",
+    "WILD_ROLL",
+    "WILD_SHIFT",
     "Mode",
     "model_streams",
     "sample_surface_points",
     "sample_views",
+    "check_view_ranges",
     "split_indices",
     "split_sizes",
     "views_to_cameras",
@@ -30,19 +33,29 @@ __all__ = [
 #: the NMR renderings' camera: distance, elevation (degrees) and field of view (degrees)
 NMR_DISTANCE, NMR_ELEVATION, NMR_FOV = 2.732, 30.0, 30.0
 
+#: the wild mode's default largest roll (degrees) and off-centre shift (view units, each of x and y)
+WILD_ROLL, WILD_SHIFT = 15.0, 0.1
+
 Mode = Literal["nmr", "wild"]
 
 
-def sample_views(mode: Mode, n_views: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def sample_views(
+    mode: Mode, n_views: int, rng: np.random.Generator, roll: float | None = None, shift: float | None = None
+) -> dict[str, np.ndarray]:
     """Camera parameters of one model's views.
 
     ``nmr``: azimuth ``360 k / n_views``, elevation 30, no roll, distance 2.732, centred. ``wild``: azimuth
-    U[0, 360), elevation U[-10, 30], roll U[-15, 15], distance 2.732 * U[0.9, 1.1] and an off-centre shift
-    (``tx``, ``ty``) U[-0.1, 0.1] in view units.
+    U[0, 360), elevation U[-10, 30], roll U[-roll, roll], distance 2.732 * U[0.9, 1.1] and an off-centre shift
+    (``tx``, ``ty``) U[-shift, shift] in view units. ``roll`` and ``shift`` (wild only; None: :data:`WILD_ROLL`,
+    :data:`WILD_SHIFT`) change only those draws: every other angle and distance stays the same.
 
     Returns:
         dict of (n_views,) float64 arrays ``azim``, ``elev``, ``roll`` (degrees), ``dist``, ``tx``, ``ty``.
+
+    Raises:
+        DatasetError: an unknown mode, a negative range, or a range given for the ``nmr`` mode.
     """
+    check_view_ranges(mode, roll, shift)
     zeros = np.zeros(n_views)
     if mode == "nmr":
         return {
@@ -53,16 +66,34 @@ def sample_views(mode: Mode, n_views: int, rng: np.random.Generator) -> dict[str
             "tx": zeros,
             "ty": zeros,
         }
-    if mode == "wild":
-        return {
-            "azim": rng.uniform(0, 360, n_views),
-            "elev": rng.uniform(-10, 30, n_views),
-            "roll": rng.uniform(-15, 15, n_views),
-            "dist": NMR_DISTANCE * rng.uniform(0.9, 1.1, n_views),
-            "tx": rng.uniform(-0.1, 0.1, n_views),
-            "ty": rng.uniform(-0.1, 0.1, n_views),
-        }
-    raise DatasetError(f"mode must be 'nmr' or 'wild', got {mode!r}")
+    roll = WILD_ROLL if roll is None else float(roll)
+    shift = WILD_SHIFT if shift is None else float(shift)
+    return {
+        "azim": rng.uniform(0, 360, n_views),
+        "elev": rng.uniform(-10, 30, n_views),
+        "roll": rng.uniform(-roll, roll, n_views),
+        "dist": NMR_DISTANCE * rng.uniform(0.9, 1.1, n_views),
+        "tx": rng.uniform(-shift, shift, n_views),
+        "ty": rng.uniform(-shift, shift, n_views),
+    }
+
+
+def check_view_ranges(mode: str, roll: float | None = None, shift: float | None = None) -> None:
+    """Refuse an unknown mode and view ranges it cannot take: ``roll`` in [0, 180] degrees and ``shift`` in
+    [0, 1] view units, for the ``wild`` mode only (None: the mode's own).
+
+    Raises:
+        DatasetError: the message names the setting.
+    """
+    if mode not in ("nmr", "wild"):
+        raise DatasetError(f"mode must be 'nmr' or 'wild', got {mode!r}")
+    for name, value, top in (("roll", roll, 180.0), ("shift", shift, 1.0)):
+        if value is None:
+            continue
+        if mode == "nmr":
+            raise DatasetError(f"{name}={value!r} is for the wild mode; the nmr mode's views have none")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= top:
+            raise DatasetError(f"{name} must be a number in [0, {top:g}], got {value!r}")
 
 
 def views_to_cameras(views: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

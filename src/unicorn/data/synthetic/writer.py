@@ -39,6 +39,7 @@ from unicorn.data.synthetic.render import (
 from unicorn.data.synthetic.sampling import (
     NMR_FOV,
     Mode,
+    check_view_ranges,
     model_streams,
     sample_surface_points,
     sample_views,
@@ -151,6 +152,8 @@ def generate_synthetic_dataset(
     n_points: int = 20000,
     backgrounds: bool | None = None,
     background_kinds: Sequence[str] | None = None,
+    roll: float | None = None,
+    shift: float | None = None,
     progress: bool = True,
 ) -> Path:
     """Generate the synthetic benchmark into ``out`` (created; existing model folders are an error).
@@ -171,6 +174,11 @@ def generate_synthetic_dataset(
         background_kinds: the kinds of random background drawn from (some of
             :data:`~unicorn.data.synthetic.render.BACKGROUND_KINDS`: ``solid``, ``gradient``, ``checker``,
             ``noise``); None: all four. Only with random backgrounds.
+        roll: the wild mode's largest roll in degrees (None: 15); 0 keeps every view upright.
+        shift: the wild mode's largest off-centre shift along x and y in view units (None: 0.1); 0 centres every
+            view. Either leaves the other angles and distances of every view as they are, so that a dataset with
+            ``roll=0, shift=0`` is the default one's views, upright and centred: a control for what roll and
+            shifts cost.
         progress: show a progress bar.
 
     Returns:
@@ -183,6 +191,7 @@ def generate_synthetic_dataset(
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
     split_sizes(n_models)  # refuses too few models before anything is written
     check_generation_sizes(image_size, supersample, n_points)
+    check_view_ranges(mode, roll, shift)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     kinds = _background_kinds(background_kinds, random_bg)
     meta_path = out / "metadata.yaml"
@@ -198,7 +207,7 @@ def generate_synthetic_dataset(
             streams = model_streams(seed, cat, i)
             obj = build_object(cat, streams[0])
             obj.params.update(category=cat, seed=seed, index=i)
-            views = sample_views(mode, n_views, streams[1])
+            views = sample_views(mode, n_views, streams[1], roll, shift)
             _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], kinds)
             bar.update()
         for split, idx in split_indices(seed, cat, n_models).items():
@@ -218,6 +227,8 @@ def generate_synthetic_dataset(
         "n_points": n_points,
         "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
         "background_kinds": None if background_kinds is None else list(kinds),  # as given (None: all), likewise
+        "roll": roll,  # as given (None: the mode's), likewise
+        "shift": shift,
         "fov": NMR_FOV,
     }
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
@@ -343,7 +354,8 @@ def ensure_synthetic_dataset(
     defaults = {
         name: param.default
         for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
-        if name in ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds")
+        if name
+        in ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds", "roll", "shift")
     }
     expected = {"categories": category, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **kwargs}
     if (final / "synthetic.json").exists():
