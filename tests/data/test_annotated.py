@@ -13,7 +13,7 @@ from PIL import Image
 from tests.support.datasets import make_record, save_with_orientation, write_struct_array
 from unicorn.data.cub import CUB200, CUB_FLIP_PERM
 from unicorn.data.framing import hflip_keypoints
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.matlab import load_struct_array
 from unicorn.data.p3d import Pascal3DCar
 
@@ -67,8 +67,7 @@ def test_cub_eval_size(cub_root: Path) -> None:
 
 
 def test_cub_flip_keeps_keypoints_consistent(cub_root: Path) -> None:
-    ds = CUB200(cub_root, "train", augment=True)
-    ds.jitter = 0.0  # isolate the flip
+    ds = CUB200(cub_root, "train", augment=True, jitter=0.0)  # isolate the flip
     plain = CUB200(cub_root, "train", augment=False)
     ref = plain[1]
     seen = set()
@@ -93,7 +92,14 @@ def test_cub_flip_keeps_keypoints_consistent(cub_root: Path) -> None:
 def test_cub_jitter_moves_the_crop(cub_root: Path) -> None:
     ds = CUB200(cub_root, "train", augment=True)
     boxes = {tuple(ds.square_crop_box(2, np.random.default_rng(s))) for s in range(5)}
-    assert len(boxes) > 1
+    assert ds.jitter == 0.05 and len(boxes) > 1  # the reference's
+    centred = CUB200(cub_root, "train", augment=True, jitter=0.0)
+    plain = CUB200(cub_root, "train", augment=False)
+    assert {tuple(centred.square_crop_box(2, np.random.default_rng(s))) for s in range(5)} == {
+        tuple(plain.square_crop_box(2, None))
+    }
+    with pytest.raises(DatasetError, match=r"jitter must be in \[0, 1\)"):
+        CUB200(cub_root, "train", jitter=-0.1)
 
 
 def test_cub_missing_root_and_annotations(tmp_path: Path, cub_root: Path) -> None:

@@ -109,3 +109,11 @@ def test_each_dataset_takes_its_evaluation_options_and_refuses_others() -> None:
     assert dataset_spec("lsun").options == ("tag", "cleaned", "padding", "jitter")
     with pytest.raises(UnknownOptionError, match=r"dataset 'compcars' takes no option 'tag'; its options: \[\]"):
         build_dataset("compcars", "train", "/nowhere", tag="car")
+
+
+def test_the_box_jitter_is_an_option_of_the_cropped_datasets(cub_root: Path, p3d_root: Path) -> None:
+    assert "jitter" in dataset_spec("cub_200").options and "jitter" in dataset_spec("p3d_car").options
+    assert build_dataset("cub_200", "train", cub_root).jitter == 0.05  # the reference's
+    assert build_dataset("cub_200", "train", cub_root, jitter=0.0).jitter == 0.0
+    assert build_dataset("p3d_car", "train", p3d_root).jitter == 0.1
+    assert build_dataset("p3d_car", "train", p3d_root, jitter=0.0).jitter == 0.0

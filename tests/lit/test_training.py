@@ -119,7 +119,16 @@ def test_idle_parameters_skip_vs_momentum(synthetic_cache, tmp_path):
     assert moved == {"skip": False, "momentum": True}
 
 
-@pytest.mark.parametrize("extra", [[], ["schedule.hue_shift=0.5"]], ids=["plain", "hue-shift"])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        [],
+        ["schedule.hue_shift=0.5"],
+        ["schedule.roll_jitter=10", "schedule.shift_jitter=0.1"],
+        ["model.loss.equivariance_weight=1"],
+    ],
+    ids=["plain", "hue-shift", "jitter", "equivariance"],
+)
 def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     straight = build_run(tmp_path / "straight", *extra)
     fit(straight)
@@ -173,6 +182,26 @@ def test_hue_shift_changes_what_both_steps_train_on(synthetic_cache, tmp_path, m
     x = recorder.images[0]
     assert not torch.allclose(module.training_images(x, 0), module.training_images(x, 1))
     assert build_run(tmp_path / "off").module.training_images(x, 0) is x
+
+
+def test_roll_shift_jitter_moves_what_both_steps_train_on(synthetic_cache, tmp_path, monkeypatch):
+    run = build_run(tmp_path, "schedule.roll_jitter=10", "schedule.shift_jitter=0.1", "trainer.max_steps=2")
+    module, recorder, seen = run.module, BatchRecorder(), []
+    forward = module.objectives.forward
+
+    def spy(phase, model, images, **kwargs):
+        seen.append(images.detach().clone())
+        return forward(phase, model, images, **kwargs)
+
+    monkeypatch.setattr(module.objectives, "forward", spy)
+    run.trainer.callbacks.append(recorder)
+    fit(run)
+    for step, (images, loaded) in enumerate(zip(seen, recorder.images, strict=True)):
+        assert not torch.allclose(images, loaded, atol=1e-3)
+        torch.testing.assert_close(images, module.training_images(loaded, step))  # a pure function of the step
+    x = recorder.images[0]
+    assert not torch.allclose(module.training_images(x, 0), module.training_images(x, 1))
+    assert build_run(tmp_path / "off").module.training_images(recorder.images[0], 0) is recorder.images[0]
 
 
 def test_resume_from_a_checkpoint_with_whole_kernel_moments(synthetic_cache, tmp_path):

@@ -13,7 +13,7 @@ from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import TemplateMesh
-from unicorn.model.pose import PoseOutput, mirrored_pose
+from unicorn.model.pose import PoseHead, PoseOutput, mirrored_pose
 from unicorn.objectives import (
     MeshRegularizer,
     NormalConsistencyLoss,
@@ -28,6 +28,7 @@ from unicorn.objectives import (
     list_perceptual_losses,
     mse_per_sample,
     uniform_pose_prior,
+    view_equivariance_loss,
 )
 from unicorn.objectives.perceptual import (
     VGG16_URL,
@@ -299,3 +300,89 @@ def test_flip_consistency_is_zero_for_mirrored_candidates_and_grows_with_the_dif
         for b in range(B)
     ) / (K * B)
     assert float(flip_consistency_loss(poses, other, mirror)) == pytest.approx(geometry + float(kl), rel=1e-5)
+
+
+def _equivariance_naive(poses, moved, roll, shift, head, focal):
+    """view_equivariance_loss one candidate and one image at a time."""
+    K, B = poses.probs.shape
+    total = 0.0
+    for k in range(K):
+        for b in range(B):
+            a = poses.angles[k, b].tolist()
+            target = [a[0], a[1], a[2] + float(roll[b])]
+            for i in range(3):
+                if float(head.R_range[i]) == 0:
+                    continue
+                lo = float(head.R_init[k, i] - head.R_range[i])
+                hi = float(head.R_init[k, i] + head.R_range[i])
+                clamped = min(max(target[i], lo), hi)
+                total += ((float(moved.angles[k, b, i]) - clamped) / float(head.R_range[i])) ** 2 / (K * B)
+            tx, ty, tz = poses.T[k, b].tolist()
+            r = math.radians(float(roll[b]))
+            t_target = [
+                math.cos(r) * tx - math.sin(r) * ty + float(shift[b, 0]) * tz / focal,
+                math.sin(r) * tx + math.cos(r) * ty + float(shift[b, 1]) * tz / focal,
+                tz,
+            ]
+            for j in range(3):
+                rng = float(head.T_range[j])
+                if rng > 0:
+                    lo, hi = float(head.T_init[j]) - rng, float(head.T_init[j]) + rng
+                    clamped = min(max(t_target[j], lo), hi)
+                    total += ((float(moved.T[k, b, j]) - clamped) / rng) ** 2 / (K * B)
+    p, q = poses.probs, moved.probs
+    return total + float((p * (p.log() - q.log())).sum(0).mean())
+
+
+@pytest.mark.parametrize(
+    "ranges",
+    [{"T_range": (0.3, 0.3, 0.2)}, {"elev_range": (10, 10), "roll_range": (0, 0), "T_range": (0.2, 0.2, 0)}],
+    ids=["real", "fixed elevation"],
+)
+def test_view_equivariance_against_a_naive_loop_and_zero_when_the_candidates_follow(ranges):
+    head = PoseHead(in_features=8, **ranges)
+    g = torch.Generator().manual_seed(0)
+    K, B, focal = head.n_candidates, 3, 3.7
+    poses = head._compose(
+        torch.rand(K, B, 3, generator=g) - 0.5,
+        torch.rand(K, B, 3, generator=g) - 0.5,
+        torch.log_softmax(torch.randn(K, B, generator=g), 0),
+    )
+    roll, shift = torch.tensor([10.0, -5.0, 0.0]), torch.tensor([[0.05, 0.0], [-0.02, 0.04], [0.0, 0.0]])
+    # the candidates of the moved images, each followed exactly (within the head's reach)
+    angles = poses.angles + torch.stack([torch.zeros(B), torch.zeros(B), roll], -1)
+    r = torch.deg2rad(roll)
+    T = poses.T
+    x = r.cos() * T[..., 0] - r.sin() * T[..., 1] + shift[:, 0] * T[..., 2] / focal
+    y = r.sin() * T[..., 0] + r.cos() * T[..., 1] + shift[:, 1] * T[..., 2] / focal
+    followed = PoseOutput(angles, poses.R, torch.stack([x, y, T[..., 2]], -1), poses.probs, poses.log_probs)
+    assert float(view_equivariance_loss(poses, followed, roll, shift, head, focal)) == pytest.approx(0.0, abs=1e-10)
+    # the candidates of a branch that reads its azimuth from the roll, with other probabilities
+    turned = PoseOutput(
+        poses.angles + torch.stack([roll, torch.zeros(B), torch.zeros(B)], -1),
+        poses.R,
+        poses.T + 0.02,
+        *(lambda lp: (lp.exp(), lp))(torch.log_softmax(torch.randn(K, B, generator=g), 0)),
+    )
+    loss = view_equivariance_loss(poses, turned, roll, shift, head, focal)
+    assert float(loss) > 0.05
+    assert float(loss) == pytest.approx(_equivariance_naive(poses, turned, roll, shift, head, focal), rel=1e-5)
+
+
+def test_view_equivariance_leaves_out_what_the_head_holds_and_trains_the_moved_branch_only():
+    head = PoseHead(in_features=8)
+    K, B = head.n_candidates, 2
+    poses = head._compose(torch.zeros(K, B, 3), torch.zeros(K, B, 3), torch.full((K, B), -math.log(K)))
+    roll, shift = torch.tensor([10.0, -10.0]), torch.tensor([[0.1, 0.0], [0.0, 0.1]])
+    # a branch that ignores the roll and the shift
+    still = PoseOutput(
+        poses.angles.clone().requires_grad_(), poses.R, poses.T.clone().requires_grad_(), poses.probs, poses.log_probs
+    )
+    loss = view_equivariance_loss(poses, still, roll, shift, head, 3.7)
+    assert float(loss) > 0
+    loss.backward()
+    assert still.angles.grad[..., 2].abs().sum() > 0 and still.angles.grad[..., :2].abs().sum() == 0
+    assert still.T.grad[..., :2].abs().sum() > 0
+    head.use_elevation_roll.fill_(False)
+    head.use_translation.fill_(False)
+    assert float(view_equivariance_loss(poses, still, roll, shift, head, 3.7)) == pytest.approx(0.0, abs=1e-12)

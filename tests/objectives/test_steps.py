@@ -6,9 +6,17 @@ import pytest
 import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
+from unicorn.data.augment import random_roll_shift
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn
-from unicorn.objectives import AssignedLoss, Objectives, StepLosses, candidate_spacing_loss, flip_consistency_loss
+from unicorn.objectives import (
+    AssignedLoss,
+    Objectives,
+    StepLosses,
+    candidate_spacing_loss,
+    flip_consistency_loss,
+    view_equivariance_loss,
+)
 
 # randomised heads can fold meshes into more layers than faces_per_pixel: irrelevant here
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -219,6 +227,30 @@ def test_both_steps_decrease_losses_on_synthetic_renders():
     for name, values in history.items():
         first, last = sum(values[:4]) / 4, sum(values[-4:]) / 4
         assert last < 0.7 * first, (name, values)
+
+
+def test_pose_step_equivariance_term_is_the_moved_batch_consistency(images):
+    model = Unicorn(tiny_config(loss={"equivariance_weight": 0.5})).eval()
+    randomize_heads(model)
+    torch.manual_seed(3)
+    losses = objectives_of(model).pose_step(model, images)
+    assert set(losses) == {"rgb", "perceptual", "uniform", "equivariance", "total"}
+    torch.manual_seed(3)  # the same draws from torch's global stream
+    moved, roll, shift = random_roll_shift(images, 15.0, 0.1)
+    with torch.no_grad():
+        expected = 0.5 * view_equivariance_loss(
+            model.predict(images).poses,
+            model.predict(moved).poses,
+            roll,
+            shift,
+            model.pose,
+            model.renderer.camera.focal_length,
+        )
+    assert float(expected) > 0 and torch.allclose(losses["equivariance"], expected, rtol=1e-5)
+    losses["equivariance"].backward()
+    assert grads_of(model.pose.rot_regressors) > 0 and grads_of(model.encoders[0]) > 0
+    assert grads_of(model.texture) == 0
+    assert "equivariance" not in objectives_of(Unicorn(tiny_config())).pose_step(model, images)
 
 
 def test_pose_step_flip_term_is_the_flipped_batch_consistency(images):

@@ -189,6 +189,10 @@ class ScheduleConfig:
     # each training image's hue rotated by a random fraction of the hue circle in [-hue_shift, hue_shift], input and
     # target alike (unicorn.data.augment.random_hue_shift); 0: off, the paper's setting
     hue_shift: float = ranged(0.0, 0, 0.5)
+    # each training image turned about its centre by up to roll_jitter degrees and moved by up to shift_jitter (NDC)
+    # along x and y, input and target alike (unicorn.data.augment.random_roll_shift); 0: off, the paper's setting
+    roll_jitter: float = ranged(0.0, 0, 90)
+    shift_jitter: float = ranged(0.0, 0, 1)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     texture_averaging: TextureAveragingConfig = field(default_factory=TextureAveragingConfig)
     plateau: PlateauConfig = field(default_factory=PlateauConfig)

@@ -31,7 +31,7 @@ from unicorn.data.framing import (
     resize_mask,
     square_bbox,
 )
-from unicorn.data.images import load_image, to_chw_tensor
+from unicorn.data.images import DatasetError, load_image, to_chw_tensor
 
 __all__ = ["BBoxCropDataset"]
 
@@ -68,6 +68,8 @@ class BBoxCropDataset(UnicornDataset):
         on_error: OnError = "raise",
     ) -> None:
         super().__init__(on_error)
+        if not 0.0 <= jitter < 1.0:
+            raise DatasetError(f"jitter must be in [0, 1) (a fraction of the box size), got {jitter}")
         self.records = records
         self.image_dir = Path(image_dir)
         self.img_size = int(img_size)

@@ -58,6 +58,8 @@ class CUB200(BBoxCropDataset):
         split: ``"train"``, ``"val"`` or ``"test"`` (CMR's cleaned splits).
         img_size: side of the returned images (64 in UNICORN).
         augment: box jitter and random flips; defaults to True for ``"train"`` only.
+        jitter: fraction of the box size by which each training box's corners move at random when augmenting
+            (None: the reference's 0.05; 0: crops centred on the box).
         eval_size: resolution of masks and keypoints if different from ``img_size`` (256 for PCK).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
 
@@ -74,6 +76,7 @@ class CUB200(BBoxCropDataset):
         split: Literal["train", "val", "test"] = "train",
         img_size: int = 64,
         augment: bool | None = None,
+        jitter: float | None = None,
         eval_size: int | None = None,
         on_error: OnError = "raise",
     ) -> None:
@@ -90,7 +93,7 @@ class CUB200(BBoxCropDataset):
             image_dir,
             img_size=img_size,
             padding=self.padding,
-            jitter=self.jitter,
+            jitter=self.jitter if jitter is None else jitter,
             augment=(split == "train") if augment is None else augment,
             eval_size=eval_size,
             flip_perm=CUB_FLIP_PERM,

@@ -99,6 +99,8 @@ class LSUN(UnicornDataset):
         on_error: OnError = "raise",
     ) -> None:
         super().__init__(on_error)
+        if not 0.0 <= jitter < 1.0:
+            raise DatasetError(f"jitter must be in [0, 1) (a fraction of the image size), got {jitter}")
         import_lmdb()  # fail early, with the install hint
         root = require(root, "LSUN root", _HINT)
         self.path = require(root / tag, f"LSUN '{tag}' LMDB folder", _HINT)

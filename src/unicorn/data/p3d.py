@@ -68,6 +68,8 @@ class Pascal3DCar(BBoxCropDataset):
         split: ``"train"`` or ``"test"`` (the reference's validation set is the first train images).
         img_size: side of the returned images (64 in UNICORN).
         augment: box jitter and random flips; defaults to True for ``"train"`` only.
+        jitter: fraction of the box size by which each training box's corners move at random when augmenting
+            (None: the reference's 0.1; 0: crops centred on the box).
         eval_size: resolution of masks and keypoints if different from ``img_size``.
         with_points: add the ground-truth CAD point cloud (``points``, ``normals`` (P, 3)); defaults to True
             for ``"test"``.
@@ -86,6 +88,7 @@ class Pascal3DCar(BBoxCropDataset):
         split: Literal["train", "test"] = "train",
         img_size: int = 64,
         augment: bool | None = None,
+        jitter: float | None = None,
         eval_size: int | None = None,
         with_points: bool | None = None,
         on_error: OnError = "raise",
@@ -109,7 +112,7 @@ class Pascal3DCar(BBoxCropDataset):
             image_dir,
             img_size=img_size,
             padding=self.padding,
-            jitter=self.jitter,
+            jitter=self.jitter if jitter is None else jitter,
             augment=(split == "train") if augment is None else augment,
             eval_size=eval_size,
             flip_perm=flip_perm,

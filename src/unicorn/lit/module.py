@@ -51,7 +51,7 @@ import torch.nn.functional as F
 
 from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
-from unicorn.data.augment import random_hue_shift
+from unicorn.data.augment import random_hue_shift, random_roll_shift
 from unicorn.hostsync import is_sync_free, sync_free
 from unicorn.lit.finite import FiniteCheck, NonFiniteLossError
 from unicorn.lit.loggers import logs_this_step
@@ -123,7 +123,11 @@ class UnicornLitModule(L.LightningModule):
         hue_shift: each training image's hue is rotated by a random fraction of the hue circle in ``[-hue_shift,
             hue_shift]`` before both steps read it, as input and as target
             (:func:`unicorn.data.augment.random_hue_shift`); 0 (the paper's setting): images as they are.
-        seed: seeds the per-batch texture-averaging and hue draws (pure functions of seed, iteration and rank).
+        roll_jitter, shift_jitter: each training image is then turned about its centre by a random angle in
+            ``[-roll_jitter, roll_jitter]`` degrees and moved by up to ``shift_jitter`` (NDC) along x and y, as input
+            and as target (:func:`unicorn.data.augment.random_roll_shift`); 0 (the paper's setting): not moved.
+        seed: seeds the per-batch texture-averaging, hue and jitter draws (pure functions of seed, iteration and
+            rank).
     """
 
     stage: torch.Tensor
@@ -135,6 +139,8 @@ class UnicornLitModule(L.LightningModule):
         optim: Mapping[str, Any] | None = None,
         alternation_period: int = 1,
         hue_shift: float = 0.0,
+        roll_jitter: float = 0.0,
+        shift_jitter: float = 0.0,
         seed: int = 0,
     ) -> None:
         super().__init__()
@@ -158,7 +164,10 @@ class UnicornLitModule(L.LightningModule):
             raise ValueError(f"alternation_period must be >= 1, got {alternation_period}")
         if not 0.0 <= hue_shift <= 0.5:
             raise ValueError(f"hue_shift must be in [0, 0.5] (a fraction of the hue circle), got {hue_shift}")
+        if roll_jitter < 0 or shift_jitter < 0:
+            raise ValueError(f"roll_jitter and shift_jitter must be >= 0, got {roll_jitter}, {shift_jitter}")
         self.alternation_period, self.hue_shift, self.seed = int(alternation_period), float(hue_shift), int(seed)
+        self.roll_jitter, self.shift_jitter = float(roll_jitter), float(shift_jitter)
         # training state that must survive a checkpoint: buffers
         self.register_buffer("stage", torch.tensor(1, dtype=torch.long))
         self.register_buffer("texture_average_p", torch.tensor(0.0))
@@ -195,12 +204,17 @@ class UnicornLitModule(L.LightningModule):
         return _averaging_draws(self.seed * _SEED_STRIDE, step // _DRAWS)[step % _DRAWS] < float(np.float32(p))
 
     def training_images(self, images: torch.Tensor, step: int) -> torch.Tensor:
-        """The images iteration ``step`` trains on: (B, 3, S, S) hue-shifted when ``hue_shift`` > 0."""
-        if self.hue_shift == 0.0:
-            return images
-        # its own stream (not the texture-averaging one), drawn per rank: DDP ranks shift their own images
-        seed = np.random.SeedSequence([self.seed, step, self.global_rank, 1]).generate_state(1)[0]
-        return random_hue_shift(images, self.hue_shift, torch.Generator().manual_seed(int(seed)))
+        """The images iteration ``step`` trains on: (B, 3, S, S) hue-shifted when ``hue_shift`` > 0, then rolled and
+        shifted when ``roll_jitter`` or ``shift_jitter`` > 0."""
+        if self.hue_shift > 0.0:
+            # its own stream (not the texture-averaging one), drawn per rank: DDP ranks shift their own images
+            seed = np.random.SeedSequence([self.seed, step, self.global_rank, 1]).generate_state(1)[0]
+            images = random_hue_shift(images, self.hue_shift, torch.Generator().manual_seed(int(seed)))
+        if self.roll_jitter > 0.0 or self.shift_jitter > 0.0:
+            seed = np.random.SeedSequence([self.seed, step, self.global_rank, 2]).generate_state(1)[0]
+            generator = torch.Generator().manual_seed(int(seed))
+            images = random_roll_shift(images, self.roll_jitter, self.shift_jitter, generator)[0]
+        return images
 
     # ------------------------------------------------------------------ training
     def _sync_free_step(self) -> bool:

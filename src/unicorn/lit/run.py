@@ -176,6 +176,8 @@ def build_module(typed: DictConfig) -> Any:
         optim=OmegaConf.to_container(typed.optim, resolve=True),
         alternation_period=typed.schedule.alternation_period,
         hue_shift=typed.schedule.hue_shift,
+        roll_jitter=typed.schedule.roll_jitter,
+        shift_jitter=typed.schedule.shift_jitter,
         seed=typed.seed,
     )
     if typed.init_from is not None:

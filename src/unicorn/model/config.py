@@ -199,6 +199,12 @@ class LossConfig:
     # pose step: the candidates of each horizontally flipped image should mirror the image's own, x flip_weight
     # (unicorn.objectives.losses.flip_consistency_loss; one more pose-encoder pass a pose step); 0: left out (paper)
     flip_weight: float = ranged(0.0, 0)
+    # pose step: the candidates of each image rolled by up to equivariance_roll degrees and shifted by up to
+    # equivariance_shift (NDC) should be the image's own rolled and shifted alike, same azimuth, x equivariance_weight
+    # (unicorn.objectives.losses.view_equivariance_loss; one more pose-encoder pass a pose step); 0: left out (paper)
+    equivariance_weight: float = ranged(0.0, 0)
+    equivariance_roll: float = ranged(15.0, 0, 90)
+    equivariance_shift: float = ranged(0.1, 0, 1)
     # expected (the paper): the probability-weighted loss trains the probabilities; assigned: the reconstruction
     # terms are weighted by the detached probabilities and the probabilities learn from assignment_weight x the
     # cross-entropy against the best-reconstructing candidate (unicorn.objectives.losses.candidate_assignment_loss)

@@ -32,6 +32,7 @@ from unicorn.objectives.losses import (
     flip_consistency_loss,
     mse_per_sample,
     uniform_pose_prior,
+    view_equivariance_loss,
 )
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMatch, NeighborMemory
 from unicorn.objectives.objectives import Objectives, training_networks
@@ -88,6 +89,7 @@ __all__ = [
     "candidate_assignment_loss",
     "candidate_spacing_loss",
     "flip_consistency_loss",
+    "view_equivariance_loss",
     "list_perceptual_losses",
     "list_pose_objectives",
     "load_vgg16_weights",

@@ -14,7 +14,7 @@ from torch import nn
 
 from unicorn.checks import check_shape
 from unicorn.geometry.rotations import rotation_angle_between
-from unicorn.model.pose import PoseOutput, mirrored_pose
+from unicorn.model.pose import PoseHead, PoseOutput, mirrored_pose
 from unicorn.objectives.perceptual import build_perceptual
 
 __all__ = [
@@ -27,6 +27,7 @@ __all__ = [
     "flip_consistency_loss",
     "mse_per_sample",
     "uniform_pose_prior",
+    "view_equivariance_loss",
 ]
 
 
@@ -128,6 +129,67 @@ def flip_consistency_loss(poses: PoseOutput, flipped: PoseOutput, mirror: torch.
     kl = (lp.exp().detach() * (lp.detach() - lp_f)).sum(0).mean()
     kl = kl + (lp_f.exp().detach() * (lp_f.detach() - lp)).sum(0).mean()
     return geometry + kl
+
+
+def view_equivariance_loss(
+    poses: PoseOutput,
+    moved: PoseOutput,
+    roll: torch.Tensor,
+    shift: torch.Tensor,
+    head: PoseHead,
+    focal_length: float | torch.Tensor,
+) -> torch.Tensor:
+    """How far the pose candidates of rolled and shifted images (:func:`unicorn.data.augment.roll_shift_images`)
+    are from the images' own candidates rolled and shifted alike: the same azimuth, elevation and probabilities,
+    the roll plus the image's, the translation turned with the image and moved by ``shift * T_z / f``.
+
+    Turning an image about its centre is rolling the camera about its optical axis (the last factor of
+    :func:`~unicorn.geometry.rotations.azim_elev_roll_to_rotation`), so the viewpoint's azimuth and elevation must
+    not follow it; this is the term's point: a pose branch that reads the azimuth from where the object sits or
+    how it leans pays it. The targets (the images' own candidates) are detached; each angle and translation error
+    is measured in units of its offset range, the targets clamped into the head's reach. Angles and translation
+    axes without range, angles the head holds (``use_elevation_roll``) and a held translation (``use_translation``)
+    leave their terms out.
+
+    ``mean_{k,b} sum_i ((a'_i - a*_i) / range_i)^2 + mean_{k,b} sum_j ((T'_j - T*_j) / T_range_j)^2
+    + mean_b KL(p || p')``.
+
+    Args:
+        poses: the images' K candidates (angles (K, B, 3), T (K, B, 3), log_probs (K, B)).
+        moved: the rolled and shifted images' candidates, of the same shapes.
+        roll: (B,) the images' roll, degrees; shift: (B, 2) their shift, NDC.
+        head: the pose head both came from (its ranges and holds).
+        focal_length: the camera's, in NDC units.
+
+    Returns:
+        scalar.
+    """
+    dims = check_shape(poses.angles, "K, B, 3", "poses.angles")
+    K, B = dims["K"], dims["B"]
+    check_shape(moved.angles, "K, B, 3", "moved.angles", {"K": K, "B": B})
+    check_shape(roll, "B", "roll", {"B": B})
+    check_shape(shift, "B, 2", "shift", {"B": B})
+    angles = poses.angles.detach()
+    target = torch.cat([angles[..., :2], angles[..., 2:] + roll.to(angles).view(1, B, 1)], -1)
+    anchors, reach = head.R_init.unsqueeze(1), head.R_range
+    target = torch.minimum(torch.maximum(target, anchors - reach), anchors + reach)
+    tilt = head.use_elevation_roll.to(angles.dtype)
+    # an angle without range (a fixed elevation) or held at its anchor has nothing to learn; the azimuth is never held
+    used = torch.stack([torch.ones_like(tilt), tilt, tilt]) * (reach > 0).to(angles.dtype)
+    loss = (((moved.angles - target) / torch.where(reach > 0, reach, 1.0)).square() * used).sum(-1).mean()
+    T = poses.T.detach()
+    r = torch.deg2rad(roll.to(T)).view(1, B)
+    c, s = r.cos(), r.sin()
+    depth = T[..., 2] / focal_length  # (K, B): an NDC shift moves the object this much in view units
+    x = c * T[..., 0] - s * T[..., 1] + shift[:, 0].to(T).view(1, B) * depth
+    y = s * T[..., 0] + c * T[..., 1] + shift[:, 1].to(T).view(1, B) * depth
+    T_target = torch.stack([x, y, T[..., 2]], -1)
+    T_target = torch.minimum(torch.maximum(T_target, head.T_init - head.T_range), head.T_init + head.T_range)
+    # a held translation, or an axis without range, has nothing to learn
+    free = (head.T_range > 0).to(T.dtype) * head.use_translation.to(T.dtype)
+    t_err = ((moved.T - T_target) / torch.where(head.T_range > 0, head.T_range, 1.0)).square() * free
+    kl = (poses.log_probs.detach().exp() * (poses.log_probs.detach() - moved.log_probs)).sum(0).mean()
+    return loss + t_err.sum(-1).mean() + kl
 
 
 def _edges_and_opposites(faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -55,6 +55,9 @@ class Objectives(nn.Module):
             loss["spacing_angle"],
             None if loss["viewpoint"] is None else build_viewpoint_supervision(loss["viewpoint"], **loss),
             loss["flip_weight"],
+            loss["equivariance_weight"],
+            loss["equivariance_roll"],
+            loss["equivariance_shift"],
         )
         memory = NeighborMemory(loss["memory_size"], loss["n_bins"], loss["min_angle"])
         neighbors = NeighborLoss(reconstruction, memory, loss["neighbor_weight"])

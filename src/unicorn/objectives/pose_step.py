@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from unicorn.data.augment import random_roll_shift
 from unicorn.model import Unicorn
 from unicorn.model.autoencoder import Prediction3D
 from unicorn.objectives.losses import (
@@ -18,6 +19,7 @@ from unicorn.objectives.losses import (
     candidate_spacing_loss,
     flip_consistency_loss,
     uniform_pose_prior,
+    view_equivariance_loss,
 )
 from unicorn.objectives.pose_objectives import PoseObjective
 from unicorn.objectives.step_losses import StepLosses, with_total
@@ -45,6 +47,10 @@ class PoseStep(nn.Module):
         viewpoint: the viewpoint supervision from renders at drawn views, or None (the paper).
         flip_weight: weight of the flipped images' pose consistency (<= 0: left out, the paper); it encodes the
             flipped batch once more with the pose branch's encoder.
+        equivariance_weight: weight of the rolled and shifted images' pose equivariance (<= 0: left out, the
+            paper; :func:`view_equivariance_loss`); it encodes the batch, each image rolled by up to
+            ``equivariance_roll`` degrees and shifted by up to ``equivariance_shift`` (NDC), once more with the pose
+            branch's encoder.
     """
 
     def __init__(
@@ -57,9 +63,14 @@ class PoseStep(nn.Module):
         spacing_angle: float = 30.0,
         viewpoint: ViewpointSupervision | None = None,
         flip_weight: float = 0.0,
+        equivariance_weight: float = 0.0,
+        equivariance_roll: float = 15.0,
+        equivariance_shift: float = 0.1,
     ) -> None:
         super().__init__()
         self.flip_weight = flip_weight
+        self.equivariance_weight, self.equivariance_roll = equivariance_weight, equivariance_roll
+        self.equivariance_shift = equivariance_shift
         self.viewpoint = viewpoint
         self.reconstruction, self.objective = reconstruction, objective
         self.uniform_weight, self.uniform_reduction = uniform_weight, uniform_reduction
@@ -97,6 +108,13 @@ class PoseStep(nn.Module):
         if self.flip_weight > 0:
             flipped = model.pose(model.encode(images.flip(-1), ("pose",))["pose"])
             out["flip"] = self.flip_weight * flip_consistency_loss(poses, flipped, model.pose.mirror_index())
+        if self.equivariance_weight > 0:
+            moved_images, roll, shift = random_roll_shift(images, self.equivariance_roll, self.equivariance_shift)
+            moved = model.pose(model.encode(moved_images, ("pose",))["pose"])
+            f = model.renderer.camera.focal_length
+            out["equivariance"] = self.equivariance_weight * view_equivariance_loss(
+                poses, moved, roll, shift, model.pose, f
+            )
         stats: dict[str, torch.Tensor] = {}
         if self.viewpoint is not None and self.viewpoint.active(iteration):
             terms, stats = self.viewpoint(model, p)
