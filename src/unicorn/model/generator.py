@@ -17,6 +17,13 @@ from unicorn.model.progressive import ProgressiveMask
 __all__ = ["Blur", "CodeGenerator", "GiraffeGenerator", "mean_texture"]
 
 
+def _doubled(x: torch.Tensor) -> torch.Tensor:
+    """(B, C, 1, 1) -> (B, C, 2, 2): what nearest and bilinear (``align_corners=False``) upsampling make of a single
+    pixel, as a broadcast. Its backward is a sum; the interpolations' is a scatter, for which ``torch.compile``'s CPU
+    backend fails to generate code from a 1 x 1 input (pytorch/pytorch#160391)."""
+    return x.expand(-1, -1, 2, 2)
+
+
 class Blur(nn.Module):
     """Depthwise ``[1, 2, 1] x [1, 2, 1] / 16`` blur with reflect padding (anti-aliases upsampling).
 
@@ -73,10 +80,11 @@ class GiraffeGenerator(nn.Module):
         """(B, C) -> (B, 3, S, S) in [0, 1]."""
         check_shape(code, "B, C", "code", {"C": self.code_dim})
         net = code[:, :, None, None]
-        rgb = self.upsample_rgb(self.conv_rgb[0](net))
+        rgb = self.upsample_rgb[1](_doubled(self.conv_rgb[0](net)))  # the bilinear upsampling of a 1 x 1 map
         last = len(self.conv_layers) - 1
         for i, conv in enumerate(self.conv_layers):
-            net = torch.relu(conv(F.interpolate(net, scale_factor=2.0, mode="nearest")))
+            net = _doubled(net) if i == 0 else F.interpolate(net, scale_factor=2.0, mode="nearest")
+            net = torch.relu(conv(net))
             rgb = rgb + self.conv_rgb[i + 1](net)
             if i < last:
                 rgb = self.upsample_rgb(rgb)
