@@ -17,11 +17,15 @@ from unicorn.model.progressive import ProgressiveMask
 __all__ = ["Blur", "CodeGenerator", "GiraffeGenerator", "mean_texture"]
 
 
-def _doubled(x: torch.Tensor) -> torch.Tensor:
-    """(B, C, 1, 1) -> (B, C, 2, 2): what nearest and bilinear (``align_corners=False``) upsampling make of a single
-    pixel, as a broadcast. Its backward is a sum; the interpolations' is a scatter, for which ``torch.compile``'s CPU
-    backend fails to generate code from a 1 x 1 input (pytorch/pytorch#160391)."""
-    return x.expand(-1, -1, 2, 2)
+def _upsampled(x: torch.Tensor, mode: str) -> torch.Tensor:
+    """(B, C, H, W) -> (B, C, 2H, 2W), nearest or bilinear (``align_corners=False``).
+
+    Under ``torch.compile`` a 1 x 1 map is doubled by a broadcast instead, the same values: the interpolations'
+    backward is a scatter for which the CPU backend fails to generate code from a 1 x 1 input
+    (pytorch/pytorch#160391). Eager runs keep the interpolation and its gradients to the last bit."""
+    if x.shape[-2:] == (1, 1) and torch.compiler.is_compiling():
+        return x.expand(-1, -1, 2, 2)
+    return F.interpolate(x, scale_factor=2.0, mode=mode, align_corners=False if mode == "bilinear" else None)
 
 
 class Blur(nn.Module):
@@ -76,18 +80,21 @@ class GiraffeGenerator(nn.Module):
         for conv in [*self.conv_layers, *self.conv_rgb]:
             nn.init.kaiming_normal_(conv.weight, nonlinearity="relu")
 
+    def _upsample_rgb(self, rgb: torch.Tensor) -> torch.Tensor:
+        """``upsample_rgb``: bilinear doubling (:func:`_upsampled`), then the blur."""
+        return self.upsample_rgb[1](_upsampled(rgb, "bilinear"))
+
     def forward(self, code: torch.Tensor) -> torch.Tensor:
         """(B, C) -> (B, 3, S, S) in [0, 1]."""
         check_shape(code, "B, C", "code", {"C": self.code_dim})
         net = code[:, :, None, None]
-        rgb = self.upsample_rgb[1](_doubled(self.conv_rgb[0](net)))  # the bilinear upsampling of a 1 x 1 map
+        rgb = self._upsample_rgb(self.conv_rgb[0](net))
         last = len(self.conv_layers) - 1
         for i, conv in enumerate(self.conv_layers):
-            net = _doubled(net) if i == 0 else F.interpolate(net, scale_factor=2.0, mode="nearest")
-            net = torch.relu(conv(net))
+            net = torch.relu(conv(_upsampled(net, "nearest")))
             rgb = rgb + self.conv_rgb[i + 1](net)
             if i < last:
-                rgb = self.upsample_rgb(rgb)
+                rgb = self._upsample_rgb(rgb)
         return torch.sigmoid(rgb)
 
 
