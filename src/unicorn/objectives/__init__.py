@@ -89,7 +89,6 @@ __all__ = [
     "candidate_assignment_loss",
     "candidate_spacing_loss",
     "flip_consistency_loss",
-    "view_equivariance_loss",
     "list_perceptual_losses",
     "list_pose_objectives",
     "load_vgg16_weights",
@@ -98,4 +97,5 @@ __all__ = [
     "register_pose_objective",
     "training_networks",
     "uniform_pose_prior",
+    "view_equivariance_loss",
 ]
