@@ -1,6 +1,6 @@
 """The package's floors: a module imports only from its own floor or the floors below it.
 
-errors / checks / resources / geometry -> render / metrics / data -> model -> objectives -> config -> io
+errors / caching / checks / resources / geometry -> render / metrics / data -> model -> objectives -> config -> io
 -> evaluation -> lit -> cli (README, "Layout").
 Checked on the source (every ``import`` / ``from`` statement, including the ones inside functions).
 """
@@ -14,7 +14,7 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "unicorn"
 FLOORS = [
-    {"errors", "checks", "resources", "geometry"},
+    {"errors", "caching", "checks", "resources", "geometry"},
     {"render", "metrics", "data"},
     {"model"},
     {"objectives"},

@@ -8,7 +8,6 @@ vertices.
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 import re
@@ -17,6 +16,7 @@ from numbers import Integral
 
 import torch
 
+from unicorn.caching import cache_outside_compile
 from unicorn.errors import UserError
 from unicorn.hostsync import is_sync_free
 
@@ -111,7 +111,7 @@ _DIM = re.compile(r"^(\*[A-Za-z_][A-Za-z0-9_]*|\*|\d+|[A-Za-z_][A-Za-z0-9_]*)$")
 Dims = dict[str, "int | tuple[int, ...]"]
 
 
-@functools.lru_cache(maxsize=512)
+@cache_outside_compile(maxsize=512)  # traced by torch.compile, the parse is run
 def _parse_shape(shape: str) -> tuple[tuple[str, ...], ...]:
     """``"B, V, 3"`` or ``"B V 3"`` -> ``(("B", "V", "3"),)``; alternatives are separated by ``|``; ``*`` or
     ``*name`` (first only) stands for any leading dimensions."""
@@ -174,8 +174,7 @@ def check_shape(x: object, shape: str, name: str, dims: Dims | None = None, *, f
         TypeError: ``x`` is not a tensor, or not floating point when ``floating``.
         ShapeError: the shape does not match (the message states the contract with the sizes already known).
     """
-    # traced by torch.compile the parse is run, not looked up (the compiled graph holds its result)
-    alternatives = _parse_shape.__wrapped__(shape) if torch.compiler.is_compiling() else _parse_shape(shape)
+    alternatives = _parse_shape(shape)
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     bound = {} if dims is None else dims

@@ -7,10 +7,10 @@ CUDA they are one batched GEMM. Used by the structural perceptual loss (SSIM, So
 
 from __future__ import annotations
 
-import functools
-
 import torch
 import torch.nn.functional as F
+
+from unicorn.caching import cache_outside_compile
 
 __all__ = ["filter_matrix", "separable_filter"]
 
@@ -25,12 +25,10 @@ def filter_matrix(n: int, taps: list[float], mode: str, like: torch.Tensor) -> t
     """
     if len(taps) % 2 == 0:
         raise ValueError(f"need an odd number of taps, got {len(taps)}")
-    # traced by torch.compile the matrix is built inside the graph, not looked up
-    build = _filter_matrix.__wrapped__ if torch.compiler.is_compiling() else _filter_matrix
-    return build(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
+    return _filter_matrix(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
 
 
-@functools.lru_cache(maxsize=128)
+@cache_outside_compile(maxsize=128)  # traced by torch.compile, the matrix is built inside the graph
 def _filter_matrix(
     n: int, taps: tuple[float, ...], mode: str, dtype: torch.dtype, device: torch.device
 ) -> torch.Tensor:

@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import functools
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -27,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from unicorn.caching import cache_outside_compile
 from unicorn.checks import check_shape
 from unicorn.errors import UserError
 from unicorn.model.config import LOSS_KEYS
@@ -211,7 +211,7 @@ class VGGPerceptualLoss(nn.Module):
         return (feats[:B] - feats[B:]).pow(2).flatten(1).mean(1)
 
 
-@functools.cache
+@cache_outside_compile(maxsize=None)
 def _gaussian_taps(window_size: int, sigma: float = 1.5) -> tuple[float, ...]:
     """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size), computed once per size."""
     x = torch.arange(window_size, dtype=torch.float64) - window_size // 2
@@ -227,8 +227,7 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: fl
     """
     C = x.shape[1]
     moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    # torch.compile traces the uncached function (dynamo warns on a functools.cache it cannot see into)
-    taps = _gaussian_taps.__wrapped__(window_size) if torch.compiler.is_compiling() else _gaussian_taps(window_size)
+    taps = _gaussian_taps(window_size)
     f = separable_filter(moments, taps, taps, "reflect")
     mu_x, mu_y, xx, yy, xy = f.split(C, dim=1)
     c1, c2 = (0.01 * max_val) ** 2, (0.03 * max_val) ** 2
