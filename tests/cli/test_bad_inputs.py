@@ -153,9 +153,10 @@ def test_a_bad_setting_is_one_line_and_writes_nothing(finished_run, tmp_path, ov
     (tmp_path / "notes.txt").write_text("mine")
     before, finished = snapshot(tmp_path), snapshot(finished_run)
     args = [o.format(finished=finished_run) for o in overrides]
-    result = unicorn_train(*TINY, *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    run = tmp_path / "outputs" / "train" / "runs" / "now"  # as the default run folder in a new project
+    result = unicorn_train(*TINY, *args, f"hydra.run.dir={run}", cwd=tmp_path)
     _assert_one_error_line(result, message)
-    assert snapshot(tmp_path) == before and snapshot(finished_run) == finished
+    assert snapshot(tmp_path) == before and snapshot(finished_run) == finished  # no outputs/ left either
 
 
 def test_a_locked_folder_refuses_a_second_run(finished_run, tmp_path):

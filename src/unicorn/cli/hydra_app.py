@@ -45,6 +45,9 @@ class NoteExistingFolders(Callback):
 
     #: the noted folder, whether its sub-folders are the jobs' (a sweep), and each existing folder's entries
     noted: tuple[Path, bool, dict[Path, set[str]]] | None = None
+    #: the outermost of the noted folder's missing ancestors (``outputs`` of ``outputs/train/runs/<time>`` in a
+    #: new project), which Hydra creates with it; None when its parent exists
+    created_top: Path | None = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._note(Path(str(config.hydra.run.dir)), jobs_inside=False)
@@ -58,6 +61,10 @@ class NoteExistingFolders(Callback):
         folders = [folder, *(folder.iterdir() if jobs_inside and folder.is_dir() else [])]
         entries = {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
         NoteExistingFolders.noted = (folder, jobs_inside, entries)
+        top = None
+        while not folder.parent.exists() and folder.parent != folder:
+            folder = top = folder.parent
+        NoteExistingFolders.created_top = top
 
 
 #: what the app adds to the overrides: no ``.hydra/`` record written by Hydra, the :class:`NoteExistingFolders`
@@ -75,6 +82,22 @@ def entries_before(folder: Path) -> set[str] | None:
     if noted is not None and (folder == noted[0] or (noted[1] and folder.parent == noted[0])):
         return noted[2].get(folder)
     return {p.name for p in folder.iterdir()} if folder.is_dir() else None
+
+
+def remove_created_parents(folder: Path) -> None:
+    """Remove the folders above ``folder`` that Hydra created for this process (up to
+    :attr:`NoteExistingFolders.created_top`) and that are empty again, nearest first: a refused run leaves no
+    ``outputs/<task>/runs`` behind."""
+    top = NoteExistingFolders.created_top
+    if top is None:
+        return
+    for parent in folder.resolve().parents:
+        if parent != top and top not in parent.parents:
+            return
+        try:
+            parent.rmdir()  # only an empty folder: what another process wrote there stays
+        except OSError:
+            return
 
 
 #: the last line of a Python traceback: the exception's (qualified) name and message

@@ -42,7 +42,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.hydra_app import HydraApp, entries_before, hydra_failure
+from unicorn.cli.hydra_app import HydraApp, entries_before, hydra_failure, remove_created_parents
 from unicorn.resources import config_dir
 
 __all__ = ["DEFAULT_EXPERIMENT", "config_dir", "experiment_overrides", "hydra_argv", "hydra_failure", "main"]
@@ -88,6 +88,8 @@ def _task(cfg: DictConfig) -> None:
             lock.release()
             for change in changes:
                 change.undo()
+                if not change.existed:
+                    remove_created_parents(change.folder)
         raise
     finally:
         lock.release()
