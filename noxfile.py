@@ -55,13 +55,21 @@ def install_project(session: nox.Session, *extras: str) -> None:
     session.install("-e", target)
 
 
+def parallel_workers() -> list[str]:
+    """pytest-xdist's options: one worker per core, at most 8 (each holds torch and its fixtures in memory; most of
+    the suite's time is single-threaded, in the commands it starts). ``UNICORN_TEST_WORKERS=0`` runs in one process.
+    """
+    workers = int(os.environ.get("UNICORN_TEST_WORKERS", min(os.cpu_count() or 1, 8)))
+    return ["-n", str(workers), "--dist", "worksteal"] if workers > 1 else []
+
+
 @nox.session(python=PYTHON)
 def tests(session: nox.Session) -> None:
     """The test suite (CPU; tests marked gpu run only where CUDA is present). Extra arguments go to pytest."""
     install_project(session, "dev")
     if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
         session.run("npm", "ci", "--no-audit", "--no-fund", external=True)  # the glTF validator of the GLB test
-    session.run("pytest", *(session.posargs or ["-q"]))
+    session.run("pytest", *(session.posargs or ["-q", *parallel_workers()]))
 
 
 @nox.session(python=PYTHON)

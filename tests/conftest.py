@@ -8,8 +8,20 @@ import torch
 #: fixtures shared by several test packages (datasets in real on-disk formats, the synthetic set, a cache)
 pytest_plugins = ["tests.support.fixtures"]
 
-# two cores on the CI machine: keep torch from oversubscribing them
-torch.set_num_threads(int(os.environ.get("UNICORN_TEST_THREADS", "2")))
+
+def _test_threads() -> int:
+    """torch's threads per test process: ``UNICORN_TEST_THREADS``, else the cores shared out among pytest-xdist's
+    workers (at most 2 each), so that parallel workers do not oversubscribe the machine."""
+    if "UNICORN_TEST_THREADS" in os.environ:
+        return int(os.environ["UNICORN_TEST_THREADS"])
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    return max(1, min(2, (os.cpu_count() or 1) // workers))
+
+
+# a 2-thread torch job beside another busy process waits at its thread barriers: never ask for more than our share
+torch.set_num_threads(_test_threads())
+if "PYTEST_XDIST_WORKER" in os.environ:  # and the same share for the subprocesses a test starts
+    os.environ.setdefault("OMP_NUM_THREADS", str(torch.get_num_threads()))
 
 
 def pytest_collection_modifyitems(config, items):

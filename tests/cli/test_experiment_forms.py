@@ -6,34 +6,16 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
-from tests.support.training import compose_config
-from unicorn.cli.train import experiment_overrides, hydra_argv
-from unicorn.config import validate
-
-#: runs unicorn-train's main() with its task (build and train) replaced by writing the composed config of each
-#: job (unresolved, so that the two forms can be compared) and Hydra's choice of experiment into the job's folder
-COMPOSE_ONLY = """
-import json
-from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
-import unicorn.cli.train as train
 
-def task(cfg):
-    hydra = HydraConfig.get()
-    out = Path(hydra.runtime.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "composed.yaml").write_text(OmegaConf.to_yaml(cfg))
-    (out / "choice.json").write_text(json.dumps(hydra.runtime.choices.get("experiment")))
-
-train._task = task
-train.main()
-"""
+from tests.support.forked import run_command
+from tests.support.training import compose_config, unicorn_train
+from unicorn.cli import train
+from unicorn.cli.train import experiment_overrides, hydra_argv
+from unicorn.config import validate
 
 #: a user's preset in a config directory of their own (``-cd my_conf``): it overrides a group and values
 MINE = """# @package _global_
@@ -48,18 +30,27 @@ optim:
 """
 
 
-def unicorn_train(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    command = [sys.executable, "-m", "unicorn.cli.train", *args]
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+def _write_composed(cfg) -> None:
+    """The task of :func:`_compose_only`: the job's composed config (unresolved, so that the two forms can be
+    compared) and Hydra's choice of experiment, written into the job's folder."""
+    hydra = HydraConfig.get()
+    out = Path(hydra.runtime.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "composed.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (out / "choice.json").write_text(json.dumps(hydra.runtime.choices.get("experiment")))
+
+
+def _compose_only() -> None:
+    """unicorn-train's main() with its task (build and train) replaced by :func:`_write_composed` (the forked
+    command of :func:`compose_only`: the replacement stays in that process)."""
+    train._task = _write_composed
+    train.main()
 
 
 def compose_only(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    script = cwd / "compose_only.py"
-    script.write_text(COMPOSE_ONLY)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    command = [sys.executable, str(script), *args]
-    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+    argv = [train.__file__, *args]
+    return run_command(f"{__name__}:_compose_only", argv, cwd=cwd, env=env, timeout=120)
 
 
 def test_only_the_appending_experiment_form_is_rewritten():

@@ -130,7 +130,7 @@ def test_end_to_end(synthetic_cache, tmp_path):
     run_dir = tmp_path / "run"
     args = [a for a in TINY if not a.startswith(("logger=", "callbacks.images="))]
     logs = ("callbacks.images.every_n_steps=4", "trainer.log_every_n_steps=4")
-    result = unicorn_train(*args, *logs, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    result = unicorn_train(*args, *logs, f"hydra.run.dir={run_dir}", cwd=tmp_path, fresh=True)  # a new interpreter
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     # Lightning's messages reach the console once (through Hydra's handlers) and train.log
     assert (result.stdout + result.stderr).count("GPU available") == 1
@@ -171,7 +171,13 @@ def test_multirun_sweep(synthetic_cache, tmp_path):
 def test_ddp_two_cpu_processes(synthetic_cache, tmp_path):
     run_dir = tmp_path / "ddp"
     result = unicorn_train(
-        *TINY, "trainer=ddp_cpu", "trainer.max_steps=4", f"hydra.run.dir={run_dir}", cwd=tmp_path, timeout=300
+        *TINY,
+        "trainer=ddp_cpu",
+        "trainer.max_steps=4",
+        f"hydra.run.dir={run_dir}",
+        cwd=tmp_path,
+        timeout=300,
+        fresh=True,  # Lightning starts the second process by running this command line again
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     ckpt = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)

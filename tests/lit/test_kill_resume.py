@@ -8,7 +8,6 @@ CI explores different interleavings over time while a failure can be replayed.
 from __future__ import annotations
 
 import csv
-import multiprocessing
 import os
 import random
 import signal
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from tests.support import forked
 from tests.support.training import TINY
 
 MAX_STEPS = 6
@@ -38,19 +38,11 @@ def _train(out: str, extra: list[str]) -> None:  # runs in a forked child
     os._exit(0)
 
 
-def _context() -> multiprocessing.context.BaseContext:
-    """A fork server that imported torch, Lightning and unicorn once: each attempt is a cheap fork of it.
-
-    Forking the test process itself could deadlock: other tests leave threads holding locks behind.
-    """
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["torch", "lightning", "unicorn.lit.run", "tests.lit.test_kill_resume"])
-    return context
-
-
 def _attempt(out: Path, *extra: str) -> int:
     """Train in a new process; returns its exit code (-9: killed)."""
-    process = _context().Process(target=_train, args=(str(out), list(extra)))
+    process = forked.context().Process(  # a cheap fork of a server with torch imported
+        target=_train, args=(str(out), list(extra))
+    )
     process.start()
     process.join(timeout=300)
     if process.exitcode is None:

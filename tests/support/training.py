@@ -9,6 +9,9 @@ from pathlib import Path
 
 import lightning as L
 
+from tests.support.forked import run_command
+from unicorn.cli import train
+
 #: overrides that turn `experiment=synthetic` into a run of a few seconds on two CPU cores
 TINY = [
     "experiment=synthetic",
@@ -52,9 +55,16 @@ def build_run(tmp_path: Path, *overrides: str):
     return build(compose_config([*TINY, f"paths.output_dir={tmp_path}", *overrides]))
 
 
-def unicorn_train(*args: str, cwd: Path, timeout: int = 240) -> subprocess.CompletedProcess:
-    """``unicorn-train ARGS`` in ``cwd`` (one thread, one-line errors), its output captured."""
+def unicorn_train(*args: str, cwd: Path, timeout: int = 240, fresh: bool = False) -> subprocess.CompletedProcess:
+    """``unicorn-train ARGS`` in ``cwd`` (one thread, one-line errors), its output captured.
+
+    The command is a new process forked from a server that imported torch and Lightning once
+    (:mod:`tests.support.forked`); ``fresh=True`` starts a new interpreter, ``python -m unicorn.cli.train``.
+    """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    if not fresh:
+        argv = [str(Path(train.__file__)), *args]  # what sys.argv holds under python -m
+        return run_command("unicorn.cli.train:main", argv, cwd=cwd, env=env, timeout=timeout)
     return subprocess.run(
         [sys.executable, "-m", "unicorn.cli.train", *args],
         cwd=cwd,
