@@ -1,11 +1,11 @@
 """Commands run as new processes forked from a server that imported torch, Lightning and unicorn's CLI once.
 
-A fresh ``python -m unicorn.cli.train`` spends most of a refused or a tiny run importing torch and Lightning
-(about 10 of its 15 s on two cores). A fork of a server that has them imported is still a new process: its own
-exit status, stdout and stderr, working directory, environment and thread count, with ``main()`` running as the
-console script runs it. The server is a clean interpreter (multiprocessing's fork server), never the test
-process, whose threads may hold locks. Tests of what only a new interpreter shows (``python -m``, ``--help``,
-DDP's re-launch, signals) start one with :mod:`subprocess` instead.
+A fresh ``python -m unicorn.cli.train`` spends most of a refused or a tiny run importing torch and Lightning. A
+fork of a server that has them imported is still a new process: its own exit status, stdout and stderr, working
+directory, environment and thread count, with ``main()`` running as the console script runs it. The server is a
+clean interpreter (multiprocessing's fork server), never the test process, whose threads may hold locks. Tests of
+what only a new interpreter shows (``python -m``, ``--help``, DDP's re-launch, signals) start one with
+:mod:`subprocess` instead.
 """
 
 from __future__ import annotations
