@@ -4,14 +4,12 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from tests.support.forked import run_command
 from tests.support.training import compose_config, unicorn_train
 from unicorn.cli import train
 from unicorn.cli.train import experiment_overrides, hydra_argv
@@ -48,9 +46,7 @@ def _compose_only() -> None:
 
 
 def compose_only(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    argv = [train.__file__, *args]
-    return run_command(f"{__name__}:_compose_only", argv, cwd=cwd, env=env, timeout=120)
+    return unicorn_train(*args, cwd=cwd, timeout=120, entry=f"{__name__}:_compose_only")
 
 
 def test_only_the_appending_experiment_form_is_rewritten():

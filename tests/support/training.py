@@ -55,16 +55,19 @@ def build_run(tmp_path: Path, *overrides: str):
     return build(compose_config([*TINY, f"paths.output_dir={tmp_path}", *overrides]))
 
 
-def unicorn_train(*args: str, cwd: Path, timeout: int = 240, fresh: bool = False) -> subprocess.CompletedProcess:
+def unicorn_train(
+    *args: str, cwd: Path, timeout: int = 240, fresh: bool = False, entry: str = "unicorn.cli.train:main"
+) -> subprocess.CompletedProcess:
     """``unicorn-train ARGS`` in ``cwd`` (one thread, one-line errors), its output captured.
 
     The command is a new process forked from a server that imported torch and Lightning once
-    (:mod:`tests.support.forked`); ``fresh=True`` starts a new interpreter, ``python -m unicorn.cli.train``.
+    (:mod:`tests.support.forked`), running ``entry`` (a test may name a ``main`` of its own); ``fresh=True`` starts
+    a new interpreter, ``python -m unicorn.cli.train``.
     """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
     if not fresh:
-        argv = [str(Path(train.__file__)), *args]  # what sys.argv holds under python -m
-        return run_command("unicorn.cli.train:main", argv, cwd=cwd, env=env, timeout=timeout)
+        argv = [train.__file__, *args]  # what sys.argv holds under python -m
+        return run_command(entry, argv, cwd=cwd, env=env, timeout=timeout)
     return subprocess.run(
         [sys.executable, "-m", "unicorn.cli.train", *args],
         cwd=cwd,
