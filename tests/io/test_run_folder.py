@@ -110,3 +110,27 @@ def test_folder_changes_put_an_existing_folder_back(tmp_path) -> None:
     (created / "train.log").write_text("x")
     changes.undo()
     assert not created.exists()
+
+
+def test_folder_changes_remove_the_parents_the_run_created(tmp_path) -> None:
+    top = tmp_path / "outputs"
+    run = top / "train" / "runs" / "now"
+    changes = FolderChanges(run, None, created_top=top)
+    run.mkdir(parents=True)
+    (run / "train.log").write_text("x")
+    changes.undo()
+    assert not top.exists() and tmp_path.is_dir()
+
+    kept = tmp_path / "outputs" / "train" / "mine.txt"  # another process wrote beside the run: that stays
+    changes = FolderChanges(run, None, created_top=top)
+    run.mkdir(parents=True)
+    kept.write_text("mine")
+    changes.undo()
+    assert not run.exists() and not run.parent.exists() and kept.read_text() == "mine"
+
+    other = tmp_path / "elsewhere" / "run"  # a folder outside created_top: its parents are not the run's
+    other.parent.mkdir()
+    changes = FolderChanges(other, None, created_top=top)
+    other.mkdir()
+    changes.undo()
+    assert not other.exists() and other.parent.is_dir()

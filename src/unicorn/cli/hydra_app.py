@@ -84,22 +84,6 @@ def entries_before(folder: Path) -> set[str] | None:
     return {p.name for p in folder.iterdir()} if folder.is_dir() else None
 
 
-def remove_created_parents(folder: Path) -> None:
-    """Remove the folders above ``folder`` that Hydra created for this process (up to
-    :attr:`NoteExistingFolders.created_top`) and that are empty again, nearest first: a refused run leaves no
-    ``outputs/<task>/runs`` behind."""
-    top = NoteExistingFolders.created_top
-    if top is None:
-        return
-    for parent in folder.resolve().parents:
-        if parent != top and top not in parent.parents:
-            return
-        try:
-            parent.rmdir()  # only an empty folder: what another process wrote there stays
-        except OSError:
-            return
-
-
 #: the last line of a Python traceback: the exception's (qualified) name and message
 _EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
 

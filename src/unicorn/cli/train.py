@@ -42,7 +42,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.hydra_app import HydraApp, entries_before, hydra_failure, remove_created_parents
+from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.resources import config_dir
 
 __all__ = ["DEFAULT_EXPERIMENT", "config_dir", "experiment_overrides", "hydra_argv", "hydra_failure", "main"]
@@ -76,7 +76,8 @@ def _task(cfg: DictConfig) -> None:
         return
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
-    changes = [FolderChanges(folder, names) for folder, names in entries.items()]
+    top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
+    changes = [FolderChanges(folder, names, top) for folder, names in entries.items()]
     run = None
     try:
         run = build(cfg)
@@ -88,8 +89,6 @@ def _task(cfg: DictConfig) -> None:
             lock.release()
             for change in changes:
                 change.undo()
-                if not change.existed:
-                    remove_created_parents(change.folder)
         raise
     finally:
         lock.release()

@@ -265,13 +265,15 @@ class FolderChanges:
 
     Create it before the run writes anything, with the names the folder held before this process touched it
     (``entries``; None: it did not exist). :meth:`undo` removes a folder that did not exist before (everything in
-    it is the run's); in an existing folder it removes only the files and folders the run added and restores the
-    records it rewrote (:data:`RUN_RECORDS`), so that the folder is as it was, byte for byte (the lines the run
-    appended to ``train.log`` included).
+    it is the run's), and with it the folders above it up to ``created_top`` (the outermost missing ancestor, which
+    the run created with it) that are empty again; in an existing folder it removes only the files and folders the
+    run added and restores the records it rewrote (:data:`RUN_RECORDS`), so that the folder is as it was, byte for
+    byte (the lines the run appended to ``train.log`` included).
     """
 
-    def __init__(self, folder: Path, entries: set[str] | None) -> None:
+    def __init__(self, folder: Path, entries: set[str] | None, created_top: Path | None = None) -> None:
         self.folder, self.existed = folder, entries is not None and folder.is_dir()
+        self.created_top = None if created_top is None else created_top.resolve()
         present = self._written() if self.existed else []
         self.paths = {p for p in present if _top(folder, p) in (entries or set())}
         self.records = {p: p.read_bytes() for p in self.paths if p.is_file() and _top(folder, p) in RUN_RECORDS}
@@ -289,6 +291,7 @@ class FolderChanges:
         """Put the folder back as it was (see the class docstring)."""
         if not self.existed:
             shutil.rmtree(self.folder, ignore_errors=True)
+            self._remove_created_parents()
             return
         added = [p for p in self._written() if p not in self.paths and p.name != LOCK_NAME]
         for path in sorted(added, key=lambda p: len(p.parts), reverse=True):
@@ -303,6 +306,19 @@ class FolderChanges:
         log_file = self.folder / RUN_LOG
         if self.log_size is not None and log_file.is_file() and log_file.stat().st_size != self.log_size:
             os.truncate(self.folder / RUN_LOG, self.log_size)  # the lines this run appended
+
+    def _remove_created_parents(self) -> None:
+        """Remove the folders above the folder, up to :attr:`created_top`, that are empty again, nearest first."""
+        top = self.created_top
+        if top is None:
+            return
+        for parent in self.folder.resolve().parents:
+            if parent != top and top not in parent.parents:
+                return
+            try:
+                parent.rmdir()  # only an empty folder: what another process wrote there stays
+            except OSError:
+                return
 
 
 def _top(folder: Path, path: Path) -> str:
