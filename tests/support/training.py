@@ -56,18 +56,21 @@ def build_run(tmp_path: Path, *overrides: str):
 
 
 def unicorn_train(
-    *args: str, cwd: Path, timeout: int = 240, fresh: bool = False, entry: str = "unicorn.cli.train:main"
+    *args: str, cwd: Path, timeout: int = 240, fresh: bool = False, entry: str | None = None
 ) -> subprocess.CompletedProcess:
     """``unicorn-train ARGS`` in ``cwd`` (one thread, one-line errors), its output captured.
 
     The command is a new process forked from a server that imported torch and Lightning once
-    (:mod:`tests.support.forked`), running ``entry`` (a test may name a ``main`` of its own); ``fresh=True`` starts
-    a new interpreter, ``python -m unicorn.cli.train``.
+    (:mod:`tests.support.forked`), running ``entry`` (default ``unicorn.cli.train:main``; a test may name a ``main``
+    of its own); ``fresh=True`` starts a new interpreter, ``python -m unicorn.cli.train``, which runs the real entry
+    point only.
     """
+    if fresh and entry is not None:
+        raise ValueError("unicorn_train: fresh=True runs python -m unicorn.cli.train; it takes no entry")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
     if not fresh:
         argv = [train.__file__, *args]  # what sys.argv holds under python -m
-        return run_command(entry, argv, cwd=cwd, env=env, timeout=timeout)
+        return run_command(entry or "unicorn.cli.train:main", argv, cwd=cwd, env=env, timeout=timeout)
     return subprocess.run(
         [sys.executable, "-m", "unicorn.cli.train", *args],
         cwd=cwd,
