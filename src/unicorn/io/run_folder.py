@@ -313,7 +313,7 @@ class FolderChanges:
         if top is None:
             return
         for parent in self.folder.resolve().parents:
-            if parent != top and top not in parent.parents:
+            if not parent.is_relative_to(top):  # above what the run created
                 return
             try:
                 parent.rmdir()  # only an empty folder: what another process wrote there stays
