@@ -15,7 +15,9 @@ launches. Inside ``with sync_free():`` the code that has another way takes it:
   finite-loss flag (:mod:`unicorn.lit.finite`) and the buffers' needs on its logging and checkpoint steps only.
 
 Outside the block (the default, and what the CPU uses) the code keeps its exact algorithms and reads where it
-must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`).
+must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`). ``torch.compile`` cannot trace
+a context variable's read: while it traces, the flag is read from a module global that the blocks keep alongside
+(the innermost block entered in any thread), which the compiled graph guards on.
 """
 
 from __future__ import annotations
@@ -24,21 +26,30 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 
+import torch
+
 __all__ = ["is_sync_free", "sync_free"]
 
 _SYNC_FREE: ContextVar[bool] = ContextVar("unicorn_sync_free", default=False)
+#: the same switch as a global that torch.compile traces (and guards on): the innermost block in any thread
+_TRACED = False
 
 
 def is_sync_free() -> bool:
     """Whether the current code runs inside :func:`sync_free` (enabled)."""
+    if torch.compiler.is_compiling():
+        return _TRACED
     return _SYNC_FREE.get()
 
 
 @contextmanager
 def sync_free(enabled: bool = True) -> Iterator[None]:
     """Take the paths without host reads in this block (``enabled=False``: the default paths)."""
-    token = _SYNC_FREE.set(bool(enabled))
+    global _TRACED
+    token, traced = _SYNC_FREE.set(bool(enabled)), _TRACED
+    _TRACED = bool(enabled)
     try:
         yield
     finally:
         _SYNC_FREE.reset(token)
+        _TRACED = traced

@@ -1,8 +1,9 @@
 """The run's assembly: callbacks and loggers are the config's nodes, built by their ``_target_``, in a fixed order;
-``model.compile`` compiles what ``fit`` names."""
+``model.compile`` compiles what ``fit`` names (``model.compile_scope``)."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 from lightning.pytorch.callbacks import Timer
 
@@ -16,10 +17,12 @@ from unicorn.lit import (
     ResumeLogs,
     StageCallback,
 )
+from unicorn.config.build import ConfigError
+from unicorn.lit import compiled as compiled_module
 from unicorn.lit.loggers import CSVLogger
 from unicorn.lit.run import fit
 from unicorn.model import compile as compile_module
-from unicorn.model.compile import networks
+from unicorn.model.compile import CompileWarning, networks
 
 
 def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
@@ -61,3 +64,43 @@ def test_training_with_model_compile_compiles_the_networks_and_the_reconstructio
     expected.append(run.module.objectives.steps["pose"].reconstruction)
     assert [module for module, _ in compiled] == expected
     assert all(kwargs == {"mode": "reduce-overhead"} for _, kwargs in compiled)
+
+
+def test_model_compile_scope_step_runs_the_steps_after_the_checked_ones_compiled(synthetic_cache, tmp_path, monkeypatch):
+    calls = []
+
+    def recording_compile(fn, **options):  # records, and runs the step eagerly (the compiled graphs: test_compiled)
+        def run_step(kind, images, average_texture, iteration):
+            calls.append((kind, iteration))
+            return fn(kind, images, average_texture, iteration)
+
+        return run_step
+
+    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: None)
+    monkeypatch.setattr(compiled_module.torch, "compile", recording_compile)
+    run = build_run(tmp_path, "model.compile=default", "model.compile_scope=step", "trainer.max_steps=4")
+    fit(run)
+    assert run.module.compiled_step is not None
+    assert calls == [("pose", 2), ("3d", 3)]  # the first two steps of a process are checked, eagerly
+
+
+def test_model_compile_scope_step_where_compile_cannot_run_warns_and_trains_eagerly(
+    synthetic_cache, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: "RuntimeError: no C++ compiler")
+    run = build_run(tmp_path, "model.compile=default", "model.compile_scope=step", "trainer.max_steps=2")
+    with pytest.warns(CompileWarning, match="no C.. compiler.*the steps run eagerly"):
+        fit(run)
+    assert run.module.compiled_step is None and run.trainer.global_step == 2
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["model.compile_scope=graph"], "model.compile_scope must be one of"),
+        (["model.compile=default", "model.compile_scope=step", "optim.sync_free=false"], "optim.sync_free is false"),
+    ],
+)
+def test_model_compile_scope_is_checked(tmp_path, overrides, message) -> None:
+    with pytest.raises(ConfigError, match=message):
+        build_run(tmp_path, *overrides)

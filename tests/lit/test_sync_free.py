@@ -18,13 +18,23 @@ from tests.support.training import StateBefore, build_run
 from unicorn.lit.run import fit
 
 
-class StepSyncs(L.Callback):
+class LossRecorder(L.Callback):
+    """The loss terms each iteration's training step returned."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, float]] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.rows.append({name: float(value) for name, value in outputs.items()})
+
+
+class StepSyncs(LossRecorder):
     """The syncs of each training step (``training_step`` only; the callbacks' logging reads are not steps'),
     and the terms each step returned."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.syncs: dict[int, list] = {}
-        self.rows: list[dict[str, float]] = []
 
     def on_train_start(self, trainer, pl_module):
         step_fn = pl_module.training_step
@@ -36,9 +46,6 @@ class StepSyncs(L.Callback):
             return out
 
         pl_module.training_step = recorded
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        self.rows.append({name: float(value) for name, value in outputs.items()})
 
 
 def _train(tmp_path, sync_free: bool | None, *overrides: str) -> StepSyncs:
@@ -83,11 +90,11 @@ def test_sync_free_steps_give_the_default_losses(synthetic_cache, tmp_path):
 
 
 class SyncErrors(L.Callback):
-    """Runs the training steps after the checked ones, except the logging steps, under
-    ``torch.cuda.set_sync_debug_mode("error")``: a host read in them raises."""
+    """Runs the training steps from ``start`` (None: the first after the checked ones), except the logging steps,
+    under ``torch.cuda.set_sync_debug_mode("error")``: a host read in them raises."""
 
-    def __init__(self, log_every: int) -> None:
-        self.log_every = log_every
+    def __init__(self, log_every: int, start: int | None = None) -> None:
+        self.log_every, self.start = log_every, start
         self.plain: list[int] = []
 
     def on_train_start(self, trainer, pl_module):
@@ -95,7 +102,8 @@ class SyncErrors(L.Callback):
 
         def strict(batch, batch_idx):
             step = trainer.global_step
-            plain = step >= pl_module.checked_steps and (step + 1) % self.log_every != 0
+            start = pl_module.checked_steps if self.start is None else self.start
+            plain = step >= start and (step + 1) % self.log_every != 0
             torch.cuda.set_sync_debug_mode("error" if plain else "default")
             try:
                 out = step_fn(batch, batch_idx)
@@ -115,6 +123,34 @@ def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path):
     run.trainer.callbacks.append(errors)
     fit(run)
     assert run.trainer.global_step == 8 and errors.plain == [2, 4, 5, 6]
+
+
+@pytest.mark.gpu
+def test_cuda_captured_steps_do_not_sync_and_give_the_eager_losses(synthetic_cache, tmp_path):
+    # float64 and one pose candidate: no argmin tie that rounding decides (tests/lit/test_cuda.py); no neighbour
+    # term: its bin draw comes from another random stream in a graph
+    same = (
+        "trainer.log_every_n_steps=4", "trainer.max_steps=12", "trainer.accelerator=gpu", "trainer.devices=1",
+        "trainer.precision=64-true", "model.pose.n_azim=1", "model.loss.neighbor_weight=0",
+    )  # fmt: skip
+    runs = {}
+    for name in ("eager", "captured"):
+        run = build_run(tmp_path / name, *same)
+        if name == "captured":
+            # CUDA graphs of the traced step with the eager kernels (the cudagraphs backend: no code generation
+            # to wait for); from iteration 6 on every step replays graphs recorded at iterations 4 and 5
+            run.module.compile_step(backend="cudagraphs")
+            errors = SyncErrors(4, start=6)
+            run.trainer.callbacks.append(errors)
+        runs[name] = LossRecorder()
+        run.trainer.callbacks.append(runs[name])
+        fit(run)
+        assert run.trainer.global_step == 12
+    assert errors.plain == [6, 8, 9, 10]
+    for step, (a, b) in enumerate(zip(runs["eager"].rows, runs["captured"].rows, strict=True)):
+        assert a.keys() == b.keys(), step
+        for name in a:
+            assert b[name] == pytest.approx(a[name], rel=1e-6, abs=1e-9), (step, name)
 
 
 def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch):

@@ -23,7 +23,7 @@ from unicorn.data.common import OnError
 from unicorn.data.registry import stored_image_size
 from unicorn.errors import UserError
 from unicorn.model import check_model_size
-from unicorn.model.compile import COMPILE_MODES
+from unicorn.model.compile import COMPILE_MODES, COMPILE_SCOPES
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config
 from unicorn.model.ranges import check_ranges
 from unicorn.objectives.loss_factory import check_loss_choices
@@ -138,6 +138,14 @@ def _check_model(cfg: DictConfig) -> None:
     _check(
         m.compile is None or m.compile in COMPILE_MODES,
         f"model.compile must be null or one of {COMPILE_MODES}, got {m.compile!r}",
+    )
+    _check(
+        m.compile_scope in COMPILE_SCOPES,
+        f"model.compile_scope must be one of {COMPILE_SCOPES}, got {m.compile_scope!r}",
+    )
+    _check(
+        m.compile_scope != "step" or cfg.optim.sync_free is not False,
+        "model.compile_scope=step compiles the steps without host reads, but optim.sync_free is false",
     )
     try:
         config = model_config(cfg)
@@ -324,6 +332,7 @@ def model_config(cfg: DictConfig) -> dict[str, Any]:
     stages = model.pop("stages")
     model.pop("name")
     model.pop("compile")  # how the networks run, not what they are: unicorn.lit.run.fit applies it
+    model.pop("compile_scope")
     renderer = renderer_settings(cfg.renderer)
     renderer["composite"] = model.pop("composite")
     model["renderer"] = renderer

@@ -41,7 +41,7 @@ import functools
 import logging
 import random
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import lightning as L
@@ -53,6 +53,7 @@ from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
 from unicorn.data.augment import random_hue_shift, random_roll_shift
 from unicorn.hostsync import is_sync_free, sync_free
+from unicorn.lit.compiled import CompiledStep
 from unicorn.lit.finite import FiniteCheck, NonFiniteLossError
 from unicorn.lit.loggers import logs_this_step
 from unicorn.metrics import mask_iou
@@ -180,6 +181,8 @@ class UnicornLitModule(L.LightningModule):
         #: the texture-averaging probability as the stage callback last wrote it (read instead of the buffer)
         self.texture_average_host: float | None = None
         self._steps_run = 0
+        #: the steps without host reads' forward compiled whole (``model.compile_scope=step``, :meth:`compile_step`)
+        self.compiled_step: CompiledStep | None = None
         # each step kind's terms of its latest iteration, logged together (see training_step)
         self._latest_terms: dict[str, dict[str, torch.Tensor]] = {}
 
@@ -217,9 +220,24 @@ class UnicornLitModule(L.LightningModule):
         return images
 
     # ------------------------------------------------------------------ training
+    def compile_step(self, mode: str = "default", backend: str | Callable[..., Any] | None = None) -> None:
+        """Compile the forward of the steps without host reads whole (:class:`unicorn.lit.compiled.CompiledStep`):
+        the networks, the renderer and the losses of each step kind as one graph, CUDA graphs with
+        ``mode="reduce-overhead"`` on CUDA. The steps then run without host reads on every device after the checked
+        first ones (``optim.sync_free`` null); the checked steps, validation and evaluation stay eager.
+
+        Raises:
+            ValueError: ``optim.sync_free`` is false: the compiled steps need the steps without host reads.
+        """
+        if self.sync_free is False:
+            raise ValueError("a compiled step needs the steps without host reads: optim.sync_free is false")
+        self.compiled_step = CompiledStep(self.objectives, self.model, mode, backend)
+
     def _sync_free_step(self) -> bool:
         """Whether this step runs without host reads (:attr:`sync_free`, after :attr:`checked_steps` checked ones)."""
-        enabled = self.sync_free if self.sync_free is not None else self.device.type == "cuda"
+        enabled = self.sync_free
+        if enabled is None:
+            enabled = self.device.type == "cuda" or self.compiled_step is not None
         return bool(enabled) and self._steps_run >= self.checked_steps
 
     def _verifies(self, step: int) -> bool:
@@ -251,7 +269,10 @@ class UnicornLitModule(L.LightningModule):
             self.finite.begin(step)
         elif check:
             self.finite.snapshot()
-        losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
+        if deferred and self.compiled_step is not None:
+            losses = self.compiled_step(phase, images, average, step)
+        else:
+            losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
         self.manual_backward(losses["total"])
         if check and deferred:
             self.finite.defer(losses, step)

@@ -247,6 +247,25 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
         ) from err
 
 
+def _compile(run: Run) -> None:
+    """``model.compile``: the networks compiled in place, or the steps' whole forward (``model.compile_scope``)."""
+    from unicorn.model.compile import CompileWarning, compile_modules, compile_unavailable
+    from unicorn.objectives import training_networks
+
+    mode, device = run.config.model.compile, run.trainer.strategy.root_device
+    if run.config.model.compile_scope == "networks":
+        named = training_networks(run.module.model, run.module.objectives)
+        if compile_modules([module for _, module in named], mode, device):
+            log.info("compiled at their first call (torch.compile, mode %s): %s", mode, ", ".join(n for n, _ in named))
+        return
+    reason = compile_unavailable(device)
+    if reason is not None:
+        warnings.warn(f"torch.compile cannot run on {device} ({reason}): the steps run eagerly", CompileWarning)
+        return
+    run.module.compile_step(mode)
+    log.info("the steps' forward compiled whole at the first step without host reads (torch.compile, mode %s)", mode)
+
+
 def fit(run: Run) -> dict[str, float]:
     """Train a built run; returns the last values of the trainer's scalar callback metrics.
 
@@ -255,16 +274,7 @@ def fit(run: Run) -> dict[str, float]:
     """
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:
-        from unicorn.model.compile import compile_modules
-        from unicorn.objectives import training_networks
-
-        named = training_networks(run.module.model, run.module.objectives)
-        if compile_modules([module for _, module in named], typed.model.compile, trainer.strategy.root_device):
-            log.info(
-                "compiled at their first call (torch.compile, mode %s): %s",
-                typed.model.compile,
-                ", ".join(name for name, _ in named),
-            )
+        _compile(run)
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)

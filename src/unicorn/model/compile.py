@@ -18,10 +18,13 @@ from torch import nn
 
 from unicorn.model.autoencoder import Unicorn
 
-__all__ = ["COMPILE_MODES", "CompileWarning", "compile_modules", "compile_networks", "compile_unavailable", "networks"]
+__all__ = ["COMPILE_MODES", "COMPILE_SCOPES", "CompileWarning", "compile_modules", "compile_networks", "compile_unavailable", "networks"]
 
 #: ``torch.compile`` modes (``mode=``); ``reduce-overhead`` captures CUDA graphs of each compiled network
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+#: what a trainer compiles (``model.compile_scope``): each network, or the whole forward of its steps
+#: (:mod:`unicorn.lit.compiled`)
+COMPILE_SCOPES = ("networks", "step")
 
 
 class CompileWarning(UserWarning):

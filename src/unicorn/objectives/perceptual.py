@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -213,10 +214,10 @@ class VGGPerceptualLoss(nn.Module):
 
 @cache_outside_compile(maxsize=None)
 def _gaussian_taps(window_size: int, sigma: float = 1.5) -> tuple[float, ...]:
-    """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size), computed once per size."""
-    x = torch.arange(window_size, dtype=torch.float64) - window_size // 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    return tuple((g / g.sum()).tolist())
+    """Normalised 1-D Gaussian taps (kornia's SSIM window: sigma 1.5 whatever the size), computed once per size (in
+    Python floats: ``torch.compile`` traces it without reading a tensor back)."""
+    g = [math.exp(-((i - window_size // 2) ** 2) / (2 * sigma**2)) for i in range(window_size)]
+    return tuple(v / math.fsum(g) for v in g)
 
 
 def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: float = 1.0) -> torch.Tensor:

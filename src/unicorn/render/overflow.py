@@ -28,6 +28,8 @@ __all__ = ["OverflowCounter", "RenderOverflowWarning", "note_overflow"]
 
 #: the counters collecting renders, innermost last (per thread and asyncio task)
 _ACTIVE: ContextVar[tuple[OverflowCounter, ...]] = ContextVar("unicorn_render_overflow", default=())
+#: the same as a global that torch.compile traces (it cannot read a context variable): the last set in any thread
+_TRACED: tuple[OverflowCounter, ...] = ()
 #: the faces_per_pixel settings whose overflow was already reported in this process (outside any counter)
 _WARNED: set[int] = set()
 
@@ -101,7 +103,7 @@ class OverflowCounter:
 
     def start(self) -> OverflowCounter:
         """Collect the renders from now on (until :meth:`stop`), innermost of the active counters."""
-        _ACTIVE.set((*_ACTIVE.get(), self))
+        _set_active((*_ACTIVE.get(), self))
         return self
 
     def stop(self) -> None:
@@ -110,7 +112,7 @@ class OverflowCounter:
         for i in range(len(active) - 1, -1, -1):
             if active[i] is self:
                 del active[i]
-                _ACTIVE.set(tuple(active))
+                _set_active(tuple(active))
                 return
 
     def __enter__(self) -> OverflowCounter:
@@ -122,6 +124,12 @@ class OverflowCounter:
         self.stop()
 
 
+def _set_active(counters: tuple[OverflowCounter, ...]) -> None:
+    global _TRACED
+    _ACTIVE.set(counters)
+    _TRACED = counters
+
+
 def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
     """Report one render: to the innermost active :class:`OverflowCounter`, else (when ``overflow`` > 0) as a
     :class:`RenderOverflowWarning`, once per ``faces_per_pixel`` setting and process.
@@ -130,7 +138,7 @@ def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
     does, every step), which would repeat the line thousands of times; hence the set kept here. Called by
     :func:`~unicorn.render.raster.rasterize_meshes`; the warning points at its caller.
     """
-    active = _ACTIVE.get()
+    active = _TRACED if torch.compiler.is_compiling() else _ACTIVE.get()
     if active:
         active[-1].add(overflow, pixels, faces_per_pixel)
         return

@@ -133,6 +133,8 @@ class MeshRasterizer(nn.Module):
         )  # fmt: skip
         if fragments.sizes is not None and capacity is None:  # on the host: sizes the fixed buffers
             self._fit(key, fragments.sizes.tolist())
+            # an entry from the start, kept from then on: a compiled step's graph guards on the keys present
+            self._needed.setdefault(key, torch.zeros_like(fragments.sizes))
         elif fragments.sizes is not None:
             before = self._needed.get(key)
             self._needed[key] = fragments.sizes if before is None else torch.maximum(before, fragments.sizes)
@@ -147,12 +149,18 @@ class MeshRasterizer(nn.Module):
         self.buffers[key] = tuple(max(h, -(-int(n * 1.25) // 1024) * 1024) for n, h in zip(needed, have))
         return True
 
+    def own_needed(self) -> None:
+        """Copy the sizes the fixed-buffer renders needed so far into tensors of their own (after a compiled step
+        whose CUDA graphs reuse their outputs' memory at their next replay: :mod:`unicorn.lit.compiled`)."""
+        self._needed = {key: sizes.clone() for key, sizes in self._needed.items()}
+
     def grow_buffers(self) -> list[str]:
         """Read what the fixed-buffer renders since the previous call needed (one host read) and grow the buffers
         that were too small (those renders dropped candidates or pairs); a line for each of them."""
-        needed, self._needed = self._needed, {}
+        needed = self._needed
         if not needed:
             return []
+        self._needed = {key: torch.zeros_like(sizes) for key, sizes in needed.items()}
         keys = list(needed)
         read = torch.stack([needed[k] for k in keys]).tolist()
         lines = []

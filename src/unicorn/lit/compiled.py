@@ -1,0 +1,92 @@
+"""A training step's forward compiled whole: the networks, the renderer and the losses as one graph.
+
+``model.compile_scope=step`` compiles what the trainer's steps without host reads (:mod:`unicorn.hostsync`) compute
+before their backward, the objectives' call (:class:`unicorn.objectives.Objectives`), with ``torch.compile`` in the
+mode ``model.compile`` names. Those steps trace without a graph break, so each step kind (and texture-averaging
+choice) is one forward graph, and AOTAutograd derives its backward as one graph; with ``reduce-overhead`` on CUDA
+both are captured as CUDA graphs and replayed, a step's thousands of kernels launched by a few calls. The optimizer
+step (the fused Adam: one kernel per parameter group) and the checked first iterations of a process run eagerly.
+
+A CUDA graph reuses its outputs' memory at its next replay. After each call, what outlives the step (the terms it
+returns, the neighbour memory, the sizes the rasterizers' fixed buffers needed, the render overflow counts) is
+copied into memory of its own where graphs may have captured it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from unicorn.model import Unicorn
+from unicorn.objectives import Objectives
+from unicorn.objectives.step_losses import StepLosses
+from unicorn.render import OverflowCounter
+from unicorn.render.overflow import note_overflow
+from unicorn.render.rasterizer import MeshRasterizer
+
+__all__ = ["CUDA_GRAPH_MODES", "CompiledStep"]
+
+#: the ``torch.compile`` modes that capture CUDA graphs on CUDA devices
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+#: graphs kept per step function: 2 step kinds x 2 averaging choices x 4 stages, and a few buffer sizes each
+_RECOMPILE_LIMIT = 64
+
+
+class CompiledStep:
+    """``objectives(kind, model, images, average_texture, iteration)`` compiled with ``torch.compile(mode=mode)``.
+
+    Call it inside :func:`unicorn.hostsync.sync_free` (elsewhere the value checks' host reads break the graph).
+
+    Args:
+        objectives: the training objectives; model: the model they train.
+        mode: a ``torch.compile`` mode (:data:`unicorn.model.compile.COMPILE_MODES`).
+        backend: a ``torch.compile`` backend (None: inductor; ``"aot_eager"`` traces and differentiates the same
+            graphs without generating code, as the tests do).
+        copy_outputs: copy what outlives a step out of the graphs' memory after each call (None: where CUDA graphs
+            capture, a mode of :data:`CUDA_GRAPH_MODES` on a CUDA device).
+    """
+
+    def __init__(
+        self,
+        objectives: Objectives,
+        model: Unicorn,
+        mode: str = "default",
+        backend: str | Callable[..., Any] | None = None,
+        copy_outputs: bool | None = None,
+    ) -> None:
+        self.objectives, self.model, self.mode, self.copy_outputs = objectives, model, mode, copy_outputs
+        options: dict[str, Any] = {"mode": mode} if backend is None else {"backend": backend}
+        self._compiled = torch.compile(self._forward, **options)
+        # the renders' overflow counts inside the graphs, handed on to the caller's counter after each call (one
+        # counter for every call: the graphs guard on the active counters)
+        self._counter = OverflowCounter()
+
+    def _forward(self, kind: str, images: torch.Tensor, average_texture: bool, iteration: int) -> StepLosses:
+        return self.objectives(kind, self.model, images, average_texture=average_texture, iteration=iteration)
+
+    def __call__(self, kind: str, images: torch.Tensor, average_texture: bool, iteration: int) -> StepLosses:
+        """The step's losses (:class:`~unicorn.objectives.step_losses.StepLosses`) on images (B, 3, S, S)."""
+        copy = self.copy_outputs
+        if copy is None:
+            copy = self.mode in CUDA_GRAPH_MODES and images.is_cuda
+        if copy:
+            torch.compiler.cudagraph_mark_step_begin()  # the previous step's graph outputs are no longer read
+        with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT), self._counter:
+            losses = self._compiled(kind, images, average_texture, iteration)
+        counts, self._counter.counts = self._counter.counts, {}
+        for faces_per_pixel, (overflow, pixels) in counts.items():
+            if copy and isinstance(overflow, torch.Tensor):
+                overflow = overflow.clone()
+            note_overflow(overflow, pixels, faces_per_pixel)
+        if not copy:
+            return losses
+        memory = self.objectives.memory
+        memory.load_state({k: None if v is None else v.clone() for k, v in memory.state().items()})
+        for module in self.model.modules():
+            if isinstance(module, MeshRasterizer):
+                module.own_needed()
+        return StepLosses(
+            {k: v.clone() for k, v in losses.items()}, losses.probs.clone(), {k: v.clone() for k, v in losses.stats.items()}
+        )
