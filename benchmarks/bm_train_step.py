@@ -29,13 +29,16 @@ random weights unless ``--vgg`` names torchvision's file (the time is the same).
 ``model.compile`` (``none``: eager; a mode: the networks and the reconstruction loss compiled as ``unicorn-train``
 compiles them (:func:`unicorn.model.compile.compile_modules`), during the warm-up steps; their encoder, generator and
 perceptual times are part of ``other``, and with compiled rows every row runs its backward in one pass: the totals
-are the figures to compare).
+are the figures to compare). ``step:MODE`` compiles each step's whole forward instead (``model.compile_scope=step``,
+:class:`unicorn.lit.compiled.CompiledStep`, the steps without host reads; with ``step:reduce-overhead`` on CUDA,
+CUDA graphs of whole steps): its rows give the forward, backward, optimizer and total times only.
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
     python benchmarks/bm_train_step.py --device cuda --models small big
     python benchmarks/bm_train_step.py --device cuda --models small --precision 32-true bf16-mixed
     python benchmarks/bm_train_step.py --device cuda --models small --compile none default reduce-overhead
+    python benchmarks/bm_train_step.py --device cuda --models small --paths sync-free --compile step:reduce-overhead
     python benchmarks/bm_train_step.py --models tiny --paths default sync-free
 
 ``--paths`` lists the step paths to time side by side: ``default`` (the CPU's: exact sizes, reading the device back
@@ -63,17 +66,21 @@ import torch
 from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
 from unicorn.hostsync import sync_free
+from unicorn.lit.compiled import CompiledStep
 from unicorn.model import Unicorn
-from unicorn.model.compile import COMPILE_MODES, compile_modules
+from unicorn.model.compile import COMPILE_MODES, compile_modules, compile_unavailable
 from unicorn.model.config import CODE_BRANCHES
 from unicorn.objectives import Objectives, training_networks
 from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
+from unicorn.render import OverflowCounter
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
 COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")
 MODELS = ("tiny", "small", "small-structural", "big")
 #: Lightning precisions the benchmark times: their autocast dtype (None: no autocast)
 PRECISIONS: dict[str, torch.dtype | None] = {"32-true": None, "bf16-mixed": torch.bfloat16}
+#: ``--compile`` rows that compile each step's whole forward (model.compile_scope=step) in the mode that follows
+STEP = "step:"
 
 
 def autocast(device: str, precision: str) -> contextlib.AbstractContextManager[Any]:
@@ -269,7 +276,8 @@ def time_steps(
     for phase in ("pose", "3d"):
 
         def fn(images: torch.Tensor, phase: str = phase, free: bool = False) -> Any:
-            with autocast(device, precision), sync_free(free):
+            # the renders counted as training counts them (outside a counter an overflow would be read to warn)
+            with autocast(device, precision), sync_free(free), OverflowCounter():
                 return objectives(phase, model, images)
 
         rows = []
@@ -316,6 +324,63 @@ def time_steps(
     return results
 
 
+def time_compiled_steps(
+    model: Unicorn,
+    objectives: Objectives,
+    opt: torch.optim.Optimizer,
+    images: torch.Tensor,
+    device: str,
+    args: argparse.Namespace,
+    precision: str,
+    mode: str,
+) -> dict:
+    """Median timings of each step kind with its whole forward compiled in ``mode`` (``model.compile_scope=step``):
+    a checked eager step of each kind first (as a training's first two iterations: they size the rasterizer's
+    buffers), then the compiled steps without host reads, compiled during the warm-up. Forward, backward, optimizer,
+    total and peak memory; the component columns are NaN (a timing hook would break the graph)."""
+
+    def sync() -> None:
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    compiled = CompiledStep(objectives, model, mode)
+    for phase in ("pose", "3d"):
+        opt.zero_grad(set_to_none=True)
+        with autocast(device, precision):
+            objectives(phase, model, images)["total"].backward()
+        opt.step()
+    results = {}
+    for phase in ("pose", "3d"):
+        rows = []
+        for i in range(args.warmup + args.repeats):
+            opt.zero_grad(set_to_none=True)
+            if device == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            rss0 = peak_rss_mb()
+            sync()
+            t0 = time.perf_counter()
+            with autocast(device, precision), sync_free(), OverflowCounter():
+                losses = compiled(phase, images, False, 2 + i)
+            sync()
+            t1 = time.perf_counter()
+            losses["total"].backward()
+            sync()
+            t2 = time.perf_counter()
+            opt.step()
+            sync()
+            t3 = time.perf_counter()
+            peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
+            if i < args.warmup:
+                continue
+            row = dict.fromkeys(COLUMNS, float("nan"))
+            row.update(forward=t1 - t0, backward=t2 - t1, optimizer=t3 - t2, total=t3 - t0)
+            row["peak MB"] = peak
+            rows.append(row)
+        results[phase] = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
+        results[phase]["peak MB"] = max(r["peak MB"] for r in rows)
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
@@ -328,7 +393,11 @@ def main() -> None:
         "--precision", nargs="+", default=["32-true"], choices=list(PRECISIONS), help="rows per Lightning precision"
     )
     parser.add_argument(
-        "--compile", nargs="+", default=["none"], choices=["none", *COMPILE_MODES], help="rows per model.compile"
+        "--compile",
+        nargs="+",
+        default=["none"],
+        choices=["none", *COMPILE_MODES, *(STEP + m for m in COMPILE_MODES)],
+        help="rows per model.compile (step:MODE: model.compile_scope=step)",
     )
     parser.add_argument("--paths", nargs="+", default=["default"], choices=["default", "sync-free"])
     args = parser.parse_args()
@@ -349,13 +418,26 @@ def main() -> None:
             # a fresh model per row group, from the same seed: every row times the same weights and memory
             torch.manual_seed(0)
             model, objectives, opt, batch, image_size = build(size, args.vgg, args.device)
-            compiled = [module for _, module in training_networks(model, objectives)]
-            if mode != "none" and not compile_modules(compiled, mode, args.device):
-                continue  # the warning says why
             images = torch.rand(batch, 3, image_size, image_size, device=args.device)
-            # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare
-            split = all(m == "none" for m in args.compile)
-            rows = time_steps(model, objectives, opt, images, args.device, args, precision, path, mode != "none", split)
+            if mode.startswith(STEP):
+                if path != "sync-free":
+                    continue  # only the steps without host reads compile whole
+                reason = compile_unavailable(args.device)
+                if reason is not None:
+                    print(f"# {mode}: torch.compile cannot run on {args.device} ({reason})")
+                    continue
+                rows = time_compiled_steps(
+                    model, objectives, opt, images, args.device, args, precision, mode.removeprefix(STEP)
+                )
+            else:
+                compiled = [module for _, module in training_networks(model, objectives)]
+                if mode != "none" and not compile_modules(compiled, mode, args.device):
+                    continue  # the warning says why
+                # with compiled rows beside, the eager rows' backward is one pass as well: the totals compare
+                split = all(m == "none" for m in args.compile)
+                rows = time_steps(
+                    model, objectives, opt, images, args.device, args, precision, path, mode != "none", split
+                )
             for phase, row in rows.items():
                 cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
                 label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {path:>9s} {phase:4s}"

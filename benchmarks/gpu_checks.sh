@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA device, in one run: the tests marked gpu (the training steps without host reads among
-# them, under torch.cuda.set_sync_debug_mode("error")), then the CUDA benchmarks (training step in 32-true and
-# bf16-mixed, default and sync-free paths, eager and compiled, side by side; the main job's loop eager, compiled and
-# syncing; the renderer). Logs go to $OUT (default: ./gpu-checks).
+# them, under torch.cuda.set_sync_debug_mode("error"), and the steps captured as CUDA graphs), then the CUDA benchmarks
+# (training step in 32-true and bf16-mixed, default and sync-free paths, eager, compiled per network and captured
+# whole, side by side; the main job's loop eager, compiled, captured and syncing; the renderer). Logs go to $OUT
+# (default: ./gpu-checks); the captured rows come last (they compile the longest).
 # Run from the repository root on a machine where unicorn's dependencies are importable:
 #   bash benchmarks/gpu_checks.sh
 set -uo pipefail
@@ -16,3 +17,5 @@ python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 
 python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log"
 python3 benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log"
 python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log"
+python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile none step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
+python3 benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 --variant "captured model.compile=reduce-overhead model.compile_scope=step" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate_captured.log"

@@ -8,6 +8,7 @@ import torch
 from lightning.pytorch.callbacks import Timer
 
 from tests.support.training import build_run
+from unicorn.config.build import ConfigError
 from unicorn.lit import (
     CodeDiagnostics,
     GracefulStop,
@@ -17,7 +18,6 @@ from unicorn.lit import (
     ResumeLogs,
     StageCallback,
 )
-from unicorn.config.build import ConfigError
 from unicorn.lit import compiled as compiled_module
 from unicorn.lit.loggers import CSVLogger
 from unicorn.lit.run import fit
@@ -66,7 +66,7 @@ def test_training_with_model_compile_compiles_the_networks_and_the_reconstructio
     assert all(kwargs == {"mode": "reduce-overhead"} for _, kwargs in compiled)
 
 
-def test_model_compile_scope_step_runs_the_steps_after_the_checked_ones_compiled(synthetic_cache, tmp_path, monkeypatch):
+def test_model_compile_scope_step_compiles_the_steps_after_the_checked_ones(synthetic_cache, tmp_path, monkeypatch):
     calls = []
 
     def recording_compile(fn, **options):  # records, and runs the step eagerly (the compiled graphs: test_compiled)

@@ -42,10 +42,11 @@ class CompiledStep:
     Args:
         objectives: the training objectives; model: the model they train.
         mode: a ``torch.compile`` mode (:data:`unicorn.model.compile.COMPILE_MODES`).
-        backend: a ``torch.compile`` backend (None: inductor; ``"aot_eager"`` traces and differentiates the same
-            graphs without generating code, as the tests do).
+        backend: a ``torch.compile`` backend, in place of ``mode`` (None: inductor in ``mode``; ``"aot_eager"``
+            traces and differentiates the same graphs without generating code, ``"cudagraphs"`` captures them with
+            the eager kernels, as the tests do).
         copy_outputs: copy what outlives a step out of the graphs' memory after each call (None: where CUDA graphs
-            capture, a mode of :data:`CUDA_GRAPH_MODES` on a CUDA device).
+            capture, a mode of :data:`CUDA_GRAPH_MODES` or the ``"cudagraphs"`` backend, on a CUDA device).
     """
 
     def __init__(
@@ -57,6 +58,8 @@ class CompiledStep:
         copy_outputs: bool | None = None,
     ) -> None:
         self.objectives, self.model, self.mode, self.copy_outputs = objectives, model, mode, copy_outputs
+        #: whether the graphs are captured as CUDA graphs where the step runs on CUDA
+        self.captures = backend == "cudagraphs" if backend is not None else mode in CUDA_GRAPH_MODES
         options: dict[str, Any] = {"mode": mode} if backend is None else {"backend": backend}
         self._compiled = torch.compile(self._forward, **options)
         # the renders' overflow counts inside the graphs, handed on to the caller's counter after each call (one
@@ -70,7 +73,7 @@ class CompiledStep:
         """The step's losses (:class:`~unicorn.objectives.step_losses.StepLosses`) on images (B, 3, S, S)."""
         copy = self.copy_outputs
         if copy is None:
-            copy = self.mode in CUDA_GRAPH_MODES and images.is_cuda
+            copy = self.captures and images.is_cuda
         if copy:
             torch.compiler.cudagraph_mark_step_begin()  # the previous step's graph outputs are no longer read
         with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT), self._counter:
@@ -87,6 +90,5 @@ class CompiledStep:
         for module in self.model.modules():
             if isinstance(module, MeshRasterizer):
                 module.own_needed()
-        return StepLosses(
-            {k: v.clone() for k, v in losses.items()}, losses.probs.clone(), {k: v.clone() for k, v in losses.stats.items()}
-        )
+        terms = {k: v.clone() for k, v in losses.items()}
+        return StepLosses(terms, losses.probs.clone(), {k: v.clone() for k, v in losses.stats.items()})

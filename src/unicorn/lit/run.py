@@ -260,7 +260,9 @@ def _compile(run: Run) -> None:
         return
     reason = compile_unavailable(device)
     if reason is not None:
-        warnings.warn(f"torch.compile cannot run on {device} ({reason}): the steps run eagerly", CompileWarning)
+        warnings.warn(
+            f"torch.compile cannot run on {device} ({reason}): the steps run eagerly", CompileWarning, stacklevel=3
+        )
         return
     run.module.compile_step(mode)
     log.info("the steps' forward compiled whole at the first step without host reads (torch.compile, mode %s)", mode)

@@ -18,7 +18,15 @@ from torch import nn
 
 from unicorn.model.autoencoder import Unicorn
 
-__all__ = ["COMPILE_MODES", "COMPILE_SCOPES", "CompileWarning", "compile_modules", "compile_networks", "compile_unavailable", "networks"]
+__all__ = [
+    "COMPILE_MODES",
+    "COMPILE_SCOPES",
+    "CompileWarning",
+    "compile_modules",
+    "compile_networks",
+    "compile_unavailable",
+    "networks",
+]
 
 #: ``torch.compile`` modes (``mode=``); ``reduce-overhead`` captures CUDA graphs of each compiled network
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
