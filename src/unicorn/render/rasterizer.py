@@ -134,7 +134,8 @@ class MeshRasterizer(nn.Module):
         if fragments.sizes is not None and capacity is None:  # on the host: sizes the fixed buffers
             self._fit(key, fragments.sizes.tolist())
             # an entry from the start, kept from then on: a compiled step's graph guards on the keys present
-            self._needed.setdefault(key, torch.zeros_like(fragments.sizes))
+            if key not in self._needed:
+                self._needed[key] = torch.zeros_like(fragments.sizes)
         elif fragments.sizes is not None:
             before = self._needed.get(key)
             self._needed[key] = fragments.sizes if before is None else torch.maximum(before, fragments.sizes)
