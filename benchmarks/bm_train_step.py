@@ -188,6 +188,45 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
+def sync_device(device: str) -> None:
+    """Wait for the device's queued work (nothing to wait for on the CPU)."""
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def timed_step(
+    forward: Callable[[], Any], backward: Callable[[Any], float], opt: torch.optim.Optimizer, device: str
+) -> dict[str, float]:
+    """One step, its forward, backward and optimizer step each timed between device syncs: ``forward, backward,
+    optimizer, total, peak MB``, and ``bwd-nbr``, what ``backward(losses)`` returns (the seconds of a first pass, or
+    NaN)."""
+    opt.zero_grad(set_to_none=True)
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    rss0 = peak_rss_mb()
+    sync_device(device)
+    t0 = time.perf_counter()
+    losses = forward()
+    sync_device(device)
+    t1 = time.perf_counter()
+    first = backward(losses)
+    sync_device(device)
+    t2 = time.perf_counter()
+    opt.step()
+    sync_device(device)
+    t3 = time.perf_counter()
+    peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
+    return {"forward": t1 - t0, "backward": t2 - t1, "bwd-nbr": first, "optimizer": t3 - t2, "total": t3 - t0,
+            "peak MB": peak}  # fmt: skip
+
+
+def medians(rows: list[dict[str, float]]) -> dict[str, float]:
+    """Each column's median over the timed steps; the peak memory's largest."""
+    result = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
+    result["peak MB"] = max(r["peak MB"] for r in rows)
+    return result
+
+
 def time_steps(
     model: Unicorn,
     objectives: Objectives,
@@ -206,8 +245,7 @@ def time_steps(
     compiled (a compiled backward runs once per graph), one backward (``bwd-nbr`` NaN)."""
 
     def sync() -> None:
-        if device == "cuda":
-            torch.cuda.synchronize()
+        sync_device(device)
 
     timer = ComponentTimer(sync)
     if not compiled:
@@ -280,47 +318,36 @@ def time_steps(
             with autocast(device, precision), sync_free(free), OverflowCounter():
                 return objectives(phase, model, images)
 
+        def backward(losses: Any) -> float:
+            nbr = losses.get("neighbor")
+            if not split or compiled:
+                losses["total"].backward()
+                return float("nan")
+            if nbr is None or not nbr.requires_grad:
+                losses["total"].backward()
+                return 0.0
+            t0 = time.perf_counter()
+            nbr.backward(retain_graph=True)
+            sync()
+            first = time.perf_counter() - t0
+            (losses["total"] - nbr).backward()
+            return first
+
         rows = []
         for i in range(args.warmup + args.repeats):
             timer.reset()
             render_calls.clear()
-            opt.zero_grad(set_to_none=True)
-            if device == "cuda":
-                torch.cuda.reset_peak_memory_stats()
-            rss0 = peak_rss_mb()
-            sync()
-            t0 = time.perf_counter()
-            losses = fn(images, free=path == "sync-free" and i >= args.warmup)  # the warm-up sizes the buffers
-            sync()
-            t1 = time.perf_counter()
-            nbr = losses.get("neighbor")
-            if nbr is not None and nbr.requires_grad and split and not compiled:
-                nbr.backward(retain_graph=True)
-                sync()
-                tn = time.perf_counter()
-                (losses["total"] - nbr).backward()
-            else:
-                tn = t1
-                losses["total"].backward()
-            sync()
-            t2 = time.perf_counter()
-            opt.step()
-            sync()
-            t3 = time.perf_counter()
-            peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
+            free = path == "sync-free" and i >= args.warmup  # the warm-up sizes the buffers
+            row = timed_step(lambda free=free: fn(images, free=free), backward, opt, device)
             if i < args.warmup:
                 continue
-            row = {g: timer.totals.get(g, 0.0) for g in GROUPS}
-            row.update(forward=t1 - t0, backward=t2 - t1, optimizer=t3 - t2, total=t3 - t0)
-            row["bwd-nbr"] = tn - t1 if split and not compiled else float("nan")
+            row.update({g: timer.totals.get(g, 0.0) for g in GROUPS})
             if compiled:
                 row.update(encoder=float("nan"), generators=float("nan"))
             row["other"] = row["forward"] - sum(row[g] for g in GROUPS if not math.isnan(row[g]))
-            row["peak MB"] = peak
             row["bwd-render"] = replay_render_backward()
             rows.append(row)
-        results[phase] = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
-        results[phase]["peak MB"] = max(r["peak MB"] for r in rows)
+        results[phase] = medians(rows)
     return results
 
 
@@ -339,45 +366,30 @@ def time_compiled_steps(
     buffers), then the compiled steps without host reads, compiled during the warm-up. Forward, backward, optimizer,
     total and peak memory; the component columns are NaN (a timing hook would break the graph)."""
 
-    def sync() -> None:
-        if device == "cuda":
-            torch.cuda.synchronize()
-
     compiled = CompiledStep(objectives, model, mode)
     for phase in ("pose", "3d"):
         opt.zero_grad(set_to_none=True)
         with autocast(device, precision):
             objectives(phase, model, images)["total"].backward()
         opt.step()
+
+    def backward(losses: Any) -> float:
+        losses["total"].backward()
+        return float("nan")
+
     results = {}
     for phase in ("pose", "3d"):
+
+        def forward(phase: str = phase, iteration: int = 0) -> Any:
+            with autocast(device, precision), sync_free(), OverflowCounter():
+                return compiled(phase, images, False, iteration)
+
         rows = []
         for i in range(args.warmup + args.repeats):
-            opt.zero_grad(set_to_none=True)
-            if device == "cuda":
-                torch.cuda.reset_peak_memory_stats()
-            rss0 = peak_rss_mb()
-            sync()
-            t0 = time.perf_counter()
-            with autocast(device, precision), sync_free(), OverflowCounter():
-                losses = compiled(phase, images, False, 2 + i)
-            sync()
-            t1 = time.perf_counter()
-            losses["total"].backward()
-            sync()
-            t2 = time.perf_counter()
-            opt.step()
-            sync()
-            t3 = time.perf_counter()
-            peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
-            if i < args.warmup:
-                continue
-            row = dict.fromkeys(COLUMNS, float("nan"))
-            row.update(forward=t1 - t0, backward=t2 - t1, optimizer=t3 - t2, total=t3 - t0)
-            row["peak MB"] = peak
-            rows.append(row)
-        results[phase] = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
-        results[phase]["peak MB"] = max(r["peak MB"] for r in rows)
+            row = timed_step(lambda phase=phase, i=i: forward(phase, 2 + i), backward, opt, device)
+            if i >= args.warmup:
+                rows.append({**dict.fromkeys(COLUMNS, float("nan")), **row})
+        results[phase] = medians(rows)
     return results
 
 
