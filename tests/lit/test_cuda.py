@@ -9,25 +9,12 @@ compared in ``tests/model/test_cuda.py``, whose randomised heads set the candida
 
 from __future__ import annotations
 
-import lightning as L
 import pytest
 
-from tests.support.training import build_run
+from tests.support.training import LossRecorder, build_run
 from unicorn.lit.run import fit
 
 pytestmark = pytest.mark.gpu
-
-
-class LossRecorder(L.Callback):
-    """The loss terms each iteration's training step returned, and the device the module trained on."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, float]] = []
-        self.devices: set[str] = set()
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        self.rows.append({name: float(value) for name, value in outputs.items()})
-        self.devices.add(next(pl_module.parameters()).device.type)
 
 
 def _train(tmp_path, *overrides: str) -> LossRecorder:

@@ -14,18 +14,8 @@ import pytest
 import torch
 
 from tests.support.syncs import outside, record_syncs
-from tests.support.training import StateBefore, build_run
+from tests.support.training import LossRecorder, StateBefore, build_run
 from unicorn.lit.run import fit
-
-
-class LossRecorder(L.Callback):
-    """The loss terms each iteration's training step returned."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, float]] = []
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        self.rows.append({name: float(value) for name, value in outputs.items()})
 
 
 class StepSyncs(LossRecorder):

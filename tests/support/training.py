@@ -86,6 +86,18 @@ def error_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if line.strip() and not line.startswith("INFO: ")]
 
 
+class LossRecorder(L.Callback):
+    """The loss terms each iteration's training step returned, and the device the module trained on."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, float]] = []
+        self.devices: set[str] = set()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.rows.append({name: float(value) for name, value in outputs.items()})
+        self.devices.add(next(pl_module.parameters()).device.type)
+
+
 class StateBefore(L.Callback):
     """Records the module's state dict as iteration ``step`` starts (after the schedule's callbacks ran)."""
 
