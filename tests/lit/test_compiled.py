@@ -1,6 +1,7 @@
 """The training step's forward compiled whole (:mod:`unicorn.lit.compiled`): one graph per step kind without a
-graph break, no new graph once warm, and the eager steps' losses and gradients (traced and differentiated without
-generated code: the ``aot_eager`` backend)."""
+graph break, no new graph once warm, graphs that CUDA graphs can capture and replay (the state they change written in
+place), and the eager steps' losses and gradients (traced and differentiated without generated code: the
+``aot_eager`` backend)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import copy
 
 import pytest
 import torch
-from torch._dynamo.backends.registry import lookup_backend
+from torch._dynamo.backends.debugging import aot_eager, boxed_nop
 from torch._dynamo.utils import counters
+from torch._guards import TracingContext
 
 from tests.support.model import IMAGE_SIZE, randomize_heads, tiny_config
 from unicorn.hostsync import sync_free
@@ -31,10 +33,9 @@ def _setup():
     model = Unicorn(tiny_config())
     randomize_heads(model, std=0.1)
     model.set_active_dims(shape=2, texture=8)
-    # a memory of one batch (full from the first push: its size does not change the graph); one viewpoint bin (the
-    # neighbours' bin draw, torch.multinomial, which a compiled graph draws from the random stream otherwise than
-    # eagerly, has one outcome)
-    loss = {**model.config["loss"], "neighbor_weight": 1.0, "n_bins": 1, "memory_size": BATCH}
+    # a memory of two batches (the third push writes over the first); one viewpoint bin (the neighbours' bin draw,
+    # torch.multinomial, which a compiled graph draws from the random stream otherwise than eagerly, has one outcome)
+    loss = {**model.config["loss"], "neighbor_weight": 1.0, "n_bins": 1, "memory_size": 2 * BATCH}
     return model, Objectives.from_config(loss, model)
 
 
@@ -55,12 +56,31 @@ def _run(model, objectives, forward, kind, images, step):
 def test_a_compiled_step_is_one_graph_and_gives_the_eager_losses_and_gradients(images):
     model, objectives = _setup()
     twin = copy.deepcopy((model, objectives))
-    graphs = []
-    aot_eager = lookup_backend("aot_eager")
+    graphs, uncapturable = [], []
+    addresses: list[list[tuple[int, ...]]] = []  # per forward graph, per call: its static inputs' addresses
+
+    def capturable(gm, example_inputs):
+        # what torch.compile's CUDA graphs (cudagraph trees) need of a forward graph: tensor or size inputs, inputs
+        # changed in place only where they are static (the tensors of the modules: parameters, buffers, the neighbour
+        # memory), and static inputs at the same addresses at every call (elsewhere the graph is recorded again)
+        meta = TracingContext.try_get().fw_metadata
+        static = list(meta.static_input_indices)
+        changed = {i for i, info in enumerate(meta.input_info) if info.mutates_data or info.mutates_metadata}
+        uncapturable.extend(f"input {i} changed in place" for i in sorted(changed - set(static)))
+        uncapturable.extend(type(x).__name__ for x in example_inputs if not isinstance(x, (torch.Tensor, torch.SymInt)))
+        forward, calls = boxed_nop(gm, example_inputs), []
+        addresses.append(calls)
+
+        def run(args):
+            calls.append(tuple(args[i].data_ptr() for i in static if isinstance(args[i], torch.Tensor)))
+            return forward(args)
+
+        run._boxed_call = True
+        return run
 
     def counting(gm, example_inputs):
         graphs.append(gm)
-        return aot_eager(gm, example_inputs)
+        return aot_eager(gm, example_inputs, fw_compiler=capturable)
 
     compiled = CompiledStep(twin[1], twin[0], backend=counting, copy_outputs=True)  # the copies CUDA graphs need
     counters.clear()
@@ -87,3 +107,5 @@ def test_a_compiled_step_is_one_graph_and_gives_the_eager_losses_and_gradients(i
         twin[1].memory.load_state(objectives.memory.state())
     assert not counters["graph_break"], dict(counters["graph_break"])  # the whole forward in one graph
     assert seen == [0, 0, 1, 2, 2, 2]  # one graph per step kind, none after
+    assert len(addresses) == 2 and not uncapturable, uncapturable
+    assert [len(calls) for calls in addresses] == [2, 2] and all(len(set(calls)) == 1 for calls in addresses)

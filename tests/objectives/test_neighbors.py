@@ -1,4 +1,4 @@
-"""Neighbour memory: bins, self-exclusion, empty bins, FIFO."""
+"""Neighbour memory: bins, self-exclusion, empty bins, the ring of the newest entries, undo and saved states."""
 
 from __future__ import annotations
 
@@ -66,17 +66,76 @@ def test_identical_rotations_give_no_nan_and_empty_bins_are_survived():
         assert match.valid.all() and (match.shape_index == 2).all() and (match.bins == 2).all()
 
 
-def test_fifo_capacity_and_checks():
+def _push(mem, value: float, n: int = 2):
+    return mem.push(torch.full((n, 3, 2, 2), value), torch.full((n, 1), value), torch.zeros(n, 1), rotations([0] * n))
+
+
+def test_ring_keeps_the_newest_entries_in_the_same_tensors_and_checks():
     mem = NeighborMemory(size=4)
-    for i in range(3):
-        idx = mem.push(torch.full((2, 3, 2, 2), float(i)), torch.zeros(2, 1), torch.zeros(2, 1), rotations([0, 0]))
-    assert len(mem) == 4 and idx.tolist() == [2, 3]
-    assert mem.images[:, 0, 0, 0].tolist() == [1.0, 1.0, 2.0, 2.0]
+    first = _push(mem, 0.0)
+    tensors = {name: t.data_ptr() for name, t in mem.state(copy=False).items()}
+    assert len(mem) == 2 and first.tolist() == [0, 1] and mem.filled.tolist() == [True, True, False, False]
+    for i in (1, 2):
+        idx = _push(mem, float(i))
+    # the third batch overwrote the oldest rows, the first batch's
+    assert len(mem) == 4 and idx.tolist() == [0, 1] and int(mem.head) == 2
+    assert mem.images[:, 0, 0, 0].tolist() == [2.0, 2.0, 1.0, 1.0]
+    assert {name: t.data_ptr() for name, t in mem.state(copy=False).items()} == tensors  # written in place
     with pytest.raises(ValueError):
         mem.push(torch.zeros(5, 3, 2, 2), torch.zeros(5, 1), torch.zeros(5, 1), rotations([0] * 5))
-    state = mem.state()
-    other = NeighborMemory(size=4)
-    other.load_state(state)
-    assert len(other) == 4
+    with pytest.raises(ValueError, match="images"):
+        mem.push(torch.zeros(1, 3, 4, 4), torch.zeros(1, 1), torch.zeros(1, 1), rotations([0]))
     with pytest.raises(RuntimeError, match="empty"):
         NeighborMemory().search(torch.zeros(1, 1), torch.zeros(1, 1), rotations([0]))
+
+
+def test_rows_not_written_yet_are_never_returned():
+    mem = NeighborMemory(size=8, n_bins=1, min_angle=0)
+    codes = torch.tensor([[3.0], [4.0]])
+    mem.push(torch.zeros(2, 3, 2, 2), codes, codes, rotations([90.0, 120.0]))
+    # the six empty rows hold zero codes (the nearest to the query) and a zero rotation (in the bin)
+    match = mem.search(torch.zeros(1, 1), torch.zeros(1, 1), rotations([0.0]))
+    assert match.valid.all() and match.shape_index.tolist() == [0] and match.texture_index.tolist() == [0]
+
+
+def test_undo_puts_back_what_the_last_push_overwrote():
+    mem = NeighborMemory(size=4)
+    for i in range(3):
+        _push(mem, float(i))
+    before = mem.state()
+    _push(mem, 9.0)
+    mem.undo_push()
+    for name, value in before.items():
+        assert torch.equal(getattr(mem, name), value), name
+    mem.undo_push()  # once only
+    assert torch.equal(mem.images, before["images"])
+    _push(mem, 9.0)
+    mem.forget_push()  # kept: nothing to undo
+    mem.undo_push()
+    assert mem.images[:, 0, 0, 0].tolist() == [2.0, 2.0, 9.0, 9.0]
+
+
+def test_saved_states_restore_the_ring_in_place_and_as_entries_in_order():
+    mem = NeighborMemory(size=4)
+    for i in range(3):
+        _push(mem, float(i))
+    state = mem.state()
+    assert state["images"].data_ptr() != mem.images.data_ptr()  # a copy
+    other = NeighborMemory(size=4)
+    _push(other, 7.0)
+    tensors = other.images.data_ptr()
+    other.load_state(state)
+    assert other.images.data_ptr() == tensors  # into the tensors it had
+    for name, value in state.items():
+        assert torch.equal(getattr(other, name), value), name
+    # a ring of another size, and the layout without head (entries oldest first): the same entries, in order
+    small = NeighborMemory(size=3)
+    small.load_state(state)  # the newest 3 of 1, 1, 2, 2
+    assert small.images[:, 0, 0, 0].tolist() == [1.0, 2.0, 2.0] and small.filled.all() and int(small.head) == 0
+    fifo = {name: state[name][[2, 3, 0, 1]] for name in NeighborMemory._FIELDS}  # oldest first, no head
+    large = NeighborMemory(size=6)
+    large.load_state(fifo)
+    assert large.images[:, 0, 0, 0].tolist() == [1.0, 1.0, 2.0, 2.0, 0.0, 0.0] and len(large) == 4
+    assert int(_push(large, 5.0)[0]) == 4  # the next push after the newest entry
+    large.load_state({name: None for name in state})
+    assert len(large) == 0 and large.R is None

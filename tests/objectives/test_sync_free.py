@@ -1,5 +1,5 @@
 """The objectives' steps inside :func:`unicorn.hostsync.sync_free`: the same losses and gradients as the default
-steps, and no host read (:mod:`tests.support.syncs`)."""
+steps, no host read and, on another device, no host tensor (:mod:`tests.support.syncs`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from tests.support.model import IMAGE_SIZE, randomize_heads, tiny_config
-from tests.support.syncs import outside, record_syncs
+from tests.support.syncs import HostTensorRecorder, outside, record_syncs
 from unicorn.checks import check_mesh
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.hostsync import is_sync_free, sync_free
@@ -75,6 +75,29 @@ def test_sync_free_steps_read_nothing_back(images):
             opt.step()
         left = outside(rec.syncs)
         assert bool(left) == (i < 2), (kind, collections.Counter(left))
+
+
+def test_sync_free_steps_on_another_device_make_no_host_tensor(images):
+    # the meta device stands in for CUDA here: the same Python, shapes and autograd without values, so that a
+    # tensor made on the host (copied to the device, where the host waits and CUDA graphs cannot capture) shows
+    model, objectives = _setup()
+    for i, kind in enumerate(["pose", "3d"]):  # the checked steps, on the CPU: they size the fixed buffers
+        with OverflowCounter():
+            objectives(kind, model, images, iteration=i)["total"].backward()
+    model.to("meta")
+    objectives.to("meta")  # the neighbour memory follows at its next push
+    for i, kind in enumerate(["pose", "3d"], start=2):
+        model.zero_grad(set_to_none=True)
+        with sync_free(), OverflowCounter() as counter, HostTensorRecorder() as host, record_syncs() as reads:
+            losses = objectives(kind, model, images.to("meta"), iteration=i)
+            losses["total"].backward()
+        assert not host.syncs, (kind, collections.Counter(map(str, host.syncs)))
+        assert not reads.syncs, (kind, collections.Counter(map(str, reads.syncs)))
+        assert {v.device.type for v in losses.values()} == {"meta"}
+        grads = [p.grad for p in model.parameters() if p.grad is not None]
+        assert grads and {g.device.type for g in grads} == {"meta"}
+        assert {over.device.type for over, _ in counter.counts.values()} == {"meta"}  # counted on the device
+    assert objectives.memory.R is not None and objectives.memory.R.device.type == "meta"
 
 
 def test_sync_free_neighbour_loss_masks_the_samples_without_neighbours(images):

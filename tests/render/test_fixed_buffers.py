@@ -112,6 +112,21 @@ def test_rasterizer_sizes_its_buffers_and_grows_them_when_read():
     assert rasterizer.grow_buffers() == []  # read once
 
 
+def test_rasterizer_moved_after_sized_renders_on_its_new_device():
+    verts, faces, R, T = posed_ellipsoids(2, level=2)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    colors = TexturesVertex(torch.ones(2, verts.shape[1], 3))
+    for _ in range(2):  # sizes the buffers, then renders into them: the sizes it needed wait to be read
+        with sync_free(), OverflowCounter():
+            renderer(verts, faces, colors, R=R, T=T)
+    renderer.double()  # a dtype change leaves the integer sizes as they are
+    renderer.to("meta")  # the meta device: another device on a machine without GPU
+    meta = [t.to("meta", torch.float64) for t in (verts, R, T, colors.colors)]
+    with sync_free(), OverflowCounter():
+        image = renderer(meta[0], faces.to("meta"), TexturesVertex(meta[3]), R=meta[1], T=meta[2])
+    assert image.device.type == "meta" and image.shape == (2, 4, 16, 16)
+
+
 def test_padding_sends_no_gradient_when_nothing_is_drawn():
     verts, faces, R, T = posed_ellipsoids(2, level=2, dtype=torch.float64)
     renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)

@@ -7,9 +7,11 @@ choice) is one forward graph, and AOTAutograd derives its backward as one graph;
 both are captured as CUDA graphs and replayed, a step's thousands of kernels launched by a few calls. The optimizer
 step (the fused Adam: one kernel per parameter group) and the checked first iterations of a process run eagerly.
 
-A CUDA graph reuses its outputs' memory at its next replay. After each call, what outlives the step (the terms it
-returns, the neighbour memory, the sizes the rasterizers' fixed buffers needed, the render overflow counts) is
-copied into memory of its own where graphs may have captured it.
+A CUDA graph replays on the addresses it was recorded with: the state a step changes besides the parameters (the
+BatchNorm statistics, the neighbour memory, the sizes the rasterizers' fixed buffers needed) is written in place, so
+each graph finds the same tensors at every call. A graph reuses its outputs' memory at its next replay: after each
+call, the terms it returns and the render overflow counts are copied into memory of their own where graphs may
+have captured them.
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ from unicorn.objectives import Objectives
 from unicorn.objectives.step_losses import StepLosses
 from unicorn.render import OverflowCounter
 from unicorn.render.overflow import note_overflow
-from unicorn.render.rasterizer import MeshRasterizer
 
 __all__ = ["CUDA_GRAPH_MODES", "CompiledStep"]
 
@@ -85,10 +86,5 @@ class CompiledStep:
             note_overflow(overflow, pixels, faces_per_pixel)
         if not copy:
             return losses
-        memory = self.objectives.memory
-        memory.load_state({k: None if v is None else v.clone() for k, v in memory.state().items()})
-        for module in self.model.modules():
-            if isinstance(module, MeshRasterizer):
-                module.own_needed()
         terms = {k: v.clone() for k, v in losses.items()}
         return StepLosses(terms, losses.probs.clone(), {k: v.clone() for k, v in losses.stats.items()})

@@ -55,7 +55,6 @@ class FiniteCheck:
         self.module = module
         # the forward pass's changes besides the parameters, kept to be undone (see snapshot)
         self._buffers: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
-        self._memory: dict[str, torch.Tensor | None] | None = None
         # the deferred check: its flag, first bad iteration and phase (on the device) and the state to roll back to
         self._bad: torch.Tensor | None = None
         self._good: tuple[int, dict[str, Any]] | None = None
@@ -63,8 +62,8 @@ class FiniteCheck:
     # ------------------------------------------------------------------ every step
     def snapshot(self) -> None:
         """Keep what the forward pass changes besides the parameters: the BatchNorm running statistics (copied
-        into buffers kept for it, one fused copy per step) and the neighbour memory (replaced, not changed in
-        place, by each push: references suffice). :meth:`restore_forward` puts them back."""
+        into buffers kept for it, one fused copy per step) and the neighbour memory (whose next push keeps the rows
+        it overwrites). :meth:`restore_forward` puts them back."""
         if self._buffers is None:
             model = self.module.model
             norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
@@ -73,14 +72,13 @@ class FiniteCheck:
         live, saved = self._buffers
         if live:
             torch._foreach_copy_(saved, live)
-        self._memory = self.module.objectives.memory.state()
+        self.module.objectives.memory.forget_push()
 
     def restore_forward(self) -> None:
         live, saved = self._buffers or ([], [])
         if live:
             torch._foreach_copy_(live, saved)
-        if self._memory is not None:
-            self.module.objectives.memory.load_state(self._memory)
+        self.module.objectives.memory.undo_push()
 
     def _grads(self) -> list[torch.Tensor]:
         return [p.grad for p in self.module.model.parameters() if p.grad is not None]
@@ -154,7 +152,7 @@ class FiniteCheck:
 
     def _state(self) -> dict[str, Any]:
         """The state to roll back to, copied on the device: the module's weights and buffers, the optimizers'
-        and schedulers' states and the neighbour memory (replaced, not changed in place: references suffice)."""
+        and schedulers' states and the neighbour memory."""
         module = self.module
         return {
             "module": {k: v.detach().clone() for k, v in module.state_dict().items()},

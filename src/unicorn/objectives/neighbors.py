@@ -3,6 +3,7 @@ nearest-neighbour search (:class:`NeighborMemory`): training state, owned by the
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -36,13 +37,16 @@ class NeighborMatch:
 
 
 class NeighborMemory:
-    """FIFO of the last ``size`` instances (images, masked shape / texture codes, hard-selected rotations).
+    """The last ``size`` instances (images, masked shape / texture codes, hard-selected rotations), first in first out.
 
     Viewpoint bins split ``[min_angle, max_angle]`` (degrees of relative rotation between the query's and an
     entry's predicted rotations) into ``n_bins`` equal ranges; the last bin includes ``max_angle``. The
     arccos is clamped, a query never matches its own entry, and a query whose drawn bin is empty draws
     again among its non-empty bins (equivalently: a bin drawn uniformly among the non-empty ones).
 
+    The entries live in a ring of ``size`` rows allocated at the first push and written in place, each push from row
+    :attr:`head` on, the oldest rows first: a compiled step finds the same tensors at every call (CUDA graphs
+    replay only on the same addresses) and reads nothing on the host. :attr:`filled` marks the rows written so far.
     The memory is not part of any state dict; :meth:`state` / :meth:`load_state` let a trainer save it.
 
     Args:
@@ -60,45 +64,92 @@ class NeighborMemory:
             )
         self.size, self.n_bins = int(size), int(n_bins)
         self.min_angle, self.max_angle = float(min_angle), float(max_angle)
+        #: (M, 3, H, W), (M, Cs), (M, Ct) and (M, 3, 3) rows, None before the first push
         self.images: torch.Tensor | None = None
         self.shape_codes: torch.Tensor | None = None
         self.texture_codes: torch.Tensor | None = None
         self.R: torch.Tensor | None = None
+        #: (M,) rows written so far; () the row the next push starts at
+        self.filled: torch.Tensor | None = None
+        self.head: torch.Tensor | None = None
+        # what the last push overwrote (see undo_push)
+        self._undo: tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor, torch.Tensor] | None = None
 
     def __len__(self) -> int:
-        return 0 if self.R is None else self.R.shape[0]
+        """The number of entries (a host read)."""
+        return 0 if self.filled is None else int(self.filled.sum())
 
     def clear(self) -> None:
-        for name in self._FIELDS:
+        for name in (*self._FIELDS, "filled", "head"):
             setattr(self, name, None)
+        self._undo = None
 
     def push(
         self, images: torch.Tensor, shape_codes: torch.Tensor, texture_codes: torch.Tensor, R: torch.Tensor
     ) -> torch.Tensor:
-        """Append a batch (detached) and drop the oldest entries beyond ``size``.
+        """Write a batch (detached) over the oldest entries.
 
         Args:
             images: (B, 3, H, W); shape_codes: (B, Cs); texture_codes: (B, Ct); R: (B, 3, 3).
 
         Returns:
-            (B,) memory indices of the new entries (the last B rows; B must not exceed ``size``).
+            (B,) memory rows of the new entries (B must not exceed ``size``).
         """
         B = images.shape[0]
         if not (shape_codes.shape[0] == texture_codes.shape[0] == R.shape[0] == B) or R.shape[1:] != (3, 3):
             raise ValueError("images, codes and R (B, 3, 3) must share the batch size")
         if B > self.size:
             raise ValueError(f"batch of {B} does not fit a memory of {self.size}")
+        # float32 under autocast too: the same state in checkpoints
         new = {"images": images, "shape_codes": shape_codes, "texture_codes": texture_codes, "R": R}
+        new = {name: to_full_precision(value.detach()) for name, value in new.items()}
+        if self.R is None:
+            self._allocate({name: value[:0] for name, value in new.items()})
+        elif self.R.device != R.device:  # the model moved since the last push
+            self._move(R.device)
+        stored = self.state(copy=False)
         for name, value in new.items():
-            old = getattr(self, name)
-            value = to_full_precision(value.detach())  # float32 under autocast too: the same state in checkpoints
-            if old is not None:
-                old = old.to(value.device)  # the model may have moved since the last push
-            if old is not None and old.shape[1:] != value.shape[1:]:
-                raise ValueError(f"memory field {name} holds {tuple(old.shape[1:])}, got {tuple(value.shape[1:])}")
-            merged = value if old is None else torch.cat([old, value])
-            setattr(self, name, merged[-self.size :])
-        return torch.arange(len(self) - B, len(self), device=R.device)
+            if stored[name].shape[1:] != value.shape[1:]:
+                raise ValueError(
+                    f"memory field {name} holds {tuple(stored[name].shape[1:])}, got {tuple(value.shape[1:])}"
+                )
+        assert self.filled is not None and self.head is not None
+        rows = (self.head + torch.arange(B, device=R.device)) % self.size
+        self._undo = (rows, {name: stored[name][rows] for name in self._FIELDS}, self.filled[rows], self.head.clone())
+        for name, value in new.items():
+            stored[name].index_copy_(0, rows, value.to(stored[name].dtype))
+        self.filled.index_fill_(0, rows, True)
+        self.head.copy_((self.head + B) % self.size)
+        return rows
+
+    def undo_push(self) -> None:
+        """Put back what the last push overwrote (nothing if there was no push since the last :meth:`undo_push` or
+        :meth:`forget_push`): the finite-loss check undoes an iteration that went wrong."""
+        if self._undo is None or self.filled is None or self.head is None:
+            return
+        rows, before, filled, head = self._undo
+        for name, value in before.items():
+            getattr(self, name).index_copy_(0, rows, value)
+        self.filled.index_copy_(0, rows, filled)
+        self.head.copy_(head)
+        self._undo = None
+
+    def forget_push(self) -> None:
+        """Keep the entries as they are: a later :meth:`undo_push` undoes only the pushes after this call."""
+        self._undo = None
+
+    def _allocate(self, like: dict[str, torch.Tensor]) -> None:
+        """Rows of zeros for ``size`` entries shaped and typed as the (0, ...) tensors ``like``, none filled."""
+        for name, value in like.items():
+            setattr(self, name, value.new_zeros((self.size, *value.shape[1:])))
+        device = like["R"].device
+        self.filled = torch.zeros(self.size, dtype=torch.bool, device=device)
+        self.head = torch.zeros((), dtype=torch.long, device=device)
+
+    def _move(self, device: torch.device) -> None:
+        for name, value in self.state(copy=False).items():
+            setattr(self, name, None if value is None else value.to(device))
+        self._undo = None
 
     def bin_of(self, angles: torch.Tensor) -> torch.Tensor:
         """Viewpoint bin of relative angles (degrees), -1 outside ``[min_angle, max_angle]``."""
@@ -124,7 +175,7 @@ class NeighborMemory:
             self_index: (B,) memory index of each query's own entry (from :meth:`push`), never returned.
             generator: optional random generator for the bin draw.
         """
-        if len(self) == 0:
+        if self.R is None:  # no host read: a pushed memory holds at least one batch
             raise RuntimeError("the neighbour memory is empty; push a batch first")
         with full_precision(R.device.type):  # angles and distances in float32 under autocast too
             return self._search(shape_codes, texture_codes, R, self_index, generator)
@@ -139,7 +190,7 @@ class NeighborMemory:
     ) -> NeighborMatch:
         angles = rotation_angle_between(self.R.unsqueeze(1), R.unsqueeze(0))  # (M, B)
         entry_bins = self.bin_of(angles)
-        usable = entry_bins >= 0
+        usable = (entry_bins >= 0) & self.filled.unsqueeze(1)
         if self_index is not None:  # a comparison, not an assignment of a host scalar: nothing copied to the device
             usable &= torch.arange(usable.shape[0], device=R.device).unsqueeze(1) != self_index.unsqueeze(0)
         # which bins hold at least one usable entry, per query: (B, n_bins)
@@ -171,14 +222,56 @@ class NeighborMemory:
             valid=valid,
         )
 
-    def state(self) -> dict[str, torch.Tensor | None]:
-        """The stored tensors, for saving with a training checkpoint."""
-        return {name: getattr(self, name) for name in self._FIELDS}
+    def state(self, copy: bool = True) -> dict[str, torch.Tensor | None]:
+        """The stored tensors (the entries' fields, ``filled`` and ``head``; None before the first push), for saving
+        with a training checkpoint: copies, unless ``copy`` is False (the live tensors, which pushes change in place).
+        """
+        tensors = {name: getattr(self, name) for name in (*self._FIELDS, "filled", "head")}
+        if copy:
+            tensors = {name: None if t is None else t.clone() for name, t in tensors.items()}
+        return tensors
 
-    def load_state(self, state: dict[str, torch.Tensor | None]) -> None:
-        """Restore tensors saved by :meth:`state`."""
-        for name in self._FIELDS:
-            setattr(self, name, state.get(name))
+    def load_state(self, state: Mapping[str, torch.Tensor | None]) -> None:
+        """Restore tensors saved by :meth:`state`, into the tensors the memory holds where they have the same shape,
+        type and device (a compiled step's graphs keep their inputs).
+
+        A state without ``head`` holds its entries in rows ``0 .. n-1``, oldest first (n <= ``size``; the newest
+        ``size`` of more), the next push writing row ``n``; so does a state whose ring has another size.
+        """
+        if state.get("R") is None:
+            self.clear()
+            return
+        state = _ring(state, self.size)
+        live = self.state(copy=False)
+        for name, value in state.items():
+            have = live.get(name)
+            if have is not None and (have.shape, have.dtype, have.device) == (value.shape, value.dtype, value.device):
+                have.copy_(value)
+            else:
+                setattr(self, name, value.clone())
+        self._undo = None
+
+
+def _ring(state: Mapping[str, torch.Tensor | None], size: int) -> dict[str, torch.Tensor]:
+    """``state`` (:meth:`NeighborMemory.state`) as a ring of ``size`` rows: unchanged when it is one, else its
+    entries oldest first in rows ``0 .. n-1`` (the newest ``size`` of them), with ``head`` at row ``n``."""
+    fields = {name: state[name] for name in NeighborMemory._FIELDS}
+    if any(value is None for value in fields.values()):
+        raise ValueError(f"a neighbour memory state needs {', '.join(NeighborMemory._FIELDS)}")
+    filled, head = state.get("filled"), state.get("head")
+    if filled is not None and head is not None and filled.shape[0] == size:
+        return {**fields, "filled": filled, "head": head}
+    if filled is not None and head is not None:  # another size: its entries, oldest first
+        order = torch.roll(torch.arange(filled.shape[0], device=filled.device), -int(head))
+        order = order[filled[order]]
+        fields = {name: value[order] for name, value in fields.items()}
+    n = min(fields["R"].shape[0], size)
+    device = fields["R"].device
+    ring = {name: value.new_zeros((size, *value.shape[1:])) for name, value in fields.items()}
+    for name, value in fields.items():
+        ring[name][:n] = value[value.shape[0] - n :]
+    filled = torch.arange(size, device=device) < n
+    return {**ring, "filled": filled, "head": torch.tensor(n % size, device=device)}
 
 
 @dataclass

@@ -7,7 +7,7 @@ rasterization (one face, no blur, optionally supersampled) are the same module w
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import nn
@@ -138,7 +138,10 @@ class MeshRasterizer(nn.Module):
                 self._needed[key] = torch.zeros_like(fragments.sizes)
         elif fragments.sizes is not None:
             before = self._needed.get(key)
-            self._needed[key] = fragments.sizes if before is None else torch.maximum(before, fragments.sizes)
+            if before is None:
+                self._needed[key] = fragments.sizes
+            else:  # in place: a compiled step's CUDA graphs replay on the same tensors
+                before.copy_(torch.maximum(before, fragments.sizes))
         return fragments
 
     def _fit(self, key: tuple[int, int, int], needed: list[int]) -> bool:
@@ -150,10 +153,11 @@ class MeshRasterizer(nn.Module):
         self.buffers[key] = tuple(max(h, -(-int(n * 1.25) // 1024) * 1024) for n, h in zip(needed, have))
         return True
 
-    def own_needed(self) -> None:
-        """Copy the sizes the fixed-buffer renders needed so far into tensors of their own (after a compiled step
-        whose CUDA graphs reuse their outputs' memory at their next replay: :mod:`unicorn.lit.compiled`)."""
-        self._needed = {key: sizes.clone() for key, sizes in self._needed.items()}
+    def _apply(self, fn: Callable[[torch.Tensor], torch.Tensor], recurse: bool = True) -> MeshRasterizer:
+        super()._apply(fn, recurse)
+        # the fixed renders' needed sizes are no buffers (not in the state dict) but follow the module's device
+        self._needed = {key: fn(sizes) for key, sizes in self._needed.items()}
+        return self
 
     def grow_buffers(self) -> list[str]:
         """Read what the fixed-buffer renders since the previous call needed (one host read) and grow the buffers
@@ -161,9 +165,10 @@ class MeshRasterizer(nn.Module):
         needed = self._needed
         if not needed:
             return []
-        self._needed = {key: torch.zeros_like(sizes) for key, sizes in needed.items()}
         keys = list(needed)
         read = torch.stack([needed[k] for k in keys]).tolist()
+        for sizes in needed.values():  # from zero again, in the same tensors (see forward)
+            sizes.zero_()
         lines = []
         for key, sizes in zip(keys, read):
             have = self.buffers.get(key, (0, 0))
