@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 from tests.support.training import TINY, compose_config, error_lines, unicorn_train
 from unicorn import __version__
-from unicorn.cli.train import hydra_argv
+from unicorn.cli.train import argument_note, hydra_argv
 from unicorn.config import ConfigError, validate
 from unicorn.resources import config_dir
 
@@ -90,6 +90,14 @@ def test_experiment_is_a_group_with_a_null_default(tmp_path):
     bare = validate(compose_config([*hydra_argv([]), f"paths.output_dir={tmp_path}"]))
     assert bare.task_name == "synthetic" and bare.model.loss.perceptual == "structural"  # runs offline
     assert bare.trainer.accelerator == "cpu"
+
+
+def test_the_first_line_says_which_config_arguments_without_an_experiment_compose():
+    assert "offline default +experiment=synthetic" in argument_note([])
+    for args in (["seed=1"], ["-m", "seed=1,2"], ["--cfg", "job"]):
+        assert "generic config" in argument_note(args), args
+    for args in (["+experiment=cub"], ["experiment=cub", "seed=1"], ["-m", "+experiment=a,b"], ["--help"]):
+        assert argument_note(args) is None, args
 
 
 def test_help_and_version():

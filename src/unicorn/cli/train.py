@@ -45,7 +45,15 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.resources import config_dir
 
-__all__ = ["DEFAULT_EXPERIMENT", "config_dir", "experiment_overrides", "hydra_argv", "hydra_failure", "main"]
+__all__ = [
+    "DEFAULT_EXPERIMENT",
+    "argument_note",
+    "config_dir",
+    "experiment_overrides",
+    "hydra_argv",
+    "hydra_failure",
+    "main",
+]
 
 #: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
 DEFAULT_EXPERIMENT = "synthetic"
@@ -117,6 +125,25 @@ def hydra_argv(argv: list[str]) -> list[str]:
     return experiment_overrides(argv) if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
 
 
+def argument_note(args: list[str]) -> str | None:
+    """The line ``unicorn-train`` prints first when the arguments choose no experiment: none at all run the offline
+    default; overrides without ``+experiment=NAME`` compose the generic config (``conf/train.yaml``), not that
+    default. None when an experiment is chosen or for ``--help``."""
+    if any(arg in ("--help", "-h", "--hydra-help") for arg in args):
+        return None
+    if not args:
+        return (
+            f"unicorn-train: no arguments, running the offline default +experiment={DEFAULT_EXPERIMENT} "
+            "(see unicorn-train --help)"
+        )
+    if any(arg.lstrip("+").startswith("experiment=") for arg in args):
+        return None
+    return (
+        "unicorn-train: no +experiment=NAME among the arguments: composing the generic config (conf/train.yaml; "
+        f"unicorn-train --cfg job shows it), not the offline default +experiment={DEFAULT_EXPERIMENT}"
+    )
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
     global _app
@@ -128,13 +155,9 @@ def main() -> None:
 
         print(f"unicorn-train (unicorn3d) {__version__}")
         return
-    if not args:
-        print(
-            f"unicorn-train: no arguments, running the offline default +experiment={DEFAULT_EXPERIMENT} "
-            "(see unicorn-train --help)",
-            file=sys.stderr,
-            flush=True,
-        )
+    note = argument_note(args)
+    if note:
+        print(note, file=sys.stderr, flush=True)
     tune_allocator()
     from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
 
