@@ -75,13 +75,17 @@ def _syncs(func: Any, args: tuple, kwargs: dict) -> bool:
 
 
 @dataclass
-class SyncRecorder(TorchDispatchMode):
-    """Records every syncing op run inside it (see the module docstring) in :attr:`syncs`."""
+class _Recorder(TorchDispatchMode):
+    """A dispatch mode that collects :class:`Sync` records in :attr:`syncs`."""
 
     syncs: list[Sync] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         super().__init__()
+
+
+class SyncRecorder(_Recorder):
+    """Records every syncing op run inside it (see the module docstring) in :attr:`syncs`."""
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         kwargs = kwargs or {}
@@ -90,19 +94,13 @@ class SyncRecorder(TorchDispatchMode):
         return func(*args, **kwargs)
 
 
-@dataclass
-class HostTensorRecorder(TorchDispatchMode):
+class HostTensorRecorder(_Recorder):
     """Records every op run inside it that returns a tensor on the host (``cpu``) in :attr:`syncs`.
 
     For code whose inputs live on another device (the ``meta`` device runs the same Python on CPU-only machines): a
     tensor it makes on the host is copied to the device where it is used, a copy the host waits for, and it keeps
     CUDA graphs from capturing the code (``torch.compile`` skips them for graphs with host tensors).
     """
-
-    syncs: list[Sync] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        super().__init__()
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         out = func(*args, **(kwargs or {}))

@@ -249,7 +249,7 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
 
 def _compile(run: Run) -> None:
     """``model.compile``: the networks compiled in place, or the steps' whole forward (``model.compile_scope``)."""
-    from unicorn.model.compile import CompileWarning, compile_modules, compile_unavailable
+    from unicorn.model.compile import compile_available, compile_modules
     from unicorn.objectives import training_networks
 
     mode, device = run.config.model.compile, run.trainer.strategy.root_device
@@ -258,11 +258,7 @@ def _compile(run: Run) -> None:
         if compile_modules([module for _, module in named], mode, device):
             log.info("compiled at their first call (torch.compile, mode %s): %s", mode, ", ".join(n for n, _ in named))
         return
-    reason = compile_unavailable(device)
-    if reason is not None:
-        warnings.warn(
-            f"torch.compile cannot run on {device} ({reason}): the steps run eagerly", CompileWarning, stacklevel=3
-        )
+    if not compile_available(device, "the steps", stacklevel=3):
         return
     run.module.compile_step(mode)
     log.info("the steps' forward compiled whole at the first step without host reads (torch.compile, mode %s)", mode)

@@ -22,6 +22,7 @@ __all__ = [
     "COMPILE_MODES",
     "COMPILE_SCOPES",
     "CompileWarning",
+    "compile_available",
     "compile_modules",
     "compile_networks",
     "compile_unavailable",
@@ -66,6 +67,20 @@ def compile_unavailable(device: torch.device | str) -> str | None:
     return None
 
 
+def compile_available(device: torch.device | str, what: str, stacklevel: int = 1) -> bool:
+    """Whether ``torch.compile`` can run on ``device`` (:func:`compile_unavailable`); where it cannot, one
+    :class:`CompileWarning` names the reason and says that ``what`` runs eagerly (``stacklevel`` as for
+    :func:`warnings.warn`, counted from the caller)."""
+    reason = compile_unavailable(device)
+    if reason is not None:
+        warnings.warn(
+            f"torch.compile cannot run on {device} ({reason}): {what} run eagerly",
+            CompileWarning,
+            stacklevel=stacklevel + 1,
+        )
+    return reason is None
+
+
 def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device: torch.device | str = "cpu") -> bool:
     """Compile modules in place (``nn.Module.compile(mode=mode)``; each compiles at its first call).
 
@@ -80,11 +95,7 @@ def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device:
     """
     if mode not in COMPILE_MODES:
         raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
-    reason = compile_unavailable(device)
-    if reason is not None:
-        warnings.warn(
-            f"torch.compile cannot run on {device} ({reason}): the networks run eagerly", CompileWarning, stacklevel=2
-        )
+    if not compile_available(device, "the networks", stacklevel=2):
         return False
     for module in modules:
         module.compile(mode=mode)

@@ -56,6 +56,8 @@ class NeighborMemory:
     """
 
     _FIELDS = ("images", "shape_codes", "texture_codes", "R")
+    #: what :meth:`state` saves: the entries' fields, then the rows written and the next row
+    _STATE = (*_FIELDS, "filled", "head")
 
     def __init__(self, size: int = 1024, n_bins: int = 5, min_angle: float = 20.0, max_angle: float = 180.0) -> None:
         if size < 1 or n_bins < 1 or not 0 <= min_angle < max_angle <= 180:
@@ -80,7 +82,7 @@ class NeighborMemory:
         return 0 if self.filled is None else int(self.filled.sum())
 
     def clear(self) -> None:
-        for name in (*self._FIELDS, "filled", "head"):
+        for name in self._STATE:
             setattr(self, name, None)
         self._undo = None
 
@@ -226,7 +228,7 @@ class NeighborMemory:
         """The stored tensors (the entries' fields, ``filled`` and ``head``; None before the first push), for saving
         with a training checkpoint: copies, unless ``copy`` is False (the live tensors, which pushes change in place).
         """
-        tensors = {name: getattr(self, name) for name in (*self._FIELDS, "filled", "head")}
+        tensors = {name: getattr(self, name) for name in self._STATE}
         if copy:
             tensors = {name: None if t is None else t.clone() for name, t in tensors.items()}
         return tensors
