@@ -14,10 +14,11 @@ launches. Inside ``with sync_free():`` the code that has another way takes it:
 - the trainer takes the texture-averaging probability from the stage callback instead of its buffer, and reads the
   finite-loss flag (:mod:`unicorn.lit.finite`) and the buffers' needs on its logging and checkpoint steps only.
 
-Outside the block (the default, and what the CPU uses) the code keeps its exact algorithms and reads where it
-must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`). ``torch.compile`` cannot trace
-a context variable's read: while it traces, the flag is read from a module global that the blocks keep alongside
-(the innermost block entered in any thread), which the compiled graph guards on.
+Random numbers for the device are drawn there, inside the block or not, unless a generator elsewhere is given
+(:func:`draw_device`). Outside the block (the default, and what the CPU uses) the code keeps its exact algorithms and
+reads where it must. The switch is per thread and asyncio task (a :class:`contextvars.ContextVar`).
+``torch.compile`` cannot trace a context variable's read: while it traces, the flag is read from a module global that
+the blocks keep alongside (the innermost block entered in any thread), which the compiled graph guards on.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from contextvars import ContextVar
 
 import torch
 
-__all__ = ["is_sync_free", "sync_free"]
+__all__ = ["draw_device", "is_sync_free", "sync_free"]
 
 _SYNC_FREE: ContextVar[bool] = ContextVar("unicorn_sync_free", default=False)
 #: the same switch as a global that torch.compile traces (and guards on): the innermost block in any thread
@@ -40,6 +41,14 @@ def is_sync_free() -> bool:
     if torch.compiler.is_compiling():
         return _TRACED
     return _SYNC_FREE.get()
+
+
+def draw_device(device: torch.device | str, generator: torch.Generator | None = None) -> torch.device:
+    """Where to draw random numbers for tensors on ``device``: on ``generator``'s device when one is given (a CPU
+    generator gives the same draws on every device, copied to ``device``), else on ``device`` itself, from torch's
+    global stream there. A draw on the host for the device is a copy the host waits for, and a host tensor that keeps
+    ``torch.compile`` from capturing the code in CUDA graphs."""
+    return generator.device if generator is not None else torch.device(device)
 
 
 @contextmanager

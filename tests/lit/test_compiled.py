@@ -1,7 +1,7 @@
 """The training step's forward compiled whole (:mod:`unicorn.lit.compiled`): one graph per step kind without a
 graph break, no new graph once warm, graphs that CUDA graphs can capture and replay (the state they change written in
-place), and the eager steps' losses and gradients (traced and differentiated without generated code: the
-``aot_eager`` backend)."""
+place, no op inductor refuses to capture, no tensor on the host), and the eager steps' losses and gradients (traced
+and differentiated without generated code: the ``aot_eager`` backend)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import torch
 from torch._dynamo.backends.debugging import aot_eager, boxed_nop
 from torch._dynamo.utils import counters
 from torch._guards import TracingContext
+from torch._inductor.utils import any_is_symbolic, get_first_incompatible_cudagraph_node
 
 from tests.support.model import IMAGE_SIZE, randomize_heads, tiny_config
 from unicorn.hostsync import sync_free
@@ -59,10 +60,22 @@ def test_a_compiled_step_is_one_graph_and_gives_the_eager_losses_and_gradients(i
     graphs, uncapturable = [], []
     addresses: list[list[tuple[int, ...]]] = []  # per forward graph, per call: its static inputs' addresses
 
+    def no_uncapturable_op(gm, example_inputs):
+        # what inductor checks of each graph before it uses CUDA graphs: no op that reads the device or makes a
+        # tensor of data-dependent size (get_first_incompatible_cudagraph_node), no dynamic shape
+        node = get_first_incompatible_cudagraph_node(gm)
+        uncapturable.extend([f"op {node.target}: {node.meta.get('stack_trace', '')}"] if node is not None else [])
+        uncapturable.extend(["dynamic shapes"] if any_is_symbolic(*example_inputs) else [])
+
+    def backward(gm, example_inputs):
+        no_uncapturable_op(gm, example_inputs)
+        return boxed_nop(gm, example_inputs)
+
     def capturable(gm, example_inputs):
         # what torch.compile's CUDA graphs (cudagraph trees) need of a forward graph: tensor or size inputs, inputs
         # changed in place only where they are static (the tensors of the modules: parameters, buffers, the neighbour
         # memory), and static inputs at the same addresses at every call (elsewhere the graph is recorded again)
+        no_uncapturable_op(gm, example_inputs)
         meta = TracingContext.try_get().fw_metadata
         static = list(meta.static_input_indices)
         changed = {i for i, info in enumerate(meta.input_info) if info.mutates_data or info.mutates_metadata}
@@ -80,7 +93,7 @@ def test_a_compiled_step_is_one_graph_and_gives_the_eager_losses_and_gradients(i
 
     def counting(gm, example_inputs):
         graphs.append(gm)
-        return aot_eager(gm, example_inputs, fw_compiler=capturable)
+        return aot_eager(gm, example_inputs, fw_compiler=capturable, bw_compiler=backward)
 
     compiled = CompiledStep(twin[1], twin[0], backend=counting, copy_outputs=True)  # the copies CUDA graphs need
     counters.clear()
@@ -109,3 +122,36 @@ def test_a_compiled_step_is_one_graph_and_gives_the_eager_losses_and_gradients(i
     assert seen == [0, 0, 1, 2, 2, 2]  # one graph per step kind, none after
     assert len(addresses) == 2 and not uncapturable, uncapturable
     assert [len(calls) for calls in addresses] == [2, 2] and all(len(set(calls)) == 1 for calls in addresses)
+
+
+@pytest.mark.filterwarnings("ignore:.*an autograd kernel was not registered:UserWarning")  # meta kernels
+def test_a_compiled_step_on_another_device_holds_no_host_tensor(images):
+    # torch.compile uses CUDA graphs only for graphs without a tensor on the host ("skipping cudagraphs due to cpu
+    # device"), a module's constant included; the meta device, compiled like CUDA, stands in for it on the CPU
+    model, objectives = _setup()
+    for step, kind in enumerate(["pose", "3d"]):  # the checked steps, on the CPU: they size the fixed buffers
+        _run(model, objectives, None, kind, images, step)
+    model.to("meta")
+    objectives.to("meta")
+    on_host: list[str] = []
+
+    def devices(gm, example_inputs):
+        for node in gm.graph.nodes:
+            value = node.meta.get("val")
+            for t in value if isinstance(value, (list, tuple)) else [value]:
+                if isinstance(t, torch.Tensor) and t.device.type != "meta":
+                    where = node.meta.get("stack_trace", "")
+                    on_host.append(f"{node.op} {node.target} {tuple(t.shape)} on {t.device}: {where}")
+        return boxed_nop(gm, example_inputs)
+
+    graphs = []
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return aot_eager(gm, example_inputs, fw_compiler=devices, bw_compiler=devices)
+
+    compiled = CompiledStep(objectives, model, backend=backend, copy_outputs=True)
+    for step, kind in enumerate(["pose", "3d"], start=2):
+        losses, grads = _run(model, objectives, compiled, kind, images.to("meta"), step)
+        assert {v.device.type for v in [*losses.values(), *grads.values()]} == {"meta"}
+    assert len(graphs) == 2 and not on_host, on_host

@@ -48,8 +48,17 @@ def _train(tmp_path, sync_free: bool | None, *overrides: str) -> StepSyncs:
     return recorder
 
 
-def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_path):
-    rec = _train(tmp_path, True)
+#: every term and augmentation that is off by default (tests/objectives/test_sync_free.py runs them on another device)
+OPTIONAL = (
+    "schedule.hue_shift=0.1", "schedule.roll_jitter=10", "schedule.shift_jitter=0.05",
+    "model.loss.spacing_weight=0.1", "model.loss.flip_weight=0.1", "model.loss.equivariance_weight=0.1",
+    "model.loss.viewpoint=renders",
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("overrides", [(), OPTIONAL], ids=["default", "optional"])
+def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_path, overrides):
+    rec = _train(tmp_path, True, *overrides)
     assert len(rec.syncs) == 8
     # the checked steps (0, 1) read the inputs' values and the finite flag, the logging steps (3, 7) the deferred
     # flag, the rasterizers' needed sizes and the logged values; the others nothing
@@ -107,8 +116,9 @@ class SyncErrors(L.Callback):
 
 
 @pytest.mark.gpu
-def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path):
-    run = build_run(tmp_path, "trainer.log_every_n_steps=4", "trainer.accelerator=gpu", "trainer.devices=1")
+@pytest.mark.parametrize("overrides", [(), OPTIONAL], ids=["default", "optional"])
+def test_cuda_steps_do_not_sync(synthetic_cache, tmp_path, overrides):
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4", "trainer.accelerator=gpu", "trainer.devices=1", *overrides)
     errors = SyncErrors(4)
     run.trainer.callbacks.append(errors)
     fit(run)

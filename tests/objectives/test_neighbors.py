@@ -1,4 +1,4 @@
-"""Neighbour memory: bins, self-exclusion, empty bins, the ring of the newest entries, undo and saved states."""
+"""Neighbour memory: bins, self-exclusion, empty bins, the ring of the newest entries, undo, saved states and moves."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
-from unicorn.objectives import NeighborMemory
+from unicorn.objectives import NeighborLoss, NeighborMemory, ReconstructionLoss
 
 
 def rotations(azims) -> torch.Tensor:
@@ -139,3 +139,18 @@ def test_saved_states_restore_the_ring_in_place_and_as_entries_in_order():
     assert int(_push(large, 5.0)[0]) == 4  # the next push after the newest entry
     large.load_state({name: None for name in state})
     assert len(large) == 0 and large.R is None
+
+
+def test_the_memory_follows_its_loss_to_another_device_in_float32():
+    mem = NeighborMemory(size=4)
+    loss = NeighborLoss(ReconstructionLoss(), mem, weight=1.0)
+    loss.to("cpu")  # nothing pushed yet: nothing to move
+    assert mem.R is None
+    _push(mem, 1.0)
+    tensors = {name: t.data_ptr() for name, t in mem.state(copy=False).items()}
+    loss.to("cpu")  # already there: the same tensors (a compiled step's graphs keep them)
+    assert {name: t.data_ptr() for name, t in mem.state(copy=False).items()} == tensors
+    loss.to("meta")  # moved with the module, not at the next push inside a step
+    assert {t.device.type for t in mem.state(copy=False).values()} == {"meta"}
+    loss.half()  # the module's dtype: the memory stays float32 (the same state in checkpoints)
+    assert mem.images.dtype == mem.R.dtype == torch.float32

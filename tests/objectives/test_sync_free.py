@@ -20,13 +20,20 @@ from unicorn.render import OverflowCounter
 from unicorn.render.raster import check_pose_inputs
 from unicorn.render.rasterizer import MeshRasterizer
 
+#: the optional terms of the pose step (each off by default), all at once, under each pose objective
+OPTIONAL_TERMS = {
+    "expected": {"spacing_weight": 0.1, "flip_weight": 0.1, "equivariance_weight": 0.1, "viewpoint": "renders"},
+    "assigned": {"pose_objective": "assigned", "viewpoint": "renders"},
+    "sampled": {"pose_objective": "sampled"},
+}
 
-def _setup(seed: int = 0):
+
+def _setup(seed: int = 0, **loss):
     torch.manual_seed(seed)
     model = Unicorn(tiny_config())
     randomize_heads(model, std=0.1)
     model.set_active_dims(shape=2, texture=8)
-    objectives = Objectives.from_config({**model.config["loss"], "neighbor_weight": 1.0}, model)
+    objectives = Objectives.from_config({**model.config["loss"], "neighbor_weight": 1.0, **loss}, model)
     with torch.no_grad():  # memory with other viewpoints so that every sample has neighbours
         other = torch.rand(6, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(2))
         pred = model.predict(other)
@@ -77,19 +84,24 @@ def test_sync_free_steps_read_nothing_back(images):
         assert bool(left) == (i < 2), (kind, collections.Counter(left))
 
 
-def test_sync_free_steps_on_another_device_make_no_host_tensor(images):
+@pytest.mark.filterwarnings("ignore:.*an autograd kernel was not registered:UserWarning")  # meta kernels
+@pytest.mark.parametrize("terms", [None, *OPTIONAL_TERMS])
+def test_sync_free_steps_on_another_device_make_no_host_tensor(images, terms):
     # the meta device stands in for CUDA here: the same Python, shapes and autograd without values, so that a
-    # tensor made on the host (copied to the device, where the host waits and CUDA graphs cannot capture) shows
-    model, objectives = _setup()
+    # tensor on the host (made there, a draw, or a module's constant: copied to the device, where the host waits and
+    # CUDA graphs cannot capture) shows
+    model, objectives = _setup(**OPTIONAL_TERMS.get(terms, {}))
     for i, kind in enumerate(["pose", "3d"]):  # the checked steps, on the CPU: they size the fixed buffers
         with OverflowCounter():
             objectives(kind, model, images, iteration=i)["total"].backward()
     model.to("meta")
-    objectives.to("meta")  # the neighbour memory follows at its next push
+    objectives.to("meta")
+    assert objectives.memory.R is not None and objectives.memory.R.device.type == "meta"  # the memory follows
+    images = images.to("meta")
     for i, kind in enumerate(["pose", "3d"], start=2):
         model.zero_grad(set_to_none=True)
         with sync_free(), OverflowCounter() as counter, HostTensorRecorder() as host, record_syncs() as reads:
-            losses = objectives(kind, model, images.to("meta"), iteration=i)
+            losses = objectives(kind, model, images, iteration=i)
             losses["total"].backward()
         assert not host.syncs, (kind, collections.Counter(map(str, host.syncs)))
         assert not reads.syncs, (kind, collections.Counter(map(str, reads.syncs)))

@@ -6,8 +6,8 @@ and the ops whose output size depends on the data (``nonzero``, ``masked_select`
 nothing and ``torch.cuda.set_sync_debug_mode`` sees nothing, so :class:`SyncRecorder` records them by name under a
 :class:`~torch.utils._python_dispatch.TorchDispatchMode` (and ``tolist``/``cpu``/``numpy``, which do not dispatch on
 CPU tensors, by wrapping the methods), whatever the device: a step that records none would not sync on CUDA.
-:class:`HostTensorRecorder` records the tensors made on the host by code that runs on another device (the ``meta``
-device stands in for CUDA on the CPU).
+:class:`HostTensorRecorder` records the ops on host tensors in code that runs on another device (the ``meta`` device
+stands in for CUDA on the CPU).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from typing import Any
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves
 
 __all__ = ["HostTensorRecorder", "Sync", "SyncRecorder", "outside", "record_syncs"]
 
@@ -95,17 +96,17 @@ class SyncRecorder(_Recorder):
 
 
 class HostTensorRecorder(_Recorder):
-    """Records every op run inside it that returns a tensor on the host (``cpu``) in :attr:`syncs`.
+    """Records every op run inside it that takes or returns a tensor on the host (``cpu``) in :attr:`syncs`.
 
     For code whose inputs live on another device (the ``meta`` device runs the same Python on CPU-only machines): a
-    tensor it makes on the host is copied to the device where it is used, a copy the host waits for, and it keeps
-    CUDA graphs from capturing the code (``torch.compile`` skips them for graphs with host tensors).
+    tensor on the host (made there, or a constant of a module) is copied to the device where it is used, a copy the
+    host waits for, and it keeps CUDA graphs from capturing the code (``torch.compile`` skips them for graphs with
+    host tensors).
     """
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         out = func(*args, **(kwargs or {}))
-        outs = out if isinstance(out, (tuple, list)) else (out,)
-        if any(isinstance(t, torch.Tensor) and t.device.type == "cpu" for t in outs):
+        if any(isinstance(t, torch.Tensor) and t.device.type == "cpu" for t in tree_leaves((args, kwargs, out))):
             self.syncs.append(Sync(func.overloadpacket.__name__, _caller()))
         return out
 

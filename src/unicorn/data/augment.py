@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from kornia.enhance import adjust_hue
 
 from unicorn.checks import check_shape
+from unicorn.hostsync import draw_device
 
 __all__ = ["random_hue_shift", "random_roll_shift", "roll_shift_images"]
 
@@ -21,7 +22,8 @@ def random_hue_shift(images: torch.Tensor, max_shift: float, generator: torch.Ge
     """Rotate each image's hue by its own random fraction of the hue circle, uniform in ``[-max_shift, max_shift]``.
 
     Greys (white backgrounds, shading without colour) are unchanged; saturation and value are kept, so the result
-    stays in [0, 1]. The draws come from ``generator`` (a CPU generator: the same shifts on every device).
+    stays in [0, 1]. The draws come from ``generator``, on its device (a CPU generator: the same shifts on every
+    device, copied to the images').
 
     Args:
         images: (B, 3, H, W) RGB in [0, 1].
@@ -36,7 +38,7 @@ def random_hue_shift(images: torch.Tensor, max_shift: float, generator: torch.Ge
         raise ValueError(f"max_shift must be in [0, 0.5] (a fraction of the hue circle), got {max_shift}")
     if max_shift == 0.0:
         return images
-    fractions = (torch.rand(B, generator=generator, dtype=torch.float64) * 2 - 1) * max_shift
+    fractions = (torch.rand(B, generator=generator, dtype=torch.float64, device=generator.device) * 2 - 1) * max_shift
     angles = (fractions * 2 * math.pi).to(device=images.device, dtype=images.dtype)
     return adjust_hue(images, angles)
 
@@ -81,7 +83,8 @@ def random_roll_shift(
         images: (B, C, H, W).
         max_roll: the largest roll, degrees, >= 0.
         max_shift: the largest shift along each axis, NDC, >= 0.
-        generator: a CPU generator for the draws (the same draws on every device; None: torch's global one).
+        generator: the generator of the draws, on its device (a CPU generator: the same draws on every device;
+            None: torch's global one on the images' device; :func:`~unicorn.hostsync.draw_device`).
 
     Returns:
         the images (B, C, H, W), their rolls (B,) degrees and shifts (B, 2) NDC, on the images' device.
@@ -89,7 +92,7 @@ def random_roll_shift(
     B = check_shape(images, "B, C, H, W", "images")["B"]
     if max_roll < 0 or max_shift < 0:
         raise ValueError(f"max_roll and max_shift must be >= 0, got {max_roll}, {max_shift}")
-    draws = torch.rand(B, 3, generator=generator) * 2 - 1
+    draws = torch.rand(B, 3, generator=generator, device=draw_device(images.device, generator)) * 2 - 1
     roll = (draws[:, 0] * max_roll).to(images.device)
     shift = (draws[:, 1:] * max_shift).to(images.device)
     return roll_shift_images(images, roll, shift), roll, shift

@@ -210,14 +210,20 @@ class UnicornLitModule(L.LightningModule):
         """The images iteration ``step`` trains on: (B, 3, S, S) hue-shifted when ``hue_shift`` > 0, then rolled and
         shifted when ``roll_jitter`` or ``shift_jitter`` > 0."""
         if self.hue_shift > 0.0:
-            # its own stream (not the texture-averaging one), drawn per rank: DDP ranks shift their own images
-            seed = np.random.SeedSequence([self.seed, step, self.global_rank, 1]).generate_state(1)[0]
-            images = random_hue_shift(images, self.hue_shift, torch.Generator().manual_seed(int(seed)))
+            images = random_hue_shift(images, self.hue_shift, self._augment_generator(images, step, 1))
         if self.roll_jitter > 0.0 or self.shift_jitter > 0.0:
-            seed = np.random.SeedSequence([self.seed, step, self.global_rank, 2]).generate_state(1)[0]
-            generator = torch.Generator().manual_seed(int(seed))
+            generator = self._augment_generator(images, step, 2)
             images = random_roll_shift(images, self.roll_jitter, self.shift_jitter, generator)[0]
         return images
+
+    def _augment_generator(self, images: torch.Tensor, step: int, stream: int) -> torch.Generator:
+        """The generator of augmentation ``stream`` at iteration ``step``: its own (not the texture-averaging one),
+        per rank (DDP ranks augment their own images), on the host (the same draws on every device), or on the
+        images' device in the steps without host reads (a host draw would be copied there, a copy the host waits
+        for)."""
+        seed = np.random.SeedSequence([self.seed, step, self.global_rank, stream]).generate_state(1)[0]
+        device = images.device if is_sync_free() else torch.device("cpu")
+        return torch.Generator(device=device).manual_seed(int(seed))
 
     # ------------------------------------------------------------------ training
     def compile_step(self, mode: str = "default", backend: str | Callable[..., Any] | None = None) -> None:

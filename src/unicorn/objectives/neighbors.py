@@ -3,14 +3,14 @@ nearest-neighbour search (:class:`NeighborMemory`): training state, owned by the
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from unicorn.geometry.rotations import rotation_angle_between
-from unicorn.hostsync import is_sync_free
+from unicorn.hostsync import draw_device, is_sync_free
 from unicorn.model import Prediction3D, Unicorn, world_verts
 from unicorn.objectives.losses import ReconstructionLoss
 from unicorn.render.precision import full_precision, to_full_precision
@@ -107,8 +107,8 @@ class NeighborMemory:
         new = {name: to_full_precision(value.detach()) for name, value in new.items()}
         if self.R is None:
             self._allocate({name: value[:0] for name, value in new.items()})
-        elif self.R.device != R.device:  # the model moved since the last push
-            self._move(R.device)
+        elif self.R.device != R.device:  # a state loaded on another device
+            self.to(R.device)
         stored = self.state(copy=False)
         for name, value in new.items():
             if stored[name].shape[1:] != value.shape[1:]:
@@ -148,10 +148,14 @@ class NeighborMemory:
         self.filled = torch.zeros(self.size, dtype=torch.bool, device=device)
         self.head = torch.zeros((), dtype=torch.long, device=device)
 
-    def _move(self, device: torch.device) -> None:
-        for name, value in self.state(copy=False).items():
-            setattr(self, name, None if value is None else value.to(device))
-        self._undo = None
+    def to(self, device: torch.device | str) -> NeighborMemory:
+        """Move the stored tensors to ``device`` (nothing copied where they are already there); returns self."""
+        moved = {name: None if t is None else t.to(device) for name, t in self.state(copy=False).items()}
+        if any(moved[name] is not t for name, t in self.state(copy=False).items()):
+            for name, value in moved.items():
+                setattr(self, name, value)
+            self._undo = None
+        return self
 
     def bin_of(self, angles: torch.Tensor) -> torch.Tensor:
         """Viewpoint bin of relative angles (degrees), -1 outside ``[min_angle, max_angle]``."""
@@ -202,8 +206,7 @@ class NeighborMemory:
         nonempty = onehot.any(0)
         valid = nonempty.any(1)
         weights = torch.where(valid.unsqueeze(1), nonempty.float(), 1.0)  # a placeholder row where invalid
-        # drawn where the weights are (no host round trip) unless the caller's generator lives elsewhere
-        on = weights if generator is None or generator.device == weights.device else weights.cpu()
+        on = weights.to(draw_device(weights.device, generator))
         bins = torch.multinomial(on, 1, generator=generator).squeeze(1).to(R.device)
         bins = torch.where(valid, bins, torch.full_like(bins, -1))
         candidate = usable & (entry_bins == bins.unsqueeze(0))  # (M, B)
@@ -325,6 +328,14 @@ class NeighborLoss(nn.Module):
     def __init__(self, reconstruction: ReconstructionLoss, memory: NeighborMemory, weight: float) -> None:
         super().__init__()
         self.reconstruction, self.memory, self.weight = reconstruction, memory, weight
+
+    def _apply(self, fn: Callable[[torch.Tensor], torch.Tensor], recurse: bool = True) -> NeighborLoss:
+        super()._apply(fn, recurse)
+        # the memory is no buffer (a trainer saves it, not the state dict) but follows the module's device, in
+        # float32: moved here, not inside the first step after the move
+        if self.memory.R is not None:
+            self.memory.to(fn(torch.empty(0, device=self.memory.R.device)).device)
+        return self
 
     def active(self, model: Unicorn) -> bool:
         """Whether the loss applies: a positive weight and active shape and texture code dimensions."""

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import torch
 
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.hostsync import draw_device
 from unicorn.model.config import LOSS_KEYS
 from unicorn.model.pose import PoseHead, PoseOutput
 from unicorn.registry import Registry
@@ -103,7 +104,8 @@ def draw_views(
     Args:
         head: the pose head whose ranges and switches the views follow.
         batch_size: B.
-        generator: a CPU generator for the draws (None: torch's global one).
+        generator: the generator of the draws (:func:`~unicorn.hostsync.draw_device`; None: torch's global one on
+            the head's device).
         azimuth_only: draw the azimuth alone, the elevation and roll at the candidate's anchor and the translation
             at its prior, whatever the head's switches.
 
@@ -111,7 +113,7 @@ def draw_views(
         :class:`DrawnViews` on the head's device.
     """
     device, dtype = head.R_init.device, head.R_init.dtype
-    u = torch.rand(batch_size, 6, generator=generator).to(device, dtype)
+    u = torch.rand(batch_size, 6, generator=generator, device=draw_device(device, generator)).to(device, dtype)
     low, high = head.angle_ranges[:, 0], head.angle_ranges[:, 1]
     angles = low + u[:, :3] * (high - low)
     candidate = candidate_of(head, angles)
@@ -141,13 +143,15 @@ def render_views(
         pred: its 3D prediction for B images (:meth:`Unicorn.predict_3d`).
         views: B drawn views (:func:`draw_views`).
         mix: share of blended reconstructions, in [0, 1].
-        generator: a CPU generator for the blends (None: torch's global one).
+        generator: the generator of the blends (:func:`~unicorn.hostsync.draw_device`; None: torch's global one on
+            the reconstructions' device).
 
     Returns:
         (B, 3, S, S) renders in [0, 1], without gradient.
     """
     B = pred.canonical_verts.shape[0]
-    u = torch.rand(B, 2, generator=generator).to(pred.canonical_verts)
+    on = draw_device(pred.canonical_verts.device, generator)
+    u = torch.rand(B, 2, generator=generator, device=on).to(pred.canonical_verts)
     alpha = torch.where(u[:, 0] < mix, u[:, 1], torch.zeros_like(u[:, 1]))  # (B,): 0 keeps the image's own
 
     def blend(x: torch.Tensor) -> torch.Tensor:

@@ -61,8 +61,6 @@ PAIR_BYTES = 64
 DEFAULT_MAX_RENDER_BYTES = 16 << 30
 #: environment variable holding that limit; 0 means no limit
 MAX_RENDER_BYTES_ENV = "UNICORN_MAX_RENDER_BYTES"
-#: the triangle (x_ndc, y_ndc, z_view) of the padding rows of fixed buffers: no gradient, and no NaN, reaches the mesh
-_PADDING_TRIANGLE = torch.tensor([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 1.0, 1.0]])
 
 
 class RenderError(UserError, ValueError):
@@ -255,6 +253,15 @@ def _rasterize_fixed(
     )  # fmt: skip
 
 
+def _padding_triangle(like: torch.Tensor) -> torch.Tensor:
+    """(3, 3) the triangle (x_ndc, y_ndc, z_view) of the padding rows of fixed buffers, (1, -1, 1), (-1, 1, 1),
+    (-1, -1, 1): its barycentrics are finite, so no gradient and no NaN reaches the mesh. Made on ``like``'s device
+    and dtype: a host constant would be copied to the device at every render, a copy the host waits for (and a host
+    input keeps ``torch.compile`` from capturing the step in CUDA graphs)."""
+    xy = torch.eye(3, 2, device=like.device, dtype=like.dtype) * 2 - 1
+    return torch.cat([xy, torch.ones_like(xy[:, :1])], dim=1)
+
+
 def _recompute(
     verts_ndc: torch.Tensor,
     faces: torch.Tensor,
@@ -270,7 +277,7 @@ def _recompute(
     vert_idx = kept.image.unsqueeze(1) * verts_ndc.shape[1] + faces.index_select(0, kept.face)  # (M, 3)
     tri = verts_ndc.reshape(-1, 3).index_select(0, vert_idx.reshape(-1)).view(-1, 3, 3)  # (M, 3, 3)
     if kept.valid is not None:  # the padding of fixed buffers: a fixed triangle, finite whatever the mesh
-        tri = torch.where(kept.valid.view(-1, 1, 1), tri, _PADDING_TRIANGLE.to(tri))
+        tri = torch.where(kept.valid.view(-1, 1, 1), tri, _padding_triangle(tri))
     tri_px = ndc_to_pixel(tri[..., :2], (H, W))
     centre_x = (kept.pix % W).to(tri.dtype)
     centre_y = torch.div(kept.pix, W, rounding_mode="floor").remainder(H).to(tri.dtype)
