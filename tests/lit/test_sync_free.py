@@ -8,6 +8,7 @@ same steps under ``torch.cuda.set_sync_debug_mode("error")``.
 from __future__ import annotations
 
 import collections
+import math
 
 import lightning as L
 import pytest
@@ -15,6 +16,7 @@ import torch
 
 from tests.support.syncs import outside, record_syncs
 from tests.support.training import LossRecorder, StateBefore, build_run
+from unicorn.lit.callbacks import ProgressBar
 from unicorn.lit.run import fit
 
 
@@ -71,6 +73,50 @@ def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_pat
     for step in (2, 4, 5, 6):
         left = outside(rec.syncs[step])
         assert not left, (step, collections.Counter(left))
+
+
+class IterationSyncs(L.Callback):
+    """The syncs of each whole iteration, from its first hook to the next iteration's: the step with the callbacks,
+    the progress bar, Lightning's bookkeeping and the loading of the next batch. First among the callbacks."""
+
+    def __init__(self) -> None:
+        self.syncs: dict[int, list] = {}
+        self._open = None
+
+    def _close(self, step: int) -> None:
+        if self._open is not None:
+            context, recorder = self._open
+            context.__exit__(None, None, None)
+            self.syncs[step], self._open = recorder.syncs, None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self._close(trainer.global_step - 1)
+        context = record_syncs(host_data=True)
+        self._open = (context, context.__enter__())
+
+    def on_train_end(self, trainer, pl_module):
+        self._close(trainer.global_step - 1)
+
+
+def test_whole_iterations_read_nothing_back_between_the_logging_steps(synthetic_cache, tmp_path):
+    # the hooks, the progress bar and Lightning's logging too: a progress-bar value logged as a tensor is read back
+    # at every iteration, a Python number logged is copied to the device
+    logging = ("trainer.log_every_n_steps=4", "callbacks.checkpoint.every_n_steps=8")
+    run = build_run(tmp_path, *logging, "trainer.enable_progress_bar=true")
+    run.module.sync_free = True
+    rec = IterationSyncs()
+    run.trainer.callbacks.insert(0, rec)
+    fit(run)
+    assert sorted(rec.syncs) == list(range(8))
+    loading = ("data/", "lit/data.py")  # the next batch, made on the host (moved to the device without a wait)
+    for step in (2, 4, 5, 6):
+        left = outside(rec.syncs[step], loading)
+        assert not left, (step, collections.Counter(left))
+    assert any("(verify)" in s for s in outside(rec.syncs[3], loading))  # the logging steps read
+    # the progress bar shows the module's host values: the stage and the loss read at the last logging step
+    bar = next(cb for cb in run.trainer.callbacks if isinstance(cb, ProgressBar))
+    shown = bar.get_metrics(run.trainer, run.module)
+    assert shown["stage"] == 4 and math.isfinite(shown["loss"]), shown
 
 
 def test_default_steps_are_those_of_today(synthetic_cache, tmp_path):

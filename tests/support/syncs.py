@@ -41,6 +41,8 @@ _ALWAYS = {
 }
 #: ops that sync only with a boolean index (converted to ``nonzero`` on the device)
 _BOOL_INDEX = {"index", "index_put", "index_put_", "_index_put_impl_"}
+#: ops that make a tensor from Python data (``torch.tensor``), copied to the device where it is made for one
+_FROM_HOST_DATA = {"lift_fresh", "lift_fresh_copy"}
 #: tensor methods that read the values on the host without dispatching for a CPU tensor
 _METHODS = ("tolist", "cpu", "numpy")
 
@@ -85,13 +87,18 @@ class _Recorder(TorchDispatchMode):
         super().__init__()
 
 
+@dataclass
 class SyncRecorder(_Recorder):
-    """Records every syncing op run inside it (see the module docstring) in :attr:`syncs`."""
+    """Records every syncing op run inside it (see the module docstring) in :attr:`syncs`; with ``host_data``, also
+    the tensors made from host data (``torch.tensor(value, device=...)``: on CUDA a copy the host waits for)."""
+
+    host_data: bool = False
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         kwargs = kwargs or {}
-        if _syncs(func, args, kwargs):
-            self.syncs.append(Sync(func.overloadpacket.__name__, _caller()))
+        name = func.overloadpacket.__name__
+        if _syncs(func, args, kwargs) or (self.host_data and name in _FROM_HOST_DATA):
+            self.syncs.append(Sync(name, _caller()))
         return func(*args, **kwargs)
 
 
@@ -120,9 +127,10 @@ def _wrapped(recorder: SyncRecorder, name: str, method: Callable) -> Callable:
 
 
 @contextmanager
-def record_syncs() -> Iterator[SyncRecorder]:
-    """``with record_syncs() as rec:`` records the host syncs of the block in ``rec.syncs``."""
-    recorder = SyncRecorder()
+def record_syncs(host_data: bool = False) -> Iterator[SyncRecorder]:
+    """``with record_syncs() as rec:`` records the host syncs of the block in ``rec.syncs`` (``host_data``: and the
+    tensors made from host data, :class:`SyncRecorder`)."""
+    recorder = SyncRecorder(host_data=host_data)
     saved = {name: getattr(torch.Tensor, name) for name in _METHODS}
     for name, method in saved.items():
         setattr(torch.Tensor, name, _wrapped(recorder, name, method))
