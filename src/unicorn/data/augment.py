@@ -38,7 +38,8 @@ def random_hue_shift(images: torch.Tensor, max_shift: float, generator: torch.Ge
         raise ValueError(f"max_shift must be in [0, 0.5] (a fraction of the hue circle), got {max_shift}")
     if max_shift == 0.0:
         return images
-    fractions = (torch.rand(B, generator=generator, dtype=torch.float64, device=generator.device) * 2 - 1) * max_shift
+    draws = torch.rand(B, generator=generator, dtype=torch.float64, device=draw_device(images.device, generator))
+    fractions = (draws * 2 - 1) * max_shift
     angles = (fractions * 2 * math.pi).to(device=images.device, dtype=images.dtype)
     return adjust_hue(images, angles)
 

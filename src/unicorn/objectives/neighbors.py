@@ -150,8 +150,9 @@ class NeighborMemory:
 
     def to(self, device: torch.device | str) -> NeighborMemory:
         """Move the stored tensors to ``device`` (nothing copied where they are already there); returns self."""
-        moved = {name: None if t is None else t.to(device) for name, t in self.state(copy=False).items()}
-        if any(moved[name] is not t for name, t in self.state(copy=False).items()):
+        live = self.state(copy=False)
+        moved = {name: None if t is None else t.to(device) for name, t in live.items()}
+        if any(moved[name] is not t for name, t in live.items()):
             for name, value in moved.items():
                 setattr(self, name, value)
             self._undo = None
