@@ -119,15 +119,54 @@ def test_whole_iterations_read_nothing_back_between_the_logging_steps(synthetic_
     assert shown["stage"] == 4 and math.isfinite(shown["loss"]), shown
 
 
+class Stages(L.Callback):
+    """The stage each iteration trained in, as the progress bar shows it. Last among the callbacks."""
+
+    def __init__(self) -> None:
+        self.stages: list[int] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.stages.append(pl_module.progress["stage"])
+
+
+#: a plateau schedule checked every 4 iterations (the logging ones) that ends a stage at every check once the stage
+#: has 2 x 1 3D-step losses and 2 iterations: with threshold 1 any positive loss counts as no improvement
+PLATEAU = (
+    "schedule.mode=plateau", "schedule.plateau.window=1", "schedule.plateau.check_every=4",
+    "schedule.plateau.patience=1", "schedule.plateau.min_steps=2", "schedule.plateau.threshold=1.0",
+)  # fmt: skip
+
+
+def test_plateau_stages_read_the_device_on_their_check_iterations_only(synthetic_cache, tmp_path):
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4", "callbacks.checkpoint.every_n_steps=8", *PLATEAU)
+    run.module.sync_free = True
+    rec, stages = IterationSyncs(), Stages()
+    run.trainer.callbacks.insert(0, rec)
+    run.trainer.callbacks.append(stages)
+    fit(run)
+    loading = ("data/", "lit/data.py")
+    for step in (2, 4, 5, 6):
+        left = outside(rec.syncs[step], loading)
+        assert not left, (step, collections.Counter(left))
+    # the checks after iterations 3 and 7 each found the losses of iterations (1, 3) and (5, 7)
+    assert stages.stages == [1, 1, 1, 1, 2, 2, 2, 2]
+    assert int(run.module.stage) == 3
+
+
 def test_default_steps_are_those_of_today(synthetic_cache, tmp_path):
     rec = _train(tmp_path, False)
     # every step reads its inputs' values and its finite flag
     assert all(any(s.where.startswith("lit/finite.py") for s in rec.syncs[step]) for step in range(8))
 
 
-def test_sync_free_steps_give_the_default_losses(synthetic_cache, tmp_path):
-    default = _train(tmp_path / "default", False)
-    free = _train(tmp_path / "free", True)
+#: stage 2 (with the neighbour term) and the scale switch in iteration 5, between the logging iterations 3 and 7
+BETWEEN_LOGGING = ("schedule.milestones=[5,6,7]", "schedule.curriculum.scale=5")
+
+
+@pytest.mark.parametrize("overrides", [(), BETWEEN_LOGGING, PLATEAU], ids=["default", "stage-between-logs", "plateau"])
+def test_sync_free_steps_give_the_default_losses(synthetic_cache, tmp_path, overrides):
+    default = _train(tmp_path / "default", False, *overrides)
+    free = _train(tmp_path / "free", True, *overrides)
     for step, (a, b) in enumerate(zip(default.rows, free.rows, strict=True)):
         assert a.keys() == b.keys(), step
         for name in a:
@@ -199,11 +238,13 @@ def test_cuda_captured_steps_do_not_sync_and_give_the_eager_losses(synthetic_cac
             assert b[name] == pytest.approx(a[name], rel=1e-6, abs=1e-9), (step, name)
 
 
-def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch):
+# stage 2 from iteration 5: the neighbour term joins the 3D step's terms between the checks at 3 and 7
+@pytest.mark.parametrize("overrides", [(), ("schedule.milestones=[5,6,7]",)], ids=["same-terms", "term-added"])
+def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch, overrides):
     from unicorn.io.serialization import load_checkpoint_file
     from unicorn.lit import NonFiniteLossError
 
-    run = build_run(tmp_path, "trainer.log_every_n_steps=4")
+    run = build_run(tmp_path, "trainer.log_every_n_steps=4", *overrides)
     run.module.sync_free = True
     step, n = run.module.objectives.steps["3d"], 5  # iteration 5 is a 3D step, between the checks at 3 and 7
     original = step.forward

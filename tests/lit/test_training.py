@@ -126,9 +126,12 @@ def test_idle_parameters_skip_vs_momentum(synthetic_cache, tmp_path):
         ["schedule.hue_shift=0.5"],
         ["schedule.roll_jitter=10", "schedule.shift_jitter=0.1"],
         ["model.loss.equivariance_weight=1"],
+        # the 3D-step losses of iterations 1 and 3 are in the checkpoint at 4: the check at 8 needs all four
+        ["schedule.mode=plateau", "schedule.plateau.window=2", "schedule.plateau.check_every=8",
+         "schedule.plateau.patience=1", "schedule.plateau.min_steps=1", "schedule.plateau.threshold=1.0"],
     ],
-    ids=["plain", "hue-shift", "jitter", "equivariance"],
-)
+    ids=["plain", "hue-shift", "jitter", "equivariance", "plateau"],
+)  # fmt: skip
 def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     straight = build_run(tmp_path / "straight", *extra)
     fit(straight)
@@ -138,6 +141,8 @@ def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     assert second.ckpt_path is not None
     fit(second)
     assert second.trainer.global_step == 8
+    if "schedule.mode=plateau" in extra:
+        assert int(straight.module.stage) == 2  # the stage ended at the check, in both runs (compared below)
     a, b = straight.module.state_dict(), second.module.state_dict()
     assert a.keys() == b.keys()
     for key in a:

@@ -6,7 +6,9 @@ mode, and writes them into the module's state (``UnicornLitModule.stage`` / ``te
 model's code-size and switch buffers): a checkpoint alone restores them, every DDP rank computes the same
 values without communication, and a resumed run continues where it stopped. With fixed milestones the stage is
 a pure function of the iteration; the ``plateau`` mode moves on when the 3D-step reconstruction loss stops
-improving (decided on rank 0, broadcast to the others, bookkeeping saved with the callback's state).
+improving (decided on rank 0, broadcast to the others, bookkeeping saved with the callback's state). The plateau
+mode keeps the losses on the device and the stage on the host between its checks: it reads the device on the check
+iterations only (and when a checkpoint saves its state).
 
 The neighbour loss needs active shape and texture codes, so with the paper's code sizes (no shape code in
 stage 1) it starts with stage 2.
@@ -50,6 +52,8 @@ __all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "periodi
 log = logging.getLogger(__name__)
 
 _SWITCHES = tuple(f.name for f in dataclasses.fields(CurriculumConfig))
+#: the 3D-step terms whose sum the plateau mode watches
+_RECONSTRUCTION = ("rgb", "perceptual")
 
 
 class StageState(dict):
@@ -96,8 +100,11 @@ class StageCallback(L.Callback):
         self.plateau = dataclasses.asdict(PlateauConfig()) | dict(plateau or {})
         # plateau bookkeeping (saved in the checkpoint)
         self._history: deque[float] = deque(maxlen=2 * int(self.plateau["window"]))
+        # the 3D steps' terms since the last check, kept on the device
+        self._pending: deque[torch.Tensor] = deque(maxlen=self._history.maxlen)
         self._strikes = 0
         self._stage_start = 0
+        self._stage: int | None = None  # the plateau mode's stage: the module's buffer, read once per fit
         self._last: StageState | None = None
 
     @classmethod
@@ -152,8 +159,11 @@ class StageCallback(L.Callback):
 
     def _current(self, trainer: L.Trainer, pl_module: L.LightningModule) -> StageState:
         step = trainer.global_step
-        stage = self.fixed_stage(step) if self.mode == "fixed" else int(pl_module.stage)
-        return self.state_at(step, stage)
+        if self.mode == "fixed":
+            return self.state_at(step, self.fixed_stage(step))
+        if self._stage is None:
+            self._stage = int(pl_module.stage)
+        return self.state_at(step, self._stage)
 
     def _describe(self, old: StageState | None, new: StageState, step: int) -> list[str]:
         lines = []
@@ -178,7 +188,7 @@ class StageCallback(L.Callback):
 
     # ------------------------------------------------------------------ hooks
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._last = None
+        self._last, self._stage = None, None  # a resumed run's stage is the checkpoint's buffer
         self._update(trainer, pl_module)
 
     def on_train_batch_start(
@@ -213,16 +223,26 @@ class StageCallback(L.Callback):
         if self.mode != "plateau" or not isinstance(outputs, Mapping):
             return
         step = trainer.global_step - 1  # the iteration that just ran
-        if pl_module.phase(step) == "3d":
-            self._history.append(float(outputs.get("rgb", 0.0)) + float(outputs.get("perceptual", 0.0)))
+        terms = [outputs[name] for name in _RECONSTRUCTION if name in outputs]
+        if pl_module.phase(step) == "3d" and terms:
+            self._pending.append(torch.stack(terms).detach())  # read at the next check, not now
         if trainer.global_step % int(self.plateau["check_every"]) != 0:
             return
-        advance = torch.tensor(float(self._plateau_reached(int(pl_module.stage), trainer.global_step)))
+        self._read_pending()
+        stage = self._current(trainer, pl_module)["stage"]
+        advance = torch.tensor(float(self._plateau_reached(stage, trainer.global_step)))
         advance = trainer.strategy.broadcast(advance, src=0)
         if float(advance) > 0:
             pl_module.stage.add_(1)
+            self._stage = stage + 1
             self._stage_start, self._strikes = trainer.global_step, 0
             self._history.clear()
+
+    def _read_pending(self) -> None:
+        """Move the losses kept on the device into the history: one read for all of them."""
+        if self._pending:
+            self._history.extend(torch.stack(tuple(self._pending)).double().sum(1).tolist())
+            self._pending.clear()
 
     def _plateau_reached(self, stage: int, step: int) -> bool:
         window = int(self.plateau["window"])
@@ -235,6 +255,7 @@ class StageCallback(L.Callback):
         return self._strikes >= self.plateau["patience"]
 
     def state_dict(self) -> dict[str, Any]:
+        self._read_pending()
         return {
             "milestones": self.milestones,
             "mode": self.mode,
@@ -253,6 +274,7 @@ class StageCallback(L.Callback):
                 self.milestones,
             )
         self._history.clear()
+        self._pending.clear()
         self._history.extend(state_dict.get("history", []))
         self._strikes = int(state_dict.get("strikes", 0))
         self._stage_start = int(state_dict.get("stage_start", 0))

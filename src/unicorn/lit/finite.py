@@ -121,11 +121,15 @@ class FiniteCheck:
         bad = ~_finite(losses, self._grads())
         if self._bad is None:
             self._bad = torch.full((), -1, dtype=torch.long, device=values.device)
-            self._terms: dict[str, tuple[list[str], torch.Tensor]] = {}
+            # per step kind and set of terms (a stage can add one): which terms the first bad iteration had
+            self._terms: dict[tuple[str, tuple[str, ...]], torch.Tensor] = {}
         first = bad & (self._bad < 0)
         self._bad = torch.where(first, step, self._bad)
-        names, before = self._terms.get(self.module.phase(step), (list(losses), torch.zeros_like(values, dtype=bool)))
-        self._terms[self.module.phase(step)] = (names, torch.where(first, ~torch.isfinite(values), before))
+        key = (self.module.phase(step), tuple(losses))
+        before = self._terms.get(key)
+        if before is None:
+            before = torch.zeros_like(values, dtype=torch.bool)
+        self._terms[key] = torch.where(first, ~torch.isfinite(values), before)
 
     def verify(self, step: int) -> None:
         """After iteration ``step``: read the record (one host read); keep the state as the one to roll back to,
@@ -140,8 +144,14 @@ class FiniteCheck:
         if first < 0:
             self._good = (step + 1, self._state())
             return
-        names, flags = self._terms.get(self.module.phase(first), ([], torch.zeros(0)))
-        bad = [name for name, flag in zip(names, flags.tolist()) if flag] or ["gradients of 'total' or another rank"]
+        phase = self.module.phase(first)
+        bad = [
+            name
+            for (kind, names), flags in self._terms.items()
+            if kind == phase
+            for name, flag in zip(names, flags.tolist())
+            if flag
+        ] or ["gradients of 'total' or another rank"]
         good_step, state = self._good or (0, None)
         path = self._roll_back(good_step, state) if state is not None else None
         saved = f"; the state after iteration {good_step - 1} was saved to {path}" if path else ""
