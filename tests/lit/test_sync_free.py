@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import math
+import os
 
 import lightning as L
 import pytest
@@ -238,9 +239,22 @@ def test_cuda_captured_steps_do_not_sync_and_give_the_eager_losses(synthetic_cac
             assert b[name] == pytest.approx(a[name], rel=1e-6, abs=1e-9), (step, name)
 
 
-# stage 2 from iteration 5: the neighbour term joins the 3D step's terms between the checks at 3 and 7
-@pytest.mark.parametrize("overrides", [(), ("schedule.milestones=[5,6,7]",)], ids=["same-terms", "term-added"])
-def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_cache, tmp_path, monkeypatch, overrides):
+@pytest.mark.parametrize(
+    ("overrides", "signal", "found"),
+    [
+        ((), False, 7),
+        # stage 2 from iteration 5: the neighbour term joins the 3D step's terms between the checks at 3 and 7
+        (("schedule.milestones=[5,6,7]",), False, 7),
+        # SIGTERM during iteration 5: its checkpoint is not written from the non-finite state
+        ((), True, 5),
+    ],
+    ids=["same-terms", "term-added", "signal"],
+)
+def test_deferred_finite_check_rolls_back_to_the_last_verified_state(
+    synthetic_cache, tmp_path, monkeypatch, overrides, signal, found
+):
+    import signal as signals
+
     from unicorn.io.serialization import load_checkpoint_file
     from unicorn.lit import NonFiniteLossError
 
@@ -254,15 +268,19 @@ def test_deferred_finite_check_rolls_back_to_the_last_verified_state(synthetic_c
         if run.trainer.global_step == n:
             out["rgb"] = out["rgb"] * float("nan")
             out["total"] = out["total"] + out["rgb"]
+            if signal:
+                os.kill(os.getpid(), signals.SIGTERM)  # the run's handler: stop after this iteration
         return out
 
     monkeypatch.setattr(step, "forward", nan_at_n)
     before = StateBefore(4)  # the state verified at iteration 3
     run.trainer.callbacks.append(before)
     with pytest.raises(
-        NonFiniteLossError, match=r"iteration 5 \(3d step\), found at iteration 7: rgb, total; .*step=4"
+        NonFiniteLossError, match=rf"iteration 5 \(3d step\), found at iteration {found}: rgb, total; .*step=4"
     ):
         fit(run)
+    # last.ckpt is still the periodic one of iteration 3: no checkpoint holds the weights after iteration 5
+    assert load_checkpoint_file(run.checkpoint_dir / "last.ckpt")["global_step"] == 4
     saved = load_checkpoint_file(run.checkpoint_dir / "nonfinite-step=4.ckpt")
     assert saved["global_step"] == 4 and before.state is not None
     state = saved["state_dict"]

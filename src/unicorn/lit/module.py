@@ -184,6 +184,7 @@ class UnicornLitModule(L.LightningModule):
         #: stage, from the stage callback, and the total loss, read where the step reads anyway
         self.progress: dict[str, float | int] = {}
         self._steps_run = 0
+        self._unread: int | None = None  # the latest step without host reads, if no step has read since
         #: the steps without host reads' forward compiled whole (``model.compile_scope=step``, :meth:`compile_step`)
         self.compiled_step: CompiledStep | None = None
         # each step kind's terms of its latest iteration, logged together (see training_step)
@@ -266,6 +267,18 @@ class UnicornLitModule(L.LightningModule):
                 for line in module.grow_buffers():
                     log.warning("rasterizer buffers at iteration %d: %s", step, line)
 
+    def read_deferred(self) -> None:
+        """Make the reads the steps without host reads left for the next logging step now (the finite-loss flag, the
+        rasterizers' needed sizes): before a checkpoint written off the logging steps, so that it never holds the
+        weights of a non-finite step.
+
+        Raises:
+            NonFiniteLossError: a step since the last read was not finite (the state is rolled back and saved first).
+        """
+        if self._unread is not None:
+            step, self._unread = self._unread, None
+            self._logging_reads(step)
+
     def _step(self, images: torch.Tensor, step: int, deferred: bool) -> tuple[Any, Any, bool]:
         """Iteration ``step``'s forward, backward and optimizer step: (its losses, the optimizer, the averaging)."""
         images = self.training_images(images, step)
@@ -312,6 +325,7 @@ class UnicornLitModule(L.LightningModule):
                 scheduler.step()
 
         reads = not deferred or self._verifies(step)  # the steps without host reads read on these steps only
+        self._unread = None if reads else step
         if deferred and reads:
             self._logging_reads(step)
         terms = {name: value.detach() for name, value in losses.items()}
