@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import lightning as L
@@ -155,6 +156,29 @@ def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"]
     for index, state in opt_a["state"].items():
         torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cache, tmp_path):
+    """The last.ckpt of a signal is the run's own: the resumed run replaces it instead of writing last-v1.ckpt."""
+    import signal
+
+    from unicorn.errors import Interrupted
+    from unicorn.io.serialization import load_checkpoint_file
+
+    first = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=100")
+
+    class Signal(L.Callback):
+        def on_train_batch_start(self, trainer, *args):
+            if trainer.global_step == 2:
+                os.kill(os.getpid(), signal.SIGTERM)  # the run's handler: stop after this iteration
+
+    first.trainer.callbacks.append(Signal())
+    with pytest.raises(Interrupted, match="after iteration 3"):
+        fit(first)
+    second = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=100", "ckpt_path=last")
+    fit(second)
+    assert sorted(p.name for p in second.checkpoint_dir.iterdir()) == ["last.ckpt"]
+    assert load_checkpoint_file(second.checkpoint_dir / "last.ckpt")["global_step"] == 8
 
 
 class BatchRecorder(L.Callback):

@@ -70,11 +70,20 @@ class PeriodicCheckpoint(ModelCheckpoint):
     forever. At the start of training the folder's ``step=<N>.ckpt`` files are added to the rotation (ranked by
     ``N``, monitor ``"step"``) and the oldest beyond ``save_top_k`` are deleted. Stale ``.tmp`` files of killed
     writes are deleted too.
+
+    The folder's ``last.ckpt`` is the run's own even where this callback did not write it (the one a signal or the
+    end of :func:`unicorn.lit.run.fit` writes): it is replaced, where Lightning would write ``last-v1.ckpt`` beside it.
     """
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)
-        if self.dirpath is None or not trainer.is_global_zero or not os.path.isdir(self.dirpath):
+        if self.dirpath is None:
+            return
+        if self.save_last:
+            last = self.format_checkpoint_name({}, self.CHECKPOINT_NAME_LAST)
+            if self.file_exists(last, trainer):  # on every rank: rank 0 looks, the others are told
+                self.last_model_path = last
+        if not trainer.is_global_zero or not os.path.isdir(self.dirpath):
             return
         remove_stale_temporaries(self.dirpath)
         if self.monitor != "step" or self.save_top_k < 0:
