@@ -159,11 +159,13 @@ class StageCallback(L.Callback):
 
     def _current(self, trainer: L.Trainer, pl_module: L.LightningModule) -> StageState:
         step = trainer.global_step
-        if self.mode == "fixed":
-            return self.state_at(step, self.fixed_stage(step))
+        stage = self.fixed_stage(step) if self.mode == "fixed" else self._plateau_stage(pl_module)
+        return self.state_at(step, stage)
+
+    def _plateau_stage(self, pl_module: L.LightningModule) -> int:
         if self._stage is None:
-            self._stage = int(pl_module.stage)
-        return self.state_at(step, self._stage)
+            self._stage = int(pl_module.stage)  # one read per fit: on_train_start resets it
+        return self._stage
 
     def _describe(self, old: StageState | None, new: StageState, step: int) -> list[str]:
         lines = []
@@ -222,19 +224,19 @@ class StageCallback(L.Callback):
     ) -> None:
         if self.mode != "plateau" or not isinstance(outputs, Mapping):
             return
-        step = trainer.global_step - 1  # the iteration that just ran
-        terms = [outputs[name] for name in _RECONSTRUCTION if name in outputs]
-        if pl_module.phase(step) == "3d" and terms:
-            self._pending.append(torch.stack(terms).detach())  # read at the next check, not now
+        if pl_module.phase(trainer.global_step - 1) == "3d":  # the iteration that just ran
+            terms = [outputs[name] for name in _RECONSTRUCTION if name in outputs]
+            if terms:
+                self._pending.append(torch.stack(terms).detach())  # read at the next check, not now
         if trainer.global_step % int(self.plateau["check_every"]) != 0:
             return
         self._read_pending()
-        stage = self._current(trainer, pl_module)["stage"]
+        stage = self._plateau_stage(pl_module)
         advance = torch.tensor(float(self._plateau_reached(stage, trainer.global_step)))
         advance = trainer.strategy.broadcast(advance, src=0)
         if float(advance) > 0:
-            pl_module.stage.add_(1)
             self._stage = stage + 1
+            pl_module.stage.fill_(self._stage)
             self._stage_start, self._strikes = trainer.global_step, 0
             self._history.clear()
 

@@ -126,10 +126,9 @@ class FiniteCheck:
         first = bad & (self._bad < 0)
         self._bad = torch.where(first, step, self._bad)
         key = (self.module.phase(step), tuple(losses))
+        flags = first & ~torch.isfinite(values)  # set once, by the first bad iteration
         before = self._terms.get(key)
-        if before is None:
-            before = torch.zeros_like(values, dtype=torch.bool)
-        self._terms[key] = torch.where(first, ~torch.isfinite(values), before)
+        self._terms[key] = flags if before is None else before | flags
 
     def verify(self, step: int) -> None:
         """After iteration ``step``: read the record (one host read); keep the state as the one to roll back to,
@@ -144,14 +143,11 @@ class FiniteCheck:
         if first < 0:
             self._good = (step + 1, self._state())
             return
-        phase = self.module.phase(first)
-        bad = [
-            name
-            for (kind, names), flags in self._terms.items()
-            if kind == phase
-            for name, flag in zip(names, flags.tolist())
-            if flag
-        ] or ["gradients of 'total' or another rank"]
+        phase, bad = self.module.phase(first), []
+        for (kind, names), flags in self._terms.items():
+            if kind == phase:
+                bad += [name for name, flag in zip(names, flags.tolist()) if flag]
+        bad = bad or ["gradients of 'total' or another rank"]
         good_step, state = self._good or (0, None)
         path = self._roll_back(good_step, state) if state is not None else None
         saved = f"; the state after iteration {good_step - 1} was saved to {path}" if path else ""
