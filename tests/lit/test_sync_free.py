@@ -247,8 +247,10 @@ def test_cuda_captured_steps_do_not_sync_and_give_the_eager_losses(synthetic_cac
         (("schedule.milestones=[5,6,7]",), False, 7),
         # SIGTERM during iteration 5: its checkpoint is not written from the non-finite state
         ((), True, 5),
+        # a second checkpoint callback saving after iteration 5 (off the logging steps): it verifies first
+        ((), "checkpoint", 5),
     ],
-    ids=["same-terms", "term-added", "signal"],
+    ids=["same-terms", "term-added", "signal", "extra-checkpoint"],
 )
 def test_deferred_finite_check_rolls_back_to_the_last_verified_state(
     synthetic_cache, tmp_path, monkeypatch, overrides, signal, found
@@ -268,13 +270,16 @@ def test_deferred_finite_check_rolls_back_to_the_last_verified_state(
         if run.trainer.global_step == n:
             out["rgb"] = out["rgb"] * float("nan")
             out["total"] = out["total"] + out["rgb"]
-            if signal:
+            if signal is True:
                 os.kill(os.getpid(), signals.SIGTERM)  # the run's handler: stop after this iteration
         return out
 
     monkeypatch.setattr(step, "forward", nan_at_n)
     before = StateBefore(4)  # the state verified at iteration 3
     run.trainer.callbacks.append(before)
+    extra = tmp_path / "extra"
+    if signal == "checkpoint":
+        run.trainer.callbacks.append(L.pytorch.callbacks.ModelCheckpoint(extra, every_n_train_steps=6, save_top_k=-1))
     with pytest.raises(
         NonFiniteLossError, match=rf"iteration 5 \(3d step\), found at iteration {found}: rgb, total; .*step=4"
     ):
@@ -288,3 +293,4 @@ def test_deferred_finite_check_rolls_back_to_the_last_verified_state(
     for key, value in state.items():
         assert torch.equal(value, before.state[key]), key
     assert all(torch.isfinite(p).all() for p in run.module.parameters())  # rolled back in memory too
+    assert not extra.exists() or not any(extra.iterdir())

@@ -251,11 +251,11 @@ class UnicornLitModule(L.LightningModule):
         return bool(enabled) and self._steps_run >= self.checked_steps
 
     def _verifies(self, step: int) -> bool:
-        """Whether iteration ``step`` reads the deferred finite flag: a logging step, a checkpoint's or the last."""
+        """Whether iteration ``step`` reads the deferred finite flag: a logging step or the last (a checkpoint's
+        reads in :meth:`on_save_checkpoint`)."""
         trainer = self.trainer
-        every = int(getattr(trainer.checkpoint_callback, "_every_n_train_steps", 0) or 0)
         last = (trainer.max_steps or -1) > 0 and step + 1 >= trainer.max_steps  # -1: no limit
-        return logs_this_step(trainer) or last or (every > 0 and (step + 1) % every == 0)
+        return logs_this_step(trainer) or last
 
     def _logging_reads(self, step: int) -> None:
         """What the steps without host reads left on the device: the finite-loss flag, and the sizes the
@@ -269,8 +269,8 @@ class UnicornLitModule(L.LightningModule):
 
     def read_deferred(self) -> None:
         """Make the reads the steps without host reads left for the next logging step now (the finite-loss flag, the
-        rasterizers' needed sizes): before a checkpoint written off the logging steps, so that it never holds the
-        weights of a non-finite step.
+        rasterizers' needed sizes). Every checkpoint makes them first (:meth:`on_save_checkpoint`), whichever
+        callback or signal writes it, so that none holds the weights of a non-finite step.
 
         Raises:
             NonFiniteLossError: a step since the last read was not finite (the state is rolled back and saved first).
@@ -411,7 +411,13 @@ class UnicornLitModule(L.LightningModule):
 
     # ------------------------------------------------------------------ checkpoint state
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Add every rank's neighbour memory and random states (``checkpoint["unicorn"]``)."""
+        """Add every rank's neighbour memory and random states (``checkpoint["unicorn"]``), after the reads the steps
+        without host reads left (:meth:`read_deferred`: a non-finite step raises here, before anything is written).
+
+        Raises:
+            NonFiniteLossError: a step since the last read was not finite (the state is rolled back and saved first).
+        """
+        self.read_deferred()
         memory = {k: (None if v is None else v.detach().cpu()) for k, v in self.objectives.memory.state().items()}
         state = {"memory": memory, "rng": _rng_state()}
         ranks = [state]

@@ -71,9 +71,6 @@ class GracefulStop(L.Callback):
         if not trainer.strategy.reduce_boolean_decision(signum is not None, all=False):
             return
         signum = signum or signal.SIGTERM
-        read_deferred = getattr(trainer.lightning_module, "read_deferred", None)
-        if read_deferred is not None:
-            read_deferred()  # a non-finite step since the last check stops the run here, rolled back, not saved
         trainer.save_checkpoint(self.last_path, weights_only=False)
         self.stopped = Interrupted(
             f"stopped by {signal.Signals(signum).name} after iteration {trainer.global_step}; {self.last_path} "
