@@ -130,8 +130,10 @@ def test_idle_parameters_skip_vs_momentum(synthetic_cache, tmp_path):
         # the 3D-step losses of iterations 1 and 3 are in the checkpoint at 4: the check at 8 needs all four
         ["schedule.mode=plateau", "schedule.plateau.window=2", "schedule.plateau.check_every=8",
          "schedule.plateau.patience=1", "schedule.plateau.min_steps=1", "schedule.plateau.threshold=1.0"],
+        # the first run's last.ckpt written at the end of training, off the periodic steps (3)
+        ["callbacks.checkpoint.every_n_steps=3"],
     ],
-    ids=["plain", "hue-shift", "jitter", "equivariance", "plateau"],
+    ids=["plain", "hue-shift", "jitter", "equivariance", "plateau", "end-of-training"],
 )  # fmt: skip
 def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     straight = build_run(tmp_path / "straight", *extra)
@@ -179,6 +181,23 @@ def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cac
     fit(second)
     assert sorted(p.name for p in second.checkpoint_dir.iterdir()) == ["last.ckpt"]
     assert load_checkpoint_file(second.checkpoint_dir / "last.ckpt")["global_step"] == 8
+
+
+@pytest.mark.parametrize("every", [4, 3, 100], ids=["on-the-last-step", "off-it", "none-during-the-run"])
+def test_each_checkpoint_of_a_run_is_written_once(synthetic_cache, tmp_path, every):
+    """``last.ckpt`` of the final iteration is written once, whether or not a periodic save falls on it."""
+    run = build_run(tmp_path, f"callbacks.checkpoint.every_n_steps={every}")
+    io = run.trainer.strategy.checkpoint_io
+    written, save = [], io.save_checkpoint
+
+    def recorded(checkpoint, path, storage_options=None):
+        written.append((os.path.basename(path), checkpoint["global_step"]))
+        save(checkpoint, path, storage_options)
+
+    io.save_checkpoint = recorded
+    fit(run)
+    expected = [x for s in range(every, 9, every) for x in ((f"step={s:07d}.ckpt", s), ("last.ckpt", s))]
+    assert written == (expected if 8 % every == 0 else [*expected, ("last.ckpt", 8)])
 
 
 class BatchRecorder(L.Callback):

@@ -283,9 +283,6 @@ def fit(run: Run) -> dict[str, float]:
         ) from err
     if run.stopper.stopped is not None:  # the signal came during the last iteration
         raise run.stopper.stopped
-    if not trainer.interrupted and typed.callbacks.checkpoint.save_last:
-        # the periodic checkpoints may not fall on the last iteration
-        trainer.save_checkpoint(run.checkpoint_dir / "last.ckpt", weights_only=False)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
         evaluate_run(run)
