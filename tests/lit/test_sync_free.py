@@ -59,7 +59,12 @@ OPTIONAL = (
 )  # fmt: skip
 
 
-@pytest.mark.parametrize("overrides", [(), OPTIONAL], ids=["default", "optional"])
+@pytest.mark.parametrize(
+    "overrides",
+    # without the diagnostics' overflow counter, the step counts the renders' overflow itself
+    [(), OPTIONAL, ("callbacks.diagnostics=null",)],
+    ids=["default", "optional", "no-diagnostics"],
+)
 def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_path, overrides):
     rec = _train(tmp_path, True, *overrides)
     assert len(rec.syncs) == 8
@@ -67,10 +72,12 @@ def test_steps_read_nothing_back_after_the_checked_ones(synthetic_cache, tmp_pat
     # flag, the rasterizers' needed sizes and the logged values; the others nothing
     for step in (0, 1):
         assert any(s.where.startswith("lit/finite.py") and "(now)" in s.where for s in rec.syncs[step]), step
+    own_count = "callbacks.diagnostics=null" in overrides  # the step's own overflow count, read with the rest
     for step in (3, 7):
         left = outside(rec.syncs[step])
         assert any("(verify)" in s for s in left) and any("(grow_buffers)" in s for s in left), (step, left)
-        assert all("lit/" in s or "(grow_buffers)" in s for s in left), (step, left)
+        assert any("render/overflow.py" in s for s in left) == own_count, (step, left)
+        assert all("lit/" in s or "(grow_buffers)" in s or "render/overflow.py" in s for s in left), (step, left)
     for step in (2, 4, 5, 6):
         left = outside(rec.syncs[step])
         assert not left, (step, collections.Counter(left))
@@ -294,3 +301,23 @@ def test_deferred_finite_check_rolls_back_to_the_last_verified_state(
         assert torch.equal(value, before.state[key]), key
     assert all(torch.isfinite(p).all() for p in run.module.parameters())  # rolled back in memory too
     assert not extra.exists() or not any(extra.iterdir())
+
+
+@pytest.mark.parametrize("sync_free", [False, True], ids=["default", "sync-free"])
+def test_overflow_warns_once_without_the_diagnostics(synthetic_cache, tmp_path, sync_free):
+    """One face per pixel overflows: the run says so once, at the first iteration (default steps) or at the first
+    read of the steps without host reads, which count the overflow on the device."""
+    from unicorn.render import RenderOverflowWarning
+    from unicorn.render import overflow as render_overflow
+
+    run = build_run(tmp_path, "callbacks.diagnostics=null", "renderer.faces_per_pixel=1", "trainer.log_every_n_steps=4")
+    run.module.sync_free = sync_free
+    run.module.checked_steps = 0  # every step of the sync-free run without host reads, the first included
+    render_overflow._WARNED.discard(1)  # the renders' own warning is said once per process
+    with pytest.warns(RenderOverflowWarning) as said:
+        fit(run)
+    said = [str(w.message) for w in said if issubclass(w.category, RenderOverflowWarning)]
+    assert len(said) == 1, said
+    last = 3 if sync_free else 0  # the first read: the first logging step, or the first iteration
+    assert said[0].startswith(f"renderer: in the training renders of iterations 0-{last}, "), said
+    assert "diagnostics" not in said[0]

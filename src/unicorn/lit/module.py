@@ -56,10 +56,12 @@ from unicorn.hostsync import is_sync_free, sync_free
 from unicorn.lit.compiled import CompiledStep
 from unicorn.lit.finite import FiniteCheck, NonFiniteLossError
 from unicorn.lit.loggers import logs_this_step
+from unicorn.lit.overflow import TrainingOverflow
 from unicorn.metrics import mask_iou
 from unicorn.model import Unicorn
 from unicorn.model.encoder import crop_optimizer_state
 from unicorn.objectives import Objectives
+from unicorn.render.overflow import counting
 from unicorn.render.rasterizer import MeshRasterizer
 
 __all__ = ["NonFiniteLossError", "OPTIM_DEFAULTS", "UnicornLitModule"]
@@ -185,6 +187,8 @@ class UnicornLitModule(L.LightningModule):
         self.progress: dict[str, float | int] = {}
         self._steps_run = 0
         self._unread: int | None = None  # the latest step without host reads, if no step has read since
+        # the training renders' overflow where no other counter collects it (no diagnostics)
+        self._overflow = TrainingOverflow(logged=False)
         #: the steps without host reads' forward compiled whole (``model.compile_scope=step``, :meth:`compile_step`)
         self.compiled_step: CompiledStep | None = None
         # each step kind's terms of its latest iteration, logged together (see training_step)
@@ -258,14 +262,20 @@ class UnicornLitModule(L.LightningModule):
         return logs_this_step(trainer) or last
 
     def _logging_reads(self, step: int) -> None:
-        """What the steps without host reads left on the device: the finite-loss flag, and the sizes the
-        rasterizers' fixed buffers needed (grown where too small)."""
+        """What the steps without host reads left on the device: the finite-loss flag, the sizes the rasterizers'
+        fixed buffers needed (grown where too small), and the renders' overflow where the step counted it."""
         if self.optim["check_finite"]:
             self.finite.verify(step)
+        self._read_overflow(step)
         for module in self.model.modules():
             if isinstance(module, MeshRasterizer):
                 for line in module.grow_buffers():
                     log.warning("rasterizer buffers at iteration %d: %s", step, line)
+
+    def _read_overflow(self, step: int) -> None:
+        """Take the overflow the steps counted themselves (no diagnostics): the first that finds any warns."""
+        if self._overflow.counter.counts:
+            self._overflow.share(step)
 
     def read_deferred(self) -> None:
         """Make the reads the steps without host reads left for the next logging step now (the finite-loss flag, the
@@ -308,7 +318,10 @@ class UnicornLitModule(L.LightningModule):
         step = self.global_step
         deferred = self._sync_free_step()
         self._steps_run += 1
-        with sync_free(deferred):
+        # where no other counter collects the renders' overflow (no diagnostics), the step counts it: a render's
+        # own warning would read it back at once, and the steps without host reads take it with their other reads
+        own_count = not counting()
+        with sync_free(deferred), self._overflow.counting(step) if own_count else contextlib.nullcontext():
             losses, opt, average = self._step(batch["image"], step, deferred)
         schedulers = self.lr_schedulers()
         if not isinstance(schedulers, list):
@@ -328,6 +341,8 @@ class UnicornLitModule(L.LightningModule):
         self._unread = None if reads else step
         if deferred and reads:
             self._logging_reads(step)
+        elif not deferred:
+            self._read_overflow(step)
         terms = {name: value.detach() for name, value in losses.items()}
         self._latest_terms[self.phase(step)] = {**terms, **losses.stats}
         if reads:

@@ -24,7 +24,7 @@ from types import TracebackType
 
 import torch
 
-__all__ = ["OverflowCounter", "RenderOverflowWarning", "note_overflow"]
+__all__ = ["OverflowCounter", "RenderOverflowWarning", "counting", "note_overflow"]
 
 #: the counters collecting renders, innermost last (per thread and asyncio task)
 _ACTIVE: ContextVar[tuple[OverflowCounter, ...]] = ContextVar("unicorn_render_overflow", default=())
@@ -128,6 +128,11 @@ def _set_active(counters: tuple[OverflowCounter, ...]) -> None:
     global _TRACED
     _ACTIVE.set(counters)
     _TRACED = counters
+
+
+def counting() -> bool:
+    """Whether a render in this thread now counts in an active :class:`OverflowCounter` instead of warning."""
+    return bool(_TRACED if torch.compiler.is_compiling() else _ACTIVE.get())
 
 
 def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
