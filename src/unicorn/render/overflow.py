@@ -130,9 +130,14 @@ def _set_active(counters: tuple[OverflowCounter, ...]) -> None:
     _TRACED = counters
 
 
+def _active() -> tuple[OverflowCounter, ...]:
+    """The active counters, innermost last (their mirror while torch.compile traces: it cannot read a ContextVar)."""
+    return _TRACED if torch.compiler.is_compiling() else _ACTIVE.get()
+
+
 def counting() -> bool:
     """Whether a render in this thread now counts in an active :class:`OverflowCounter` instead of warning."""
-    return bool(_TRACED if torch.compiler.is_compiling() else _ACTIVE.get())
+    return bool(_active())
 
 
 def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
@@ -143,7 +148,7 @@ def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
     does, every step), which would repeat the line thousands of times; hence the set kept here. Called by
     :func:`~unicorn.render.raster.rasterize_meshes`; the warning points at its caller.
     """
-    active = _TRACED if torch.compiler.is_compiling() else _ACTIVE.get()
+    active = _active()
     if active:
         active[-1].add(overflow, pixels, faces_per_pixel)
         return
