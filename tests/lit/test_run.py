@@ -33,15 +33,15 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
         "logger=csv",
         "callbacks.checkpoint.keep=3",
     )
-    # Lightning moves checkpoint callbacks last
+    # Lightning moves checkpoint callbacks last, in their order: the signal's save comes after the periodic one
     kinds = [type(cb) for cb in run.trainer.callbacks]
     expected = [
-        StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer, GracefulStop, PeriodicCheckpoint
+        StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer, PeriodicCheckpoint, GracefulStop
     ]  # fmt: skip
     assert kinds == expected
     images = run.trainer.callbacks[3]
     assert (images.every_n_steps, images.n_views, images.n_images) == (3, 2, 8)  # n_images: the schema's default
-    checkpoint = run.trainer.callbacks[-1]
+    checkpoint = run.trainer.callbacks[-2]
     assert checkpoint.dirpath == str(tmp_path / "checkpoints") and checkpoint.save_top_k == 3
     assert checkpoint._every_n_train_steps == 4  # TINY's callbacks.checkpoint.every_n_steps
     assert [type(logger) for logger in run.trainer.loggers] == [CSVLogger]
@@ -49,7 +49,7 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
 
 def test_a_null_node_is_left_out(tmp_path) -> None:
     run = build_run(tmp_path, "callbacks.diagnostics=null", "trainer.enable_progress_bar=false")
-    assert [type(cb) for cb in run.trainer.callbacks] == [StageCallback, ResumeLogs, GracefulStop, PeriodicCheckpoint]
+    assert [type(cb) for cb in run.trainer.callbacks] == [StageCallback, ResumeLogs, PeriodicCheckpoint, GracefulStop]
 
 
 def test_training_with_model_compile_compiles_the_networks_and_the_reconstruction_loss(

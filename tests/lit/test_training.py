@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import warnings
 
 import lightning as L
@@ -160,21 +161,37 @@ def test_resume_is_exact(synthetic_cache, tmp_path, extra):
         torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
 
 
+def record_checkpoints(run) -> list[tuple[str, int]]:
+    """The (file name, global step) of every checkpoint ``run`` writes, in order, filled as it trains."""
+    io = run.trainer.strategy.checkpoint_io
+    written, save = [], io.save_checkpoint
+
+    def recorded(checkpoint, path, storage_options=None):
+        written.append((os.path.basename(path), checkpoint["global_step"]))
+        save(checkpoint, path, storage_options)
+
+    io.save_checkpoint = recorded
+    return written
+
+
+class SignalDuring(L.Callback):
+    """Sends the run's process SIGTERM during iteration ``at`` (0-based): the run stops after it."""
+
+    def __init__(self, at: int) -> None:
+        self.at = at
+
+    def on_train_batch_start(self, trainer, *args):
+        if trainer.global_step == self.at:
+            os.kill(os.getpid(), signal.SIGTERM)  # the run's handler: stop after this iteration
+
+
 def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cache, tmp_path):
     """The last.ckpt of a signal is the run's own: the resumed run replaces it instead of writing last-v1.ckpt."""
-    import signal
-
     from unicorn.errors import Interrupted
     from unicorn.io.serialization import load_checkpoint_file
 
     first = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=100")
-
-    class Signal(L.Callback):
-        def on_train_batch_start(self, trainer, *args):
-            if trainer.global_step == 2:
-                os.kill(os.getpid(), signal.SIGTERM)  # the run's handler: stop after this iteration
-
-    first.trainer.callbacks.append(Signal())
+    first.trainer.callbacks.append(SignalDuring(2))
     with pytest.raises(Interrupted, match="after iteration 3"):
         fit(first)
     second = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=100", "ckpt_path=last")
@@ -187,17 +204,39 @@ def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cac
 def test_each_checkpoint_of_a_run_is_written_once(synthetic_cache, tmp_path, every):
     """``last.ckpt`` of the final iteration is written once, whether or not a periodic save falls on it."""
     run = build_run(tmp_path, f"callbacks.checkpoint.every_n_steps={every}")
-    io = run.trainer.strategy.checkpoint_io
-    written, save = [], io.save_checkpoint
-
-    def recorded(checkpoint, path, storage_options=None):
-        written.append((os.path.basename(path), checkpoint["global_step"]))
-        save(checkpoint, path, storage_options)
-
-    io.save_checkpoint = recorded
+    written = record_checkpoints(run)
     fit(run)
     expected = [x for s in range(every, 9, every) for x in ((f"step={s:07d}.ckpt", s), ("last.ckpt", s))]
     assert written == (expected if 8 % every == 0 else [*expected, ("last.ckpt", 8)])
+
+
+@pytest.mark.parametrize(
+    ("every", "save_last", "at"),
+    [(4, "true", 3), (4, "true", 7), (3, "true", 7), (3, "true", 4), (4, "false", 3), (3, "false", 7)],
+    ids=["periodic", "periodic-last", "last", "between", "periodic-no-last", "last-no-last"],
+)
+def test_a_signal_writes_last_ckpt_of_its_iteration_once(synthetic_cache, tmp_path, every, save_last, at):
+    """The ``last.ckpt`` of a signal is written once: not again by a periodic save of the same iteration, nor by the
+    end of training when the signal came during the last iteration, with or without ``save_last``."""
+    from unicorn.errors import Interrupted
+    from unicorn.io.serialization import load_checkpoint_file
+
+    run = build_run(
+        tmp_path, f"callbacks.checkpoint.every_n_steps={every}", f"callbacks.checkpoint.save_last={save_last}"
+    )
+    run.trainer.callbacks.append(SignalDuring(at))
+    written = record_checkpoints(run)
+    stop = at + 1
+    with pytest.raises(Interrupted, match=f"after iteration {stop};"):
+        fit(run)
+    keep_last = save_last == "true"
+    expected = [
+        x for s in range(every, stop + 1, every) for x in ((f"step={s:07d}.ckpt", s), ("last.ckpt", s))[: 1 + keep_last]
+    ]
+    if stop % every != 0 or not keep_last:
+        expected.append(("last.ckpt", stop))
+    assert written == expected
+    assert load_checkpoint_file(run.checkpoint_dir / "last.ckpt")["global_step"] == stop
 
 
 class BatchRecorder(L.Callback):

@@ -71,15 +71,28 @@ class PeriodicCheckpoint(ModelCheckpoint):
     ``N``, monitor ``"step"``) and the oldest beyond ``save_top_k`` are deleted. Stale ``.tmp`` files of killed
     writes are deleted too.
 
-    The folder's ``last.ckpt`` is the run's own even where this callback did not write it (the one a signal writes):
-    it is replaced, where Lightning would write ``last-v1.ckpt`` beside it. With ``save_last``, training ends with
-    ``last.ckpt`` of the final iteration, written once: at the end of training unless a periodic save just wrote it.
+    The folder's ``last.ckpt`` is the run's own even where this callback did not write it (one an earlier attempt's
+    signal wrote): it is replaced, where Lightning would write ``last-v1.ckpt`` beside it. With ``save_last``,
+    training ends with ``last.ckpt`` of the final iteration, written once: at the end of training unless a periodic
+    save (or a signal's, :meth:`save_last_checkpoint`) just wrote it.
     """
+
+    @property
+    def last_file(self) -> Path | None:
+        """The ``last.ckpt`` this callback writes (None without ``save_last``)."""
+        if not self.save_last or self.dirpath is None:
+            return None
+        return Path(self.format_checkpoint_name({}, self.CHECKPOINT_NAME_LAST))
+
+    def save_last_checkpoint(self, trainer: L.Trainer) -> None:
+        """Write :attr:`last_file` of the current iteration, unless this callback already wrote it (a periodic save
+        of the same iteration). The same decision on every rank."""
+        if self.save_last and self._last_global_step_saved != trainer.global_step:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # Lightning's own end-of-training save is made only where nothing was saved during the run
-        if self.save_last and self._last_global_step_saved != trainer.global_step:
-            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+        self.save_last_checkpoint(trainer)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)

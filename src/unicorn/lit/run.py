@@ -79,7 +79,7 @@ def build(cfg: DictConfig) -> Run:
     data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
     module = build_module(typed)
     stopper = GracefulStop(checkpoint_dir / "last.ckpt")
-    callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]
+    callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]  # a Checkpoint callback: after the periodic one
     trainer = build_trainer(typed, callbacks, build_loggers(typed), output_dir)
     write_run_folder(typed, output_dir, ckpt_path, outdated)
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path, stopper)

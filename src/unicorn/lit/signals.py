@@ -3,7 +3,8 @@
 Schedulers (SLURM, Kubernetes...) send SIGTERM before they preempt or requeue a job; Ctrl-C sends SIGINT.
 :class:`GracefulStop` lets the iteration under way finish, writes ``last.ckpt`` atomically
 (:class:`~unicorn.lit.checkpoint.AtomicCheckpointIO`), whatever ``callbacks.checkpoint.save_last`` says, at the
-point of the iteration where the periodic checkpoints are written, and stops before the next iteration (once
+point of the iteration where the periodic checkpoints are written (after them: it is a Lightning ``Checkpoint``
+callback, and those run last, in their order), and stops before the next iteration (once
 the loggers have the iteration's values, as a resume expects them) with :class:`unicorn.errors.Interrupted`:
 ``unicorn-train`` then exits with status ``128 + signal`` (143 for SIGTERM, 130 for SIGINT), never 0. The same
 command with ``ckpt_path=last`` (a requeued SLURM job) resumes from that file exactly.
@@ -18,22 +19,29 @@ iteration: the decision is reduced across ranks at each step boundary.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 from pathlib import Path
 from typing import Any
 
 import lightning as L
+from lightning.pytorch.callbacks import Checkpoint
 
 from unicorn.errors import Interrupted
+from unicorn.lit.checkpoint import PeriodicCheckpoint
 
 __all__ = ["GracefulStop"]
 
 log = logging.getLogger("unicorn.train")
 
 
-class GracefulStop(L.Callback):
+class GracefulStop(Checkpoint):
     """Stop at the step boundary after SIGTERM or SIGINT, writing ``last_path`` first (see the module docstring).
+
+    Where a :class:`~unicorn.lit.checkpoint.PeriodicCheckpoint` before it in the trainer's callbacks keeps
+    ``last_path`` as its ``last.ckpt``, that callback writes it (once per iteration: not again after its periodic
+    save of the same iteration, nor at the end of training).
 
     Also counts the iterations this process ran (:attr:`steps_run`): a run that fails before its first one leaves
     its folder as it found it (:mod:`unicorn.cli.train`).
@@ -71,12 +79,20 @@ class GracefulStop(L.Callback):
         if not trainer.strategy.reduce_boolean_decision(signum is not None, all=False):
             return
         signum = signum or signal.SIGTERM
-        trainer.save_checkpoint(self.last_path, weights_only=False)
+        self._save(trainer)
         self.stopped = Interrupted(
             f"stopped by {signal.Signals(signum).name} after iteration {trainer.global_step}; {self.last_path} "
             "written: resume with ckpt_path=last in the same folder",
             128 + signum,
         )
+
+    def _save(self, trainer: L.Trainer) -> None:
+        own = Path(os.path.realpath(self.last_path))  # as ModelCheckpoint resolves its dirpath
+        for callback in trainer.checkpoint_callbacks:
+            if isinstance(callback, PeriodicCheckpoint) and callback.last_file == own:
+                callback.save_last_checkpoint(trainer)
+                return
+        trainer.save_checkpoint(self.last_path, weights_only=False)
 
     def on_train_batch_start(self, trainer: L.Trainer, *args: Any) -> None:
         # the iteration that saw the signal has been logged like any other: stop before the next one runs
