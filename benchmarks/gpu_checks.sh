@@ -4,18 +4,39 @@
 # (training step in 32-true and bf16-mixed, default and sync-free paths, eager, compiled per network and captured
 # whole, side by side; the main job's loop eager, compiled, captured and syncing; the renderer). Logs go to $OUT
 # (default: ./gpu-checks); the captured rows come last (they compile the longest).
-# Run from the repository root on a machine where unicorn's dependencies are importable:
-#   bash benchmarks/gpu_checks.sh
+# Run from the repository root on a machine where unicorn's dependencies are importable, or where a kit made by
+# benchmarks/gpu_kit.sh lies (see gpu_env.sh):
+#   bash benchmarks/gpu_checks.sh [PART ...]
+# PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop); default all, in
+# that order. Name the parts in the order to run them where the time on the GPU is short (e.g. tests captured).
 set -uo pipefail
+all=(tests steps compiled render rate captured)
+parts=("$@")
+[ ${#parts[@]} -gt 0 ] || parts=("${all[@]}")
+for part in "${parts[@]}"; do
+  [[ " ${all[*]} " == *" $part "* ]] || { echo "gpu_checks.sh: unknown part $part (${all[*]})" >&2; exit 2; }
+done
 out=${OUT:-gpu-checks}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
+source "$(dirname "$0")/gpu_env.sh" || exit 1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/device.txt"
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name())" | tee -a "$out/device.txt"
-python3 -m pytest -m gpu tests -q -p no:cacheprovider 2>&1 | tee "$out/gpu_tests.log"
-python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed --paths default sync-free 2>&1 | tee "$out/bm_train_step.log"
-python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log"
-python3 benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log"
-python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log"
-python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile none step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
-python3 benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 --variant "captured model.compile=reduce-overhead model.compile_scope=step" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate_captured.log"
+for part in "${parts[@]}"; do
+  echo "== $part ($(date -u +%H:%M:%S))"
+  case $part in
+  tests)
+    python3 -m pytest -m gpu tests -q -p no:cacheprovider 2>&1 | tee "$out/gpu_tests.log" ;;
+  steps)
+    python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed --paths default sync-free 2>&1 | tee "$out/bm_train_step.log" ;;
+  compiled)
+    python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log" ;;
+  render)
+    python3 benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log" ;;
+  rate)
+    python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log" ;;
+  captured)
+    python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile none step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
+    python3 benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 --variant "captured model.compile=reduce-overhead model.compile_scope=step" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate_captured.log" ;;
+  esac
+done

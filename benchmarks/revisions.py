@@ -26,9 +26,11 @@ def tree_of(ref: str) -> Path:
 
 
 def child_env(tree: Path, threads: int | None = None) -> dict[str, str]:
-    """This process's environment with ``tree``'s sources (and the benchmarks folder) first on the path."""
+    """This process's environment with ``tree``'s sources (and the benchmarks folder) first on the path, before the
+    rest of its ``PYTHONPATH`` (dependencies installed into a folder of their own, as gpu_checks.sh does)."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(tree / "src"), str(BENCHMARKS)])
+    rest = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env["PYTHONPATH"] = os.pathsep.join([str(tree / "src"), str(BENCHMARKS), *rest])
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
     return env

@@ -119,6 +119,16 @@ def test_help_and_version():
     assert version.returncode == 0 and __version__ in version.stdout
 
 
+def test_training_on_a_generated_set_needs_no_open3d(synthetic_cache, tmp_path):
+    """open3d makes the synthetic sets; training on one already made runs without it (a GPU image without open3d)."""
+    code = "import sys; sys.modules['open3d'] = None; from unicorn.cli.train import main; sys.exit(main())"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    run = [sys.executable, "-c", code, *TINY, "trainer.max_steps=2", f"hydra.run.dir={tmp_path / 'run'}"]
+    out = subprocess.run(run, capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()
+
+
 def test_bad_values_are_named(tmp_path):
     base = ["experiment=synthetic", f"paths.output_dir={tmp_path}"]
     with pytest.raises(ConfigError, match=r"optim\.lrr"):

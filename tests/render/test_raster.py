@@ -3,7 +3,6 @@
 import math
 
 import numpy as np
-import open3d as o3d
 import pytest
 import torch
 import trimesh
@@ -15,6 +14,8 @@ from unicorn.render import Fragments, blur_radius_from_sigma, rasterize_meshes
 
 def _raycast(view_verts: np.ndarray, faces: np.ndarray, focal: float, size: int):
     """First hit of the ray through every pixel centre: face id (-1 none), depth, barycentrics."""
+    import open3d as o3d  # imported where used: the gpu tests run where open3d is not installed
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(view_verts.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
     cols, rows = np.meshgrid(np.arange(size), np.arange(size))

@@ -9,12 +9,12 @@ import numpy as np
 import torch
 from PIL import Image
 
+from tests.support.prepared import IMAGE_SIZE, generated
 from unicorn.config import model_preset
 from unicorn.evaluation import EvaluationResult, Sample
 from unicorn.io import save_model
 from unicorn.model import Unicorn
 
-IMAGE_SIZE = 32
 TEXTURE_SIZE = 16
 
 
@@ -32,11 +32,7 @@ def tiny_checkpoint(path: Path, family: str = "real", **info) -> Path:
 
 def synthetic_data(out: Path) -> Path:
     """Synthetic NMR set: 2 categories x 3 models x 2 views at 32 px (train split: 2 models per category)."""
-    from unicorn.data.synthetic.writer import generate_synthetic_dataset
-
-    return generate_synthetic_dataset(
-        out, ["chair", "mug"], "nmr", n_models=3, seed=0, image_size=IMAGE_SIZE, n_views=2, n_points=600, progress=False
-    )
+    return generated("eval-nmr", out)
 
 
 def write_inputs(folder: Path) -> dict[str, Path]:

@@ -11,8 +11,8 @@ import scipy.io
 import torch
 
 from tests.support.datasets import write_annotated_split
+from tests.support.prepared import generated
 from unicorn.data.cub import CUB_KEYPOINTS
-from unicorn.data.synthetic.writer import generate_synthetic_dataset
 
 
 @pytest.fixture
@@ -57,30 +57,19 @@ def p3d_root(tmp_path: Path) -> Path:
 @pytest.fixture(scope="session")
 def synth_nmr(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Synthetic benchmark, NMR mode: 2 categories x 3 models x 6 views (also the ShapeNet-NMR fixture)."""
-    out = tmp_path_factory.mktemp("synth") / "nmr"
-    return generate_synthetic_dataset(
-        out, ["chair", "car"], "nmr", n_models=3, seed=0, n_views=6, n_points=600, progress=False
-    )
+    return generated("nmr", tmp_path_factory.mktemp("synth") / "nmr")
 
 
 @pytest.fixture(scope="session")
 def synth_wild(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Synthetic benchmark, wild mode (off-centre cameras, roll, random backgrounds)."""
-    out = tmp_path_factory.mktemp("synth") / "wild"
-    return generate_synthetic_dataset(
-        out, ["airplane", "lamp"], "wild", n_models=3, seed=1, n_views=6, n_points=600, progress=False
-    )
+    return generated("wild", tmp_path_factory.mktemp("synth") / "wild")
 
 
 @pytest.fixture(scope="session")
 def synthetic_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A cache holding the 5-model synthetic set at 32 px; ``UNICORN_CACHE`` points at it (also for subprocesses)."""
-    from unicorn.data.synthetic import ensure_synthetic_dataset
-
-    cache = tmp_path_factory.mktemp("unicorn_cache")
-    ensure_synthetic_dataset(
-        root=cache / "synthetic_32px", category="chair", mode="nmr", n_models=5, seed=0, image_size=32, progress=False
-    )
+    cache = generated("cache", tmp_path_factory.mktemp("unicorn_cache"))
     old = os.environ.get("UNICORN_CACHE")
     os.environ["UNICORN_CACHE"] = str(cache)
     yield cache

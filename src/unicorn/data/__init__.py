@@ -1,7 +1,7 @@
 """Datasets: real loaders in their on-disk formats, the synthetic benchmark, and the registry that builds them.
 
 No Lightning here: the LightningDataModule is :class:`unicorn.lit.UnicornDataModule`. The synthetic benchmark
-generator lives in :mod:`unicorn.data.synthetic` (it imports open3d, so it is not imported here).
+generator lives in :mod:`unicorn.data.synthetic` (generating a set needs open3d; reading one does not).
 """
 
 from unicorn.data.common import PRIOR_TRANSLATION, UnicornDataset

@@ -13,7 +13,6 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-import open3d as o3d
 
 from unicorn.data.images import DatasetError
 from unicorn.data.synthetic.shapes import ProceduralObject
@@ -123,6 +122,8 @@ def render_object(
         images (V, S, S, 3) float32 in [0, 1] and coverage (V, S, S) float32 in [0, 1], the fraction of each
         pixel's rays that hit the object.
     """
+    import open3d as o3d  # here: reading a generated dataset needs no open3d
+
     mesh = obj.mesh()
     face_part = obj.face_part()
     scene = o3d.t.geometry.RaycastingScene()

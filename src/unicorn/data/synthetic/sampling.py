@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-import open3d as o3d
 import torch
 import trimesh
 
@@ -119,6 +118,8 @@ def sample_surface_points(
     Returns:
         points (n_points, 3) and unit face normals (n_points, 3), float64, in the object frame.
     """
+    import open3d as o3d  # here: reading a generated dataset needs no open3d
+
     components = [c for part in obj.parts for c in part.mesh.split(only_watertight=False)]
     mesh = trimesh.util.concatenate(components)
     face_comp = np.concatenate([np.full(len(c.faces), i) for i, c in enumerate(components)])
