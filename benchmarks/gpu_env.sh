@@ -9,6 +9,7 @@ if [ -d "$kit" ]; then
   work=$(mktemp -d)
   wheels=()
   for whl in "$kit"/wheels/*.whl; do
+    [ -e "$whl" ] || continue  # a kit without wheels
     name=$(basename "$whl")
     name=${name%%-*}
     case $name in hydra_core) module=hydra ;; antlr4_python3_runtime) module=antlr4 ;; *) module=$name ;; esac
