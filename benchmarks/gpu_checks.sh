@@ -8,7 +8,8 @@
 # benchmarks/gpu_kit.sh lies (see gpu_env.sh):
 #   bash benchmarks/gpu_checks.sh [PART ...]
 # PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop); default all, in
-# that order. Name the parts in the order to run them where the time on the GPU is short (e.g. tests captured).
+# that order. Name the parts in the order to run them where the time on the GPU is short (e.g. tests captured), and
+# bound each command with GPU_CHECKS_LIMIT (seconds; a command that runs over is stopped and the next one runs).
 set -uo pipefail
 all=(tests steps compiled render rate captured)
 parts=("$@")
@@ -16,6 +17,8 @@ parts=("$@")
 for part in "${parts[@]}"; do
   [[ " ${all[*]} " == *" $part "* ]] || { echo "gpu_checks.sh: unknown part $part (${all[*]})" >&2; exit 2; }
 done
+limit=${GPU_CHECKS_LIMIT:-0}
+py() { if [ "$limit" -gt 0 ]; then timeout "$limit" python3 "$@"; else python3 "$@"; fi; }
 out=${OUT:-gpu-checks}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
@@ -26,17 +29,17 @@ for part in "${parts[@]}"; do
   echo "== $part ($(date -u +%H:%M:%S))"
   case $part in
   tests)
-    python3 -m pytest -m gpu tests -q -p no:cacheprovider 2>&1 | tee "$out/gpu_tests.log" ;;
+    py -m pytest -m gpu tests -q -p no:cacheprovider 2>&1 | tee "$out/gpu_tests.log" ;;
   steps)
-    python3 benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed --paths default sync-free 2>&1 | tee "$out/bm_train_step.log" ;;
+    py benchmarks/bm_train_step.py --device cuda --models tiny small --repeats 20 --precision 32-true bf16-mixed --paths default sync-free 2>&1 | tee "$out/bm_train_step.log" ;;
   compiled)
-    python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log" ;;
+    py benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --compile none default reduce-overhead 2>&1 | tee "$out/bm_train_step_compile.log" ;;
   render)
-    python3 benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log" ;;
+    py benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log" ;;
   rate)
-    python3 benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log" ;;
+    py benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log" ;;
   captured)
-    python3 benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile none step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
-    python3 benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 --variant "captured model.compile=reduce-overhead model.compile_scope=step" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate_captured.log" ;;
+    py benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile none step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
+    py benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 --variant "captured model.compile=reduce-overhead model.compile_scope=step" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate_captured.log" ;;
   esac
 done
