@@ -253,6 +253,66 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     assert logged == list(range(step + 1)), logged
 
 
+def _signal_in_the_evaluation() -> None:
+    """unicorn-train's main() whose evaluation after training gets SIGTERM (the forked command of the test below)."""
+    from unicorn.cli import train
+    from unicorn.evaluation import session
+
+    def evaluate_to_folder(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(60)  # not reached: the signal stops the command at once
+
+    session.evaluate_to_folder = evaluate_to_folder
+    train.main()
+
+
+def _signal_in_the_build() -> None:
+    """unicorn-train's main() that gets SIGTERM once the run is built, before its first iteration."""
+    from unicorn.cli import train
+    from unicorn.lit import run as lit_run
+
+    build = lit_run.build
+
+    def signalled(cfg):
+        built = build(cfg)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return built
+
+    lit_run.build = signalled
+    train.main()
+
+
+def test_a_signal_in_the_evaluation_after_training_stops_at_once_and_the_run_ends_with_ckpt_path_last(
+    synthetic_cache, tmp_path
+):
+    run = tmp_path / "run"
+    args = [*TINY, "evaluate.enabled=true", f"hydra.run.dir={run}"]
+    result = unicorn_train(*args, cwd=tmp_path, entry=f"{__name__}:_signal_in_the_evaluation")
+    assert result.returncode == 143, result.stderr[-3000:]
+    assert error_lines(result.stderr)[-1] == (
+        "unicorn-train: stopped by SIGTERM during the evaluation after training; the same command with "
+        "ckpt_path=last in the same folder ends it"
+    )
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 8
+    assert not (run / ".unicorn-train.lock").exists() and not (run / "eval" / "metrics.csv").exists()
+    ended = unicorn_train(*args, "ckpt_path=last", cwd=tmp_path)
+    assert ended.returncode == 0, ended.stderr[-3000:]
+    assert (run / "eval" / "metrics.csv").is_file()
+
+
+def test_a_signal_before_the_first_iteration_leaves_the_folder_as_it_was(synthetic_cache, tmp_path):
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("the user's notes\n")
+    before = snapshot(folder)
+    result = unicorn_train(*TINY, f"hydra.run.dir={folder}", cwd=tmp_path, entry=f"{__name__}:_signal_in_the_build")
+    assert result.returncode == 143, result.stderr[-3000:]
+    assert error_lines(result.stderr)[-1] == (
+        f"unicorn-train: stopped by SIGTERM before the first iteration; {folder} is left as it was"
+    )
+    assert snapshot(folder) == before
+
+
 #: (id, environment or arguments for unicorn-reconstruct on one photo, the error's pattern)
 RECONSTRUCT_CASES = [
     ("bbox-nan", {}, ["--bbox", "nan,0,10,10"], r"bbox nan,0,10,10: need four finite numbers"),

@@ -23,7 +23,9 @@ Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for s
 A folder that already holds a run is only trained in again to resume it (``ckpt_path=last``: the logs are
 appended to) or with ``overwrite=true`` (its checkpoints and logs are deleted first). One run trains in a folder
 at a time (a lock file holding its pid); SIGTERM or SIGINT stops a run at the next step boundary with
-``last.ckpt`` written, and the command exits with ``128 + signal`` (:mod:`unicorn.lit.signals`).
+``last.ckpt`` written, and the command exits with ``128 + signal`` (:mod:`unicorn.lit.signals`). Outside the
+training iterations (building the run, the evaluation after training) a signal stops the command at once, with the
+same status and a line that says where.
 
 The run itself is assembled and trained by :mod:`unicorn.lit.run` (``build``, ``fit``); this module only turns the
 command line into Hydra's, and :class:`~unicorn.cli.hydra_app.HydraApp` reports errors.
@@ -36,6 +38,7 @@ its folder as it was (a folder it created is removed again, nothing the user mad
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -43,6 +46,7 @@ from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
+from unicorn.errors import Interrupted
 from unicorn.resources import config_dir
 
 __all__ = [
@@ -73,33 +77,43 @@ def _task(cfg: DictConfig) -> None:
 
     from unicorn.io.run_folder import FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
+    from unicorn.lit.signals import interrupt_on_signal
 
     hydra_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:
         output_dir = Path(str(cfg.paths.output_dir)).expanduser().resolve()
     except Exception:  # an invalid paths group: validate() reports it
         output_dir = hydra_dir
+    outside = "outside the training iterations: no checkpoint written"
     if not is_first_process():  # a DDP process Lightning started: the first one owns the folder
-        fit(build(cfg))
+        with interrupt_on_signal(outside):
+            fit(build(cfg))
         return
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
     top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
     changes = [FolderChanges(folder, names, top) for folder, names in entries.items()]
     run = None
-    try:
-        run = build(cfg)
-        if _app is not None:
-            _app.save_record(cfg, run.output_dir)
-        fit(run)
-    except Exception:
-        if run is None or run.stopper.steps_run == 0:
+    with interrupt_on_signal(outside):
+        try:
+            run = build(cfg)
+            if _app is not None:
+                _app.save_record(cfg, run.output_dir)
+            fit(run)
+        except Exception as err:
+            if run is None or run.stopper.steps_run == 0:
+                lock.release()
+                for change in changes:
+                    change.undo()
+                if isinstance(err, Interrupted):
+                    name = signal.Signals(err.exit_status - 128).name
+                    raise Interrupted(
+                        f"stopped by {name} before the first iteration; {output_dir} is left as it was",
+                        err.exit_status,
+                    ) from err
+            raise
+        finally:
             lock.release()
-            for change in changes:
-                change.undo()
-        raise
-    finally:
-        lock.release()
 
 
 def experiment_overrides(overrides: list[str]) -> list[str]:

@@ -268,8 +268,12 @@ def fit(run: Run) -> dict[str, float]:
     """Train a built run; returns the last values of the trainer's scalar callback metrics.
 
     Raises:
-        unicorn.errors.Interrupted: stopped by SIGTERM or SIGINT (:class:`~unicorn.lit.signals.GracefulStop`).
+        unicorn.errors.Interrupted: stopped by SIGTERM or SIGINT: in training at a step boundary
+            (:class:`~unicorn.lit.signals.GracefulStop`), in the evaluation after training at once
+            (:func:`~unicorn.lit.signals.interrupt_on_signal`).
     """
+    from unicorn.lit.signals import interrupt_on_signal
+
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:
         _compile(run)
@@ -285,7 +289,9 @@ def fit(run: Run) -> dict[str, float]:
         raise run.stopper.stopped
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
-        evaluate_run(run)
+        where = "during the evaluation after training; the same command with ckpt_path=last in the same folder ends it"
+        with interrupt_on_signal(where):
+            evaluate_run(run)
     return metrics
 
 
