@@ -1,6 +1,10 @@
-"""Every error a user can fix derives from :class:`unicorn.errors.UserError` and from the built-in callers catch."""
+"""Every error a user can fix derives from :class:`unicorn.errors.UserError` and from the built-in callers catch;
+signals in :func:`unicorn.errors.interrupt_on_signal` raise :class:`~unicorn.errors.Interrupted`."""
 
 from __future__ import annotations
+
+import os
+import signal
 
 import pytest
 
@@ -8,7 +12,7 @@ from unicorn.cli.errors import UsageError
 from unicorn.config import ConfigError
 from unicorn.data import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.common import UnreadableItemsError
-from unicorn.errors import UserError
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal
 from unicorn.io import CheckpointError, CorruptCheckpointError, UnsafeCheckpointError
 from unicorn.lit import NonFiniteLossError
 
@@ -42,3 +46,31 @@ def test_unicorn_data_reports_in_one_line(tmp_path, capsys) -> None:
     assert capsys.readouterr().err.startswith("unicorn-data: error: ")
     with pytest.raises(Exception, match="root not found"):
         main(["check", "cub_200", "--root", str(tmp_path / "nothing"), "--debug"])
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_in_the_block_raises_interrupted_and_the_next_one_acts_as_before(signum):
+    seen = []
+    before = signal.signal(signum, lambda s, frame: seen.append(s))
+    try:
+        with interrupt_on_signal("while testing"):
+            with pytest.raises(Interrupted) as caught:
+                os.kill(os.getpid(), signum)  # os.kill runs the handlers of its own process before it returns
+            assert str(caught.value) == f"stopped by {signal.Signals(signum).name} while testing"
+            assert caught.value.exit_status == 128 + signum
+            os.kill(os.getpid(), signum)  # the second: the handler from before the block
+        assert seen == [signum]
+        os.kill(os.getpid(), signum)  # after the block: the handler from before it
+        assert seen == [signum, signum]
+    finally:
+        signal.signal(signum, before)
+
+
+def test_the_handlers_from_before_the_block_are_back_after_it():
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    with interrupt_on_signal("while testing"):
+        assert all(signal.getsignal(s) is not h for s, h in before.items())
+    assert {s: signal.getsignal(s) for s in before} == before
+    with pytest.raises(ValueError, match="boom"), interrupt_on_signal("while testing"):
+        raise ValueError("boom")
+    assert {s: signal.getsignal(s) for s in before} == before

@@ -1,13 +1,21 @@
-"""The one exception family for mistakes a user can fix (a missing file, a bad option, an unsafe checkpoint).
+"""The one exception family for mistakes a user can fix (a missing file, a bad option, an unsafe checkpoint), and
+the one for commands stopped by a signal.
 
 Command-line entry points report a :class:`UserError` in one line on stderr with exit status 2; anything else is
 a bug and keeps its traceback. Library code raises the most specific subclass it has; each subclass also derives
-from the built-in exception callers already catch (``ValueError``, ``FileNotFoundError``...).
+from the built-in exception callers already catch (``ValueError``, ``FileNotFoundError``...). Inside
+:func:`interrupt_on_signal`, SIGTERM and SIGINT raise :class:`Interrupted`.
 """
 
 from __future__ import annotations
 
-__all__ = ["Interrupted", "UserError"]
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+__all__ = ["Interrupted", "UserError", "interrupt_on_signal"]
 
 
 class UserError(Exception):
@@ -24,3 +32,33 @@ class Interrupted(Exception):
     def __init__(self, message: str, exit_status: int) -> None:
         super().__init__(message)
         self.exit_status = exit_status
+
+
+@contextmanager
+def interrupt_on_signal(where: str = "") -> Iterator[None]:
+    """In this block SIGTERM and SIGINT raise :class:`Interrupted` at once: ``stopped by SIGTERM <where>``, exit
+    status ``128 + signal``. The handlers before the block are back after it, and after the first signal (a second
+    one acts as it would outside the block). Training inside the block still stops at a step boundary:
+    :class:`unicorn.lit.signals.GracefulStop` takes the signals over while the trainer runs. Outside the main thread
+    (where Python cannot set handlers) the block changes nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous: dict[int, Any] = {}
+
+    def restore() -> None:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+    def interrupt(signum: int, frame: Any) -> None:
+        restore()
+        name = signal.Signals(signum).name
+        raise Interrupted(f"stopped by {name} {where}" if where else f"stopped by {name}", 128 + signum)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        previous[signum] = signal.signal(signum, interrupt)
+    try:
+        yield
+    finally:
+        restore()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import errno
+import os
+import signal
 
 import pytest
 import torch
@@ -89,3 +91,16 @@ def test_report_errors_cleans_up_then_keeps_a_bugs_traceback(capsys) -> None:
     with pytest.raises(ZeroDivisionError):
         report_errors("prog", bug, cleanup=lambda: cleaned.append(2))
     assert cleaned == [1, 2]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_report_errors_stops_a_command_at_a_signal_after_its_cleanup(capsys, signum) -> None:
+    cleaned = []
+
+    def signalled() -> int:
+        os.kill(os.getpid(), signum)
+        raise AssertionError("not reached: the signal stops the command")
+
+    assert report_errors("prog", signalled, cleanup=lambda: cleaned.append(1)) == 128 + signum
+    assert capsys.readouterr().err == f"prog: stopped by {signal.Signals(signum).name}\n"
+    assert cleaned == [1]

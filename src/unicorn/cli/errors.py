@@ -24,7 +24,7 @@ import re
 import sys
 from collections.abc import Callable
 
-from unicorn.errors import UserError
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal
 
 __all__ = [
     "USER_ERRORS",
@@ -162,7 +162,9 @@ def report_errors(
     """Run ``func``; an expected failure (:func:`expected_error`, the same for every command) is printed as
     ``<prog>: error: <message>`` and gives exit status 2.
 
-    Any other exception (a bug) propagates with its traceback (exit status 1), after ``cleanup``.
+    SIGTERM and SIGINT stop the command at once (:func:`unicorn.errors.interrupt_on_signal`): ``<prog>: stopped by
+    SIGTERM``, exit status ``128 + signal``, after ``cleanup``. Any other exception (a bug) propagates with its
+    traceback (exit status 1), after ``cleanup``.
 
     Args:
         prog: the command's name.
@@ -171,7 +173,13 @@ def report_errors(
         cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
     try:
-        return func()
+        with interrupt_on_signal():
+            return func()
+    except Interrupted as err:
+        if cleanup is not None:
+            cleanup()
+        print(f"{prog}: {one_line(err)}", file=sys.stderr)
+        return err.exit_status
     except Exception as err:
         if cleanup is not None:
             cleanup()

@@ -75,9 +75,9 @@ def _task(cfg: DictConfig) -> None:
     """
     from hydra.core.hydra_config import HydraConfig
 
+    from unicorn.errors import interrupt_on_signal
     from unicorn.io.run_folder import FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
-    from unicorn.lit.signals import interrupt_on_signal
 
     hydra_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:

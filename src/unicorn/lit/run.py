@@ -270,9 +270,9 @@ def fit(run: Run) -> dict[str, float]:
     Raises:
         unicorn.errors.Interrupted: stopped by SIGTERM or SIGINT: in training at a step boundary
             (:class:`~unicorn.lit.signals.GracefulStop`), in the evaluation after training at once
-            (:func:`~unicorn.lit.signals.interrupt_on_signal`).
+            (:func:`~unicorn.errors.interrupt_on_signal`).
     """
-    from unicorn.lit.signals import interrupt_on_signal
+    from unicorn.errors import interrupt_on_signal
 
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:

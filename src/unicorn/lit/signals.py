@@ -16,9 +16,9 @@ and a second signal stops at once (``KeyboardInterrupt``, no checkpoint). Under 
 iteration: the decision is reduced across ranks at each step boundary.
 
 Outside the training iterations (building the run, the evaluation after training) there is no step boundary to
-wait for: inside :func:`interrupt_on_signal` SIGTERM and SIGINT raise :class:`~unicorn.errors.Interrupted` at once,
-so that the command cleans up (its lock, a folder left as it was before the first iteration), says where it
-stopped and exits with ``128 + signal``; a second signal stops at once.
+wait for: inside :func:`unicorn.errors.interrupt_on_signal` SIGTERM and SIGINT raise
+:class:`~unicorn.errors.Interrupted` at once, so that the command cleans up (its lock, a folder left as it was before
+the first iteration), says where it stopped and exits with ``128 + signal``; a second signal stops at once.
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ import logging
 import os
 import signal
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +36,7 @@ from lightning.pytorch.callbacks import Checkpoint
 from unicorn.errors import Interrupted
 from unicorn.lit.checkpoint import PeriodicCheckpoint
 
-__all__ = ["GracefulStop", "interrupt_on_signal"]
+__all__ = ["GracefulStop"]
 
 log = logging.getLogger("unicorn.train")
 
@@ -116,32 +114,3 @@ class GracefulStop(Checkpoint):
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         self._restore()
-
-
-@contextmanager
-def interrupt_on_signal(where: str) -> Iterator[None]:
-    """In this block SIGTERM and SIGINT raise :class:`~unicorn.errors.Interrupted` at once: ``stopped by SIGTERM
-    <where>``, exit status ``128 + signal``. The handlers before the block are back after it, and after the first
-    signal (a second one acts as it would outside the block). Training inside the block still stops at a step
-    boundary: :class:`GracefulStop` takes the signals over while the trainer runs. Outside the main thread (where
-    Python cannot set handlers) the block changes nothing.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous: dict[int, Any] = {}
-
-    def restore() -> None:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-    def interrupt(signum: int, frame: Any) -> None:
-        restore()
-        raise Interrupted(f"stopped by {signal.Signals(signum).name} {where}", 128 + signum)
-
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        previous[signum] = signal.signal(signum, interrupt)
-    try:
-        yield
-    finally:
-        restore()
