@@ -46,7 +46,7 @@ from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
-from unicorn.errors import Interrupted
+from unicorn.errors import Interrupted, interrupt_on_signal
 from unicorn.resources import config_dir
 
 __all__ = [
@@ -75,7 +75,6 @@ def _task(cfg: DictConfig) -> None:
     """
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.errors import interrupt_on_signal
     from unicorn.io.run_folder import FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
 

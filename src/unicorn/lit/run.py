@@ -26,7 +26,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
-from unicorn.errors import Interrupted
+from unicorn.errors import Interrupted, interrupt_on_signal
 
 __all__ = [
     "Run",
@@ -272,8 +272,6 @@ def fit(run: Run) -> dict[str, float]:
             (:class:`~unicorn.lit.signals.GracefulStop`), in the evaluation after training at once
             (:func:`~unicorn.errors.interrupt_on_signal`).
     """
-    from unicorn.errors import interrupt_on_signal
-
     trainer, typed = run.trainer, run.config
     if typed.model.compile is not None:
         _compile(run)
