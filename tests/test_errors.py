@@ -1,5 +1,6 @@
 """Every error a user can fix derives from :class:`unicorn.errors.UserError` and from the built-in callers catch;
-signals in :func:`unicorn.errors.interrupt_on_signal` raise :class:`~unicorn.errors.Interrupted`."""
+signals in :func:`unicorn.errors.interrupt_on_signal` raise :class:`~unicorn.errors.Interrupted`, and wait for the
+end of a :func:`~unicorn.errors.signals_held` block."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from unicorn.cli.errors import UsageError
 from unicorn.config import ConfigError
 from unicorn.data import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.common import UnreadableItemsError
-from unicorn.errors import Interrupted, UserError, interrupt_on_signal
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal, signals_held
 from unicorn.io import CheckpointError, CorruptCheckpointError, UnsafeCheckpointError
 from unicorn.lit import NonFiniteLossError
 
@@ -74,3 +75,38 @@ def test_the_handlers_from_before_the_block_are_back_after_it():
     with pytest.raises(ValueError, match="boom"), interrupt_on_signal("while testing"):
         raise ValueError("boom")
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_signals_held_wait_for_the_end_of_the_block_and_come_once_each_in_order():
+    seen = []
+
+    def record(signum, frame):
+        seen.append(signum)
+
+    before = {s: signal.signal(s, record) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        with signals_held():
+            for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGTERM):
+                os.kill(os.getpid(), signum)
+            assert seen == []
+        assert seen == [signal.SIGTERM, signal.SIGINT]
+        with pytest.raises(ValueError, match="boom"), signals_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            raise ValueError("boom")
+        assert seen == [signal.SIGTERM, signal.SIGINT, signal.SIGINT]
+        assert all(signal.getsignal(s) is record for s in before)
+        os.kill(os.getpid(), signal.SIGTERM)  # after the block: the handler from before it, at once
+        assert seen[-1] == signal.SIGTERM and len(seen) == 4
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
+def test_signals_held_in_interrupt_on_signal_raise_interrupted_at_the_end_of_the_block():
+    done = []
+    with pytest.raises(Interrupted, match="stopped by SIGTERM while testing"), interrupt_on_signal("while testing"):
+        with signals_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            done.append("the block's last step")
+        done.append("not reached")
+    assert done == ["the block's last step"]

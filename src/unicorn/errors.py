@@ -4,7 +4,8 @@ the one for commands stopped by a signal.
 Command-line entry points report a :class:`UserError` in one line on stderr with exit status 2; anything else is
 a bug and keeps its traceback. Library code raises the most specific subclass it has; each subclass also derives
 from the built-in exception callers already catch (``ValueError``, ``FileNotFoundError``...). Inside
-:func:`interrupt_on_signal`, SIGTERM and SIGINT raise :class:`Interrupted`.
+:func:`interrupt_on_signal`, SIGTERM and SIGINT raise :class:`Interrupted`; inside :func:`signals_held` they wait
+for the block's end.
 """
 
 from __future__ import annotations
@@ -15,7 +16,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["Interrupted", "UserError", "interrupt_on_signal"]
+__all__ = ["Interrupted", "UserError", "interrupt_on_signal", "signals_held"]
+
+#: the signals that stop a command: Ctrl-C and a scheduler's or ``kill``'s request
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class UserError(Exception):
@@ -56,9 +60,40 @@ def interrupt_on_signal(where: str = "") -> Iterator[None]:
         name = signal.Signals(signum).name
         raise Interrupted(f"stopped by {name} {where}" if where else f"stopped by {name}", 128 + signum)
 
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        previous[signum] = signal.signal(signum, interrupt)
+    previous.update(_handle_stop_signals(interrupt))
     try:
         yield
     finally:
         restore()
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGTERM and SIGINT that arrive in this block wait for its end; then each kind that arrived is delivered once,
+    in the order they came, to the handlers from before the block (:func:`interrupt_on_signal`'s raises
+    :class:`Interrupted` there; Python's default for SIGTERM ends the process). For the few steps that must not be
+    cut half-way: moving an output folder's files into place, putting a failed run's folder back as it was. Outside
+    the main thread (where Python cannot set handlers) the block changes nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum: int, frame: Any) -> None:
+        if signum not in held:
+            held.append(signum)
+
+    previous = _handle_stop_signals(hold)
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in held:
+            signal.raise_signal(signum)  # runs the restored handler before it returns
+
+
+def _handle_stop_signals(handler: Any) -> dict[int, Any]:
+    """Give :data:`STOP_SIGNALS` to ``handler``; returns the handlers they had."""
+    return {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}

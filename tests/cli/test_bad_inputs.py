@@ -282,6 +282,27 @@ def _signal_in_the_build() -> None:
     train.main()
 
 
+def _signal_while_the_folder_is_put_back() -> None:
+    """unicorn-train's main() whose build fails once the run is built and that gets SIGTERM as it puts the folder
+    back."""
+    from unicorn.cli import train
+    from unicorn.io import run_folder
+    from unicorn.lit import run as lit_run
+
+    build, undo = lit_run.build, run_folder.FolderChanges.undo
+
+    def failing(cfg):
+        build(cfg)
+        raise RuntimeError("a failure after the run's files are written")
+
+    def signalled(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        undo(self)
+
+    lit_run.build, run_folder.FolderChanges.undo = failing, signalled
+    train.main()
+
+
 def test_a_signal_in_the_evaluation_after_training_stops_at_once_and_the_run_ends_with_ckpt_path_last(
     synthetic_cache, tmp_path
 ):
@@ -306,6 +327,21 @@ def test_a_signal_before_the_first_iteration_leaves_the_folder_as_it_was(synthet
     (folder / "notes.txt").write_text("the user's notes\n")
     before = snapshot(folder)
     result = unicorn_train(*TINY, f"hydra.run.dir={folder}", cwd=tmp_path, entry=f"{__name__}:_signal_in_the_build")
+    assert result.returncode == 143, result.stderr[-3000:]
+    assert error_lines(result.stderr)[-1] == (
+        f"unicorn-train: stopped by SIGTERM before the first iteration; {folder} is left as it was"
+    )
+    assert snapshot(folder) == before
+
+
+def test_a_signal_while_a_failed_run_puts_the_folder_back_stops_once_it_is_back(synthetic_cache, tmp_path):
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("the user's notes\n")
+    before = snapshot(folder)
+    result = unicorn_train(
+        *TINY, f"hydra.run.dir={folder}", cwd=tmp_path, entry=f"{__name__}:_signal_while_the_folder_is_put_back"
+    )
     assert result.returncode == 143, result.stderr[-3000:]
     assert error_lines(result.stderr)[-1] == (
         f"unicorn-train: stopped by SIGTERM before the first iteration; {folder} is left as it was"

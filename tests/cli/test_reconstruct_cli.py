@@ -251,3 +251,32 @@ def test_a_full_disk_part_way_is_one_line_and_leaves_out_as_it_was(
     assert [p.name for p in out.iterdir()] == ["index.html"] and (
         out / "index.html"
     ).read_text() == "the user's own page"
+
+
+def test_a_signal_part_way_stops_at_once_and_leaves_out_as_it_was(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, monkeypatch
+) -> None:
+    import importlib
+    import signal
+
+    rec = importlib.import_module("unicorn.evaluation.reconstruct")  # the package exports a function of that name
+    written = rec._write_one
+
+    def signalled(*args, **kwargs):  # SIGTERM once the first image's files are written
+        signalled.calls += 1
+        if signalled.calls == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return written(*args, **kwargs)
+
+    signalled.calls = 0
+    monkeypatch.setattr(rec, "_write_one", signalled)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "index.html").write_text("the user's own page")
+    assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 128 + signal.SIGTERM
+    assert capsys.readouterr().err == "unicorn-reconstruct: stopped by SIGTERM\n"
+    assert signalled.calls == 2  # stopped at the second image
+    assert [p.name for p in out.iterdir()] == ["index.html"] and (
+        out / "index.html"
+    ).read_text() == "the user's own page"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs", "out"]  # no half-written sibling

@@ -1,12 +1,14 @@
-"""Output folders written to a temporary sibling: complete or as they were."""
+"""Output folders written to a temporary sibling: complete or as they were, also when a signal comes."""
 
 from __future__ import annotations
 
 import errno
 import os
+import signal
 
 import pytest
 
+from unicorn.errors import Interrupted, interrupt_on_signal
 from unicorn.io.staging import PARTIAL_MARK, OutputConflictError, staged_folder
 
 
@@ -87,3 +89,29 @@ def test_a_file_in_the_way_of_a_folder_leaves_the_folder_as_it_was(tmp_path) -> 
         assert (out / "a.txt").read_text() == "old"  # nothing moved
         assert (out / "b").read_text().startswith("a file of the user's")
         assert (out / "c" / "keep.txt").read_text() == "mine" and not _siblings(out)
+
+
+@pytest.mark.parametrize("existing", [False, True], ids=["new-folder", "existing-folder"])
+def test_a_signal_while_the_files_move_stops_once_they_are_all_in_place(tmp_path, monkeypatch, existing) -> None:
+    out = tmp_path / "out"
+    if existing:
+        (out / "img").mkdir(parents=True)
+        (out / "img" / "a.txt").write_text("old")
+    moved = []
+    replace = os.replace
+
+    def signalled_replace(src, dst):  # SIGTERM as the first entry moves
+        if not moved:
+            os.kill(os.getpid(), signal.SIGTERM)
+        moved.append(os.path.basename(dst))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", signalled_replace)
+    with pytest.raises(Interrupted, match="stopped by SIGTERM"), interrupt_on_signal():
+        with staged_folder(out) as staging:
+            (staging / "img").mkdir()
+            for name in ("a.txt", "b.txt", "c.txt"):
+                (staging / "img" / name).write_text("new")
+    assert moved == (["a.txt", "b.txt", "c.txt"] if existing else ["out"])
+    assert {p.name: p.read_text() for p in (out / "img").iterdir()} == {n: "new" for n in ("a.txt", "b.txt", "c.txt")}
+    assert not _siblings(out)

@@ -46,7 +46,7 @@ from omegaconf import DictConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
-from unicorn.errors import Interrupted, interrupt_on_signal
+from unicorn.errors import Interrupted, interrupt_on_signal, signals_held
 from unicorn.resources import config_dir
 
 __all__ = [
@@ -102,14 +102,19 @@ def _task(cfg: DictConfig) -> None:
         except Exception as err:
             if run is None or run.stopper.steps_run == 0:
                 lock.release()
-                for change in changes:
-                    change.undo()
-                if isinstance(err, Interrupted):
-                    name = signal.Signals(err.exit_status - 128).name
+                stop = err if isinstance(err, Interrupted) else None
+                try:
+                    with signals_held():  # a signal now stops the command once the folders are back
+                        for change in changes:
+                            change.undo()
+                except Interrupted as late:
+                    stop = late
+                if stop is not None:
+                    name = signal.Signals(stop.exit_status - 128).name
                     raise Interrupted(
                         f"stopped by {name} before the first iteration; {output_dir} is left as it was",
-                        err.exit_status,
-                    ) from err
+                        stop.exit_status,
+                    ) from stop
             raise
         finally:
             lock.release()

@@ -15,7 +15,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from unicorn.errors import UserError
+from unicorn.errors import UserError, signals_held
 from unicorn.io.serialization import _alive
 
 __all__ = ["PARTIAL_MARK", "OutputConflictError", "staged_folder"]
@@ -78,7 +78,8 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
     A missing ``out`` is the renamed temporary folder. In an existing ``out`` each file written replaces the file
     of the same name (sub-folders are merged) and the others are kept: whether an existing folder may be written
     into is the caller's decision. When the block raises, the temporary folder is removed and
-    ``out`` is untouched.
+    ``out`` is untouched. A SIGTERM or Ctrl-C that comes while the files move is held until they are all in place
+    (:func:`~unicorn.errors.signals_held`).
 
     Raises:
         OSError: the temporary folder cannot be created (a read-only or full disk, a missing permission).
@@ -98,16 +99,17 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
         raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
     try:
         yield tmp
-        if not out.exists():
-            os.replace(tmp, out)
-            return
-        conflicts = _conflicts(tmp, out)
-        if conflicts:  # checked before anything moves: the folder is updated whole or not at all
-            raise OutputConflictError(
-                f"cannot write the output folder {out}: {conflicts[0]} is in the way (a file where a folder goes, "
-                "or a folder where a file goes); move it away or choose another folder"
-            )
-        _merge(tmp, out)
+        with signals_held():  # a Ctrl-C or SIGTERM now stops the command once every file is in place
+            if not out.exists():
+                os.replace(tmp, out)
+                return
+            conflicts = _conflicts(tmp, out)
+            if conflicts:  # checked before anything moves: the folder is updated whole or not at all
+                raise OutputConflictError(
+                    f"cannot write the output folder {out}: {conflicts[0]} is in the way (a file where a folder "
+                    "goes, or a folder where a file goes); move it away or choose another folder"
+                )
+            _merge(tmp, out)
     except OSError as err:
         if err.filename is None and err.errno in _DISK_ERRORS:  # e.g. a write() on a full disk names no file
             raise type(err)(err.errno, f"{err.strerror} while writing the output folder {out}") from err

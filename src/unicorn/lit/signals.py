@@ -33,7 +33,7 @@ from typing import Any
 import lightning as L
 from lightning.pytorch.callbacks import Checkpoint
 
-from unicorn.errors import Interrupted
+from unicorn.errors import STOP_SIGNALS, Interrupted
 from unicorn.lit.checkpoint import PeriodicCheckpoint
 
 __all__ = ["GracefulStop"]
@@ -68,7 +68,7 @@ class GracefulStop(Checkpoint):
         self.received, self.stopped = None, None
         if threading.current_thread() is threading.main_thread():
             # SIGTERM too, in place of Lightning's handler (see the module docstring)
-            for signum in (signal.SIGINT, signal.SIGTERM):
+            for signum in STOP_SIGNALS:
                 self._previous[signum] = signal.signal(signum, self._on_signal)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
