@@ -59,6 +59,7 @@ __all__ = [
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
+    "generation_settings",
     "synthetic_dataset_path",
 ]
 
@@ -305,6 +306,20 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     return settings
 
 
+def generation_settings(
+    categories: str | Sequence[str], mode: Mode, n_models: int, seed: int, **options: object
+) -> dict[str, object]:
+    """The settings that :func:`generate_synthetic_dataset` called with these arguments records in
+    ``synthetic.json`` (the options left out: its defaults), as :func:`check_manifest` expects them."""
+    recorded = ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds", "roll", "shift")
+    defaults = {
+        name: param.default
+        for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
+        if name in recorded
+    }
+    return {"categories": categories, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **options}
+
+
 def default_cache_dir() -> Path:
     """``$UNICORN_CACHE/synthetic`` if the variable is set, else ``~/.cache/unicorn/synthetic``."""
     base = os.environ.get("UNICORN_CACHE")
@@ -350,14 +365,7 @@ def ensure_synthetic_dataset(
         The dataset root, ready for :class:`~unicorn.data.shapenet.ShapeNetNMR`.
     """
     final = synthetic_dataset_path(category, mode, n_models, seed, root)
-    # options left out mean generate_synthetic_dataset's defaults: check those too
-    defaults = {
-        name: param.default
-        for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
-        if name
-        in ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds", "roll", "shift")
-    }
-    expected = {"categories": category, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **kwargs}
+    expected = generation_settings(category, mode, n_models, seed, **kwargs)
     if (final / "synthetic.json").exists():
         check_manifest(final, **expected)
         return final
