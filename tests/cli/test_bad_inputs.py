@@ -7,6 +7,7 @@ command is byte-identical after it (and that nothing was added or removed). The 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import re
@@ -251,6 +252,56 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     with open(run / "csv" / "metrics.csv", newline="") as f:
         logged = [int(row["step"]) for row in csv.DictReader(f) if row.get("train/lr")]
     assert logged == list(range(step + 1)), logged
+
+
+def test_a_signal_to_every_ddp_process_stops_them_at_one_iteration_and_the_run_resumes(synthetic_cache, tmp_path):
+    """A scheduler's SIGTERM reaches every process of the job: both DDP ranks stop after the same iteration, the
+    first one says so once, and the run resumes under DDP from the checkpoint holding both ranks' state."""
+    run = tmp_path / "run"
+    args = [*TINY, "trainer=ddp_cpu", "callbacks.checkpoint.every_n_steps=1", "callbacks.checkpoint.keep=1"]
+    args += [f"hydra.run.dir={run}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args, "trainer.max_steps=100000"],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not list((run / "checkpoints").glob("step=*.ckpt")):  # an iteration has run on both ranks
+            assert proc.poll() is None and time.monotonic() < deadline, "no iteration ran"
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid):  # the second rank ends too
+            assert time.monotonic() < deadline, "a DDP process outlived the first one"
+            time.sleep(0.2)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, stderr[-3000:]
+    stops = [line for line in stderr.splitlines() if "stopped by" in line]
+    assert len(stops) == 1, stderr[-3000:]
+    match = re.fullmatch(
+        r"unicorn-train: stopped by SIGTERM after iteration (\d+); \S+last\.ckpt written: .*", stops[0]
+    )
+    assert match, stops
+    step = int(match.group(1))
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert saved["global_step"] == step >= 1 and len(saved["unicorn"]["ranks"]) == 2
+    resumed = unicorn_train(*args, "ckpt_path=last", f"trainer.max_steps={step + 1}", cwd=tmp_path, fresh=True)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "exists and is not empty" not in resumed.stderr  # the folder is the run's own: no alarm
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert saved["global_step"] == step + 1 and len(saved["unicorn"]["ranks"]) == 2
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def _signal_in_the_evaluation() -> None:

@@ -85,8 +85,11 @@ def _task(cfg: DictConfig) -> None:
         output_dir = hydra_dir
     outside = "outside the training iterations: no checkpoint written"
     if not is_first_process():  # a DDP process Lightning started: the first one owns the folder
-        with interrupt_on_signal(outside):
-            fit(build(cfg))
+        try:
+            with interrupt_on_signal(outside):
+                fit(build(cfg))
+        except Interrupted as err:  # every process stops at the same point: the first one says so
+            raise SystemExit(err.exit_status) from None
         return
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it

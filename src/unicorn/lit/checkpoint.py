@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -89,6 +90,13 @@ class PeriodicCheckpoint(ModelCheckpoint):
         of the same iteration). The same decision on every rank."""
         if self.save_last and self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        with warnings.catch_warnings():
+            # a folder holding checkpoints is one the run may use (a resume, overwrite=true): the run folder's
+            # checks decide that before training (unicorn.io.run_folder), Lightning's note would only alarm
+            warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
+            super().setup(trainer, pl_module, stage)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # Lightning's own end-of-training save is made only where nothing was saved during the run
