@@ -1,5 +1,6 @@
-"""The one exception family for mistakes a user can fix (a missing file, a bad option, an unsafe checkpoint), and
-the one for commands stopped by a signal.
+"""The one exception family for mistakes a user can fix (a missing file, a bad option, an unsafe checkpoint), the
+one for commands stopped by a signal, and the one warning family for what a user should know but need not stop
+for (:class:`UnicornWarning`).
 
 Command-line entry points report a :class:`UserError` in one line on stderr with exit status 2; anything else is
 a bug and keeps its traceback. Library code raises the most specific subclass it has; each subclass also derives
@@ -10,13 +11,14 @@ for the block's end.
 
 from __future__ import annotations
 
+import logging
 import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, ClassVar
 
-__all__ = ["Interrupted", "UserError", "interrupt_on_signal", "signals_held"]
+__all__ = ["Interrupted", "UnicornWarning", "UserError", "interrupt_on_signal", "signals_held"]
 
 #: the signals that stop a command: Ctrl-C and a scheduler's or ``kill``'s request
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -24,6 +26,19 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 class UserError(Exception):
     """A mistake in the user's input or environment; the message says what is wrong and how to fix it."""
+
+
+class UnicornWarning(UserWarning):
+    """Something a user should know that does not stop the command (a render that dropped faces, a collapsed
+    viewpoint, a compiler that cannot run); the message says what to do about it.
+
+    The command-line programs log these in one line, ``<Class>: <message>``, at the class's :attr:`level`, on the
+    console and into a run's ``train.log`` (:func:`unicorn.cli.errors.log_warnings`); in Python they are ordinary
+    warnings, filtered as usual (``warnings.filterwarnings``, ``-W``, ``PYTHONWARNINGS``).
+    """
+
+    #: the logging level the command-line programs log it at
+    level: ClassVar[int] = logging.WARNING
 
 
 class Interrupted(Exception):

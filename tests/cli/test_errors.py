@@ -1,18 +1,24 @@
-"""The commands' error boundary: which failures are one line (exit 2), how they read, and that bugs keep tracebacks."""
+"""The commands' error boundary: which failures are one line (exit 2), how they read, and that bugs keep tracebacks;
+unicorn's warnings in one line."""
 
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import signal
+import warnings
 
 import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from unicorn.cli.errors import expected_error, one_line, report_errors
+from unicorn.cli.errors import WARNINGS_LOGGER, expected_error, log_warnings, one_line, report_errors
 from unicorn.data.common import UnreadableItemsError
 from unicorn.data.images import ImageLoadError
+from unicorn.errors import UnicornWarning
+from unicorn.lit.diagnostics import ViewpointWarning
+from unicorn.render import RenderOverflowWarning
 
 
 class _Bad(Dataset):
@@ -104,3 +110,26 @@ def test_report_errors_stops_a_command_at_a_signal_after_its_cleanup(capsys, sig
     assert report_errors("prog", signalled, cleanup=lambda: cleaned.append(1)) == 128 + signum
     assert capsys.readouterr().err == f"prog: stopped by {signal.Signals(signum).name}\n"
     assert cleaned == [1]
+
+
+def test_unicorns_warnings_are_logged_in_one_line_at_their_level_and_others_print_as_before(caplog) -> None:
+    printed = []
+
+    def python_prints(message, category, filename, lineno, file=None, line=None):
+        printed.append((category, str(message)))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = python_prints
+        with caplog.at_level(logging.INFO, logger=WARNINGS_LOGGER), log_warnings():
+            warnings.warn("some pixels dropped faces", RenderOverflowWarning, stacklevel=1)
+            warnings.warn("the pose branch collapsed", ViewpointWarning, stacklevel=1)
+            warnings.warn("a library's own", DeprecationWarning, stacklevel=1)
+            warnings.filterwarnings("ignore", category=UnicornWarning)  # the filters still apply
+            warnings.warn("filtered out", RenderOverflowWarning, stacklevel=1)
+        assert warnings.showwarning is python_prints  # back after the block
+    assert [(r.name, r.levelno, r.getMessage()) for r in caplog.records] == [
+        (WARNINGS_LOGGER, logging.WARNING, "RenderOverflowWarning: some pixels dropped faces"),
+        (WARNINGS_LOGGER, logging.ERROR, "ViewpointWarning: the pose branch collapsed"),
+    ]
+    assert printed == [(DeprecationWarning, "a library's own")]

@@ -161,6 +161,12 @@ def test_end_to_end(synthetic_cache, tmp_path):
     # Lightning's messages reach the console once (through Hydra's handlers) and train.log
     assert (result.stdout + result.stderr).count("GPU available") == 1
     assert "GPU available" in (run_dir / "train.log").read_text()
+    assert "Tip:" not in result.stdout + result.stderr  # Lightning's advertisements
+    # unicorn's warnings: one line each, on the console and in train.log, not Python's file, line and source line
+    assert "Warning:" not in result.stderr, result.stderr[-3000:]
+    warned = [line for line in (run_dir / "train.log").read_text().splitlines() if "[unicorn.warnings]" in line]
+    assert warned and all(line in result.stdout for line in warned)
+    assert any("[WARNING] - RenderOverflowWarning: renderer: in the training renders" in line for line in warned)
     for path in (".hydra/config.yaml", ".hydra/overrides.yaml", "config.yaml", "train.log", "checkpoints/last.ckpt"):
         assert (run_dir / path).is_file(), path
     assert list((run_dir / "tensorboard").glob("events.out.tfevents.*"))

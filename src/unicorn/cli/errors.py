@@ -13,18 +13,24 @@ as argparse does for a bad option (:func:`expected_error` decides):
 
 Anything else is a bug and keeps its traceback (exit status 1). ``--debug`` (or ``HYDRA_FULL_ERROR=1`` /
 ``UNICORN_DEBUG=1`` in the environment) shows the traceback of expected failures too.
+
+unicorn's own warnings (:class:`unicorn.errors.UnicornWarning`) are logged in one line (:func:`log_warnings`).
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import re
 import sys
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TextIO
 
-from unicorn.errors import Interrupted, UserError, interrupt_on_signal
+from unicorn.errors import Interrupted, UnicornWarning, UserError, interrupt_on_signal
 
 __all__ = [
     "USER_ERRORS",
@@ -32,6 +38,7 @@ __all__ = [
     "add_debug_argument",
     "debug_requested",
     "expected_error",
+    "log_warnings",
     "one_line",
     "positive_int",
     "report_errors",
@@ -153,6 +160,38 @@ def add_debug_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: the logger of unicorn's warnings in the command-line programs (:func:`log_warnings`)
+WARNINGS_LOGGER = "unicorn.warnings"
+
+
+@contextmanager
+def log_warnings() -> Iterator[None]:
+    """In this block each :class:`~unicorn.errors.UnicornWarning` that the warning filters let through is logged by
+    the logger :data:`WARNINGS_LOGGER` at its class's level, in one line (``<Class>: <message>``): on the console
+    and, in ``unicorn-train``, into the run's ``train.log``; not printed as Python prints a warning (the file and
+    line that warned, then the source line). Other warnings print as before. The filters and the way warnings print
+    are back as they were after the block.
+    """
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+
+        def show(
+            message: Warning | str,
+            category: type[Warning],
+            filename: str,
+            lineno: int,
+            file: TextIO | None = None,
+            line: str | None = None,
+        ) -> None:
+            if issubclass(category, UnicornWarning):
+                logging.getLogger(WARNINGS_LOGGER).log(category.level, "%s: %s", category.__name__, message)
+            else:
+                shown(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
+
 def report_errors(
     prog: str,
     func: Callable[[], int],
@@ -164,7 +203,7 @@ def report_errors(
 
     SIGTERM and SIGINT stop the command at once (:func:`unicorn.errors.interrupt_on_signal`): ``<prog>: stopped by
     SIGTERM``, exit status ``128 + signal``, after ``cleanup``. Any other exception (a bug) propagates with its
-    traceback (exit status 1), after ``cleanup``.
+    traceback (exit status 1), after ``cleanup``. unicorn's warnings are logged in one line (:func:`log_warnings`).
 
     Args:
         prog: the command's name.
@@ -173,7 +212,7 @@ def report_errors(
         cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
     try:
-        with interrupt_on_signal():
+        with interrupt_on_signal(), log_warnings():
             return func()
     except Interrupted as err:
         if cleanup is not None:

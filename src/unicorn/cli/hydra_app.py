@@ -16,7 +16,8 @@ notes beforehand which folders existed, so that the task can tell a folder it cr
 from one the user made (:func:`existed_before`).
 
 A task stopped by a signal (:class:`unicorn.errors.Interrupted`) prints its message as ``<prog>: <message>`` and
-exits with the error's status.
+exits with the error's status. unicorn's warnings in the task are logged in one line, into the run's log too
+(:func:`~unicorn.cli.errors.log_warnings`).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from unicorn.cli.errors import debug_requested, expected_error, one_line
+from unicorn.cli.errors import debug_requested, expected_error, log_warnings, one_line
 from unicorn.errors import Interrupted
 
 __all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
@@ -202,7 +203,8 @@ class HydraApp:
         if isinstance(sys.stderr, _HeldStream):
             sys.stderr = sys.stderr.release()
         try:
-            task(cfg)
+            with log_warnings():  # into the run's train.log too
+                task(cfg)
         except Interrupted as err:
             print(f"{self.prog}: {one_line(err)}", file=sys.stderr, flush=True)
             raise SystemExit(err.exit_status) from None

@@ -64,6 +64,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from torch import nn
 
 from unicorn.config.schema import DiagnosticsConfig
+from unicorn.errors import UnicornWarning
 from unicorn.evaluation.tables import candidate_shares
 from unicorn.lit.heldout import append_csv_row
 from unicorn.lit.overflow import TrainingOverflow
@@ -95,12 +96,16 @@ AZIM_BIN = 30.0
 VIEWPOINT_SEED = 0
 
 
-class CollapseWarning(UserWarning):
+class CollapseWarning(UnicornWarning):
     """A code branch no longer depends on the image (dead regressor units or a constant code)."""
 
+    level = logging.ERROR
 
-class ViewpointWarning(UserWarning):
+
+class ViewpointWarning(UnicornWarning):
     """The pose branch no longer tells viewpoints apart (renders at known views misread, or one candidate for all)."""
+
+    level = logging.ERROR
 
 
 def pose_diagnostics(poses: PoseOutput, azim_half_range: float) -> dict[str, float]:
@@ -383,11 +388,9 @@ class CodeDiagnostics(L.Callback):
             f"VIEWPOINT COLLAPSE: {prefix}{'; '.join(reasons)}. The poses, and the shapes fitted to them, are likely "
             "wrong for many images: relaunching with another seed costs less than finishing this run"
         )
-        log.error(text)
-        warnings.warn(text, ViewpointWarning, stacklevel=2)
+        warnings.warn(text, ViewpointWarning, stacklevel=2)  # the commands log it at ERROR, into train.log too
 
     @staticmethod
     def _warn(message: str) -> None:
         text = f"CODE COLLAPSE: {message}. The model cannot reconstruct individual objects this way."
-        log.error(text)
         warnings.warn(text, CollapseWarning, stacklevel=2)

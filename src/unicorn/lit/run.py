@@ -74,6 +74,10 @@ def build(cfg: DictConfig) -> Run:
     typed = validate(cfg)
     # checkpoints are meant to hold the state after the iteration's update: Lightning's hint does not apply
     warnings.filterwarnings("ignore", message=".*no pre-optimization state was saved.*")
+    # Lightning's pytree helper builds torch's LeafSpec, which torch deprecates: nothing a user can change
+    warnings.filterwarnings(
+        "ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated", category=FutureWarning
+    )
     output_dir, checkpoint_dir, ckpt_path, outdated = check_run_folder(typed)
     L.seed_everything(typed.seed, workers=True, verbose=False)
     data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
@@ -85,12 +89,21 @@ def build(cfg: DictConfig) -> Run:
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path, stopper)
 
 
+def _no_tips(record: logging.LogRecord) -> bool:
+    """Drop Lightning's advertisements (``💡 Tip: ...``), which say nothing of the run."""
+    return not str(record.msg).startswith("💡 Tip")
+
+
 def _route_lightning_logs() -> None:
-    """Send Lightning's log records through the root logger's handlers only (each message printed once).
+    """Send Lightning's log records through the root logger's handlers only (each message printed once), without
+    its tips.
 
     Lightning gives its loggers a stderr handler of their own; under Hydra, whose root handlers also print to the
-    console (and to train.log), every Lightning line would appear twice. Nothing changes without root handlers.
+    console (and to train.log), every Lightning line would appear twice. Nothing else changes without root handlers.
     """
+    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")  # where Lightning's messages come from
+    if _no_tips not in rank_zero.filters:
+        rank_zero.addFilter(_no_tips)
     if not logging.getLogger().handlers:
         return
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):

@@ -16,6 +16,7 @@ from collections.abc import Iterable, Iterator
 import torch
 from torch import nn
 
+from unicorn.errors import UnicornWarning
 from unicorn.model.autoencoder import Unicorn
 
 __all__ = [
@@ -36,7 +37,7 @@ COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-
 COMPILE_SCOPES = ("networks", "step")
 
 
-class CompileWarning(UserWarning):
+class CompileWarning(UnicornWarning):
     """``torch.compile`` cannot run here: the networks run eagerly (the message says why)."""
 
 

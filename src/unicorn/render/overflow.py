@@ -24,6 +24,8 @@ from types import TracebackType
 
 import torch
 
+from unicorn.errors import UnicornWarning
+
 __all__ = ["OverflowCounter", "RenderOverflowWarning", "counting", "note_overflow"]
 
 #: the counters collecting renders, innermost last (per thread and asyncio task)
@@ -34,7 +36,7 @@ _TRACED: tuple[OverflowCounter, ...] = ()
 _WARNED: set[int] = set()
 
 
-class RenderOverflowWarning(UserWarning):
+class RenderOverflowWarning(UnicornWarning):
     """Some pixels had more candidate faces than ``faces_per_pixel``; the farthest were dropped."""
 
 
