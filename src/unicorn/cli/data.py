@@ -63,7 +63,12 @@ def _check(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``unicorn-data`` console script."""
-    parser = argparse.ArgumentParser(prog="unicorn-data", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="unicorn-data",
+        description="Generate the synthetic benchmark, or check that a dataset is laid out correctly.",
+        epilog="examples: unicorn-data synth --category car --mode wild --models 100 --out data/synth_car; "
+        "unicorn-data check cub_200 --root datasets/cub_200 --split test",
+    )
     parser.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
