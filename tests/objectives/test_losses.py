@@ -120,9 +120,10 @@ def test_candidate_spacing_loss_against_azimuth_differences():
     for b in range(2):
         for k in range(4):
             for l in range(k + 1, 4):
-                d = abs(float(azim[k, b] - azim[l, b])) % 360
+                d = abs(float(azim[k, b].detach() - azim[l, b].detach())) % 360
                 expected += max(0.0, 1 - min(d, 360 - d) / 30.0) / 2  # mean over the 2 images
-    assert math.isclose(float(value), expected, rel_tol=1e-5) and math.isclose(expected, (28 / 30 + 10 / 30) / 2)
+    assert math.isclose(expected, (28 / 30 + 10 / 30) / 2)
+    assert math.isclose(float(value.detach()), expected, rel_tol=1e-5)
     value.backward()
     # the near pairs (50 and 52; 10 and 350) pushed apart at 1 / 30 per degree, halved by the mean over images
     push = torch.zeros(4, 2)

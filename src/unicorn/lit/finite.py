@@ -99,7 +99,7 @@ class FiniteCheck:
             flag = trainer.strategy.reduce(flag, reduce_op="max")
         if float(flag) == 0:
             return
-        bad = [f"{k} = {float(v):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
+        bad = [f"{k} = {float(v.detach()):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
         if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
             bad.append("gradients of 'total' (finite loss)")
         where = ", ".join(bad) if bad else "a term on another rank"
