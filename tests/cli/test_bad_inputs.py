@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import os
 import re
 import shutil
@@ -243,6 +244,9 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert saved["global_step"] == step >= 1
     assert not (run / ".unicorn-train.lock").exists()
+    # the run's log ends the way the console did
+    logged = (run / "train.log").read_text().splitlines()[-1]
+    assert logged.endswith(f"[unicorn.train][WARNING] - {last_line.removeprefix('unicorn-train: ')}")
     resumed = unicorn_train(*args, "ckpt_path=last", f"trainer.max_steps={step + 1}", cwd=tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "Restored all states from the checkpoint" in (run / "train.log").read_text()
@@ -302,6 +306,38 @@ def _group_alive(pgid: int) -> bool:
     except ProcessLookupError:
         return False
     return True
+
+
+def _disk_full_at_last_ckpt() -> None:
+    """unicorn-train's main() on a disk that fills up as ``last.ckpt`` is flushed (after ``step=<N>.ckpt``)."""
+    from unicorn.cli import train
+
+    fsync = os.fsync
+
+    def full(fd: int) -> None:
+        if ".last.ckpt.tmp-" in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")  # as the kernel reports it: no file named
+        fsync(fd)
+
+    os.fsync = full
+    train.main()
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names the written file through /proc")
+def test_a_full_disk_while_a_checkpoint_is_written_names_it_keeps_the_others_and_ends_train_log(
+    synthetic_cache, tmp_path
+):
+    run = tmp_path / "run"
+    result = unicorn_train(*TINY, f"hydra.run.dir={run}", cwd=tmp_path, entry=f"{__name__}:_disk_full_at_last_ckpt")
+    assert result.returncode == 2, result.stderr[-3000:]
+    last = run / "checkpoints" / "last.ckpt"
+    line = (
+        f"error: [Errno 28] No space left on device while writing {last} (the file there before, if any, is as it was)"
+    )
+    assert error_lines(result.stderr)[-1] == f"unicorn-train: {line}"
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["step=0000004.ckpt"]  # no partial file
+    assert torch.load(run / "checkpoints" / "step=0000004.ckpt", weights_only=True)["global_step"] == 4
+    assert (run / "train.log").read_text().splitlines()[-1].endswith(f"[unicorn.train][ERROR] - {line}")
 
 
 def _signal_in_the_evaluation() -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import pickle
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -112,6 +114,22 @@ def test_atomic_save_leaves_no_partial_file(tmp_path: Path, monkeypatch) -> None
     with pytest.raises(OSError, match="disk full"):
         atomic_save({"w": torch.ones(3)}, path)
     assert torch.equal(load_checkpoint_file(path)["w"], torch.zeros(3))  # the earlier file is intact
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]
+
+
+def test_atomic_save_on_a_full_disk_names_the_file(tmp_path: Path, monkeypatch) -> None:
+    path = atomic_save({"w": torch.zeros(3)}, tmp_path / "m.pt")
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")  # as the kernel reports it: no file named
+
+    monkeypatch.setattr(os, "fsync", full)
+    message = f"[Errno 28] No space left on device while writing {path} (the file there before, if any, is as it was)"
+    with pytest.raises(OSError, match=f"^{re.escape(message)}$") as caught:
+        atomic_save({"w": torch.ones(3)}, path)
+    assert caught.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    assert torch.equal(load_checkpoint_file(path)["w"], torch.zeros(3))
     assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]
 
 

@@ -38,6 +38,7 @@ its folder as it was (a folder it created is removed again, nothing the user mad
 
 from __future__ import annotations
 
+import logging
 import signal
 import sys
 from pathlib import Path
@@ -58,6 +59,8 @@ __all__ = [
     "hydra_failure",
     "main",
 ]
+
+log = logging.getLogger("unicorn.train")
 
 #: what a bare ``unicorn-train`` runs: the offline default (procedural data, weights-free losses, CPU)
 DEFAULT_EXPERIMENT = "synthetic"
@@ -118,9 +121,29 @@ def _task(cfg: DictConfig) -> None:
                         f"stopped by {name} before the first iteration; {output_dir} is left as it was",
                         stop.exit_status,
                     ) from stop
+            else:
+                _log_end(err)
             raise
         finally:
             lock.release()
+
+
+def _log_end(err: Exception) -> None:
+    """Write how a run that trained ended into its log files (``train.log``), as the console gets it from the
+    application: a signal's message, an expected failure's one line, a bug's traceback."""
+    from unicorn.cli.errors import expected_error, one_line
+
+    reported = None if isinstance(err, Interrupted) else expected_error(err)
+    if isinstance(err, Interrupted):
+        level, text, exc_info = logging.WARNING, one_line(err), None
+    elif reported is not None:
+        level, text, exc_info = logging.ERROR, f"error: {one_line(reported)}", None
+    else:
+        level, text, exc_info = logging.ERROR, f"failed: {type(err).__name__}", (type(err), err, err.__traceback__)
+    record = log.makeRecord(log.name, level, __file__, 0, text, None, exc_info)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):  # the console has its own report (HydraApp)
+            handler.handle(record)
 
 
 def experiment_overrides(overrides: list[str]) -> list[str]:

@@ -17,6 +17,7 @@ checkpoints of older versions) load unchecked.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
 import os
@@ -259,6 +260,12 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as err:
+        if err.filename is None and err.errno in DISK_ERRORS:  # a write() on a full disk names no file
+            raise type(err)(
+                err.errno, f"{err.strerror} while writing {path} (the file there before, if any, is as it was)"
+            ) from err
+        raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -271,6 +278,10 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
             os.close(fd)
     return path
 
+
+#: errors of the disk rather than of a file (a full disk, a quota, a read-only or failing disk): the messages of
+#: the writers that meet them name what they were writing
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 
 #: infix of the temporary files of :func:`atomic_save` (``.<name>.tmp-<pid>``)
 TMP_MARK = ".tmp-"

@@ -9,21 +9,18 @@ left by a killed process is removed by the next run that writes the same folder.
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
 from unicorn.errors import UserError, signals_held
-from unicorn.io.serialization import _alive
+from unicorn.io.serialization import DISK_ERRORS, _alive
 
 __all__ = ["PARTIAL_MARK", "OutputConflictError", "staged_folder"]
 
 #: infix of the temporary siblings (``.<name>.partial-<pid>``)
 PARTIAL_MARK = ".partial-"
-#: errors of the disk rather than of a file: the message gets the output folder's name
-_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 
 
 def _remove_stale_siblings(out: Path) -> None:
@@ -111,7 +108,7 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
                 )
             _merge(tmp, out)
     except OSError as err:
-        if err.filename is None and err.errno in _DISK_ERRORS:  # e.g. a write() on a full disk names no file
+        if err.filename is None and err.errno in DISK_ERRORS:  # e.g. a write() on a full disk names no file
             raise type(err)(err.errno, f"{err.strerror} while writing the output folder {out}") from err
         raise
     finally:
