@@ -360,6 +360,14 @@ def test_a_bug_keeps_its_traceback_and_the_folder_stays_usable(synthetic_cache, 
     assert not run_dir.exists()  # failed before its first iteration: nothing blocks the same command
     again = unicorn_train(*TINY, "trainer.max_steps=1", f"hydra.run.dir={run_dir}", cwd=REPO)
     assert again.returncode == 0, again.stderr[-3000:]
+    # after an iteration the folder stays, and its train.log ends with the traceback
+    later = tmp_path / "later"
+    bug = "+callbacks.extra.bug={_target_: tests.lit.faults.Raise, step: 2}"
+    result = unicorn_train(*TINY, bug, f"hydra.run.dir={later}", cwd=REPO)
+    assert result.returncode == 1 and "Traceback" in result.stderr, result.stderr[-3000:]
+    logged = (later / "train.log").read_text()
+    tail = logged[logged.index("[unicorn.train][ERROR] - failed: ZeroDivisionError") :]
+    assert "Traceback" in tail and tail.rstrip().endswith("ZeroDivisionError: a bug injected at iteration 2")
 
 
 def test_a_refused_run_touches_nothing_in_the_folder(synthetic_cache, tmp_path):
