@@ -258,6 +258,42 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     assert logged == list(range(step + 1)), logged
 
 
+def test_a_signal_stops_a_sweep_which_the_same_command_in_its_folder_with_ckpt_path_last_finishes(
+    synthetic_cache, tmp_path
+):
+    sweep = tmp_path / "sweep"
+    args = [*TINY, "trainer.max_steps=12", "callbacks.checkpoint.every_n_steps=2", f"hydra.sweep.dir={sweep}"]
+    args += ["seed=1,2"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", "-m", *args],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 180
+        while not list((sweep / "0" / "checkpoints").glob("step=*.ckpt")):  # the first job has run an iteration
+            assert proc.poll() is None and time.monotonic() < deadline, "no iteration ran"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, stderr[-3000:]
+    assert error_lines(stderr)[-1].endswith(
+        f"; the sweep goes on with the same command and hydra.sweep.dir={sweep} ckpt_path=last"
+    ), stderr[-3000:]
+    assert not (sweep / "1").exists()  # the sweep stopped with its first job
+    ended = subprocess.run(
+        [sys.executable, "-m", "unicorn.cli.train", "-m", *args, "ckpt_path=last"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert ended.returncode == 0, ended.stderr[-3000:]
+    for job in ("0", "1"):
+        saved = torch.load(sweep / job / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+        assert saved["global_step"] == 12, job
+    assert "Restored all states from the checkpoint" in (sweep / "0" / "train.log").read_text()
+
+
 def test_a_signal_to_every_ddp_process_stops_them_at_one_iteration_and_the_run_resumes(synthetic_cache, tmp_path):
     """A scheduler's SIGTERM reaches every process of the job: both DDP ranks stop after the same iteration, the
     first one says so once, and the run resumes under DDP from the checkpoint holding both ranks' state."""

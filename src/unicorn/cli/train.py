@@ -122,10 +122,29 @@ def _task(cfg: DictConfig) -> None:
                         stop.exit_status,
                     ) from stop
             else:
-                _log_end(err)
+                ended = _with_sweep_hint(err)
+                _log_end(ended)
+                if ended is not err:
+                    raise ended from err
             raise
         finally:
             lock.release()
+
+
+def _with_sweep_hint(err: Exception) -> Exception:
+    """A job of a sweep (``-m``) stopped by a signal: its message also says how the whole sweep goes on (the
+    sweep's folder is named after the time it started, so a new command would start another)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hydra = HydraConfig.get()
+    if not isinstance(err, Interrupted) or hydra.mode != RunMode.MULTIRUN:
+        return err
+    sweep = Path(hydra.sweep.dir).resolve()
+    return Interrupted(
+        f"{err}; the sweep goes on with the same command and hydra.sweep.dir={sweep} ckpt_path=last",
+        err.exit_status,
+    )
 
 
 def _log_end(err: Exception) -> None:
