@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from tests.support.training import TINY, error_lines, unicorn_train
 
@@ -659,6 +660,52 @@ def test_synth_refuses_a_folder_with_a_foreign_metadata_yaml(tmp_path, capsys, t
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and "metadata.yaml is not a dataset's metadata.yaml" in lines[0], lines
     assert snapshot(tmp_path) == before
+
+
+SMALL_SYNTH = ["--models", "10", "--views", "1", "--size", "8", "--points", "100", "--quiet"]
+
+
+def test_synth_into_a_folder_that_holds_the_category_is_refused_and_other_categories_join_it(tmp_path, capsys):
+    from unicorn.cli.data import main
+
+    out = tmp_path / "data"
+    assert main(["synth", "--out", str(out), "--category", "car", *SMALL_SYNTH]) == 0
+    capsys.readouterr()
+    before = snapshot(tmp_path)
+    assert main(["synth", "--out", str(out), "--category", "car", "--size", "16", *SMALL_SYNTH]) == 2
+    assert capsys.readouterr().err == (
+        f"unicorn-data: error: {out} already holds car models ({out / '90000003'}): use that dataset as it is, "
+        "delete it, or generate into another folder\n"
+    )
+    assert snapshot(tmp_path) == before
+    assert main(["synth", "--out", str(out), "--category", "chair", *SMALL_SYNTH]) == 0  # beside the cars
+    metadata = yaml.safe_load((out / "metadata.yaml").read_text())
+    assert sorted(metadata) == ["90000001", "90000003"]
+    assert {p.name for p in out.iterdir()} == {"90000001", "90000003", "metadata.yaml", "synthetic.json"}
+
+
+def test_synth_stopped_part_way_leaves_its_folder_as_it_was(tmp_path, capsys, monkeypatch):
+    from unicorn.cli.data import main
+    from unicorn.data.synthetic import writer
+
+    out = tmp_path / "data"
+    written = writer._write_model
+
+    def signalled(*args, **kwargs):  # SIGTERM once three models are written
+        signalled.calls += 1
+        if signalled.calls == 4:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return written(*args, **kwargs)
+
+    signalled.calls = 0
+    monkeypatch.setattr(writer, "_write_model", signalled)
+    assert main(["synth", "--out", str(out), "--category", "car", *SMALL_SYNTH]) == 143
+    assert capsys.readouterr().err == "unicorn-data: stopped by SIGTERM\n"
+    assert signalled.calls == 4 and list(tmp_path.iterdir()) == []  # no folder, no partial sibling
+    # the same command generates the dataset whole
+    monkeypatch.setattr(writer, "_write_model", written)
+    assert main(["synth", "--out", str(out), "--category", "car", *SMALL_SYNTH]) == 0
+    assert len(list((out / "90000003").glob("car_0_*"))) == 10
 
 
 def test_a_bogus_device_is_one_line(tmp_path, capsys):

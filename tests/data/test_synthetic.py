@@ -295,6 +295,19 @@ def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pyte
     assert [p.name for p in path.parent.iterdir()] == [path.name]
 
 
+def test_generating_a_category_again_in_its_folder_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    out = generate_synthetic_dataset(tmp_path / "data", "mug", "nmr", seed=3, **TINY)
+    before = _digest(out)
+    for seed in (3, 4):  # the same models, or other ones whose lists would replace these
+        with pytest.raises(writer.SyntheticOutputExistsError, match=r"already holds mug models"):
+            generate_synthetic_dataset(out, ["lamp", "mug"], "nmr", seed=seed, **TINY)
+    assert _digest(out) == before
+    generate_synthetic_dataset(out, "lamp", "nmr", seed=3, **TINY)  # another category joins them
+    assert sorted(yaml.safe_load((out / "metadata.yaml").read_text())) == sorted(
+        CATEGORIES[c][0] for c in ("lamp", "mug")
+    )
+
+
 def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cli"
     code = cli.main(

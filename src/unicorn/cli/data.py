@@ -9,9 +9,11 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 
@@ -23,9 +25,11 @@ from unicorn.data.synthetic.shapes import CATEGORIES
 def _synth(args: argparse.Namespace) -> int:
     from unicorn.data.synthetic.writer import (
         check_generation_sizes,
+        check_output_folder,
         ensure_synthetic_dataset,
         generate_synthetic_dataset,
     )
+    from unicorn.io.staging import staged_folder
 
     check_generation_sizes(args.size, args.supersample, args.points, ("--size", "--supersample", "--points"))
     categories = [c for arg in args.category for c in arg.split(",") if c]
@@ -44,7 +48,13 @@ def _synth(args: argparse.Namespace) -> int:
     if args.out is None:
         out = ensure_synthetic_dataset(None, categories, args.mode, args.models, args.seed, **options)
     else:
-        out = generate_synthetic_dataset(args.out, categories, args.mode, args.models, args.seed, **options)
+        out = Path(args.out).expanduser()
+        check_output_folder(out, categories)
+        # a generation stopped part-way (Ctrl-C, a full disk) leaves --out as it was
+        with staged_folder(out) as staging:
+            if (out / "metadata.yaml").is_file():  # the categories generated there before stay listed
+                shutil.copy2(out / "metadata.yaml", staging / "metadata.yaml")
+            generate_synthetic_dataset(staging, categories, args.mode, args.models, args.seed, **options)
     print(f"wrote {args.models} models x {len(categories)} categories to {out} in {time.perf_counter() - start:.1f} s")
     return 0
 

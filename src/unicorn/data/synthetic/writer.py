@@ -54,8 +54,10 @@ from unicorn.metrics.sampling import check_point_count
 __all__ = [
     "GENERATOR_VERSION",
     "StaleSyntheticDataset",
+    "SyntheticOutputExistsError",
     "check_generation_sizes",
     "check_manifest",
+    "check_output_folder",
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
@@ -195,8 +197,9 @@ def generate_synthetic_dataset(
     check_view_ranges(mode, roll, shift)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     kinds = _background_kinds(background_kinds, random_bg)
+    check_output_folder(out, categories)  # before anything is written
     meta_path = out / "metadata.yaml"
-    metadata = _read_metadata(meta_path)  # before anything is written: a folder of something else is refused
+    metadata = _read_metadata(meta_path)
     out.mkdir(parents=True, exist_ok=True)
 
     bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
@@ -248,6 +251,31 @@ def _background_kinds(kinds: Sequence[str] | None, random_backgrounds: bool) -> 
     if not random_backgrounds:
         raise DatasetError(f"background_kinds {list(kinds)} asks for random backgrounds, but they are white")
     return kinds
+
+
+class SyntheticOutputExistsError(DatasetError, FileExistsError):
+    """The output folder already holds models of a category to generate."""
+
+
+def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str]) -> None:
+    """Refuse an output folder that :func:`generate_synthetic_dataset` cannot write into: one that holds
+    something other than a dataset (a ``metadata.yaml`` that is not a category table) or already holds one of
+    these categories (its model lists would be replaced). Other categories may share the folder.
+
+    Raises:
+        DatasetError: the folder holds something else.
+        SyntheticOutputExistsError: names the first category in the way.
+    """
+    out = Path(out)
+    categories = [categories] if isinstance(categories, str) else list(categories)
+    _read_metadata(out / "metadata.yaml")
+    for cat in categories:
+        folder = out / CATEGORIES[cat][0] if cat in CATEGORIES else None  # an unknown one: generation names it
+        if folder is not None and folder.exists():
+            raise SyntheticOutputExistsError(
+                f"{out} already holds {cat} models ({folder}): use that dataset as it is, delete it, or generate "
+                "into another folder"
+            )
 
 
 def _read_metadata(path: Path) -> dict[str, dict]:
