@@ -18,6 +18,10 @@ def _test_threads() -> int:
     return max(1, min(2, (os.cpu_count() or 1) // workers))
 
 
+# torch gives some warnings once per process; every time here, so that pytest's filters (pyproject.toml) see each
+# one where it happens, not only the first in a worker
+torch.set_warn_always(True)
+
 # a 2-thread torch job beside another busy process waits at its thread barriers: never ask for more than our share
 torch.set_num_threads(_test_threads())
 if "PYTEST_XDIST_WORKER" in os.environ:  # and the same share for the subprocesses a test starts
