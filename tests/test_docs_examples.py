@@ -1,0 +1,79 @@
+"""The Python examples of the README and the docs run as written, page by page (each page's blocks in order, in one
+namespace, as a reader would paste them), in a folder holding the files they name."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.support.evaluation import IMAGE_SIZE, tiny_checkpoint, write_inputs
+from unicorn.render import RENDERERS
+
+ROOT = Path(__file__).resolve().parents[1]
+BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
+
+
+def _checkpoint_at(relative: str) -> Callable[[Path], dict]:
+    """A page that loads a trained checkpoint from ``relative``: a tiny one is there."""
+
+    def prepare(folder: Path) -> dict:
+        tiny_checkpoint(folder / relative)
+        return {}
+
+    return prepare
+
+
+def _reconstruction(folder: Path) -> dict:
+    """docs/reconstruct.md: ``model.ckpt``, ``unicorn-reconstruct``'s outputs for ``car.png``, and the images
+    that ``refine`` is given."""
+    from unicorn.cli.reconstruct import main
+
+    tiny_checkpoint(folder / "model.ckpt")
+    shutil.copy(write_inputs(folder / "inputs")["cutout"], folder / "car.png")
+    args = ["model.ckpt", "car.png", "--out", "reconstructions", "--device", "cpu", "--quiet"]
+    assert main([*args, "--view-size", "32", "--turntable-frames", "2", "--strip-views", "2"]) == 0
+    return {"images": torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE)}
+
+
+#: every page with Python examples, and what its examples expect to find (files, names defined before them)
+PAGES: dict[str, Callable[[Path], dict]] = {
+    "README.md": lambda folder: {},
+    "docs/getting-started.md": _checkpoint_at("outputs/synthetic/runs/<time>/checkpoints/last.ckpt"),
+    "docs/model.md": lambda folder: {},
+    "docs/reconstruct.md": _reconstruction,
+    "docs/renderer.md": lambda folder: {},
+}
+
+
+def _blocks(page: str) -> list[tuple[int, str]]:
+    text = (ROOT / page).read_text()
+    return [(text[: m.start()].count("\n") + 2, m.group(1)) for m in BLOCK.finditer(text)]
+
+
+def test_every_page_with_python_examples_is_run() -> None:
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    with_examples = {str(p.relative_to(ROOT)) for p in pages if _blocks(str(p.relative_to(ROOT)))}
+    assert with_examples == set(PAGES)
+
+
+@pytest.mark.parametrize("page", sorted(PAGES))
+def test_the_python_examples_of_a_page_run_as_written(page: str, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": f"example_{page}", **PAGES[page](tmp_path)}
+    registered = set(RENDERERS.names())
+    try:
+        for line, code in _blocks(page):
+            exec(compile(code, f"{page}:{line}", "exec"), namespace)  # the project's own examples
+    finally:
+        for name in set(RENDERERS.names()) - registered:  # a backend an example registers stays in its page
+            RENDERERS.remove(name)
+    if page == "docs/reconstruct.md":  # what the comment says: the pose read back is the written one
+        pose = json.loads((tmp_path / "reconstructions" / "car" / "pose.json").read_text())
+        assert torch.allclose(namespace["R"], torch.tensor(pose["R"]), atol=1e-5)
+        assert torch.allclose(namespace["T"], torch.tensor(pose["T"]), atol=1e-5)
