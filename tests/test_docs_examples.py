@@ -1,10 +1,12 @@
 """The Python examples of the README and the docs run as written, page by page (each page's blocks in order, in one
-namespace, as a reader would paste them), in a folder holding the files they name."""
+namespace, as a reader would paste them), in a folder holding the files they name; the documented
+``unicorn-train`` command lines compose and validate."""
 
 from __future__ import annotations
 
 import json
 import re
+import shlex
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -77,3 +79,48 @@ def test_the_python_examples_of_a_page_run_as_written(page: str, tmp_path: Path,
         pose = json.loads((tmp_path / "reconstructions" / "car" / "pose.json").read_text())
         assert torch.allclose(namespace["R"], torch.tensor(pose["R"]), atol=1e-5)
         assert torch.allclose(namespace["T"], torch.tensor(pose["T"]), atol=1e-5)
+
+
+#: where the documented command lines are
+COMMAND_PAGES = ["README.md", *(str(p.relative_to(ROOT)) for p in sorted((ROOT / "docs").rglob("*.md")))]
+COMMAND_PAGES += ["experiments/README.md"]
+SHELL_BLOCK = re.compile(r"^```(?:bash|sh|console)\n(.*?)^```", re.S | re.M)
+#: the placeholders of the command lines, and values that stand for them
+PLACEHOLDERS = {"<time>": "2026-11-30_08-00-00-000000", "seed=S": "seed=0"}
+
+
+def _train_commands() -> list[tuple[str, list[str]]]:
+    """Every ``unicorn-train`` command line of the documentation's shell blocks that names a run (its overrides; a
+    sweep's values: the first), with where it is."""
+    found = []
+    for page in COMMAND_PAGES:
+        text = (ROOT / page).read_text()
+        for m in SHELL_BLOCK.finditer(text):
+            for number, line in enumerate(m.group(1).replace("\\\n", " ").splitlines()):
+                for placeholder, value in PLACEHOLDERS.items():
+                    line = line.replace(placeholder, value)
+                words = shlex.split(line, comments=True)
+                if not words or words[0] != "unicorn-train" or {"-cd", "--help", "--version"} & set(words):
+                    continue
+                overrides = [w for w in words[1:] if "=" in w and not w.startswith(("-", "hydra.", "hydra/"))]
+                if "-m" in words:
+                    overrides = [re.sub(r"=([^,{\[]*),.*", r"=\1", w) for w in overrides]  # a sweep's first job
+                where = f"{page}, block at line {text[: m.start()].count(chr(10)) + 1}, line {number + 1}"
+                found.append((where, overrides))
+    return found
+
+
+def test_the_documented_training_commands_compose_and_validate(tmp_path: Path) -> None:
+    from tests.support.training import compose_config
+    from unicorn.cli.train import experiment_overrides
+    from unicorn.config import validate
+
+    commands = _train_commands()
+    assert len(commands) > 20
+    failures = []
+    for where, overrides in commands:
+        try:
+            validate(compose_config([*experiment_overrides(overrides), f"paths.output_dir={tmp_path}"]))
+        except Exception as err:  # every command is tried; the failures are listed together
+            failures.append(f"{where}: {' '.join(overrides)}: {type(err).__name__}: {err}")
+    assert not failures, "\n".join(failures)
