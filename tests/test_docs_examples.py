@@ -1,6 +1,6 @@
 """The Python examples of the README and the docs run as written, page by page (each page's blocks in order, in one
 namespace, as a reader would paste them), in a folder holding the files they name; the documented
-``unicorn-train`` command lines compose and validate."""
+``unicorn-train`` command lines compose and validate, and those of the other commands parse."""
 
 from __future__ import annotations
 
@@ -89,9 +89,9 @@ SHELL_BLOCK = re.compile(r"^```(?:bash|sh|console)\n(.*?)^```", re.S | re.M)
 PLACEHOLDERS = {"<time>": "2026-11-30_08-00-00-000000", "seed=S": "seed=0"}
 
 
-def _train_commands() -> list[tuple[str, list[str]]]:
-    """Every ``unicorn-train`` command line of the documentation's shell blocks that names a run (its overrides; a
-    sweep's values: the first), with where it is."""
+def _command_lines(program: str) -> list[tuple[str, list[str]]]:
+    """Every ``program`` command line of the documentation's shell blocks (its arguments, placeholders given
+    values), with where it is."""
     found = []
     for page in COMMAND_PAGES:
         text = (ROOT / page).read_text()
@@ -100,13 +100,23 @@ def _train_commands() -> list[tuple[str, list[str]]]:
                 for placeholder, value in PLACEHOLDERS.items():
                     line = line.replace(placeholder, value)
                 words = shlex.split(line, comments=True)
-                if not words or words[0] != "unicorn-train" or {"-cd", "--help", "--version"} & set(words):
-                    continue
-                overrides = [w for w in words[1:] if "=" in w and not w.startswith(("-", "hydra.", "hydra/"))]
-                if "-m" in words:
-                    overrides = [re.sub(r"=([^,{\[]*),.*", r"=\1", w) for w in overrides]  # a sweep's first job
-                where = f"{page}, block at line {text[: m.start()].count(chr(10)) + 1}, line {number + 1}"
-                found.append((where, overrides))
+                if words and words[0] == program:
+                    where = f"{page}, block at line {text[: m.start()].count(chr(10)) + 1}, line {number + 1}"
+                    found.append((where, words[1:]))
+    return found
+
+
+def _train_commands() -> list[tuple[str, list[str]]]:
+    """The overrides of every documented ``unicorn-train`` command line that names a run (a sweep's values: the
+    first), with where it is."""
+    found = []
+    for where, args in _command_lines("unicorn-train"):
+        if {"-cd", "--help", "--version"} & set(args):
+            continue
+        overrides = [w for w in args if "=" in w and not w.startswith(("-", "hydra.", "hydra/"))]
+        if "-m" in args:
+            overrides = [re.sub(r"=([^,{\[]*),.*", r"=\1", w) for w in overrides]  # a sweep's first job
+        found.append((where, overrides))
     return found
 
 
@@ -123,4 +133,20 @@ def test_the_documented_training_commands_compose_and_validate(tmp_path: Path) -
             validate(compose_config([*experiment_overrides(overrides), f"paths.output_dir={tmp_path}"]))
         except Exception as err:  # every command is tried; the failures are listed together
             failures.append(f"{where}: {' '.join(overrides)}: {type(err).__name__}: {err}")
+    assert not failures, "\n".join(failures)
+
+
+@pytest.mark.parametrize("program", ["unicorn-eval", "unicorn-reconstruct", "unicorn-data"])
+def test_the_documented_command_lines_parse(program: str, capsys) -> None:
+    import importlib
+
+    parser = importlib.import_module(f"unicorn.cli.{program.removeprefix('unicorn-')}").build_parser()
+    lines = _command_lines(program)
+    assert lines
+    failures = []
+    for where, args in lines:
+        try:
+            parser.parse_args(args)
+        except SystemExit:
+            failures.append(f"{where}: {program} {' '.join(args)}: {capsys.readouterr().err.strip().splitlines()[-1]}")
     assert not failures, "\n".join(failures)

@@ -21,6 +21,8 @@ from unicorn import __version__
 from unicorn.cli.errors import add_debug_argument, positive_int, report_errors
 from unicorn.data.synthetic.shapes import CATEGORIES
 
+__all__ = ["build_parser", "main"]
+
 
 def _synth(args: argparse.Namespace) -> int:
     from unicorn.data.synthetic.writer import (
@@ -71,8 +73,8 @@ def _check(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``unicorn-data`` console script."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``unicorn-data`` (subcommands ``synth`` and ``check``)."""
     parser = argparse.ArgumentParser(
         prog="unicorn-data",
         description="Generate the synthetic benchmark, or check that a dataset is laid out correctly.",
@@ -124,7 +126,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     for command in (synth, check):
         add_debug_argument(command)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``unicorn-data`` console script."""
+    args = build_parser().parse_args(argv)
     if getattr(args, "category", None) is None and args.command == "synth":
         args.category = ["chair"]
     return report_errors("unicorn-data", lambda: args.func(args), args.debug)
