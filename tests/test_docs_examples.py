@@ -150,3 +150,40 @@ def test_the_documented_command_lines_parse(program: str, capsys) -> None:
         except SystemExit:
             failures.append(f"{where}: {program} {' '.join(args)}: {capsys.readouterr().err.strip().splitlines()[-1]}")
     assert not failures, "\n".join(failures)
+
+
+#: a documented override in the prose: `key.path=value`, or `+key.path=value` for a key the config may add
+INLINE_OVERRIDE = re.compile(r"`(\+?)([a-z_][a-z0-9_]*(?:\.[a-z0-9_]+)+)=([^`\s]*)`")
+
+
+def test_the_config_keys_the_documentation_names_exist(tmp_path: Path) -> None:
+    """Each `key.path=value` of the prose is a key of some experiment's training config (a model config key,
+    `loss.perceptual`, as the training config's `model.` key); each `+key.path=value` composes and validates in
+    the main job's config (an upper-case placeholder value, N, as 2 ** 40)."""
+    from omegaconf import OmegaConf
+
+    from tests.support.training import compose_config
+    from unicorn.config import validate
+    from unicorn.resources import config_dir
+
+    experiments = sorted(p.stem for p in (config_dir() / "experiment").glob("*.yaml"))
+    configs = [validate(compose_config([f"experiment={e}", f"paths.output_dir={tmp_path}"])) for e in experiments]
+    top = set(configs[0])
+    named = {
+        (plus, key if key.split(".")[0] in top else f"model.{key}", str(2**40) if value.isupper() else value, page)
+        for page in COMMAND_PAGES
+        for plus, key, value in INLINE_OVERRIDE.findall((ROOT / page).read_text())
+        if not key.startswith("hydra.")
+    }
+    assert len(named) > 40
+    failures = []
+    for plus, key, value, page in sorted(named):
+        if not plus:
+            if all(OmegaConf.select(cfg, key, default=KeyError) is KeyError for cfg in configs):
+                failures.append(f"{page}: {key}: no such key")
+            continue
+        try:
+            validate(compose_config(["experiment=synthetic", f"+{key}={value}", f"paths.output_dir={tmp_path}"]))
+        except Exception as err:  # every key is tried; the failures are listed together
+            failures.append(f"{page}: +{key}={value}: {type(err).__name__}: {err}")
+    assert not failures, "\n".join(failures)
