@@ -1,9 +1,11 @@
 """The Python examples of the README and the docs run as written, page by page (each page's blocks in order, in one
 namespace, as a reader would paste them), in a folder holding the files they name; the documented
-``unicorn-train`` command lines compose and validate, and those of the other commands parse."""
+``unicorn-train`` command lines compose and validate, those of the other commands parse, and the config keys and
+package names the prose gives exist."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import re
 import shlex
@@ -138,8 +140,6 @@ def test_the_documented_training_commands_compose_and_validate(tmp_path: Path) -
 
 @pytest.mark.parametrize("program", ["unicorn-eval", "unicorn-reconstruct", "unicorn-data"])
 def test_the_documented_command_lines_parse(program: str, capsys) -> None:
-    import importlib
-
     parser = importlib.import_module(f"unicorn.cli.{program.removeprefix('unicorn-')}").build_parser()
     lines = _command_lines(program)
     assert lines
@@ -187,3 +187,32 @@ def test_the_config_keys_the_documentation_names_exist(tmp_path: Path) -> None:
         except Exception as err:  # every key is tried; the failures are listed together
             failures.append(f"{page}: +{key}={value}: {type(err).__name__}: {err}")
     assert not failures, "\n".join(failures)
+
+
+#: a Python name of the package in the prose: `unicorn.module.name` or `unicorn.module.function(...)`
+PACKAGE_NAME = re.compile(r"`(unicorn(?:\.[A-Za-z_][A-Za-z0-9_]*)+)(?:\([^`]*\))?`")
+#: names in that form that are not Python names: the renderers' entry-point group, the warnings' logger
+NOT_PYTHON = {"unicorn.renderers", "unicorn.warnings"}
+
+
+def _resolves(name: str) -> bool:
+    """Whether ``name`` is a module of the package or an attribute reached from one."""
+    parts = name.split(".")
+    for split in range(len(parts), 0, -1):
+        try:
+            found = importlib.import_module(".".join(parts[:split]))
+        except ImportError:
+            continue
+        for attribute in parts[split:]:
+            if not hasattr(found, attribute):
+                return False
+            found = getattr(found, attribute)
+        return True
+    return False
+
+
+def test_the_package_names_the_documentation_gives_exist() -> None:
+    named = {(name, page) for page in COMMAND_PAGES for name in PACKAGE_NAME.findall((ROOT / page).read_text())}
+    assert len(named) > 50
+    missing = sorted(f"{page}: {name}" for name, page in named if name not in NOT_PYTHON and not _resolves(name))
+    assert not missing, "\n".join(missing)
