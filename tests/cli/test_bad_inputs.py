@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
+import json
 import os
 import re
 import shutil
@@ -443,6 +444,11 @@ def test_a_signal_in_the_evaluation_after_training_stops_at_once_and_the_run_end
     ended = unicorn_train(*args, "ckpt_path=last", cwd=tmp_path)
     assert ended.returncode == 0, ended.stderr[-3000:]
     assert (run / "eval" / "metrics.csv").is_file()
+    # the evaluation records the command as the user gave it, as provenance.json does (none of Hydra's own)
+    command = json.loads((run / "provenance.json").read_text())[-1]["command"]
+    assert command.startswith("unicorn-train experiment=synthetic ") and command.endswith(" ckpt_path=last")
+    produced_by = json.loads((run / "eval" / "metrics.json").read_text())["produced_by"]
+    assert produced_by == f"{command} (evaluation after training)"
 
 
 def test_a_signal_before_the_first_iteration_leaves_the_folder_as_it_was(synthetic_cache, tmp_path):

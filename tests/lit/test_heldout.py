@@ -96,8 +96,8 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     # provenance: the equivalent unicorn-eval command, and the training command that ran it, kept apart
     assert metrics["command"].startswith(f"unicorn-eval {run.checkpoint_dir / 'last.ckpt'} --split=test")
-    assert metrics["produced_by"].startswith("unicorn-train ")
-    assert metrics["produced_by"].endswith("(evaluation after training)")
+    command = json.loads((run.output_dir / "provenance.json").read_text())[-1]["command"]  # as provenance.json
+    assert metrics["produced_by"] == f"{command} (evaluation after training)"
     assert metrics["checkpoint"] == str((run.checkpoint_dir / "last.ckpt").resolve()) and "git_commit" in metrics
     assert (out / "report.png").is_file() and (out / "report.html").is_file()
     text = json.dumps(metrics)

@@ -161,20 +161,26 @@ def is_first_process() -> bool:
     return int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
 
 
+def _run_command() -> str:
+    """The command that trains this run as the user gave it: ``unicorn-train`` and the job's overrides (a sweep's
+    values for this job; none of Hydra's own), or the Python command of a run built without Hydra."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.io.provenance import command_line
+
+    if HydraConfig.initialized():
+        return command_line("unicorn-train", list(HydraConfig.get().overrides.task))
+    return command_line(Path(sys.argv[0]).name, sys.argv[1:])  # built from Python (e.g. with Hydra's compose API)
+
+
 def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
     """``<run>/provenance.json``: the command, resumed checkpoint, version and commit behind the run's metrics files
     (``heldout.csv``, ``csv/``, ``tensorboard/``); a resumed run keeps one record per start."""
-    from hydra.core.hydra_config import HydraConfig
+    from unicorn.io.provenance import provenance, read_run_starts
 
-    from unicorn.io.provenance import command_line, provenance, read_run_starts
-
-    if HydraConfig.initialized():
-        command = command_line("unicorn-train", list(HydraConfig.get().overrides.task))
-    else:  # built from Python (e.g. with Hydra's compose API)
-        command = command_line(Path(sys.argv[0]).name, sys.argv[1:])
     path = output_dir / "provenance.json"
     starts = read_run_starts(path)  # checked before anything was written (check_run_folder)
-    path.write_text(json.dumps([*starts, provenance(command, ckpt_path)], indent=1))
+    path.write_text(json.dumps([*starts, provenance(_run_command(), ckpt_path)], indent=1))
 
 
 def build_module(typed: DictConfig) -> Any:
@@ -314,7 +320,7 @@ def evaluate_run(run: Run) -> Path:
     """
     from unicorn.config.schema import EvaluateConfig
     from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, overflow_note, settings_options
-    from unicorn.io.provenance import command_line, provenance
+    from unicorn.io.provenance import provenance
 
     settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
     d = run.config.dataset
@@ -324,7 +330,7 @@ def evaluate_run(run: Run) -> Path:
         **provenance(
             eval_command(checkpoint, out, settings),
             checkpoint if checkpoint.is_file() else None,
-            produced_by=f"{command_line('unicorn-train', sys.argv[1:])} (evaluation after training)",
+            produced_by=f"{_run_command()} (evaluation after training)",
         ),
         "epoch": run.trainer.current_epoch,
         "step": run.trainer.global_step,
