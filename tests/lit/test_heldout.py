@@ -81,16 +81,18 @@ def test_csv_keeps_one_row_per_step(tmp_path):
     assert rows[1]["rot-err-median"] == "9.0" and rows[0]["rot-err-median"] == ""
 
 
+EVALUATE = (
+    "evaluate.enabled=true",
+    "evaluate.max_images=2",
+    "evaluate.num_points=300",
+    "evaluate.icp_iterations=2",
+    "evaluate.report_samples=2",
+    "evaluate.turntable_frames=0",
+)
+
+
 def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
-    run = build_run(
-        tmp_path,
-        "evaluate.enabled=true",
-        "evaluate.max_images=2",
-        "evaluate.num_points=300",
-        "evaluate.icp_iterations=2",
-        "evaluate.report_samples=2",
-        "evaluate.turntable_frames=0",
-    )
+    run = build_run(tmp_path, *EVALUATE)
     fit(run)
     out = run.output_dir / "eval"
     metrics = json.loads((out / "metrics.json").read_text())
@@ -126,3 +128,21 @@ def test_bad_arguments():
         HeldOutEvaluation(split="train")
     with pytest.raises(ValueError, match=r"every_n_steps must be >= 1, got 0"):
         HeldOutEvaluation(every_n_steps=0)
+
+
+def test_a_finished_run_resumed_is_evaluated_again_only_where_something_changed(synthetic_cache, tmp_path, caplog):
+    fit(build_run(tmp_path, *EVALUATE))
+    metrics = tmp_path / "eval" / "metrics.json"
+    first = metrics.read_bytes()
+    with caplog.at_level("INFO", logger="unicorn.train"):
+        fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last"))  # trains nothing: the same model, the same settings
+    assert "already holds the evaluation of this iteration's model (8)" in caplog.text
+    assert metrics.read_bytes() == first
+    caplog.clear()
+    fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last", "evaluate.num_points=400"))  # other settings
+    assert (
+        "already holds" not in caplog.text
+        and json.loads(metrics.read_text())["command"] != json.loads(first)["command"]
+    )
+    fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last", "evaluate.num_points=400", "trainer.max_steps=9"))
+    assert json.loads(metrics.read_text())["step"] == 9  # trained further: evaluated again

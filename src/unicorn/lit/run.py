@@ -312,11 +312,33 @@ def fit(run: Run) -> dict[str, float]:
     return metrics
 
 
+def _evaluated_before(metrics: Path, meta: dict[str, Any], target: Any) -> bool:
+    """Whether ``metrics`` (an earlier evaluation's ``metrics.json``) evaluated the model of the same iteration
+    on the same data with the same settings (its ``unicorn-eval`` command): a resumed run that trained no further
+    (a finished job of a resumed sweep) need not evaluate again."""
+    try:
+        found = json.loads(metrics.read_text())
+    except (OSError, ValueError):
+        return False
+    same = {
+        "command": meta["command"],
+        "step": meta["step"],
+        "dataset": target.dataset,
+        "root": target.root,
+        "split": target.split,
+        "categories": target.categories,
+        "max_images": target.max_images,
+    }
+    return isinstance(found, dict) and all(found.get(key) == value for key, value in same.items())
+
+
 def evaluate_run(run: Run) -> Path:
     """The ``evaluate`` settings' evaluation of the trained model, in memory; returns the report folder.
 
     The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go to
-    ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command.
+    ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command. A run
+    resumed at its last iteration whose ``eval`` holds that iteration's evaluation with the same settings is not
+    evaluated again.
     """
     from unicorn.config.schema import EvaluateConfig
     from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, overflow_note, settings_options
@@ -337,6 +359,14 @@ def evaluate_run(run: Run) -> Path:
     }
     categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
     target = EvalTarget(d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images)
+    if run.stopper.steps_run == 0 and _evaluated_before(out / "metrics.json", meta, target):
+        log.info(
+            "%s already holds the evaluation of this iteration's model (%d) with these settings: not evaluated "
+            "again (delete it to evaluate again)",
+            out,
+            meta["step"],
+        )
+        return out
     log.info("evaluating the trained model on the %s split", settings.split)
     with overflow_note("the evaluation after training"):  # once, instead of the renderer's warning
         evaluate_to_folder(
