@@ -42,6 +42,7 @@ import logging
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig
 
@@ -49,6 +50,9 @@ from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.errors import Interrupted, interrupt_on_signal, signals_held
 from unicorn.resources import config_dir
+
+if TYPE_CHECKING:
+    from unicorn.io.run_folder import FolderChanges
 
 __all__ = [
     "DEFAULT_EXPERIMENT",
@@ -74,7 +78,8 @@ def _task(cfg: DictConfig) -> None:
 
     A run that fails before its first iteration leaves its folders as it found them
     (:class:`~unicorn.io.run_folder.FolderChanges`): a folder this process created is removed, an existing one
-    gets back the bytes it had. A second ``unicorn-train`` into a locked folder is refused and touches nothing.
+    gets back the bytes it had. A run that fails later ends its ``train.log`` with how it ended. A second
+    ``unicorn-train`` into a locked folder is refused and touches nothing.
     """
     from hydra.core.hydra_config import HydraConfig
 
@@ -108,27 +113,32 @@ def _task(cfg: DictConfig) -> None:
         except Exception as err:
             if run is None or run.stopper.steps_run == 0:
                 lock.release()
-                stop = err if isinstance(err, Interrupted) else None
-                try:
-                    with signals_held():  # a signal now stops the command once the folders are back
-                        for change in changes:
-                            change.undo()
-                except Interrupted as late:
-                    stop = late
-                if stop is not None:
-                    name = signal.Signals(stop.exit_status - 128).name
-                    raise Interrupted(
-                        f"stopped by {name} before the first iteration; {output_dir} is left as it was",
-                        stop.exit_status,
-                    ) from stop
-            else:
-                ended = _with_sweep_hint(err)
-                _log_end(ended)
-                if ended is not err:
-                    raise ended from err
+                _put_back(err, changes, output_dir)
+                raise
+            ended = _with_sweep_hint(err)
+            _log_end(ended)
+            if ended is not err:
+                raise ended from err
             raise
         finally:
             lock.release()
+
+
+def _put_back(err: Exception, changes: list[FolderChanges], output_dir: Path) -> None:
+    """Put the folders of a run that failed with ``err`` before its first iteration back as they were; a signal
+    (``err``, or one that comes meanwhile and waits for the folders) then raises :class:`Interrupted` saying so."""
+    stop = err if isinstance(err, Interrupted) else None
+    try:
+        with signals_held():  # a signal now stops the command once the folders are back
+            for change in changes:
+                change.undo()
+    except Interrupted as late:
+        stop = late
+    if stop is not None:
+        name = signal.Signals(stop.exit_status - 128).name
+        raise Interrupted(
+            f"stopped by {name} before the first iteration; {output_dir} is left as it was", stop.exit_status
+        ) from stop
 
 
 def _with_sweep_hint(err: Exception) -> Exception:
