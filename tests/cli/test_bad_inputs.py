@@ -24,6 +24,7 @@ import pytest
 import torch
 import yaml
 
+from tests.support.signals import SignalAtCall
 from tests.support.training import TINY, error_lines, unicorn_train
 
 #: a refusal that happens once the folder was accepted, while the trainer is built
@@ -695,21 +696,12 @@ def test_synth_stopped_part_way_leaves_its_folder_as_it_was(tmp_path, capsys, mo
     from unicorn.data.synthetic import writer
 
     out = tmp_path / "data"
-    written = writer._write_model
-
-    def signalled(*args, **kwargs):  # SIGTERM once three models are written
-        signalled.calls += 1
-        if signalled.calls == 4:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return written(*args, **kwargs)
-
-    signalled.calls = 0
-    monkeypatch.setattr(writer, "_write_model", signalled)
+    signalled = SignalAtCall(monkeypatch, writer, "_write_model", at=4)  # SIGTERM once three models are written
     assert main(["synth", "--out", str(out), "--category", "car", *SMALL_SYNTH]) == 143
     assert capsys.readouterr().err == "unicorn-data: stopped by SIGTERM\n"
     assert signalled.calls == 4 and list(tmp_path.iterdir()) == []  # no folder, no partial sibling
     # the same command generates the dataset whole
-    monkeypatch.setattr(writer, "_write_model", written)
+    monkeypatch.setattr(writer, "_write_model", signalled.wrapped)
     assert main(["synth", "--out", str(out), "--category", "car", *SMALL_SYNTH]) == 0
     assert len(list((out / "90000003").glob("car_0_*"))) == 10
 

@@ -19,6 +19,7 @@ import unicorn
 from tests.support.checkpoints import reference_state
 from tests.support.datasets import bomb_png
 from tests.support.evaluation import TEXTURE_SIZE, referenced_files, tiny_checkpoint, write_inputs
+from tests.support.signals import SignalAtCall
 from unicorn.cli.reconstruct import main
 from unicorn.data.images import MAX_IMAGE_BYTES_ENV, MAX_IMAGE_PIXELS_ENV
 from unicorn.io import export_prediction, load_model
@@ -260,16 +261,7 @@ def test_a_signal_part_way_stops_at_once_and_leaves_out_as_it_was(
     import signal
 
     rec = importlib.import_module("unicorn.evaluation.reconstruct")  # the package exports a function of that name
-    written = rec._write_one
-
-    def signalled(*args, **kwargs):  # SIGTERM once the first image's files are written
-        signalled.calls += 1
-        if signalled.calls == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return written(*args, **kwargs)
-
-    signalled.calls = 0
-    monkeypatch.setattr(rec, "_write_one", signalled)
+    signalled = SignalAtCall(monkeypatch, rec, "_write_one", at=2)  # SIGTERM once the first image's files are written
     out = tmp_path / "out"
     out.mkdir()
     (out / "index.html").write_text("the user's own page")
