@@ -689,6 +689,14 @@ def test_synth_into_a_folder_that_holds_the_category_is_refused_and_other_catego
     metadata = yaml.safe_load((out / "metadata.yaml").read_text())
     assert sorted(metadata) == ["90000001", "90000003"]
     assert {p.name for p in out.iterdir()} == {"90000001", "90000003", "metadata.yaml", "synthetic.json"}
+    assert json.loads((out / "synthetic.json").read_text())["categories"] == ["car", "chair"]
+    before = snapshot(tmp_path)
+    assert main(["synth", "--out", str(out), "--category", "mug", *SMALL_SYNTH, "--seed", "1"]) == 2
+    assert capsys.readouterr().err.endswith(
+        "generated with seed=0 (asked: 1); other categories join it only with the same settings: generate into "
+        "another folder\n"
+    )
+    assert snapshot(tmp_path) == before
 
 
 def test_synth_stopped_part_way_leaves_its_folder_as_it_was(tmp_path, capsys, monkeypatch):

@@ -295,17 +295,21 @@ def test_ensure_uses_cache_once_and_atomically(tmp_path: Path, monkeypatch: pyte
     assert [p.name for p in path.parent.iterdir()] == [path.name]
 
 
-def test_generating_a_category_again_in_its_folder_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+def test_a_category_joins_a_generated_folder_only_once_and_with_its_settings(tmp_path: Path) -> None:
     out = generate_synthetic_dataset(tmp_path / "data", "mug", "nmr", seed=3, **TINY)
     before = _digest(out)
     for seed in (3, 4):  # the same models, or other ones whose lists would replace these
         with pytest.raises(writer.SyntheticOutputExistsError, match=r"already holds mug models"):
             generate_synthetic_dataset(out, ["lamp", "mug"], "nmr", seed=seed, **TINY)
     assert _digest(out) == before
-    generate_synthetic_dataset(out, "lamp", "nmr", seed=3, **TINY)  # another category joins them
+    with pytest.raises(writer.SyntheticOutputExistsError, match=r"generated with seed=3 \(asked: 4\)"):
+        generate_synthetic_dataset(out, "lamp", "nmr", seed=4, **TINY)  # synthetic.json could not describe both
+    assert _digest(out) == before
+    generate_synthetic_dataset(out, "lamp", "nmr", seed=3, **TINY)  # another category, the same settings, joins
     assert sorted(yaml.safe_load((out / "metadata.yaml").read_text())) == sorted(
         CATEGORIES[c][0] for c in ("lamp", "mug")
     )
+    writer.check_manifest(out, categories=["lamp", "mug"], mode="nmr", n_models=3, seed=3)  # describes both
 
 
 def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

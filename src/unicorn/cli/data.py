@@ -54,8 +54,9 @@ def _synth(args: argparse.Namespace) -> int:
         check_output_folder(out, categories)
         # a generation stopped part-way (Ctrl-C, a full disk) leaves --out as it was
         with staged_folder(out) as staging:
-            if (out / "metadata.yaml").is_file():  # the categories generated there before stay listed
-                shutil.copy2(out / "metadata.yaml", staging / "metadata.yaml")
+            for record in ("metadata.yaml", "synthetic.json"):  # the categories generated there before stay listed
+                if (out / record).is_file():
+                    shutil.copy2(out / record, staging / record)
             generate_synthetic_dataset(staging, categories, args.mode, args.models, args.seed, **options)
     print(f"wrote {args.models} models x {len(categories)} categories to {out} in {time.perf_counter() - start:.1f} s")
     return 0

@@ -21,6 +21,7 @@ import shutil
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -198,6 +199,23 @@ def generate_synthetic_dataset(
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     kinds = _background_kinds(background_kinds, random_bg)
     check_output_folder(out, categories)  # before anything is written
+    settings = {
+        "generator_version": GENERATOR_VERSION,
+        "categories": categories,
+        "mode": mode,
+        "n_models": n_models,
+        "seed": seed,
+        "image_size": image_size,
+        "n_views": n_views,
+        "supersample": supersample,
+        "n_points": n_points,
+        "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
+        "background_kinds": None if background_kinds is None else list(kinds),  # as given (None: all), likewise
+        "roll": roll,  # as given (None: the mode's), likewise
+        "shift": shift,
+        "fov": NMR_FOV,
+    }
+    settings = _joined_settings(out, settings)
     meta_path = out / "metadata.yaml"
     metadata = _read_metadata(meta_path)
     out.mkdir(parents=True, exist_ok=True)
@@ -219,22 +237,6 @@ def generate_synthetic_dataset(
         metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
     bar.close()
     meta_path.write_text(yaml.safe_dump(metadata, sort_keys=True))
-    settings = {
-        "generator_version": GENERATOR_VERSION,
-        "categories": categories,
-        "mode": mode,
-        "n_models": n_models,
-        "seed": seed,
-        "image_size": image_size,
-        "n_views": n_views,
-        "supersample": supersample,
-        "n_points": n_points,
-        "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
-        "background_kinds": None if background_kinds is None else list(kinds),  # as given (None: all), likewise
-        "roll": roll,  # as given (None: the mode's), likewise
-        "shift": shift,
-        "fov": NMR_FOV,
-    }
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
 
@@ -276,6 +278,33 @@ def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str])
                 f"{out} already holds {cat} models ({folder}): use that dataset as it is, delete it, or generate "
                 "into another folder"
             )
+
+
+def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` of a generation into ``out``, with the categories already there when ``out`` holds a generated
+    dataset (its ``synthetic.json``): other categories join one only with the same settings, which the file then
+    describes for all of them.
+
+    Raises:
+        SyntheticOutputExistsError: the folder's dataset was generated with other settings (the message names one).
+    """
+    path = out / "synthetic.json"
+    if not path.is_file():
+        return settings
+    try:
+        earlier = json.loads(path.read_text())
+    except ValueError:
+        earlier = None
+    if not isinstance(earlier, dict):
+        raise DatasetError(f"{path} is not a generated dataset's synthetic.json; generate into another folder")
+    other = {k: v for k, v in settings.items() if k != "categories" and earlier.get(k) != v}
+    if other:
+        key = next(iter(other))
+        raise SyntheticOutputExistsError(
+            f"{out} holds a synthetic dataset generated with {key}={earlier.get(key)!r} (asked: {other[key]!r}); "
+            "other categories join it only with the same settings: generate into another folder"
+        )
+    return {**settings, "categories": [*earlier.get("categories", []), *settings["categories"]]}
 
 
 def _read_metadata(path: Path) -> dict[str, dict]:
