@@ -138,6 +138,11 @@ def test_a_finished_run_resumed_is_evaluated_again_only_where_something_changed(
         fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last"))  # trains nothing: the same model, the same settings
     assert "already holds the evaluation of this iteration's model (8)" in caplog.text
     assert metrics.read_bytes() == first
+    metrics.write_text(json.dumps({**json.loads(first), "unicorn_version": "0.0.1"}))  # made by another unicorn
+    caplog.clear()
+    fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last"))
+    assert "already holds" not in caplog.text and json.loads(metrics.read_text())["unicorn_version"] != "0.0.1"
+    first = metrics.read_bytes()
     caplog.clear()
     fit(build_run(tmp_path, *EVALUATE, "ckpt_path=last", "evaluate.num_points=400"))  # other settings
     assert (

@@ -314,15 +314,14 @@ def fit(run: Run) -> dict[str, float]:
 
 def _evaluated_before(metrics: Path, meta: dict[str, Any], target: Any) -> bool:
     """Whether ``metrics`` (an earlier evaluation's ``metrics.json``) evaluated the model of the same iteration
-    on the same data with the same settings (its ``unicorn-eval`` command): a resumed run that trained no further
-    (a finished job of a resumed sweep) need not evaluate again."""
+    on the same data with the same settings (its ``unicorn-eval`` command) and the same unicorn (version and
+    commit): a resumed run that trained no further (a finished job of a resumed sweep) need not evaluate again."""
     try:
         found = json.loads(metrics.read_text())
     except (OSError, ValueError):
         return False
     same = {
-        "command": meta["command"],
-        "step": meta["step"],
+        **{key: meta.get(key) for key in ("command", "step", "unicorn_version", "git_commit")},
         "dataset": target.dataset,
         "root": target.root,
         "split": target.split,
