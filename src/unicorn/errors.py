@@ -66,20 +66,16 @@ def interrupt_on_signal(where: str = "") -> Iterator[None]:
         return
     previous: dict[int, Any] = {}
 
-    def restore() -> None:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
     def interrupt(signum: int, frame: Any) -> None:
-        restore()
+        restore_handlers(previous)
         name = signal.Signals(signum).name
         raise Interrupted(f"stopped by {name} {where}" if where else f"stopped by {name}", 128 + signum)
 
-    previous.update(_handle_stop_signals(interrupt))
+    previous.update(handle_stop_signals(interrupt))
     try:
         yield
     finally:
-        restore()
+        restore_handlers(previous)
 
 
 @contextmanager
@@ -99,16 +95,22 @@ def signals_held() -> Iterator[None]:
         if signum not in held:
             held.append(signum)
 
-    previous = _handle_stop_signals(hold)
+    previous = handle_stop_signals(hold)
     try:
         yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        restore_handlers(previous)
         for signum in held:
             signal.raise_signal(signum)  # runs the restored handler before it returns
 
 
-def _handle_stop_signals(handler: Any) -> dict[int, Any]:
-    """Give :data:`STOP_SIGNALS` to ``handler``; returns the handlers they had."""
+def handle_stop_signals(handler: Any) -> dict[int, Any]:
+    """Give :data:`STOP_SIGNALS` to ``handler`` (main thread only); returns the handlers they had, for
+    :func:`restore_handlers`."""
     return {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+
+
+def restore_handlers(previous: dict[int, Any]) -> None:
+    """Give each signal of ``previous`` (:func:`handle_stop_signals`'s result) its handler back."""
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)

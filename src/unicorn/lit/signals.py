@@ -33,7 +33,7 @@ from typing import Any
 import lightning as L
 from lightning.pytorch.callbacks import Checkpoint
 
-from unicorn.errors import STOP_SIGNALS, Interrupted
+from unicorn.errors import Interrupted, handle_stop_signals, restore_handlers
 from unicorn.lit.checkpoint import PeriodicCheckpoint
 
 __all__ = ["GracefulStop"]
@@ -68,8 +68,7 @@ class GracefulStop(Checkpoint):
         self.received, self.stopped = None, None
         if threading.current_thread() is threading.main_thread():
             # SIGTERM too, in place of Lightning's handler (see the module docstring)
-            for signum in STOP_SIGNALS:
-                self._previous[signum] = signal.signal(signum, self._on_signal)
+            self._previous = handle_stop_signals(self._on_signal)
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         if self.received is not None:  # asked twice: stop now
@@ -105,8 +104,7 @@ class GracefulStop(Checkpoint):
             raise self.stopped
 
     def _restore(self) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
+        restore_handlers(self._previous)
         self._previous = {}
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

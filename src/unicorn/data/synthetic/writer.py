@@ -198,7 +198,7 @@ def generate_synthetic_dataset(
     check_view_ranges(mode, roll, shift)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     kinds = _background_kinds(background_kinds, random_bg)
-    check_output_folder(out, categories)  # before anything is written
+    metadata = check_output_folder(out, categories)  # before anything is written
     settings = {
         "generator_version": GENERATOR_VERSION,
         "categories": categories,
@@ -216,8 +216,6 @@ def generate_synthetic_dataset(
         "fov": NMR_FOV,
     }
     settings = _joined_settings(out, settings)
-    meta_path = out / "metadata.yaml"
-    metadata = _read_metadata(meta_path)
     out.mkdir(parents=True, exist_ok=True)
 
     bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
@@ -236,7 +234,7 @@ def generate_synthetic_dataset(
             (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
         metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
     bar.close()
-    meta_path.write_text(yaml.safe_dump(metadata, sort_keys=True))
+    (out / "metadata.yaml").write_text(yaml.safe_dump(metadata, sort_keys=True))
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
 
@@ -259,10 +257,13 @@ class SyntheticOutputExistsError(DatasetError, FileExistsError):
     """The output folder already holds models of a category to generate."""
 
 
-def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str]) -> None:
+def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str]) -> dict[str, dict]:
     """Refuse an output folder that :func:`generate_synthetic_dataset` cannot write into: one that holds
     something other than a dataset (a ``metadata.yaml`` that is not a category table) or already holds one of
     these categories (its model lists would be replaced). Other categories may share the folder.
+
+    Returns:
+        The folder's category table (its ``metadata.yaml``; {} for none).
 
     Raises:
         DatasetError: the folder holds something else.
@@ -270,7 +271,7 @@ def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str])
     """
     out = Path(out)
     categories = [categories] if isinstance(categories, str) else list(categories)
-    _read_metadata(out / "metadata.yaml")
+    metadata = _read_metadata(out / "metadata.yaml")
     for cat in categories:
         folder = out / CATEGORIES[cat][0] if cat in CATEGORIES else None  # an unknown one: generation names it
         if folder is not None and folder.exists():
@@ -278,6 +279,7 @@ def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str])
                 f"{out} already holds {cat} models ({folder}): use that dataset as it is, delete it, or generate "
                 "into another folder"
             )
+    return metadata
 
 
 def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
