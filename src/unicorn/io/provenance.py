@@ -7,6 +7,7 @@ traced back to the exact command and code that produced it.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import os
 import shlex
@@ -18,7 +19,7 @@ from typing import Any
 
 from unicorn.errors import UserError
 
-__all__ = ["ProvenanceError", "command_line", "git_commit", "provenance", "read_run_starts"]
+__all__ = ["ProvenanceError", "checkout_state", "command_line", "git_commit", "provenance", "read_run_starts"]
 
 
 class ProvenanceError(UserError, ValueError):
@@ -53,25 +54,33 @@ def command_line(prog: str, argv: Sequence[str]) -> str:
 
 @lru_cache(maxsize=1)
 def git_commit() -> str | None:
-    """The commit of the git checkout unicorn runs from (``+dirty`` when tracked files differ); None otherwise.
+    """The commit of the git checkout unicorn runs from (:func:`checkout_state`); None for an installed wheel.
 
     Installed wheels have no checkout: None. Editable installs and source trees report their commit.
     """
-    root = Path(__file__).resolve().parents[3]  # src/unicorn/io/provenance.py -> the repository
+    return checkout_state(Path(__file__).resolve().parents[3])  # src/unicorn/io/provenance.py -> the repository
+
+
+def checkout_state(root: str | os.PathLike) -> str | None:
+    """The state of the git checkout at ``root``: its commit, ``<commit>+dirty.<digest>`` when tracked files differ
+    from it, the digest (12 hex digits) a hash of those differences, so that two checkouts with other edits never
+    look the same; None where ``root`` is not a checkout or git cannot be run.
+    """
+    root = Path(root)
     if not (root / ".git").exists():
         return None
 
-    def git(*args: str) -> str:
+    def git(*args: str) -> bytes:
         return subprocess.run(
-            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, check=True
+            ["git", "-C", str(root), *args], capture_output=True, timeout=10, check=True
         ).stdout.strip()
 
     try:
-        commit = git("rev-parse", "HEAD")
-        dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
-    except (OSError, subprocess.SubprocessError):
+        commit = git("rev-parse", "HEAD").decode()
+        changes = git("diff", "HEAD", "--binary", "--no-ext-diff", "--no-textconv", "--no-color")
+    except (OSError, subprocess.SubprocessError, UnicodeDecodeError):
         return None
-    return f"{commit}+dirty" if dirty else commit
+    return f"{commit}+dirty.{hashlib.sha256(changes).hexdigest()[:12]}" if changes else commit
 
 
 def provenance(command: str, checkpoint: str | os.PathLike | None = None, **extra: Any) -> dict[str, Any]:
