@@ -227,6 +227,27 @@ def test_background_kinds_are_checked_and_recorded(tmp_path: Path) -> None:
     assert not (tmp_path / "bad").exists() and not (tmp_path / "white").exists()
 
 
+@pytest.mark.parametrize("kinds", [("solid", "gradient"), ["solid", "gradient"], "solid"])
+def test_a_cached_dataset_is_reused_whatever_the_options_type(tmp_path: Path, kinds: object) -> None:
+    options = {k: v for k, v in TINY.items() if k not in ("n_models", "progress")}
+    path = ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, background_kinds=kinds, **options)
+    stamp = (path / "synthetic.json").stat().st_mtime_ns
+    assert ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, background_kinds=kinds, **options) == path
+    assert (path / "synthetic.json").stat().st_mtime_ns == stamp  # checked and reused, not generated again
+    recorded = json.loads((path / "synthetic.json").read_text())
+    expected = writer.generation_settings("car", "wild", 3, 0, background_kinds=kinds, **options)
+    assert {k: recorded[k] for k in expected} == expected
+    assert set(recorded) == {*expected, "generator_version", "fov"}  # what generation_settings says is all of it
+    reordered = ["gradient", "solid"] if kinds != "solid" else ["gradient"]  # another order draws other backgrounds
+    with pytest.raises(writer.StaleSyntheticDataset, match="background_kinds"):
+        ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, background_kinds=reordered, **options)
+
+
+def test_generation_settings_names_an_option_it_does_not_record() -> None:
+    with pytest.raises(TypeError, match="does not record: colour"):
+        writer.generation_settings("car", "wild", 3, 0, colour="red")
+
+
 def test_wild_roll_and_shift_change_only_their_draws() -> None:
     default = sample_views("wild", 64, np.random.default_rng(3))
     flat = sample_views("wild", 64, np.random.default_rng(3), roll=0, shift=0)

@@ -54,6 +54,7 @@ from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
     "GENERATOR_VERSION",
+    "RECORDED_OPTIONS",
     "StaleSyntheticDataset",
     "SyntheticOutputExistsError",
     "check_generation_sizes",
@@ -69,6 +70,19 @@ __all__ = [
 #: bump when the output changes: it is part of the cache folder's name and of ``synthetic.json``, so that a
 #: dataset of an older generator is never reused (2: every category has a front, wider instance variation)
 GENERATOR_VERSION = 2
+
+#: the options of :func:`generate_synthetic_dataset` that ``synthetic.json`` records (beside the categories, mode,
+#: model count and seed), as they were given: a dataset made before an option existed then matches its default
+RECORDED_OPTIONS = (
+    "image_size",
+    "n_views",
+    "supersample",
+    "n_points",
+    "backgrounds",
+    "background_kinds",
+    "roll",
+    "shift",
+)
 
 
 def _write_model(
@@ -188,6 +202,7 @@ def generate_synthetic_dataset(
     Returns:
         ``out`` as a Path.
     """
+    options = {name: value for name, value in locals().items() if name in RECORDED_OPTIONS}  # the arguments as given
     out = Path(out)
     categories = [categories] if isinstance(categories, str) else list(categories)
     for cat in categories:
@@ -201,18 +216,7 @@ def generate_synthetic_dataset(
     metadata = check_output_folder(out, categories)  # before anything is written
     settings = {
         "generator_version": GENERATOR_VERSION,
-        "categories": categories,
-        "mode": mode,
-        "n_models": n_models,
-        "seed": seed,
-        "image_size": image_size,
-        "n_views": n_views,
-        "supersample": supersample,
-        "n_points": n_points,
-        "backgrounds": backgrounds,  # as given (None: the mode's), so that datasets made before the option match
-        "background_kinds": None if background_kinds is None else list(kinds),  # as given (None: all), likewise
-        "roll": roll,  # as given (None: the mode's), likewise
-        "shift": shift,
+        **generation_settings(categories, mode, n_models, seed, **options),
         "fov": NMR_FOV,
     }
     settings = _joined_settings(out, settings)
@@ -237,6 +241,14 @@ def generate_synthetic_dataset(
     (out / "metadata.yaml").write_text(yaml.safe_dump(metadata, sort_keys=True))
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
+
+
+#: the defaults of :data:`RECORDED_OPTIONS`, from the signature itself
+_RECORDED_DEFAULTS = {
+    name: param.default
+    for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
+    if name in RECORDED_OPTIONS
+}
 
 
 def _background_kinds(kinds: Sequence[str] | None, random_backgrounds: bool) -> tuple[str, ...] | None:
@@ -349,7 +361,7 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     """
     root = Path(root)
     settings = json.loads((root / "synthetic.json").read_text())
-    expected = {"generator_version": GENERATOR_VERSION, **expected}
+    expected = _as_recorded({"generator_version": GENERATOR_VERSION, **expected})
     if isinstance(expected.get("categories"), str):
         expected["categories"] = [expected["categories"]]
     wrong = [
@@ -369,14 +381,32 @@ def generation_settings(
     categories: str | Sequence[str], mode: Mode, n_models: int, seed: int, **options: object
 ) -> dict[str, object]:
     """The settings that :func:`generate_synthetic_dataset` called with these arguments records in
-    ``synthetic.json`` (the options left out: its defaults), as :func:`check_manifest` expects them."""
-    recorded = ("image_size", "n_views", "supersample", "n_points", "backgrounds", "background_kinds", "roll", "shift")
-    defaults = {
-        name: param.default
-        for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
-        if name in recorded
+    ``synthetic.json`` (the options left out: its defaults), as JSON reads them back (tuples as lists), which is
+    how :func:`check_manifest` compares them.
+
+    Raises:
+        TypeError: an option that is not one of :data:`RECORDED_OPTIONS`.
+    """
+    unknown = sorted(set(options) - set(RECORDED_OPTIONS))
+    if unknown:
+        raise TypeError(f"generation_settings() got options it does not record: {', '.join(unknown)}")
+    categories = [categories] if isinstance(categories, str) else list(categories)
+    recorded = {
+        "categories": categories,
+        "mode": mode,
+        "n_models": n_models,
+        "seed": seed,
+        **_RECORDED_DEFAULTS,
+        **options,
     }
-    return {"categories": categories, "mode": mode, "n_models": n_models, "seed": seed, **defaults, **options}
+    if recorded["background_kinds"] is not None:  # one kind may be given as a string
+        recorded["background_kinds"] = check_background_kinds(recorded["background_kinds"])
+    return _as_recorded(recorded)
+
+
+def _as_recorded(value: Any) -> Any:
+    """``value`` as ``synthetic.json`` holds it (tuples become lists)."""
+    return json.loads(json.dumps(value))
 
 
 def default_cache_dir() -> Path:
