@@ -243,6 +243,26 @@ def test_a_cached_dataset_is_reused_whatever_the_options_type(tmp_path: Path, ki
         ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, background_kinds=reordered, **options)
 
 
+def test_the_modes_own_values_written_out_are_the_same_dataset(tmp_path: Path) -> None:
+    options = {k: v for k, v in TINY.items() if k != "n_models"}
+    path = ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, **options)  # every view option the mode's
+    written_out = {"backgrounds": True, "background_kinds": list(BACKGROUND_KINDS), "roll": 15, "shift": 0.1}
+    for key, value in written_out.items():
+        assert ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, **options, **{key: value}) == path
+    assert ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, **options, **written_out) == path
+    assert writer.check_manifest(path, n_models=np.int64(3), image_size=np.int32(32))  # numpy scalars are numbers
+    with pytest.raises(writer.StaleSyntheticDataset, match="roll=None \\(asked: 14\\)"):
+        ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, **options, roll=14)
+    with pytest.raises(writer.StaleSyntheticDataset, match="backgrounds=None \\(asked: False\\)"):
+        ensure_synthetic_dataset(tmp_path, "car", "wild", 3, 0, **options, backgrounds=False)
+    # a category joins a generated folder with the mode's values written out, and not with others
+    small = {k: v for k, v in TINY.items() if k != "progress"}
+    generate_synthetic_dataset(path, "mug", "wild", seed=0, **small, progress=False, backgrounds=True, roll=15.0)
+    assert sorted(json.loads((path / "synthetic.json").read_text())["categories"]) == ["car", "mug"]
+    with pytest.raises(writer.SyntheticOutputExistsError, match="shift=None \\(asked: 0.2\\)"):
+        generate_synthetic_dataset(path, "lamp", "wild", seed=0, **small, progress=False, shift=0.2)
+
+
 def test_generation_settings_names_an_option_it_does_not_record() -> None:
     with pytest.raises(TypeError, match="does not record: colour"):
         writer.generation_settings("car", "wild", 3, 0, colour="red")

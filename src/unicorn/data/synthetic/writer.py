@@ -39,6 +39,8 @@ from unicorn.data.synthetic.render import (
 )
 from unicorn.data.synthetic.sampling import (
     NMR_FOV,
+    WILD_ROLL,
+    WILD_SHIFT,
     Mode,
     check_view_ranges,
     model_streams,
@@ -311,11 +313,12 @@ def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
         earlier = None
     if not isinstance(earlier, dict):
         raise DatasetError(f"{path} is not a generated dataset's synthetic.json; generate into another folder")
-    other = {k: v for k, v in settings.items() if k != "categories" and earlier.get(k) != v}
+    was, asked = _in_effect(earlier), _in_effect(settings)
+    other = [k for k in settings if k != "categories" and was.get(k) != asked[k]]
     if other:
-        key = next(iter(other))
+        key = other[0]
         raise SyntheticOutputExistsError(
-            f"{out} holds a synthetic dataset generated with {key}={earlier.get(key)!r} (asked: {other[key]!r}); "
+            f"{out} holds a synthetic dataset generated with {key}={earlier.get(key)!r} (asked: {settings[key]!r}); "
             "other categories join it only with the same settings: generate into another folder"
         )
     return {**settings, "categories": [*earlier.get("categories", []), *settings["categories"]]}
@@ -351,7 +354,8 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     Args:
         root: the generated dataset.
         **expected: settings it must have been generated with (``categories``, ``mode``, ``image_size``...);
-            the generator version is always checked.
+            the generator version is always checked. An option left to the mode (None) and the mode's own value
+            written out are the same setting.
 
     Returns:
         The recorded settings.
@@ -364,10 +368,11 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     expected = _as_recorded({"generator_version": GENERATOR_VERSION, **expected})
     if isinstance(expected.get("categories"), str):
         expected["categories"] = [expected["categories"]]
+    was, asked = _in_effect(settings), _in_effect({**settings, **expected})
     wrong = [
         f"{key}={settings.get(key)!r} (asked: {value!r})"
         for key, value in expected.items()
-        if (sorted(settings.get(key) or []) != sorted(value) if key == "categories" else settings.get(key) != value)
+        if (sorted(settings.get(key) or []) != sorted(value) if key == "categories" else was.get(key) != asked[key])
     ]
     if wrong:
         raise StaleSyntheticDataset(
@@ -405,8 +410,31 @@ def generation_settings(
 
 
 def _as_recorded(value: Any) -> Any:
-    """``value`` as ``synthetic.json`` holds it (tuples become lists)."""
-    return json.loads(json.dumps(value))
+    """``value`` as ``synthetic.json`` holds it (tuples become lists, numpy scalars numbers)."""
+    return json.loads(json.dumps(value, default=_plain))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"a synthetic dataset setting must be a number, string, list or None, got {value!r}")
+
+
+def _in_effect(settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` with the options left to the mode (None) replaced by what the generator then draws, so that
+    a dataset made with the mode's own values written out (``backgrounds=True`` in the wild mode, all four kinds,
+    ``roll=15``) is the one made with None, and the other way round."""
+    settings = dict(settings)
+    wild = settings.get("mode") == "wild"
+    backgrounds = settings.get("backgrounds")
+    random_bg = wild if backgrounds is None else bool(backgrounds)
+    kinds = settings.get("background_kinds")
+    settings["backgrounds"] = random_bg
+    settings["background_kinds"] = (list(BACKGROUND_KINDS) if kinds is None else list(kinds)) if random_bg else None
+    if wild:
+        for key, default in (("roll", WILD_ROLL), ("shift", WILD_SHIFT)):
+            settings[key] = default if settings.get(key) is None else float(settings[key])
+    return settings
 
 
 def default_cache_dir() -> Path:
