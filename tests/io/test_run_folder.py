@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +19,7 @@ from unicorn.io.run_folder import (
     lock_folder,
     plan_folder,
     resolve_ckpt,
+    run_of_checkpoint,
 )
 
 
@@ -134,3 +136,22 @@ def test_folder_changes_remove_the_parents_the_run_created(tmp_path) -> None:
     other.mkdir()
     changes.undo()
     assert not other.exists() and other.parent.is_dir()
+
+
+def test_the_run_of_a_checkpoint_named_from_anywhere(tmp_path, monkeypatch) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    ckpt = run / "checkpoints" / "last.ckpt"
+    ckpt.write_bytes(b"")
+    (tmp_path / "elsewhere").mkdir()
+    link = tmp_path / "elsewhere" / "best.ckpt"
+    link.symlink_to(ckpt)
+    assert run_of_checkpoint(ckpt) == run
+    assert run_of_checkpoint(link) == run  # a link to the run's file
+    monkeypatch.chdir(run / "checkpoints")
+    assert run_of_checkpoint(Path("last.ckpt")) == run  # relative, from inside checkpoints/
+    assert run_of_checkpoint("../checkpoints/last.ckpt") == run
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert run_of_checkpoint("best.ckpt") == run
+    (tmp_path / "lone.ckpt").write_bytes(b"")
+    assert run_of_checkpoint(tmp_path / "lone.ckpt") is None

@@ -326,9 +326,13 @@ def _top(folder: Path, path: Path) -> str:
     return path.relative_to(folder).parts[0]
 
 
-def run_of_checkpoint(path: Path) -> Path | None:
-    """The run folder a checkpoint sits in (``<run>/checkpoints/x.ckpt`` -> ``<run>``), or None."""
-    return path.parent.parent if path.parent.name == RUN_OUTPUTS[0] else None
+def run_of_checkpoint(path: str | os.PathLike) -> Path | None:
+    """The run folder a checkpoint sits in (``<run>/checkpoints/x.ckpt`` -> ``<run>``), or None: an absolute path,
+    whether ``path`` is relative (``last.ckpt`` from inside ``checkpoints/``) or a link to the file in the run."""
+    for where in (Path(os.path.abspath(path)), Path(path).resolve()):  # the path as named, then the file it names
+        if where.parent.name == RUN_OUTPUTS[0]:
+            return where.parent.parent
+    return None
 
 
 def run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
