@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+import yaml
 from lightning.pytorch.callbacks import Timer
+from omegaconf import OmegaConf
 
-from tests.support.training import build_run
-from unicorn.config.build import ConfigError
+from tests.support.training import build_run, compose_config
+from unicorn.config.build import ConfigError, validate
 from unicorn.lit import (
     CodeDiagnostics,
     GracefulStop,
@@ -20,7 +22,7 @@ from unicorn.lit import (
 )
 from unicorn.lit import compiled as compiled_module
 from unicorn.lit.loggers import CSVLogger
-from unicorn.lit.run import fit
+from unicorn.lit.run import fit, recorded_config
 from unicorn.model import compile as compile_module
 from unicorn.model.compile import CompileWarning, networks
 
@@ -104,3 +106,15 @@ def test_model_compile_scope_step_where_compile_cannot_run_warns_and_trains_eage
 def test_model_compile_scope_is_checked(tmp_path, overrides, message) -> None:
     with pytest.raises(ConfigError, match=message):
         build_run(tmp_path, *overrides)
+
+
+@pytest.mark.parametrize("root", ["datasets/cub_200", "/data/cub_200", "~/cub_200"])
+def test_the_run_records_a_relative_dataset_root_as_absolute(tmp_path, monkeypatch, root) -> None:
+    monkeypatch.chdir(tmp_path)  # the folder the run is started from
+    typed = validate(compose_config(["experiment=cub", f"dataset.root='{root}'", f"paths.output_dir={tmp_path}/run"]))
+    record = yaml.safe_load(recorded_config(typed))
+    expected = str(tmp_path / root) if root == "datasets/cub_200" else root  # absolute (or home's) as given
+    assert record["dataset"]["root"] == expected
+    resolved = yaml.safe_load(OmegaConf.to_yaml(typed, resolve=True))
+    resolved["dataset"]["root"] = expected
+    assert record == resolved  # the rest is the resolved config as it was

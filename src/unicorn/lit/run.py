@@ -152,8 +152,18 @@ def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None,
     if checkpoint_dir.is_dir():
         for tmp in remove_stale_temporaries(checkpoint_dir):
             log.info("removed %s, a partial checkpoint of a killed run", tmp)
-    (output_dir / "config.yaml").write_text(OmegaConf.to_yaml(typed, resolve=True))
+    (output_dir / "config.yaml").write_text(recorded_config(typed))
     _write_provenance(output_dir, ckpt_path)
+
+
+def recorded_config(typed: DictConfig) -> str:
+    """The run's ``config.yaml``: the config resolved, its ``dataset.root`` absolute, so that ``unicorn-eval`` finds
+    the data from any folder (a relative root is relative to the folder the run was started from)."""
+    record = OmegaConf.create(OmegaConf.to_container(typed, resolve=True))
+    root = record.dataset.root
+    if root is not None and not os.path.isabs(os.path.expanduser(root)):
+        record.dataset.root = os.path.abspath(root)
+    return OmegaConf.to_yaml(record)
 
 
 def is_first_process() -> bool:
