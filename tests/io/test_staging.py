@@ -37,6 +37,25 @@ def test_an_existing_folder_gets_the_new_files_and_keeps_the_others(tmp_path) ->
     assert (out / "img" / "old.png").read_text() == "old" and (out / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize("name", [".", "..", "sub/.."])
+def test_the_current_or_parent_folder_is_written_into(tmp_path, monkeypatch, name) -> None:
+    work = tmp_path / "work"
+    (work / "sub").mkdir(parents=True)
+    (work / "mine.txt").write_text("mine")
+    monkeypatch.chdir(work)
+    with staged_folder(name) as staging:
+        (staging / "a.txt").write_text("a")
+    out = (work / name).resolve()
+    assert (out / "a.txt").read_text() == "a" and (work / "mine.txt").read_text() == "mine"
+    assert not _siblings(out) and os.getcwd() == str(work)  # merged into the folder, which stays where it was
+
+
+def test_the_root_folder_is_refused_in_one_line(tmp_path) -> None:
+    with pytest.raises(OutputConflictError, match="choose a folder below it"):
+        with staged_folder("/"):
+            pass
+
+
 def test_a_failure_leaves_the_folder_as_it_was(tmp_path) -> None:
     out = tmp_path / "out"
     out.mkdir()

@@ -83,7 +83,9 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
         OutputConflictError: an entry of ``out`` is a file where a folder is written or a folder where a file is
             (nothing is moved: ``out`` is as it was).
     """
-    out = Path(out).expanduser()
+    out = Path(os.path.abspath(Path(out).expanduser()))  # ``.`` and ``..`` by their names: the sibling needs one
+    if not out.name:
+        raise OutputConflictError(f"cannot write the output folder {out}: choose a folder below it")
     if out.exists() and not out.is_dir():
         raise NotADirectoryError(f"output folder {out} exists and is not a folder")
     out.parent.mkdir(parents=True, exist_ok=True)
