@@ -71,7 +71,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     assert not diagnostics.collapsed and not (plain.output_dir / "diagnostics.csv").exists()
 
 
-def test_csv_keeps_one_row_per_step(tmp_path):
+def test_csv_keeps_one_row_per_step_and_forgets_what_a_resume_writes_again(tmp_path):
     path = tmp_path / "heldout.csv"
     HeldOutEvaluation._append_csv(path, {"step": 0.0, "mask-iou": 0.1})
     HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.2})
@@ -79,6 +79,10 @@ def test_csv_keeps_one_row_per_step(tmp_path):
     rows = list(csv.DictReader(open(path)))
     assert [(r["step"], r["mask-iou"]) for r in rows] == [("0.0", "0.1"), ("4.0", "0.3")]
     assert rows[1]["rot-err-median"] == "9.0" and rows[0]["rot-err-median"] == ""
+    HeldOutEvaluation._append_csv(path, {"step": 8.0, "mask-iou": 0.4})
+    HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.5})  # resumed from an earlier checkpoint
+    rows = list(csv.DictReader(open(path)))
+    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0.0", "0.1"), ("4.0", "0.5")]  # 8: abandoned
 
 
 EVALUATE = (

@@ -189,13 +189,16 @@ class HeldOutEvaluation(L.Callback):
 
 
 def append_csv_row(path: Path, row: dict[str, float]) -> None:
-    """Add ``row`` (with a ``step``) to a CSV file of one row per step, atomically; new columns widen the file."""
+    """Add ``row`` (with a ``step``) to a CSV file of one row per step, atomically; new columns widen the file.
+
+    The rows of ``row``'s step and later ones are dropped first: a resumed run writes again from its checkpoint's
+    step on, so the file reads like that of a run never interrupted, also after a resume from an earlier
+    checkpoint (whose abandoned later rows would otherwise stay)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     if path.exists():
         with path.open(newline="") as f:
-            # a resumed run re-evaluates its restart step: keep one row per step
-            rows = [r for r in csv.DictReader(f) if float(r["step"]) != row["step"]]
+            rows = [r for r in csv.DictReader(f) if float(r["step"]) < row["step"]]
     rows.append(row)
     columns = list(dict.fromkeys(k for r in rows for k in r))
     tmp = path.with_name(path.name + ".tmp")
