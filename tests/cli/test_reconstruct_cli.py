@@ -177,6 +177,7 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
         assert (out / name).is_file()
     records = json.loads((out / "reconstructions.json").read_text())["images"]
     assert len(records) == 6 and all((out / r["name"] / "mesh.glb").is_file() for r in records)
+    assert all(r["folder"] == r["name"] for r in records)  # within --out (the files were written elsewhere first)
     names = [r["name"].lower() for r in records]
     assert len(set(names)) == 6 and not set(names) & {"index.html", "overview.png", "reconstructions.json"}
     assert {"index.html_1", "overview.png_1", "reconstructions.json_1"} <= set(names)

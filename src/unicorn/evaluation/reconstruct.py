@@ -191,7 +191,7 @@ def _write_one(
         "name": item.name,
         "source": str(item.path),
         "cropped_from_alpha_or_box": item.cropped,
-        "folder": str(folder),
+        "folder": folder.name,  # within the output folder, which may be moved (it is: out of the staging folder)
         "files": files,
         "pose": {k: pose[k] for k in ("azimuth", "elevation", "roll", "distance")},
         "_row": row,
@@ -233,9 +233,8 @@ def reconstruct(
             the refined result, the network's beside it; None (or 0 steps): the network's prediction.
 
     Returns:
-        one record per image (name, source, folder, written files, pose angles, and with refinement the objective
-        before and after it); also written to
-        ``<out>/reconstructions.json``.
+        one record per image (name, source, folder within ``out_dir``, written files, pose angles, and with
+        refinement the objective before and after it); also written to ``<out>/reconstructions.json``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -328,7 +327,7 @@ def _write_index(
             pics.append(f"{name}/{r['files']['turntable_gif']}")
         cells = "".join(f'<td><img src="{p}" width="{size}" height="{size}"></td>' for p in pics)
         pose = r["pose"]
-        glb = Path(r["folder"]) / r["files"]["mesh.glb"]
+        glb = out / r["folder"] / r["files"]["mesh.glb"]
         orbit = (pose["azimuth"], pose["elevation"])
         viewer = viewer_element(glb, max(size, 160), alt=f"textured mesh of {r['name']}", orbit=orbit)
         cells += f"<td>{viewer}</td>"

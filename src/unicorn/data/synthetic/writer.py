@@ -215,12 +215,8 @@ def generate_synthetic_dataset(
     check_view_ranges(mode, roll, shift)
     random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
     kinds = _background_kinds(background_kinds, random_bg)
-    metadata = check_output_folder(out, categories)  # before anything is written
-    settings = {
-        "generator_version": GENERATOR_VERSION,
-        **generation_settings(categories, mode, n_models, seed, **options),
-        "fov": NMR_FOV,
-    }
+    settings = generation_settings(categories, mode, n_models, seed, **options)
+    metadata = check_output_folder(out, categories, settings)  # before anything is written
     settings = _joined_settings(out, settings)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -271,10 +267,13 @@ class SyntheticOutputExistsError(DatasetError, FileExistsError):
     """The output folder already holds models of a category to generate."""
 
 
-def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str]) -> dict[str, dict]:
+def check_output_folder(
+    out: str | os.PathLike, categories: str | Sequence[str], settings: dict[str, Any] | None = None
+) -> dict[str, dict]:
     """Refuse an output folder that :func:`generate_synthetic_dataset` cannot write into: one that holds
     something other than a dataset (a ``metadata.yaml`` that is not a category table) or already holds one of
-    these categories (its model lists would be replaced). Other categories may share the folder.
+    these categories (its model lists would be replaced). Other categories may share the folder, when its dataset
+    was generated with ``settings`` (:func:`generation_settings`; None: not checked).
 
     Returns:
         The folder's category table (its ``metadata.yaml``; {} for none).
@@ -293,6 +292,8 @@ def check_output_folder(out: str | os.PathLike, categories: str | Sequence[str])
                 f"{out} already holds {cat} models ({folder}): use that dataset as it is, delete it, or generate "
                 "into another folder"
             )
+    if settings is not None:
+        _joined_settings(out, settings)
     return metadata
 
 
@@ -386,8 +387,8 @@ def generation_settings(
     categories: str | Sequence[str], mode: Mode, n_models: int, seed: int, **options: object
 ) -> dict[str, object]:
     """The settings that :func:`generate_synthetic_dataset` called with these arguments records in
-    ``synthetic.json`` (the options left out: its defaults), as JSON reads them back (tuples as lists), which is
-    how :func:`check_manifest` compares them.
+    ``synthetic.json`` (the options left out: its defaults; the generator version and the field of view too), as
+    JSON reads them back (tuples as lists), which is how :func:`check_manifest` compares them.
 
     Raises:
         TypeError: an option that is not one of :data:`RECORDED_OPTIONS`.
@@ -397,12 +398,14 @@ def generation_settings(
         raise TypeError(f"generation_settings() got options it does not record: {', '.join(unknown)}")
     categories = [categories] if isinstance(categories, str) else list(categories)
     recorded = {
+        "generator_version": GENERATOR_VERSION,
         "categories": categories,
         "mode": mode,
         "n_models": n_models,
         "seed": seed,
         **_RECORDED_DEFAULTS,
         **options,
+        "fov": NMR_FOV,
     }
     if recorded["background_kinds"] is not None:  # one kind may be given as a string
         recorded["background_kinds"] = check_background_kinds(recorded["background_kinds"])
