@@ -486,6 +486,14 @@ RECONSTRUCT_CASES = [
     ("bbox-inf", {}, ["--bbox", "0,0,inf,10"], r"bbox 0,0,inf,10: need four finite numbers"),
     ("bbox-outside", {}, ["--bbox", "5000,5000,6000,6000"], r"bbox 5000,5000,6000,6000 does not overlap .*photo\.jpg"),
     ("bbox-huge", {}, ["--bbox", "0,0,1e9,1e9"], r"frames a crop of \d+ x \d+ pixels, above the image limit"),
+    ("bbox-overflow", {}, ["--bbox=-1e30,-1e30,1e30,1e30"], r"frames a crop of 2.4e\+30 x 2.4e\+30 pixels, above"),
+    ("bbox-negative-huge", {}, ["--bbox=-5e18,0,5e18,10"], r"frames a crop of 1.2e\+19 x 1.2e\+19 pixels, above"),
+    (
+        "bbox-overflow-no-limit",
+        {"UNICORN_MAX_IMAGE_BYTES": "0"},
+        ["--bbox=-1e30,-1e30,1e30,1e30"],
+        r"frames a crop of 2.4e\+30 x 2.4e\+30 pixels, more than any image holds",
+    ),
     ("render-bytes-negative", {"UNICORN_MAX_RENDER_BYTES": "-1"}, [], r"UNICORN_MAX_RENDER_BYTES='-1' is not a number"),
     ("render-bytes-text", {"UNICORN_MAX_RENDER_BYTES": "abc"}, [], r"UNICORN_MAX_RENDER_BYTES='abc' is not a number"),
     ("image-pixels-negative", {"UNICORN_MAX_IMAGE_PIXELS": "-5"}, [], r"UNICORN_MAX_IMAGE_PIXELS='-5' is not a number"),
@@ -496,6 +504,12 @@ RECONSTRUCT_CASES = [
         ["--turntable-frames", "1000000"],
         r"--turntable-frames 1000000 needs 36,864,000,000 bytes \(a turntable's frames at --view-size 48: .*\), "
         r"above the limit of 17,179,869,184 bytes \(UNICORN_MAX_RENDER_BYTES; 0: no limit\)$",
+    ),
+    (
+        "strip-views-huge",
+        {},
+        ["--strip-views", "1000000"],
+        r"--strip-views 1000000 needs 36,864,000,000 bytes \(a strip's views at --view-size 48: .*\), above the limit",
     ),
     ("refine-huge", {}, ["--refine", "1000000000"], r"--refine 1000000000: steps must be in \[0, 10,000\]"),
     ("padding-huge", {}, ["--padding", "1e9"], r"--padding 1e\+09: must be a finite number in \[0, 10\]"),

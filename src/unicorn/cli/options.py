@@ -83,8 +83,9 @@ def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Names
 
 def check_picture_sizes(args: argparse.Namespace) -> None:
     """Refuse pictures above the render memory limit before any is made: one RGBA view of ``--view-size``, and
-    the ``--turntable-frames`` frames of a turntable at that size, held together until its GIF is written
-    (float32; ``UNICORN_MAX_RENDER_BYTES``, the limit of the renders they are made of).
+    the ``--turntable-frames`` frames of a turntable at that size, held together until its GIF is written, and
+    likewise the ``--strip-views`` views of a strip where the command has one (float32;
+    ``UNICORN_MAX_RENDER_BYTES``, the limit of the renders they are made of).
 
     Raises:
         unicorn.checks.SizeLimitError: the message names the option and the limit.
@@ -98,6 +99,10 @@ def check_picture_sizes(args: argparse.Namespace) -> None:
     check_limit(f"--view-size {size}", f"a picture: 4 x {size} x {size} float32", picture, limit, "bytes", source)
     what = f"a turntable's frames at --view-size {size}: {frames} x 4 x {size} x {size} float32"
     check_limit(f"--turntable-frames {frames}", what, frames * picture, limit, "bytes", source)
+    views = getattr(args, "strip_views", None)
+    if views is not None:
+        what = f"a strip's views at --view-size {size}: {views} x 4 x {size} x {size} float32"
+        check_limit(f"--strip-views {views}", what, views * picture, limit, "bytes", source)
 
 
 def apply_common_arguments(args: argparse.Namespace) -> None:

@@ -51,6 +51,9 @@ __all__ = [
 DEFAULT_PADDING = 0.1
 #: the most padding: the framed square is then at most 21 times the box's side
 MAX_PADDING = 10.0
+#: the largest side of a framed crop with no image byte limit (2^31 pixels: beyond what any image holds, and within
+#: the integers the crop is computed in)
+MAX_CROP_SIDE = 2**31
 
 
 def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
@@ -149,15 +152,21 @@ def preprocess(
     """
     if bbox is None:
         return fit_and_pad(image, size).astype(np.float32)
-    box = square_bbox(pad_bbox(np.asarray(bbox, dtype=np.float64), check_padding(padding)))
-    side = int(box[2] - box[0] + 1)
+    box = pad_bbox(np.asarray(bbox, dtype=np.float64), check_padding(padding))
+    side = float(max(box[2] - box[0], box[3] - box[1]) + 1)  # before the integers, which a huge box overflows
+    shown = f"{side:.0f}" if side < 1e15 else f"{side:.3g}"
     limit = max_image_bytes()
     if limit is not None and side * side * RGB_BYTES_PER_PIXEL > limit:
         raise BoxError(
-            f"the box with its padding frames a crop of {side} x {side} pixels, above the image limit of {limit} "
+            f"the box with its padding frames a crop of {shown} x {shown} pixels, above the image limit of {limit} "
             "bytes (UNICORN_MAX_IMAGE_BYTES); give a smaller bbox or padding"
         )
-    crop, _ = crop_box(image, box)
+    if side > MAX_CROP_SIDE:
+        raise BoxError(
+            f"the box with its padding frames a crop of {shown} x {shown} pixels, more than any image holds (at most "
+            f"{MAX_CROP_SIDE} a side); give a smaller bbox or padding"
+        )
+    crop, _ = crop_box(image, square_bbox(box))
     return resize_image(crop.astype(np.float32), (size, size))
 
 
