@@ -18,7 +18,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any, ClassVar
 
-__all__ = ["Interrupted", "UnicornWarning", "UserError", "interrupt_on_signal", "signals_held"]
+__all__ = [
+    "Interrupted",
+    "MissingPackageError",
+    "UnicornWarning",
+    "UserError",
+    "interrupt_on_signal",
+    "signals_held",
+]
 
 #: the signals that stop a command: Ctrl-C and a scheduler's or ``kill``'s request
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -26,6 +33,10 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 class UserError(Exception):
     """A mistake in the user's input or environment; the message says what is wrong and how to fix it."""
+
+
+class MissingPackageError(UserError, ImportError):
+    """An optional package that a feature needs is not installed; the message says how to install it."""
 
 
 class UnicornWarning(UserWarning):

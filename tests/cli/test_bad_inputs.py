@@ -551,6 +551,35 @@ def test_synth_refuses_an_empty_dataset(tmp_path, capsys, option):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("value", ["-1", "4294967296", "1e30", "1.5", "x"])
+@pytest.mark.parametrize("command", ["unicorn-eval", "unicorn-data synth"])
+def test_a_seed_outside_numpys_is_a_usage_error(command, value, capsys):
+    from unicorn.cli import data, eval
+
+    parser = eval.build_parser() if command == "unicorn-eval" else data.build_parser()
+    head = ["model.ckpt"] if command == "unicorn-eval" else ["synth"]
+    with pytest.raises(SystemExit) as exit_info:
+        parser.parse_args([*head, f"--seed={value}"])
+    assert exit_info.value.code == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    expected = f"argument --seed: must be a whole number in [0, 4294967295] (numpy's seeds), got '{value}'"
+    assert last == f"{command}: error: {expected}"
+
+
+@pytest.mark.parametrize(
+    "command, option",
+    [("unicorn-eval", "--max-images"), ("unicorn-eval", "--view-size"), ("unicorn-reconstruct", "--batch-size")],
+)
+def test_whole_number_options_take_the_exponent_form(command, option):
+    from unicorn.cli import eval, reconstruct
+
+    parser = eval.build_parser() if command == "unicorn-eval" else reconstruct.build_parser()
+    args = parser.parse_args(
+        ["model.ckpt", *(["photo.jpg"] if command == "unicorn-reconstruct" else []), option, "1e2"]
+    )
+    assert getattr(args, option[2:].replace("-", "_")) == 100
+
+
 def test_reconstruct_overwrite_with_a_file_in_the_way_changes_nothing(tmp_path, capsys):
     from tests.support.evaluation import tiny_checkpoint, write_inputs
     from unicorn.cli.reconstruct import main

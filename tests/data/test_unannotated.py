@@ -16,6 +16,7 @@ from tests.support.datasets import save_with_orientation, write_photo
 from unicorn.data.folder import CompCars, ImageFolder
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.errors import MissingPackageError, UserError
 
 
 def _check_item(item: dict, size: int = 64) -> None:
@@ -92,8 +93,9 @@ def test_lsun_without_lmdb_names_the_extra(tmp_path: Path, monkeypatch: pytest.M
     from unicorn.data.lsun import LSUN
 
     monkeypatch.setitem(sys.modules, "lmdb", None)  # makes `import lmdb` fail
-    with pytest.raises(ImportError, match=r"pip install unicorn3d\[lmdb\]"):
+    with pytest.raises(MissingPackageError, match=r"pip install unicorn3d\[lmdb\]") as info:
         LSUN(tmp_path, "horse")
+    assert isinstance(info.value, ImportError) and isinstance(info.value, UserError)  # a one-line error in the CLIs
 
 
 def test_lsun_indices_file(tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from unicorn import __version__
-from unicorn.cli.errors import add_debug_argument, positive_int, report_errors
+from unicorn.cli.errors import add_debug_argument, positive_int, report_errors, seed_number
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 __all__ = ["build_parser", "main"]
@@ -116,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"
     )
     synth.add_argument("--out", default=None, help="output folder; default: the cache ($UNICORN_CACHE)")
-    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--seed", type=seed_number, default=0)
     synth.add_argument("--size", type=positive_int, default=64, help="image side in pixels")
     synth.add_argument("--views", type=positive_int, default=24, help="views per model")
     synth.add_argument("--supersample", type=positive_int, default=3, help="rays per pixel along each axis")

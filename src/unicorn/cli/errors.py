@@ -42,6 +42,7 @@ __all__ = [
     "one_line",
     "positive_int",
     "report_errors",
+    "seed_number",
     "whole_number",
 ]
 
@@ -150,6 +151,20 @@ def positive_int(text: str) -> int:
         value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
+    return value
+
+
+def seed_number(text: str) -> int:
+    """An argparse ``type``: a seed, a whole number in [0, :data:`~unicorn.config.build.MAX_SEED`] (numpy's seeds;
+    a usage error, exit status 2, otherwise)."""
+    from unicorn.config.build import MAX_SEED
+
+    try:
+        value = whole_number(text)
+    except argparse.ArgumentTypeError:
+        value = -1
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {text!r}")
     return value
 
 

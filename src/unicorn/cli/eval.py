@@ -22,7 +22,7 @@ from typing import Any
 
 from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.errors import UsageError, report_errors, whole_number
+from unicorn.cli.errors import UsageError, report_errors, seed_number, whole_number
 from unicorn.cli.options import (
     HelpFormatter,
     add_common_arguments,
@@ -72,13 +72,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     """What is scored and how finely (defaults: :class:`~unicorn.evaluation.EvalOptions`, the paper's protocol)."""
-    p.add_argument("--max-images", type=int, help="evaluate at most N images, spread over the split")
-    p.add_argument("--batch-size", type=int, default=EvalOptions.batch_size, help="images per forward pass")
+    p.add_argument("--max-images", type=whole_number, help="evaluate at most N images, spread over the split")
+    p.add_argument("--batch-size", type=whole_number, default=EvalOptions.batch_size, help="images per forward pass")
     p.add_argument(
         "--num-points", type=whole_number, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer"
     )
     p.add_argument(
-        "--icp-iterations", type=int, default=EvalOptions.icp_iterations, help="ICP iterations (0: no -ICP metrics)"
+        "--icp-iterations",
+        type=whole_number,
+        default=EvalOptions.icp_iterations,
+        help="ICP iterations (0: no -ICP metrics)",
     )
     p.add_argument(
         "--fast",
@@ -86,10 +89,12 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
         help=f"UNICORN's validation setting: {FAST_EVAL['num_points'] // 1000}k points and "
         f"{FAST_EVAL['icp_iterations']} ICP iterations",
     )
-    p.add_argument("--num-pairs", type=int, default=EvalOptions.num_pairs, help="keypoint-transfer pairs (CUB)")
+    p.add_argument(
+        "--num-pairs", type=whole_number, default=EvalOptions.num_pairs, help="keypoint-transfer pairs (CUB)"
+    )
     p.add_argument(
         "--mean-shape",
-        type=int,
+        type=whole_number,
         default=0,
         metavar="ITERATIONS",
         help="ShapeNet / synthetic: fit the training split's mean shape with this many iterations (e.g. 300) and "
@@ -113,7 +118,7 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-align-pose", action="store_true", help="pose errors without canonical-frame alignment")
     p.add_argument(
         "--template-level",
-        type=int,
+        type=whole_number,
         help="icosphere level of the mesh (3: 642 vertices; UNICORN's CUB keypoint evaluation uses 4)",
     )
     p.add_argument(
@@ -128,25 +133,27 @@ def _add_report_arguments(p: argparse.ArgumentParser) -> None:
     """The visual report and how the evaluation runs."""
     p.add_argument(
         "--report-samples",
-        type=int,
+        type=whole_number,
         default=EvalOptions.report_samples,
         help="images shown in the report (0: no report)",
     )
-    p.add_argument("--view-size", type=int, default=128, help="side of the report pictures")
+    p.add_argument("--view-size", type=whole_number, default=128, help="side of the report pictures")
     p.add_argument(
         "--turntable-frames",
         type=whole_number,
         default=REPORT_TURNTABLE_FRAMES,
         help="frames of the report's turntables (0: none)",
     )
-    p.add_argument("--workers", type=int, default=EvalOptions.num_workers, help="DataLoader workers")
+    p.add_argument("--workers", type=whole_number, default=EvalOptions.num_workers, help="DataLoader workers")
     p.add_argument(
         "--nn-workers",
-        type=int,
+        type=whole_number,
         default=None,
         help="threads of the CPU nearest-neighbour search (-1: all cores; default: torch's thread count)",
     )
-    p.add_argument("--seed", type=int, default=EvalOptions.seed, help="seed of the view choice and point sampling")
+    p.add_argument(
+        "--seed", type=seed_number, default=EvalOptions.seed, help="seed of the view choice and point sampling"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from unicorn.cli.errors import UsageError, add_debug_argument
+from unicorn.cli.errors import UsageError, add_debug_argument, whole_number
 
 __all__ = [
     "HelpFormatter",
@@ -39,13 +39,13 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--max-image-pixels",
-        type=int,
+        type=whole_number,
         help="refuse images with more pixels (decompression bombs); 0: no limit; default: "
         "$UNICORN_MAX_IMAGE_PIXELS or 178956970",
     )
     p.add_argument(
         "--max-image-bytes",
-        type=int,
+        type=whole_number,
         help="refuse images whose decoded array has more bytes (width x height x 12 for float32 RGB); 0: no limit; "
         "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
     )

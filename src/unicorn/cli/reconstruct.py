@@ -68,10 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", help="image files and/or folders (searched recursively)")
     p.add_argument("--out", type=Path, default=Path("reconstructions"), help="output folder")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
-    p.add_argument("--batch-size", type=int, default=16, help="images per forward pass")
-    p.add_argument("--view-size", type=int, default=256, help="side of the pictures")
+    p.add_argument("--batch-size", type=whole_number, default=16, help="images per forward pass")
+    p.add_argument("--view-size", type=whole_number, default=256, help="side of the pictures")
     p.add_argument("--turntable-frames", type=whole_number, default=24, help="frames of turntable.gif (0: no GIF)")
-    p.add_argument("--strip-views", type=int, default=4, help="views in turntable.png")
+    p.add_argument("--strip-views", type=whole_number, default=4, help="views in turntable.png")
     p.add_argument("--bbox", type=_bbox, help="object box x1,y1,x2,y2 in pixels (one input image only)")
     p.add_argument(
         "--padding",
@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"margin around an alpha cut-out or --bbox (fraction of its side, at most {MAX_PADDING:g})",
     )
     p.add_argument("--no-alpha-crop", action="store_true", help="do not crop transparent images to their object")
-    p.add_argument("--template-level", type=int, help="icosphere level of the mesh (3: 642 vertices, 4: 2562)")
+    p.add_argument("--template-level", type=whole_number, help="icosphere level of the mesh (3: 642 vertices, 4: 2562)")
     p.add_argument(
         "--average-texture",
         choices=("auto", "on", "off"),

@@ -21,6 +21,7 @@ from unicorn.data.common import OnError, UnicornDataset, item_rng
 from unicorn.data.folder import unannotated_item
 from unicorn.data.framing import crop_box, jitter_bbox, pad_bbox
 from unicorn.data.images import DatasetError, ImageLoadError, decode_image, require
+from unicorn.errors import MissingPackageError
 
 __all__ = ["LSUN", "import_lmdb", "read_lsun_indices"]
 
@@ -36,7 +37,7 @@ def import_lmdb() -> Any:
     try:
         import lmdb
     except ImportError as err:
-        raise ImportError(
+        raise MissingPackageError(
             "the LSUN loader reads LMDB databases and needs the optional 'lmdb' package: "
             "pip install unicorn3d[lmdb]  (or: pip install lmdb)"
         ) from err
