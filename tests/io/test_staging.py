@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import os
 import signal
+from pathlib import Path
 
 import pytest
 
@@ -54,6 +55,34 @@ def test_the_root_folder_is_refused_in_one_line(tmp_path) -> None:
     with pytest.raises(OutputConflictError, match="choose a folder below it"):
         with staged_folder("/"):
             pass
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_an_output_folder_on_another_file_system_gets_the_files(tmp_path, monkeypatch, existing) -> None:
+    out = tmp_path / "out"
+    if existing:
+        (out / "img").mkdir(parents=True)
+        (out / "img" / "mesh.obj").write_text("old")
+        (out / "notes.txt").write_text("mine")
+    rename = os.replace
+
+    def across_devices(src, dst):  # a rename out of the staging folder crosses file systems, as into a mount point
+        if any(part.startswith(f".out{PARTIAL_MARK}") and part[-1].isdigit() for part in Path(src).parts):
+            raise OSError(errno.EXDEV, "Invalid cross-device link", str(src))
+        rename(src, dst)
+
+    monkeypatch.setattr(os, "replace", across_devices)
+    with staged_folder(out) as staging:
+        (staging / "img").mkdir()
+        (staging / "img" / "mesh.obj").write_text("new")
+        (staging / "img" / "more").mkdir()
+        (staging / "img" / "more" / "a.png").write_text("a")
+        (staging / "report.html").write_text("r")
+    assert (out / "img" / "mesh.obj").read_text() == "new" and (out / "img" / "more" / "a.png").read_text() == "a"
+    assert (out / "report.html").read_text() == "r"
+    assert (out / "notes.txt").read_text() == "mine" if existing else not (out / "notes.txt").exists()
+    leftovers = [p for p in tmp_path.rglob("*") if PARTIAL_MARK in p.name]
+    assert leftovers == []  # neither the staging folder nor a copy stays
 
 
 def test_a_failure_leaves_the_folder_as_it_was(tmp_path) -> None:

@@ -9,6 +9,7 @@ left by a killed process is removed by the next run that writes the same folder.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 from collections.abc import Iterator
@@ -65,7 +66,32 @@ def _merge(source: Path, target: Path) -> None:
         if _is_folder(entry) and _is_folder(dest):
             _merge(entry, dest)
         else:
-            os.replace(entry, dest)
+            _move(entry, dest)
+
+
+def _move(entry: Path, dest: Path) -> None:
+    """Rename ``entry`` to ``dest``; where ``dest`` is on another file system (an output folder that is a mount
+    point, or a link to a folder elsewhere), copy it beside ``dest`` first and rename the copy, so that ``dest``
+    is still replaced whole."""
+    try:
+        os.replace(entry, dest)
+        return
+    except OSError as err:
+        if err.errno != errno.EXDEV:
+            raise
+    copy = dest.with_name(f".{dest.name}{PARTIAL_MARK}{os.getpid()}.copy")  # not the staging folder's name
+    try:
+        if _is_folder(entry):
+            shutil.copytree(entry, copy, symlinks=True)
+        else:
+            shutil.copy2(entry, copy, follow_symlinks=False)
+        os.replace(copy, dest)
+    finally:
+        if copy.is_dir() and not copy.is_symlink():
+            shutil.rmtree(copy, ignore_errors=True)
+        elif copy.exists() or copy.is_symlink():
+            copy.unlink()
+    shutil.rmtree(entry) if _is_folder(entry) else entry.unlink()
 
 
 @contextlib.contextmanager
@@ -100,7 +126,7 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         with signals_held():  # a Ctrl-C or SIGTERM now stops the command once every file is in place
             if not out.exists():
-                os.replace(tmp, out)
+                _move(tmp, out)
                 return
             conflicts = _conflicts(tmp, out)
             if conflicts:  # checked before anything moves: the folder is updated whole or not at all
