@@ -87,6 +87,26 @@ def test_unreadable_file_is_one_error(tmp_path: Path) -> None:
     (tmp_path / "junk.pt").write_bytes(b"not a torch file")
     with pytest.raises(CheckpointError, match="cannot read checkpoint"):
         load_checkpoint_file(tmp_path / "junk.pt")
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="empty.ckpt: the file is empty$"):
+        load_checkpoint_file(tmp_path / "empty.ckpt")
+    # a plain pickle, an image, text: not torch files, with or without trust (torch's own message suggests
+    # weights_only=False, which cannot read them either)
+    (tmp_path / "list.pkl").write_bytes(pickle.dumps([1, 2, 3]))
+    (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    (tmp_path / "notes.ckpt").write_text("epoch: 3\n")
+    for name in ("list.pkl", "photo.png", "notes.ckpt"):
+        for trust in (False, True):
+            with pytest.raises(CheckpointError, match=f"{name}: it is not a file written by torch.save") as info:
+                load_checkpoint_file(tmp_path / name, trust=trust)
+            assert "weights_only" not in str(info.value)
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_both_torch_formats_are_read(tmp_path: Path, legacy: bool) -> None:
+    path = tmp_path / "model.pt"
+    torch.save({"w": torch.ones(2)}, path, _use_new_zipfile_serialization=not legacy)
+    assert torch.equal(load_checkpoint_file(path)["w"], torch.ones(2))
     with pytest.raises(FileNotFoundError, match="checkpoint not found"):
         load_checkpoint_file(tmp_path / "missing.pt")
 

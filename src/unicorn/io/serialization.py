@@ -108,6 +108,9 @@ def load_checkpoint_file(
     """
     path = Path(path).expanduser()
     check_checkpoint_path(path)
+    not_torch = _not_a_torch_file(path)
+    if not_torch:
+        raise CheckpointError(f"cannot read checkpoint {path}: {not_torch}")
     try:
         if trust:
             data = torch.load(path, map_location=map_location, weights_only=False)
@@ -128,6 +131,26 @@ def load_checkpoint_file(
     if check and isinstance(data, Mapping):
         data = verify(data, path)
     return data
+
+
+#: how files written by ``torch.save`` begin: a zip archive, or (the format before torch 1.6) a pickle of this
+#: magic number
+_ZIP_HEAD = b"PK\x03\x04"
+_LEGACY_MAGIC = (0x1950A86A20F9469CFC6C).to_bytes(10, "little")
+
+
+def _not_a_torch_file(path: Path) -> str | None:
+    """Why ``path`` cannot be a file of ``torch.save`` (empty, or neither of its formats), or None."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(32)
+    except OSError:
+        return None  # torch.load says what is wrong
+    if not head:
+        return "the file is empty"
+    if head.startswith(_ZIP_HEAD) or (head.startswith(b"\x80") and _LEGACY_MAGIC in head):
+        return None
+    return "it is not a file written by torch.save (a unicorn checkpoint, a released UNICORN model, save_model's file)"
 
 
 class CheckpointNotFoundError(UserError, FileNotFoundError):
