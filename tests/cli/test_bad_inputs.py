@@ -773,3 +773,34 @@ def test_an_unquoted_step_file_says_to_quote_it(tmp_path):
     assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
     assert "mismatched input '='" in lines[0] and "must be quoted for Hydra" in lines[0], lines
     assert list(tmp_path.iterdir()) == []
+
+
+def test_data_check_takes_the_image_limits_its_message_names(tmp_path, capsys, monkeypatch):
+    from PIL import Image
+
+    from unicorn.cli.data import main
+    from unicorn.data.images import MAX_IMAGE_BYTES_ENV
+
+    monkeypatch.setenv(MAX_IMAGE_BYTES_ENV, "1073741824")  # restored after the test: the option sets it
+    (tmp_path / "imgs").mkdir()
+    Image.new("RGB", (40, 40), (200, 10, 10)).save(tmp_path / "imgs" / "a.png")
+    args = ["check", "folder", "--root", str(tmp_path / "imgs")]
+    assert main([*args, "--max-image-bytes", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("unicorn-data: error: ") and "raise the limit with --max-image-bytes" in err
+    assert main([*args, "--max-image-bytes", "0"]) == 0  # no limit
+    with pytest.raises(SystemExit):
+        main([*args, "--max-image-pixels", "-1"])
+    assert capsys.readouterr().err.splitlines()[-1] == "unicorn-data: error: --max-image-pixels must be >= 0"
+
+
+def test_a_device_this_machine_lacks_is_named(monkeypatch):
+    import torch
+
+    from unicorn.cli.errors import UsageError
+    from unicorn.cli.options import parse_device
+
+    monkeypatch.setattr(torch.mps, "is_available", lambda: False)
+    with pytest.raises(UsageError, match=r"^--device mps: mps is not available on this machine; use 'cpu' or 'auto'$"):
+        parse_device("mps")
+    assert parse_device("cpu") == torch.device("cpu")

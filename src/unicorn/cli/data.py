@@ -19,6 +19,7 @@ import torch
 
 from unicorn import __version__
 from unicorn.cli.errors import add_debug_argument, positive_int, report_errors, seed_number
+from unicorn.cli.options import add_image_limit_arguments, apply_common_arguments, check_common_arguments
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 __all__ = ["build_parser", "main"]
@@ -130,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--split", choices=["train", "val", "test"], default="train")
     check.add_argument("--categories", nargs="*", default=None, help="ShapeNet categories")
     check.add_argument("--tag", default="horse", help="LSUN category")
+    add_image_limit_arguments(check)
     check.set_defaults(func=_check)
 
     for command in (synth, check):
@@ -139,9 +141,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``unicorn-data`` console script."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if getattr(args, "category", None) is None and args.command == "synth":
         args.category = ["chair"]
+    if args.command == "check":
+        check_common_arguments(parser, args)
+        apply_common_arguments(args)
     return report_errors("unicorn-data", lambda: args.func(args), args.debug)
 
 

@@ -37,6 +37,13 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="read a checkpoint that needs full unpickling (it can run code: only for files you trust)",
     )
+    add_image_limit_arguments(p)
+    add_debug_argument(p)
+
+
+def add_image_limit_arguments(p: argparse.ArgumentParser) -> None:
+    """``--max-image-pixels`` and ``--max-image-bytes``, the limits every image-reading tool takes
+    (:func:`check_common_arguments`, :func:`apply_common_arguments`)."""
     p.add_argument(
         "--max-image-pixels",
         type=whole_number,
@@ -49,7 +56,6 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
         help="refuse images whose decoded array has more bytes (width x height x 12 for float32 RGB); 0: no limit; "
         "default: $UNICORN_MAX_IMAGE_BYTES or 1073741824",
     )
-    add_debug_argument(p)
 
 
 def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
@@ -126,4 +132,7 @@ def parse_device(name: str) -> Any:
         raise UsageError(f"--device {name!r} is not a device; use 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UsageError(f"--device {name}: CUDA is not available on this machine")
+    backend = getattr(torch, device.type, None)  # torch.mps, torch.xpu...: each says whether it is there
+    if device.type not in ("cpu", "cuda") and not getattr(backend, "is_available", lambda: False)():
+        raise UsageError(f"--device {name}: {device.type} is not available on this machine; use 'cpu' or 'auto'")
     return device
