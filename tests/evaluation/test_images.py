@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ from PIL import Image
 from tests.support.evaluation import write_inputs
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import ImageLoadError, load_image
+from unicorn.errors import UserError
 from unicorn.io import alpha_bbox, collect_inputs, load_input, preprocess
 
 
@@ -24,6 +26,9 @@ def test_collect_inputs(tmp_path: Path) -> None:
         collect_inputs([tmp_path / "empty"])
     with pytest.raises(FileNotFoundError, match="input not found"):
         collect_inputs([tmp_path / "nope.png"])
+    os.mkfifo(tmp_path / "pipe.png")  # exists, but reading it would wait for a writer
+    with pytest.raises(UserError, match=r"pipe\.png is not an image file or a folder \(a device, a pipe"):
+        collect_inputs([tmp_path / "pipe.png"])
 
 
 def test_alpha_cutout_is_centred(tmp_path: Path) -> None:

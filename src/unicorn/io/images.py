@@ -56,11 +56,16 @@ MAX_PADDING = 10.0
 MAX_CROP_SIDE = 2**31
 
 
+class InputNotAFileError(UserError, OSError):
+    """An input named on the command line exists but is neither a file nor a folder."""
+
+
 def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
     """Image files named on the command line: files as given, folders searched recursively (sorted).
 
     Raises:
         FileNotFoundError: an input does not exist, or nothing to read was found at all.
+        InputNotAFileError: an input is a device, a pipe or a socket.
     """
     files: list[Path] = []
     for item in inputs:
@@ -72,6 +77,8 @@ def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
             files += found
         elif path.is_file():
             files.append(path)
+        elif path.exists():
+            raise InputNotAFileError(f"input {path} is not an image file or a folder (a device, a pipe or a socket)")
         else:
             raise FileNotFoundError(f"input not found: {path}")
     if not files:
