@@ -804,3 +804,19 @@ def test_a_device_this_machine_lacks_is_named(monkeypatch):
     with pytest.raises(UsageError, match=r"^--device mps: mps is not available on this machine; use 'cpu' or 'auto'$"):
         parse_device("mps")
     assert parse_device("cpu") == torch.device("cpu")
+
+
+@pytest.mark.parametrize("command", ["unicorn-eval", "unicorn-reconstruct", "unicorn-data synth"])
+@pytest.mark.parametrize("value", ["", "  "])
+def test_an_empty_out_is_a_usage_error(command, value, capsys):
+    from unicorn.cli import data, eval, reconstruct
+
+    parsers = {"unicorn-eval": eval, "unicorn-reconstruct": reconstruct, "unicorn-data synth": data}
+    head = {"unicorn-eval": ["m.ckpt"], "unicorn-reconstruct": ["m.ckpt", "a.png"], "unicorn-data synth": ["synth"]}
+    with pytest.raises(SystemExit) as exit_info:  # an unset variable, --out "$OUT", is not the current folder
+        parsers[command].build_parser().parse_args([*head[command], f"--out={value}"])
+    assert exit_info.value.code == 2
+    assert (
+        capsys.readouterr().err.splitlines()[-1]
+        == f"{command}: error: argument --out: must name a folder, got {value!r}"
+    )

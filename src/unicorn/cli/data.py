@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from unicorn import __version__
-from unicorn.cli.errors import add_debug_argument, positive_int, report_errors, seed_number
+from unicorn.cli.errors import add_debug_argument, folder_path, positive_int, report_errors, seed_number
 from unicorn.cli.options import add_image_limit_arguments, apply_common_arguments, check_common_arguments
 from unicorn.data.synthetic.shapes import CATEGORIES
 
@@ -116,7 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument(
         "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"
     )
-    synth.add_argument("--out", default=None, help="output folder; default: the cache ($UNICORN_CACHE)")
+    synth.add_argument(
+        "--out", type=folder_path, default=None, help="output folder; default: the cache ($UNICORN_CACHE)"
+    )
     synth.add_argument("--seed", type=seed_number, default=0)
     synth.add_argument("--size", type=positive_int, default=64, help="image side in pixels")
     synth.add_argument("--views", type=positive_int, default=24, help="views per model")

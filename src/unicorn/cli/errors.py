@@ -28,6 +28,7 @@ import sys
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TextIO
 
 from unicorn.errors import Interrupted, UnicornWarning, UserError, interrupt_on_signal
@@ -38,6 +39,7 @@ __all__ = [
     "add_debug_argument",
     "debug_requested",
     "expected_error",
+    "folder_path",
     "log_warnings",
     "one_line",
     "positive_int",
@@ -152,6 +154,14 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
     return value
+
+
+def folder_path(text: str) -> Path:
+    """An argparse ``type``: a folder path, not empty (an unset shell variable, ``--out "$OUT"``, would otherwise
+    name the current folder; a usage error, exit status 2)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"must name a folder, got {text!r}")
+    return Path(text)
 
 
 def seed_number(text: str) -> int:

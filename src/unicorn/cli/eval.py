@@ -22,7 +22,7 @@ from typing import Any
 
 from unicorn import __version__
 from unicorn.cli.allocator import tune_allocator
-from unicorn.cli.errors import UsageError, report_errors, seed_number, whole_number
+from unicorn.cli.errors import UsageError, folder_path, report_errors, seed_number, whole_number
 from unicorn.cli.options import (
     HelpFormatter,
     add_common_arguments,
@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
     p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
-    p.add_argument("--out", type=Path, help="output folder; default: see the description")
+    p.add_argument("--out", type=folder_path, help="output folder; default: see the description")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
     add_overwrite_argument(p, "once the evaluation is complete")
     _add_metric_arguments(p)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from unicorn import __version__
-from unicorn.cli.errors import UsageError, report_errors, whole_number
+from unicorn.cli.errors import UsageError, folder_path, report_errors, whole_number
 from unicorn.cli.options import (
     HelpFormatter,
     add_common_arguments,
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument("inputs", nargs="+", help="image files and/or folders (searched recursively)")
-    p.add_argument("--out", type=Path, default=Path("reconstructions"), help="output folder")
+    p.add_argument("--out", type=folder_path, default=Path("reconstructions"), help="output folder")
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
     p.add_argument("--batch-size", type=whole_number, default=16, help="images per forward pass")
     p.add_argument("--view-size", type=whole_number, default=256, help="side of the pictures")
