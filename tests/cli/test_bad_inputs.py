@@ -98,6 +98,21 @@ def _assert_one_error_line(result: subprocess.CompletedProcess, message: str) ->
     assert re.search(message, lines[0]), lines
 
 
+@pytest.mark.parametrize("run_dir", ["notes.txt", "notes.txt/run"])
+@pytest.mark.parametrize("sweep", [False, True])
+def test_a_run_folder_that_is_a_file_is_named(tmp_path, run_dir, sweep):
+    (tmp_path / "notes.txt").write_text("the user's notes\n")
+    key = "hydra.sweep.dir" if sweep else "hydra.run.dir"
+    result = unicorn_train(*(["-m", "seed=1,2"] if sweep else []), *TINY, f"{key}={run_dir}", cwd=tmp_path)
+    inside = "is a file" if run_dir == "notes.txt" else f"is inside {tmp_path / 'notes.txt'}, which is a file"
+    _assert_one_error_line(
+        result, re.escape(f"the run folder {tmp_path / run_dir} {inside}: choose another folder ({key}=...)")
+    )
+    assert (tmp_path / "notes.txt").read_text() == "the user's notes\n" and sorted(os.listdir(tmp_path)) == [
+        "notes.txt"
+    ]
+
+
 @pytest.mark.parametrize("kind, overrides, message", [c[1:] for c in TRAIN_CASES], ids=[c[0] for c in TRAIN_CASES])
 def test_a_refused_run_leaves_the_folder_as_it_was(finished_run, tmp_path, kind, overrides, message):
     folder = _users_folder(tmp_path, finished_run, kind)

@@ -46,6 +46,8 @@ class NoteExistingFolders(Callback):
 
     #: the noted folder, whether its sub-folders are the jobs' (a sweep), and each existing folder's entries
     noted: tuple[Path, bool, dict[Path, set[str]]] | None = None
+    #: why the noted folder cannot be created (it, or a folder above it, is a file), or None
+    refusal: str | None = None
     #: the outermost of the noted folder's missing ancestors (``outputs`` of ``outputs/train/runs/<time>`` in a
     #: new project), which Hydra creates with it; None when its parent exists
     created_top: Path | None = None
@@ -59,6 +61,14 @@ class NoteExistingFolders(Callback):
     @staticmethod
     def _note(folder: Path, jobs_inside: bool) -> None:
         folder = folder.expanduser().resolve()
+        NoteExistingFolders.refusal = None
+        key = "hydra.sweep.dir" if jobs_inside else "hydra.run.dir"
+        for path in (folder, *folder.parents):  # Hydra stops at it with "[Errno 17] File exists" (or 20)
+            if path.exists() and not path.is_dir():
+                where = "is a file" if path == folder else f"is inside {path}, which is a file"
+                # said by the app when Hydra fails to create it (Hydra turns a callback's error into a warning)
+                NoteExistingFolders.refusal = f"the run folder {folder} {where}: choose another folder ({key}=...)"
+                return
         folders = [folder, *(folder.iterdir() if jobs_inside and folder.is_dir() else [])]
         entries = {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
         NoteExistingFolders.noted = (folder, jobs_inside, entries)
@@ -229,7 +239,7 @@ class HydraApp:
                 raise
             sys.stderr = held.stream
             # Hydra's own report of an error before the task: one line, status 2, unless it is a bug
-            line = hydra_failure(held.held.getvalue())
+            line = NoteExistingFolders.refusal or hydra_failure(held.held.getvalue())
             if line is None:
                 sys.stderr.write(held.held.getvalue())
                 raise
