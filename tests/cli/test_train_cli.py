@@ -307,7 +307,7 @@ def test_values_are_range_checked_where_declared(tmp_path):
         ("model.pose.n_azim=0", r"model\.pose\.n_azim must be >= 1"),
         ("model.loss.min_angle=270", r"model\.loss\.min_angle must be in \[0, 180\]"),
         ("callbacks.checkpoint.keep=-2", r"callbacks\.checkpoint\.keep must be >= -1"),
-        ("renderer.faces_per_pixel=0", r"renderer\.faces_per_pixel must be a finite number >= 1"),
+        ("renderer.faces_per_pixel=0", r"renderer\.faces_per_pixel must be a whole number >= 1"),
         ("renderer.sigma=nan", r"renderer\.sigma must be a finite number >= 0"),
         ("optim.lr=inf", r"optim\.lr must be a finite number > 0, got inf"),
         ("optim.betas=[2,3]", r"optim\.betas must lie in \[0, 1\), got \[2\.0, 3\.0\]"),

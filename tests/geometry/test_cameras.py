@@ -100,3 +100,18 @@ def test_world_to_view_shape_errors():
         world_to_view(torch.zeros(2, 5, 3), torch.eye(3)[None], torch.zeros(2, 3))
     with pytest.raises(ValueError, match=r"verts must have shape"):
         world_to_view(torch.zeros(5, 3), torch.eye(3)[None], torch.zeros(1, 3))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"focal_length": float("nan")}, "focal_length must be a finite number > 0"),
+        ({"focal_length": float("inf")}, "focal_length must be a finite number > 0"),
+        ({"focal_length": torch.tensor([1.0, 2.0])}, "focal_length must be one number"),
+        ({"fov": 30.0, "zfar": float("inf")}, "need 0 <= znear < zfar, both finite"),
+        ({"fov": float("nan")}, "fov must be in"),
+    ],
+)
+def test_a_camera_that_cannot_project_is_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PerspectiveCamera(**kwargs)

@@ -181,7 +181,7 @@ def test_non_finite_blur_radius_and_sigma_are_named(bad):
         build_renderer("softras", sigma=bad)
     with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
         build_renderer("softras", gamma=bad)
-    with pytest.raises(ValueError, match="sigma and gamma must be > 0"):  # SoftRas' own bound: 0 is refused too
+    with pytest.raises(ValueError, match="sigma and gamma must be finite and > 0"):  # SoftRas' own bound: 0 too
         build_renderer("softras", gamma=0.0)
 
 
@@ -234,6 +234,70 @@ def test_non_finite_textures_are_named(renderer, bad):
         renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8), bad_uvs), R=R, T=T)
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_or_integer_backgrounds_are_named(renderer, bad):
+    verts, faces, R, T, _ = template_scene(batch=2)
+    tex = _tex(2, verts.shape[1])
+    background = torch.rand(2, 3, 16, 16)
+    background[1, 0, 3, 4] = bad
+    with pytest.raises(ValueError, match="background contains NaN or infinite values"):
+        renderer(verts, faces, tex, R=R, T=T, background=background)
+    with pytest.raises(TypeError, match=r"background must be a floating-point tensor .*, got torch.uint8"):
+        renderer(verts, faces, tex, R=R, T=T, background=torch.full((2, 3, 16, 16), 255, dtype=torch.uint8))
+    ok = renderer(verts, faces, tex, R=R, T=T, background=torch.zeros(2, 3, 16, 16))
+    assert torch.isfinite(ok).all()
+
+
+def test_blend_functions_check_their_options():
+    from unicorn.render import RenderError
+    from unicorn.render.layered import layered_blend, layered_occupancy
+    from unicorn.render.softras import SoftRasBlend, softras_blend
+
+    verts, faces, R, T, _ = template_scene(batch=1)
+    fragments = MeshRasterizer(image_size=8)(verts, faces, R, T)
+    colors = torch.rand(fragments.face.shape[0], 3)
+    bg = torch.ones(64, 3)
+    for sigma in (-1e-4, float("nan"), float("inf")):
+        with pytest.raises(RenderError, match="sigma must be finite and >= 0"):
+            layered_blend(colors, fragments, bg, sigma)
+        with pytest.raises(RenderError, match="sigma must be finite and >= 0"):
+            layered_occupancy(fragments, sigma)
+    for options in ({"zfar": float("inf")}, {"znear": 5.0, "zfar": 5.0}, {"eps": float("nan")}):
+        with pytest.raises(RenderError, match="need finite 0 <= znear < zfar and a finite eps"):
+            softras_blend(colors, fragments, bg, **options)
+        with pytest.raises(RenderError, match="need finite 0 <= znear < zfar and a finite eps"):
+            SoftRasBlend(**options)
+    with pytest.raises(RenderError, match="sigma and gamma must be finite and > 0 in float32"):
+        build_renderer("softras", gamma=1e-50)  # > 0, but 0 in float32: every weight 0 / 0
+    from unicorn.render.hard import HardBlend
+
+    for bad in (2.5, float("nan"), 0):  # a count: 2.5 used to render as 2
+        with pytest.raises(RenderError, match=f"supersample must be a whole number >= 1, got {bad}"):
+            HardBlend(bad)
+    for options in ({"faces_per_pixel": 2.5}, {"max_candidates": 0}, {"max_bytes": float("nan")}):
+        with pytest.raises(RenderError, match=f"{next(iter(options))} must be a whole number"):
+            rasterize_meshes(verts, faces, 8, **options)
+    with pytest.raises(RenderError, match="perspective_correct must be True or False, got 'yes'"):
+        rasterize_meshes(verts, faces, 8, perspective_correct="yes")
+
+
+def test_vertex_attributes_must_be_floats_on_the_meshs_vertices():
+    from unicorn.checks import FaceIndexError
+    from unicorn.render import interpolate_vertex_attributes
+
+    verts, faces, R, T, _ = template_scene(batch=1)
+    fragments = MeshRasterizer(image_size=8)(verts, faces, R, T)
+    V = verts.shape[1]
+    values = interpolate_vertex_attributes(fragments, faces, torch.full((1, V, 2), 7.0))
+    assert torch.allclose(values, torch.full_like(values, 7.0))  # barycentrics sum to one
+    with pytest.raises(TypeError, match="attrs"):
+        interpolate_vertex_attributes(fragments, faces, torch.full((1, V, 2), 7))  # would round the weights to 0
+    with pytest.raises(FaceIndexError, match=f"face indices must be in \\[0, {V - 1}\\)"):
+        interpolate_vertex_attributes(fragments, faces, torch.rand(1, V - 1, 2))
+    with pytest.raises(TypeError, match="faces must be an integer tensor"):
+        interpolate_vertex_attributes(fragments, faces.float(), torch.rand(1, V, 2))
+
+
 @pytest.mark.parametrize("name", list_renderers())
 @pytest.mark.parametrize("size", [2.5, "abc", True, (16, 2.0), (16, 16, 16), -3])
 def test_bad_image_sizes_are_named(name, size):
@@ -277,7 +341,7 @@ def test_the_built_in_backends_take_the_memory_limit_as_an_option(name, monkeypa
     with pytest.raises(ValueError, match="over the limit of 1.86e-06 GiB"):
         build_renderer(name, image_size=16, max_bytes=2000)(verts, faces, tex, R=R, T=T)
     assert build_renderer(name, image_size=16, max_bytes=0)(verts, faces, tex, R=R, T=T).shape == (1, 4, 16, 16)
-    with pytest.raises(ValueError, match="max_bytes must be a finite number >= 0, got -1"):
+    with pytest.raises(ValueError, match="max_bytes must be a whole number >= 0, got -1"):
         build_renderer(name, max_bytes=-1)
 
 

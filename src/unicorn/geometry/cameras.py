@@ -80,10 +80,14 @@ class PerspectiveCamera(nn.Module):
             if not 0.0 < fov < 180.0:
                 raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
             focal_length = 1.0 / math.tan(math.radians(fov) / 2.0)
-        if focal_length <= 0:
-            raise ValueError(f"focal_length must be positive, got {focal_length}")
-        if not 0.0 <= znear < zfar:
-            raise ValueError(f"need 0 <= znear < zfar, got znear={znear}, zfar={zfar}")
+        try:
+            focal_length = float(focal_length)
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"focal_length must be one number, got {focal_length!r}") from None
+        if not (math.isfinite(focal_length) and focal_length > 0):
+            raise ValueError(f"focal_length must be a finite number > 0, got {focal_length}")
+        if not (0.0 <= znear < zfar and math.isfinite(zfar)):
+            raise ValueError(f"need 0 <= znear < zfar, both finite, got znear={znear}, zfar={zfar}")
         self.register_buffer("focal_length", torch.tensor(float(focal_length)), persistent=False)
         self.znear = float(znear)
         self.zfar = float(zfar)

@@ -13,7 +13,7 @@ from torch import nn
 
 from .fragments import Fragments
 from .layered import layered_blend
-from .raster import RenderError
+from .raster import check_whole_number
 
 __all__ = ["HardBlend", "hard_blend"]
 
@@ -32,7 +32,8 @@ def hard_blend(
     Returns:
         (B, C + 1, H, W) images, the last channel the covered fraction of each pixel's subpixels.
     """
-    s = max(int(supersample), 1)
+    check_whole_number("supersample", supersample, 1)
+    s = int(supersample)
     B, C = fragments.batch_size, colors.shape[1]
     h, w = fragments.image_size
     H, W = h // s, w // s
@@ -54,8 +55,7 @@ class HardBlend(nn.Module):
 
     def __init__(self, supersample: int = 1) -> None:
         super().__init__()
-        if supersample < 1:
-            raise RenderError(f"supersample must be >= 1, got {supersample}")
+        check_whole_number("supersample", supersample, 1)
         self.supersample = int(supersample)
 
     def extra_repr(self) -> str:

@@ -20,8 +20,19 @@ from .raster import RenderError
 __all__ = ["LayeredBlend", "layered_blend", "layered_occupancy"]
 
 
+def check_sigma(sigma: float) -> None:
+    """Raise RenderError unless the occupancy temperature ``sigma`` is a finite number >= 0."""
+    if not (isinstance(sigma, int | float) and not isinstance(sigma, bool) and 0 <= sigma < math.inf):
+        raise RenderError(f"sigma must be finite and >= 0, got {sigma!r}")
+
+
 def layered_occupancy(fragments: Fragments, sigma: float) -> torch.Tensor:
-    """Occupancy (M,) of every pair: 1 inside the face, ``exp(-d / sigma)`` outside; a hard 0/1 if sigma = 0."""
+    """Occupancy (M,) of every pair: 1 inside the face, ``exp(-d / sigma)`` outside; a hard 0/1 if sigma = 0.
+
+    Raises:
+        RenderError: ``sigma`` is not a finite number >= 0.
+    """
+    check_sigma(sigma)
     if sigma == 0:
         return fragments.inside.to(fragments.dists.dtype)
     outside = torch.exp(-fragments.dists.clamp_min(0.0) / sigma)
@@ -84,8 +95,7 @@ class LayeredBlend(nn.Module):
 
     def __init__(self, sigma: float = 1e-4) -> None:
         super().__init__()
-        if not 0 <= sigma < math.inf:
-            raise RenderError(f"sigma must be finite and >= 0, got {sigma}")
+        check_sigma(sigma)
         self.sigma = float(sigma)
 
     def extra_repr(self) -> str:

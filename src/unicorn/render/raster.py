@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import Any
 
 import torch
 
@@ -149,6 +150,13 @@ def check_mesh_inputs(
     check_mesh(verts, faces, allow_empty=True, finite=True, finite_also=finite_also)
 
 
+def check_whole_number(name: str, value: Any, low: int) -> None:
+    """Raise RenderError unless ``value`` is a whole number >= ``low`` (2.0 is 2; 2.5, NaN or True are errors)."""
+    number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not (number and float(value).is_integer() and value >= low):
+        raise RenderError(f"{name} must be a whole number >= {low}, got {value!r}")
+
+
 def rasterize_meshes(
     verts_ndc: torch.Tensor,
     faces: torch.Tensor,
@@ -201,8 +209,13 @@ def rasterize_meshes(
     """
     if check_inputs:
         check_mesh_inputs(verts_ndc, faces)
-    if faces_per_pixel < 1:
-        raise RenderError(f"faces_per_pixel must be >= 1, got {faces_per_pixel}")
+    check_whole_number("faces_per_pixel", faces_per_pixel, 1)
+    check_whole_number("max_candidates", max_candidates, 1)
+    if max_bytes is not None:
+        check_whole_number("max_bytes", max_bytes, 0)
+    for name, flag in (("truncate_opaque", truncate_opaque), ("perspective_correct", perspective_correct)):
+        if not isinstance(flag, bool):
+            raise RenderError(f"{name} must be True or False, got {flag!r}")
     if not (math.isfinite(blur_radius) and blur_radius >= 0):
         raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
     H, W = image_hw(image_size)

@@ -112,8 +112,15 @@ class MeshRenderer(nn.Module):
         the depth tests and the compositing run in float32 (:func:`~unicorn.render.precision.float32_boundary`)."""
         if not isinstance(textures, Textures):
             raise TypeError(f"textures must be TexturesUV or TexturesVertex, got {type(textures).__name__}")
-        # the textures' finiteness is read with the mesh's (one host read): NaN colours would give NaN pixels
-        check_mesh_inputs(verts, faces, finite_also=textures.tensors())
+        # the textures' and background's finiteness is read with the mesh's (one host read): NaN colours would give
+        # NaN pixels
+        colours = dict(textures.tensors())
+        if background is not None:
+            if not torch.is_tensor(background) or not background.dtype.is_floating_point:
+                kind = background.dtype if torch.is_tensor(background) else type(background).__name__
+                raise TypeError(f"background must be a floating-point tensor (B, C, H, W) in [0, 1], got {kind}")
+            colours["background"] = background
+        check_mesh_inputs(verts, faces, finite_also=colours)
         textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0], verts=verts)
         check_pose_inputs(R, T, verts.shape[0])
         fragments = self.rasterizer(verts, faces, R, T, check_inputs=False)  # checked once above

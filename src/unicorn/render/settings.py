@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..geometry.cameras import image_hw
-from .raster import RenderError
+from .raster import RenderError, check_whole_number
 
 __all__ = ["BACKGROUND_COLOR", "DEFAULT_SETTINGS", "RenderSettings", "check_render_option"]
 
@@ -24,6 +24,8 @@ BACKGROUND_COLOR: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
 #: the lowest value of each numeric setting (a finite number, None allowed for ``max_bytes``: the default limit)
 _LOWEST = {"sigma": 0, "gamma": 0, "eps": 0, "faces_per_pixel": 1, "supersample": 1, "max_candidates": 1}
+#: the settings that count something: whole numbers (2.0 is 2; 2.5 is an error, not 2)
+_WHOLE = ("faces_per_pixel", "supersample", "max_candidates", "max_bytes")
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,8 @@ def check_render_option(name: str, value: Any) -> None:
     elif name in _LOWEST or (name == "max_bytes" and value is not None):
         low = _LOWEST.get(name, 0)
         ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value >= low
+        if name in _WHOLE:
+            check_whole_number(name, value, low)
         if not ok:
             raise RenderError(f"{name} must be a finite number >= {low}, got {value!r}")
     elif name == "perspective_correct" and not isinstance(value, bool):

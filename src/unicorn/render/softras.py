@@ -17,13 +17,20 @@ from .compositing import gather_slots, write_pixels
 from .fragments import Fragments
 from .raster import RenderError
 
-__all__ = ["SoftRasBlend", "check_temperatures", "softras_blend"]
+__all__ = ["SoftRasBlend", "check_depth_range", "check_temperatures", "softras_blend"]
 
 
 def check_temperatures(sigma: float, gamma: float) -> None:
-    """Raise ValueError unless the occupancy and depth temperatures are finite and > 0."""
-    if not (0 < sigma < math.inf and 0 < gamma < math.inf):
-        raise RenderError(f"sigma and gamma must be > 0, got sigma={sigma}, gamma={gamma}")
+    """Raise RenderError unless the occupancy and depth temperatures are finite and > 0 (in float32, where the
+    renders divide by them)."""
+    if not all(0 < float(torch.tensor(t, dtype=torch.float32)) < math.inf for t in (sigma, gamma)):
+        raise RenderError(f"sigma and gamma must be finite and > 0 in float32, got sigma={sigma}, gamma={gamma}")
+
+
+def check_depth_range(znear: float, zfar: float, eps: float = 0.0) -> None:
+    """Raise RenderError unless ``0 <= znear < zfar`` are finite and the background's ``eps`` is a finite number."""
+    if not (0 <= znear < zfar < math.inf and math.isfinite(eps)):
+        raise RenderError(f"need finite 0 <= znear < zfar and a finite eps, got znear={znear}, zfar={zfar}, eps={eps}")
 
 
 def softras_blend(
@@ -51,6 +58,7 @@ def softras_blend(
         (B, C + 1, H, W) images, the last channel the alpha.
     """
     check_temperatures(sigma, gamma)
+    check_depth_range(znear, zfar, eps)
     prob = torch.sigmoid(-fragments.dists / sigma)
     z_inv = (zfar - fragments.zbuf) / (zfar - znear)
     row_pix, prob_k, z_inv_k, col = gather_slots(fragments, prob, z_inv, colors)
@@ -79,8 +87,7 @@ class SoftRasBlend(nn.Module):
     ) -> None:
         super().__init__()
         check_temperatures(sigma, gamma)
-        if not 0 <= znear < zfar:
-            raise RenderError(f"need 0 <= znear < zfar, got {znear}, {zfar}")
+        check_depth_range(znear, zfar, eps)
         self.sigma, self.gamma, self.eps = float(sigma), float(gamma), float(eps)
         self.znear, self.zfar = float(znear), float(zfar)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..checks import check_same_dtype, check_shape
+from ..checks import check_faces, check_same_dtype, check_shape
 from .fragments import Fragments
 from .precision import to_full_precision
 
@@ -21,8 +21,13 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
 
     Returns:
         (M, D) interpolated attributes.
+
+    Raises:
+        ValueError, TypeError: ``attrs`` not floating point or of another batch, ``faces`` not integer (F, 3) or
+            indexing past ``attrs``' vertices (the range read outside :func:`unicorn.hostsync.sync_free`).
     """
-    check_shape(attrs, "B, V, D | V, D", "attrs", {"B": fragments.batch_size})
+    check_shape(attrs, "B, V, D | V, D", "attrs", {"B": fragments.batch_size}, floating=True)
+    check_faces(faces, attrs.shape[-2], allow_empty=True)
     if attrs.dim() == 2:
         vert_idx = faces.index_select(0, fragments.face)  # (M, 3)
         values = attrs.index_select(0, vert_idx.reshape(-1)).view(*vert_idx.shape, attrs.shape[-1])
