@@ -281,6 +281,28 @@ def test_blend_functions_check_their_options():
         rasterize_meshes(verts, faces, 8, perspective_correct="yes")
 
 
+@pytest.mark.parametrize("name", ["layered", "softras"])
+def test_a_blur_radius_whose_candidates_exceed_the_limit_is_refused(name):
+    from unicorn.render import RenderSizeError
+
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = _tex(1, verts.shape[1])
+    blurred = build_renderer(name, image_size=32, sigma=10.0, max_bytes=4 << 20)  # every face covers every pixel
+    with pytest.raises(RenderSizeError, match=r"the blur radius \(sigma\) makes [\d,]+ candidate face-pixel pairs"):
+        blurred(verts, faces, tex, R=R, T=T)
+    sharp = build_renderer(name, image_size=32, max_bytes=4 << 20)  # the default sigma: well within the limit
+    assert torch.isfinite(sharp(verts, faces, tex, R=R, T=T)).all()
+
+
+def test_blur_radius_needs_an_occupancy_threshold_in_range():
+    from unicorn.render import RenderError
+    from unicorn.render.raster import blur_radius_from_sigma
+
+    for eps in (0.0, 0.5, float("nan")):
+        with pytest.raises(RenderError, match="eps must be in \\(0, 0.5\\)"):
+            blur_radius_from_sigma(1e-4, eps=eps)
+
+
 def test_vertex_attributes_must_be_floats_on_the_meshs_vertices():
     from unicorn.checks import FaceIndexError
     from unicorn.render import interpolate_vertex_attributes

@@ -24,6 +24,7 @@ Memory: a render is refused before anything is allocated when its fragments coul
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -57,6 +58,9 @@ __all__ = [
 #: bytes of one packed (pixel, face) pair, rounded up: four int64 indices, the inside flag, and barycentrics,
 #: distance and depth in float32 (53 bytes); autograd and the aggregators keep a few times that while rendering
 PAIR_BYTES = 64
+#: the bytes one candidate pair (a face against a pixel of its box) can take while the pairs are ranked: the
+#: indices, distances, depths and masks that :func:`~unicorn.render.selection.select_pairs` holds together
+CANDIDATE_BYTES = 128
 #: the largest fragments a render may need, ``B x H x W x K x PAIR_BYTES``: 16 GiB (a batch of 192 training
 #: images of 64 x 64 with K = 25 needs at most 1.3 GB; a single 10000 x 10000 render with K = 25, 160 GB)
 DEFAULT_MAX_RENDER_BYTES = 16 << 30
@@ -113,6 +117,18 @@ def check_render_size(
         )
 
 
+def _check_candidates(count: int, limit: int) -> None:
+    """Refuse a render whose candidate pairs of one image (each face against the pixels of its box, grown by the
+    blur radius) could take more than ``limit`` bytes while they are ranked."""
+    need = count * CANDIDATE_BYTES
+    if need > limit:
+        raise RenderSizeError(
+            f"the blur radius (sigma) makes {count:,} candidate face-pixel pairs in one image, which may need "
+            f"{need / 2**30:.3g} GiB ({CANDIDATE_BYTES} bytes each), over the limit of {limit / 2**30:.3g} GiB; use a "
+            f"smaller sigma or image, or raise the limit (the renderer's max_bytes, or {MAX_RENDER_BYTES_ENV}; 0: none)"
+        )
+
+
 def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
     """Squared NDC radius beyond which a face's occupancy falls below ``eps``: ``ln(1 / eps - 1) * sigma``.
 
@@ -121,6 +137,8 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
     """
     if not (math.isfinite(sigma) and sigma >= 0):
         raise RenderError(f"sigma must be finite and >= 0, got {sigma}")
+    if not 0 < eps < 0.5:
+        raise RenderError(f"eps must be in (0, 0.5), the occupancy below which a face stops mattering, got {eps}")
     return math.log(1.0 / eps - 1.0) * sigma
 
 
@@ -226,9 +244,11 @@ def rasterize_meshes(
         return _rasterize_fixed(
             verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
         )
+    limit = max_render_bytes() if max_bytes is None else (max_bytes or None)
     kept = select_pairs(
-        verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct
-    )
+        verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct,
+        check_candidates=None if limit is None else functools.partial(_check_candidates, limit=limit),
+    )  # fmt: skip
     bary, dists, zbuf = _recompute(verts_ndc, faces, kept, (H, W), perspective_correct)
     # one host read for both counts (the packed layout's sizes are data-dependent: see unicorn.render.selection)
     slot = kept.slot

@@ -15,7 +15,7 @@ one more. Everything else stays on the device.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
 import torch
@@ -68,6 +68,7 @@ def select_pairs(
     truncate_opaque: bool,
     max_candidates: int,
     perspective_correct: bool = False,
+    check_candidates: Callable[[int], None] | None = None,
 ) -> Selection:
     """The nearest ``faces_per_pixel`` faces of every pixel (see :func:`~unicorn.render.raster.rasterize_meshes`).
 
@@ -81,6 +82,8 @@ def select_pairs(
         max_candidates: the most candidate pairs of a chunk of images (a single image is never split).
         perspective_correct: rank the faces by the depth read with perspective-correct barycentrics (the true
             depth of the face at the pixel) instead of the screen-space ones.
+        check_candidates: called with the most candidate pairs of one image before any is made (it raises to
+            refuse a render whose blur radius would make too many).
     """
     H, W = image_size
     B, V, _ = verts_ndc.shape
@@ -97,6 +100,8 @@ def select_pairs(
         counts = boxes[2] * boxes[3] * valid
         per_image = counts.sum(1).tolist()  # one host read: the per-image work
         n_candidates = sum(per_image)
+        if check_candidates is not None:
+            check_candidates(max(per_image))
         for sl in _chunks(per_image, max_candidates):
             *piece, n_over = _select_chunk(
                 fpx[sl], fz[sl], counts[sl], tuple(b[sl] for b in boxes), sl.start, (H, W),
