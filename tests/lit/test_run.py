@@ -118,3 +118,24 @@ def test_the_run_records_a_relative_dataset_root_as_absolute(tmp_path, monkeypat
     resolved = yaml.safe_load(OmegaConf.to_yaml(typed, resolve=True))
     resolved["dataset"]["root"] = expected
     assert record == resolved  # the rest is the resolved config as it was
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "+callbacks.extra.x={_target_:nonexistent.Foo}",
+            r"^Error locating target 'nonexistent.Foo'\. full_key: callbacks",
+        ),
+        (
+            "+callbacks.extra.x={_target_:lightning.pytorch.callbacks.Timer,bogus:1}",
+            r"unexpected keyword argument 'bogus'.* full_key: callbacks.extra.x$",
+        ),
+        ("trainer.accelerator=bogus", r"^trainer \(accelerator=bogus, .*invalid accelerator name"),
+        ("trainer.devices=[1,2]", r"^trainer \(accelerator=cpu, devices=\[1, 2\]"),
+    ],
+)
+def test_a_node_the_run_cannot_build_is_one_config_error_and_writes_nothing(tmp_path, override, message) -> None:
+    with pytest.raises(ConfigError, match=message) as info:
+        build_run(tmp_path / "run", override)
+    assert "\n" not in str(info.value) and not (tmp_path / "run").exists()

@@ -14,7 +14,7 @@ import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
@@ -72,6 +72,11 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
         _check_values(typed)
     except OmegaConfBaseException as err:
         raise ConfigError(f"invalid training config: {err}") from None
+    except (ValueError, TypeError) as err:
+        if isinstance(err, UserError):  # already one line naming the key
+            raise
+        # a check inside a part the config builds (a camera, a pose range): its message names the setting
+        raise ConfigError(f"invalid training config: {err}") from None
     return typed
 
 
@@ -103,6 +108,7 @@ def _check_values(cfg: DictConfig) -> None:
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     _check_model(cfg)
     _check_sizes(cfg)
+    _check_dataset(cfg.dataset)
     stored = stored_image_size(cfg.dataset.name, cfg.dataset.synthetic)
     _check(
         stored is None or stored == cfg.dataset.img_size,
@@ -128,6 +134,26 @@ def _check_values(cfg: DictConfig) -> None:
         pin is None or pin == "auto" or isinstance(pin, bool),
         f"dataset.pin_memory must be true, false or auto (when training on CUDA), got {pin!r}",
     )
+
+
+def _check_dataset(d: DictConfig) -> None:
+    """The dataset's seed, and for the generated dataset its categories and generation settings."""
+    from unicorn.checks import SizeLimitError
+    from unicorn.data.images import DatasetError
+    from unicorn.data.synthetic.writer import check_synthetic_settings
+
+    _check(
+        type(d.seed) is int and 0 <= d.seed <= MAX_SEED,
+        f"dataset.seed must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {d.seed}",
+    )
+    if d.name != "synthetic":
+        return
+    categories = OmegaConf.to_container(d.categories) if isinstance(d.categories, ListConfig) else d.categories
+    synthetic = OmegaConf.to_container(d.synthetic, resolve=True) if d.synthetic is not None else {}
+    try:
+        check_synthetic_settings(categories, synthetic)
+    except (DatasetError, SizeLimitError) as err:
+        raise ConfigError(f"dataset.synthetic: {err}") from None
 
 
 def _check_model(cfg: DictConfig) -> None:

@@ -11,12 +11,14 @@ rewinding of a resumed run (``ckpt_path``) and the progress bar (``trainer.enabl
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import signal
 import sys
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -80,13 +82,35 @@ def build(cfg: DictConfig) -> Run:
     )
     output_dir, checkpoint_dir, ckpt_path, outdated = check_run_folder(typed)
     L.seed_everything(typed.seed, workers=True, verbose=False)
-    data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
-    module = build_module(typed)
-    stopper = GracefulStop(checkpoint_dir / "last.ckpt")
-    callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]  # a Checkpoint callback: after the periodic one
-    trainer = build_trainer(typed, callbacks, build_loggers(typed), output_dir)
+    with _config_nodes():
+        data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
+        module = build_module(typed)
+        stopper = GracefulStop(checkpoint_dir / "last.ckpt")
+        callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]  # a Checkpoint callback: after the periodic one
+        loggers = build_loggers(typed)
+    trainer = build_trainer(typed, callbacks, loggers, output_dir)
     write_run_folder(typed, output_dir, ckpt_path, outdated)
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path, stopper)
+
+
+@contextlib.contextmanager
+def _config_nodes() -> Iterator[None]:
+    """Turn Hydra's failure to build a config node from a mistake in the config (a ``_target_`` that does not exist,
+    arguments its class does not take) into a one-line ConfigError naming it; other failures keep their cause
+    (a user error is reported as such, a bug with its traceback)."""
+    from hydra.errors import InstantiationException
+
+    from unicorn.config import ConfigError
+
+    try:
+        yield
+    except InstantiationException as err:
+        cause = err.__cause__
+        misnamed = cause is None or isinstance(cause, ImportError | AttributeError)  # "Error locating target"
+        if misnamed or (isinstance(cause, TypeError) and "argument" in str(cause)):
+            text = str(err).replace(", set env var HYDRA_FULL_ERROR=1 to see chained exception", "")
+            raise ConfigError(" ".join(text.split())) from err
+        raise
 
 
 def _no_tips(record: logging.LogRecord) -> bool:
@@ -269,7 +293,7 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
             logger=loggers or False,
             plugins=[AtomicCheckpointIO(trust=typed.trust_checkpoint)],
         )
-    except MisconfigurationException as err:
+    except (MisconfigurationException, ValueError, TypeError) as err:  # Lightning's checks raise all three
         t = typed.trainer
         raise ConfigError(
             f"trainer (accelerator={t.accelerator}, devices={t.devices}, strategy={t.strategy}): {err}"

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -16,18 +18,30 @@ from unicorn.render.precision import full_precision, to_full_precision
 __all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles", "mirrored_pose"]
 
 
+def _numbers(r: Any, count: int) -> list[float] | None:
+    """``r`` as ``count`` finite floats, or None where it is not that (a string, None, another length, NaN)."""
+    if isinstance(r, str | bytes) or not isinstance(r, Sequence) or len(r) != count:
+        return None
+    numbers = [x for x in r if isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)]
+    return [float(x) for x in numbers] if len(numbers) == count else None
+
+
 def _pair(r: Sequence[float], name: str) -> tuple[float, float]:
-    if len(r) != 2 or r[1] < r[0]:
-        raise ValueError(f"{name} must be (min, max) with min <= max, got {r}")
-    return float(r[0]), float(r[1])
+    pair = _numbers(r, 2)
+    if pair is None or pair[1] < pair[0]:
+        raise ValueError(f"{name} must be (min, max), finite numbers with min <= max, got {r}")
+    return pair[0], pair[1]
 
 
-def _triple(r: Sequence[float] | float, name: str) -> tuple[float, float, float]:
-    if isinstance(r, int | float):
-        return (float(r),) * 3
-    if len(r) != 3:
-        raise ValueError(f"{name} must be a float or 3 floats, got {r}")
-    return tuple(float(x) for x in r)  # type: ignore[return-value]
+def _triple(
+    r: Sequence[float] | float, name: str, low: float = -math.inf, high: float = math.inf, what: str = ""
+) -> tuple[float, float, float]:
+    """``r`` (one number or x, y, z) as three finite floats in [``low``, ``high``); ``what`` says why the bounds."""
+    triple = _numbers([r] * 3, 3) if isinstance(r, int | float) else _numbers(r, 3)
+    if triple is None or not all(low <= x < high for x in triple):
+        bounds = "" if (low, high) == (-math.inf, math.inf) else f" in [{low:g}, {high:g})"
+        raise ValueError(f"{name} must be a finite number or 3 of them (x, y, z){bounds}{what}, got {r}")
+    return triple[0], triple[1], triple[2]
 
 
 def anchor_angles(
@@ -169,8 +183,14 @@ class PoseHead(nn.Module):
         self.register_buffer("R_range", half_range, persistent=False)
         ranges = [_pair(azim_range, "azim_range"), _pair(elev_range, "elev_range"), _pair(roll_range, "roll_range")]
         self.register_buffer("angle_ranges", torch.tensor(ranges), persistent=False)  # (3, 2): (min, max) degrees
-        self.register_buffer("T_range", torch.tensor(_triple(T_range, "T_range")), persistent=False)
-        self.register_buffer("T_init", torch.tensor(_triple(prior_translation, "prior_translation")), persistent=False)
+        t_range, t_init = _triple(T_range, "T_range", low=0.0), _triple(prior_translation, "prior_translation")
+        if t_init[2] - t_range[2] <= 0:
+            raise ValueError(
+                f"prior_translation's z ({t_init[2]:g}) must exceed T_range's z ({t_range[2]:g}): every predicted "
+                "translation must keep the object in front of the camera"
+            )
+        self.register_buffer("T_range", torch.tensor(t_range), persistent=False)
+        self.register_buffer("T_init", torch.tensor(t_init), persistent=False)
         self.register_buffer("use_translation", torch.tensor(True))
         # set by the stage callback every iteration; kept out of the state dict so that checkpoints written
         # without it load unchanged
@@ -248,7 +268,11 @@ class ScaleHead(nn.Module):
     ) -> None:
         super().__init__()
         self.regressor = MLP(in_features, 3, n_units, n_layers, zero_last=True)
-        self.register_buffer("scale_range", torch.tensor(_triple(scale_range, "scale_range")), persistent=False)
+        self.register_buffer(
+            "scale_range",
+            torch.tensor(_triple(scale_range, "scale_range", 0.0, 1.0, " (scales 1 +- it: a scale must stay > 0)")),
+            persistent=False,
+        )
         self.register_buffer("use_scale", torch.tensor(True))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:

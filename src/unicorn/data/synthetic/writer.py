@@ -19,7 +19,7 @@ import math
 import os
 import shutil
 import uuid
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +62,7 @@ __all__ = [
     "check_generation_sizes",
     "check_manifest",
     "check_output_folder",
+    "check_synthetic_settings",
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
@@ -158,6 +159,55 @@ def check_generation_sizes(
     setting = f"{names[0]} {image_size} with {names[1]} {supersample}"
     check_image_size(setting, "a view rendered supersampled", side, channels=3)
     check_point_count(f"{names[2]} {n_points}", n_points)
+
+
+#: the settings :func:`check_generation_sizes` bounds
+_SIZE_KEYS = ("image_size", "supersample", "n_points")
+#: the most models per category a generation makes (ShapeNet's largest category, tables, has 8,436)
+MAX_MODELS = 100_000
+
+
+def check_synthetic_settings(categories: str | Sequence[str] | None, settings: Mapping[str, Any]) -> None:
+    """Check a configuration's generation settings (``dataset.synthetic``: ``mode``, ``n_models``, ``seed``,
+    ``generate`` and :data:`RECORDED_OPTIONS`) and its categories before anything is generated.
+
+    Raises:
+        DatasetError: an unknown key or category, or a value out of its range (the message names the key).
+    """
+    known = ("mode", "n_models", "seed", "generate", *RECORDED_OPTIONS)
+    unknown = sorted(set(settings) - set(known))
+    if unknown:
+        raise DatasetError(f"unknown setting {unknown[0]!r}; the settings are {list(known)}")
+    names = [categories] if isinstance(categories, str) else list(categories or ["chair"])
+    for cat in names:
+        if cat not in CATEGORIES:
+            raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+
+    def whole(key: str, low: int, high: float = math.inf) -> int | None:
+        value = settings.get(key)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            top = "" if high == math.inf else f" and <= {high:,}"
+            raise DatasetError(f"{key} must be a whole number >= {low}{top}, got {value!r}")
+        return value
+
+    n_models = whole("n_models", 3, MAX_MODELS)
+    if n_models is not None:
+        split_sizes(n_models)
+    whole("seed", 0, 2**32 - 1)
+    for key in ("image_size", "n_views", "supersample", "n_points"):
+        whole(key, 1)
+    sizes = {k: _RECORDED_DEFAULTS[k] if settings.get(k) is None else settings[k] for k in _SIZE_KEYS}
+    check_generation_sizes(**sizes)
+    mode = settings.get("mode", "nmr")
+    check_view_ranges(mode, settings.get("roll"), settings.get("shift"))
+    backgrounds = settings.get("backgrounds")
+    if backgrounds is not None and not isinstance(backgrounds, bool):
+        raise DatasetError(f"backgrounds must be true, false or null (the mode's), got {backgrounds!r}")
+    _background_kinds(settings.get("background_kinds"), mode == "wild" if backgrounds is None else backgrounds)
+    if not isinstance(settings.get("generate", False), bool):
+        raise DatasetError(f"generate must be true or false, got {settings['generate']!r}")
 
 
 def generate_synthetic_dataset(

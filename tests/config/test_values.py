@@ -1,0 +1,76 @@
+"""Values the types let through but the run cannot use: each is a one-line ``ConfigError`` naming the setting, from
+``validate``, before anything is built, generated or written."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.support.training import compose_config
+from unicorn.config import ConfigError, validate
+
+SYNTHETIC = ["experiment=synthetic"]
+CUB = ["experiment=cub", "dataset.root=/data/cub_200"]
+
+#: (id, overrides, the error's pattern)
+CASES = [
+    (
+        "models-huge",
+        [*SYNTHETIC, "dataset.synthetic.n_models=1000000000000"],
+        r"n_models must be a whole number >= 3 and <= 100,000",
+    ),
+    ("models-text", [*SYNTHETIC, "dataset.synthetic.n_models=abc"], r"n_models must be a whole number .* got 'abc'"),
+    (
+        "synthetic-seed",
+        [*SYNTHETIC, "dataset.synthetic.seed=-1"],
+        r"dataset.synthetic: seed must be a whole number >= 0",
+    ),
+    ("no-views", [*SYNTHETIC, "+dataset.synthetic.n_views=0"], r"n_views must be a whole number >= 1, got 0"),
+    (
+        "size-text",
+        [*SYNTHETIC, "dataset.synthetic.image_size=abc"],
+        r"image_size must be a whole number >= 1, got 'abc'",
+    ),
+    ("mode", [*SYNTHETIC, "dataset.synthetic.mode=bogus"], r"mode must be 'nmr' or 'wild', got 'bogus'"),
+    ("category", [*SYNTHETIC, "dataset.categories=unicorns"], r"unknown synthetic category 'unicorns'"),
+    ("unknown-setting", [*SYNTHETIC, "+dataset.synthetic.colour=red"], r"unknown setting 'colour'"),
+    ("roll-in-nmr", [*SYNTHETIC, "+dataset.synthetic.roll=5"], r"roll=5 is for the wild mode"),
+    ("dataset-seed", [*SYNTHETIC, "dataset.seed=-1"], r"dataset.seed must be a whole number in \[0, 4294967295\]"),
+    (
+        "focal-length",
+        [*CUB, "~renderer.camera.fov", "+renderer.camera.focal_length=0"],
+        r"focal_length must be a finite number > 0",
+    ),
+    ("fov", [*CUB, "renderer.camera.fov=0"], r"fov must be in \(0, 180\) degrees"),
+    ("translation-pair", [*CUB, "model.pose.T_range=[0.1,0.2]"], r"T_range must be a finite number or 3 of them"),
+    (
+        "translation-null",
+        [*CUB, "model.pose.T_range=null"],
+        r"T_range must be a finite number or 3 of them .* got None",
+    ),
+    ("translation-negative", [*CUB, "model.pose.T_range=-0.1"], r"T_range must be .* in \[0, inf\)"),
+    ("scale-flips", [*CUB, "model.pose.scale_range=2"], r"scale_range must be .* in \[0, 1\) \(scales 1 \+- it"),
+    ("behind-the-camera", [*CUB, "model.pose.prior_translation=[0,0,0]"], r"prior_translation's z \(0\) must exceed"),
+    ("image-size-not-a-power-of-2", [*CUB, "dataset.img_size=48"], r"img_size must be a power of 2 >= 2, got 48"),
+]
+
+
+@pytest.mark.parametrize("overrides, message", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_a_value_the_run_cannot_use_is_one_config_error(tmp_path, overrides, message) -> None:
+    with pytest.raises(ConfigError, match=message) as info:
+        validate(compose_config([*overrides, f"paths.output_dir={tmp_path}"]))
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        SYNTHETIC,
+        ["experiment=synthetic_wild"],
+        [*SYNTHETIC, "dataset.synthetic.mode=wild", "+dataset.synthetic.roll=0", "+dataset.synthetic.shift=0"],
+        [*SYNTHETIC, "dataset.categories=[car,chair]", "+dataset.synthetic.background_kinds=[solid]",
+         "dataset.synthetic.mode=wild"],
+        CUB,
+    ],
+)  # fmt: skip
+def test_the_documented_settings_pass(tmp_path, overrides) -> None:
+    validate(compose_config([*overrides, f"paths.output_dir={tmp_path}"]))
