@@ -51,6 +51,7 @@ CASES = [
     ("scale-flips", [*CUB, "model.pose.scale_range=2"], r"scale_range must be .* in \[0, 1\) \(scales 1 \+- it"),
     ("behind-the-camera", [*CUB, "model.pose.prior_translation=[0,0,0]"], r"prior_translation's z \(0\) must exceed"),
     ("image-size-not-a-power-of-2", [*CUB, "dataset.img_size=48"], r"img_size must be a power of 2 >= 2, got 48"),
+    ("another-renderers-option", [*SYNTHETIC, "renderer=hard"], r"drop them with ~renderer\.faces_per_pixel$"),
 ]
 
 
@@ -70,6 +71,7 @@ def test_a_value_the_run_cannot_use_is_one_config_error(tmp_path, overrides, mes
         [*SYNTHETIC, "dataset.categories=[car,chair]", "+dataset.synthetic.background_kinds=[solid]",
          "dataset.synthetic.mode=wild"],
         CUB,
+        [*SYNTHETIC, "renderer=hard", "~renderer.faces_per_pixel"],
     ],
 )  # fmt: skip
 def test_the_documented_settings_pass(tmp_path, overrides) -> None:

@@ -333,7 +333,12 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
             )
     background_color = cfg.pop("background_color", BACKGROUND_COLOR)
     unknown = sorted(set(cfg) - accepted)
-    _check(not unknown, f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)})")
+    drop = " ".join(f"~renderer.{key}" for key in unknown)
+    _check(
+        not unknown,
+        f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)}); an experiment or family "
+        f"may set them for another renderer: drop them with {drop}",
+    )
     for key, value in cfg.items():
         try:
             check_render_option(key, value)
