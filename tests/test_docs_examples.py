@@ -159,7 +159,7 @@ INLINE_OVERRIDE = re.compile(r"`(\+?)([a-z_][a-z0-9_]*(?:\.[a-z0-9_]+)+)=([^`\s]
 def test_the_config_keys_the_documentation_names_exist(tmp_path: Path) -> None:
     """Each `key.path=value` of the prose is a key of some experiment's training config (a model config key,
     `loss.perceptual`, as the training config's `model.` key); each `+key.path=value` composes and validates in
-    the main job's config (an upper-case placeholder value, N, as 2 ** 40)."""
+    the main job's config or its wild mode's (an upper-case placeholder value, N, as 2 ** 40)."""
     from omegaconf import OmegaConf
 
     from tests.support.training import compose_config
@@ -182,10 +182,16 @@ def test_the_config_keys_the_documentation_names_exist(tmp_path: Path) -> None:
             if all(OmegaConf.select(cfg, key, default=KeyError) is KeyError for cfg in configs):
                 failures.append(f"{page}: {key}: no such key")
             continue
-        try:
-            validate(compose_config(["experiment=synthetic", f"+{key}={value}", f"paths.output_dir={tmp_path}"]))
-        except Exception as err:  # every key is tried; the failures are listed together
-            failures.append(f"{page}: +{key}={value}: {type(err).__name__}: {err}")
+        errors = []
+        for experiment in ("synthetic", "synthetic_wild"):  # the main job's config, or its wild mode's (roll, shift)
+            try:
+                validate(
+                    compose_config([f"experiment={experiment}", f"+{key}={value}", f"paths.output_dir={tmp_path}"])
+                )
+            except Exception as err:  # every key is tried; the failures are listed together
+                errors.append(f"{type(err).__name__}: {err}")
+        if len(errors) == 2:
+            failures.append(f"{page}: +{key}={value}: {errors[0]}")
     assert not failures, "\n".join(failures)
 
 
