@@ -28,3 +28,8 @@ def test_other_shapes_are_refused_at_construction_naming_the_layouts():
         ValueError, match=r"^maps must have shape \(B, C, Ht, Wt\) or \(B, Ht, Wt, C\), got \(16, 16, 3\)$"
     ):
         TexturesUV(torch.rand(16, 16, 3), uvs)
+
+
+def test_integer_uvs_are_named() -> None:
+    with pytest.raises(TypeError, match="face_uvs must be a floating point tensor, got torch.int64"):
+        TexturesUV(torch.rand(1, 3, 8, 8), torch.zeros(4, 3, 2, dtype=torch.long))  # they would sample one texel
