@@ -21,6 +21,7 @@ from unicorn.errors import UserError
 from unicorn.hostsync import is_sync_free
 
 __all__ = [
+    "MAX_SEED",
     "Dims",
     "EnvironmentLimitError",
     "FaceIndexError",
@@ -38,7 +39,16 @@ __all__ = [
     "check_limit",
     "check_translations",
     "env_limit",
+    "is_seed",
 ]
+
+#: the largest seed: numpy's seeds are whole numbers in [0, 2**32 - 1]
+MAX_SEED = 2**32 - 1
+
+
+def is_seed(value: object) -> bool:
+    """Whether ``value`` is a seed numpy takes: a whole number in [0, :data:`MAX_SEED`]."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_SEED
 
 
 class FaceIndexError(IndexError, ValueError):

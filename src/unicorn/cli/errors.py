@@ -165,15 +165,15 @@ def folder_path(text: str) -> Path:
 
 
 def seed_number(text: str) -> int:
-    """An argparse ``type``: a seed, a whole number in [0, :data:`~unicorn.config.build.MAX_SEED`] (numpy's seeds;
+    """An argparse ``type``: a seed, a whole number in [0, :data:`~unicorn.checks.MAX_SEED`] (numpy's seeds;
     a usage error, exit status 2, otherwise)."""
-    from unicorn.config.build import MAX_SEED
+    from unicorn.checks import MAX_SEED, is_seed
 
     try:
         value = whole_number(text)
     except argparse.ArgumentTypeError:
         value = -1
-    if not 0 <= value <= MAX_SEED:
+    if not is_seed(value):
         raise argparse.ArgumentTypeError(f"must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {text!r}")
     return value
 

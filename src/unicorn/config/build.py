@@ -17,6 +17,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from unicorn.checks import MAX_SEED, is_seed
 from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
@@ -32,8 +33,6 @@ from unicorn.render import BACKGROUND_COLOR, RenderError, check_render_option, g
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
-#: the largest ``seed``: numpy's seeds are whole numbers in [0, 2**32 - 1]
-MAX_SEED = 2**32 - 1
 
 
 class ConfigError(UserError, ValueError):
@@ -101,10 +100,7 @@ def _check_values(cfg: DictConfig) -> None:
         check_ranges(cfg, TrainConfig)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    _check(
-        isinstance(cfg.seed, int) and 0 <= cfg.seed <= MAX_SEED,
-        f"seed must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {cfg.seed}",
-    )
+    _check_seed("seed", cfg.seed)
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     _check_model(cfg)
     _check_sizes(cfg)
@@ -136,16 +132,17 @@ def _check_values(cfg: DictConfig) -> None:
     )
 
 
+def _check_seed(key: str, value: Any) -> None:
+    _check(is_seed(value), f"{key} must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {value}")
+
+
 def _check_dataset(d: DictConfig) -> None:
     """The dataset's seed, and for the generated dataset its categories and generation settings."""
     from unicorn.checks import SizeLimitError
     from unicorn.data.images import DatasetError
     from unicorn.data.synthetic.writer import check_synthetic_settings
 
-    _check(
-        type(d.seed) is int and 0 <= d.seed <= MAX_SEED,
-        f"dataset.seed must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {d.seed}",
-    )
+    _check_seed("dataset.seed", d.seed)
     if d.name != "synthetic":
         return
     categories = OmegaConf.to_container(d.categories) if isinstance(d.categories, ListConfig) else d.categories

@@ -8,22 +8,14 @@ rendering").
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
 from .compositing import write_pixels
 from .fragments import Fragments
-from .raster import RenderError
+from .raster import check_sigma
 
 __all__ = ["LayeredBlend", "layered_blend", "layered_occupancy"]
-
-
-def check_sigma(sigma: float) -> None:
-    """Raise RenderError unless the occupancy temperature ``sigma`` is a finite number >= 0."""
-    if not (isinstance(sigma, int | float) and not isinstance(sigma, bool) and 0 <= sigma < math.inf):
-        raise RenderError(f"sigma must be finite and >= 0, got {sigma!r}")
 
 
 def layered_occupancy(fragments: Fragments, sigma: float) -> torch.Tensor:

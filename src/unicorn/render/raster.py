@@ -129,14 +129,19 @@ def _check_candidates(count: int, limit: int) -> None:
         )
 
 
+def check_sigma(sigma: float) -> None:
+    """Raise RenderError unless the occupancy temperature ``sigma`` is a finite number >= 0."""
+    if not (isinstance(sigma, int | float) and not isinstance(sigma, bool) and 0 <= sigma < math.inf):
+        raise RenderError(f"sigma must be finite and >= 0, got {sigma!r}")
+
+
 def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
     """Squared NDC radius beyond which a face's occupancy falls below ``eps``: ``ln(1 / eps - 1) * sigma``.
 
     For the layered occupancy ``exp(-d / sigma)`` and SoftRas' ``sigmoid(-d / sigma)`` alike this is where the
     face stops mattering (1e-4 by default, as in the reference).
     """
-    if not (math.isfinite(sigma) and sigma >= 0):
-        raise RenderError(f"sigma must be finite and >= 0, got {sigma}")
+    check_sigma(sigma)
     if not 0 < eps < 0.5:
         raise RenderError(f"eps must be in (0, 0.5), the occupancy below which a face stops mattering, got {eps}")
     return math.log(1.0 / eps - 1.0) * sigma

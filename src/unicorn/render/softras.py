@@ -20,10 +20,14 @@ from .raster import RenderError
 __all__ = ["SoftRasBlend", "check_depth_range", "check_temperatures", "softras_blend"]
 
 
+#: the largest number that is 0 in float32 (half the smallest subnormal, which rounds to even: 0)
+_FLOAT32_ZERO = 2.0**-150
+
+
 def check_temperatures(sigma: float, gamma: float) -> None:
     """Raise RenderError unless the occupancy and depth temperatures are finite and > 0 (in float32, where the
     renders divide by them)."""
-    if not all(0 < float(torch.tensor(t, dtype=torch.float32)) < math.inf for t in (sigma, gamma)):
+    if not all(_FLOAT32_ZERO < t < math.inf for t in (sigma, gamma)):
         raise RenderError(f"sigma and gamma must be finite and > 0 in float32, got sigma={sigma}, gamma={gamma}")
 
 

@@ -28,6 +28,11 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
     """
     check_shape(attrs, "B, V, D | V, D", "attrs", {"B": fragments.batch_size}, floating=True)
     check_faces(faces, attrs.shape[-2], allow_empty=True)
+    return _interpolate(fragments, faces, attrs)
+
+
+def _interpolate(fragments: Fragments, faces: torch.Tensor, attrs: torch.Tensor) -> torch.Tensor:
+    """:func:`interpolate_vertex_attributes` of checked arguments (a renderer checks the mesh and textures once)."""
     if attrs.dim() == 2:
         vert_idx = faces.index_select(0, fragments.face)  # (M, 3)
         values = attrs.index_select(0, vert_idx.reshape(-1)).view(*vert_idx.shape, attrs.shape[-1])
@@ -107,7 +112,7 @@ class TexturesVertex(Textures):
         return TexturesVertex(to_full_precision(self.colors))
 
     def sample(self, fragments: Fragments, faces: torch.Tensor) -> torch.Tensor:
-        return interpolate_vertex_attributes(fragments, faces, self.colors)
+        return _interpolate(fragments, faces, self.colors)  # the renderer checked faces and colours
 
 
 class TexturesUV(Textures):

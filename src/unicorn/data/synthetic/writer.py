@@ -29,6 +29,7 @@ import yaml
 from PIL import Image
 from tqdm.auto import tqdm
 
+from unicorn.checks import MAX_SEED
 from unicorn.data.images import DatasetError, check_image_size
 from unicorn.data.shapenet import unicorn_to_dvr_points, unicorn_to_dvr_world_mat
 from unicorn.data.synthetic.render import (
@@ -178,10 +179,7 @@ def check_synthetic_settings(categories: str | Sequence[str] | None, settings: M
     unknown = sorted(set(settings) - set(known))
     if unknown:
         raise DatasetError(f"unknown setting {unknown[0]!r}; the settings are {list(known)}")
-    names = [categories] if isinstance(categories, str) else list(categories or ["chair"])
-    for cat in names:
-        if cat not in CATEGORIES:
-            raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+    _category_list(categories or "chair")
 
     def whole(key: str, low: int, high: float = math.inf) -> int | None:
         value = settings.get(key)
@@ -195,7 +193,7 @@ def check_synthetic_settings(categories: str | Sequence[str] | None, settings: M
     n_models = whole("n_models", 3, MAX_MODELS)
     if n_models is not None:
         split_sizes(n_models)
-    whole("seed", 0, 2**32 - 1)
+    whole("seed", 0, MAX_SEED)
     for key in ("image_size", "n_views", "supersample", "n_points"):
         whole(key, 1)
     sizes = {k: _RECORDED_DEFAULTS[k] if settings.get(k) is None else settings[k] for k in _SIZE_KEYS}
@@ -205,7 +203,7 @@ def check_synthetic_settings(categories: str | Sequence[str] | None, settings: M
     backgrounds = settings.get("backgrounds")
     if backgrounds is not None and not isinstance(backgrounds, bool):
         raise DatasetError(f"backgrounds must be true, false or null (the mode's), got {backgrounds!r}")
-    _background_kinds(settings.get("background_kinds"), mode == "wild" if backgrounds is None else backgrounds)
+    _background_kinds(settings.get("background_kinds"), _random_backgrounds(mode, backgrounds))
     if not isinstance(settings.get("generate", False), bool):
         raise DatasetError(f"generate must be true or false, got {settings['generate']!r}")
 
@@ -256,18 +254,13 @@ def generate_synthetic_dataset(
     """
     options = {name: value for name, value in locals().items() if name in RECORDED_OPTIONS}  # the arguments as given
     out = Path(out)
-    categories = [categories] if isinstance(categories, str) else list(categories)
-    for cat in categories:
-        if cat not in CATEGORIES:
-            raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+    categories = _category_list(categories)
     split_sizes(n_models)  # refuses too few models before anything is written
     check_generation_sizes(image_size, supersample, n_points)
     check_view_ranges(mode, roll, shift)
-    random_bg = mode == "wild" if backgrounds is None else bool(backgrounds)
-    kinds = _background_kinds(background_kinds, random_bg)
-    settings = generation_settings(categories, mode, n_models, seed, **options)
-    metadata = check_output_folder(out, categories, settings)  # before anything is written
-    settings = _joined_settings(out, settings)
+    kinds = _background_kinds(background_kinds, _random_backgrounds(mode, backgrounds))
+    metadata = check_output_folder(out, categories)  # before anything is written
+    settings = _joined_settings(out, generation_settings(categories, mode, n_models, seed, **options))
     out.mkdir(parents=True, exist_ok=True)
 
     bar = tqdm(total=n_models * len(categories), desc=f"synthetic {mode}", unit="model", disable=not progress)
@@ -297,6 +290,24 @@ _RECORDED_DEFAULTS = {
     for name, param in inspect.signature(generate_synthetic_dataset).parameters.items()
     if name in RECORDED_OPTIONS
 }
+
+
+def _category_list(categories: str | Sequence[str]) -> list[str]:
+    """``categories`` as a list, each one of :data:`~unicorn.data.synthetic.shapes.CATEGORIES`.
+
+    Raises:
+        DatasetError: an unknown category (the message lists them).
+    """
+    categories = [categories] if isinstance(categories, str) else list(categories)
+    for cat in categories:
+        if cat not in CATEGORIES:
+            raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+    return categories
+
+
+def _random_backgrounds(mode: str | None, backgrounds: object) -> bool:
+    """Whether the views are drawn over random backgrounds: ``backgrounds`` as given, None: the mode's (wild)."""
+    return mode == "wild" if backgrounds is None else bool(backgrounds)
 
 
 def _background_kinds(kinds: Sequence[str] | None, random_backgrounds: bool) -> tuple[str, ...] | None:
@@ -479,8 +490,7 @@ def _in_effect(settings: dict[str, Any]) -> dict[str, Any]:
     ``roll=15``) is the one made with None, and the other way round."""
     settings = dict(settings)
     wild = settings.get("mode") == "wild"
-    backgrounds = settings.get("backgrounds")
-    random_bg = wild if backgrounds is None else bool(backgrounds)
+    random_bg = _random_backgrounds(settings.get("mode"), settings.get("backgrounds"))
     kinds = settings.get("background_kinds")
     settings["backgrounds"] = random_bg
     settings["background_kinds"] = (list(BACKGROUND_KINDS) if kinds is None else list(kinds)) if random_bg else None
