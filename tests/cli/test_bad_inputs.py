@@ -608,7 +608,7 @@ def test_reconstruct_overwrite_with_a_file_in_the_way_changes_nothing(tmp_path, 
     fast = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
     assert main([str(checkpoint), str(tmp_path / "inputs"), "--out", str(out), "--overwrite", *fast]) == 2
     lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == 1 and f"{out / 'photo'} is in the way" in lines[0], lines
+    assert len(lines) == 1 and f"{out / 'photo'} is a file where a folder goes" in lines[0], lines
     assert snapshot(tmp_path) == before  # not half-updated: no cutout/, no overview
 
 

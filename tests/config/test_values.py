@@ -51,6 +51,10 @@ CASES = [
     ("scale-flips", [*CUB, "model.pose.scale_range=2"], r"scale_range must be .* in \[0, 1\) \(scales 1 \+- it"),
     ("behind-the-camera", [*CUB, "model.pose.prior_translation=[0,0,0]"], r"prior_translation's z \(0\) must exceed"),
     ("image-size-not-a-power-of-2", [*CUB, "dataset.img_size=48"], r"img_size must be a power of 2 >= 2, got 48"),
+    ("task-name-path", [*SYNTHETIC, "task_name=../x"], r"task_name must be a folder name, not a path .* got '\.\./x'"),
+    ("task-name-empty", [*SYNTHETIC, "task_name=''"], r"task_name must be a folder name"),
+    ("lr-drop-to-zero", [*SYNTHETIC, "optim.lr_drop_gamma=0"], r"optim.lr_drop_gamma .*in \[1e-06, 1\]"),
+    ("deterministic", [*SYNTHETIC, "trainer.deterministic=bogus"], r"trainer.deterministic must be true, false, warn"),
     ("another-renderers-option", [*SYNTHETIC, "renderer=hard"], r"drop them with ~renderer\.faces_per_pixel$"),
 ]
 

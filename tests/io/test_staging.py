@@ -125,18 +125,22 @@ def test_a_file_in_the_way_of_a_folder_leaves_the_folder_as_it_was(tmp_path) -> 
     (out / "b").write_text("a file of the user's, where a folder goes")
     (out / "c").mkdir()  # a folder of the user's, where a file goes
     (out / "c" / "keep.txt").write_text("mine")
-    for clash in ("b", "c"):
-        with pytest.raises(OutputConflictError, match=rf"{out / clash} is in the way"):
+    (tmp_path / "elsewhere").mkdir()
+    (out / "d").symlink_to(tmp_path / "elsewhere")  # a link of the user's, where a folder goes
+    said = {"b": "a file where a folder goes", "c": "a folder where a file goes", "d": "a link where a folder goes"}
+    for clash, kind in said.items():
+        with pytest.raises(OutputConflictError, match=rf"{out / clash} is {kind}; move it away"):
             with staged_folder(out) as staging:
                 (staging / "a.txt").write_text("new")
-                if clash == "b":
-                    (staging / "b").mkdir()
-                    (staging / "b" / "x.txt").write_text("new")
-                else:
+                if clash == "c":
                     (staging / "c").write_text("a file")
+                else:
+                    (staging / clash).mkdir()
+                    (staging / clash / "x.txt").write_text("new")
         assert (out / "a.txt").read_text() == "old"  # nothing moved
         assert (out / "b").read_text().startswith("a file of the user's")
         assert (out / "c" / "keep.txt").read_text() == "mine" and not _siblings(out)
+        assert not any((tmp_path / "elsewhere").iterdir())
 
 
 @pytest.mark.parametrize("existing", [False, True], ids=["new-folder", "existing-folder"])

@@ -101,6 +101,10 @@ def _check_values(cfg: DictConfig) -> None:
     except ValueError as err:
         raise ConfigError(str(err)) from None
     _check_seed("seed", cfg.seed)
+    _check(
+        _is_folder_name(cfg.task_name),
+        f"task_name must be a folder name, not a path (no / or \\, not . or ..), got {cfg.task_name!r}",
+    )
     _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
     _check_model(cfg)
     _check_sizes(cfg)
@@ -130,6 +134,11 @@ def _check_values(cfg: DictConfig) -> None:
         pin is None or pin == "auto" or isinstance(pin, bool),
         f"dataset.pin_memory must be true, false or auto (when training on CUDA), got {pin!r}",
     )
+
+
+def _is_folder_name(name: str) -> bool:
+    """A name a folder can take on every system, not a path: no separator, not ``.`` or ``..``, not empty."""
+    return bool(name.strip()) and name not in (".", "..") and not any(c in name for c in "/\\\0")
 
 
 def _check_seed(key: str, value: Any) -> None:
@@ -236,6 +245,10 @@ def _check_schedule(s: DictConfig) -> None:
 
 
 def _check_trainer(t: DictConfig) -> None:
+    _check(
+        t.deterministic is None or isinstance(t.deterministic, bool) or t.deterministic == "warn",
+        f"trainer.deterministic must be true, false, warn or null, got {t.deterministic!r}",
+    )
     _check(
         _devices_ok(t.devices),
         f"trainer.devices must be 'auto', a number of devices (-1: all) or a list of device indices such as [0, 1], "

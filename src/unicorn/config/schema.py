@@ -222,7 +222,7 @@ class OptimConfig:
     eps: float = ranged(1e-8, 0)
     weight_decay: float = ranged(0.0, 0)
     lr_drop_step: int | None = None  # iteration at which the learning rate is multiplied by lr_drop_gamma
-    lr_drop_gamma: float = ranged(0.2, 0)
+    lr_drop_gamma: float = ranged(0.2, 1e-6, 1)  # > 0: at 0 the run would go on without learning
     idle_params: str = "skip"
     check_finite: bool = True  # stop on a NaN / inf loss or gradient (after saving a checkpoint)
     # steps without host reads (unicorn.hostsync): null (default) on CUDA only; false: every step reads its inputs'

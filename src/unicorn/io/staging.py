@@ -43,9 +43,9 @@ def _is_folder(path: Path) -> bool:
     return path.is_dir() and not path.is_symlink()
 
 
-def _conflicts(source: Path, target: Path) -> list[Path]:
-    """The entries of ``target`` that ``source``'s entries cannot replace: a file (or link) where ``source`` has a
-    folder, a folder where it has a file."""
+def _conflicts(source: Path, target: Path) -> list[str]:
+    """The entries of ``target`` that ``source``'s entries cannot replace, each described (``"<path> is a link
+    where a folder goes"``): a file or a link where ``source`` has a folder, a folder where it has a file."""
     found = []
     for entry in sorted(source.iterdir()):
         dest = target / entry.name
@@ -53,8 +53,10 @@ def _conflicts(source: Path, target: Path) -> list[Path]:
             continue
         if _is_folder(entry) and _is_folder(dest):
             found += _conflicts(entry, dest)
-        elif _is_folder(entry) or _is_folder(dest):
-            found.append(dest)
+        elif _is_folder(entry):
+            found.append(f"{dest} is {'a link' if dest.is_symlink() else 'a file'} where a folder goes")
+        elif _is_folder(dest):
+            found.append(f"{dest} is a folder where a file goes")
     return found
 
 
@@ -131,8 +133,7 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
             conflicts = _conflicts(tmp, out)
             if conflicts:  # checked before anything moves: the folder is updated whole or not at all
                 raise OutputConflictError(
-                    f"cannot write the output folder {out}: {conflicts[0]} is in the way (a file where a folder "
-                    "goes, or a folder where a file goes); move it away or choose another folder"
+                    f"cannot write the output folder {out}: {conflicts[0]}; move it away or choose another folder"
                 )
             _merge(tmp, out)
     except OSError as err:
