@@ -65,6 +65,29 @@ def test_look_at_puts_target_on_axis_and_camera_at_origin():
     assert (up[:, 1] > 0).all()
 
 
+def test_look_at_takes_pytorch3d_style_lists_and_a_shifted_target():
+    at, up = ((0.2, 0.1, -0.3),), ((0.0, 1.0, 0.0),)
+    R, T = look_at_view_transform(2.0, 30.0, 45.0, at=at, up=up)
+    assert torch.allclose(R, look_at_view_transform(2.0, 30.0, 45.0, at=torch.tensor(at))[0])
+    # the target lies on the optical axis at the camera's distance
+    assert torch.allclose(world_to_view(torch.tensor(at)[None], R, T), torch.tensor([[[0.0, 0.0, 2.0]]]), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"dist": 0.0}, r"a camera is at the point it looks at"),
+        ({"dist": torch.tensor([2.0, 0.0])}, r"a camera is at the point it looks at"),
+        ({"at": torch.zeros(4)}, r"at must have shape \(\.\.\., 3\), got \(4,\)"),
+        ({"up": torch.zeros(1, 2)}, r"up must have shape \(\.\.\., 3\), got \(1, 2\)"),
+    ],
+    ids=["at-the-target", "one-at-the-target", "at-shape", "up-shape"],
+)
+def test_look_at_refuses_a_camera_without_a_direction_and_odd_shapes(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        look_at_view_transform(**{"dist": 2.0, **kwargs})
+
+
 def test_reference_pose_parametrisation_matches_look_at():
     # UNICORN's R = Az @ El @ Ro with T = (0, 0, d) is a look-at camera with azimuth shifted by 180 degrees
     azim, elev = torch.tensor([0.0, 60.0, 250.0]), torch.tensor([30.0, -10.0, 5.0])

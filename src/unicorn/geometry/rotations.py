@@ -9,6 +9,8 @@ Angles are in degrees unless a function says otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
@@ -120,10 +122,20 @@ def look_at_rotation(
     Returns:
         (..., 3, 3) ``R`` whose columns are the camera's X (left), Y (up) and Z (forward) axes in world
         coordinates, so that ``(x - camera_position) @ R`` are view coordinates.
+
+    Raises:
+        ValueError: a tensor not of shape (..., 3), or a camera at its target point (no viewing direction).
     """
+    check_shape(camera_position, "*, 3", "camera_position")
     at = torch.zeros_like(camera_position) if at is None else at.to(camera_position)
-    up = camera_position.new_tensor([0.0, 1.0, 0.0]).expand_as(camera_position) if up is None else up
-    z_axis = torch.nn.functional.normalize(at - camera_position, dim=-1, eps=1e-8)
+    if up is None:
+        up = camera_position.new_tensor([0.0, 1.0, 0.0]).expand_as(camera_position)
+    check_shape(at, "*, 3", "at")
+    check_shape(up, "*, 3", "up")
+    forward = at - camera_position
+    if bool((forward.norm(dim=-1) < 1e-8).any()):
+        raise ValueError("look_at: a camera is at the point it looks at (distance 0), so it has no viewing direction")
+    z_axis = torch.nn.functional.normalize(forward, dim=-1)
     x_axis = torch.nn.functional.normalize(torch.cross(up.to(z_axis).expand_as(z_axis), z_axis, dim=-1), dim=-1)
     # looking straight along `up`: any x axis orthogonal to z will do
     degenerate = x_axis.norm(dim=-1, keepdim=True) < 1e-5
@@ -139,20 +151,32 @@ def look_at_view_transform(
     dist: torch.Tensor | float = 1.0,
     elev: torch.Tensor | float = 0.0,
     azim: torch.Tensor | float = 0.0,
-    at: torch.Tensor | None = None,
-    up: torch.Tensor | None = None,
+    at: torch.Tensor | Sequence[Sequence[float]] | None = None,
+    up: torch.Tensor | Sequence[Sequence[float]] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """World-to-view ``(R, T)`` of cameras placed by distance, elevation and azimuth (degrees).
+
+    Args:
+        dist, elev, azim: the camera's distance to ``at`` and its elevation and azimuth (degrees), scalars or
+            tensors that broadcast together.
+        at: (B, 3) or (3,) points looked at (tensors or nested lists, as PyTorch3D's ``at=((0, 0, 0),)``); the
+            origin by default.
+        up: (B, 3) or (3,) world up directions; +Y by default.
 
     Returns:
         R: (B, 3, 3) and T: (B, 3) with ``x_view = x_world @ R + T``; B is the broadcast size of the inputs
         (1 for scalars).
+
+    Raises:
+        ValueError: ``at`` or ``up`` not of shape (..., 3), or a camera at distance 0 from ``at``.
     """
     eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
     if at is not None:
+        at = torch.as_tensor(at)  # PyTorch3D's callers pass lists: at=[(0, 0, 0)]
+        check_shape(at, "*, 3", "at")
         at = at.reshape(-1, 3).to(eye)
         eye = eye + at
-    R = look_at_rotation(eye, at, up)
+    R = look_at_rotation(eye, at, None if up is None else torch.as_tensor(up).to(eye))
     T = -(eye.unsqueeze(1) @ R).squeeze(1)
     return R, T
 
