@@ -21,6 +21,7 @@ from unicorn.errors import UserError
 from unicorn.hostsync import is_sync_free
 
 __all__ = [
+    "FACE_DTYPES",
     "MAX_SEED",
     "Dims",
     "EnvironmentLimitError",
@@ -272,10 +273,15 @@ def _all_finite(t: torch.Tensor) -> torch.Tensor:
     return torch.isfinite((t.detach() * 0).sum())
 
 
+#: the integer dtypes torch indexes with (its unsigned 16-, 32- and 64-bit types have no min, max or gather)
+FACE_DTYPES = (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8)
+
+
 def _check_face_layout(faces: torch.Tensor, allow_empty: bool) -> None:
     check_shape(faces, "F, 3", "faces")
-    if faces.dtype.is_floating_point or faces.dtype.is_complex or faces.dtype == torch.bool:
-        raise TypeError(f"faces must be an integer tensor, got {faces.dtype}")
+    if faces.dtype not in FACE_DTYPES:
+        names = ", ".join(str(d).removeprefix("torch.") for d in FACE_DTYPES)
+        raise TypeError(f"faces must be an integer tensor of {names} (faces.long() converts), got {faces.dtype}")
     if faces.shape[0] == 0 and not allow_empty:
         raise ValueError("faces is empty (F = 0)")
 
@@ -325,6 +331,8 @@ def check_mesh(
         raise ValueError(f"verts is on {verts.device} but faces is on {faces.device}")
     if is_sync_free():
         return
+    if verts.is_meta:  # (renders without host reads trace on it: they read no value)
+        raise ValueError("verts is a meta tensor, which holds no values to check: render it inside sync_free()")
     values = [faces.min(), faces.max()] if faces.numel() else []
     named = {"verts": verts} if finite else {}
     named.update(finite_also or {})

@@ -40,6 +40,13 @@ def _tex(B, V):
         ),
         (torch.zeros(1, 5, 3), torch.tensor([0, 1, 2]), ValueError, r"faces must have shape \(F, 3\)"),
         (torch.zeros(1, 5, 3), torch.tensor([[0.0, 1.0, 2.0]]), TypeError, "integer"),
+        (
+            torch.zeros(1, 5, 3),
+            torch.tensor([[0, 1, 2]], dtype=torch.uint16),  # torch has no min, max or gather for it
+            TypeError,
+            r"faces must be an integer tensor of int64, int32, .* got torch.uint16",
+        ),
+        (torch.zeros(1, 5, 3, device="meta"), torch.zeros(1, 3, dtype=torch.int64, device="meta"), ValueError, "meta"),
         (torch.zeros(1, 5, 3), torch.tensor([[0, 1, 5]]), IndexError, r"face indices must be in \[0, 5\)"),
         (torch.zeros(1, 5, 3), torch.tensor([[0, -1, 2]]), IndexError, "face indices"),
         (
@@ -75,6 +82,8 @@ def test_bad_pose_and_texture_arguments(renderer):
         renderer(verts, faces, torch.rand(2, verts.shape[1], 3), R=R, T=T)
     with pytest.raises(ValueError, match=r"maps must have shape \(B, C, Ht, Wt\)"):
         TexturesUV(torch.rand(2, 3, 8), uvs)
+    with pytest.raises(ValueError, match=r"maps needs at least one channel and one texel, got .* \(2, 3, 0, 8\)"):
+        TexturesUV(torch.rand(2, 3, 0, 8), uvs)
     with pytest.raises(ValueError, match=r"face_uvs must have shape \(F, 3, 2\)"):
         TexturesUV(torch.rand(2, 3, 8, 8), uvs[..., :1])
     with pytest.raises(ValueError, match="wrap_u=True needs align_corners=False"):
@@ -327,7 +336,22 @@ def test_bad_image_sizes_are_named(name, size):
         build_renderer(name, image_size=size)
 
 
+def test_a_camera_rasterizer_or_blend_of_another_kind_is_refused_when_built():
+    from unicorn.render import LayeredBlend, MeshRenderer
+
+    with pytest.raises(TypeError, match="camera must be a PerspectiveCamera or None, got str"):
+        MeshRasterizer(image_size=8, camera="pinhole")
+    with pytest.raises(TypeError, match="rasterizer must be an nn.Module .* got str"):
+        MeshRenderer("rasterizer", LayeredBlend(1e-4))
+    with pytest.raises(TypeError, match="blend must be an nn.Module .* got str"):
+        MeshRenderer(MeshRasterizer(image_size=8), "layered")
+
+
 def test_image_size_accepts_ints_and_pairs():
+    verts, faces, R, T, _ = template_scene(batch=1)
+    rasterizer = MeshRasterizer(image_size=8)
+    assert rasterizer(verts, faces, R, T, image_size=6).image_size == (6, 6)  # per call, too
+    assert rasterizer(verts, faces, R, T, image_size=(6, 4)).image_size == (6, 4)
     assert build_renderer("layered", image_size=(12, 20)).image_size == (12, 20)
     assert build_renderer("layered", image_size=[12, 20]).image_size == (12, 20)
     assert MeshRasterizer(image_size=torch.Size([8, 9])).image_size == (8, 9)

@@ -65,6 +65,8 @@ class MeshRasterizer(nn.Module):
         if not (math.isfinite(blur_radius) and blur_radius >= 0):
             raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
         self.blur_radius = float(blur_radius)
+        if camera is not None and not isinstance(camera, PerspectiveCamera):
+            raise TypeError(f"camera must be a PerspectiveCamera or None, got {type(camera).__name__}")
         self.camera = camera if camera is not None else PerspectiveCamera(fov=30.0)
         self.truncate_opaque = bool(truncate_opaque)
         self.supersample = int(supersample)
@@ -103,7 +105,7 @@ class MeshRasterizer(nn.Module):
         faces: torch.Tensor,
         R: torch.Tensor | None = None,
         T: torch.Tensor | None = None,
-        image_size: tuple[int, int] | None = None,
+        image_size: int | tuple[int, int] | None = None,
         check_inputs: bool = True,
     ) -> Fragments:
         """Fragments of the meshes seen with pose (R, T).
@@ -113,7 +115,7 @@ class MeshRasterizer(nn.Module):
             faces: (F, 3) integer, shared by the batch.
             R: (B, 3, 3) world-to-view rotation, ``x_view = x @ R + T``.
             T: (B, 3) world-to-view translation.
-            image_size: (H, W) of the fragments; :attr:`raster_size` when None.
+            image_size: H or (H, W) of the fragments; :attr:`raster_size` when None.
             check_inputs: validate the meshes and the pose (False when the caller did: each check is a host
                 sync on CUDA).
 
@@ -123,7 +125,7 @@ class MeshRasterizer(nn.Module):
         if check_inputs:
             check_mesh_inputs(verts, faces)
             check_pose_inputs(R, T, verts.shape[0])
-        size = image_size or self.raster_size
+        size = self.raster_size if image_size is None else image_hw(image_size)
         key = (verts.shape[0], *size)
         capacity = self.buffers.get(key) if is_sync_free() else None
         fragments = rasterize_meshes(

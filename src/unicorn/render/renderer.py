@@ -71,6 +71,9 @@ class MeshRenderer(nn.Module):
         background_color: Sequence[float] = BACKGROUND_COLOR,
     ) -> None:
         super().__init__()
+        for name, part in (("rasterizer", rasterizer), ("blend", blend)):
+            if not isinstance(part, nn.Module):  # a module of its own, moved and saved with the renderer
+                raise TypeError(f"{name} must be an nn.Module (a {name} of unicorn.render), got {type(part).__name__}")
         check_render_option("background_color", background_color)
         self.rasterizer = rasterizer
         self.blend = blend

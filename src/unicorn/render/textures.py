@@ -152,6 +152,8 @@ class TexturesUV(Textures):
             maps = maps.permute(0, 3, 1, 2)
         if not maps.dtype.is_floating_point:
             raise TypeError(f"maps must be a float tensor, got {maps.dtype}")
+        if 0 in maps.shape[1:]:
+            raise ValueError(f"maps needs at least one channel and one texel, got (B, C, Ht, Wt) = {tuple(maps.shape)}")
         check_shape(face_uvs, "F, 3, 2", "face_uvs", floating=True)
         if wrap_u and align_corners:
             raise ValueError("wrap_u=True needs align_corners=False (the period must be one texture width)")
