@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from tests.support.datasets import make_record, save_with_orientation, write_struct_array
-from unicorn.data.cub import CUB200, CUB_FLIP_PERM
+from unicorn.data.cub import CUB200, CUB_FLIP_PERM, CUB_KEYPOINTS
 from unicorn.data.framing import hflip_keypoints
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.matlab import load_struct_array
@@ -177,3 +177,178 @@ def test_p3d_missing_files(tmp_path: Path, p3d_root: Path) -> None:
     (p3d_root / "ucmr_anno/data/car_train.mat").unlink()
     with pytest.raises(DatasetNotFoundError, match=r"car_train\.mat.*UCMR"):
         Pascal3DCar(p3d_root, "train")
+
+
+# ---------------------------------------------------------------------------------------------- malformed files
+def _rewrite(anno: Path, change) -> None:
+    """Apply ``change(records)`` to the records of a MATLAB annotation file and write it back."""
+    records = load_struct_array(anno, "images")
+    change(records)
+    keys = sorted({k for r in records for k in r})
+    arr = np.empty(len(records), dtype=[(k, "O") for k in keys])
+    for i, record in enumerate(records):
+        for k in keys:
+            arr[i][k] = record.get(k, np.zeros((0, 0)))
+    scipy.io.savemat(anno, {"images": arr})
+
+
+def _set(i: int, key: str, value) -> object:
+    def change(records: list[dict]) -> None:
+        records[i][key] = value
+
+    return change
+
+
+def _drop(key: str) -> object:
+    def change(records: list[dict]) -> None:
+        for record in records:
+            del record[key]
+
+    return change
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b"hello, not MATLAB\n", b"", "truncated", "folder"],
+    ids=["text", "empty", "truncated", "folder"],
+)
+def test_an_unreadable_annotation_file_is_one_error_naming_it(cub_root: Path, content) -> None:
+    anno = cub_root / "cachedir/cub/data/val_cub_cleaned.mat"
+    if content == "truncated":
+        anno.write_bytes(anno.read_bytes()[:600])
+    elif content == "folder":
+        anno.unlink()
+        anno.mkdir()
+    else:
+        anno.write_bytes(content)
+    with pytest.raises(DatasetError, match=r"cannot read .*val_cub_cleaned\.mat"):
+        CUB200(cub_root, "val")
+
+
+MALFORMED = [
+    ("no-box", _drop("bbox"), r"record 1 of .*val_cub_cleaned\.mat: no 'bbox' field"),
+    ("box-as-vector", _set(1, "bbox", np.array([1.0, 2.0, 30.0, 40.0])), r"record 2 .*: bbox must be a struct"),
+    (
+        "inverted-box",
+        _set(1, "bbox", {"x1": 40.0, "y1": 40.0, "x2": 5.0, "y2": 5.0}),
+        r"record 2 .*: bbox .* must be at least 2 pixels wide and high",
+    ),
+    (
+        "one-pixel-box",
+        _set(1, "bbox", {"x1": 9.0, "y1": 9.0, "x2": 9.0, "y2": 9.0}),
+        r"record 2 .*: bbox .* at least 2 pixels",
+    ),
+    (
+        "nan-corner",
+        _set(1, "bbox", {"x1": float("nan"), "y1": 1.0, "x2": 9.0, "y2": 9.0}),
+        r"record 2 .*: bbox's x1, y1, x2, y2 must be finite",
+    ),
+    ("keypoints-transposed", _set(1, "parts", np.zeros((15, 3))), r"record 2 .*: parts must be \(3, 15\).*\(15, 3\)"),
+    ("keypoints-short", _set(1, "parts", np.zeros((3, 10))), r"record 2 .*: parts must be \(3, 15\)"),
+    ("mask-vector", _set(1, "mask", np.ones(5, dtype=np.uint8)), r"record 2 .*: mask must be an \(H, W\) array"),
+]
+
+
+@pytest.mark.parametrize("change, message", [c[1:] for c in MALFORMED], ids=[c[0] for c in MALFORMED])
+def test_a_malformed_record_is_named_or_left_out_when_skipping(cub_root: Path, change, message) -> None:
+    anno = cub_root / "cachedir/cub/data/val_cub_cleaned.mat"
+    _rewrite(anno, change)
+    with pytest.raises(DatasetError, match=message):
+        CUB200(cub_root, "val")
+    if "record 2" in message:  # one bad record of 7: skipped with one warning naming it
+        with pytest.warns(RuntimeWarning, match=r"skipping 1 of 7 records .*; the first: record 2"):
+            skipping = CUB200(cub_root, "val", on_error="skip")
+        assert len(skipping) == 6
+        _check_item(skipping[1], 64, 64, len(CUB_KEYPOINTS))
+    else:  # every record bad: nothing left to skip to
+        with pytest.raises(DatasetError, match=r"7 of its 7 records are malformed"):
+            CUB200(cub_root, "val", on_error="skip")
+
+
+def test_an_annotation_file_without_records_is_refused(cub_root: Path) -> None:
+    anno = cub_root / "cachedir/cub/data/val_cub_cleaned.mat"
+    scipy.io.savemat(anno, {"images": np.empty((0, 0))})
+    with pytest.raises(DatasetError, match=r"val_cub_cleaned\.mat holds no records"):
+        CUB200(cub_root, "val")
+
+
+def _mask_of_its_transpose(records: list[dict]) -> None:
+    records[1]["mask"] = np.ascontiguousarray(np.asarray(records[1]["mask"]).T)
+
+
+def _box_off_the_image(records: list[dict]) -> None:
+    w = float(records[1]["width"])
+    records[1]["bbox"] = {"x1": w + 10, "y1": 1.0, "x2": w + 60, "y2": 40.0}
+
+
+def _box_a_million_wide(records: list[dict]) -> None:
+    records[1]["bbox"] = {"x1": 1.0, "y1": 1.0, "x2": 1e6, "y2": 1e6}
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (_mask_of_its_transpose, r"its mask is (\d+) x (\d+) \(H x W\), the image \2 x \1"),
+        (_box_off_the_image, r"its box \(0-based\) .* lies outside the \d+ x \d+ image"),
+        (_box_a_million_wide, r"its box makes a crop of \d+ x \d+ pixels, over the image limit"),
+    ],
+    ids=["mask-transposed", "box-off-the-image", "box-too-large"],
+)
+def test_annotations_that_do_not_fit_their_image_are_a_bad_item(cub_root: Path, change, message) -> None:
+    _rewrite(cub_root / "cachedir/cub/data/val_cub_cleaned.mat", change)
+    ds = CUB200(cub_root, "val")
+    with pytest.raises(ImageLoadError, match=rf"bad annotations for .*{ds.image_path(1).name}: {message}"):
+        ds[1]
+    skipping = CUB200(cub_root, "val", on_error="skip")
+    with pytest.warns(RuntimeWarning, match="bad annotations"):
+        assert int(skipping[1]["index"]) == 2
+
+
+@pytest.mark.parametrize(
+    "cad_index, message",
+    [
+        (0, r"cad_index must be in \[1, 10\] .* got 0"),
+        (11, r"cad_index .* got 11"),
+        (2.5, r"cad_index must be a whole"),
+    ],
+)
+def test_p3d_cad_index_out_of_the_ten_models_is_named(p3d_root: Path, cad_index, message) -> None:
+    _rewrite(p3d_root / "ucmr_anno/data/car_test.mat", _set(0, "cad_index", cad_index))
+    with pytest.raises(DatasetError, match=rf"record 1 of .*car_test\.mat: {message}"):
+        Pascal3DCar(p3d_root, "test")
+
+
+@pytest.mark.parametrize(
+    "perm, message",
+    [
+        (np.arange(1, 9), r"parts must be \(3, 8\) .* the 8 keypoints of the flip permutation\), got \(3, 12\)"),
+        (np.array([1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10]), r"flip permutation must hold each index 0\.\.11 once"),
+        (None, r"car_kps\.mat has no variable 'kp_perm_inds' \(it has \['kp_names'\]\)"),
+    ],
+    ids=["too-short", "zero-based", "missing"],
+)
+def test_p3d_keypoint_permutation_is_checked(p3d_root: Path, perm, message) -> None:
+    kps = p3d_root / "ucmr_anno/data/car_kps.mat"
+    content = {"kp_names": np.array([f"kp{i}" for i in range(12)], dtype=object)}
+    scipy.io.savemat(kps, content if perm is None else {**content, "kp_perm_inds": perm})
+    with pytest.raises(DatasetError, match=message):
+        Pascal3DCar(p3d_root, "train")
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"garbage", r"cannot read the CAD point cloud .*03_pointcloud\.pt"),
+        ({"points": torch.zeros(5, 3)}, r"must hold 'points' and 'normals', got \['points'\]"),
+        ({"points": torch.zeros(5, 2), "normals": torch.zeros(5, 3)}, r"must hold \(P, 3\) points and normals"),
+    ],
+    ids=["garbage", "no-normals", "2d-points"],
+)
+def test_p3d_bad_point_cloud_is_named(p3d_root: Path, content, message) -> None:
+    path = p3d_root / "unicorn_anno/car/03_pointcloud.pt"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save(content, path)
+    with pytest.raises(DatasetError, match=message):
+        Pascal3DCar(p3d_root, "test")

@@ -15,6 +15,7 @@ no orientation tag in practice, so the two readings agree on them anyway.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +32,27 @@ from unicorn.data.framing import (
     resize_mask,
     square_bbox,
 )
-from unicorn.data.images import DatasetError, load_image, to_chw_tensor
+from unicorn.data.images import (
+    RGB_BYTES_PER_PIXEL,
+    DatasetError,
+    ImageLoadError,
+    load_image,
+    max_image_bytes,
+    to_chw_tensor,
+)
 
-__all__ = ["BBoxCropDataset"]
+__all__ = ["AnnotationError", "BBoxCropDataset"]
+
+_BOX_FIELDS = ("x1", "y1", "x2", "y2")
+
+
+class AnnotationError(ImageLoadError):
+    """A record whose annotations do not fit its image (a mask of another size, a box off the image or too large
+    to crop): the item cannot be made, and is skipped like an unreadable image under ``on_error="skip"``."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path = str(path)
+        Exception.__init__(self, f"bad annotations for {self.path}: {reason}")
 
 
 class BBoxCropDataset(UnicornDataset):
@@ -49,7 +68,14 @@ class BBoxCropDataset(UnicornDataset):
         eval_size: if set, masks and keypoints are given at this resolution instead of ``img_size`` (the
             reference evaluates CUB masks / PCK at 256).
         flip_perm: (K,) 0-based permutation swapping left and right keypoints, or None to drop keypoints.
-        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+        on_error: ``"raise"`` or ``"skip"`` unreadable images and malformed records.
+        source: where the records come from, named in errors (the annotation file).
+
+    Records are checked when the dataset is made (:meth:`record_problem`): a malformed one (a missing field, a box
+    that is not finite, inverted or under 2 pixels, a mask that is not 2-D, keypoints not (3, K)) raises a
+    :class:`~unicorn.data.images.DatasetError` naming it, or with ``on_error="skip"`` is left out with one
+    warning. What needs the image (the mask's size, the box on the image) is checked when an item is read
+    (:class:`AnnotationError`).
 
     Items (besides the common keys): ``keypoints`` (K, 3) ``(column, row, visible)`` in pixels of the returned
     mask's resolution, invisible ones at (0, 0, 0); ``flipped`` bool.
@@ -66,11 +92,11 @@ class BBoxCropDataset(UnicornDataset):
         eval_size: int | None = None,
         flip_perm: np.ndarray | None = None,
         on_error: OnError = "raise",
+        source: str | Path = "the annotations",
     ) -> None:
         super().__init__(on_error)
         if not 0.0 <= jitter < 1.0:
             raise DatasetError(f"jitter must be in [0, 1) (a fraction of the box size), got {jitter}")
-        self.records = records
         self.image_dir = Path(image_dir)
         self.img_size = int(img_size)
         self.padding = float(padding)
@@ -78,6 +104,63 @@ class BBoxCropDataset(UnicornDataset):
         self.augment = bool(augment)
         self.eval_size = None if eval_size is None else int(eval_size)
         self.flip_perm = None if flip_perm is None else np.asarray(flip_perm, dtype=np.int64)
+        if self.flip_perm is not None and sorted(self.flip_perm.tolist()) != list(range(len(self.flip_perm))):
+            raise DatasetError(
+                f"the keypoints' flip permutation must hold each index 0..{len(self.flip_perm) - 1} once (1-based "
+                f"in the MATLAB files), got {(self.flip_perm + 1).tolist()} (1-based)"
+            )
+        self.records = self._checked(records, str(source))
+
+    def record_problem(self, record: Any) -> str | None:
+        """What makes ``record`` unusable, in words, or None (subclasses add their own fields' checks)."""
+        if not isinstance(record, dict):
+            return f"not a struct but a {type(record).__name__}"
+        fields = ("rel_path", "bbox", "mask") + (("parts",) if self.flip_perm is not None else ())
+        missing = [name for name in fields if name not in record]
+        if missing:
+            return f"no {missing[0]!r} field"
+        if not isinstance(record["rel_path"], str) or not record["rel_path"]:
+            return f"rel_path must be a file name, got {record['rel_path']!r}"
+        b = record["bbox"]
+        if not isinstance(b, dict) or any(k not in b for k in _BOX_FIELDS):
+            return "bbox must be a struct with fields x1, y1, x2, y2"
+        try:
+            box = np.array([b[k] for k in _BOX_FIELDS], dtype=np.float64)
+        except (TypeError, ValueError):
+            return "bbox's x1, y1, x2, y2 must be numbers"
+        if box.shape != (4,) or not np.isfinite(box).all():
+            return f"bbox's x1, y1, x2, y2 must be finite numbers, got {box.tolist()}"
+        if box[2] - box[0] < 1 or box[3] - box[1] < 1:
+            return f"bbox (x1, y1, x2, y2) = {box.tolist()} must be at least 2 pixels wide and high (x1 < x2, y1 < y2)"
+        mask = np.asarray(record["mask"])
+        if mask.ndim != 2 or 0 in mask.shape:
+            return f"mask must be an (H, W) array, got shape {mask.shape}"
+        if self.flip_perm is not None:
+            shape, K = np.shape(record["parts"]), len(self.flip_perm)
+            if shape != (3, K):
+                what = f"x, y and visibility of the {K} keypoints of the flip permutation"
+                return f"parts must be (3, {K}) ({what}), got {shape}"
+        return None
+
+    def _checked(self, records: list[Any], source: str) -> list[dict[str, Any]]:
+        """``records`` less the malformed ones when skipping; otherwise the first one raises."""
+        if not records:
+            raise DatasetError(f"{source} holds no records")
+        problems = [(i, p) for i, p in enumerate(map(self.record_problem, records)) if p is not None]
+        if not problems:
+            return records
+        first, problem = problems[0]
+        said = f"record {first + 1} of {source}: {problem}"
+        if self.on_error == "raise" or len(problems) == len(records):
+            more = f" ({len(problems)} of its {len(records)} records are malformed)" if len(problems) > 1 else ""
+            raise DatasetError(f"{said}{more}")
+        warnings.warn(
+            f"skipping {len(problems)} of {len(records)} records of {source}; the first: {said}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        bad = {i for i, _ in problems}
+        return [r for i, r in enumerate(records) if i not in bad]
 
     def __len__(self) -> int:
         return len(self.records)
@@ -95,14 +178,29 @@ class BBoxCropDataset(UnicornDataset):
             bbox = jitter_bbox(bbox, self.jitter, rng)
         return square_bbox(bbox)
 
+    def _check_on_image(self, index: int, image: np.ndarray, mask: np.ndarray, bbox: np.ndarray) -> None:
+        """The record's mask and square box ``bbox`` (0-based) against its image (H, W, 3)."""
+        H, W = image.shape[:2]
+        path = self.image_path(index)
+        if mask.shape != (H, W):
+            raise AnnotationError(path, f"its mask is {mask.shape[0]} x {mask.shape[1]} (H x W), the image {H} x {W}")
+        b = self.records[index]["bbox"]
+        x1, y1, x2, y2 = (float(b[k]) - 1.0 for k in _BOX_FIELDS)
+        if x2 < 0 or y2 < 0 or x1 > W - 1 or y1 > H - 1:
+            raise AnnotationError(path, f"its box (0-based) {[x1, y1, x2, y2]} lies outside the {W} x {H} image")
+        side, limit = int(bbox[2] - bbox[0] + 1), max_image_bytes()
+        if limit is not None and side * side * RGB_BYTES_PER_PIXEL > limit:
+            raise AnnotationError(
+                path, f"its box makes a crop of {side} x {side} pixels, over the image limit of {limit} bytes"
+            )
+
     def load(self, index: int) -> dict[str, Any]:
         record = self.records[index]
         image = load_image(self.image_path(index), exif_orientation=False)  # annotations are on the stored grid
         mask = np.asarray(record["mask"], dtype=np.float32)
-        if mask.shape != image.shape[:2]:
-            mask = resize_mask(mask, image.shape[:2])
         rng = item_rng() if self.augment else None
         bbox = self.square_crop_box(index, rng)
+        self._check_on_image(index, image, mask, bbox)
         crop, mask_crop = crop_box(image, bbox, mask)
         side = int(bbox[2] - bbox[0] + 1)
         out_mask = self.eval_size or self.img_size

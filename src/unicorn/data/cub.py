@@ -98,4 +98,5 @@ class CUB200(BBoxCropDataset):
             eval_size=eval_size,
             flip_perm=CUB_FLIP_PERM,
             on_error=on_error,
+            source=anno,
         )

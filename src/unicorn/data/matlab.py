@@ -12,14 +12,35 @@ from typing import Any
 
 import numpy as np
 import scipy.io
+from scipy.io.matlab import MatReadError
 
+from unicorn.data.images import DatasetError
 from unicorn.errors import UserError
 
-__all__ = ["MissingVariableError", "load_struct_array"]
+__all__ = ["MatFileError", "MissingVariableError", "load_struct_array", "read_mat"]
 
 
 class MissingVariableError(UserError, KeyError):
     """A MATLAB annotation file without the variable its dataset needs (a malformed or foreign file)."""
+
+
+class MatFileError(DatasetError):
+    """A file that scipy cannot read as a MATLAB (v4 to v7.2) file: truncated, another format, a folder."""
+
+
+def read_mat(path: str | os.PathLike, **options: Any) -> dict[str, Any]:
+    """``scipy.io.loadmat(path, **options)``, its failures one :class:`MatFileError` naming the file.
+
+    Raises:
+        MatFileError: the file is not a readable MATLAB file (v7.3 files are HDF5, which scipy does not read).
+    """
+    try:
+        return scipy.io.loadmat(path, **options)
+    except NotImplementedError as err:  # scipy's words for a v7.3 (HDF5) file
+        raise MatFileError(f"cannot read {path}: a MATLAB v7.3 file; save it with -v7 ({err})") from None
+    except (MatReadError, OSError, ValueError, TypeError, IndexError, KeyError, EOFError) as err:  # bad bytes
+        reason = str(err) or type(err).__name__
+        raise MatFileError(f"cannot read {path} as a MATLAB file: {reason}") from None
 
 
 def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, Any]]:
@@ -33,9 +54,10 @@ def load_struct_array(path: str | os.PathLike, variable: str) -> list[dict[str, 
         One dict per record, even when the file holds a single record.
 
     Raises:
-        KeyError: if the file has no such variable (the message lists the variables it has).
+        MatFileError: the file cannot be read as a MATLAB file.
+        MissingVariableError: the file has no such variable (the message lists the variables it has).
     """
-    data = scipy.io.loadmat(path, simplify_cells=True)
+    data = read_mat(path, simplify_cells=True)
     if variable not in data:
         names = sorted(k for k in data if not k.startswith("__"))
         raise MissingVariableError(f"{path} has no variable {variable!r} (it has {names})")

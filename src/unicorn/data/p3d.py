@@ -15,13 +15,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import scipy.io
 import torch
 
 from unicorn.data.annotated import BBoxCropDataset
 from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, DatasetNotFoundError, require
-from unicorn.data.matlab import load_struct_array
+from unicorn.data.matlab import load_struct_array, read_mat
 
 __all__ = ["Pascal3DCar", "load_cad_pointclouds"]
 
@@ -55,9 +54,30 @@ def load_cad_pointclouds(root: str | Path) -> list[dict[str, torch.Tensor]]:
         path = folder / f"{k:02d}_pointcloud.pt"
         if not path.exists():
             raise DatasetNotFoundError(path, "Pascal3D+ CAD point cloud", _PC_HINT)
-        data = torch.load(path, map_location="cpu", weights_only=True)
-        clouds.append({key: torch.as_tensor(data[key], dtype=torch.float32) for key in ("points", "normals")})
+        clouds.append(_read_pointcloud(path))
     return clouds
+
+
+def _read_pointcloud(path: Path) -> dict[str, torch.Tensor]:
+    """One CAD point cloud file: ``points`` and ``normals`` (P, 3) float32, read without unpickling code.
+
+    Raises:
+        DatasetError: the file is not such a point cloud (truncated, another format, other keys or shapes).
+    """
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise DatasetError(f"cannot read the CAD point cloud {path}: {first}") from None
+    keys = ("points", "normals")
+    if not isinstance(data, dict) or any(k not in data for k in keys):
+        found = sorted(map(str, data)) if isinstance(data, dict) else type(data).__name__
+        raise DatasetError(f"the CAD point cloud {path} must hold 'points' and 'normals', got {found}")
+    cloud = {k: torch.as_tensor(data[k], dtype=torch.float32) for k in keys}
+    if any(t.dim() != 2 or t.shape[1] != 3 or t.shape[0] == 0 for t in cloud.values()):
+        shapes = {k: tuple(t.shape) for k, t in cloud.items()}
+        raise DatasetError(f"the CAD point cloud {path} must hold (P, 3) points and normals, got shapes {shapes}")
+    return cloud
 
 
 class Pascal3DCar(BBoxCropDataset):
@@ -102,8 +122,14 @@ class Pascal3DCar(BBoxCropDataset):
         flip_perm = None
         kps_file = data_dir / "car_kps.mat"
         if kps_file.exists():
-            kps = scipy.io.loadmat(kps_file, squeeze_me=True)
-            flip_perm = np.atleast_1d(kps["kp_perm_inds"]).astype(np.int64) - 1  # MATLAB indices are 1-based
+            kps = read_mat(kps_file, squeeze_me=True)
+            if "kp_perm_inds" not in kps:
+                names = sorted(k for k in kps if not k.startswith("__"))
+                raise DatasetError(f"{kps_file} has no variable 'kp_perm_inds' (it has {names})")
+            try:
+                flip_perm = np.atleast_1d(kps["kp_perm_inds"]).astype(np.int64) - 1  # MATLAB indices are 1-based
+            except (TypeError, ValueError):
+                raise DatasetError(f"{kps_file}: kp_perm_inds must be whole numbers") from None
         self.root, self.split = root, split
         self.with_points = (split == "test") if with_points is None else with_points
         self.cad_pointclouds = load_cad_pointclouds(root) if self.with_points else None
@@ -117,7 +143,20 @@ class Pascal3DCar(BBoxCropDataset):
             eval_size=eval_size,
             flip_perm=flip_perm,
             on_error=on_error,
+            source=anno,
         )
+
+    def record_problem(self, record: Any) -> str | None:
+        """The base class's checks, and a ``cad_index`` among the 10 CAD models (1-based)."""
+        problem = super().record_problem(record)
+        if problem is not None:
+            return problem
+        cad = record.get("cad_index")
+        if not (isinstance(cad, (int, np.integer, float, np.floating)) and float(cad).is_integer()):
+            return f"cad_index must be a whole number in [1, {N_CAD_MODELS}], got {cad!r}"
+        if not 1 <= int(cad) <= N_CAD_MODELS:
+            return f"cad_index must be in [1, {N_CAD_MODELS}] (the CAD models, 1-based), got {int(cad)}"
+        return None
 
     def load(self, index: int) -> dict[str, Any]:
         item = super().load(index)
