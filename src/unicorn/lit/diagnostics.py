@@ -67,6 +67,7 @@ from unicorn.config.schema import DiagnosticsConfig
 from unicorn.errors import UnicornWarning
 from unicorn.evaluation.tables import candidate_shares
 from unicorn.lit.heldout import append_csv_row
+from unicorn.lit.loggers import log_step
 from unicorn.lit.overflow import TrainingOverflow
 from unicorn.metrics import active_units, code_spread, mesh_spread
 from unicorn.model.config import CODE_BRANCHES
@@ -367,7 +368,7 @@ class CodeDiagnostics(L.Callback):
         self.history.append(row)
         metrics = {f"diagnostics/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
         for logger in trainer.loggers:
-            logger.log_metrics(metrics, step=step)
+            logger.log_metrics(metrics, step=log_step(step))  # beside the iteration's training values
         append_csv_row(Path(trainer.default_root_dir) / self.filename, row)
         return row
 

@@ -30,6 +30,7 @@ import torch
 from lightning.pytorch.utilities import rank_zero_only
 
 from unicorn.config.schema import HELDOUT_SPLITS, HeldOutConfig
+from unicorn.lit.loggers import log_step
 from unicorn.model.ranges import check_ranges
 
 __all__ = ["HeldOutEvaluation", "append_csv_row"]
@@ -177,7 +178,7 @@ class HeldOutEvaluation(L.Callback):
         self.history.append(row)
         metrics = {f"heldout/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
         for logger in trainer.loggers:
-            logger.log_metrics(metrics, step=step)
+            logger.log_metrics(metrics, step=log_step(step))  # beside the iteration's training values
         self._append_csv(Path(trainer.default_root_dir) / self.filename, row)
         shown = ", ".join(f"{k} {v:.4g}" for k, v in row.items() if k != "step")
         log.info("held-out %s (%d images) at iteration %d: %s", self.split, len(self._dataset), step, shown)

@@ -2,10 +2,15 @@
 
 Lightning's :class:`~lightning.pytorch.loggers.CSVLogger` deletes ``metrics.csv`` when its folder exists, so
 resuming a run in its own folder (the SLURM requeue recipe) would lose every metric logged. :class:`CSVLogger`
-keeps the file and its columns. A resumed run repeats the iterations between its checkpoint and the kill;
-:class:`ResumeLogs` (a callback) drops their earlier rows from the CSV and tells TensorBoard to discard the
-earlier events from that step on (a ``SessionLog.START`` event, what ``SummaryWriter(purge_step=...)`` writes),
-so both logs read like those of a run that was never interrupted.
+keeps the file and its columns, and rewrites it (a new column, a resume) by replacing it whole. A resumed run
+repeats the iterations between its checkpoint and the kill; :class:`ResumeLogs` (a callback) drops their earlier
+rows from the CSV and tells TensorBoard to discard the earlier events from that step on (a ``SessionLog.START``
+event, what ``SummaryWriter(purge_step=...)`` writes), so both logs read like those of a run that was never
+interrupted.
+
+Both logs use Lightning's logging step: iteration N's training values are logged at step N - 1, and so are the
+evaluations made at the end of iteration N (:func:`log_step`), so that a checkpoint after iteration N splits the
+logs at step N exactly.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from lightning.pytorch.loggers import TensorBoardLogger as _LightningTensorBoard
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-__all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger", "logs_this_step"]
+__all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger", "log_step", "logs_this_step"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +42,12 @@ def logs_this_step(trainer: L.Trainer | None) -> bool:
     return bool(getattr(connector, "should_update_logs", True))
 
 
+def log_step(iteration: int) -> int:
+    """The loggers' step of values computed at the end of iteration ``iteration`` (a held-out evaluation, code
+    diagnostics): ``iteration - 1``, where Lightning logs that iteration's training values; 0 before training."""
+    return max(int(iteration) - 1, 0)
+
+
 class _AppendingWriter(ExperimentWriter):
     """Lightning's CSV writer, minus the deletion of an existing ``metrics.csv`` (its columns are kept)."""
 
@@ -48,35 +59,38 @@ class _AppendingWriter(ExperimentWriter):
         # a later new column rewrites the file with every earlier column too
         self.metrics_keys = sorted(set(header))
 
-    #: set on resume: the first row logged drops the earlier rows from its step on
-    resume_pending = False
-
-    def log_metrics(self, metrics_dict: dict[str, float], step: int | None = None) -> None:
-        if self.resume_pending and step is not None:
-            self.resume_pending = False
-            dropped = self.drop_from(step)
-            if dropped:
-                log.info("resumed at logged step %d: replaced %d later rows of %s", step, dropped, self.log_dir)
-        super().log_metrics(metrics_dict, step)
-
     def drop_from(self, step: int) -> int:
         """Remove the rows logged at ``step`` or later (they are about to be logged again); returns how many."""
         self.save()
         if not os.path.isfile(self.metrics_file_path):
             return 0
-        with open(self.metrics_file_path, newline="") as f:
-            reader = csv.DictReader(f)
-            fields = list(reader.fieldnames or [])
-            rows = list(reader)
+        fields, rows = self._read()
         kept = [r for r in rows if not r.get("step") or int(float(r["step"])) < step]
         if len(kept) < len(rows):
-            tmp = f"{self.metrics_file_path}.tmp-{os.getpid()}"
+            self._replace(fields, kept)
+        return len(rows) - len(kept)
+
+    def _rewrite_with_new_header(self, fieldnames: list[str]) -> None:
+        # Lightning's rewrites the file in place: a kill or a full disk part-way would lose every row
+        self._replace(fieldnames, self._read()[1])
+
+    def _read(self) -> tuple[list[str], list[dict[str, str]]]:
+        with open(self.metrics_file_path, newline="") as f:
+            reader = csv.DictReader(f)
+            return list(reader.fieldnames or []), list(reader)
+
+    def _replace(self, fields: list[str], rows: list[dict[str, str]]) -> None:
+        """Write ``metrics.csv`` anew beside it, then rename it into place (whole or not at all)."""
+        tmp = f"{self.metrics_file_path}.tmp-{os.getpid()}"
+        try:
             with open(tmp, "w", newline="") as f:
                 writer = csv.DictWriter(f, fieldnames=fields)
                 writer.writeheader()
-                writer.writerows(kept)
+                writer.writerows(rows)
             os.replace(tmp, self.metrics_file_path)
-        return len(rows) - len(kept)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
 
 
 class CSVLogger(_LightningCSVLogger):
@@ -103,21 +117,13 @@ class CSVLogger(_LightningCSVLogger):
 
 
 class TensorBoardLogger(_LightningTensorBoardLogger):
-    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that writes events as they are logged and, on resume,
-    hides the events it is about to repeat.
+    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that writes events as they are logged.
 
-    TensorBoard reads every event file of the folder, so the earlier run's events stay; the first metrics logged
-    after a resume are preceded by a ``SessionLog.START`` event at their step, after which TensorBoard discards
-    the earlier events at that step and later (what ``SummaryWriter(purge_step=...)`` writes).
+    TensorBoard reads every event file of the folder, so a resumed run's earlier events stay; :class:`ResumeLogs`
+    hides those it is about to repeat.
     """
 
-    #: set on resume (by :class:`ResumeLogs`)
-    resume_pending = False
-
     def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
-        if self.resume_pending and step is not None:
-            self.resume_pending = False
-            _purge_tensorboard(self, step)
         super().log_metrics(metrics, step)
         # written as logged (SummaryWriter buffers up to two minutes, which a killed run lost, including
         # iterations its last checkpoint already holds); logging happens every log_every_n_steps iterations
@@ -125,10 +131,9 @@ class TensorBoardLogger(_LightningTensorBoardLogger):
 
 
 class ResumeLogs(L.Callback):
-    """On a resumed run, forget what the logs hold from the resumed iteration on (see the module docstring).
-
-    The step is that of the first metrics the resumed run logs (Lightning's logging step is not the checkpoint's
-    ``global_step``), so the loggers act when they get them.
+    """On a resumed run, forget what the logs hold from the resumed iteration on (see the module docstring): the
+    CSV rows at the checkpoint's step (iteration N's checkpoint: step N, where iteration N + 1 logs) and later
+    are dropped, and TensorBoard is told to discard its events from that step on.
 
     Args:
         resume: the run resumes (or restarts) in its own folder; when False nothing is done.
@@ -140,11 +145,14 @@ class ResumeLogs(L.Callback):
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not self.resume or not trainer.is_global_zero:
             return
+        step = int(trainer.global_step)  # the iterations done, the logging step of the next one
         for logger in trainer.loggers:
             if isinstance(logger, CSVLogger):
-                logger.experiment.resume_pending = True
+                dropped = logger.experiment.drop_from(step)
+                if dropped:
+                    log.info("resumed at iteration %d: dropped %d later rows of %s", step, dropped, logger.log_dir)
             elif isinstance(logger, TensorBoardLogger):
-                logger.resume_pending = True
+                _purge_tensorboard(logger, step)
 
 
 def _purge_tensorboard(logger: _LightningTensorBoardLogger, step: int) -> None:

@@ -79,6 +79,11 @@ _SET_TO_NONE = {"skip": True, "momentum": False}
 _OPTIMIZER_OF_STEP = {"shared": {"pose": 0, "3d": 0}, "per_step": {"pose": 0, "3d": 1}}
 
 
+def _to_device(values: dict[str, Any], device: torch.device | str) -> dict[str, Any]:
+    """``values``' tensors detached and moved to ``device``; other values as they are."""
+    return {k: v.detach().to(device) if isinstance(v, torch.Tensor) else v for k, v in values.items()}
+
+
 def _rng_state() -> dict[str, Any]:
     # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
     name, keys, pos, has_gauss, gauss = np.random.get_state()  # noqa: NPY002 (the legacy global generator)
@@ -434,7 +439,9 @@ class UnicornLitModule(L.LightningModule):
         """
         self.read_deferred()
         memory = {k: (None if v is None else v.detach().cpu()) for k, v in self.objectives.memory.state().items()}
-        state = {"memory": memory, "rng": _rng_state()}
+        # each step kind's latest terms, logged at every logged iteration: a resumed run's first row has them all
+        latest = {kind: _to_device(terms, "cpu") for kind, terms in self._latest_terms.items()}
+        state = {"memory": memory, "rng": _rng_state(), "latest_terms": latest}
         ranks = [state]
         if self.trainer.world_size > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
             ranks = [None] * torch.distributed.get_world_size()
@@ -469,4 +476,6 @@ class UnicornLitModule(L.LightningModule):
         memory = self.objectives.memory
         memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
         _set_rng_state(mine["rng"])
+        latest = mine.get("latest_terms", {})  # absent from older checkpoints
+        self._latest_terms = {kind: _to_device(terms, self.device) for kind, terms in latest.items()}
         log.info("restored the neighbour memory (%d entries) and random states", len(memory))
