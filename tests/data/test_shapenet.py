@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
+from PIL import Image
 
-from unicorn.data.images import DatasetNotFoundError
+from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.shapenet import (
     ShapeNetNMR,
+    ViewSizeError,
     dvr_to_unicorn_points,
     dvr_to_unicorn_pose,
     unicorn_to_dvr_points,
@@ -130,3 +134,123 @@ def test_missing_root_and_files(tmp_path: Path, synth_nmr: Path) -> None:
     (broken / "metadata.yaml").unlink()
     with pytest.raises(DatasetNotFoundError, match="metadata.yaml"):
         ShapeNetNMR(broken)
+
+
+SYNSET = "03001627"
+
+
+def _tiny_nmr(root: Path, size: int = 8) -> Path:
+    """A DVR-layout dataset of one category, two models of three views of ``size`` pixels, in every split."""
+    folder = root / SYNSET
+    folder.mkdir(parents=True)
+    (root / "metadata.yaml").write_text(yaml.safe_dump({SYNSET: {"id": SYNSET, "name": "chair"}}))
+    for split in ("train", "val", "test"):
+        (folder / f"softras_{split}.lst").write_text("m0\nm1\n")
+    for model in ("m0", "m1"):
+        (folder / model / "image").mkdir(parents=True)
+        (folder / model / "mask").mkdir()
+        for view in range(3):
+            Image.new("RGB", (size, size), (128, 128, 128)).save(folder / model / "image" / f"{view:04d}.png")
+            Image.new("L", (size, size), 255).save(folder / model / "mask" / f"{view:04d}.png")
+        cameras = {"world_mat_0": np.eye(4), "world_mat_1": np.eye(4)[:3], "world_mat_2": np.eye(4)}  # (3, 4) too
+        np.savez(folder / model / "cameras.npz", **cameras)
+        np.savez(folder / model / "pointcloud.npz", points=np.zeros((5, 3)), normals=np.ones((5, 3)))
+    return root
+
+
+def test_tiny_dataset_reads(tmp_path: Path) -> None:
+    ds = ShapeNetNMR(_tiny_nmr(tmp_path), split="test", with_points=True)
+    assert len(ds) == 6 and ds.view_size == (8, 8)
+    assert all(ds[i]["image"].shape == (3, 8, 8) and ds[i]["points"].shape == (5, 3) for i in range(6))
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (b"- a\n- b\n", "expected a table .* got a list"),
+        (b"", "expected a table .* got nothing"),
+        (b"'03001627': chair\n", "synset '03001627' maps to a str"),
+        (b"{'03001627': [unclosed\n", "as YAML: line 2, column 1: expected ',' or ']'"),
+        (b"'03001627': !!python/object/apply:os.system ['touch PWNED']\n", "as YAML: line 1.*python/object/apply"),
+        (b"'03001627': {id: '03001627', name: 'caf\xe9'}\n", "line 1 of .*: not UTF-8 text"),
+    ],
+    ids=["list", "empty", "scalar-value", "syntax", "python-tag", "latin-1"],
+)
+def test_malformed_metadata_is_one_error_naming_it(
+    tmp_path: Path, content: bytes, problem: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = _tiny_nmr(tmp_path / "nmr")
+    (root / "metadata.yaml").write_bytes(content)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DatasetError, match=problem) as info:
+        ShapeNetNMR(root)
+    assert "metadata.yaml" in str(info.value) and "\n" not in str(info.value)
+    assert not (tmp_path / "PWNED").exists()  # the python tag was refused, not run
+
+
+def test_non_utf8_split_list_is_one_error_naming_it(tmp_path: Path) -> None:
+    root = _tiny_nmr(tmp_path)
+    (root / SYNSET / "softras_train.lst").write_bytes(b"m0\n\xff\xfem1\n")
+    with pytest.raises(DatasetError, match=r"line 2 of .*softras_train\.lst: not UTF-8 text"):
+        ShapeNetNMR(root)
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:-30])
+
+
+def _save(**arrays: np.ndarray) -> Callable[[Path], None]:
+    return lambda path: np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize(
+    ("name", "damage", "problem"),
+    [
+        ("cameras.npz", lambda path: path.write_bytes(b"junk"), "not a numpy .npz archive"),
+        ("cameras.npz", _truncate, "not a numpy .npz archive"),
+        ("cameras.npz", _save(world_mat_0=np.array([{"a": 1}], dtype=object)), "Object arrays cannot be loaded"),
+        ("cameras.npz", _save(world_mat_0=np.eye(4)), "no world_mat_1 for view 1"),
+        ("cameras.npz", _save(world_mat_0=np.eye(3), world_mat_1=np.eye(3)), r"world_mat_0 must be .* got \(3, 3\)"),
+        ("cameras.npz", _save(world_mat_0=np.full((4, 4), np.nan), world_mat_1=np.eye(4)), "must be a finite"),
+        ("pointcloud.npz", lambda path: path.write_bytes(b"junk"), "not a numpy .npz archive"),
+        ("pointcloud.npz", _save(pts=np.zeros((5, 3))), r"no 'points' array \(it holds \['pts'\]\)"),
+        ("pointcloud.npz", _save(points=np.zeros((5, 3)), normals=np.zeros((5, 2))), r"normals must be a \(P, 3\)"),
+    ],
+    ids=[
+        "cam-junk",
+        "cam-truncated",
+        "cam-objects",
+        "cam-no-view",
+        "cam-3x3",
+        "cam-nan",
+        "pc-junk",
+        "pc-no-points",
+        "pc-normals",
+    ],
+)
+def test_malformed_npz_is_one_error_naming_it(
+    tmp_path: Path, name: str, damage: Callable[[Path], None], problem: str
+) -> None:
+    path = _tiny_nmr(tmp_path) / SYNSET / "m0" / name
+    damage(path)
+    ds = ShapeNetNMR(tmp_path, split="test", with_points=True, on_error="skip")
+    with pytest.raises(DatasetError, match=problem) as info:
+        for i in range(len(ds)):
+            ds[i]
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("odd", ["mask", "image"])
+def test_view_of_another_size_is_skipped_like_an_unreadable_image(tmp_path: Path, odd: str) -> None:
+    root = _tiny_nmr(tmp_path)
+    # the first view of the first model: the dataset's size is what most views have, not what the first has
+    bad = root / SYNSET / "m0" / odd / "0000.png"
+    Image.new("RGB" if odd == "image" else "L", (4, 4)).save(bad)
+    ds = ShapeNetNMR(root)
+    assert ds.view_size == (8, 8)
+    with pytest.raises(ViewSizeError, match=rf"{odd}/0000\.png: 4 x 4 pixels \(H x W\), the dataset's views 8 x 8"):
+        ds[0]
+    assert issubclass(ViewSizeError, ImageLoadError)
+    with pytest.warns(RuntimeWarning, match="0000.png"):
+        item = ShapeNetNMR(root, on_error="skip")[0]
+    assert int(item["index"]) == 1 and item["image"].shape == (3, 8, 8)

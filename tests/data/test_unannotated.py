@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import io
+import os
+import re
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +16,9 @@ import torch
 from PIL import Image
 
 from tests.support.datasets import save_with_orientation, write_photo
-from unicorn.data.folder import CompCars, ImageFolder
+from unicorn.data.folder import CompCars, ImageFolder, list_images
 from unicorn.data.framing import fit_and_pad
-from unicorn.data.images import DatasetNotFoundError, ImageLoadError
+from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.errors import MissingPackageError, UserError
 
 
@@ -103,6 +106,33 @@ def test_lsun_indices_file(tmp_path: Path) -> None:
 
     (tmp_path / "indices.txt").write_text("0 3\n1 7\n2 8\n")
     assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7, 8]
+    (tmp_path / "indices.txt").write_text("# j k\n0 3\n\n1 7  # kept\r\n")  # comments, blank lines, CRLF
+    assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7]
+
+
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (b"j k\n0 3\n", "line 1 of .*: expected two integers '<j> <k>', got 'j k'"),
+        (b"0 3\n1\n2 8\n", "line 2 of .*: expected two integers '<j> <k>', got '1'"),
+        (b"0 3\n1 7 9\n", "line 2 of .*, got '1 7 9'"),
+        (b"0,3\n", "line 1 of .*, got '0,3'"),
+        (b"0 3.5\n", "line 1 of .*, got '0 3.5'"),
+        (b"0 3\n# caf\xe9\n", "line 2 of .*: not UTF-8 text"),
+        (b"", "lists no indices"),
+        (b"\n# nothing\n", "lists no indices"),
+    ],
+    ids=["header", "ragged", "three-columns", "commas", "float", "latin-1", "empty", "comments-only"],
+)
+def test_lsun_malformed_indices_name_the_file_and_line(tmp_path: Path, content: bytes, problem: str) -> None:
+    from unicorn.data.lsun import read_lsun_indices
+
+    (tmp_path / "indices.txt").write_bytes(content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy warned about an empty file before failing
+        with pytest.raises(DatasetError, match=problem) as info:
+            read_lsun_indices(tmp_path / "indices.txt")
+    assert "indices.txt" in str(info.value)
 
 
 def _write_lsun(root: Path, tag: str, n: int) -> list[bytes]:
@@ -146,6 +176,57 @@ def test_lsun_reads_lmdb_and_cleaned_subset(tmp_path: Path) -> None:
         LSUN(tmp_path, "horse", cleaned=True)
 
 
+@pytest.mark.parametrize("damage", ["empty", "random", "truncated"])
+def test_lsun_corrupt_lmdb_is_one_error_naming_it(tmp_path: Path, damage: str) -> None:
+    from unicorn.data.lsun import LSUN
+
+    _write_lsun(tmp_path, "horse", 4)
+    data = tmp_path / "horse" / "data.mdb"
+    size = data.stat().st_size
+    # a truncated file would kill the process with SIGBUS on the first read past its end, were it not refused
+    content = {
+        "empty": b"",
+        "random": np.random.default_rng(0).bytes(size),
+        "truncated": data.read_bytes()[: size // 3],
+    }
+    data.write_bytes(content[damage])
+    with pytest.raises(DatasetError, match=re.escape(f"cannot read the LMDB in {tmp_path / 'horse'}: ")) as info:
+        LSUN(tmp_path, "horse", cleaned=False)
+    assert "\n" not in str(info.value)
+
+
+def test_lsun_unreadable_record_is_skipped_like_a_bad_image(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import unicorn.data.lsun as lsun
+
+    lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    _write_lsun(tmp_path, "horse", 4)
+    ds = lsun.LSUN(tmp_path, "horse", cleaned=False)
+    real = lsun._open_env(ds.path)
+
+    class CorruptFirstRecord:  # an environment whose first record lies on a corrupt page
+        def begin(self, write: bool = False) -> CorruptFirstRecord:
+            return self
+
+        def __enter__(self) -> CorruptFirstRecord:
+            return self
+
+        def __exit__(self, *exc: object) -> None:
+            return None
+
+        def get(self, key: bytes) -> bytes | None:
+            if key == ds.keys[0]:
+                raise lmdb.CorruptedError("MDB_CORRUPTED: Located page was wrong type")
+            with real.begin() as txn:
+                return txn.get(key)
+
+    monkeypatch.setattr(lsun, "_open_env", lambda path: CorruptFirstRecord())
+    with pytest.raises(ImageLoadError, match=rf"{ds.keys[0].decode()}\]: CorruptedError: MDB_CORRUPTED"):
+        ds[0]
+    ds.on_error = "skip"
+    with pytest.warns(RuntimeWarning, match=ds.keys[0].decode()):
+        assert int(ds[0]["index"]) == 1
+
+
 def test_lsun_missing_root(tmp_path: Path) -> None:
     pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
     from unicorn.data.lsun import LSUN
@@ -182,3 +263,40 @@ def test_non_finite_image_is_skipped_like_any_bad_image(mixed_folder: Path) -> N
     with pytest.warns(RuntimeWarning, match="aaa_nan.tif"):
         item = ImageFolder(mixed_folder, on_error="skip")[0]
     assert int(item["index"]) == 1 and torch.isfinite(item["image"]).all()
+
+
+def _symlink(link: Path, target: str | Path) -> None:
+    try:
+        link.symlink_to(target)
+    except (OSError, NotImplementedError):
+        pytest.skip("symbolic links are not available here")
+
+
+def test_folder_follows_linked_folders_once(tmp_path: Path) -> None:
+    store, root = tmp_path / "store", tmp_path / "photos"
+    write_photo(store / "more" / "b.jpg", 20, 10, 0)
+    write_photo(root / "a.jpg", 20, 10, 1)
+    _symlink(root / "more", store / "more")  # Path.rglob did not go into linked folders: b.jpg went missing
+    _symlink(root / "again", store / "more")  # the same folder by another route: read once, by the first route
+    _symlink(root / "self", ".")  # loops back up the tree
+    expected = [root / "a.jpg", root / "again" / "b.jpg"]
+    assert list_images(root) == expected and ImageFolder(root).files == expected
+
+
+def test_folder_lists_broken_image_links_as_bad_images(tmp_path: Path) -> None:
+    root = tmp_path / "photos"
+    write_photo(root / "a.jpg", 20, 10, 1)
+    _symlink(root / "b_dangling.jpg", "nowhere.jpg")
+    _symlink(root / "c_loop.jpg", "c_loop.jpg")
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(root / "d_pipe.jpg")  # not a file: not listed (reading it would block)
+    ds = ImageFolder(root)
+    assert [p.name for p in ds.files] == ["a.jpg", "b_dangling.jpg", "c_loop.jpg"]
+    for i, name in ((1, "b_dangling.jpg"), (2, "c_loop.jpg")):
+        with pytest.raises(ImageLoadError, match=name):
+            ds[i]
+    skipping = ImageFolder(root, on_error="skip")
+    with pytest.warns(RuntimeWarning) as record:
+        assert int(skipping[1]["index"]) == 0  # both links skipped, on to a.jpg
+    messages = [str(w.message) for w in record]
+    assert len(messages) == 2 and "b_dangling.jpg" in messages[0] and "c_loop.jpg" in messages[1]

@@ -10,6 +10,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from tests.support.training import compose_config
+from unicorn.data.images import DatasetError
 from unicorn.lit import StreamBatchSampler, UnicornDataModule
 from unicorn.lit.data import MAX_AUTO_WORKERS, auto_num_workers, usable_cpus
 
@@ -63,7 +64,7 @@ def test_stream_seed_trains_on_the_resumable_stream(cub_root: Path, tmp_path: Pa
         assert next(batches)["index"].tolist() == [i for _, i in expected.batch_at(b)]
     empty = UnicornDataModule("folder", str(tmp_path), num_workers=0, stream_seed=0)
     empty.build = lambda split: []  # e.g. every image skipped as unreadable
-    with pytest.raises(RuntimeError, match="no training images"):
+    with pytest.raises(DatasetError, match="no training images"):  # a UserError: one line in the CLIs
         empty.setup("fit")
 
 

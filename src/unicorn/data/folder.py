@@ -7,6 +7,7 @@ reference's ``resize_mode='pad'``); training items are flipped horizontally at r
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +30,27 @@ _COMPCARS_HINT = (
 
 
 def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> list[Path]:
-    """All files under ``root`` (recursively) whose suffix, lower-cased, is in ``extensions``; sorted."""
-    return sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in extensions)
+    """All files under ``root`` (recursively) whose suffix, lower-cased, is in ``extensions``; sorted.
+
+    Links to folders are followed, each folder read once (so a link back up the tree ends there); a link named like an
+    image that leads nowhere (dangling, or a loop of links) is listed, so that reading it fails as a corrupt image
+    does (``on_error="skip"`` skips it with a warning) rather than the image going missing unnoticed. Paths are
+    given through the links, not resolved.
+    """
+    found, seen = [], set()
+    for folder, subfolders, files in os.walk(root, followlinks=True):
+        real = os.path.realpath(folder)
+        if real in seen:
+            subfolders.clear()  # reached before by another route
+            continue
+        seen.add(real)
+        subfolders.sort()  # which route reaches a folder first does not depend on the file system's order
+        for name in files:
+            path = Path(folder, name)
+            # a regular file (through any links), or a broken link; not a pipe or a device
+            if path.suffix.lower() in extensions and (path.is_file() or not path.exists()):
+                found.append(path)
+    return sorted(found)
 
 
 def unannotated_item(image: np.ndarray, img_size: int, flip: bool) -> dict[str, Any]:

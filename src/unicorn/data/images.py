@@ -54,6 +54,7 @@ __all__ = [
     "max_image_bytes",
     "max_image_pixels",
     "open_image",
+    "read_text",
     "require",
     "set_max_image_bytes",
     "set_max_image_pixels",
@@ -80,6 +81,21 @@ class DatasetNotFoundError(UserError, FileNotFoundError):
     def __init__(self, path: str | os.PathLike, what: str, hint: str) -> None:
         self.path = str(path)
         super().__init__(f"{what} not found at {self.path}. {hint}")
+
+
+def read_text(path: str | os.PathLike) -> str:
+    """The UTF-8 text of an annotation or list file.
+
+    Raises:
+        DatasetError: the file cannot be read, or is not UTF-8 (naming the line and byte).
+    """
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        line = err.object[: err.start].count(b"\n") + 1
+        raise DatasetError(f"line {line} of {path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except OSError as err:
+        raise DatasetError(f"cannot read {path}: {err.strerror or err}") from None
 
 
 def require(path: str | os.PathLike, what: str, hint: str) -> Path:

@@ -20,7 +20,7 @@ import numpy as np
 from unicorn.data.common import OnError, UnicornDataset, item_rng
 from unicorn.data.folder import unannotated_item
 from unicorn.data.framing import crop_box, jitter_bbox, pad_bbox
-from unicorn.data.images import DatasetError, ImageLoadError, decode_image, require
+from unicorn.data.images import DatasetError, ImageLoadError, decode_image, read_text, require
 from unicorn.errors import MissingPackageError
 
 __all__ = ["LSUN", "import_lmdb", "read_lsun_indices"]
@@ -49,23 +49,64 @@ def import_lmdb() -> Any:
 _ENVS: dict[str, tuple[int, Any]] = {}
 
 
+def _lmdb_error(path: Path, err: Exception) -> DatasetError:
+    """The one-line error for an LMDB that cannot be read (py-lmdb's message starts with the folder)."""
+    reason = str(err).removeprefix(f"{path.resolve()}: ") or type(err).__name__
+    size = (path / "data.mdb").stat().st_size
+    return DatasetError(f"cannot read the LMDB in {path}: {reason} (data.mdb of {size} bytes: corrupt or incomplete?)")
+
+
 def _open_env(path: Path) -> Any:
+    """The read-only LMDB environment of folder ``path`` for this process.
+
+    Raises:
+        DatasetError: ``data.mdb`` is not an LMDB file, or is shorter than the pages it says it has.
+    """
     key = str(path.resolve())
     pid, env = _ENVS.get(key, (None, None))
     if pid != os.getpid():
         if env is not None:
             env.close()  # the parent's handle, inherited by fork: release this process's copy, then reopen
-        env = import_lmdb().open(key, readonly=True, lock=False, readahead=False, meminit=False)
+            del _ENVS[key]
+        lmdb = import_lmdb()
+        try:
+            env = lmdb.open(key, readonly=True, lock=False, readahead=False, meminit=False)
+            used = (env.info()["last_pgno"] + 1) * env.stat()["psize"]
+        except lmdb.Error as err:
+            raise _lmdb_error(path, err) from None
+        size = (path / "data.mdb").stat().st_size
+        if size < used:  # a read past the file's end would kill the process (SIGBUS), not raise
+            env.close()
+            raise DatasetError(f"cannot read the LMDB in {path}: data.mdb holds {size} of its {used} bytes (truncated)")
         _ENVS[key] = (os.getpid(), env)
     return env
 
 
 def read_lsun_indices(path: str | Path) -> np.ndarray:
-    """Second column of UNICORN's ``indices.txt`` (space-separated integer pairs, no header) as (N,) int64."""
-    table = np.loadtxt(path, dtype=np.int64, ndmin=2)
-    if table.shape[1] < 2:
-        raise DatasetError(f"{path}: expected lines of two integers '<j> <k>', got {table.shape[1]} column(s)")
-    return table[:, 1]
+    """Second column of UNICORN's ``indices.txt`` as (N,) int64.
+
+    The file is UTF-8 text of lines ``<j> <k>``, two integers separated by white space; blank lines and ``#``
+    comments are ignored (as ``np.loadtxt`` did).
+
+    Raises:
+        DatasetError: the file is not such text, naming its first bad line, or lists no index.
+    """
+    text = read_text(path)
+    kept = []
+    for number, line in enumerate(text.splitlines(), 1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        try:
+            _, k = (int(field) for field in fields)  # ValueError too when there are not two
+        except ValueError:
+            raise DatasetError(
+                f"line {number} of {path}: expected two integers '<j> <k>', got {line.strip()!r}"
+            ) from None
+        kept.append(k)
+    if not kept:
+        raise DatasetError(f"{path} lists no indices (expected lines of two integers '<j> <k>')")
+    return np.array(kept, dtype=np.int64)
 
 
 class LSUN(UnicornDataset):
@@ -83,7 +124,10 @@ class LSUN(UnicornDataset):
         augment: box jitter and random horizontal flips (training).
         padding: fraction of the image size added on every side (0.1 in the reference).
         jitter: fraction of the image size by which boxes move when augmenting (0.1).
-        on_error: ``"raise"`` or ``"skip"`` undecodable records.
+        on_error: ``"raise"`` or ``"skip"`` undecodable or unreadable records.
+
+    An LMDB that cannot be opened or listed, or a malformed ``indices.txt``, is a
+    :class:`~unicorn.data.images.DatasetError` naming it, whatever ``on_error``.
 
     Items: ``image`` (3, S, S), ``mask`` (1, S, S) of ones (``has_mask`` False), dummy pose.
     """
@@ -102,15 +146,19 @@ class LSUN(UnicornDataset):
         super().__init__(on_error)
         if not 0.0 <= jitter < 1.0:
             raise DatasetError(f"jitter must be in [0, 1) (a fraction of the image size), got {jitter}")
-        import_lmdb()  # fail early, with the install hint
+        lmdb = import_lmdb()  # fail early, with the install hint
         root = require(root, "LSUN root", _HINT)
         self.path = require(root / tag, f"LSUN '{tag}' LMDB folder", _HINT)
         require(self.path / "data.mdb", f"LSUN '{tag}' LMDB file", _HINT)
         self.tag, self.img_size, self.augment = tag, int(img_size), bool(augment)
         self.padding, self.jitter = float(padding), float(jitter)
         # keys are read once, in LMDB (byte-sorted) order, the order indices.txt refers to
-        with _open_env(self.path).begin(write=False) as txn:
-            keys = [bytes(k) for k in txn.cursor().iternext(keys=True, values=False)]
+        env = _open_env(self.path)
+        try:
+            with env.begin(write=False) as txn:
+                keys = [bytes(k) for k in txn.cursor().iternext(keys=True, values=False)]
+        except lmdb.Error as err:
+            raise _lmdb_error(self.path, err) from None
         if cleaned:
             indices_file = require(self.path / "indices.txt", f"LSUN '{tag}' cleaned index list", _HINT)
             indices = read_lsun_indices(indices_file)
@@ -126,8 +174,12 @@ class LSUN(UnicornDataset):
     def load(self, index: int) -> dict[str, Any]:
         key = self.keys[index]
         name = f"{self.path}[{key.decode(errors='replace')}]"
-        with _open_env(self.path).begin(write=False) as txn:
-            data = txn.get(key)
+        env, lmdb = _open_env(self.path), import_lmdb()
+        try:
+            with env.begin(write=False) as txn:
+                data = txn.get(key)
+        except lmdb.Error as err:  # a corrupt page: this record is lost, maybe not the others
+            raise ImageLoadError(name, f"{type(err).__name__}: {err}") from None
         if data is None:
             raise ImageLoadError(name, "key missing from the LMDB")
         image = decode_image(data, name)

@@ -16,6 +16,8 @@ read as stored (EXIF orientation not applied, unlike user photos): the cameras d
 
 from __future__ import annotations
 
+import zipfile
+from collections import Counter
 from pathlib import Path
 from typing import Any, Literal
 
@@ -24,11 +26,22 @@ import torch
 import yaml
 
 from unicorn.data.common import OnError, UnicornDataset
-from unicorn.data.images import DatasetError, DatasetNotFoundError, load_image, load_mask, require, to_chw_tensor
+from unicorn.data.images import (
+    DatasetError,
+    DatasetNotFoundError,
+    ImageLoadError,
+    load_image,
+    load_mask,
+    open_image,
+    read_text,
+    require,
+    to_chw_tensor,
+)
 
 __all__ = [
     "SHAPENET_CATEGORIES",
     "ShapeNetNMR",
+    "ViewSizeError",
     "dvr_to_unicorn_points",
     "dvr_to_unicorn_pose",
     "unicorn_to_dvr_points",
@@ -105,11 +118,55 @@ def unicorn_to_dvr_points(points: np.ndarray) -> np.ndarray:
     return np.asarray(points) @ _SN_TO_UNI.T
 
 
+class ViewSizeError(ImageLoadError):
+    """A view image or mask whose size is not the dataset's (:attr:`ShapeNetNMR.view_size`): the items could not
+    be batched together, so it is skipped like an unreadable image under ``on_error="skip"``."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path = str(path)
+        Exception.__init__(self, f"wrong size of {self.path}: {reason}")
+
+
+def _read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of the numpy archive ``path`` (``what`` names it when it is missing).
+
+    Raises:
+        DatasetNotFoundError: the file is missing.
+        DatasetError: it is not a readable ``.npz`` of plain arrays (corrupt, truncated, pickled objects).
+    """
+    if not path.exists():
+        raise DatasetNotFoundError(path, what, _HINT)
+    if not zipfile.is_zipfile(path):  # numpy would try to unpickle it, and say so
+        raise DatasetError(f"cannot read {path}: not a numpy .npz archive (a zip file), or truncated")
+    try:
+        with np.load(path) as archive:  # allow_pickle=False: object arrays are refused, never unpickled
+            return {key: archive[key] for key in archive.files}
+    except Exception as err:  # bad bytes raise many kinds (ValueError, BadZipFile, EOFError, zlib.error, ...)
+        reason = " ".join(str(err).split())
+        raise DatasetError(f"cannot read {path} as a numpy .npz archive: {type(err).__name__}: {reason}") from None
+
+
 def read_metadata(root: Path) -> dict[str, dict[str, str]]:
-    """``metadata.yaml`` as ``{synset: {"id": ..., "name": ...}}``."""
+    """``metadata.yaml`` as ``{synset: {"id": ..., "name": ...}}``.
+
+    Raises:
+        DatasetNotFoundError: the file is missing.
+        DatasetError: it is not UTF-8 YAML of plain data (no ``!!python/...`` tags) mapping each synset to a
+            table, or lists no synset.
+    """
     path = require(root / "metadata.yaml", "ShapeNet metadata.yaml", _HINT)
-    with open(path) as f:
-        data = yaml.safe_load(f) or {}
+    try:
+        data = yaml.safe_load(read_text(path))
+    except yaml.YAMLError as err:
+        mark, problem = getattr(err, "problem_mark", None), getattr(err, "problem", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark and problem else str(err)
+        raise DatasetError(f"cannot read {path} as YAML: {' '.join(where.split())}") from None
+    if not isinstance(data, dict) or not data:
+        got = f"a {type(data).__name__}" if data else "nothing"
+        raise DatasetError(f"{path}: expected a table {{synset: {{id: ..., name: ...}}}}, got {got}")
+    for synset, info in data.items():
+        if not isinstance(info, dict):
+            raise DatasetError(f"{path}: synset {synset!r} maps to a {type(info).__name__}, expected {{id, name}}")
     return {str(k): {"id": str(v.get("id", k)), "name": str(v.get("name", ""))} for k, v in data.items()}
 
 
@@ -147,7 +204,11 @@ class ShapeNetNMR(UnicornDataset):
         n_points: keep this many ground-truth points per model (a fixed subset per model), None for all.
         include_test: for ``"train"``, also use the val and test models (the reference's option).
         seed: seed of the view choice and the point subsets.
-        on_error: ``"raise"`` or ``"skip"`` unreadable images.
+        on_error: ``"raise"`` or ``"skip"`` unreadable images, and images or masks of another size than
+            :attr:`view_size` (:class:`ViewSizeError`).
+
+    A malformed ``metadata.yaml``, split list, ``cameras.npz`` or ``pointcloud.npz`` is a
+    :class:`~unicorn.data.images.DatasetError` naming the file, whatever ``on_error``.
 
     Items: ``image`` (3, H, W), ``mask`` (1, H, W), ``R`` (3, 3), ``T`` (3,) (``has_pose`` True),
     ``category`` (index into :attr:`synsets`), ``model`` (index into :attr:`models`: which object), ``view``,
@@ -183,19 +244,37 @@ class ShapeNetNMR(UnicornDataset):
         for c, synset in enumerate(self.synsets):
             for s in splits:
                 lst = require(self.root / synset / f"softras_{s}.lst", f"ShapeNet split list for {synset}", _HINT)
-                names = [line.strip() for line in lst.read_text().splitlines() if line.strip()]
+                names = [line.strip() for line in read_text(lst).splitlines() if line.strip()]
                 self.models += [(c, self.root / synset / name) for name in names]
         if not self.models:
             raise DatasetError(f"no {split} models for categories {self.synsets} under {self.root}")
         first = self.models[0][1] / "image"
         if not first.is_dir():
             raise DatasetNotFoundError(first, "ShapeNet model image folder", _HINT)
-        self.n_views = len(list(first.glob("*.png")))
+        views = sorted(first.glob("*.png"))
+        self.n_views = len(views)
         if self.n_views == 0:
             raise DatasetNotFoundError(first / "0000.png", "ShapeNet view images", _HINT)
+        #: (H, W) of every image and mask: the most common among the first model's views
+        self.view_size = self._common_size(views)
         rng = np.random.default_rng(self.seed)
         self.random_views = rng.integers(0, self.n_views, size=len(self.models))
         self._world_mats: dict[int, dict[str, np.ndarray]] = {}
+
+    def _common_size(self, views: list[Path]) -> tuple[int, int]:
+        """(H, W) that most of ``views`` have (read from their headers); unreadable ones raise or are passed over
+        as ``on_error`` says."""
+        sizes: Counter[tuple[int, int]] = Counter()
+        for path in views:
+            try:
+                with open_image(path, path) as img:
+                    sizes[img.height, img.width] += 1
+            except ImageLoadError:
+                if self.on_error == "raise":
+                    raise
+        if not sizes:
+            raise DatasetError(f"no readable view image in {views[0].parent}")
+        return sizes.most_common(1)[0][0]
 
     def __len__(self) -> int:
         return len(self.models) * (self.n_views if self.views == "all" else 1)
@@ -213,10 +292,16 @@ class ShapeNetNMR(UnicornDataset):
     def load_points(self, model: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Ground-truth ``points`` and ``normals`` (P, 3) float32 of a model, in UNICORN's object frame."""
         path = self.models[model][1] / "pointcloud.npz"
-        if not path.exists():
-            raise DatasetNotFoundError(path, "ShapeNet point cloud", _HINT)
-        with np.load(path) as data:
-            points, normals = data["points"].astype(np.float64), data["normals"].astype(np.float64)
+        data = _read_npz(path, "ShapeNet point cloud")
+        for key in ("points", "normals"):
+            if key not in data:
+                raise DatasetError(f"{path}: no {key!r} array (it holds {sorted(data)})")
+            arr = data[key]
+            if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
+                raise DatasetError(f"{path}: {key} must be a (P, 3) array of numbers, got {arr.shape} {arr.dtype}")
+        points, normals = data["points"].astype(np.float64), data["normals"].astype(np.float64)
+        if len(points) != len(normals) or not (np.isfinite(points).all() and np.isfinite(normals).all()):
+            raise DatasetError(f"{path}: points and normals must be as many and finite")
         if self.n_points is not None and self.n_points < len(points):
             keep = np.random.default_rng([self.seed, model]).choice(len(points), self.n_points, replace=False)
             points, normals = points[keep], normals[keep]
@@ -229,22 +314,30 @@ class ShapeNetNMR(UnicornDataset):
         A model's ``cameras.npz`` is read once and its world matrices kept (about 1 KB per model): opening the
         archive for every item took a tenth of the data loading.
         """
+        path = self.models[model][1] / "cameras.npz"
         mats = self._world_mats.get(model)
         if mats is None:
-            cameras = self.models[model][1] / "cameras.npz"
-            if not cameras.exists():
-                raise DatasetNotFoundError(cameras, "ShapeNet cameras.npz", _HINT)
-            with np.load(cameras) as cams:
-                mats = {k: cams[k] for k in cams.files if k.startswith("world_mat_")}
+            mats = {k: v for k, v in _read_npz(path, "ShapeNet cameras.npz").items() if k.startswith("world_mat_")}
             self._world_mats[model] = mats
-        return dvr_to_unicorn_pose(mats[f"world_mat_{view}"])
+        name = f"world_mat_{view}"
+        if name not in mats:
+            raise DatasetError(f"{path}: no {name} for view {view} (it holds {len(mats)} world matrices)")
+        mat = mats[name]
+        if mat.shape not in ((3, 4), (4, 4)) or not np.issubdtype(mat.dtype, np.number) or not np.isfinite(mat).all():
+            raise DatasetError(f"{path}: {name} must be a finite (4, 4) or (3, 4) matrix, got {mat.shape} {mat.dtype}")
+        return dvr_to_unicorn_pose(mat)
 
     def load(self, index: int) -> dict[str, Any]:
         model, view = self.model_view(index)
         category, folder = self.models[model]
+        image_path, mask_path = folder / "image" / f"{view:04d}.png", folder / "mask" / f"{view:04d}.png"
         # the stored pixel grid, EXIF orientation not applied: the cameras were made for it
-        image = load_image(folder / "image" / f"{view:04d}.png", exif_orientation=False)
-        mask = load_mask(folder / "mask" / f"{view:04d}.png", exif_orientation=False)
+        image = load_image(image_path, exif_orientation=False)
+        mask = load_mask(mask_path, exif_orientation=False)
+        for path, arr in ((image_path, image), (mask_path, mask)):
+            if arr.shape[:2] != self.view_size:
+                (H, W), (h, w) = arr.shape[:2], self.view_size
+                raise ViewSizeError(path, f"{H} x {W} pixels (H x W), the dataset's views {h} x {w}")
         R, T = self.view_pose(model, view)
         item: dict[str, Any] = {
             "image": to_chw_tensor(image),

@@ -258,7 +258,7 @@ class UnicornDataModule(L.LightningDataModule):
         if stage in (None, "fit") and self.train_set is None:
             self.train_set = self.build("train")
         if stage == "fit" and self.stream_seed is not None and len(self.train_set) == 0:  # type: ignore[arg-type]
-            raise RuntimeError(f"dataset {self.name!r} (root {self.root!r}) has no training images")
+            raise DatasetError(f"dataset {self.name!r} (root {self.root!r}) has no training images")
         if stage in (None, "fit", "validate") and self.val_set is None:
             full = self.build("val")
             self.val_set = Subset(full, val_indices(self.name, len(full), self.val_size))
