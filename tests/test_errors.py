@@ -13,7 +13,7 @@ from unicorn.cli.errors import UsageError
 from unicorn.config import ConfigError
 from unicorn.data import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.common import UnreadableItemsError
-from unicorn.errors import Interrupted, UserError, interrupt_on_signal, signals_held
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.io import CheckpointError, CorruptCheckpointError, UnsafeCheckpointError
 from unicorn.lit import NonFiniteLossError
 
@@ -53,11 +53,16 @@ def test_unicorn_data_reports_in_one_line(tmp_path, capsys) -> None:
 def test_a_signal_in_the_block_raises_interrupted_and_the_next_one_acts_as_before(signum):
     seen = []
     before = signal.signal(signum, lambda s, frame: seen.append(s))
+    name = signal.Signals(signum).name
     try:
-        with interrupt_on_signal("while testing"):
+        # caught inside the block, the stop is not forgotten: the block raises it again as it ends
+        with (
+            pytest.raises(Interrupted, match=f"^stopped by {name} while testing$"),
+            interrupt_on_signal("while testing"),
+        ):
             with pytest.raises(Interrupted) as caught:
                 os.kill(os.getpid(), signum)  # os.kill runs the handlers of its own process before it returns
-            assert str(caught.value) == f"stopped by {signal.Signals(signum).name} while testing"
+            assert str(caught.value) == f"stopped by {name} while testing"
             assert caught.value.exit_status == 128 + signum
             os.kill(os.getpid(), signum)  # the second: the handler from before the block
         assert seen == [signum]
@@ -65,6 +70,34 @@ def test_a_signal_in_the_block_raises_interrupted_and_the_next_one_acts_as_befor
         assert seen == [signum, signum]
     finally:
         signal.signal(signum, before)
+
+
+def test_a_signal_whose_error_code_swallowed_still_stops_the_command(caplog):
+    import logging
+
+    class Swallowing(logging.Handler):  # as logging.Handler.handleError does, for any Exception in emit()
+        def emit(self, record: logging.LogRecord) -> None:
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+            except Exception:
+                pass
+
+    logger = logging.getLogger("tests.swallowing")
+    logger.addHandler(handler := Swallowing())
+    try:
+        with pytest.raises(Interrupted, match="^stopped by SIGTERM while testing$") as caught:
+            with interrupt_on_signal("while testing"):
+                assert pending_interrupt() is None
+                logger.warning("the signal comes while this is written")
+                late = pending_interrupt("before the first iteration")  # what training asks before it starts
+                assert str(late) == "stopped by SIGTERM before the first iteration" and late.exit_status == 143
+                with interrupt_on_signal("inside"):  # an inner block neither sees it as its own nor forgets it
+                    pass
+                assert pending_interrupt() is not None
+        assert caught.value.exit_status == 143
+    finally:
+        logger.removeHandler(handler)
+    assert pending_interrupt() is None  # the block is over
 
 
 def test_the_handlers_from_before_the_block_are_back_after_it():

@@ -24,6 +24,7 @@ __all__ = [
     "UnicornWarning",
     "UserError",
     "interrupt_on_signal",
+    "pending_interrupt",
     "signals_held",
 ]
 
@@ -64,29 +65,56 @@ class Interrupted(Exception):
         self.exit_status = exit_status
 
 
+#: the signals received in the :func:`interrupt_on_signal` blocks under way, one list per block (innermost last)
+_RECEIVED: list[list[int]] = []
+
+
+def _interrupted(signum: int, where: str) -> Interrupted:
+    name = signal.Signals(signum).name
+    return Interrupted(f"stopped by {name} {where}" if where else f"stopped by {name}", 128 + signum)
+
+
+def pending_interrupt(where: str = "") -> Interrupted | None:
+    """The :class:`Interrupted` of a signal that came in an :func:`interrupt_on_signal` block still under way, or
+    None. The error the signal raised can be swallowed by code that catches every ``Exception`` (a logging
+    handler's ``emit``); the stop is not: the code that goes on asks here (the training, before its first
+    iteration), and the block raises it again when it ends."""
+    signals = [s for block in _RECEIVED for s in block]
+    return _interrupted(signals[0], where) if signals else None
+
+
 @contextmanager
 def interrupt_on_signal(where: str = "") -> Iterator[None]:
     """In this block SIGTERM and SIGINT raise :class:`Interrupted` at once: ``stopped by SIGTERM <where>``, exit
     status ``128 + signal``. The handlers before the block are back after it, and after the first signal (a second
-    one acts as it would outside the block). Training inside the block still stops at a step boundary:
-    :class:`unicorn.lit.signals.GracefulStop` takes the signals over while the trainer runs. Outside the main thread
-    (where Python cannot set handlers) the block changes nothing.
+    one acts as it would outside the block). A signal whose error was swallowed inside the block (see
+    :func:`pending_interrupt`) raises it when the block ends. Training inside the block still stops at a step
+    boundary: :class:`unicorn.lit.signals.GracefulStop` takes the signals over while the trainer runs. Outside the
+    main thread (where Python cannot set handlers) the block changes nothing.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous: dict[int, Any] = {}
+    received: list[int] = []
 
     def interrupt(signum: int, frame: Any) -> None:
         restore_handlers(previous)
-        name = signal.Signals(signum).name
-        raise Interrupted(f"stopped by {name} {where}" if where else f"stopped by {name}", 128 + signum)
+        received.append(signum)
+        raise _interrupted(signum, where)
 
     previous.update(handle_stop_signals(interrupt))
+    _RECEIVED.append(received)
     try:
         yield
+    except BaseException:
+        raise
+    else:
+        if received:  # the error was swallowed on its way: the command still stops
+            raise _interrupted(received[0], where)
     finally:
         restore_handlers(previous)
+        _RECEIVED[:] = [block for block in _RECEIVED if block is not received]  # by identity: [] == []
 
 
 @contextmanager

@@ -175,14 +175,16 @@ def record_checkpoints(run) -> list[tuple[str, int]]:
 
 
 class SignalDuring(L.Callback):
-    """Sends the run's process SIGTERM during iteration ``at`` (0-based): the run stops after it."""
+    """Sends the run's process SIGTERM ``count`` times during iteration ``at`` (0-based): the run stops after it
+    (once), or at once (twice)."""
 
-    def __init__(self, at: int) -> None:
-        self.at = at
+    def __init__(self, at: int, count: int = 1) -> None:
+        self.at, self.count = at, count
 
     def on_train_batch_start(self, trainer, *args):
         if trainer.global_step == self.at:
-            os.kill(os.getpid(), signal.SIGTERM)  # the run's handler: stop after this iteration
+            for _ in range(self.count):
+                os.kill(os.getpid(), signal.SIGTERM)  # the run's handler
 
 
 def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cache, tmp_path):
@@ -198,6 +200,37 @@ def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cac
     fit(second)
     assert sorted(p.name for p in second.checkpoint_dir.iterdir()) == ["last.ckpt"]
     assert load_checkpoint_file(second.checkpoint_dir / "last.ckpt")["global_step"] == 8
+
+
+def test_a_second_signal_stops_at_once_with_the_signals_status(synthetic_cache, tmp_path):
+    """Signalled twice, a run stops in the iteration under way with no checkpoint written for it, and says so with
+    the signal's exit status (Lightning's own end of it is ``sys.exit(1)``, which reads as a crash)."""
+    from unicorn.errors import Interrupted
+
+    run = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=2")
+    run.trainer.callbacks.append(SignalDuring(2, count=2))
+    ctrl_c = signal.getsignal(signal.SIGINT)
+    with pytest.raises(
+        Interrupted, match=r"^stopped by SIGTERM at once \(signalled twice\) during iteration 3:"
+    ) as err:
+        fit(run)
+    assert err.value.exit_status == 143
+    assert signal.getsignal(signal.SIGINT) is ctrl_c  # Lightning leaves Ctrl-C ignored
+    assert sorted(p.name for p in run.checkpoint_dir.iterdir()) == ["last.ckpt", "step=0000002.ckpt"]
+
+
+def test_a_signal_swallowed_while_the_run_was_built_stops_it_before_its_first_iteration(synthetic_cache, tmp_path):
+    from unicorn.errors import Interrupted, interrupt_on_signal
+
+    with pytest.raises(Interrupted, match="^stopped by SIGTERM before the first iteration$"):
+        with interrupt_on_signal("outside the training iterations"):
+            run = build_run(tmp_path)
+            try:  # as a logging handler's emit() does with any Exception
+                os.kill(os.getpid(), signal.SIGTERM)
+            except Exception:
+                pass
+            fit(run)
+    assert run.stopper.steps_run == 0 and not run.checkpoint_dir.exists()
 
 
 @pytest.mark.parametrize("every", [4, 3, 100], ids=["on-the-last-step", "off-it", "none-during-the-run"])

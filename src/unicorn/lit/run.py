@@ -329,8 +329,19 @@ def fit(run: Run) -> dict[str, float]:
     if typed.model.compile is not None:
         _compile(run)
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
+    ctrl_c = signal.getsignal(signal.SIGINT)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
+    except SystemExit as err:  # Lightning's end of a KeyboardInterrupt: the second signal (GracefulStop.at_once)
+        signal.signal(signal.SIGINT, ctrl_c)  # Lightning ignores Ctrl-C from then on
+        signum = run.stopper.at_once
+        if signum is None:
+            raise
+        raise Interrupted(
+            f"stopped by {signal.Signals(signum).name} at once (signalled twice) during iteration "
+            f"{trainer.global_step + 1}: resume from the last checkpoint written with ckpt_path=last",
+            128 + signum,
+        ) from err
     except SIGTERMException as err:  # Lightning's, at the end of the iteration GracefulStop saved, or elsewhere
         raise run.stopper.stopped or Interrupted(
             f"stopped by SIGTERM at iteration {trainer.global_step} (not at a step boundary: no checkpoint written)",

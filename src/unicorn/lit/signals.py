@@ -12,7 +12,7 @@ command with ``ckpt_path=last`` (a requeued SLURM job) resumes from that file ex
 During training the callback handles SIGTERM and SIGINT itself, in place of Lightning's SIGTERM handler (which
 raises as soon as it sees its flag, with no checkpoint written when the signal arrives after this callback's
 check); a SIGTERM that Lightning's handler still records (``trainer.received_sigterm``) is honoured the same way,
-and a second signal stops at once (``KeyboardInterrupt``, no checkpoint). Under DDP every rank stops at the same
+and a second signal stops at once (no checkpoint written; the same exit status). Under DDP every rank stops at the same
 iteration: the decision is reduced across ranks at each step boundary.
 
 Outside the training iterations (building the run, the evaluation after training) there is no step boundary to
@@ -33,7 +33,7 @@ from typing import Any
 import lightning as L
 from lightning.pytorch.callbacks import Checkpoint
 
-from unicorn.errors import Interrupted, handle_stop_signals, restore_handlers
+from unicorn.errors import Interrupted, handle_stop_signals, pending_interrupt, restore_handlers
 from unicorn.lit.checkpoint import PeriodicCheckpoint
 
 __all__ = ["GracefulStop"]
@@ -59,13 +59,18 @@ class GracefulStop(Checkpoint):
         self.last_path = Path(last_path)
         self.steps_run = 0
         self.received: int | None = None
+        #: the second signal, which stopped the run at once (no checkpoint written), or None
+        self.at_once: int | None = None
         #: the error ending an interrupted run, once its checkpoint is written (raised by :func:`unicorn.lit.run.fit`
         #: or before the next iteration)
         self.stopped: Interrupted | None = None
         self._previous: dict[int, Any] = {}
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.received, self.stopped = None, None
+        self.received, self.stopped, self.at_once = None, None, None
+        late = pending_interrupt("before the first iteration")  # its error swallowed while the run was built
+        if late is not None:
+            raise late
         if threading.current_thread() is threading.main_thread():
             # SIGTERM too, in place of Lightning's handler (see the module docstring)
             self._previous = handle_stop_signals(self._on_signal)
@@ -73,6 +78,7 @@ class GracefulStop(Checkpoint):
     def _on_signal(self, signum: int, frame: Any) -> None:
         if self.received is not None:  # asked twice: stop now
             self._restore()
+            self.at_once = signum  # Lightning ends a KeyboardInterrupt with sys.exit(1): unicorn.lit.run.fit says why
             raise KeyboardInterrupt
         self.received = signum
         log.warning("%s: stopping after this iteration (again to stop at once)", signal.Signals(signum).name)
