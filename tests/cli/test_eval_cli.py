@@ -122,6 +122,20 @@ def test_errors(tmp_path: Path, checkpoint: Path, capsys, args: list[str], messa
     assert err.startswith("unicorn-eval: error:") and message in err
 
 
+def test_a_malformed_dataset_of_the_checkpoint_is_one_line(tmp_path: Path, checkpoint: Path, capsys) -> None:
+    from unicorn.io.serialization import INTEGRITY_KEY
+
+    data = torch.load(checkpoint, weights_only=True)
+    data.pop(INTEGRITY_KEY)  # edited by hand
+    data["info"] = {"dataset": "xyz"}
+    torch.save(data, tmp_path / "odd.pt")
+    assert main([str(tmp_path / "odd.pt"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err.count("\n") == 1 and err.startswith("unicorn-eval: error: checkpoint ") and "its 'dataset' is a str" in err
+    )
+
+
 def test_unknown_dataset(checkpoint: Path, capsys) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main([str(checkpoint), "--dataset", "imagenet", "--root", "."])

@@ -97,15 +97,37 @@ def test_released_checkpoint(tmp_path: Path, inputs: Path) -> None:
     assert not (tmp_path / "out" / "photo" / "turntable.gif").exists()
 
 
-def test_bad_image_skipped_on_request(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:
+def _skipped(caplog: pytest.LogCaptureFixture) -> list[str]:
+    """The lines ``--skip-bad`` logged (:func:`unicorn.cli.errors.log_warnings`), one per skipped input."""
+    from unicorn.cli.errors import WARNINGS_LOGGER
+
+    return [r.getMessage() for r in caplog.records if r.name == WARNINGS_LOGGER]
+
+
+def test_bad_image_skipped_on_request(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, caplog) -> None:
     (inputs / "broken.png").write_bytes(b"not a png")
     assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "a"), *FAST]) == 2
     err = capsys.readouterr().err
     assert err.startswith("unicorn-reconstruct: error: cannot read image") and "broken.png" in err
-    with pytest.warns(RuntimeWarning, match="broken.png"):
-        assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert len(_skipped(caplog)) == 1 and "broken.png" in _skipped(caplog)[0]
     folders = sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir())
     assert folders == ["_viewer", "cutout", "photo"]
+
+
+def test_a_fully_transparent_image_is_a_bad_input_and_its_skip_one_line(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, caplog
+) -> None:
+    Image.new("RGBA", (20, 16), (255, 0, 0, 0)).save(inputs / "clear.png")
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "a"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "clear.png: it has no opaque pixel" in err
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    warned = _skipped(caplog)
+    assert len(warned) == 1 and warned[0].startswith("SkippedInputWarning: skipping cannot read image")
+    assert "clear.png" in warned[0] and "\n" not in warned[0]
+    assert "RuntimeWarning" not in capsys.readouterr().err  # not printed as Python prints warnings
+    assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["_viewer", "cutout", "photo"]
 
 
 @pytest.mark.parametrize(
@@ -127,7 +149,7 @@ def test_errors(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, args: li
 
 
 def test_decompression_bomb_is_skipped_or_one_line(
-    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys, caplog, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv(MAX_IMAGE_PIXELS_ENV, "")  # --max-image-pixels sets it for the process: restored after
     bomb_png(inputs / "bomb.png")
@@ -135,8 +157,8 @@ def test_decompression_bomb_is_skipped_or_one_line(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "bomb.png" in err and "exceeds the limit" in err
     assert not (tmp_path / "a").exists()
-    with pytest.warns(RuntimeWarning, match="bomb.png"):
-        assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "b"), "--skip-bad", *FAST]) == 0
+    assert len(_skipped(caplog)) == 1 and "bomb.png" in _skipped(caplog)[0]
     assert sorted(p.name for p in (tmp_path / "b").iterdir() if p.is_dir()) == ["_viewer", "cutout", "photo"]
     # a limit the user lowers applies too
     assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(tmp_path / "c"),

@@ -116,6 +116,10 @@ def test_shapenet_checkpoint_and_key_checks():
     del missing["scale_regressor.0.weight"]
     with pytest.raises(KeyError, match="scale.regressor.0.weight"):
         load_reference_checkpoint(missing, image_size=32)
+    # a tensor the model's sizes are read from
+    del missing["txt_generator.regressor.0.weight"]
+    with pytest.raises(ReferenceCheckpointError, match=r"^missing key 'txt_generator\.regressor\.0\.weight'"):
+        load_reference_checkpoint(missing, image_size=32)
     with pytest.raises(ReferenceCheckpointError, match="^the checkpoint holds no perceptual_loss weights"):
         without_vgg = {k: v for k, v in state.items() if not k.startswith("perceptual_loss.")}
         load_reference_checkpoint(without_vgg, image_size=32, with_perceptual=True)

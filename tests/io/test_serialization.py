@@ -111,6 +111,36 @@ def test_both_torch_formats_are_read(tmp_path: Path, legacy: bool) -> None:
         load_checkpoint_file(tmp_path / "missing.pt")
 
 
+def test_zip_entries_that_would_inflate_are_refused_from_the_directory(tmp_path: Path, monkeypatch) -> None:
+    import zipfile
+
+    saved = tmp_path / "saved.pt"
+    torch.save({"w": torch.zeros(2**16)}, saved)  # 256 KiB of zeros: deflated to a few hundred bytes
+    deflated = tmp_path / "deflated.pt"
+    with zipfile.ZipFile(saved) as zin, zipfile.ZipFile(deflated, "w", zipfile.ZIP_DEFLATED) as zout:
+        for entry in zin.infolist():
+            zout.writestr(entry.filename, zin.read(entry.filename))
+    assert deflated.stat().st_size < saved.stat().st_size // 20
+    # entries declaring more bytes than the file holds: overlapping entries, as torch.save never writes them
+    overlapping = tmp_path / "overlapping.pt"
+    raw = bytearray(saved.read_bytes())
+    record = raw.index(b"PK\x01\x02", raw.index(b"PK\x01\x02") + 1)  # the second entry's directory record
+    raw[record + 20 : record + 28] = (10 * len(raw)).to_bytes(4, "little") * 2  # its compressed and full size
+    overlapping.write_bytes(raw)
+    read = []
+    monkeypatch.setattr(torch, "load", lambda *a, **k: read.append(a))
+    for path, message in [
+        (deflated, r"its entry '\S+' is compressed"),
+        (overlapping, r"its entries declare [\d,]+ bytes"),
+    ]:
+        with pytest.raises(CheckpointError, match=rf"cannot read checkpoint \S+{path.name}: {message}") as info:
+            load_checkpoint_file(path)
+        assert "\n" not in str(info.value)
+    assert not read  # refused before torch inflates anything
+    monkeypatch.undo()
+    assert torch.equal(load_checkpoint_file(saved)["w"], torch.zeros(2**16))
+
+
 def test_stale_temporaries_are_removed(tmp_path: Path) -> None:
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead_pid = int(dead.stdout)

@@ -34,6 +34,7 @@ from unicorn.cli.options import (
     check_picture_sizes,
     parse_device,
 )
+from unicorn.errors import UnicornWarning
 from unicorn.io.images import DEFAULT_PADDING, MAX_PADDING
 
 if TYPE_CHECKING:
@@ -42,6 +43,11 @@ if TYPE_CHECKING:
 __all__ = ["build_parser", "main"]
 
 log = logging.getLogger("unicorn.reconstruct")
+
+
+class SkippedInputWarning(UnicornWarning, RuntimeWarning):
+    """An input image that ``--skip-bad`` skips (logged in one line, :func:`unicorn.cli.errors.log_warnings`; still
+    a ``RuntimeWarning``, as it was)."""
 
 
 def _bbox(text: str) -> list[float]:
@@ -135,7 +141,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
         except ImageLoadError as err:
             if not args.skip_bad:
                 raise
-            warnings.warn(f"skipping {err}", RuntimeWarning, stacklevel=1)
+            warnings.warn(f"skipping {err}", SkippedInputWarning, stacklevel=1)
             continue
         readable.append((path, name))
     if not readable:

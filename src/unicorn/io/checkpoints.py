@@ -23,6 +23,7 @@ unicorn carry a content hash that is checked on load.
 from __future__ import annotations
 
 import copy
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,17 +33,20 @@ from typing import Any, Literal
 import torch
 
 from unicorn.checks import SizeLimitError
-from unicorn.io.reference_checkpoints import load_reference_checkpoint
+from unicorn.data.images import check_image_size
+from unicorn.io.reference_checkpoints import reference_model
 from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
     CheckpointError,
     CorruptCheckpointError,
     UnsafeCheckpointError,
     atomic_save,
+    kind_of,
     load_checkpoint_file,
 )
 from unicorn.model import MAX_MODEL_PARAMS, Unicorn, merge_config
 from unicorn.model import check_model_size as _check_model_size
+from unicorn.model.config import DEFAULT_CONFIG
 
 __all__ = [
     "MAX_MODEL_PARAMS",
@@ -53,6 +57,7 @@ __all__ = [
     "NotATrainingCheckpointError",
     "UnsafeCheckpointError",
     "check_model_size",
+    "check_stored_config",
     "check_weights_fit",
     "checkpoint_format",
     "check_training_checkpoint",
@@ -60,6 +65,7 @@ __all__ = [
     "load_model",
     "read_checkpoint",
     "save_model",
+    "weights_misfit",
 ]
 
 PLAIN_FORMAT = "unicorn-model"
@@ -113,6 +119,29 @@ def check_model_size(
 ) -> None:
     """:func:`unicorn.model.check_model_size`, raising :class:`ModelTooLargeError` for a checkpoint by default."""
     _check_model_size(config, setting, limit, error)
+
+
+def check_stored_config(config: Mapping[str, Any], setting: str) -> None:
+    """Refuse a merged model config read from a checkpoint whose sizes are above the limits, before anything is
+    built: its input image and texture map as training bounds ``dataset.img_size`` and ``model.texture.size``
+    (:func:`unicorn.data.images.check_image_size`), its networks as :func:`check_model_size`.
+
+    Args:
+        config: the merged model config.
+        setting: what asks for the model, named in the message (``"checkpoint PATH"``).
+
+    Raises:
+        ModelTooLargeError: the first size above its limit (the message names the key and the limit).
+    """
+    for key, what, side in (
+        ("image_size", "an input image", config["image_size"]),
+        ("texture.size", "a texture map", config["texture"]["size"]),
+    ):
+        try:
+            check_image_size(f"{setting}: {key}={side}", what, side)
+        except SizeLimitError as err:
+            raise ModelTooLargeError(str(err)) from None
+    check_model_size(config, setting)
 
 
 @dataclass
@@ -190,28 +219,87 @@ def _to_plain(value: Any) -> Any:
     return value
 
 
-def _model_overrides(config: Mapping[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The stored model config with the perceptual loss off and the caller's group overrides merged in."""
-    cfg = merge_config(_to_plain(config))
+def _stored_model(stored: Any, path: Path, field: str, overrides: Mapping[str, Any] | None) -> Unicorn:
+    """The model of the config a checkpoint stores under ``field``, built once that config is checked (a dict of
+    the groups and keys this version knows, sizes within :func:`check_stored_config`), with the perceptual loss
+    off and the caller's group overrides merged in.
+
+    Raises:
+        CheckpointError: a config that is not a dict of groups, or with groups or keys this version does not know.
+        ModelTooLargeError: sizes above the limits.
+    """
+    config = _to_plain(stored)
+    if not isinstance(config, Mapping):
+        raise CheckpointError(f"checkpoint {path}: its {field} is {kind_of(config)}, not a model config (a dict)")
+    for group, value in config.items():
+        if group not in DEFAULT_CONFIG:
+            continue  # merge_config names it
+        if group == "image_size":
+            fits = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        else:
+            fits = value is None or isinstance(value, Mapping)
+        if not fits:
+            expected = "a number" if group == "image_size" else "a dict"
+            raise CheckpointError(f"checkpoint {path}: its {field}[{group!r}] is {kind_of(value)}, not {expected}")
+    try:
+        cfg = merge_config(config)
+    except KeyError as err:  # a group or key of another version
+        raise CheckpointError(
+            f"checkpoint {path}: its model settings are not ones this version of unicorn knows ({err.args[0]}); "
+            "the file may come from another version of unicorn"
+        ) from None
     cfg["loss"]["perceptual"] = None
     for group, value in (overrides or {}).items():
         if isinstance(value, Mapping) and isinstance(cfg.get(group), Mapping):
             cfg[group] = {**cfg[group], **dict(value)}
         else:
             cfg[group] = value
-    return merge_config(cfg)
+    cfg = merge_config(cfg)
+    check_stored_config(cfg, f"checkpoint {path}")
+    return Unicorn(cfg)
 
 
-def _load_weights(model: Unicorn, state: Mapping[str, torch.Tensor], path: Path) -> None:
-    """Load ``state`` strictly, except for the perceptual loss's weights (not rebuilt)."""
-    state = {k: v for k, v in state.items() if not k.startswith("perceptual.")}
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    if missing or unexpected:
-        raise CheckpointError(
-            f"checkpoint {path} does not fit the model built from its own config: "
-            f"missing {missing[:8]}{'...' if len(missing) > 8 else ''}, "
-            f"unexpected {unexpected[:8]}{'...' if len(unexpected) > 8 else ''}"
-        )
+def _field(data: Mapping[str, Any], key: str, kind: type, expected: str, path: Path) -> Any:
+    """``data[key]``, a field of the checkpoint ``path``, when it is absent (None) or a ``kind`` (a bool is not an
+    int here).
+
+    Raises:
+        CheckpointError: a value of another type, named with ``expected`` (``"a whole number"``).
+    """
+    value = data.get(key)
+    if value is None or (isinstance(value, kind) and (kind is bool or not isinstance(value, bool))):
+        return value
+    raise CheckpointError(f"checkpoint {path}: its {key!r} is {kind_of(value)}, not {expected}")
+
+
+def _scalar(data: Mapping[str, Any], key: str, path: Path) -> float | None:
+    """``data[key]``, a number or a one-element tensor (a module's buffer) of the checkpoint ``path``, as a number
+    (None when absent).
+
+    Raises:
+        CheckpointError: anything else.
+    """
+    value = data.get(key)
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_complex():
+        value = value.item()
+    if value is None or (isinstance(value, int | float) and not isinstance(value, bool)):
+        return value
+    raise CheckpointError(f"checkpoint {path}: its {key!r} is {kind_of(value)}, not a number")
+
+
+def _load_weights(model: Unicorn, state: Any, path: Path, field: str) -> None:
+    """Load ``state`` (the checkpoint's ``field``) strictly, except for the perceptual loss's weights (not rebuilt).
+
+    Raises:
+        CheckpointError: ``state`` is not a dict, or its weights do not fit the model (:func:`weights_misfit`).
+    """
+    if not isinstance(state, Mapping):
+        raise CheckpointError(f"checkpoint {path}: its {field} is {kind_of(state)}, not a dict of weights")
+    state = {k: v for k, v in state.items() if not (isinstance(k, str) and k.startswith("perceptual."))}
+    misfit = weights_misfit(state, model.state_dict())
+    if misfit:
+        raise CheckpointError(f"checkpoint {path} does not fit the model built from its own config: {misfit}")
+    model.load_state_dict(state)
 
 
 def load_model(
@@ -235,7 +323,9 @@ def load_model(
     Raises:
         FileNotFoundError: no such file.
         UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
-        CheckpointError: unreadable or corrupted file, unknown layout, or weights that do not fit.
+        CheckpointError: unreadable or corrupted file, unknown layout, a field of the wrong type, model settings
+            of another version, or weights that do not fit (each named in one line).
+        ModelTooLargeError: a stored image, texture or model size above the limits, refused before building it.
     """
     path = Path(path).expanduser()
     data = read_checkpoint(path, map_location, trust=trust)
@@ -258,37 +348,40 @@ def _load_reference(
 ) -> tuple[Unicorn, CheckpointInfo]:
     """A released ``.pkl``, converted (:func:`~unicorn.io.reference_checkpoints.load_reference_checkpoint`)."""
     try:
-        model = load_reference_checkpoint(data, **copy.deepcopy(dict(overrides or {})))
+        model = reference_model(data, f"released checkpoint {path}", **copy.deepcopy(dict(overrides or {})))
+    except ModelTooLargeError:
+        raise  # names the file already
     except (KeyError, ValueError) as err:
         raise CheckpointError(f"released checkpoint {path} could not be converted: {err}") from err
-    return model, CheckpointInfo(path, "reference", epoch=data.get("epoch"))
+    return model, CheckpointInfo(path, "reference", epoch=data.get("epoch"))  # its type checked by the conversion
 
 
 def _load_lightning(
     data: Mapping[str, Any], path: Path, overrides: Mapping[str, Any] | None
 ) -> tuple[Unicorn, CheckpointInfo]:
     """A ``unicorn-train`` ``.ckpt``: the model from its ``model`` hyper-parameter, the ``model.`` weights."""
-    hparams = _to_plain(data["hyper_parameters"]) or {}
-    if "model" not in hparams:
+    hparams = _to_plain(data["hyper_parameters"])
+    if not isinstance(hparams, Mapping) or "model" not in hparams:
         raise CheckpointError(
             f"Lightning checkpoint {path} has no 'model' hyper-parameter: it was not written by unicorn-train"
         )
     state = data["state_dict"]
-    weights = {k[len("model.") :]: v for k, v in state.items() if k.startswith("model.")}
+    if not isinstance(state, Mapping):
+        raise CheckpointError(f"checkpoint {path}: its 'state_dict' is {kind_of(state)}, not a dict of weights")
+    weights = {k[len("model.") :]: v for k, v in state.items() if isinstance(k, str) and k.startswith("model.")}
     if not weights:
         raise CheckpointError(f"Lightning checkpoint {path} holds no 'model.' weights")
-    cfg = _model_overrides(hparams["model"], overrides)
-    check_model_size(cfg, f"checkpoint {path}")
-    model = Unicorn(cfg)
-    _load_weights(model, weights, path)
-    p = state.get("texture_average_p")
-    stage = state.get("stage")
+    epoch = _field(data, "epoch", int, "a whole number", path)
+    step = _field(data, "global_step", int, "a whole number", path)
+    p, stage = _scalar(state, "texture_average_p", path), _scalar(state, "stage", path)
+    model = _stored_model(hparams["model"], path, "hyper-parameter 'model'", overrides)
+    _load_weights(model, weights, path, "'state_dict'")
     info = CheckpointInfo(
         path,
         "lightning",
-        epoch=data.get("epoch"),
-        step=data.get("global_step"),
-        average_texture=p is not None and float(p) >= 1.0,
+        epoch=epoch,
+        step=step,
+        average_texture=p is not None and p >= 1.0,
         extra={"stage": None if stage is None else int(stage)},
     )
     return model, info
@@ -298,20 +391,23 @@ def _load_plain(
     data: Mapping[str, Any], path: Path, overrides: Mapping[str, Any] | None
 ) -> tuple[Unicorn, CheckpointInfo]:
     """A :func:`save_model` file: its config, weights and ``info``."""
-    cfg = _model_overrides(data["config"], overrides)
-    check_model_size(cfg, f"checkpoint {path}")
-    model = Unicorn(cfg)
-    _load_weights(model, data["state_dict"], path)
-    meta = dict(data.get("info") or {})
+    for key in ("config", "state_dict"):
+        if key not in data:
+            raise CheckpointError(
+                f"checkpoint {path} has no {key!r}: a damaged or hand-made unicorn.io.save_model file"
+            )
+    meta = dict(_field(data, "info", Mapping, "a dict", path) or {})
     info = CheckpointInfo(
         path,
         "plain",
-        epoch=meta.pop("epoch", None),
-        step=meta.pop("step", None),
-        average_texture=bool(meta.pop("average_texture", False)),
-        dataset=meta.pop("dataset", None),
-        extra=meta,
+        epoch=_field(meta, "epoch", int, "a whole number", path),
+        step=_field(meta, "step", int, "a whole number", path),
+        average_texture=bool(_field(meta, "average_texture", bool, "true or false", path)),
+        dataset=_field(meta, "dataset", dict, "a dict (name, root...)", path),
+        extra={k: v for k, v in meta.items() if k not in ("epoch", "step", "average_texture", "dataset")},
     )
+    model = _stored_model(data["config"], path, "'config'", overrides)
+    _load_weights(model, data["state_dict"], path, "'state_dict'")
     return model, info
 
 
@@ -337,10 +433,9 @@ def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -
 
 
 def check_weights_fit(
-    saved: Mapping[str, torch.Tensor], own: Mapping[str, torch.Tensor], option: str, path: str | os.PathLike
+    saved: Mapping[str, Any], own: Mapping[str, torch.Tensor], option: str, path: str | os.PathLike
 ) -> None:
-    """Refuse saved weights that do not fit a model's: the same names, the same shapes (what a strict
-    ``load_state_dict`` needs), in one line naming the first few differences.
+    """Refuse saved weights that do not fit a model's (:func:`weights_misfit`), in one line.
 
     Args:
         saved: the checkpoint's weights by name.
@@ -349,20 +444,34 @@ def check_weights_fit(
         path: the file.
 
     Raises:
-        CheckpointError: names that are missing or unexpected, or weights of other shapes.
+        CheckpointError: names that are missing or unexpected, values that are not tensors or of other shapes.
     """
-    missing, unexpected = sorted(set(own) - set(saved)), sorted(set(saved) - set(own))
-    misfit = [
-        f"{k} {tuple(saved[k].shape)} != {tuple(v.shape)}"
-        for k, v in own.items()
-        if k in saved and saved[k].shape != v.shape
-    ]
-    if missing or unexpected or misfit:
+    misfit = weights_misfit(saved, own)
+    if misfit:
         raise CheckpointError(
             f"{option}: the weights of {path} do not fit the configured model (choose the model and dataset "
-            f"settings it was trained with, e.g. model=big): missing {missing[:4]}, unexpected {unexpected[:4]}, "
-            f"other sizes {misfit[:4]}"
+            f"settings it was trained with, e.g. model=big): {misfit}"
         )
+
+
+def weights_misfit(saved: Mapping[str, Any], own: Mapping[str, torch.Tensor], strict: bool = True) -> str | None:
+    """What keeps ``load_state_dict(saved)`` from loading into a model whose ``state_dict()`` is ``own`` (which
+    would raise a RuntimeError of many lines), checked first: the first few names missing or unexpected (only when
+    ``strict``), then of the names in both, values that are not tensors or tensors of other shapes, each with its
+    shape in the file and in the model; None when every weight fits.
+    """
+    missing, unexpected = (sorted(set(own) - set(saved)), sorted(set(saved) - set(own))) if strict else ([], [])
+    misfit = [
+        f"{k} {kind_of(saved[k])} in the file, not a tensor"
+        if not isinstance(saved[k], torch.Tensor)
+        else f"{k} {list(saved[k].shape)} in the file, {list(v.shape)} in the model"
+        for k, v in own.items()
+        if k in saved and not (isinstance(saved[k], torch.Tensor) and saved[k].shape == v.shape)
+    ]
+    if not (missing or unexpected or misfit):
+        return None
+    more = f" and {len(misfit) - 4} more" if len(misfit) > 4 else ""
+    return f"missing {missing[:4]}, unexpected {unexpected[:4]}, other sizes or types [{'; '.join(misfit[:4])}{more}]"
 
 
 def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:

@@ -28,7 +28,15 @@ import torch
 
 from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
 from unicorn.data.framing import crop_box, fit_and_pad, pad_bbox, resize_image, square_bbox
-from unicorn.data.images import RGB_BYTES_PER_PIXEL, decoded, load_image, max_image_bytes, open_image, to_chw_tensor
+from unicorn.data.images import (
+    RGB_BYTES_PER_PIXEL,
+    ImageLoadError,
+    decoded,
+    load_image,
+    max_image_bytes,
+    open_image,
+    to_chw_tensor,
+)
 from unicorn.errors import UserError
 
 __all__ = [
@@ -91,7 +99,11 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
     pixel grid of :func:`~unicorn.data.images.load_image` (EXIF orientation applied).
 
     Returns:
-        the box, or None when the image has no alpha channel, is fully opaque or fully transparent.
+        the box, or None when the image has no alpha channel or is fully opaque.
+
+    Raises:
+        ImageLoadError: the image has no pixel more opaque than ``threshold``: nothing to reconstruct (framed whole,
+            it would be a blank frame).
     """
     with open_image(path, path) as img:
         if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
@@ -99,7 +111,9 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
         # oriented as load_image orients the image, so that the box is in its pixel grid
         alpha = np.asarray(decoded(img, path).convert("RGBA"))[..., 3].astype(np.float32) / 255.0
     opaque = alpha > threshold
-    if opaque.all() or not opaque.any():
+    if not opaque.any():
+        raise ImageLoadError(path, f"it has no opaque pixel (none above {threshold:.0%} alpha): nothing to reconstruct")
+    if opaque.all():
         return None
     rows, cols = np.flatnonzero(opaque.any(axis=1)), np.flatnonzero(opaque.any(axis=0))
     return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
@@ -208,7 +222,7 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
     """Read one image and find its object box (``bbox`` if given, else its alpha cut-out when ``use_alpha``).
 
     Raises:
-        ImageLoadError: the file is not a readable image.
+        ImageLoadError: the file is not a readable image, or (``use_alpha`` without ``bbox``) a fully transparent one.
         BoxError: ``bbox`` is not finite or does not overlap the image.
     """
     path = Path(path)

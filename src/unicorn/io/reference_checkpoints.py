@@ -30,6 +30,7 @@ border padding) and ``renderer.composite = "reference"`` (``rgb * A + (1 - A) * 
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Mapping
@@ -38,7 +39,7 @@ from typing import Any
 import torch
 
 from unicorn.config.presets import model_preset
-from unicorn.io.serialization import CheckpointError, load_checkpoint_file
+from unicorn.io.serialization import CheckpointError, kind_of, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
 from unicorn.model.config import merge_config
 from unicorn.model.progressive import active_dims_at
@@ -49,6 +50,7 @@ __all__ = [
     "config_from_reference",
     "convert_reference_state_dict",
     "load_reference_checkpoint",
+    "reference_model",
 ]
 
 
@@ -74,13 +76,37 @@ _ROT_SWAP = [1, 0, 2]
 
 
 def _state_dict_of(checkpoint: Mapping[str, Any]) -> Mapping[str, torch.Tensor]:
-    return checkpoint["model_state"] if "model_state" in checkpoint else checkpoint
+    """The reference state dict of a checkpoint dict (or the bare state dict itself), checked to hold tensors.
+
+    Raises:
+        CheckpointError: ``model_state`` is not a dict of tensors (the message names the first other value).
+    """
+    state = checkpoint["model_state"] if "model_state" in checkpoint else checkpoint
+    if not isinstance(state, Mapping):
+        raise CheckpointError(f"model_state is {kind_of(state)}, not a dict of tensors")
+    other = next((k for k, v in state.items() if not isinstance(v, torch.Tensor)), None)
+    if other is not None:
+        raise CheckpointError(f"model_state[{other!r}] is {kind_of(state[other])}, not a tensor")
+    return state
+
+
+def _weight(state: Mapping[str, torch.Tensor], key: str) -> torch.Tensor:
+    """``state[key]``, a layer's weight (its first dimension is the layer's width).
+
+    Raises:
+        ReferenceCheckpointError: the key is missing, or the tensor has no dimension.
+    """
+    if key not in state:
+        raise ReferenceCheckpointError(f"missing key {key!r}: the checkpoint lacks this tensor of its model")
+    if state[key].ndim == 0:
+        raise ReferenceCheckpointError(f"model_state[{key!r}] is a scalar, not a layer's weight")
+    return state[key]
 
 
 def _last_linear_index(state: Mapping[str, torch.Tensor], prefix: str) -> int:
     indices = [int(m.group(1)) for k in state if (m := re.match(re.escape(prefix) + r"(\d+)\.weight$", k))]
     if not indices:
-        raise KeyError(f"no MLP layers under '{prefix}'")
+        raise ReferenceCheckpointError(f"no MLP layers under '{prefix}'")
     return max(indices)
 
 
@@ -127,7 +153,8 @@ def convert_reference_state_dict(
                 continue
             new_key = _PREFIXES[prefix] + key[len(prefix) :]
             if m := re.match(r"^rot_regressors\.(\d+)\.(\d+)\.(weight|bias)$", key):
-                if int(m.group(2)) == rot_last[m.group(1)]:
+                # a last layer of another size is left as it is: the weights' fit check names it
+                if int(m.group(2)) == rot_last[m.group(1)] and value.shape[:1] == (len(_ROT_SWAP),):
                     # the reference reads its rotation head as tanh(out)[..., [1, 0, 2]] -> (azim, elev, roll)
                     value = value[_ROT_SWAP]
             ours[new_key] = value
@@ -138,12 +165,74 @@ def convert_reference_state_dict(
     return ours, vgg
 
 
-def _get(mapping: Any, *keys: str, default: Any = None) -> Any:
-    for key in keys:
-        if not isinstance(mapping, Mapping) or key not in mapping:
-            return default
-        mapping = mapping[key]
+def _model_kwargs(checkpoint: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A released checkpoint's ``model_kwargs`` (empty for a bare state dict or when absent).
+
+    Raises:
+        CheckpointError: ``model_kwargs`` is not a dict.
+    """
+    return _section(checkpoint, "model_kwargs") if "model_state" in checkpoint else {}
+
+
+def _section(mapping: Mapping[str, Any], *keys: str) -> Mapping[str, Any]:
+    """The dict at ``mapping[keys[0]][keys[1]]...`` of a checkpoint; empty when a key is absent or None.
+
+    Raises:
+        CheckpointError: a value on the way is not a dict (the message names it).
+    """
+    for i, key in enumerate(keys):
+        value = mapping.get(key)
+        if value is None:
+            return {}
+        if not isinstance(value, Mapping):
+            raise CheckpointError(f"{_field_name(keys[: i + 1])} is {kind_of(value)}, not a dict")
+        mapping = value
     return mapping
+
+
+def _field_name(keys: tuple[str, ...]) -> str:
+    """``("model_kwargs", "mesh")`` -> ``model_kwargs['mesh']`` (sections under ``model_kwargs``)."""
+    keys = keys if keys[0] == "model_kwargs" else ("model_kwargs", *keys)
+    return keys[0] + "".join(f"[{k!r}]" for k in keys[1:])
+
+
+def _number(value: Any, *keys: str) -> float:
+    """``value``, the field ``model_kwargs[keys...]``, as a float.
+
+    Raises:
+        CheckpointError: not a finite number.
+    """
+    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+        raise CheckpointError(f"{_field_name(keys)} = {value!r} is not a finite number")
+    return float(value)
+
+
+def _numbers(value: Any, *keys: str) -> list[float]:
+    """``value``, the field ``model_kwargs[keys...]``, as a list of floats.
+
+    Raises:
+        CheckpointError: not a list of finite numbers.
+    """
+    if not isinstance(value, list | tuple):
+        raise CheckpointError(f"{_field_name(keys)} = {value!r} is not a list of numbers")
+    return [_number(v, *keys) for v in value]
+
+
+def _whole(value: Any) -> bool:
+    """``value`` is an int (not a bool)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _epoch(checkpoint: Mapping[str, Any]) -> int | None:
+    """The saved ``epoch`` of a released checkpoint (None for a bare state dict or when absent).
+
+    Raises:
+        CheckpointError: not a whole number.
+    """
+    epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
+    if epoch is not None and not _whole(epoch):
+        raise CheckpointError(f"epoch = {epoch!r} is not a whole number")
+    return epoch
 
 
 def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> dict[str, Any]:
@@ -156,7 +245,7 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     overridden.
     """
     state = _state_dict_of(checkpoint)
-    kwargs = checkpoint.get("model_kwargs", {}) if "model_state" in checkpoint else {}
+    kwargs = _model_kwargs(checkpoint)
     has_bg = any(k.startswith("bkg_generator.") for k in state)
     shared = not any(k.startswith("encoder_sh.") for k in state)
     cfg = model_preset("real" if has_bg else "shapenet", "small" if shared else "big")
@@ -166,10 +255,11 @@ def config_from_reference(checkpoint: Mapping[str, Any], **overrides: Any) -> di
     _template_from_kwargs(cfg, kwargs)
     if "img_size" in kwargs:
         size = kwargs["img_size"]
-        cfg["image_size"] = int(size[0] if isinstance(size, list | tuple) else size)
+        size = size[0] if isinstance(size, list | tuple) and size else size  # (height, width): square images
+        cfg["image_size"] = int(_number(size, "img_size"))
     _renderer_from_kwargs(cfg, kwargs)
     cfg["loss"]["perceptual"] = None
-    _progressive_from_kwargs(cfg, kwargs, checkpoint.get("epoch") if "model_state" in checkpoint else None)
+    _progressive_from_kwargs(cfg, kwargs, _epoch(checkpoint))
     return merge_config(cfg, **overrides)
 
 
@@ -178,25 +268,27 @@ def _sizes_from_state(cfg: dict[str, Any], state: Mapping[str, torch.Tensor]) ->
     candidates."""
 
     def out_dim(prefix: str) -> int:
-        return state[f"{prefix}{_last_linear_index(state, prefix)}.weight"].shape[0]
+        return _weight(state, f"{prefix}{_last_linear_index(state, prefix)}.weight").shape[0]
 
     def n_hidden(prefix: str) -> int:
         return _last_linear_index(state, prefix) // 2
 
     def units(prefix: str) -> int:
-        return state[f"{prefix}0.weight"].shape[0]
+        return _weight(state, f"{prefix}0.weight").shape[0]
 
     cfg["shape"].update(
         code_dim=out_dim("deform_field.regressor."),
         n_reg_units=units("deform_field.regressor."),
         n_reg_layers=n_hidden("deform_field.regressor."),
-        n_field_units=state["deform_field.field.linear_x.weight"].shape[0],
+        n_field_units=_weight(state, "deform_field.field.linear_x.weight").shape[0],
         n_field_layers=n_hidden("deform_field.field.mlp."),
     )
     for group, prefix in (("texture", "txt_generator."), ("background", "bkg_generator.")):
         if cfg[group] is None:
             continue
         convs = [state[k] for k in state if re.match(re.escape(prefix) + r"generator\.conv_layers\.\d+\.weight$", k)]
+        if not convs or min(w.ndim for w in convs) == 0:
+            _weight(state, f"{prefix}generator.conv_layers.0.weight")  # says what is missing
         cfg[group].update(
             code_dim=out_dim(f"{prefix}regressor."),
             n_reg_units=units(f"{prefix}regressor."),
@@ -214,8 +306,11 @@ def _sizes_from_state(cfg: dict[str, Any], state: Mapping[str, torch.Tensor]) ->
 
 def _pose_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], n_cand: int) -> None:
     """The pose candidates' grid and the ranges of the saved ``rend_predictor`` section."""
-    rp = _get(kwargs, "rend_predictor", default={}) or {}
-    n_elev, n_azim = rp.get("n_elev_azim", (1, n_cand))
+    rp = _section(kwargs, "rend_predictor")
+    grid = rp.get("n_elev_azim", (1, n_cand))
+    if not (isinstance(grid, list | tuple) and len(grid) == 2 and all(_whole(v) for v in grid)):
+        raise CheckpointError(f"model_kwargs['rend_predictor']['n_elev_azim'] = {grid!r} is not two whole numbers")
+    n_elev, n_azim = grid
     cfg["pose"].update(n_elev=int(n_elev), n_azim=int(n_azim))
     for key in ("azim_range", "elev_range", "roll_range", "T_range", "scale_range", "prior_translation"):
         if key in rp:
@@ -226,9 +321,9 @@ def _pose_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], n_cand: in
 
 def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> None:
     """The template mesh of the saved ``mesh`` section, with the reference's per-vertex UVs."""
-    mesh = _get(kwargs, "mesh", default={}) or {}
+    mesh = _section(kwargs, "mesh")
     if "scale" in mesh:
-        cfg["template"]["scale"] = float(mesh["scale"])
+        cfg["template"]["scale"] = _number(mesh["scale"], "mesh", "scale")
     init = str(mesh.get("init", "ellipse"))
     cfg["template"]["axes"] = (1.0, 0.7, 0.7) if init.startswith("ellipse") else (1.0, 1.0, 1.0)
     cfg["template"]["level"] = 4 if "hr" in init else 3
@@ -238,19 +333,21 @@ def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> Non
 
 def _renderer_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> None:
     """Camera, blur and background colour of the saved ``renderer`` section, with the reference's compositing."""
-    rd = _get(kwargs, "renderer", default={}) or {}
-    cams = rd.get("cameras", {}) or {}
+    rd = _section(kwargs, "renderer")
+    cams = _section(kwargs, "renderer", "cameras")
     if cams.get("name") == "perspective" and "focal_length" in cams:
-        cfg["renderer"].update(fov=None, focal_length=float(cams["focal_length"]))
+        cfg["renderer"].update(
+            fov=None, focal_length=_number(cams["focal_length"], "renderer", "cameras", "focal_length")
+        )
     elif cams.get("name") == "fov":
-        cfg["renderer"].update(fov=float(cams.get("fov", 30.0)), focal_length=None)
+        cfg["renderer"].update(fov=_number(cams.get("fov", 30.0), "renderer", "cameras", "fov"), focal_length=None)
     options = dict(cfg["renderer"]["options"])
     for key in ("sigma", "faces_per_pixel"):
         if key in rd:
             options[key] = rd[key]
     cfg["renderer"].update(options=options, composite="reference")
     if rd.get("background_color") is not None:
-        cfg["renderer"]["background_color"] = tuple(rd["background_color"])
+        cfg["renderer"]["background_color"] = tuple(_numbers(rd["background_color"], "renderer", "background_color"))
 
 
 def _progressive_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], epoch: int | None) -> None:
@@ -262,8 +359,10 @@ def _progressive_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], epo
     ):
         if cfg[group] is None:
             continue
-        powers, milestones = _get(kwargs, *keys, "powers"), _get(kwargs, *keys, "milestones")
+        section = _section(kwargs, *keys)
+        powers, milestones = section.get("powers"), section.get("milestones")
         if epoch is not None and powers and milestones and len(powers) == len(milestones):
+            powers, milestones = _numbers(powers, *keys, "powers"), _numbers(milestones, *keys, "milestones")
             cfg[group]["active_dims"] = min(active_dims_at(epoch, powers, milestones), cfg[group]["code_dim"])
         else:
             cfg[group]["active_dims"] = cfg[group]["code_dim"]
@@ -271,9 +370,8 @@ def _progressive_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], epo
 
 def _stage_switches(checkpoint: Mapping[str, Any]) -> dict[str, bool]:
     """Stage-1 switches at the saved epoch: a milestone m is live (output held off) while epoch < m."""
-    kwargs = checkpoint.get("model_kwargs", {}) if "model_state" in checkpoint else {}
-    epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
-    milestones = _get(kwargs, "milestones", default={}) or {}
+    epoch = _epoch(checkpoint)
+    milestones = _section(_model_kwargs(checkpoint), "milestones")
     switches = {}
     for name, key in (
         ("translation", "freeze_T_predictor"),
@@ -281,6 +379,8 @@ def _stage_switches(checkpoint: Mapping[str, Any]) -> dict[str, bool]:
         ("scale", "freeze_scale_predictor"),
     ):
         m = milestones.get(key, 0)
+        if not isinstance(m, bool):
+            m = _number(m, "milestones", key)
         live = bool(m) if isinstance(m, bool) else (epoch is not None and epoch < m)
         switches[name] = not live
     return switches
@@ -310,14 +410,34 @@ def load_reference_checkpoint(
 
     Raises:
         unicorn.io.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
-        ReferenceCheckpointError: keys that do not fit the model (``strict``), or ``with_perceptual`` on a file
-            without the VGG weights.
+        unicorn.io.serialization.CheckpointError: a value of the checkpoint of the wrong type (the message names
+            it).
+        unicorn.io.checkpoints.ModelTooLargeError: a model, image or texture size above the limits.
+        ReferenceCheckpointError: keys that do not fit the model (``strict``), weights of other shapes, or
+            ``with_perceptual`` on a file without the VGG weights.
     """
+    source = "the released checkpoint"
     if not isinstance(checkpoint, Mapping):
+        source = f"released checkpoint {checkpoint}"
         # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
         checkpoint = load_checkpoint_file(checkpoint, map_location=map_location, trust=trust)
+    return reference_model(checkpoint, source, strict, with_perceptual, **overrides)
+
+
+def reference_model(
+    checkpoint: Mapping[str, Any], source: str, strict: bool = True, with_perceptual: bool = False, **overrides: Any
+) -> Unicorn:
+    """:func:`load_reference_checkpoint` of a loaded checkpoint dict; ``source`` names it in the size errors
+    (``"released checkpoint PATH"``).
+
+    Raises:
+        as :func:`load_reference_checkpoint`.
+    """
+    from unicorn.io.checkpoints import check_stored_config, weights_misfit  # which imports this module
+
     state, vgg = convert_reference_state_dict(checkpoint, strict=strict)
     cfg = config_from_reference(checkpoint, **overrides)
+    check_stored_config(cfg, source)  # before anything is allocated
     model = Unicorn(cfg)
     if with_perceptual:
         if not vgg:
@@ -326,13 +446,12 @@ def load_reference_checkpoint(
             )
         model.perceptual = VGGPerceptualLoss(vgg).to(next(model.parameters()).device)
         model.config["loss"]["perceptual"] = "vgg"
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    # buffers that come from the configuration, not from the reference
-    allowed = re.compile(r"(\.mask\.active|use_translation|use_deformation|use_scale|^renderer\.)")
-    missing = [k for k in missing if not allowed.search(k)]
-    if strict and (missing or unexpected):
-        raise ReferenceCheckpointError(
-            f"checkpoint does not fit the model: missing {missing[:10]}, unexpected {unexpected[:10]}"
-        )
+    # buffers that come from the configuration, not from the reference, and the VGG weights loaded above
+    derived = re.compile(r"(\.mask\.active|use_translation|use_deformation|use_scale|^renderer\.|^perceptual\.)")
+    own = {k: v for k, v in model.state_dict().items() if not derived.search(k)}
+    misfit = weights_misfit(state, own, strict)
+    if misfit:
+        raise ReferenceCheckpointError(f"checkpoint does not fit the model: {misfit}")
+    model.load_state_dict(state, strict=False)  # every weight checked above
     model.set_stage_switches(**_stage_switches(checkpoint))
     return model.eval()

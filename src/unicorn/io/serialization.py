@@ -22,6 +22,7 @@ import hashlib
 import io
 import os
 import pickle
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,7 @@ __all__ = [
     "atomic_save",
     "check_checkpoint_path",
     "content_digest",
+    "kind_of",
     "load_checkpoint_file",
     "remove_stale_temporaries",
     "seal",
@@ -81,6 +83,15 @@ class CorruptCheckpointError(CheckpointError):
     """A checkpoint whose content does not match the hash stored in it."""
 
 
+def kind_of(value: Any) -> str:
+    """What ``value`` is, for the messages that name a checkpoint's field of the wrong type: ``a str``, ``an int``,
+    ``a tensor of shape [3]``."""
+    if isinstance(value, torch.Tensor):
+        return f"a tensor of shape {list(value.shape)}"
+    name = type(value).__name__
+    return f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
+
+
 def _one_line(text: str, limit: int = 300) -> str:
     text = " ".join(str(text).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
@@ -103,14 +114,15 @@ def load_checkpoint_file(
     Raises:
         FileNotFoundError: no such file (also a :class:`~unicorn.errors.UserError`).
         UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
-        CheckpointError: not a readable torch file.
+        CheckpointError: not a readable torch file, or a zip whose entries would inflate beyond the file's size
+            (compressed or overlapping entries, which ``torch.save`` never writes), refused from its directory.
         CorruptCheckpointError: the content hash does not match.
     """
     path = Path(path).expanduser()
     check_checkpoint_path(path)
-    not_torch = _not_a_torch_file(path)
-    if not_torch:
-        raise CheckpointError(f"cannot read checkpoint {path}: {not_torch}")
+    unreadable = _unreadable(path)
+    if unreadable:
+        raise CheckpointError(f"cannot read checkpoint {path}: {unreadable}")
     try:
         if trust:
             data = torch.load(path, map_location=map_location, weights_only=False)
@@ -139,8 +151,9 @@ _ZIP_HEAD = b"PK\x03\x04"
 _LEGACY_MAGIC = (0x1950A86A20F9469CFC6C).to_bytes(10, "little")
 
 
-def _not_a_torch_file(path: Path) -> str | None:
-    """Why ``path`` cannot be a file of ``torch.save`` (empty, or neither of its formats), or None."""
+def _unreadable(path: Path) -> str | None:
+    """Why ``path`` must not be given to ``torch.load`` (empty, neither format of ``torch.save``, or a zip that would
+    inflate, :func:`_inflating_zip`), or None."""
     try:
         with path.open("rb") as f:
             head = f.read(32)
@@ -148,9 +161,39 @@ def _not_a_torch_file(path: Path) -> str | None:
         return None  # torch.load says what is wrong
     if not head:
         return "the file is empty"
-    if head.startswith(_ZIP_HEAD) or (head.startswith(b"\x80") and _LEGACY_MAGIC in head):
+    if head.startswith(_ZIP_HEAD):
+        return _inflating_zip(path)
+    if head.startswith(b"\x80") and _LEGACY_MAGIC in head:
         return None
     return "it is not a file written by torch.save (a unicorn checkpoint, a released UNICORN model, save_model's file)"
+
+
+def _inflating_zip(path: Path) -> str | None:
+    """Why a zip checkpoint would inflate in memory beyond its size, read from its directory only, or None.
+
+    ``torch.load`` inflates compressed entries before anything can be checked: a file of 0.5 MB can become 512 MB
+    (a decompression bomb). ``torch.save`` stores every entry uncompressed and once, so compressed entries, or
+    entries declaring more bytes than the file holds (entries that overlap), mean a file made or re-packed by
+    something else.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            entries = archive.infolist()
+    except (zipfile.BadZipFile, OSError):
+        return None  # a damaged zip: torch.load says what is wrong
+    compressed = next((e for e in entries if e.compress_type != zipfile.ZIP_STORED), None)
+    if compressed is not None:
+        return (
+            f"its entry {compressed.filename!r} is compressed, which torch.save never does (a re-packed file, which "
+            "could inflate to any size in memory); save it again with torch.save"
+        )
+    declared, size = sum(e.file_size for e in entries), path.stat().st_size
+    if declared > size:
+        return (
+            f"its entries declare {declared:,} bytes, more than the {size:,} bytes of the file (overlapping entries, "
+            "which torch.save never writes and which could fill the memory)"
+        )
+    return None
 
 
 class CheckpointNotFoundError(UserError, FileNotFoundError):
