@@ -285,8 +285,12 @@ def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp
         build_run(tmp_path)
     assert build_run(tmp_path, "ckpt_path=last").ckpt_path == str(tmp_path / "checkpoints" / "last.ckpt")
     (tmp_path / "notes.txt").write_text("mine")
-    fresh = build_run(tmp_path, "overwrite=true")
+    fresh = build_run(tmp_path, "overwrite=true", "trainer.max_steps=1")
     assert fresh.ckpt_path is None and not (tmp_path / "checkpoints").exists()
+    aside = tmp_path / f".overwritten-{os.getpid()}"  # until the new run's first iteration
+    assert (aside / "checkpoints" / "last.ckpt").is_file()
+    fit(fresh)
+    assert not aside.exists() and torch.load(tmp_path / "checkpoints" / "last.ckpt")["global_step"] == 1
     assert (tmp_path / "notes.txt").read_text() == "mine"  # only the run's own outputs are deleted
 
 

@@ -20,6 +20,7 @@ from unicorn.io.run_folder import (
     plan_folder,
     resolve_ckpt,
     run_of_checkpoint,
+    set_aside,
 )
 
 
@@ -112,6 +113,32 @@ def test_folder_changes_put_an_existing_folder_back(tmp_path) -> None:
     (created / "train.log").write_text("x")
     changes.undo()
     assert not created.exists()
+
+
+def _snapshot(folder: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None for p in sorted(folder.rglob("*"))}
+
+
+def test_an_overwritten_run_is_back_when_the_new_one_fails_before_its_first_iteration(tmp_path) -> None:
+    """``overwrite=true`` sets the earlier run's outputs aside; a run that stops before its first iteration puts them
+    back, byte for byte (its records too), instead of leaving a folder whose records describe a deleted run."""
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    (tmp_path / "csv").mkdir()
+    (tmp_path / "csv" / "metrics.csv").write_text("step,loss\n0,1.0\n")
+    (tmp_path / "diagnostics.csv").write_text("step\n30\n")
+    (tmp_path / "config.yaml").write_text("the earlier run's")
+    before = _snapshot(tmp_path)
+    changes = FolderChanges(tmp_path, {p.name for p in tmp_path.iterdir()})
+    outdated = plan_folder(tmp_path, None, None, overwrite=True)
+    assert {p.name for p in outdated} == {"checkpoints", "csv", "diagnostics.csv"}
+    aside = set_aside(outdated, tmp_path)
+    assert aside is not None and not (tmp_path / "checkpoints").exists()
+    (tmp_path / "config.yaml").write_text("the new run's")  # what the new run writes before training
+    (tmp_path / "csv").mkdir()
+    (tmp_path / "csv" / "hparams.yaml").write_text("new")
+    changes.undo()
+    assert _snapshot(tmp_path) == before
 
 
 def test_folder_changes_remove_the_parents_the_run_created(tmp_path) -> None:

@@ -37,9 +37,12 @@ __all__ = [
     "FolderChanges",
     "FolderLock",
     "RunFolderBusyError",
+    "ASIDE_PREFIX",
     "RunFolderError",
     "checkpoint_step",
-    "clear",
+    "drop_aside",
+    "put_back_aside",
+    "set_aside",
     "later_checkpoints",
     "lock_folder",
     "plan_folder",
@@ -52,8 +55,11 @@ __all__ = [
 
 log = logging.getLogger("unicorn.train")
 
-#: what a run writes into its folder as its outputs (deleted by ``overwrite=true``)
-RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv")
+#: what a run writes into its folder as its outputs (replaced by ``overwrite=true``)
+RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv", "diagnostics.csv")
+#: the hidden folder of a run folder (``.overwritten-<pid>``) holding the earlier run's outputs that
+#: ``overwrite=true`` replaces, from the moment the new run writes until its first iteration is done
+ASIDE_PREFIX = ".overwritten-"
 #: the records of the run a folder holds (its config, its starts, Hydra's record): a resumed run rewrites them
 RUN_RECORDS = ("config.yaml", "provenance.json", ".hydra")
 #: the log Hydra appends to (``<hydra.job.name>.log``)
@@ -175,6 +181,13 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             a resume from a checkpoint older than checkpoints of this folder; each unless ``overwrite``.
     """
     rel = lambda p: p.relative_to(output_dir) if p.is_relative_to(output_dir) else p  # noqa: E731
+    for aside in sorted(output_dir.glob(f"{ASIDE_PREFIX}*")) if output_dir.is_dir() else []:
+        log.warning(
+            "%s holds the outputs of a run that overwrite=true replaced, set aside by a run killed before its first "
+            "iteration: move them back into %s, or delete the folder",
+            aside,
+            output_dir,
+        )
     previous = previous_run(output_dir)
     if ckpt_arg is None and previous is not None:
         if not overwrite:
@@ -201,14 +214,40 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
     return []
 
 
-def clear(paths: list[Path]) -> None:
-    """Delete ``paths`` (an earlier run's outputs that ``overwrite=true`` replaces: :func:`plan_folder`)."""
+def set_aside(paths: list[Path], output_dir: Path) -> Path | None:
+    """Move ``paths`` (an earlier run's outputs that ``overwrite=true`` replaces: :func:`plan_folder`) into
+    ``output_dir/.overwritten-<pid>``, where :func:`put_back_aside` finds them if the new run fails before its
+    first iteration and :func:`drop_aside` deletes them once it is done; returns that folder (None: nothing moved).
+    """
+    if not paths:
+        return None
+    aside = output_dir / f"{ASIDE_PREFIX}{os.getpid()}"
+    aside.mkdir()
     for path in paths:
-        log.warning("overwrite=true: deleting the earlier run's %s", path)
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
-            path.unlink()
+        log.warning("overwrite=true: the earlier run's %s is deleted after the first iteration", path)
+        os.replace(path, aside / path.name)  # a rename in the same folder: nothing is copied
+    return aside
+
+
+def put_back_aside(output_dir: Path) -> None:
+    """Put the outputs this process set aside (:func:`set_aside`) back in ``output_dir``, in place of what the new
+    run wrote under the same names."""
+    aside = output_dir / f"{ASIDE_PREFIX}{os.getpid()}"
+    if not aside.is_dir():
+        return
+    for entry in aside.iterdir():
+        dest = output_dir / entry.name
+        if dest.is_dir() and not dest.is_symlink():
+            shutil.rmtree(dest)
+        elif dest.exists() or dest.is_symlink():
+            dest.unlink()
+        os.replace(entry, dest)
+    aside.rmdir()
+
+
+def drop_aside(aside: Path) -> None:
+    """Delete the earlier run's outputs set aside in ``aside`` (the new run has done an iteration)."""
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 class FolderLock:
@@ -288,11 +327,13 @@ class FolderChanges:
         ]
 
     def undo(self) -> None:
-        """Put the folder back as it was (see the class docstring)."""
+        """Put the folder back as it was (see the class docstring), the earlier run's outputs that ``overwrite=true``
+        set aside included (:func:`put_back_aside`)."""
         if not self.existed:
             shutil.rmtree(self.folder, ignore_errors=True)
             self._remove_created_parents()
             return
+        put_back_aside(self.folder)
         added = [p for p in self._written() if p not in self.paths and p.name != LOCK_NAME]
         for path in sorted(added, key=lambda p: len(p.parts), reverse=True):
             with contextlib.suppress(FileNotFoundError):

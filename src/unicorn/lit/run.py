@@ -89,7 +89,9 @@ def build(cfg: DictConfig) -> Run:
         callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]  # a Checkpoint callback: after the periodic one
         loggers = build_loggers(typed)
     trainer = build_trainer(typed, callbacks, loggers, output_dir)
-    write_run_folder(typed, output_dir, ckpt_path, outdated)
+    aside = write_run_folder(typed, output_dir, ckpt_path, outdated)
+    if aside is not None:
+        trainer.callbacks.append(DropAside(aside))
     return Run(typed, trainer, module, data, output_dir, checkpoint_dir, ckpt_path, stopper)
 
 
@@ -162,15 +164,32 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
     return output_dir, checkpoint_dir, ckpt_path, outdated
 
 
-def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None, outdated: list[Path]) -> None:
-    """Delete ``outdated`` (an earlier run that ``overwrite=true`` replaces), then write ``config.yaml`` and
-    ``provenance.json`` into the run folder (on the first process only)."""
-    from unicorn.io.run_folder import clear
+class DropAside(L.Callback):
+    """Delete the earlier run's outputs that ``overwrite=true`` set aside (``aside``) once the new run has done its
+    first iteration; a run that fails before it puts them back (:class:`unicorn.io.run_folder.FolderChanges`)."""
+
+    def __init__(self, aside: Path) -> None:
+        self.aside: Path | None = aside
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        from unicorn.io.run_folder import drop_aside
+
+        if self.aside is not None:
+            drop_aside(self.aside)
+            self.aside = None
+
+
+def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None, outdated: list[Path]) -> Path | None:
+    """Set ``outdated`` aside (an earlier run that ``overwrite=true`` replaces; see
+    :func:`~unicorn.io.run_folder.set_aside`, deleted after the first iteration by :class:`DropAside`), then
+    write ``config.yaml`` and ``provenance.json`` into the run folder (on the first process only); returns the
+    folder holding what was set aside, or None."""
+    from unicorn.io.run_folder import set_aside
     from unicorn.io.serialization import remove_stale_temporaries
 
     if not is_first_process():
-        return  # DDP processes started by Lightning build the run again
-    clear(outdated)
+        return None  # DDP processes started by Lightning build the run again
+    aside = set_aside(outdated, output_dir) if output_dir.is_dir() else None
     output_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_dir = output_dir / "checkpoints"
     if checkpoint_dir.is_dir():
@@ -178,6 +197,7 @@ def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None,
             log.info("removed %s, a partial checkpoint of a killed run", tmp)
     (output_dir / "config.yaml").write_text(recorded_config(typed))
     _write_provenance(output_dir, ckpt_path)
+    return aside
 
 
 def recorded_config(typed: DictConfig) -> str:
