@@ -294,6 +294,37 @@ def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp
     assert (tmp_path / "notes.txt").read_text() == "mine"  # only the run's own outputs are deleted
 
 
+def test_a_resume_names_the_settings_it_changes_and_refuses_those_its_checkpoint_fixes(
+    synthetic_cache, tmp_path, caplog
+):
+    """A resumed run takes Adam's and the schedule's settings from its checkpoint: changing them is refused (it was
+    silently ignored, while config.yaml recorded the new values); other changes are listed."""
+    import logging
+
+    from tests.support.training import build_run
+    from unicorn.config import ConfigError
+    from unicorn.io.serialization import CheckpointError
+    from unicorn.lit.run import fit
+
+    fit(build_run(tmp_path, "trainer.max_steps=2"))
+    config = (tmp_path / "config.yaml").read_bytes()
+    for override, said in [
+        ("optim.lr=1e-3", r"optim\.lr 0\.0002 -> 0\.001"),
+        ("optim.adam_state=shared", r"optim\.adam_state 'per_step' -> 'shared'"),
+        ("optim.lr_drop_step=1", r"optim\.lr_drop_step 6 -> 1"),
+    ]:
+        with pytest.raises(ConfigError, match=rf"keeps its checkpoint's optimiser and schedule.*{said}; resume with"):
+            build_run(tmp_path, "ckpt_path=last", override)
+        assert (tmp_path / "config.yaml").read_bytes() == config  # refused before anything is written
+    with caplog.at_level(logging.WARNING, logger="unicorn.train"):
+        build_run(tmp_path, "ckpt_path=last", "trainer.max_steps=3", "dataset.batch_size=2")
+    changed = [r.getMessage() for r in caplog.records if "resuming with settings other than" in r.getMessage()]
+    assert len(changed) == 1 and changed[0].endswith(": dataset.batch_size 4 -> 2"), changed
+    (tmp_path / "config.yaml").unlink()  # a checkpoint without its run's record: the optimisers are counted
+    with pytest.raises(CheckpointError, match=r"holds 2 optimiser state\(s\) and this run has 1"):
+        fit(build_run(tmp_path, "ckpt_path=last", "trainer.max_steps=3", "optim.adam_state=shared"))
+
+
 def test_progress_bar_can_be_disabled(synthetic_cache, tmp_path):
     from tests.support.training import build_run
     from unicorn.lit.run import fit

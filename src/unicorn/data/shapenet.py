@@ -156,7 +156,8 @@ def read_metadata(root: Path) -> dict[str, dict[str, str]]:
     """
     path = require(root / "metadata.yaml", "ShapeNet metadata.yaml", _HINT)
     try:
-        data = yaml.safe_load(read_text(path))
+        # every scalar as its text: an unquoted synset such as 03001627 would be YAML 1.1 octal (787351)
+        data = yaml.load(read_text(path), Loader=yaml.BaseLoader)  # noqa: S506 - BaseLoader builds no object
     except yaml.YAMLError as err:
         mark, problem = getattr(err, "problem_mark", None), getattr(err, "problem", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark and problem else str(err)

@@ -456,11 +456,21 @@ class UnicornLitModule(L.LightningModule):
             unicorn.io.serialization.CheckpointError: weights of another model (``ckpt_path`` with other settings).
         """
         from unicorn.io.checkpoints import check_weights_fit
+        from unicorn.io.serialization import CheckpointError
 
         path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
         check_weights_fit(checkpoint.get("state_dict", {}), self.state_dict(), "ckpt_path", path or "the checkpoint")
         # applied in on_train_start: the random state must be set after everything that precedes training
         self._resume_state = checkpoint.get("unicorn")
+        saved, own = (
+            len(checkpoint.get("optimizer_states", [])),
+            len(set(_OPTIMIZER_OF_STEP[self.optim["adam_state"]].values())),
+        )
+        if saved and saved != own:  # Lightning would load what it can pair, silently
+            raise CheckpointError(
+                f"ckpt_path {path or 'the checkpoint'} holds {saved} optimiser state(s) and this run has {own} "
+                f"(optim.adam_state={self.optim['adam_state']}): resume with the run's optim.adam_state"
+            )
         # Lightning loads the optimizer states after this hook: fit older checkpoints' whole-kernel moments
         groups = self._param_groups(self.optim)
         params = [p for g in groups for p in g["params"]] if isinstance(groups, list) else list(groups)

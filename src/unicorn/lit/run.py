@@ -160,8 +160,67 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
     if not is_first_process():  # a DDP process Lightning started, after the first one accepted the folder
         return output_dir, checkpoint_dir, ckpt_path, []
     outdated = plan_folder(output_dir, typed.ckpt_path, ckpt_path, typed.overwrite)
+    if ckpt_path is not None:
+        check_resumed_settings(typed, Path(ckpt_path))
     read_run_starts(output_dir / "provenance.json")  # the run adds its start to them
     return output_dir, checkpoint_dir, ckpt_path, outdated
+
+
+#: the optimisation settings a resumed run takes from its checkpoint (Adam's and the schedule's saved states
+#: replace what the config builds), which a resume cannot change
+RESUMED_OPTIM = (
+    "lr", "betas", "eps", "weight_decay", "lr_drop_step", "lr_drop_gamma", "texture_lr_scale", "background_lr_scale",
+    "adam_state",
+)  # fmt: skip
+#: the settings a resume is expected to change (where it goes on, from what, for how long): not listed as changes
+_RESUME_SETTINGS = ("ckpt_path", "overwrite", "trust_checkpoint", "paths", "trainer.max_steps")
+
+
+def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
+    """Compare a resumed run's settings with the ``config.yaml`` of the run its checkpoint comes from: the
+    optimisation settings the checkpoint holds (:data:`RESUMED_OPTIM`) must be the same; any other change is
+    logged, key by key (nothing when the checkpoint's run recorded no config).
+
+    Raises:
+        unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use.
+    """
+    import yaml
+
+    from unicorn.config import ConfigError
+    from unicorn.io.run_folder import run_of_checkpoint
+
+    run_dir = run_of_checkpoint(ckpt_path)
+    recorded = None if run_dir is None else run_dir / "config.yaml"
+    try:
+        before = yaml.safe_load(recorded.read_text()) if recorded is not None and recorded.is_file() else None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        before = None
+    if not isinstance(before, dict):
+        return
+    changes = _differences(before, yaml.safe_load(recorded_config(typed)))
+    said = lambda c: f"{c[0]} {c[1]!r} -> {c[2]!r}"  # noqa: E731
+    fixed = [c for c in changes if c[0] in {f"optim.{key}" for key in RESUMED_OPTIM}]
+    if fixed:
+        raise ConfigError(
+            f"ckpt_path: a resumed run keeps its checkpoint's optimiser and schedule, and these settings differ from "
+            f"its run's ({recorded}): {'; '.join(map(said, fixed))}; resume with the run's values, or start a new "
+            "run from its weights with init_from=..."
+        )
+    expected = lambda key: any(key == k or key.startswith(f"{k}.") for k in _RESUME_SETTINGS)  # noqa: E731
+    shown = [c for c in changes if not expected(c[0])]
+    if shown:
+        log.warning("resuming with settings other than those in %s: %s", recorded, "; ".join(map(said, shown)))
+
+
+def _differences(before: Any, now: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """The keys whose values differ between two nested dicts, ``(dotted key, before, now)``; a key present in one
+    only counts with None in the other."""
+    if isinstance(before, dict) and isinstance(now, dict):
+        found = []
+        for key in sorted(set(before) | set(now), key=str):
+            found += _differences(before.get(key), now.get(key), f"{prefix}{key}.")
+        return found
+    return [] if before == now else [(prefix.rstrip("."), before, now)]
 
 
 class DropAside(L.Callback):
