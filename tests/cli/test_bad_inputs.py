@@ -809,6 +809,26 @@ def test_data_check_takes_the_image_limits_its_message_names(tmp_path, capsys, m
     assert capsys.readouterr().err.splitlines()[-1] == "unicorn-data: error: --max-image-pixels must be >= 0"
 
 
+def test_data_check_all_reads_every_item_and_names_the_unreadable_ones(tmp_path, capsys):
+    from PIL import Image
+
+    from unicorn.cli.data import main
+
+    (tmp_path / "imgs").mkdir()
+    for name in ("a.png", "b.png"):
+        Image.new("RGB", (40, 40), (200, 10, 10)).save(tmp_path / "imgs" / name)
+    args = ["check", "folder", "--root", str(tmp_path / "imgs")]
+    assert main([*args, "--all"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "read every item: 2 readable, 0 not"
+    (tmp_path / "imgs" / "c.png").write_bytes(b"not a picture")  # past the first item, which check shows
+    assert main(args) == 0  # the first item only
+    capsys.readouterr()
+    assert main([*args, "--all"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[-2] == "read every item: 2 readable, 1 not", out
+    assert out[-1].startswith(f"  item 2: cannot read image {tmp_path / 'imgs' / 'c.png'}: "), out
+
+
 def test_a_device_this_machine_lacks_is_named(monkeypatch):
     import torch
 

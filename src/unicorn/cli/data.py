@@ -14,6 +14,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -70,6 +71,10 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the unreadable items ``unicorn-data check --all`` names (it counts the others)
+CHECK_SHOWN = 20
+
+
 def _check(args: argparse.Namespace) -> int:
     from unicorn.data.registry import build_dataset
 
@@ -79,7 +84,26 @@ def _check(args: argparse.Namespace) -> int:
     for key, value in dataset[0].items():
         desc = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else repr(value)
         print(f"  {key}: {desc}")
-    return 0
+    return _read_every_item(dataset) if args.all else 0
+
+
+def _read_every_item(dataset: Any) -> int:
+    """Read every item as training reads them; print the unreadable ones (the first :data:`CHECK_SHOWN`) and how
+    many there are. Returns 0 when all are readable, else 1."""
+    from unicorn.data.images import ImageLoadError
+
+    bad = []
+    for index in range(len(dataset)):
+        try:
+            dataset[index]
+        except ImageLoadError as err:  # an unreadable image, or annotations that do not fit it
+            bad.append(f"item {index}: {err}")
+    print(f"read every item: {len(dataset) - len(bad)} readable, {len(bad)} not")
+    for line in bad[:CHECK_SHOWN]:
+        print(f"  {line}")
+    if len(bad) > CHECK_SHOWN:
+        print(f"  ... and {len(bad) - CHECK_SHOWN} more")
+    return 1 if bad else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,12 +151,19 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_synth)
 
-    check = sub.add_parser("check", help="load a dataset and print its size and the first item")
+    check = sub.add_parser(
+        "check",
+        help="load a dataset and print its size and the first item (--all: read every item, exit status 1 if any "
+        "is unreadable)",
+    )
     check.add_argument("dataset", help="shapenet_nmr, synthetic, cub_200, p3d_car, compcars, lsun or folder")
     check.add_argument("--root", required=True)
     check.add_argument("--split", choices=["train", "val", "test"], default="train")
     check.add_argument("--categories", nargs="*", default=None, help="ShapeNet categories")
     check.add_argument("--tag", default="horse", help="LSUN category")
+    check.add_argument(
+        "--all", action="store_true", help="read every item and list the unreadable ones (exit status 1 if any)"
+    )
     add_image_limit_arguments(check)
     check.set_defaults(func=_check)
 
