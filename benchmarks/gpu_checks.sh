@@ -20,9 +20,13 @@ done
 limit=${GPU_CHECKS_LIMIT:-0}
 py() { if [ "$limit" -gt 0 ]; then timeout "$limit" python3 "$@"; else python3 "$@"; fi; }
 out=${OUT:-gpu-checks}
-mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 source "$(dirname "$0")/gpu_env.sh" || exit 1
+python3 -c "import torch" 2>/dev/null || {
+  echo "gpu_checks.sh: torch is not importable: activate unicorn's environment, or make a kit (gpu_kit.sh)" >&2; exit 2; }
+python3 -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)" || {
+  echo "gpu_checks.sh: no CUDA device here (torch.cuda.is_available() is False): run it on a GPU machine" >&2; exit 2; }
+mkdir -p "$out"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/device.txt"
 python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name())" | tee -a "$out/device.txt"
 for part in "${parts[@]}"; do

@@ -251,7 +251,12 @@ Row = dict[str, float]
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/quality"), help="output folder")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("benchmarks/results/quality"),
+        help="output folder of the runs and tables (default: benchmarks/results/quality under the current folder)",
+    )
     p.add_argument(
         "--table",
         choices=TABLES,
@@ -264,9 +269,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=",".join(CATEGORY_RUNS),
         help=f"categories table: comma-separated subset of {list(CATEGORY_RUNS)}",
     )
-    p.add_argument("--seeds", default="0", help="comma-separated training seeds; every run is trained once per seed")
     p.add_argument(
-        "--car-seeds", default="0,1,2", help="categories table: the seeds of the car entry (--seeds: the others)"
+        "--seeds",
+        default=None,
+        help="comma-separated training seeds (default 0); every run is trained once per seed, but the categories "
+        "table's car entries, which take --car-seeds",
+    )
+    p.add_argument(
+        "--car-seeds",
+        default="0,1,2",
+        help=f"categories table: the seeds of the car entries {sorted(CAR_ENTRIES)} (--seeds: the others)",
     )
     p.add_argument("--data-root", help="categories table: dataset.root of every run (default: the experiment's)")
     p.add_argument("--jobs", type=int, default=1, help="train up to this many runs at once")
@@ -301,6 +313,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     unknown = set(args.categories) - set(CATEGORY_RUNS)
     if unknown or not args.categories:
         p.error(f"unknown categories {sorted(unknown)}; choose from {list(CATEGORY_RUNS)}")
+    if args.seeds is not None and args.table == "categories" and set(args.categories) <= set(CAR_ENTRIES):
+        p.error(f"--seeds applies to none of the chosen entries: the car entries {sorted(CAR_ENTRIES)} take --car-seeds")
+    args.seeds = "0" if args.seeds is None else args.seeds
     for name in ("seeds", "car_seeds"):
         flag = "--" + name.replace("_", "-")
         try:
@@ -314,6 +329,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--jobs must be at least 1, got {args.jobs}")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads must be at least 1, got {args.threads}")
+    if args.steps is not None and args.steps < 1:
+        p.error(f"--steps must be at least 1, got {args.steps}")
+    for name in ("icp_points", "icp_iterations", "mean_shape_iterations", "silhouette_iterations"):
+        if getattr(args, name) < (1 if name == "icp_points" else 0):
+            p.error(f"--{name.replace('_', '-')} must be at least {1 if name == 'icp_points' else 0}")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error(f"--device {args.device} but CUDA is not available on this machine")
     return args
 
 
