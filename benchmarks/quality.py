@@ -314,7 +314,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if unknown or not args.categories:
         p.error(f"unknown categories {sorted(unknown)}; choose from {list(CATEGORY_RUNS)}")
     if args.seeds is not None and args.table == "categories" and set(args.categories) <= set(CAR_ENTRIES):
-        p.error(f"--seeds applies to none of the chosen entries: the car entries {sorted(CAR_ENTRIES)} take --car-seeds")
+        cars = sorted(CAR_ENTRIES)
+        p.error(f"--seeds applies to none of the chosen entries: the car entries {cars} take --car-seeds")
     args.seeds = "0" if args.seeds is None else args.seeds
     for name in ("seeds", "car_seeds"):
         flag = "--" + name.replace("_", "-")
