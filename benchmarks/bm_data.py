@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -40,6 +41,9 @@ import torch
 from PIL import Image
 
 from unicorn.lit import UnicornDataModule
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import comma_list, names, non_negative_int, positive_float, positive_int  # noqa: E402
 
 LOADERS = ("folder", "cub_200")
 #: CUB's class folders used by the generated data (any names work)
@@ -135,29 +139,38 @@ def measure(name: str, root: Path, workers: int, args: argparse.Namespace) -> tu
 
 
 def _size(text: str) -> tuple[int, int]:
-    width, height = (int(v) for v in text.lower().split("x"))
-    return width, height
+    """An argparse ``type``: ``WIDTHxHEIGHT``, each side >= 4 (the generated boxes and masks need 4 pixels)."""
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) >= 4 for p in parts):
+        raise argparse.ArgumentTypeError(f"must be WIDTHxHEIGHT, whole numbers >= 4, got {text!r}")
+    return int(parts[0]), int(parts[1])
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--loaders", default=",".join(LOADERS), help=f"comma-separated, of {', '.join(LOADERS)}")
-    parser.add_argument("--workers", default="0,1,2", help="comma-separated DataLoader worker counts")
-    parser.add_argument("--img-size", type=int, default=64, help="side of the loaded images")
-    parser.add_argument("--batch-size", type=int, default=32)
-    parser.add_argument("--batches", type=int, default=12, help="timed batches per measurement")
-    parser.add_argument("--warmup", type=int, default=2, help="batches before the timing (worker start-up)")
-    parser.add_argument("--repeats", type=int, default=1, help="measurements per row; the best is printed")
-    parser.add_argument("--images", type=int, default=128, help="images per generated dataset")
+    parser.add_argument(
+        "--loaders", type=names(LOADERS), default=LOADERS, help=f"comma-separated, of {', '.join(LOADERS)}"
+    )
+    parser.add_argument(
+        "--workers",
+        type=comma_list(non_negative_int),
+        default=[0, 1, 2],
+        help="comma-separated DataLoader worker counts",
+    )
+    parser.add_argument("--img-size", type=positive_int, default=64, help="side of the loaded images")
+    parser.add_argument("--batch-size", type=positive_int, default=32)
+    parser.add_argument("--batches", type=positive_int, default=12, help="timed batches per measurement")
+    parser.add_argument(
+        "--warmup", type=non_negative_int, default=2, help="batches before the timing (worker start-up)"
+    )
+    parser.add_argument("--repeats", type=positive_int, default=1, help="measurements per row; the best is printed")
+    parser.add_argument("--images", type=positive_int, default=128, help="images per generated dataset")
     parser.add_argument("--source-size", type=_size, default=(500, 375), help="WIDTHxHEIGHT of the stored photos")
-    parser.add_argument("--step-images", type=int, default=32, help="images a GPU training step consumes")
-    parser.add_argument("--step-seconds", type=float, default=0.02, help="duration of that GPU step")
+    parser.add_argument("--step-images", type=positive_int, default=32, help="images a GPU training step consumes")
+    parser.add_argument("--step-seconds", type=positive_float, default=0.02, help="duration of that GPU step")
     parser.add_argument("--root", type=Path, default=None, help="where to write the data (default: a temp folder)")
     args = parser.parse_args(argv)
-    loaders = args.loaders.split(",")
-    if unknown := [name for name in loaders if name not in LOADERS]:
-        parser.error(f"--loaders: unknown {unknown}; known: {', '.join(LOADERS)}")
-    worker_counts = [int(w) for w in args.workers.split(",")]
+    loaders, worker_counts = args.loaders, args.workers
     need = args.step_images / args.step_seconds
     print(
         f"img_size={args.img_size} batch={args.batch_size} source={args.source_size[0]}x{args.source_size[1]} JPEG "
@@ -172,7 +185,7 @@ def main(argv: list[str] | None = None) -> None:
         print(header)
         for name in loaders:
             for workers in worker_counts:
-                runs = [measure(name, roots[name], workers, args) for _ in range(max(args.repeats, 1))]
+                runs = [measure(name, roots[name], workers, args) for _ in range(args.repeats)]
                 rate = max(r for r, _ in runs)
                 per_cpu = max((c for _, c in runs if c is not None), default=None)
                 per_worker = rate / max(workers, 1)

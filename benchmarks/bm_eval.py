@@ -46,6 +46,14 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import (  # noqa: E402
+    existing_file,
+    existing_folder,
+    git_revision,
+    non_negative_int,
+    positive_int,
+    require_cuda,
+)
 from revisions import REPO, child_env, tree_of  # noqa: E402
 
 #: setting -> (surface points, ICP iterations)
@@ -264,25 +272,42 @@ def report(setting: str, results: dict[str, dict[str, Any]]) -> None:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkpoint", help="a trained checkpoint (unicorn-train .ckpt or unicorn.io.save_model file)")
     parser.add_argument(
-        "--ref", action="append", default=[], help="git revision to compare with (repeatable: one column each)"
+        "checkpoint",
+        type=existing_file,
+        help="a trained checkpoint (unicorn-train .ckpt or unicorn.io.save_model file)",
+    )
+    parser.add_argument(
+        "--ref",
+        type=git_revision,
+        action="append",
+        default=[],
+        help="git revision to compare with (repeatable: one column each)",
     )
     parser.add_argument("--settings", default="heldout,full", help="comma-separated, of " + ", ".join(SETTINGS))
-    parser.add_argument("--images", type=int, default=3, help="test images scored (default: 3)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
-    parser.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)")
+    parser.add_argument("--images", type=positive_int, default=3, help="test images scored (default: 3)")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="(default: cpu)")
+    parser.add_argument(
+        "--threads", type=positive_int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)"
+    )
     parser.add_argument("--dataset", default=None, help="dataset name (default: the checkpoint's training run's)")
-    parser.add_argument("--root", default=None, help="dataset root (default: the checkpoint's training run's)")
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--mean-shape-iterations", type=int, default=MEAN_SHAPE_ITERATIONS)
+    parser.add_argument(
+        "--root", type=existing_folder, default=None, help="dataset root (default: the checkpoint's training run's)"
+    )
+    parser.add_argument("--split", default="test", choices=("train", "val", "test"))
+    parser.add_argument("--mean-shape-iterations", type=non_negative_int, default=MEAN_SHAPE_ITERATIONS)
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     args.settings = [s.strip() for s in args.settings.split(",") if s.strip()]
-    if unknown := [s for s in args.settings if s not in SETTINGS]:
-        parser.error(f"unknown settings {unknown}; choose from {list(SETTINGS)}")
-    if args.images < 1 or args.mean_shape_iterations < 0:
-        parser.error("--images must be positive and --mean-shape-iterations >= 0")
+    if (unknown := [s for s in args.settings if s not in SETTINGS]) or not args.settings:
+        parser.error(f"--settings: unknown {unknown}; choose from {list(SETTINGS)}")
+    if args.child is None:  # the parent checks what it can before any evaluation
+        require_cuda(parser, args.device)
+        if args.dataset is not None:
+            from unicorn.data import DATASET_NAMES  # this tree's names (the children import their own)
+
+            if args.dataset not in DATASET_NAMES:
+                parser.error(f"--dataset: unknown {args.dataset!r}; known: {', '.join(DATASET_NAMES)}")
     return args
 
 

@@ -16,12 +16,16 @@ import argparse
 import resource
 import sys
 import time
+from pathlib import Path
 
 import torch
 
 from unicorn.geometry.mesh import icosphere
 from unicorn.metrics import gradient_icp, point_cloud_scores, sample_points_from_meshes
 from unicorn.metrics.nn import BACKENDS
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import names, positive_int, require_cuda  # noqa: E402
 
 
 def _peak_rss_mib() -> float:
@@ -49,15 +53,19 @@ def _run(name: str, fn, device: torch.device) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--points", type=int, default=100_000)
-    parser.add_argument("--icp-iters", type=int, default=100)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--points", type=positive_int, default=100_000, help="points per cloud")
+    parser.add_argument("--icp-iters", type=positive_int, default=100, help="gradient ICP iterations")
     parser.add_argument("--skip-icp", action="store_true")
-    parser.add_argument("--backends", default="auto", help="comma-separated, of auto, " + ", ".join(BACKENDS))
+    parser.add_argument(
+        "--backends",
+        type=names(("auto", *BACKENDS)),
+        default="auto",
+        help="comma-separated, of auto, " + ", ".join(BACKENDS),
+    )
     args = parser.parse_args(argv)
-    backends = args.backends.split(",")
-    if unknown := [b for b in backends if b not in ("auto", *BACKENDS)]:
-        parser.error(f"--backends: unknown {unknown}; known: auto, {', '.join(BACKENDS)}")
+    require_cuda(parser, args.device)
+    backends = args.backends
     device = torch.device(args.device)
     print(f"device={device} threads={torch.get_num_threads()} points={args.points} torch={torch.__version__}")
 

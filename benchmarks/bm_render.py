@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import git_revision, positive_int, require_cuda  # noqa: E402
 from revisions import REPO, child_env, tree_of  # noqa: E402
 
 
@@ -113,7 +114,9 @@ def _in_process(tree: Path, threads: int, call: str) -> object:
     ``unicorn``: each configuration's peak memory is its own."""
     code = f"import json, bm_render; print(json.dumps(bm_render.{call}))"
     env = child_env(tree, threads)
-    done = subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(f"bm_render.py: error: {call} in {tree} failed:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -156,13 +159,14 @@ def _print_table(rows: list[dict], resnet: float, ref_rows: list[dict] | None) -
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=positive_int, default=2, help="torch threads of every run")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per row (the median is printed)")
     parser.add_argument("--quick", action="store_true", help="layered only at level 3, K = 25; 3 runs")
-    parser.add_argument("--ref", help="also run every configuration in this git revision (e.g. main), side by side")
+    parser.add_argument(
+        "--ref", type=git_revision, help="also run every configuration in this git revision (e.g. main), side by side"
+    )
     args = parser.parse_args()
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda asked for, but torch sees no CUDA device")
+    require_cuda(parser, args.device)
     repeats = 3 if args.quick else args.repeats
     ref_tree = tree_of(args.ref) if args.ref else None
 

@@ -7,7 +7,7 @@ and reports for each variant the median over ``--repeats`` runs of
 - ``it/s``: iterations per second of wall time between iteration ``--warmup`` and the last one (everything the
   trainer does in between counts: logging, checkpoints, image logging, held-out scoring if enabled);
 - ``cpu ms/it``: the process's CPU time per iteration over the same window (less sensitive to other load;
-  with more than one thread it includes the threads' spinning).
+  with more than one thread it includes the threads' spinning; under ``trainer=ddp_cpu``, rank 0's process only).
 
 ``--ref REV`` adds the tree of git revision REV (checked out once with ``git worktree`` under the system's
 temporary folder) as the "before" variant; ``--variant "NAME OVERRIDE..."`` (one quoted argument, split like
@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import git_revision, non_negative_int, positive_int  # noqa: E402
 from revisions import REPO, child_env, tree_of  # noqa: E402
 
 
@@ -50,6 +51,8 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
                 self.start = (time.perf_counter(), time.process_time(), trainer.global_step)
 
         def on_train_end(self, trainer, module) -> None:  # noqa: ANN001
+            if self.start is None:  # an override ended training early (trainer.max_steps)
+                raise RuntimeError(f"training ended at iteration {trainer.global_step}, before --warmup {warmup}")
             wall, cpu, step = self.start
             n = trainer.global_step - step
             result = {"iterations": n, "wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
@@ -92,11 +95,20 @@ def run_once(tree: Path, args: argparse.Namespace, overrides: list[str], workdir
 def parse_args(argv: list[str] | None = None) -> tuple[argparse.Namespace, list[str]]:
     """The options and the Hydra overrides of every variant; ``args.variant`` is a list of (name, overrides)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ref", default=None, help="git revision to compare with (the 'before' variant)")
-    parser.add_argument("--steps", type=int, default=400)
-    parser.add_argument("--warmup", type=int, default=50)
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)")
+    parser.add_argument(
+        "--ref", type=git_revision, default=None, help="git revision to compare with (the 'before' variant)"
+    )
+    parser.add_argument("--steps", type=positive_int, default=400, help="training iterations of each run")
+    parser.add_argument(
+        "--warmup",
+        type=non_negative_int,
+        default=None,
+        help="iterations before the timing, below --steps (default: 50, or half of a shorter --steps)",
+    )
+    parser.add_argument("--repeats", type=positive_int, default=2, help="runs per variant (the median is printed)")
+    parser.add_argument(
+        "--threads", type=positive_int, default=None, help="OMP_NUM_THREADS of the runs (default: torch's)"
+    )
     parser.add_argument("--heldout", action="store_true", help="keep the main job's held-out scoring")
     parser.add_argument(
         "--variant",
@@ -106,6 +118,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[argparse.Namespace, list[
         help="also run this tree with these Hydra overrides, named NAME (one quoted argument; repeatable)",
     )
     args, overrides = parser.parse_known_args(argv)
+    if args.warmup is None:
+        args.warmup = min(50, args.steps // 2)
+    elif args.warmup >= args.steps:
+        parser.error(f"--warmup must be below --steps ({args.steps}), got {args.warmup}")
     if unknown := [o for o in overrides if o.startswith("-")]:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     variants = []

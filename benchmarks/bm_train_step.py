@@ -59,6 +59,7 @@ import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -73,6 +74,9 @@ from unicorn.model.config import CODE_BRANCHES
 from unicorn.objectives import Objectives, training_networks
 from unicorn.objectives.perceptual import _CONVS, VGGPerceptualLoss
 from unicorn.render import OverflowCounter
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import existing_file, positive_int, require_cuda  # noqa: E402
 
 GROUPS = ("encoder", "generators", "renderer", "perceptual", "regularisers", "neighbour")
 COLUMNS = ("forward", *GROUPS, "other", "backward", "bwd-nbr", "bwd-render", "optimizer", "total", "peak MB")
@@ -397,10 +401,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--warmup", type=int, default=3, help="untimed steps of each kind (fill the memory)")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--vgg", default=None, help="torchvision's vgg16-397923af.pth (random weights otherwise)")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed steps of each kind")
+    parser.add_argument(
+        "--warmup", type=positive_int, default=3, help="untimed steps of each kind (fill the memory, size the buffers)"
+    )
+    parser.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument(
+        "--vgg", type=existing_file, default=None, help="torchvision's vgg16-397923af.pth (random weights otherwise)"
+    )
     parser.add_argument(
         "--precision", nargs="+", default=["32-true"], choices=list(PRECISIONS), help="rows per Lightning precision"
     )
@@ -413,8 +421,7 @@ def main() -> None:
     )
     parser.add_argument("--paths", nargs="+", default=["default"], choices=["default", "sync-free"])
     args = parser.parse_args()
-    if args.device == "cuda" and not torch.cuda.is_available():
-        sys.exit("bm_train_step.py: error: --device cuda but CUDA is not available")
+    require_cuda(parser, args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     # what unicorn-train does at start (UNICORN_TUNE_MALLOC=0 measures glibc's defaults)

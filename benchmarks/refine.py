@@ -25,8 +25,12 @@ the wall time and the process CPU time per object.
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 import time
 import warnings
+from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -36,10 +40,49 @@ from unicorn.evaluation.rendering import hard_render
 from unicorn.io import load_model
 from unicorn.metrics import color_errors, evaluate_meshes, mask_iou, mean_foreground_color
 from unicorn.model import Prediction, Unicorn
-from unicorn.objectives.refine import PARTS, RefineOptions, refine
+from unicorn.objectives.refine import PARTS, RefineOptions, RefineOptionsError, refine
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helper, however this script is loaded
+from argchecks import comma_list, existing_file, existing_folder, non_negative_int, positive_int  # noqa: E402
 
 #: the part sets of the default table: each part alone, all of them, and RefineOptions' default parts
 PART_SETS = ("codes", "texture", "vertices", "pose", "all", "default")
+#: the RefineOptions fields --set may change (its numbers)
+SETTABLE = tuple(f.name for f in fields(RefineOptions) if f.type in (float, "float"))
+
+
+def part_sets(text: str) -> list[str]:
+    """An argparse ``type``: comma-separated part sets, each names of :data:`PARTS` joined by '+', 'all' or
+    'default'."""
+    sets = [s.strip() for s in text.split(",")]
+    for s in sets:
+        if s not in ("all", "default") and not all(name in PARTS for name in s.split("+")):
+            raise argparse.ArgumentTypeError(
+                f"unknown part set {s!r}: names of {list(PARTS)} joined by '+', 'all' or 'default'"
+            )
+    return sets
+
+
+def setting(text: str) -> tuple[str, float]:
+    """An argparse ``type``: ``NAME=VALUE``, a number field of :class:`RefineOptions` and a finite number."""
+    name, sep, value = text.partition("=")
+    if not sep or name.strip() not in SETTABLE:
+        raise argparse.ArgumentTypeError(f"must be NAME=VALUE, NAME one of {', '.join(SETTABLE)}, got {text!r}")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"{name.strip()} must be a number, got {value!r}")
+    return name.strip(), number
+
+
+def icp_setting(text: str) -> tuple[int, int]:
+    """An argparse ``type``: ``POINTS,ITERATIONS``, whole numbers >= 1 and >= 0."""
+    parts = text.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"must be POINTS,ITERATIONS, got {text!r}")
+    return positive_int(parts[0]), non_negative_int(parts[1])
 
 
 def novel_view_poses(
@@ -181,31 +224,44 @@ def score(
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoint")
-    p.add_argument("--root", required=True, help="the synthetic dataset folder (with metadata.yaml)")
+    p.add_argument("checkpoint", type=existing_file)
+    p.add_argument(
+        "--root", type=existing_folder, required=True, help="the synthetic dataset folder (with metadata.yaml)"
+    )
     p.add_argument("--split", default="test", choices=("train", "val", "test"))
-    p.add_argument("--cars", type=int, default=20, help="objects of the split (the first ones)")
-    p.add_argument("--steps", default="0,10,50,200", help="comma-separated step counts")
+    p.add_argument("--cars", type=positive_int, default=20, help="objects of the split (the first ones)")
+    p.add_argument(
+        "--steps", type=comma_list(non_negative_int), default=[0, 10, 50, 200], help="comma-separated step counts"
+    )
     p.add_argument(
         "--parts",
-        default=",".join(PART_SETS),
+        type=part_sets,
+        default=list(PART_SETS),
         help=f"part sets: names of {list(PARTS)} joined by '+', 'all' or 'default' (RefineOptions' parts), "
         "comma-separated",
     )
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--icp", default="5000,30", help="points sampled per mesh and ICP iterations of the Chamfer")
+    p.add_argument("--threads", type=positive_int, default=2, help="torch threads")
+    p.add_argument(
+        "--icp", type=icp_setting, default=(5000, 30), help="points sampled per mesh and ICP iterations of the Chamfer"
+    )
     p.add_argument(
         "--set",
+        type=setting,
         action="append",
         default=[],
         metavar="NAME=VALUE",
         help="override a RefineOptions field for every row (repeatable), e.g. --set code_weight=0.1",
     )
     args = p.parse_args()
+    overrides = dict(args.set)
+    try:  # every row's options, before any work
+        for steps in args.steps:
+            RefineOptions(steps=steps, **overrides)
+    except RefineOptionsError as err:
+        p.error(f"--steps/--set: {err}")
     warnings.filterwarnings("ignore", message="some pixels had more than faces_per_pixel")
     torch.set_num_threads(args.threads)
-    overrides = {k: float(v) for k, v in (s.split("=", 1) for s in args.set)}
-    icp = tuple(int(x) for x in args.icp.split(","))
+    icp = args.icp
 
     model, info = load_model(args.checkpoint)
     data = build_dataset(
@@ -218,8 +274,8 @@ def main() -> None:
         initial = model.eval().predict(inputs)
 
     rows: list[tuple[str, str, float, float, dict[str, float]]] = []
-    for steps in (int(s) for s in args.steps.split(",")):
-        for parts in args.parts.split(",") if steps > 0 else ["-"]:
+    for steps in args.steps:
+        for parts in args.parts if steps > 0 else ["-"]:
             if parts in ("default", "-"):
                 options = RefineOptions(steps=steps, **overrides)
             else:

@@ -16,12 +16,17 @@ from __future__ import annotations
 
 import argparse
 import copy
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from unicorn.data.synthetic.render import random_background
 from unicorn.model.generator import GiraffeGenerator
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import non_negative_float, positive_float, positive_int, power_of_two, seed_number  # noqa: E402
 
 KINDS = ("solid", "gradient", "checker", "noise")
 
@@ -65,19 +70,28 @@ def fit(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--n", type=int, default=64, help="number of backgrounds")
-    parser.add_argument("--size", type=int, default=32, help="image side (a power of 2)")
-    parser.add_argument("--code-dim", type=int, default=16, help="code size (the tiny model's: 16)")
-    parser.add_argument("--min-features", type=int, default=8, help="generator's smallest width (tiny: 8)")
-    parser.add_argument("--lr", type=float, nargs="+", default=[2e-4, 1e-3], help="Adam learning rates to compare")
-    parser.add_argument("--steps", type=int, default=1000)
-    parser.add_argument("--code-std", type=float, default=0.1, help="initial codes' std (0: a regressor's zero start)")
+    parser.add_argument("--n", type=positive_int, default=64, help="number of backgrounds")
+    parser.add_argument("--size", type=power_of_two, default=32, help="image side (a power of 2)")
+    parser.add_argument("--code-dim", type=positive_int, default=16, help="code size (the tiny model's: 16)")
+    parser.add_argument("--min-features", type=positive_int, default=8, help="generator's smallest width (tiny: 8)")
     parser.add_argument(
-        "--active-dims", type=int, default=None, help="code entries the generator sees (tiny: 4, 8, 16 by stage)"
+        "--lr", type=positive_float, nargs="+", default=[2e-4, 1e-3], help="Adam learning rates to compare"
     )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--steps", type=positive_int, default=1000, help="Adam steps of each fit")
+    parser.add_argument(
+        "--code-std", type=non_negative_float, default=0.1, help="initial codes' std (0: a regressor's zero start)"
+    )
+    parser.add_argument(
+        "--active-dims",
+        type=positive_int,
+        default=None,
+        help="code entries the generator sees, 1 to --code-dim (default: all; tiny: 4, 8, 16 by stage)",
+    )
+    parser.add_argument("--seed", type=seed_number, default=0)
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads")
     args = parser.parse_args()
+    if args.active_dims is not None and args.active_dims > args.code_dim:
+        parser.error(f"--active-dims must be at most --code-dim ({args.code_dim}), got {args.active_dims}")
     torch.set_num_threads(args.threads)
 
     target, kinds = backgrounds(args.n, args.size, args.seed)

@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import argparse
 import copy
+import sys
+from pathlib import Path
 
 import torch
 
@@ -46,6 +48,9 @@ from unicorn.metrics import code_spread
 from unicorn.metrics.instance import color_errors, mean_foreground_color
 from unicorn.model.encoder import STAGES
 from unicorn.objectives import ReconstructionLoss
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import existing_file, existing_folder, non_negative_int, positive_float, positive_int  # noqa: E402
 
 FOLDS = 5  # cross-validation folds of the readout's penalty, over the training objects
 PENALTIES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)  # the readout's ridge penalties tried (times the number of views)
@@ -170,22 +175,27 @@ def readout_ratio(fit_features, fit_colours, objects, features, truth) -> tuple[
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("checkpoint")
-    p.add_argument("--root", required=True, help="the synthetic dataset folder (with metadata.yaml)")
-    p.add_argument("--views", type=int, default=96, help="views of the split (a fixed random choice)")
+    p.add_argument("checkpoint", type=existing_file)
+    p.add_argument(
+        "--root", type=existing_folder, required=True, help="the synthetic dataset folder (with metadata.yaml)"
+    )
+    p.add_argument("--views", type=positive_int, default=96, help="views of the split (a fixed random choice)")
     p.add_argument(
         "--split",
         choices=("train", "test"),
         default="test",
         help="the test objects, or the training objects (a gap between the two is a generalisation gap)",
     )
-    p.add_argument("--steps", type=int, default=300, help="Adam steps of each per-image fit")
-    p.add_argument("--lr", type=float, default=1e-2)
-    p.add_argument("--readout-views", type=int, default=1200, help="training views the readout is fitted on")
+    p.add_argument("--steps", type=positive_int, default=300, help="Adam steps of each per-image fit")
+    p.add_argument("--lr", type=positive_float, default=1e-2)
+    p.add_argument("--readout-views", type=positive_int, default=1200, help="training views the readout is fitted on")
     p.add_argument(
-        "--refit-steps", type=int, default=0, help="Adam steps of the regressor refit on the readout's views (0: none)"
+        "--refit-steps",
+        type=non_negative_int,
+        default=0,
+        help="Adam steps of the regressor refit on the readout's views (0: none)",
     )
-    p.add_argument("--refit-lr", type=float, default=1e-3)
+    p.add_argument("--refit-lr", type=positive_float, default=1e-3)
     args = p.parse_args()
 
     model, _ = load_model(args.checkpoint)

@@ -23,15 +23,20 @@ for at least one view, of 64).
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
 from unicorn.metrics.instance import active_units, code_spread, color_errors, mean_foreground_color
 from unicorn.model import Unicorn
 from unicorn.objectives import Objectives
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import positive_float, positive_int, row_numbers, seed_number  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -100,7 +105,9 @@ def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) 
     torch.manual_seed(args.seed)
     train = build_dataset("synthetic", "train", root, 32, "car")
     test = build_dataset("synthetic", "test", root, 32, "car", views="all")
-    views = torch.utils.data.Subset(test, torch.randperm(len(test), generator=torch.Generator().manual_seed(0))[:64])
+    # Python ints: the dataset warns for every item indexed by a tensor
+    chosen = torch.randperm(len(test), generator=torch.Generator().manual_seed(0))[:64].tolist()
+    views = torch.utils.data.Subset(test, chosen)
     held = next(iter(torch.utils.data.DataLoader(views, batch_size=64)))
     model = Unicorn(model_cfg)
     model.set_active_dims(shape=control.shape_dims, texture=control.texture_dims)
@@ -152,13 +159,18 @@ def run(control: Control, model_cfg: dict, root: str, args: argparse.Namespace) 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--iterations", type=int, default=800)
-    p.add_argument("--lr", type=float, default=2e-4)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--controls", default="all", help="comma-separated row numbers (0-based) or 'all'")
+    p.add_argument("--iterations", type=positive_int, default=800, help="training iterations of each row")
+    p.add_argument("--lr", type=positive_float, default=2e-4, help="Adam learning rate")
+    p.add_argument("--seed", type=seed_number, default=0)
+    p.add_argument(
+        "--controls",
+        type=row_numbers(len(CONTROLS)),
+        default="all",
+        help=f"comma-separated row numbers (0 to {len(CONTROLS) - 1}) or 'all'",
+    )
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
     args = p.parse_args()
-    chosen = CONTROLS if args.controls == "all" else [CONTROLS[int(i)] for i in args.controls.split(",")]
+    chosen = CONTROLS if args.controls == "all" else [CONTROLS[i] for i in args.controls]
     model_cfg, root = compose_model_config(args.cache)
     rows = {}
     for control in chosen:

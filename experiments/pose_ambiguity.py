@@ -19,12 +19,25 @@ only the shape and the colours do. About 15 seconds per category on a 2-core CPU
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
 from unicorn.data.synthetic.render import render_object
 from unicorn.data.synthetic.sampling import NMR_FOV, model_streams, sample_views, split_indices, views_to_cameras
-from unicorn.data.synthetic.shapes import build_object
+from unicorn.data.synthetic.shapes import CATEGORIES, build_object
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import (  # noqa: E402
+    at_least,
+    comma_list,
+    names,
+    non_negative_float,
+    positive_float,
+    positive_int,
+    seed_number,
+)
 
 
 def renders(
@@ -59,22 +72,34 @@ def ceiling(images: np.ndarray, azims: np.ndarray, view_every: int, taus: list[f
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--categories", default="mug,car,chair,table,lamp")
-    parser.add_argument("--n-models", type=int, default=100, help="the dataset's models per category")
-    parser.add_argument("--seed", type=int, default=0, help="the dataset's seed")
-    parser.add_argument("--size", type=int, default=32, help="image side")
-    parser.add_argument("--step", type=float, default=5.0, help="azimuth step of the renderings (divides 15)")
+    parser.add_argument(
+        "--categories",
+        type=names(CATEGORIES),
+        default=["mug", "car", "chair", "table", "lamp"],
+        help=f"comma-separated, of {', '.join(CATEGORIES)}",
+    )
+    parser.add_argument("--n-models", type=at_least(3), default=100, help="the dataset's models per category")
+    parser.add_argument("--seed", type=seed_number, default=0, help="the dataset's seed")
+    parser.add_argument("--size", type=positive_int, default=32, help="image side")
+    parser.add_argument(
+        "--step", type=positive_float, default=5.0, help="azimuth step of the renderings in degrees (divides 15)"
+    )
     parser.add_argument(
         "--vertical-light",
         action="store_true",
         help="light from above instead of the dataset's key light: shading then says nothing about the azimuth",
     )
-    parser.add_argument("--taus", default="0.0005,0.001,0.002,0.005", help="mean squared errors called alike")
+    parser.add_argument(
+        "--taus",
+        type=comma_list(non_negative_float),
+        default=[0.0005, 0.001, 0.002, 0.005],
+        help="comma-separated mean squared errors called alike",
+    )
     args = parser.parse_args()
-    taus = [float(t) for t in args.taus.split(",")]
+    taus = args.taus
     view_every = int(round(15.0 / args.step))  # the dataset's 24 views are every 15 degrees
-    if abs(view_every * args.step - 15.0) > 1e-9:
-        raise SystemExit(f"--step must divide 15, got {args.step}")
+    if view_every < 1 or abs(view_every * args.step - 15.0) > 1e-9:
+        parser.error(f"--step must divide 15, got {args.step:g}")
     views = sample_views("nmr", int(round(360.0 / args.step)), np.random.default_rng())  # every step degrees
     azims, cameras = views["azim"], views_to_cameras(views)
     light = np.array([0.0, 1.0, 0.0]) if args.vertical_light else None
@@ -92,7 +117,7 @@ def main() -> None:
         + " | smallest error beyond 30 deg, median |"
     )
     print("|---|---|" + "---|" * (2 * len(taus) + 1))
-    for category in args.categories.split(","):
+    for category in args.categories:
         per_view: dict[str, list[np.ndarray]] = {}
         objects = sorted(split_indices(args.seed, category, args.n_models)["test"])
         for index in objects:

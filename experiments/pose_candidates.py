@@ -42,6 +42,8 @@ on a 2-core CPU for the 480 test views of the default experiment.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import torch
 from shape_controls import loss_picks_pose, turn_losses  # a sibling script
@@ -53,6 +55,9 @@ from unicorn.io.checkpoints import load_model
 from unicorn.metrics import mask_iou
 from unicorn.metrics.pose import align_canonical_frame, azimuth_error, geodesic_error, rotation_to_azim_elev_roll
 from unicorn.objectives.losses import ReconstructionLoss
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import existing_file, existing_folder, positive_int  # noqa: E402
 
 
 @torch.no_grad()
@@ -157,10 +162,20 @@ def by_azimuth(c: dict[str, torch.Tensor], bins: int = 12) -> list[dict[str, obj
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoints", nargs="+")
-    p.add_argument("--root", default=None, help="the dataset folder (default: each run's own synthetic dataset)")
-    p.add_argument("--dataset", default="synthetic", choices=("synthetic", "shapenet_nmr"), help="every test view")
-    p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("checkpoints", type=existing_file, nargs="+")
+    p.add_argument(
+        "--root",
+        type=existing_folder,
+        default=None,
+        help="the dataset folder (default: each run's own synthetic dataset)",
+    )
+    p.add_argument(
+        "--dataset",
+        default="synthetic",
+        choices=("synthetic", "shapenet_nmr"),
+        help="the registered dataset that reads --root, every test view of it (default: synthetic)",
+    )
+    p.add_argument("--batch-size", type=positive_int, default=64, help="views per forward pass")
     p.add_argument("--by-azimuth", action="store_true", help="also a table per band of ground-truth azimuth")
     args = p.parse_args()
 
@@ -168,7 +183,7 @@ def main() -> None:
     for path in args.checkpoints:
         model, info = load_model(path)
         model.eval()
-        d = info.dataset
+        d = info.dataset or {}  # none in a checkpoint saved without its run's data
         root = args.root or dataset_root("synthetic", d.get("root"), d.get("categories"), d.get("synthetic"))
         size, categories = model.config["image_size"], d.get("categories")
         data = build_dataset(args.dataset, "test", str(root), img_size=size, categories=categories, views="all")

@@ -24,11 +24,18 @@ learn from reconstructions this good.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
+from hydra.errors import HydraException
+from omegaconf.errors import OmegaConfBaseException
 
+from unicorn.cli.errors import one_line
+from unicorn.data.synthetic.shapes import CATEGORIES
+from unicorn.errors import UserError
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.metrics import sample_points_from_meshes, shape_retrieval, shape_spread
 from unicorn.model import (
@@ -37,6 +44,9 @@ from unicorn.model import (
     world_verts,
 )
 from unicorn.objectives import NormalConsistencyLoss, ReconstructionLoss, UniformLaplacianLoss
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import positive_float, positive_int, row_numbers, seed_number  # noqa: E402
 
 VIEWS = (0, 6, 12, 18)  # four views per car: side, back quarter, ...
 TURN_STEP = 5.0  # degrees of azimuth between the poses loss_picks_pose compares
@@ -65,23 +75,30 @@ ROWS = [
 ]
 
 
-def compose(overrides: tuple[str, ...], cache: str | None, experiment: str = "synthetic") -> tuple[dict, str]:
-    """An experiment's model config (the main job's by default) with ``overrides`` and its synthetic dataset
-    folder."""
+def training_config(overrides: tuple[str, ...], cache: str | None, experiment: str = "synthetic"):  # noqa: ANN201
+    """An experiment's training config (the main job's by default) with ``overrides``, validated."""
     import tempfile
 
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from unicorn.config import model_config, validate
-    from unicorn.data import prepare_dataset
+    from unicorn.config import validate
     from unicorn.resources import config_dir
 
     args = [f"experiment={experiment}", f"paths.output_dir={tempfile.gettempdir()}", *overrides]
     if cache:
         args.append(f"paths.cache_dir={cache}")
     with initialize_config_dir(str(config_dir()), version_base=None):
-        cfg = validate(hydra_compose("train", overrides=args))
+        return validate(hydra_compose("train", overrides=args))
+
+
+def compose(overrides: tuple[str, ...], cache: str | None, experiment: str = "synthetic") -> tuple[dict, str]:
+    """An experiment's model config (the main job's by default) with ``overrides`` and its synthetic dataset
+    folder."""
+    from unicorn.config import model_config
+    from unicorn.data import prepare_dataset
+
+    cfg = training_config(overrides, cache, experiment)
     d = cfg.dataset
     return model_config(cfg), str(prepare_dataset("synthetic", d.root, d.categories, dict(d.synthetic)))
 
@@ -244,13 +261,18 @@ def _minutes(start: float) -> float:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--iterations", type=int, default=1200)
-    p.add_argument("--fit-iterations", type=int, default=300, help="silhouette-fit Adam steps per car")
-    p.add_argument("--lr", type=float, default=2e-4)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--category", default="car", help="synthetic category (car, chair, table, lamp, mug, airplane)")
+    p.add_argument("--iterations", type=positive_int, default=1200, help="training iterations of each row")
+    p.add_argument("--fit-iterations", type=positive_int, default=300, help="silhouette-fit Adam steps per car")
+    p.add_argument("--lr", type=positive_float, default=2e-4, help="Adam learning rate")
+    p.add_argument("--seed", type=seed_number, default=0)
+    p.add_argument("--category", default="car", choices=tuple(CATEGORIES), help="synthetic category")
     p.add_argument("--override", action="append", default=[], help="a config override for every row (repeatable)")
-    p.add_argument("--rows", default="all", help="comma-separated row numbers (0-based) or 'all'")
+    p.add_argument(
+        "--rows",
+        type=row_numbers(len(ROWS)),
+        default="all",
+        help=f"comma-separated row numbers (0 to {len(ROWS) - 1}) or 'all'",
+    )
     p.add_argument("--cache", help="synthetic dataset cache folder (default: the config's)")
     p.add_argument(
         "--experiment",
@@ -258,7 +280,12 @@ def main() -> None:
         help="the experiment whose model and data the rows use (e.g. synthetic_wild)",
     )
     args = p.parse_args()
-    chosen = ROWS if args.rows == "all" else [ROWS[int(i)] for i in args.rows.split(",")]
+    try:  # the experiment and the overrides, before any work
+        training_config((*args.override, f"dataset.categories={args.category}"), args.cache, args.experiment)
+    except (HydraException, OmegaConfBaseException, UserError) as err:
+        message = one_line(err).split(" Config search path:")[0]  # Hydra's list of folders says nothing here
+        p.error(f"--experiment / --override: {message}")
+    chosen = ROWS if args.rows == "all" else [ROWS[i] for i in args.rows]
     results = {}
     for row in chosen:
         results[row.name] = run(row, args)

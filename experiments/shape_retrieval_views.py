@@ -16,19 +16,29 @@ on one thread of a 2-core CPU.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 from unicorn.data import build_dataset, dataset_root
 from unicorn.evaluation import EvalOptions, evaluate
 from unicorn.io.checkpoints import load_model
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
+from argchecks import existing_file, existing_folder, positive_int  # noqa: E402
 
 METRICS = [f"shape-{m}{s}" for s in ("", "-floor", "-gt") for m in ("top1", "top3", "mrr")]
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoints", nargs="+")
-    p.add_argument("--root", default=None, help="the dataset folder (default: each run's own synthetic dataset)")
-    p.add_argument("--points", type=int, default=2000, help="points per shape (quality.py's)")
+    p.add_argument("checkpoints", type=existing_file, nargs="+")
+    p.add_argument(
+        "--root",
+        type=existing_folder,
+        default=None,
+        help="the dataset folder (default: each run's own synthetic dataset)",
+    )
+    p.add_argument("--points", type=positive_int, default=2000, help="points per shape (quality.py's)")
     args = p.parse_args()
 
     options = EvalOptions(
@@ -39,7 +49,7 @@ def main() -> None:
     for path in args.checkpoints:
         model, info = load_model(path)
         model.eval()
-        d = info.dataset
+        d = info.dataset or {}  # none in a checkpoint saved without its run's data
         root = args.root or dataset_root("synthetic", d.get("root"), d.get("categories"), d.get("synthetic"))
         size = model.config["image_size"]
         for views in ("random", "all"):  # quality.py's one fixed view per object, then every view
