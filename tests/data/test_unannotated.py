@@ -283,6 +283,22 @@ def test_folder_follows_linked_folders_once(tmp_path: Path) -> None:
     assert list_images(root) == expected and ImageFolder(root).files == expected
 
 
+def test_a_folder_that_cannot_be_read_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    root = tmp_path / "photos"
+    write_photo(root / "a.jpg", 20, 10, 1)
+    write_photo(root / "locked" / "b.jpg", 20, 10, 2)
+    scandir = os.scandir
+
+    def no_permission(path):  # as a folder without read permission (the tests may run as root, who reads all)
+        if Path(path).name == "locked":
+            raise PermissionError(13, "Permission denied", str(path))
+        return scandir(path)
+
+    monkeypatch.setattr(os, "scandir", no_permission)
+    with pytest.warns(RuntimeWarning, match=r"cannot read the folder .*locked: Permission denied; the images in it"):
+        assert list_images(root) == [root / "a.jpg"]
+
+
 def test_folder_lists_broken_image_links_as_bad_images(tmp_path: Path) -> None:
     root = tmp_path / "photos"
     write_photo(root / "a.jpg", 20, 10, 1)

@@ -8,6 +8,7 @@ reference's ``resize_mode='pad'``); training items are flipped horizontally at r
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +36,11 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
     Links to folders are followed, each folder read once (so a link back up the tree ends there); a link named like an
     image that leads nowhere (dangling, or a loop of links) is listed, so that reading it fails as a corrupt image
     does (``on_error="skip"`` skips it with a warning) rather than the image going missing unnoticed. Paths are
-    given through the links, not resolved.
+    given through the links, not resolved. A folder that cannot be read (no permission) is named in a warning: its
+    images are left out.
     """
     found, seen = [], set()
-    for folder, subfolders, files in os.walk(root, followlinks=True):
+    for folder, subfolders, files in os.walk(root, followlinks=True, onerror=_unreadable_folder):
         real = os.path.realpath(folder)
         if real in seen:
             subfolders.clear()  # reached before by another route
@@ -51,6 +53,14 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
             if path.suffix.lower() in extensions and (path.is_file() or not path.exists()):
                 found.append(path)
     return sorted(found)
+
+
+def _unreadable_folder(err: OSError) -> None:
+    warnings.warn(
+        f"cannot read the folder {err.filename}: {err.strerror or err}; the images in it are left out",
+        RuntimeWarning,
+        stacklevel=3,
+    )
 
 
 def unannotated_item(image: np.ndarray, img_size: int, flip: bool) -> dict[str, Any]:
