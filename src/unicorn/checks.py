@@ -40,16 +40,28 @@ __all__ = [
     "check_limit",
     "check_translations",
     "env_limit",
+    "is_number",
     "is_seed",
+    "is_whole",
 ]
 
 #: the largest seed: numpy's seeds are whole numbers in [0, 2**32 - 1]
 MAX_SEED = 2**32 - 1
 
 
+def is_whole(value: object) -> bool:
+    """Whether ``value`` is a Python int, not a bool (which Python counts as one)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_number(value: object) -> bool:
+    """Whether ``value`` is a finite Python int or float, not a bool."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def is_seed(value: object) -> bool:
     """Whether ``value`` is a seed numpy takes: a whole number in [0, :data:`MAX_SEED`]."""
-    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_SEED
+    return is_whole(value) and 0 <= value <= MAX_SEED
 
 
 class FaceIndexError(IndexError, ValueError):

@@ -9,7 +9,6 @@ there, naming the key) and checks the relations between values. :func:`model_con
 from __future__ import annotations
 
 import inspect
-import math
 import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -17,7 +16,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from unicorn.checks import MAX_SEED, is_seed
+from unicorn.checks import MAX_SEED, is_number, is_seed
 from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
 from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
@@ -37,10 +36,6 @@ _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
 
 class ConfigError(UserError, ValueError):
     """A training configuration that cannot be used (the message names the key)."""
-
-
-def _finite(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _check(condition: bool, message: str) -> None:
@@ -86,9 +81,9 @@ def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:
         ValueError: the first bad value, named with its key.
     """
     lr, betas = optim["lr"], list(optim["betas"])
-    _check(_finite(lr) and lr > 0, f"{prefix}lr must be a finite number > 0, got {lr}")
+    _check(is_number(lr) and lr > 0, f"{prefix}lr must be a finite number > 0, got {lr}")
     _check(len(betas) == 2, f"{prefix}betas needs two values, got {betas}")
-    _check(all(_finite(b) and 0 <= b < 1 for b in betas), f"{prefix}betas must lie in [0, 1), got {betas}")
+    _check(all(is_number(b) and 0 <= b < 1 for b in betas), f"{prefix}betas must lie in [0, 1), got {betas}")
     for key, allowed in OPTIM_CHOICES.items():
         _check(optim[key] in allowed, f"{prefix}{key} must be one of {allowed}, got {optim[key]!r}")
     _check(optim["lr_drop_step"] is None or optim["lr_drop_step"] >= 0, f"{prefix}lr_drop_step must be null or >= 0")

@@ -46,13 +46,21 @@ __all__ = ["AnnotationError", "BBoxCropDataset"]
 _BOX_FIELDS = ("x1", "y1", "x2", "y2")
 
 
+def _box_as_written(record: dict[str, Any]) -> np.ndarray:
+    """``(x1, y1, x2, y2)`` of a record's box as the file has it (1-based, inclusive), float64."""
+    return np.array([record["bbox"][k] for k in _BOX_FIELDS], dtype=np.float64)
+
+
+def _box(record: dict[str, Any]) -> np.ndarray:
+    """(4,) float64 ``(x1, y1, x2, y2)`` of a record's box, 0-based."""
+    return _box_as_written(record) - 1.0
+
+
 class AnnotationError(ImageLoadError):
     """A record whose annotations do not fit its image (a mask of another size, a box off the image or too large
     to crop): the item cannot be made, and is skipped like an unreadable image under ``on_error="skip"``."""
 
-    def __init__(self, path: str | Path, reason: str) -> None:
-        self.path = str(path)
-        Exception.__init__(self, f"bad annotations for {self.path}: {reason}")
+    lead = "bad annotations for"
 
 
 class BBoxCropDataset(UnicornDataset):
@@ -125,7 +133,7 @@ class BBoxCropDataset(UnicornDataset):
         if not isinstance(b, dict) or any(k not in b for k in _BOX_FIELDS):
             return "bbox must be a struct with fields x1, y1, x2, y2"
         try:
-            box = np.array([b[k] for k in _BOX_FIELDS], dtype=np.float64)
+            box = _box_as_written(record)
         except (TypeError, ValueError):
             return "bbox's x1, y1, x2, y2 must be numbers"
         if box.shape != (4,) or not np.isfinite(box).all():
@@ -170,10 +178,7 @@ class BBoxCropDataset(UnicornDataset):
 
     def square_crop_box(self, index: int, rng: np.random.Generator | None = None) -> np.ndarray:
         """The square 0-based box of item ``index``, jittered when ``rng`` is given."""
-        b = self.records[index]["bbox"]
-        # MATLAB boxes are 1-based and inclusive
-        bbox = np.array([b["x1"], b["y1"], b["x2"], b["y2"]], dtype=np.float64) - 1.0
-        bbox = pad_bbox(bbox, self.padding)
+        bbox = pad_bbox(_box(self.records[index]), self.padding)
         if rng is not None and self.jitter > 0:
             bbox = jitter_bbox(bbox, self.jitter, rng)
         return square_bbox(bbox)
@@ -184,8 +189,7 @@ class BBoxCropDataset(UnicornDataset):
         path = self.image_path(index)
         if mask.shape != (H, W):
             raise AnnotationError(path, f"its mask is {mask.shape[0]} x {mask.shape[1]} (H x W), the image {H} x {W}")
-        b = self.records[index]["bbox"]
-        x1, y1, x2, y2 = (float(b[k]) - 1.0 for k in _BOX_FIELDS)
+        x1, y1, x2, y2 = _box(self.records[index]).tolist()
         if x2 < 0 or y2 < 0 or x1 > W - 1 or y1 > H - 1:
             raise AnnotationError(path, f"its box (0-based) {[x1, y1, x2, y2]} lies outside the {W} x {H} image")
         side, limit = int(bbox[2] - bbox[0] + 1), max_image_bytes()

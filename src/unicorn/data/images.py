@@ -65,9 +65,12 @@ __all__ = [
 class ImageLoadError(UserError, RuntimeError):
     """An image file (or LMDB record) could not be read or decoded; the message names it."""
 
+    #: how the message starts, before the path (subclasses for items that cannot be made say why)
+    lead = "cannot read image"
+
     def __init__(self, path: str | os.PathLike, reason: str) -> None:
         self.path = str(path)
-        super().__init__(f"cannot read image {self.path}: {reason}")
+        super().__init__(f"{self.lead} {self.path}: {reason}")
 
 
 class DatasetError(UserError, ValueError):

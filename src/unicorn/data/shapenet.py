@@ -122,9 +122,7 @@ class ViewSizeError(ImageLoadError):
     """A view image or mask whose size is not the dataset's (:attr:`ShapeNetNMR.view_size`): the items could not
     be batched together, so it is skipped like an unreadable image under ``on_error="skip"``."""
 
-    def __init__(self, path: str | Path, reason: str) -> None:
-        self.path = str(path)
-        Exception.__init__(self, f"wrong size of {self.path}: {reason}")
+    lead = "wrong size of"
 
 
 def _read_npz(path: Path, what: str) -> dict[str, np.ndarray]:

@@ -23,7 +23,6 @@ unicorn carry a content hash that is checked on load.
 from __future__ import annotations
 
 import copy
-import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from typing import Any, Literal
 
 import torch
 
-from unicorn.checks import SizeLimitError
+from unicorn.checks import SizeLimitError, is_number
 from unicorn.data.images import check_image_size
 from unicorn.io.reference_checkpoints import reference_model
 from unicorn.io.run_folder import run_dataset, run_of_checkpoint
@@ -235,7 +234,7 @@ def _stored_model(stored: Any, path: Path, field: str, overrides: Mapping[str, A
         if group not in DEFAULT_CONFIG:
             continue  # merge_config names it
         if group == "image_size":
-            fits = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+            fits = is_number(value)
         else:
             fits = value is None or isinstance(value, Mapping)
         if not fits:

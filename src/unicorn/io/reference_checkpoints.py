@@ -30,7 +30,6 @@ border padding) and ``renderer.composite = "reference"`` (``rgb * A + (1 - A) * 
 
 from __future__ import annotations
 
-import math
 import os
 import re
 from collections.abc import Mapping
@@ -38,6 +37,7 @@ from typing import Any
 
 import torch
 
+from unicorn.checks import is_number, is_whole
 from unicorn.config.presets import model_preset
 from unicorn.io.serialization import CheckpointError, kind_of, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
@@ -202,7 +202,7 @@ def _number(value: Any, *keys: str) -> float:
     Raises:
         CheckpointError: not a finite number.
     """
-    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+    if not is_number(value):
         raise CheckpointError(f"{_field_name(keys)} = {value!r} is not a finite number")
     return float(value)
 
@@ -218,11 +218,6 @@ def _numbers(value: Any, *keys: str) -> list[float]:
     return [_number(v, *keys) for v in value]
 
 
-def _whole(value: Any) -> bool:
-    """``value`` is an int (not a bool)."""
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
 def _epoch(checkpoint: Mapping[str, Any]) -> int | None:
     """The saved ``epoch`` of a released checkpoint (None for a bare state dict or when absent).
 
@@ -230,7 +225,7 @@ def _epoch(checkpoint: Mapping[str, Any]) -> int | None:
         CheckpointError: not a whole number.
     """
     epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
-    if epoch is not None and not _whole(epoch):
+    if epoch is not None and not is_whole(epoch):
         raise CheckpointError(f"epoch = {epoch!r} is not a whole number")
     return epoch
 
@@ -308,7 +303,7 @@ def _pose_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], n_cand: in
     """The pose candidates' grid and the ranges of the saved ``rend_predictor`` section."""
     rp = _section(kwargs, "rend_predictor")
     grid = rp.get("n_elev_azim", (1, n_cand))
-    if not (isinstance(grid, list | tuple) and len(grid) == 2 and all(_whole(v) for v in grid)):
+    if not (isinstance(grid, list | tuple) and len(grid) == 2 and all(is_whole(v) for v in grid)):
         raise CheckpointError(f"model_kwargs['rend_predictor']['n_elev_azim'] = {grid!r} is not two whole numbers")
     n_elev, n_azim = grid
     cfg["pose"].update(n_elev=int(n_elev), n_azim=int(n_azim))

@@ -48,6 +48,7 @@ __all__ = [
     "plan_folder",
     "previous_run",
     "resolve_ckpt",
+    "run_config",
     "run_dataset",
     "run_of_checkpoint",
     "step_checkpoints",
@@ -376,15 +377,21 @@ def run_of_checkpoint(path: str | os.PathLike) -> Path | None:
     return None
 
 
-def run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
-    """The ``dataset`` group of ``<run>/config.yaml`` (written by ``unicorn-train``), if any."""
+def run_config(run_dir: Path | None) -> dict[str, Any] | None:
+    """``<run>/config.yaml`` (written by ``unicorn-train``) as a dict; None when there is none or it cannot be read
+    as such."""
     if run_dir is None or not (run_dir / "config.yaml").is_file():
         return None
     import yaml
 
     try:
-        cfg = yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-    except yaml.YAMLError:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
-    dataset = cfg.get("dataset") if isinstance(cfg, Mapping) else None
+    return dict(cfg) if isinstance(cfg, Mapping) else None
+
+
+def run_dataset(run_dir: Path | None) -> dict[str, Any] | None:
+    """The ``dataset`` group of ``<run>/config.yaml`` (written by ``unicorn-train``), if any."""
+    dataset = (run_config(run_dir) or {}).get("dataset")
     return dict(dataset) if isinstance(dataset, Mapping) else None

@@ -187,16 +187,13 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     import yaml
 
     from unicorn.config import ConfigError
-    from unicorn.io.run_folder import run_of_checkpoint
+    from unicorn.io.run_folder import run_config, run_of_checkpoint
 
     run_dir = run_of_checkpoint(ckpt_path)
-    recorded = None if run_dir is None else run_dir / "config.yaml"
-    try:
-        before = yaml.safe_load(recorded.read_text()) if recorded is not None and recorded.is_file() else None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        before = None
-    if not isinstance(before, dict):
+    before = run_config(run_dir)
+    if before is None:
         return
+    recorded = run_dir / "config.yaml"
     changes = _differences(before, yaml.safe_load(recorded_config(typed)))
     said = lambda c: f"{c[0]} {c[1]!r} -> {c[2]!r}"  # noqa: E731
     fixed = [c for c in changes if c[0] in {f"optim.{key}" for key in RESUMED_OPTIM}]

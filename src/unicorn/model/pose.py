@@ -10,7 +10,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from unicorn.checks import check_shape
+from unicorn.checks import check_shape, is_number
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
 from unicorn.model.mlp import MLP
 from unicorn.render.precision import full_precision, to_full_precision
@@ -22,7 +22,7 @@ def _numbers(r: Any, count: int) -> list[float] | None:
     """``r`` as ``count`` finite floats, or None where it is not that (a string, None, another length, NaN)."""
     if isinstance(r, str | bytes) or not isinstance(r, Sequence) or len(r) != count:
         return None
-    numbers = [x for x in r if isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)]
+    numbers = [x for x in r if is_number(x)]
     return [float(x) for x in numbers] if len(numbers) == count else None
 
 
