@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import io
 import os
 import pickle
 import re
@@ -109,6 +110,38 @@ def test_both_torch_formats_are_read(tmp_path: Path, legacy: bool) -> None:
     assert torch.equal(load_checkpoint_file(path)["w"], torch.ones(2))
     with pytest.raises(FileNotFoundError, match="checkpoint not found"):
         load_checkpoint_file(tmp_path / "missing.pt")
+
+
+def test_legacy_storages_declaring_more_than_the_file_are_refused(tmp_path: Path, monkeypatch) -> None:
+    # the format before PyTorch 1.6 declares each storage's element count in its pickle, and torch.load allocates
+    # that much before reading the bytes: 2**30 floats declared in a file of a few hundred bytes
+    buffer = io.BytesIO()
+    saved = {"w": torch.ones(2), "d": torch.ones(3, dtype=torch.float64)}
+    torch.save(saved, buffer, _use_new_zipfile_serialization=False)
+    raw = buffer.getvalue()
+    count = raw.index(b"K\x02N", raw.index(b"FloatStorage"))  # the float storage's count (BININT1 2), then no view
+    crafted = tmp_path / "crafted.pt"
+    crafted.write_bytes(raw[:count] + b"J" + (2**30).to_bytes(4, "little") + raw[count + 2 :])
+    read = []
+    monkeypatch.setattr(torch, "load", lambda *a, **k: read.append(a))
+    for trust in (False, True):
+        with pytest.raises(CheckpointError, match="crafted.pt: its tensors declare 4,294,967,320 bytes, more than"):
+            load_checkpoint_file(crafted, trust=trust)
+    assert not read  # refused before torch allocates anything
+    monkeypatch.undo()
+    (tmp_path / "saved.pt").write_bytes(raw)
+    loaded = load_checkpoint_file(tmp_path / "saved.pt")
+    assert torch.equal(loaded["w"], torch.ones(2)) and loaded["d"].dtype == torch.float64
+
+
+def test_damaged_zip_is_one_line(tmp_path: Path) -> None:
+    buffer = io.BytesIO()
+    torch.save({"w": torch.ones(1000)}, buffer)
+    (tmp_path / "half.pt").write_bytes(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+    for trust in (False, True):
+        with pytest.raises(CheckpointError, match="half.pt: it is a damaged zip archive, a truncated file") as info:
+            load_checkpoint_file(tmp_path / "half.pt", trust=trust)
+        assert "\n" not in str(info.value) and "PytorchStreamReader" not in str(info.value)
 
 
 def test_zip_entries_that_would_inflate_are_refused_from_the_directory(tmp_path: Path, monkeypatch) -> None:
