@@ -183,11 +183,15 @@ def check_ranges(parser: argparse.ArgumentParser, args: argparse.Namespace) -> N
         parser.error("--view-size must be >= 1")
 
 
-def _out_dir(args: argparse.Namespace, info: Any, dataset: str) -> Path:
+def _out_dir(args: argparse.Namespace, run_dir: Path | None, dataset: str | None) -> Path | None:
+    """``--out``, or the default for the checkpoint's run folder and the dataset (None while the dataset is
+    unknown)."""
     if args.out is not None:
         return args.out.expanduser()
-    if info.run_dir is not None:
-        return info.run_dir / "eval" / f"{dataset}_{args.split}"
+    if dataset is None:
+        return None
+    if run_dir is not None:
+        return run_dir / "eval" / f"{dataset}_{args.split}"
     return Path("eval") / f"{Path(args.checkpoint).stem}_{dataset}_{args.split}"
 
 
@@ -260,20 +264,24 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     from unicorn.evaluation.session import evaluate_to_folder, overflow_note
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
+    from unicorn.io.run_folder import run_dataset, run_of_checkpoint
     from unicorn.metrics.sampling import check_point_count
 
     check_point_count(f"--num-points {args.num_points}", args.num_points)
     check_point_count(f"--shape-points {args.shape_points}", args.shape_points)
     check_picture_sizes(args)
     device = parse_device(args.device)
-    if args.out is not None:
-        check_out_folder(args.out.expanduser(), args.overwrite)  # before the model is read: a mistake fails fast
+    run_dir = run_of_checkpoint(args.checkpoint)
+    early = _out_dir(args, run_dir, args.dataset or (run_dataset(run_dir) or {}).get("name"))
+    if early is not None:
+        check_out_folder(early, args.overwrite)  # before the model is read: a mistake fails fast
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
     target = _target(args, info)
-    out = _out_dir(args, info, target.dataset)
-    check_out_folder(out, args.overwrite)
+    out = _out_dir(args, info.run_dir, target.dataset)
+    if out != early:
+        check_out_folder(out, args.overwrite)
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = _options(args, target.dataset, average)
     if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:
