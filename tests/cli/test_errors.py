@@ -7,6 +7,7 @@ import errno
 import logging
 import os
 import signal
+import threading
 import warnings
 
 import pytest
@@ -97,6 +98,34 @@ def test_report_errors_cleans_up_then_keeps_a_bugs_traceback(capsys) -> None:
     with pytest.raises(ZeroDivisionError):
         report_errors("prog", bug, cleanup=lambda: cleaned.append(2))
     assert cleaned == [1, 2]
+
+
+def test_a_path_given_as_bytes_reads_as_text() -> None:
+    err = OSError(errno.EROFS, "Read-only file system", os.fsencode("/runs/été/tensorboard"))
+    assert one_line(err) == "[Errno 30] Read-only file system: /runs/été/tensorboard"
+    renamed = OSError(errno.EXDEV, "Invalid cross-device link", b"/a", None, b"/b")
+    assert one_line(renamed) == "[Errno 18] Invalid cross-device link: /a -> /b"
+
+
+def test_an_expected_failure_in_a_background_thread_is_one_line(capsys, monkeypatch) -> None:
+    def command() -> int:
+        for error in (OSError(errno.EROFS, "Read-only file system", b"/run/events"), ZeroDivisionError("bug")):
+
+            def fail(error: BaseException = error) -> None:
+                raise error
+
+            thread = threading.Thread(target=fail, name="writer")
+            thread.start()
+            thread.join()
+        return 0
+
+    passed_on = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: passed_on.append(args.exc_value))
+    previous = threading.excepthook
+    assert report_errors("prog", command) == 0
+    assert threading.excepthook is previous
+    assert capsys.readouterr().err == "prog: error in thread writer: [Errno 30] Read-only file system: /run/events\n"
+    assert [type(e) for e in passed_on] == [ZeroDivisionError]  # a bug in a thread goes to the usual hook
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])

@@ -11,7 +11,8 @@ as argparse does for a bad option (:func:`expected_error` decides):
   traceback;
 - any of these wrapped by Hydra's ``instantiate`` ("Error in call to target ..."): the cause.
 
-Anything else is a bug and keeps its traceback (exit status 1). ``--debug`` (or ``HYDRA_FULL_ERROR=1`` /
+The same failures in a background thread (TensorBoard's writer) print one line, ``<prog>: error in thread <name>:
+<message>``. Anything else is a bug and keeps its traceback (exit status 1). ``--debug`` (or ``HYDRA_FULL_ERROR=1`` /
 ``UNICORN_DEBUG=1`` in the environment) shows the traceback of expected failures too.
 
 unicorn's own warnings (:class:`unicorn.errors.UnicornWarning`) are logged in one line (:func:`log_warnings`).
@@ -25,6 +26,7 @@ import math
 import os
 import re
 import sys
+import threading
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -124,6 +126,9 @@ def one_line(err: BaseException) -> str:
         text: object = f"{worker[2]} (in DataLoader worker {worker[1]})"
     elif isinstance(err, KeyError) and len(err.args) == 1:
         text = err.args[0]
+    elif isinstance(err, OSError) and isinstance(err.filename, bytes):  # printed as b'...' otherwise
+        paths = [os.fsdecode(name) for name in (err.filename, err.filename2) if name is not None]
+        text = f"[Errno {err.errno}] {err.strerror}: {' -> '.join(paths)}"
     else:
         text = err
     return " ".join(str(text).split()) or type(err).__name__
@@ -217,6 +222,27 @@ def log_warnings() -> Iterator[None]:
         yield
 
 
+@contextmanager
+def _thread_errors(prog: str, debug: bool) -> Iterator[None]:
+    """In this block an expected failure in a background thread (TensorBoard's writer on a full or read-only disk)
+    is printed in one line, ``<prog>: error in thread <name>: <message>``, instead of its traceback."""
+    previous = threading.excepthook
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        reported = expected_error(args.exc_value) if args.exc_value is not None else None
+        if reported is None or debug_requested(debug):
+            previous(args)
+            return
+        name = args.thread.name if args.thread is not None else "?"
+        print(f"{prog}: error in thread {name}: {one_line(reported)}", file=sys.stderr)
+
+    threading.excepthook = hook
+    try:
+        yield
+    finally:
+        threading.excepthook = previous
+
+
 def report_errors(
     prog: str,
     func: Callable[[], int],
@@ -237,7 +263,7 @@ def report_errors(
         cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
     try:
-        with interrupt_on_signal(), log_warnings():
+        with interrupt_on_signal(), log_warnings(), _thread_errors(prog, debug):
             return func()
     except Interrupted as err:
         if cleanup is not None:
