@@ -139,3 +139,20 @@ def test_a_node_the_run_cannot_build_is_one_config_error_and_writes_nothing(tmp_
     with pytest.raises(ConfigError, match=message) as info:
         build_run(tmp_path / "run", override)
     assert "\n" not in str(info.value) and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "mode, max_steps, warned",
+    [("fixed", 1000, "ends the run in stage 1 of 4"), ("fixed", 2500, "ends the run in stage 3 of 4"),
+     ("fixed", 3001, None), ("plateau", 1000, None)],
+)  # fmt: skip
+def test_a_run_too_short_for_its_stages_is_told(caplog, mode: str, max_steps: int, warned: str | None) -> None:
+    from unicorn.lit.run import _note_unreached_stages
+
+    with caplog.at_level("WARNING", logger="unicorn.train"):
+        _note_unreached_stages(mode, [1000, 2000, 3000], max_steps)
+    messages = [r.getMessage() for r in caplog.records]
+    if warned is None:
+        assert not messages
+    else:
+        assert len(messages) == 1 and warned in messages[0] and "schedule.milestones=[1000, 2000, 3000]" in messages[0]

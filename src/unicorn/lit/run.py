@@ -393,6 +393,22 @@ def _compile(run: Run) -> None:
     log.info("the steps' forward compiled whole at the first step without host reads (torch.compile, mode %s)", mode)
 
 
+def _note_unreached_stages(mode: str, milestones: list[int], max_steps: int) -> None:
+    """Warn when ``trainer.max_steps`` ends a run with fixed milestones before its last stage: the code sizes of the
+    stages it never reaches are not trained (a short trial of an experiment made for millions of iterations)."""
+    reached = sum(m < max_steps for m in milestones)
+    if mode != "fixed" or reached == len(milestones):
+        return
+    log.warning(
+        "trainer.max_steps=%d ends the run in stage %d of %d: schedule.milestones=%s start the later stages after it "
+        "(scale them with the run's length to train every stage)",
+        max_steps,
+        reached + 1,
+        len(milestones) + 1,
+        milestones,
+    )
+
+
 def fit(run: Run) -> dict[str, float]:
     """Train a built run; returns the last values of the trainer's scalar callback metrics.
 
@@ -405,6 +421,7 @@ def fit(run: Run) -> dict[str, float]:
     if typed.model.compile is not None:
         _compile(run)
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
+    _note_unreached_stages(typed.schedule.mode, list(typed.schedule.milestones), typed.trainer.max_steps)
     ctrl_c = signal.getsignal(signal.SIGINT)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
