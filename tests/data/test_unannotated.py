@@ -96,7 +96,7 @@ def test_lsun_without_lmdb_names_the_extra(tmp_path: Path, monkeypatch: pytest.M
     from unicorn.data.lsun import LSUN
 
     monkeypatch.setitem(sys.modules, "lmdb", None)  # makes `import lmdb` fail
-    with pytest.raises(MissingPackageError, match=r"pip install unicorn3d\[lmdb\]") as info:
+    with pytest.raises(MissingPackageError, match=r"pip install lmdb \(or, in a checkout of unicorn: pip") as info:
         LSUN(tmp_path, "horse")
     assert isinstance(info.value, ImportError) and isinstance(info.value, UserError)  # a one-line error in the CLIs
 
@@ -225,6 +225,19 @@ def test_lsun_unreadable_record_is_skipped_like_a_bad_image(tmp_path: Path, monk
     ds.on_error = "skip"
     with pytest.warns(RuntimeWarning, match=ds.keys[0].decode()):
         assert int(ds[0]["index"]) == 1
+
+
+def test_unicorn_data_check_reads_an_lsun_config_name_as_its_tag(tmp_path: Path, capsys) -> None:
+    from unicorn.cli.data import main
+
+    _write_lsun(tmp_path, "motorbike", 3)  # and a fourth record that is not an image
+    (tmp_path / "motorbike" / "indices.txt").write_text("".join(f"{j} {j}\n" for j in range(4)))
+    # lsun_motorbike, as dataset=lsun_motorbike names it, is the lsun loader with --tag motorbike
+    assert main(["check", "lsun_motorbike", "--root", str(tmp_path), "--split", "train", "--all"]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("lsun_motorbike train: 4 items") and "3 readable, 1 not" in out
+    assert main(["check", "lsun_horse", "--root", str(tmp_path)]) == 2
+    assert str(tmp_path / "horse") in capsys.readouterr().err
 
 
 def test_lsun_missing_root(tmp_path: Path) -> None:

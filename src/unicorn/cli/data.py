@@ -75,11 +75,19 @@ def _synth(args: argparse.Namespace) -> int:
 CHECK_SHOWN = 20
 
 
+def _dataset_and_tag(name: str, tag: str) -> tuple[str, str]:
+    """The loader and LSUN tag a ``check`` names: ``lsun_horse`` and ``lsun_motorbike`` (the ``dataset=`` configs)
+    are ``lsun`` with their tag."""
+    loader, _, suffix = name.partition("_")
+    return (loader, suffix) if loader == "lsun" and suffix else (name, tag)
+
+
 def _check(args: argparse.Namespace) -> int:
     from unicorn.data.registry import build_dataset
 
-    options = {"tag": args.tag} if args.dataset == "lsun" else {}
-    dataset = build_dataset(args.dataset, args.split, args.root, categories=args.categories, **options)
+    name, tag = _dataset_and_tag(args.dataset, args.tag)
+    options = {"tag": tag} if name == "lsun" else {}
+    dataset = build_dataset(name, args.split, args.root, categories=args.categories, **options)
     print(f"{args.dataset} {args.split}: {len(dataset)} items")
     for key, value in dataset[0].items():
         desc = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else repr(value)
@@ -156,11 +164,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="load a dataset and print its size and the first item (--all: read every item, exit status 1 if any "
         "is unreadable)",
     )
-    check.add_argument("dataset", help="shapenet_nmr, synthetic, cub_200, p3d_car, compcars, lsun or folder")
+    check.add_argument(
+        "dataset",
+        help="shapenet_nmr, synthetic, cub_200, p3d_car, compcars, lsun (lsun_horse, lsun_motorbike: lsun with that "
+        "--tag) or folder",
+    )
     check.add_argument("--root", required=True)
     check.add_argument("--split", choices=["train", "val", "test"], default="train")
     check.add_argument("--categories", nargs="*", default=None, help="ShapeNet categories")
-    check.add_argument("--tag", default="horse", help="LSUN category")
+    check.add_argument("--tag", default="horse", help="LSUN category (--root is the parent of its folder)")
     check.add_argument(
         "--all", action="store_true", help="read every item and list the unreadable ones (exit status 1 if any)"
     )

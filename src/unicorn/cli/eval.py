@@ -61,7 +61,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
     p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
-    p.add_argument("--out", type=folder_path, help="output folder; default: see the description")
+    p.add_argument(
+        "--out",
+        type=folder_path,
+        help="output folder; default: <run>/eval/<dataset>_<split> for a checkpoint in a training run's "
+        "checkpoints/ folder, else eval/<checkpoint name>_<dataset>_<split>",
+    )
     p.add_argument("--device", default="auto", help="'auto' (CUDA when available), 'cpu', 'cuda' or 'cuda:N'")
     add_overwrite_argument(p, "once the evaluation is complete")
     _add_metric_arguments(p)
@@ -285,10 +290,10 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = _options(args, target.dataset, average)
     if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:
-        # the ICP's nearest-neighbour searches dominate: about 0.1 s of CPU per iteration, ICP and image at 100k points
+        # the ICP's nearest-neighbour searches dominate (docs/performance.md, "Evaluation")
         print(
             f"note: {options.num_points} points and {options.icp_iterations} ICP iterations per image (the full "
-            "protocol, 100k and 100, takes about 10 s of CPU time per image); --fast (UNICORN's validation setting) "
+            "protocol, 100k and 100, takes seconds of CPU time per image); --fast (UNICORN's validation setting) "
             "is much quicker",
             flush=True,
         )

@@ -6,7 +6,7 @@ Expected layout (``root`` = ``datasets/lsun``)::
     <tag>/indices.txt                # UNICORN's cleaned subset: lines "<j> <k>", k = index of the kept key
                                      #   in LMDB key order
 
-Reading needs the optional ``lmdb`` package (``pip install unicorn3d[lmdb]``).
+Reading needs the optional ``lmdb`` package (``pip install lmdb``; in a checkout: ``pip install -e '.[lmdb]'``).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def import_lmdb() -> Any:
     except ImportError as err:
         raise MissingPackageError(
             "the LSUN loader reads LMDB databases and needs the optional 'lmdb' package: "
-            "pip install unicorn3d[lmdb]  (or: pip install lmdb)"
+            "pip install lmdb (or, in a checkout of unicorn: pip install -e '.[lmdb]')"
         ) from err
     return lmdb
 
