@@ -311,11 +311,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def check_checkpoint(path: str) -> None:
+    """End the script in one line, before any child starts, when ``path`` does not hold a UNICORN model."""
+    from unicorn.errors import UserError
+    from unicorn.io import load_model
+
+    try:
+        load_model(path, map_location="cpu")
+    except (UserError, OSError) as err:
+        sys.exit(f"bm_eval.py: error: {err}")
+
+
 def main() -> None:
     args = parse_args()
     if args.child:
         Path(args.child).write_text(json.dumps(measure(args)))
         return
+    check_checkpoint(args.checkpoint)
     variants = {**{ref: tree_of(ref) for ref in args.ref}, "this tree": REPO}
     print(f"# evaluation cost per image: {args.checkpoint}, {args.split} split, device {args.device}", flush=True)
     with tempfile.TemporaryDirectory(prefix="bm_eval-") as tmp:
