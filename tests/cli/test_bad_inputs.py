@@ -523,8 +523,8 @@ RECONSTRUCT_CASES = [
     (
         "strip-views-huge",
         {},
-        ["--strip-views", "1000000"],
-        r"--strip-views 1000000 needs 36,864,000,000 bytes \(a strip's views at --view-size 48: .*\), above the limit",
+        ["--strip-views", "24", "--view-size", "8192"],
+        r"--strip-views 24 needs 25,769,803,776 bytes \(a strip's views at --view-size 8192: .*\), above the limit",
     ),
     ("refine-huge", {}, ["--refine", "1000000000"], r"--refine 1000000000: steps must be in \[0, 10,000\]"),
     ("padding-huge", {}, ["--padding", "1e9"], r"--padding 1e\+09: must be a finite number in \[0, 10\]"),

@@ -295,3 +295,73 @@ def test_a_signal_part_way_stops_at_once_and_leaves_out_as_it_was(
         out / "index.html"
     ).read_text() == "the user's own page"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs", "out"]  # no half-written sibling
+
+
+def test_outputs_inside_an_input_folder_are_not_read_back(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+    assert main([str(checkpoint), str(inputs), "--out", str(inputs / "rec"), *FAST]) == 0
+    # a second run into another folder inside the inputs: the first run's outputs are not photos
+    assert main([str(checkpoint), str(inputs), "--out", str(inputs / "rec2"), *FAST]) == 0
+    for out in ("rec", "rec2"):
+        records = json.loads((inputs / out / "reconstructions.json").read_text())["images"]
+        assert sorted(r["name"] for r in records) == ["cutout", "photo"], out
+        assert all(Path(r["source"]).is_absolute() for r in records)
+    # and a run into the same folder again, overwriting it
+    assert main([str(checkpoint), str(inputs), "--out", str(inputs / "rec"), "--overwrite", *FAST]) == 0
+    assert len(json.loads((inputs / "rec" / "reconstructions.json").read_text())["images"]) == 2
+
+
+def test_hidden_files_are_left_out_and_names_go_to_the_readable_images(
+    tmp_path: Path, checkpoint: Path, inputs: Path, caplog
+) -> None:
+    (inputs / "._photo.jpg").write_bytes(b"\x00\x05\x16\x07 a Mac's resource file")
+    (inputs / ".thumbnails").mkdir()
+    (inputs / ".thumbnails" / "thumb.jpg").write_bytes((inputs / "photo.jpg").read_bytes())
+    (inputs / "a").mkdir()
+    (inputs / "a" / "photo.png").write_bytes(b"not a png")  # unreadable, skipped: it takes no name
+    Image.open(inputs / "photo.jpg").save(inputs / "a" / "still.gif")  # a GIF in a folder is an image
+    out = tmp_path / "out"
+    args = [str(checkpoint), str(inputs), str(inputs / "photo.jpg"), "--out", str(out), "--skip-bad", *FAST]
+    assert main(args) == 0  # photo.jpg named twice: read once
+    assert len(_skipped(caplog)) == 1 and "a/photo.png" in _skipped(caplog)[0]
+    records = json.loads((out / "reconstructions.json").read_text())["images"]
+    assert sorted(r["name"] for r in records) == ["cutout", "photo", "still"]
+
+
+def test_overwrite_removes_the_optional_files_the_new_run_does_not_make(
+    tmp_path: Path, checkpoint: Path, inputs: Path
+) -> None:
+    out, photo = tmp_path / "out", str(inputs / "photo.jpg")
+    assert main([str(checkpoint), photo, "--out", str(out), "--refine", "2", *FAST]) == 0
+    (out / "photo" / "my_notes.txt").write_text("mine")
+    made = {p.name for p in (out / "photo").iterdir()}
+    assert {"turntable.gif", "reconstruction_network.png", "turntable_network.png"} <= made
+    assert main([str(checkpoint), photo, "--out", str(out), "--overwrite", *FAST, "--turntable-frames", "0"]) == 0
+    left = {p.name for p in (out / "photo").iterdir()}
+    assert left == made - {"turntable.gif", "reconstruction_network.png", "turntable_network.png"}
+    assert (out / "photo" / "my_notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [(["--refine-parts", "bogus"], "--refine-parts: unknown part(s) ['bogus']"),
+     (["--refine-parts", "all"], "--refine-parts needs --refine STEPS")],
+)  # fmt: skip
+def test_refine_parts_without_refine_is_refused(tmp_path, checkpoint, inputs, capsys, extra, message) -> None:
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "out"), *FAST, *extra]) == 2
+    assert message in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_strip_views_are_bounded(tmp_path: Path, checkpoint: Path, inputs: Path, capsys) -> None:
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "out"), *FAST, "--strip-views", "25"]) == 2
+    assert "error: --strip-views must be at most 24" in capsys.readouterr().err
+
+
+def test_an_out_below_a_file_is_refused_before_the_model_is_read(tmp_path, checkpoint, inputs, capsys, monkeypatch):
+    import unicorn.io
+
+    (tmp_path / "afile").write_text("mine")
+    monkeypatch.setattr(unicorn.io, "load_model", lambda *a, **k: pytest.fail("the model was read"))
+    assert main([str(checkpoint), str(inputs), "--out", str(tmp_path / "afile" / "sub"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"output folder {tmp_path / 'afile' / 'sub'}: {tmp_path / 'afile'} is a file" in err
+    assert (tmp_path / "afile").read_text() == "mine"

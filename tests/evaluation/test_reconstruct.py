@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from tests.support.evaluation import IMAGE_SIZE
-from unicorn.evaluation.reconstruct import pose_record, unique_names
+from unicorn.evaluation.reconstruct import MAX_NAME, pose_record, unique_names
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, look_at_view_parameters, look_at_view_transform
 
 
@@ -20,6 +20,15 @@ def test_unique_names() -> None:
     ]
     assert unique_names([Path("/x/cat dog.png"), Path("/y/b.png")]) == ["cat_dog", "b"]
     assert unique_names([Path("/x/a.png"), Path("/x/a.jpg")]) == ["a", "a_1"]
+
+
+def test_long_names_are_cut_and_stay_unique() -> None:
+    paths = [Path("/x") / ("a" * 200) / ("x" * 100 + ".jpg"), Path("/x") / ("b" * 200) / ("x" * 100 + ".jpg")]
+    names = unique_names(paths)
+    assert len(set(names)) == 2 and all(len(n) <= MAX_NAME for n in names)
+    assert names[0].startswith("a" * 90) and names[1].startswith("b" * 90)
+    same_start = [Path("/x") / ("a" * 150 + k) / "photo.png" for k in "12"]  # cut to the same first characters
+    assert len(set(unique_names(same_start))) == 2
 
 
 def test_pose_record(real_model) -> None:

@@ -40,3 +40,13 @@ def test_non_finite_input_is_a_bad_image(tmp_path: Path) -> None:
     Image.fromarray(np.full((8, 8), np.nan, np.float32), "F").save(path)
     with pytest.raises(ImageLoadError, match=r"nan.tif: pixel values are NaN or infinite"):
         load_input(path, 32)
+
+
+@pytest.mark.parametrize("mode", ["RGB", "L"])
+def test_a_transparent_colour_key_crops_like_an_alpha_channel(tmp_path: Path, mode: str) -> None:
+    stored = np.full((20, 30, 3), 255, np.uint8)
+    stored[4:9, 10:20] = (200, 30, 30)  # the object; white, marked transparent by the PNG's tRNS chunk, elsewhere
+    image = Image.fromarray(stored).convert(mode)
+    key = (255, 255, 255) if mode == "RGB" else 255
+    image.save(tmp_path / "keyed.png", transparency=key)
+    np.testing.assert_array_equal(alpha_bbox(tmp_path / "keyed.png"), [10, 4, 19, 8])

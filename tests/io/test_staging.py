@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from unicorn.errors import Interrupted, interrupt_on_signal
-from unicorn.io.staging import PARTIAL_MARK, OutputConflictError, staged_folder
+from unicorn.io.staging import PARTIAL_MARK, OutputConflictError, check_writable, staged_folder
 
 
 def _siblings(folder):
@@ -167,3 +167,57 @@ def test_a_signal_while_the_files_move_stops_once_they_are_all_in_place(tmp_path
     assert moved == (["a.txt", "b.txt", "c.txt"] if existing else ["out"])
     assert {p.name: p.read_text() for p in (out / "img").iterdir()} == {n: "new" for n in ("a.txt", "b.txt", "c.txt")}
     assert not _siblings(out)
+
+
+def test_the_commands_own_files_an_earlier_run_wrote_are_removed_from_the_folders_written_again(tmp_path) -> None:
+    out = tmp_path / "out"
+    for name in ("a", "b"):
+        (out / name).mkdir(parents=True)
+        for file in ("mesh.obj", "turntable.gif", "notes.txt"):
+            (out / name / file).write_text("old")
+    (out / "report.html").write_text("old")
+    with staged_folder(out, outputs=("*/turntable.gif", "report.html", "*/mesh.obj")) as staging:
+        (staging / "a").mkdir()
+        (staging / "a" / "mesh.obj").write_text("new")  # no turntable this time
+    assert (out / "a" / "mesh.obj").read_text() == "new" and not (out / "a" / "turntable.gif").exists()
+    assert (out / "a" / "notes.txt").read_text() == "old"  # not the command's: kept
+    # a folder this run did not write keeps all of its files; the top level, which every run writes, loses the
+    # report this run did not make
+    assert sorted(p.name for p in (out / "b").iterdir()) == ["mesh.obj", "notes.txt", "turntable.gif"]
+    assert not (out / "report.html").exists()
+
+
+def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_folder(tmp_path, monkeypatch) -> None:
+    out = tmp_path / "mount"
+    out.mkdir()
+    (out / "mine.txt").write_text("kept")
+    real_mkdir = Path.mkdir
+
+    def mkdir(self: Path, *args, **kwargs) -> None:
+        if self.parent == tmp_path and PARTIAL_MARK in self.name:  # the parent is read-only, as /mnt is
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    check_writable(out)
+    with staged_folder(out) as staging:
+        assert staging.parent == out
+        (staging / "img").mkdir()
+        (staging / "img" / "mesh.obj").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["img", "mine.txt"]
+    assert (out / "img" / "mesh.obj").read_text() == "new"
+    with pytest.raises(PermissionError, match=f"cannot write the output folder {tmp_path / 'new'}: Permission"):
+        check_writable(tmp_path / "new")  # a folder to be made in the read-only parent
+
+
+def test_a_read_only_output_folder_is_named_before_any_work(tmp_path, monkeypatch) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def touch(self: Path, *args, **kwargs) -> None:
+        raise OSError(errno.EROFS, "Read-only file system", str(self))
+
+    monkeypatch.setattr(Path, "touch", touch)
+    with pytest.raises(OSError, match=f"^\\[Errno 30\\] cannot write the output folder {out}: Read-only file system$"):
+        check_writable(out)
+    assert not list(out.iterdir()) and not _siblings(out)

@@ -61,6 +61,11 @@ def _bbox(text: str) -> list[float]:
     return values
 
 
+#: most views of a turntable strip: one every 15 degrees (the strip and the overview's rows are that many pictures
+#: wide, and viewers and browsers do not open pictures of any width)
+MAX_STRIP_VIEWS = 24
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="unicorn-reconstruct",
@@ -77,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=whole_number, default=16, help="images per forward pass")
     p.add_argument("--view-size", type=whole_number, default=256, help="side of the pictures")
     p.add_argument("--turntable-frames", type=whole_number, default=24, help="frames of turntable.gif (0: no GIF)")
-    p.add_argument("--strip-views", type=whole_number, default=4, help="views in turntable.png")
+    p.add_argument(
+        "--strip-views", type=whole_number, default=4, help=f"views in turntable.png (at most {MAX_STRIP_VIEWS})"
+    )
     p.add_argument("--bbox", type=_bbox, help="object box x1,y1,x2,y2 in pixels (one input image only)")
     p.add_argument(
         "--padding",
@@ -117,25 +124,28 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, command: str | None = None) -> int:
     """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
     from unicorn.data.images import ImageLoadError
-    from unicorn.evaluation.reconstruct import reconstruct, unique_names
+    from unicorn.evaluation.reconstruct import OPTIONAL_FILES, reconstruct, unique_names
     from unicorn.evaluation.session import overflow_note
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.images import check_padding
     from unicorn.io.provenance import command_line, provenance
-    from unicorn.io.staging import staged_folder
+    from unicorn.io.staging import check_writable, staged_folder
 
     check_padding(args.padding, "--padding")
+    if args.strip_views > MAX_STRIP_VIEWS:
+        raise UsageError(f"--strip-views must be at most {MAX_STRIP_VIEWS} (one view every 15 degrees)")
     check_picture_sizes(args)
     refine_options = _refine_options(args)
     out = args.out.expanduser()
     check_out_folder(out, args.overwrite)
-    files = collect_inputs(args.inputs)
+    check_writable(out)
+    files = collect_inputs(args.inputs, leave_out=out)
     if args.bbox is not None and len(files) != 1:
         raise UsageError(f"--bbox needs exactly one input image, got {len(files)}")
     # decode every image once before loading the model, so that input mistakes fail fast (they are read again
     # below rather than kept: a folder of full-size photos would not fit in memory)
     readable = []
-    for path, name in zip(files, unique_names(files)):
+    for path in files:
         try:
             read_input(path, args.bbox, not args.no_alpha_crop)
         except ImageLoadError as err:
@@ -143,9 +153,10 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
                 raise
             warnings.warn(f"skipping {err}", SkippedInputWarning, stacklevel=1)
             continue
-        readable.append((path, name))
+        readable.append(path)
     if not readable:
         raise UsageError("none of the inputs could be read")
+    readable = list(zip(readable, unique_names(readable)))  # the names of the images read only
     device = parse_device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
@@ -158,7 +169,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     start = time.perf_counter()
     # a failure part-way leaves --out as it was; the renders' overflow is said once, not by the renderer
-    with overflow_note("unicorn-reconstruct"), staged_folder(out) as staging:
+    with overflow_note("unicorn-reconstruct"), staged_folder(out, OPTIONAL_FILES) as staging:
         records = reconstruct(
             model,
             items,
@@ -186,8 +197,6 @@ def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
     Raises:
         UsageError: an unknown part, or more steps than :data:`unicorn.objectives.refine.MAX_STEPS`.
     """
-    if args.refine <= 0:
-        return None
     from unicorn.objectives.refine import PARTS, RefineOptions, RefineOptionsError
 
     named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
@@ -195,6 +204,10 @@ def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
     unknown = [q for q in parts if q not in PARTS]
     if unknown:
         raise UsageError(f"--refine-parts: unknown part(s) {unknown}; choose 'default', 'all' or from {list(PARTS)}")
+    if args.refine <= 0:
+        if args.refine_parts != "default":
+            raise UsageError("--refine-parts needs --refine STEPS (how many refinement steps)")
+        return None
     try:
         return RefineOptions(steps=args.refine, parts=parts, progress=not args.quiet)
     except RefineOptionsError as err:

@@ -21,7 +21,7 @@ from unicorn.data.images import DatasetNotFoundError, load_image, require, to_ch
 
 __all__ = ["IMAGE_EXTENSIONS", "CompCars", "ImageFolder", "list_images", "unannotated_item"]
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp", ".tif", ".tiff", ".webp")
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp", ".tif", ".tiff", ".webp", ".gif")
 
 _COMPCARS_HINT = (
     "CompCars comes as GIRAFFE's comprehensive_cars.zip (github.com/autonomousvision/giraffe, "
@@ -37,7 +37,8 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
     image that leads nowhere (dangling, or a loop of links) is listed, so that reading it fails as a corrupt image
     does (``on_error="skip"`` skips it with a warning) rather than the image going missing unnoticed. Paths are
     given through the links, not resolved. A folder that cannot be read (no permission) is named in a warning: its
-    images are left out.
+    images are left out. Hidden files and folders (names starting with ``.``: a Mac's ``._IMG_1.jpg`` resource
+    files, ``.thumbnails/``, temporary folders) are left out too.
     """
     found, seen = [], set()
     for folder, subfolders, files in os.walk(root, followlinks=True, onerror=_unreadable_folder):
@@ -46,8 +47,11 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
             subfolders.clear()  # reached before by another route
             continue
         seen.add(real)
-        subfolders.sort()  # which route reaches a folder first does not depend on the file system's order
+        # hidden folders left out; sorted, so that which route reaches a folder first does not depend on the disk
+        subfolders[:] = sorted(name for name in subfolders if not name.startswith("."))
         for name in files:
+            if name.startswith("."):
+                continue
             path = Path(folder, name)
             # a regular file (through any links), or a broken link; not a pipe or a device
             if path.suffix.lower() in extensions and (path.is_file() or not path.exists()):

@@ -49,6 +49,7 @@ __all__ = [
     "check_image_size",
     "decode_image",
     "decoded",
+    "has_transparency",
     "load_image",
     "load_mask",
     "max_image_bytes",
@@ -261,7 +262,7 @@ def _pil_to_rgb(img: Image.Image) -> np.ndarray:
     if img.mode == "F":
         gray = np.clip(np.asarray(img, dtype=np.float32), 0.0, 1.0)
         return np.repeat(gray[..., None], 3, axis=-1)
-    if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
+    if has_transparency(img):
         # composite transparent pixels on white, the NMR / ShapeNet background
         rgba = np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0
         alpha = rgba[..., 3:]
@@ -269,6 +270,13 @@ def _pil_to_rgb(img: Image.Image) -> np.ndarray:
     rgb = np.asarray(img if img.mode == "RGB" else img.convert("RGB"), dtype=np.float32)  # a new array
     rgb /= 255.0
     return rgb
+
+
+def has_transparency(img: Image.Image) -> bool:
+    """Whether a PIL image has transparent pixels to read: an alpha channel, or a palette, RGB or grey image with a
+    transparent entry or colour (a PNG's ``tRNS`` chunk, a GIF's transparent index), which ``convert("RGBA")``
+    turns into alpha."""
+    return img.mode in ("RGBA", "LA", "PA") or (img.mode in ("P", "RGB", "L") and "transparency" in img.info)
 
 
 def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:

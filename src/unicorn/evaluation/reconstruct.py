@@ -26,6 +26,7 @@ checkpoint, package version, git commit) given to :func:`reconstruct`.
 
 from __future__ import annotations
 
+import hashlib
 import html
 import json
 import os
@@ -45,7 +46,7 @@ from unicorn.evaluation.pictures import image_grid, save_gif, to_uint8
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
-from unicorn.io.images import InputImage
+from unicorn.io.images import RECONSTRUCTIONS_RECORD, InputImage
 from unicorn.io.meshes import export_prediction, save_mesh
 from unicorn.model import Prediction, Unicorn
 from unicorn.objectives.refine import Refinement, RefineOptions, refine
@@ -53,10 +54,19 @@ from unicorn.objectives.refine import Refinement, RefineOptions, refine
 __all__ = ["pose_record", "reconstruct", "unique_names"]
 
 #: the files written at the top of the output folder: no image's folder may take these names
-RESERVED_NAMES = ("index.html", "overview.png", "reconstructions.json", "_viewer")
+RESERVED_NAMES = ("index.html", "overview.png", RECONSTRUCTIONS_RECORD, "_viewer")
 
 #: largest side of a picture in overview.png (the per-image files keep the full view size)
 OVERVIEW_CELL = 160
+
+#: the files written only on request in an image's folder (a turntable GIF, the network's prediction beside a
+#: refined one): an earlier run's are removed where a run writes that image's folder again without them
+#: (:func:`unicorn.io.staging.staged_folder`)
+OPTIONAL_FILES = ("*/turntable.gif", "*/reconstruction_network.png", "*/turntable_network.png")
+
+#: longest output name, in characters (file systems allow 255 bytes; names are ASCII): a longer one is cut and ends
+#: with a hash of the whole
+MAX_NAME = 120
 
 
 def unique_names(paths: Sequence[Path]) -> list[str]:
@@ -64,7 +74,8 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
 
     The file stem when stems are unique; otherwise the path relative to the inputs' common folder (``a/0000.png``
     and ``b/0000.png`` become ``a_0000`` and ``b_0000``); a numeric suffix settles what remains, and keeps names
-    clear of :data:`RESERVED_NAMES` (the folder's own files). Names differ also without regard to case.
+    clear of :data:`RESERVED_NAMES` (the folder's own files). Names differ also without regard to case, and are at
+    most :data:`MAX_NAME` characters long.
     """
     paths = [Path(p) for p in paths]
     if len({p.stem for p in paths}) == len(paths):
@@ -76,6 +87,8 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
     seen: set[str] = {n.lower() for n in RESERVED_NAMES}
     for text in raw:
         base = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or "image"
+        if len(base) > MAX_NAME - 8:  # room for a numeric suffix
+            base = f"{base[: MAX_NAME - 25]}_{hashlib.sha256(text.encode()).hexdigest()[:8]}"
         name, k = base, 1
         while name.lower() in seen:
             name, k = f"{base}_{k}", k + 1
@@ -189,7 +202,7 @@ def _write_one(
         row += [to_uint8(net_rendered[:3], cell)] + [to_uint8(f[:3], cell) for f in net_strip]
     return {
         "name": item.name,
-        "source": str(item.path),
+        "source": os.path.abspath(item.path),
         "cropped_from_alpha_or_box": item.cropped,
         "folder": folder.name,  # within the output folder, which may be moved (it is: out of the staging folder)
         "files": files,
@@ -298,7 +311,7 @@ def _write_overview(out: Path, records: list[dict[str, Any]], view_size: int, pr
             labels += ["network"] + [f"network {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
         _write_index(out, records, labels, view_size, provenance)
-    (out / "reconstructions.json").write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
+    (out / RECONSTRUCTIONS_RECORD).write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
 
 
 def _write_index(

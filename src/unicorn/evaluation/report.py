@@ -32,7 +32,11 @@ from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_scr
 from unicorn.geometry.rotations import look_at_view_parameters
 from unicorn.io.meshes import glb_bytes, textured_mesh
 
-__all__ = ["sample_views", "write_report"]
+__all__ = ["REPORT_FILES", "sample_views", "write_report"]
+
+#: what :func:`write_report` writes into the output folder, only where there are samples to show: an evaluation
+#: without a report, or with fewer samples, removes an earlier one's (:func:`unicorn.io.staging.staged_folder`)
+REPORT_FILES = ("report.html", "report.png", "report", "report/*", "_viewer")
 
 
 def _sample_viewer(model: EvaluableModel, sample: Sample, size: int) -> str:

@@ -23,7 +23,7 @@ from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
 from unicorn.evaluation.metric_files import write_metrics
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
-from unicorn.evaluation.report import write_report
+from unicorn.evaluation.report import REPORT_FILES, write_report
 from unicorn.io.staging import staged_folder
 from unicorn.render import OverflowCounter
 
@@ -143,7 +143,9 @@ def evaluate_to_folder(
         "options": dataclasses.asdict(options),
         "mean_shape_iterations": mean_shape_iterations,
     }
-    with staged_folder(out) as staging:  # a failure while writing leaves ``out`` as it was
+    # a failure while writing leaves ``out`` as it was; a report of an earlier evaluation goes where this one has
+    # none, or fewer samples
+    with staged_folder(out, REPORT_FILES) as staging:
         paths = write_metrics(result, staging, full_meta)
         if result.samples:
             log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")

@@ -32,6 +32,7 @@ from unicorn.data.images import (
     RGB_BYTES_PER_PIXEL,
     ImageLoadError,
     decoded,
+    has_transparency,
     load_image,
     max_image_bytes,
     open_image,
@@ -42,6 +43,7 @@ from unicorn.errors import UserError
 __all__ = [
     "IMAGE_EXTENSIONS",
     "MAX_PADDING",
+    "RECONSTRUCTIONS_RECORD",
     "BoxError",
     "InputImage",
     "RawInput",
@@ -68,8 +70,17 @@ class InputNotAFileError(UserError, OSError):
     """An input named on the command line exists but is neither a file nor a folder."""
 
 
-def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
-    """Image files named on the command line: files as given, folders searched recursively (sorted).
+#: the file ``unicorn-reconstruct`` writes at the top of its output folder: a folder holding it is its output
+RECONSTRUCTIONS_RECORD = "reconstructions.json"
+
+
+def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.PathLike | None = None) -> list[Path]:
+    """Image files named on the command line: files as given (each once), folders searched recursively (sorted;
+    :func:`~unicorn.data.folder.list_images`).
+
+    A folder search leaves out ``leave_out`` (the command's output folder) and every folder holding a
+    :data:`RECONSTRUCTIONS_RECORD` (``unicorn-reconstruct``'s outputs), so that outputs written inside an input
+    folder are not read back as photos by a later run.
 
     Raises:
         FileNotFoundError: an input does not exist, or nothing to read was found at all.
@@ -79,7 +90,7 @@ def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
     for item in inputs:
         path = Path(item).expanduser()
         if path.is_dir():
-            found = list_images(path)
+            found = [f for f in list_images(path) if not _is_output(f, path, leave_out)]
             if not found:
                 raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {path}")
             files += found
@@ -91,7 +102,16 @@ def collect_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
             raise FileNotFoundError(f"input not found: {path}")
     if not files:
         raise FileNotFoundError("no input images given")
-    return files
+    unique = {os.path.realpath(f): f for f in reversed(files)}  # a file named twice is read once, where first named
+    return [f for f in files if unique[os.path.realpath(f)] is f]
+
+
+def _is_output(file: Path, searched: Path, leave_out: str | os.PathLike | None) -> bool:
+    """Whether ``file``, found in the folder ``searched``, lies in ``leave_out`` or in a reconstruction output."""
+    if leave_out is not None and Path(os.path.abspath(file)).is_relative_to(os.path.abspath(leave_out)):
+        return True
+    between = file.parents[: len(file.relative_to(searched).parts)]  # file's folder up to ``searched``, included
+    return any((folder / RECONSTRUCTIONS_RECORD).is_file() for folder in between)
 
 
 def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | None:
@@ -106,7 +126,7 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
             it would be a blank frame).
     """
     with open_image(path, path) as img:
-        if img.mode not in ("RGBA", "LA", "PA") and not (img.mode == "P" and "transparency" in img.info):
+        if not has_transparency(img):
             return None
         # oriented as load_image orients the image, so that the box is in its pixel grid
         alpha = np.asarray(decoded(img, path).convert("RGBA"))[..., 3].astype(np.float32) / 255.0

@@ -2,8 +2,10 @@
 
 :func:`staged_folder` is how ``unicorn-eval`` and ``unicorn-reconstruct`` write their output folders: a run that
 fails part-way (a full disk, a bad image, Ctrl-C) leaves the folder as it was, not half-written. The sibling
-``.<name>.partial-<pid>`` lies on the same file system, so moving its entries into place is a rename; a sibling
-left by a killed process is removed by the next run that writes the same folder.
+``.<name>.partial-<pid>`` lies on the same file system, so moving its entries into place is a rename (an existing
+folder whose parent cannot be written to, such as a mount point, holds it inside instead); one left by a killed
+process is removed by the next run that writes the same folder. :func:`check_writable` tells before any work
+whether the folder can be written.
 """
 
 from __future__ import annotations
@@ -12,27 +14,83 @@ import contextlib
 import errno
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from unicorn.errors import UserError, signals_held
 from unicorn.io.serialization import DISK_ERRORS, _alive
 
-__all__ = ["PARTIAL_MARK", "OutputConflictError", "staged_folder"]
+__all__ = ["PARTIAL_MARK", "OutputConflictError", "check_writable", "staged_folder"]
 
 #: infix of the temporary siblings (``.<name>.partial-<pid>``)
 PARTIAL_MARK = ".partial-"
 
 
 def _remove_stale_siblings(out: Path) -> None:
-    """Remove the temporary siblings of ``out`` left by processes that no longer run."""
+    """Remove the temporary folders of ``out`` (beside it or inside it) left by processes that no longer run."""
     prefix = f".{out.name}{PARTIAL_MARK}"
-    if not out.parent.is_dir():
-        return
-    for sibling in out.parent.iterdir():
-        pid = sibling.name[len(prefix) :]
-        if sibling.name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(sibling, ignore_errors=True)
+    for folder in (out.parent, out):
+        if not _is_folder(folder):
+            continue
+        for sibling in folder.iterdir():
+            pid = sibling.name[len(prefix) :]
+            if sibling.name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)):
+                shutil.rmtree(sibling, ignore_errors=True)
+
+
+def _absolute(out: str | os.PathLike) -> Path:
+    """``out`` made absolute, ``.`` and ``..`` kept by their names (the temporary folder's name needs one)."""
+    out = Path(os.path.abspath(Path(out).expanduser()))
+    if not out.name:
+        raise OutputConflictError(f"cannot write the output folder {out}: choose a folder below it")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"output folder {out} exists and is not a folder")
+    above = next((folder for folder in out.parents if folder.exists()), None)
+    if above is not None and not above.is_dir():
+        raise NotADirectoryError(f"cannot write the output folder {out}: {above} is a file, not a folder")
+    return out
+
+
+def _make_staging(out: Path) -> Path:
+    """Create the empty temporary folder of ``out``: beside it, or inside an existing ``out`` whose parent cannot be
+    written to (a mount point)."""
+    name = f".{out.name}{PARTIAL_MARK}{os.getpid()}"
+    places = [out.parent] + ([out] if _is_folder(out) else [])
+    for k, place in enumerate(places):
+        tmp = place / name
+        shutil.rmtree(tmp, ignore_errors=True)
+        try:
+            tmp.mkdir()
+            return tmp
+        except OSError as err:
+            if k == len(places) - 1 or err.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
+                raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+    raise AssertionError("unreachable")
+
+
+def check_writable(out: str | os.PathLike) -> None:
+    """Check before any work that :func:`staged_folder` can write ``out``: its temporary folder can be made and,
+    where ``out`` exists, files can be written into it.
+
+    Raises:
+        OSError: the message names ``out`` (a read-only disk, a missing permission, a file where a folder is
+            needed on the way).
+        OutputConflictError, NotADirectoryError: as :func:`staged_folder`.
+    """
+    out = _absolute(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+    tmp = _make_staging(out)
+    tmp.rmdir()
+    if _is_folder(out):
+        probe = out / f".{out.name}{PARTIAL_MARK}{os.getpid()}.probe"
+        try:
+            probe.touch()
+            probe.unlink()
+        except OSError as err:
+            raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
 
 
 class OutputConflictError(UserError, FileExistsError):
@@ -58,6 +116,21 @@ def _conflicts(source: Path, target: Path) -> list[str]:
         elif _is_folder(dest):
             found.append(f"{dest} is a folder where a file goes")
     return found
+
+
+def _outdated(source: Path, target: Path, outputs: Sequence[str]) -> list[Path]:
+    """The files and folders in ``target`` that match the glob patterns ``outputs`` (the command's own), in folders
+    that ``source`` writes too, where ``source`` has none of that name: an earlier run's, which this one did not
+    write."""
+    found = []
+    for pattern in outputs:
+        for path in target.glob(pattern):
+            if source in path.parents:  # the temporary folder itself, where it lies inside ``target``
+                continue
+            rel = path.relative_to(target)
+            if _is_folder(source / rel.parent) and not (source / rel).exists():
+                found.append(path)
+    return sorted(set(found))
 
 
 def _merge(source: Path, target: Path) -> None:
@@ -97,33 +170,27 @@ def _move(entry: Path, dest: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
+def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterator[Path]:
     """Yield an empty temporary folder beside ``out``; when the block succeeds, move its contents into ``out``.
 
     A missing ``out`` is the renamed temporary folder. In an existing ``out`` each file written replaces the file
     of the same name (sub-folders are merged) and the others are kept: whether an existing folder may be written
-    into is the caller's decision. When the block raises, the temporary folder is removed and
-    ``out`` is untouched. A SIGTERM or Ctrl-C that comes while the files move is held until they are all in place
-    (:func:`~unicorn.errors.signals_held`).
+    into is the caller's decision; only the files and folders matching ``outputs`` (glob patterns relative to
+    ``out``: the command's own optional outputs, such as a turntable made only on request) that an earlier run wrote
+    in a folder this block writes again, and this block did not write, are removed, so that a folder does not mix
+    two runs.
+    When the block raises, the temporary folder is removed and ``out`` is untouched. A SIGTERM or Ctrl-C that comes
+    while the files move is held until they are all in place (:func:`~unicorn.errors.signals_held`).
 
     Raises:
         OSError: the temporary folder cannot be created (a read-only or full disk, a missing permission).
         OutputConflictError: an entry of ``out`` is a file where a folder is written or a folder where a file is
             (nothing is moved: ``out`` is as it was).
     """
-    out = Path(os.path.abspath(Path(out).expanduser()))  # ``.`` and ``..`` by their names: the sibling needs one
-    if not out.name:
-        raise OutputConflictError(f"cannot write the output folder {out}: choose a folder below it")
-    if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"output folder {out} exists and is not a folder")
+    out = _absolute(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_siblings(out)
-    tmp = out.with_name(f".{out.name}{PARTIAL_MARK}{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.mkdir()
-    except OSError as err:
-        raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+    tmp = _make_staging(out)
     try:
         yield tmp
         with signals_held():  # a Ctrl-C or SIGTERM now stops the command once every file is in place
@@ -135,7 +202,10 @@ def staged_folder(out: str | os.PathLike) -> Iterator[Path]:
                 raise OutputConflictError(
                     f"cannot write the output folder {out}: {conflicts[0]}; move it away or choose another folder"
                 )
+            outdated = _outdated(tmp, out, outputs)
             _merge(tmp, out)
+            for path in outdated:
+                shutil.rmtree(path) if _is_folder(path) else path.unlink(missing_ok=True)
     except OSError as err:
         if err.filename is None and err.errno in DISK_ERRORS:  # e.g. a write() on a full disk names no file
             raise type(err)(err.errno, f"{err.strerror} while writing the output folder {out}") from err
