@@ -197,8 +197,8 @@ def test_the_config_keys_the_documentation_names_exist(tmp_path: Path) -> None:
 
 #: a Python name of the package in the prose: `unicorn.module.name` or `unicorn.module.function(...)`
 PACKAGE_NAME = re.compile(r"`(unicorn(?:\.[A-Za-z_][A-Za-z0-9_]*)+)(?:\([^`]*\))?`")
-#: names in that form that are not Python names: the renderers' entry-point group, the warnings' logger
-NOT_PYTHON = {"unicorn.renderers", "unicorn.warnings"}
+#: names in that form that are not Python names: the entry-point groups, the warnings' logger
+NOT_PYTHON = {"unicorn.renderers", "unicorn.plugins", "unicorn.warnings"}
 
 
 def _resolves(name: str) -> bool:

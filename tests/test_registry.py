@@ -131,3 +131,60 @@ def test_entry_points_register_on_first_lookup_and_a_broken_one_warns(monkeypatc
     with pytest.warns(UserWarning, match=r"could not load thing entry point 'missing' \(string:NoSuchThing\)"):
         assert things.names() == ["template"]
     assert things.build("template", {"template": "$x"}).substitute(x=1) == "1"
+
+
+def test_plugins_are_imported_once_from_the_variable_and_the_entry_points(tmp_path, monkeypatch) -> None:
+    (tmp_path / "probe_plugin_a.py").write_text(
+        "import unicorn.registry as r\nr.imported = [*getattr(r, 'imported', []), 'a']\n"
+    )
+    (tmp_path / "probe_plugin_b.py").write_text(
+        "import unicorn.registry as r\nr.imported = [*getattr(r, 'imported', []), 'b']\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(registry.PLUGINS_ENV, " probe_plugin_a , ")
+    points = [
+        EntryPoint("b", "probe_plugin_b", registry.PLUGIN_GROUP),
+        EntryPoint("broken", "probe_plugin_missing", registry.PLUGIN_GROUP),
+    ]
+    monkeypatch.setattr(registry, "entry_points", lambda group: points if group == registry.PLUGIN_GROUP else [])
+    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    monkeypatch.setattr(registry, "imported", [], raising=False)
+    with pytest.warns(UserWarning, match=r"could not load the unicorn.plugins entry point 'broken'"):
+        registry.load_plugins()
+    registry.load_plugins()  # once
+    assert registry.imported == ["a", "b"]
+
+
+def test_a_plugin_module_that_cannot_be_imported_is_one_error_naming_it(monkeypatch) -> None:
+    monkeypatch.setenv(registry.PLUGINS_ENV, "probe_no_such_module")
+    monkeypatch.setattr(registry, "_plugins_loaded", False)
+    with pytest.raises(registry.PluginError, match=r"^UNICORN_PLUGINS: cannot import 'probe_no_such_module': Module"):
+        registry.load_plugins()
+    assert isinstance(registry.PluginError("x"), UserError)
+
+
+def test_a_dataset_and_a_renderer_registered_after_import_are_accepted_by_the_training_config(tmp_path) -> None:
+    from tests.support.training import compose_config
+    from unicorn.config import validate
+    from unicorn.config.build import model_config
+    from unicorn.data.registry import DATASETS, DatasetSpec, list_datasets, register_dataset
+    from unicorn.render import LayeredRenderer, register_renderer, unregister_renderer
+
+    class KeywordsRenderer(LayeredRenderer):  # takes any option and passes it on
+        def __init__(self, power: float = 1.0, **options) -> None:
+            super().__init__(**options)
+            self.power = power
+
+    register_dataset("probe_objects", DatasetSpec(DATASETS.get("folder").build, 5, "images"))
+    register_renderer("probe_keywords")(KeywordsRenderer)
+    try:
+        assert "probe_objects" in list_datasets()
+        cfg = compose_config(
+            ["dataset=folder", "dataset.name=probe_objects", "dataset.root=/data/mine", "renderer.name=probe_keywords",
+             "+renderer.power=2.0", f"paths.output_dir={tmp_path}"]
+        )  # fmt: skip
+        typed = validate(cfg)
+        assert model_config(typed)["renderer"]["options"]["power"] == 2.0
+    finally:
+        DATASETS.remove("probe_objects")
+        unregister_renderer("probe_keywords")

@@ -8,11 +8,19 @@ the pose objectives and the viewpoint supervisions. Their modules expose ``regis
 functions bound to it. An unknown name is one error everywhere, :class:`UnknownNameError`, whose message lists the
 known names; an option that a constructor does not take is :class:`UnknownOptionError`, whose message names it and
 lists the options taken.
+
+Plugins: your own entries are registered by importing the module that registers them; in Python, import it. The
+command-line tools import, before they read their settings (:func:`load_plugins`), the modules named in the
+environment variable :data:`PLUGINS_ENV` (``UNICORN_PLUGINS=mypkg.unicorn_parts,other_module``: importable, e.g. on
+``PYTHONPATH``) and, from installed packages, the entry points of the group :data:`PLUGIN_GROUP`
+(``[project.entry-points."unicorn.plugins"]``, ``any_name = "mypkg.unicorn_parts"``).
 """
 
 from __future__ import annotations
 
+import importlib
 import inspect
+import os
 import warnings
 from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from importlib.metadata import entry_points
@@ -20,7 +28,23 @@ from typing import Any, Generic, TypeVar
 
 from unicorn.errors import UserError
 
-__all__ = ["Registry", "UnknownNameError", "UnknownOptionError", "check_options", "keyword_options"]
+__all__ = [
+    "PLUGINS_ENV",
+    "PLUGIN_GROUP",
+    "PluginError",
+    "Registry",
+    "UnknownNameError",
+    "UnknownOptionError",
+    "check_options",
+    "keyword_options",
+    "load_plugins",
+]
+
+#: the environment variable naming the modules to import before the first lookup (comma-separated)
+PLUGINS_ENV = "UNICORN_PLUGINS"
+#: the entry-point group of installed packages' plugin modules (each entry's value: a module name)
+PLUGIN_GROUP = "unicorn.plugins"
+_plugins_loaded = False
 
 T = TypeVar("T")
 F = TypeVar("F")
@@ -33,6 +57,38 @@ class UnknownNameError(UserError, ValueError):
 class UnknownOptionError(UserError, TypeError):
     """An option that the named constructor does not take (the message names it and lists the ones it takes); a
     ``TypeError``, as Python's own unexpected keyword argument."""
+
+
+class PluginError(UserError, ImportError):
+    """A module named in :data:`PLUGINS_ENV` that cannot be imported (the message names it and why)."""
+
+
+def load_plugins() -> None:
+    """Import the plugin modules once (see the module docstring): :data:`PLUGINS_ENV`'s first, then the
+    :data:`PLUGIN_GROUP` entry points. A broken entry point warns and is skipped, as a broken renderer entry point;
+    a module you named yourself is an error.
+
+    Raises:
+        PluginError: a module of :data:`PLUGINS_ENV` fails to import.
+    """
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True  # first: a plugin that looks something up while it is imported must not come back here
+    for name in (part.strip() for part in os.environ.get(PLUGINS_ENV, "").split(",")):
+        if not name:
+            continue
+        try:
+            importlib.import_module(name)
+        except Exception as err:
+            raise PluginError(f"{PLUGINS_ENV}: cannot import {name!r}: {type(err).__name__}: {err}") from err
+    for ep in entry_points(group=PLUGIN_GROUP):
+        try:
+            importlib.import_module(ep.value)
+        except Exception as err:  # a broken plugin must not break the built-in entries
+            warnings.warn(
+                f"could not load the {PLUGIN_GROUP} entry point {ep.name!r} ({ep.value}): {err}", stacklevel=3
+            )
 
 
 def keyword_options(factory: Callable[..., Any]) -> list[str] | None:

@@ -16,6 +16,7 @@ from unicorn.data.registry import (
     build_dataset,
     dataset_root,
     dataset_spec,
+    list_datasets,
     prepare_dataset,
     val_indices,
 )
@@ -66,8 +67,9 @@ def test_data_does_not_import_lightning() -> None:
 
 
 def test_one_registry_names_every_dataset_for_training_evaluation_and_the_cli() -> None:
-    choices = next(a.choices for a in build_parser()._actions if a.dest == "dataset")
-    assert list(choices) == list(DATASET_NAMES) == list(EXPECTED_DATASETS)
+    help_text = next(a.help for a in build_parser()._actions if a.dest == "dataset")
+    assert list(DATASET_NAMES) == list(EXPECTED_DATASETS) and sorted(EXPECTED_DATASETS) == list_datasets()
+    assert all(name in help_text for name in DATASET_NAMES)
     assert {name: protocol_for(name) for name in DATASET_NAMES} == {
         name: protocol for name, (_, protocol) in EXPECTED_DATASETS.items()
     }

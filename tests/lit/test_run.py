@@ -131,6 +131,10 @@ def test_the_run_records_a_relative_dataset_root_as_absolute(tmp_path, monkeypat
             "+callbacks.extra.x={_target_:lightning.pytorch.callbacks.Timer,bogus:1}",
             r"unexpected keyword argument 'bogus'.* full_key: callbacks.extra.x$",
         ),
+        (
+            "+callbacks.extra.rec={_target_:collections.OrderedDict}",
+            r"^callbacks.extra.rec: collections.OrderedDict built an OrderedDict, not a Lightning Callback$",
+        ),
         ("trainer.accelerator=bogus", r"^trainer \(accelerator=bogus, .*invalid accelerator name"),
         ("trainer.devices=[1,2]", r"^trainer \(accelerator=cpu, devices=\[1, 2\]"),
     ],

@@ -193,7 +193,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         check_common_arguments(parser, args)
         apply_common_arguments(args)
-    return report_errors("unicorn-data", lambda: args.func(args), args.debug)
+    return report_errors("unicorn-data", lambda: _run(args), args.debug)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from unicorn.registry import load_plugins
+
+    load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: a plugin's dataset to check
+    return args.func(args)
 
 
 if __name__ == "__main__":

@@ -55,8 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint", help="checkpoint file")
     p.add_argument(
         "--dataset",
-        choices=DATASET_NAMES,
-        help="dataset name; default: the training run's dataset (from <run>/config.yaml)",
+        help=f"dataset name ({', '.join(DATASET_NAMES)}, or a plugin's); default: the training run's dataset (from "
+        "<run>/config.yaml)",
     )
     p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
     p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
@@ -340,8 +340,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    from unicorn.registry import load_plugins
+
     tune_allocator()
     apply_common_arguments(args)
+    load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: their datasets and renderers
+    if args.dataset is not None and args.dataset not in DATASETS:
+        raise UsageError(f"--dataset: unknown dataset {args.dataset!r}; known: {DATASETS.names()}")
     from unicorn.io.provenance import command_line
 
     return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))

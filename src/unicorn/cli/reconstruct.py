@@ -229,7 +229,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    from unicorn.registry import load_plugins
+
     apply_common_arguments(args)
+    load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: a plugin's renderer in a checkpoint
     from unicorn.io.provenance import command_line
 
     return run(args, command=command_line("unicorn-reconstruct", sys.argv[1:] if argv is None else argv))

@@ -85,6 +85,9 @@ def _task(cfg: DictConfig) -> None:
 
     from unicorn.io.run_folder import FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
+    from unicorn.registry import load_plugins
+
+    load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: before the config is checked
 
     hydra_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:

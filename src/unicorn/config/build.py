@@ -8,7 +8,6 @@ there, naming the key) and checks the relations between values. :func:`model_con
 
 from __future__ import annotations
 
-import inspect
 import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -18,15 +17,15 @@ from omegaconf.errors import OmegaConfBaseException
 
 from unicorn.checks import MAX_SEED, is_number, is_seed
 from unicorn.config.schema import HELDOUT_SPLITS, N_STAGES, OPTIM_CHOICES, SCHEDULE_MODES, SPLITS, TrainConfig
-from unicorn.data import DATASET_NAMES
 from unicorn.data.common import OnError
-from unicorn.data.registry import stored_image_size
+from unicorn.data.registry import DATASETS, stored_image_size
 from unicorn.errors import UserError
 from unicorn.model import check_model_size
 from unicorn.model.compile import COMPILE_MODES, COMPILE_SCOPES
 from unicorn.model.config import CODE_BRANCHES, allowed_values, check_model_config
 from unicorn.model.ranges import check_ranges
 from unicorn.objectives.loss_factory import check_loss_choices
+from unicorn.registry import keyword_options
 from unicorn.render import BACKGROUND_COLOR, RenderError, check_render_option, get_renderer_class, list_renderers
 
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
@@ -100,7 +99,7 @@ def _check_values(cfg: DictConfig) -> None:
         _is_folder_name(cfg.task_name),
         f"task_name must be a folder name, not a path (no / or \\, not . or ..), got {cfg.task_name!r}",
     )
-    _check(cfg.dataset.name in DATASET_NAMES, f"dataset.name {cfg.dataset.name!r} is not one of {DATASET_NAMES}")
+    _check(cfg.dataset.name in DATASETS, f"dataset.name {cfg.dataset.name!r} is not one of {DATASETS.names()}")
     _check_model(cfg)
     _check_sizes(cfg)
     _check_dataset(cfg.dataset)
@@ -327,9 +326,10 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     camera.pop("_target_", None)
     fov, focal = camera.pop("fov", None), camera.pop("focal_length", None)
     _check((fov is None) != (focal is None), "renderer.camera needs exactly one of fov and focal_length")
-    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "camera", "image_size"}
+    taken = keyword_options(cls)  # None: it takes any keyword (**kwargs) and checks its own options
+    accepted = None if taken is None else set(taken) - {"camera", "image_size"}
     for key, value in camera.items():
-        if key in accepted and key not in cfg:
+        if accepted is not None and key in accepted and key not in cfg:
             cfg[key] = value  # e.g. SoftRas depth normalisation
         else:
             _check(
@@ -337,11 +337,11 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
                 f"renderer.camera.{key}={value} is not supported by the model's camera",
             )
     background_color = cfg.pop("background_color", BACKGROUND_COLOR)
-    unknown = sorted(set(cfg) - accepted)
+    unknown = [] if accepted is None else sorted(set(cfg) - accepted)
     drop = " ".join(f"~renderer.{key}" for key in unknown)
     _check(
         not unknown,
-        f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted)}); an experiment or family "
+        f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted or ())}); an experiment or family "
         f"may set them for another renderer: drop them with {drop}",
     )
     for key, value in cfg.items():

@@ -40,7 +40,9 @@ __all__ = [
     "build_dataset",
     "dataset_root",
     "dataset_spec",
+    "list_datasets",
     "prepare_dataset",
+    "register_dataset",
     "stored_image_size",
     "synthetic_options",
     "val_indices",
@@ -187,9 +189,20 @@ DATASETS.add("p3d_car", DatasetSpec(_p3d, 5, "p3d", _options(Pascal3DCar, "split
 DATASETS.add("compcars", DatasetSpec(_unsplit(CompCars), 5, "images", _options(CompCars, *_UNSPLIT_SET)))
 DATASETS.add("lsun", DatasetSpec(_unsplit(LSUN), 5, "images", _options(LSUN, *_UNSPLIT_SET), _from_offset))
 DATASETS.add("folder", DatasetSpec(_unsplit(ImageFolder), 5, "images", _options(ImageFolder, *_UNSPLIT_SET)))
+#: the built-in datasets' names (a plugin may register more: :func:`list_datasets` names them all)
 DATASET_NAMES = tuple(DATASETS)
-#: the reference's validation subset sizes
+#: the reference's validation subset sizes of the built-in datasets (each entry's :attr:`DatasetSpec.val_size`)
 VAL_SIZES = {name: spec.val_size for name, spec in DATASETS.items()}
+
+
+def register_dataset(name: str, spec: DatasetSpec, *, overwrite: bool = False) -> DatasetSpec:
+    """Register a dataset as ``name`` (:meth:`unicorn.registry.Registry.add`); returns ``spec``."""
+    return DATASETS.add(name, spec, overwrite=overwrite)
+
+
+def list_datasets() -> list[str]:
+    """Every registered dataset's name, sorted (the built-in ones and the plugins')."""
+    return DATASETS.names()
 
 
 def dataset_spec(name: str) -> DatasetSpec:
@@ -214,7 +227,7 @@ def build_dataset(
     """The full dataset of one split (before the validation subset is taken).
 
     Args:
-        name: one of :data:`DATASET_NAMES`.
+        name: a registered dataset (:func:`list_datasets`).
         split: ``"train"``, ``"val"`` or ``"test"``; training splits are augmented where the reference does.
         root: dataset root (for ``synthetic``: the generated dataset folder).
         img_size: image side (ShapeNet-NMR images keep their stored size).

@@ -37,7 +37,7 @@ class EvalTarget:
     """What to evaluate on: a dataset split.
 
     Attributes:
-        dataset: a registered dataset name (:data:`unicorn.data.registry.DATASET_NAMES`).
+        dataset: a registered dataset name (:func:`unicorn.data.registry.list_datasets`).
         root: its folder (for ``synthetic``: the generated dataset, which holds ``metadata.yaml``).
         split: ``"train"``, ``"val"`` or ``"test"``.
         categories: ShapeNet / synthetic categories, None for all.

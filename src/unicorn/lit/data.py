@@ -149,7 +149,7 @@ class UnicornDataModule(L.LightningDataModule):
     over the training set, seeded by ``seed``.
 
     Args:
-        name: one of :data:`~unicorn.data.registry.DATASET_NAMES`.
+        name: a registered dataset (:func:`~unicorn.data.registry.list_datasets`).
         root: dataset root; for ``synthetic`` the parent folder of generated datasets (default: the cache,
             ``$UNICORN_CACHE/synthetic`` or ``~/.cache/unicorn/synthetic``).
         categories: ShapeNet categories (names or synsets); for ``synthetic`` the generated categories.

@@ -321,7 +321,12 @@ def build_callbacks(typed: DictConfig, checkpoint_dir: Path) -> list[L.Callback]
     ``extra`` (each built by its ``_target_``; a null node is left out).
 
     Lightning runs checkpoint callbacks after all others, wherever they stand in the list.
+
+    Raises:
+        unicorn.config.ConfigError: a ``callbacks.extra`` node that does not build a Lightning ``Callback``.
     """
+    from unicorn.config import ConfigError
+    from unicorn.io.serialization import kind_of
     from unicorn.lit.callbacks import ProgressBar, StageCallback
     from unicorn.lit.loggers import ResumeLogs
 
@@ -334,8 +339,17 @@ def build_callbacks(typed: DictConfig, checkpoint_dir: Path) -> list[L.Callback]
     if typed.trainer.enable_progress_bar:
         # Lightning refuses a progress-bar callback with enable_progress_bar=False
         callbacks.append(ProgressBar(refresh_rate=cb.progress_bar_refresh_rate))
-    nodes = [cb.images, cb.heldout, cb.diagnostics, *cb.extra.values()]
-    return callbacks + [instantiate(node) for node in nodes if node is not None]
+    built = [instantiate(node) for node in (cb.images, cb.heldout, cb.diagnostics) if node is not None]
+    for name, node in cb.extra.items():
+        if node is None:
+            continue
+        extra = instantiate(node)
+        if not isinstance(extra, L.Callback):
+            raise ConfigError(
+                f"callbacks.extra.{name}: {node.get('_target_')} built {kind_of(extra)}, not a Lightning Callback"
+            )
+        built.append(extra)
+    return callbacks + built
 
 
 def build_loggers(typed: DictConfig) -> list[Any]:

@@ -130,7 +130,8 @@ class HardRenderer(MeshRenderer):
     """Hard rasterization (nearest face containing the pixel, no blur), optionally supersampled.
 
     For masks and pictures: with ``supersample = s`` it renders at s times the resolution and averages s x s
-    blocks, which anti-aliases edges. Gradients reach colours, textures and the background, not positions.
+    blocks, which anti-aliases edges. Gradients reach colours, textures and the background; the positions only
+    through the colours interpolated inside each face, so silhouettes do not follow the vertices.
     ``render(...).fragments`` are at the supersampled resolution.
 
     Args:

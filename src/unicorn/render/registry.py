@@ -6,10 +6,13 @@ a rasterizer and an aggregator. Another package registers its own with the decor
 
     @register_renderer("mine")
     class MyRenderer(MeshRenderer):
-        def __init__(self, image_size=64, camera=None):
-            super().__init__(MeshRasterizer(image_size, camera=camera, truncate_opaque=True), LayeredBlend(0.0))
+        def __init__(self, image_size=64, camera=None, background_color=BACKGROUND_COLOR):
+            rasterizer = MeshRasterizer(image_size, camera=camera, truncate_opaque=True)
+            super().__init__(rasterizer, LayeredBlend(0.0), background_color)
 
 or through the ``unicorn.renderers`` entry-point group (``name = "package.module:Class"``), loaded on first use.
+A backend that training builds takes ``image_size``, ``camera`` and ``background_color``; one whose constructor
+takes ``**kwargs`` gets every option of the ``renderer`` config and checks them itself.
 """
 
 from __future__ import annotations

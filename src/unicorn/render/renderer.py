@@ -61,7 +61,8 @@ class MeshRenderer(nn.Module):
         background_color: colour (C,) behind the mesh when no background image is given.
     """
 
-    # whether images are differentiable in the vertex positions (the hard backend's are not)
+    # whether the silhouettes follow the vertex positions under gradient descent (the hard backend's do not: its
+    # gradients reach the positions only through the colours interpolated inside each face)
     position_gradients = True
 
     def __init__(
