@@ -165,3 +165,22 @@ def test_a_failure_while_writing_leaves_no_half_written_folder(
     err = capsys.readouterr().err
     assert err == f"unicorn-eval: error: [Errno 28] No space left on device while writing the output folder {out}\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no metrics.csv without its report, no sibling
+
+
+def test_overwrite_removes_the_report_an_evaluation_without_one_does_not_write(
+    tmp_path: Path, synth: Path, checkpoint: Path
+) -> None:
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "synthetic", "--root", str(synth), "--split", "train", "--max-images", "3",
+            "--device", "cpu", "--out", str(out), *FAST]  # fmt: skip
+    assert main([*args, "--report-samples", "3"]) == 0
+    samples = sorted(p.name for p in (out / "report").iterdir())
+    assert (out / "report.html").is_file() and len(samples) > 3
+    (out / "my_notes.txt").write_text("mine")
+    assert main([*args, "--report-samples", "1", "--overwrite"]) == 0  # fewer samples: the others' pictures go
+    fewer = sorted(p.name for p in (out / "report").iterdir())
+    assert set(fewer) < set(samples) and not any(name.startswith("sample02") for name in fewer)
+    assert all((out / name).is_file() for name in referenced_files(out / "report.html"))
+    assert main([*args, "--report-samples", "0", "--overwrite"]) == 0  # no report: the earlier one goes
+    assert not (out / "report.html").exists() and not (out / "report").exists() and not (out / "report.png").exists()
+    assert (out / "metrics.csv").is_file() and (out / "my_notes.txt").read_text() == "mine"
