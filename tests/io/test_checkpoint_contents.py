@@ -90,6 +90,15 @@ def test_model_settings_of_another_version_are_named(tmp_path: Path, model) -> N
     _refused(_edit(_plain(model), lambda d: d["config"].__setitem__("newgroup", 1)), tmp_path / "c.pt", "'newgroup'")
 
 
+def test_a_renderer_of_a_plugin_not_loaded_here_is_named_with_the_way_to_load_it(tmp_path: Path, model) -> None:
+    message = r"unknown renderer 'nearest'; known: \[.*\]; a part registered by a plugin needs that plugin here too"
+    _refused(
+        _edit(_plain(model), lambda d: d["config"]["renderer"].__setitem__("name", "nearest")),
+        tmp_path / "p.pt",
+        message,
+    )
+
+
 @pytest.mark.parametrize(
     "group, key, message",
     [

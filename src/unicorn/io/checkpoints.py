@@ -46,6 +46,7 @@ from unicorn.io.serialization import (
 from unicorn.model import MAX_MODEL_PARAMS, Unicorn, merge_config
 from unicorn.model import check_model_size as _check_model_size
 from unicorn.model.config import DEFAULT_CONFIG
+from unicorn.registry import PLUGINS_ENV, UnknownNameError
 
 __all__ = [
     "MAX_MODEL_PARAMS",
@@ -255,7 +256,12 @@ def _stored_model(stored: Any, path: Path, field: str, overrides: Mapping[str, A
             cfg[group] = value
     cfg = merge_config(cfg)
     check_stored_config(cfg, f"checkpoint {path}")
-    return Unicorn(cfg)
+    try:
+        return Unicorn(cfg)
+    except UnknownNameError as err:  # e.g. a renderer a plugin registered where the checkpoint was made
+        raise CheckpointError(
+            f"checkpoint {path}: {err}; a part registered by a plugin needs that plugin here too ({PLUGINS_ENV}=module)"
+        ) from None
 
 
 def _field(data: Mapping[str, Any], key: str, kind: type, expected: str, path: Path) -> Any:
