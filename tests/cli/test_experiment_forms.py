@@ -134,3 +134,31 @@ def test_sweeps_and_single_runs_compose_the_same_jobs_with_both_forms(tmp_path):
         assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
         single[form] = (run / "composed.yaml").read_text()
     assert single["+experiment"] == single["experiment"] and "task_name: cub" in single["experiment"]
+
+
+def test_keys_of_a_preset_that_names_only_some_of_a_group_are_overridden_without_a_plus(tmp_path):
+    args = ["experiment=synthetic", "callbacks.heldout.split=test", "callbacks.heldout.shape_points=0",
+            "callbacks.extra.timer={_target_:lightning.pytorch.callbacks.Timer}", "dataset.synthetic.n_views=6",
+            "seed=3", "+callbacks.heldout.at_start=false", "-m", "callbacks.heldout.every_n_steps=10,20"]  # fmt: skip
+    rewritten = train.open_node_overrides(args)
+    assert rewritten == [
+        "experiment=synthetic", "++callbacks.heldout.split=test", "++callbacks.heldout.shape_points=0",
+        "++callbacks.extra.timer={_target_:lightning.pytorch.callbacks.Timer}", "++dataset.synthetic.n_views=6",
+        "seed=3", "+callbacks.heldout.at_start=false", "-m", "++callbacks.heldout.every_n_steps=10,20",
+    ]  # fmt: skip
+    # the synthetic preset names some of callbacks.heldout's keys: Hydra refuses the others without a +
+    typed = validate(compose_config([*rewritten[:6], f"paths.output_dir={tmp_path}"]))
+    assert typed.callbacks.heldout.split == "test" and typed.callbacks.heldout.shape_points == 0
+    assert typed.callbacks.heldout.every_n_steps == 600 and typed.dataset.synthetic.n_views == 6
+    assert typed.callbacks.extra.timer._target_ == "lightning.pytorch.callbacks.Timer"
+    # a preset without held-out scoring: naming one key turns it on with the others' defaults
+    typed = validate(
+        compose_config(
+            train.open_node_overrides(
+                ["experiment=shapenet_car", "callbacks.heldout.every_n_steps=7", f"paths.output_dir={tmp_path}"]
+            )
+        )
+    )
+    assert typed.callbacks.heldout.every_n_steps == 7 and typed.callbacks.heldout.split == "val"
+    # a misspelt key is not rewritten: Hydra names it
+    assert train.open_node_overrides(["callbacks.heldout.bogus=1"]) == ["callbacks.heldout.bogus=1"]

@@ -195,10 +195,30 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
     return [arg[1:] if arg.startswith(prefix) else arg for arg in overrides]
 
 
+def open_node_overrides(overrides: list[str]) -> list[str]:
+    """``overrides`` with ``key=value`` written ``++key=value`` where ``key`` is a key of a node that the composed
+    config may lack (:func:`unicorn.config.schema.open_nodes`): ``callbacks.heldout.split=test`` where the preset's
+    ``callbacks.heldout`` names no ``split``, ``callbacks.extra.mine={...}``, ``dataset.synthetic.roll=0``. Hydra
+    refuses these without a ``+``; with ``++`` (add or replace) they work whether the key is there or not, and
+    :func:`unicorn.config.validate` refuses the misspelt ones. Every other argument is returned unchanged."""
+    from unicorn.config.schema import open_nodes
+
+    nodes = open_nodes()
+    rewritten = []
+    for arg in overrides:
+        key, equals, _ = arg.partition("=")
+        node, _, name = key.rpartition(".")
+        keys = nodes.get(node, ())
+        if equals and not arg.startswith(("+", "~", "-")) and node in nodes and (keys is None or name in keys):
+            arg = f"++{arg}"
+        rewritten.append(arg)
+    return rewritten
+
+
 def hydra_argv(argv: list[str]) -> list[str]:
-    """The arguments handed to Hydra: :func:`experiment_overrides` of ``argv``, or ``experiment=synthetic`` (the
-    offline default) when there are none."""
-    return experiment_overrides(argv) if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
+    """The arguments handed to Hydra: :func:`experiment_overrides` and :func:`open_node_overrides` of ``argv``, or
+    ``experiment=synthetic`` (the offline default) when there are none."""
+    return open_node_overrides(experiment_overrides(argv)) if argv else [f"experiment={DEFAULT_EXPERIMENT}"]
 
 
 def argument_note(args: list[str]) -> str | None:

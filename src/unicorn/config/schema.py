@@ -16,6 +16,9 @@ into the model's renderer settings by :func:`unicorn.config.build.model_config`.
 
 from __future__ import annotations
 
+import dataclasses
+import types
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -389,6 +392,30 @@ class TrainConfig:
 
 #: the schema's name in Hydra's ConfigStore: the first entry of ``conf/train.yaml``'s defaults list
 SCHEMA_NAME = "train_schema"
+
+
+def open_nodes(schema: type = TrainConfig, prefix: str = "") -> dict[str, frozenset[str] | None]:
+    """The nodes whose keys a composed config may lack although the schema allows them: a group that may be null
+    (``callbacks.heldout``, ``model.background``: a preset sets it null or names only some of its keys) with its
+    keys, and a free mapping (``callbacks.extra``, ``dataset.synthetic``) with None (any key).
+
+    The composed config holds plain values (:func:`store_schema`), so Hydra refuses ``callbacks.heldout.split=test``
+    when the preset's ``callbacks.heldout`` names no ``split``; ``unicorn-train`` writes such overrides with ``++``
+    (add or replace: :func:`unicorn.cli.train.hydra_argv`), and :func:`unicorn.config.validate` still checks them.
+    """
+    found: dict[str, frozenset[str] | None] = {}
+    hints = typing.get_type_hints(schema)
+    for item in dataclasses.fields(schema):
+        hint, path = hints[item.name], f"{prefix}{item.name}"
+        members = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+        kinds = [m for m in members if m is not type(None)]
+        if len(kinds) == 1 and dataclasses.is_dataclass(kinds[0]):
+            if len(members) > 1:  # may be null
+                found[path] = frozenset(f.name for f in dataclasses.fields(kinds[0]))
+            found.update(open_nodes(kinds[0], f"{path}."))
+        elif any((typing.get_origin(kind) or kind) is dict for kind in kinds):
+            found[path] = None
+    return found
 
 
 def store_schema() -> None:
