@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -855,3 +856,48 @@ def test_an_empty_out_is_a_usage_error(command, value, capsys):
         capsys.readouterr().err.splitlines()[-1]
         == f"{command}: error: argument --out: must name a folder, got {value!r}"
     )
+
+
+def test_a_bad_image_in_one_ddp_process_is_one_line_and_no_process_is_left(tmp_path):
+    """Whichever DDP process reads the bad image says so in one line; the other one, which loses its peer, does not
+    add a traceback (the first process says that another one ended, or nothing when it was itself the one)."""
+    from PIL import Image
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(15):
+        Image.fromarray(rng.integers(0, 255, (40, 40, 3), dtype=np.uint8)).save(photos / f"img{k:02d}.jpg")
+    good = (photos / "img00.jpg").read_bytes()
+    (photos / "img07b.jpg").write_bytes(good[: len(good) // 3])  # truncated
+    args = [*TINY, "dataset=folder", f"dataset.root={photos}", "dataset.img_size=32", "dataset.on_error=raise",
+            "dataset.cache_items=false", "callbacks.heldout=null", "evaluate.enabled=false", "trainer=ddp_cpu",
+            "trainer.max_steps=12", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        _, stderr = proc.communicate(timeout=240)
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid):
+            assert time.monotonic() < deadline, "a DDP process outlived the first one"
+            time.sleep(0.2)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    lines = error_lines(stderr)
+    assert proc.returncode == 2, stderr[-3000:]
+    assert "Traceback" not in stderr and sum("cannot read image" in line for line in lines) == 1, stderr[-3000:]
+    assert all(line.startswith("unicorn-train") for line in lines if "error" in line), lines
+
+
+def test_a_local_sweep_of_ddp_runs_is_refused_before_anything_starts(tmp_path):
+    result = unicorn_train(
+        "-m", *TINY, "trainer=ddp_cpu", "seed=1,2", f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path
+    )
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
+    assert lines[0].startswith("unicorn-train: error: a sweep (-m) of DDP runs") and "submitit" in lines[0]
+    assert not list((tmp_path / "sweep").rglob("*.ckpt"))

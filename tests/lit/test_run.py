@@ -160,3 +160,23 @@ def test_a_run_too_short_for_its_stages_is_told(caplog, mode: str, max_steps: in
         assert not messages
     else:
         assert len(messages) == 1 and warned in messages[0] and "schedule.milestones=[1000, 2000, 3000]" in messages[0]
+
+
+@pytest.mark.parametrize(
+    "env, first",
+    [({}, True), ({"LOCAL_RANK": "1"}, False), ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, False),
+     ({"NODE_RANK": "1"}, False),  # Lightning's launcher's first process on the second node
+     ({"SLURM_PROCID": "0", "SLURM_LOCALID": "0"}, True), ({"SLURM_PROCID": "1", "SLURM_LOCALID": "1"}, False),
+     ({"SLURM_PROCID": "0", "LOCAL_RANK": "1"}, False),  # a process Lightning started inside an srun task
+     ({"RANK": "0", "LOCAL_RANK": "0", "GROUP_RANK": "0"}, True),
+     ({"RANK": "4", "LOCAL_RANK": "0", "GROUP_RANK": "1"}, False),  # torchrun's first worker of the second node
+     ({"LOCAL_RANK": "0", "GROUP_RANK": "1"}, False)],
+)  # fmt: skip
+def test_the_first_process_is_global_rank_zero_whoever_launched_it(monkeypatch, env, first) -> None:
+    from unicorn.lit.run import is_first_process
+
+    for key in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID", "SLURM_LOCALID", "JSM_NAMESPACE_RANK"):
+        monkeypatch.delenv(key, raising=False)
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    assert is_first_process() is first

@@ -44,11 +44,11 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
-from unicorn.errors import Interrupted, interrupt_on_signal, signals_held
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal, signals_held
 from unicorn.resources import config_dir
 
 if TYPE_CHECKING:
@@ -96,12 +96,20 @@ def _task(cfg: DictConfig) -> None:
         output_dir = hydra_dir
     outside = "outside the training iterations: no checkpoint written"
     if not is_first_process():  # a DDP process Lightning started: the first one owns the folder
+        _quiet_console()
+        if _app is not None:
+            _app.prog = "unicorn-train (another DDP process)"  # its own failures are told apart from the first's
         try:
             with interrupt_on_signal(outside):
                 fit(build(cfg))
         except Interrupted as err:  # every process stops at the same point: the first one says so
             raise SystemExit(err.exit_status) from None
+        except Exception as err:
+            if _peer_failure(err) is not None:  # the first process ended: it says why
+                raise SystemExit(1) from None
+            raise
         return
+    _check_local_sweep(cfg)
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
     top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
@@ -113,18 +121,73 @@ def _task(cfg: DictConfig) -> None:
             if _app is not None:
                 _app.save_record(cfg, run.output_dir)
             fit(run)
-        except Exception as err:
+        except Exception as caught:
+            err = _peer_failure(caught) or caught
             if run is None or run.stopper.steps_run == 0:
                 lock.release()
                 _put_back(err, changes, output_dir)
-                raise
-            ended = _with_sweep_hint(err)
-            _log_end(ended)
-            if ended is not err:
-                raise ended from err
+            else:
+                err = _with_sweep_hint(err)
+                _log_end(err)
+            if err is not caught:
+                raise err from caught
             raise
         finally:
             lock.release()
+
+
+class PeerProcessError(UserError, RuntimeError):
+    """Another process of a DDP run ended (its own error, if any, is printed above by that process)."""
+
+
+def _peer_failure(err: BaseException) -> PeerProcessError | None:
+    """The one-line error for ``err`` when it says that another DDP process is gone (a closed connection of the
+    process group), else None."""
+    import torch.distributed as dist
+
+    lost = ("Connection closed by peer", "Connection reset by peer", "Broken pipe", "Failed to recv")
+    if not isinstance(err, getattr(dist, "DistError", ())) and not (
+        isinstance(err, RuntimeError) and any(text in str(err) for text in lost)
+    ):
+        return None
+    return PeerProcessError(
+        f"another process of this DDP run ended (its message, if it had one, is above): {type(err).__name__}: "
+        f"{' '.join(str(err).split())[:200]}"
+    )
+
+
+def _quiet_console() -> None:
+    """Leave the console to the first process: the others print only errors there (their log files keep all)."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler):
+            handler.setLevel(logging.ERROR)
+
+
+def _check_local_sweep(cfg: DictConfig) -> None:
+    """Refuse a sweep (``-m``) of DDP runs launched on this machine: Lightning starts each rank's process with the
+    same command line, ``-m`` included, so every rank would run its own sweep (a launcher such as submitit starts
+    each job's ranks instead).
+
+    Raises:
+        UsageError: the message says what to do instead.
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from unicorn.cli.errors import UsageError
+
+    hydra = HydraConfig.get()
+    launcher = str((hydra.launcher or {}).get("_target_", ""))
+    strategy, devices = cfg.trainer.get("strategy"), cfg.trainer.get("devices")
+    single = devices in (1, "1") or (isinstance(devices, list | ListConfig) and len(devices) == 1)
+    if hydra.mode != RunMode.MULTIRUN or not launcher.endswith("BasicLauncher") or single:
+        return
+    if isinstance(strategy, str) and strategy.startswith("ddp"):
+        raise UsageError(
+            f"a sweep (-m) of DDP runs (trainer.strategy={strategy}, trainer.devices={devices}) cannot be launched "
+            "on this machine: every DDP process would run the whole sweep; run the jobs one by one, with "
+            "trainer.devices=1, or with a launcher that starts each job's processes (hydra/launcher=submitit_slurm)"
+        )
 
 
 def _put_back(err: Exception, changes: list[FolderChanges], output_dir: Path) -> None:

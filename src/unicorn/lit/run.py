@@ -266,9 +266,18 @@ def recorded_config(typed: DictConfig) -> str:
     return OmegaConf.to_yaml(record)
 
 
+#: where a process's global rank is read from, in Lightning's order: torchrun's, Lightning's own launcher's (with
+#: the node's), SLURM's (``srun``), LSF's
+_RANK_VARIABLES = ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
+
+
 def is_first_process() -> bool:
-    """Whether this is the process the user started (not one that Lightning started for another DDP rank)."""
-    return int(os.environ.get("LOCAL_RANK", "0")) == 0 and int(os.environ.get("NODE_RANK", "0")) == 0
+    """Whether this is the process of global rank 0, which owns the run folder: the process the user started, not
+    one that Lightning started for another DDP rank, nor another task of ``srun`` or another ``torchrun`` worker or
+    node."""
+    rank = next((os.environ[key] for key in _RANK_VARIABLES if os.environ.get(key) is not None), "0")
+    nodes = [os.environ.get(key) or "0" for key in ("NODE_RANK", "GROUP_RANK")]
+    return int(rank) == 0 and (os.environ.get("RANK") is not None or all(int(node) == 0 for node in nodes))
 
 
 def _run_command() -> str:
