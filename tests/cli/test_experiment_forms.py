@@ -160,5 +160,19 @@ def test_keys_of_a_preset_that_names_only_some_of_a_group_are_overridden_without
         )
     )
     assert typed.callbacks.heldout.every_n_steps == 7 and typed.callbacks.heldout.split == "val"
-    # a misspelt key is not rewritten: Hydra names it
+    # the whole group as a mapping, as the docs write it, merges into the preset's
+    given = train.open_node_overrides(["experiment=synthetic", "callbacks.heldout={every_n_steps:10,split:test}"])
+    typed = validate(compose_config([*given, f"paths.output_dir={tmp_path}"]))
+    assert typed.callbacks.heldout.split == "test" and typed.callbacks.heldout.max_images == 16  # the preset's
+    # a misspelt key is not rewritten: Hydra names it; nor is a config group's choice, nor a node turned off
     assert train.open_node_overrides(["callbacks.heldout.bogus=1"]) == ["callbacks.heldout.bogus=1"]
+    assert train.open_node_overrides(["renderer=hard", "logger=none"]) == ["renderer=hard", "logger=none"]
+    off = validate(
+        compose_config(
+            [
+                *train.open_node_overrides(["experiment=synthetic", "callbacks.heldout=null"]),
+                f"paths.output_dir={tmp_path}",
+            ]
+        )
+    )
+    assert off.callbacks.heldout is None

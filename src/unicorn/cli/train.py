@@ -259,10 +259,11 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
 
 
 def open_node_overrides(overrides: list[str]) -> list[str]:
-    """``overrides`` with ``key=value`` written ``++key=value`` where ``key`` is a key of a node that the composed
-    config may lack (:func:`unicorn.config.schema.open_nodes`): ``callbacks.heldout.split=test`` where the preset's
-    ``callbacks.heldout`` names no ``split``, ``callbacks.extra.mine={...}``, ``dataset.synthetic.roll=0``. Hydra
-    refuses these without a ``+``; with ``++`` (add or replace) they work whether the key is there or not, and
+    """``overrides`` with ``key=value`` written ``++key=value`` where ``key`` is a node that the composed config may
+    lack in part (:func:`unicorn.config.schema.open_nodes`) or one of its keys: ``callbacks.heldout.split=test`` or
+    ``callbacks.heldout={every_n_steps: 100, split: test}`` where the preset's ``callbacks.heldout`` names no
+    ``split``, ``callbacks.extra.mine={...}``, ``dataset.synthetic.roll=0``. Hydra refuses these without a ``+``;
+    with ``++`` (add, or merge into what is there) they work whether the key is there or not, and
     :func:`unicorn.config.validate` refuses the misspelt ones. Every other argument is returned unchanged."""
     from unicorn.config.schema import open_nodes
 
@@ -272,7 +273,9 @@ def open_node_overrides(overrides: list[str]) -> list[str]:
         key, equals, _ = arg.partition("=")
         node, _, name = key.rpartition(".")
         keys = nodes.get(node, ())
-        if equals and not arg.startswith(("+", "~", "-")) and node in nodes and (keys is None or name in keys):
+        known = key in nodes or (node in nodes and (keys is None or name in keys))  # the node, or one of its keys
+        # a key without a dot names a config group (renderer=hard, logger=none): a choice, never rewritten
+        if equals and known and "." in key and not arg.startswith(("+", "~", "-")):
             arg = f"++{arg}"
         rewritten.append(arg)
     return rewritten
