@@ -211,12 +211,17 @@ def test_a_second_signal_stops_at_once_with_the_signals_status(synthetic_cache, 
     run.trainer.callbacks.append(SignalDuring(2, count=2))
     ctrl_c = signal.getsignal(signal.SIGINT)
     with pytest.raises(
-        Interrupted, match=r"^stopped by SIGTERM at once \(signalled twice\) during iteration 3:"
+        Interrupted, match=r"^stopped by SIGTERM at once \(signalled twice\) during iteration 3: resume from the last"
     ) as err:
         fit(run)
     assert err.value.exit_status == 143
     assert signal.getsignal(signal.SIGINT) is ctrl_c  # Lightning leaves Ctrl-C ignored
     assert sorted(p.name for p in run.checkpoint_dir.iterdir()) == ["last.ckpt", "step=0000002.ckpt"]
+    # before any checkpoint, the message does not point at one
+    early = build_run(tmp_path / "early", "callbacks.checkpoint.every_n_steps=4")
+    early.trainer.callbacks.append(SignalDuring(1, count=2))
+    with pytest.raises(Interrupted, match=r"iteration 2: no checkpoint was written yet: ckpt_path=last in the same"):
+        fit(early)
 
 
 def test_a_signal_swallowed_while_the_run_was_built_stops_it_before_its_first_iteration(synthetic_cache, tmp_path):

@@ -453,9 +453,15 @@ def fit(run: Run) -> dict[str, float]:
         signum = run.stopper.at_once
         if signum is None:
             raise
+        last = run.checkpoint_dir / "last.ckpt"
+        then = (
+            "resume from the last checkpoint written with ckpt_path=last"
+            if last.is_file() or any(run.checkpoint_dir.glob("step=*.ckpt"))
+            else "no checkpoint was written yet: ckpt_path=last in the same folder trains it again from the start"
+        )
         raise Interrupted(
             f"stopped by {signal.Signals(signum).name} at once (signalled twice) during iteration "
-            f"{trainer.global_step + 1}: resume from the last checkpoint written with ckpt_path=last",
+            f"{trainer.global_step + 1}: {then}",
             128 + signum,
         ) from err
     except SIGTERMException as err:  # Lightning's, at the end of the iteration GracefulStop saved, or elsewhere
