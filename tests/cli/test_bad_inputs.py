@@ -901,3 +901,50 @@ def test_a_local_sweep_of_ddp_runs_is_refused_before_anything_starts(tmp_path):
     assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
     assert lines[0].startswith("unicorn-train: error: a sweep (-m) of DDP runs") and "submitit" in lines[0]
     assert not list((tmp_path / "sweep").rglob("*.ckpt"))
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                status = (entry / "status").read_text()
+                if f"\nPPid:\t{pid}\n" in status:
+                    found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_line(tmp_path, signum):
+    """A Ctrl-C in the terminal reaches every process of the group while the second DDP process is still starting:
+    it does not die of it (Lightning would then SIGKILL the first, leaving a locked, half-made folder); the first
+    process stops the run in one line and leaves the folder as it was."""
+    run = tmp_path / "run"
+    args = [*TINY, "trainer=ddp_cpu", "trainer.max_steps=300", f"hydra.run.dir={run}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not _children(proc.pid):  # the second rank's process is started
+            assert proc.poll() is None and time.monotonic() < deadline, "no second process"
+            time.sleep(0.05)
+        time.sleep(1.0)  # it is importing, or waiting for the first one
+        assert not (run / "checkpoints").is_dir() or not any((run / "checkpoints").iterdir())
+        os.killpg(proc.pid, signum)
+        _, stderr = proc.communicate(timeout=120)
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid):
+            assert time.monotonic() < deadline, "a DDP process outlived the first one"
+            time.sleep(0.2)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 128 + signum, stderr[-3000:]
+    name = signal.Signals(signum).name
+    assert f"unicorn-train: stopped by {name} before the first iteration; {run} is left as it was" in stderr
+    assert "Traceback" not in stderr and "frame #" not in stderr, stderr[-3000:]
+    assert not run.exists()

@@ -39,8 +39,18 @@ its folder as it was (a folder it created is removed again, nothing the user mad
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
+
+if os.environ.get("LOCAL_RANK", "0") != "0":
+    # a process Lightning started for another DDP rank runs this command line again. Until the run installs its
+    # handlers (interrupt_on_signal), a Ctrl-C or SIGTERM sent to the whole process group would end it at once, and
+    # Lightning would then SIGKILL the first process, which waits for it: the first process stops the run alone
+    for _signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_signum, signal.SIG_IGN)
+    # and its C++ warnings (a lost connection to the first process, which has said why it stopped) stay quiet
+    os.environ.setdefault("TORCH_CPP_LOG_LEVEL", "ERROR")
 from pathlib import Path
 from typing import TYPE_CHECKING
 
