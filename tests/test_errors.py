@@ -143,3 +143,19 @@ def test_signals_held_in_interrupt_on_signal_raise_interrupted_at_the_end_of_the
             done.append("the block's last step")
         done.append("not reached")
     assert done == ["the block's last step"]
+
+
+def test_a_signal_whose_error_became_another_still_stops_the_command():
+    def read(path: str) -> None:  # a reader that turns whatever fails in it into its own error, as loaders do
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+        except Exception as err:
+            raise ValueError(f"cannot read {path}: {err}") from err
+
+    with pytest.raises(Interrupted, match="^stopped by SIGTERM while reading$") as caught:
+        with interrupt_on_signal("while reading"):
+            read("cameras.npz")
+    assert caught.value.exit_status == 143 and isinstance(caught.value.__cause__, ValueError)
+    with pytest.raises(ValueError, match="no signal"):  # without a signal, errors pass as they are
+        with interrupt_on_signal("while reading"):
+            raise ValueError("no signal")

@@ -88,9 +88,9 @@ def interrupt_on_signal(where: str = "") -> Iterator[None]:
     """In this block SIGTERM and SIGINT raise :class:`Interrupted` at once: ``stopped by SIGTERM <where>``, exit
     status ``128 + signal``. The handlers before the block are back after it, and after the first signal (a second
     one acts as it would outside the block). A signal whose error was swallowed inside the block (see
-    :func:`pending_interrupt`) raises it when the block ends. Training inside the block still stops at a step
-    boundary: :class:`unicorn.lit.signals.GracefulStop` takes the signals over while the trainer runs. Outside the
-    main thread (where Python cannot set handlers) the block changes nothing.
+    :func:`pending_interrupt`), or turned into another error, raises it when the block ends. Training inside the
+    block still stops at a step boundary: :class:`unicorn.lit.signals.GracefulStop` takes the signals over while
+    the trainer runs. Outside the main thread (where Python cannot set handlers) the block changes nothing.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -107,7 +107,11 @@ def interrupt_on_signal(where: str = "") -> Iterator[None]:
     _RECEIVED.append(received)
     try:
         yield
-    except BaseException:
+    except Interrupted:
+        raise
+    except Exception as err:
+        if received:  # the signal's error became another on its way (a reader that wraps whatever fails in it)
+            raise _interrupted(received[0], where) from err
         raise
     else:
         if received:  # the error was swallowed on its way: the command still stops

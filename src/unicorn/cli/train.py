@@ -38,6 +38,7 @@ its folder as it was (a folder it created is removed again, nothing the user mad
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -58,7 +59,7 @@ from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
-from unicorn.errors import Interrupted, UserError, interrupt_on_signal, signals_held
+from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.resources import config_dir
 
 if TYPE_CHECKING:
@@ -109,8 +110,11 @@ def _task(cfg: DictConfig) -> None:
         _quiet_console()
         if _app is not None:
             _app.prog = "unicorn-train (another DDP process)"  # its own failures are told apart from the first's
+        # a process Lightning started ignores signals until training (see the top of this module; GracefulStop then
+        # stops every process at the same iteration): the first process alone stops the run before
+        ignored = signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
         try:
-            with interrupt_on_signal(outside):
+            with contextlib.nullcontext() if ignored else interrupt_on_signal(outside):
                 fit(build(cfg))
         except Interrupted as err:  # every process stops at the same point: the first one says so
             raise SystemExit(err.exit_status) from None
@@ -133,6 +137,8 @@ def _task(cfg: DictConfig) -> None:
             fit(run)
         except Exception as caught:
             err = _peer_failure(caught) or caught
+            if not isinstance(err, Interrupted):  # a signal's error that a reader turned into its own
+                err = pending_interrupt(outside) or err
             if run is None or run.stopper.steps_run == 0:
                 lock.release()
                 _put_back(err, changes, output_dir)
