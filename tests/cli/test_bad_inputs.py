@@ -858,6 +858,27 @@ def test_an_empty_out_is_a_usage_error(command, value, capsys):
     )
 
 
+@contextlib.contextmanager
+def _train_group(args: list[str], cwd: Path):
+    """``unicorn-train ARGS`` (one thread, stderr piped) in a process group of its own, which the DDP processes
+    Lightning starts join; when the block ends, no process of the group may outlive the first by 30 s (the rest are
+    killed)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        yield proc
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid):
+            assert time.monotonic() < deadline, "a DDP process outlived the first one"
+            time.sleep(0.2)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
 def test_a_bad_image_in_one_ddp_process_is_one_line_and_no_process_is_left(tmp_path):
     """Whichever DDP process reads the bad image says so in one line; the other one, which loses its peer, does not
     add a traceback (the first process says that another one ended, or nothing when it was itself the one)."""
@@ -873,20 +894,8 @@ def test_a_bad_image_in_one_ddp_process_is_one_line_and_no_process_is_left(tmp_p
     args = [*TINY, "dataset=folder", f"dataset.root={photos}", "dataset.img_size=32", "dataset.on_error=raise",
             "dataset.cache_items=false", "callbacks.heldout=null", "evaluate.enabled=false", "trainer=ddp_cpu",
             "trainer.max_steps=12", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "unicorn.cli.train", *args],
-        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
+    with _train_group(args, tmp_path) as proc:
         _, stderr = proc.communicate(timeout=240)
-        deadline = time.monotonic() + 30
-        while _group_alive(proc.pid):
-            assert time.monotonic() < deadline, "a DDP process outlived the first one"
-            time.sleep(0.2)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
     lines = error_lines(stderr)
     assert proc.returncode == 2, stderr[-3000:]
     assert "Traceback" not in stderr and sum("cannot read image" in line for line in lines) == 1, stderr[-3000:]
@@ -922,12 +931,7 @@ def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_lin
     process stops the run in one line and leaves the folder as it was."""
     run = tmp_path / "run"
     args = [*TINY, "trainer=ddp_cpu", "trainer.max_steps=300", f"hydra.run.dir={run}"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "unicorn.cli.train", *args],
-        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
+    with _train_group(args, tmp_path) as proc:
         deadline = time.monotonic() + 120
         while not _children(proc.pid):  # the second rank's process is started
             assert proc.poll() is None and time.monotonic() < deadline, "no second process"
@@ -936,13 +940,6 @@ def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_lin
         assert not (run / "checkpoints").is_dir() or not any((run / "checkpoints").iterdir())
         os.killpg(proc.pid, signum)
         _, stderr = proc.communicate(timeout=120)
-        deadline = time.monotonic() + 30
-        while _group_alive(proc.pid):
-            assert time.monotonic() < deadline, "a DDP process outlived the first one"
-            time.sleep(0.2)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 128 + signum, stderr[-3000:]
     name = signal.Signals(signum).name
     assert f"unicorn-train: stopped by {name} before the first iteration; {run} is left as it was" in stderr
