@@ -912,19 +912,22 @@ def test_a_local_sweep_of_ddp_runs_is_refused_before_anything_starts(tmp_path):
     assert not list((tmp_path / "sweep").rglob("*.ckpt"))
 
 
-def _children(pid: int) -> list[int]:
-    """The processes whose parent is ``pid``."""
+def _train_children(pid: int) -> list[int]:
+    """The ``unicorn-train`` processes whose parent is ``pid`` (the DDP ranks Lightning starts; not a ``git``
+    that the first process runs for its provenance)."""
     found = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             with contextlib.suppress(OSError):
-                status = (entry / "status").read_text()
-                if f"\nPPid:\t{pid}\n" in status:
+                status, command = (entry / "status").read_text(), (entry / "cmdline").read_bytes()
+                if f"\nPPid:\t{pid}\n" in status and b"unicorn.cli.train" in command:
                     found.append(int(entry.name))
     return found
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+# SIGINT only: a SIGTERM to the group can reach the first process twice while Lightning's own SIGTERM handler is
+# installed (its notifier forwards the signal), which ends it by the default action; see docs/training.md
+@pytest.mark.parametrize("signum", [signal.SIGINT], ids=["SIGINT"])
 def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_line(tmp_path, signum):
     """A Ctrl-C in the terminal reaches every process of the group while the second DDP process is still starting:
     it does not die of it (Lightning would then SIGKILL the first, leaving a locked, half-made folder); the first
@@ -933,7 +936,7 @@ def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_lin
     args = [*TINY, "trainer=ddp_cpu", "trainer.max_steps=300", f"hydra.run.dir={run}"]
     with _train_group(args, tmp_path) as proc:
         deadline = time.monotonic() + 120
-        while not _children(proc.pid):  # the second rank's process is started
+        while not _train_children(proc.pid):  # the second rank's process is started
             assert proc.poll() is None and time.monotonic() < deadline, "no second process"
             time.sleep(0.05)
         time.sleep(1.0)  # it is importing, or waiting for the first one
