@@ -132,6 +132,17 @@ def existing_folder(text: str) -> str:
     return text
 
 
+def add_checkpoints_and_root(parser: argparse.ArgumentParser) -> None:
+    """The positional trained checkpoints and ``--root`` of the scripts that read runs on their synthetic data."""
+    parser.add_argument("checkpoints", type=existing_file, nargs="+")
+    parser.add_argument(
+        "--root",
+        type=existing_folder,
+        default=None,
+        help="the dataset folder (default: each run's own synthetic dataset)",
+    )
+
+
 def git_revision(text: str) -> str:
     """A git revision of this repository that names a commit (``git rev-parse --verify``)."""
     cmd = ["git", "rev-parse", "--verify", "--quiet", f"{text}^{{commit}}"]

@@ -57,7 +57,7 @@ from unicorn.metrics.pose import align_canonical_frame, azimuth_error, geodesic_
 from unicorn.objectives.losses import ReconstructionLoss
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
-from argchecks import existing_file, existing_folder, positive_int  # noqa: E402
+from argchecks import add_checkpoints_and_root, positive_int  # noqa: E402
 
 
 @torch.no_grad()
@@ -162,13 +162,7 @@ def by_azimuth(c: dict[str, torch.Tensor], bins: int = 12) -> list[dict[str, obj
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoints", type=existing_file, nargs="+")
-    p.add_argument(
-        "--root",
-        type=existing_folder,
-        default=None,
-        help="the dataset folder (default: each run's own synthetic dataset)",
-    )
+    add_checkpoints_and_root(p)
     p.add_argument(
         "--dataset",
         default="synthetic",

@@ -24,20 +24,14 @@ from unicorn.evaluation import EvalOptions, evaluate
 from unicorn.io.checkpoints import load_model
 
 sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the scripts' shared argument checks
-from argchecks import existing_file, existing_folder, positive_int  # noqa: E402
+from argchecks import add_checkpoints_and_root, positive_int  # noqa: E402
 
 METRICS = [f"shape-{m}{s}" for s in ("", "-floor", "-gt") for m in ("top1", "top3", "mrr")]
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("checkpoints", type=existing_file, nargs="+")
-    p.add_argument(
-        "--root",
-        type=existing_folder,
-        default=None,
-        help="the dataset folder (default: each run's own synthetic dataset)",
-    )
+    add_checkpoints_and_root(p)
     p.add_argument("--points", type=positive_int, default=2000, help="points per shape (quality.py's)")
     args = p.parse_args()
 

@@ -270,7 +270,6 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
     from unicorn.io.run_folder import run_dataset, run_of_checkpoint
-    from unicorn.io.staging import check_writable
     from unicorn.metrics.sampling import check_point_count
 
     check_point_count(f"--num-points {args.num_points}", args.num_points)
@@ -281,7 +280,6 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     early = _out_dir(args, run_dir, args.dataset or (run_dataset(run_dir) or {}).get("name"))
     if early is not None:  # before the model is read: a mistake fails fast
         check_out_folder(early, args.overwrite)
-        check_writable(early)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
@@ -289,7 +287,6 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     out = _out_dir(args, info.run_dir, target.dataset)
     if out != early:
         check_out_folder(out, args.overwrite)
-        check_writable(out)
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = _options(args, target.dataset, average)
     if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:

@@ -69,15 +69,20 @@ def add_overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def check_out_folder(out: Path, overwrite: bool) -> None:
-    """Refuse an output folder that is a file, or that holds files when ``--overwrite`` is not given.
+    """Refuse an output folder that is a file, that holds files when ``--overwrite`` is not given, or that cannot
+    be written (:func:`unicorn.io.staging.check_writable`).
 
     Raises:
         UsageError: the message names the folder and the option.
+        OSError: the folder cannot be written (the message names it).
     """
+    from unicorn.io.staging import check_writable
+
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise UsageError(f"--out {out} is not empty; choose another folder or pass --overwrite to write into it")
+    check_writable(out)
 
 
 def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -129,7 +129,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.images import check_padding
     from unicorn.io.provenance import command_line, provenance
-    from unicorn.io.staging import check_writable, staged_folder
+    from unicorn.io.staging import staged_folder
 
     check_padding(args.padding, "--padding")
     if args.strip_views > MAX_STRIP_VIEWS:
@@ -138,7 +138,6 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     refine_options = _refine_options(args)
     out = args.out.expanduser()
     check_out_folder(out, args.overwrite)
-    check_writable(out)
     files = collect_inputs(args.inputs, leave_out=out)
     if args.bbox is not None and len(files) != 1:
         raise UsageError(f"--bbox needs exactly one input image, got {len(files)}")

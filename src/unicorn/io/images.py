@@ -90,7 +90,8 @@ def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.Path
     for item in inputs:
         path = Path(item).expanduser()
         if path.is_dir():
-            found = [f for f in list_images(path) if not _is_output(f, path, leave_out)]
+            outputs: dict[Path, bool] = {}  # folder -> whether it lies in an output (each folder looked at once)
+            found = [f for f in list_images(path) if not _in_output(f.parent, path, leave_out, outputs)]
             if not found:
                 raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {path}")
             files += found
@@ -106,12 +107,15 @@ def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.Path
     return [f for f in files if unique[os.path.realpath(f)] is f]
 
 
-def _is_output(file: Path, searched: Path, leave_out: str | os.PathLike | None) -> bool:
-    """Whether ``file``, found in the folder ``searched``, lies in ``leave_out`` or in a reconstruction output."""
-    if leave_out is not None and Path(os.path.abspath(file)).is_relative_to(os.path.abspath(leave_out)):
-        return True
-    between = file.parents[: len(file.relative_to(searched).parts)]  # file's folder up to ``searched``, included
-    return any((folder / RECONSTRUCTIONS_RECORD).is_file() for folder in between)
+def _in_output(folder: Path, searched: Path, leave_out: str | os.PathLike | None, known: dict[Path, bool]) -> bool:
+    """Whether ``folder`` (``searched`` or below it) lies in ``leave_out``, or holds a :data:`RECONSTRUCTIONS_RECORD`
+    or lies in such a folder below ``searched``; ``known`` keeps the answers of the folders looked at."""
+    if folder not in known:
+        here = (leave_out is not None and Path(os.path.abspath(folder)).is_relative_to(os.path.abspath(leave_out))) or (
+            folder / RECONSTRUCTIONS_RECORD
+        ).is_file()
+        known[folder] = here or (folder != searched and _in_output(folder.parent, searched, leave_out, known))
+    return known[folder]
 
 
 def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | None:

@@ -78,12 +78,16 @@ def check_writable(out: str | os.PathLike) -> None:
         OutputConflictError, NotADirectoryError: as :func:`staged_folder`.
     """
     out = _absolute(out)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
-    tmp = _make_staging(out)
-    tmp.rmdir()
+    if out.parent.is_dir():
+        _make_staging(out).rmdir()
+    else:  # the folders above it are made when it is written: the nearest existing one must take a new folder
+        above = next(folder for folder in out.parents if folder.exists())
+        probe = above / f".{out.name}{PARTIAL_MARK}{os.getpid()}"
+        try:
+            probe.mkdir()
+            probe.rmdir()
+        except OSError as err:
+            raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
     if _is_folder(out):
         probe = out / f".{out.name}{PARTIAL_MARK}{os.getpid()}.probe"
         try:
