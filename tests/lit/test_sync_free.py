@@ -33,7 +33,7 @@ class StepSyncs(LossRecorder):
         step_fn = pl_module.training_step
 
         def recorded(batch, batch_idx):
-            with record_syncs() as rec:
+            with record_syncs(host_data=True) as rec:  # a tensor from host data is a copy the host waits for
                 out = step_fn(batch, batch_idx)
             self.syncs[trainer.global_step - 1] = rec.syncs
             return out

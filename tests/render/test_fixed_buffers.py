@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 
@@ -137,3 +139,23 @@ def test_padding_sends_no_gradient_when_nothing_is_drawn():
         image = renderer(v, faces, TexturesVertex(torch.ones_like(verts)), R=R, T=behind)
     image.sum().backward()
     assert image[:, 3].abs().max() == 0 and torch.equal(v.grad, torch.zeros_like(v))
+
+
+def test_rasterizer_keeps_the_needed_sizes_on_the_meshes_device(monkeypatch):
+    """The first renders of a run size the buffers from sizes read to the host; the fixed renders then fold what they
+    needed into a tensor that must be on the meshes' device (a CUDA training run failed on the mix)."""
+    import unicorn.render.rasterizer as rasterizer_module
+
+    def fake_rasterize(ndc, faces, size, *args, capacity=None, **kwargs):
+        # the default path's sizes are on the host, the fixed buffers' on the device
+        sizes = torch.tensor([300, 200]) if capacity is None else torch.tensor([310, 190], device=ndc.device)
+        return SimpleNamespace(sizes=sizes)
+
+    monkeypatch.setattr(rasterizer_module, "rasterize_meshes", fake_rasterize)
+    verts, faces, R, T = (t.to("meta") for t in posed_ellipsoids(2, level=1))
+    rasterizer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4).rasterizer
+    with sync_free():
+        rasterizer(verts, faces, R, T, check_inputs=False)  # sizes the buffers
+        rasterizer(verts, faces, R, T, check_inputs=False)  # into them
+    (needed,) = rasterizer._needed.values()
+    assert needed.device == verts.device

@@ -93,8 +93,10 @@ def mirrored_pose(R: torch.Tensor, T: torch.Tensor) -> tuple[torch.Tensor, torch
     Returns:
         ``(M_o @ R @ M_v, T @ M_v)``, of the inputs' shapes.
     """
-    flip = R.new_tensor((-1.0, 1.0, 1.0))
-    return R * flip * R.new_tensor((1.0, 1.0, -1.0)).unsqueeze(-1), T * flip
+    # signs by slicing, not by tensors of Python numbers: those are host-to-device copies in a training step
+    R = torch.cat([-R[..., :1], R[..., 1:]], dim=-1)  # @ M_v: the first column negated
+    R = torch.cat([R[..., :2, :], -R[..., 2:, :]], dim=-2)  # M_o @: the third row negated
+    return R, torch.cat([-T[..., :1], T[..., 1:]], dim=-1)
 
 
 @dataclass

@@ -136,8 +136,9 @@ class MeshRasterizer(nn.Module):
         if fragments.sizes is not None and capacity is None:  # on the host: sizes the fixed buffers
             self._fit(key, fragments.sizes.tolist())
             # an entry from the start, kept from then on: a compiled step's graph guards on the keys present
+            # on the meshes' device (these sizes are on the host): the fixed renders fold theirs in there
             if key not in self._needed:
-                self._needed[key] = torch.zeros_like(fragments.sizes)
+                self._needed[key] = torch.zeros(2, dtype=torch.long, device=verts.device)
         elif fragments.sizes is not None:
             before = self._needed.get(key)
             if before is None:
