@@ -215,7 +215,8 @@ class StageCallback(L.Callback):
         for line in self._describe(self._last, state, trainer.global_step):
             if trainer.is_global_zero:
                 log.info(line)
-        self.apply(pl_module, state)
+        if state != self._last:  # written when it changes: a few kernels fewer at every iteration
+            self.apply(pl_module, state)
         self._last = state
         return state
 

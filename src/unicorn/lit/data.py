@@ -98,15 +98,15 @@ class StreamBatchSampler(Sampler[list[tuple[int, int]]]):
             raise ValueError(f"bad stream: n={n}, batch_size={batch_size}, rank={rank}/{world_size}")
         self.n, self.batch_size, self.seed = int(n), int(batch_size), int(seed)
         self.start_batch, self.rank, self.world_size = int(start_batch), int(rank), int(world_size)
-        self._epoch, self._perm = -1, torch.empty(0, dtype=torch.long)
+        self._epoch, self._order = -1, []  # the epoch's permutation, as Python ints
 
     def index_at(self, position: int) -> int:
         """Dataset index at a stream position."""
         epoch = position // self.n
         if epoch != self._epoch:
             g = torch.Generator().manual_seed(self.seed * _SEED_STRIDE + epoch)
-            self._epoch, self._perm = epoch, torch.randperm(self.n, generator=g)
-        return int(self._perm[position % self.n])
+            self._epoch, self._order = epoch, torch.randperm(self.n, generator=g).tolist()
+        return self._order[position % self.n]
 
     def batch_at(self, batch: int) -> list[tuple[int, int]]:
         """This rank's ``(position, index)`` pairs of global batch ``batch``."""

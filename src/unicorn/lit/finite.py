@@ -23,6 +23,7 @@ from typing import Any
 
 import lightning as L
 import torch
+from torch.utils._pytree import TreeSpec, tree_flatten, tree_unflatten
 
 from unicorn.errors import UserError
 
@@ -43,6 +44,18 @@ def _finite(losses: Mapping[str, torch.Tensor], grads: list[torch.Tensor]) -> to
     return finite
 
 
+def _same_tensor_layout(kept: Any, live: Any) -> bool:
+    """Whether ``live`` can be copied into ``kept``: both tensors of one shape, type and device, or neither a tensor."""
+    if not isinstance(live, torch.Tensor):
+        return not isinstance(kept, torch.Tensor)
+    return (
+        isinstance(kept, torch.Tensor)
+        and kept.shape == live.shape
+        and kept.dtype == live.dtype
+        and kept.device == live.device
+    )
+
+
 def _listed(items: Any) -> list[Any]:
     """Lightning's one-or-several (or None) as a list."""
     return [] if items is None else items if isinstance(items, list) else [items]
@@ -58,6 +71,8 @@ class FiniteCheck:
         # the deferred check: its flag, first bad iteration and phase (on the device) and the state to roll back to
         self._bad: torch.Tensor | None = None
         self._good: tuple[int, dict[str, Any]] | None = None
+        self._kept: tuple[TreeSpec, list[Any]] | None = None
+        self._params: list[torch.nn.Parameter] | None = None  # the copies of the last _state (its layout, leaves)
 
     # ------------------------------------------------------------------ every step
     def snapshot(self) -> None:
@@ -81,7 +96,9 @@ class FiniteCheck:
         self.module.objectives.memory.undo_push()
 
     def _grads(self) -> list[torch.Tensor]:
-        return [p.grad for p in self.module.model.parameters() if p.grad is not None]
+        if self._params is None:  # the model's parameters, listed once (walking the modules is a step's Python)
+            self._params = list(self.module.model.parameters())
+        return [p.grad for p in self._params if p.grad is not None]
 
     def now(self, losses: Mapping[str, torch.Tensor], step: int, phase: str) -> None:
         """Raise :class:`NonFiniteLossError` (after saving a checkpoint) if a term or a gradient is not finite.
@@ -158,14 +175,30 @@ class FiniteCheck:
 
     def _state(self) -> dict[str, Any]:
         """The state to roll back to, copied on the device: the module's weights and buffers, the optimizers'
-        and schedulers' states and the neighbour memory."""
+        and schedulers' states and the neighbour memory.
+
+        The copies are kept from one call to the next: where the live state has the same layout as at the last
+        call (the same keys, and tensors of the same shapes, types and devices), its tensors are copied into them
+        in one fused copy rather than into new tensors one by one; a new layout (a stage's first optimizer states,
+        the neighbour memory's first push) is copied anew.
+        """
         module = self.module
-        return {
-            "module": {k: v.detach().clone() for k, v in module.state_dict().items()},
-            "optimizers": [copy.deepcopy(o.optimizer.state_dict()) for o in _listed(module.optimizers())],
-            "schedulers": [copy.deepcopy(s.state_dict()) for s in _listed(module.lr_schedulers())],
-            "memory": module.objectives.memory.state(),
+        live = {
+            "module": module.state_dict(),
+            "optimizers": [o.optimizer.state_dict() for o in _listed(module.optimizers())],
+            "schedulers": [s.state_dict() for s in _listed(module.lr_schedulers())],
+            "memory": module.objectives.memory.state(copy=False),
         }
+        leaves, spec = tree_flatten(live)
+        kept = self._kept[1] if self._kept is not None and self._kept[0] == spec else None
+        if kept is not None and all(map(_same_tensor_layout, kept, leaves)):
+            pairs = [(k, v) for k, v in zip(kept, leaves) if isinstance(v, torch.Tensor)]
+            torch._foreach_copy_([k for k, _ in pairs], [v.detach() for _, v in pairs])
+            copies = [k if isinstance(v, torch.Tensor) else copy.deepcopy(v) for k, v in zip(kept, leaves)]
+        else:
+            copies = [v.detach().clone() if isinstance(v, torch.Tensor) else copy.deepcopy(v) for v in leaves]
+        self._kept = (spec, copies)
+        return tree_unflatten(copies, spec)
 
     def _roll_back(self, step: int, state: dict[str, Any]) -> str | None:
         """Put ``state`` (kept before iteration ``step``) back and save it as the checkpoint of iteration ``step``."""
