@@ -31,7 +31,7 @@ from unicorn.caching import cache_outside_compile
 from unicorn.checks import check_shape
 from unicorn.errors import UserError
 from unicorn.model.config import LOSS_KEYS
-from unicorn.model.filtering import filter_matrix, separable_filter
+from unicorn.model.filtering import separable_filter
 from unicorn.registry import Registry
 
 __all__ = [
@@ -241,12 +241,9 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window_size: int = 5, max_val: fl
 def sobel_gradient(x: torch.Tensor) -> torch.Tensor:
     """Normalised Sobel derivatives (B, C, 2, H, W) with replicated border, as ``kornia.filters.spatial_gradient``."""
     smooth, diff = [0.25, 0.5, 0.25], [-0.5, 0.0, 0.5]
-    H, W = x.shape[-2:]
-    # separable_filter's products for dx (smooth rows, differentiated columns) and dy side by side, batched: half
-    # the kernels of two passes
-    rows = torch.stack([filter_matrix(H, smooth, "replicate", x), filter_matrix(H, diff, "replicate", x)])
-    cols = torch.stack([filter_matrix(W, diff, "replicate", x), filter_matrix(W, smooth, "replicate", x)])
-    return rows.transpose(-1, -2) @ x.unsqueeze(2) @ cols
+    dx = separable_filter(x, smooth, diff, "replicate")
+    dy = separable_filter(x, diff, smooth, "replicate")
+    return torch.stack([dx, dy], dim=2)
 
 
 class StructuralLoss(nn.Module):

@@ -53,10 +53,11 @@ def _segment_distance2(px, py, ax, ay, bx, by):
 
 def boundary_distance2(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
     """Squared distance (N,) from points to the boundary of 2D triangles (N, 3, 2)."""
-    x, y = tri[..., 0], tri[..., 1]  # (N, 3): corner i's edge runs to corner i + 1
-    # the three edges in one pass of (N, 3) tensors: a third of the kernels of one pass per edge
-    d = _segment_distance2(px.unsqueeze(-1), py.unsqueeze(-1), x, y, x.roll(-1, dims=-1), y.roll(-1, dims=-1))
-    d01, d12, d20 = d.unbind(-1)
+    x0, x1, x2 = tri[..., 0].unbind(-1)
+    y0, y1, y2 = tri[..., 1].unbind(-1)
+    d01 = _segment_distance2(px, py, x0, y0, x1, y1)
+    d12 = _segment_distance2(px, py, x1, y1, x2, y2)
+    d20 = _segment_distance2(px, py, x2, y2, x0, y0)
     return torch.minimum(torch.minimum(d01, d12), d20)
 
 
