@@ -20,6 +20,11 @@ Each step is split into
 - the optimizer step, the total, and the peak memory of the step (CUDA: ``max_memory_allocated``; CPU: the
   growth of the process's peak resident set over the step, 0 once the process has reached its plateau).
 
+``kernels``: the aten ops one more step of each kind dispatches (forward, backward and optimizer; views and other
+metadata-only ops left out). On CUDA each of them launches work from the host: the count bounds a step whose kernels
+are small, as the main job's are on a GPU, and it is the same on every device. NaN for ``step:MODE`` rows (a
+dispatch mode would break their graphs).
+
 Medians over ``--repeats`` steps, after ``--warmup`` steps of each kind. The VGG16 of the perceptual loss gets
 random weights unless ``--vgg`` names torchvision's file (the time is the same).
 
@@ -63,6 +68,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.config import model_preset
@@ -224,6 +230,18 @@ def timed_step(
             "peak MB": peak}  # fmt: skip
 
 
+class KernelCounter(TorchDispatchMode):
+    """Counts the aten ops run inside it that are no view (:attr:`count`): the kernels they launch on CUDA."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        self.count += not func.is_view
+        return func(*args, **(kwargs or {}))
+
+
 def medians(rows: list[dict[str, float]]) -> dict[str, float]:
     """Each column's median over the timed steps; the peak memory's largest."""
     result = {c: statistics.median(r[c] for r in rows) for c in COLUMNS}
@@ -352,6 +370,12 @@ def time_steps(
             row["bwd-render"] = replay_render_backward()
             rows.append(row)
         results[phase] = medians(rows)
+        opt.zero_grad(set_to_none=True)
+        with KernelCounter() as counter:
+            fn(images, free=path == "sync-free")["total"].backward()
+            opt.step()
+        render_calls.clear()
+        results[phase]["kernels"] = counter.count
     return results
 
 
@@ -431,7 +455,7 @@ def main() -> None:
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
     head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'path':>9s} {'step':4s} "
-    print(head + " ".join(f"{c:>12s}" for c in COLUMNS))
+    print(head + " ".join(f"{c:>12s}" for c in (*COLUMNS, "kernels")))
     for size in args.models:
         for precision, mode, path in itertools.product(args.precision, args.compile, args.paths):
             # a fresh model per row group, from the same seed: every row times the same weights and memory
@@ -459,6 +483,7 @@ def main() -> None:
                 )
             for phase, row in rows.items():
                 cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
+                cells += f" {row.get('kernels', float('nan')):12.0f}"
                 label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {path:>9s} {phase:4s}"
                 print(f"{label} {cells}", flush=True)
 
