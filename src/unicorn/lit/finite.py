@@ -71,8 +71,8 @@ class FiniteCheck:
         # the deferred check: its flag, first bad iteration and phase (on the device) and the state to roll back to
         self._bad: torch.Tensor | None = None
         self._good: tuple[int, dict[str, Any]] | None = None
-        self._kept: tuple[TreeSpec, list[Any]] | None = None
-        self._params: list[torch.nn.Parameter] | None = None  # the copies of the last _state (its layout, leaves)
+        self._kept: tuple[TreeSpec, list[Any]] | None = None  # the copies of the last _state (its layout, leaves)
+        self._params: list[torch.nn.Parameter] | None = None  # the model's parameters (_grads)
 
     # ------------------------------------------------------------------ every step
     def snapshot(self) -> None:
@@ -96,7 +96,7 @@ class FiniteCheck:
         self.module.objectives.memory.undo_push()
 
     def _grads(self) -> list[torch.Tensor]:
-        if self._params is None:  # the model's parameters, listed once (walking the modules is a step's Python)
+        if self._params is None:  # listed once: walking the modules at every step costs Python time
             self._params = list(self.module.model.parameters())
         return [p.grad for p in self._params if p.grad is not None]
 
