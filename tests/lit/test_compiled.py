@@ -155,3 +155,37 @@ def test_a_compiled_step_on_another_device_holds_no_host_tensor(images):
         losses, grads = _run(model, objectives, compiled, kind, images.to("meta"), step)
         assert {v.device.type for v in [*losses.values(), *grads.values()]} == {"meta"}
     assert len(graphs) == 2 and not on_host, on_host
+
+
+def test_both_averaging_choices_run_one_graph_with_the_eager_losses(images):
+    # the texture-averaging choice is a tensor input of the compiled step, selected on the device: a Python bool
+    # would be guarded on, a graph (and on CUDA a capture) for each choice
+    model, objectives = _setup()
+    twin = copy.deepcopy((model, objectives))
+    graphs = []
+
+    def counting(gm, example_inputs):
+        graphs.append(gm)
+        return aot_eager(gm, example_inputs)
+
+    compiled = CompiledStep(twin[1], twin[0], backend=counting)
+    for step, kind in enumerate(["pose", "3d"]):  # the checked steps: they size the fixed buffers
+        _run(model, objectives, None, kind, images, step)
+        _run(*twin, None, kind, images, step)
+    eager = {}
+    for step, (kind, average) in enumerate([("pose", True), ("pose", False), ("3d", False), ("3d", True)], start=2):
+        results = []
+        for forward in (None, compiled):
+            torch.manual_seed(100 + step)
+            with sync_free(forward is not None), OverflowCounter():
+                if forward is None:
+                    losses = objectives(kind, model, images, average_texture=average, iteration=step)
+                else:
+                    losses = forward(kind, images, average, step)
+            results.append(losses)
+        for name, value in results[0].items():
+            torch.testing.assert_close(results[1][name], value, rtol=1e-5, atol=1e-6, msg=f"{kind} {average} {name}")
+        eager[kind, average] = results[0]["rgb"]
+        twin[1].memory.load_state(objectives.memory.state())
+    assert len(graphs) == 2  # one per step kind
+    assert not torch.equal(eager["pose", True], eager["pose", False])  # the choice changes the renders

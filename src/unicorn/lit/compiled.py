@@ -2,10 +2,11 @@
 
 ``model.compile_scope=step`` compiles what the trainer's steps without host reads (:mod:`unicorn.hostsync`) compute
 before their backward, the objectives' call (:class:`unicorn.objectives.Objectives`), with ``torch.compile`` in the
-mode ``model.compile`` names. Those steps trace without a graph break, so each step kind (and texture-averaging
-choice) is one forward graph, and AOTAutograd derives its backward as one graph; with ``reduce-overhead`` on CUDA
-both are captured as CUDA graphs and replayed, a step's thousands of kernels launched by a few calls. The optimizer
-step (the fused Adam: one kernel per parameter group) and the checked first iterations of a process run eagerly.
+mode ``model.compile`` names. Those steps trace without a graph break, so each step kind is one forward graph (the
+texture-averaging choice is a tensor input, selected on the device), and AOTAutograd derives its backward as one
+graph; with ``reduce-overhead`` on CUDA both are captured as CUDA graphs and replayed, a step's thousands of kernels
+launched by a few calls. The optimizer step (the fused Adam: one kernel per parameter group) and the checked first
+iterations of a process run eagerly.
 
 A CUDA graph replays on the addresses it was recorded with: the state a step changes besides the parameters (the
 BatchNorm statistics, the neighbour memory, the sizes the rasterizers' fixed buffers needed) is written in place, so
@@ -31,7 +32,7 @@ __all__ = ["CUDA_GRAPH_MODES", "CompiledStep"]
 
 #: the ``torch.compile`` modes that capture CUDA graphs on CUDA devices
 CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
-#: graphs kept per step function: 2 step kinds x 2 averaging choices x 4 stages, and a few buffer sizes each
+#: graphs kept per step function: 2 step kinds x 4 stages, and a few buffer sizes each
 _RECOMPILE_LIMIT = 64
 
 
@@ -63,11 +64,14 @@ class CompiledStep:
         self.captures = backend == "cudagraphs" if backend is not None else mode in CUDA_GRAPH_MODES
         options: dict[str, Any] = {"mode": mode} if backend is None else {"backend": backend}
         self._compiled = torch.compile(self._forward, **options)
+        # the texture-averaging choice as a 0-dim bool on the images' device, one per value and device: a tensor
+        # input runs one graph for both choices (a Python bool is guarded on, a graph for each)
+        self._average: dict[tuple[bool, torch.device], torch.Tensor] = {}
         # the renders' overflow counts inside the graphs, handed on to the caller's counter after each call (one
         # counter for every call: the graphs guard on the active counters)
         self._counter = OverflowCounter()
 
-    def _forward(self, kind: str, images: torch.Tensor, average_texture: bool, iteration: int) -> StepLosses:
+    def _forward(self, kind: str, images: torch.Tensor, average_texture: torch.Tensor, iteration: int) -> StepLosses:
         return self.objectives(kind, self.model, images, average_texture=average_texture, iteration=iteration)
 
     def __call__(self, kind: str, images: torch.Tensor, average_texture: bool, iteration: int) -> StepLosses:
@@ -77,8 +81,11 @@ class CompiledStep:
             copy = self.captures and images.is_cuda
         if copy:
             torch.compiler.cudagraph_mark_step_begin()  # the previous step's graph outputs are no longer read
+        key = (bool(average_texture), images.device)
+        if key not in self._average:
+            self._average[key] = torch.full((), key[0], device=images.device)  # made on the device: no copy
         with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT), self._counter:
-            losses = self._compiled(kind, images, average_texture, iteration)
+            losses = self._compiled(kind, images, self._average[key], iteration)
         counts, self._counter.counts = self._counter.counts, {}
         for faces_per_pixel, (overflow, pixels) in counts.items():
             if copy and isinstance(overflow, torch.Tensor):

@@ -290,25 +290,28 @@ class Unicorn(nn.Module):
         shape_code: torch.Tensor,
         texture_code: torch.Tensor,
         background_code: torch.Tensor | None = None,
-        average_texture: bool = False,
+        average_texture: bool | torch.Tensor = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """What masked codes describe: the canonical mesh (B, V, 3) of shape codes (B, Cs), the texture images
         (B, 3, Ht, Wt) of texture codes (B, Ct) and the backgrounds (B, 3, S, S) of background codes (B, Cb), None
         without them or without a background model. Each code is decoded on its own: the three batches may differ.
 
         Args:
-            average_texture: replace every texture by its mean colour.
+            average_texture: replace every texture by its mean colour; a 0-dim bool tensor selects on the device
+                (a compiled training step's choice: one graph for both values, where a Python bool is guarded on).
         """
         canonical = self.deform(shape_code)
         maps = self.texture(texture_code)
-        if average_texture:
+        if isinstance(average_texture, torch.Tensor):
+            maps = torch.where(average_texture, mean_texture(maps), maps)
+        elif average_texture:
             maps = mean_texture(maps)
         bkg = None
         if self.background is not None and background_code is not None:
             bkg = self.background(background_code)
         return canonical, maps, bkg
 
-    def predict_3d(self, feats: dict[str, torch.Tensor], average_texture: bool = False) -> Prediction3D:
+    def predict_3d(self, feats: dict[str, torch.Tensor], average_texture: bool | torch.Tensor = False) -> Prediction3D:
         """The 3D branches (shape, scale, texture, background) from encoder features (:meth:`encode`), each (B, F):
         the codes regressed from them, decoded by :meth:`decode`.
 

@@ -294,7 +294,7 @@ class _Neighbours:
     background: torch.Tensor | None
 
 
-def _neighbours(model: Unicorn, images: torch.Tensor, n: int, average_texture: bool) -> _Neighbours:
+def _neighbours(model: Unicorn, images: torch.Tensor, n: int, average_texture: bool | torch.Tensor) -> _Neighbours:
     """The swaps' parameters from ``images`` (2n, 3, S, S): the n shape neighbours then the n texture neighbours.
 
     The encoders see all 2n images together (their batch statistics are those of :meth:`Unicorn.predict` on the
@@ -343,7 +343,12 @@ class NeighborLoss(nn.Module):
         return self.weight > 0 and model.shape.mask.active_dims > 0 and model.texture.mask.active_dims > 0
 
     def forward(
-        self, model: Unicorn, images: torch.Tensor, pred: Prediction3D, R: torch.Tensor, average_texture: bool = False
+        self,
+        model: Unicorn,
+        images: torch.Tensor,
+        pred: Prediction3D,
+        R: torch.Tensor,
+        average_texture: bool | torch.Tensor = False,
     ) -> torch.Tensor:
         """The weighted loss (B,) of images (B, 3, S, S), their 3D prediction and hard-selected rotations (B, 3, 3).
 
@@ -352,7 +357,12 @@ class NeighborLoss(nn.Module):
         return self.weight * self._unweighted(model, images, pred, R, average_texture)
 
     def _unweighted(
-        self, model: Unicorn, images: torch.Tensor, pred: Prediction3D, R: torch.Tensor, average_texture: bool
+        self,
+        model: Unicorn,
+        images: torch.Tensor,
+        pred: Prediction3D,
+        R: torch.Tensor,
+        average_texture: bool | torch.Tensor,
     ) -> torch.Tensor:
         memory = self.memory
         self_index = memory.push(images, pred.shape_code, pred.texture_code, R)
@@ -377,7 +387,7 @@ class NeighborLoss(nn.Module):
         pred: Prediction3D,
         match: NeighborMatch,
         idx: torch.Tensor,
-        average_texture: bool,
+        average_texture: bool | torch.Tensor,
     ) -> torch.Tensor:
         """The swap losses (n,) of the samples ``idx`` (n,): their shape with the neighbour's texture and the
         other way round, against the neighbours' images."""

@@ -82,7 +82,7 @@ class Objectives(nn.Module):
         kind: str,
         model: Unicorn,
         images: torch.Tensor,
-        average_texture: bool = False,
+        average_texture: bool | torch.Tensor = False,
         iteration: int | None = None,
     ) -> StepLosses:
         """The losses of a ``"pose"`` or ``"3d"`` step on images (B, 3, S, S) in [0, 1] at training ``iteration``."""

@@ -77,7 +77,11 @@ class PoseStep(nn.Module):
         self.spacing_weight, self.spacing_angle = spacing_weight, spacing_angle
 
     def forward(
-        self, model: Unicorn, images: torch.Tensor, average_texture: bool = False, iteration: int | None = None
+        self,
+        model: Unicorn,
+        images: torch.Tensor,
+        average_texture: bool | torch.Tensor = False,
+        iteration: int | None = None,
     ) -> StepLosses:
         """The step's losses on images (B, 3, S, S) in [0, 1].
 

@@ -42,7 +42,11 @@ class ShapeStep(nn.Module):
         self.reconstruction, self.regularizer, self.neighbors = reconstruction, regularizer, neighbors
 
     def forward(
-        self, model: Unicorn, images: torch.Tensor, average_texture: bool = False, iteration: int | None = None
+        self,
+        model: Unicorn,
+        images: torch.Tensor,
+        average_texture: bool | torch.Tensor = False,
+        iteration: int | None = None,
     ) -> StepLosses:
         """The step's losses on images (B, 3, S, S) in [0, 1].
 
