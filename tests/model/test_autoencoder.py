@@ -104,6 +104,23 @@ def test_stage_switches_and_texture_averaging(tiny_model, images):
     assert torch.allclose(flat[..., 0], tiny_model.predict(images).texture.mean((2, 3)), atol=1e-6)
 
 
+@pytest.mark.parametrize("average", [False, True])
+def test_texture_averaging_as_a_tensor_gives_the_python_choice(tiny_model, images, average):
+    # a compiled step passes the choice as a 0-dim bool tensor (one graph for both): the same maps and gradients
+    randomize_heads(tiny_model, std=0.1)
+    feats = tiny_model.encode(images, tiny_model.branches())
+    results = []
+    for choice in (average, torch.tensor(average)):
+        tiny_model.zero_grad(set_to_none=True)
+        texture = tiny_model.predict_3d(feats, choice).texture
+        (texture * torch.linspace(0, 1, texture.numel()).view_as(texture)).sum().backward(retain_graph=True)
+        grads = [p.grad.clone() for p in tiny_model.texture.parameters() if p.grad is not None]
+        results.append((texture.detach(), grads))
+    (maps, grads), (maps_t, grads_t) = results
+    assert torch.equal(maps_t, maps) and len(grads_t) == len(grads) > 0
+    assert all(torch.equal(a, b) for a, b in zip(grads_t, grads))
+
+
 def test_encoder_width_sets_the_features_every_head_reads():
     torch.manual_seed(0)
     model = Unicorn(tiny_config("real", "big", encoder={"shared": False, "width": 16}))
