@@ -179,8 +179,8 @@ class FiniteCheck:
 
         The copies are kept from one call to the next: where the live state has the same layout as at the last
         call (the same keys, and tensors of the same shapes, types and devices), its tensors are copied into them
-        in one fused copy rather than into new tensors one by one; a new layout (a stage's first optimizer states,
-        the neighbour memory's first push) is copied anew.
+        in one fused copy per device rather than into new tensors one by one; a new layout (a stage's first
+        optimizer states, the neighbour memory's first push) is copied anew.
         """
         module = self.module
         live = {
@@ -192,8 +192,14 @@ class FiniteCheck:
         leaves, spec = tree_flatten(live)
         kept = self._kept[1] if self._kept is not None and self._kept[0] == spec else None
         if kept is not None and all(map(_same_tensor_layout, kept, leaves)):
-            pairs = [(k, v) for k, v in zip(kept, leaves) if isinstance(v, torch.Tensor)]
-            torch._foreach_copy_([k for k, _ in pairs], [v.detach() for _, v in pairs])
+            by_device: dict[torch.device, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
+            for k, v in zip(kept, leaves):
+                if isinstance(v, torch.Tensor):  # one fused copy per device (an optimizer's steps may be on the host)
+                    targets, sources = by_device.setdefault(v.device, ([], []))
+                    targets.append(k)
+                    sources.append(v.detach())
+            for targets, sources in by_device.values():
+                torch._foreach_copy_(targets, sources)
             copies = [k if isinstance(v, torch.Tensor) else copy.deepcopy(v) for k, v in zip(kept, leaves)]
         else:
             copies = [v.detach().clone() if isinstance(v, torch.Tensor) else copy.deepcopy(v) for v in leaves]
