@@ -54,7 +54,7 @@ def _absolute(out: str | os.PathLike) -> Path:
 def _make_staging(out: Path) -> Path:
     """Create the empty temporary folder of ``out``: beside it, or inside an existing ``out`` whose parent cannot be
     written to (a mount point)."""
-    name = f".{out.name}{PARTIAL_MARK}{os.getpid()}"
+    name = _staging_name(out)
     places = [out.parent] + ([out] if _is_folder(out) else [])
     for k, place in enumerate(places):
         tmp = place / name
@@ -64,8 +64,31 @@ def _make_staging(out: Path) -> Path:
             return tmp
         except OSError as err:
             if k == len(places) - 1 or err.errno not in (errno.EACCES, errno.EPERM, errno.EROFS):
-                raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+                raise _write_error(out, err) from err
     raise AssertionError("unreachable")
+
+
+def _staging_name(out: Path) -> str:
+    """The name of ``out``'s temporary folder (hidden, marked as partial, this process's)."""
+    return f".{out.name}{PARTIAL_MARK}{os.getpid()}"
+
+
+def _write_error(out: Path, err: OSError) -> OSError:
+    """``err`` as the error of a command that cannot write its output folder ``out``."""
+    return type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}")
+
+
+def _probe(out: Path, probe: Path, folder: bool) -> None:
+    """Make and remove ``probe``, a folder or a file, as writing ``out`` would; an error names ``out``."""
+    try:
+        if folder:
+            probe.mkdir()
+            probe.rmdir()
+        else:
+            probe.touch()
+            probe.unlink()
+    except OSError as err:
+        raise _write_error(out, err) from err
 
 
 def check_writable(out: str | os.PathLike) -> None:
@@ -82,19 +105,9 @@ def check_writable(out: str | os.PathLike) -> None:
         _make_staging(out).rmdir()
     else:  # the folders above it are made when it is written: the nearest existing one must take a new folder
         above = next(folder for folder in out.parents if folder.exists())
-        probe = above / f".{out.name}{PARTIAL_MARK}{os.getpid()}"
-        try:
-            probe.mkdir()
-            probe.rmdir()
-        except OSError as err:
-            raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+        _probe(out, above / _staging_name(out), folder=True)
     if _is_folder(out):
-        probe = out / f".{out.name}{PARTIAL_MARK}{os.getpid()}.probe"
-        try:
-            probe.touch()
-            probe.unlink()
-        except OSError as err:
-            raise type(err)(err.errno, f"cannot write the output folder {out}: {err.strerror}") from err
+        _probe(out, out / f"{_staging_name(out)}.probe", folder=False)
 
 
 class OutputConflictError(UserError, FileExistsError):
