@@ -96,3 +96,31 @@ def test_cached_filter_matrix_first_built_under_inference_mode_serves_autograd()
     torch.testing.assert_close(again.detach(), first)
     torch.testing.assert_close(again.detach(), _conv_reference(x, [0.2, 0.6, 0.2], [0.1, 0.8, 0.1], "reflect"))
     assert y.grad is not None and torch.isfinite(y.grad).all()
+
+
+def test_compiled_filter_asks_the_cache_through_one_operator_per_matrix():
+    # a traced graph holds one unicorn::filter_matrix call per matrix, not the ops that build it, and its values
+    # and gradients are those of the padded convolution (aot_eager: AOTAutograd differentiates the graph)
+    graphs: list[torch.fx.GraphModule] = []
+
+    def record(gm: torch.fx.GraphModule, example_inputs: list) -> torch.fx.GraphModule:
+        graphs.append(gm)
+        return gm
+
+    ty, tx = [0.1, 0.2, 0.4, 0.2, 0.1], [-0.3, 0.1, 0.2, 0.6, 0.4]
+    x = torch.rand(2, 3, 9, 7, dtype=torch.float64, requires_grad=True)
+    traced = torch.compile(lambda x: separable_filter(x, ty, tx, "reflect"), backend=record, fullgraph=True)
+    traced(x.detach())
+    (graph,) = graphs
+    targets = [node.target for node in graph.graph.nodes if node.op == "call_function"]
+    assert targets.count(torch.ops.unicorn.filter_matrix.default) == 2  # rows and columns
+    assert not {torch.eye, F.pad} & set(targets)
+
+    compiled = torch.compile(lambda x: separable_filter(x, ty, tx, "reflect"), backend="aot_eager", fullgraph=True)
+    out = compiled(x)
+    torch.testing.assert_close(out, _conv_reference(x.detach(), ty, tx, "reflect"))
+    grad = torch.autograd.grad(out.square().sum(), x)[0]
+    y = x.detach().requires_grad_(True)
+    expected = torch.autograd.grad(_conv_reference(y, ty, tx, "reflect").square().sum(), y)[0]
+    torch.testing.assert_close(grad, expected)
+    torch._dynamo.reset()

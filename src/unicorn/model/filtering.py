@@ -3,6 +3,10 @@
 On the CPU, oneDNN runs the depthwise convolutions of one to three channels that image filters usually become
 (kornia's filters, a ``groups=C`` conv) several times slower than these products, forward and backward; on
 CUDA they are one batched GEMM. Used by the structural perceptual loss (SSIM, Sobel) and the generators' blur.
+
+The matrices are built once per size and filter and cached. A graph ``torch.compile`` traces asks the cache through
+one operator (``unicorn::filter_matrix``, a copy of the cached matrix) instead of rebuilding the matrix with a
+dozen small operations in every graph that filters.
 """
 
 from __future__ import annotations
@@ -25,10 +29,12 @@ def filter_matrix(n: int, taps: list[float], mode: str, like: torch.Tensor) -> t
     """
     if len(taps) % 2 == 0:
         raise ValueError(f"need an odd number of taps, got {len(taps)}")
+    if torch.compiler.is_compiling():
+        return _cached_filter_matrix(n, [float(t) for t in taps], mode, like.dtype, like.device)
     return _filter_matrix(n, tuple(float(t) for t in taps), mode, like.dtype, like.device)
 
 
-@cache_outside_compile(maxsize=128)  # traced by torch.compile, the matrix is built inside the graph
+@cache_outside_compile(maxsize=128)
 def _filter_matrix(
     n: int, taps: tuple[float, ...], mode: str, dtype: torch.dtype, device: torch.device
 ) -> torch.Tensor:
@@ -39,6 +45,19 @@ def _filter_matrix(
     with torch.inference_mode(False):
         padded = F.pad(torch.eye(n, dtype=dtype, device=device), (p, p), mode=mode)  # (n, n + 2p)
         return sum(w * padded[:, t : t + n] for t, w in enumerate(taps))
+
+
+@torch.library.custom_op("unicorn::filter_matrix", mutates_args=())
+def _cached_filter_matrix(
+    n: int, taps: list[float], mode: str, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
+    """A copy of the cached matrix (an operator's output may not alias memory that outlives it)."""
+    return _filter_matrix(n, tuple(taps), mode, dtype, device).clone()
+
+
+@_cached_filter_matrix.register_fake
+def _(n: int, taps: list[float], mode: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    return torch.empty(n, n, dtype=dtype, device=device)
 
 
 def separable_filter(x: torch.Tensor, taps_y: list[float], taps_x: list[float], mode: str) -> torch.Tensor:
