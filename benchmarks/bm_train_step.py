@@ -36,7 +36,8 @@ compiles them (:func:`unicorn.model.compile.compile_modules`), during the warm-u
 perceptual times are part of ``other``, and with compiled rows every row runs its backward in one pass: the totals
 are the figures to compare). ``step:MODE`` compiles each step's whole forward instead (``model.compile_scope=step``,
 :class:`unicorn.lit.compiled.CompiledStep`, the steps without host reads; with ``step:reduce-overhead`` on CUDA,
-CUDA graphs of whole steps): its rows give the forward, backward, optimizer and total times only.
+CUDA graphs of whole steps, with ``step:cudagraphs`` the same of the eager kernels, without code generation): its
+rows give the forward, backward, optimizer and total times only.
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
@@ -44,6 +45,7 @@ CUDA graphs of whole steps): its rows give the forward, backward, optimizer and 
     python benchmarks/bm_train_step.py --device cuda --models small --precision 32-true bf16-mixed
     python benchmarks/bm_train_step.py --device cuda --models small --compile none default reduce-overhead
     python benchmarks/bm_train_step.py --device cuda --models small --paths sync-free --compile step:reduce-overhead
+    python benchmarks/bm_train_step.py --device cuda --models small --paths sync-free --compile step:cudagraphs
     python benchmarks/bm_train_step.py --models tiny --paths default sync-free
 
 ``--paths`` lists the step paths to time side by side: ``default`` (the CPU's: exact sizes, reading the device back
@@ -465,7 +467,7 @@ def main() -> None:
             if mode.startswith(STEP):
                 if path != "sync-free":
                     continue  # only the steps without host reads compile whole
-                reason = compile_unavailable(args.device)
+                reason = compile_unavailable(args.device, mode.removeprefix(STEP))
                 if reason is not None:
                     print(f"# {mode}: torch.compile cannot run on {args.device} ({reason})")
                     continue

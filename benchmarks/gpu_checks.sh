@@ -7,8 +7,9 @@
 # Run from the repository root on a machine where unicorn's dependencies are importable, or where a kit made by
 # benchmarks/gpu_kit.sh lies (see gpu_env.sh):
 #   bash benchmarks/gpu_checks.sh [PART ...]
-# PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop; their eager rows
-# are those of steps and rate); default all, in that order. Name the parts in the order to run them where the time
+# PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop, first as CUDA graphs
+# of the eager kernels, model.compile=cudagraphs, which compiles in the time of the tracing, then of inductor's kernels,
+# reduce-overhead; their eager rows are those of steps and rate); default all, in that order. Name the parts in the order to run them where the time
 # on the GPU is short, and bound each command with GPU_CHECKS_LIMIT (seconds; a command that runs over is stopped
 # and the next one runs): compiling the captured steps takes minutes (docs/performance.md, "CUDA").
 set -uo pipefail
@@ -44,7 +45,9 @@ for part in "${parts[@]}"; do
   rate)
     py benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log" ;;
   captured)
-    py benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile step:reduce-overhead 2>&1 | tee "$out/bm_train_step_captured.log"
-    py benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 trainer.accelerator=cuda model.compile=reduce-overhead model.compile_scope=step 2>&1 | tee "$out/bm_train_rate_captured.log" ;;
+    for mode in cudagraphs reduce-overhead; do
+      py benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile step:$mode 2>&1 | tee "$out/bm_train_step_captured_$mode.log"
+      py benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 trainer.accelerator=cuda model.compile=$mode model.compile_scope=step 2>&1 | tee "$out/bm_train_rate_captured_$mode.log"
+    done ;;
   esac
 done

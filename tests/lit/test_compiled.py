@@ -189,3 +189,23 @@ def test_both_averaging_choices_run_one_graph_with_the_eager_losses(images):
         twin[1].memory.load_state(objectives.memory.state())
     assert len(graphs) == 2  # one per step kind
     assert not torch.equal(eager["pose", True], eager["pose", False])  # the choice changes the renders
+
+
+@pytest.mark.parametrize(
+    ("mode", "options", "captures"),
+    [
+        ("default", {"mode": "default"}, False),
+        ("reduce-overhead", {"mode": "reduce-overhead"}, True),
+        ("cudagraphs", {"backend": "cudagraphs"}, True),
+    ],
+)
+def test_each_compile_mode_names_its_torch_compile_arguments(monkeypatch, mode, options, captures):
+    import unicorn.lit.compiled as compiled_module
+
+    given = []
+    monkeypatch.setattr(compiled_module.torch, "compile", lambda fn, **kwargs: given.append(kwargs) or fn)
+    model, objectives = _setup()
+    step = CompiledStep(objectives, model, mode)
+    assert given == [options] and step.captures is captures
+    with pytest.raises(ValueError, match="compile mode must be one of"):
+        CompiledStep(objectives, model, "fastest")

@@ -58,7 +58,7 @@ def test_training_with_model_compile_compiles_the_networks_and_the_reconstructio
     synthetic_cache, tmp_path, monkeypatch
 ):
     compiled = []
-    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: None)
+    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device, mode="default": None)
     monkeypatch.setattr(torch.nn.Module, "compile", lambda self, **kwargs: compiled.append((self, kwargs)))
     run = build_run(tmp_path, "model.compile=reduce-overhead", "trainer.max_steps=1")
     fit(run)
@@ -78,7 +78,7 @@ def test_model_compile_scope_step_compiles_the_steps_after_the_checked_ones(synt
 
         return run_step
 
-    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: None)
+    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device, mode="default": None)
     monkeypatch.setattr(compiled_module.torch, "compile", recording_compile)
     run = build_run(tmp_path, "model.compile=default", "model.compile_scope=step", "trainer.max_steps=4")
     fit(run)
@@ -89,7 +89,9 @@ def test_model_compile_scope_step_compiles_the_steps_after_the_checked_ones(synt
 def test_model_compile_scope_step_where_compile_cannot_run_warns_and_trains_eagerly(
     synthetic_cache, tmp_path, monkeypatch
 ):
-    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: "RuntimeError: no C++ compiler")
+    monkeypatch.setattr(
+        compile_module, "compile_unavailable", lambda device, mode="default": "RuntimeError: no C++ compiler"
+    )
     run = build_run(tmp_path, "model.compile=default", "model.compile_scope=step", "trainer.max_steps=2")
     with pytest.warns(CompileWarning, match="no C.. compiler.*the steps run eagerly"):
         fit(run)

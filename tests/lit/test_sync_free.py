@@ -232,7 +232,7 @@ def test_cuda_captured_steps_do_not_sync_and_give_the_eager_losses(synthetic_cac
         if name == "captured":
             # CUDA graphs of the traced step with the eager kernels (the cudagraphs backend: no code generation
             # to wait for); from iteration 6 on every step replays graphs recorded at iterations 4 and 5
-            run.module.compile_step(backend="cudagraphs")
+            run.module.compile_step("cudagraphs")
             errors = SyncErrors(4, start=6)
             run.trainer.callbacks.append(errors)
         runs[name] = LossRecorder()

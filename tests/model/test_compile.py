@@ -36,8 +36,22 @@ def test_a_compiled_head_predicts_what_the_eager_one_does_under_the_same_names()
     assert list(model.state_dict()) == names  # checkpoints keep their keys
 
 
+def test_cudagraphs_compiles_with_that_backend_on_cuda_and_not_elsewhere(monkeypatch):
+    options = []
+    monkeypatch.setattr(torch.nn.Module, "compile", lambda self, **kwargs: options.append(kwargs))
+    model = Unicorn(tiny_config())
+    with pytest.warns(CompileWarning, match="cudagraphs backend captures CUDA graphs: it needs a CUDA device"):
+        assert compile_networks(model, "cudagraphs") is False  # on the CPU: nothing to capture
+    assert options == []
+    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device, mode="default": None)
+    assert compile_networks(model, "cudagraphs", device="cuda")
+    assert options and all(kwargs == {"backend": "cudagraphs"} for kwargs in options)
+
+
 def test_without_a_working_compiler_the_networks_stay_eager_and_a_warning_says_why(monkeypatch):
-    monkeypatch.setattr(compile_module, "compile_unavailable", lambda device: "InvalidCxxCompiler: no working C++")
+    monkeypatch.setattr(
+        compile_module, "compile_unavailable", lambda device, mode="default": "InvalidCxxCompiler: no working C++"
+    )
     compiled = []
     monkeypatch.setattr(torch.nn.Module, "compile", lambda self, **kwargs: compiled.append(self))
     model = Unicorn(tiny_config())

@@ -104,12 +104,13 @@ class ModelConfig(ModelGroups):
     name: str = "small"
     composite: str = RendererConfig.composite  # direct | reference
     stages: StageDimsConfig = field(default_factory=StageDimsConfig)
-    # torch.compile of the networks (unicorn.model.compile): null (eager) or a mode, default | reduce-overhead |
-    # max-autotune | max-autotune-no-cudagraphs; where it cannot run, a warning says why and they run eagerly
+    # torch.compile of the networks (unicorn.model.compile): null (eager), a mode, default | reduce-overhead |
+    # max-autotune | max-autotune-no-cudagraphs, or cudagraphs (CUDA graphs of the eager kernels, no code
+    # generation); where it cannot run, a warning says why and they run eagerly
     compile: str | None = None
     # what model.compile compiles: networks (each network and the reconstruction loss, in every step) | step (the
     # whole forward of the steps without host reads, networks, renderer and losses, as one graph per step kind:
-    # with reduce-overhead, CUDA graphs of whole steps; unicorn.lit.compiled)
+    # with reduce-overhead or cudagraphs, CUDA graphs of whole steps; unicorn.lit.compiled)
     compile_scope: str = "networks"
 
 

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from unicorn.model import Unicorn
+from unicorn.model.compile import COMPILE_OPTIONS
 from unicorn.objectives import Objectives
 from unicorn.objectives.step_losses import StepLosses
 from unicorn.render import OverflowCounter
@@ -30,8 +31,8 @@ from unicorn.render.overflow import note_overflow
 
 __all__ = ["CUDA_GRAPH_MODES", "CompiledStep"]
 
-#: the ``torch.compile`` modes that capture CUDA graphs on CUDA devices
-CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+#: the values of ``model.compile`` that capture CUDA graphs on CUDA devices
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune", "cudagraphs")
 #: graphs kept per step function: 2 step kinds x 4 stages, and a few buffer sizes each
 _RECOMPILE_LIMIT = 64
 
@@ -43,7 +44,8 @@ class CompiledStep:
 
     Args:
         objectives: the training objectives; model: the model they train.
-        mode: a ``torch.compile`` mode (:data:`unicorn.model.compile.COMPILE_MODES`).
+        mode: a value of ``model.compile`` (:data:`unicorn.model.compile.COMPILE_OPTIONS`: a ``torch.compile`` mode,
+            or ``"cudagraphs"``).
         backend: a ``torch.compile`` backend, in place of ``mode`` (None: inductor in ``mode``; ``"aot_eager"``
             traces and differentiates the same graphs without generating code, ``"cudagraphs"`` captures them with
             the eager kernels, as the tests do).
@@ -59,10 +61,12 @@ class CompiledStep:
         backend: str | Callable[..., Any] | None = None,
         copy_outputs: bool | None = None,
     ) -> None:
+        if mode not in COMPILE_OPTIONS:
+            raise ValueError(f"the compile mode must be one of {tuple(COMPILE_OPTIONS)}, got {mode!r}")
         self.objectives, self.model, self.mode, self.copy_outputs = objectives, model, mode, copy_outputs
         #: whether the graphs are captured as CUDA graphs where the step runs on CUDA
         self.captures = backend == "cudagraphs" if backend is not None else mode in CUDA_GRAPH_MODES
-        options: dict[str, Any] = {"mode": mode} if backend is None else {"backend": backend}
+        options: dict[str, Any] = dict(COMPILE_OPTIONS[mode]) if backend is None else {"backend": backend}
         self._compiled = torch.compile(self._forward, **options)
         # the texture-averaging choice as a 0-dim bool on the images' device, one per value and device: a tensor
         # input runs one graph for both choices (a Python bool is guarded on, a graph for each)

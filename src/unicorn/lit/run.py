@@ -410,7 +410,7 @@ def _compile(run: Run) -> None:
         if compile_modules([module for _, module in named], mode, device):
             log.info("compiled at their first call (torch.compile, mode %s): %s", mode, ", ".join(n for n, _ in named))
         return
-    if not compile_available(device, "the steps", stacklevel=3):
+    if not compile_available(device, "the steps", stacklevel=3, mode=mode):
         return
     run.module.compile_step(mode)
     log.info("the steps' forward compiled whole at the first step without host reads (torch.compile, mode %s)", mode)

@@ -6,6 +6,12 @@ modules a trainer names (:func:`compile_modules`: the reconstruction loss, ``Obj
 eagerly (the rasterizer's packed fragments have data-dependent sizes). Where ``torch.compile`` cannot run (no C++
 compiler for the CPU backend, no Triton for CUDA, an unsupported platform), :func:`compile_modules` warns once with
 the reason (:class:`CompileWarning`) and leaves the modules eager: the results are the same, only slower or faster.
+
+``model.compile`` names one of :data:`COMPILE_OPTIONS`: a ``torch.compile`` mode (inductor generates the kernels;
+``reduce-overhead`` and ``max-autotune`` capture them as CUDA graphs on CUDA), or ``cudagraphs``, the backend that
+captures the traced graphs as CUDA graphs of the eager kernels: no code is generated, so compiling takes the tracing
+only (seconds where inductor takes minutes), and a launch-bound step still replays as a few calls; off CUDA there is
+nothing to capture, and the modules stay eager (with the warning).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from unicorn.model.autoencoder import Unicorn
 
 __all__ = [
     "COMPILE_MODES",
+    "COMPILE_OPTIONS",
     "COMPILE_SCOPES",
     "CompileWarning",
     "compile_available",
@@ -30,8 +37,16 @@ __all__ = [
     "networks",
 ]
 
-#: ``torch.compile`` modes (``mode=``); ``reduce-overhead`` captures CUDA graphs of each compiled network
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+#: ``model.compile``'s values and the ``torch.compile`` arguments each stands for
+COMPILE_OPTIONS: dict[str, dict[str, str]] = {
+    "default": {"mode": "default"},
+    "reduce-overhead": {"mode": "reduce-overhead"},
+    "max-autotune": {"mode": "max-autotune"},
+    "max-autotune-no-cudagraphs": {"mode": "max-autotune-no-cudagraphs"},
+    "cudagraphs": {"backend": "cudagraphs"},
+}
+#: the values of ``model.compile`` (:data:`COMPILE_OPTIONS`)
+COMPILE_MODES = tuple(COMPILE_OPTIONS)
 #: what a trainer compiles (``model.compile_scope``): each network, or the whole forward of its steps
 #: (:mod:`unicorn.lit.compiled`)
 COMPILE_SCOPES = ("networks", "step")
@@ -52,15 +67,18 @@ def networks(model: Unicorn) -> Iterator[tuple[str, nn.Module]]:
             yield name, module
 
 
-def compile_unavailable(device: torch.device | str) -> str | None:
-    """None where ``torch.compile`` compiles and runs a small function on ``device``; otherwise why not, in one
-    line (the exception's type and first line)."""
+def compile_unavailable(device: torch.device | str, mode: str = "default") -> str | None:
+    """None where ``torch.compile`` compiles and runs a small function on ``device`` as ``model.compile=mode`` does;
+    otherwise why not, in one line (the exception's type and first line)."""
+
+    if mode == "cudagraphs" and torch.device(device).type != "cuda":
+        return "the cudagraphs backend captures CUDA graphs: it needs a CUDA device"
 
     def probe(x: torch.Tensor) -> torch.Tensor:
         return torch.relu(x * 2.0 + 1.0)
 
     try:
-        probe_compiled = torch.compile(probe, dynamic=False)
+        probe_compiled = torch.compile(probe, dynamic=False, **COMPILE_OPTIONS[mode])
         probe_compiled(torch.ones(4, device=device))
     except Exception as error:  # any failure of the toolchain means: run eagerly
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
@@ -68,11 +86,11 @@ def compile_unavailable(device: torch.device | str) -> str | None:
     return None
 
 
-def compile_available(device: torch.device | str, what: str, stacklevel: int = 1) -> bool:
-    """Whether ``torch.compile`` can run on ``device`` (:func:`compile_unavailable`); where it cannot, one
-    :class:`CompileWarning` names the reason and says that ``what`` runs eagerly (``stacklevel`` as for
+def compile_available(device: torch.device | str, what: str, stacklevel: int = 1, mode: str = "default") -> bool:
+    """Whether ``torch.compile`` can run on ``device`` in ``mode`` (:func:`compile_unavailable`); where it cannot,
+    one :class:`CompileWarning` names the reason and says that ``what`` runs eagerly (``stacklevel`` as for
     :func:`warnings.warn`, counted from the caller)."""
-    reason = compile_unavailable(device)
+    reason = compile_unavailable(device, mode)
     if reason is not None:
         warnings.warn(
             f"torch.compile cannot run on {device} ({reason}): {what} run eagerly",
@@ -83,7 +101,8 @@ def compile_available(device: torch.device | str, what: str, stacklevel: int = 1
 
 
 def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device: torch.device | str = "cpu") -> bool:
-    """Compile modules in place (``nn.Module.compile(mode=mode)``; each compiles at its first call).
+    """Compile modules in place (``nn.Module.compile`` with ``mode``'s :data:`COMPILE_OPTIONS`; each compiles at
+    its first call).
 
     Where ``torch.compile`` cannot run on ``device`` (:func:`compile_unavailable`), nothing is compiled and one
     :class:`CompileWarning` names the reason.
@@ -96,10 +115,10 @@ def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device:
     """
     if mode not in COMPILE_MODES:
         raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
-    if not compile_available(device, "the networks", stacklevel=2):
+    if not compile_available(device, "the networks", stacklevel=2, mode=mode):
         return False
     for module in modules:
-        module.compile(mode=mode)
+        module.compile(**COMPILE_OPTIONS[mode])
     return True
 
 
