@@ -52,6 +52,10 @@ def _cached_filter_matrix(
     n: int, taps: list[float], mode: str, dtype: torch.dtype, device: torch.device
 ) -> torch.Tensor:
     """A copy of the cached matrix (an operator's output may not alias memory that outlives it)."""
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        # memory allocated while a CUDA graph is recorded belongs to its pool: not for the cache (graphs first run
+        # eagerly, which fills the cache before they are recorded)
+        return _filter_matrix.__wrapped__(n, tuple(taps), mode, dtype, device)
     return _filter_matrix(n, tuple(taps), mode, dtype, device).clone()
 
 
