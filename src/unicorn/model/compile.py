@@ -70,7 +70,6 @@ def networks(model: Unicorn) -> Iterator[tuple[str, nn.Module]]:
 def compile_unavailable(device: torch.device | str, mode: str = "default") -> str | None:
     """None where ``torch.compile`` compiles and runs a small function on ``device`` as ``model.compile=mode`` does;
     otherwise why not, in one line (the exception's type and first line)."""
-
     if mode == "cudagraphs" and torch.device(device).type != "cuda":
         return "the cudagraphs backend captures CUDA graphs: it needs a CUDA device"
 
