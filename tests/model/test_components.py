@@ -23,7 +23,6 @@ from unicorn.model import (
     TemplateMesh,
     active_dims_at,
 )
-from unicorn.model.mlp import stacked_mlps
 from unicorn.model.pose import mirrored_pose
 from unicorn.render import TexturesVertex, build_renderer
 
@@ -57,28 +56,6 @@ def test_mlp_layout_and_zero_init():
     assert [k for k in mlp.state_dict() if k.endswith("weight")] == ["0.weight", "2.weight", "4.weight", "6.weight"]
     assert torch.equal(mlp(torch.randn(4, 512)), torch.zeros(4, 7))
     assert MLP(512, 7).forward(torch.randn(4, 512)).abs().sum() > 0
-
-
-@pytest.mark.parametrize("n_layers", [0, 1, 3])
-def test_stacked_mlps_equal_each_mlp_forward_and_backward(n_layers):
-    # the oracle: each MLP on its own; the stacked products must give the same outputs and parameter gradients
-    torch.manual_seed(0)
-    mlps = [MLP(9, 4, 6, n_layers) for _ in range(5)]
-    x = torch.randn(3, 9, dtype=torch.float64)
-    mlps = [m.double() for m in mlps]
-    out = stacked_mlps(mlps, x)
-    expected = torch.stack([m(x) for m in mlps])
-    torch.testing.assert_close(out, expected)
-    weights = torch.randn_like(out)
-    params = [p for m in mlps for p in m.parameters()]
-    grads = torch.autograd.grad((out * weights).sum(), params)
-    oracle = torch.autograd.grad((expected * weights).sum(), params)
-    for got, want in zip(grads, oracle, strict=True):
-        torch.testing.assert_close(got, want)
-    with pytest.raises(ValueError, match="same sizes"):
-        stacked_mlps([MLP(9, 4, 6, n_layers), MLP(9, 5, 6, n_layers)], x.float())
-    with pytest.raises(ValueError, match="x"):
-        stacked_mlps(mlps, x[:, :8])
 
 
 def test_active_dims_schedule():

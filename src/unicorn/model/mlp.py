@@ -2,14 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
-import torch
 from torch import nn
 
-from unicorn.checks import check_shape
-
-__all__ = ["MLP", "stacked_mlps"]
+__all__ = ["MLP"]
 
 
 class MLP(nn.Sequential):
@@ -58,25 +53,3 @@ class MLP(nn.Sequential):
         if zero_last:
             nn.init.zeros_(self[-1].weight)
             nn.init.zeros_(self[-1].bias)
-
-
-def stacked_mlps(mlps: Sequence[MLP], x: torch.Tensor) -> torch.Tensor:
-    """The outputs (G, B, out_features) of G MLPs of the same sizes on the same input x (B, in_features).
-
-    Equal to ``torch.stack([mlp(x) for mlp in mlps])`` up to rounding, computed layer by layer as one batched
-    product of the stacked weights: a few kernels forward and backward for all G heads, in place of G times each
-    layer's. The parameters stay those of each MLP (and so do checkpoints); their gradients reach them through the
-    stacks.
-    """
-    first = mlps[0]
-    if any(len(m) != len(first) or m.out_features != first.out_features for m in mlps):
-        raise ValueError("stacked_mlps needs MLPs of the same sizes")
-    check_shape(x, f"B, {first.in_features}", "x")
-    h = x.unsqueeze(0).expand(len(mlps), *x.shape)  # (G, B, in)
-    for i in range(0, len(first), 2):  # the Linear layers; a ReLU follows each but the last
-        weight = torch.stack([m[i].weight for m in mlps])  # (G, out, in)
-        bias = torch.stack([m[i].bias for m in mlps])  # (G, out)
-        h = torch.baddbmm(bias.unsqueeze(1), h, weight.transpose(1, 2))
-        if i + 1 < len(first):
-            h = torch.relu(h)
-    return h

@@ -12,7 +12,7 @@ from torch import nn
 
 from unicorn.checks import check_shape, is_number
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
-from unicorn.model.mlp import MLP, stacked_mlps
+from unicorn.model.mlp import MLP
 from unicorn.render.precision import full_precision, to_full_precision
 
 __all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles", "mirrored_pose"]
@@ -209,8 +209,8 @@ class PoseHead(nn.Module):
         probabilities) are composed from their float32-cast outputs with autocast off: rotations stay orthonormal
         to float32 rounding."""
         check_shape(features, "B, C", "features")
-        K = self.n_candidates
-        rot, trans = to_full_precision(stacked_mlps([*self.rot_regressors, *self.T_regressors], features)).split(K)
+        rot = torch.stack([to_full_precision(mlp(features)) for mlp in self.rot_regressors])  # (K, B, 3)
+        trans = torch.stack([to_full_precision(mlp(features)) for mlp in self.T_regressors])  # (K, B, 3)
         logits = to_full_precision(self.proba_regressor(features)).transpose(0, 1)  # (K, B)
         with full_precision(features.device.type):
             return self._compose(rot.tanh(), trans.tanh(), torch.log_softmax(logits, dim=0), logits)
