@@ -37,7 +37,8 @@ perceptual times are part of ``other``, and with compiled rows every row runs it
 are the figures to compare). ``step:MODE`` compiles each step's whole forward instead (``model.compile_scope=step``,
 :class:`unicorn.lit.compiled.CompiledStep`, the steps without host reads; with ``step:reduce-overhead`` on CUDA,
 CUDA graphs of whole steps, with ``step:cudagraphs`` the same of the eager kernels, without code generation): its
-rows give the forward, backward, optimizer and total times only.
+rows give the forward, backward, optimizer and total times only, and a comment line the time of each kind's first
+compiled step (tracing and compiling included).
 
     python benchmarks/bm_train_step.py                               # CPU: tiny, small, small-structural, big
     python benchmarks/bm_train_step.py --models tiny --repeats 20
@@ -417,6 +418,8 @@ def time_compiled_steps(
         rows = []
         for i in range(args.warmup + args.repeats):
             row = timed_step(lambda phase=phase, i=i: forward(phase, 2 + i), backward, opt, device)
+            if i == 0:  # the first call traces, compiles (and where it captures, runs the warm-up of) the graphs
+                print(f"# step:{mode} {phase}: the first compiled step took {row['total']:.1f} s", flush=True)
             if i >= args.warmup:
                 rows.append({**dict.fromkeys(COLUMNS, float("nan")), **row})
         results[phase] = medians(rows)
