@@ -7,11 +7,12 @@
 # Run from the repository root on a machine where unicorn's dependencies are importable, or where a kit made by
 # benchmarks/gpu_kit.sh lies (see gpu_env.sh):
 #   bash benchmarks/gpu_checks.sh [PART ...]
-# PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop, first as CUDA graphs
-# of the eager kernels, model.compile=cudagraphs, which compiles in the time of the tracing, then of inductor's kernels,
-# reduce-overhead; their eager rows are those of steps and rate); default all, in that order. Name the parts in the order to run them where the time
-# on the GPU is short, and bound each command with GPU_CHECKS_LIMIT (seconds; a command that runs over is stopped
-# and the next one runs): compiling the captured steps takes minutes (docs/performance.md, "CUDA").
+# PART: tests, steps, compiled, render, rate, captured (the captured steps and the captured loop, first as CUDA
+# graphs of the eager kernels, model.compile=cudagraphs, which compiles in the time of the tracing, then of inductor's
+# kernels, reduce-overhead; their eager rows are those of steps and rate); default all, in that order. Name the parts
+# in the order to run them where the time on the GPU is short, and bound each command with GPU_CHECKS_LIMIT (seconds;
+# a command that runs over is stopped and the next one runs): compiling the captured steps takes minutes
+# (docs/performance.md, "CUDA").
 set -uo pipefail
 all=(tests steps compiled render rate captured)
 parts=("$@")

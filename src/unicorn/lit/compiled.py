@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from unicorn.model import Unicorn
-from unicorn.model.compile import COMPILE_OPTIONS
+from unicorn.model.compile import compile_options
 from unicorn.objectives import Objectives
 from unicorn.objectives.step_losses import StepLosses
 from unicorn.render import OverflowCounter
@@ -61,12 +61,12 @@ class CompiledStep:
         backend: str | Callable[..., Any] | None = None,
         copy_outputs: bool | None = None,
     ) -> None:
-        if mode not in COMPILE_OPTIONS:
-            raise ValueError(f"the compile mode must be one of {tuple(COMPILE_OPTIONS)}, got {mode!r}")
+        options: dict[str, Any] = compile_options(mode)  # checks the mode, with a backend too
+        if backend is not None:
+            options = {"backend": backend}
         self.objectives, self.model, self.mode, self.copy_outputs = objectives, model, mode, copy_outputs
         #: whether the graphs are captured as CUDA graphs where the step runs on CUDA
         self.captures = backend == "cudagraphs" if backend is not None else mode in CUDA_GRAPH_MODES
-        options: dict[str, Any] = dict(COMPILE_OPTIONS[mode]) if backend is None else {"backend": backend}
         self._compiled = torch.compile(self._forward, **options)
         # the texture-averaging choice as a 0-dim bool on the images' device, one per value and device: a tensor
         # input runs one graph for both choices (a Python bool is guarded on, a graph for each)

@@ -32,6 +32,7 @@ __all__ = [
     "CompileWarning",
     "compile_available",
     "compile_modules",
+    "compile_options",
     "compile_networks",
     "compile_unavailable",
     "networks",
@@ -56,6 +57,17 @@ class CompileWarning(UnicornWarning):
     """``torch.compile`` cannot run here: the networks run eagerly (the message says why)."""
 
 
+def compile_options(mode: str) -> dict[str, str]:
+    """The ``torch.compile`` arguments of ``model.compile=mode`` (:data:`COMPILE_OPTIONS`).
+
+    Raises:
+        ValueError: ``mode`` is not one of :data:`COMPILE_MODES`.
+    """
+    if mode not in COMPILE_OPTIONS:
+        raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
+    return dict(COMPILE_OPTIONS[mode])
+
+
 def networks(model: Unicorn) -> Iterator[tuple[str, nn.Module]]:
     """The model's learned networks by attribute name (``encoders.0``, ``shape``, ``texture``, ``background``,
     ``pose``, ``scale``); a model without a background has none."""
@@ -70,14 +82,15 @@ def networks(model: Unicorn) -> Iterator[tuple[str, nn.Module]]:
 def compile_unavailable(device: torch.device | str, mode: str = "default") -> str | None:
     """None where ``torch.compile`` compiles and runs a small function on ``device`` as ``model.compile=mode`` does;
     otherwise why not, in one line (the exception's type and first line)."""
-    if mode == "cudagraphs" and torch.device(device).type != "cuda":
+    options = compile_options(mode)
+    if options.get("backend") == "cudagraphs" and torch.device(device).type != "cuda":
         return "the cudagraphs backend captures CUDA graphs: it needs a CUDA device"
 
     def probe(x: torch.Tensor) -> torch.Tensor:
         return torch.relu(x * 2.0 + 1.0)
 
     try:
-        probe_compiled = torch.compile(probe, dynamic=False, **COMPILE_OPTIONS[mode])
+        probe_compiled = torch.compile(probe, dynamic=False, **options)
         probe_compiled(torch.ones(4, device=device))
     except Exception as error:  # any failure of the toolchain means: run eagerly
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
@@ -112,12 +125,11 @@ def compile_modules(modules: Iterable[nn.Module], mode: str = "default", device:
     Raises:
         ValueError: ``mode`` is not one of :data:`COMPILE_MODES`.
     """
-    if mode not in COMPILE_MODES:
-        raise ValueError(f"the compile mode must be one of {COMPILE_MODES}, got {mode!r}")
+    options = compile_options(mode)
     if not compile_available(device, "the networks", stacklevel=2, mode=mode):
         return False
     for module in modules:
-        module.compile(**COMPILE_OPTIONS[mode])
+        module.compile(**options)
     return True
 
 
