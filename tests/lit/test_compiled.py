@@ -1,6 +1,6 @@
 """The training step's forward compiled whole (:mod:`unicorn.lit.compiled`): one graph per step kind without a
 graph break, no new graph once warm, graphs that CUDA graphs can capture and replay (the state they change written in
-place, no op inductor refuses to capture, no tensor on the host), and the eager steps' losses and gradients (traced
+place, no op inductor or the cudagraphs backend refuses to capture, no tensor on the host), and the eager steps' losses and gradients (traced
 and differentiated without generated code: the ``aot_eager`` backend)."""
 
 from __future__ import annotations
@@ -155,6 +155,52 @@ def test_a_compiled_step_on_another_device_holds_no_host_tensor(images):
         losses, grads = _run(model, objectives, compiled, kind, images.to("meta"), step)
         assert {v.device.type for v in [*losses.values(), *grads.values()]} == {"meta"}
     assert len(graphs) == 2 and not on_host, on_host
+
+
+@pytest.mark.parametrize("keep_mutations", [None, True], ids=["cudagraphs-backend", "mutations-kept"])
+def test_the_cudagraphs_backend_finds_nothing_that_stops_it_capturing(images, keep_mutations):
+    # model.compile=cudagraphs: torch's cudagraphs backend records a graph only where its check_for_skip finds no
+    # input changed inside the graph (modules inlined, no input counts as fixed; the backend has AOTAutograd apply
+    # the changes after the graph: cudagraph_backend_keep_input_mutation) and no op it cannot capture; the host
+    # tensors it also refuses are the meta test's above. Kept in the graph, as aot_eager and inductor keep them, the
+    # changes to the modules' buffers are found: the check sees the graphs
+    from torch._dynamo.backends.common import aot_autograd
+    from torch._dynamo.backends.cudagraphs import check_for_mutation_ignore_cuda_graph_managed_tensor
+    from torch._inductor.utils import count_tangents, num_fw_fixed_arguments
+
+    if keep_mutations is None:
+        keep_mutations = torch._dynamo.config.cudagraph_backend_keep_input_mutation
+    model, objectives = _setup()
+    for step, kind in enumerate(["pose", "3d"]):  # the checked steps: they size the fixed buffers
+        _run(model, objectives, None, kind, images, step)
+    skips: list[tuple[str, str]] = []
+
+    def skip(gm, fixed: int) -> str:
+        node = get_first_incompatible_cudagraph_node(gm)
+        mutation = check_for_mutation_ignore_cuda_graph_managed_tensor(gm, fixed)
+        return mutation or (f"op {node.target}" if node is not None else "")
+
+    def backend(gm, example_inputs):
+        def forward(fw, fw_inputs):
+            skips.append(("forward", skip(fw, num_fw_fixed_arguments(len(example_inputs), len(fw_inputs)))))
+            return boxed_nop(fw, fw_inputs)
+
+        def backward(bw, bw_inputs):
+            skips.append(("backward", skip(bw, count_tangents(bw))))
+            return boxed_nop(bw, bw_inputs)
+
+        keep = {"keep_inference_input_mutations": keep_mutations}
+        return aot_autograd(fw_compiler=forward, bw_compiler=backward, **keep)(gm, example_inputs)
+
+    compiled = CompiledStep(objectives, model, backend=backend, copy_outputs=True)
+    for step, kind in enumerate(["pose", "3d"], start=2):
+        _run(model, objectives, compiled, kind, images, step)
+    assert [graph for graph, _ in skips] == ["forward", "backward"] * 2
+    found = [why for _, why in skips]
+    if keep_mutations:
+        assert all("mutated inputs" in why for why in found[::2]) and not any(found[1::2]), found
+    else:
+        assert not any(found), found
 
 
 def test_both_averaging_choices_run_one_graph_with_the_eager_losses(images):
