@@ -1,7 +1,7 @@
 """The training step's forward compiled whole (:mod:`unicorn.lit.compiled`): one graph per step kind without a
 graph break, no new graph once warm, graphs that CUDA graphs can capture and replay (the state they change written in
-place, no op inductor or the cudagraphs backend refuses to capture, no tensor on the host), and the eager steps' losses and gradients (traced
-and differentiated without generated code: the ``aot_eager`` backend)."""
+place, no op inductor or the cudagraphs backend refuses to capture, no tensor on the host), and the eager steps'
+losses and gradients (traced and differentiated without generated code: the ``aot_eager`` backend)."""
 
 from __future__ import annotations
 
