@@ -7,7 +7,10 @@ and reports for each variant the median over ``--repeats`` runs of
 - ``it/s``: iterations per second of wall time between iteration ``--warmup`` and the last one (everything the
   trainer does in between counts: logging, checkpoints, image logging, held-out scoring if enabled);
 - ``cpu ms/it``: the process's CPU time per iteration over the same window (less sensitive to other load;
-  with more than one thread it includes the threads' spinning; under ``trainer=ddp_cpu``, rank 0's process only).
+  with more than one thread it includes the threads' spinning; under ``trainer=ddp_cpu``, rank 0's process only);
+- a line per variant with that CPU time thread by thread, the busiest first (Linux: ``/proc``; the median run's):
+  ``main`` runs the loop and launches the forward, ``pt_autograd_<device>`` the backward on CUDA, the intra-op
+  pool's threads (the process's name) share the CPU's kernels.
 
 ``--ref REV`` adds the tree of git revision REV (checked out once with ``git worktree`` under the system's
 temporary folder) as the "before" variant; ``--variant "NAME OVERRIDE..."`` (one quoted argument, split like
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import statistics
 import subprocess
@@ -45,10 +49,12 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
     class IterationTimer(Callback):
         def __init__(self) -> None:
             self.start: tuple[float, float, int] | None = None
+            self.threads: dict[int, tuple[str, float]] = {}
 
         def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:  # noqa: ANN001
             if self.start is None and trainer.global_step >= warmup:
                 self.start = (time.perf_counter(), time.process_time(), trainer.global_step)
+                self.threads = thread_cpu_times()
 
         def on_train_end(self, trainer, module) -> None:  # noqa: ANN001
             if self.start is None:  # an override ended training early (trainer.max_steps)
@@ -56,9 +62,34 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
             wall, cpu, step = self.start
             n = trainer.global_step - step
             result = {"iterations": n, "wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
+            result["threads"] = cpu_by_thread(self.threads, thread_cpu_times())
             Path(out).write_text(json.dumps(result))
 
     return IterationTimer()
+
+
+def thread_cpu_times() -> dict[int, tuple[str, float]]:
+    """This process's threads: id -> (name, CPU seconds so far, user and system); empty where ``/proc`` is not."""
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    times = {}
+    for stat in Path("/proc/self/task").glob("*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # the thread ended meanwhile
+            continue
+        name, fields = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :].split()
+        times[int(stat.parent.name)] = (name, (int(fields[11]) + int(fields[12])) / tick)  # utime, stime
+    return times
+
+
+def cpu_by_thread(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]]) -> list:
+    """CPU seconds of each thread between two :func:`thread_cpu_times`, as ``[name, seconds]``, most first; the
+    process's main thread named ``main`` (a thread started in between counts from 0, one that ended is not seen)."""
+    used = [
+        ["main" if tid == os.getpid() else name, seconds - (before[tid][1] if tid in before else 0.0)]
+        for tid, (name, seconds) in after.items()
+    ]
+    return sorted(used, key=lambda item: -item[1])
 
 
 def experiment_override(tree: Path) -> str:
@@ -158,6 +189,11 @@ def main() -> None:
         rates[name] = statistics.median(r["iterations"] / r["wall"] for r in rows)
         cpu = statistics.median(1000 * r["cpu"] / r["iterations"] for r in rows)
         print(f"{name:28s} {rates[name]:8.2f} {cpu:10.1f}")
+    for name, rows in results.items():
+        median = sorted(rows, key=lambda r: r["iterations"] / r["wall"])[len(rows) // 2]
+        busy = [(t, 1000 * s / median["iterations"]) for t, s in median["threads"] if s > 0]
+        shown = ", ".join(f"{t} {ms:.1f}" for t, ms in busy[:6]) + (f", {len(busy) - 6} more" if len(busy) > 6 else "")
+        print(f"# {name}: cpu ms/it by thread: {shown or 'not measured here (no /proc)'}")
     first, *others = rates
     for name in others:
         print(f"speed-up of {name} over {first}: {rates[name] / rates[first]:.2f}x")
