@@ -20,7 +20,7 @@ every variant.
     python benchmarks/bm_train_rate.py --ref main                          # this tree against main, held-out off
     python benchmarks/bm_train_rate.py --ref main --heldout                # with the main job's held-out scoring
     python benchmarks/bm_train_rate.py --variant "width-32 model.encoder.width=32" 'schedule.milestones=[20,40,60]'
-    python benchmarks/bm_train_rate.py --steps 200 trainer.accelerator=cuda
+    python benchmarks/bm_train_rate.py --steps 200 trainer=gpu             # on CUDA, as users train there
     python benchmarks/bm_train_rate.py --variant "sync-free optim.sync_free=true"   # the CUDA step path, on the CPU
 """
 

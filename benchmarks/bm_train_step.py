@@ -456,7 +456,13 @@ def main() -> None:
     # what unicorn-train does at start (UNICORN_TUNE_MALLOC=0 measures glibc's defaults)
     tuned = tune_allocator()
     torch.manual_seed(0)
-    name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+    if args.device == "cuda":
+        torch.backends.cudnn.benchmark = True  # as unicorn-train trainer=gpu (the preset's benchmark: true)
+    name = (
+        torch.cuda.get_device_name() + ", cudnn autotuned"
+        if args.device == "cuda"
+        else f"CPU, {torch.get_num_threads()} threads"
+    )
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
     head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'path':>9s} {'step':4s} "

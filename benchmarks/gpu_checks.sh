@@ -44,11 +44,11 @@ for part in "${parts[@]}"; do
   render)
     py benchmarks/bm_render.py --device cuda --quick 2>&1 | tee "$out/bm_render.log" ;;
   rate)
-    py benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer.accelerator=cuda 2>&1 | tee "$out/bm_train_rate.log" ;;
+    py benchmarks/bm_train_rate.py --steps 400 --repeats 1 --variant "compiled model.compile=default" --variant "syncing optim.sync_free=false" trainer=gpu 2>&1 | tee "$out/bm_train_rate.log" ;;
   captured)
     for mode in cudagraphs reduce-overhead; do
       py benchmarks/bm_train_step.py --device cuda --models small --repeats 20 --warmup 5 --paths sync-free --compile step:$mode 2>&1 | tee "$out/bm_train_step_captured_$mode.log"
-      py benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 trainer.accelerator=cuda model.compile=$mode model.compile_scope=step 2>&1 | tee "$out/bm_train_rate_captured_$mode.log"
+      py benchmarks/bm_train_rate.py --steps 600 --warmup 200 --repeats 1 trainer=gpu model.compile=$mode model.compile_scope=step 2>&1 | tee "$out/bm_train_rate_captured_$mode.log"
     done ;;
   esac
 done
