@@ -25,6 +25,12 @@ metadata-only ops left out). On CUDA each of them launches work from the host: t
 are small, as the main job's are on a GPU, and it is the same on every device. NaN for ``step:MODE`` rows (a
 dispatch mode would break their graphs).
 
+``pipelined``: seconds per step over ``--repeats`` more steps run back to back, no part timed, the device waited for
+once at the end: on CUDA the host queues a step's kernels while the device runs the previous ones, as in training.
+The other columns wait for the device between the parts they time (forward, backward, optimizer, each timed
+module), so on CUDA their total adds the host's time and the device's where training overlaps them; on the CPU
+``pipelined`` and ``total`` agree.
+
 Medians over ``--repeats`` steps, after ``--warmup`` steps of each kind. The VGG16 of the perceptual loss gets
 random weights unless ``--vgg`` names torchvision's file (the time is the same).
 
@@ -111,6 +117,8 @@ class ComponentTimer:
 
     def __init__(self, sync: Callable[[], None]) -> None:
         self.sync = sync
+        #: False: the hooks neither wait for the device nor time (the pipelined steps)
+        self.enabled = True
         self.totals: dict[str, float] = defaultdict(float)
         self._start: float | None = None
         self._depth = 0
@@ -119,6 +127,9 @@ class ComponentTimer:
     @contextlib.contextmanager
     def region(self, group: str) -> Iterator[None]:
         """Time a block as ``group`` and route the modules called inside it to the same group."""
+        if not self.enabled:
+            yield
+            return
         self.sync()
         t0 = time.perf_counter()
         self.override, previous = group, self.override
@@ -134,12 +145,16 @@ class ComponentTimer:
             return
 
         def begin(mod: torch.nn.Module, inputs: object) -> None:
+            if not self.enabled:
+                return
             if self.override is None and self._depth == 0:
                 self.sync()
                 self._start = time.perf_counter()
             self._depth += 1
 
         def end(mod: torch.nn.Module, inputs: object, output: object) -> None:
+            if not self.enabled:
+                return
             self._depth -= 1
             if self.override is None and self._depth == 0:
                 self.sync()
@@ -231,6 +246,20 @@ def timed_step(
     peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else peak_rss_mb() - rss0
     return {"forward": t1 - t0, "backward": t2 - t1, "bwd-nbr": first, "optimizer": t3 - t2, "total": t3 - t0,
             "peak MB": peak}  # fmt: skip
+
+
+def pipelined(forward: Callable[[int], Any], opt: torch.optim.Optimizer, device: str, steps: int) -> float:
+    """Seconds per step over ``steps`` steps run back to back, ``forward(k)`` the k-th one's losses, the device waited
+    for once, at the end: on CUDA the host queues a step's kernels while the device runs the previous ones, as in
+    training (the timed columns wait for the device between the parts of each step)."""
+    sync_device(device)
+    t0 = time.perf_counter()
+    for k in range(steps):
+        opt.zero_grad(set_to_none=True)
+        forward(k)["total"].backward()
+        opt.step()
+    sync_device(device)
+    return (time.perf_counter() - t0) / steps
 
 
 class KernelCounter(TorchDispatchMode):
@@ -373,6 +402,12 @@ def time_steps(
             row["bwd-render"] = replay_render_backward()
             rows.append(row)
         results[phase] = medians(rows)
+        timer.enabled = False
+        results[phase]["pipelined"] = pipelined(
+            lambda k: fn(images, free=path == "sync-free"), opt, device, args.repeats
+        )
+        timer.enabled = True
+        render_calls.clear()
         opt.zero_grad(set_to_none=True)
         with KernelCounter() as counter:
             fn(images, free=path == "sync-free")["total"].backward()
@@ -423,6 +458,9 @@ def time_compiled_steps(
             if i >= args.warmup:
                 rows.append({**dict.fromkeys(COLUMNS, float("nan")), **row})
         results[phase] = medians(rows)
+        after = 2 + args.warmup + args.repeats  # the iterations go on
+        more = lambda k, phase=phase, after=after: forward(phase, after + k)  # noqa: E731
+        results[phase]["pipelined"] = pipelined(more, opt, device, args.repeats)
     return results
 
 
@@ -466,7 +504,7 @@ def main() -> None:
     name += ", malloc tuned" if tuned else ", malloc defaults"
     print(f"# UNICORN training step, stage 4, {name}, torch {torch.__version__}; seconds (median of {args.repeats})")
     head = f"{'model':17s} {'batch':>5s} {'px':>3s} {'precision':>10s} {'compile':>15s} {'path':>9s} {'step':4s} "
-    print(head + " ".join(f"{c:>12s}" for c in (*COLUMNS, "kernels")))
+    print(head + " ".join(f"{c:>12s}" for c in (*COLUMNS, "pipelined", "kernels")))
     for size in args.models:
         for precision, mode, path in itertools.product(args.precision, args.compile, args.paths):
             # a fresh model per row group, from the same seed: every row times the same weights and memory
@@ -494,7 +532,7 @@ def main() -> None:
                 )
             for phase, row in rows.items():
                 cells = " ".join(f"{row[c]:12.1f}" if c == "peak MB" else f"{row[c]:12.4f}" for c in COLUMNS)
-                cells += f" {row.get('kernels', float('nan')):12.0f}"
+                cells += f" {row['pipelined']:12.4f} {row.get('kernels', float('nan')):12.0f}"
                 label = f"{size:17s} {batch:5d} {image_size:3d} {precision:>10s} {mode:>15s} {path:>9s} {phase:4s}"
                 print(f"{label} {cells}", flush=True)
 
