@@ -355,6 +355,34 @@ def test_a_signal_to_every_ddp_process_stops_them_at_one_iteration_and_the_run_r
     assert saved["global_step"] == step + 1 and len(saved["unicorn"]["ranks"]) == 2
 
 
+def test_a_signal_to_every_ddp_process_before_the_first_iteration_stops_them_after_it(synthetic_cache, tmp_path):
+    """SIGTERM reaching every DDP rank while rank 0 still sets training up (its held-out scoring's first set-up, say)
+    while the others wait for it: no rank hangs; both stop after the first iteration, with its checkpoint."""
+    run = tmp_path / "run"
+    args = [*TINY, "trainer=ddp_cpu", f"hydra.run.dir={run}", "trainer.max_steps=100000"]
+    args += ["+callbacks.extra.signal._target_=tests.support.signals.SignalAtTrainStart"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0", "PYTHONPATH": os.getcwd()}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "unicorn.cli.train", *args],
+        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        _, stderr = proc.communicate(timeout=240)
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid):  # the second rank ends too
+            assert time.monotonic() < deadline, "a DDP process outlived the first one"
+            time.sleep(0.2)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, stderr[-3000:]
+    stops = [line for line in stderr.splitlines() if "stopped by" in line]
+    assert stops == [f"unicorn-train: stopped by SIGTERM after iteration 1; {run / 'checkpoints' / 'last.ckpt'} "
+                     "written: resume with ckpt_path=last in the same folder"], stderr[-3000:]  # fmt: skip
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert saved["global_step"] == 1 and len(saved["unicorn"]["ranks"]) == 2
+
+
 def _group_alive(pgid: int) -> bool:
     try:
         os.killpg(pgid, 0)

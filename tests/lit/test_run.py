@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from tests.support.training import build_run, compose_config
 from unicorn.config.build import ConfigError, validate
 from unicorn.lit import (
+    ArmStopSignals,
     CodeDiagnostics,
     GracefulStop,
     ImageLogger,
@@ -35,13 +36,15 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
         "logger=csv",
         "callbacks.checkpoint.keep=3",
     )
-    # Lightning moves checkpoint callbacks last, in their order: the signal's save comes after the periodic one
+    # the signal handlers first, before any callback's set-up; Lightning moves checkpoint callbacks last, in their
+    # order: the signal's save comes after the periodic one
     kinds = [type(cb) for cb in run.trainer.callbacks]
     expected = [
-        StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer, PeriodicCheckpoint, GracefulStop
+        ArmStopSignals, StageCallback, ResumeLogs, ProgressBar, ImageLogger, CodeDiagnostics, Timer,
+        PeriodicCheckpoint, GracefulStop,
     ]  # fmt: skip
     assert kinds == expected
-    images = run.trainer.callbacks[3]
+    images = run.trainer.callbacks[4]
     assert (images.every_n_steps, images.n_views, images.n_images) == (3, 2, 8)  # n_images: the schema's default
     checkpoint = run.trainer.callbacks[-2]
     assert checkpoint.dirpath == str(tmp_path / "checkpoints") and checkpoint.save_top_k == 3
@@ -51,7 +54,27 @@ def test_callbacks_and_loggers_are_the_config_nodes(tmp_path) -> None:
 
 def test_a_null_node_is_left_out(tmp_path) -> None:
     run = build_run(tmp_path, "callbacks.diagnostics=null", "trainer.enable_progress_bar=false")
-    assert [type(cb) for cb in run.trainer.callbacks] == [StageCallback, ResumeLogs, PeriodicCheckpoint, GracefulStop]
+    kinds = [type(cb) for cb in run.trainer.callbacks]
+    assert kinds == [ArmStopSignals, StageCallback, ResumeLogs, PeriodicCheckpoint, GracefulStop]
+
+
+@pytest.mark.parametrize("ours", [True, False], ids=["run", "lightning"])
+def test_the_trainers_sigterm_handler_only_records_the_signal(tmp_path, monkeypatch, ours) -> None:
+    # as Lightning ships it, its handler forwards the signal and, under DDP, broadcasts from inside the handler: a
+    # rank waiting in another collective would never return (tests/cli/test_bad_inputs.py runs that case)
+    import signal
+
+    import lightning as L
+    import torch.distributed as dist
+
+    run = build_run(tmp_path)
+    connector = run.trainer._signal_connector if ours else L.Trainer(logger=False)._signal_connector
+    collectives = []
+    monkeypatch.setattr(dist, "is_initialized", lambda: True)
+    monkeypatch.setattr(dist, "broadcast", lambda *a, **k: collectives.append("broadcast"))
+    monkeypatch.setattr(L.Trainer, "world_size", property(lambda self: 2))
+    connector._sigterm_notifier_fn(signal.SIGTERM, None)
+    assert connector.received_sigterm and collectives == ([] if ours else ["broadcast"])
 
 
 def test_training_with_model_compile_compiles_the_networks_and_the_reconstruction_loss(

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from types import ModuleType
 from typing import Any
 
+import lightning as L
 import pytest
 
 
@@ -28,3 +30,22 @@ class SignalAtCall:
         if self.calls == self.at:
             os.kill(os.getpid(), self.signum)
         return self.wrapped(*args, **kwargs)
+
+
+class SignalAtTrainStart(L.Callback):
+    """A callback (``+callbacks.extra.NAME._target_=tests.support.signals.SignalAtTrainStart``) whose
+    ``on_train_start``, once every rank has reached it, sends ``signum`` from rank 0 to the process group (as a
+    scheduler does: every rank gets it), then works on for ``seconds`` on rank 0 (as the held-out scoring's set-up
+    does) while the other ranks wait at the next callback's collective."""
+
+    def __init__(self, signum: int = signal.SIGTERM, seconds: float = 2.0) -> None:
+        self.signum, self.seconds = int(signum), float(seconds)
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        trainer.strategy.barrier()
+        if trainer.global_rank != 0:
+            return
+        os.killpg(os.getpgid(0), self.signum)
+        end = time.monotonic() + self.seconds
+        while time.monotonic() < end:  # Python code: each signal's handler runs in it
+            time.sleep(0.01)

@@ -14,7 +14,7 @@
 - :func:`~unicorn.lit.run.build`, :func:`~unicorn.lit.run.fit` (``run``): one training run assembled from a
   composed config (run folder, data, module, callbacks and loggers by ``_target_``, trainer), trained and evaluated.
 - :class:`GracefulStop` (``signals``): SIGTERM and SIGINT stop training at the next step boundary with
-  ``last.ckpt`` written.
+  ``last.ckpt`` written; :class:`ArmStopSignals` puts its handlers in place before any other callback's set-up.
 - :class:`UnicornDataModule` (``data``): the one LightningDataModule: a dataset's splits and loaders, training on an
   endless, resumable, rank-sharded stream of batches (:class:`StreamBatchSampler`).
 
@@ -38,10 +38,11 @@ from unicorn.lit.diagnostics import (
 from unicorn.lit.heldout import HeldOutEvaluation
 from unicorn.lit.loggers import CSVLogger, ResumeLogs, TensorBoardLogger
 from unicorn.lit.module import OPTIM_DEFAULTS, NonFiniteLossError, UnicornLitModule
-from unicorn.lit.signals import GracefulStop
+from unicorn.lit.signals import ArmStopSignals, GracefulStop
 
 __all__ = [
     "OPTIM_DEFAULTS",
+    "ArmStopSignals",
     "AtomicCheckpointIO",
     "CodeDiagnostics",
     "CollapseWarning",

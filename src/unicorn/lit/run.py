@@ -70,7 +70,7 @@ def build(cfg: DictConfig) -> Run:
         unicorn.io.run_folder.RunFolderError: the folder holds a run this one may not replace.
     """
     from unicorn.config import validate
-    from unicorn.lit.signals import GracefulStop
+    from unicorn.lit.signals import ArmStopSignals, GracefulStop
 
     _route_lightning_logs()
     typed = validate(cfg)
@@ -86,7 +86,8 @@ def build(cfg: DictConfig) -> Run:
         data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
         module = build_module(typed)
         stopper = GracefulStop(checkpoint_dir / "last.ckpt")
-        callbacks = [*build_callbacks(typed, checkpoint_dir), stopper]  # a Checkpoint callback: after the periodic one
+        # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
+        callbacks = [ArmStopSignals(stopper), *build_callbacks(typed, checkpoint_dir), stopper]
         loggers = build_loggers(typed)
     trainer = build_trainer(typed, callbacks, loggers, output_dir)
     aside = write_run_folder(typed, output_dir, ckpt_path, outdated)
@@ -381,8 +382,10 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
     assert isinstance(trainer_kwargs, dict)
     if trainer_kwargs["val_check_interval"] is None:
         trainer_kwargs["limit_val_batches"] = 0
+    from unicorn.lit.signals import record_only_sigterm
+
     try:
-        return L.Trainer(
+        trainer = L.Trainer(
             **trainer_kwargs,
             max_epochs=-1,  # training is counted in iterations (max_steps) over an endless stream
             check_val_every_n_epoch=None,
@@ -397,6 +400,8 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
         raise ConfigError(
             f"trainer (accelerator={t.accelerator}, devices={t.devices}, strategy={t.strategy}): {err}"
         ) from err
+    record_only_sigterm(trainer)  # no collective inside a signal handler (unicorn.lit.signals)
+    return trainer
 
 
 def _compile(run: Run) -> None:

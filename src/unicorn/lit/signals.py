@@ -13,7 +13,13 @@ During training the callback handles SIGTERM and SIGINT itself, in place of Ligh
 raises as soon as it sees its flag, with no checkpoint written when the signal arrives after this callback's
 check); a SIGTERM that Lightning's handler still records (``trainer.received_sigterm``) is honoured the same way,
 and a second signal stops at once (no checkpoint written; the same exit status). Under DDP every rank stops at the same
-iteration: the decision is reduced across ranks at each step boundary.
+iteration: the decision is reduced across ranks at each step boundary. The handlers are in place from the first
+``on_train_start`` hook on (:class:`ArmStopSignals`, first among the callbacks; Lightning runs checkpoint callbacks
+after all others). Before that, from the start of ``Trainer.fit``, Lightning's handler only records the signal
+(:func:`record_only_sigterm`) and the command's own (:func:`unicorn.errors.interrupt_on_signal`) stops at once: as
+Lightning ships it, the handler broadcasts to the other DDP ranks from inside the handler, and a rank that gets the
+signal while another waits in a different collective (rank 0 setting up its held-out scoring while the others wait
+at a callback's barrier) never returns.
 
 Outside the training iterations (building the run, the evaluation after training) there is no step boundary to
 wait for: inside :func:`unicorn.errors.interrupt_on_signal` SIGTERM and SIGINT raise
@@ -36,7 +42,7 @@ from lightning.pytorch.callbacks import Checkpoint
 from unicorn.errors import Interrupted, handle_stop_signals, pending_interrupt, restore_handlers
 from unicorn.lit.checkpoint import PeriodicCheckpoint
 
-__all__ = ["GracefulStop"]
+__all__ = ["ArmStopSignals", "GracefulStop", "record_only_sigterm"]
 
 log = logging.getLogger("unicorn.train")
 
@@ -65,8 +71,18 @@ class GracefulStop(Checkpoint):
         #: or before the next iteration)
         self.stopped: Interrupted | None = None
         self._previous: dict[int, Any] = {}
+        self._armed = False
 
-    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def arm(self) -> None:
+        """Handle SIGTERM and SIGINT from now on until the end of this fit (once per fit; the first
+        ``on_train_start`` hook calls it: :class:`ArmStopSignals`).
+
+        Raises:
+            unicorn.errors.Interrupted: a signal arrived while the run was built (its error swallowed there).
+        """
+        if self._armed:
+            return
+        self._armed = True
         self.received, self.stopped, self.at_once = None, None, None
         late = pending_interrupt("before the first iteration")  # its error swallowed while the run was built
         if late is not None:
@@ -74,6 +90,9 @@ class GracefulStop(Checkpoint):
         if threading.current_thread() is threading.main_thread():
             # SIGTERM too, in place of Lightning's handler (see the module docstring)
             self._previous = handle_stop_signals(self._on_signal)
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.arm()
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         if self.received is not None:  # asked twice: stop now
@@ -112,9 +131,38 @@ class GracefulStop(Checkpoint):
     def _restore(self) -> None:
         restore_handlers(self._previous)
         self._previous = {}
+        self._armed = False
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._restore()
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         self._restore()
+
+
+class ArmStopSignals(L.Callback):
+    """Puts ``stopper``'s signal handlers in place at the first ``on_train_start`` hook (:meth:`GracefulStop.arm`):
+    first in the trainer's callbacks, before any other callback's set-up (see the module docstring)."""
+
+    def __init__(self, stopper: GracefulStop) -> None:
+        self.stopper = stopper
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.stopper.arm()
+
+
+def record_only_sigterm(trainer: L.Trainer) -> None:
+    """Make ``trainer``'s own SIGTERM handler only record the signal (``trainer.received_sigterm``), without
+    forwarding it to the processes it launched or broadcasting from inside the handler (see the module docstring).
+
+    Lightning's signal connector reads its handler from the attribute ``_sigterm_notifier_fn`` when ``fit`` installs
+    it; a Lightning without that attribute is left as it is.
+    """
+    connector = getattr(trainer, "_signal_connector", None)
+    if connector is None or not hasattr(connector, "_sigterm_notifier_fn"):
+        return
+
+    def record(signum: int, frame: Any) -> None:
+        connector.received_sigterm = True
+
+    connector._sigterm_notifier_fn = record
