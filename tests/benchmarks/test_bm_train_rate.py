@@ -1,4 +1,5 @@
-"""benchmarks/bm_train_rate.py: the CPU time of each thread of a training process."""
+"""benchmarks/bm_train_rate.py: the variants and overrides it parses (no training), and the CPU time of each
+thread of a training process."""
 
 from __future__ import annotations
 
@@ -11,13 +12,35 @@ import pytest
 
 from tests.support.benchmarks import load_script, unload_script
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
-
 
 @pytest.fixture(scope="module")
 def rate():
     yield load_script("bm_train_rate")
     unload_script("bm_train_rate")
+
+
+def test_variant_overrides_stay_with_their_variant(rate):
+    args, overrides = rate.parse_args(
+        ["--variant", "w32 model.encoder.width=32", "schedule.milestones=[20,40,60]", "--steps", "9",
+         "--variant", "ddp trainer=ddp_cpu 'dataset.batch_size=8'"]
+    )  # fmt: skip
+    assert args.variant == [("w32", ["model.encoder.width=32"]), ("ddp", ["trainer=ddp_cpu", "dataset.batch_size=8"])]
+    assert overrides == ["schedule.milestones=[20,40,60]"] and args.steps == 9
+
+
+@pytest.mark.parametrize(
+    "bad", [["--variant", "lonely"], ["--variant", ""], ["--variant", "a x=1", "--variant", "a y=2"], ["--stpes", "3"]]
+)
+def test_bad_variants_and_options_are_errors(rate, bad, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        rate.parse_args(bad)
+    assert exit_info.value.code == 2
+    variant = bad[0] == "--variant"
+    expected = "needs a new name and at least one override" if variant else "unrecognized arguments: --stpes"
+    assert expected in capsys.readouterr().err
+
+
+linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
 
 def _spin(seconds: float) -> None:
@@ -26,6 +49,7 @@ def _spin(seconds: float) -> None:
         pass
 
 
+@linux_only
 def test_each_threads_cpu_time_is_its_own(rate):
     stop = threading.Event()
     idle = threading.Thread(target=stop.wait, name="idle")
@@ -51,6 +75,7 @@ def test_each_threads_cpu_time_is_its_own(rate):
     assert [s for _, s in rows] == sorted((s for _, s in rows), reverse=True)
 
 
+@linux_only
 def test_a_thread_started_in_between_counts_from_zero(rate):
     after = rate.thread_cpu_times()
     rows = rate.cpu_by_thread({}, after)  # none of them there before
