@@ -18,7 +18,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -320,8 +319,7 @@ def test_a_signal_to_every_ddp_process_stops_them_at_one_iteration_and_the_run_r
     run = tmp_path / "run"
     args = [*TINY, "trainer=ddp_cpu", "callbacks.checkpoint.every_n_steps=1", "callbacks.checkpoint.keep=1"]
     args += [f"hydra.run.dir={run}"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    with _ddp_train([*args, "trainer.max_steps=100000"], tmp_path, env) as proc:
+    with _train_group([*args, "trainer.max_steps=100000"], tmp_path) as proc:
         deadline = time.monotonic() + 240
         while not list((run / "checkpoints").glob("step=*.ckpt")):  # an iteration has run on both ranks
             assert proc.poll() is None and time.monotonic() < deadline, "no iteration ran"
@@ -351,34 +349,14 @@ def test_a_signal_to_every_ddp_process_before_the_first_iteration_stops_them_aft
     run = tmp_path / "run"
     args = [*TINY, "trainer=ddp_cpu", f"hydra.run.dir={run}", "trainer.max_steps=100000"]
     args += ["+callbacks.extra.signal._target_=tests.support.signals.SignalAtTrainStart"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0", "PYTHONPATH": os.getcwd()}
-    with _ddp_train(args, tmp_path, env) as proc:
-        _, stderr = proc.communicate(timeout=240)  # hung for ever when Lightning's handler broadcast
+    with _train_group(args, tmp_path, PYTHONPATH=os.getcwd()) as proc:  # the callback's module
+        _, stderr = proc.communicate(timeout=240)  # every rank ends: none waits on a signal handler's collective
     assert proc.returncode == 143, stderr[-3000:]
     stops = [line for line in stderr.splitlines() if "stopped by" in line]
     assert stops == [f"unicorn-train: stopped by SIGTERM after iteration 1; {run / 'checkpoints' / 'last.ckpt'} "
                      "written: resume with ckpt_path=last in the same folder"], stderr[-3000:]  # fmt: skip
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert saved["global_step"] == 1 and len(saved["unicorn"]["ranks"]) == 2
-
-
-@contextlib.contextmanager
-def _ddp_train(args: list[str], cwd: Path, env: dict[str, str]) -> Iterator[subprocess.Popen]:
-    """``unicorn-train ARGS`` in a process group of its own (its DDP ranks with it), stderr piped; after the block
-    every process of the group has ended (the other ranks within 30 s of the first), or they are killed."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "unicorn.cli.train", *args],
-        cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
-        yield proc
-        deadline = time.monotonic() + 30
-        while _group_alive(proc.pid):  # the other ranks end too
-            assert time.monotonic() < deadline, "a DDP process outlived the first one"
-            time.sleep(0.2)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
 
 
 def _group_alive(pgid: int) -> bool:
@@ -885,11 +863,11 @@ def test_an_empty_out_is_a_usage_error(command, value, capsys):
 
 
 @contextlib.contextmanager
-def _train_group(args: list[str], cwd: Path):
-    """``unicorn-train ARGS`` (one thread, stderr piped) in a process group of its own, which the DDP processes
-    Lightning starts join; when the block ends, no process of the group may outlive the first by 30 s (the rest are
-    killed)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+def _train_group(args: list[str], cwd: Path, **env_vars: str):
+    """``unicorn-train ARGS`` (one thread, stderr piped, ``env_vars`` added to the environment) in a process group of
+    its own, which the DDP processes Lightning starts join; when the block ends, no process of the group may outlive
+    the first by 30 s (the rest are killed)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0", **env_vars}
     proc = subprocess.Popen(
         [sys.executable, "-m", "unicorn.cli.train", *args],
         cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
