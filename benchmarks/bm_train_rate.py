@@ -70,9 +70,10 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
 
 def thread_cpu_times() -> dict[int, tuple[str, float]]:
     """This process's threads: id -> (name, CPU seconds so far, user and system); empty where ``/proc`` is not."""
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    stats = list(Path("/proc/self/task").glob("*/stat"))
+    tick = os.sysconf("SC_CLK_TCK") if stats else 0
     times = {}
-    for stat in Path("/proc/self/task").glob("*/stat"):
+    for stat in stats:
         try:
             text = stat.read_text()
         except OSError:  # the thread ended meanwhile

@@ -365,6 +365,7 @@ def time_steps(
         return spent
 
     results = {}
+    on_path = path == "sync-free"  # the steps after the warm-up, the pipelined ones and the counted one
     for phase in ("pose", "3d"):
 
         def fn(images: torch.Tensor, phase: str = phase, free: bool = False) -> Any:
@@ -391,7 +392,7 @@ def time_steps(
         for i in range(args.warmup + args.repeats):
             timer.reset()
             render_calls.clear()
-            free = path == "sync-free" and i >= args.warmup  # the warm-up sizes the buffers
+            free = on_path and i >= args.warmup  # the warm-up sizes the buffers
             row = timed_step(lambda free=free: fn(images, free=free), backward, opt, device)
             if i < args.warmup:
                 continue
@@ -403,14 +404,12 @@ def time_steps(
             rows.append(row)
         results[phase] = medians(rows)
         timer.enabled = False
-        results[phase]["pipelined"] = pipelined(
-            lambda k: fn(images, free=path == "sync-free"), opt, device, args.repeats
-        )
+        results[phase]["pipelined"] = pipelined(lambda k: fn(images, free=on_path), opt, device, args.repeats)
         timer.enabled = True
         render_calls.clear()
         opt.zero_grad(set_to_none=True)
         with KernelCounter() as counter:
-            fn(images, free=path == "sync-free")["total"].backward()
+            fn(images, free=on_path)["total"].backward()
             opt.step()
         render_calls.clear()
         results[phase]["kernels"] = counter.count

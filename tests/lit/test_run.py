@@ -3,8 +3,12 @@
 
 from __future__ import annotations
 
+import signal
+
+import lightning as L
 import pytest
 import torch
+import torch.distributed as dist
 import yaml
 from lightning.pytorch.callbacks import Timer
 from omegaconf import OmegaConf
@@ -62,11 +66,6 @@ def test_a_null_node_is_left_out(tmp_path) -> None:
 def test_the_trainers_sigterm_handler_only_records_the_signal(tmp_path, monkeypatch, ours) -> None:
     # as Lightning ships it, its handler forwards the signal and, under DDP, broadcasts from inside the handler: a
     # rank waiting in another collective would never return (tests/cli/test_bad_inputs.py runs that case)
-    import signal
-
-    import lightning as L
-    import torch.distributed as dist
-
     run = build_run(tmp_path)
     connector = run.trainer._signal_connector if ours else L.Trainer(logger=False)._signal_connector
     collectives = []

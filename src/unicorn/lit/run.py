@@ -377,13 +377,12 @@ def build_trainer(typed: DictConfig, callbacks: list[L.Callback], loggers: list[
 
     from unicorn.config import ConfigError
     from unicorn.lit.checkpoint import AtomicCheckpointIO
+    from unicorn.lit.signals import record_only_sigterm
 
     trainer_kwargs = OmegaConf.to_container(typed.trainer, resolve=True)
     assert isinstance(trainer_kwargs, dict)
     if trainer_kwargs["val_check_interval"] is None:
         trainer_kwargs["limit_val_batches"] = 0
-    from unicorn.lit.signals import record_only_sigterm
-
     try:
         trainer = L.Trainer(
             **trainer_kwargs,
