@@ -672,13 +672,19 @@ def test_eval_refuses_a_size_above_its_limit(tmp_path, capsys, args, message):
         ),
         (["--points", "1e10"], r"--points 10000000000 needs 10,000,000,000 points .*above the limit of 10,000,000"),
         (["--points", "10000000000"], r"--points 10000000000 needs 10,000,000,000 points"),
+        # before these bounds, 1e12 models filled the memory until the kernel killed the process
+        (["--models", "1e12"], r"--models must be at most 100,000, got 1,000,000,000,000$"),
+        (["--models", "100001"], r"--models must be at most 100,000, got 100,001$"),
+        (["--views", "1e12"], r"--views must be at most 10,000, got 1,000,000,000,000$"),
+        (["--category", ","], r"--category names no category; choose from \['airplane', 'car'"),
     ],
-    ids=["size", "points-1e10", "points"],
+    ids=["size", "points-1e10", "points", "models-1e12", "models", "views", "no-category"],
 )
 def test_synth_refuses_a_size_above_its_limit(tmp_path, capsys, args, message):
     from unicorn.cli.data import main
 
-    assert main(["synth", "--out", str(tmp_path / "data"), "--models", "10", "--views", "1", "--quiet", *args]) == 2
+    small = [x for option in ("--models", "--views") if option not in args for x in (option, "10")]
+    assert main(["synth", "--out", str(tmp_path / "data"), *small, "--quiet", *args]) == 2
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("unicorn-data: error: "), lines
     assert re.search(message, lines[0]), lines

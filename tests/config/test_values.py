@@ -24,7 +24,16 @@ CASES = [
         [*SYNTHETIC, "dataset.synthetic.seed=-1"],
         r"dataset.synthetic: seed must be a whole number >= 0",
     ),
-    ("no-views", [*SYNTHETIC, "+dataset.synthetic.n_views=0"], r"n_views must be a whole number >= 1, got 0"),
+    (
+        "no-views",
+        [*SYNTHETIC, "+dataset.synthetic.n_views=0"],
+        r"n_views must be a whole number >= 1 and <= 10,000, got 0",
+    ),
+    (
+        "views-huge",
+        [*SYNTHETIC, "+dataset.synthetic.n_views=1000000000000"],
+        r"n_views must be a whole number >= 1 and <= 10,000, got 1000000000000",
+    ),
     (
         "size-text",
         [*SYNTHETIC, "dataset.synthetic.image_size=abc"],

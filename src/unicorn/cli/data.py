@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from unicorn import __version__
-from unicorn.cli.errors import add_debug_argument, folder_path, positive_int, report_errors, seed_number
+from unicorn.cli.errors import UsageError, add_debug_argument, folder_path, positive_int, report_errors, seed_number
 from unicorn.cli.options import add_image_limit_arguments, apply_common_arguments, check_common_arguments
 from unicorn.data.synthetic.shapes import CATEGORIES
 
@@ -28,6 +28,7 @@ __all__ = ["build_parser", "main"]
 
 def _synth(args: argparse.Namespace) -> int:
     from unicorn.data.synthetic.writer import (
+        check_generation_counts,
         check_generation_sizes,
         check_output_folder,
         ensure_synthetic_dataset,
@@ -37,7 +38,10 @@ def _synth(args: argparse.Namespace) -> int:
     from unicorn.io.staging import staged_folder
 
     check_generation_sizes(args.size, args.supersample, args.points, ("--size", "--supersample", "--points"))
+    check_generation_counts(args.models, args.views, ("--models", "--views"))
     categories = [c for arg in args.category for c in arg.split(",") if c]
+    if not categories:
+        raise UsageError(f"--category names no category; choose from {sorted(CATEGORIES)}")
     start = time.perf_counter()
     options = {
         "image_size": args.size,

@@ -60,6 +60,7 @@ __all__ = [
     "RECORDED_OPTIONS",
     "StaleSyntheticDataset",
     "SyntheticOutputExistsError",
+    "check_generation_counts",
     "check_generation_sizes",
     "check_manifest",
     "check_output_folder",
@@ -166,6 +167,20 @@ def check_generation_sizes(
 _SIZE_KEYS = ("image_size", "supersample", "n_points")
 #: the most models per category a generation makes (ShapeNet's largest category, tables, has 8,436)
 MAX_MODELS = 100_000
+#: the most views per model a generation renders (the NMR views: 24)
+MAX_VIEWS = 10_000
+
+
+def check_generation_counts(n_models: int, n_views: int, names: tuple[str, str] = ("n_models", "n_views")) -> None:
+    """Refuse more than :data:`MAX_MODELS` models per category or :data:`MAX_VIEWS` views per model, before anything
+    is generated. ``names``: what the two settings are called in the message.
+
+    Raises:
+        DatasetError: the message names the setting and its limit.
+    """
+    for name, value, top in zip(names, (n_models, n_views), (MAX_MODELS, MAX_VIEWS), strict=True):
+        if value > top:
+            raise DatasetError(f"{name} must be at most {top:,}, got {value:,}")
 
 
 def check_synthetic_settings(categories: str | Sequence[str] | None, settings: Mapping[str, Any]) -> None:
@@ -194,7 +209,8 @@ def check_synthetic_settings(categories: str | Sequence[str] | None, settings: M
     if n_models is not None:
         split_sizes(n_models)
     whole("seed", 0, MAX_SEED)
-    for key in ("image_size", "n_views", "supersample", "n_points"):
+    whole("n_views", 1, MAX_VIEWS)
+    for key in ("image_size", "supersample", "n_points"):
         whole(key, 1)
     sizes = {k: _RECORDED_DEFAULTS[k] if settings.get(k) is None else settings[k] for k in _SIZE_KEYS}
     check_generation_sizes(**sizes)
@@ -299,6 +315,8 @@ def _category_list(categories: str | Sequence[str]) -> list[str]:
         DatasetError: an unknown category (the message lists them).
     """
     categories = [categories] if isinstance(categories, str) else list(categories)
+    if not categories:
+        raise DatasetError(f"no synthetic category given; choose from {sorted(CATEGORIES)}")
     for cat in categories:
         if cat not in CATEGORIES:
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
