@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ import torch
 from tests.support.checkpoints import reference_state
 from tests.support.evaluation import IMAGE_SIZE, tiny_model
 from unicorn.io import CheckpointError, load_model, save_model
+from unicorn.io.checkpoints import init_weights
 from unicorn.io.serialization import INTEGRITY_KEY
 
 
@@ -94,6 +96,34 @@ def test_errors(tmp_path: Path) -> None:
     torch.save(data, tmp_path / "broken.pt")
     with pytest.raises(CheckpointError, match="does not fit"):
         load_model(tmp_path / "broken.pt")
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")], ids=["nan", "inf"])
+def test_weights_no_prediction_can_come_from_are_refused_by_name(tmp_path: Path, value: float) -> None:
+    model = tiny_model("real")
+    name = "encoders.0.layer1.0.conv1.weight"
+    model.state_dict()[name].view(-1)[3] = value
+    path = save_model(model, tmp_path / "m.pt")
+    with pytest.raises(CheckpointError, match=rf"m\.pt: its weight {re.escape(name)} holds NaN or infinite values$"):
+        load_model(path)
+    with pytest.raises(CheckpointError, match="holds NaN or infinite values"):
+        init_weights(tiny_model("real"), path)  # init_from loads through load_model
+
+
+def test_a_released_checkpoint_with_a_negative_running_variance_is_refused(tmp_path: Path) -> None:
+    state = reference_state()
+    name = next(k for k in state if k.endswith("running_var"))
+    state[name] = state[name].clone()
+    state[name][0] = -1.0
+    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": state}, tmp_path / "model.pkl")
+    with pytest.raises(CheckpointError, match=r"model\.pkl: its batch-norm running variance \S+ holds negative values"):
+        load_model(tmp_path / "model.pkl")
+
+
+def test_the_meta_device_is_refused_before_reading(tmp_path: Path) -> None:
+    path = save_model(tiny_model("real"), tmp_path / "m.pt")
+    with pytest.raises(ValueError, match=r"map_location='meta' loads no values"):
+        load_model(path, map_location="meta")
 
 
 def test_a_directory_is_not_a_checkpoint(tmp_path: Path) -> None:

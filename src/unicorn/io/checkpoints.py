@@ -58,6 +58,7 @@ __all__ = [
     "UnsafeCheckpointError",
     "check_model_size",
     "check_stored_config",
+    "check_weight_values",
     "check_weights_fit",
     "checkpoint_format",
     "check_training_checkpoint",
@@ -329,10 +330,14 @@ def load_model(
         FileNotFoundError: no such file.
         UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
         CheckpointError: unreadable or corrupted file, unknown layout, a field of the wrong type, model settings
-            of another version, or weights that do not fit (each named in one line).
+            of another version, weights that do not fit, or NaN, infinite or negative-variance weights
+            (:func:`check_weight_values`; each named in one line).
         ModelTooLargeError: a stored image, texture or model size above the limits, refused before building it.
+        ValueError: ``map_location`` is the meta device.
     """
     path = Path(path).expanduser()
+    if torch.device(map_location).type == "meta":
+        raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
     data = read_checkpoint(path, map_location, trust=trust)
     loader = _LOADERS.get(checkpoint_format(data))
     if loader is None:
@@ -342,6 +347,7 @@ def load_model(
             "unicorn-train .ckpt (state_dict + hyper_parameters) or a unicorn.io.save_model file"
         )
     model, info = loader(data, path, overrides)
+    check_weight_values(model, path)
     info.run_dir = run_of_checkpoint(path)
     if info.dataset is None:
         info.dataset = run_dataset(info.run_dir)
@@ -418,6 +424,22 @@ def _load_plain(
 
 #: how each checkpoint format (:func:`checkpoint_format`) is loaded
 _LOADERS = {"reference": _load_reference, "lightning": _load_lightning, "plain": _load_plain}
+
+
+def check_weight_values(model: torch.nn.Module, path: str | os.PathLike) -> None:
+    """Refuse weights no prediction can come from: a NaN or infinite value in any floating-point weight or buffer, or
+    a negative running variance of a batch normalisation (whose square root the layer takes).
+
+    Raises:
+        CheckpointError: names the first such tensor.
+    """
+    for name, value in model.state_dict().items():
+        if not value.is_floating_point() or value.device.type == "meta":
+            continue
+        if not bool(torch.isfinite(value).all()):
+            raise CheckpointError(f"checkpoint {path}: its weight {name} holds NaN or infinite values")
+        if name.endswith("running_var") and bool((value < 0).any()):
+            raise CheckpointError(f"checkpoint {path}: its batch-norm running variance {name} holds negative values")
 
 
 def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -> CheckpointInfo:
