@@ -183,4 +183,21 @@ def test_overwrite_removes_the_report_an_evaluation_without_one_does_not_write(
     assert all((out / name).is_file() for name in referenced_files(out / "report.html"))
     assert main([*args, "--report-samples", "0", "--overwrite"]) == 0  # no report: the earlier one goes
     assert not (out / "report.html").exists() and not (out / "report").exists() and not (out / "report.png").exists()
+    assert not (out / "_viewer").exists()
     assert (out / "metrics.csv").is_file() and (out / "my_notes.txt").read_text() == "mine"
+
+
+def test_overwrite_keeps_the_users_files_in_the_reports_folders(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "synthetic", "--root", str(synth), "--split", "train", "--max-images", "2",
+            "--device", "cpu", "--out", str(out), *FAST]  # fmt: skip
+    assert main([*args, "--report-samples", "2"]) == 0
+    for folder in ("report", "_viewer"):
+        (out / folder / "mine.txt").write_text(folder)
+    assert main([*args, "--report-samples", "1", "--overwrite"]) == 0
+    assert main([*args, "--report-samples", "0", "--overwrite"]) == 0  # the report's own files go, the user's stay
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.parent.name in ("report", "_viewer")) == [
+        "_viewer/mine.txt",
+        "report/mine.txt",
+    ]
+    assert (out / "report" / "mine.txt").read_text() == "report" and not (out / "report.html").exists()

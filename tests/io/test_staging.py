@@ -187,6 +187,19 @@ def test_the_commands_own_files_an_earlier_run_wrote_are_removed_from_the_folder
     assert not (out / "report.html").exists()
 
 
+def test_a_folder_a_pattern_names_loses_the_commands_files_even_where_this_run_does_not_write_it(tmp_path) -> None:
+    out = tmp_path / "out"
+    for folder in ("report", "pictures"):
+        (out / folder).mkdir(parents=True)
+        for file in ("sample01_input.png", "sample02_input.png"):
+            (out / folder / file).write_text("old")
+    (out / "pictures" / "notes.txt").write_text("mine")
+    with staged_folder(out, outputs=("report/sample*", "pictures/sample*")) as staging:
+        (staging / "metrics.csv").write_text("new")  # no pictures this time
+    # the earlier run's pictures go; a folder left empty goes with them, one holding a file of the user's stays
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["metrics.csv", "pictures", "pictures/notes.txt"]
+
+
 def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_folder(tmp_path, monkeypatch) -> None:
     out = tmp_path / "mount"
     out.mkdir()

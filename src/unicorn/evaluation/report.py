@@ -28,15 +28,21 @@ from unicorn.evaluation.metric_files import format_value, json_safe
 from unicorn.evaluation.pictures import image_grid, mask_overlay, save_gif, to_uint8
 from unicorn.evaluation.protocols import METRIC_HELP, METRIC_ORDER, EvaluationResult, Sample
 from unicorn.evaluation.rendering import even_angles, turntable
-from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
+from unicorn.evaluation.viewer import VIEWER_FILES, install_viewer, viewer_element, viewer_script_tags
 from unicorn.geometry.rotations import look_at_view_parameters
 from unicorn.io.meshes import glb_bytes, textured_mesh
 
 __all__ = ["REPORT_FILES", "sample_views", "write_report"]
 
 #: what :func:`write_report` writes into the output folder, only where there are samples to show: an evaluation
-#: without a report, or with fewer samples, removes an earlier one's (:func:`unicorn.io.staging.staged_folder`)
-REPORT_FILES = ("report.html", "report.png", "report", "report/*", "_viewer")
+#: without a report, or with fewer samples, removes an earlier one's, and leaves other files in ``report/`` and
+#: ``_viewer/`` where they are (:func:`unicorn.io.staging.staged_folder`)
+REPORT_FILES = (
+    "report.html",
+    "report.png",
+    "report/sample[0-9]*_*",
+    *(f"_viewer/{name}" for name in VIEWER_FILES),
+)
 
 
 def _sample_viewer(model: EvaluableModel, sample: Sample, size: int) -> str:

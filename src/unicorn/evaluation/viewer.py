@@ -16,11 +16,13 @@ import os
 import shutil
 from pathlib import Path
 
-__all__ = ["VIEWER_ASSETS", "VIEWER_SCRIPT", "install_viewer", "viewer_element", "viewer_script_tags"]
+__all__ = ["VIEWER_ASSETS", "VIEWER_FILES", "VIEWER_SCRIPT", "install_viewer", "viewer_element", "viewer_script_tags"]
 
 VIEWER_ASSETS = Path(__file__).resolve().parent / "assets"
 VIEWER_SCRIPT = "model-viewer-umd.min.js"
 _LICENSES = "THIRD_PARTY_LICENSES.txt"
+#: the files :func:`install_viewer` copies
+VIEWER_FILES = (VIEWER_SCRIPT, _LICENSES)
 
 #: marks each viewer with data-state="loaded" or "error" once model-viewer has tried its mesh, and says so
 _STATE_SCRIPT = """<script>
@@ -41,7 +43,7 @@ def install_viewer(folder: str | os.PathLike, subdir: str = "_viewer") -> str:
     """Copy the viewer script and its licences to ``folder/subdir``; returns the script's relative URL."""
     target = Path(folder) / subdir
     target.mkdir(parents=True, exist_ok=True)
-    for name in (VIEWER_SCRIPT, _LICENSES):
+    for name in VIEWER_FILES:
         source, copy = VIEWER_ASSETS / name, target / name
         if not copy.is_file() or copy.stat().st_size != source.stat().st_size:
             shutil.copyfile(source, copy)

@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
 import shutil
 from collections.abc import Iterator, Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from unicorn.errors import UserError, signals_held
 from unicorn.io.serialization import DISK_ERRORS, _alive
@@ -135,19 +136,36 @@ def _conflicts(source: Path, target: Path) -> list[str]:
     return found
 
 
+def _own_folder(pattern: str) -> str | None:
+    """The folder a pattern of ``outputs`` names without wildcards (``report`` of ``report/sample*``), which is the
+    command's own; None for the top level or a folder part with wildcards (``*/turntable.gif``)."""
+    folder = PurePosixPath(pattern).parent.as_posix()
+    return None if folder == "." or glob.has_magic(folder) else folder
+
+
 def _outdated(source: Path, target: Path, outputs: Sequence[str]) -> list[Path]:
-    """The files and folders in ``target`` that match the glob patterns ``outputs`` (the command's own), in folders
-    that ``source`` writes too, where ``source`` has none of that name: an earlier run's, which this one did not
-    write."""
+    """The files and folders in ``target`` that match the glob patterns ``outputs`` (the command's own), where
+    ``source`` has none of that name, in folders that ``source`` writes too or that the pattern names without
+    wildcards (:func:`_own_folder`): an earlier run's, which this one did not write."""
     found = []
     for pattern in outputs:
+        own = _own_folder(pattern) is not None
         for path in target.glob(pattern):
             if source in path.parents:  # the temporary folder itself, where it lies inside ``target``
                 continue
             rel = path.relative_to(target)
-            if _is_folder(source / rel.parent) and not (source / rel).exists():
+            if (own or _is_folder(source / rel.parent)) and not (source / rel).exists():
                 found.append(path)
     return sorted(set(found))
+
+
+def _remove_emptied_folders(target: Path, outputs: Sequence[str]) -> None:
+    """Remove the folders the patterns ``outputs`` name (:func:`_own_folder`) that hold nothing any more: a user's
+    file in one keeps it."""
+    for folder in sorted({f for f in map(_own_folder, outputs) if f}, key=len, reverse=True):
+        path = target / folder
+        if _is_folder(path) and not any(path.iterdir()):
+            path.rmdir()
 
 
 def _merge(source: Path, target: Path) -> None:
@@ -194,8 +212,9 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterat
     of the same name (sub-folders are merged) and the others are kept: whether an existing folder may be written
     into is the caller's decision; only the files and folders matching ``outputs`` (glob patterns relative to
     ``out``: the command's own optional outputs, such as a turntable made only on request) that an earlier run wrote
-    in a folder this block writes again, and this block did not write, are removed, so that a folder does not mix
-    two runs.
+    in a folder this block writes again, or in a folder a pattern names without wildcards (``report`` of
+    ``report/sample*``), and this block did not write, are removed, so that a folder does not mix two runs; such a
+    named folder left empty is removed too.
     When the block raises, the temporary folder is removed and ``out`` is untouched. A SIGTERM or Ctrl-C that comes
     while the files move is held until they are all in place (:func:`~unicorn.errors.signals_held`).
 
@@ -223,6 +242,7 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterat
             _merge(tmp, out)
             for path in outdated:
                 shutil.rmtree(path) if _is_folder(path) else path.unlink(missing_ok=True)
+            _remove_emptied_folders(out, outputs)
     except OSError as err:
         if err.filename is None and err.errno in DISK_ERRORS:  # e.g. a write() on a full disk names no file
             raise type(err)(err.errno, f"{err.strerror} while writing the output folder {out}") from err
