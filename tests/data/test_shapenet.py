@@ -154,7 +154,8 @@ def _tiny_nmr(root: Path, size: int = 8) -> Path:
             Image.new("L", (size, size), 255).save(folder / model / "mask" / f"{view:04d}.png")
         cameras = {"world_mat_0": np.eye(4), "world_mat_1": np.eye(4)[:3], "world_mat_2": np.eye(4)}  # (3, 4) too
         np.savez(folder / model / "cameras.npz", **cameras)
-        np.savez(folder / model / "pointcloud.npz", points=np.zeros((5, 3)), normals=np.ones((5, 3)))
+        points = np.linspace(-0.5, 0.5, 15).reshape(5, 3)  # reaching the unit cube's faces, as normalised clouds do
+        np.savez(folder / model / "pointcloud.npz", points=points, normals=np.ones((5, 3)))
     return root
 
 
@@ -226,6 +227,12 @@ def _save(**arrays: np.ndarray) -> Callable[[Path], None]:
         ("pointcloud.npz", lambda path: path.write_bytes(b"junk"), "not a numpy .npz archive"),
         ("pointcloud.npz", _save(pts=np.zeros((5, 3))), r"no 'points' array \(it holds \['pts'\]\)"),
         ("pointcloud.npz", _save(points=np.zeros((5, 3)), normals=np.zeros((5, 2))), r"normals must be a \(P, 3\)"),
+        (
+            "pointcloud.npz",
+            _save(points=np.full((5, 3), 0.3), normals=np.ones((5, 3))),
+            r"the points must reach the unit cube's faces \(max \|coord\| 0.5 \+- 0.01\), got 0.3000 over 5 points",
+        ),
+        ("pointcloud.npz", _save(points=np.full((5, 3), 5.0), normals=np.ones((5, 3))), r"got 5.0000 over 5 points"),
     ],
     ids=[
         "cam-junk",
@@ -237,6 +244,8 @@ def _save(**arrays: np.ndarray) -> Callable[[Path], None]:
         "pc-junk",
         "pc-no-points",
         "pc-normals",
+        "pc-small",
+        "pc-large",
     ],
 )
 def test_malformed_npz_is_one_error_naming_it(

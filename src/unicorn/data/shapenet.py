@@ -37,6 +37,7 @@ from unicorn.data.images import (
     require,
     to_chw_tensor,
 )
+from unicorn.metrics.mesh_evaluator import GT_EXTENT, GT_EXTENT_TOLERANCE
 
 __all__ = [
     "SHAPENET_CATEGORIES",
@@ -301,6 +302,13 @@ class ShapeNetNMR(UnicornDataset):
         points, normals = data["points"].astype(np.float64), data["normals"].astype(np.float64)
         if len(points) != len(normals) or not (np.isfinite(points).all() and np.isfinite(normals).all()):
             raise DatasetError(f"{path}: points and normals must be as many and finite")
+        extent = float(np.abs(points).max(initial=0.0))
+        if abs(extent - GT_EXTENT) > GT_EXTENT_TOLERANCE:  # the metrics compare shapes in the unit cube
+            raise DatasetError(
+                f"{path}: the points must reach the unit cube's faces (max |coord| {GT_EXTENT} +- "
+                f"{GT_EXTENT_TOLERANCE}), got {extent:.4f} over {len(points):,} points: normalised otherwise, or "
+                "too few points to reach them"
+            )
         if self.n_points is not None and self.n_points < len(points):
             keep = np.random.default_rng([self.seed, model]).choice(len(points), self.n_points, replace=False)
             points, normals = points[keep], normals[keep]

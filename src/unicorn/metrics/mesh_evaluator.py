@@ -33,9 +33,12 @@ from .nn import Backend, NearestNeighborIndex
 from .sampling import sample_points_from_meshes
 from .voxels import point_cloud_voxel_iou
 
-__all__ = ["SHAPENET_METRICS", "evaluate_meshes"]
+__all__ = ["GT_EXTENT", "GT_EXTENT_TOLERANCE", "SHAPENET_METRICS", "evaluate_meshes"]
 
 SHAPENET_METRICS = ("chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "iou-3d", "iou-3d-ICP")
+
+#: a ground-truth cloud's largest ``|coord|``, and how far from it one may be: the clouds fill the unit cube
+GT_EXTENT, GT_EXTENT_TOLERANCE = 0.5, 0.01
 
 
 def evaluate_meshes(
@@ -159,9 +162,10 @@ def _check_inputs(
         raise ValueError("give all of R_pred, T_pred, R_gt, T_gt or none of them")
     if check_gt_range:
         extent = gt_points.detach().abs().amax(dim=(1, 2))
-        if ((extent - 0.5).abs() > 0.01).any():
+        if ((extent - GT_EXTENT).abs() > GT_EXTENT_TOLERANCE).any():
             raise ValueError(
-                f"ground-truth clouds must have max |coord| = 0.5 +- 0.01 (unit cube), got {extent.tolist()}"
+                f"ground-truth clouds must have max |coord| = {GT_EXTENT} +- {GT_EXTENT_TOLERANCE} (unit cube), got "
+                f"{extent.tolist()}"
             )
     if gt_index is not None and gt_index.y.shape != gt_points.shape:
         raise ShapeError(f"gt_index must index gt_points {tuple(gt_points.shape)}, got {tuple(gt_index.y.shape)}")
