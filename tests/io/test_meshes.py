@@ -65,6 +65,20 @@ def test_export_roundtrip(model_and_prediction, tmp_path, posed, suffix):
     assert np.array_equal(_texture_pixels(loaded), expected_texture)
 
 
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_file_that_exists_is_replaced_only_when_asked(model_and_prediction, tmp_path, suffix):
+    model, pred = model_and_prediction
+    mesh = export_prediction(model, pred, index=0)
+    photo = tmp_path / ("car.png" if suffix == ".obj" else f"car{suffix}")  # the OBJ's texture takes the photo's name
+    photo.write_bytes(b"the user's photo")
+    with pytest.raises(FileExistsError, match=rf"{re.escape(str(photo))} exists: save_mesh writes car{suffix}"):
+        save_mesh(mesh, tmp_path / f"car{suffix}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [photo.name]  # nothing written
+    assert photo.read_bytes() == b"the user's photo"
+    files = save_mesh(mesh, tmp_path / f"car{suffix}", overwrite=True)
+    assert photo in files and photo.read_bytes() != b"the user's photo"
+
+
 def test_reference_uvs_are_converted_to_edge_convention():
     torch.manual_seed(0)
     model = Unicorn(tiny_config(template={"uv_mode": "reference"})).eval()

@@ -108,7 +108,7 @@ def export_prediction(
     )
 
 
-def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> list[Path]:
+def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = False) -> list[Path]:
     """Write ``mesh`` to ``path``: ``.obj`` (with ``<stem>.mtl`` and ``<stem>.png`` beside it) or ``.glb``.
 
     The OBJ keeps positions and UVs apart (``f v/vt``): vertices that :func:`textured_mesh` split only for
@@ -116,14 +116,29 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> list[Path]:
     (MTL ``Kd 1 1 1``, glTF ``baseColorFactor [1, 1, 1, 1]``) whatever ``mesh``'s material says, so that the
     texture is shown unchanged.
 
+    Args:
+        mesh: a textured mesh (:func:`textured_mesh`, :func:`export_prediction`).
+        path: the ``.obj`` or ``.glb`` file.
+        overwrite: replace files that exist; otherwise an existing file among those written (the OBJ's texture
+            ``<stem>.png`` may be the photo the mesh was made from) is an error and nothing is written.
+
     Returns:
         the files written.
+
+    Raises:
+        ValueError: another format, or a mesh without texture.
+        FileExistsError: a file to write exists and ``overwrite`` is False (the message names it).
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".obj"):
         raise ValueError(f"unsupported mesh format {path.suffix!r}: use .obj or .glb")
     image = _texture_image(mesh)
+    targets = [path] if suffix == ".glb" else _obj_files(path)
+    existing = [p for p in targets if p.exists() or p.is_symlink()]
+    if existing and not overwrite:
+        names = ", ".join(p.name for p in targets)
+        raise FileExistsError(f"{existing[0]} exists: save_mesh writes {names}; pass overwrite=True to replace them")
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".glb":
         path.write_bytes(glb_bytes(mesh, name=path.stem))
@@ -179,7 +194,13 @@ def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Pa
             "",
         ]
     )
-    path.write_text("\n".join(lines) + "\n")
-    (path.parent / f"{stem}.mtl").write_text(mtl)
-    image.save(path.parent / f"{stem}.png")
-    return [path, path.parent / f"{stem}.mtl", path.parent / f"{stem}.png"]
+    obj, mtl_path, png = _obj_files(path)
+    obj.write_text("\n".join(lines) + "\n")
+    mtl_path.write_text(mtl)
+    image.save(png)
+    return [obj, mtl_path, png]
+
+
+def _obj_files(path: Path) -> list[Path]:
+    """The OBJ, its material file and its texture, which :func:`save_mesh` writes side by side."""
+    return [path, path.with_suffix(".mtl"), path.with_suffix(".png")]
