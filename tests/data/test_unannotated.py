@@ -296,6 +296,19 @@ def test_folder_follows_linked_folders_once(tmp_path: Path) -> None:
     assert list_images(root) == expected and ImageFolder(root).files == expected
 
 
+def test_folder_leaves_out_the_output_folders_of_unicorns_commands(tmp_path: Path) -> None:
+    root = tmp_path / "photos"
+    write_photo(root / "a.jpg", 20, 10, 0)
+    for folder, records in {"rec": ["reconstructions.json"], "ev": ["metrics.json", "per_image.csv"]}.items():
+        write_photo(root / folder / "report" / "sample00_input.png", 20, 10, 1)  # an output's pictures
+        for name in records:
+            (root / folder / name).write_text("{}")
+    write_photo(root / "notes" / "b.jpg", 20, 10, 2)
+    (root / "notes" / "metrics.json").write_text("{}")  # one record of unicorn-eval's two: a folder of photos
+    expected = [root / "a.jpg", root / "notes" / "b.jpg"]
+    assert list_images(root) == expected and ImageFolder(root).files == expected
+
+
 def test_a_folder_that_cannot_be_read_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     root = tmp_path / "photos"
     write_photo(root / "a.jpg", 20, 10, 1)

@@ -19,7 +19,16 @@ from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import DatasetNotFoundError, load_image, require, to_chw_tensor
 
-__all__ = ["IMAGE_EXTENSIONS", "CompCars", "ImageFolder", "list_images", "unannotated_item"]
+__all__ = [
+    "EVALUATION_RECORDS",
+    "IMAGE_EXTENSIONS",
+    "RECONSTRUCTIONS_RECORD",
+    "CompCars",
+    "ImageFolder",
+    "is_output_folder",
+    "list_images",
+    "unannotated_item",
+]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp", ".tif", ".tiff", ".webp", ".gif")
 
@@ -30,6 +39,19 @@ _COMPCARS_HINT = (
 )
 
 
+#: the file ``unicorn-reconstruct`` writes at the top of its output folder: a folder holding it is its output
+RECONSTRUCTIONS_RECORD = "reconstructions.json"
+#: the files ``unicorn-eval`` writes at the top of its output folder: a folder holding both is its output
+EVALUATION_RECORDS = ("metrics.json", "per_image.csv")
+
+
+def is_output_folder(folder: str | os.PathLike) -> bool:
+    """Whether ``folder`` is the output of ``unicorn-reconstruct`` or ``unicorn-eval`` (:data:`RECONSTRUCTIONS_RECORD`,
+    :data:`EVALUATION_RECORDS`): its pictures are not photos to read."""
+    folder = Path(folder)
+    return (folder / RECONSTRUCTIONS_RECORD).is_file() or all((folder / n).is_file() for n in EVALUATION_RECORDS)
+
+
 def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> list[Path]:
     """All files under ``root`` (recursively) whose suffix, lower-cased, is in ``extensions``; sorted.
 
@@ -38,7 +60,9 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
     does (``on_error="skip"`` skips it with a warning) rather than the image going missing unnoticed. Paths are
     given through the links, not resolved. A folder that cannot be read (no permission) is named in a warning: its
     images are left out. Hidden files and folders (names starting with ``.``: a Mac's ``._IMG_1.jpg`` resource
-    files, ``.thumbnails/``, temporary folders) are left out too.
+    files, ``.thumbnails/``, temporary folders) are left out too, and so are the output folders of unicorn's commands
+    below ``root`` (:func:`is_output_folder`: a report's pictures written inside an image folder are not read back as
+    photos).
     """
     found, seen = [], set()
     for folder, subfolders, files in os.walk(root, followlinks=True, onerror=_unreadable_folder):
@@ -48,7 +72,9 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
             continue
         seen.add(real)
         # hidden folders left out; sorted, so that which route reaches a folder first does not depend on the disk
-        subfolders[:] = sorted(name for name in subfolders if not name.startswith("."))
+        subfolders[:] = sorted(
+            name for name in subfolders if not name.startswith(".") and not is_output_folder(Path(folder, name))
+        )
         for name in files:
             if name.startswith("."):
                 continue

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from unicorn.data.folder import IMAGE_EXTENSIONS, list_images
+from unicorn.data.folder import IMAGE_EXTENSIONS, RECONSTRUCTIONS_RECORD, is_output_folder, list_images
 from unicorn.data.framing import crop_box, fit_and_pad, pad_bbox, resize_image, square_bbox
 from unicorn.data.images import (
     RGB_BYTES_PER_PIXEL,
@@ -70,17 +70,13 @@ class InputNotAFileError(UserError, OSError):
     """An input named on the command line exists but is neither a file nor a folder."""
 
 
-#: the file ``unicorn-reconstruct`` writes at the top of its output folder: a folder holding it is its output
-RECONSTRUCTIONS_RECORD = "reconstructions.json"
-
-
 def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.PathLike | None = None) -> list[Path]:
     """Image files named on the command line: files as given (each once), folders searched recursively (sorted;
     :func:`~unicorn.data.folder.list_images`).
 
-    A folder search leaves out ``leave_out`` (the command's output folder) and every folder holding a
-    :data:`RECONSTRUCTIONS_RECORD` (``unicorn-reconstruct``'s outputs), so that outputs written inside an input
-    folder are not read back as photos by a later run.
+    A folder search leaves out ``leave_out`` (the command's output folder) and the output folders of
+    ``unicorn-reconstruct`` and ``unicorn-eval`` (:func:`~unicorn.data.folder.is_output_folder`), so that outputs
+    written inside an input folder are not read back as photos by a later run.
 
     Raises:
         FileNotFoundError: an input does not exist, or nothing to read was found at all.
@@ -108,12 +104,13 @@ def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.Path
 
 
 def _in_output(folder: Path, searched: Path, leave_out: str | os.PathLike | None, known: dict[Path, bool]) -> bool:
-    """Whether ``folder`` (``searched`` or below it) lies in ``leave_out``, or holds a :data:`RECONSTRUCTIONS_RECORD`
-    or lies in such a folder below ``searched``; ``known`` keeps the answers of the folders looked at."""
+    """Whether ``folder`` (``searched`` or below it) lies in ``leave_out``, or is a command's output folder
+    (:func:`~unicorn.data.folder.is_output_folder`) or lies in one below ``searched``; ``known`` keeps the answers of
+    the folders looked at."""
     if folder not in known:
-        here = (leave_out is not None and Path(os.path.abspath(folder)).is_relative_to(os.path.abspath(leave_out))) or (
-            folder / RECONSTRUCTIONS_RECORD
-        ).is_file()
+        here = (
+            leave_out is not None and Path(os.path.abspath(folder)).is_relative_to(os.path.abspath(leave_out))
+        ) or is_output_folder(folder)
         known[folder] = here or (folder != searched and _in_output(folder.parent, searched, leave_out, known))
     return known[folder]
 
