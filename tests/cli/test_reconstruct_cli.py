@@ -297,6 +297,31 @@ def test_a_signal_part_way_stops_at_once_and_leaves_out_as_it_was(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs", "out"]  # no half-written sibling
 
 
+def test_an_output_folder_another_run_fills_meanwhile_is_not_mixed_into(
+    tmp_path: Path, checkpoint: Path, inputs: Path, monkeypatch, capsys
+) -> None:
+    import importlib
+
+    rec = importlib.import_module("unicorn.evaluation.reconstruct")  # the package exports a function of that name
+    write_one = rec._write_one
+    out = tmp_path / "out"
+
+    def another_run_finishes_first(*args, **kwargs):
+        if not out.exists():  # two runs started into the same new folder: the other one moves its files first
+            out.mkdir()
+            (out / "reconstructions.json").write_text("the other run's")
+        return write_one(*args, **kwargs)
+
+    monkeypatch.setattr(rec, "_write_one", another_run_finishes_first)
+    assert main([str(checkpoint), str(inputs), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"unicorn-reconstruct: error: the output folder {out} was written by another command")
+    assert [p.name for p in out.iterdir()] == ["reconstructions.json"]
+    assert (out / "reconstructions.json").read_text() == "the other run's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inputs", "out"]  # no temporary folder left
+    assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 0  # asked: merged
+
+
 def test_outputs_inside_an_input_folder_are_not_read_back(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     assert main([str(checkpoint), str(inputs), "--out", str(inputs / "rec"), *FAST]) == 0
     # a second run into another folder inside the inputs: the first run's outputs are not photos

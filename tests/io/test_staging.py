@@ -200,6 +200,21 @@ def test_a_folder_a_pattern_names_loses_the_commands_files_even_where_this_run_d
     assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["metrics.csv", "pictures", "pictures/notes.txt"]
 
 
+def test_without_merge_a_folder_written_meanwhile_is_refused_and_left_as_it_is(tmp_path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()  # empty: checked by the caller before the work began
+    with pytest.raises(OutputConflictError, match=r"output folder .*out was written by another command"):
+        with staged_folder(out, merge=False) as staging:
+            (staging / "index.html").write_text("this run's")
+            (out / "index.html").write_text("another run's")  # another process finished first
+    assert [p.name for p in out.iterdir()] == ["index.html"] and (out / "index.html").read_text() == "another run's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+    (out / "index.html").unlink()
+    with staged_folder(out, merge=False) as staging:  # still empty: written
+        (staging / "index.html").write_text("this run's")
+    assert (out / "index.html").read_text() == "this run's"
+
+
 def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_folder(tmp_path, monkeypatch) -> None:
     out = tmp_path / "mount"
     out.mkdir()

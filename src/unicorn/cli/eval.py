@@ -316,6 +316,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
             turntable_frames=args.turntable_frames,
             title=f"{target.dataset} ({args.split}): {Path(args.checkpoint).name}",
             device=device,
+            overwrite=args.overwrite,
         )
     print(format_table(result.table, result.columns))
     per_image = result.seconds / max(1, len(result.per_image))

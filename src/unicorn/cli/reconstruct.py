@@ -168,7 +168,7 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     start = time.perf_counter()
     # a failure part-way leaves --out as it was; the renders' overflow is said once, not by the renderer
-    with overflow_note("unicorn-reconstruct"), staged_folder(out, OPTIONAL_FILES) as staging:
+    with overflow_note("unicorn-reconstruct"), staged_folder(out, OPTIONAL_FILES, merge=args.overwrite) as staging:
         records = reconstruct(
             model,
             items,

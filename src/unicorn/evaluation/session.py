@@ -91,6 +91,7 @@ def evaluate_to_folder(
     turntable_frames: int = REPORT_TURNTABLE_FRAMES,
     title: str | None = None,
     device: torch.device | str | None = None,
+    overwrite: bool = True,
 ) -> tuple[EvaluationResult, dict[str, Path]]:
     """Evaluate ``model`` on ``target`` with ``options`` and write the metrics (CSV, JSON) and the report into ``out``.
 
@@ -106,6 +107,8 @@ def evaluate_to_folder(
         view_size, turntable_frames: the report's render size and turntable length.
         title: the report's title (default: dataset and split).
         device: where to evaluate (default: the model's device).
+        overwrite: False: ``out`` must still be missing or empty when the files move (checked by the caller before
+            the evaluation, it may have been written since).
 
     Returns:
         the result and the written files by kind (``csv``, ``json``, ``per_image``, ``html``, ``png``).
@@ -145,7 +148,7 @@ def evaluate_to_folder(
     }
     # a failure while writing leaves ``out`` as it was; a report of an earlier evaluation goes where this one has
     # none, or fewer samples
-    with staged_folder(out, REPORT_FILES) as staging:
+    with staged_folder(out, REPORT_FILES, merge=overwrite) as staging:
         paths = write_metrics(result, staging, full_meta)
         if result.samples:
             log.info("writing the report: %d samples to %s", len(result.samples), out / "report.html")

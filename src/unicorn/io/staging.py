@@ -205,7 +205,7 @@ def _move(entry: Path, dest: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterator[Path]:
+def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = (), *, merge: bool = True) -> Iterator[Path]:
     """Yield an empty temporary folder beside ``out``; when the block succeeds, move its contents into ``out``.
 
     A missing ``out`` is the renamed temporary folder. In an existing ``out`` each file written replaces the file
@@ -215,13 +215,15 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterat
     in a folder this block writes again, or in a folder a pattern names without wildcards (``report`` of
     ``report/sample*``), and this block did not write, are removed, so that a folder does not mix two runs; such a
     named folder left empty is removed too.
+    With ``merge`` False, ``out`` must still be missing or empty when the files move: the caller checked it before
+    the work began, and another process may have written it since.
     When the block raises, the temporary folder is removed and ``out`` is untouched. A SIGTERM or Ctrl-C that comes
     while the files move is held until they are all in place (:func:`~unicorn.errors.signals_held`).
 
     Raises:
         OSError: the temporary folder cannot be created (a read-only or full disk, a missing permission).
-        OutputConflictError: an entry of ``out`` is a file where a folder is written or a folder where a file is
-            (nothing is moved: ``out`` is as it was).
+        OutputConflictError: an entry of ``out`` is a file where a folder is written or a folder where a file is,
+            or ``merge`` is False and ``out`` is no longer empty (nothing is moved: ``out`` is as it was).
     """
     out = _absolute(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -233,6 +235,11 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = ()) -> Iterat
             if not out.exists():
                 _move(tmp, out)
                 return
+            if not merge and _is_folder(out) and any(out.iterdir()):
+                raise OutputConflictError(
+                    f"the output folder {out} was written by another command while this one ran; nothing was moved "
+                    "into it: run again with another folder, or with --overwrite to write into it"
+                )
             conflicts = _conflicts(tmp, out)
             if conflicts:  # checked before anything moves: the folder is updated whole or not at all
                 raise OutputConflictError(
