@@ -507,6 +507,8 @@ RECONSTRUCT_CASES = [
     ("bbox-outside", {}, ["--bbox", "5000,5000,6000,6000"], r"bbox 5000,5000,6000,6000 does not overlap .*photo\.jpg"),
     ("bbox-huge", {}, ["--bbox", "0,0,1e9,1e9"], r"frames a crop of \d+ x \d+ pixels, above the image limit"),
     ("bbox-overflow", {}, ["--bbox=-1e30,-1e30,1e30,1e30"], r"frames a crop of 2.4e\+30 x 2.4e\+30 pixels, above"),
+    # a box starting left of the image, after a space: argparse alone took it for an option
+    ("bbox-overflow-spaced", {}, ["--bbox", "-1e30,-1e30,1e30,1e30"], r"frames a crop of 2.4e\+30 x 2.4e\+30 pixels"),
     ("bbox-negative-huge", {}, ["--bbox=-5e18,0,5e18,10"], r"frames a crop of 1.2e\+19 x 1.2e\+19 pixels, above"),
     (
         "bbox-overflow-no-limit",

@@ -322,6 +322,19 @@ def test_an_output_folder_another_run_fills_meanwhile_is_not_mixed_into(
     assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 0  # asked: merged
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [["--bbox", "-5,10,200,300"], ["--bbox=-5,10,200,300"], ["--bbox", "-.5,10,200,300"]],
+    ids=["spaced", "joined", "fraction"],
+)
+def test_a_box_starting_left_of_the_image_is_a_value_not_an_option(argv: list[str]) -> None:
+    from unicorn.cli.reconstruct import _negative_boxes, build_parser
+
+    args = build_parser().parse_args(_negative_boxes(["model.pkl", "photo.jpg", *argv, "--out", "out"]))
+    assert args.bbox[0] < 0 and list(args.bbox[1:]) == [10, 200, 300] and args.out == Path("out")
+    assert _negative_boxes(["m.pkl", "--", "--bbox", "-5,1,2,3"]) == ["m.pkl", "--", "--bbox", "-5,1,2,3"]
+
+
 def test_outputs_inside_an_input_folder_are_not_read_back(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     assert main([str(checkpoint), str(inputs), "--out", str(inputs / "rec"), *FAST]) == 0
     # a second run into another folder inside the inputs: the first run's outputs are not photos

@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -213,10 +215,27 @@ def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
         raise UsageError(f"--refine {args.refine}: {err}") from None
 
 
+def _negative_boxes(argv: Sequence[str]) -> list[str]:
+    """``argv`` with ``--bbox -5,10,200,300`` joined into ``--bbox=-5,10,200,300``: argparse takes a value starting
+    with ``-`` for an option unless it is one negative number, and a detector's box may start left of the image."""
+    joined: list[str] = []
+    values = iter(argv)
+    for arg in values:
+        if arg == "--":
+            joined += [arg, *values]
+            break
+        following = next(values, None) if arg == "--bbox" else None
+        if following is not None and re.match(r"-[\d.]", following):
+            joined.append(f"--bbox={following}")
+        else:
+            joined += [arg] if following is None else [arg, following]
+    return joined
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point; errors the user can fix are reported in one line with exit status 2."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_negative_boxes(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     for name in ("batch_size", "view_size", "strip_views"):
         if getattr(args, name) < 1:
