@@ -52,6 +52,14 @@ def test_prediction_shapes_and_ranges(tiny_model, images):
     assert rec.shape == images.shape and torch.isfinite(rec).all()
 
 
+@pytest.mark.parametrize(
+    ("dtype", "hint"), [(torch.uint8, r" \(pixels in \[0, 255\]: divide by 255"), (torch.float64, "$")], ids=str
+)
+def test_images_of_another_dtype_are_refused_by_name(tiny_model, images, dtype, hint):
+    with pytest.raises(TypeError, match=rf"images must be torch.float32, the model's dtype, got {dtype}{hint}"):
+        tiny_model.predict((images * 255).to(dtype))
+
+
 def test_zero_init_gives_ellipsoid_identity_scale_anchor_poses(tiny_model, images):
     tiny_model.set_active_dims(shape=32, texture=128, background=128)
     pred = tiny_model.predict(images)

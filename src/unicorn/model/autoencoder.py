@@ -262,9 +262,20 @@ class Unicorn(nn.Module):
 
     # ------------------------------------------------------------------ forward pieces
     def check_images(self, images: torch.Tensor) -> None:
-        """Raise ValueError unless ``images`` is (B, 3, S, S) with S the model's image size."""
+        """Raise unless ``images`` is (B, 3, S, S) with S the model's image size, of the weights' dtype.
+
+        Raises:
+            ShapeError: another shape.
+            TypeError: another dtype (uint8 pixels: divide by 255, the model reads [0, 1]).
+        """
         s = self.config["image_size"]
         check_shape(images, "B, 3, S, S", "images", {"S": s})
+        dtype = self.template.verts.dtype
+        if images.dtype != dtype:
+            hint = (
+                " (pixels in [0, 255]: divide by 255, the model reads [0, 1])" if not images.is_floating_point() else ""
+            )
+            raise TypeError(f"images must be {dtype}, the model's dtype, got {images.dtype}{hint}")
 
     def encode(self, images: torch.Tensor, branches: tuple[str, ...]) -> dict[str, torch.Tensor]:
         """Encoder features (B, 8 x width; 512 for ResNet-18) of the requested branches; each encoder they read
