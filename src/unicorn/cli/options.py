@@ -108,12 +108,14 @@ def check_picture_sizes(args: argparse.Namespace) -> None:
     limit, source = max_render_bytes(), f"{MAX_RENDER_BYTES_ENV}; 0: no limit"
     picture = 4 * size * size * 4
     check_limit(f"--view-size {size}", f"a picture: 4 x {size} x {size} float32", picture, limit, "bytes", source)
-    what = f"a turntable's frames at --view-size {size}: {frames} x 4 x {size} x {size} float32"
-    check_limit(f"--turntable-frames {frames}", what, frames * picture, limit, "bytes", source)
+    # the two options together: either may be the one to lower
+    what = f"a turntable's frames: {frames} x 4 x {size} x {size} float32"
+    setting = f"--turntable-frames {frames} at --view-size {size}"
+    check_limit(setting, what, frames * picture, limit, "bytes", source)
     views = getattr(args, "strip_views", None)
     if views is not None:
-        what = f"a strip's views at --view-size {size}: {views} x 4 x {size} x {size} float32"
-        check_limit(f"--strip-views {views}", what, views * picture, limit, "bytes", source)
+        what = f"a strip's views: {views} x 4 x {size} x {size} float32"
+        check_limit(f"--strip-views {views} at --view-size {size}", what, views * picture, limit, "bytes", source)
 
 
 def apply_common_arguments(args: argparse.Namespace) -> None:
