@@ -70,6 +70,11 @@ def test_folder_errors(tmp_path: Path, mixed_folder: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(DatasetNotFoundError, match="empty"):
         ImageFolder(tmp_path / "empty")
+    (tmp_path / "photo.png").write_bytes(b"")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning from walking a file as a folder
+        with pytest.raises(DatasetError, match=r"photo\.png is a file, not a folder of images"):
+            ImageFolder(tmp_path / "photo.png")
     (mixed_folder / "aaa_broken.png").write_bytes(b"\x89PNG broken")
     with pytest.raises(ImageLoadError, match="aaa_broken.png"):
         ImageFolder(mixed_folder)[0]

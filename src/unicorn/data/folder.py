@@ -17,7 +17,7 @@ import torch
 
 from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
 from unicorn.data.framing import fit_and_pad
-from unicorn.data.images import DatasetNotFoundError, load_image, require, to_chw_tensor
+from unicorn.data.images import DatasetError, DatasetNotFoundError, load_image, require, to_chw_tensor
 
 __all__ = [
     "EVALUATION_RECORDS",
@@ -134,7 +134,10 @@ class ImageFolder(UnicornDataset):
     ) -> None:
         super().__init__(on_error)
         self.root = require(root, "image folder", self.hint)
-        self.files = list_images(self.image_root(), tuple(e.lower() for e in extensions))
+        folder = require(self.image_root(), "image folder", self.hint)
+        if not folder.is_dir():
+            raise DatasetError(f"{folder} is a file, not a folder of images. {self.hint}")
+        self.files = list_images(folder, tuple(e.lower() for e in extensions))
         if not self.files:
             raise DatasetNotFoundError(self.image_root() / "*", f"images with suffix {list(extensions)}", self.hint)
         self.img_size = int(img_size)
