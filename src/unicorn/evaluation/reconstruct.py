@@ -104,7 +104,8 @@ POSE_CONVENTION = (
     "at=[at], up=[up]) gives back R and T (PyTorch3D's look_at_view_transform too): azimuth 0 puts the camera "
     "on +Z, 90 on +X, positive elevation above (+Y), in degrees; at is the point of the optical axis at the "
     "object's depth (0 when the object is centred) and up the camera's +Y axis; roll (degrees) is the turn of "
-    "the camera about its axis from the +Y-up camera (0: up=[0, 1, 0] gives the same camera)."
+    "the camera about its axis from the +Y-up camera (0: up=[0, 1, 0] gives the same camera). x_object are the "
+    "vertices of mesh.obj and mesh.glb, which hold the anisotropic scale already: do not apply scale again."
 )
 
 
