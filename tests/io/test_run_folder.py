@@ -63,6 +63,48 @@ def test_a_resume_from_an_earlier_checkpoint_names_the_later_ones(tmp_path) -> N
     assert plan_folder(tmp_path, "last", str(checkpoints / "last.ckpt"), overwrite=False) == []
 
 
+def _finished_run(folder: Path) -> Path:
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "csv").mkdir()
+    for name in ("checkpoints/last.ckpt", "checkpoints/step=0000004.ckpt", "csv/metrics.csv", "config.yaml"):
+        (folder / name).write_text("the run's")
+    return folder
+
+
+def test_a_run_resumed_from_another_folders_checkpoint_does_not_replace_the_run_here(tmp_path) -> None:
+    other, here = _finished_run(tmp_path / "A"), _finished_run(tmp_path / "R")
+    ckpt = str(other / "checkpoints" / "last.ckpt")
+    with pytest.raises(RunFolderError, match=rf"R already holds a run .*; {ckpt} is another run's checkpoint"):
+        plan_folder(here, ckpt, ckpt, overwrite=False)
+    assert plan_folder(here, ckpt, ckpt, overwrite=True) == [here / "checkpoints", here / "csv"]  # asked: replaced
+    assert plan_folder(tmp_path / "new", ckpt, ckpt, overwrite=False) == []  # into a new folder: continued there
+
+
+def test_overwrite_refuses_to_delete_files_a_run_does_not_write(tmp_path) -> None:
+    here = _finished_run(tmp_path / "R")
+    (here / "checkpoints" / ".last.ckpt.tmp-123").write_text("a killed run's temporary file: the run's")
+    assert plan_folder(here, None, None, overwrite=True) == [here / "checkpoints", here / "csv"]
+    (here / "checkpoints" / "my_best_backup.ckpt").write_text("mine")
+    (here / "csv" / "my_analysis.txt").write_text("mine")
+    with pytest.raises(
+        RunFolderError,
+        match=r"overwrite=true would delete checkpoints/my_best_backup\.ckpt, csv/my_analysis\.txt, which "
+        r"unicorn-train did not write",
+    ):
+        plan_folder(here, None, None, overwrite=True)
+
+
+def test_overwrite_refuses_a_linked_output_folder(tmp_path) -> None:
+    here, store = _finished_run(tmp_path / "R"), tmp_path / "store"
+    (here / "checkpoints").rename(store)
+    try:
+        (here / "checkpoints").symlink_to(store)
+    except (OSError, NotImplementedError):
+        pytest.skip("symbolic links are not available here")
+    with pytest.raises(RunFolderError, match=rf"overwrite=true: {here / 'checkpoints'} is a link to {store}"):
+        plan_folder(here, None, None, overwrite=True)
+
+
 def test_a_users_config_is_not_a_run(tmp_path) -> None:
     (tmp_path / "config.yaml").write_text("mine")
     with pytest.raises(RunFolderError, match="holds config.yaml but no run"):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import fnmatch
 import logging
 import os
 import re
@@ -31,6 +32,7 @@ from unicorn.io.serialization import check_checkpoint_path
 __all__ = [
     "LOCK_NAME",
     "RUN_LOG",
+    "RUN_FOLDER_FILES",
     "RUN_OUTPUTS",
     "RUN_RECORDS",
     "STEP_CHECKPOINT",
@@ -58,6 +60,15 @@ log = logging.getLogger("unicorn.train")
 
 #: what a run writes into its folder as its outputs (replaced by ``overwrite=true``)
 RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv", "diagnostics.csv")
+#: the entries a run writes in each of its output folders (glob patterns; hidden names are temporary files):
+#: ``overwrite=true`` refuses to delete a folder holding anything else
+RUN_FOLDER_FILES = {
+    "checkpoints": ("last.ckpt", "step=*.ckpt", "nonfinite-step=*.ckpt", ".*"),
+    "csv": ("metrics.csv", "hparams.yaml", ".*"),
+    "tensorboard": ("events.out.tfevents.*", "hparams.yaml", ".*"),
+    "images": ("step=*.png", ".*"),
+    "eval": ("metrics.csv", "metrics.json", "per_image.csv", "report.html", "report.png", "report", "_viewer", ".*"),
+}
 #: the hidden folder of a run folder (``.overwritten-<pid>``) holding the earlier run's outputs that
 #: ``overwrite=true`` replaces, from the moment the new run writes until its first iteration is done
 ASIDE_PREFIX = ".overwritten-"
@@ -178,8 +189,10 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
         overwrite: the ``overwrite`` setting.
 
     Raises:
-        RunFolderError: a new run in a folder holding a run, or holding the records of one (``config.yaml``...);
-            a resume from a checkpoint older than checkpoints of this folder; each unless ``overwrite``.
+        RunFolderError: a new run, or a run resumed from another folder's checkpoint, in a folder holding a run,
+            or holding the records of one (``config.yaml``...); a resume from a checkpoint older than checkpoints
+            of this folder; each unless ``overwrite``. With ``overwrite``, outputs to replace that hold files a run
+            does not write, or that are links.
     """
     rel = lambda p: p.relative_to(output_dir) if p.is_relative_to(output_dir) else p  # noqa: E731
     for aside in sorted(output_dir.glob(f"{ASIDE_PREFIX}*")) if output_dir.is_dir() else []:
@@ -190,13 +203,19 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             output_dir,
         )
     previous = previous_run(output_dir)
-    if ckpt_arg is None and previous is not None:
+    elsewhere = ckpt_arg not in (None, "last") and ckpt is not None and not _in_folder(Path(ckpt), output_dir)
+    if (ckpt_arg is None or elsewhere) and previous is not None:
         if not overwrite:
-            raise RunFolderError(
-                f"{output_dir} already holds a run ({rel(previous)}); resume it with ckpt_path=last, replace it "
-                "with overwrite=true, or train elsewhere (hydra.run.dir=...)"
+            started = (
+                "" if ckpt_arg is None else f"; {ckpt} is another run's checkpoint (continue that run in its folder)"
             )
-        return [output_dir / name for name in RUN_OUTPUTS if (output_dir / name).exists()]
+            raise RunFolderError(
+                f"{output_dir} already holds a run ({rel(previous)}){started}; resume it with ckpt_path=last, replace "
+                "it with overwrite=true, or train elsewhere (hydra.run.dir=...)"
+            )
+        outputs = [output_dir / name for name in RUN_OUTPUTS if (output_dir / name).exists()]
+        _check_replaceable(outputs, output_dir)
+        return outputs
     if ckpt_arg != "last" and previous is None and not overwrite:
         records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
         if records:
@@ -213,6 +232,40 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
                 "overwrite=true to go on, or train elsewhere (hydra.run.dir=...)"
             )
     return []
+
+
+def _in_folder(ckpt: Path, output_dir: Path) -> bool:
+    """Whether ``ckpt`` is one of ``output_dir``'s own checkpoints (in its ``checkpoints/``, through any links)."""
+    return os.path.realpath(ckpt.parent) == os.path.realpath(output_dir / RUN_OUTPUTS[0])
+
+
+def _check_replaceable(outputs: list[Path], output_dir: Path) -> None:
+    """Refuse to replace outputs that hold what a run does not write (:data:`RUN_FOLDER_FILES`), or that are links
+    (the run would write through them into the folder they lead to).
+
+    Raises:
+        RunFolderError: names the first few such entries.
+    """
+    for path in outputs:
+        if path.is_symlink():
+            raise RunFolderError(
+                f"overwrite=true: {path} is a link to {os.path.realpath(path)}, which a run does not replace; remove "
+                "the link or train elsewhere (hydra.run.dir=...)"
+            )
+    foreign = [
+        entry
+        for path in outputs
+        if path.is_dir() and path.name in RUN_FOLDER_FILES
+        for entry in sorted(path.iterdir())
+        if not any(fnmatch.fnmatchcase(entry.name, p) for p in RUN_FOLDER_FILES[path.name])
+    ]
+    if foreign:
+        names = ", ".join(str(p.relative_to(output_dir)) for p in foreign[:4])
+        more = f" and {len(foreign) - 4} more" if len(foreign) > 4 else ""
+        raise RunFolderError(
+            f"overwrite=true would delete {names}{more}, which unicorn-train did not write: move them out of "
+            f"{output_dir}'s run folders first"
+        )
 
 
 def set_aside(paths: list[Path], output_dir: Path) -> Path | None:
