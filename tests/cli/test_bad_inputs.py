@@ -160,6 +160,11 @@ SETTING_CASES = [
         ["model.texture.size=65536"],
         r"model\.texture\.size=65536 needs 4,294,967,296 pixels .*\(UNICORN_MAX_IMAGE_PIXELS; 0: no limit\)$",
     ),
+    (  # scored after training: refused before it, not once the run is done
+        "final-points-huge",
+        ["evaluate.enabled=true", "evaluate.num_points=20000000"],
+        r"evaluate\.num_points=20000000 needs 20,000,000 points \(points sampled on each mesh\), above the limit",
+    ),
     ("checkpoint-dev-zero", ["ckpt_path=/dev/zero"], r"ckpt_path: /dev/zero is not a regular file"),
     (
         "checkpoint-of-another-model",

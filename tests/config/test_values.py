@@ -40,6 +40,19 @@ CASES = [
         r"image_size must be a whole number >= 1, got 'abc'",
     ),
     ("mode", [*SYNTHETIC, "dataset.synthetic.mode=bogus"], r"mode must be 'nmr' or 'wild', got 'bogus'"),
+    # an empty list wrote an empty dataset into the shared cache, then blamed its metadata.yaml
+    ("no-categories", [*SYNTHETIC, "dataset.categories=[]"], r"dataset.synthetic: no synthetic category given"),
+    ("no-stages", [*SYNTHETIC, "model.stages.texture=[]"], r"model.stages.texture needs 4 sizes .*, got \[\]$"),
+    (
+        "memory-huge",
+        [*SYNTHETIC, "model.loss.memory_size=2000000000"],
+        r"model.loss.memory_size must be in \[1, 100000\], got 2000000000",
+    ),
+    (
+        "mean-shape-huge",
+        [*SYNTHETIC, "callbacks.heldout.mean_shape_iterations=1000000000"],
+        r"callbacks.heldout.mean_shape_iterations must be in \[0, 100000\], got 1000000000",
+    ),
     ("category", [*SYNTHETIC, "dataset.categories=unicorns"], r"unknown synthetic category 'unicorns'"),
     ("unknown-setting", [*SYNTHETIC, "+dataset.synthetic.colour=red"], r"unknown setting 'colour'"),
     ("roll-in-nmr", [*SYNTHETIC, "+dataset.synthetic.roll=5"], r"roll=5 is for the wild mode"),

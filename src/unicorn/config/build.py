@@ -173,6 +173,14 @@ def _check_model(cfg: DictConfig) -> None:
         m.compile_scope != "step" or cfg.optim.sync_free is not False,
         "model.compile_scope=step compiles the steps without host reads, but optim.sync_free is false",
     )
+    # before the model config, which reads each first stage's size
+    codes = {name: m[name].code_dim for name in CODE_BRANCHES if m[name] is not None}  # no background model: None
+    for name, code_dim in codes.items():
+        dims = list(m.stages[name])
+        key = f"model.stages.{name}"
+        _check(len(dims) == N_STAGES, f"{key} needs {N_STAGES} sizes (one per stage), got {dims}")
+        _check(all(0 <= d <= code_dim for d in dims), f"{key} = {dims} must lie in [0, {name} code_dim={code_dim}]")
+        _check(all(a <= b for a, b in zip(dims, dims[1:])), f"{key} = {dims} must not decrease")
     try:
         config = model_config(cfg)
         check_model_config(config, prefix="model.")
@@ -187,20 +195,13 @@ def _check_model(cfg: DictConfig) -> None:
         cfg.dataset.batch_size <= m.loss.memory_size,
         f"dataset.batch_size ({cfg.dataset.batch_size}) exceeds model.loss.memory_size ({m.loss.memory_size})",
     )
-    codes = {name: m[name].code_dim for name in CODE_BRANCHES if m[name] is not None}  # no background model: None
-    for name, code_dim in codes.items():
-        dims = list(m.stages[name])
-        key = f"model.stages.{name}"
-        _check(len(dims) == N_STAGES, f"{key} needs {N_STAGES} sizes (one per stage), got {dims}")
-        _check(all(0 <= d <= code_dim for d in dims), f"{key} = {dims} must lie in [0, {name} code_dim={code_dim}]")
-        _check(all(a <= b for a, b in zip(dims, dims[1:])), f"{key} = {dims} must not decrease")
 
 
 def _check_sizes(cfg: DictConfig) -> None:
     """Bound what the settings make the run allocate, before anything is built (the limits the commands share:
     :func:`unicorn.checks.check_limit`): a training image and a texture map against the image limits, the model
     against ``UNICORN_MAX_MODEL_PARAMS``, the pose step's render (a batch times the pose candidates) against the
-    renderer's fragment limit.
+    renderer's fragment limit, and the point counts of the evaluation after training.
 
     Raises:
         unicorn.checks.SizeLimitError: the message names the setting and the limit.
@@ -208,9 +209,13 @@ def _check_sizes(cfg: DictConfig) -> None:
     from unicorn.checks import SizeLimitError
     from unicorn.data.images import check_image_size
     from unicorn.geometry.cameras import PerspectiveCamera
+    from unicorn.metrics.sampling import check_point_count
     from unicorn.render import RenderSizeError, build_renderer, check_render_size
 
     d, m = cfg.dataset, cfg.model
+    if cfg.get("evaluate") is not None and cfg.evaluate.get("enabled", False):  # scored after training: checked now
+        for key in ("num_points", "shape_points"):
+            check_point_count(f"evaluate.{key}={cfg.evaluate[key]}", cfg.evaluate[key])
     check_image_size(f"dataset.img_size={d.img_size}", "a training image", d.img_size)
     check_image_size(f"model.texture.size={m.texture.size}", "a texture map", m.texture.size)
     config = model_config(cfg)

@@ -87,6 +87,8 @@ SHAPE_POINTS = 2000
 
 
 # ---------------------------------------------------------------------------------------------- model
+
+
 @dataclass
 class StageDimsConfig:
     """Active code sizes in stages 1 to 4 (the reference's small real-image model by default)."""
@@ -282,6 +284,10 @@ class ImagesConfig:
     save_png: bool = True  # also <run>/images/step=N.png
 
 
+#: the most Adam steps of a mean-shape fit (``mean_shape_iterations``; 300-3000 are typical)
+MAX_MEAN_SHAPE_ITERATIONS = 100_000
+
+
 @dataclass
 class EvalSettings:
     """What an evaluation scores and how finely: the settings ``unicorn-eval``, the evaluation after training
@@ -294,7 +300,8 @@ class EvalSettings:
     num_points: int = ranged(FAST_EVAL["num_points"], 1)  # points per mesh for Chamfer
     icp_iterations: int = ranged(FAST_EVAL["icp_iterations"], 0)  # 0: no -ICP metrics
     batch_size: int = ranged(EVAL_BATCH_SIZE, 1)
-    mean_shape_iterations: int = ranged(0, 0)  # > 0: score the training shapes' mean shape beside the model
+    # > 0: score the training shapes' mean shape beside the model (a fit of that many Adam steps)
+    mean_shape_iterations: int = ranged(0, 0, MAX_MEAN_SHAPE_ITERATIONS)
     own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
     shape_points: int = ranged(SHAPE_POINTS, 0)  # > 0: shape retrieval among the evaluated objects, points per shape
 

@@ -85,6 +85,11 @@ def allowed_values(key: str) -> tuple[Any, ...]:
     return allowed() if callable(allowed) else allowed
 
 
+#: the most rows of the neighbour memory (``loss.memory_size``; the reference's 1024): a row holds an image's codes
+#: and pose, a few KB, so that the bound keeps the memory under a few GB
+MAX_MEMORY_SIZE = 100_000
+
+
 @dataclass
 class EncoderConfig:
     shared: bool = True  # one ResNet-18 for all branches (False: one per branch, the big model)
@@ -233,7 +238,7 @@ class LossConfig:
     viewpoint_mix: float = ranged(0.5, 0, 1)
     viewpoint_azimuth_only: bool = False
     neighbor_weight: float = ranged(1.0, 0)
-    memory_size: int = ranged(1024, 1)
+    memory_size: int = ranged(1024, 1, MAX_MEMORY_SIZE)
     n_bins: int = ranged(5, 1)
     min_angle: float = ranged(20.0, 0, 180)
 

@@ -194,7 +194,7 @@ def check_synthetic_settings(categories: str | Sequence[str] | None, settings: M
     unknown = sorted(set(settings) - set(known))
     if unknown:
         raise DatasetError(f"unknown setting {unknown[0]!r}; the settings are {list(known)}")
-    _category_list(categories or "chair")
+    _category_list("chair" if categories is None else categories)
 
     def whole(key: str, low: int, high: float = math.inf) -> int | None:
         value = settings.get(key)
