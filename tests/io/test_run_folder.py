@@ -3,6 +3,7 @@ undoing what a failed run wrote."""
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -34,6 +35,20 @@ def test_ckpt_path_must_be_a_file(tmp_path) -> None:
     (tmp_path / "a.ckpt").write_bytes(b"x")
     assert resolve_ckpt(str(tmp_path / "a.ckpt"), tmp_path / "checkpoints") == str(tmp_path / "a.ckpt")
     assert resolve_ckpt("last", tmp_path / "checkpoints") is None  # no last.ckpt yet: from scratch
+    with pytest.raises(UserError, match=r"^ckpt_path is empty: name a checkpoint file, or last"):
+        resolve_ckpt("", tmp_path / "checkpoints")  # was taken for the current directory
+
+
+def test_last_in_a_folder_without_a_run_warns_that_it_resumes_nothing(tmp_path, caplog) -> None:
+    with caplog.at_level(logging.INFO, logger="unicorn.train"):
+        assert resolve_ckpt("last", tmp_path / "new" / "checkpoints") is None
+        (tmp_path / "run" / "checkpoints").mkdir(parents=True)  # a run killed before its first checkpoint
+        assert resolve_ckpt("last", tmp_path / "run" / "checkpoints") is None
+    levels = [(r.levelname, r.getMessage().split(",")[0]) for r in caplog.records]
+    assert levels == [
+        ("WARNING", f"ckpt_path=last: {tmp_path / 'new'} holds no run to resume"),
+        ("INFO", f"ckpt_path=last: no {tmp_path / 'run' / 'checkpoints' / 'last.ckpt'} yet"),
+    ]
 
 
 def test_last_without_last_ckpt_is_the_newest_step_file_when_none_is_written(tmp_path) -> None:

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from unicorn.errors import UserError
-from unicorn.io.serialization import check_checkpoint_path
+from unicorn.io.serialization import CheckpointNotFoundError, check_checkpoint_path
 
 __all__ = [
     "LOCK_NAME",
@@ -133,6 +133,8 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
     """
     if ckpt_path is None:
         return None
+    if not str(ckpt_path).strip():
+        raise CheckpointNotFoundError("ckpt_path is empty: name a checkpoint file, or last to resume this folder's run")
     if ckpt_path == "last":
         last = checkpoint_dir / "last.ckpt"
         if save_last and last.is_file():
@@ -144,7 +146,14 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
             newest = max(found, key=lambda item: item[0])[1]
             log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
             return str(newest)
-        log.info("ckpt_path=last: no %s yet, training from scratch", last)
+        if not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
+            log.warning(
+                "ckpt_path=last: %s holds no run to resume, training from scratch (to resume a run, name its folder: "
+                "hydra.run.dir=<run dir>)",
+                checkpoint_dir.parent,
+            )
+        else:
+            log.info("ckpt_path=last: no %s yet, training from scratch", last)
         return None
     return str(check_checkpoint_path(Path(ckpt_path).expanduser().resolve(), "ckpt_path"))
 
