@@ -204,3 +204,21 @@ def test_the_first_process_is_global_rank_zero_whoever_launched_it(monkeypatch, 
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     assert is_first_process() is first
+
+
+def test_a_resume_past_max_steps_says_that_nothing_is_trained(tmp_path, caplog) -> None:
+    from unicorn.lit.run import check_resumed_settings
+
+    typed = validate(compose_config(["experiment=synthetic", "trainer.max_steps=10", f"paths.output_dir={tmp_path}"]))
+    ckpt = tmp_path / "step=0000044.ckpt"  # the iteration is read from the name
+    ckpt.write_bytes(b"x")
+    with caplog.at_level("WARNING", logger="unicorn.train"):
+        check_resumed_settings(typed, ckpt)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"ckpt_path: {ckpt} is at iteration 44, past trainer.max_steps=10: nothing is trained (raise "
+        "trainer.max_steps to train on)"
+    ]
+    caplog.clear()
+    typed = validate(compose_config(["experiment=synthetic", "trainer.max_steps=44", f"paths.output_dir={tmp_path}"]))
+    check_resumed_settings(typed, ckpt)
+    assert caplog.records == []  # a finished run resumed to end it: nothing to say

@@ -180,7 +180,8 @@ _RESUME_SETTINGS = ("ckpt_path", "overwrite", "trust_checkpoint", "paths", "trai
 def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     """Compare a resumed run's settings with the ``config.yaml`` of the run its checkpoint comes from: the
     optimisation settings the checkpoint holds (:data:`RESUMED_OPTIM`) must be the same; any other change is
-    logged, key by key (nothing when the checkpoint's run recorded no config).
+    logged, key by key (nothing when the checkpoint's run recorded no config). A checkpoint past
+    ``trainer.max_steps`` is said in a warning: the run trains nothing.
 
     Raises:
         unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use.
@@ -188,8 +189,17 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     import yaml
 
     from unicorn.config import ConfigError
-    from unicorn.io.run_folder import run_config, run_of_checkpoint
+    from unicorn.io.run_folder import checkpoint_step, run_config, run_of_checkpoint
 
+    step = checkpoint_step(ckpt_path)
+    if step is not None and step > typed.trainer.max_steps:
+        log.warning(
+            "ckpt_path: %s is at iteration %d, past trainer.max_steps=%d: nothing is trained (raise "
+            "trainer.max_steps to train on)",
+            ckpt_path,
+            step,
+            typed.trainer.max_steps,
+        )
     run_dir = run_of_checkpoint(ckpt_path)
     before = run_config(run_dir)
     if before is None:
