@@ -429,6 +429,17 @@ def test_a_read_only_run_folder_is_one_line(tmp_path):
     )
     assert _hydra_failure(report) == "[Errno 30] Read-only file system: '/ro/run'"
     assert _hydra_failure(report.replace("OSError", "ZeroDivisionError")) is None  # a bug: the traceback stays
+    # an existing folder on a read-only disk: logging cannot open the run's log
+    chained = report.replace(
+        "'/ro/run'\n",
+        "'/ro/run/train.log'\n\nThe above exception was the direct cause of the following exception:\n\n"
+        'Traceback (most recent call last):\n  File "y.py", line 2\n'
+        "ValueError: Unable to configure handler 'file'\n",
+    )
+    assert (
+        _hydra_failure(chained) == "cannot write the run's log: [Errno 30] Read-only file system: '/ro/run/train.log'"
+    )
+    assert _hydra_failure(chained.replace("OSError", "KeyError")) is None
     assert _hydra_failure("Could not override 'optim.lrr'.\nKey 'lrr' is not in struct") == (
         "Could not override 'optim.lrr'. Key 'lrr' is not in struct"
     )

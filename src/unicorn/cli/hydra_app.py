@@ -103,7 +103,8 @@ def hydra_failure(text: str) -> str | None:
     """The one line to print for what Hydra reported before the task ran, or None when it is a bug.
 
     Without a traceback it is a composition error (a misspelt override or group); with one, an expected failure
-    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk).
+    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk), or
+    in logging's failure to open the run's log that an ``OSError`` caused.
     """
     lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
     if not any(line.startswith("Traceback (most recent call last)") for line in lines):
@@ -112,10 +113,19 @@ def hydra_failure(text: str) -> str | None:
             line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=10.ckpt\"')"
         return line
     match = _EXCEPTION_LINE.match(lines[-1])
-    cls = getattr(builtins, match.group(1), None) if match else None
-    if match and isinstance(cls, type) and issubclass(cls, OSError):
+    if match and _is_os_error(match):
         return match.group(2)
+    if match and match.group(2).startswith("Unable to configure handler"):  # the run's log, from an OSError
+        causes = [m for m in map(_EXCEPTION_LINE.match, lines) if m and _is_os_error(m)]
+        if causes:
+            return f"cannot write the run's log: {causes[-1].group(2)}"
     return None
+
+
+def _is_os_error(match: re.Match[str]) -> bool:
+    """Whether an exception line of a traceback (:data:`_EXCEPTION_LINE`) names an ``OSError``."""
+    cls = getattr(builtins, match.group(1), None)
+    return isinstance(cls, type) and issubclass(cls, OSError)
 
 
 class _HeldStream(io.TextIOBase):
