@@ -966,3 +966,19 @@ def test_a_signal_to_every_ddp_process_while_they_start_stops_the_run_in_one_lin
     assert f"unicorn-train: stopped by {name} before the first iteration; {run} is left as it was" in stderr
     assert "Traceback" not in stderr and "frame #" not in stderr, stderr[-3000:]
     assert not run.exists()
+
+
+@pytest.mark.timeout(300)
+def test_a_console_that_goes_away_is_not_an_error_of_every_log_record(tmp_path):
+    """``unicorn-train ... | head -1``: the console's reader is gone after the first line; the run goes on, its
+    records still reach train.log, and stderr does not fill with logging's tracebacks."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.getcwd()}
+    args = [sys.executable, "-m", "unicorn.cli.train", *TINY, "trainer.max_steps=2", "hydra.run.dir=run"]
+    with subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE) as proc:
+        proc.stdout.readline()
+        proc.stdout.close()  # as head does after its line
+        err = proc.stderr.read().decode()
+    assert proc.returncode == 0, err
+    assert "Logging error" not in err and "BrokenPipeError" not in err, err
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()
+    assert len((tmp_path / "run" / "train.log").read_text().splitlines()) > 5  # the records after the first line

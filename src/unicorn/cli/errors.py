@@ -37,6 +37,7 @@ from unicorn.errors import Interrupted, UnicornWarning, UserError, interrupt_on_
 
 __all__ = [
     "USER_ERRORS",
+    "ConsoleStream",
     "UsageError",
     "add_debug_argument",
     "debug_requested",
@@ -47,6 +48,7 @@ __all__ = [
     "positive_int",
     "report_errors",
     "seed_number",
+    "tolerate_closed_stdout",
     "whole_number",
 ]
 
@@ -243,6 +245,47 @@ def _thread_errors(prog: str, debug: bool) -> Iterator[None]:
         threading.excepthook = previous
 
 
+class ConsoleStream:
+    """A console stream (``sys.stdout``) whose reader may go away (``| head``, a closed terminal): the first write
+    that finds the pipe broken points the stream's file descriptor at ``/dev/null`` and the command goes on
+    writing there, where a ``BrokenPipeError`` would stop it (a progress bar's) or fill stderr (each log record's).
+    Everything else is the wrapped stream's."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._reader_gone()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._reader_gone()
+
+    def _reader_gone(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())  # what the stream still holds is flushed there too, at exit
+        os.close(devnull)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._stream, name)
+
+
+def tolerate_closed_stdout() -> None:
+    """Wrap ``sys.stdout`` in a :class:`ConsoleStream` (once), before anything keeps a reference to it."""
+    if not isinstance(sys.stdout, ConsoleStream) and hasattr(sys.stdout, "fileno"):
+        try:
+            sys.stdout.fileno()
+        except (OSError, ValueError):  # not a file (a test's capture): nothing to point elsewhere
+            return
+        sys.stdout = ConsoleStream(sys.stdout)  # type: ignore[assignment]
+
+
 def report_errors(
     prog: str,
     func: Callable[[], int],
@@ -262,6 +305,7 @@ def report_errors(
         debug: re-raise user errors (traceback) instead.
         cleanup: called before reporting any error (e.g. to remove a half-created output folder).
     """
+    tolerate_closed_stdout()
     try:
         with interrupt_on_signal(), log_warnings(), _thread_errors(prog, debug):
             return func()

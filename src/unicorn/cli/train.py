@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING
 from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
+from unicorn.cli.errors import tolerate_closed_stdout
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.resources import config_dir
@@ -337,6 +338,7 @@ def main() -> None:
     if note:
         print(note, file=sys.stderr, flush=True)
     tune_allocator()
+    tolerate_closed_stdout()  # ``unicorn-train ... | head``: training goes on, its records still reach train.log
     from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
 
     store_schema()  # conf/train.yaml's defaults list starts with the schema
