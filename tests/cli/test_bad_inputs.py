@@ -165,6 +165,11 @@ SETTING_CASES = [
         ["evaluate.enabled=true", "evaluate.num_points=20000000"],
         r"evaluate\.num_points=20000000 needs 20,000,000 points \(points sampled on each mesh\), above the limit",
     ),
+    (  # the log and .hydra/ went to the run folder, the checkpoints and the CSV elsewhere
+        "output-dir-elsewhere",
+        ["paths.output_dir=elsewhere"],
+        r"paths\.output_dir=\S+elsewhere is not the run's folder \S+, where its log goes: choose the folder with",
+    ),
     ("checkpoint-dev-zero", ["ckpt_path=/dev/zero"], r"ckpt_path: /dev/zero is not a regular file"),
     (
         "checkpoint-of-another-model",

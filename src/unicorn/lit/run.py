@@ -156,6 +156,7 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
     from unicorn.io.run_folder import plan_folder, resolve_ckpt
 
     output_dir = Path(typed.paths.output_dir).expanduser().resolve()
+    _check_one_run_folder(output_dir)
     checkpoint_dir = output_dir / "checkpoints"
     ckpt_path = resolve_ckpt(typed.ckpt_path, checkpoint_dir, typed.callbacks.checkpoint.save_last)
     if not is_first_process():  # a DDP process Lightning started, after the first one accepted the folder
@@ -165,6 +166,28 @@ def check_run_folder(typed: DictConfig) -> tuple[Path, Path, str | None, list[Pa
         check_resumed_settings(typed, Path(ckpt_path))
     read_run_starts(output_dir / "provenance.json")  # the run adds its start to them
     return output_dir, checkpoint_dir, ckpt_path, outdated
+
+
+def _check_one_run_folder(output_dir: Path) -> None:
+    """Under Hydra, refuse a ``paths.output_dir`` other than the folder Hydra made for the run (``hydra.run.dir``),
+    where it writes ``train.log`` and ``.hydra/``: the run would be split between two folders, and the checks and
+    the lock would cover only one.
+
+    Raises:
+        unicorn.config.ConfigError: names both folders.
+    """
+    from hydra.core.hydra_config import HydraConfig
+
+    from unicorn.config import ConfigError
+
+    if not HydraConfig.initialized():
+        return
+    made = Path(HydraConfig.get().runtime.output_dir).expanduser().resolve()
+    if made != output_dir:
+        raise ConfigError(
+            f"paths.output_dir={output_dir} is not the run's folder {made}, where its log goes: choose the folder "
+            "with hydra.run.dir=... (hydra.sweep.dir=... in a sweep) and leave paths.output_dir as it is"
+        )
 
 
 #: the optimisation settings a resumed run takes from its checkpoint (Adam's and the schedule's saved states
