@@ -20,6 +20,8 @@ COMMAND_LINES = [
     ["--info", "defaults", "~callbacks.images"],
     ["--cfg", "job", "~callbacks.images", "--package", "model"],
     ["--config-dir=my_conf", "+experiment=mine", "--resolve"],
+    ["--info"],  # no topic: the app's overrides were taken for it
+    ["--cfg", "job", "--info"],
 ]
 
 

@@ -199,8 +199,9 @@ class HydraApp:
                 self.record_subdir = None if value in ("", "null") or key.startswith("~") else value
             else:
                 rest.append(arg)
-        # beside the user's overrides: argparse takes Hydra's overrides as one run of positional arguments
-        at = next((i for i in range(len(rest)) if _is_override(rest, i)), len(rest))
+        # beside the user's overrides: argparse takes Hydra's overrides as one run of positional arguments; without
+        # any, first (after the options, an option missing its value, such as --info's topic, would take them)
+        at = next((i for i in range(len(rest)) if _is_override(rest, i)), 0)
         return [*rest[:at], *APP_OVERRIDES, *rest[at:]]
 
     def save_record(self, cfg: DictConfig, output_dir: Path) -> None:
