@@ -39,3 +39,13 @@ def test_a_users_output_subdir_is_kept_for_the_record():
     app = HydraApp("unicorn-train", Path("."), "train")
     assert app.hydra_args(["hydra.output_subdir=rec", "seed=1"]) == [*APP_OVERRIDES, "seed=1"]
     assert app.record_subdir == "rec"
+
+
+@pytest.mark.parametrize("value", ["~/runs/a", '"~/runs/a"', "'~/runs/a'"], ids=["plain", "double", "single"])
+@pytest.mark.parametrize("key", ["hydra.run.dir", "hydra.sweep.dir", "+hydra.run.dir"])
+def test_a_run_folder_under_the_home_folder_is_expanded_as_in_a_shell(monkeypatch, key, value):
+    monkeypatch.setenv("HOME", "/home/me")
+    quote = value[0] if value[0] in "'\"" else ""
+    args = HydraApp("unicorn-train", Path("."), "train").hydra_args([f"{key}={value}", "seed=1"])
+    assert args == [*APP_OVERRIDES, f"{key}={quote}/home/me/runs/a{quote}", "seed=1"]  # not ./~/runs/a
+    assert HydraApp("unicorn-train", Path("."), "train").hydra_args(["hydra.run.dir=a~b"])[-1] == "hydra.run.dir=a~b"

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import builtins
 import io
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -166,6 +167,18 @@ _VALUE_OPTIONS = {
 _INFO_TOPICS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
 
 
+#: the overrides naming a folder Hydra creates, where ``~`` means the home folder as in a shell
+_FOLDER_KEYS = ("hydra.run.dir", "hydra.sweep.dir")
+
+
+def _home_expanded(value: str) -> str:
+    """An override's value with a leading ``~`` expanded (``"~/runs"`` quoted or not): Hydra would create a folder
+    named ``~`` in the current one."""
+    quote = value[0] if value[:1] in ("'", '"') and value[-1:] == value[:1] and len(value) > 1 else ""
+    inner = value[1:-1] if quote else value
+    return f"{quote}{os.path.expanduser(inner)}{quote}" if inner.startswith("~") else value
+
+
 def _is_override(args: list[str], i: int) -> bool:
     """Whether ``args[i]`` is one of Hydra's positional overrides (not an option nor an option's value)."""
     if args[i].startswith("-"):
@@ -197,6 +210,8 @@ class HydraApp:
             key, _, value = arg.partition("=")
             if key.lstrip("+~") == "hydra.output_subdir":
                 self.record_subdir = None if value in ("", "null") or key.startswith("~") else value
+            elif key.lstrip("+") in _FOLDER_KEYS:
+                rest.append(f"{key}={_home_expanded(value)}")
             else:
                 rest.append(arg)
         # beside the user's overrides: argparse takes Hydra's overrides as one run of positional arguments; without
