@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from tests.support.training import compose_config, unicorn_train
+from tests.support.training import TINY, compose_config, unicorn_train
 from unicorn.cli import train
 from unicorn.cli.train import experiment_overrides, hydra_argv
 from unicorn.config import validate
@@ -176,3 +177,18 @@ def test_keys_of_a_preset_that_names_only_some_of_a_group_are_overridden_without
         )
     )
     assert off.callbacks.heldout is None
+
+
+def test_the_recorded_command_of_a_run_with_a_config_dir_composes_again(tmp_path):
+    (tmp_path / "my_conf" / "experiment").mkdir(parents=True)
+    (tmp_path / "my_conf" / "experiment" / "tiny.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - synthetic\ntask_name: tiny\n"
+    )
+    overrides = [o for o in TINY if not o.startswith("experiment=")]
+    result = unicorn_train("-cd", "my_conf", "+experiment=tiny", *overrides, "hydra.run.dir=run", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    command = json.loads((tmp_path / "run" / "provenance.json").read_text())[0]["command"]
+    prog, *args = shlex.split(command)
+    assert prog == "unicorn-train" and args[:2] == ["--config-dir", str(tmp_path / "my_conf")]
+    again = unicorn_train("--cfg", "job", *args, cwd=tmp_path / "run")  # elsewhere: the folder is absolute
+    assert again.returncode == 0 and "task_name: tiny" in again.stdout, again.stderr[-2000:]

@@ -315,14 +315,23 @@ def is_first_process() -> bool:
 
 
 def _run_command() -> str:
-    """The command that trains this run as the user gave it: ``unicorn-train`` and the job's overrides (a sweep's
-    values for this job; none of Hydra's own), or the Python command of a run built without Hydra."""
+    """The command that trains this run as the user gave it: ``unicorn-train``, the config folders given with
+    ``--config-dir`` and the job's overrides (a sweep's values for this job; none of Hydra's own), or the Python
+    command of a run built without Hydra."""
     from hydra.core.hydra_config import HydraConfig
 
     from unicorn.io.provenance import command_line
 
     if HydraConfig.initialized():
-        return command_line("unicorn-train", list(HydraConfig.get().overrides.task))
+        hydra_cfg = HydraConfig.get()
+        # a config folder given with --config-dir (-cd): the experiments it holds are not found without it
+        folders = [
+            source.path.removeprefix("file://")
+            for source in hydra_cfg.runtime.config_sources
+            if source.provider == "command-line" and source.schema == "file"
+        ]
+        options = [arg for folder in folders for arg in ("--config-dir", folder)]
+        return command_line("unicorn-train", [*options, *hydra_cfg.overrides.task])
     return command_line(Path(sys.argv[0]).name, sys.argv[1:])  # built from Python (e.g. with Hydra's compose API)
 
 
