@@ -8,6 +8,7 @@ import shlex
 import subprocess
 from pathlib import Path
 
+import pytest
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
@@ -192,3 +193,21 @@ def test_the_recorded_command_of_a_run_with_a_config_dir_composes_again(tmp_path
     assert prog == "unicorn-train" and args[:2] == ["--config-dir", str(tmp_path / "my_conf")]
     again = unicorn_train("--cfg", "job", *args, cwd=tmp_path / "run")  # elsewhere: the folder is absolute
     assert again.returncode == 0 and "task_name: tiny" in again.stdout, again.stderr[-2000:]
+
+
+@pytest.mark.parametrize(
+    "args, refused",
+    [
+        (["-m", "experiment=synthetic,synthetic_wild"], True),
+        (["--multirun", "+experiment=synthetic,cub", "seed=1"], True),
+        (["-m", "experiment=choice(synthetic,cub)"], True),
+        (["-m", "experiment=synthetic,synthetic_wild", "hydra.sweep.dir=sweep"], False),
+        (["-m", "experiment=synthetic", "seed=1,2"], False),  # one experiment: one task name
+        (["experiment=synthetic,synthetic_wild"], False),  # not a sweep: Hydra's own error
+    ],
+)
+def test_a_sweep_over_experiments_needs_one_folder(args, refused):
+    problem = train.sweep_problem(args)
+    assert (problem is not None) == refused
+    if refused:
+        assert "a sweep over experiments needs one folder for all its jobs, hydra.sweep.dir=DIR" in problem

@@ -323,6 +323,21 @@ def argument_note(args: list[str]) -> str | None:
     )
 
 
+def sweep_problem(args: list[str]) -> str | None:
+    """What keeps a sweep (``-m``) over several experiments from being one sweep, or None: each job's folder is
+    under its own experiment's (``outputs/<task_name>/multiruns/<time>/<job>``), so that the sweep's record and its
+    jobs lie in different folders and no one ``hydra.sweep.dir`` resumes them all; it needs a folder of its own."""
+    if not any(arg in ("-m", "--multirun") for arg in args):
+        return None
+    swept = [a for a in args if a.lstrip("+").startswith("experiment=") and any(c in a for c in ",(")]
+    if not swept or any(a.lstrip("+").startswith("hydra.sweep.dir=") for a in args):
+        return None
+    return (
+        f"{swept[0]}: a sweep over experiments needs one folder for all its jobs, hydra.sweep.dir=DIR (by default "
+        "each job goes under its own experiment's folder, and no one folder resumes the sweep)"
+    )
+
+
 def main() -> None:
     """Console-script entry point (``unicorn-train``)."""
     global _app
@@ -334,6 +349,10 @@ def main() -> None:
 
         print(f"unicorn-train (unicorn3d) {__version__}")
         return
+    problem = sweep_problem(args)
+    if problem:
+        print(f"unicorn-train: error: {problem}", file=sys.stderr)
+        sys.exit(2)
     note = argument_note(args)
     if note:
         print(note, file=sys.stderr, flush=True)
