@@ -41,6 +41,20 @@ def test_fit_mean_shape_recovers_a_single_shape() -> None:
     assert off_after.mean() < 0.15 * off_before.mean() and (fitted.norm(dim=1) - 0.3).abs().max() < 0.03
 
 
+def test_a_fit_asked_to_stop_ends_before_its_next_iteration() -> None:
+    cloud = _surface_points(trimesh.creation.icosphere(3, radius=0.3), 500, seed=0)
+    asked = []
+
+    def after_three() -> bool:  # a signal during the third iteration
+        asked.append(len(asked))
+        return len(asked) > 3
+
+    assert fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], iterations=1000, should_stop=after_three) is None
+    assert len(asked) == 4  # three iterations run, the fourth not begun
+    never = fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], iterations=5, should_stop=lambda: False)
+    assert torch.equal(never, fit_mean_shape(TEMPLATE_VERTS, TEMPLATE_FACES, [cloud], iterations=5))
+
+
 def test_fit_mean_shape_beats_every_single_shape() -> None:
     # two boxes, long along X and along Z: no single one of them is the best compromise
     boxes = [trimesh.creation.box(extents=e) for e in ((0.8, 0.3, 0.3), (0.3, 0.3, 0.8))]

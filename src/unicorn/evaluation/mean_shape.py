@@ -4,7 +4,7 @@ the evaluation's ``chamfer-L1-ICP-mean-shape``."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tqdm.auto import tqdm
@@ -59,7 +59,8 @@ def fit_mean_shape(
     shapes_per_step: int = 16,
     seed: int = 0,
     progress: bool = False,
-) -> torch.Tensor:
+    should_stop: Callable[[], bool] | None = None,
+) -> torch.Tensor | None:
     """The single mesh (template topology) closest on average to a set of shapes, in their object frame.
 
     Per-vertex offsets of the template are optimised with Adam (learning rate cosine-annealed to a tenth) to
@@ -84,9 +85,11 @@ def fit_mean_shape(
         shapes_per_step: shapes per iteration.
         seed: seed of the subsampling, the mini-batches and the surface samples.
         progress: show a progress bar.
+        should_stop: asked before each iteration; True ends the fit there (a run stopped by a signal).
 
     Returns:
-        (V, 3) fitted vertices (detached), on the template's device and dtype.
+        (V, 3) fitted vertices (detached), on the template's device and dtype; None when ``should_stop`` ended
+        the fit.
 
     Raises:
         ValueError: malformed template, faces or clouds, no clouds, or invalid settings.
@@ -109,7 +112,7 @@ def fit_mean_shape(
     with torch.enable_grad():  # callers may be under no_grad (e.g. inside an evaluation)
         return _fit_offsets(
             template_verts.detach(), faces, clouds, generator, iterations, lr, num_points, smooth_weight,
-            normal_weight, shapes_per_step, progress,
+            normal_weight, shapes_per_step, progress, should_stop,
         )  # fmt: skip
 
 
@@ -125,8 +128,10 @@ def _fit_offsets(
     normal_weight: float,
     shapes_per_step: int,
     progress: bool,
-) -> torch.Tensor:
-    """:func:`fit_mean_shape`'s optimisation: ``base`` (V, 3) plus Adam-fitted offsets, to the clouds (M, N, 3)."""
+    should_stop: Callable[[], bool] | None = None,
+) -> torch.Tensor | None:
+    """:func:`fit_mean_shape`'s optimisation: ``base`` (V, 3) plus Adam-fitted offsets, to the clouds (M, N, 3);
+    None when ``should_stop`` ends it."""
     device, M = base.device, clouds.shape[0]
     faces = faces.long().to(device)
     targets = NearestNeighborIndex(clouds)  # the shapes' search structures, built once for every iteration
@@ -138,6 +143,8 @@ def _fit_offsets(
     b = min(shapes_per_step, M)
     bar = tqdm(range(iterations), desc="mean shape", unit="it", disable=not progress)
     for _ in bar:
+        if should_stop is not None and should_stop():
+            return None
         pick = torch.randperm(M, generator=generator)[:b].to(device) if b < M else None
         target = clouds if pick is None else clouds[pick]  # (b, N, 3)
         verts = (base + offsets).unsqueeze(0)  # (1, V, 3)

@@ -119,8 +119,15 @@ class HeldOutEvaluation(L.Callback):
             template = pl_module.model.template
             with torch.random.fork_rng(devices=[]):  # the fit is seeded; leave the training's streams alone
                 self.mean_shape = fit_mean_shape(
-                    template.verts.detach(), template.faces, clouds, iterations=self.mean_shape_iterations
+                    template.verts.detach(),
+                    template.faces,
+                    clouds,
+                    iterations=self.mean_shape_iterations,
+                    should_stop=lambda: _stop_signalled(trainer),
                 )
+            if self.mean_shape is None:
+                log.info("held-out: the mean-shape fit stopped by a signal: no mean shape is scored")
+                return
             log.info(
                 "held-out: mean shape of %d training shapes fitted (%d iterations)",
                 len(clouds),
@@ -131,7 +138,7 @@ class HeldOutEvaluation(L.Callback):
     @rank_zero_only
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._build_dataset(trainer, pl_module)
-        if self.at_start and trainer.global_step == 0:
+        if self.at_start and trainer.global_step == 0 and not _stop_signalled(trainer):
             self.evaluate_now(trainer, pl_module)
 
     @rank_zero_only
@@ -208,3 +215,11 @@ def append_csv_row(path: Path, row: dict[str, float]) -> None:
         writer.writeheader()
         writer.writerows(rows)
     tmp.replace(path)
+
+
+def _stop_signalled(trainer: L.Trainer) -> bool:
+    """Whether a SIGTERM or SIGINT asked the run to stop (its :class:`~unicorn.lit.signals.GracefulStop`): the
+    set-up's long parts (the mean-shape fit, the first scoring) give way, so that the run stops within seconds."""
+    from unicorn.lit.signals import GracefulStop
+
+    return any(isinstance(c, GracefulStop) and c.received is not None for c in trainer.callbacks)
