@@ -87,8 +87,6 @@ SHAPE_POINTS = 2000
 
 
 # ---------------------------------------------------------------------------------------------- model
-
-
 @dataclass
 class StageDimsConfig:
     """Active code sizes in stages 1 to 4 (the reference's small real-image model by default)."""
