@@ -200,6 +200,28 @@ def test_multirun_sweep(synthetic_cache, tmp_path):
         assert f"seed: {seed}" in (sweep / job / "config.yaml").read_text()
 
 
+def test_a_refused_sweep_leaves_the_sweep_folder_as_it_was(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    ran = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    record = (sweep / "multirun.yaml").read_bytes()
+    # the same sweep again, another setting: its first job is refused before Hydra's record of it is left behind
+    again = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert again.returncode == 2
+    (line,) = error_lines(again.stderr)
+    assert f"{sweep / '0'} already holds a run" in line and line.endswith("train elsewhere (hydra.sweep.dir=...)")
+    assert (sweep / "multirun.yaml").read_bytes() == record and sorted(p.name for p in sweep.iterdir()) == [
+        "0",
+        "1",
+        "multirun.yaml",
+    ]
+    # a sweep refused in a folder of its own: nothing is left of it, nor of the folders Hydra made above it
+    new = tmp_path / "new" / "sweep"
+    bad = unicorn_train("-m", *TINY, "model.loss.memory_size=-3", "seed=1,2", f"hydra.sweep.dir={new}", cwd=tmp_path)
+    assert bad.returncode == 2 and "model.loss.memory_size" in bad.stderr
+    assert not (tmp_path / "new").exists()
+
+
 def test_ddp_two_cpu_processes(synthetic_cache, tmp_path):
     run_dir = tmp_path / "ddp"
     result = unicorn_train(

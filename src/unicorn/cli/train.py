@@ -59,7 +59,7 @@ from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import tolerate_closed_stdout
-from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
+from unicorn.cli.hydra_app import SWEEP_RECORD, HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.resources import config_dir
 
@@ -124,14 +124,18 @@ def _task(cfg: DictConfig) -> None:
                 raise SystemExit(1) from None
             raise
         return
-    _check_local_sweep(cfg)
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
     top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
     changes = [FolderChanges(folder, names, top) for folder, names in entries.items()]
+    if NoteExistingFolders.sweep is not None:  # a sweep none of whose jobs has kept its folder yet
+        sweep, record = NoteExistingFolders.sweep
+        rewritten = {SWEEP_RECORD: record} if record is not None else None
+        changes.append(FolderChanges(sweep, entries_before(sweep), top, rewritten))
     run = None
     with interrupt_on_signal(outside):
         try:
+            _check_local_sweep(cfg)
             run = build(cfg)
             if _app is not None:
                 _app.save_record(cfg, run.output_dir)
@@ -144,11 +148,14 @@ def _task(cfg: DictConfig) -> None:
                 lock.release()
                 _put_back(err, changes, output_dir)
             else:
+                NoteExistingFolders.sweep = None  # the sweep's record now tells how this job ran
                 err = _with_sweep_hint(err)
                 _log_end(err)
             if err is not caught:
                 raise err from caught
             raise
+        else:
+            NoteExistingFolders.sweep = None
         finally:
             lock.release()
 

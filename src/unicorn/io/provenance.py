@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from unicorn.errors import UserError
+from unicorn.io.run_folder import folder_setting
 
 __all__ = ["ProvenanceError", "checkout_state", "command_line", "git_commit", "provenance", "read_run_starts"]
 
@@ -42,7 +43,7 @@ def read_run_starts(path: Path) -> list[Any]:
     if reason:
         raise ProvenanceError(
             f"{path} is not the list of this run's starts ({reason}); repair it or move it away to train in "
-            "this folder, or train elsewhere (hydra.run.dir=...)"
+            f"this folder, or train elsewhere ({folder_setting()}=...)"
         )
     return starts
 

@@ -43,6 +43,7 @@ __all__ = [
     "RunFolderError",
     "checkpoint_step",
     "drop_aside",
+    "folder_setting",
     "put_back_aside",
     "set_aside",
     "later_checkpoints",
@@ -80,6 +81,16 @@ RUN_LOG = "train.log"
 LOCK_NAME = ".unicorn-train.lock"
 #: the periodic checkpoints' names (``step=<N>.ckpt``; ``-v<k>`` for Lightning's copies of a name in use)
 STEP_CHECKPOINT = re.compile(r"step=(\d+)(-v\d+)?\.ckpt")
+
+
+def folder_setting() -> str:
+    """The setting that names a run's folder, as the refusals tell the user to change it: ``hydra.sweep.dir`` in a
+    job of a sweep (``-m``; Hydra ignores ``hydra.run.dir`` there), else ``hydra.run.dir``."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    return "hydra.sweep.dir" if multirun else "hydra.run.dir"
 
 
 class RunFolderError(UserError, FileExistsError):
@@ -149,8 +160,9 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
         if not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
             log.warning(
                 "ckpt_path=last: %s holds no run to resume, training from scratch (to resume a run, name its folder: "
-                "hydra.run.dir=<run dir>)",
+                "%s=<run dir>)",
                 checkpoint_dir.parent,
+                folder_setting(),
             )
         else:
             log.info("ckpt_path=last: no %s yet, training from scratch", last)
@@ -220,7 +232,7 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             )
             raise RunFolderError(
                 f"{output_dir} already holds a run ({rel(previous)}){started}; resume it with ckpt_path=last, replace "
-                "it with overwrite=true, or train elsewhere (hydra.run.dir=...)"
+                f"it with overwrite=true, or train elsewhere ({folder_setting()}=...)"
             )
         outputs = [output_dir / name for name in RUN_OUTPUTS if (output_dir / name).exists()]
         _check_replaceable(outputs, output_dir)
@@ -229,7 +241,7 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
         records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
         if records:
             raise RunFolderError(
-                f"{output_dir} holds {', '.join(records)} but no run; train elsewhere (hydra.run.dir=...), remove "
+                f"{output_dir} holds {', '.join(records)} but no run; train elsewhere ({folder_setting()}=...), remove "
                 "them, or replace them with overwrite=true"
             )
     if ckpt_arg not in (None, "last") and ckpt is not None:
@@ -238,7 +250,7 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             names = ", ".join(str(rel(p)) for p in later)
             raise RunFolderError(
                 f"resuming from {rel(Path(ckpt))} would delete or replace the later checkpoints {names}; pass "
-                "overwrite=true to go on, or train elsewhere (hydra.run.dir=...)"
+                f"overwrite=true to go on, or train elsewhere ({folder_setting()}=...)"
             )
     return []
 
@@ -259,7 +271,7 @@ def _check_replaceable(outputs: list[Path], output_dir: Path) -> None:
         if path.is_symlink():
             raise RunFolderError(
                 f"overwrite=true: {path} is a link to {os.path.realpath(path)}, which a run does not replace; remove "
-                "the link or train elsewhere (hydra.run.dir=...)"
+                f"the link or train elsewhere ({folder_setting()}=...)"
             )
     foreign = [
         entry
@@ -348,7 +360,7 @@ def lock_folder(folder: Path) -> FolderLock:
             os.close(fd)
             raise RunFolderBusyError(
                 f"{folder} is in use by another unicorn-train (pid {' on '.join(owner[:2])}); wait for it to end "
-                "or train elsewhere (hydra.run.dir=...)"
+                f"or train elsewhere ({folder_setting()}=...)"
             ) from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
@@ -370,15 +382,24 @@ class FolderChanges:
     it is the run's), and with it the folders above it up to ``created_top`` (the outermost missing ancestor, which
     the run created with it) that are empty again; in an existing folder it removes only the files and folders the
     run added and restores the records it rewrote (:data:`RUN_RECORDS`), so that the folder is as it was, byte for
-    byte (the lines the run appended to ``train.log`` included).
+    byte (the lines the run appended to ``train.log`` included), and the files named in ``rewritten`` get back the
+    bytes given there.
     """
 
-    def __init__(self, folder: Path, entries: set[str] | None, created_top: Path | None = None) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        entries: set[str] | None,
+        created_top: Path | None = None,
+        rewritten: Mapping[str, bytes] | None = None,
+    ) -> None:
         self.folder, self.existed = folder, entries is not None and folder.is_dir()
         self.created_top = None if created_top is None else created_top.resolve()
         present = self._written() if self.existed else []
         self.paths = {p for p in present if _top(folder, p) in (entries or set())}
         self.records = {p: p.read_bytes() for p in self.paths if p.is_file() and _top(folder, p) in RUN_RECORDS}
+        # files of the folder rewritten before this object was made (Hydra's sweep record), by name: their bytes
+        self.records |= {folder / name: data for name, data in (rewritten or {}).items() if name in (entries or ())}
         log_file = folder / RUN_LOG
         self.log_size = log_file.stat().st_size if log_file in self.paths and log_file.is_file() else None
 
