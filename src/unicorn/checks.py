@@ -33,6 +33,7 @@ __all__ = [
     "check_image_size",
     "check_mesh",
     "check_normals",
+    "check_pixels",
     "check_points",
     "check_rotations",
     "check_same_batch",
@@ -267,6 +268,28 @@ def check_normals(normals: torch.Tensor | None, points: torch.Tensor, name: str)
         raise ValueError(f"{name} must have the shape of its points {tuple(points.shape)}, got {shape}")
     if not normals.is_floating_point():
         raise TypeError(f"{name} must be a floating point tensor, got {normals.dtype}")
+
+
+#: how far beyond [0, 1] a pixel may lie (the rounding of a resampled image)
+PIXEL_TOLERANCE = 1e-3
+
+
+def check_pixels(images: torch.Tensor, name: str = "images") -> None:
+    """Every value of ``images`` must be a pixel in [0, 1]: a float image in [0, 255], or one normalised with a mean
+    and a standard deviation, reads as garbage to a model trained on [0, 1]. Reads the range: one device sync.
+
+    Raises:
+        ValueError: a value out of [0, 1] (beyond :data:`PIXEL_TOLERANCE`), NaN or infinite; names the range.
+    """
+    if images.numel() == 0:
+        return
+    lo, hi = (float(v) for v in torch.aminmax(images.detach()))
+    if lo >= -PIXEL_TOLERANCE and hi <= 1 + PIXEL_TOLERANCE:
+        return
+    if not math.isfinite(lo) or not math.isfinite(hi):
+        raise ValueError(f"{name} hold NaN or infinite values; pixels must be in [0, 1]")
+    hint = " (pixels in [0, 255]: divide by 255)" if lo >= -PIXEL_TOLERANCE and hi <= 255 + PIXEL_TOLERANCE else ""
+    raise ValueError(f"{name} must hold pixels in [0, 1], got values in [{lo:.4g}, {hi:.4g}]{hint}")
 
 
 def check_rotations(R: torch.Tensor, name: str, batch: int | None = None) -> None:

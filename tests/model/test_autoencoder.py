@@ -60,6 +60,21 @@ def test_images_of_another_dtype_are_refused_by_name(tiny_model, images, dtype, 
         tiny_model.predict((images * 255).to(dtype))
 
 
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        (lambda x: x * 255, r"got values in \[.*, 25\d.*\] \(pixels in \[0, 255\]: divide by 255\)$"),
+        (lambda x: (x - 0.45) / 0.225, r"got values in \[-2.*, 2.*\]$"),  # an ImageNet-style normalisation
+        (lambda x: x.index_fill(1, torch.tensor([2]), float("nan")), "hold NaN or infinite values"),
+    ],
+    ids=["0-255", "normalised", "nan"],
+)
+def test_images_out_of_the_unit_range_are_refused(tiny_model, images, values, message):
+    with pytest.raises(ValueError, match=message):
+        tiny_model.predict(values(images))
+    tiny_model.predict(images.clamp(0, 1) * (1 + 1e-4))  # a resampled image's rounding passes
+
+
 def test_zero_init_gives_ellipsoid_identity_scale_anchor_poses(tiny_model, images):
     tiny_model.set_active_dims(shape=32, texture=128, background=128)
     pred = tiny_model.predict(images)

@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from unicorn.checks import check_shape
+from unicorn.checks import check_pixels, check_shape
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.model.compositing import build_compositing
 from unicorn.model.config import BRANCHES, CODE_BRANCHES, merge_config, model_branches
@@ -337,8 +337,14 @@ class Unicorn(nn.Module):
         return Prediction3D(z_sh, canonical, self.scale(feats["shape"]), z_tx, maps, z_bg, bkg)
 
     def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
-        """Predict everything for a batch (B, 3, S, S) of [0, 1] images (gradients kept)."""
+        """Predict everything for a batch (B, 3, S, S) of [0, 1] images (gradients kept).
+
+        Raises:
+            ShapeError, TypeError: see :meth:`check_images`.
+            ValueError: values out of [0, 1] (:func:`unicorn.checks.check_pixels`).
+        """
         self.check_images(images)
+        check_pixels(images)
         feats = self.encode(images, self.branches())
         p = self.predict_3d(feats, average_texture)
         poses = self.pose(feats["pose"])
