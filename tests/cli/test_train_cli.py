@@ -296,6 +296,15 @@ def test_missing_dataset_is_one_line(tmp_path):
     assert not run_dir.exists()  # not even the loggers' folders
 
 
+def test_a_missing_dataset_is_said_before_the_missing_vgg16_weights(tmp_path):
+    result = unicorn_train(
+        "+experiment=cub", f"dataset.root={tmp_path / 'birds'}", f"paths.vgg16={tmp_path / 'vgg16.pth'}",
+        f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path,
+    )  # fmt: skip
+    (line,) = error_lines(result.stderr)
+    assert result.returncode == 2 and "CUB-200-2011 root not found" in line and "birds" in line, line
+
+
 def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp_path):
     from tests.support.training import build_run
     from unicorn.io.run_folder import RunFolderError

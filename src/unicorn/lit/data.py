@@ -254,6 +254,17 @@ class UnicornDataModule(L.LightningDataModule):
                 raise DatasetError(f"dataset.cache_items=true for {self.name} {split}: {err}") from None
         return dataset
 
+    def check_early(self) -> None:
+        """Build the training and validation sets of a dataset read from disk now (:meth:`setup` keeps them), so
+        that a missing or malformed dataset is reported before the model is built and its VGG16 weights loaded; a
+        generated dataset waits for :meth:`prepare_data`.
+
+        Raises:
+            unicorn.data.DatasetNotFoundError, unicorn.data.DatasetError: see :meth:`setup`.
+        """
+        if not dataset_spec(self.name).generated:
+            self.setup("fit")
+
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit") and self.train_set is None:
             self.train_set = self.build("train")

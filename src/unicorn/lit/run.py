@@ -84,6 +84,7 @@ def build(cfg: DictConfig) -> Run:
     L.seed_everything(typed.seed, workers=True, verbose=False)
     with _config_nodes():
         data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
+        data.check_early()  # a missing dataset is said first: nothing else matters without it
         module = build_module(typed)
         stopper = GracefulStop(checkpoint_dir / "last.ckpt")
         # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
