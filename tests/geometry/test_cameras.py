@@ -25,6 +25,16 @@ def test_bad_camera_arguments(kwargs):
         PerspectiveCamera(**kwargs)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+def test_a_projection_is_exact_to_the_points_dtype(dtype):
+    point = torch.tensor([[0.123456789, -0.3, 2.7182818]], dtype=torch.float64)
+    exact = point[:, :2] / math.tan(math.radians(30.0) / 2.0) / point[:, 2:]  # float64 throughout
+    for cam in (PerspectiveCamera(fov=30.0), PerspectiveCamera(fov=30.0).float().to(dtype)):
+        got = cam.project(point.to(dtype))
+        assert got.dtype == dtype
+        assert torch.allclose(got[:, :2].double(), exact, rtol=torch.finfo(dtype).eps * 4, atol=0)
+
+
 def test_pixel_centres_follow_pytorch3d_convention():
     # square image: centre of pixel (row i, col j) at (1 - (2j+1)/W, 1 - (2i+1)/H)
     H = W = 8

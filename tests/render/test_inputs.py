@@ -1,5 +1,7 @@
 """Bad input: a clear error, or a defined output with no NaN in values or gradients."""
 
+import re
+
 import pytest
 import torch
 
@@ -97,8 +99,9 @@ def test_bad_settings():
         LayeredRasterizer(sigma=-1.0)
     with pytest.raises(ValueError, match="image_size"):
         LayeredRasterizer(image_size=0)
-    with pytest.raises(ValueError, match="sigma and gamma"):
-        build_renderer("softras", gamma=0.0)
+    for gamma in (0.0, -1.0):  # SoftRas divides by it: > 0, as the settings and the backend both say
+        with pytest.raises(ValueError, match=rf"^gamma must be a finite number > 0, got {gamma}$"):
+            build_renderer("softras", gamma=gamma)
 
 
 def test_degenerate_geometry_gives_defined_output_and_finite_gradients(renderer):
@@ -177,21 +180,20 @@ def test_non_finite_cameras_are_named(renderer, bad):
         renderer.rasterize(verts, faces, R, T_bad)
 
 
-@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0, None, "1e-3", True])
 def test_non_finite_blur_radius_and_sigma_are_named(bad):
     verts, faces, R, T, _ = template_scene(batch=1)
-    with pytest.raises(ValueError, match="blur_radius must be finite and >= 0"):
+    message = rf"^blur_radius must be a finite number >= 0, got {re.escape(repr(bad))}$"
+    with pytest.raises(ValueError, match=message):
         rasterize_meshes(verts, faces, 16, blur_radius=bad)
-    with pytest.raises(ValueError, match="blur_radius must be finite"):
+    with pytest.raises(ValueError, match=message):
         MeshRasterizer(blur_radius=bad)
     with pytest.raises(ValueError, match="sigma"):
         LayeredRasterizer(sigma=bad)
     with pytest.raises(ValueError, match="sigma"):
         build_renderer("softras", sigma=bad)
-    with pytest.raises(ValueError, match="gamma must be a finite number >= 0"):
+    with pytest.raises(ValueError, match="gamma must be a finite number > 0"):  # 0 too: SoftRas divides by it
         build_renderer("softras", gamma=bad)
-    with pytest.raises(ValueError, match="sigma and gamma must be finite and > 0"):  # SoftRas' own bound: 0 too
-        build_renderer("softras", gamma=0.0)
 
 
 def test_texture_sizes_must_match_the_mesh(renderer):
@@ -327,6 +329,18 @@ def test_vertex_attributes_must_be_floats_on_the_meshs_vertices():
         interpolate_vertex_attributes(fragments, faces, torch.rand(1, V - 1, 2))
     with pytest.raises(TypeError, match="faces must be an integer tensor"):
         interpolate_vertex_attributes(fragments, faces.float(), torch.rand(1, V, 2))
+
+
+@pytest.mark.parametrize("dtype", [torch.int32, torch.int16, torch.uint8], ids=str)
+def test_vertex_attributes_interpolate_alike_with_every_accepted_face_dtype(dtype):
+    from unicorn.render import interpolate_vertex_attributes
+
+    verts, faces, R, T, _ = template_scene(batch=1, level=2)  # 162 vertices: indices fit in uint8
+    fragments = MeshRasterizer(image_size=8)(verts, faces, R, T)
+    shared, per_image = torch.rand(verts.shape[1], 2), torch.rand(1, verts.shape[1], 2)
+    for attrs in (shared, per_image):
+        expected = interpolate_vertex_attributes(fragments, faces, attrs)
+        assert torch.equal(interpolate_vertex_attributes(fragments, faces.to(dtype), attrs), expected)
 
 
 @pytest.mark.parametrize("name", list_renderers())

@@ -94,8 +94,10 @@ def test_the_boundary_casts_16_bit_arguments_and_turns_autocast_off():
     maps, uvs = torch.rand(1, 3, 4, 4), torch.rand(2, 3, 2)
     probe = _Probe()
     with bf16_autocast():
-        got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs), scale=torch.ones(2).double(), name="y")
+        got = probe.run(
+            verts.bfloat16(), TexturesUV(maps.half(), uvs, channels_last=False), scale=torch.ones(2).double(), name="y"
+        )
     assert got == (torch.float32, torch.float32, torch.float64, "y", torch.float32)
     # outside autocast the arguments pass untouched
-    got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs))
+    got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs, channels_last=False))
     assert got[:3] == (torch.bfloat16, torch.float16, None) and got[4] == torch.bfloat16

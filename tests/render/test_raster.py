@@ -1,6 +1,7 @@
 """Rasterizer against independent oracles: open3d ray casting and a brute-force per-pixel loop."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -127,10 +128,8 @@ def test_fragments_match_brute_force(K):
     assert frags.num_slots <= K
 
 
-@pytest.mark.parametrize("K", [1, 4])
+@pytest.mark.parametrize("K", [2, 4])
 def test_overflow_counts_the_pixels_with_too_many_faces(K, monkeypatch):
-    import warnings
-
     from unicorn.render import RenderOverflowWarning, overflow
 
     verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
@@ -155,8 +154,6 @@ def test_overflow_counts_the_pixels_with_too_many_faces(K, monkeypatch):
 
 
 def test_an_overflow_counter_collects_the_renders_without_warning(monkeypatch):
-    import warnings
-
     from unicorn.render import OverflowCounter, overflow
 
     verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
@@ -186,6 +183,20 @@ def test_an_overflow_counter_collects_the_renders_without_warning(monkeypatch):
         rasterize_meshes(ndc, faces, size, blur, K)
 
 
+def test_a_renders_overflow_warning_points_at_the_line_that_asked_for_it_and_not_for_one_face_per_pixel(monkeypatch):
+    from unicorn.render import LayeredRenderer, TexturesVertex, overflow
+
+    verts, faces, R, T = posed_ellipsoids(batch=1, level=2)
+    textures = TexturesVertex(torch.rand(1, verts.shape[1], 3))
+    monkeypatch.setattr(overflow, "_WARNED", set())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a closed mesh overflows one face per pixel: what K = 1 asks for
+        LayeredRenderer(image_size=24, faces_per_pixel=1)(verts, faces, textures, R=R, T=T)
+    with pytest.warns(overflow.RenderOverflowWarning) as caught:
+        LayeredRenderer(image_size=24, faces_per_pixel=2)(verts, faces, textures, R=R, T=T)
+    assert caught[0].filename == __file__  # through the renderer, its rasterizer and nn.Module's calls
+
+
 def test_opaque_truncation_is_exact():
     from unicorn.render import layered_blend
 
@@ -198,6 +209,48 @@ def test_opaque_truncation_is_exact():
     cut = rasterize_meshes(ndc, faces, 64, blur, 50, truncate_opaque=True)
     assert cut.num_pairs < full.num_pairs
     assert torch.equal(layered_blend(colors_of(full), full, bg, 1e-4), layered_blend(colors_of(cut), cut, bg, 1e-4))
+
+
+def _grid_on_pixel_centres(size: int, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """A flat n x n grid of squares at depth 2, its vertices on the pixel centres of every third column and row from
+    the third (``pixel_to_ndc``), each square split along one of its diagonals in turn and every other face wound
+    the other way: (1, V, 3) NDC vertices, (F, 3) faces, and the grid's last pixel column (and row)."""
+    idx = torch.arange(n + 1) * 3 + 2
+    cols, rows = torch.meshgrid(idx, idx, indexing="xy")
+    ndc = pixel_to_ndc(torch.stack([cols, rows], -1).to(dtype), size).reshape(-1, 2)
+    verts = torch.cat([ndc, torch.full_like(ndc[:, :1], 2.0)], -1)[None]
+    faces = []
+    for r in range(n):
+        for c in range(n):
+            a, b, d, e = r * (n + 1) + c, r * (n + 1) + c + 1, (r + 1) * (n + 1) + c, (r + 1) * (n + 1) + c + 1
+            pair = [[a, b, e], [a, e, d]] if (r + c) % 2 else [[a, b, d], [b, e, d]]
+            faces += [pair[0], pair[1][::-1] if c % 2 else pair[1]]
+    return verts, torch.tensor(faces), int(idx[-1])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("capacity", [None, (4096, 4096)], ids=["packed", "fixed"])
+def test_a_pixel_centre_on_shared_edges_is_covered_by_exactly_one_face(dtype, capacity):
+    size = 40
+    verts, faces, last = _grid_on_pixel_centres(size, 10, dtype)
+    frags = rasterize_meshes(verts, faces, size, 0.0, 8, capacity=capacity)
+    covered = torch.bincount(frags.pix[frags.inside], minlength=size * size).reshape(size, size)
+    # the grid tiles the square between the centres of pixels 2 and `last`: every centre strictly within it lies in
+    # exactly one face, those on its edges, at its corners and along the shared edges and vertices included
+    assert torch.equal(covered[3:last, 3:last], torch.ones(last - 3, last - 3, dtype=covered.dtype))
+    assert int(covered.max()) == 1 and int(covered[:2].sum() + covered[:, :2].sum()) == 0
+
+
+@pytest.mark.parametrize("capacity", [None, (512, 512)], ids=["packed", "fixed"])
+def test_the_depth_order_of_a_pixel_does_not_depend_on_the_other_images(capacity):
+    # two faces 1e-4 apart in image 0; image 1 holds a face a million units away, which stretches the batch's depths
+    near, far = [[-0.5, -0.5], [0.5, -0.5], [0.0, 0.5]], [[-0.6, -0.4], [0.6, -0.4], [0.0, 0.6]]
+    verts = torch.tensor([[[*xy, 3.0] for xy in far] + [[*xy, 2.9999] for xy in near]])
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
+    alone = rasterize_meshes(verts, faces, 9, 0.0, 2, capacity=capacity).first_layer()[0]
+    batch = torch.cat([verts, verts * torch.tensor([1.0, 1.0, 1e6 / 3])])
+    together = rasterize_meshes(batch, faces, 9, 0.0, 2, capacity=capacity).first_layer()[0]
+    assert int(alone[0, 4, 4]) == 1 and torch.equal(together[:1], alone)
 
 
 def test_chunking_does_not_change_fragments():

@@ -16,10 +16,12 @@ def test_pytorch3d_channels_last_maps_render_like_channels_first():
     textures = TexturesUV(pytorch3d_layout, uvs)
     assert textures.maps.shape == (2, 3, 16, 16) and textures.num_channels == 3
     torch.testing.assert_close(renderer(verts, faces, textures, R=R, T=T), expected)
-    # an explicit layout wins over the shape (a 4 x 4 RGBA texture is ambiguous)
+    # a shape that reads both ways (4 channels of 4 x 3, or 3 of 4 x 4) needs the layout said
     tiny = torch.rand(1, 4, 4, 3)
     assert TexturesUV(tiny, uvs, channels_last=True).maps.shape == (1, 3, 4, 4)
-    assert TexturesUV(tiny, uvs).maps.shape == (1, 4, 4, 3)
+    assert TexturesUV(tiny, uvs, channels_last=False).maps.shape == (1, 4, 4, 3)
+    with pytest.raises(ValueError, match=r"^maps \(1, 4, 4, 3\) reads as .* say which with channels_last"):
+        TexturesUV(tiny, uvs)
 
 
 def test_other_shapes_are_refused_at_construction_naming_the_layouts():

@@ -58,13 +58,16 @@ class PerspectiveCamera(nn.Module):
     ``znear`` and ``zfar`` are used only by aggregators that normalise depth (SoftRas); the rasterizer never
     clips against them.
 
+    The focal length is kept as a Python float, so that a float64 projection is exact to float64 whatever the
+    module's dtype.
+
     Example:
         >>> cam = PerspectiveCamera(fov=30.0)
-        >>> round(float(cam.focal_length), 4)
+        >>> round(cam.focal_length, 4)
         3.7321
     """
 
-    focal_length: torch.Tensor
+    focal_length: float
 
     def __init__(
         self,
@@ -88,17 +91,17 @@ class PerspectiveCamera(nn.Module):
             raise ValueError(f"focal_length must be a finite number > 0, got {focal_length}")
         if not (0.0 <= znear < zfar and math.isfinite(zfar)):
             raise ValueError(f"need 0 <= znear < zfar, both finite, got znear={znear}, zfar={zfar}")
-        self.register_buffer("focal_length", torch.tensor(float(focal_length)), persistent=False)
+        self.focal_length = float(focal_length)
         self.znear = float(znear)
         self.zfar = float(zfar)
 
     @property
     def fov(self) -> float:
         """Full field of view in degrees."""
-        return math.degrees(2.0 * math.atan(1.0 / float(self.focal_length)))
+        return math.degrees(2.0 * math.atan(1.0 / self.focal_length))
 
     def extra_repr(self) -> str:
-        return f"focal_length={float(self.focal_length):.4f}, znear={self.znear}, zfar={self.zfar}"
+        return f"focal_length={self.focal_length:.4f}, znear={self.znear}, zfar={self.zfar}"
 
     def project(self, verts_view: torch.Tensor) -> torch.Tensor:
         """View points (..., 3) to ``(x_ndc, y_ndc, z_view)`` (..., 3).
@@ -107,8 +110,7 @@ class PerspectiveCamera(nn.Module):
         """
         z = verts_view[..., 2]
         safe_z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
-        f = self.focal_length.to(verts_view)
-        xy = f * verts_view[..., :2] / safe_z.unsqueeze(-1)
+        xy = self.focal_length * verts_view[..., :2] / safe_z.unsqueeze(-1)
         return torch.cat([xy, z.unsqueeze(-1)], dim=-1)
 
     def transform_points(self, verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:

@@ -366,7 +366,7 @@ class Unicorn(nn.Module):
     def textures(self, maps: torch.Tensor) -> TexturesUV:
         """UV textures of the template for texture images (B, 3, Ht, Wt)."""
         wrap = self.template.wrap_u
-        return TexturesUV(maps, self.template.face_uvs, wrap_u=wrap, align_corners=not wrap)
+        return TexturesUV(maps, self.template.face_uvs, wrap_u=wrap, align_corners=not wrap, channels_last=False)
 
     def render(
         self,

@@ -19,11 +19,12 @@ import math
 
 import torch
 
-from .selection import _DEPTH_BITS, Selection, _face_boxes, _project_faces, _slots
+from .selection import _DEPTH_BITS, Selection, _face_boxes, _project_faces, _slots, depth_key
 from .triangles import (
     barycentric_coefficients,
     boundary_distance2,
     clip_barycentric,
+    covered_barycentric,
     perspective_correct_barycentric,
 )
 
@@ -100,8 +101,8 @@ def _candidates(
     # the face of candidate p: the first whose running count passes p (faces without candidates are skipped)
     flat_face = torch.searchsorted(ends, p, right=True).clamp_(max=counts.numel() - 1)
     local = (p - (ends - counts).index_select(0, flat_face)).int()
-    px, py, bary = _candidate_coordinates(fpx, flat_face, local, boxes)
-    keep, inside = _coverage_all(fpx, flat_face, px, py, bary, px_to_ndc2, blur_radius)
+    px, py, bary, inside = _candidate_coordinates(fpx, flat_face, local, boxes)
+    keep = _coverage_all(fpx, flat_face, px, py, inside, px_to_ndc2, blur_radius)
     keep &= p < total
     z = _depth(bary, fz.reshape(-1, 3).index_select(0, flat_face), perspective_correct)
     return flat_face, px, py, inside, keep, z, total
@@ -111,14 +112,15 @@ def _candidate_coordinates(
     fpx: torch.Tensor, face: torch.Tensor, local: torch.Tensor, boxes: tuple[torch.Tensor, ...]
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Column and row (P,) int32 of candidate ``local`` (P,) int32 in the box of its face ``face`` (P,) (a flat
-    index over (B F)), and its unclipped barycentrics (P, 3): the values of ``_candidate_pixels``."""
+    index over (B F)), its unclipped barycentrics (P, 3) and whether the face covers it (P,): the values of
+    ``_candidate_pixels``."""
     x0, y0, w, _ = (b.reshape(-1).index_select(0, face).int() for b in boxes)
     w = w.clamp_(min=1)  # the candidates past the count may sit on faces without any
     px = x0 + local % w
     py = y0 + torch.div(local, w, rounding_mode="floor")
-    coef = barycentric_coefficients(fpx.reshape(-1, 3, 2)).index_select(0, face)
-    pxf, pyf = px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1)
-    return px, py, torch.addcmul(torch.addcmul(coef[:, 6:], coef[:, :3], pxf), coef[:, 3:6], pyf)
+    coef = barycentric_coefficients(fpx.reshape(-1, 3, 2))
+    bary, inside = covered_barycentric(coef, face, px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1))
+    return px, py, bary, inside
 
 
 def _coverage_all(
@@ -126,26 +128,23 @@ def _coverage_all(
     face: torch.Tensor,
     px: torch.Tensor,
     py: torch.Tensor,
-    bary: torch.Tensor,
+    inside: torch.Tensor,
     px_to_ndc2: float,
     blur_radius: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which candidates to keep (P,) and which lie inside their face (P,), the distance test on every one."""
-    inside = (bary > 0).all(-1)
+) -> torch.Tensor:
+    """Which candidates to keep (P,): those their face covers, or within the blur radius of it (the distance test
+    on every one)."""
     if blur_radius <= 0:
-        return inside.clone(), inside
+        return inside.clone()
     tri = fpx.reshape(-1, 6).index_select(0, face).view(-1, 3, 2)
-    d2 = boundary_distance2(tri, px.to(bary.dtype), py.to(bary.dtype))
-    return inside | (d2 * px_to_ndc2 < blur_radius), inside
+    d2 = boundary_distance2(tri, px.to(fpx.dtype), py.to(fpx.dtype))
+    return inside | (d2 * px_to_ndc2 < blur_radius)
 
 
 def _depth_key(pix: torch.Tensor, z: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-    """``_depth_order``'s sort key, the depth quantised over the kept candidates' range (0 for the others)."""
-    zmin = torch.where(keep, z, torch.inf).min()
-    zmax = torch.where(keep, z, -torch.inf).max()
-    scale = (2**_DEPTH_BITS - 1) / (zmax - zmin).clamp_min(1e-12)
-    zq = torch.where(keep, (z - zmin) * scale, 0.0).long().clamp_(0, 2**_DEPTH_BITS - 1)
-    return (pix << _DEPTH_BITS) | zq
+    """``_depth_order``'s sort key (:func:`~unicorn.render.selection.depth_key`; 0 for the candidates not kept,
+    whose depth may be anything)."""
+    return (pix << _DEPTH_BITS) | torch.where(keep, depth_key(torch.where(keep, z, 1.0)), 0)
 
 
 def _depth(bary: torch.Tensor, corner_z: torch.Tensor, perspective_correct: bool) -> torch.Tensor:

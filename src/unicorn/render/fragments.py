@@ -41,7 +41,8 @@ class Fragments:
         pix: (M,) long, flat pixel index ``b * H * W + row * W + col``; non-decreasing.
         slot: (M,) long, rank of the pair among the pixel's faces by increasing depth (0 = nearest).
         face: (M,) long, face index in [0, F).
-        inside: (M,) bool, whether the pixel centre lies strictly inside the projected face.
+        inside: (M,) bool, whether the projected face covers the pixel centre: inside it, or on an edge it owns
+            (:func:`~unicorn.render.triangles.barycentric_coefficients`; of two faces sharing an edge, one).
         bary: (M, 3) barycentrics, clipped to >= 0 and renormalised (differentiable): screen-space, or those
             of the 3D point seen at the pixel when the rasterizer is ``perspective_correct``.
         dists: (M,) signed squared distance in NDC units from the pixel centre to the face boundary,

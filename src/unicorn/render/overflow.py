@@ -17,6 +17,7 @@ taken (:meth:`OverflowCounter.take`), on the logging steps of training.
 
 from __future__ import annotations
 
+import sys
 import warnings
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -142,19 +143,34 @@ def counting() -> bool:
     return bool(_active())
 
 
+#: the modules a warning about a render does not point into: the renderer's own and torch's (``nn.Module`` calls)
+_INNER_MODULES = ("unicorn.render.", "torch.")
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of the first frame, up from the caller of this function, outside :data:`_INNER_MODULES`:
+    the line of the user's that asked for the render."""
+    frame, level = sys._getframe(2), 2
+    while frame.f_back is not None and str(frame.f_globals.get("__name__", "")).startswith(_INNER_MODULES):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
     """Report one render: to the innermost active :class:`OverflowCounter`, else (when ``overflow`` > 0) as a
-    :class:`RenderOverflowWarning`, once per ``faces_per_pixel`` setting and process.
+    :class:`RenderOverflowWarning`, once per ``faces_per_pixel`` setting and process, except with one face per
+    pixel (``faces_per_pixel=1``), whose renders keep the nearest face by design.
 
     Python's own once-per-location registry is reset whenever any library changes the warning filters (Lightning
     does, every step), which would repeat the line thousands of times; hence the set kept here. Called by
-    :func:`~unicorn.render.raster.rasterize_meshes`; the warning points at its caller.
+    :func:`~unicorn.render.raster.rasterize_meshes`; the warning points at the first line outside the renderer
+    and torch that asked for the render.
     """
     active = _active()
     if active:
         active[-1].add(overflow, pixels, faces_per_pixel)
         return
-    if not overflow or faces_per_pixel in _WARNED:
+    if not overflow or faces_per_pixel == 1 or faces_per_pixel in _WARNED:
         return
     _WARNED.add(faces_per_pixel)
     warnings.warn(
@@ -163,7 +179,7 @@ def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
         "Fragments.overflow counts every render, unicorn.render.OverflowCounter collects them without this "
         "warning; raise faces_per_pixel if it matters)",
         RenderOverflowWarning,
-        stacklevel=3,
+        stacklevel=_caller_level(),
     )
 
 

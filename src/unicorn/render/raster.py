@@ -73,6 +73,17 @@ class RenderError(UserError, ValueError):
     colour...): a mistake in what was asked for, named in the message; still a ``ValueError``."""
 
 
+def check_blur_radius(blur_radius: Any) -> None:
+    """Raise :class:`RenderError` unless ``blur_radius`` is a finite number >= 0 (a one-element tensor included; a
+    string, a bool or None is not)."""
+    try:
+        value = None if isinstance(blur_radius, str | bytes | bool) else float(blur_radius)
+    except (TypeError, ValueError, RuntimeError):
+        value = None
+    if value is None or not (math.isfinite(value) and value >= 0):
+        raise RenderError(f"blur_radius must be a finite number >= 0, got {blur_radius!r}")
+
+
 class RenderSizeError(RenderError, SizeLimitError):
     """A render whose fragments could exceed the memory limit (:func:`check_render_size`)."""
 
@@ -195,10 +206,11 @@ def rasterize_meshes(
 ) -> Fragments:
     """Rasterize a batch of projected meshes into packed top-K fragments.
 
-    A face is a candidate for a pixel if its projection contains the pixel centre, or if the squared NDC
-    distance from the centre to the face is below ``blur_radius``. The ``faces_per_pixel`` nearest candidates
-    by view depth are kept. Faces with a vertex at depth <= 0 (behind the camera) and faces with a 2D area
-    <= 1e-8 are skipped; back faces are kept.
+    A face is a candidate for a pixel if its projection contains the pixel centre (a centre on an edge shared by
+    two faces belongs to one of them, ``Fragments.inside``), or if the squared NDC distance from the centre to the
+    face is below ``blur_radius``. The ``faces_per_pixel`` nearest candidates by view depth are kept (depths
+    compared in float32). Faces with a vertex at depth <= 1e-6 (on or behind the camera plane; faces are not
+    clipped) and faces with a 2D area <= 1e-8 are skipped; back faces are kept.
 
     Args:
         verts_ndc: (B, V, 3) projected vertices ``(x_ndc, y_ndc, z_view)`` (see
@@ -239,8 +251,7 @@ def rasterize_meshes(
     for name, flag in (("truncate_opaque", truncate_opaque), ("perspective_correct", perspective_correct)):
         if not isinstance(flag, bool):
             raise RenderError(f"{name} must be True or False, got {flag!r}")
-    if not (math.isfinite(blur_radius) and blur_radius >= 0):
-        raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
+    check_blur_radius(blur_radius)
     H, W = image_hw(image_size)
     B = verts_ndc.shape[0]
     check_render_size(B, (H, W), faces_per_pixel, max_bytes)

@@ -6,7 +6,6 @@ rasterization (one face, no blur, optionally supersampled) are the same module w
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -16,7 +15,7 @@ from ..geometry.cameras import PerspectiveCamera, image_hw, world_to_view
 from ..hostsync import is_sync_free
 from .fragments import Fragments
 from .precision import float32_boundary
-from .raster import RenderError, check_mesh_inputs, check_pose_inputs, rasterize_meshes
+from .raster import check_blur_radius, check_mesh_inputs, check_pose_inputs, rasterize_meshes
 from .settings import DEFAULT_SETTINGS, check_render_option
 
 __all__ = ["MeshRasterizer"]
@@ -62,8 +61,7 @@ class MeshRasterizer(nn.Module):
         for name, value in settings.items():
             check_render_option(name, value)
         self.faces_per_pixel = int(faces_per_pixel)
-        if not (math.isfinite(blur_radius) and blur_radius >= 0):
-            raise RenderError(f"blur_radius must be finite and >= 0, got {blur_radius}")
+        check_blur_radius(blur_radius)
         self.blur_radius = float(blur_radius)
         if camera is not None and not isinstance(camera, PerspectiveCamera):
             raise TypeError(f"camera must be a PerspectiveCamera or None, got {type(camera).__name__}")

@@ -34,7 +34,8 @@ class RenderOutput:
 
     Attributes:
         images: (B, C + 1, H, W), RGB(...) then alpha.
-        fragments: packed fragments at the rasterized resolution.
+        fragments: packed fragments at the rasterized resolution: (sH, sW) for a rasterizer that supersamples
+            ``s`` times (:class:`~unicorn.render.rasterizer.MeshRasterizer`'s ``supersample``), (H, W) otherwise.
     """
 
     images: torch.Tensor
@@ -42,12 +43,14 @@ class RenderOutput:
 
     @property
     def face_ids(self) -> torch.Tensor:
-        """(B, H, W) long, nearest face containing each pixel centre, -1 where none."""
+        """(B, sH, sW) long, at the rasterized resolution (``s`` = 1 without supersampling): the nearest face
+        covering each sample, -1 where none."""
         return self.fragments.first_layer()[0]
 
     @property
     def depth(self) -> torch.Tensor:
-        """(B, 1, H, W) view depth of the nearest face containing each pixel centre, 0 where none."""
+        """(B, 1, sH, sW), at the rasterized resolution: the view depth of the nearest face covering each sample,
+        0 where none."""
         return self.fragments.first_layer()[1].unsqueeze(1)
 
 

@@ -25,12 +25,13 @@ from .triangles import (
     barycentric_coefficients,
     boundary_distance2,
     clip_barycentric,
+    covered_barycentric,
     perspective_correct_barycentric,
 )
 
 __all__ = ["Selection", "select_pairs"]
 
-# depth is quantised to this many bits inside the sort key; the pixel index takes the bits above
+# the depth's bits in the sort key (:func:`depth_key`); the pixel index takes the bits above
 _DEPTH_BITS = 31
 # faces whose 2D area (NDC units) is at most this are degenerate, as in PyTorch3D
 _MIN_FACE_AREA = 1e-8
@@ -181,9 +182,9 @@ def _select_chunk(
     candidates = _candidate_pixels(fpx, counts, boxes)
     if candidates is None:
         return nothing
-    flat_face, px, py, bary = candidates
+    flat_face, px, py, bary, inside = candidates
     del candidates
-    keep, inside = _coverage(fpx, flat_face, px, py, bary, px_to_ndc2, blur_radius)
+    keep = _coverage(fpx, flat_face, px, py, inside, px_to_ndc2, blur_radius)
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return nothing
@@ -216,9 +217,10 @@ def _select_chunk(
 def _candidate_pixels(
     fpx: torch.Tensor, counts: torch.Tensor, boxes: tuple[torch.Tensor, ...]
 ) -> tuple[torch.Tensor, ...] | None:
-    """Every pixel centre in every drawable face's box: ``(flat_face, px, py, bary)`` per candidate, the face as an
-    index into (nb * F), the pixel's column and row (int32) and its unclipped barycentrics (P, 3); None when there
-    is no candidate."""
+    """Every pixel centre in every drawable face's box: ``(flat_face, px, py, bary, inside)`` per candidate, the
+    face as an index into (nb * F), the pixel's column and row (int32), its unclipped barycentrics (P, 3) and
+    whether the face covers it (:func:`~unicorn.render.triangles.covered_barycentric`); None when there is no
+    candidate."""
     flat_counts = counts.reshape(-1)
     active = flat_counts.nonzero().squeeze(1)  # faces with at least one candidate pixel
     c = flat_counts.index_select(0, active)
@@ -238,11 +240,10 @@ def _candidate_pixels(
 
     flat_face = active.index_select(0, owner)
     # barycentrics are affine in the pixel position: three multiply-adds per candidate
-    coef = barycentric_coefficients(fpx.reshape(-1, 3, 2).index_select(0, active)).index_select(0, owner)
+    coef = barycentric_coefficients(fpx.reshape(-1, 3, 2).index_select(0, active))
+    bary, inside = covered_barycentric(coef, owner, px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1))
     del owner
-    pxf, pyf = px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1)
-    bary = torch.addcmul(torch.addcmul(coef[:, 6:], coef[:, :3], pxf), coef[:, 3:6], pyf)
-    return flat_face, px, py, bary
+    return flat_face, px, py, bary, inside
 
 
 def _coverage(
@@ -250,29 +251,31 @@ def _coverage(
     flat_face: torch.Tensor,
     px: torch.Tensor,
     py: torch.Tensor,
-    bary: torch.Tensor,
+    inside: torch.Tensor,
     px_to_ndc2: float,
     blur_radius: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which candidates to keep (P,) and which lie inside their face (P,): inside, or within the blur radius."""
-    inside = (bary > 0).all(-1)
+) -> torch.Tensor:
+    """Which candidates to keep (P,): those their face covers (``inside``), or within the blur radius of it."""
     keep = inside.clone()
     if blur_radius > 0:
         # the distance test is only needed for the candidates outside their face
         out = (~inside).nonzero().squeeze(1)
         tri = fpx.reshape(-1, 6).index_select(0, flat_face.index_select(0, out)).view(-1, 3, 2)
-        d2 = boundary_distance2(tri, px.index_select(0, out).to(bary.dtype), py.index_select(0, out).to(bary.dtype))
+        d2 = boundary_distance2(tri, px.index_select(0, out).to(fpx.dtype), py.index_select(0, out).to(fpx.dtype))
         keep[out] = d2 * px_to_ndc2 < blur_radius
-    return keep, inside
+    return keep
+
+
+def depth_key(z: torch.Tensor) -> torch.Tensor:
+    """Depths (> 0) as int64 keys below ``2 ** _DEPTH_BITS`` in the order of the depths: the bits of ``z`` as float32
+    read as an integer (a positive float's bits grow with it). Two faces are told apart wherever their depths differ
+    in float32, whatever the depths of the other faces and images."""
+    return z.float().view(torch.int32).long()
 
 
 def _depth_order(pix: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """The permutation sorting the pairs by pixel, then by depth (quantised to ``_DEPTH_BITS`` over the chunk's
-    depth range; ties keep their order)."""
-    zmin, zmax = z.min(), z.max()
-    scale = (2**_DEPTH_BITS - 1) / (zmax - zmin).clamp_min(1e-12)
-    zq = ((z - zmin) * scale).long().clamp_(0, 2**_DEPTH_BITS - 1)
-    return torch.sort((pix << _DEPTH_BITS) | zq, stable=True).indices
+    """The permutation sorting the pairs by pixel, then by depth (:func:`depth_key`; ties keep their order)."""
+    return torch.sort((pix << _DEPTH_BITS) | depth_key(z), stable=True).indices
 
 
 def _slots(

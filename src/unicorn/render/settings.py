@@ -24,6 +24,8 @@ BACKGROUND_COLOR: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
 #: the lowest value of each numeric setting (a finite number, None allowed for ``max_bytes``: the default limit)
 _LOWEST = {"sigma": 0, "gamma": 0, "eps": 0, "faces_per_pixel": 1, "supersample": 1, "max_candidates": 1}
+#: the settings that must lie above their lowest value, not at it (SoftRas divides by gamma)
+_ABOVE = ("gamma",)
 #: the settings that count something: whole numbers (2.0 is 2; 2.5 is an error, not 2)
 _WHOLE = ("faces_per_pixel", "supersample", "max_candidates", "max_bytes")
 
@@ -80,12 +82,13 @@ def check_render_option(name: str, value: Any) -> None:
     if name == "image_size":
         image_hw(value)
     elif name in _LOWEST or (name == "max_bytes" and value is not None):
-        low = _LOWEST.get(name, 0)
-        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) and value >= low
+        low, above = _LOWEST.get(name, 0), name in _ABOVE
+        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        ok = ok and (value > low if above else value >= low)
         if name in _WHOLE:
             check_whole_number(name, value, low)
         if not ok:
-            raise RenderError(f"{name} must be a finite number >= {low}, got {value!r}")
+            raise RenderError(f"{name} must be a finite number {'>' if above else '>='} {low}, got {value!r}")
     elif name == "perspective_correct" and not isinstance(value, bool):
         raise RenderError(f"perspective_correct must be True or False, got {value!r}")
     elif name == "background_color" and not _finite_numbers(value):

@@ -34,7 +34,7 @@ def interpolate_vertex_attributes(fragments: Fragments, faces: torch.Tensor, att
 def _interpolate(fragments: Fragments, faces: torch.Tensor, attrs: torch.Tensor) -> torch.Tensor:
     """:func:`interpolate_vertex_attributes` of checked arguments (a renderer checks the mesh and textures once)."""
     if attrs.dim() == 2:
-        vert_idx = faces.index_select(0, fragments.face)  # (M, 3)
+        vert_idx = faces.index_select(0, fragments.face).long()  # (M, 3); index_select takes int32 or int64 only
         values = attrs.index_select(0, vert_idx.reshape(-1)).view(*vert_idx.shape, attrs.shape[-1])
     else:
         V = attrs.shape[1]
@@ -124,7 +124,8 @@ class TexturesUV(Textures):
     Args:
         maps: (B, C, Ht, Wt) texture images, or PyTorch3D's (B, Ht, Wt, C) with C <= 4 channels (recognised by
             a last dimension of at most 4 under a larger second one, or forced with ``channels_last``); kept
-            as (B, C, Ht, Wt) in ``self.maps``.
+            as (B, C, Ht, Wt) in ``self.maps``. A shape that reads both ways (second and last dimensions both
+            at most 4) needs ``channels_last``.
         face_uvs: (F, 3, 2) UV coordinates of the three corners of every face, shared by the batch.
         wrap_u: sample periodically in ``u`` (period 1), so that a face straddling the seam of a spherical
             parametrisation (corners with ``u`` slightly above 1) reads the texture across the seam instead
@@ -147,6 +148,11 @@ class TexturesUV(Textures):
     ) -> None:
         check_shape(maps, "B, C, Ht, Wt | B, Ht, Wt, C", "maps")  # ours, or PyTorch3D's
         if channels_last is None:
+            if maps.shape[1] <= 4 and maps.shape[-1] <= 4:  # (1, 4, 4, 3): 4 channels of 4 x 3, or 3 of 4 x 4
+                raise ValueError(
+                    f"maps {tuple(maps.shape)} reads as (B, C, Ht, Wt) and as PyTorch3D's (B, Ht, Wt, C): say which "
+                    "with channels_last=False or True"
+                )
             channels_last = maps.shape[-1] <= 4 < maps.shape[1]
         if channels_last:
             maps = maps.permute(0, 3, 1, 2)

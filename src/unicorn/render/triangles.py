@@ -13,6 +13,7 @@ __all__ = [
     "barycentric_coefficients",
     "boundary_distance2",
     "clip_barycentric",
+    "covered_barycentric",
     "perspective_correct_barycentric",
 ]
 
@@ -31,16 +32,47 @@ def barycentric(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.
 
 
 def barycentric_coefficients(tri: torch.Tensor) -> torch.Tensor:
-    """(N, 9) coefficients ``(a, b, c)`` of the affine maps ``w_i = a_i x + b_i y + c_i`` giving the unclipped
-    barycentrics of a point (x, y) in the 2D triangles (N, 3, 2)."""
+    """(N, 15) coefficients of the 2D triangles (N, 3, 2) for :func:`covered_barycentric`, five groups of three
+    (one per vertex i and the edge opposite it):
+
+    - ``A, B, C``: the edge's line function ``e_i = A_i x + B_i y + C_i``, its endpoints taken in a fixed order
+      (the lesser by (x, y) first), so that two triangles sharing an edge compute the same ``e_i`` at every point;
+    - ``k``: the factor (+-1 over twice the signed area; 0 for a degenerate triangle) making ``k_i e_i`` the
+      barycentric ``w_i``;
+    - ``t``: 1 where the triangle owns the points exactly on that edge, else 0: those whose interior lies toward
+      +x (the next column) of the edge, toward +y (the next row) for an edge along x. Of two triangles on either
+      side of an edge, exactly one owns it, as if every point were moved by an infinitesimal step along +x, then
+      +y.
+    """
     x, y = tri[..., 0], tri[..., 1]
     xj, yj = x.roll(-1, dims=-1), y.roll(-1, dims=-1)  # vertex i's opposite edge runs from j = i+1 to k = i+2
     xk, yk = x.roll(-2, dims=-1), y.roll(-2, dims=-1)
+    swap = (xk < xj) | ((xk == xj) & (yk < yj))  # the edge's fixed order: from (xp, yp) to (xq, yq)
+    xp, yp = torch.where(swap, xk, xj), torch.where(swap, yk, yj)
+    xq, yq = torch.where(swap, xj, xk), torch.where(swap, yj, yk)
+    a, b = -(yq - yp), xq - xp
+    c = (yq - yp) * xp - (xq - xp) * yp
     area = _edge(x[..., 0], y[..., 0], x[..., 1], y[..., 1], x[..., 2], y[..., 2]).unsqueeze(-1)
-    a = -(yk - yj) / area
-    b = (xk - xj) / area
-    c = ((yk - yj) * xj - (xk - xj) * yj) / area
-    return torch.cat([a, b, c], dim=-1)
+    sign = torch.where(swap, -1.0, 1.0).to(area.dtype)
+    k = torch.where(area != 0, sign / area, torch.zeros_like(area))
+    owns = (k * a > 0) | ((a == 0) & (k * b > 0))
+    return torch.cat([a, b, c, k, owns.to(k.dtype)], dim=-1)
+
+
+def covered_barycentric(
+    coef: torch.Tensor, face: torch.Tensor, px: torch.Tensor, py: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unclipped barycentrics (P, 3) of the points (P, 1) ``px``, ``py`` in their triangles ``face`` (P,), indices
+    into the triangles' :func:`barycentric_coefficients` ``coef`` (N, 15), and whether each point is covered (P,):
+    inside, or on an edge its triangle owns. A point on an edge two triangles share is covered by exactly one.
+    """
+    lines = coef[:, :9].index_select(0, face)  # gathered in parts: the largest tensors of the rasterizer
+    e = torch.addcmul(torch.addcmul(lines[:, 6:], lines[:, :3], px), lines[:, 3:6], py)
+    del lines
+    k = coef[:, 9:12].index_select(0, face)
+    on_owned = (e == 0) & (coef[:, 12:] > 0).index_select(0, face)
+    bary = e.mul_(k)
+    return bary, ((bary > 0) | on_owned).all(-1)
 
 
 def _segment_distance2(px, py, ax, ay, bx, by):
