@@ -5,11 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from tests.support.evaluation import IMAGE_SIZE
-from unicorn.evaluation.reconstruct import MAX_NAME, pose_record, unique_names
+from unicorn.evaluation.reconstruct import MAX_NAME, pose_record, reconstruct, unique_names
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation, look_at_view_parameters, look_at_view_transform
+from unicorn.io.images import InputImage
+from unicorn.io.staging import OutputConflictError
 
 
 def test_unique_names() -> None:
@@ -75,3 +78,17 @@ def test_look_at_view_parameters_round_trip() -> None:
     R2, T2 = look_at_view_transform(p["dist"], p["elev"], p["azim"], p["at"], p["up"])
     torch.testing.assert_close(R2, R, atol=1e-6, rtol=0)
     torch.testing.assert_close(T2, T, atol=1e-6, rtol=0)
+
+
+def test_a_second_reconstruction_into_the_same_folder_changes_nothing_unless_asked(real_model, tmp_path) -> None:
+    image = torch.rand(3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0))
+    items = [InputImage(tmp_path / "car.png", "car", image, cropped=False)]
+    options = {"view_size": 32, "turntable_frames": 0, "strip_views": 1, "progress": False, "provenance": {}}
+    reconstruct(real_model, items, tmp_path / "out", **options)
+    before = {p: p.read_bytes() for p in sorted((tmp_path / "out").rglob("*")) if p.is_file()}
+    other = [InputImage(tmp_path / "car.png", "car", 1 - image, cropped=False)]
+    with pytest.raises(OutputConflictError, match=r"holds the outputs of an earlier reconstruction \(car, overview"):
+        reconstruct(real_model, other, tmp_path / "out", **options)
+    assert {p: p.read_bytes() for p in sorted((tmp_path / "out").rglob("*")) if p.is_file()} == before
+    reconstruct(real_model, other, tmp_path / "out", overwrite=True, **options)
+    assert (tmp_path / "out" / "car" / "input.png").read_bytes() != before[tmp_path / "out" / "car" / "input.png"]

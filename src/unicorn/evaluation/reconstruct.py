@@ -48,6 +48,7 @@ from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_scr
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import RECONSTRUCTIONS_RECORD, InputImage
 from unicorn.io.meshes import export_prediction, save_mesh
+from unicorn.io.staging import OutputConflictError
 from unicorn.model import Prediction, Unicorn
 from unicorn.objectives.refine import Refinement, RefineOptions, refine
 
@@ -161,9 +162,10 @@ def _write_one(
     device: torch.device,
     provenance: Mapping[str, Any],
     network: Prediction | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Write image ``i``'s files for ``pred`` and return its record; ``network``: the network's own prediction
-    that ``pred`` refines, written beside it."""
+    that ``pred`` refines, written beside it; ``overwrite``: replace the meshes of an earlier call."""
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
 
@@ -179,7 +181,7 @@ def _write_one(
 
     mesh = export_prediction(model, pred, i, name="mesh")
     for suffix in (".obj", ".glb"):
-        written = save_mesh(mesh, folder / f"mesh{suffix}")
+        written = save_mesh(mesh, folder / f"mesh{suffix}", overwrite=overwrite)
         files[f"mesh{suffix}"] = written[0].name
     pose = pose_record(model, pred, i)
     (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
@@ -227,6 +229,7 @@ def reconstruct(
     progress: bool = True,
     provenance: Mapping[str, Any] | None = None,
     refine_options: RefineOptions | None = None,
+    overwrite: bool = False,
 ) -> list[dict[str, Any]]:
     """Reconstruct preprocessed images and write their outputs (see the module docstring).
 
@@ -245,12 +248,15 @@ def reconstruct(
             checkpoint, versions), recorded in every JSON file and the HTML page; default: the calling process.
         refine_options: refine each prediction against its image (:func:`unicorn.objectives.refine.refine`) and write
             the refined result, the network's beside it; None (or 0 steps): the network's prediction.
+        overwrite: replace the outputs of an earlier call in ``out_dir`` (an image's folder, the overview, the
+            record); otherwise they are an error raised before anything is written.
 
     Returns:
         one record per image (name, source, folder within ``out_dir``, written files, pose angles, and with
         refinement the objective before and after it); also written to ``<out>/reconstructions.json``.
     """
     out = Path(out_dir)
+    _check_free(out, items, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     if provenance is None:
         from unicorn.io.provenance import command_line
@@ -276,7 +282,18 @@ def reconstruct(
         for i, item in enumerate(chunk):
             folder = out / item.name
             record = _write_one(
-                model, pred, i, item, folder, view_size, turntable_frames, strip_views, device, provenance, network
+                model,
+                pred,
+                i,
+                item,
+                folder,
+                view_size,
+                turntable_frames,
+                strip_views,
+                device,
+                provenance,
+                network,
+                overwrite,
             )
             if result is not None:
                 record["refinement"] = _refinement_record(result, i, refine_options)  # type: ignore[arg-type]
@@ -285,6 +302,29 @@ def reconstruct(
     bar.close()
     _write_overview(out, records, view_size, provenance)
     return records
+
+
+#: what :func:`reconstruct` writes beside the images' folders
+_OVERVIEW_FILES = ("overview.png", "index.html", RECONSTRUCTIONS_RECORD)
+
+
+def _check_free(out: Path, items: Sequence[InputImage], overwrite: bool) -> None:
+    """Refuse (unless ``overwrite``) to write into ``out`` over an earlier call's outputs: a non-empty folder of
+    one of the images, or one of :data:`_OVERVIEW_FILES`.
+
+    Raises:
+        OutputConflictError: names the first few.
+    """
+    if overwrite or not out.is_dir():
+        return
+    taken = [out / it.name for it in items if (out / it.name).is_dir() and any((out / it.name).iterdir())]
+    taken += [out / name for name in _OVERVIEW_FILES if (out / name).exists()]
+    if taken:
+        names = ", ".join(p.name for p in taken[:4]) + (f" and {len(taken) - 4} more" if len(taken) > 4 else "")
+        raise OutputConflictError(
+            f"{out} holds the outputs of an earlier reconstruction ({names}); pass overwrite=True to replace them, "
+            "or write elsewhere"
+        )
 
 
 def _refinement_record(result: Refinement, i: int, options: RefineOptions) -> dict[str, Any]:

@@ -112,7 +112,8 @@ def check_writable(out: str | os.PathLike) -> None:
 
 
 class OutputConflictError(UserError, FileExistsError):
-    """A file of the output folder stands where the command writes a folder, or a folder where it writes a file."""
+    """The output folder holds what the command would replace or cannot write over: a file where it writes a folder,
+    a folder where it writes a file, or (without ``overwrite``) an earlier run's outputs."""
 
 
 def _is_folder(path: Path) -> bool:
