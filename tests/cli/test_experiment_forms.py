@@ -204,10 +204,14 @@ def test_the_recorded_command_of_a_run_with_a_config_dir_composes_again(tmp_path
         (["-m", "experiment=synthetic,synthetic_wild", "hydra.sweep.dir=sweep"], False),
         (["-m", "experiment=synthetic", "seed=1,2"], False),  # one experiment: one task name
         (["experiment=synthetic,synthetic_wild"], False),  # not a sweep: Hydra's own error
+        (["-m", "task_name=a,b"], True),  # the other settings that name the default sweep folder
+        (["-m", "paths.log_dir=x,y", "seed=1"], True),
+        (["-m", "task_name=a", "seed=1,2"], False),
+        (["-m", "task_name=a,b", "hydra.sweep.dir=sweep"], False),
     ],
 )
 def test_a_sweep_over_experiments_needs_one_folder(args, refused):
     problem = train.sweep_problem(args)
     assert (problem is not None) == refused
     if refused:
-        assert "a sweep over experiments needs one folder for all its jobs, hydra.sweep.dir=DIR" in problem
+        assert "names the sweep's folder needs one folder for all its jobs, hydra.sweep.dir=DIR" in problem

@@ -222,6 +222,22 @@ def test_a_refused_sweep_leaves_the_sweep_folder_as_it_was(synthetic_cache, tmp_
     assert not (tmp_path / "new").exists()
 
 
+def test_a_sweep_resumed_with_its_values_in_another_order_is_refused(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    ran = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    weights = (sweep / "0" / "checkpoints" / "last.ckpt").read_bytes()
+    again = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=2", "seed=2,1", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path
+    )  # fmt: skip
+    (line,) = error_lines(again.stderr)
+    assert (
+        again.returncode == 2 and f"would resume {sweep / '0'}, the run of a job with other values: seed 1 -> 2" in line
+    )
+    assert (sweep / "0" / "checkpoints" / "last.ckpt").read_bytes() == weights
+    assert "seed: 1" in (sweep / "0" / "config.yaml").read_text()
+
+
 def test_ddp_two_cpu_processes(synthetic_cache, tmp_path):
     run_dir = tmp_path / "ddp"
     result = unicorn_train(

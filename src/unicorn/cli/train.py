@@ -331,18 +331,27 @@ def argument_note(args: list[str]) -> str | None:
 
 
 def sweep_problem(args: list[str]) -> str | None:
-    """What keeps a sweep (``-m``) over several experiments from being one sweep, or None: each job's folder is
-    under its own experiment's (``outputs/<task_name>/multiruns/<time>/<job>``), so that the sweep's record and its
-    jobs lie in different folders and no one ``hydra.sweep.dir`` resumes them all; it needs a folder of its own."""
+    """What keeps a sweep (``-m``) over several experiments (task names, log folders) from being one sweep, or None:
+    each job's folder is under its own value's (``outputs/<task_name>/multiruns/<time>/<job>``), so that the
+    sweep's record and its jobs lie in different folders and no one ``hydra.sweep.dir`` resumes them all; it needs a
+    folder of its own."""
     if not any(arg in ("-m", "--multirun") for arg in args):
         return None
-    swept = [a for a in args if a.lstrip("+").startswith("experiment=") and any(c in a for c in ",(")]
+    swept = [
+        a for a in args if a.lstrip("+").split("=", 1)[0] in _FOLDER_NAMING and "=" in a and any(c in a for c in ",(")
+    ]
     if not swept or any(a.lstrip("+").startswith("hydra.sweep.dir=") for a in args):
         return None
     return (
-        f"{swept[0]}: a sweep over experiments needs one folder for all its jobs, hydra.sweep.dir=DIR (by default "
-        "each job goes under its own experiment's folder, and no one folder resumes the sweep)"
+        f"{swept[0]}: a sweep over a setting that names the sweep's folder needs one folder for all its jobs, "
+        "hydra.sweep.dir=DIR (by default each job goes under a folder of its own value, and no one folder resumes "
+        "the sweep)"
     )
+
+
+#: the settings the default sweep folder is named from (``${paths.log_dir}/${task_name}/multiruns/<time>``, the
+#: experiment setting the task name)
+_FOLDER_NAMING = ("experiment", "task_name", "paths.log_dir")
 
 
 def main() -> None:

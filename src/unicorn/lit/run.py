@@ -208,7 +208,9 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     ``trainer.max_steps`` is said in a warning: the run trains nothing.
 
     Raises:
-        unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use.
+        unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use; in
+            a sweep, a changed setting the job's command line sets (the sweep's jobs listed in another order, or
+            with other values: each job resumes the folder of its number).
     """
     import yaml
 
@@ -238,10 +240,28 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
             f"its run's ({recorded}): {'; '.join(map(said, fixed))}; resume with the run's values, or start a new "
             "run from its weights with init_from=..."
         )
-    expected = lambda key: any(key == k or key.startswith(f"{k}.") for k in _RESUME_SETTINGS)  # noqa: E731
-    shown = [c for c in changes if not expected(c[0])]
+    under = lambda key, keys: any(key == k or key.startswith(f"{k}.") for k in keys)  # noqa: E731
+    shown = [c for c in changes if not under(c[0], _RESUME_SETTINGS)]
+    swept = [c for c in shown if under(c[0], _sweep_job_keys())]
+    if swept:
+        raise ConfigError(
+            f"ckpt_path: this job of the sweep would resume {run_dir}, the run of a job with other values: "
+            f"{'; '.join(map(said, swept))}; resume a sweep with the values it started with, in the same order "
+            "(each job resumes the folder of its number), or sweep into a new hydra.sweep.dir"
+        )
     if shown:
         log.warning("resuming with settings other than those in %s: %s", recorded, "; ".join(map(said, shown)))
+
+
+def _sweep_job_keys() -> list[str]:
+    """The keys this job of a sweep (``-m``) sets on the command line (``seed`` of ``seed=1``): what tells its run
+    from the other jobs'; none outside a sweep."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return []
+    return [o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task if "=" in o]
 
 
 def _differences(before: Any, now: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
