@@ -281,6 +281,8 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     assert "Restored all states from the checkpoint" in (run / "train.log").read_text()
     newest = run / "checkpoints" / f"step={step + 1:07d}.ckpt"  # save_last=false: the periodic file
     assert torch.load(newest, weights_only=True)["global_step"] == step + 1
+    # and the signal's last.ckpt, which whoever reads last.ckpt would take for the run's end, is gone
+    assert sorted(p.name for p in (run / "checkpoints").glob("*.ckpt")) == [newest.name]
     # the metric log reads as one run's: every iteration once (TINY logs every iteration)
     with open(run / "csv" / "metrics.csv", newline="") as f:
         logged = [int(row["step"]) for row in csv.DictReader(f) if row.get("train/lr")]

@@ -48,6 +48,7 @@ __all__ = [
     "set_aside",
     "later_checkpoints",
     "lock_folder",
+    "newest_checkpoint",
     "plan_folder",
     "previous_run",
     "resolve_ckpt",
@@ -113,6 +114,16 @@ def step_checkpoints(checkpoint_dir: Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
+def newest_checkpoint(checkpoint_dir: Path) -> Path | None:
+    """The checkpoint of ``checkpoint_dir`` saved at the latest iteration: ``last.ckpt`` or a ``step=<N>.ckpt``
+    (``last.ckpt`` on a tie; one whose iteration cannot be read counts as iteration 0), None when there is none."""
+    found = step_checkpoints(checkpoint_dir)
+    last = checkpoint_dir / "last.ckpt"
+    if last.is_file() and (not found or (checkpoint_step(last) or 0) >= found[-1][0]):
+        return last
+    return found[-1][1] if found else None
+
+
 def checkpoint_step(path: Path) -> int | None:
     """The iteration a checkpoint was saved at (``step=<N>.ckpt`` by its name, any other file by its stored
     ``global_step``, read without loading its tensors), or None when it cannot be read safely."""
@@ -150,11 +161,8 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
         last = checkpoint_dir / "last.ckpt"
         if save_last and last.is_file():
             return str(last)
-        found = [(n, path) for n, path in step_checkpoints(checkpoint_dir)] if not save_last else []
-        if not save_last and last.is_file():  # written when a signal stopped the run: it may be the newest
-            found.append((checkpoint_step(last) or 0, last))
-        if found:
-            newest = max(found, key=lambda item: item[0])[1]
+        newest = None if save_last else newest_checkpoint(checkpoint_dir)  # last.ckpt: written by a signal
+        if newest is not None:
             log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
             return str(newest)
         if not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder

@@ -538,12 +538,28 @@ def fit(run: Run) -> dict[str, float]:
         ) from err
     if run.stopper.stopped is not None:  # the signal came during the last iteration
         raise run.stopper.stopped
+    if not typed.callbacks.checkpoint.save_last:
+        _drop_superseded_last(run.checkpoint_dir)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
         where = "during the evaluation after training; the same command with ckpt_path=last in the same folder ends it"
         with interrupt_on_signal(where):
             evaluate_run(run)
     return metrics
+
+
+def _drop_superseded_last(checkpoint_dir: Path) -> None:
+    """Remove the ``last.ckpt`` a signal wrote into a run with ``save_last=false`` once the run, resumed from it,
+    has a newer ``step=<N>.ckpt``: otherwise it stays beside them, and whoever reads ``last.ckpt`` gets the weights
+    of the iteration the signal stopped."""
+    from unicorn.io.run_folder import checkpoint_step, newest_checkpoint
+
+    last = checkpoint_dir / "last.ckpt"
+    newest = newest_checkpoint(checkpoint_dir)
+    step = checkpoint_step(last) if newest is not None and newest != last and last.is_file() else None
+    if step is not None:  # a checkpoint of this run's (unreadable files are left alone)
+        log.info("removing %s (iteration %d, written by a signal): %s is newer", last, step, newest)
+        last.unlink()
 
 
 def _evaluated_before(metrics: Path, meta: dict[str, Any], target: Any) -> bool:
@@ -569,17 +585,19 @@ def evaluate_run(run: Run) -> Path:
     """The ``evaluate`` settings' evaluation of the trained model, in memory; returns the report folder.
 
     The metrics, ``report.html`` and ``report.png`` (inputs, reconstructions, meshes from new viewpoints) go to
-    ``<run>/eval``; they record ``last.ckpt`` (the same weights) and the equivalent ``unicorn-eval`` command. A run
+    ``<run>/eval``; they record the run's newest checkpoint (``last.ckpt``, or with ``save_last=false`` the last
+    ``step=<N>.ckpt``: the same weights) and the equivalent ``unicorn-eval`` command. A run
     resumed at its last iteration whose ``eval`` holds that iteration's evaluation with the same settings is not
     evaluated again.
     """
     from unicorn.config.schema import EvaluateConfig
     from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, overflow_note, settings_options
     from unicorn.io.provenance import provenance
+    from unicorn.io.run_folder import newest_checkpoint
 
     settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
     d = run.config.dataset
-    checkpoint = run.checkpoint_dir / "last.ckpt"
+    checkpoint = newest_checkpoint(run.checkpoint_dir) or run.checkpoint_dir / "last.ckpt"
     out = run.output_dir / "eval"
     meta = {
         **provenance(
