@@ -490,3 +490,10 @@ def test_a_read_only_run_folder_is_one_line(tmp_path):
     assert _hydra_failure("Could not override 'optim.lrr'.\nKey 'lrr' is not in struct") == (
         "Could not override 'optim.lrr'. Key 'lrr' is not in struct"
     )
+    # argparse's usage lines are left out; a launcher that is not installed is named as a plugin to install
+    usage = "usage: unicorn-train [--help] [overrides ...]\nunicorn-train: error: unrecognized arguments: seed=1\n"
+    assert _hydra_failure(usage) == (
+        "unrecognized arguments: seed=1 (the key=value overrides go together, after Hydra's options: --cfg job seed=1)"
+    )
+    missing = "In 'hydra/config': Could not find 'hydra/launcher/submitit_slurm'\n\nAvailable options: basic"
+    assert _hydra_failure(missing).endswith("pip install hydra-submitit-launcher)")

@@ -184,3 +184,17 @@ def test_init_weights_copies_every_weight_or_refuses(tmp_path: Path) -> None:
     other = Unicorn(source.config, shape={"code_dim": source.config["shape"]["code_dim"] * 2})
     with pytest.raises(CheckpointError, match=r"init_from: the weights of .* do not fit the configured model"):
         init_weights(other, path)
+
+
+def test_save_model_keeps_info_load_model_can_read_back_and_names_what_it_cannot(tmp_path):
+    import numpy as np
+
+    model = tiny_model("real")
+    _, info = load_model(save_model(model, tmp_path / "first.pt", epoch=np.int64(2)))
+    path = save_model(model, tmp_path / "m.pt", info=info, note=tmp_path / "notes.txt", scores=(np.float32(0.5), 1))
+    _, again = load_model(path)  # no UnsafeCheckpointError: only plain values were written
+    assert again.extra["info"]["path"] == str(tmp_path / "first.pt") and again.extra["info"]["epoch"] == 2
+    assert again.extra["note"] == str(tmp_path / "notes.txt") and again.extra["scores"] == [0.5, 1]
+    with pytest.raises(TypeError, match=r"^save_model: extra.model is a Unicorn, which load_model would refuse"):
+        save_model(model, tmp_path / "bad.pt", extra={"model": model})
+    assert not (tmp_path / "bad.pt").exists()

@@ -108,6 +108,8 @@ def entries_before(folder: Path) -> set[str] | None:
     return {p.name for p in folder.iterdir()} if folder.is_dir() else None
 
 
+#: argparse's report of a bad command line, after its usage lines: ``<prog>: error: <what>``
+_ARGPARSE_ERROR = re.compile(r"^\S+: error: ")
 #: the last line of a Python traceback: the exception's (qualified) name and message
 _EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
 
@@ -121,7 +123,15 @@ def hydra_failure(text: str) -> str | None:
     """
     lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
     if not any(line.startswith("Traceback (most recent call last)") for line in lines):
+        argparse_errors = [line.split(": error: ", 1)[1] for line in lines if _ARGPARSE_ERROR.match(line)]
+        if argparse_errors:  # argparse's usage lines, then "<prog>: error: <what>": the what
+            line = argparse_errors[-1]
+            if line.startswith("unrecognized arguments"):
+                line += " (the key=value overrides go together, after Hydra's options: --cfg job seed=1)"
+            return line
         line = " ".join(lines) or "invalid command line"
+        if "Could not find 'hydra/launcher/" in line:  # e.g. hydra/launcher=submitit_slurm without the plugin
+            line += " (Hydra's launchers but basic are plugins of their own: pip install hydra-submitit-launcher)"
         if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
             line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=10.ckpt\"')"
         return line

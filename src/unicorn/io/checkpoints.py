@@ -23,6 +23,8 @@ unicorn carry a content hash that is checked on load.
 from __future__ import annotations
 
 import copy
+import dataclasses
+import numbers
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -510,13 +512,41 @@ def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
         model: the model.
         path: the file to write (folders are created).
         **info: metadata kept with it: ``epoch``, ``step``, ``average_texture``, ``dataset`` (a dict with ``name``
-            and ``root``) or anything else (JSON-like values).
+            and ``root``) or anything else: numbers, strings, None, lists and dicts of them, tensors; paths are
+            kept as strings and dataclasses (a :class:`CheckpointInfo`) as dicts.
 
     Returns:
         ``path`` as a Path.
+
+    Raises:
+        TypeError: a value of ``info`` that :func:`load_model` could not read back (it loads plain values only),
+            named before anything is written.
     """
     path = Path(path).expanduser()
+    plain = {key: _plain_value(value, key) for key, value in info.items()}
     state = {k: v.detach().cpu() for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
     return atomic_save(
-        {"format": PLAIN_FORMAT, "config": copy.deepcopy(model.config), "state_dict": state, "info": info}, path
+        {"format": PLAIN_FORMAT, "config": copy.deepcopy(model.config), "state_dict": state, "info": plain}, path
+    )
+
+
+def _plain_value(value: Any, name: str) -> Any:
+    """``value`` as the plain types a checkpoint loaded without trust holds (see :func:`save_model`)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, numbers.Integral | numbers.Real):  # numpy's scalars
+        return int(value) if isinstance(value, numbers.Integral) else float(value)
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping) and all(isinstance(k, str) for k in value):
+        return {k: _plain_value(v, f"{name}.{k}") for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain_value(v, f"{name}[{i}]") for i, v in enumerate(value)]
+    raise TypeError(
+        f"save_model: {name} is a {type(value).__name__}, which load_model would refuse to read back (it loads plain "
+        "values only): pass numbers, strings, lists and dicts"
     )
