@@ -120,6 +120,14 @@ def test_overwrite_refuses_a_linked_output_folder(tmp_path) -> None:
         plan_folder(here, None, None, overwrite=True)
 
 
+def test_a_sweeps_folder_is_not_a_run_folder(tmp_path) -> None:
+    (tmp_path / "multirun.yaml").write_text("hydra: {}")
+    (tmp_path / "0").mkdir()
+    for ckpt_arg, overwrite in ((None, False), ("last", False), (None, True)):
+        with pytest.raises(RunFolderError, match=rf"^{tmp_path} is a sweep's folder \(multirun.yaml\): .* resume one"):
+            plan_folder(tmp_path, ckpt_arg, None, overwrite=overwrite)
+
+
 def test_a_users_config_is_not_a_run(tmp_path) -> None:
     (tmp_path / "config.yaml").write_text("mine")
     with pytest.raises(RunFolderError, match="holds config.yaml but no run"):

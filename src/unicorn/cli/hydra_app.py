@@ -38,11 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from unicorn.cli.errors import debug_requested, expected_error, log_warnings, one_line
 from unicorn.errors import Interrupted
 
-__all__ = ["APP_OVERRIDES", "SWEEP_RECORD", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
-
-
-#: the record of a sweep Hydra writes into ``hydra.sweep.dir`` before its first job
-SWEEP_RECORD = "multirun.yaml"
+__all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
 
 
 class NoteExistingFolders(Callback):
@@ -56,9 +52,9 @@ class NoteExistingFolders(Callback):
     #: the outermost of the noted folder's missing ancestors (``outputs`` of ``outputs/train/runs/<time>`` in a
     #: new project), which Hydra creates with it; None when its parent exists
     created_top: Path | None = None
-    #: a sweep's folder and what its record (:data:`SWEEP_RECORD`) held before Hydra rewrote it (None: no such
-    #: file), kept while no job of the sweep has kept its folder (the task sets it to None once one has): a sweep
-    #: whose first job fails before training puts them back
+    #: a sweep's folder and what its record (:data:`unicorn.io.run_folder.SWEEP_RECORD`) held before Hydra
+    #: rewrote it (None: no such file), kept while no job of the sweep has kept its folder (the task sets it to None
+    #: once one has): a sweep whose first job fails before training puts them back
     sweep: tuple[Path, bytes | None] | None = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
@@ -66,6 +62,8 @@ class NoteExistingFolders(Callback):
         self._note(Path(str(config.hydra.run.dir)), jobs_inside=False)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from unicorn.io.run_folder import SWEEP_RECORD
+
         folder = Path(str(config.hydra.sweep.dir)).expanduser().resolve()
         record = folder / SWEEP_RECORD
         NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)

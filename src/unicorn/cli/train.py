@@ -59,7 +59,7 @@ from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import tolerate_closed_stdout
-from unicorn.cli.hydra_app import SWEEP_RECORD, HydraApp, NoteExistingFolders, entries_before, hydra_failure
+from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
 from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.resources import config_dir
 
@@ -95,7 +95,7 @@ def _task(cfg: DictConfig) -> None:
     """
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.io.run_folder import FolderChanges, lock_folder
+    from unicorn.io.run_folder import SWEEP_RECORD, FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
     from unicorn.registry import load_plugins
 

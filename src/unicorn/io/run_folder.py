@@ -36,6 +36,7 @@ __all__ = [
     "RUN_OUTPUTS",
     "RUN_RECORDS",
     "STEP_CHECKPOINT",
+    "SWEEP_RECORD",
     "FolderChanges",
     "FolderLock",
     "RunFolderBusyError",
@@ -78,6 +79,8 @@ ASIDE_PREFIX = ".overwritten-"
 RUN_RECORDS = ("config.yaml", "provenance.json", ".hydra")
 #: the log Hydra appends to (``<hydra.job.name>.log``)
 RUN_LOG = "train.log"
+#: the record of a sweep (``-m``) Hydra writes into ``hydra.sweep.dir``, whose jobs' runs are in its numbered folders
+SWEEP_RECORD = "multirun.yaml"
 #: the lock file of a folder a run is training in (:func:`lock_folder`)
 LOCK_NAME = ".unicorn-train.lock"
 #: the periodic checkpoints' names (``step=<N>.ckpt``; ``-v<k>`` for Lightning's copies of a name in use)
@@ -166,11 +169,13 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
             log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
             return str(newest)
         if not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
+            setting = folder_setting()
             log.warning(
                 "ckpt_path=last: %s holds no run to resume, training from scratch (to resume a run, name its folder: "
-                "%s=<run dir>)",
+                "%s=<%s>)",
                 checkpoint_dir.parent,
-                folder_setting(),
+                setting,
+                "sweep dir" if setting == "hydra.sweep.dir" else "run dir",
             )
         else:
             log.info("ckpt_path=last: no %s yet, training from scratch", last)
@@ -218,10 +223,10 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
         overwrite: the ``overwrite`` setting.
 
     Raises:
-        RunFolderError: a new run, or a run resumed from another folder's checkpoint, in a folder holding a run,
-            or holding the records of one (``config.yaml``...); a resume from a checkpoint older than checkpoints
-            of this folder; each unless ``overwrite``. With ``overwrite``, outputs to replace that hold files a run
-            does not write, or that are links.
+        RunFolderError: a sweep's folder (:data:`SWEEP_RECORD`); a new run, or a run resumed from another folder's
+            checkpoint, in a folder holding a run, or holding the records of one (``config.yaml``...); a resume from
+            a checkpoint older than checkpoints of this folder; each unless ``overwrite``. With ``overwrite``,
+            outputs to replace that hold files a run does not write, or that are links.
     """
     rel = lambda p: p.relative_to(output_dir) if p.is_relative_to(output_dir) else p  # noqa: E731
     for aside in sorted(output_dir.glob(f"{ASIDE_PREFIX}*")) if output_dir.is_dir() else []:
@@ -230,6 +235,12 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             "iteration: move them back into %s, or delete the folder",
             aside,
             output_dir,
+        )
+    if (output_dir / SWEEP_RECORD).is_file():
+        raise RunFolderError(
+            f"{output_dir} is a sweep's folder ({SWEEP_RECORD}): its jobs' runs are in its numbered folders; resume "
+            f"one with hydra.run.dir={output_dir}/<job number>, the whole sweep with -m and hydra.sweep.dir, or "
+            f"train elsewhere ({folder_setting()}=...)"
         )
     previous = previous_run(output_dir)
     elsewhere = ckpt_arg not in (None, "last") and ckpt is not None and not _in_folder(Path(ckpt), output_dir)
