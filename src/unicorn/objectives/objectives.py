@@ -28,11 +28,11 @@ class Objectives(nn.Module):
         pose: the pose step; shape: the 3D step.
 
     Example:
-        >>> model = Unicorn(image_size=32)
+        >>> model = Unicorn(image_size=32, loss={"perceptual": "structural"})  # no VGG16 weights to fetch
         >>> objectives = Objectives.from_config(model.config["loss"], model)
         >>> losses = objectives("pose", model, torch.rand(2, 3, 32, 32))
         >>> sorted(losses)
-        ['rgb', 'total', 'uniform']
+        ['perceptual', 'rgb', 'total', 'uniform']
     """
 
     def __init__(self, pose: PoseStep, shape: ShapeStep) -> None:
