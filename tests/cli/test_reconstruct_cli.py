@@ -74,6 +74,9 @@ def test_reconstruct_command(tmp_path: Path, checkpoint: Path, inputs: Path) -> 
         R = torch.tensor(pose["R"])
         torch.testing.assert_close(R @ R.T, torch.eye(3), atol=1e-5, rtol=0)
         assert len(pose["T"]) == 3 and len(pose["candidate_probabilities"]) == 6
+    # the photo (70 x 40) fitted into 32 x 32: 32 x 18 pixels, 7 rows of padding above: its frame in photo pixels
+    frame = json.loads((out / "photo" / "pose.json").read_text())["frame"]
+    assert frame == pytest.approx({"x": 0.0, "y": -7 * 40 / 18, "width": 70.0, "height": 32 * 40 / 18})
     saved = json.loads((out / "reconstructions.json").read_text())
     records = saved["images"]
     assert [r["name"] for r in records] == ["cutout", "photo"]

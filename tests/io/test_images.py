@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from tests.support.datasets import save_with_orientation
@@ -50,3 +51,29 @@ def test_a_transparent_colour_key_crops_like_an_alpha_channel(tmp_path: Path, mo
     key = (255, 255, 255) if mode == "RGB" else 255
     image.save(tmp_path / "keyed.png", transparency=key)
     np.testing.assert_array_equal(alpha_bbox(tmp_path / "keyed.png"), [10, 4, 19, 8])
+
+
+@pytest.mark.parametrize(
+    ("shape", "bbox", "spot"),
+    [
+        ((120, 200), None, (40, 50)),
+        ((120, 200), None, (80, 150)),
+        ((200, 120), None, (150, 30)),
+        ((150, 150), (40, 30, 99, 79), (45, 90)),
+        ((90, 160), (5, 10, 30, 70), (60, 12)),
+    ],
+)
+def test_the_frame_locates_the_inputs_pixels_in_the_photo(tmp_path, shape, bbox, spot):
+    from unicorn.io.images import RawInput, frame_input
+
+    size, (H, W), (r, c) = 32, shape, spot
+    image = np.zeros((H, W, 3), np.float32)
+    image[r - 3 : r + 4, c - 3 : c + 4, 0] = 1.0  # a bright 7 x 7 square centred on pixel (r, c)
+    framed = frame_input(RawInput(tmp_path / "x.png", image, None if bbox is None else np.array(bbox)), size)
+    x, y, width, height = framed.frame
+    # where the frame puts the spot's centre (pixel (r, c) spans [c, c + 1) x [r, r + 1)), in input pixels
+    expected = ((r + 0.5 - y) / height * size - 0.5, (c + 0.5 - x) / width * size - 0.5)
+    red = framed.image[0].double()
+    rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    found = (float((red * rows).sum() / red.sum()), float((red * cols).sum() / red.sum()))  # the spot's centroid
+    assert found == pytest.approx(expected, abs=0.25)

@@ -13,6 +13,7 @@ from PIL import Image
 __all__ = [
     "crop_box",
     "fit_and_pad",
+    "fit_layout",
     "hflip_keypoints",
     "jitter_bbox",
     "pad_bbox",
@@ -122,12 +123,17 @@ def fit_and_pad(image: np.ndarray, size: int) -> np.ndarray:
     Returns:
         (size, size, 3) array.
     """
-    H, W = image.shape[:2]
+    h, w, top, left = fit_layout(image.shape[0], image.shape[1], size)
+    resized = resize_image(image, (h, w))
+    return np.pad(resized, [(top, size - h - top), (left, size - w - left), (0, 0)], mode="edge")
+
+
+def fit_layout(H: int, W: int, size: int) -> tuple[int, int, int, int]:
+    """Where :func:`fit_and_pad` puts an (H, W) image in its (size, size) square: ``(h, w, top, left)``, the resized
+    image's side lengths and its offset."""
     scale = size / max(H, W)
     h, w = max(1, round(H * scale)), max(1, round(W * scale))
-    resized = resize_image(image, (h, w))
-    top, left = (size - h) // 2, (size - w) // 2
-    return np.pad(resized, [(top, size - h - top), (left, size - w - left), (0, 0)], mode="edge")
+    return h, w, (size - h) // 2, (size - w) // 2
 
 
 def hflip_keypoints(keypoints: np.ndarray, width: int, perm: np.ndarray | None = None) -> np.ndarray:

@@ -184,7 +184,8 @@ def _write_one(
         written = save_mesh(mesh, folder / f"mesh{suffix}", overwrite=overwrite)
         files[f"mesh{suffix}"] = written[0].name
     pose = pose_record(model, pred, i)
-    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
+    frame = {} if item.frame is None else {"frame": dict(zip(("x", "y", "width", "height"), item.frame, strict=True))}
+    (folder / "pose.json").write_text(json.dumps({**pose, **frame, "provenance": dict(provenance)}, indent=1))
     files["pose"] = "pose.json"
 
     verts, tex, R, T = pred.verts[i], pred.texture[i], pred.R[i], pred.T[i]

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from unicorn.data.folder import IMAGE_EXTENSIONS, RECONSTRUCTIONS_RECORD, is_output_folder, list_images
-from unicorn.data.framing import crop_box, fit_and_pad, pad_bbox, resize_image, square_bbox
+from unicorn.data.framing import crop_box, fit_and_pad, fit_layout, pad_bbox, resize_image, square_bbox
 from unicorn.data.images import (
     RGB_BYTES_PER_PIXEL,
     ImageLoadError,
@@ -192,8 +192,23 @@ def preprocess(
     Returns:
         (size, size, 3) float32 array.
     """
+    return _framed(image, size, bbox, padding)[0]
+
+
+#: a rectangle of an image, ``(x, y, width, height)`` in its pixels: x right, y down, pixel (i, j) spans
+#: [j, j + 1) x [i, i + 1)
+Rectangle = tuple[float, float, float, float]
+
+
+def _framed(
+    image: np.ndarray, size: int, bbox: np.ndarray | Sequence[float] | None, padding: float
+) -> tuple[np.ndarray, Rectangle]:
+    """:func:`preprocess`'s image and the rectangle of ``image`` it shows (beyond the image's edges where it pads)."""
     if bbox is None:
-        return fit_and_pad(image, size).astype(np.float32)
+        H, W = image.shape[:2]
+        h, w, top, left = fit_layout(H, W, size)
+        sx, sy = w / W, h / H  # the resized image's pixels per original pixel
+        return fit_and_pad(image, size).astype(np.float32), (-left / sx, -top / sy, size / sx, size / sy)
     box = pad_bbox(np.asarray(bbox, dtype=np.float64), check_padding(padding))
     side = float(max(box[2] - box[0], box[3] - box[1]) + 1)  # before the integers, which a huge box overflows
     shown = f"{side:.0f}" if side < 1e15 else f"{side:.3g}"
@@ -208,8 +223,10 @@ def preprocess(
             f"the box with its padding frames a crop of {shown} x {shown} pixels, more than any image holds (at most "
             f"{MAX_CROP_SIDE} a side); give a smaller bbox or padding"
         )
-    crop, _ = crop_box(image, square_bbox(box))
-    return resize_image(crop.astype(np.float32), (size, size))
+    square = square_bbox(box)
+    crop, _ = crop_box(image, square)
+    side = float(square[2] - square[0] + 1)
+    return resize_image(crop.astype(np.float32), (size, size)), (float(square[0]), float(square[1]), side, side)
 
 
 class RawInput:
@@ -233,10 +250,15 @@ class InputImage:
         name: a file-system safe name for its outputs (the stem, made unique by the caller).
         image: (3, S, S) float tensor in [0, 1], the model's input.
         cropped: whether an alpha cut-out (or a given box) set the framing.
+        frame: the rectangle ``(x, y, width, height)`` of the file's image that ``image`` shows, in its pixels (x
+            right, y down, pixel (i, j) spanning [j, j + 1) x [i, i + 1); beyond the image's edges where the framing
+            pads it); None when unknown.
     """
 
-    def __init__(self, path: Path, name: str, image: torch.Tensor, cropped: bool) -> None:
-        self.path, self.name, self.image, self.cropped = path, name, image, cropped
+    def __init__(
+        self, path: Path, name: str, image: torch.Tensor, cropped: bool, frame: Rectangle | None = None
+    ) -> None:
+        self.path, self.name, self.image, self.cropped, self.frame = path, name, image, cropped, frame
 
 
 def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use_alpha: bool = True) -> RawInput:
@@ -256,8 +278,8 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
 
 def frame_input(raw: RawInput, size: int, name: str | None = None, padding: float = DEFAULT_PADDING) -> InputImage:
     """Frame a read image for a model of input side ``size`` (see the module docstring)."""
-    framed = preprocess(raw.image, size, raw.bbox, padding)
-    return InputImage(raw.path, name or raw.path.stem, to_chw_tensor(framed), raw.bbox is not None)
+    framed, frame = _framed(raw.image, size, raw.bbox, padding)
+    return InputImage(raw.path, name or raw.path.stem, to_chw_tensor(framed), raw.bbox is not None, frame)
 
 
 def load_input(
