@@ -26,6 +26,7 @@ __all__ = [
     "Dims",
     "EnvironmentLimitError",
     "FaceIndexError",
+    "NonFiniteValueError",
     "ShapeError",
     "SizeLimitError",
     "check_shape",
@@ -63,6 +64,10 @@ def is_number(value: object) -> bool:
 def is_seed(value: object) -> bool:
     """Whether ``value`` is a seed numpy takes: a whole number in [0, :data:`MAX_SEED`]."""
     return is_whole(value) and 0 <= value <= MAX_SEED
+
+
+class NonFiniteValueError(ValueError):
+    """An input holds NaN or infinite values (the message names it)."""
 
 
 class FaceIndexError(IndexError, ValueError):
@@ -287,7 +292,7 @@ def check_pixels(images: torch.Tensor, name: str = "images") -> None:
     if lo >= -PIXEL_TOLERANCE and hi <= 1 + PIXEL_TOLERANCE:
         return
     if not math.isfinite(lo) or not math.isfinite(hi):
-        raise ValueError(f"{name} hold NaN or infinite values; pixels must be in [0, 1]")
+        raise NonFiniteValueError(f"{name} hold NaN or infinite values; pixels must be in [0, 1]")
     hint = " (pixels in [0, 255]: divide by 255)" if lo >= -PIXEL_TOLERANCE and hi <= 255 + PIXEL_TOLERANCE else ""
     raise ValueError(f"{name} must hold pixels in [0, 1], got values in [{lo:.4g}, {hi:.4g}]{hint}")
 
@@ -379,4 +384,4 @@ def check_mesh(
         _check_face_range(read[0], read[1], verts.shape[1])
     for name, ok in zip(named, read[len(read) - len(named) :]):
         if not ok:
-            raise ValueError(f"{name} contains NaN or infinite values")
+            raise NonFiniteValueError(f"{name} contains NaN or infinite values")

@@ -380,6 +380,14 @@ def test_nonfinite_loss_stops_with_step_and_term(synthetic_cache, tmp_path, monk
     assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
 
 
+def test_weights_an_update_blew_up_stop_as_a_nonfinite_step(synthetic_cache, tmp_path):
+    # the first update at this rate leaves finite weights whose forward overflows: the renderer's input check sees it
+    run = build_run(tmp_path, "optim.lr=1e30")
+    with pytest.raises(NonFiniteLossError, match=r"iteration 1 \(3d step\): the prediction: verts contains NaN"):
+        fit(run)
+    assert (run.checkpoint_dir / "nonfinite-step=1.ckpt").is_file()
+
+
 def test_nonfinite_checkpoint_is_the_state_before_the_failing_iteration(synthetic_cache, tmp_path, monkeypatch):
     from unicorn.io.serialization import load_checkpoint_file
 

@@ -119,7 +119,15 @@ class FiniteCheck:
         bad = [f"{k} = {float(v.detach()):g}" for k, v in losses.items() if not torch.isfinite(v).all()]
         if not bad and grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
             bad.append("gradients of 'total' (finite loss)")
-        where = ", ".join(bad) if bad else "a term on another rank"
+        self.stop(step, phase, ", ".join(bad) if bad else "a term on another rank")
+
+    def stop(self, step: int, phase: str, where: str) -> None:
+        """Undo the forward pass of iteration ``step`` (begun after :meth:`snapshot`), save the state before it and
+        raise :class:`NonFiniteLossError` naming ``where`` (the terms, or the values, that were not finite).
+
+        Raises:
+            NonFiniteLossError: always.
+        """
         self.restore_forward()
         path = self._save(step)
         saved = f"; the state before this iteration was saved to {path}" if path else ""

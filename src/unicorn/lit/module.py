@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from unicorn.checks import NonFiniteValueError
 from unicorn.config.build import ConfigError, check_optim
 from unicorn.config.schema import OptimConfig
 from unicorn.data.augment import random_hue_shift, random_roll_shift
@@ -309,7 +310,12 @@ class UnicornLitModule(L.LightningModule):
         if deferred and self.compiled_step is not None:
             losses = self.compiled_step(phase, images, average, step)
         else:
-            losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
+            try:
+                losses = self.objectives(phase, self.model, images, average_texture=average, iteration=step)
+            except NonFiniteValueError as err:  # the renderer's input checks: weights the last update blew up
+                if not check or deferred:  # (the steps without host reads do not check inputs)
+                    raise
+                self.finite.stop(step, phase, f"the prediction: {err}")
         self.manual_backward(losses["total"])
         if check and deferred:
             self.finite.defer(losses, step)

@@ -31,7 +31,14 @@ from typing import Any
 
 import torch
 
-from ..checks import SizeLimitError, check_mesh, check_rotations, check_translations, env_limit
+from ..checks import (
+    NonFiniteValueError,
+    SizeLimitError,
+    check_mesh,
+    check_rotations,
+    check_translations,
+    env_limit,
+)
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
 from ..hostsync import is_sync_free
@@ -172,7 +179,7 @@ def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size
     finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync
     for name, ok in zip("RT", finite):
         if not ok:
-            raise ValueError(f"{name} contains NaN or infinite values")
+            raise NonFiniteValueError(f"{name} contains NaN or infinite values")
 
 
 def check_mesh_inputs(
