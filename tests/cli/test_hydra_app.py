@@ -49,3 +49,18 @@ def test_a_run_folder_under_the_home_folder_is_expanded_as_in_a_shell(monkeypatc
     args = HydraApp("unicorn-train", Path("."), "train").hydra_args([f"{key}={value}", "seed=1"])
     assert args == [*APP_OVERRIDES, f"{key}={quote}/home/me/runs/a{quote}", "seed=1"]  # not ./~/runs/a
     assert HydraApp("unicorn-train", Path("."), "train").hydra_args(["hydra.run.dir=a~b"])[-1] == "hydra.run.dir=a~b"
+
+
+@pytest.mark.parametrize(
+    ("args", "keys"),
+    [
+        (["seed=0,1", "optim.lr=2e-4"], {"seed"}),
+        (["-m", "+x=choice(1,2)", "y=range(3)", "~z=1"], {"x", "y"}),
+        (["model.stages.texture=[2,4,8,16]", "a={b: 1, c: 2}", "s='1,2'"], set()),  # a list, a dict, a string
+        (["model.stages.texture=[2,4],[4,8]", "--cfg", "job"], {"model.stages.texture"}),
+    ],
+)
+def test_the_keys_a_command_line_sweeps(args, keys):
+    from unicorn.cli.hydra_app import swept_keys
+
+    assert swept_keys(args) == keys

@@ -205,16 +205,21 @@ def test_a_refused_sweep_leaves_the_sweep_folder_as_it_was(synthetic_cache, tmp_
     ran = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert ran.returncode == 0, ran.stderr[-3000:]
     record = (sweep / "multirun.yaml").read_bytes()
-    # the same sweep again, another setting: its first job is refused before Hydra's record of it is left behind
-    again = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    # the same sweep again, another setting: every job is refused, and Hydra's record of it is not left behind
+    again = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=2", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path
+    )  # fmt: skip
     assert again.returncode == 2
-    (line,) = error_lines(again.stderr)
-    assert f"{sweep / '0'} already holds a run" in line and line.endswith("train elsewhere (hydra.sweep.dir=...)")
-    assert (sweep / "multirun.yaml").read_bytes() == record and sorted(p.name for p in sweep.iterdir()) == [
-        "0",
-        "1",
-        "multirun.yaml",
-    ]
+    *jobs, summary = error_lines(again.stderr)
+    assert len(jobs) == 2 and summary.startswith("unicorn-train: error: 2 job(s) of the sweep failed")
+    assert f"job #0 (seed=1): {sweep / '0'} already holds a run" in jobs[0]
+    assert jobs[0].endswith("train elsewhere (hydra.sweep.dir=...)")
+    assert (sweep / "multirun.yaml").read_bytes() == record
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "1", "multirun.yaml"]
+    # one more job than before: it runs, and the sweep's record is the new command's
+    more = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert more.returncode == 2 and (sweep / "2" / "checkpoints" / "last.ckpt").is_file()
+    assert "seed=1,2,3" in (sweep / "multirun.yaml").read_text()
     # a sweep refused in a folder of its own: nothing is left of it, nor of the folders Hydra made above it
     new = tmp_path / "new" / "sweep"
     bad = unicorn_train("-m", *TINY, "model.loss.memory_size=-3", "seed=1,2", f"hydra.sweep.dir={new}", cwd=tmp_path)
@@ -230,12 +235,25 @@ def test_a_sweep_resumed_with_its_values_in_another_order_is_refused(synthetic_c
     again = unicorn_train(
         "-m", *TINY, "trainer.max_steps=2", "seed=2,1", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path
     )  # fmt: skip
-    (line,) = error_lines(again.stderr)
-    assert (
-        again.returncode == 2 and f"would resume {sweep / '0'}, the run of a job with other values: seed 1 -> 2" in line
-    )
+    first, second, summary = error_lines(again.stderr)
+    assert again.returncode == 2 and summary.startswith("unicorn-train: error: 2 job(s) of the sweep failed")
+    assert f"job #0 (seed=2): ckpt_path: this job of the sweep would resume {sweep / '0'}" in first
+    assert "the run of a job with other values: seed 1 -> 2" in first and "seed 2 -> 1" in second
     assert (sweep / "0" / "checkpoints" / "last.ckpt").read_bytes() == weights
     assert "seed: 1" in (sweep / "0" / "config.yaml").read_text()
+
+
+def test_a_failing_job_leaves_the_other_jobs_of_a_sweep_to_run(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    ran = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,-1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    job, summary = error_lines(ran.stderr)
+    assert ran.returncode == 2 and job.startswith("unicorn-train: error: job #1 (seed=-1): seed must be")
+    assert summary == (
+        "unicorn-train: error: 1 job(s) of the sweep failed, each said above: #1 (seed=-1); the other jobs ran (the "
+        f"same command with hydra.sweep.dir={sweep} ckpt_path=last goes on with the sweep once the failures are fixed)"
+    )
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "2", "multirun.yaml"]  # job 1 left nothing
+    assert all((sweep / job / "checkpoints" / "last.ckpt").is_file() for job in ("0", "2"))
 
 
 def test_ddp_two_cpu_processes(synthetic_cache, tmp_path):

@@ -38,6 +38,7 @@ from unicorn.errors import Interrupted, UnicornWarning, UserError, interrupt_on_
 __all__ = [
     "USER_ERRORS",
     "ConsoleStream",
+    "SweepError",
     "UsageError",
     "add_debug_argument",
     "debug_requested",
@@ -55,6 +56,10 @@ __all__ = [
 
 class UsageError(UserError, ValueError):
     """Options that do not fit together or do not fit this machine (the message names the option)."""
+
+
+class SweepError(UsageError):
+    """A sweep (``-m``) that cannot run as asked, whichever its job: said once, and the sweep stops."""
 
 
 #: exceptions reported in one line: the user can fix them (a path, a permission, a full disk, a bad value)

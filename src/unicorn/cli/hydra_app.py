@@ -35,7 +35,7 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from unicorn.cli.errors import debug_requested, expected_error, log_warnings, one_line
+from unicorn.cli.errors import SweepError, debug_requested, expected_error, log_warnings, one_line
 from unicorn.errors import Interrupted
 
 __all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
@@ -68,6 +68,34 @@ class NoteExistingFolders(Callback):
         record = folder / SWEEP_RECORD
         NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
         self._note(folder, jobs_inside=True)
+
+    @staticmethod
+    def put_back_sweep() -> None:
+        """Put a sweep's record back as it was when none of its jobs kept a folder (each failed or was stopped
+        before its first iteration, and put its own folder back): ``multirun.yaml`` gets back its bytes, or is
+        removed, and then the sweep's folder and the parents Hydra created for it if they are empty. Nothing is
+        removed but that file and empty folders; nothing happens outside a sweep."""
+        if NoteExistingFolders.sweep is None:
+            return
+        from unicorn.io.run_folder import SWEEP_RECORD
+
+        folder, record = NoteExistingFolders.sweep
+        NoteExistingFolders.sweep = None
+        path = folder / SWEEP_RECORD
+        if record is None:
+            path.unlink(missing_ok=True)
+        elif not path.is_file() or path.read_bytes() != record:
+            path.write_bytes(record)
+        if entries_before(folder) is not None:
+            return  # the folder was there before the sweep
+        top = NoteExistingFolders.created_top or folder
+        for made in (folder, *folder.parents):
+            if not made.is_relative_to(top):
+                return
+            try:
+                made.rmdir()  # only an empty folder
+            except OSError:
+                return
 
     @staticmethod
     def _note(folder: Path, jobs_inside: bool) -> None:
@@ -199,6 +227,48 @@ def _home_expanded(value: str) -> str:
     return f"{quote}{os.path.expanduser(inner)}{quote}" if inner.startswith("~") else value
 
 
+def _sweep_job(swept: set[str]) -> str:
+    """``#<number> (<its values of the swept keys>)`` for a job of a sweep (``-m``), the empty string otherwise."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return ""
+    hydra_cfg = HydraConfig.get()
+    values = [o for o in hydra_cfg.overrides.task if o.split("=", 1)[0].lstrip("+~") in swept]
+    return f"#{hydra_cfg.job.num}" + (f" ({' '.join(values)})" if values else "")
+
+
+def swept_keys(args: list[str]) -> set[str]:
+    """The keys a command line sweeps (``seed=0,1``, ``lr=choice(...)``; not a list value such as ``x=[1,2]``)."""
+    keys = set()
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if sep and not key.startswith("-") and _is_sweep_value(value):
+            keys.add(key.lstrip("+~"))
+    return keys
+
+
+def _is_sweep_value(value: str) -> bool:
+    """Whether an override's value is one of Hydra's sweeps: a comma outside brackets and quotes, or a sweep
+    function (``choice``, ``range``, ``interval``, ``glob``)."""
+    if re.match(r"^\s*(choice|range|interval|glob)\(", value):
+        return True
+    depth, quote = 0, ""
+    for char in value:
+        if quote:
+            quote = "" if char == quote else quote
+        elif char in "'\"":
+            quote = char
+        elif char in "[{(":
+            depth += 1
+        elif char in "]})":
+            depth -= 1
+        elif char == "," and depth == 0:
+            return True
+    return False
+
+
 def _is_override(args: list[str], i: int) -> bool:
     """Whether ``args[i]`` is one of Hydra's positional overrides (not an option nor an option's value)."""
     if args[i].startswith("-"):
@@ -221,6 +291,11 @@ class HydraApp:
         self.prog, self.config_dir, self.config_name, self.debug = prog, config_dir, config_name, debug
         self.record_subdir: str | None = ".hydra"  # where the task writes Hydra's record (None: nowhere)
         self.task_started = False
+        #: the jobs of a sweep that failed with an expected error (``#<num> (<overrides>)``): the sweep goes on with
+        #: the others and the command ends with status 2
+        self.failed_jobs: list[str] = []
+        self.sweep_dir: Path | None = None
+        self.swept: set[str] = set()  # the keys the command line sweeps
 
     def hydra_args(self, args: list[str]) -> list[str]:
         """The arguments with Hydra's own writing of ``.hydra/`` turned off; a ``hydra.output_subdir`` given by the
@@ -256,6 +331,8 @@ class HydraApp:
 
     def _run_task(self, task: Callable[[DictConfig], Any], cfg: DictConfig) -> None:
         self.task_started = True
+        if NoteExistingFolders.noted is not None and NoteExistingFolders.noted[1]:  # a sweep: its folder
+            self.sweep_dir = NoteExistingFolders.noted[0]
         if isinstance(sys.stderr, _HeldStream):
             sys.stderr = sys.stderr.release()
         try:
@@ -267,20 +344,41 @@ class HydraApp:
         except Exception as err:
             reported = expected_error(err)
             if reported is None or debug_requested(self.debug):
-                raise  # a bug: Hydra prints the traceback, exit status 1
-            print(f"{self.prog}: error: {one_line(reported)}", file=sys.stderr, flush=True)
-            raise SystemExit(2) from None
+                raise  # a bug: Hydra prints the traceback (in a sweep once the other jobs ran), exit status 1
+            job = "" if isinstance(reported, SweepError) else _sweep_job(self.swept)
+            print(f"{self.prog}: error: {job and f'job {job}: '}{one_line(reported)}", file=sys.stderr, flush=True)
+            if not job:
+                raise SystemExit(2) from None
+            self.failed_jobs.append(job)  # the other jobs of the sweep still run
+
+    def _end_sweep(self) -> None:
+        """After a sweep some of whose jobs failed: one line naming them, exit status 2."""
+        if not self.failed_jobs:
+            return
+        where = f" hydra.sweep.dir={self.sweep_dir}" if self.sweep_dir is not None else ""
+        print(
+            f"{self.prog}: error: {len(self.failed_jobs)} job(s) of the sweep failed, each said above: "
+            f"{', '.join(self.failed_jobs)}; the other jobs ran (the same command with{where} ckpt_path=last goes on "
+            "with the sweep once the failures are fixed)",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(2)
 
     def run(self, task: Callable[[DictConfig], Any], args: list[str]) -> None:
         """Run ``task`` on the config Hydra composes from ``args`` (the command line after the program name)."""
         sys.argv[1:] = self.hydra_args(args)
+        self.swept = swept_keys(args)
         held = None if debug_requested(self.debug) else _HeldStream(sys.stderr)
         if held is not None:
             sys.stderr = held
         main = hydra.main(config_path=str(self.config_dir), config_name=self.config_name, version_base="1.3")
         try:
             main(lambda cfg: self._run_task(task, cfg))()
+            NoteExistingFolders.put_back_sweep()  # when every job failed before training
+            self._end_sweep()
         except SystemExit as exit:
+            NoteExistingFolders.put_back_sweep()
             if held is None or self.task_started or not exit.code:
                 raise
             sys.stderr = held.stream

@@ -95,7 +95,7 @@ def _task(cfg: DictConfig) -> None:
     """
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.io.run_folder import SWEEP_RECORD, FolderChanges, lock_folder
+    from unicorn.io.run_folder import FolderChanges, lock_folder
     from unicorn.lit.run import build, fit, is_first_process
     from unicorn.registry import load_plugins
 
@@ -128,10 +128,6 @@ def _task(cfg: DictConfig) -> None:
     lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
     top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
     changes = [FolderChanges(folder, names, top) for folder, names in entries.items()]
-    if NoteExistingFolders.sweep is not None:  # a sweep none of whose jobs has kept its folder yet
-        sweep, record = NoteExistingFolders.sweep
-        rewritten = {SWEEP_RECORD: record} if record is not None else None
-        changes.append(FolderChanges(sweep, entries_before(sweep), top, rewritten))
     run = None
     with interrupt_on_signal(outside):
         try:
@@ -193,12 +189,12 @@ def _check_local_sweep(cfg: DictConfig) -> None:
     each job's ranks instead).
 
     Raises:
-        UsageError: the message says what to do instead.
+        SweepError: the message says what to do instead.
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    from unicorn.cli.errors import UsageError
+    from unicorn.cli.errors import SweepError
 
     hydra = HydraConfig.get()
     launcher = str((hydra.launcher or {}).get("_target_", ""))
@@ -207,7 +203,7 @@ def _check_local_sweep(cfg: DictConfig) -> None:
     if hydra.mode != RunMode.MULTIRUN or not launcher.endswith("BasicLauncher") or single:
         return
     if isinstance(strategy, str) and strategy.startswith("ddp"):
-        raise UsageError(
+        raise SweepError(
             f"a sweep (-m) of DDP runs (trainer.strategy={strategy}, trainer.devices={devices}) cannot be launched "
             "on this machine: every DDP process would run the whole sweep; run the jobs one by one, with "
             "trainer.devices=1, or with a launcher that starts each job's processes (hydra/launcher=submitit_slurm)"
