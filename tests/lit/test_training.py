@@ -424,9 +424,9 @@ def test_missing_dataset_is_a_clear_error(tmp_path):
         ["experiment=cub", f"paths.output_dir={tmp_path}", f"dataset.root={tmp_path / 'nothing'}", "logger=none"]
     )
     cfg.model.loss.perceptual = "structural"
-    run = build(cfg)
-    with pytest.raises((FileNotFoundError, RuntimeError), match="nothing"):
-        run.trainer.fit(run.module, datamodule=run.data)
+    with pytest.raises(FileNotFoundError, match="CUB-200-2011 root not found at .*nothing"):
+        build(cfg)  # before the model and the trainer are built
+    assert not any(tmp_path.iterdir())
 
 
 def test_adam_state_per_step(synthetic_cache, tmp_path):

@@ -65,9 +65,11 @@ class NoteExistingFolders(Callback):
         from unicorn.io.run_folder import SWEEP_RECORD
 
         folder = Path(str(config.hydra.sweep.dir)).expanduser().resolve()
-        record = folder / SWEEP_RECORD
-        NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
+        NoteExistingFolders.sweep = None
         self._note(folder, jobs_inside=True)
+        if NoteExistingFolders.refusal is None:  # a folder Hydra can make (or that is there)
+            record = folder / SWEEP_RECORD
+            NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
 
     @staticmethod
     def put_back_sweep() -> None:
