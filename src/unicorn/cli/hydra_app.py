@@ -5,7 +5,9 @@
 - before the task (Hydra's composition: a misspelt override or group, a run folder that cannot be created), what
   Hydra printed is held back and reported as ``<prog>: error: <one line>``, exit status 2, unless it is a bug;
 - in the task, an expected failure (:func:`~unicorn.cli.errors.expected_error`) the same way, a bug with its
-  traceback.
+  traceback. In a sweep (``-m``) a job's expected failure is said with the job's number and swept values and the
+  other jobs run; the command then ends with one line naming the failed jobs and status 2 (a
+  :class:`~unicorn.cli.errors.SweepError`, a problem of the whole sweep, stops it at once).
 
 Hydra writes its record of the run (``.hydra/``) before the task starts, over the record of a run whose folder
 the task may then refuse; the app turns that off and the task writes the record once it accepted the folder
@@ -38,7 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 from unicorn.cli.errors import SweepError, debug_requested, expected_error, log_warnings, one_line
 from unicorn.errors import Interrupted
 
-__all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure"]
+__all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure", "swept_keys"]
 
 
 class NoteExistingFolders(Callback):
@@ -54,7 +56,7 @@ class NoteExistingFolders(Callback):
     created_top: Path | None = None
     #: a sweep's folder and what its record (:data:`unicorn.io.run_folder.SWEEP_RECORD`) held before Hydra
     #: rewrote it (None: no such file), kept while no job of the sweep has kept its folder (the task sets it to None
-    #: once one has): a sweep whose first job fails before training puts them back
+    #: once one has): a sweep none of whose jobs kept one puts them back (:meth:`put_back_sweep`)
     sweep: tuple[Path, bytes | None] | None = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:

@@ -59,7 +59,7 @@ from omegaconf import DictConfig, ListConfig
 
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import tolerate_closed_stdout
-from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure
+from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure, swept_keys
 from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
 from unicorn.resources import config_dir
 
@@ -333,9 +333,8 @@ def sweep_problem(args: list[str]) -> str | None:
     folder of its own."""
     if not any(arg in ("-m", "--multirun") for arg in args):
         return None
-    swept = [
-        a for a in args if a.lstrip("+").split("=", 1)[0] in _FOLDER_NAMING and "=" in a and any(c in a for c in ",(")
-    ]
+    naming = swept_keys(args) & set(_FOLDER_NAMING)
+    swept = [a for a in args if a.split("=", 1)[0].lstrip("+~") in naming]
     if not swept or any(a.lstrip("+").startswith("hydra.sweep.dir=") for a in args):
         return None
     return (
