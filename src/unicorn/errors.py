@@ -23,6 +23,7 @@ __all__ = [
     "MissingPackageError",
     "UnicornWarning",
     "UserError",
+    "defer_stop_signals",
     "interrupt_on_signal",
     "pending_interrupt",
     "signals_held",
@@ -67,6 +68,27 @@ class Interrupted(Exception):
 
 #: the signals received in the :func:`interrupt_on_signal` blocks under way, one list per block (innermost last)
 _RECEIVED: list[list[int]] = []
+#: the signals :func:`defer_stop_signals` noted before a command could stop cleanly, oldest first
+_DEFERRED: list[int] = []
+
+
+def defer_stop_signals() -> None:
+    """From now on, until an :func:`interrupt_on_signal` block takes them over, note SIGTERM and SIGINT instead of
+    dying of them (the default), so that a command still setting up (importing, composing its config, creating its
+    folders) can put its folders back before it stops: :func:`pending_interrupt` reports the noted signal. A second
+    one meanwhile stops the process at once (exit status ``128 + signal``). Ignored signals stay ignored; outside the
+    main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def note(signum: int, frame: Any) -> None:
+        if _DEFERRED:
+            raise SystemExit(128 + signum)
+        _DEFERRED.append(signum)
+
+    for signum in STOP_SIGNALS:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, note)
 
 
 def _interrupted(signum: int, where: str) -> Interrupted:
@@ -75,11 +97,11 @@ def _interrupted(signum: int, where: str) -> Interrupted:
 
 
 def pending_interrupt(where: str = "") -> Interrupted | None:
-    """The :class:`Interrupted` of a signal that came in an :func:`interrupt_on_signal` block still under way, or
-    None. The error the signal raised can be swallowed by code that catches every ``Exception`` (a logging
-    handler's ``emit``); the stop is not: the code that goes on asks here (the training, before its first
-    iteration), and the block raises it again when it ends."""
-    signals = [s for block in _RECEIVED for s in block]
+    """The :class:`Interrupted` of a signal that came in an :func:`interrupt_on_signal` block still under way (or
+    that :func:`defer_stop_signals` noted before), or None. The error the signal raised can be swallowed by code that
+    catches every ``Exception`` (a logging handler's ``emit``); the stop is not: the code that goes on asks here
+    (the training, before its first iteration), and the block raises it again when it ends."""
+    signals = [*_DEFERRED, *(s for block in _RECEIVED for s in block)]
     return _interrupted(signals[0], where) if signals else None
 
 

@@ -989,3 +989,33 @@ def test_a_console_that_goes_away_is_not_an_error_of_every_log_record(tmp_path):
     assert "Logging error" not in err and "BrokenPipeError" not in err, err
     assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()
     assert len((tmp_path / "run" / "train.log").read_text().splitlines()) > 5  # the records after the first line
+
+
+def _signal_during_set_up() -> None:
+    """unicorn-train's main() with a SIGTERM sent while a job sets up: Hydra has made its folder and rewritten the
+    sweep's record, and the task has not yet noted what to put back (the forked command of the test below)."""
+    import unicorn.registry as registry
+    from unicorn.cli import train
+
+    original = registry.load_plugins
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return original(*args, **kwargs)
+
+    registry.load_plugins = signalled
+    train.main()
+
+
+def test_a_signal_while_a_sweep_sets_up_leaves_its_folder_as_it_was(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "notes.txt").write_text("mine")
+    (sweep / "multirun.yaml").write_text("the record of an earlier sweep")
+    before = snapshot(sweep)
+    result = unicorn_train(
+        "-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path, entry=f"{__name__}:_signal_during_set_up"
+    )
+    assert result.returncode == 143, result.stderr[-3000:]
+    assert error_lines(result.stderr)[-1].startswith("unicorn-train: stopped by SIGTERM before the first iteration")
+    assert snapshot(sweep) == before

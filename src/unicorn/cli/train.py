@@ -60,7 +60,14 @@ from omegaconf import DictConfig, ListConfig
 from unicorn.cli.allocator import tune_allocator
 from unicorn.cli.errors import tolerate_closed_stdout
 from unicorn.cli.hydra_app import HydraApp, NoteExistingFolders, entries_before, hydra_failure, swept_keys
-from unicorn.errors import Interrupted, UserError, interrupt_on_signal, pending_interrupt, signals_held
+from unicorn.errors import (
+    Interrupted,
+    UserError,
+    defer_stop_signals,
+    interrupt_on_signal,
+    pending_interrupt,
+    signals_held,
+)
 from unicorn.resources import config_dir
 
 if TYPE_CHECKING:
@@ -131,6 +138,9 @@ def _task(cfg: DictConfig) -> None:
     run = None
     with interrupt_on_signal(outside):
         try:
+            early = pending_interrupt(outside)  # a signal noted while the command set up (defer_stop_signals)
+            if early is not None:
+                raise early
             _check_local_sweep(cfg)
             run = build(cfg)
             if _app is not None:
@@ -367,6 +377,7 @@ def main() -> None:
     note = argument_note(args)
     if note:
         print(note, file=sys.stderr, flush=True)
+    defer_stop_signals()  # until the run can put its folders back (_task), a signal is noted, not fatal
     tune_allocator()
     tolerate_closed_stdout()  # ``unicorn-train ... | head``: training goes on, its records still reach train.log
     from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
