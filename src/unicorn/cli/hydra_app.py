@@ -81,7 +81,7 @@ class NoteExistingFolders(Callback):
         removed but that file and empty folders; nothing happens outside a sweep."""
         if NoteExistingFolders.sweep is None:
             return
-        from unicorn.io.run_folder import SWEEP_RECORD
+        from unicorn.io.run_folder import SWEEP_RECORD, remove_empty_folders
 
         folder, record = NoteExistingFolders.sweep
         NoteExistingFolders.sweep = None
@@ -90,16 +90,8 @@ class NoteExistingFolders(Callback):
             path.unlink(missing_ok=True)
         elif not path.is_file() or path.read_bytes() != record:
             path.write_bytes(record)
-        if entries_before(folder) is not None:
-            return  # the folder was there before the sweep
-        top = NoteExistingFolders.created_top or folder
-        for made in (folder, *folder.parents):
-            if not made.is_relative_to(top):
-                return
-            try:
-                made.rmdir()  # only an empty folder
-            except OSError:
-                return
+        if entries_before(folder) is None:  # the sweep made it
+            remove_empty_folders(folder, NoteExistingFolders.created_top or folder)
 
     @staticmethod
     def _note(folder: Path, jobs_inside: bool) -> None:
@@ -234,9 +226,10 @@ def _home_expanded(value: str) -> str:
 def _sweep_job(swept: set[str]) -> str:
     """``#<number> (<its values of the swept keys>)`` for a job of a sweep (``-m``), the empty string otherwise."""
     from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
 
-    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+    from unicorn.io.run_folder import in_sweep
+
+    if not in_sweep():
         return ""
     hydra_cfg = HydraConfig.get()
     values = [o for o in hydra_cfg.overrides.task if o.split("=", 1)[0].lstrip("+~") in swept]

@@ -241,12 +241,12 @@ def _with_sweep_hint(err: Exception) -> Exception:
     """A job of a sweep (``-m``) stopped by a signal: its message also says how the whole sweep goes on (the
     sweep's folder is named after the time it started, so a new command would start another)."""
     from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
 
-    hydra = HydraConfig.get()
-    if not isinstance(err, Interrupted) or hydra.mode != RunMode.MULTIRUN:
+    from unicorn.io.run_folder import in_sweep
+
+    if not isinstance(err, Interrupted) or not in_sweep():
         return err
-    sweep = Path(hydra.sweep.dir).resolve()
+    sweep = Path(HydraConfig.get().sweep.dir).resolve()
     return Interrupted(
         f"{err}; the sweep goes on with the same command and hydra.sweep.dir={sweep} ckpt_path=last",
         err.exit_status,

@@ -45,7 +45,9 @@ __all__ = [
     "checkpoint_step",
     "drop_aside",
     "folder_setting",
+    "in_sweep",
     "put_back_aside",
+    "remove_empty_folders",
     "set_aside",
     "later_checkpoints",
     "lock_folder",
@@ -87,14 +89,18 @@ LOCK_NAME = ".unicorn-train.lock"
 STEP_CHECKPOINT = re.compile(r"step=(\d+)(-v\d+)?\.ckpt")
 
 
-def folder_setting() -> str:
-    """The setting that names a run's folder, as the refusals tell the user to change it: ``hydra.sweep.dir`` in a
-    job of a sweep (``-m``; Hydra ignores ``hydra.run.dir`` there), else ``hydra.run.dir``."""
+def in_sweep() -> bool:
+    """Whether this process runs a job of a Hydra sweep (``-m``)."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    return "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def folder_setting() -> str:
+    """The setting that names a run's folder, as the refusals tell the user to change it: ``hydra.sweep.dir`` in a
+    job of a sweep (``-m``; Hydra ignores ``hydra.run.dir`` there), else ``hydra.run.dir``."""
+    return "hydra.sweep.dir" if in_sweep() else "hydra.run.dir"
 
 
 class RunFolderError(UserError, FileExistsError):
@@ -453,16 +459,20 @@ class FolderChanges:
 
     def _remove_created_parents(self) -> None:
         """Remove the folders above the folder, up to :attr:`created_top`, that are empty again, nearest first."""
-        top = self.created_top
-        if top is None:
+        if self.created_top is not None:
+            remove_empty_folders(self.folder.resolve().parent, self.created_top)
+
+
+def remove_empty_folders(folder: Path, top: Path) -> None:
+    """Remove ``folder``, then each folder above it up to ``top`` (included), while they are empty: what another
+    process wrote in one keeps it and the folders above it."""
+    for made in (folder, *folder.parents):
+        if not made.is_relative_to(top):  # above what was created
             return
-        for parent in self.folder.resolve().parents:
-            if not parent.is_relative_to(top):  # above what the run created
-                return
-            try:
-                parent.rmdir()  # only an empty folder: what another process wrote there stays
-            except OSError:
-                return
+        try:
+            made.rmdir()  # only an empty folder
+        except OSError:
+            return
 
 
 def _top(folder: Path, path: Path) -> str:

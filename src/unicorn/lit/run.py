@@ -257,9 +257,10 @@ def _sweep_job_keys() -> list[str]:
     """The keys this job of a sweep (``-m``) sets on the command line (``seed`` of ``seed=1``): what tells its run
     from the other jobs'; none outside a sweep."""
     from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
 
-    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+    from unicorn.io.run_folder import in_sweep
+
+    if not in_sweep():
         return []
     return [o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task if "=" in o]
 
