@@ -353,6 +353,31 @@ def test_a_category_joins_a_generated_folder_only_once_and_with_its_settings(tmp
     writer.check_manifest(out, categories=["lamp", "mug"], mode="nmr", n_models=3, seed=3)  # describes both
 
 
+
+@pytest.mark.parametrize(
+    "table",
+    [
+        "# DVR's NMR_Dataset form: unquoted synsets\n03001627:\n  id: 03001627\n  name: chair\n",
+        "{03001627: {id: 03001627, name: chair}}",  # flow style, no final newline: written anew
+    ],
+)
+def test_generating_into_a_shapenet_root_keeps_its_categories(tmp_path: Path, table: str) -> None:
+    from unicorn.data.shapenet import read_metadata
+
+    root = tmp_path / "nmr"
+    root.mkdir()
+    (root / "metadata.yaml").write_text(table)
+    generate_synthetic_dataset(root, "mug", "nmr", seed=0, **TINY)
+    text = (root / "metadata.yaml").read_text()
+    if table.endswith("\n"):  # the user's bytes kept, the new category appended
+        assert text.startswith(table)
+    mug = CATEGORIES["mug"][0]
+    assert read_metadata(root) == {
+        "03001627": {"id": "03001627", "name": "chair"},  # not YAML 1.1 octal 787351
+        mug: {"id": mug, "name": "mug,synthetic_mug"},
+    }
+    assert [p.name for p in root.iterdir() if p.name.startswith(".")] == []
+
 def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cli"
     code = cli.main(

@@ -295,7 +295,7 @@ def generate_synthetic_dataset(
             (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
         metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
     bar.close()
-    (out / "metadata.yaml").write_text(yaml.safe_dump(metadata, sort_keys=True))
+    _write_metadata(out / "metadata.yaml", metadata)
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
 
@@ -413,7 +413,8 @@ def _read_metadata(path: Path) -> dict[str, dict]:
     if not path.exists():
         return {}
     try:
-        metadata = yaml.safe_load(path.read_text()) or {}
+        # every scalar as its text: an unquoted synset such as 03001627 would be YAML 1.1 octal (787351)
+        metadata = yaml.load(path.read_text(), Loader=yaml.BaseLoader) or {}  # noqa: S506 - builds no object
     except (yaml.YAMLError, UnicodeDecodeError, OSError):
         metadata = None  # not YAML, not text
     if not isinstance(metadata, dict) or not all(isinstance(v, dict) and "id" in v for v in metadata.values()):
@@ -422,6 +423,29 @@ def _read_metadata(path: Path) -> dict[str, dict]:
             "else; generate into another folder"
         )
     return metadata
+
+
+def _write_metadata(path: Path, metadata: dict[str, dict]) -> None:
+    """Write ``metadata`` (:func:`_read_metadata`'s table with the generated categories added) to ``path``.
+
+    A file already there (a ShapeNet-NMR root's, or an earlier generation's) keeps its bytes: the new entries are
+    appended to it where the result reads back as ``metadata``, else the table is written anew (a flow-style file).
+    The file is replaced in one rename, so an interrupted generation leaves the earlier one.
+    """
+    old = path.read_text() if path.is_file() else ""
+    earlier = (yaml.load(old, Loader=yaml.BaseLoader) or {}) if old else {}  # noqa: S506 - builds no object
+    added = {synset: info for synset, info in metadata.items() if synset not in earlier}
+    text = yaml.safe_dump(metadata, sort_keys=True)
+    if old and isinstance(earlier, dict):
+        appended = old + ("" if old.endswith("\n") else "\n") + yaml.safe_dump(added, sort_keys=True)
+        try:
+            same = yaml.load(appended, Loader=yaml.BaseLoader) == metadata  # noqa: S506 - builds no object
+        except yaml.YAMLError:
+            same = False
+        text = appended if same else text
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
 
 
 class StaleSyntheticDataset(UserError, ValueError):
