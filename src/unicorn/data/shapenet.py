@@ -16,6 +16,7 @@ read as stored (EXIF orientation not applied, unlike user photos): the cameras d
 
 from __future__ import annotations
 
+import re
 import zipfile
 from collections import Counter
 from pathlib import Path
@@ -71,6 +72,8 @@ _SN_TO_UNI = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 # OpenCV camera axes (x right, y down) -> PyTorch3D / unicorn camera axes (x left, y up)
 _CV_TO_UNI_CAM = np.diag([-1.0, -1.0, 1.0])
 
+#: a view's image and mask file name (``0000.png``, ``0001.png``...)
+_VIEW_NAME = re.compile(r"\d{4}\.png")
 _HINT = (
     "Download DVR's NMR_Dataset.zip (https://s3.eu-central-1.amazonaws.com/avg-projects/"
     "differentiable_volumetric_rendering/data/NMR_Dataset.zip, 33 GB), unzip it and rename NMR_Dataset to "
@@ -251,7 +254,8 @@ class ShapeNetNMR(UnicornDataset):
         first = self.models[0][1] / "image"
         if not first.is_dir():
             raise DatasetNotFoundError(first, "ShapeNet model image folder", _HINT)
-        views = sorted(first.glob("*.png"))
+        # the views' own names only: not a copy's or a file system's hidden files (macOS's ``._0000.png``)
+        views = sorted(path for path in first.glob("*.png") if _VIEW_NAME.fullmatch(path.name))
         self.n_views = len(views)
         if self.n_views == 0:
             raise DatasetNotFoundError(first / "0000.png", "ShapeNet view images", _HINT)
