@@ -165,7 +165,6 @@ def test_tiny_dataset_reads(tmp_path: Path) -> None:
     assert all(ds[i]["image"].shape == (3, 8, 8) and ds[i]["points"].shape == (5, 3) for i in range(6))
 
 
-
 def test_only_the_views_own_files_count_as_views(tmp_path: Path) -> None:
     """macOS's resource forks (``._0000.png``) and other stray images beside the views are not views."""
     root = _tiny_nmr(tmp_path)
@@ -175,6 +174,7 @@ def test_only_the_views_own_files_count_as_views(tmp_path: Path) -> None:
     Image.new("RGB", (8, 8)).save(images / "preview.png")
     ds = ShapeNetNMR(root, split="test")  # on_error="raise": none of them is read
     assert ds.n_views == 3 and len(ds) == 6 and all(ds[i]["image"].shape == (3, 8, 8) for i in range(6))
+
 
 def test_unquoted_synsets_are_read_as_written(tmp_path: Path) -> None:
     """YAML 1.1 reads an unquoted 03001627 as the octal number 787351: the synsets are read as their text."""

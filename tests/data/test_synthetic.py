@@ -353,7 +353,6 @@ def test_a_category_joins_a_generated_folder_only_once_and_with_its_settings(tmp
     writer.check_manifest(out, categories=["lamp", "mug"], mode="nmr", n_models=3, seed=3)  # describes both
 
 
-
 @pytest.mark.parametrize(
     "table",
     [
@@ -377,6 +376,7 @@ def test_generating_into_a_shapenet_root_keeps_its_categories(tmp_path: Path, ta
         mug: {"id": mug, "name": "mug,synthetic_mug"},
     }
     assert [p.name for p in root.iterdir() if p.name.startswith(".")] == []
+
 
 def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cli"
