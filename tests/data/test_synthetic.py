@@ -443,6 +443,12 @@ def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.Monk
     (path / "synthetic.json").write_text(json.dumps(settings))
     with pytest.raises(writer.StaleSyntheticDataset, match="generator_version"):
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **options)
+    # a damaged record (cut short, or JSON of another kind) is one error naming it
+    for damaged in (json.dumps(settings)[:40], "[1, 2]", "\udcff"):
+        (path / "synthetic.json").write_text(damaged, errors="surrogateescape")
+        with pytest.raises(writer.StaleSyntheticDataset, match=r"synthetic\.json is damaged .*delete") as info:
+            ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **options)
+        assert "\n" not in str(info.value)
     # and a newer generator version names a new folder, so the old one is never picked up
     monkeypatch.setattr(writer, "GENERATOR_VERSION", writer.GENERATOR_VERSION + 1)
     assert synthetic_dataset_path("mug", "nmr", 3, 0, tmp_path) != path

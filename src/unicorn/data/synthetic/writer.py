@@ -465,10 +465,22 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
         The recorded settings.
 
     Raises:
-        StaleSyntheticDataset: the generator version or a setting differs (the message names it).
+        StaleSyntheticDataset: the generator version or a setting differs (the message names it), or the file
+            is damaged.
     """
     root = Path(root)
-    settings = json.loads((root / "synthetic.json").read_text())
+    path = root / "synthetic.json"
+    try:
+        settings = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as err:  # cut short or not JSON: the generation did not write it
+        settings, problem = None, f": {err}"
+    else:
+        problem = f": a JSON {type(settings).__name__}" if not isinstance(settings, dict) else ""
+    if not isinstance(settings, dict):
+        raise StaleSyntheticDataset(
+            f"{path} is damaged (not a generated dataset's settings{problem}); delete {root} to generate it again, "
+            "or choose another root"
+        )
     expected = _as_recorded({"generator_version": GENERATOR_VERSION, **expected})
     if isinstance(expected.get("categories"), str):
         expected["categories"] = [expected["categories"]]
