@@ -86,3 +86,13 @@ def test_geodesic_error_equals_scipy():
     R1, R2 = random_rotations(64, 1).double(), random_rotations(64, 2).double()
     expected = Rotation.from_matrix((R1.transpose(1, 2) @ R2).numpy()).magnitude() * 180 / torch.pi
     torch.testing.assert_close(geodesic_error(R1, R2), torch.from_numpy(expected), atol=1e-4, rtol=0)
+
+
+def test_the_medians_of_an_even_number_of_views_are_the_mean_of_the_middle_two() -> None:
+    off = torch.tensor([0.0, 10.0, 40.0, 70.0])  # azimuth errors, degrees, about the vertical axis
+    R_gt = azim_elev_roll_to_rotation(torch.zeros(4), torch.zeros(4), torch.zeros(4))
+    R_pred = azim_elev_roll_to_rotation(off, torch.zeros(4), torch.zeros(4))
+    errors = pose_errors(R_pred, R_gt, align=False)
+    expected = 25.0  # (10 + 40) / 2; torch.median gives 10
+    assert errors["rot-err-median"] == pytest.approx(expected, abs=1e-3)
+    assert errors["azim-err-median"] == pytest.approx(expected, abs=1e-3)

@@ -84,6 +84,12 @@ def _kabsch(M: torch.Tensor) -> torch.Tensor:
     return U @ D @ Vh
 
 
+def _median(values: torch.Tensor) -> float:
+    """The median of ``values`` (N,), the mean of the two middle ones for an even N (``torch.median`` gives the
+    lower one)."""
+    return float(torch.quantile(values.double(), 0.5))
+
+
 def _median_errors(Q: torch.Tensor, R_pred: torch.Tensor, R_gt: torch.Tensor) -> torch.Tensor:
     """Median over samples of the error of each candidate Q (C, 3, 3) -> (C,)."""
     out = []
@@ -175,9 +181,9 @@ def pose_errors(
     azim_err = azimuth_error(rotation_to_azim_elev_roll(R_pred)[0], rotation_to_azim_elev_roll(R_gt)[0])
     return {
         "rot-err-mean": float(err.mean()),
-        "rot-err-median": float(err.median()),
+        "rot-err-median": _median(err),
         f"rot-acc-{_degrees(accuracy_threshold)}": rotation_accuracy(err, accuracy_threshold),
         f"rot-flip-{_degrees(flip_threshold)}": flip_rate(err, flip_threshold),
         "azim-err-mean": float(azim_err.mean()),
-        "azim-err-median": float(azim_err.median()),
+        "azim-err-median": _median(azim_err),
     }
