@@ -853,6 +853,13 @@ def test_data_check_all_reads_every_item_and_names_the_unreadable_ones(tmp_path,
     out = capsys.readouterr().out.splitlines()
     assert out[-2] == "read every item: 2 readable, 1 not", out
     assert out[-1].startswith(f"  item 2: cannot read image {tmp_path / 'imgs' / 'c.png'}: "), out
+    (tmp_path / "imgs" / "0.png").write_bytes(b"not a picture either")  # the first item: --all still reads on
+    assert main([*args, "--all"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[1] == "  image: (3, 64, 64) torch.float32", out  # the first readable item's layout
+    assert out[-3] == "read every item: 2 readable, 2 not", out
+    assert out[-2].startswith(f"  item 0: cannot read image {tmp_path / 'imgs' / '0.png'}: "), out
+    assert out[-1].startswith("  item 3: "), out
 
 
 def test_a_device_this_machine_lacks_is_named(monkeypatch):

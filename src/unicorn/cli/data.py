@@ -93,23 +93,33 @@ def _check(args: argparse.Namespace) -> int:
     options = {"tag": tag} if name == "lsun" else {}
     dataset = build_dataset(name, args.split, args.root, categories=args.categories, **options)
     print(f"{args.dataset} {args.split}: {len(dataset)} items")
-    for key, value in dataset[0].items():
+    if args.all:
+        return _read_every_item(dataset)
+    _print_layout(dataset[0])
+    return 0
+
+
+def _print_layout(item: dict[str, Any]) -> None:
+    """Print an item's keys with their tensors' shapes and dtypes."""
+    for key, value in item.items():
         desc = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else repr(value)
         print(f"  {key}: {desc}")
-    return _read_every_item(dataset) if args.all else 0
 
 
 def _read_every_item(dataset: Any) -> int:
-    """Read every item as training reads them; print the unreadable ones (the first :data:`CHECK_SHOWN`) and how
-    many there are. Returns 0 when all are readable, else 1."""
+    """Read every item as training reads them; print the first readable one's layout, the unreadable ones (the
+    first :data:`CHECK_SHOWN`) and how many there are. Returns 0 when all are readable, else 1."""
     from unicorn.data.images import ImageLoadError
 
     bad = []
     for index in range(len(dataset)):
         try:
-            dataset[index]
+            item = dataset[index]
         except ImageLoadError as err:  # an unreadable image, or annotations that do not fit it
             bad.append(f"item {index}: {err}")
+            continue
+        if len(bad) == index:  # the first readable item
+            _print_layout(item)
     print(f"read every item: {len(dataset) - len(bad)} readable, {len(bad)} not")
     for line in bad[:CHECK_SHOWN]:
         print(f"  {line}")
