@@ -21,6 +21,8 @@ def test_collect_inputs(tmp_path: Path) -> None:
     (tmp_path / "in" / "notes.txt").write_text("not an image")
     assert collect_inputs([tmp_path / "in"]) == sorted(files.values())
     assert collect_inputs([files["photo"], tmp_path / "in"])[0] == files["photo"]
+    # one path on its own is one input, not its characters ("/" among them: the whole file system)
+    assert collect_inputs(str(tmp_path / "in")) == collect_inputs(tmp_path / "in") == sorted(files.values())
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no images"):
         collect_inputs([tmp_path / "empty"])
@@ -29,6 +31,15 @@ def test_collect_inputs(tmp_path: Path) -> None:
     os.mkfifo(tmp_path / "pipe.png")  # exists, but reading it would wait for a writer
     with pytest.raises(UserError, match=r"pipe\.png is not an image file or a folder \(a device, a pipe"):
         collect_inputs([tmp_path / "pipe.png"])
+
+
+@pytest.mark.parametrize("size", [0, -3, "32", 32.0, True])
+def test_a_size_that_is_not_a_positive_int_is_named(tmp_path: Path, size: object) -> None:
+    files = write_inputs(tmp_path)
+    with pytest.raises(
+        ValueError, match=rf"^size must be a positive int \(the model's input side in pixels\), got {size!r}$"
+    ):
+        load_input(files["photo"], size)
 
 
 def test_alpha_cutout_is_centred(tmp_path: Path) -> None:

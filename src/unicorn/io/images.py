@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from unicorn.checks import is_whole
 from unicorn.data.folder import IMAGE_EXTENSIONS, RECONSTRUCTIONS_RECORD, is_output_folder, list_images
 from unicorn.data.framing import crop_box, fit_and_pad, fit_layout, pad_bbox, resize_image, square_bbox
 from unicorn.data.images import (
@@ -70,9 +71,11 @@ class InputNotAFileError(UserError, OSError):
     """An input named on the command line exists but is neither a file nor a folder."""
 
 
-def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.PathLike | None = None) -> list[Path]:
+def collect_inputs(
+    inputs: str | os.PathLike | Sequence[str | os.PathLike], leave_out: str | os.PathLike | None = None
+) -> list[Path]:
     """Image files named on the command line: files as given (each once), folders searched recursively (sorted;
-    :func:`~unicorn.data.folder.list_images`).
+    :func:`~unicorn.data.folder.list_images`). One path on its own is one input.
 
     A folder search leaves out ``leave_out`` (the command's output folder) and the output folders of
     ``unicorn-reconstruct`` and ``unicorn-eval`` (:func:`~unicorn.data.folder.is_output_folder`), so that outputs
@@ -82,6 +85,8 @@ def collect_inputs(inputs: Sequence[str | os.PathLike], leave_out: str | os.Path
         FileNotFoundError: an input does not exist, or nothing to read was found at all.
         InputNotAFileError: an input is a device, a pipe or a socket.
     """
+    if isinstance(inputs, (str, os.PathLike)):  # not the characters of a path, each an input ("/" among them)
+        inputs = [inputs]
     files: list[Path] = []
     for item in inputs:
         path = Path(item).expanduser()
@@ -277,7 +282,13 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
 
 
 def frame_input(raw: RawInput, size: int, name: str | None = None, padding: float = DEFAULT_PADDING) -> InputImage:
-    """Frame a read image for a model of input side ``size`` (see the module docstring)."""
+    """Frame a read image for a model of input side ``size`` (see the module docstring).
+
+    Raises:
+        ValueError: ``size`` is not a positive int.
+    """
+    if not is_whole(size) or size <= 0:
+        raise ValueError(f"size must be a positive int (the model's input side in pixels), got {size!r}")
     framed, frame = _framed(raw.image, size, raw.bbox, padding)
     return InputImage(raw.path, name or raw.path.stem, to_chw_tensor(framed), raw.bbox is not None, frame)
 
@@ -294,5 +305,6 @@ def load_input(
 
     Raises:
         ImageLoadError: the file is not a readable image.
+        ValueError: ``size`` is not a positive int.
     """
     return frame_input(read_input(path, bbox, use_alpha), size, name, padding)
