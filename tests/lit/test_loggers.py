@@ -47,5 +47,23 @@ def test_dropping_rows_keeps_the_others_and_the_columns(tmp_path) -> None:
     ]
 
 
+def test_a_last_row_cut_short_is_dropped_before_rows_are_appended(tmp_path, caplog) -> None:
+    logger = CSVLogger(str(tmp_path), name="csv", version="")
+    for step in range(4):
+        logger.log_metrics({"train/loss": float(step) + 0.25, "train/iou": 0.5}, step=step)
+    path = tmp_path / "csv" / "metrics.csv"
+    path.write_bytes(path.read_bytes()[:-6])  # a run killed while writing its last row
+    resumed = CSVLogger(str(tmp_path), name="csv", version="")
+    with caplog.at_level("WARNING", logger="unicorn.lit.loggers"):
+        assert resumed.experiment.drop_from(3) == 0  # the cut row of step 3 is not counted as a logged one
+    assert "dropped 1 row(s) cut short" in caplog.text
+    resumed.log_metrics({"train/loss": 3.25, "train/iou": 0.5}, step=3)
+    resumed.log_metrics({"train/loss": 4.25, "train/iou": 0.5}, step=4)
+    with open(path, newline="") as f:
+        lines = list(csv.reader(f))
+    assert all(len(line) == len(lines[0]) for line in lines)
+    assert [(r["step"], r["train/loss"]) for r in _rows(path)] == [(str(s), f"{s + 0.25}") for s in range(5)]
+
+
 def test_log_step_puts_an_iterations_evaluation_beside_its_training_values() -> None:
     assert [log_step(n) for n in (0, 1, 2, 600)] == [0, 0, 1, 599]

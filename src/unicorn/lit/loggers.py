@@ -16,6 +16,7 @@ logs at step N exactly.
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import os
 from collections.abc import Mapping
@@ -60,13 +61,17 @@ class _AppendingWriter(ExperimentWriter):
         self.metrics_keys = sorted(set(header))
 
     def drop_from(self, step: int) -> int:
-        """Remove the rows logged at ``step`` or later (they are about to be logged again); returns how many."""
+        """Remove the rows logged at ``step`` or later (they are about to be logged again), and a last row cut
+        short (a run killed while writing it: the rows appended next would continue its line); returns how many
+        rows were logged at ``step`` or later."""
         self.save()
         if not os.path.isfile(self.metrics_file_path):
             return 0
-        fields, rows = self._read()
+        fields, rows, damaged = self._read()
         kept = [r for r in rows if not r.get("step") or int(float(r["step"])) < step]
-        if len(kept) < len(rows):
+        if damaged:
+            log.warning("%s: dropped %d row(s) cut short or of the wrong width", self.metrics_file_path, damaged)
+        if len(kept) < len(rows) or damaged:
             self._replace(fields, kept)
         return len(rows) - len(kept)
 
@@ -74,10 +79,15 @@ class _AppendingWriter(ExperimentWriter):
         # Lightning's rewrites the file in place: a kill or a full disk part-way would lose every row
         self._replace(fieldnames, self._read()[1])
 
-    def _read(self) -> tuple[list[str], list[dict[str, str]]]:
+    def _read(self) -> tuple[list[str], list[dict[str, str]], int]:
+        """The columns, the rows as tables, and how many rows were left out as damaged: a last row without its
+        line end, or a row of another width than the header."""
         with open(self.metrics_file_path, newline="") as f:
-            reader = csv.DictReader(f)
-            return list(reader.fieldnames or []), list(reader)
+            text = f.read()
+        header, *lines = list(csv.reader(io.StringIO(text))) or [[]]
+        whole = lines if text.endswith(("\n", "\r")) else lines[:-1]
+        rows = [dict(zip(header, line, strict=True)) for line in whole if len(line) == len(header)]
+        return header, rows, len(lines) - len(rows)
 
     def _replace(self, fields: list[str], rows: list[dict[str, str]]) -> None:
         """Write ``metrics.csv`` anew beside it, then rename it into place (whole or not at all)."""
