@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 
 import pytest
+import torch
 
 from unicorn.lit.loggers import CSVLogger, log_step
 
@@ -67,3 +68,61 @@ def test_a_last_row_cut_short_is_dropped_before_rows_are_appended(tmp_path, capl
 
 def test_log_step_puts_an_iterations_evaluation_beside_its_training_values() -> None:
     assert [log_step(n) for n in (0, 1, 2, 600)] == [0, 0, 1, 599]
+
+
+def _scalars(folder) -> dict[str, list[tuple[int, float]]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def test_tensorboard_events_go_on_in_a_new_file_when_the_folder_is_deleted(tmp_path, caplog) -> None:
+    import shutil
+
+    from unicorn.lit.loggers import TensorBoardLogger
+
+    logger = TensorBoardLogger(str(tmp_path), name="tensorboard", version="")
+    logger.log_metrics({"train/loss": 1.0}, step=0)
+    shutil.rmtree(logger.log_dir)  # a clean-up while the run goes on
+    with caplog.at_level("WARNING", logger="unicorn.lit.loggers"):
+        logger.log_metrics({"train/loss": 2.0}, step=1)
+        logger.log_image("images/overview", torch.zeros(3, 4, 4), 1)
+        logger.finalize("success")
+    assert logger.failure is None and "cannot be written" not in caplog.text
+    assert _scalars(logger.log_dir) == {"train/loss": [(1, 2.0)]}
+
+
+def test_tensorboard_logging_stops_and_training_goes_on_when_events_cannot_be_written(
+    tmp_path, monkeypatch, caplog
+) -> None:
+    from torch.utils.tensorboard import SummaryWriter
+
+    from unicorn.lit.loggers import TensorBoardLogger
+
+    def full_disk(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    logger = TensorBoardLogger(str(tmp_path), name="tensorboard", version="")
+    logger.log_metrics({"train/loss": 1.0}, step=0)
+    monkeypatch.setattr(SummaryWriter, "add_scalar", full_disk)
+    monkeypatch.setattr(SummaryWriter, "add_image", full_disk)
+    with caplog.at_level("WARNING", logger="unicorn.lit.loggers"):
+        logger.log_metrics({"train/loss": 2.0}, step=1)  # no error: tried again, then given up
+        logger.log_image("images/overview", torch.zeros(3, 4, 4), 1)
+        logger.log_metrics({"train/loss": 3.0}, step=2)
+        logger.finalize("success")
+    assert isinstance(logger.failure, OSError) and logger.failure.errno == 28
+    assert caplog.text.count("TensorBoard logging stops here, training goes on") == 1
+    monkeypatch.undo()
+    assert _scalars(logger.log_dir) == {"train/loss": [(0, 1.0)]}
+
+
+def test_tensorboard_errors_other_than_io_are_raised(tmp_path) -> None:
+    from unicorn.lit.loggers import TensorBoardLogger
+
+    logger = TensorBoardLogger(str(tmp_path), name="tensorboard", version="")
+    with pytest.raises(ValueError, match="you tried to log"):
+        logger.log_metrics({"train/loss": "not a number"}, step=0)
+    assert logger.failure is None

@@ -45,6 +45,7 @@ from unicorn.config.schema import (
 )
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.lit.checkpoint import PeriodicCheckpoint
+from unicorn.lit.loggers import TensorBoardLogger as UnicornTensorBoardLogger
 from unicorn.lit.loggers import logs_this_step
 
 __all__ = ["ImageLogger", "ProgressBar", "StageCallback", "StageState", "periodic_checkpoint", "render_overview"]
@@ -350,7 +351,9 @@ class ImageLogger(L.Callback):
         finally:
             pl_module.train(was_training)
         for logger in trainer.loggers:
-            if isinstance(logger, TensorBoardLogger):
+            if isinstance(logger, UnicornTensorBoardLogger):  # whose failures do not end the run
+                logger.log_image("images/overview", grid.cpu(), step)
+            elif isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_image("images/overview", grid.cpu(), step)
         if self.save_png:
             from PIL import Image

@@ -15,11 +15,12 @@ logs at step N exactly.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import lightning as L
@@ -27,6 +28,7 @@ from lightning.pytorch.loggers import CSVLogger as _LightningCSVLogger
 from lightning.pytorch.loggers import TensorBoardLogger as _LightningTensorBoardLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
+from lightning.pytorch.utilities import rank_zero_only
 
 __all__ = ["CSVLogger", "ResumeLogs", "TensorBoardLogger", "log_step", "logs_this_step"]
 
@@ -127,17 +129,72 @@ class CSVLogger(_LightningCSVLogger):
 
 
 class TensorBoardLogger(_LightningTensorBoardLogger):
-    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that writes events as they are logged.
+    """:class:`lightning.pytorch.loggers.TensorBoardLogger` that writes events as they are logged, and whose
+    failures do not end the run.
 
     TensorBoard reads every event file of the folder, so a resumed run's earlier events stay; :class:`ResumeLogs`
-    hides those it is about to repeat.
+    hides those it is about to repeat. Events that cannot be written (the folder deleted while the run goes on, a
+    full disk) are tried once more in a new event file; if that fails too, TensorBoard logging stops with a
+    warning and training goes on (the CSV log and the checkpoints are written as before).
     """
 
+    #: the error that stopped this logger's events (None: logging)
+    failure: OSError | None = None
+
     def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
-        super().log_metrics(metrics, step)
-        # written as logged (SummaryWriter buffers up to two minutes, which a killed run lost, including
-        # iterations its last checkpoint already holds); logging happens every log_every_n_steps iterations
-        self.experiment.flush()
+        def write() -> None:
+            super(TensorBoardLogger, self).log_metrics(metrics, step)
+            # written as logged (SummaryWriter buffers up to two minutes, which a killed run lost, including
+            # iterations its last checkpoint already holds); logging happens every log_every_n_steps iterations
+            self.experiment.flush()
+
+        self.write_events(write)
+
+    def log_image(self, tag: str, image: Any, step: int) -> None:
+        """Add ``image`` (C, H, W) in [0, 1] under ``tag`` at ``step``, written at once."""
+
+        def write() -> None:
+            self.experiment.add_image(tag, image, step)
+            self.experiment.flush()
+
+        self.write_events(write)
+
+    def write_events(self, write: Callable[[], None]) -> None:
+        """Run ``write`` (calls of :attr:`experiment`); on an I/O error run it once more with a new writer (and
+        event file), then give TensorBoard logging up (:attr:`failure`) with a warning."""
+        if self.failure is not None:
+            return
+        if self._experiment is not None and not os.path.isdir(self.log_dir):  # deleted while the run goes on
+            self._drop_writer()  # before its thread fails to append to the file that was there
+        for attempt in range(2):
+            try:
+                write()
+                return
+            except (OSError, ValueError) as err:  # Lightning's log_metrics reraises any error as a ValueError
+                cause = err if isinstance(err, OSError) else err.__cause__
+                if not isinstance(cause, OSError):
+                    raise
+                self._drop_writer()
+                if attempt:
+                    self.failure = cause
+                    log.warning(
+                        "TensorBoard events cannot be written to %s (%s): TensorBoard logging stops here, training "
+                        "goes on",
+                        self.log_dir,
+                        cause,
+                    )
+
+    def _drop_writer(self) -> None:
+        """Forget the SummaryWriter (its thread may hold the error), so that the next use opens a new one."""
+        writer, self._experiment = self._experiment, None
+        if writer is not None:
+            with contextlib.suppress(Exception):
+                writer.close()
+
+    @rank_zero_only
+    def finalize(self, status: str) -> None:
+        if self.failure is None:
+            self.write_events(lambda: super(TensorBoardLogger, self).finalize(status))
 
 
 class ResumeLogs(L.Callback):
