@@ -20,6 +20,10 @@ def test_format_table() -> None:
     lines = text.splitlines()
     assert lines[0].split() == ["group", "n-images", "chamfer-L1", "mask-iou"]
     assert lines[2].split() == ["chair", "3", "0.1235", "-"]
+    # angles in degrees with one decimal; colour errors, whatever their names end with, with four
+    columns = ["rot-err-mean", "azim-err-median", "color-err-mean", "color-err-mean-overlap"]
+    row = {"group": "car", "n-images": 2, **dict(zip(columns, [12.345, 3.21, 0.0756, 0.0612], strict=True))}
+    assert format_table([row], columns).splitlines()[2].split() == ["car", "2", "12.3", "3.2", "0.0756", "0.0612"]
 
 
 def test_metric_files(tmp_path: Path, real_model) -> None:

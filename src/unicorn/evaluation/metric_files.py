@@ -21,8 +21,8 @@ def format_value(value: Any, column: str = "") -> str:
     if isinstance(value, float):
         if math.isnan(value):
             return "-"
-        if column.endswith(("err-mean", "err-median")) or abs(value) >= 100:
-            return f"{value:.1f}"  # degrees
+        if column.startswith(("rot-err", "azim-err")) or abs(value) >= 100:
+            return f"{value:.1f}"  # degrees (not color-err-mean, a colour error)
         return f"{value:.4f}"
     return str(value)
 
