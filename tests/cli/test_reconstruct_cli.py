@@ -384,7 +384,7 @@ def test_overwrite_removes_the_optional_files_the_new_run_does_not_make(
 
 @pytest.mark.parametrize(
     "extra, message",
-    [(["--refine-parts", "bogus"], "--refine-parts: unknown part(s) ['bogus']"),
+    [(["--refine-parts", "bogus"], "--refine-parts: unknown refinement part(s) ['bogus']"),
      (["--refine-parts", "all"], "--refine-parts needs --refine STEPS")],
 )  # fmt: skip
 def test_refine_parts_without_refine_is_refused(tmp_path, checkpoint, inputs, capsys, extra, message) -> None:

@@ -148,8 +148,18 @@ def test_defaults_refine_the_appearance_and_outline(model: Unicorn, targets: tor
 def test_pose_part_and_bad_options(model: Unicorn, targets: torch.Tensor) -> None:
     out = refine(model, targets[:1], RefineOptions(steps=2, parts=("pose",), lr_pose=0.01))
     assert out.losses.shape == (3, 1)
-    with pytest.raises(ValueError, match="unknown refinement parts"):
+    with pytest.raises(ValueError, match=r"unknown refinement part\(s\) \['colour'\]"):
         RefineOptions(parts=("colour",))
+    # one string: a name of a set of parts, or names joined by commas, as --refine-parts takes them
+    assert RefineOptions(parts="all").parts == tuple(PARTS)
+    assert RefineOptions(parts="default").parts == RefineOptions().parts == ("codes", "texture", "vertices")
+    assert RefineOptions(parts="codes, pose").parts == ("codes", "pose")
+    for parts in ("", ()):
+        with pytest.raises(ValueError, match="no refinement part"):
+            RefineOptions(parts=parts)
+    for bad in (float("nan"), float("inf"), "0.1", None):
+        with pytest.raises(ValueError, match=rf"^lr_codes must be a finite number >= 0, got {bad!r}$"):
+            RefineOptions(lr_codes=bad)
     with pytest.raises(ValueError, match="steps"):
         RefineOptions(steps=-1)
     with pytest.raises(ValueError, match="images must have shape"):

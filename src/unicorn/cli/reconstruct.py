@@ -198,13 +198,12 @@ def _refine_options(args: argparse.Namespace) -> RefineOptions | None:
     Raises:
         UsageError: an unknown part, or more steps than :data:`unicorn.objectives.refine.MAX_STEPS`.
     """
-    from unicorn.objectives.refine import PARTS, RefineOptions, RefineOptionsError
+    from unicorn.objectives.refine import RefineOptions, RefineOptionsError, parse_parts
 
-    named = {"default": RefineOptions.parts, "all": tuple(PARTS)}
-    parts = named.get(args.refine_parts) or tuple(args.refine_parts.split(","))
-    unknown = [q for q in parts if q not in PARTS]
-    if unknown:
-        raise UsageError(f"--refine-parts: unknown part(s) {unknown}; choose 'default', 'all' or from {list(PARTS)}")
+    try:
+        parts = parse_parts(args.refine_parts)
+    except RefineOptionsError as err:
+        raise UsageError(f"--refine-parts: {err}") from None
     if args.refine <= 0:
         if args.refine_parts != "default":
             raise UsageError("--refine-parts needs --refine STEPS (how many refinement steps)")

@@ -45,12 +45,22 @@ from dataclasses import dataclass, fields, replace
 import torch
 from tqdm.auto import tqdm
 
+from unicorn.checks import is_number
 from unicorn.errors import UserError
 from unicorn.geometry.rotations import euler_angles_to_matrix
 from unicorn.model.autoencoder import Prediction, Unicorn, world_verts
 from unicorn.objectives.loss_factory import ImageLosses, build_losses
 
-__all__ = ["MAX_STEPS", "PARTS", "RefineOptionsError", "RefineOptions", "Refinement", "refine"]
+__all__ = [
+    "DEFAULT_PARTS",
+    "MAX_STEPS",
+    "PARTS",
+    "RefineOptionsError",
+    "RefineOptions",
+    "Refinement",
+    "parse_parts",
+    "refine",
+]
 
 #: the most refinement steps (``RefineOptions.steps``, ``unicorn-reconstruct --refine``): 200 times the usual 50
 MAX_STEPS = 10_000
@@ -68,6 +78,9 @@ PARTS: dict[str, str] = {
     "pose": "a small rotation and a translation residual of the selected pose",
 }
 
+#: the parts refined by default (``RefineOptions.parts``, ``--refine-parts default``)
+DEFAULT_PARTS = ("codes", "texture", "vertices")
+
 
 @dataclass(frozen=True)
 class RefineOptions:
@@ -78,7 +91,8 @@ class RefineOptions:
 
     Attributes:
         steps: Adam steps (0: the prediction itself).
-        parts: names of :data:`PARTS` to optimise.
+        parts: names of :data:`PARTS` to optimise, or one string: ``"default"``, ``"all"`` or names joined by
+            commas (``"codes,pose"``; :func:`parse_parts`); kept as a tuple of names.
         codes_first: share of the steps in which only the codes move (when ``codes`` is among the parts); the
             residual parts join after it. 0: everything from the first step.
         lr_codes, lr_texture, lr_vertices, lr_pose: Adam learning rates of each part's variables (codes in code
@@ -94,7 +108,7 @@ class RefineOptions:
     """
 
     steps: int = 50
-    parts: tuple[str, ...] = ("codes", "texture", "vertices")
+    parts: tuple[str, ...] | str = DEFAULT_PARTS
     codes_first: float = 0.0
     lr_codes: float = 0.1
     lr_shape_code: float = 0.0
@@ -112,15 +126,32 @@ class RefineOptions:
         """Raises :class:`RefineOptionsError` for a value out of its range (``steps`` in [0, :data:`MAX_STEPS`])."""
         if not 0 <= self.steps <= MAX_STEPS:
             raise RefineOptionsError(f"steps must be in [0, {MAX_STEPS:,}] (refine.MAX_STEPS), got {self.steps:,}")
-        unknown = [p for p in self.parts if p not in PARTS]
-        if unknown:
-            raise RefineOptionsError(f"unknown refinement parts {unknown}; choose from {list(PARTS)}")
+        object.__setattr__(self, "parts", parse_parts(self.parts))  # frozen: set once, here
         if not 0.0 <= self.codes_first <= 1.0:
             raise RefineOptionsError(f"codes_first must be in [0, 1], got {self.codes_first}")
         for f in fields(self):
             if f.name.startswith("lr_") or f.name.endswith("_weight"):
-                if getattr(self, f.name) < 0:
-                    raise RefineOptionsError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+                value = getattr(self, f.name)
+                if not is_number(value) or value < 0:
+                    raise RefineOptionsError(f"{f.name} must be a finite number >= 0, got {value!r}")
+
+
+def parse_parts(parts: str | Sequence[str]) -> tuple[str, ...]:
+    """The part names of ``parts``: a sequence of names of :data:`PARTS`, or one string: ``"default"``
+    (:data:`DEFAULT_PARTS`), ``"all"`` (every part) or names joined by commas.
+
+    Raises:
+        RefineOptionsError: an unknown part, or no part.
+    """
+    named = {"default": DEFAULT_PARTS, "all": tuple(PARTS)}
+    if isinstance(parts, str):
+        parts = named.get(parts) or tuple(q.strip() for q in parts.split(",") if q.strip())
+    parts = tuple(parts)
+    unknown = [q for q in parts if q not in PARTS]
+    if unknown or not parts:
+        found = f"unknown refinement part(s) {unknown}" if unknown else "no refinement part"
+        raise RefineOptionsError(f"{found}; choose 'default', 'all' or from {list(PARTS)}")
+    return parts
 
 
 @dataclass
