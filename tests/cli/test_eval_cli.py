@@ -6,6 +6,7 @@ import csv
 import html
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -100,9 +101,24 @@ def test_synthetic_run_root(tmp_path: Path) -> None:
     from unicorn.cli.eval import _run_root
     from unicorn.data.synthetic.writer import synthetic_dataset_path
 
-    run_data = {"name": "synthetic", "root": str(tmp_path), "categories": "car", "synthetic": {"n_models": 20}}
-    assert _run_root(run_data) == str(synthetic_dataset_path("car", "nmr", 20, 0, tmp_path))
+    tiny = {"n_models": 3, "image_size": 16, "n_views": 2, "supersample": 1, "n_points": 200}
+    run_data = {"name": "synthetic", "root": str(tmp_path), "categories": "car", "synthetic": tiny}
+    folder = synthetic_dataset_path("car", "nmr", 3, 0, tmp_path)
+    assert _run_root(run_data) == str(folder) and (folder / "synthetic.json").is_file()
+    shutil.rmtree(folder)  # the cache cleaned since the run: generated again, as training does
+    assert _run_root(run_data) == str(folder) and (folder / "synthetic.json").is_file()
     assert _run_root({"name": "cub_200", "root": "datasets/cub_200"}) == "datasets/cub_200"
+
+
+def test_a_missing_synthetic_folder_is_named_as_generated_data(tmp_path: Path, checkpoint, capsys) -> None:
+    missing = tmp_path / "gone" / "nmr_car_n10_s0_v2"
+    assert main([str(checkpoint), "--dataset", "synthetic", "--root", str(missing)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"unicorn-eval: error: generated synthetic dataset not found at {missing}. unicorn-train generates it on "
+        "first use under dataset.root ($UNICORN_CACHE/synthetic by default), and unicorn-data synth --out DIR with "
+        "the run's dataset.synthetic settings generates it again"
+    )
 
 
 @pytest.mark.parametrize(

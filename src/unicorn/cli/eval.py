@@ -34,7 +34,7 @@ from unicorn.cli.options import (
     parse_device,
 )
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
-from unicorn.data.registry import DATASET_NAMES, DATASETS, dataset_root
+from unicorn.data.registry import DATASET_NAMES, DATASETS, prepare_dataset
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.ranges import describe_range, field_range
 
@@ -201,11 +201,12 @@ def _out_dir(args: argparse.Namespace, run_dir: Path | None, dataset: str | None
 
 
 def _run_root(run_data: dict[str, Any]) -> str | None:
-    """The dataset folder of a training run's ``dataset`` config (runs on generated data name the parent folder)."""
+    """The dataset folder of a training run's ``dataset`` config (runs on generated data name the parent folder,
+    where the data is generated again, as training does, if it was deleted since)."""
     name = run_data.get("name")
     if name not in DATASETS or not DATASETS.get(name).generated:
         return run_data.get("root")
-    return str(dataset_root(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
+    return str(prepare_dataset(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
 
 
 def _target(args: argparse.Namespace, info: Any) -> Any:

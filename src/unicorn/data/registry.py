@@ -77,6 +77,20 @@ def _shapenet(root: Any, split: str, img_size: int, categories: Any, seed: int, 
     return ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **o)
 
 
+def _synthetic(
+    root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any
+) -> Dataset:
+    # the generated folder itself: ShapeNet-NMR's hint (download 33 GB) would not bring it back
+    if not Path(root).expanduser().is_dir():
+        raise DatasetNotFoundError(
+            Path(root).expanduser(),
+            "generated synthetic dataset",
+            "unicorn-train generates it on first use under dataset.root ($UNICORN_CACHE/synthetic by default), and "
+            "unicorn-data synth --out DIR with the run's dataset.synthetic settings generates it again",
+        )
+    return _shapenet(root, split, img_size, categories, seed, on_error, **o)
+
+
 def _cub(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
     return CUB200(root, split, img_size=img_size, on_error=on_error, **o)
 
@@ -180,7 +194,11 @@ DATASETS.add("shapenet_nmr", _SHAPENET)
 DATASETS.add(
     "synthetic",
     dataclasses.replace(
-        _SHAPENET, folder=_synthetic_folder, prepare=_synthetic_prepare, stored_size=_synthetic_stored_size
+        _SHAPENET,
+        build=_synthetic,
+        folder=_synthetic_folder,
+        prepare=_synthetic_prepare,
+        stored_size=_synthetic_stored_size,
     ),
 )
 _CUB_OPTIONS = _options(CUB200, "root", "split", "img_size", "on_error")
