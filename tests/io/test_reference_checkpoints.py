@@ -124,3 +124,48 @@ def test_shapenet_checkpoint_and_key_checks():
         without_vgg = {k: v for k, v in state.items() if not k.startswith("perceptual_loss.")}
         load_reference_checkpoint(without_vgg, image_size=32, with_perceptual=True)
     assert issubclass(ReferenceCheckpointError, UserError) and issubclass(ReferenceCheckpointError, KeyError)
+
+
+def test_a_missing_layer_tensor_is_named_not_read_as_a_shorter_network():
+    state = reference_state()
+    del state["deform_field.field.mlp.4.weight"]  # its bias stays: the layer count cannot come from the weights
+    with pytest.raises(ReferenceCheckpointError, match=r"^missing key 'deform_field\.field\.mlp\.4\.weight'"):
+        load_reference_checkpoint(state)
+
+
+@pytest.mark.parametrize(
+    "section, value, message",
+    [
+        (("mesh", "init"), "bogus", r"model_kwargs\['mesh'\]\['init'\] = 'bogus' is not a template"),
+        (("mesh", "init"), 3, r"model_kwargs\['mesh'\]\['init'\] = 3 is not a template"),
+        (("renderer", "cameras"), {"name": "orthographic"}, r"\['name'\] = 'orthographic' is not a camera"),
+        (("renderer", "cameras"), {"name": "perspective"}, r"perspective camera without focal_length"),
+        (("background", "milestones"), "0,10,20,30", r"\['milestones'\] = '0,10,20,30' is not a list of numbers"),
+        (("mesh", "texture_uv"), {"powers": [2, 8, 32, 128], "milestones": [0, None, 20, 30]}, r"None is not a"),
+        (("renderer", "faces_per_pixel"), 1e9, r"\['faces_per_pixel'\] = 1000000000.0 is not a whole number > 0"),
+        (("renderer", "sigma"), "1e-4", r"model_kwargs\['renderer'\]\['sigma'\] = '1e-4' is not a finite number"),
+    ],
+)
+def test_a_released_files_settings_of_the_wrong_kind_are_named(section, value, message):
+    kwargs = real_kwargs()
+    kwargs[section[0]][section[1]] = value
+    checkpoint = {"epoch": 15, "model_kwargs": kwargs, "model_state": reference_state()}
+    with pytest.raises(UserError, match=message):
+        load_reference_checkpoint(checkpoint)
+
+
+def test_a_negative_epoch_is_named():
+    checkpoint = {"epoch": -3, "model_kwargs": real_kwargs(), "model_state": reference_state()}
+    with pytest.raises(UserError, match=r"^epoch = -3 is not a whole number >= 0$"):
+        load_reference_checkpoint(checkpoint)
+
+
+def test_the_reference_templates_are_read_from_their_names():
+    for init, axes, level in [
+        ("ellipse", (1.0, 0.7, 0.7), 3),
+        ("sphere", (1.0, 1.0, 1.0), 3),
+        ("hr_ellipse", (1.0, 0.7, 0.7), 4),
+    ]:
+        kwargs = dict(real_kwargs(), mesh={**real_kwargs()["mesh"], "init": init})
+        cfg = config_from_reference({"epoch": 15, "model_kwargs": kwargs, "model_state": reference_state()})
+        assert (tuple(cfg["template"]["axes"]), cfg["template"]["level"]) == (axes, level), init

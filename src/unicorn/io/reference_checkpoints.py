@@ -104,10 +104,22 @@ def _weight(state: Mapping[str, torch.Tensor], key: str) -> torch.Tensor:
 
 
 def _last_linear_index(state: Mapping[str, torch.Tensor], prefix: str) -> int:
-    indices = [int(m.group(1)) for k in state if (m := re.match(re.escape(prefix) + r"(\d+)\.weight$", k))]
-    if not indices:
+    """The index of the last layer of the MLP under ``prefix`` (``<prefix><i>.weight`` and ``.bias``).
+
+    Raises:
+        ReferenceCheckpointError: no layer, or a layer with its bias but not its weight, or the other way round
+            (the missing key is named: the layer count is read from the keys).
+    """
+    found: dict[int, set[str]] = {}
+    for key in state:
+        if m := re.match(re.escape(prefix) + r"(\d+)\.(weight|bias)$", key):
+            found.setdefault(int(m.group(1)), set()).add(m.group(2))
+    if not found:
         raise ReferenceCheckpointError(f"no MLP layers under '{prefix}'")
-    return max(indices)
+    for index, names in sorted(found.items()):
+        for name in {"weight", "bias"} - names:
+            raise ReferenceCheckpointError(f"missing key '{prefix}{index}.{name}': the checkpoint lacks this tensor")
+    return max(found)
 
 
 def convert_reference_state_dict(
@@ -225,8 +237,8 @@ def _epoch(checkpoint: Mapping[str, Any]) -> int | None:
         CheckpointError: not a whole number.
     """
     epoch = checkpoint.get("epoch") if "model_state" in checkpoint else None
-    if epoch is not None and not is_whole(epoch):
-        raise CheckpointError(f"epoch = {epoch!r} is not a whole number")
+    if epoch is not None and not (is_whole(epoch) and epoch >= 0):
+        raise CheckpointError(f"epoch = {epoch!r} is not a whole number >= 0")
     return epoch
 
 
@@ -319,8 +331,10 @@ def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> Non
     mesh = _section(kwargs, "mesh")
     if "scale" in mesh:
         cfg["template"]["scale"] = _number(mesh["scale"], "mesh", "scale")
-    init = str(mesh.get("init", "ellipse"))
-    cfg["template"]["axes"] = (1.0, 0.7, 0.7) if init.startswith("ellipse") else (1.0, 1.0, 1.0)
+    init = mesh.get("init", "ellipse")  # what every released model's config says
+    if not isinstance(init, str) or not ("ellipse" in init or "sphere" in init):
+        raise CheckpointError(f"model_kwargs['mesh']['init'] = {init!r} is not a template ('ellipse' or 'sphere')")
+    cfg["template"]["axes"] = (1.0, 0.7, 0.7) if "ellipse" in init else (1.0, 1.0, 1.0)
     cfg["template"]["level"] = 4 if "hr" in init else 3
     cfg["template"]["bottom"] = 1.0  # the reference's templates are whole ellipsoids and spheres
     cfg["template"]["uv_mode"] = "reference"
@@ -330,16 +344,28 @@ def _renderer_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> Non
     """Camera, blur and background colour of the saved ``renderer`` section, with the reference's compositing."""
     rd = _section(kwargs, "renderer")
     cams = _section(kwargs, "renderer", "cameras")
-    if cams.get("name") == "perspective" and "focal_length" in cams:
+    name = cams.get("name", "fov" if cams else None)
+    if name == "perspective":
+        if "focal_length" not in cams:
+            raise CheckpointError("model_kwargs['renderer']['cameras'] is a perspective camera without focal_length")
         cfg["renderer"].update(
             fov=None, focal_length=_number(cams["focal_length"], "renderer", "cameras", "focal_length")
         )
-    elif cams.get("name") == "fov":
+    elif name == "fov":
         cfg["renderer"].update(fov=_number(cams.get("fov", 30.0), "renderer", "cameras", "fov"), focal_length=None)
+    elif name is not None:
+        raise CheckpointError(
+            f"model_kwargs['renderer']['cameras']['name'] = {name!r} is not a camera of the reference ('fov' or "
+            "'perspective')"
+        )
     options = dict(cfg["renderer"]["options"])
-    for key in ("sigma", "faces_per_pixel"):
-        if key in rd:
-            options[key] = rd[key]
+    if "sigma" in rd:
+        options["sigma"] = _number(rd["sigma"], "renderer", "sigma")
+    if "faces_per_pixel" in rd:
+        k = rd["faces_per_pixel"]
+        if not (is_whole(k) and k > 0):
+            raise CheckpointError(f"model_kwargs['renderer']['faces_per_pixel'] = {k!r} is not a whole number > 0")
+        options["faces_per_pixel"] = rd["faces_per_pixel"]
     cfg["renderer"].update(options=options, composite="reference")
     if rd.get("background_color") is not None:
         cfg["renderer"]["background_color"] = tuple(_numbers(rd["background_color"], "renderer", "background_color"))
@@ -356,8 +382,10 @@ def _progressive_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], epo
             continue
         section = _section(kwargs, *keys)
         powers, milestones = section.get("powers"), section.get("milestones")
+        # present, they are lists of numbers (absent: the code fully conditioned)
+        powers = None if powers is None else _numbers(powers, *keys, "powers")
+        milestones = None if milestones is None else _numbers(milestones, *keys, "milestones")
         if epoch is not None and powers and milestones and len(powers) == len(milestones):
-            powers, milestones = _numbers(powers, *keys, "powers"), _numbers(milestones, *keys, "milestones")
             cfg[group]["active_dims"] = min(active_dims_at(epoch, powers, milestones), cfg[group]["code_dim"])
         else:
             cfg[group]["active_dims"] = cfg[group]["code_dim"]
