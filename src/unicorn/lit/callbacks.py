@@ -316,6 +316,26 @@ def render_overview(
     return rows.permute(1, 0, 2, 3).reshape(3, n * size, -1).clamp(0, 1)
 
 
+def overview_labels(n_views: int, background: bool) -> list[str]:
+    """The column headers of :func:`render_overview`'s grid (the mesh views by their azimuth in degrees)."""
+    views = [f"az {360 * v // n_views + 30}" for v in range(n_views)]
+    return ["input", "recon.", *views, "texture", *(["backgr."] if background else [])]
+
+
+def save_overview(grid: torch.Tensor, size: int, labels: Sequence[str], path: str | Path) -> None:
+    """Write :func:`render_overview`'s ``grid`` (3, N * size, C * size) as a PNG with a header naming its columns,
+    each cell shown at 64 pixels or more (nearest neighbour), so that the headers fit."""
+    from unicorn.evaluation.pictures import image_grid, to_uint8
+
+    scale = max(1, -(-64 // size))
+    array = to_uint8(grid.cpu())  # (N * size, C * size, 3)
+    cells = [
+        [array[r : r + size, c : c + size].repeat(scale, 0).repeat(scale, 1) for c in range(0, array.shape[1], size)]
+        for r in range(0, array.shape[0], size)
+    ]
+    image_grid(cells, labels, pad=2).save(path)
+
+
 class ImageLogger(L.Callback):
     """Logs :func:`render_overview` of the first ``n_images`` of the batch every ``every_n_steps`` iterations
     (and after the first one) to TensorBoard (``images/overview``) and as ``<run>/images/step=N.png``.
@@ -356,12 +376,10 @@ class ImageLogger(L.Callback):
             elif isinstance(logger, TensorBoardLogger):
                 logger.experiment.add_image("images/overview", grid.cpu(), step)
         if self.save_png:
-            from PIL import Image
-
             folder = Path(trainer.default_root_dir) / "images"
             folder.mkdir(parents=True, exist_ok=True)
-            array = (grid.permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
-            Image.fromarray(array).save(folder / f"step={step:07d}.png")
+            labels = overview_labels(self.n_views, pl_module.model.background is not None)
+            save_overview(grid, images.shape[-1], labels, folder / f"step={step:07d}.png")
 
 
 def periodic_checkpoint(dirpath: str | Path, every_n_steps: int, keep: int, save_last: bool) -> PeriodicCheckpoint:
