@@ -512,3 +512,10 @@ def test_overflow_note_says_the_share_once_per_block(caplog) -> None:
         "more candidate faces within the blur radius, and lost their farthest ones (faces_per_pixel is the "
         "checkpoint's renderer setting: renderer.faces_per_pixel in training)"
     ]
+
+
+@pytest.mark.parametrize("split", ["val", "test"])
+def test_pascal3d_is_evaluated_against_its_cad_clouds_on_every_split(p3d_root, split) -> None:
+    data = build_eval_dataset("p3d_car", str(p3d_root), split, img_size=32)
+    item = data[0]
+    assert item["points"].shape[-1] == 3 and item["points"].shape[0] > 0, sorted(item)

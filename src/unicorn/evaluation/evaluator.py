@@ -40,7 +40,8 @@ def build_eval_dataset(
     """The evaluation items of a dataset, as its protocol needs them.
 
     ShapeNet / synthetic: one fixed random view per model (``seed``) with the ground-truth point clouds; CUB:
-    masks and keypoints at 256 px (UNICORN's keypoint frame); Pascal3D+: the test split with the CAD clouds.
+    masks and keypoints at 256 px (UNICORN's keypoint frame); Pascal3D+: with the CAD clouds (its validation
+    split too, training images).
     With ``max_images``, that many items spread evenly over the split (so every category is represented).
 
     Args:
