@@ -133,6 +133,80 @@ def test_entry_points_register_on_first_lookup_and_a_broken_one_warns(monkeypatc
     assert things.build("template", {"template": "$x"}).substitute(x=1) == "1"
 
 
+def test_an_entry_point_named_like_a_registered_entry_is_not_used_and_says_so(monkeypatch) -> None:
+    class Mine(Template):
+        pass
+
+    points = [
+        EntryPoint("template", "string:Template", "unicorn.things"),  # the entry registered: nothing to say
+        EntryPoint("taken", "string:Template", "unicorn.things"),  # another class under a taken name
+    ]
+    monkeypatch.setattr(registry, "entry_points", lambda group: points if group == "unicorn.things" else [])
+    things: Registry[type] = Registry("thing", base=Template, entry_points="unicorn.things")
+    things.add("template", Template)
+    things.add("taken", Mine)
+    with pytest.warns(
+        UserWarning, match=r"entry point 'taken' \(string:Template\) is not used: thing 'taken' is"
+    ) as seen:
+        assert things.get("taken") is Mine
+    assert len(seen) == 1 and "give the entry point another name" in str(seen[0].message)
+
+
+def test_a_taken_name_is_described_by_its_type_not_its_whole_value() -> None:
+    values: Registry[object] = Registry("spec")
+    values.add("a", Template("x"))
+    with pytest.raises(ValueError, match=r"^spec 'a' is already registered \(Template\); pass overwrite=True"):
+        values.add("a", Template("y"))
+
+
+def test_an_entry_without_the_methods_of_its_family_is_refused() -> None:
+    family: Registry[object] = Registry("objective", methods=("pose_terms",))
+
+    class Complete:
+        def pose_terms(self) -> None: ...
+
+    class Incomplete:
+        def __call__(self) -> None: ...
+
+    family.add("complete", Complete)
+    with pytest.raises(registry.IncompleteEntryError, match=r"^objective 'no' \(.*Incomplete\) has no pose_terms; "):
+        family.add("no", Incomplete)  # a class: when it is registered
+    family.add("factory", lambda: Incomplete())
+    with pytest.raises(registry.IncompleteEntryError, match=r"objective 'factory' \(.*Incomplete\) has no pose_terms"):
+        family.build("factory")  # another constructor: what it builds
+    assert isinstance(family.build("complete"), Complete) and issubclass(registry.IncompleteEntryError, UserError)
+
+
+@pytest.mark.parametrize(
+    "module, register",
+    [
+        ("unicorn.objectives.pose_objectives", "register_pose_objective"),
+        ("unicorn.objectives.perceptual", "register_perceptual"),
+        ("unicorn.objectives.viewpoint", "register_viewpoint_supervision"),
+        ("unicorn.model.compositing", "register_compositing"),
+    ],
+)
+def test_every_register_function_replaces_a_name_only_when_asked(module: str, register: str, monkeypatch) -> None:
+    import importlib
+
+    mod = importlib.import_module(module)
+    family = next(v for v in vars(mod).values() if isinstance(v, Registry))
+    monkeypatch.setattr(family, "_entries", dict(family._loaded()))  # put back after the test
+    name = family.names()[0]
+
+    class Replacement:
+        def __call__(self, *args, **kwargs): ...
+        def pose_terms(self, *args): ...
+        def shape_pose(self, *args): ...
+        def active(self, iteration): ...
+
+    with pytest.raises(ValueError, match=rf"{name!r} is already registered .*pass overwrite=True"):
+        getattr(mod, register)(name)(Replacement)
+    with pytest.warns(UserWarning, match=f"replacing .*{name!r}"):
+        getattr(mod, register)(name, overwrite=True)(Replacement)
+    assert family.get(name) is Replacement
+
+
 def test_plugins_are_imported_once_from_the_variable_and_the_entry_points(tmp_path, monkeypatch) -> None:
     (tmp_path / "probe_plugin_a.py").write_text(
         "import unicorn.registry as r\nr.imported = [*getattr(r, 'imported', []), 'a']\n"

@@ -31,6 +31,7 @@ from unicorn.errors import UserError
 __all__ = [
     "PLUGINS_ENV",
     "PLUGIN_GROUP",
+    "IncompleteEntryError",
     "PluginError",
     "Registry",
     "UnknownNameError",
@@ -57,6 +58,10 @@ class UnknownNameError(UserError, ValueError):
 class UnknownOptionError(UserError, TypeError):
     """An option that the named constructor does not take (the message names it and lists the ones it takes); a
     ``TypeError``, as Python's own unexpected keyword argument."""
+
+
+class IncompleteEntryError(UserError, TypeError):
+    """An entry that lacks a method its family needs (the message names it)."""
 
 
 class PluginError(UserError, ImportError):
@@ -122,12 +127,20 @@ class Registry(Generic[T]):
         base: a class every entry must subclass (``nn.Module`` for renderers), or None.
         entry_points: an entry-point group whose entries (``name = "package.module:Object"``) are registered on the
             first lookup, or None. A broken entry point warns and is skipped.
+        methods: the methods every entry's objects must have (a class entry is checked when it is registered, what
+            another constructor returns when it is built).
     """
 
     def __init__(
-        self, kind: str, key: str | None = None, *, base: type | None = None, entry_points: str | None = None
+        self,
+        kind: str,
+        key: str | None = None,
+        *,
+        base: type | None = None,
+        entry_points: str | None = None,
+        methods: tuple[str, ...] = (),
     ) -> None:
-        self.kind, self.key, self.base = kind, key or kind, base
+        self.kind, self.key, self.base, self.methods = kind, key or kind, base, methods
         self._entries: dict[str, T] = {}
         self._entry_point_group = entry_points
 
@@ -142,12 +155,13 @@ class Registry(Generic[T]):
             raise ValueError(f"a {self.kind} name must be a non-empty string, got {name!r}")
         if self.base is not None and not (isinstance(entry, type) and issubclass(entry, self.base)):
             raise TypeError(f"a {self.kind} must be a subclass of {self.base.__name__}, got {entry!r}")
+        if isinstance(entry, type):
+            self._check_methods(name, entry)
         old = self._entries.get(name)
         if old is not None and old is not entry:
             if not overwrite:
                 raise ValueError(
-                    f"{self.kind} {name!r} is already registered ({getattr(old, '__qualname__', old)}); "
-                    "pass overwrite=True to replace it"
+                    f"{self.kind} {name!r} is already registered ({_describe(old)}); pass overwrite=True to replace it"
                 )
             warnings.warn(f"replacing {self.kind} {name!r}", stacklevel=3)
         self._entries[name] = entry  # type: ignore[assignment]
@@ -203,25 +217,50 @@ class Registry(Generic[T]):
         Raises:
             UnknownNameError: an unknown name (the known ones listed).
             UnknownOptionError: an option that is neither the constructor's nor one of ``group_keys``.
+            IncompleteEntryError: what the constructor returned lacks one of :attr:`methods`.
         """
         factory: Callable[..., Any] = self.get(name)  # type: ignore[assignment]
         options = dict(options or {})
         accepted = keyword_options(factory)
-        if accepted is None:  # it takes any keyword: it checks its own options
-            return factory(**options)
-        check_options(f"{self.kind} {name!r}", (k for k in options if k not in group_keys), accepted)
-        return factory(**{k: v for k, v in options.items() if k in accepted})
+        if accepted is not None:  # else it takes any keyword: it checks its own options
+            check_options(f"{self.kind} {name!r}", (k for k in options if k not in group_keys), accepted)
+            options = {k: v for k, v in options.items() if k in accepted}
+        built = factory(**options)
+        self._check_methods(name, built)
+        return built
+
+    def _check_methods(self, name: str, entry: Any) -> None:
+        """Refuse an entry (a class, or what a constructor built) without one of :attr:`methods`."""
+        missing = [m for m in self.methods if not callable(getattr(entry, m, None))]
+        if missing:
+            what = getattr(entry, "__qualname__", None) or type(entry).__qualname__
+            raise IncompleteEntryError(
+                f"{self.kind} {name!r} ({what}) has no {' or '.join(missing)}; a {self.kind} needs "
+                f"{', '.join(self.methods)}"
+            )
 
     def _loaded(self) -> dict[str, T]:
         """The entries, after registering the entry points' on first use."""
         if self._entry_point_group is not None:
             group, self._entry_point_group = self._entry_point_group, None
             for ep in entry_points(group=group):
-                if ep.name in self._entries:
-                    continue
                 try:
-                    self.add(ep.name, ep.load())
+                    entry = ep.load()
+                    old = self._entries.get(ep.name)
+                    if old is not None and old is not entry:  # a built-in's name, or another plugin's
+                        warnings.warn(
+                            f"the {group} entry point {ep.name!r} ({ep.value}) is not used: {self.kind} {ep.name!r} "
+                            f"is already registered ({_describe(old)}); give the entry point another name",
+                            stacklevel=3,
+                        )
+                        continue
+                    self.add(ep.name, entry)
                 except Exception as err:  # a broken plugin must not break the built-in entries
                     message = f"could not load {self.kind} entry point {ep.name!r} ({ep.value}): {err}"
                     warnings.warn(message, stacklevel=3)
         return self._entries
+
+
+def _describe(entry: object) -> str:
+    """An entry in a message: its qualified name, else its type's (not a whole dataclass's repr)."""
+    return getattr(entry, "__qualname__", None) or type(entry).__qualname__

@@ -1,4 +1,5 @@
-"""How a rendered object is put over its background image: variants chosen by name (``renderer.composite``).
+"""How a rendered object is put over its background image: variants chosen by name (``model.composite`` on the
+command line, ``config["renderer"]["composite"]`` of a model configuration).
 
 - ``"direct"`` (:class:`DirectCompositing`): the background image is the renderer's background, blended where the
   renderer blends (soft edges included).
@@ -48,9 +49,10 @@ class Compositing(Protocol):
 _COMPOSITINGS: Registry[Compositing] = Registry("compositing")
 
 
-def register_compositing(name: str) -> Callable[[type], type]:
-    """Class decorator: make a compositing (a no-argument constructor) available as ``renderer.composite=name``."""
-    return _COMPOSITINGS.register(name)
+def register_compositing(name: str, *, overwrite: bool = False) -> Callable[[type], type]:
+    """Class decorator: make a compositing (a no-argument constructor) available as ``model.composite=name``
+    (``unicorn-train``; ``config["renderer"]["composite"]`` of a model configuration)."""
+    return _COMPOSITINGS.register(name, overwrite=overwrite)
 
 
 def list_compositings() -> list[str]:

@@ -283,12 +283,14 @@ class StructuralLoss(nn.Module):
 _PERCEPTUAL_LOSSES: Registry[nn.Module] = Registry("perceptual loss")
 
 
-def register_perceptual(name: str) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
+def register_perceptual(
+    name: str, *, overwrite: bool = False
+) -> Callable[[Callable[..., nn.Module]], Callable[..., nn.Module]]:
     """Decorator: make a perceptual-loss constructor available as ``loss.perceptual=name``.
 
     The constructor receives the loss group's options it names (e.g. ``vgg_weights``) as keywords.
     """
-    return _PERCEPTUAL_LOSSES.register(name)
+    return _PERCEPTUAL_LOSSES.register(name, overwrite=overwrite)
 
 
 def list_perceptual_losses() -> list[str]:

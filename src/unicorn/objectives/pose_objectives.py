@@ -86,13 +86,15 @@ class AllCandidates:
         return R, T, None
 
 
-_POSE_OBJECTIVES: Registry[PoseObjective] = Registry("pose objective", key="pose_objective")
+_POSE_OBJECTIVES: Registry[PoseObjective] = Registry(
+    "pose objective", key="pose_objective", methods=("pose_terms", "shape_pose")
+)
 
 
-def register_pose_objective(name: str) -> Callable[[type], type]:
+def register_pose_objective(name: str, *, overwrite: bool = False) -> Callable[[type], type]:
     """Class decorator: make a pose objective available as ``loss.pose_objective=name``; its constructor receives
     the options of the ``loss`` group it names (e.g. ``assignment_weight``)."""
-    return _POSE_OBJECTIVES.register(name)
+    return _POSE_OBJECTIVES.register(name, overwrite=overwrite)
 
 
 def list_pose_objectives() -> list[str]:

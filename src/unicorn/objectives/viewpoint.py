@@ -250,13 +250,13 @@ class ViewpointSupervision(Protocol):
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]: ...
 
 
-_SUPERVISIONS: Registry[ViewpointSupervision] = Registry("viewpoint supervision", key="viewpoint")
+_SUPERVISIONS: Registry[ViewpointSupervision] = Registry("viewpoint supervision", key="viewpoint", methods=("active",))
 
 
-def register_viewpoint_supervision(name: str) -> Callable[[type], type]:
+def register_viewpoint_supervision(name: str, *, overwrite: bool = False) -> Callable[[type], type]:
     """Class decorator: make a viewpoint supervision available as ``loss.viewpoint=name``; its constructor receives
     the options of the ``loss`` group it names."""
-    return _SUPERVISIONS.register(name)
+    return _SUPERVISIONS.register(name, overwrite=overwrite)
 
 
 def list_viewpoint_supervisions() -> list[str]:
