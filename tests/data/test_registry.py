@@ -119,3 +119,19 @@ def test_the_box_jitter_is_an_option_of_the_cropped_datasets(cub_root: Path, p3d
     assert build_dataset("cub_200", "train", cub_root, jitter=0.0).jitter == 0.0
     assert build_dataset("p3d_car", "train", p3d_root).jitter == 0.1
     assert build_dataset("p3d_car", "train", p3d_root, jitter=0.0).jitter == 0.0
+
+
+def test_a_dataset_entry_of_the_wrong_kind_is_refused_when_registered(monkeypatch) -> None:
+    from unicorn.data.registry import DATASETS, DatasetSpec, register_dataset
+
+    monkeypatch.setattr(DATASETS, "_entries", dict(DATASETS._loaded()))  # put back after the test
+    shapenet = dataset_spec("shapenet_nmr")
+    with pytest.raises(TypeError, match=r"^register_dataset\('blobs', spec\): spec must be a DatasetSpec"):
+        register_dataset("blobs", shapenet.build)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^DatasetSpec\.options must be a tuple of option names, got 'n_items'$"):
+        DatasetSpec(shapenet.build, 5, "images", "n_items")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^DatasetSpec\.protocol must be a protocol's name, got None$"):
+        DatasetSpec(shapenet.build, 5, None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match=r"^DatasetSpec\.build must be a function"):
+        DatasetSpec("shapenet", 5, "images")  # type: ignore[arg-type]
+    assert DatasetSpec(shapenet.build, 5, "images", ["n_items"]).options == ("n_items",)

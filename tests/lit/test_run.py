@@ -222,3 +222,15 @@ def test_a_resume_past_max_steps_says_that_nothing_is_trained(tmp_path, caplog) 
     typed = validate(compose_config(["experiment=synthetic", "trainer.max_steps=44", f"paths.output_dir={tmp_path}"]))
     check_resumed_settings(typed, ckpt)
     assert caplog.records == []  # a finished run resumed to end it: nothing to say
+
+
+def test_a_dataset_whose_protocol_is_unknown_is_refused_before_training(monkeypatch) -> None:
+    from unicorn.data.registry import DATASETS, DatasetSpec, dataset_spec, register_dataset
+    from unicorn.lit.run import _check_protocol
+    from unicorn.registry import UnknownNameError
+
+    monkeypatch.setattr(DATASETS, "_entries", dict(DATASETS._loaded()))
+    register_dataset("blobs", DatasetSpec(dataset_spec("folder").build, 5, "images_typo"))
+    with pytest.raises(UnknownNameError, match=r"^dataset 'blobs': unknown protocol 'images_typo'; known: \["):
+        _check_protocol("blobs")
+    _check_protocol("folder")

@@ -157,6 +157,20 @@ class DatasetSpec:
     prepare: Callable[..., Path] | None = None
     stored_size: Callable[[Mapping[str, Any] | None], int | None] = _no_stored_size
 
+    def __post_init__(self) -> None:
+        """Refuse fields of the wrong kind when the entry is made (a plugin's mistake, said at its registration).
+
+        Raises:
+            TypeError: ``build`` is not callable, ``protocol`` not a name, or ``options`` not a sequence of names.
+        """
+        if not callable(self.build):
+            raise TypeError(f"DatasetSpec.build must be a function (root, split, ...) -> dataset, got {self.build!r}")
+        if not isinstance(self.protocol, str) or not self.protocol:
+            raise TypeError(f"DatasetSpec.protocol must be a protocol's name, got {self.protocol!r}")
+        if isinstance(self.options, str) or not all(isinstance(o, str) for o in self.options):
+            raise TypeError(f"DatasetSpec.options must be a tuple of option names, got {self.options!r}")
+        object.__setattr__(self, "options", tuple(self.options))  # frozen: set once, here
+
     @property
     def generated(self) -> bool:
         """Whether the data is made on first use (under a default folder: no root needed)."""
@@ -216,7 +230,14 @@ VAL_SIZES = {name: spec.val_size for name, spec in DATASETS.items()}
 
 
 def register_dataset(name: str, spec: DatasetSpec, *, overwrite: bool = False) -> DatasetSpec:
-    """Register a dataset as ``name`` (:meth:`unicorn.registry.Registry.add`); returns ``spec``."""
+    """Register a dataset as ``name`` (:meth:`unicorn.registry.Registry.add`); returns ``spec``.
+
+    Raises:
+        TypeError: ``spec`` is not a :class:`DatasetSpec` (a bare build function, say).
+        ValueError: ``name`` is taken (unless ``overwrite``).
+    """
+    if not isinstance(spec, DatasetSpec):
+        raise TypeError(f"register_dataset({name!r}, spec): spec must be a DatasetSpec(build, ...), got {spec!r}")
     return DATASETS.add(name, spec, overwrite=overwrite)
 
 

@@ -85,6 +85,7 @@ def build(cfg: DictConfig) -> Run:
     with _config_nodes():
         data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
         data.check_early()  # a missing dataset is said first: nothing else matters without it
+        _check_protocol(data.name)
         module = build_module(typed)
         stopper = GracefulStop(checkpoint_dir / "last.ckpt")
         # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
@@ -547,6 +548,21 @@ def fit(run: Run) -> dict[str, float]:
         with interrupt_on_signal(where):
             evaluate_run(run)
     return metrics
+
+
+def _check_protocol(dataset: str) -> None:
+    """Refuse a dataset whose evaluation protocol is unknown (a plugin's mistake) before training, not after it.
+
+    Raises:
+        unicorn.registry.UnknownNameError: names the dataset and its protocol, and lists the known ones.
+    """
+    from unicorn.evaluation import get_protocol, protocol_for
+    from unicorn.registry import UnknownNameError
+
+    try:
+        get_protocol(protocol_for(dataset))
+    except UnknownNameError as err:
+        raise UnknownNameError(f"dataset {dataset!r}: {err}") from None
 
 
 def _drop_superseded_last(checkpoint_dir: Path) -> None:
