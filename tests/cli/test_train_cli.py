@@ -483,6 +483,22 @@ def test_a_refused_run_touches_nothing_in_the_folder(synthetic_cache, tmp_path):
     assert after == before
 
 
+def test_a_plugin_that_cannot_be_imported_leaves_the_folders_as_they_were(tmp_path, monkeypatch):
+    monkeypatch.setenv("UNICORN_PLUGINS", "probe_no_such_plugin")
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "notes.txt").write_text("mine")
+    for run_dir in (tmp_path / "new", existing):
+        result = unicorn_train(*TINY, f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        assert result.returncode == 2, result.stderr[-3000:]
+        assert result.stderr.strip().splitlines()[-1] == (
+            "unicorn-train: error: UNICORN_PLUGINS: cannot import 'probe_no_such_plugin': ModuleNotFoundError: No "
+            "module named 'probe_no_such_plugin'"
+        )
+    assert not (tmp_path / "new").exists()  # not even Hydra's train.log
+    assert sorted(p.name for p in existing.iterdir()) == ["notes.txt"]
+
+
 def test_a_read_only_run_folder_is_one_line(tmp_path):
     # a PermissionError as a read-only disk gives, raised by Hydra while it creates the folder (before the task)
     from unicorn.cli.hydra_app import hydra_failure as _hydra_failure

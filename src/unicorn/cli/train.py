@@ -106,8 +106,6 @@ def _task(cfg: DictConfig) -> None:
     from unicorn.lit.run import build, fit, is_first_process
     from unicorn.registry import load_plugins
 
-    load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: before the config is checked
-
     hydra_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:
         output_dir = Path(str(cfg.paths.output_dir)).expanduser().resolve()
@@ -123,6 +121,7 @@ def _task(cfg: DictConfig) -> None:
         ignored = signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
         try:
             with contextlib.nullcontext() if ignored else interrupt_on_signal(outside):
+                load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: before the config is checked
                 fit(build(cfg))
         except Interrupted as err:  # every process stops at the same point: the first one says so
             raise SystemExit(err.exit_status) from None
@@ -141,6 +140,7 @@ def _task(cfg: DictConfig) -> None:
             early = pending_interrupt(outside)  # a signal noted while the command set up (defer_stop_signals)
             if early is not None:
                 raise early
+            load_plugins()  # before the config is checked; a plugin that fails leaves the folders as they were
             _check_local_sweep(cfg)
             run = build(cfg)
             if _app is not None:
