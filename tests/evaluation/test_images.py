@@ -23,6 +23,9 @@ def test_collect_inputs(tmp_path: Path) -> None:
     assert collect_inputs([files["photo"], tmp_path / "in"])[0] == files["photo"]
     # one path on its own is one input, not its characters ("/" among them: the whole file system)
     assert collect_inputs(str(tmp_path / "in")) == collect_inputs(tmp_path / "in") == sorted(files.values())
+    for raw in (str(tmp_path / "in").encode(), [str(tmp_path / "in").encode()]):
+        with pytest.raises(TypeError, match="^collect_inputs takes paths as str or os.PathLike, not bytes"):
+            collect_inputs(raw)
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no images"):
         collect_inputs([tmp_path / "empty"])

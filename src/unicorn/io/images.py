@@ -84,9 +84,15 @@ def collect_inputs(
     Raises:
         FileNotFoundError: an input does not exist, or nothing to read was found at all.
         InputNotAFileError: an input is a device, a pipe or a socket.
+        TypeError: a path given as bytes.
     """
     if isinstance(inputs, (str, os.PathLike)):  # not the characters of a path, each an input ("/" among them)
         inputs = [inputs]
+    if isinstance(inputs, (bytes, bytearray)):
+        raise TypeError("collect_inputs takes paths as str or os.PathLike, not bytes (decode them first)")
+    inputs = list(inputs)
+    if any(isinstance(item, (bytes, bytearray)) for item in inputs):
+        raise TypeError("collect_inputs takes paths as str or os.PathLike, not bytes (decode them first)")
     files: list[Path] = []
     for item in inputs:
         path = Path(item).expanduser()
