@@ -86,10 +86,8 @@ def collect_inputs(
         InputNotAFileError: an input is a device, a pipe or a socket.
         TypeError: a path given as bytes.
     """
-    if isinstance(inputs, (str, os.PathLike)):  # not the characters of a path, each an input ("/" among them)
+    if isinstance(inputs, (str, bytes, bytearray, os.PathLike)):  # not its characters, each an input ("/" among them)
         inputs = [inputs]
-    if isinstance(inputs, (bytes, bytearray)):
-        raise TypeError("collect_inputs takes paths as str or os.PathLike, not bytes (decode them first)")
     inputs = list(inputs)
     if any(isinstance(item, (bytes, bytearray)) for item in inputs):
         raise TypeError("collect_inputs takes paths as str or os.PathLike, not bytes (decode them first)")
