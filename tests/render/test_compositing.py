@@ -106,7 +106,23 @@ def test_hard_blend_matches_a_nearest_face_loop_averaged_over_subpixels(scene, s
 
 def test_hard_blend_needs_the_background_at_the_supersampled_size(scene):
     frags, colors, bg = scene
-    with pytest.raises(ValueError, match="not a supersampling by 2 of 2 images"):
-        hard_blend(colors, frags, bg, supersample=2)
+    with pytest.raises(ValueError, match=r"^bg_table must have shape \(128, 3\), got \(512, 3\)$"):
+        hard_blend(colors, frags, bg, supersample=2)  # 2 images of 8 x 8 pixels at supersample 2
     with pytest.raises(ValueError, match="not a supersampling by 3"):
         hard_blend(colors, frags, bg[: 2 * 5 * 5], supersample=3)
+
+
+@pytest.mark.parametrize(
+    "blend", [lambda *a: layered_blend(*a, sigma=1e-4), hard_blend, softras_blend], ids=["layered", "hard", "softras"]
+)
+def test_a_blend_names_the_argument_of_the_wrong_shape(scene, blend):
+    frags, colors, bg = scene
+    M = frags.num_pairs
+    for args, message in [
+        ((colors[:-1], frags, bg), rf"^colors must have shape \({M}, C\), got \({M - 1}, 3\)$"),
+        ((colors[:, 0], frags, bg), rf"^colors must have shape \({M}, C\), got \({M},\)$"),
+        ((colors, frags, bg[:-1]), r"^bg_table must have shape \(512, 3\), got \(511, 3\)$"),
+        ((colors, frags, bg[:, :2]), r"^bg_table must have shape \(512, 3\), got \(512, 2\)$"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            blend(*args)

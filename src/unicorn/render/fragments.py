@@ -13,7 +13,9 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["DenseFragments", "Fragments"]
+from ..checks import check_shape
+
+__all__ = ["DenseFragments", "Fragments", "check_blend_inputs"]
 
 
 @dataclass
@@ -134,3 +136,18 @@ class Fragments:
         depth = torch.zeros(n, dtype=self.zbuf.dtype, device=dev)
         depth[self.pix[hit]] = self.zbuf[hit].detach()
         return face_ids.view(B, H, W), depth.view(B, H, W)
+
+
+def check_blend_inputs(
+    colors: torch.Tensor, fragments: Fragments, bg_table: torch.Tensor, pixels: int | None = None
+) -> None:
+    """The one shape check of a blend: ``colors`` (M, C), one colour per pair of ``fragments``, and ``bg_table``
+    (P, C), one background colour per output pixel (``pixels``; default B * H * W of the fragments).
+
+    Raises:
+        unicorn.checks.ShapeError: names the argument and the shape it must have (TypeError: not a tensor).
+    """
+    H, W = fragments.image_size
+    dims = {"M": fragments.pix.shape[0], "P": fragments.batch_size * H * W if pixels is None else pixels}
+    check_shape(colors, "M, C", "colors", dims, floating=True)
+    check_shape(bg_table, "P, C", "bg_table", dims, floating=True)

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import nn
 
-from .fragments import Fragments
+from .fragments import Fragments, check_blend_inputs
 from .layered import layered_blend
 from .raster import check_whole_number
 
@@ -34,14 +34,13 @@ def hard_blend(
     """
     check_whole_number("supersample", supersample, 1)
     s = int(supersample)
-    B, C = fragments.batch_size, colors.shape[1]
+    B = fragments.batch_size
     h, w = fragments.image_size
     H, W = h // s, w // s
-    if s != supersample or h % s or w % s or bg_table.shape[0] != B * H * W:
-        raise ValueError(
-            f"fragments at {h}x{w} and a background table of {bg_table.shape[0]} pixels are not a supersampling "
-            f"by {supersample} of {B} images"
-        )
+    if s != supersample or h % s or w % s:
+        raise ValueError(f"fragments at {h}x{w} are not a supersampling by {supersample} of {B} images")
+    check_blend_inputs(colors, fragments, bg_table, pixels=B * H * W)
+    C = colors.shape[1]
     # composite premultiplied colour over black at full resolution, average, then add the background
     fine = layered_blend(colors, fragments, colors.new_zeros(C).expand(B * h * w, C), sigma=0.0)
     coarse = nnf.avg_pool2d(fine, s) if s > 1 else fine

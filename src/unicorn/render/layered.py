@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from .compositing import write_pixels
-from .fragments import Fragments
+from .fragments import Fragments, check_blend_inputs
 from .raster import check_sigma
 
 __all__ = ["LayeredBlend", "layered_blend", "layered_occupancy"]
@@ -47,6 +47,7 @@ def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Te
     Returns:
         (B, C + 1, H, W) images, the last channel the alpha ``1 - prod_l (1 - O_l)``.
     """
+    check_blend_inputs(colors, fragments, bg_table)
     occupancy = layered_occupancy(fragments, sigma)
     row, row_pix = fragments.rows()
     R = row_pix.shape[0]

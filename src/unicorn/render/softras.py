@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from .compositing import gather_slots, write_pixels
-from .fragments import Fragments
+from .fragments import Fragments, check_blend_inputs
 from .raster import RenderError
 
 __all__ = ["SoftRasBlend", "check_depth_range", "check_temperatures", "softras_blend"]
@@ -61,6 +61,7 @@ def softras_blend(
     Returns:
         (B, C + 1, H, W) images, the last channel the alpha.
     """
+    check_blend_inputs(colors, fragments, bg_table)
     check_temperatures(sigma, gamma)
     check_depth_range(znear, zfar, eps)
     prob = torch.sigmoid(-fragments.dists / sigma)
