@@ -217,3 +217,19 @@ def test_overwrite_keeps_the_users_files_in_the_reports_folders(tmp_path: Path, 
         "report/mine.txt",
     ]
     assert (out / "report" / "mine.txt").read_text() == "report" and not (out / "report.html").exists()
+
+
+def test_a_training_runs_dataset_that_no_plugin_registered_here_is_named(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from unicorn.cli.errors import UsageError
+    from unicorn.cli.eval import _target, build_parser
+
+    args = build_parser().parse_args([str(tmp_path / "model.ckpt")])
+    info = SimpleNamespace(dataset={"name": "blobs", "root": str(tmp_path)})
+    with pytest.raises(
+        UsageError, match=r"^the checkpoint's training run read dataset 'blobs', which is not registered"
+    ):
+        _target(args, info)
+    with pytest.raises(UsageError, match=r"needs that plugin here too \(UNICORN_PLUGINS=module\), or give --dataset"):
+        _target(args, info)

@@ -37,6 +37,7 @@ from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, Ev
 from unicorn.data.registry import DATASET_NAMES, DATASETS, prepare_dataset
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.ranges import describe_range, field_range
+from unicorn.registry import PLUGINS_ENV
 
 __all__ = ["build_parser", "main"]
 
@@ -221,6 +222,12 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     dataset = args.dataset or run_data.get("name")
     if dataset is None:
         raise UsageError("no --dataset given and the checkpoint's training run does not name one")
+    if dataset not in DATASETS:  # --dataset was checked: the training run's, registered by a plugin there
+        raise UsageError(
+            f"the checkpoint's training run read dataset {dataset!r}, which is not registered here (known: "
+            f"{DATASETS.names()}): a dataset registered by a plugin needs that plugin here too ({PLUGINS_ENV}=module), "
+            "or give --dataset and --root"
+        )
     root = args.root
     if root is None and run_data.get("name") == dataset:
         root = _run_root(run_data)

@@ -346,7 +346,8 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     drop = " ".join(f"~renderer.{key}" for key in unknown)
     _check(
         not unknown,
-        f"renderer options {unknown} are not accepted by {name!r} ({sorted(accepted or ())}); an experiment or family "
+        f"renderer options {unknown} are not accepted by {name!r} (its options besides camera and image_size: "
+        f"{sorted(accepted or ())}); an experiment or family "
         f"may set them for another renderer: drop them with {drop}",
     )
     for key, value in cfg.items():
