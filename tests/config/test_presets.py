@@ -115,3 +115,24 @@ def test_every_renderer_preset_names_a_registered_renderer_and_its_file() -> Non
     names = {p.stem: OmegaConf.load(p)["name"] for p in (config_dir() / "renderer").glob("*.yaml")}
     assert names and all(stem == name for stem, name in names.items()), names
     assert set(names) <= set(list_renderers())
+
+
+def test_model_preset_takes_a_backend_without_a_preset_or_the_renderer_group() -> None:
+    from unicorn.render import HardRenderer, register_renderer, unregister_renderer
+
+    @register_renderer("probe_nearest")
+    class Nearest(HardRenderer):
+        pass
+
+    try:
+        cfg = model_preset("shapenet", "tiny", renderer="probe_nearest")
+        assert cfg["renderer"]["name"] == "probe_nearest" and cfg["renderer"]["options"] == {}
+        assert cfg["renderer"]["focal_length"] == model_preset("shapenet", "tiny")["renderer"]["focal_length"]
+        group = model_preset("shapenet", "tiny", renderer={"name": "hard", "options": {"supersample": 2}})
+        assert group["renderer"]["name"] == "hard" and group["renderer"]["options"] == {"supersample": 2}
+    finally:
+        unregister_renderer("probe_nearest")
+    with pytest.raises(ValueError, match=r"^no renderer preset or backend 'probe_nearest'; presets: \["):
+        model_preset("shapenet", "tiny", renderer="probe_nearest")
+    with pytest.raises(TypeError, match=r"^renderer must be a preset's or a backend's name, or a mapping, got 3$"):
+        model_preset("shapenet", "tiny", renderer=3)  # type: ignore[arg-type]

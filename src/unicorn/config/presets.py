@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
@@ -59,10 +59,14 @@ def _composed_preset(family: str, size: str, renderer: str) -> dict[str, Any]:
 
 
 def model_preset(
-    family: str = "real", size: str = "small", renderer: str = "layered", **overrides: Any
+    family: str = "real", size: str = "small", renderer: str | Mapping[str, Any] = "layered", **overrides: Any
 ) -> dict[str, Any]:
     """The model configuration of a dataset family (``real``, ``shapenet``) and a model size (``small``, ``big``,
     ``tiny``) as ``conf/`` defines them, with ``overrides`` (model config groups) merged on top.
+
+    ``renderer`` is a renderer preset (``conf/renderer/<name>.yaml``); or the name of a backend registered without
+    one (a plugin's: :func:`unicorn.render.list_renderers`), with its own default options; or a mapping of the
+    ``renderer`` group's keys (``{"name": ..., "options": {...}}``) over the ``layered`` preset.
 
     Example:
         >>> cfg = model_preset("shapenet", "small", image_size=32)
@@ -70,7 +74,26 @@ def model_preset(
         (True, True)
 
     Raises:
-        ValueError: an unknown preset name (the known ones are listed).
+        ValueError: an unknown preset or backend name (the known ones are listed).
+        TypeError: a ``renderer`` that is neither a name nor a mapping.
         KeyError: an unknown override group or key.
     """
-    return merge_config(copy.deepcopy(_composed_preset(family, size, renderer)), **overrides)
+    from unicorn.render import list_renderers
+
+    if isinstance(renderer, Mapping):
+        renderer, group = "layered", dict(renderer)
+    elif not isinstance(renderer, str):
+        raise TypeError(f"renderer must be a preset's or a backend's name, or a mapping, got {renderer!r}")
+    elif renderer in list_presets("renderer"):
+        group = {}
+    elif renderer in list_renderers():  # a backend without a preset: its constructor's defaults
+        renderer, group = "layered", {"name": renderer, "options": {}}
+    else:
+        raise ValueError(
+            f"no renderer preset or backend {renderer!r}; presets: {list_presets('renderer')}, backends: "
+            f"{list_renderers()}"
+        )
+    preset = copy.deepcopy(_composed_preset(family, size, renderer))
+    if group:
+        preset = merge_config(preset, renderer=group)
+    return merge_config(preset, **overrides)
