@@ -37,7 +37,11 @@ def test_the_loss_choices_are_the_documented_ones() -> None:
     [
         ({"perceptual": "lpips"}, r"loss\.perceptual must be one of .*'lpips'"),
         ({"pose_objective": "best"}, r"loss\.pose_objective must be one of"),
-        ({"viewpoint": "render"}, r"loss\.viewpoint must be one of \('renders', None\)"),
+        (
+            {"viewpoint": "render"},
+            r"loss\.viewpoint must be one of \('renders', None\), got 'render' "
+            r"\(one a plugin registers needs that plugin imported: UNICORN_PLUGINS=module\)$",
+        ),
     ],
 )
 def test_an_unknown_loss_name_fails_naming_the_key(loss, message) -> None:

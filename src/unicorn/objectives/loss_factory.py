@@ -16,6 +16,7 @@ from unicorn.objectives.losses import MeshRegularizer, ReconstructionLoss
 from unicorn.objectives.perceptual import list_perceptual_losses
 from unicorn.objectives.pose_objectives import list_pose_objectives
 from unicorn.objectives.viewpoint import list_viewpoint_supervisions
+from unicorn.registry import PLUGINS_ENV
 
 __all__ = ["LOSS_CHOICES", "ImageLosses", "build_losses", "check_loss_choices"]
 
@@ -37,7 +38,10 @@ def check_loss_choices(loss: Mapping[str, Any], prefix: str = "") -> None:
     for key, names in LOSS_CHOICES.items():
         value = loss[key.split(".")[1]]
         if value not in (allowed := names()):
-            raise ModelConfigError(f"{prefix}{key} must be one of {allowed}, got {value!r}")
+            raise ModelConfigError(
+                f"{prefix}{key} must be one of {allowed}, got {value!r} (one a plugin registers needs that plugin "
+                f"imported: {PLUGINS_ENV}=module)"
+            )
 
 
 class ImageLosses(NamedTuple):
