@@ -11,7 +11,7 @@ name, and take their options (defaults and ranges: :class:`RenderSettings`) as k
 """
 
 from .backends import HardRenderer, LayeredRasterizer, LayeredRenderer, SoftRasRenderer
-from .fragments import DenseFragments, Fragments
+from .fragments import DenseFragments, Fragments, check_blend_inputs
 from .hard import HardBlend, hard_blend
 from .layered import LayeredBlend, layered_blend, layered_occupancy
 from .overflow import OverflowCounter, RenderOverflowWarning
@@ -67,6 +67,7 @@ __all__ = [
     "TexturesVertex",
     "blur_radius_from_sigma",
     "build_renderer",
+    "check_blend_inputs",
     "check_render_option",
     "check_render_size",
     "get_renderer_class",
