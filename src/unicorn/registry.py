@@ -233,9 +233,8 @@ class Registry(Generic[T]):
         """Refuse an entry (a class, or what a constructor built) without one of :attr:`methods`."""
         missing = [m for m in self.methods if not callable(getattr(entry, m, None))]
         if missing:
-            what = getattr(entry, "__qualname__", None) or type(entry).__qualname__
             raise IncompleteEntryError(
-                f"{self.kind} {name!r} ({what}) has no {' or '.join(missing)}; a {self.kind} needs "
+                f"{self.kind} {name!r} ({_describe(entry)}) has no {' and no '.join(missing)}; a {self.kind} needs "
                 f"{', '.join(self.methods)}"
             )
 
