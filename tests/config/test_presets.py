@@ -68,7 +68,7 @@ def test_tiny_preset_builds_a_model() -> None:
     [
         (("nope", "small"), ValueError, "no family preset 'nope'"),
         (("real", "huge"), ValueError, "no model preset 'huge'"),
-        (("real", "small", "layerd"), ValueError, "no renderer preset 'layerd'"),
+        (("real", "small", "layerd"), ValueError, "no renderer preset or backend 'layerd'; presets: \\["),
     ],
 )
 def test_unknown_preset_names_fail_with_the_known_ones(args, error, message) -> None:
