@@ -378,6 +378,23 @@ def test_generating_into_a_shapenet_root_keeps_its_categories(tmp_path: Path, ta
     assert [p.name for p in root.iterdir() if p.name.startswith(".")] == []
 
 
+def test_a_metadata_write_that_fails_leaves_the_users_file_and_no_temporary_one(tmp_path: Path, monkeypatch) -> None:
+    path = tmp_path / "metadata.yaml"
+    path.write_text("03001627:\n  id: 03001627\n  name: chair\n")
+    real_write = Path.write_text
+
+    def full_disk(self: Path, *args: object, **kwargs: object) -> int:
+        real_write(self, "03001627:\n  id: 0300")  # part of it written, then the disk is full
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        writer._write_metadata(path, {"03001627": {"id": "03001627", "name": "chair"}, "x": {"id": "x", "name": "x"}})
+    monkeypatch.undo()
+    assert path.read_text() == "03001627:\n  id: 03001627\n  name: chair\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["metadata.yaml"]
+
+
 def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "cli"
     code = cli.main(

@@ -444,8 +444,11 @@ def _write_metadata(path: Path, metadata: dict[str, dict]) -> None:
             same = False
         text = appended if same else text
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)  # a write that failed (a full disk) leaves no temporary file
 
 
 class StaleSyntheticDataset(UserError, ValueError):
