@@ -227,13 +227,12 @@ def _sweep_job(swept: set[str]) -> str:
     """``#<number> (<its values of the swept keys>)`` for a job of a sweep (``-m``), the empty string otherwise."""
     from hydra.core.hydra_config import HydraConfig
 
-    from unicorn.io.run_folder import in_sweep
+    from unicorn.io.run_folder import in_sweep, sweep_job_overrides
 
     if not in_sweep():
         return ""
-    hydra_cfg = HydraConfig.get()
-    values = [o for o in hydra_cfg.overrides.task if o.split("=", 1)[0].lstrip("+~") in swept]
-    return f"#{hydra_cfg.job.num}" + (f" ({' '.join(values)})" if values else "")
+    values = [override for key, override in sweep_job_overrides() if key in swept]
+    return f"#{HydraConfig.get().job.num}" + (f" ({' '.join(values)})" if values else "")
 
 
 def swept_keys(args: list[str]) -> set[str]:

@@ -59,6 +59,7 @@ __all__ = [
     "run_dataset",
     "run_of_checkpoint",
     "step_checkpoints",
+    "sweep_job_overrides",
 ]
 
 log = logging.getLogger("unicorn.train")
@@ -95,6 +96,16 @@ def in_sweep() -> bool:
     from hydra.types import RunMode
 
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def sweep_job_overrides() -> list[tuple[str, str]]:
+    """This job of a sweep's (``-m``) command-line overrides as ``(key, override)``: ``("seed", "seed=1")``, the key
+    without Hydra's ``+`` / ``~`` prefixes; none outside a sweep."""
+    if not in_sweep():
+        return []
+    from hydra.core.hydra_config import HydraConfig
+
+    return [(o.split("=", 1)[0].lstrip("+~"), o) for o in HydraConfig.get().overrides.task]
 
 
 def folder_setting() -> str:

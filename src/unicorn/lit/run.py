@@ -257,13 +257,9 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
 def _sweep_job_keys() -> list[str]:
     """The keys this job of a sweep (``-m``) sets on the command line (``seed`` of ``seed=1``): what tells its run
     from the other jobs'; none outside a sweep."""
-    from hydra.core.hydra_config import HydraConfig
+    from unicorn.io.run_folder import sweep_job_overrides
 
-    from unicorn.io.run_folder import in_sweep
-
-    if not in_sweep():
-        return []
-    return [o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task if "=" in o]
+    return [key for key, override in sweep_job_overrides() if "=" in override]
 
 
 def _differences(before: Any, now: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
@@ -569,13 +565,13 @@ def _drop_superseded_last(checkpoint_dir: Path) -> None:
     """Remove the ``last.ckpt`` a signal wrote into a run with ``save_last=false`` once the run, resumed from it,
     has a newer ``step=<N>.ckpt``: otherwise it stays beside them, and whoever reads ``last.ckpt`` gets the weights
     of the iteration the signal stopped."""
-    from unicorn.io.run_folder import checkpoint_step, newest_checkpoint
+    from unicorn.io.run_folder import checkpoint_step, step_checkpoints
 
     last = checkpoint_dir / "last.ckpt"
-    newest = newest_checkpoint(checkpoint_dir)
-    step = checkpoint_step(last) if newest is not None and newest != last and last.is_file() else None
-    if step is not None:  # a checkpoint of this run's (unreadable files are left alone)
-        log.info("removing %s (iteration %d, written by a signal): %s is newer", last, step, newest)
+    step = checkpoint_step(last) if last.is_file() else None  # None: unreadable, left alone
+    found = step_checkpoints(checkpoint_dir)
+    if step is not None and found and found[-1][0] > step:
+        log.info("removing %s (iteration %d, written by a signal): %s is newer", last, step, found[-1][1])
         last.unlink()
 
 
