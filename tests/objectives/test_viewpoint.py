@@ -128,6 +128,17 @@ def test_terms_against_a_direct_computation() -> None:
     torch.testing.assert_close(viewpoint_terms(poses, views, head)["regression"], (2 / half[0]) ** 2 / 3)
 
 
+def test_azimuth_error_is_the_median_of_an_even_batch() -> None:
+    head = PoseHead(16, n_azim=4, elev_range=(-10, 30), roll_range=(-30, 30), T_range=0.3)
+    target = torch.tensor([[10.0, 0.0, 0.0], [100.0, 0.0, 0.0]])
+    views = DrawnViews(target, azim_elev_roll_to_rotation(*target.T), torch.zeros(2, 3), candidate_of(head, target))
+    angles = target.expand(4, 2, 3).clone()
+    angles[..., 0] += torch.tensor([10.0, 50.0])  # every candidate off by 10 and 50 degrees
+    logits = torch.zeros(4, 2)
+    out = viewpoint_terms(_poses(angles, views.T.expand(4, 2, 3), logits), views, head)
+    torch.testing.assert_close(out["azim-error"], torch.tensor(30.0))  # not the lower middle value, 10
+
+
 def test_registry_schedule_and_config() -> None:
     assert list_viewpoint_supervisions() == ["renders"]
     with pytest.raises(ValueError, match=r"unknown viewpoint 'views'; known: \['renders'\]"):

@@ -192,7 +192,7 @@ def viewpoint_terms(poses: PoseOutput, views: DrawnViews, head: PoseHead) -> dic
     with torch.no_grad():
         accuracy = (best == k).to(diff.dtype).mean()
         azim = poses.angles[best, b, 0]
-        azim_error = wrap_degrees(azim - views.angles[:, 0]).abs().median()
+        azim_error = wrap_degrees(azim - views.angles[:, 0]).abs().quantile(0.5)  # the middle two's mean for even B
     return {"ce": ce, "regression": regression, "accuracy": accuracy, "azim-error": azim_error}
 
 
