@@ -208,6 +208,17 @@ def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: 
     assert {"index.html_1", "overview.png_1", "reconstructions.json_1"} <= set(names)
 
 
+def test_names_in_any_script_are_kept_and_linked(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+    photo = inputs / "車の写真 #1.jpg"
+    photo.write_bytes((inputs / "photo.jpg").read_bytes())
+    out = tmp_path / "out"
+    assert main([str(checkpoint), str(photo), "--out", str(out), *FAST]) == 0
+    assert (out / "車の写真_1" / "mesh.glb").is_file()
+    page = (out / "index.html").read_text(encoding="utf-8")
+    assert "%E8%BB%8A" in page  # the links are percent-encoded UTF-8
+    assert all((out / s).is_file() for s in referenced_files(out / "index.html"))
+
+
 def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     photo = str(inputs / "photo.jpg")
     assert main([str(checkpoint), photo, "--out", str(tmp_path / "plain"), *FAST]) == 0

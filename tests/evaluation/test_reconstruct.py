@@ -25,10 +25,20 @@ def test_unique_names() -> None:
     assert unique_names([Path("/x/a.png"), Path("/x/a.jpg")]) == ["a", "a_1"]
 
 
+def test_names_keep_every_script_in_one_unicode_form() -> None:
+    paths = [Path("/x/車の写真.jpg"), Path("/x/cafe\u0301 #1.png"), Path("/x/Straße.png"), Path("/x/STRASSE.jpg")]
+    assert unique_names(paths) == ["車の写真", "café_1", "Straße", "STRASSE_1"]  # NFC; ß and SS are one name folded
+    assert unique_names([Path("/x/写真.png"), Path("/x/猫.png")]) == ["写真", "猫"]  # not "image" and "image_1"
+    long = [Path("/x") / ("車" * 100 + k + ".jpg") for k in "12"]  # 300 bytes of UTF-8 each
+    names = unique_names(long)
+    assert len(set(names)) == 2 and all(len(n.encode()) <= MAX_NAME for n in names)
+    assert all(n.startswith("車" * 30) for n in names)  # cut between characters
+
+
 def test_long_names_are_cut_and_stay_unique() -> None:
     paths = [Path("/x") / ("a" * 200) / ("x" * 100 + ".jpg"), Path("/x") / ("b" * 200) / ("x" * 100 + ".jpg")]
     names = unique_names(paths)
-    assert len(set(names)) == 2 and all(len(n) <= MAX_NAME for n in names)
+    assert len(set(names)) == 2 and all(len(n.encode()) <= MAX_NAME for n in names)
     assert names[0].startswith("a" * 90) and names[1].startswith("b" * 90)
     same_start = [Path("/x") / ("a" * 150 + k) / "photo.png" for k in "12"]  # cut to the same first characters
     assert len(set(unique_names(same_start))) == 2

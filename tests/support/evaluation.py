@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import torch
@@ -55,11 +56,11 @@ class _Sources(HTMLParser):
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         for key, value in attrs:
             if (tag, key) in (("img", "src"), ("a", "href")) and value:
-                self.sources.append(value)
+                self.sources.append(unquote(value))
 
 
 def referenced_files(page: Path) -> list[str]:
-    """Every ``img src`` and ``a href`` of an HTML file."""
+    """Every ``img src`` and ``a href`` of an HTML file, as the paths they name (percent-decoded)."""
     parser = _Sources()
     parser.feed(page.read_text(encoding="utf-8"))
     return parser.sources

@@ -52,10 +52,8 @@ def mask_overlay(alpha: torch.Tensor, mask: torch.Tensor | None) -> np.ndarray:
 
 
 def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
-    try:
-        return ImageFont.load_default(size=size)
-    except TypeError:  # Pillow < 10.1 has only the fixed bitmap font
-        return ImageFont.load_default()
+    # Pillow's scalable default font; the bitmap one it falls back to without FreeType draws Latin-1 only
+    return ImageFont.load_default(size=size)
 
 
 def image_grid(

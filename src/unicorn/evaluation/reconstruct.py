@@ -32,9 +32,11 @@ import json
 import os
 import re
 import sys
+import unicodedata
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 import torch
@@ -65,8 +67,8 @@ OVERVIEW_CELL = 160
 #: (:func:`unicorn.io.staging.staged_folder`)
 OPTIONAL_FILES = ("*/turntable.gif", "*/reconstruction_network.png", "*/turntable_network.png")
 
-#: longest output name, in characters (file systems allow 255 bytes; names are ASCII): a longer one is cut and ends
-#: with a hash of the whole
+#: longest output name, in bytes of UTF-8 (file systems allow 255): a longer one is cut and ends with a hash of the
+#: whole
 MAX_NAME = 120
 
 
@@ -75,8 +77,9 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
 
     The file stem when stems are unique; otherwise the path relative to the inputs' common folder (``a/0000.png``
     and ``b/0000.png`` become ``a_0000`` and ``b_0000``); a numeric suffix settles what remains, and keeps names
-    clear of :data:`RESERVED_NAMES` (the folder's own files). Names differ also without regard to case, and are at
-    most :data:`MAX_NAME` characters long.
+    clear of :data:`RESERVED_NAMES` (the folder's own files). Letters and digits of any script are kept (in Unicode's
+    composed form, NFC), every other run of characters but ``.``, ``-`` and ``_`` becomes ``_``. Names differ also
+    without regard to case, and are at most :data:`MAX_NAME` bytes long in UTF-8.
     """
     paths = [Path(p) for p in paths]
     if len({p.stem for p in paths}) == len(paths):
@@ -85,15 +88,17 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
         common = Path(os.path.commonpath([str(p.resolve().parent) for p in paths]))
         raw = [str(p.resolve().relative_to(common).with_suffix("")) for p in paths]
     names: list[str] = []
-    seen: set[str] = {n.lower() for n in RESERVED_NAMES}
+    seen: set[str] = {n.casefold() for n in RESERVED_NAMES}
     for text in raw:
-        base = re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or "image"
-        if len(base) > MAX_NAME - 8:  # room for a numeric suffix
-            base = f"{base[: MAX_NAME - 25]}_{hashlib.sha256(text.encode()).hexdigest()[:8]}"
+        # NFC: macOS hands out decomposed names, which would be two names for one on other file systems
+        base = re.sub(r"[^\w.-]+", "_", unicodedata.normalize("NFC", text)).strip("._") or "image"
+        if len(base.encode()) > MAX_NAME - 8:  # room for a numeric suffix
+            cut = base.encode()[: MAX_NAME - 25].decode(errors="ignore")  # not inside a character
+            base = f"{cut}_{hashlib.sha256(text.encode()).hexdigest()[:8]}"
         name, k = base, 1
-        while name.lower() in seen:
+        while name.casefold() in seen:
             name, k = f"{base}_{k}", k + 1
-        seen.add(name.lower())
+        seen.add(name.casefold())
         names.append(name)
     return names
 
@@ -375,11 +380,11 @@ def _write_index(
         )
     head_script, body_script = viewer_script_tags(install_viewer(out))
     for r in records:
-        name = html.escape(r["name"])
+        name, url = html.escape(r["name"]), html.escape(quote(r["name"]))
         shown = ("input", "reconstruction", "reconstruction_network", "mask")
-        pics = [f"{name}/{r['files'][k]}" for k in shown if k in r["files"]]
+        pics = [f"{url}/{r['files'][k]}" for k in shown if k in r["files"]]
         if "turntable_gif" in r["files"]:
-            pics.append(f"{name}/{r['files']['turntable_gif']}")
+            pics.append(f"{url}/{r['files']['turntable_gif']}")
         cells = "".join(f'<td><img src="{p}" width="{size}" height="{size}"></td>' for p in pics)
         pose = r["pose"]
         glb = out / r["folder"] / r["files"]["mesh.glb"]
@@ -387,7 +392,7 @@ def _write_index(
         viewer = viewer_element(glb, max(size, 160), alt=f"textured mesh of {r['name']}", orbit=orbit)
         cells += f"<td>{viewer}</td>"
         links = " ".join(
-            f'<a href="{name}/{html.escape(r["files"][k])}">{html.escape(k)}</a>'
+            f'<a href="{url}/{html.escape(r["files"][k])}">{html.escape(k)}</a>'
             for k in ("mesh.obj", "mesh.glb", "pose", "turntable")
             if k in r["files"]
         )
