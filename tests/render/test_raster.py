@@ -211,6 +211,33 @@ def test_opaque_truncation_is_exact():
     assert torch.equal(layered_blend(colors_of(full), full, bg, 1e-4), layered_blend(colors_of(cut), cut, bg, 1e-4))
 
 
+@pytest.mark.parametrize("capacity", [None, (1 << 15, 1 << 12)], ids=["packed", "fixed"])
+@pytest.mark.parametrize("K", [1, 2, 3])
+def test_opaque_truncation_keeps_the_nearest_containing_face(K, capacity):
+    """Near misses in front of a pixel's nearest containing face give way to it: with more than K - 1 of them, the
+    K - 1 nearest and that face are kept (the brute-force candidates, cut after it)."""
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
+    size, blur = 20, blur_radius_from_sigma(5e-4)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    dense = rasterize_meshes(ndc, faces, size, blur, K, truncate_opaque=True, capacity=capacity).to_dense()
+    every = _brute_force(ndc.numpy(), faces.numpy(), size, blur, len(faces))
+    given_way = 0
+    for b in range(2):
+        for pi in range(size * size):
+            r, c = divmod(pi, size)
+            cands = every[b][pi]
+            first = next((i for i, (_, _, d) in enumerate(cands) if d < 0), None)
+            if first is None:
+                want = cands[:K]
+            else:
+                want = cands[: first + 1] if first < K else [*cands[: K - 1], cands[first]]
+                given_way += first >= K
+            got = dense.pix_to_face[b, r, c].tolist()
+            assert got[: len(want)] == [f for _, f, _ in want] and all(g == -1 for g in got[len(want) :]), (b, r, c)
+    if K == 1:
+        assert given_way > 0  # the case arises
+
+
 def _grid_on_pixel_centres(size: int, n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, int]:
     """A flat n x n grid of squares at depth 2, its vertices on the pixel centres of every third column and row from
     the third (``pixel_to_ndc``), each square split along one of its diagonals in turn and every other face wound

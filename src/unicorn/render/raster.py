@@ -226,7 +226,8 @@ def rasterize_meshes(
         image_size: H or (H, W).
         blur_radius: squared NDC radius for near-miss faces; 0 keeps only faces containing the pixel.
         faces_per_pixel: K, the largest number of faces kept per pixel.
-        truncate_opaque: drop the faces behind the nearest face that contains the pixel. Exact for
+        truncate_opaque: drop the faces behind the nearest face that contains the pixel, and keep that face
+            (in the last slot, when more near misses lie in front of it than the others hold). Exact for
             compositing in which a containing face is opaque (the layered renderer), and much cheaper.
         max_candidates: stage-1 work budget; images are processed in chunks of at most this many candidate
             (pixel, face) pairs (a single image is never split).

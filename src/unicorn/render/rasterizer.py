@@ -32,7 +32,7 @@ class MeshRasterizer(nn.Module):
         blur_radius: squared NDC radius within which a face outside the pixel still counts.
         camera: projection; a 30-degree field of view by default (the reference's).
         truncate_opaque: drop the faces behind the first one containing the pixel (for aggregators in which
-            that face hides them exactly).
+            that face hides them exactly), and keep that face in the last slot when more near misses lie in front.
         supersample: integer factor s: fragments are computed at (s * H, s * W) (1 = none).
         max_candidates: rasterizer work budget per chunk of images (bounds memory).
         max_bytes: refuse renders whose fragments could exceed this many bytes, ``B x H x W x K x 64`` at the

@@ -79,7 +79,8 @@ def select_pairs(
         image_size: (H, W).
         blur_radius: squared NDC radius for near-miss faces.
         faces_per_pixel: K >= 1.
-        truncate_opaque: drop the faces behind the nearest face that contains the pixel.
+        truncate_opaque: drop the faces behind the nearest face that contains the pixel, and keep that face (in
+            the last slot when more near misses lie in front of it).
         max_candidates: the most candidate pairs of a chunk of images (a single image is never split).
         perspective_correct: rank the faces by the depth read with perspective-correct barycentrics (the true
             depth of the face at the pixel) instead of the screen-space ones.
@@ -281,8 +282,12 @@ def _depth_order(pix: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
 def _slots(
     pix: torch.Tensor, inside: torch.Tensor, faces_per_pixel: int, truncate_opaque: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Of pairs sorted by pixel then depth: each pair's rank at its pixel (M,), which to keep (M,) and the count of
-    pixels that overflowed ``faces_per_pixel`` (0-dim)."""
+    """Of pairs sorted by pixel then depth: each pair's slot at its pixel (M,), which to keep (M,) and the count of
+    pixels that overflowed ``faces_per_pixel`` (0-dim).
+
+    With ``truncate_opaque``, a pixel's nearest containing face is always kept: when more than
+    ``faces_per_pixel - 1`` near misses lie in front of it, the farthest of them give way and it takes the last
+    slot (dropping it instead would leave a hole where the surface is opaque)."""
     n = pix.numel()
     dev = pix.device
     ar = torch.arange(n, device=dev)
@@ -290,12 +295,17 @@ def _slots(
     is_start[1:] = pix[1:] != pix[:-1]
     seg_start = torch.cummax(torch.where(is_start, ar, torch.zeros_like(ar)), 0).values
     rank = ar - seg_start
-    keep = torch.ones_like(is_start)
-    if truncate_opaque:
-        # everything behind the nearest face containing the pixel is fully hidden (alpha = 1 there)
-        cum_inside = torch.cumsum(inside.long(), 0)
-        inside_before = cum_inside - inside.long() - (cum_inside[seg_start] - inside[seg_start].long())
-        keep = inside_before == 0
+    if not truncate_opaque:
+        overflow = (rank == faces_per_pixel).sum()
+        return rank, rank < faces_per_pixel, overflow
+    # everything behind the nearest face containing the pixel is fully hidden (alpha = 1 there)
+    cum_inside = torch.cumsum(inside.long(), 0)
+    inside_before = cum_inside - inside.long() - (cum_inside[seg_start] - inside[seg_start].long())
+    keep = inside_before == 0
     overflow = (keep & (rank == faces_per_pixel)).sum()
-    keep &= rank < faces_per_pixel
-    return rank, keep, overflow
+    late = keep & inside & (rank >= faces_per_pixel)  # an opaque face past the last slot
+    # a scatter over the segment starts, not a nonzero: no read of the device
+    late_at_pixel = torch.zeros(n, dtype=torch.long, device=dev).scatter_add_(0, seg_start, late.long())[seg_start]
+    last = faces_per_pixel - 1
+    keep &= ((rank < faces_per_pixel) & ~((late_at_pixel > 0) & (rank == last))) | late
+    return torch.where(late, last, rank), keep, overflow
