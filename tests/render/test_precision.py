@@ -7,7 +7,13 @@ import torch
 
 from tests.support.render import template_scene
 from unicorn.render import TexturesUV, TexturesVertex, build_renderer, list_renderers
-from unicorn.render.precision import autocast_active, float32_boundary, full_precision, to_full_precision
+from unicorn.render.precision import (
+    _device_type,
+    autocast_active,
+    float32_boundary,
+    full_precision,
+    to_full_precision,
+)
 
 
 def bf16_autocast():
@@ -101,3 +107,21 @@ def test_the_boundary_casts_16_bit_arguments_and_turns_autocast_off():
     # outside autocast the arguments pass untouched
     got = probe.run(verts.bfloat16(), TexturesUV(maps.half(), uvs, channels_last=False))
     assert got[:3] == (torch.bfloat16, torch.float16, None) and got[4] == torch.bfloat16
+
+
+def test_the_boundary_reads_the_device_of_arguments_given_by_keyword():
+    meta = torch.empty(1, 4, 3, device="meta")
+    assert _device_type((object(), meta), {}) == "meta"
+    assert _device_type((object(),), {"verts": meta, "faces": torch.zeros(1, 3)}) == "meta"  # not the default, cpu
+    assert _device_type((object(), 2.0), {"name": "y"}) == "cpu"
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("name", list_renderers())
+def test_keyword_arguments_render_in_float32_under_cuda_autocast(name):
+    renderer = build_renderer(name, image_size=16).cuda()
+    verts, faces, R, T, uvs, maps, background = (t.cuda() for t in _scene())
+    expected = renderer.render(verts=verts, faces=faces, textures=TexturesUV(maps, uvs), R=R, T=T)
+    with torch.autocast("cuda", dtype=torch.float16):
+        images = renderer.render(verts=verts, faces=faces, textures=TexturesUV(maps, uvs), R=R, T=T)
+    assert torch.equal(images.images, expected.images)

@@ -56,15 +56,23 @@ def _cast(value: Any) -> Any:
     return value
 
 
+def _device_type(args: tuple[Any, ...], kwargs: dict[str, Any]) -> str:
+    """The device type of the first tensor among the arguments after ``self``, positional then keyword
+    (``"cpu"`` without one)."""
+    for value in (*args[1:], *kwargs.values()):
+        if isinstance(value, torch.Tensor):
+            return value.device.type
+    return "cpu"
+
+
 def float32_boundary(method: Callable[_P, _R]) -> Callable[_P, _R]:
-    """Run ``method(self, verts, ...)`` in float32 under autocast: with autocast off for the device of its first
-    argument after ``self`` (a tensor), and its float16 and bfloat16 tensor arguments and its textures cast to
-    float32 first. Without autocast the call is unchanged."""
+    """Run ``method(self, verts, ...)`` in float32 under autocast: with autocast off for the device of its tensor
+    arguments (the first one's, passed by position or by keyword), and its float16 and bfloat16 tensor arguments
+    and its textures cast to float32 first. Without autocast the call is unchanged."""
 
     @functools.wraps(method)
     def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
-        first = args[1] if len(args) > 1 else None
-        device_type = first.device.type if isinstance(first, torch.Tensor) else "cpu"
+        device_type = _device_type(args, kwargs)
         if not autocast_active(device_type):
             return method(*args, **kwargs)
         args = tuple(_cast(a) for a in args)  # type: ignore[assignment]
