@@ -299,10 +299,38 @@ def test_a_blur_radius_whose_candidates_exceed_the_limit_is_refused(name):
     verts, faces, R, T, _ = template_scene(batch=1)
     tex = _tex(1, verts.shape[1])
     blurred = build_renderer(name, image_size=32, sigma=10.0, max_bytes=4 << 20)  # every face covers every pixel
-    with pytest.raises(RenderSizeError, match=r"the blur radius \(sigma\) makes [\d,]+ candidate face-pixel pairs"):
+    match = r"the faces' bounding boxes, grown by the blur radius \(sigma\), cover [\d,]+ candidate face-pixel pairs"
+    with pytest.raises(RenderSizeError, match=match):
         blurred(verts, faces, tex, R=R, T=T)
     sharp = build_renderer(name, image_size=32, max_bytes=4 << 20)  # the default sigma: well within the limit
     assert torch.isfinite(sharp(verts, faces, tex, R=R, T=T)).all()
+
+
+def test_long_thin_faces_over_the_limit_are_refused_without_blaming_sigma():
+    from unicorn.render import RenderSizeError
+
+    t = torch.linspace(-0.9, 0.9, 60)[:, None]  # 60 slivers across the whole image, each box most of it
+    a, b = torch.tensor([-1.0, -1.0, 4.0]) + 0 * t, torch.tensor([1.0, 1.0, 4.0]) + 0 * t
+    c = b + torch.tensor([0.0, 0.002, 0.0])
+    corners = torch.stack([a, b, c], 1) + torch.cat([0 * t, 0.01 * t, 0 * t], 1)[:, None]
+    verts, faces = corners.reshape(1, -1, 3), torch.arange(180).view(60, 3)
+    hard = build_renderer("hard", image_size=64, supersample=1, max_bytes=1 << 20)
+    with pytest.raises(RenderSizeError, match=r"^the faces' bounding boxes cover [\d,]+ candidate") as error:
+        hard(verts, faces, _tex(1, 180))
+    assert "sigma" not in str(error.value) and "long thin" in str(error.value)
+
+
+def test_numpy_scalars_are_accepted_as_settings_and_kept_as_python_numbers():
+    import numpy as np
+
+    from unicorn.render import RenderError
+
+    renderer = build_renderer("layered", image_size=np.int64(16), faces_per_pixel=np.int64(4), sigma=np.float32(1e-4))
+    settings = renderer.settings
+    assert (settings.faces_per_pixel, settings.image_size) == (4, (16, 16)) and type(settings.faces_per_pixel) is int
+    assert type(settings.sigma) is float and settings.sigma == pytest.approx(1e-4)
+    with pytest.raises(RenderError, match="faces_per_pixel must be a whole number >= 1, got np.True_"):
+        build_renderer("layered", faces_per_pixel=np.True_)
 
 
 def test_blur_radius_needs_an_occupancy_threshold_in_range():

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -135,21 +136,25 @@ def check_render_size(
         )
 
 
-def _check_candidates(count: int, limit: int) -> None:
-    """Refuse a render whose candidate pairs of one image (each face against the pixels of its box, grown by the
-    blur radius) could take more than ``limit`` bytes while they are ranked."""
+def _check_candidates(count: int, limit: int, blurred: bool) -> None:
+    """Refuse a render whose candidate pairs of one image (each face against the pixels of its bounding box, grown
+    by the blur radius) could take more than ``limit`` bytes while they are ranked."""
     need = count * CANDIDATE_BYTES
     if need > limit:
+        cause = (
+            "the faces' bounding boxes, grown by the blur radius (sigma)," if blurred else "the faces' bounding boxes"
+        )
+        fix = "a smaller sigma or image" if blurred else "a smaller image or smaller faces (long thin ones cost most)"
         raise RenderSizeError(
-            f"the blur radius (sigma) makes {count:,} candidate face-pixel pairs in one image, which may need "
-            f"{need / 2**30:.3g} GiB ({CANDIDATE_BYTES} bytes each), over the limit of {limit / 2**30:.3g} GiB; use a "
-            f"smaller sigma or image, or raise the limit (the renderer's max_bytes, or {MAX_RENDER_BYTES_ENV}; 0: none)"
+            f"{cause} cover {count:,} candidate face-pixel pairs in one image, which may need {need / 2**30:.3g} GiB "
+            f"({CANDIDATE_BYTES} bytes each), over the limit of {limit / 2**30:.3g} GiB; use {fix}, or raise the "
+            f"limit (the renderer's max_bytes, or {MAX_RENDER_BYTES_ENV}; 0: none)"
         )
 
 
 def check_sigma(sigma: float) -> None:
     """Raise RenderError unless the occupancy temperature ``sigma`` is a finite number >= 0."""
-    if not (isinstance(sigma, int | float) and not isinstance(sigma, bool) and 0 <= sigma < math.inf):
+    if not (is_real(sigma) and 0 <= sigma < math.inf):
         raise RenderError(f"sigma must be finite and >= 0, got {sigma!r}")
 
 
@@ -191,9 +196,14 @@ def check_mesh_inputs(
     check_mesh(verts, faces, allow_empty=True, finite=True, finite_also=finite_also)
 
 
+def is_real(value: Any) -> bool:
+    """Whether ``value`` is a real number, a NumPy scalar included, but not a bool (which Python counts as one)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_whole_number(name: str, value: Any, low: int) -> None:
     """Raise RenderError unless ``value`` is a whole number >= ``low`` (2.0 is 2; 2.5, NaN or True are errors)."""
-    number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    number = is_real(value) and math.isfinite(value)
     if not (number and float(value).is_integer() and value >= low):
         raise RenderError(f"{name} must be a whole number >= {low}, got {value!r}")
 
@@ -269,9 +279,10 @@ def rasterize_meshes(
             verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, capacity, perspective_correct
         )
     limit = max_render_bytes() if max_bytes is None else (max_bytes or None)
+    check = None if limit is None else functools.partial(_check_candidates, limit=limit, blurred=blur_radius > 0)
     kept = select_pairs(
         verts_ndc, faces, (H, W), blur_radius, faces_per_pixel, truncate_opaque, max_candidates, perspective_correct,
-        check_candidates=None if limit is None else functools.partial(_check_candidates, limit=limit),
+        check_candidates=check,
     )  # fmt: skip
     bary, dists, zbuf = _recompute(verts_ndc, faces, kept, (H, W), perspective_correct)
     # one host read for both counts (the packed layout's sizes are data-dependent: see unicorn.render.selection)

@@ -69,7 +69,7 @@ class MeshRasterizer(nn.Module):
         self.truncate_opaque = bool(truncate_opaque)
         self.supersample = int(supersample)
         self.max_candidates = int(max_candidates)
-        self.max_bytes = max_bytes
+        self.max_bytes = None if max_bytes is None else int(max_bytes)
         self.perspective_correct = perspective_correct
         #: (B, H, W) -> the fixed buffers (candidates, pairs) of renders inside unicorn.hostsync.sync_free, sized
         #: from the renders outside it (and grown by :meth:`grow_buffers`); a size not seen yet renders as usual

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..geometry.cameras import image_hw
-from .raster import RenderError, check_whole_number
+from .raster import RenderError, check_whole_number, is_real
 
 __all__ = ["BACKGROUND_COLOR", "DEFAULT_SETTINGS", "RenderSettings", "check_render_option"]
 
@@ -70,6 +70,11 @@ class RenderSettings:
         # frozen: set the normalised forms through object
         object.__setattr__(self, "image_size", image_hw(self.image_size))  # type: ignore[arg-type]
         object.__setattr__(self, "background_color", tuple(float(c) for c in self.background_color))
+        for name in _LOWEST:  # Python numbers (a NumPy scalar is accepted, and kept out of saved configurations)
+            value = getattr(self, name)
+            object.__setattr__(self, name, int(value) if name in _WHOLE else float(value))
+        if self.max_bytes is not None:
+            object.__setattr__(self, "max_bytes", int(self.max_bytes))
 
 
 def check_render_option(name: str, value: Any) -> None:
@@ -83,7 +88,7 @@ def check_render_option(name: str, value: Any) -> None:
         image_hw(value)
     elif name in _LOWEST or (name == "max_bytes" and value is not None):
         low, above = _LOWEST.get(name, 0), name in _ABOVE
-        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        ok = is_real(value) and math.isfinite(value)
         ok = ok and (value > low if above else value >= low)
         if name in _WHOLE:
             check_whole_number(name, value, low)
