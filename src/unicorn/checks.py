@@ -355,7 +355,7 @@ def check_mesh(
         allow_empty: accept B = 0, V = 0 or F = 0 (the renderer draws nothing); otherwise each is an error.
         finite: also require finite vertices.
         finite_also: other tensors, by argument name, that must be finite (a renderer's colours), checked in
-            the same read.
+            the same read; they must be on the vertices' device.
 
     The value checks (face range, finiteness) are reduced on the device and read back together: one host sync,
     skipped inside :func:`unicorn.hostsync.sync_free` (shapes, dtypes and devices are checked there too).
@@ -369,6 +369,9 @@ def check_mesh(
     _check_face_layout(faces, allow_empty)
     if faces.device != verts.device:
         raise ValueError(f"verts is on {verts.device} but faces is on {faces.device}")
+    for name, t in (finite_also or {}).items():  # computed with the vertices: no silent copy between devices
+        if t.device != verts.device:
+            raise ValueError(f"verts is on {verts.device} but {name} is on {t.device}")
     if is_sync_free():
         return
     if verts.is_meta:  # (renders without host reads trace on it: they read no value)

@@ -228,6 +228,18 @@ def test_mixed_precisions_are_named(renderer):
     assert images.dtype == torch.float64 and images[:, 3].max() > 0.99
 
 
+def test_textures_and_backgrounds_on_another_device_are_named(renderer):
+    # the meta device stands in for a GPU: a tensor there is on another device than the CPU vertices
+    verts, faces, R, T, uvs = template_scene(batch=2)
+    V, meta = verts.shape[1], torch.device("meta")
+    with pytest.raises(ValueError, match="^verts is on cpu but colors is on meta$"):
+        renderer(verts, faces, TexturesVertex(torch.rand(2, V, 3, device=meta)), R=R, T=T)
+    with pytest.raises(ValueError, match="^verts is on cpu but maps is on meta$"):
+        renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8, device=meta), uvs), R=R, T=T)
+    with pytest.raises(ValueError, match="^verts is on cpu but background is on meta$"):
+        renderer(verts, faces, _tex(2, V), R=R, T=T, background=torch.rand(2, 3, 16, 16, device=meta))
+
+
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 def test_non_finite_textures_are_named(renderer, bad):
     verts, faces, R, T, uvs = template_scene(batch=2)
