@@ -21,7 +21,7 @@ from unicorn.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[2]
 SHAPENET = "airplane bench cabinet car chair display lamp phone rifle sofa speaker table vessel".split()
-REAL = ["cub", "p3d_car", "compcars", "lsun_horse", "lsun_motorbike"]
+REAL = ["cub", "cub_big", "p3d_car", "compcars", "lsun_horse", "lsun_motorbike"]
 
 
 EXPERIMENTS = sorted(
@@ -80,6 +80,11 @@ def test_the_experiments_set_what_they_say(tmp_path):
     cub = validate(compose_config(["experiment=cub", "model=big", f"paths.output_dir={tmp_path}"]))
     assert cub.model.stages.texture == [2, 8, 64, 512] and cub.schedule.curriculum.translation == 938
     assert cub.schedule.texture_averaging.random_until_stage == 4 and cub.trainer.max_steps == 3_000_000
+    # the reference's cub_big.yml: the big model, translation and shape freed at 10 and 20 of its epochs, not 5 and 10
+    cub_big = validate(compose_config(["experiment=cub_big", f"paths.output_dir={tmp_path}"]))
+    assert cub_big.model.stages.texture == [2, 8, 64, 512] and cub_big.model.encoder.shared is False
+    assert (cub_big.schedule.curriculum.translation, cub_big.schedule.curriculum.deformation) == (1875, 3750)
+    assert cub_big.seed == cub.seed and cub_big.dataset == cub.dataset
 
 
 def test_experiment_is_a_group_with_a_null_default(tmp_path):
