@@ -354,7 +354,9 @@ class CallbacksConfig:
 
 @dataclass
 class EvaluateConfig(EvalSettings):
-    """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s protocol), written to ``<run>/eval``."""
+    """Evaluation of ``last.ckpt`` after training (``unicorn-eval``'s session), written to ``<run>/eval``; its mesh
+    settings default to UNICORN's validation setting (:data:`FAST_EVAL`), not ``unicorn-eval``'s (:data:`FINAL_EVAL`,
+    the paper's protocol)."""
 
     enabled: bool = False
     report_samples: int = ranged(REPORT_SAMPLES, 0)
