@@ -233,3 +233,28 @@ def test_a_training_runs_dataset_that_no_plugin_registered_here_is_named(tmp_pat
         _target(args, info)
     with pytest.raises(UsageError, match=r"needs that plugin here too \(UNICORN_PLUGINS=module\), or give --dataset"):
         _target(args, info)
+
+
+def test_the_cub_protocol_scores_the_level_4_mesh(tmp_path: Path, cub_root: Path, monkeypatch) -> None:
+    """UNICORN's keypoint evaluation rebuilds the template at level 4 (2562 vertices); --template-level chooses."""
+    import unicorn.io
+
+    real = tiny_checkpoint(tmp_path / "real.pt", "real")
+    loaded: list[dict | None] = []
+    load = unicorn.io.load_model
+
+    def recording(*args, overrides=None, **kwargs):
+        loaded.append(overrides)
+        model, info = load(*args, overrides=overrides, **kwargs)
+        loaded.append(model.template.verts.shape[0])
+        return model, info
+
+    monkeypatch.setattr(unicorn.io, "load_model", recording)
+    common = ["--dataset", "cub_200", "--root", str(cub_root), "--max-images", "2", "--report-samples", "0",
+              "--device", "cpu", "--num-pairs", "4", *FAST]  # fmt: skip
+    assert main([str(real), *common, "--out", str(tmp_path / "a")]) == 0
+    assert loaded == [{"template": {"level": 4}}, 2562]
+    assert json.loads((tmp_path / "a" / "metrics.json").read_text())["protocol"] == "cub"
+    loaded.clear()
+    assert main([str(real), *common, "--template-level", "3", "--out", str(tmp_path / "b")]) == 0
+    assert loaded == [{"template": {"level": 3}}, 642]

@@ -125,7 +125,8 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--template-level",
         type=whole_number,
-        help="icosphere level of the mesh (3: 642 vertices; UNICORN's CUB keypoint evaluation uses 4)",
+        help="icosphere level of the mesh (3: 642 vertices, 4: 2562); default: the model's, or the protocol's (CUB's "
+        "keypoints: 4, as UNICORN's evaluation)",
     )
     p.add_argument(
         "--average-texture",
@@ -210,6 +211,18 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
     return str(prepare_dataset(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
 
 
+def _protocol_level(name: str | None) -> int | None:
+    """The template level dataset ``name``'s protocol scores (:attr:`Protocol.template_level`), or None."""
+    from unicorn.evaluation import get_protocol
+
+    if name not in DATASETS:
+        return None  # an unknown name is refused with the target
+    level = get_protocol(DATASETS.get(name).protocol).template_level
+    if level is not None:
+        log.info("scoring the level-%d mesh, as the %s protocol does (--template-level to choose)", level, name)
+    return level
+
+
 def _target(args: argparse.Namespace, info: Any) -> Any:
     """The dataset split to evaluate: the options, completed from the checkpoint's training run.
 
@@ -285,10 +298,12 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     check_picture_sizes(args)
     device = parse_device(args.device)
     run_dir = run_of_checkpoint(args.checkpoint)
-    early = _out_dir(args, run_dir, args.dataset or (run_dataset(run_dir) or {}).get("name"))
+    named = args.dataset or (run_dataset(run_dir) or {}).get("name")  # the dataset, when known before loading
+    early = _out_dir(args, run_dir, named)
     if early is not None:  # before the model is read: a mistake fails fast
         check_out_folder(early, args.overwrite)
-    overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
+    level = args.template_level if args.template_level is not None else _protocol_level(named)
+    overrides = {"template": {"level": level}} if level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
     log.info("loaded %s", info.describe())
     target = _target(args, info)

@@ -129,6 +129,8 @@ class Protocol:
         poses: ground-truth poses: rotation errors after the canonical-frame alignment; ``oracle_pose`` allowed.
         keypoints: PCK by keypoint transfer.
         training_clouds: the dataset has training point clouds (a mean-shape baseline can be fitted).
+        template_level: the icosphere level of the mesh the protocol scores, when it is not the model's own
+            (``unicorn-eval`` rebuilds the template at it unless ``--template-level`` says otherwise), or None.
     """
 
     name: str
@@ -137,13 +139,14 @@ class Protocol:
     poses: bool = False
     keypoints: bool = False
     training_clouds: bool = False
+    template_level: int | None = None
 
 
 #: every protocol by name
 PROTOCOL_REGISTRY: Registry[Protocol] = Registry("protocol")
 for _protocol in (
     Protocol("shapenet", masks=True, meshes="posed", poses=True, training_clouds=True),
-    Protocol("cub", masks=True, keypoints=True),
+    Protocol("cub", masks=True, keypoints=True, template_level=4),  # UNICORN's kp_eval.py: the level-4 mesh
     Protocol("p3d", masks=True, meshes="icp"),
     Protocol("images"),
 ):
