@@ -102,6 +102,8 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     # provenance: the equivalent unicorn-eval command, and the training command that ran it, kept apart
     assert metrics["command"].startswith(f"unicorn-eval {run.checkpoint_dir / 'last.ckpt'} --split=test")
+    level = run.module.model.config["template"]["level"]
+    assert metrics["command"].endswith(f" --template-level={level}")  # the trained mesh, whatever the protocol's
     command = json.loads((run.output_dir / "provenance.json").read_text())[-1]["command"]  # as provenance.json
     assert metrics["produced_by"] == f"{command} (evaluation after training)"
     assert metrics["checkpoint"] == str((run.checkpoint_dir / "last.ckpt").resolve()) and "git_commit" in metrics

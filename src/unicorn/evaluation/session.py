@@ -64,9 +64,10 @@ def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions
     return EvalOptions(protocol=protocol_for(dataset), **values, **options)
 
 
-def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig) -> str:
+def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig, template_level: int | None = None) -> str:
     """The ``unicorn-eval`` command that evaluates ``checkpoint`` into ``out`` as ``settings`` say (a provenance
-    record of the evaluation after training)."""
+    record of the evaluation after training), on the mesh of ``template_level`` when given (the trained model's:
+    ``unicorn-eval`` would take the protocol's, :attr:`~unicorn.evaluation.protocols.Protocol.template_level`)."""
     from unicorn.io.provenance import command_line
 
     s = settings
@@ -76,6 +77,7 @@ def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig) -> str:
     argv += [f"--mean-shape={s.mean_shape_iterations}"] + (["--own-mean-shape"] if s.own_mean_shape else [])
     argv += [f"--shape-points={s.shape_points}"]
     argv += [f"--max-images={s.max_images}"] if s.max_images is not None else []
+    argv += [f"--template-level={template_level}"] if template_level is not None else []
     return command_line("unicorn-eval", argv)
 
 

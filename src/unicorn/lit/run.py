@@ -614,7 +614,7 @@ def evaluate_run(run: Run) -> Path:
     out = run.output_dir / "eval"
     meta = {
         **provenance(
-            eval_command(checkpoint, out, settings),
+            eval_command(checkpoint, out, settings, run.module.model.config["template"]["level"]),
             checkpoint if checkpoint.is_file() else None,
             produced_by=f"{_run_command()} (evaluation after training)",
         ),
