@@ -24,6 +24,7 @@ __all__ = [
     "UnicornWarning",
     "UserError",
     "defer_stop_signals",
+    "ignore_stop_signals",
     "interrupt_on_signal",
     "pending_interrupt",
     "signals_held",
@@ -173,6 +174,15 @@ def handle_stop_signals(handler: Any) -> dict[int, Any]:
     """Give :data:`STOP_SIGNALS` to ``handler`` (main thread only); returns the handlers they had, for
     :func:`restore_handlers`."""
     return {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+
+
+def ignore_stop_signals(worker_id: int = 0) -> None:
+    """A DataLoader's ``worker_init_fn``: the worker ignores :data:`STOP_SIGNALS`, which the command's process
+    handles (a step boundary, a clean stop). Ctrl-C, SLURM's ``scancel`` and ``kill -- -PGID`` signal the whole
+    process group: a worker that died of it would end the command with the loader's error, before the iteration
+    under way is saved. Workers still end with the command: it stops them, and they leave when it is gone."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
 
 
 def restore_handlers(previous: dict[int, Any]) -> None:

@@ -357,7 +357,7 @@ def test_a_run_folder_is_reused_only_to_resume_or_overwrite(synthetic_cache, tmp
     (tmp_path / "notes.txt").write_text("mine")
     fresh = build_run(tmp_path, "overwrite=true", "trainer.max_steps=1")
     assert fresh.ckpt_path is None and not (tmp_path / "checkpoints").exists()
-    aside = tmp_path / f".overwritten-{os.getpid()}"  # until the new run's first iteration
+    [aside] = tmp_path.glob(f".overwritten-{os.getpid()}-*")  # until the new run's first iteration
     assert (aside / "checkpoints" / "last.ckpt").is_file()
     fit(fresh)
     assert not aside.exists() and torch.load(tmp_path / "checkpoints" / "last.ckpt")["global_step"] == 1

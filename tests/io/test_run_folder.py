@@ -247,3 +247,48 @@ def test_the_run_of_a_checkpoint_named_from_anywhere(tmp_path, monkeypatch) -> N
     assert run_of_checkpoint("best.ckpt") == run
     (tmp_path / "lone.ckpt").write_bytes(b"")
     assert run_of_checkpoint(tmp_path / "lone.ckpt") is None
+
+
+def test_an_early_failure_removes_only_what_a_run_writes(tmp_path) -> None:
+    """Files of the user's put into the folder while the run started stay, in an existing folder and a new one."""
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "notes.txt").write_text("mine")
+    changes = FolderChanges(existing, {"notes.txt"})
+    (existing / "config.yaml").write_text("the run's")
+    (existing / "csv").mkdir()
+    (existing / "csv" / "metrics.csv").write_text("step\n")
+    (existing / "notes2.txt").write_text("mine too")  # while the data was generated
+    (existing / "analysis").mkdir()
+    (existing / "analysis" / "plot.py").write_text("mine too")
+    changes.undo()
+    assert sorted(p.name for p in existing.iterdir()) == ["analysis", "notes.txt", "notes2.txt"]
+    assert (existing / "analysis" / "plot.py").read_text() == "mine too"
+
+    new = tmp_path / "outputs" / "new"
+    changes = FolderChanges(new, None, created_top=tmp_path / "outputs")
+    new.mkdir(parents=True)
+    (new / "train.log").write_text("started")
+    (new / ".hydra").mkdir()
+    (new / "notes.txt").write_text("mine")
+    changes.undo()
+    assert sorted(p.name for p in new.iterdir()) == ["notes.txt"]  # the folder stays for the user's file
+
+
+def test_an_aside_left_by_another_process_is_never_taken_for_this_ones(tmp_path) -> None:
+    """A run killed before its first iteration leaves its aside; a later process with the same pid (containers
+    reuse pids) that fails early must neither put it back over the run's checkpoints nor delete them."""
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"the run's weights")
+    stale = tmp_path / f".overwritten-{os.getpid()}"  # the name an aside had before it carried a token
+    (stale / "checkpoints").mkdir(parents=True)
+    (stale / "checkpoints" / "last.ckpt").write_bytes(b"an older run's")
+    other = tmp_path / f".overwritten-{os.getpid()}-0badc0de"  # another process's, under this pid
+    (other / "csv").mkdir(parents=True)
+    before = _snapshot(tmp_path)
+    changes = FolderChanges(tmp_path, {p.name for p in tmp_path.iterdir()})
+    (tmp_path / "config.yaml").write_text("the refused run's")
+    changes.undo()
+    assert _snapshot(tmp_path) == before
+    aside = set_aside([tmp_path / "checkpoints"], tmp_path)  # this process's own: a name of its own
+    assert aside is not None and aside not in (stale, other) and aside.name.startswith(f".overwritten-{os.getpid()}-")

@@ -187,3 +187,23 @@ def test_hydra_configs_instantiate(path: Path, tmp_path: Path) -> None:
     if dm.name == "shapenet_nmr":
         assert dm.categories == ["airplane"]
     torch.testing.assert_close(torch.tensor(dm.img_size), torch.tensor(64))
+
+
+def test_loader_workers_outlive_a_signal_to_the_process_group(cub_root: Path) -> None:
+    """Ctrl-C and a scheduler signal the whole group: the workers ignore it, the run's process stops cleanly."""
+    import os
+    import signal
+    import time
+
+    dm = UnicornDataModule("cub_200", str(cub_root), batch_size=2, num_workers=1, stream_seed=0)
+    dm.setup("fit")
+    batches = iter(dm.train_dataloader())
+    next(batches)
+    [worker] = batches._workers
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        os.kill(worker.pid, signum)
+    time.sleep(0.5)
+    assert worker.is_alive()
+    for _ in range(3):
+        assert next(batches)["image"].shape[0] == 2
+    del batches

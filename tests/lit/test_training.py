@@ -540,3 +540,24 @@ def test_validation_logs_reconstruction_error_and_mask_iou(synthetic_cache, tmp_
         module.validation_step({"image": images, "mask": masks, "has_mask": torch.ones(3, dtype=torch.bool)}, 0)
     assert logged["val/mask_iou"] == pytest.approx(2 / 3)
     assert logged["val/rgb"] == pytest.approx(float(((rec - images) ** 2).mean()), rel=1e-5)
+
+
+def test_a_signal_while_training_ends_stops_before_the_evaluation(synthetic_cache, tmp_path):
+    """A SIGTERM after the last iteration's boundary (while the final last.ckpt is written) ends the command with
+    the signal's status and without the evaluation after training, which a pre-empted job has no time for."""
+    from unicorn.errors import Interrupted
+
+    run = build_run(tmp_path, "callbacks.checkpoint.every_n_steps=100", "evaluate.enabled=true")
+    io = run.trainer.strategy.checkpoint_io
+    save = io.save_checkpoint
+
+    def signalled(checkpoint, path, storage_options=None):
+        os.kill(os.getpid(), signal.SIGTERM)  # the run's handler: noted, the write goes on
+        save(checkpoint, path, storage_options)
+
+    io.save_checkpoint = signalled
+    with pytest.raises(Interrupted, match=r"^stopped by SIGTERM after the last iteration \(8\), the training") as err:
+        fit(run)
+    assert err.value.exit_status == 143 and "the evaluation after training did not run" in str(err.value)
+    assert torch.load(run.checkpoint_dir / "last.ckpt", weights_only=True)["global_step"] == 8
+    assert not (run.output_dir / "eval").exists()

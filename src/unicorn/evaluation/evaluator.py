@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 from unicorn.data import build_dataset
 from unicorn.data.images import DatasetError
 from unicorn.data.registry import dataset_spec
+from unicorn.errors import ignore_stop_signals
 from unicorn.evaluation.interface import EvaluableModel, spread_indices
 from unicorn.evaluation.measurements import EvaluatedBatch, checked_shape_baseline, measurements_for
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, Sample, get_protocol
@@ -154,7 +155,12 @@ def evaluate(
         shape_baseline = checked_shape_baseline(shape_baseline, model, device)
     group_of = group_namer(dataset, dataset_name)
     loader = DataLoader(
-        dataset, batch_size=options.batch_size, shuffle=False, num_workers=options.num_workers, collate_fn=collate
+        dataset,
+        batch_size=options.batch_size,
+        shuffle=False,
+        num_workers=options.num_workers,
+        collate_fn=collate,
+        worker_init_fn=ignore_stop_signals,  # a signal to the process group stops the command, not its workers
     )
     own_means = None
     if options.own_mean_shape and protocol.meshes is not None and options.icp_iterations > 0:

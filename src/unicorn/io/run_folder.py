@@ -20,6 +20,7 @@ import fnmatch
 import logging
 import os
 import re
+import secrets
 import shutil
 import socket
 from collections.abc import Mapping
@@ -75,13 +76,16 @@ RUN_FOLDER_FILES = {
     "images": ("step=*.png", ".*"),
     "eval": ("metrics.csv", "metrics.json", "per_image.csv", "report.html", "report.png", "report", "_viewer", ".*"),
 }
-#: the hidden folder of a run folder (``.overwritten-<pid>``) holding the earlier run's outputs that
+#: the hidden folder of a run folder (``.overwritten-<pid>-<token>``) holding the earlier run's outputs that
 #: ``overwrite=true`` replaces, from the moment the new run writes until its first iteration is done
 ASIDE_PREFIX = ".overwritten-"
+_ASIDE_TOKEN = secrets.token_hex(4)
 #: the records of the run a folder holds (its config, its starts, Hydra's record): a resumed run rewrites them
 RUN_RECORDS = ("config.yaml", "provenance.json", ".hydra")
 #: the log Hydra appends to (``<hydra.job.name>.log``)
 RUN_LOG = "train.log"
+#: everything a run writes at the top of its folder
+_RUN_ENTRIES = frozenset((*RUN_OUTPUTS, *RUN_RECORDS, RUN_LOG))
 #: the record of a sweep (``-m``) Hydra writes into ``hydra.sweep.dir``, whose jobs' runs are in its numbered folders
 SWEEP_RECORD = "multirun.yaml"
 #: the lock file of a folder a run is training in (:func:`lock_folder`)
@@ -327,12 +331,12 @@ def _check_replaceable(outputs: list[Path], output_dir: Path) -> None:
 
 def set_aside(paths: list[Path], output_dir: Path) -> Path | None:
     """Move ``paths`` (an earlier run's outputs that ``overwrite=true`` replaces: :func:`plan_folder`) into
-    ``output_dir/.overwritten-<pid>``, where :func:`put_back_aside` finds them if the new run fails before its
+    ``output_dir/.overwritten-<pid>-<token>``, where :func:`put_back_aside` finds them if the new run fails before its
     first iteration and :func:`drop_aside` deletes them once it is done; returns that folder (None: nothing moved).
     """
     if not paths:
         return None
-    aside = output_dir / f"{ASIDE_PREFIX}{os.getpid()}"
+    aside = output_dir / _aside_name()
     aside.mkdir()
     for path in paths:
         log.warning("overwrite=true: the earlier run's %s is deleted after the first iteration", path)
@@ -340,10 +344,17 @@ def set_aside(paths: list[Path], output_dir: Path) -> Path | None:
     return aside
 
 
+def _aside_name() -> str:
+    """The name of this process's :func:`set_aside` folder: its pid and a token drawn when the module was imported,
+    so that a folder a killed process left under a pid reused since (containers start every entry point under
+    the same pid) is never taken for this one's."""
+    return f"{ASIDE_PREFIX}{os.getpid()}-{_ASIDE_TOKEN}"
+
+
 def put_back_aside(output_dir: Path) -> None:
     """Put the outputs this process set aside (:func:`set_aside`) back in ``output_dir``, in place of what the new
     run wrote under the same names."""
-    aside = output_dir / f"{ASIDE_PREFIX}{os.getpid()}"
+    aside = output_dir / _aside_name()  # never another process's, whatever its pid was
     if not aside.is_dir():
         return
     for entry in aside.iterdir():
@@ -448,30 +459,30 @@ class FolderChanges:
 
     def undo(self) -> None:
         """Put the folder back as it was (see the class docstring), the earlier run's outputs that ``overwrite=true``
-        set aside included (:func:`put_back_aside`)."""
-        if not self.existed:
-            shutil.rmtree(self.folder, ignore_errors=True)
-            self._remove_created_parents()
-            return
-        put_back_aside(self.folder)
-        added = [p for p in self._written() if p not in self.paths and p.name != LOCK_NAME]
+        set aside included (:func:`put_back_aside`). Only what a run writes (:data:`RUN_OUTPUTS`,
+        :data:`RUN_RECORDS`, :data:`RUN_LOG`) is removed: a file of the user's put in the folder while the run
+        started stays, and so does a new folder holding one."""
+        if self.existed:
+            put_back_aside(self.folder)
+        written = self._written() if self.folder.is_dir() else []
+        added = [p for p in written if p not in self.paths and _top(self.folder, p) in _RUN_ENTRIES]
         for path in sorted(added, key=lambda p: len(p.parts), reverse=True):
             with contextlib.suppress(FileNotFoundError):
                 if path.is_dir() and not path.is_symlink():
                     shutil.rmtree(path)
                 else:
                     path.unlink()
+        if not self.existed:  # the folder, and the ones above it that the run created, where empty again
+            folder = self.folder.resolve()
+            top = self.created_top
+            remove_empty_folders(folder, top if top is not None and folder.is_relative_to(top) else folder)
+            return
         for path, data in self.records.items():
             if not path.is_file() or path.read_bytes() != data:
                 path.write_bytes(data)
         log_file = self.folder / RUN_LOG
         if self.log_size is not None and log_file.is_file() and log_file.stat().st_size != self.log_size:
             os.truncate(self.folder / RUN_LOG, self.log_size)  # the lines this run appended
-
-    def _remove_created_parents(self) -> None:
-        """Remove the folders above the folder, up to :attr:`created_top`, that are empty again, nearest first."""
-        if self.created_top is not None:
-            remove_empty_folders(self.folder.resolve().parent, self.created_top)
 
 
 def remove_empty_folders(folder: Path, top: Path) -> None:

@@ -23,6 +23,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, set_max_image_bytes, set_max_image_pixels
 from unicorn.data.registry import Split, build_dataset, dataset_root, dataset_spec, prepare_dataset, val_indices
+from unicorn.errors import ignore_stop_signals
 
 __all__ = [
     "MAX_AUTO_WORKERS",
@@ -302,6 +303,7 @@ class UnicornDataModule(L.LightningDataModule):
             num_workers=workers,
             pin_memory=pin,
             persistent_workers=workers > 0,
+            worker_init_fn=ignore_stop_signals,  # the run stops at a step boundary, its workers with it
             generator=torch.Generator().manual_seed(self.seed) if train else None,
         )
 
@@ -320,6 +322,7 @@ class UnicornDataModule(L.LightningDataModule):
             num_workers=workers,
             pin_memory=pin,
             persistent_workers=workers > 0,
+            worker_init_fn=ignore_stop_signals,  # the run stops at a step boundary, its workers with it
             # a private generator: creating the iterator must not consume the global RNG
             generator=torch.Generator().manual_seed(seed),
         )

@@ -536,6 +536,14 @@ def fit(run: Run) -> dict[str, float]:
         ) from err
     if run.stopper.stopped is not None:  # the signal came during the last iteration
         raise run.stopper.stopped
+    if run.stopper.received is not None:  # after it, while training ended (its last.ckpt written)
+        name = signal.Signals(run.stopper.received).name
+        then = "; the evaluation after training did not run: ckpt_path=last in the same folder runs it"
+        raise Interrupted(
+            f"stopped by {name} after the last iteration ({trainer.global_step}), the training complete"
+            + (then if typed.evaluate.enabled else ""),
+            128 + run.stopper.received,
+        )
     if not typed.callbacks.checkpoint.save_last:
         _drop_superseded_last(run.checkpoint_dir)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
