@@ -25,6 +25,7 @@ from unicorn.io.serialization import (
     UnsafeCheckpointError,
     atomic_save,
     content_digest,
+    link_into_place,
     load_checkpoint_file,
     remove_stale_temporaries,
     seal,
@@ -228,3 +229,22 @@ def test_atomic_save_keeps_the_previous_file(tmp_path):
         atomic_save({"step": 2, "bad": _Unpicklable()}, path)
     assert load_checkpoint_file(path) == {"step": 1}  # sealed, and the seal matches
     assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]
+
+
+@pytest.mark.parametrize("links", [True, False], ids=["hard-link", "copy"])
+def test_link_into_place_gives_a_complete_file_a_second_name(tmp_path, monkeypatch, links) -> None:
+    source = atomic_save({"global_step": 3, "w": torch.arange(4.0)}, tmp_path / "step=0000003.ckpt")
+    last = tmp_path / "last.ckpt"
+    last.write_bytes(b"an earlier iteration's")
+    if not links:  # a file system without hard links
+
+        def no_links(*args):
+            raise OSError(1, "Operation not permitted")
+
+        monkeypatch.setattr(os, "link", no_links)
+    assert link_into_place(source, last) == last
+    assert last.read_bytes() == source.read_bytes() and last.samefile(source) == links
+    assert load_checkpoint_file(last)["global_step"] == 3  # sealed, and verified as such
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt", "step=0000003.ckpt"]  # no temporary left
+    source.unlink()  # the periodic file rotated away: last.ckpt keeps the bytes
+    assert load_checkpoint_file(last)["global_step"] == 3

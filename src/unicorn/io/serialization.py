@@ -22,6 +22,7 @@ import hashlib
 import io
 import os
 import pickle
+import shutil
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -46,6 +47,7 @@ __all__ = [
     "check_checkpoint_path",
     "content_digest",
     "kind_of",
+    "link_into_place",
     "load_checkpoint_file",
     "remove_stale_temporaries",
     "seal",
@@ -397,14 +399,42 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
-    # make the rename itself durable
+    _sync_folder(path.parent)  # make the rename itself durable
+    return path
+
+
+def link_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Make ``path`` a second name of the complete file ``source``: a hard link made beside ``path`` and renamed into
+    place (``os.replace`` is atomic), or, on a file system without hard links, a copy flushed to disk first. A
+    process killed meanwhile leaves ``path`` as it was, at worst with a ``.tmp`` file beside it
+    (:func:`remove_stale_temporaries`)."""
+    source, path = Path(source), Path(path)
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        try:
+            os.link(source, tmp)
+        except OSError:  # no hard links here (some network and FUSE file systems): the bytes are copied
+            shutil.copyfile(source, tmp)
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+    _sync_folder(path.parent)
+    return path
+
+
+def _sync_folder(folder: Path) -> None:
+    """Make the renames in ``folder`` durable (where the platform allows)."""
     with contextlib.suppress(OSError):
-        fd = os.open(path.parent, os.O_RDONLY)
+        fd = os.open(folder, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
-    return path
 
 
 #: errors of the disk rather than of a file (a full disk, a quota, a read-only or failing disk): the messages of

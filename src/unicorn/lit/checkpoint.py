@@ -28,7 +28,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from unicorn.io.checkpoints import check_training_checkpoint
 from unicorn.io.run_folder import step_checkpoints
-from unicorn.io.serialization import atomic_save, load_checkpoint_file, remove_stale_temporaries
+from unicorn.io.serialization import atomic_save, link_into_place, load_checkpoint_file, remove_stale_temporaries
 
 __all__ = ["AtomicCheckpointIO", "PeriodicCheckpoint"]
 
@@ -73,10 +73,30 @@ class PeriodicCheckpoint(ModelCheckpoint):
     writes are deleted too.
 
     The folder's ``last.ckpt`` is the run's own even where this callback did not write it (one an earlier attempt's
-    signal wrote): it is replaced, where Lightning would write ``last-v1.ckpt`` beside it. With ``save_last``,
+    signal wrote): it is replaced, where Lightning would write ``last-v1.ckpt`` beside it. At a periodic save it is
+    a second name (a hard link) of that iteration's ``step=<N>.ckpt``: one write, and no moment at which the two
+    files hold different iterations. With ``save_last``,
     training ends with ``last.ckpt`` of the final iteration, written once: at the end of training unless a periodic
     save (or a signal's, :meth:`save_last_checkpoint`) just wrote it.
     """
+
+    def _save_last_checkpoint(self, trainer: L.Trainer, monitor_candidates: dict[str, torch.Tensor]) -> None:
+        source = self._last_checkpoint_saved  # the periodic file of this iteration, if one was just written
+        if not (self.save_last is True and source and self._last_global_step_saved == trainer.global_step):
+            super()._save_last_checkpoint(trainer, monitor_candidates)
+            return
+        if "://" in str(source):
+            super()._save_last_checkpoint(trainer, monitor_candidates)
+            return
+        # last.ckpt is a second name of the periodic file: written in microseconds, so that no kill falls between
+        # the two (a resume would go back to the save before, and delete this one with the iterations it holds)
+        last = self.format_checkpoint_name(monitor_candidates, self.CHECKPOINT_NAME_LAST)
+        previous, self.last_model_path = self.last_model_path, last
+        if trainer.is_global_zero:
+            link_into_place(source, last)
+        trainer.strategy.barrier()
+        if previous and previous != last and self._should_remove_checkpoint(trainer, previous, last):
+            self._remove_checkpoint(trainer, previous)
 
     @property
     def last_file(self) -> Path | None:
