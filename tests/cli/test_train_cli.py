@@ -386,6 +386,14 @@ def test_a_resume_names_the_settings_it_changes_and_refuses_those_its_checkpoint
         with pytest.raises(ConfigError, match=rf"keeps its checkpoint's optimiser and schedule.*{said}; resume with"):
             build_run(tmp_path, "ckpt_path=last", override)
         assert (tmp_path / "config.yaml").read_bytes() == config  # refused before anything is written
+    # the data too: a run resumed on other data would record it as the run's, and be evaluated on it
+    for override, said in [
+        ("dataset.categories=car", r"dataset\.categories 'chair' -> 'car'"),
+        ("dataset.synthetic.n_models=6", r"dataset\.synthetic\.n_models 5 -> 6"),
+    ]:
+        with pytest.raises(ConfigError, match=rf"trains on its run's data.*{said}; resume with the run's data"):
+            build_run(tmp_path, "ckpt_path=last", override)
+        assert (tmp_path / "config.yaml").read_bytes() == config
     with caplog.at_level(logging.WARNING, logger="unicorn.train"):
         build_run(tmp_path, "ckpt_path=last", "trainer.max_steps=3", "dataset.batch_size=2")
     changed = [r.getMessage() for r in caplog.records if "resuming with settings other than" in r.getMessage()]

@@ -198,20 +198,23 @@ RESUMED_OPTIM = (
     "lr", "betas", "eps", "weight_decay", "lr_drop_step", "lr_drop_gamma", "texture_lr_scale", "background_lr_scale",
     "adam_state",
 )  # fmt: skip
+#: the settings that say which data a run trains on: a resumed run keeps them (a moved ``dataset.root`` is a change
+#: it may make, with a warning)
+RESUMED_DATA = ("name", "categories", "img_size", "synthetic")
 #: the settings a resume is expected to change (where it goes on, from what, for how long): not listed as changes
 _RESUME_SETTINGS = ("ckpt_path", "overwrite", "trust_checkpoint", "paths", "trainer.max_steps")
 
 
 def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     """Compare a resumed run's settings with the ``config.yaml`` of the run its checkpoint comes from: the
-    optimisation settings the checkpoint holds (:data:`RESUMED_OPTIM`) must be the same; any other change is
-    logged, key by key (nothing when the checkpoint's run recorded no config). A checkpoint past
-    ``trainer.max_steps`` is said in a warning: the run trains nothing.
+    optimisation settings the checkpoint holds (:data:`RESUMED_OPTIM`) and the data (:data:`RESUMED_DATA`) must be
+    the same; any other change is logged, key by key (nothing when the checkpoint's run recorded no config). A
+    checkpoint past ``trainer.max_steps`` is said in a warning: the run trains nothing.
 
     Raises:
-        unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use; in
-            a sweep, a changed setting the job's command line sets (the sweep's jobs listed in another order, or
-            with other values: each job resumes the folder of its number).
+        unicorn.config.ConfigError: a changed optimisation setting, which the resumed run would silently not use, or
+            a change of the data the run trains on; in a sweep, a changed setting the job's command line sets (the
+            sweep's jobs listed in another order, or with other values: each job resumes the folder of its number).
     """
     import yaml
 
@@ -234,6 +237,7 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
     recorded = run_dir / "config.yaml"
     changes = _differences(before, yaml.safe_load(recorded_config(typed)))
     said = lambda c: f"{c[0]} {c[1]!r} -> {c[2]!r}"  # noqa: E731
+    under = lambda key, keys: any(key == k or key.startswith(f"{k}.") for k in keys)  # noqa: E731
     fixed = [c for c in changes if c[0] in {f"optim.{key}" for key in RESUMED_OPTIM}]
     if fixed:
         raise ConfigError(
@@ -241,7 +245,13 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
             f"its run's ({recorded}): {'; '.join(map(said, fixed))}; resume with the run's values, or start a new "
             "run from its weights with init_from=..."
         )
-    under = lambda key, keys: any(key == k or key.startswith(f"{k}.") for k in keys)  # noqa: E731
+    data = [c for c in changes if under(c[0], [f"dataset.{key}" for key in RESUMED_DATA])]
+    if data:
+        raise ConfigError(
+            f"ckpt_path: a resumed run trains on its run's data, and these settings differ from its run's "
+            f"({recorded}): {'; '.join(map(said, data))}; resume with the run's data, or start a new run from its "
+            "weights with init_from=..."
+        )
     shown = [c for c in changes if not under(c[0], _RESUME_SETTINGS)]
     swept = [c for c in shown if under(c[0], _sweep_job_keys())]
     if swept:
