@@ -159,3 +159,25 @@ def test_a_signal_whose_error_became_another_still_stops_the_command():
     with pytest.raises(ValueError, match="no signal"):  # without a signal, errors pass as they are
         with interrupt_on_signal("while reading"):
             raise ValueError("no signal")
+
+
+def test_open3d_that_cannot_load_names_the_library_it_needs(monkeypatch) -> None:
+    import importlib.abc
+    import sys
+
+    from unicorn.errors import MissingPackageError, import_open3d
+
+    class NoLibusb(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name == "open3d":  # what its wheel's import says on a machine without libusb
+                raise OSError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")
+            return None
+
+    monkeypatch.delitem(sys.modules, "open3d", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [NoLibusb(), *sys.meta_path])
+    with pytest.raises(MissingPackageError, match=r"libusb-1\.0\.so\.0.*apt-get install libusb-1\.0-0") as err:
+        import_open3d()
+    assert "\n" not in str(err.value)
+    monkeypatch.setitem(sys.modules, "open3d", None)  # not installed at all
+    with pytest.raises(MissingPackageError, match="pip install open3d"):
+        import_open3d()

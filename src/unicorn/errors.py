@@ -25,6 +25,7 @@ __all__ = [
     "UserError",
     "defer_stop_signals",
     "ignore_stop_signals",
+    "import_open3d",
     "interrupt_on_signal",
     "pending_interrupt",
     "signals_held",
@@ -40,6 +41,26 @@ class UserError(Exception):
 
 class MissingPackageError(UserError, ImportError):
     """An optional package that a feature needs is not installed; the message says how to install it."""
+
+
+def import_open3d() -> Any:
+    """Import open3d (ray casting for the synthetic renders, voxelisation for the 3D IoU), with the system library
+    it needs named when it cannot load: its Linux wheels link libusb-1.0, which minimal images lack.
+
+    Raises:
+        MissingPackageError: open3d or a library it loads is missing.
+    """
+    try:
+        import open3d
+    except (ImportError, OSError) as err:  # a missing shared library surfaces as either
+        missing = "libusb-1.0" in str(err)
+        hint = (
+            "install the system library libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0)"
+            if missing
+            else "pip install open3d"
+        )
+        raise MissingPackageError(f"open3d cannot be loaded ({err}): {hint}") from err
+    return open3d
 
 
 class UnicornWarning(UserWarning):

@@ -816,6 +816,15 @@ def test_an_unquoted_step_file_says_to_quote_it(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("folder", ["runs/café", "runs/a(1)"])
+def test_an_unquoted_folder_hydra_cannot_read_says_to_quote_it(tmp_path, folder):
+    result = unicorn_train(*TINY, f"hydra.run.dir={folder}", cwd=tmp_path)
+    lines = error_lines(result.stderr)
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
+    assert "letters outside ASCII, spaces, brackets or '#' must be quoted for Hydra" in lines[0], lines
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_data_check_takes_the_image_limits_its_message_names(tmp_path, capsys, monkeypatch):
     from PIL import Image
 

@@ -156,6 +156,12 @@ def hydra_failure(text: str) -> str | None:
             line += " (Hydra's launchers but basic are plugins of their own: pip install hydra-submitit-launcher)"
         if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
             line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=10.ckpt\"')"
+        elif "LexerNoViableAltException" in line or re.search(r"mismatched input '[()\[\]{}#]'", line):
+            # e.g. hydra.run.dir=runs/café: letters outside ASCII, brackets, '#'
+            line += (
+                " (a value holding letters outside ASCII, spaces, brackets or '#' must be quoted for Hydra: "
+                "'hydra.run.dir=\"runs/café (1)\"')"
+            )
         return line
     match = _EXCEPTION_LINE.match(lines[-1])
     if match and _is_os_error(match):

@@ -40,6 +40,7 @@ import torch
 from scipy import ndimage
 
 from unicorn.checks import check_mesh, check_shape
+from unicorn.errors import import_open3d
 
 from .sampling import sample_points_from_meshes
 
@@ -68,7 +69,7 @@ def voxel_centers(
 
 def _occupancy(verts: torch.Tensor, faces: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
     """(R, R, R) bool: which cell centres (the grid of ``centres`` (R,) per axis) lie inside one closed mesh."""
-    import open3d as o3d
+    o3d = import_open3d()
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(

@@ -16,6 +16,7 @@ import numpy as np
 
 from unicorn.data.images import DatasetError
 from unicorn.data.synthetic.shapes import ProceduralObject
+from unicorn.errors import import_open3d
 
 __all__ = ["BACKGROUND_KINDS", "camera_rays", "check_background_kinds", "random_background", "render_object"]
 
@@ -122,7 +123,7 @@ def render_object(
         images (V, S, S, 3) float32 in [0, 1] and coverage (V, S, S) float32 in [0, 1], the fraction of each
         pixel's rays that hit the object.
     """
-    import open3d as o3d  # here: reading a generated dataset needs no open3d
+    o3d = import_open3d()  # here: reading a generated dataset needs no open3d
 
     mesh = obj.mesh()
     face_part = obj.face_part()

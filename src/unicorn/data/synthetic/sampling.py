@@ -11,6 +11,7 @@ import trimesh
 
 from unicorn.data.images import DatasetError
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject
+from unicorn.errors import import_open3d
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 
 __all__ = [
@@ -118,7 +119,7 @@ def sample_surface_points(
     Returns:
         points (n_points, 3) and unit face normals (n_points, 3), float64, in the object frame.
     """
-    import open3d as o3d  # here: reading a generated dataset needs no open3d
+    o3d = import_open3d()  # here: reading a generated dataset needs no open3d
 
     components = [c for part in obj.parts for c in part.mesh.split(only_watertight=False)]
     mesh = trimesh.util.concatenate(components)
