@@ -469,3 +469,25 @@ def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.Monk
     # and a newer generator version names a new folder, so the old one is never picked up
     monkeypatch.setattr(writer, "GENERATOR_VERSION", writer.GENERATOR_VERSION + 1)
     assert synthetic_dataset_path("mug", "nmr", 3, 0, tmp_path) != path
+
+
+def test_a_killed_generations_folder_is_removed_by_the_next(tmp_path: Path) -> None:
+    """A SIGKILL while generating leaves its temporary folder: the next generation of that dataset removes it, and
+    leaves alone those of live processes and of other machines (a cache shared over the network)."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    options = {k: v for k, v in TINY.items() if k not in ("n_models", "progress")}
+    final = synthetic_dataset_path("car", "nmr", 3, 0, tmp_path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    host = socket.gethostname()
+    dead = final.parent / f".{final.name}.tmp-{host}-{gone.stdout.strip()}-0123abcd"
+    live = final.parent / f".{final.name}.tmp-{host}-{os.getpid()}-4567cdef"
+    remote = final.parent / f".{final.name}.tmp-another-host-{gone.stdout.strip()}-89abcdef"
+    for folder in (dead, live, remote):
+        (folder / "image").mkdir(parents=True)
+    assert ensure_synthetic_dataset(tmp_path, "car", "nmr", 3, 0, **options) == final
+    assert not dead.exists() and live.is_dir() and remote.is_dir()

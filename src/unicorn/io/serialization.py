@@ -49,6 +49,7 @@ __all__ = [
     "kind_of",
     "link_into_place",
     "load_checkpoint_file",
+    "pid_alive",
     "remove_stale_temporaries",
     "seal",
     "verify",
@@ -445,7 +446,8 @@ DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 TMP_MARK = ".tmp-"
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (one of another user's included)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -466,7 +468,7 @@ def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     removed = []
     for tmp in Path(folder).glob(f".*{TMP_MARK}*"):
         pid = tmp.name.rpartition(TMP_MARK)[2]
-        if not pid.isdigit() or (int(pid) != os.getpid() and _alive(int(pid))):
+        if not pid.isdigit() or (int(pid) != os.getpid() and pid_alive(int(pid))):
             continue
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -19,7 +19,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path, PurePosixPath
 
 from unicorn.errors import UserError, signals_held
-from unicorn.io.serialization import DISK_ERRORS, _alive
+from unicorn.io.serialization import DISK_ERRORS, pid_alive
 
 __all__ = ["PARTIAL_MARK", "OutputConflictError", "check_writable", "staged_folder"]
 
@@ -35,7 +35,7 @@ def _remove_stale_siblings(out: Path) -> None:
             continue
         for sibling in folder.iterdir():
             pid = sibling.name[len(prefix) :]
-            if sibling.name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)):
+            if sibling.name.startswith(prefix) and pid.isdigit() and not pid_alive(int(pid)):
                 shutil.rmtree(sibling, ignore_errors=True)
 
 

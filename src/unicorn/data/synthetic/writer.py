@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import inspect
 import json
+import logging
 import math
 import os
 import shutil
+import socket
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -71,6 +73,8 @@ __all__ = [
     "generation_settings",
     "synthetic_dataset_path",
 ]
+
+log = logging.getLogger(__name__)
 
 #: bump when the output changes: it is part of the cache folder's name and of ``synthetic.json``, so that a
 #: dataset of an older generator is never reused (2: every category has a front, wider instance variation)
@@ -572,6 +576,25 @@ def synthetic_dataset_path(
     return base / f"{mode}_{cats}_n{n_models}_s{seed}_v{GENERATOR_VERSION}"
 
 
+def _generation_prefix(final: Path) -> str:
+    """The start of the names of the temporary folders in which ``final`` is generated
+    (``.<name>.tmp-<host>-<pid>-<token>``)."""
+    return f".{final.name}.tmp-"
+
+
+def _remove_stale_generations(final: Path) -> None:
+    """Delete the temporary folders of generations of ``final`` that a process of this machine, now gone, left (a
+    SIGKILL while generating); another machine's (a cache shared over the network) are left alone."""
+    from unicorn.io.serialization import pid_alive
+
+    host = socket.gethostname()
+    for tmp in final.parent.glob(f"{_generation_prefix(final)}*"):
+        owner, _, pid = tmp.name[len(_generation_prefix(final)) :].rpartition("-")[0].rpartition("-")
+        if owner == host and pid.isdigit() and not pid_alive(int(pid)):
+            log.info("removing %s, left by a generation that was killed", tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def ensure_synthetic_dataset(
     root: str | os.PathLike | None = None,
     category: str | Sequence[str] = "chair",
@@ -607,7 +630,8 @@ def ensure_synthetic_dataset(
         check_manifest(final, **expected)
         return final
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.parent / f".{final.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    _remove_stale_generations(final)
+    tmp = final.parent / f"{_generation_prefix(final)}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         generate_synthetic_dataset(tmp, category, mode, n_models, seed, progress=progress, **kwargs)
         try:
