@@ -403,6 +403,22 @@ def test_a_resume_names_the_settings_it_changes_and_refuses_those_its_checkpoint
         fit(build_run(tmp_path, "ckpt_path=last", "trainer.max_steps=3", "optim.adam_state=shared"))
 
 
+def test_a_moved_run_folder_resumes_without_listing_its_paths(synthetic_cache, tmp_path, caplog):
+    import logging
+    import shutil
+
+    from tests.support.training import build_run
+    from unicorn.lit.run import fit
+
+    fit(build_run(tmp_path / "here", "trainer.max_steps=2", "logger=default"))  # TensorBoard and CSV: save_dir
+    shutil.copytree(tmp_path / "here", tmp_path / "moved")
+    with caplog.at_level(logging.WARNING, logger="unicorn.train"):
+        build_run(tmp_path / "moved", "ckpt_path=last", "trainer.max_steps=3", "logger=default")
+        build_run(tmp_path / "moved", "ckpt_path=last", "trainer.max_steps=3", "logger=default", "dataset.batch_size=2")
+    changed = [r.getMessage() for r in caplog.records if "resuming with settings other than" in r.getMessage()]
+    assert len(changed) == 1 and changed[0].endswith(": dataset.batch_size 4 -> 2"), changed  # not the loggers'
+
+
 def test_progress_bar_can_be_disabled(synthetic_cache, tmp_path):
     from tests.support.training import build_run
     from unicorn.lit.run import fit

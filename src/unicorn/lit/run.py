@@ -18,7 +18,7 @@ import os
 import signal
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -252,7 +252,8 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
             f"({recorded}): {'; '.join(map(said, data))}; resume with the run's data, or start a new run from its "
             "weights with init_from=..."
         )
-    shown = [c for c in changes if not under(c[0], _RESUME_SETTINGS)]
+    moved = _moved_folder(before, str(typed.paths.output_dir))
+    shown = [c for c in changes if not under(c[0], _RESUME_SETTINGS) and not moved(c)]
     swept = [c for c in shown if under(c[0], _sweep_job_keys())]
     if swept:
         raise ConfigError(
@@ -262,6 +263,21 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
         )
     if shown:
         log.warning("resuming with settings other than those in %s: %s", recorded, "; ".join(map(said, shown)))
+
+
+def _moved_folder(before: Mapping[str, Any], output_dir: str) -> Callable[[tuple[str, Any, Any]], bool]:
+    """Whether a change ``(key, was, now)`` is only the run folder's move: a path in the recorded run's folder
+    (``before``'s ``paths.output_dir``) that names the same place in ``output_dir`` (a logger's ``save_dir``)."""
+    paths = before.get("paths")
+    old = paths.get("output_dir") if isinstance(paths, Mapping) else None
+
+    def moved(change: tuple[str, Any, Any]) -> bool:
+        _, was, now = change
+        if not (isinstance(old, str) and isinstance(was, str) and isinstance(now, str)) or old == output_dir:
+            return False
+        return (was == old or was.startswith(f"{old}/")) and now == output_dir + was[len(old) :]
+
+    return moved
 
 
 def _sweep_job_keys() -> list[str]:
