@@ -216,7 +216,8 @@ def test_a_refused_sweep_leaves_the_sweep_folder_as_it_was(synthetic_cache, tmp_
     )  # fmt: skip
     assert again.returncode == 2
     *jobs, summary = error_lines(again.stderr)
-    assert len(jobs) == 2 and summary.startswith("unicorn-train: error: 2 job(s) of the sweep failed")
+    assert len(jobs) == 2 and summary.startswith("unicorn-train: error: every job of the sweep failed (2), each")
+    assert "the other jobs ran" not in summary
     assert f"job #0 (seed=1): {sweep / '0'} already holds a run" in jobs[0]
     assert jobs[0].endswith("train elsewhere (hydra.sweep.dir=...)")
     assert (sweep / "multirun.yaml").read_bytes() == record
@@ -241,7 +242,7 @@ def test_a_sweep_resumed_with_its_values_in_another_order_is_refused(synthetic_c
         "-m", *TINY, "trainer.max_steps=2", "seed=2,1", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path
     )  # fmt: skip
     first, second, summary = error_lines(again.stderr)
-    assert again.returncode == 2 and summary.startswith("unicorn-train: error: 2 job(s) of the sweep failed")
+    assert again.returncode == 2 and summary.startswith("unicorn-train: error: every job of the sweep failed (2)")
     assert f"job #0 (seed=2): ckpt_path: this job of the sweep would resume {sweep / '0'}" in first
     assert "the run of a job with other values: seed 1 -> 2" in first and "seed 2 -> 1" in second
     assert (sweep / "0" / "checkpoints" / "last.ckpt").read_bytes() == weights

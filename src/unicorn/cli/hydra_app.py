@@ -296,6 +296,7 @@ class HydraApp:
         #: the jobs of a sweep that failed with an expected error (``#<num> (<overrides>)``): the sweep goes on with
         #: the others and the command ends with status 2
         self.failed_jobs: list[str] = []
+        self.jobs_started = 0
         self.sweep_dir: Path | None = None
         self.swept: set[str] = set()  # the keys the command line sweeps
 
@@ -333,6 +334,7 @@ class HydraApp:
 
     def _run_task(self, task: Callable[[DictConfig], Any], cfg: DictConfig) -> None:
         self.task_started = True
+        self.jobs_started += 1
         if NoteExistingFolders.noted is not None and NoteExistingFolders.noted[1]:  # a sweep: its folder
             self.sweep_dir = NoteExistingFolders.noted[0]
         if isinstance(sys.stderr, _HeldStream):
@@ -358,10 +360,16 @@ class HydraApp:
         if not self.failed_jobs:
             return
         where = f" hydra.sweep.dir={self.sweep_dir}" if self.sweep_dir is not None else ""
+        failed = len(self.failed_jobs)
+        which = (
+            f"every job of the sweep failed ({failed}), each said above: {', '.join(self.failed_jobs)}"
+            if failed == self.jobs_started
+            else f"{failed} job(s) of the sweep failed, each said above: {', '.join(self.failed_jobs)}; the other "
+            "jobs ran"
+        )
         print(
-            f"{self.prog}: error: {len(self.failed_jobs)} job(s) of the sweep failed, each said above: "
-            f"{', '.join(self.failed_jobs)}; the other jobs ran (the same command with{where} ckpt_path=last goes on "
-            "with the sweep once the failures are fixed)",
+            f"{self.prog}: error: {which} (the same command with{where} ckpt_path=last goes on with the sweep once "
+            "the failures are fixed)",
             file=sys.stderr,
             flush=True,
         )
