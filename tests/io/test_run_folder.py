@@ -109,6 +109,20 @@ def test_overwrite_refuses_to_delete_files_a_run_does_not_write(tmp_path) -> Non
         plan_folder(here, None, None, overwrite=True)
 
 
+def test_overwrite_replaces_the_evaluations_unicorn_eval_wrote_in_the_run(tmp_path) -> None:
+    """``unicorn-eval`` writes ``<run>/eval/<dataset>_<split>/`` by default: the replaced run's, replaced with it;
+    a folder of anything else there stays the user's."""
+    here = _finished_run(tmp_path / "R")
+    default = here / "eval" / "synthetic_test"
+    (default / "report").mkdir(parents=True)
+    for name in ("metrics.json", "metrics.csv", "per_image.csv", "report.html"):
+        (default / name).write_text("an evaluation of the run's last.ckpt")
+    assert here / "eval" in plan_folder(here, None, None, overwrite=True)
+    (default / "notes.txt").write_text("mine")
+    with pytest.raises(RunFolderError, match=r"would delete eval/synthetic_test, which unicorn-train did not write"):
+        plan_folder(here, None, None, overwrite=True)
+
+
 def test_overwrite_refuses_a_linked_output_folder(tmp_path) -> None:
     here, store = _finished_run(tmp_path / "R"), tmp_path / "store"
     (here / "checkpoints").rename(store)

@@ -318,7 +318,7 @@ def _check_replaceable(outputs: list[Path], output_dir: Path) -> None:
         for path in outputs
         if path.is_dir() and path.name in RUN_FOLDER_FILES
         for entry in sorted(path.iterdir())
-        if not any(fnmatch.fnmatchcase(entry.name, p) for p in RUN_FOLDER_FILES[path.name])
+        if not _written_by_unicorn(entry, RUN_FOLDER_FILES[path.name])
     ]
     if foreign:
         names = ", ".join(str(p.relative_to(output_dir)) for p in foreign[:4])
@@ -327,6 +327,22 @@ def _check_replaceable(outputs: list[Path], output_dir: Path) -> None:
             f"overwrite=true would delete {names}{more}, which unicorn-train did not write: move them out of "
             f"{output_dir}'s run folders first"
         )
+
+
+def _written_by_unicorn(entry: Path, patterns: tuple[str, ...]) -> bool:
+    """Whether ``entry`` of a run's output folder is one a run writes (``patterns``), or, in ``eval/``, the folder
+    ``unicorn-eval`` writes by default for a checkpoint of the run (``eval/<dataset>_<split>/``): its metrics and
+    report, nothing else."""
+    if any(fnmatch.fnmatchcase(entry.name, p) for p in patterns):
+        return True
+    evaluation = RUN_FOLDER_FILES["eval"]
+    return (
+        patterns == evaluation
+        and entry.is_dir()
+        and not entry.is_symlink()
+        and (entry / "metrics.json").is_file()
+        and all(any(fnmatch.fnmatchcase(e.name, p) for p in evaluation) for e in entry.iterdir())
+    )
 
 
 def set_aside(paths: list[Path], output_dir: Path) -> Path | None:
