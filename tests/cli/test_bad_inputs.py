@@ -70,6 +70,8 @@ def _users_folder(tmp_path: Path, finished_run: Path, kind: str) -> Path:
 TRAIN_CASES = [
     ("users-config", "config.yaml", [], r"holds config\.yaml but no run"),
     ("users-hydra-record", ".hydra/config.yaml", [], r"holds \.hydra but no run"),
+    # ckpt_path=last (a requeued job's) trains a run killed before its first checkpoint again, not over a user's file
+    ("users-config-resumed", "config.yaml", ["ckpt_path=last"], r"holds config\.yaml but no run; .*overwrite=true$"),
     ("empty-folder-late-failure", "empty", [LATE_FAILURE], r"devices=0"),
     ("log-only-late-failure", "train.log", [LATE_FAILURE], r"devices=0"),
     ("cwd-late-failure", "cwd", [LATE_FAILURE], r"devices=0"),

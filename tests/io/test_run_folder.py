@@ -144,8 +144,14 @@ def test_a_sweeps_folder_is_not_a_run_folder(tmp_path) -> None:
 
 def test_a_users_config_is_not_a_run(tmp_path) -> None:
     (tmp_path / "config.yaml").write_text("mine")
-    with pytest.raises(RunFolderError, match="holds config.yaml but no run"):
+    for ckpt_arg in (None, "last"):  # not replaced by a resume either
+        with pytest.raises(RunFolderError, match=r"holds config.yaml but no run; .*overwrite=true$"):
+            plan_folder(tmp_path, ckpt_arg, None, overwrite=False)
+    # unicorn-train's records of a run killed before its first checkpoint: ckpt_path=last trains it again
+    (tmp_path / "provenance.json").write_text("[]")
+    with pytest.raises(RunFolderError, match=r"but no run; .* \(a run killed before its first checkpoint: ckpt_path"):
         plan_folder(tmp_path, None, None, overwrite=False)
+    assert plan_folder(tmp_path, "last", None, overwrite=False) == []
 
 
 def test_a_locked_folder_refuses_a_second_lock_and_a_dead_owner_is_taken_over(tmp_path) -> None:

@@ -189,7 +189,10 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
         if newest is not None:
             log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
             return str(newest)
-        if not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
+        if not checkpoint_dir.is_dir() and (checkpoint_dir.parent / RUN_RECORDS[0]).is_file():
+            log.info("ckpt_path=last: %s holds a run killed before its first checkpoint: training it from the start",
+                     checkpoint_dir.parent)  # fmt: skip
+        elif not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
             setting = folder_setting()
             log.warning(
                 "ckpt_path=last: %s holds no run to resume, training from scratch (to resume a run, name its folder: "
@@ -277,12 +280,20 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
         outputs = [output_dir / name for name in RUN_OUTPUTS if (output_dir / name).exists()]
         _check_replaceable(outputs, output_dir)
         return outputs
-    if ckpt_arg != "last" and previous is None and not overwrite:
-        records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
-        if records:
+    records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
+    if records and previous is None and not overwrite:
+        # provenance.json: only unicorn-train writes it; a config.yaml alone may be the user's own
+        killed = (output_dir / "provenance.json").is_file()
+        if ckpt_arg != "last" or not killed:
+            hint = (
+                " (a run killed before its first checkpoint: ckpt_path=last trains it again from the start in this "
+                "folder)"
+                if killed
+                else ""
+            )
             raise RunFolderError(
                 f"{output_dir} holds {', '.join(records)} but no run; train elsewhere ({folder_setting()}=...), remove "
-                "them, or replace them with overwrite=true"
+                f"them, or replace them with overwrite=true{hint}"
             )
     if ckpt_arg not in (None, "last") and ckpt is not None:
         later = later_checkpoints(output_dir / RUN_OUTPUTS[0], Path(ckpt))
