@@ -12,6 +12,7 @@ for the block's end.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -27,6 +28,7 @@ __all__ = [
     "ignore_stop_signals",
     "import_open3d",
     "interrupt_on_signal",
+    "pid_alive",
     "pending_interrupt",
     "signals_held",
 ]
@@ -41,6 +43,17 @@ class UserError(Exception):
 
 class MissingPackageError(UserError, ImportError):
     """An optional package that a feature needs is not installed; the message says how to install it."""
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (one of another user's included): a signal 0 probe."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists, owned by someone else
+    return True
 
 
 def import_open3d() -> Any:

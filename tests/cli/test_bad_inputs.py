@@ -381,14 +381,15 @@ def _group_alive(pgid: int) -> bool:
     return True
 
 
-def _disk_full_at_last_ckpt() -> None:
-    """unicorn-train's main() on a disk that fills up as ``last.ckpt`` is flushed (after ``step=<N>.ckpt``)."""
+def _disk_full_at_the_second_checkpoint() -> None:
+    """unicorn-train's main() on a disk that fills up as ``step=0000008.ckpt`` is flushed (after ``step=0000004.ckpt``
+    and its ``last.ckpt``, a second name of it)."""
     from unicorn.cli import train
 
     fsync = os.fsync
 
     def full(fd: int) -> None:
-        if ".last.ckpt.tmp-" in os.readlink(f"/proc/self/fd/{fd}"):
+        if ".step=0000008.ckpt.tmp-" in os.readlink(f"/proc/self/fd/{fd}"):
             raise OSError(errno.ENOSPC, "No space left on device")  # as the kernel reports it: no file named
         fsync(fd)
 
@@ -401,15 +402,18 @@ def test_a_full_disk_while_a_checkpoint_is_written_names_it_keeps_the_others_and
     synthetic_cache, tmp_path
 ):
     run = tmp_path / "run"
-    result = unicorn_train(*TINY, f"hydra.run.dir={run}", cwd=tmp_path, entry=f"{__name__}:_disk_full_at_last_ckpt")
+    entry = f"{__name__}:_disk_full_at_the_second_checkpoint"
+    result = unicorn_train(*TINY, f"hydra.run.dir={run}", cwd=tmp_path, entry=entry)
     assert result.returncode == 2, result.stderr[-3000:]
-    last = run / "checkpoints" / "last.ckpt"
+    second = run / "checkpoints" / "step=0000008.ckpt"
     line = (
-        f"error: [Errno 28] No space left on device while writing {last} (the file there before, if any, is as it was)"
+        f"error: [Errno 28] No space left on device while writing {second} (the file there before, if any, is as it "
+        "was)"
     )
     assert error_lines(result.stderr)[-1] == f"unicorn-train: {line}"
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["step=0000004.ckpt"]  # no partial file
-    assert torch.load(run / "checkpoints" / "step=0000004.ckpt", weights_only=True)["global_step"] == 4
+    names = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert names == ["last.ckpt", "step=0000004.ckpt"]  # no partial file
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 4
     assert (run / "train.log").read_text().splitlines()[-1].endswith(f"[unicorn.train][ERROR] - {line}")
 
 

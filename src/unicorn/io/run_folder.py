@@ -35,6 +35,7 @@ __all__ = [
     "RUN_LOG",
     "RUN_FOLDER_FILES",
     "RUN_OUTPUTS",
+    "RUN_PROVENANCE",
     "RUN_RECORDS",
     "STEP_CHECKPOINT",
     "SWEEP_RECORD",
@@ -80,12 +81,15 @@ RUN_FOLDER_FILES = {
 #: ``overwrite=true`` replaces, from the moment the new run writes until its first iteration is done
 ASIDE_PREFIX = ".overwritten-"
 _ASIDE_TOKEN = secrets.token_hex(4)
+#: the record of a run's starts, which only ``unicorn-train`` writes: what tells its records from a user's own files
+RUN_PROVENANCE = "provenance.json"
 #: the records of the run a folder holds (its config, its starts, Hydra's record): a resumed run rewrites them
-RUN_RECORDS = ("config.yaml", "provenance.json", ".hydra")
+RUN_RECORDS = ("config.yaml", RUN_PROVENANCE, ".hydra")
 #: the log Hydra appends to (``<hydra.job.name>.log``)
 RUN_LOG = "train.log"
-#: everything a run writes at the top of its folder
-_RUN_ENTRIES = frozenset((*RUN_OUTPUTS, *RUN_RECORDS, RUN_LOG))
+#: everything a run writes at the top of its folder: its outputs, records and logs (the log of each further DDP
+#: process is named by Lightning, which launches it with ``hydra.job.name=train_ddp_process_<rank>``)
+_RUN_ENTRIES = (*RUN_OUTPUTS, *RUN_RECORDS, RUN_LOG, "train_ddp_process_*.log")
 #: the record of a sweep (``-m``) Hydra writes into ``hydra.sweep.dir``, whose jobs' runs are in its numbered folders
 SWEEP_RECORD = "multirun.yaml"
 #: the lock file of a folder a run is training in (:func:`lock_folder`)
@@ -189,9 +193,9 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
         if newest is not None:
             log.info("ckpt_path=last: resuming from the newest checkpoint %s (save_last=false)", newest)
             return str(newest)
-        if not checkpoint_dir.is_dir() and (checkpoint_dir.parent / RUN_RECORDS[0]).is_file():
-            log.info("ckpt_path=last: %s holds a run killed before its first checkpoint: training it from the start",
-                     checkpoint_dir.parent)  # fmt: skip
+        if not checkpoint_dir.is_dir() and (checkpoint_dir.parent / RUN_PROVENANCE).is_file():
+            folder = checkpoint_dir.parent
+            log.info("ckpt_path=last: %s holds a run killed before its first checkpoint: training it again", folder)
         elif not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
             setting = folder_setting()
             log.warning(
@@ -282,8 +286,7 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
         return outputs
     records = [name for name in RUN_RECORDS if (output_dir / name).exists()]
     if records and previous is None and not overwrite:
-        # provenance.json: only unicorn-train writes it; a config.yaml alone may be the user's own
-        killed = (output_dir / "provenance.json").is_file()
+        killed = (output_dir / RUN_PROVENANCE).is_file()  # a config.yaml without it may be the user's own
         if ckpt_arg != "last" or not killed:
             hint = (
                 " (a run killed before its first checkpoint: ckpt_path=last trains it again from the start in this "
@@ -492,7 +495,7 @@ class FolderChanges:
         if self.existed:
             put_back_aside(self.folder)
         written = self._written() if self.folder.is_dir() else []
-        added = [p for p in written if p not in self.paths and _top(self.folder, p) in _RUN_ENTRIES]
+        added = [p for p in written if p not in self.paths and _is_run_entry(_top(self.folder, p))]
         for path in sorted(added, key=lambda p: len(p.parts), reverse=True):
             with contextlib.suppress(FileNotFoundError):
                 if path.is_dir() and not path.is_symlink():
@@ -522,6 +525,11 @@ def remove_empty_folders(folder: Path, top: Path) -> None:
             made.rmdir()  # only an empty folder
         except OSError:
             return
+
+
+def _is_run_entry(name: str) -> bool:
+    """Whether a run writes the entry ``name`` at the top of its folder (:data:`_RUN_ENTRIES`)."""
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in _RUN_ENTRIES)
 
 
 def _top(folder: Path, path: Path) -> str:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from unicorn.errors import UserError
+from unicorn.errors import UserError, pid_alive
 
 __all__ = [
     "INTEGRITY_KEY",
@@ -49,7 +49,6 @@ __all__ = [
     "kind_of",
     "link_into_place",
     "load_checkpoint_file",
-    "pid_alive",
     "remove_stale_temporaries",
     "seal",
     "verify",
@@ -444,17 +443,6 @@ DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 
 #: infix of the temporary files of :func:`atomic_save` (``.<name>.tmp-<pid>``)
 TMP_MARK = ".tmp-"
-
-
-def pid_alive(pid: int) -> bool:
-    """Whether a process ``pid`` runs on this machine (one of another user's included)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):
-        return True  # exists, owned by someone else
-    return True
 
 
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:

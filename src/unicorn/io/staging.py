@@ -18,8 +18,8 @@ import shutil
 from collections.abc import Iterator, Sequence
 from pathlib import Path, PurePosixPath
 
-from unicorn.errors import UserError, signals_held
-from unicorn.io.serialization import DISK_ERRORS, pid_alive
+from unicorn.errors import UserError, pid_alive, signals_held
+from unicorn.io.serialization import DISK_ERRORS
 
 __all__ = ["PARTIAL_MARK", "OutputConflictError", "check_writable", "staged_folder"]
 

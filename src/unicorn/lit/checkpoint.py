@@ -75,17 +75,15 @@ class PeriodicCheckpoint(ModelCheckpoint):
     The folder's ``last.ckpt`` is the run's own even where this callback did not write it (one an earlier attempt's
     signal wrote): it is replaced, where Lightning would write ``last-v1.ckpt`` beside it. At a periodic save it is
     a second name (a hard link) of that iteration's ``step=<N>.ckpt``: one write, and no moment at which the two
-    files hold different iterations. With ``save_last``,
-    training ends with ``last.ckpt`` of the final iteration, written once: at the end of training unless a periodic
-    save (or a signal's, :meth:`save_last_checkpoint`) just wrote it.
+    files hold different iterations. With ``save_last``, training ends with ``last.ckpt`` of the final iteration,
+    written once: at the end of training unless a periodic save (or a signal's, :meth:`save_last_checkpoint`) just
+    wrote it.
     """
 
     def _save_last_checkpoint(self, trainer: L.Trainer, monitor_candidates: dict[str, torch.Tensor]) -> None:
         source = self._last_checkpoint_saved  # the periodic file of this iteration, if one was just written
-        if not (self.save_last is True and source and self._last_global_step_saved == trainer.global_step):
-            super()._save_last_checkpoint(trainer, monitor_candidates)
-            return
-        if "://" in str(source):
+        periodic = self.save_last is True and source and self._last_global_step_saved == trainer.global_step
+        if not periodic or "://" in str(source):  # nothing to link to (or a remote store): written in full
             super()._save_last_checkpoint(trainer, monitor_candidates)
             return
         # last.ckpt is a second name of the periodic file: written in microseconds, so that no kill falls between

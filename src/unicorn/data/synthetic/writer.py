@@ -54,7 +54,7 @@ from unicorn.data.synthetic.sampling import (
     views_to_cameras,
 )
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
-from unicorn.errors import UserError
+from unicorn.errors import UserError, pid_alive
 from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
@@ -585,8 +585,6 @@ def _generation_prefix(final: Path) -> str:
 def _remove_stale_generations(final: Path) -> None:
     """Delete the temporary folders of generations of ``final`` that a process of this machine, now gone, left (a
     SIGKILL while generating); another machine's (a cache shared over the network) are left alone."""
-    from unicorn.io.serialization import pid_alive
-
     host = socket.gethostname()
     for tmp in final.parent.glob(f"{_generation_prefix(final)}*"):
         owner, _, pid = tmp.name[len(_generation_prefix(final)) :].rpartition("-")[0].rpartition("-")
