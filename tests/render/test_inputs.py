@@ -24,8 +24,8 @@ def renderer(request):
     return build_renderer(request.param, image_size=16)
 
 
-def _tex(B, V):
-    return TexturesVertex(torch.rand(B, V, 3))
+def _tex(B, V, dtype=torch.float32):
+    return TexturesVertex(torch.rand(B, V, 3, dtype=dtype))
 
 
 @pytest.mark.parametrize(
@@ -269,6 +269,18 @@ def test_non_finite_or_integer_backgrounds_are_named(renderer, bad):
         renderer(verts, faces, tex, R=R, T=T, background=torch.full((2, 3, 16, 16), 255, dtype=torch.uint8))
     ok = renderer(verts, faces, tex, R=R, T=T, background=torch.zeros(2, 3, 16, 16))
     assert torch.isfinite(ok).all()
+
+
+def test_a_background_of_another_dtype_is_refused(renderer):
+    # as textures of another dtype: no silent cast either way
+    verts, faces, R, T, _ = template_scene(batch=2)
+    tex = _tex(2, verts.shape[1])
+    for dtype in (torch.float64, torch.float16):
+        with pytest.raises(TypeError, match=f"verts is torch.float32 but background is {dtype}"):
+            renderer(verts, faces, tex, R=R, T=T, background=torch.rand(2, 3, 16, 16, dtype=dtype))
+    tex64, bg64 = _tex(2, verts.shape[1], torch.float64), torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    double = renderer(verts.double(), faces, tex64, R=R.double(), T=T.double(), background=bg64)
+    assert double.dtype == torch.float64
 
 
 def test_blend_functions_check_their_options():

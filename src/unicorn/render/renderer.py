@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..checks import check_same_dtype
 from ..geometry.cameras import PerspectiveCamera
 from .compositing import background_pixels
 from .fragments import Fragments
@@ -128,6 +129,8 @@ class MeshRenderer(nn.Module):
                 raise TypeError(f"background must be a floating-point tensor (B, C, H, W) in [0, 1], got {kind}")
             colours["background"] = background
         check_mesh_inputs(verts, faces, finite_also=colours)
+        if background is not None:  # as the textures: no silent cast (a float64 background lost its precision)
+            check_same_dtype(verts, background, "verts", "background")
         textures.check_batch(verts.shape[0], num_verts=verts.shape[1], num_faces=faces.shape[0], verts=verts)
         check_pose_inputs(R, T, verts.shape[0])
         fragments = self.rasterizer(verts, faces, R, T, check_inputs=False)  # checked once above
@@ -158,7 +161,8 @@ class MeshRenderer(nn.Module):
                 float32 first and the render runs with autocast off (:mod:`unicorn.render.precision`).
             R: (B, 3, 3) floating point world-to-view rotation, ``x_view = x @ R + T``, finite.
             T: (B, 3) floating point world-to-view translation, finite.
-            background: (B, C, H, W) background images; ``background_color`` when None.
+            background: (B, C, H, W) background images of the vertices' dtype, finite, on their device;
+                ``background_color`` when None.
 
         Returns:
             (B, C + 1, H, W) images, the last channel alpha, of the (cast) vertices' dtype: float32 at least under
