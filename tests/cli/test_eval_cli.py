@@ -110,6 +110,23 @@ def test_synthetic_run_root(tmp_path: Path) -> None:
     assert _run_root({"name": "cub_200", "root": "datasets/cub_200"}) == "datasets/cub_200"
 
 
+def test_a_synthetic_run_root_gone_outside_the_cache_is_named_with_eval_options(tmp_path: Path, checkpoint, capsys):
+    # the run generated its data into a folder of the user's (outside the cache), deleted since: unicorn-eval does not
+    # create an arbitrary folder, and its hint names what unicorn-eval takes, not unicorn-train's override
+    gone = tmp_path / "gone"
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    os.link(checkpoint, run / "checkpoints" / "last.pt")
+    (run / "config.yaml").write_text(f"dataset:\n  name: synthetic\n  root: {gone}\n  categories: car\n")
+    assert main([str(run / "checkpoints" / "last.pt"), "--report-samples", "0", *FAST]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"unicorn-eval: error: the training run's dataset.root not found at {gone}. Create the folder and unicorn-eval "
+        "generates the run's data in it again, or give the generated dataset's folder with --root"
+    )
+    assert not gone.exists() and not (run / "eval").exists()
+
+
 def test_a_missing_synthetic_folder_is_named_as_generated_data(tmp_path: Path, checkpoint, capsys) -> None:
     missing = tmp_path / "gone" / "nmr_car_n10_s0_v2"
     assert main([str(checkpoint), "--dataset", "synthetic", "--root", str(missing)]) == 2

@@ -34,6 +34,7 @@ from unicorn.cli.options import (
     parse_device,
 )
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
+from unicorn.data.images import DatasetNotFoundError
 from unicorn.data.registry import DATASET_NAMES, DATASETS, prepare_dataset
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.ranges import describe_range, field_range
@@ -208,7 +209,15 @@ def _run_root(run_data: dict[str, Any]) -> str | None:
     name = run_data.get("name")
     if name not in DATASETS or not DATASETS.get(name).generated:
         return run_data.get("root")
-    return str(prepare_dataset(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
+    try:
+        return str(prepare_dataset(name, run_data.get("root"), run_data.get("categories"), run_data.get("synthetic")))
+    except DatasetNotFoundError as err:  # a root outside the cache that is gone; its hint is unicorn-train's override
+        raise DatasetNotFoundError(
+            err.path,
+            "the training run's dataset.root",
+            "Create the folder and unicorn-eval generates the run's data in it again, or give the generated "
+            "dataset's folder with --root",
+        ) from None
 
 
 def _protocol_level(name: str | None) -> int | None:
