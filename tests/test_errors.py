@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 
 import pytest
 
@@ -181,3 +183,20 @@ def test_open3d_that_cannot_load_names_the_library_it_needs(monkeypatch) -> None
     monkeypatch.setitem(sys.modules, "open3d", None)  # not installed at all
     with pytest.raises(MissingPackageError, match="pip install open3d"):
         import_open3d()
+
+
+def test_a_second_signal_while_a_command_sets_up_stops_it_at_once_and_says_so():
+    # the first is noted for the command to put its folders back; the second is the user's "now"
+    script = (
+        "import os, signal\n"
+        "from unicorn.errors import defer_stop_signals, pending_interrupt\n"
+        "defer_stop_signals('prog')\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "print(pending_interrupt('before training'), flush=True)\n"
+        "os.kill(os.getpid(), signal.SIGINT)\n"
+        "print('still running')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 128 + signal.SIGINT
+    assert done.stdout == "stopped by SIGTERM before training\n"
+    assert done.stderr == "prog: stopped by SIGINT at once (signalled twice while setting up)\n"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -107,17 +108,21 @@ _RECEIVED: list[list[int]] = []
 _DEFERRED: list[int] = []
 
 
-def defer_stop_signals() -> None:
+def defer_stop_signals(prog: str | None = None) -> None:
     """From now on, until an :func:`interrupt_on_signal` block takes them over, note SIGTERM and SIGINT instead of
     dying of them (the default), so that a command still setting up (importing, composing its config, creating its
     folders) can put its folders back before it stops: :func:`pending_interrupt` reports the noted signal. A second
-    one meanwhile stops the process at once (exit status ``128 + signal``). Ignored signals stay ignored; outside the
+    one meanwhile stops the process at once (exit status ``128 + signal``), saying so on stderr: ``<prog>: stopped
+    by SIGTERM at once ...`` (the program's file name without ``prog``). Ignored signals stay ignored; outside the
     main thread nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         return
 
     def note(signum: int, frame: Any) -> None:
         if _DEFERRED:
+            name = signal.Signals(signum).name
+            who = prog or os.path.basename(sys.argv[0])
+            print(f"{who}: stopped by {name} at once (signalled twice while setting up)", file=sys.stderr, flush=True)
             raise SystemExit(128 + signum)
         _DEFERRED.append(signum)
 

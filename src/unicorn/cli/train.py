@@ -377,7 +377,7 @@ def main() -> None:
     note = argument_note(args)
     if note:
         print(note, file=sys.stderr, flush=True)
-    defer_stop_signals()  # until the run can put its folders back (_task), a signal is noted, not fatal
+    defer_stop_signals("unicorn-train")  # until the run can put its folders back (_task), a signal is noted, not fatal
     tune_allocator()
     tolerate_closed_stdout()  # ``unicorn-train ... | head``: training goes on, its records still reach train.log
     from unicorn.config.schema import store_schema  # imports torch: after --version and the allocator tuning
