@@ -200,3 +200,27 @@ def test_a_second_signal_while_a_command_sets_up_stops_it_at_once_and_says_so():
     assert done.returncode == 128 + signal.SIGINT
     assert done.stdout == "stopped by SIGTERM before training\n"
     assert done.stderr == "prog: stopped by SIGINT at once (signalled twice while setting up)\n"
+
+
+def test_a_stop_signal_ignored_from_the_start_stays_ignored():
+    # a script's background job is started ignoring Ctrl-C: the command's handlers leave SIGINT so, and SIGTERM stops it
+    script = (
+        "import os, signal\n"
+        "from unicorn.errors import IGNORED_AT_START, interrupt_on_signal\n"
+        "print(sorted(signal.Signals(s).name for s in IGNORED_AT_START), flush=True)\n"
+        "with interrupt_on_signal('while testing'):\n"
+        "    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    print('SIGINT ignored', flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    print('still running')\n"
+    )
+
+    def ignore_ctrl_c():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, preexec_fn=ignore_ctrl_c
+    )
+    assert done.stdout == "['SIGINT']\nSIGINT ignored\n"
+    assert done.returncode == 1 and done.stderr.rstrip().endswith("Interrupted: stopped by SIGTERM while testing")

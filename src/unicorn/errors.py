@@ -36,6 +36,9 @@ __all__ = [
 
 #: the signals that stop a command: Ctrl-C and a scheduler's or ``kill``'s request
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: the stop signals the process was started ignoring (read at the first import, before unicorn sets any): a script's
+#: background job ignores Ctrl-C, and by the shells' convention it stays ignored, whatever unicorn handles
+IGNORED_AT_START = frozenset(s for s in STOP_SIGNALS if signal.getsignal(s) is signal.SIG_IGN)
 
 
 class UserError(Exception):
@@ -210,9 +213,9 @@ def signals_held() -> Iterator[None]:
 
 
 def handle_stop_signals(handler: Any) -> dict[int, Any]:
-    """Give :data:`STOP_SIGNALS` to ``handler`` (main thread only); returns the handlers they had, for
-    :func:`restore_handlers`."""
-    return {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+    """Give :data:`STOP_SIGNALS` to ``handler`` (main thread only), but those :data:`IGNORED_AT_START`; returns the
+    handlers they had, for :func:`restore_handlers`."""
+    return {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS if signum not in IGNORED_AT_START}
 
 
 def ignore_stop_signals(worker_id: int = 0) -> None:

@@ -44,6 +44,8 @@ import os
 import signal
 import sys
 
+import unicorn.errors  # noqa: F401  records the signals ignored from the start (IGNORED_AT_START) first
+
 if os.environ.get("LOCAL_RANK", "0") != "0":
     # a process Lightning started for another DDP rank runs this command line again. Until the run installs its
     # handlers (interrupt_on_signal), a Ctrl-C or SIGTERM sent to the whole process group would end it at once, and
