@@ -47,6 +47,25 @@ def test_stage_schedule():
         StageCallback(dims={}, milestones=[3, 2, 1])
 
 
+def test_constant_textures_end_at_an_iteration_when_told():
+    # the reference's table ends them an epoch before stage 2 (constant_txt 10 epochs, stage 2 at 11)
+    ta = {"constant_stages": 1, "constant_until": 90, "p": 0.2, "random_until_stage": 4}
+    cb = StageCallback(dims={"texture": [2, 8, 32, 128]}, milestones=[100, 200, 300], texture_averaging=ta)
+    assert [cb.state_at(s, cb.fixed_stage(s))["texture_p"] for s in (0, 89, 90, 99, 100, 300)] == [
+        1.0,
+        1.0,
+        0.2,
+        0.2,
+        0.2,
+        0.0,
+    ]
+    assert cb.state_at(50, 2)["texture_p"] == 1.0  # an early stage change (plateau mode) does not end them
+    by_stage = StageCallback(
+        dims={"texture": [2, 8, 32, 128]}, milestones=[100, 200, 300], texture_averaging=ta | {"constant_until": None}
+    )
+    assert [by_stage.state_at(s, by_stage.fixed_stage(s))["texture_p"] for s in (90, 99, 100)] == [1.0, 1.0, 0.2]
+
+
 def test_plateau_detection():
     cb = StageCallback(
         dims={"shape": [0, 2, 8, 32], "texture": [2, 8, 32, 128]},

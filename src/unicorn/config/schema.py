@@ -162,10 +162,12 @@ class CurriculumConfig:
 
 @dataclass
 class TextureAveragingConfig:
-    """Mean-colour textures: constant during the first ``constant_stages`` stages, then with probability ``p``
-    per batch while the stage is below ``random_until_stage`` (null: for the whole run)."""
+    """Mean-colour textures: constant during the first ``constant_stages`` stages (or, where ``constant_until`` is
+    set, before that iteration, whatever the stage), then with probability ``p`` per batch while the stage is below
+    ``random_until_stage`` (null: for the whole run)."""
 
     constant_stages: int = ranged(0, 0, N_STAGES)
+    constant_until: int | None = ranged(None, 0)
     p: float = ranged(0.2, 0, 1)
     random_until_stage: int | None = ranged(N_STAGES, 1, N_STAGES)
 

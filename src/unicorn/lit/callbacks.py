@@ -69,8 +69,8 @@ class StageCallback(L.Callback):
         dims: active code sizes per stage, ``{"shape": [0, 2, 8, 32], "texture": [...], "background": [...]}``.
         milestones: iterations at which stages 2, 3 and 4 start (``fixed`` mode).
         curriculum: iteration at which each switch of :class:`CurriculumConfig` turns on.
-        texture_averaging: ``constant_stages`` (constant mean-colour textures during the first stages),
-            ``p`` and ``random_until_stage`` (averaging with probability p per batch while the stage is below
+        texture_averaging: ``constant_stages`` (constant mean-colour textures during the first stages) or
+            ``constant_until`` (before that iteration, whatever the stage; None: by stages), ``p`` and ``random_until_stage`` (averaging with probability p per batch while the stage is below
             it; None: for the whole run).
         mode: ``"fixed"`` (milestones) or ``"plateau"``.
         plateau: ``window``, ``check_every``, ``threshold``, ``patience``, ``min_steps`` (see
@@ -137,7 +137,8 @@ class StageCallback(L.Callback):
     def state_at(self, step: int, stage: int) -> StageState:
         """The settings of iteration ``step`` in ``stage``."""
         ta = self.texture_averaging
-        if stage <= ta["constant_stages"]:
+        until = ta["constant_until"]
+        if (step < until) if until is not None else (stage <= ta["constant_stages"]):
             texture_p = 1.0
         elif ta["random_until_stage"] is None or stage < ta["random_until_stage"]:
             texture_p = float(ta["p"])
