@@ -70,8 +70,9 @@ class StageCallback(L.Callback):
         milestones: iterations at which stages 2, 3 and 4 start (``fixed`` mode).
         curriculum: iteration at which each switch of :class:`CurriculumConfig` turns on.
         texture_averaging: ``constant_stages`` (constant mean-colour textures during the first stages) or
-            ``constant_until`` (before that iteration, whatever the stage; None: by stages), ``p`` and ``random_until_stage`` (averaging with probability p per batch while the stage is below
-            it; None: for the whole run).
+            ``constant_until`` (before that iteration, whatever the stage; None: by stages), ``p`` and
+            ``random_until_stage`` (averaging with probability p per batch while the stage is below it; None: for
+            the whole run).
         mode: ``"fixed"`` (milestones) or ``"plateau"``.
         plateau: ``window``, ``check_every``, ``threshold``, ``patience``, ``min_steps`` (see
             :class:`unicorn.config.schema.PlateauConfig`).
