@@ -318,14 +318,22 @@ def test_a_folder_that_cannot_be_read_is_named(tmp_path: Path, monkeypatch: pyte
     root = tmp_path / "photos"
     write_photo(root / "a.jpg", 20, 10, 1)
     write_photo(root / "locked" / "b.jpg", 20, 10, 2)
-    scandir = os.scandir
+    scandir, stat = os.scandir, os.stat
 
-    def no_permission(path):  # as a folder without read permission (the tests may run as root, who reads all)
+    # as a folder without read and search permission (the tests may run as root, who reads all): neither its list
+    # nor anything in it (a record that would make it an output folder) can be read
+    def no_permission(path):
         if Path(path).name == "locked":
             raise PermissionError(13, "Permission denied", str(path))
         return scandir(path)
 
+    def no_search(path, *args, **kwargs):
+        if Path(path).parent.name == "locked":
+            raise PermissionError(13, "Permission denied", str(path))
+        return stat(path, *args, **kwargs)
+
     monkeypatch.setattr(os, "scandir", no_permission)
+    monkeypatch.setattr(os, "stat", no_search)
     with pytest.warns(RuntimeWarning, match=r"cannot read the folder .*locked: Permission denied; the images in it"):
         assert list_images(root) == [root / "a.jpg"]
 

@@ -48,8 +48,10 @@ EVALUATION_RECORDS = ("metrics.json", "per_image.csv")
 def is_output_folder(folder: str | os.PathLike) -> bool:
     """Whether ``folder`` is the output of ``unicorn-reconstruct`` or ``unicorn-eval`` (:data:`RECONSTRUCTIONS_RECORD`,
     :data:`EVALUATION_RECORDS`): its pictures are not photos to read."""
-    folder = Path(folder)
-    return (folder / RECONSTRUCTIONS_RECORD).is_file() or all((folder / n).is_file() for n in EVALUATION_RECORDS)
+    # os.path.isfile: a folder that cannot be searched (no permission) holds no record, rather than raising
+    return os.path.isfile(Path(folder, RECONSTRUCTIONS_RECORD)) or all(
+        os.path.isfile(Path(folder, n)) for n in EVALUATION_RECORDS
+    )
 
 
 def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> list[Path]:
