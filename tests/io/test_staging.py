@@ -238,6 +238,29 @@ def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_f
         check_writable(tmp_path / "new")  # a folder to be made in the read-only parent
 
 
+def test_without_merge_an_empty_folder_whose_parent_cannot_be_written_is_written(tmp_path, monkeypatch) -> None:
+    out = tmp_path / "mount"
+    out.mkdir()  # empty: the temporary folder inside it is this run's own, not another command's
+    real_mkdir = Path.mkdir
+
+    def mkdir(self: Path, *args, **kwargs) -> None:
+        if self.parent == tmp_path and PARTIAL_MARK in self.name:  # the parent is read-only, as /mnt is
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    with staged_folder(out, merge=False) as staging:
+        assert staging.parent == out
+        (staging / "index.html").write_text("this run's")
+    assert [p.name for p in out.iterdir()] == ["index.html"] and (out / "index.html").read_text() == "this run's"
+    (out / "index.html").unlink()
+    with pytest.raises(OutputConflictError, match=r"output folder .*mount was written by another command"):
+        with staged_folder(out, merge=False) as staging:
+            (staging / "index.html").write_text("this run's")
+            (out / "index.html").write_text("another run's")
+    assert [p.name for p in out.iterdir()] == ["index.html"] and (out / "index.html").read_text() == "another run's"
+
+
 def test_a_read_only_output_folder_is_named_before_any_work(tmp_path, monkeypatch) -> None:
     out = tmp_path / "out"
     out.mkdir()

@@ -236,7 +236,7 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = (), *, merge:
             if not out.exists():
                 _move(tmp, out)
                 return
-            if not merge and _is_folder(out) and any(out.iterdir()):
+            if not merge and _is_folder(out) and any(entry != tmp for entry in out.iterdir()):  # tmp: may lie in out
                 raise OutputConflictError(
                     f"the output folder {out} was written by another command while this one ran; nothing was moved "
                     "into it: run again with another folder, or with --overwrite to write into it"
