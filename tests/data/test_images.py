@@ -181,6 +181,20 @@ def test_non_finite_pixels_are_a_bad_image(tmp_path: Path, bad: float) -> None:
     np.testing.assert_allclose(load_image(finite), 0.25)
 
 
+@pytest.mark.parametrize("low, high", [(0.0, 255.0), (-0.5, 0.5)])
+def test_float_pixels_outside_the_unit_range_are_a_bad_image(tmp_path: Path, low: float, high: float) -> None:
+    values = np.linspace(low, high, 30, dtype=np.float32).reshape(6, 5)  # a 0-255 float TIFF would clip to white
+    path = _save(tmp_path / "float.tif", Image.fromarray(values, "F"))
+    for read in (load_image, lambda p: decode_image(p.read_bytes(), str(p))):
+        with pytest.raises(ImageLoadError, match=rf"float.tif: float pixel values span \[{low:g}, {high:g}\], not"):
+            read(path)
+    assert load_mask(path).sum() > 0  # a mask is thresholded at half its maximum, whatever the scale
+    rounded = _save(
+        tmp_path / "rounded.tif", Image.fromarray(np.linspace(-1e-4, 1 + 1e-4, 30, dtype=np.float32).reshape(6, 5), "F")
+    )
+    assert load_image(rounded).min() == 0.0 and load_image(rounded).max() == 1.0
+
+
 @pytest.mark.parametrize("suffix", [".png", ".jpg"])
 def test_exif_orientation_is_applied(tmp_path: Path, suffix: str) -> None:
     stored = np.zeros((10, 20, 3), np.uint8)  # 20 wide, 10 high as stored

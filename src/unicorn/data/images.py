@@ -122,6 +122,8 @@ MAX_IMAGE_BYTES_ENV = "UNICORN_MAX_IMAGE_BYTES"
 #: bytes per pixel of what the loaders return: float32 RGB images, float32 masks
 RGB_BYTES_PER_PIXEL = 3 * 4
 MASK_BYTES_PER_PIXEL = 4
+#: how far outside [0, 1] a float image's values may lie (rounding) before the image is refused as of another scale
+FLOAT_SLACK = 1e-3
 _PIL_LOCK = threading.Lock()
 
 
@@ -251,8 +253,13 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
     return img
 
 
-def _pil_to_rgb(img: Image.Image) -> np.ndarray:
-    """Any PIL mode to an (H, W, 3) float32 RGB array in [0, 1]."""
+def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
+    """Any PIL mode to an (H, W, 3) float32 RGB array in [0, 1].
+
+    Raises:
+        ImageLoadError: a float image (mode ``F``) with values outside [0, 1], whose scale cannot be told (0-255,
+            0-65535, physical units).
+    """
     if img.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
         # 16-bit (or 32-bit int) grayscale: PIL's convert('L') clips instead of rescaling
         arr = np.asarray(img, dtype=np.float64)
@@ -260,7 +267,15 @@ def _pil_to_rgb(img: Image.Image) -> np.ndarray:
         gray = np.clip(arr / peak, 0.0, 1.0).astype(np.float32)
         return np.repeat(gray[..., None], 3, axis=-1)
     if img.mode == "F":
-        gray = np.clip(np.asarray(img, dtype=np.float32), 0.0, 1.0)
+        gray = np.asarray(img, dtype=np.float32)
+        low, high = (float(gray.min()), float(gray.max())) if gray.size else (0.0, 0.0)
+        if low < -FLOAT_SLACK or high > 1 + FLOAT_SLACK:  # clipped, 0-255 values would read as an all-white image
+            raise ImageLoadError(
+                name,
+                f"float pixel values span [{low:g}, {high:g}], not [0, 1]: save the image with 8 or 16 bits per "
+                "channel, or as floats scaled to [0, 1]",
+            )
+        gray = np.clip(gray, 0.0, 1.0)
         return np.repeat(gray[..., None], 3, axis=-1)
     if has_transparency(img):
         # composite transparent pixels on white, the NMR / ShapeNet background
@@ -295,13 +310,13 @@ def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.nda
         ImageLoadError: if the file is missing, truncated, not an image, over the limits or not finite.
     """
     with open_image(path, path) as img:
-        return _pil_to_rgb(decoded(img, path, exif_orientation))
+        return _pil_to_rgb(decoded(img, path, exif_orientation), path)
 
 
 def decode_image(data: bytes, name: str, exif_orientation: bool = True) -> np.ndarray:
     """Decode encoded image bytes (e.g. an LMDB value) like :func:`load_image`; ``name`` is used in errors."""
     with open_image(io.BytesIO(data), name) as img:
-        return _pil_to_rgb(decoded(img, name, exif_orientation))
+        return _pil_to_rgb(decoded(img, name, exif_orientation), name)
 
 
 def load_mask(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
