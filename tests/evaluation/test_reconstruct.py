@@ -19,8 +19,10 @@ def test_unique_names() -> None:
     assert unique_names([Path("/x/a/0000.png"), Path("/x/b/0000.png"), Path("/x/b/1.jpg")]) == [
         "a_0000",
         "b_0000",
-        "b_1",
+        "1",  # only the names that clash take their folders
     ]
+    clash = [Path("/x/a/Photo.gif"), Path("/x/b/photo.tiff"), Path("/y/c/2.png"), Path("/x/a_photo.png")]
+    assert unique_names(clash) == ["a_Photo", "b_photo", "2", "a_photo_1"]  # case-folded clash; a suffix settles
     assert unique_names([Path("/x/cat dog.png"), Path("/y/b.png")]) == ["cat_dog", "b"]
     assert unique_names([Path("/x/a.png"), Path("/x/a.jpg")]) == ["a", "a_1"]
 

@@ -75,18 +75,22 @@ MAX_NAME = 120
 def unique_names(paths: Sequence[Path]) -> list[str]:
     """File-system safe, unique output names for input files.
 
-    The file stem when stems are unique; otherwise the path relative to the inputs' common folder (``a/0000.png``
-    and ``b/0000.png`` become ``a_0000`` and ``b_0000``); a numeric suffix settles what remains, and keeps names
-    clear of :data:`RESERVED_NAMES` (the folder's own files). Letters and digits of any script are kept (in Unicode's
-    composed form, NFC), every other run of characters but ``.``, ``-`` and ``_`` becomes ``_``. Names differ also
-    without regard to case, and are at most :data:`MAX_NAME` bytes long in UTF-8.
+    The file stem; files whose stems are the same (without regard to case) take their path relative to their common
+    folder instead (``a/0000.png`` and ``b/0000.png`` become ``a_0000`` and ``b_0000``), the others keep their
+    stems; a numeric suffix settles what remains, and keeps names clear of :data:`RESERVED_NAMES` (the folder's own
+    files). Letters and digits of any script are kept (in Unicode's composed form, NFC), every other run of
+    characters but ``.``, ``-`` and ``_`` becomes ``_``. Names differ also without regard to case, and are at most
+    :data:`MAX_NAME` bytes long in UTF-8.
     """
     paths = [Path(p) for p in paths]
-    if len({p.stem for p in paths}) == len(paths):
-        raw = [p.stem for p in paths]
-    else:
-        common = Path(os.path.commonpath([str(p.resolve().parent) for p in paths]))
-        raw = [str(p.resolve().relative_to(common).with_suffix("")) for p in paths]
+    raw = [p.stem for p in paths]
+    groups: dict[str, list[int]] = {}
+    for i, p in enumerate(paths):
+        groups.setdefault(unicodedata.normalize("NFC", p.stem).casefold(), []).append(i)
+    for group in (g for g in groups.values() if len(g) > 1):
+        common = Path(os.path.commonpath([str(paths[i].resolve().parent) for i in group]))
+        for i in group:
+            raw[i] = str(paths[i].resolve().relative_to(common).with_suffix(""))
     names: list[str] = []
     seen: set[str] = {n.casefold() for n in RESERVED_NAMES}
     for text in raw:
