@@ -15,6 +15,7 @@ import trimesh
 
 from tests.support.model import randomize_heads, tiny_config
 from unicorn.io import export_prediction, save_mesh
+from unicorn.io.meshes import smooth_normals, textured_mesh
 from unicorn.model import Unicorn
 from unicorn.render.textures import sample_bilinear
 
@@ -190,3 +191,51 @@ def test_glb_passes_the_khronos_validator(model_and_prediction, tmp_path):
     assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]["messages"]
     info = report["info"]
     assert info["drawCallCount"] == 1 and info["totalTriangleCount"] == 1280 and info["materialCount"] == 1
+
+
+def _obj_normals(obj: Path) -> tuple[np.ndarray, np.ndarray]:
+    """An OBJ's positions and, for each, the normal its face corners name (they must agree)."""
+    lines = obj.read_text().splitlines()
+    positions = np.array([ln.split()[1:] for ln in lines if ln.startswith("v ")], dtype=float)
+    normals = np.array([ln.split()[1:] for ln in lines if ln.startswith("vn ")], dtype=float)
+    per_position = np.full_like(positions, np.nan)
+    for ln in (ln for ln in lines if ln.startswith("f ")):
+        for corner in ln.split()[1:]:
+            v, _, n = (int(i) - 1 for i in corner.split("/"))
+            assert np.isnan(per_position[v]).all() or np.array_equal(per_position[v], normals[n])
+            per_position[v] = normals[n]
+    return positions, per_position
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_exports_carry_smooth_outward_normals(model_and_prediction, tmp_path, suffix):
+    """On the template ellipsoid each vertex's normal is the analytic one, ``(x / a^2, y / b^2, z / c^2)``, across
+    the texture seam too."""
+    model, _ = model_and_prediction
+    tmpl = model.template
+    mesh = textured_mesh(tmpl.verts, tmpl.faces, tmpl.face_uvs, torch.rand(3, 8, 16), align_corners=not tmpl.wrap_u)
+    path = save_mesh(mesh, tmp_path / f"sphere{suffix}")[0]
+    if suffix == ".obj":
+        positions, normals = _obj_normals(path)
+        assert len(positions) == 642  # one normal per welded position: the seam's copies share it
+    else:
+        loaded = trimesh.load(path, force="mesh", process=False)
+        positions, normals = np.asarray(loaded.vertices), np.asarray(loaded.vertex_normals)
+        assert len(positions) > 642  # the seam's copies, each with its normal
+    axes = tmpl.verts.abs().amax(0).double().numpy()
+    assert np.allclose(((positions / axes) ** 2).sum(1), 1.0, atol=1e-5)  # an ellipsoid of semi-axes ``axes``
+    analytic = positions / axes**2
+    analytic /= np.linalg.norm(analytic, axis=1, keepdims=True)
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    error = np.degrees(np.arccos(np.clip((normals * analytic).sum(1), -1, 1)))
+    assert error.max() < 8.0 and np.median(error) < 1.0  # outward, smooth (the discrete surface's few degrees)
+
+
+def test_smooth_normals_weigh_faces_by_area():
+    """A vertex shared by a large and a small face at a right angle leans towards the large face's normal."""
+    verts = np.array([[0, 0, 0], [4, 0, 0], [0, 4, 0], [0, 0, 1], [0, -1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 3, 4]])  # the first: area 8, normal +Z; the second: area 0.5, normal +X
+    normal = smooth_normals(verts, faces)[0]
+    expected = np.array([0.5 * 2, 0, 8 * 2]) / np.linalg.norm([1, 0, 16])
+    assert np.allclose(normal, expected, atol=1e-6)
+    assert np.allclose(smooth_normals(verts, faces)[1], [0, 0, 1])

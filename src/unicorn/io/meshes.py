@@ -1,7 +1,9 @@
 """Export predictions as textured triangle meshes (trimesh objects, OBJ + MTL + PNG, GLB).
 
 Materials are unlit-neutral: base colour (glTF ``baseColorFactor``, MTL ``Kd``) exactly 1, so that viewers,
-which multiply the texture by it, show the predicted texture unchanged; no specular term, fully rough.
+which multiply the texture by it, show the predicted texture unchanged; no specular term, fully rough. Both files
+carry smooth vertex normals (:func:`smooth_normals`): without them glTF viewers must shade each face flat, and many
+OBJ viewers do.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from unicorn.checks import check_shape
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
 
-__all__ = ["export_prediction", "glb_bytes", "neutral_material", "save_mesh", "textured_mesh"]
+__all__ = ["export_prediction", "glb_bytes", "neutral_material", "save_mesh", "smooth_normals", "textured_mesh"]
 
 _WHITE = np.full(4, 255, dtype=np.uint8)
 
@@ -149,9 +151,47 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
 def glb_bytes(mesh: trimesh.Trimesh, name: str = "texture") -> bytes:
     """The binary glTF of a textured ``mesh``, with a material of base colour 1 (see :func:`save_mesh`)."""
     image = _texture_image(mesh)
+    normals = smooth_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
     mesh = mesh.copy()
     mesh.visual.material = neutral_material(image, getattr(mesh.visual.material, "name", None) or name)
-    return mesh.export(file_type="glb")
+    mesh.vertex_normals = normals
+    return mesh.export(file_type="glb", include_normals=True)
+
+
+def _weld(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct positions of (V, 3) ``vertices`` in first-seen order (for an export, the template's vertex
+    order), and each vertex's index among them, (V,): copies made for the UVs have bit-identical positions."""
+    positions, index = np.unique(np.asarray(vertices), axis=0, return_inverse=True)
+    index = index.reshape(-1)
+    first = np.full(len(positions), len(index), dtype=np.int64)
+    np.minimum.at(first, index, np.arange(len(index)))
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return positions[order], rank[index]
+
+
+def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals of the surface ``vertices`` and ``faces`` describe, (V, 3) float32.
+
+    Each is the area-weighted mean of the normals of the faces around its position: vertices at the same position
+    (the copies :func:`textured_mesh` makes along the texture seam) get the same normal, so that shading is
+    smooth across the seam. Faces wind counter-clockwise seen from outside, as the template's do: normals point
+    out. A position without area around it gets +Z.
+
+    Args:
+        vertices: (V, 3) positions.
+        faces: (F, 3) vertex indices.
+    """
+    positions, index = _weld(vertices)
+    corners = positions[index[np.asarray(faces, dtype=np.int64)]]  # (F, 3, 3)
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # length: twice the area
+    summed = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(summed, index[np.asarray(faces)[:, k]], face_normals)
+    length = np.linalg.norm(summed, axis=1, keepdims=True)
+    unit = np.where(length > 0, summed / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+    return unit[index].astype(np.float32)
 
 
 def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
@@ -164,24 +204,21 @@ def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
 
 
 def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Path]:
-    # weld: copies made for the UVs have bit-identical positions
-    positions, position_index = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
-    position_index = position_index.reshape(-1)
-    # keep the first-seen order of positions (for an export, the template's vertex order)
-    first = np.full(len(positions), len(position_index), dtype=np.int64)
-    np.minimum.at(first, position_index, np.arange(len(position_index)))
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
+    positions, position_index = _weld(np.asarray(mesh.vertices))  # one position (and normal) per template vertex
     faces = np.asarray(mesh.faces, dtype=np.int64)
+    normals = np.zeros((len(positions), 3), np.float32)
+    normals[position_index] = smooth_normals(np.asarray(mesh.vertices), faces)
     uv = np.asarray(mesh.visual.uv, dtype=np.float64)
     stem = path.stem
     lines = [f"# unicorn textured mesh: {len(positions)} vertices, {len(faces)} faces", f"mtllib {stem}.mtl"]
-    lines += [f"v {x:.8g} {y:.8g} {z:.8g}" for x, y, z in positions[order]]
+    lines += [f"v {x:.8g} {y:.8g} {z:.8g}" for x, y, z in positions]
     lines += [f"vt {u:.8g} {v:.8g}" for u, v in uv]
+    lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in normals]
     lines.append(f"usemtl {stem}")
-    v_idx, t_idx = rank[position_index[faces]] + 1, faces + 1  # OBJ indices start at 1
-    lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(v_idx.tolist(), t_idx.tolist())]
+    v_idx, t_idx = position_index[faces] + 1, faces + 1  # OBJ indices start at 1; normals share the positions'
+    lines += [
+        f"f {a}/{ta}/{a} {b}/{tb}/{b} {c}/{tc}/{c}" for (a, b, c), (ta, tb, tc) in zip(v_idx.tolist(), t_idx.tolist())
+    ]
     mtl = "\n".join(
         [
             f"newmtl {stem}",
