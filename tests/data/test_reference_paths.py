@@ -56,7 +56,7 @@ def reference_fit_and_pad(image: np.ndarray, size: int) -> np.ndarray:
     return np.pad(resized, [(top, size - h - top), (left, size - w - left), (0, 0)], mode="edge")
 
 
-def reference_rgb(img: Image.Image) -> np.ndarray:
+def reference_rgb(img: Image.Image, name: str = "") -> np.ndarray:
     return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
 
@@ -89,7 +89,7 @@ def test_resize_matches_per_channel_resizing(dtype) -> None:
 def test_rgb_conversion_matches_convert_and_divide(mode: str) -> None:
     rgb = Image.fromarray(np.random.default_rng(2).integers(0, 256, (20, 30, 3), dtype=np.uint8))
     img = rgb.convert(mode)
-    got = images._pil_to_rgb(img)
+    got = images._pil_to_rgb(img, "test.png")
     assert got.dtype == np.float32 and got.flags.writeable and np.array_equal(got, reference_rgb(img))
 
 
