@@ -215,18 +215,23 @@ def test_without_merge_a_folder_written_meanwhile_is_refused_and_left_as_it_is(t
     assert (out / "index.html").read_text() == "this run's"
 
 
-def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_folder(tmp_path, monkeypatch) -> None:
-    out = tmp_path / "mount"
-    out.mkdir()
-    (out / "mine.txt").write_text("kept")
+def _read_only(parent: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No temporary folder can be made in ``parent``, as in a read-only /mnt above a mount point."""
     real_mkdir = Path.mkdir
 
     def mkdir(self: Path, *args, **kwargs) -> None:
-        if self.parent == tmp_path and PARTIAL_MARK in self.name:  # the parent is read-only, as /mnt is
+        if self.parent == parent and PARTIAL_MARK in self.name:
             raise PermissionError(errno.EACCES, "Permission denied", str(self))
         real_mkdir(self, *args, **kwargs)
 
     monkeypatch.setattr(Path, "mkdir", mkdir)
+
+
+def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_folder(tmp_path, monkeypatch) -> None:
+    out = tmp_path / "mount"
+    out.mkdir()
+    (out / "mine.txt").write_text("kept")
+    _read_only(tmp_path, monkeypatch)
     check_writable(out)
     with staged_folder(out) as staging:
         assert staging.parent == out
@@ -241,14 +246,7 @@ def test_an_existing_folder_whose_parent_cannot_be_written_holds_its_temporary_f
 def test_without_merge_an_empty_folder_whose_parent_cannot_be_written_is_written(tmp_path, monkeypatch) -> None:
     out = tmp_path / "mount"
     out.mkdir()  # empty: the temporary folder inside it is this run's own, not another command's
-    real_mkdir = Path.mkdir
-
-    def mkdir(self: Path, *args, **kwargs) -> None:
-        if self.parent == tmp_path and PARTIAL_MARK in self.name:  # the parent is read-only, as /mnt is
-            raise PermissionError(errno.EACCES, "Permission denied", str(self))
-        real_mkdir(self, *args, **kwargs)
-
-    monkeypatch.setattr(Path, "mkdir", mkdir)
+    _read_only(tmp_path, monkeypatch)
     with staged_folder(out, merge=False) as staging:
         assert staging.parent == out
         (staging / "index.html").write_text("this run's")
