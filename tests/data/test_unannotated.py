@@ -16,7 +16,7 @@ import torch
 from PIL import Image
 
 from tests.support.datasets import save_with_orientation, write_photo
-from unicorn.data.folder import CompCars, ImageFolder, list_images
+from unicorn.data.folder import CompCars, ImageFolder, UnreadableFolderWarning, list_images
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.errors import MissingPackageError, UserError
@@ -334,7 +334,9 @@ def test_a_folder_that_cannot_be_read_is_named(tmp_path: Path, monkeypatch: pyte
 
     monkeypatch.setattr(os, "scandir", no_permission)
     monkeypatch.setattr(os, "stat", no_search)
-    with pytest.warns(RuntimeWarning, match=r"cannot read the folder .*locked: Permission denied; the images in it"):
+    with pytest.warns(
+        UnreadableFolderWarning, match=r"cannot read the folder .*locked: Permission denied; the images in it"
+    ):
         assert list_images(root) == [root / "a.jpg"]
 
 

@@ -18,6 +18,7 @@ import torch
 from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import DatasetError, DatasetNotFoundError, load_image, require, to_chw_tensor
+from unicorn.errors import UnicornWarning
 
 __all__ = [
     "EVALUATION_RECORDS",
@@ -25,6 +26,7 @@ __all__ = [
     "RECONSTRUCTIONS_RECORD",
     "CompCars",
     "ImageFolder",
+    "UnreadableFolderWarning",
     "is_output_folder",
     "list_images",
     "unannotated_item",
@@ -87,10 +89,14 @@ def list_images(root: Path, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> l
     return sorted(found)
 
 
+class UnreadableFolderWarning(UnicornWarning, RuntimeWarning):
+    """A folder under an image folder could not be read (no permission): its images are left out."""
+
+
 def _unreadable_folder(err: OSError) -> None:
     warnings.warn(
         f"cannot read the folder {err.filename}: {err.strerror or err}; the images in it are left out",
-        RuntimeWarning,
+        UnreadableFolderWarning,
         stacklevel=3,
     )
 
