@@ -120,6 +120,13 @@ def test_euler_angles_compose_axis_rotations():
         euler_angles_to_matrix(angles, "XYW")
 
 
+@pytest.mark.parametrize("at", [0.0, 0.4])
+def test_euler_angles_have_the_finite_difference_gradients_at_zero_too(at):
+    """Refinement starts from zero angles: the gradient there is finite and matches finite differences."""
+    angles = torch.full((2, 3), at, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a: euler_angles_to_matrix(a, "ZYX"), (angles,))
+
+
 def test_rotation_angle_between_is_clamped():
     R = euler_angles_to_matrix(torch.randn(100, 3), "XYZ")
     angle = rotation_angle_between(R, R)

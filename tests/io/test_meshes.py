@@ -61,8 +61,9 @@ def test_export_roundtrip(model_and_prediction, tmp_path, posed, suffix):
     loaded = trimesh.load(files[0], force="mesh", process=False)
     assert loaded.vertices.shape == mesh.vertices.shape
     assert np.allclose(loaded.vertices, mesh.vertices, atol=1e-6)
-    assert np.array_equal(loaded.faces, mesh.faces)
-    assert np.allclose(loaded.visual.uv, mesh.visual.uv, atol=1e-6)
+    # which seam copy comes first is trimesh's (an unstable argsort of the OBJ's (v, vt) pairs): compare corners
+    assert np.allclose(loaded.vertices[loaded.faces], mesh.vertices[mesh.faces], atol=1e-6)
+    assert np.allclose(loaded.visual.uv[loaded.faces], mesh.visual.uv[mesh.faces], atol=1e-6)
     assert np.array_equal(_texture_pixels(loaded), expected_texture)
 
 

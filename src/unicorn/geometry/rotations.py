@@ -12,7 +12,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from unicorn.checks import check_shape
 
@@ -70,11 +69,24 @@ def azim_elev_roll_to_rotation(
     return r_azim @ r_elev @ r_roll
 
 
+def _axis_rotation(axis: str, angle: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) column-vector rotations by ``angle`` (N,) radians about ``axis``: cosines and sines only, so exact
+    to rounding and with finite gradients at 0 (a general axis-angle map divides by the angle)."""
+    c, s = angle.cos(), angle.sin()
+    one, zero = torch.ones_like(angle), torch.zeros_like(angle)
+    rows = {
+        "X": [[one, zero, zero], [zero, c, -s], [zero, s, c]],
+        "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
+        "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]],
+    }[axis]
+    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+
 def euler_angles_to_matrix(angles: torch.Tensor, convention: str = "XYZ") -> torch.Tensor:
     """Rotation matrices from Euler angles (radians), composed as ``R_a @ R_b @ R_c`` for convention ``"abc"``.
 
-    Each factor is the column-vector rotation about one axis (kornia's axis-angle map), the PyTorch3D
-    convention; pass the result as ``R`` to rotate the world by its transpose.
+    Each factor is the column-vector rotation about one axis, the PyTorch3D convention; pass the result as ``R`` to
+    rotate the world by its transpose.
 
     Args:
         angles: (..., 3) angles in radians, one per letter of ``convention``.
@@ -90,9 +102,7 @@ def euler_angles_to_matrix(angles: torch.Tensor, convention: str = "XYZ") -> tor
     flat = angles.reshape(-1, 3)
     result = None
     for i, axis in enumerate(convention):
-        axis_angle = torch.zeros_like(flat)
-        axis_angle[:, _AXES[axis]] = flat[:, i]
-        rot = axis_angle_to_rotation_matrix(axis_angle)
+        rot = _axis_rotation(axis, flat[:, i])
         result = rot if result is None else result @ rot
     return result.reshape(*batch, 3, 3)
 

@@ -63,8 +63,11 @@ TRUST_HINT = "if you trust the file, pass --trust-checkpoint (Python: trust=True
 
 def _numpy_globals() -> list[Any]:
     """numpy's array / scalar reconstructors and dtype classes: they build arrays and call nothing else."""
-    core = getattr(np, "_core", None) or np.core  # numpy 2 renamed np.core
-    found: list[Any] = [core.multiarray._reconstruct, core.multiarray.scalar, np.ndarray, np.dtype]
+    try:  # numpy 2 renamed np.core; 1.26's numpy._core is a stub whose multiarray is loaded only on import
+        from numpy._core import multiarray
+    except ImportError:
+        from numpy.core import multiarray
+    found: list[Any] = [multiarray._reconstruct, multiarray.scalar, np.ndarray, np.dtype]
     found += [type(np.dtype(t)) for t in ("b1", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8")]
     return found
 
