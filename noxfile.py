@@ -1,5 +1,5 @@
 """Developer sessions: ``nox -s tests``, ``nox -s train``, ``nox -s lint``, ``nox -s docs``, ``nox -s bench``,
-``nox -s quality``, ``nox -s package``.
+``nox -s quality``, ``nox -s package``, ``nox -s lowest``.
 
 Every session that runs unicorn's code reuses its virtual environment and installs torch only when the
 environment has none, so torch is never reinstalled and a CPU machine never pulls the CUDA build by accident:
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes.util
 import os
+import re
 import shutil
 
 import nox
@@ -69,6 +70,43 @@ def tests(session: nox.Session) -> None:
     install_project(session, "dev")
     if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
         session.run("npm", "ci", "--no-audit", "--no-fund", external=True)  # the glTF validator of the GLB test
+    session.run("pytest", *(session.posargs or ["-q", *parallel_workers()]))
+
+
+def lowest_requirements(pyproject: str = "pyproject.toml", extras: tuple[str, ...] = ("dev",)) -> list[str]:
+    """The dependencies ``pyproject`` declares (and those of ``extras``) pinned at their declared minimums:
+    ``hydra-core>=1.3,<1.4`` gives ``hydra-core==1.3``; torch is left out (:func:`install_torch` installs it)."""
+    import tomllib  # Python 3.11+; here, not at the top, so that nox under 3.10 runs the other sessions
+
+    with open(pyproject, "rb") as f:
+        project = tomllib.load(f)["project"]
+    declared = project["dependencies"] + [r for e in extras for r in project["optional-dependencies"][e]]
+    pins = []
+    for requirement in declared:
+        match = re.match(r"^\s*([A-Za-z0-9_.-]+)\s*>=\s*([^,;\s]+)", requirement)
+        if match is None:
+            raise ValueError(f"pyproject.toml: {requirement!r} declares no minimum version (name>=X)")
+        if match[1].lower() != "torch":
+            pins.append(f"{match[1]}=={match[2]}")
+    return sorted(set(pins))
+
+
+@nox.session(python=PYTHON)
+def lowest(session: nox.Session) -> None:
+    """The test suite with every dependency at the minimum pyproject.toml declares (torch as in the other sessions:
+    ``UNICORN_TORCH``). Extra arguments go to pytest."""
+    ensure_libusb(session)
+    install_torch(session)
+    probe = "import importlib.metadata as m; print(m.version('torch'))"  # without importing torch: no warnings
+    torch_version = str(session.run("python", "-c", probe, silent=True, log=False)).split()[-1]
+    constraints = os.path.join(session.create_tmp(), "torch.txt")
+    with open(constraints, "w") as f:
+        f.write(f"torch=={torch_version}\n")  # a pin that asks for another torch fails instead of replacing it
+    session.install("-c", constraints, *lowest_requirements())
+    session.install("--no-deps", "-e", ".")
+    session.run("python", "-m", "pip", "check")
+    if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
+        session.run("npm", "ci", "--no-audit", "--no-fund", external=True)
     session.run("pytest", *(session.posargs or ["-q", *parallel_workers()]))
 
 
