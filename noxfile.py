@@ -68,8 +68,14 @@ def parallel_workers() -> list[str]:
 def tests(session: nox.Session) -> None:
     """The test suite (CPU; tests marked gpu run only where CUDA is present). Extra arguments go to pytest."""
     install_project(session, "dev")
+    run_pytest(session)
+
+
+def run_pytest(session: nox.Session) -> None:
+    """pytest with the session's arguments (default: quiet, :func:`parallel_workers`), after ``npm ci`` where
+    Node.js is present (the glTF validator of the GLB test)."""
     if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
-        session.run("npm", "ci", "--no-audit", "--no-fund", external=True)  # the glTF validator of the GLB test
+        session.run("npm", "ci", "--no-audit", "--no-fund", external=True)
     session.run("pytest", *(session.posargs or ["-q", *parallel_workers()]))
 
 
@@ -105,9 +111,7 @@ def lowest(session: nox.Session) -> None:
     session.install("-c", constraints, *lowest_requirements())
     session.install("--no-deps", "-e", ".")
     session.run("python", "-m", "pip", "check")
-    if shutil.which("npm") and not os.path.isdir("node_modules/gltf-validator"):
-        session.run("npm", "ci", "--no-audit", "--no-fund", external=True)
-    session.run("pytest", *(session.posargs or ["-q", *parallel_workers()]))
+    run_pytest(session)
 
 
 @nox.session(python=PYTHON)

@@ -28,6 +28,11 @@ __all__ = [
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 
 
+def _matrix(rows: list[list[torch.Tensor]]) -> torch.Tensor:
+    """(..., 3, 3) matrices from three rows of three (...,) entries."""
+    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+
 def _as_tensor(x: torch.Tensor | float, like: torch.Tensor | None = None) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
         return x
@@ -58,14 +63,10 @@ def azim_elev_roll_to_rotation(
     azim, elev, roll = torch.broadcast_tensors(azim, elev, roll)
     a, e, r = torch.deg2rad(azim), torch.deg2rad(-elev), torch.deg2rad(roll)
     zero, one = torch.zeros_like(a), torch.ones_like(a)
-
-    def mat(rows: list[list[torch.Tensor]]) -> torch.Tensor:
-        return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
-
     ca, sa, ce, se, cr, sr = a.cos(), a.sin(), e.cos(), e.sin(), r.cos(), r.sin()
-    r_azim = mat([[ca, zero, sa], [zero, one, zero], [-sa, zero, ca]])
-    r_elev = mat([[one, zero, zero], [zero, ce, se], [zero, -se, ce]])
-    r_roll = mat([[cr, sr, zero], [-sr, cr, zero], [zero, zero, one]])
+    r_azim = _matrix([[ca, zero, sa], [zero, one, zero], [-sa, zero, ca]])
+    r_elev = _matrix([[one, zero, zero], [zero, ce, se], [zero, -se, ce]])
+    r_roll = _matrix([[cr, sr, zero], [-sr, cr, zero], [zero, zero, one]])
     return r_azim @ r_elev @ r_roll
 
 
@@ -79,7 +80,7 @@ def _axis_rotation(axis: str, angle: torch.Tensor) -> torch.Tensor:
         "Y": [[c, zero, s], [zero, one, zero], [-s, zero, c]],
         "Z": [[c, -s, zero], [s, c, zero], [zero, zero, one]],
     }[axis]
-    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+    return _matrix(rows)
 
 
 def euler_angles_to_matrix(angles: torch.Tensor, convention: str = "XYZ") -> torch.Tensor:

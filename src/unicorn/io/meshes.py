@@ -184,14 +184,19 @@ def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         faces: (F, 3) vertex indices.
     """
     positions, index = _weld(vertices)
-    corners = positions[index[np.asarray(faces, dtype=np.int64)]]  # (F, 3, 3)
+    return _welded_normals(positions, index[np.asarray(faces, dtype=np.int64)])[index]
+
+
+def _welded_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """:func:`smooth_normals` of (P, 3) distinct ``positions`` and (F, 3) ``faces`` indexing them: (P, 3) float32."""
+    corners = positions[faces]  # (F, 3, 3)
     face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # length: twice the area
     summed = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(summed, index[np.asarray(faces)[:, k]], face_normals)
+    np.add.at(summed, faces.reshape(-1), np.repeat(face_normals, 3, axis=0))
     length = np.linalg.norm(summed, axis=1, keepdims=True)
-    unit = np.where(length > 0, summed / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
-    return unit[index].astype(np.float32)
+    flat = length[:, 0] == 0
+    summed[flat], length[flat] = (0.0, 0.0, 1.0), 1.0
+    return (summed / length).astype(np.float32)
 
 
 def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
@@ -206,8 +211,7 @@ def _texture_image(mesh: trimesh.Trimesh) -> Image.Image:
 def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Path]:
     positions, position_index = _weld(np.asarray(mesh.vertices))  # one position (and normal) per template vertex
     faces = np.asarray(mesh.faces, dtype=np.int64)
-    normals = np.zeros((len(positions), 3), np.float32)
-    normals[position_index] = smooth_normals(np.asarray(mesh.vertices), faces)
+    normals = _welded_normals(positions, position_index[faces])
     uv = np.asarray(mesh.visual.uv, dtype=np.float64)
     stem = path.stem
     lines = [f"# unicorn textured mesh: {len(positions)} vertices, {len(faces)} faces", f"mtllib {stem}.mtl"]
