@@ -324,8 +324,9 @@ def test_p3d_cad_index_out_of_the_ten_models_is_named(p3d_root: Path, cad_index,
         (np.arange(1, 9), r"parts must be \(3, 8\) .* the 8 keypoints of the flip permutation\), got \(3, 12\)"),
         (np.array([1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10]), r"flip permutation must hold each index 0\.\.11 once"),
         (None, r"car_kps\.mat has no variable 'kp_perm_inds' \(it has \['kp_names'\]\)"),
+        (np.array([2.5, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11]), r"car_kps\.mat: kp_perm_inds must be whole numbers"),
     ],
-    ids=["too-short", "zero-based", "missing"],
+    ids=["too-short", "zero-based", "missing", "fractional"],
 )
 def test_p3d_keypoint_permutation_is_checked(p3d_root: Path, perm, message) -> None:
     kps = p3d_root / "ucmr_anno/data/car_kps.mat"
@@ -341,8 +342,16 @@ def test_p3d_keypoint_permutation_is_checked(p3d_root: Path, perm, message) -> N
         (b"garbage", r"cannot read the CAD point cloud .*03_pointcloud\.pt"),
         ({"points": torch.zeros(5, 3)}, r"must hold 'points' and 'normals', got \['points'\]"),
         ({"points": torch.zeros(5, 2), "normals": torch.zeros(5, 3)}, r"must hold \(P, 3\) points and normals"),
+        (
+            {"points": torch.full((5, 3), float("nan")), "normals": torch.zeros(5, 3)},
+            r"03_pointcloud\.pt: points and normals must be as many and finite",
+        ),
+        (
+            {"points": torch.zeros(5, 3), "normals": torch.zeros(7, 3)},
+            r"must be as many and finite, got \{'points': 5, 'normals': 7\}",
+        ),
     ],
-    ids=["garbage", "no-normals", "2d-points"],
+    ids=["garbage", "no-normals", "2d-points", "nan-points", "more-normals"],
 )
 def test_p3d_bad_point_cloud_is_named(p3d_root: Path, content, message) -> None:
     path = p3d_root / "unicorn_anno/car/03_pointcloud.pt"

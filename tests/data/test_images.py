@@ -17,10 +17,12 @@ from unicorn.data.images import (
     MAX_IMAGE_PIXELS_ENV,
     ImageLoadError,
     decode_image,
+    decoded,
     load_image,
     load_mask,
     max_image_bytes,
     max_image_pixels,
+    open_image,
     set_max_image_bytes,
     set_max_image_pixels,
 )
@@ -89,6 +91,39 @@ def test_load_mask_any_mode(tmp_path: Path) -> None:
     for mode in ("L", "RGB", "1"):
         arr = load_mask(_save(tmp_path / f"m_{mode}.png", Image.fromarray(m).convert(mode)))
         assert arr.shape == (5, 5) and set(np.unique(arr)) == {0.0, 1.0} and arr.sum() == 6
+
+
+def test_load_mask_reads_colours_not_palette_indices_and_alpha_when_flat(tmp_path: Path) -> None:
+    m = np.zeros((5, 5), np.uint8)
+    m[1:3, 1:4] = 1
+    palette = Image.fromarray(m, "P")
+    palette.putpalette([255, 255, 255, 0, 0, 0])  # index 0 (the background) is white, index 1 (the shape) black
+    np.testing.assert_array_equal(load_mask(_save(tmp_path / "palette.png", palette)), m == 0)
+    green = np.zeros((5, 5, 3), np.uint8)
+    green[m == 1] = (0, 255, 0)  # nothing in the first channel
+    np.testing.assert_array_equal(load_mask(_save(tmp_path / "green.png", Image.fromarray(green))), m)
+    drawn_in_alpha = np.full((5, 5, 4), 255, np.uint8)  # white throughout, the shape opaque
+    drawn_in_alpha[..., 3] = m * 255
+    np.testing.assert_array_equal(load_mask(_save(tmp_path / "alpha.png", Image.fromarray(drawn_in_alpha))), m)
+    shaded = drawn_in_alpha.copy()
+    shaded[..., :3] = (m * 255)[..., None]  # white shape on a black background, also transparent: the colours count
+    np.testing.assert_array_equal(load_mask(_save(tmp_path / "shaded.png", Image.fromarray(shaded))), m)
+
+
+@pytest.mark.parametrize("maxval", [65535, 1023])
+def test_a_dark_sixteen_bit_pgm_is_not_read_as_eight_bit(tmp_path: Path, maxval: int) -> None:
+    values = (np.arange(16).reshape(4, 4) * 10).astype(">u2")  # 0..150 of a 16-bit (or 10-bit) range, big-endian
+    path = tmp_path / "dark.pgm"
+    path.write_bytes(b"P5\n4 4\n%d\n" % maxval + values.tobytes())
+    np.testing.assert_allclose(load_image(path)[..., 0], values / maxval, atol=1e-4)
+
+
+def test_an_image_turned_upright_keeps_its_file_format(tmp_path: Path) -> None:
+    # the format tells how an integer image's samples are scaled (a 16-bit PNG opened as mode I)
+    path = save_with_orientation(Image.new("L", (6, 4)), tmp_path / "turned.png", 6)
+    with open_image(path, path) as img:
+        turned = decoded(img, path)
+        assert turned.size == (4, 6) and turned.format == "PNG"
 
 
 def test_decompression_bomb_is_a_bad_image(tmp_path: Path) -> None:

@@ -218,6 +218,12 @@ def test_non_utf8_split_list_is_one_error_naming_it(tmp_path: Path) -> None:
         ShapeNetNMR(root)
 
 
+def test_split_list_with_a_byte_order_mark_is_read(tmp_path: Path) -> None:
+    root = _tiny_nmr(tmp_path)
+    (root / SYNSET / "softras_train.lst").write_bytes(b"\xef\xbb\xbfm0\r\nm1\r\n")  # as Windows Notepad saves it
+    assert len(ShapeNetNMR(root, split="train")) == len(ShapeNetNMR(root, split="val"))
+
+
 def _truncate(path: Path) -> None:
     path.write_bytes(path.read_bytes()[:-30])
 

@@ -113,6 +113,8 @@ def test_lsun_indices_file(tmp_path: Path) -> None:
     assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7, 8]
     (tmp_path / "indices.txt").write_text("# j k\n0 3\n\n1 7  # kept\r\n")  # comments, blank lines, CRLF
     assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7]
+    (tmp_path / "indices.txt").write_bytes(b"\xef\xbb\xbf0 3\r\n1 7\r\n")  # a byte-order mark first
+    assert read_lsun_indices(tmp_path / "indices.txt").tolist() == [3, 7]
 
 
 @pytest.mark.parametrize(

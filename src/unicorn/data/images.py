@@ -88,13 +88,13 @@ class DatasetNotFoundError(UserError, FileNotFoundError):
 
 
 def read_text(path: str | os.PathLike) -> str:
-    """The UTF-8 text of an annotation or list file.
+    """The UTF-8 text of an annotation or list file, without the byte-order mark some editors write first.
 
     Raises:
         DatasetError: the file cannot be read, or is not UTF-8 (naming the line and byte).
     """
     try:
-        return Path(path).read_text(encoding="utf-8")
+        return Path(path).read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
         line = err.object[: err.start].count(b"\n") + 1
         raise DatasetError(f"line {line} of {path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
@@ -124,6 +124,9 @@ RGB_BYTES_PER_PIXEL = 3 * 4
 MASK_BYTES_PER_PIXEL = 4
 #: how far outside [0, 1] a float image's values may lie (rounding) before the image is refused as of another scale
 FLOAT_SLACK = 1e-3
+#: file formats whose integer images (mode ``I``) hold 16-bit samples: PNG's 16-bit grey, and PGM with a maximum over
+#: 255, which Pillow rescales to 0-65535
+_SIXTEEN_BIT_FORMATS = ("PNG", "PPM")
 _PIL_LOCK = threading.Lock()
 
 
@@ -249,7 +252,9 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
     if img.mode == "F" and not np.isfinite(np.asarray(img)).all():  # the one float mode; others are integers
         raise ImageLoadError(name, "pixel values are NaN or infinite")
     if exif_orientation and img.getexif().get(ExifTags.Base.Orientation, 1) != 1:
-        img = ImageOps.exif_transpose(img)  # a copy: only made when there is something to turn
+        turned = ImageOps.exif_transpose(img)  # a copy: only made when there is something to turn
+        turned.format = img.format  # the copy keeps the file's format, which tells how its samples are scaled
+        img = turned
     return img
 
 
@@ -263,7 +268,8 @@ def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
     if img.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
         # 16-bit (or 32-bit int) grayscale: PIL's convert('L') clips instead of rescaling
         arr = np.asarray(img, dtype=np.float64)
-        peak = 65535.0 if img.mode.startswith("I;16") or arr.max() > 255 else 255.0
+        sixteen_bit = img.mode.startswith("I;16") or img.format in _SIXTEEN_BIT_FORMATS or arr.max() > 255
+        peak = 65535.0 if sixteen_bit else 255.0  # a dark 16-bit image is not an 8-bit one
         gray = np.clip(arr / peak, 0.0, 1.0).astype(np.float32)
         return np.repeat(gray[..., None], 3, axis=-1)
     if img.mode == "F":
@@ -320,13 +326,24 @@ def decode_image(data: bytes, name: str, exif_orientation: bool = True) -> np.nd
 
 
 def load_mask(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
-    """Read a mask image (any mode, first channel) as an (H, W) float32 array in {0, 1}, oriented as
-    :func:`load_image` orients its image."""
+    """Read a mask image as an (H, W) float32 array in {0, 1}, oriented as :func:`load_image` orients its image.
+
+    The mask is the image's grey level (colour and palette images by their luminance, PIL's ``convert("L")``), or
+    its alpha channel where an image with transparency is of one colour throughout, thresholded at half its maximum.
+    """
     with open_image(path, path, MASK_BYTES_PER_PIXEL) as img:
-        arr = np.asarray(decoded(img, path, exif_orientation))
-    if arr.ndim == 3:
-        arr = arr[..., 0]
+        arr = _mask_levels(decoded(img, path, exif_orientation))
     return (arr > arr.max() / 2 if arr.max() > 0 else arr > 0).astype(np.float32)
+
+
+def _mask_levels(img: Image.Image) -> np.ndarray:
+    """(H, W) levels of a mask image, before thresholding."""
+    if img.mode in ("F", "I") or img.mode.startswith("I;16"):
+        return np.asarray(img)  # one band of floats or wide integers, which convert("L") would clip
+    grey = np.asarray(img.convert("L"))  # a palette image's colours, not its palette indices
+    if has_transparency(img) and grey.min() == grey.max():  # the shape is drawn in the alpha channel alone
+        return np.asarray(img.convert("RGBA"))[..., 3]
+    return grey
 
 
 def to_chw_tensor(arr: np.ndarray) -> torch.Tensor:

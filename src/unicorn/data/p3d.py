@@ -77,6 +77,9 @@ def _read_pointcloud(path: Path) -> dict[str, torch.Tensor]:
     if any(t.dim() != 2 or t.shape[1] != 3 or t.shape[0] == 0 for t in cloud.values()):
         shapes = {k: tuple(t.shape) for k, t in cloud.items()}
         raise DatasetError(f"the CAD point cloud {path} must hold (P, 3) points and normals, got shapes {shapes}")
+    if len(cloud["points"]) != len(cloud["normals"]) or not all(t.isfinite().all() for t in cloud.values()):
+        counts = {k: len(t) for k, t in cloud.items()}
+        raise DatasetError(f"the CAD point cloud {path}: points and normals must be as many and finite, got {counts}")
     return cloud
 
 
@@ -127,9 +130,12 @@ class Pascal3DCar(BBoxCropDataset):
                 names = sorted(k for k in kps if not k.startswith("__"))
                 raise DatasetError(f"{kps_file} has no variable 'kp_perm_inds' (it has {names})")
             try:
-                flip_perm = np.atleast_1d(kps["kp_perm_inds"]).astype(np.int64) - 1  # MATLAB indices are 1-based
+                perm = np.atleast_1d(kps["kp_perm_inds"]).astype(np.float64)
             except (TypeError, ValueError):
-                raise DatasetError(f"{kps_file}: kp_perm_inds must be whole numbers") from None
+                perm = np.array([np.nan])
+            if not (np.isfinite(perm).all() and (perm == np.round(perm)).all()):
+                raise DatasetError(f"{kps_file}: kp_perm_inds must be whole numbers")
+            flip_perm = perm.astype(np.int64) - 1  # MATLAB indices are 1-based
         self.root, self.split = root, split
         self.with_points = (split == "test") if with_points is None else with_points
         self.cad_pointclouds = load_cad_pointclouds(root) if self.with_points else None
