@@ -126,3 +126,9 @@ def test_a_blend_names_the_argument_of_the_wrong_shape(scene, blend):
     ]:
         with pytest.raises(ValueError, match=message):
             blend(*args)
+    for args, message in [
+        ((colors.float(), frags, bg), r"^colors is torch.float32 but fragments.bary is torch.float64: give both the"),
+        ((colors, frags, bg.float()), r"^bg_table is torch.float32 but fragments.bary is torch.float64: give both"),
+    ]:
+        with pytest.raises(TypeError, match=message):  # blends add colours and weights: no silent promotion
+            blend(*args)

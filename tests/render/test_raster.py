@@ -268,6 +268,26 @@ def test_a_pixel_centre_on_shared_edges_is_covered_by_exactly_one_face(dtype, ca
     assert int(covered.max()) == 1 and int(covered[:2].sum() + covered[:, :2].sum()) == 0
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("capacity", [None, (4096, 4096)], ids=["packed", "fixed"])
+def test_a_fan_centred_on_a_pixel_centre_covers_it_once(dtype, capacity):
+    # the centre vertex on the optical axis sits on the middle pixel's centre of an odd image (a cone's apex, a
+    # sphere's pole): every edge through it must pass exactly through it, whatever its slope
+    holes, doubles = [], []
+    for n in range(3, 33):
+        angles = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n + 0.1 * n
+        rim = torch.stack([0.4 * angles.cos(), 0.4 * angles.sin(), torch.full_like(angles, 3.0)], 1)
+        verts = torch.cat([torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64), rim]).to(dtype)[None]
+        faces = torch.tensor([[0, 1 + i, 1 + (i + 1) % n] for i in range(n)])
+        for size in (1, 3, 9, 15):
+            frags = rasterize_meshes(verts, faces, size, 0.0, 8, capacity=capacity)
+            covered = torch.bincount(frags.pix[frags.inside], minlength=size * size)
+            centre = (size // 2) * size + size // 2
+            holes += [(n, size)] if int(covered[centre]) == 0 else []
+            doubles += [(n, size)] if int(covered.max()) > 1 else []
+    assert holes == [] and doubles == []
+
+
 @pytest.mark.parametrize("capacity", [None, (512, 512)], ids=["packed", "fixed"])
 def test_the_depth_order_of_a_pixel_does_not_depend_on_the_other_images(capacity):
     # two faces 1e-4 apart in image 0; image 1 holds a face a million units away, which stretches the batch's depths
@@ -341,3 +361,14 @@ def test_near_miss_distance_in_ndc_units():
     assert (expected[~frags.inside] < blur).all()
     # every pixel within the radius is there: 16 rows x (covered columns + 3 near-miss columns)
     assert frags.num_pairs == size * int(((1 - (2 * torch.arange(size) + 1) / size) > edge - 3 * 2.0 / size).sum())
+
+
+def test_a_whole_float_number_of_faces_per_pixel_gives_the_fragments_of_that_integer():
+    verts, faces, R, T = posed_ellipsoids(batch=1, level=2)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    for truncate in (False, True):
+        whole = rasterize_meshes(ndc, faces, 16, 1e-3, 2, truncate_opaque=truncate)
+        given_as_float = rasterize_meshes(ndc, faces, 16, 1e-3, 2.0, truncate_opaque=truncate, max_candidates=1e6)
+        assert given_as_float.slot.dtype == torch.int64 and type(given_as_float.num_slots) is int
+        assert torch.equal(given_as_float.slot, whole.slot) and torch.equal(given_as_float.pix, whole.pix)
+        assert given_as_float.to_dense().zbuf.shape == whole.to_dense().zbuf.shape

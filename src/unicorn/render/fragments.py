@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..checks import check_shape
+from ..checks import check_same_dtype, check_shape
 
 __all__ = ["DenseFragments", "Fragments", "check_blend_inputs"]
 
@@ -145,9 +145,12 @@ def check_blend_inputs(
     (P, C), one background colour per output pixel (``pixels``; default B * H * W of the fragments).
 
     Raises:
-        unicorn.checks.ShapeError: names the argument and the shape it must have (TypeError: not a tensor).
+        unicorn.checks.ShapeError: names the argument and the shape it must have (TypeError: not a tensor, or
+            ``colors`` and ``bg_table`` of another dtype than the fragments' barycentrics).
     """
     H, W = fragments.image_size
     dims = {"M": fragments.pix.shape[0], "P": fragments.batch_size * H * W if pixels is None else pixels}
     check_shape(colors, "M, C", "colors", dims, floating=True)
     check_shape(bg_table, "P, C", "bg_table", dims, floating=True)
+    check_same_dtype(colors, fragments.bary, "colors", "fragments.bary")  # blends add the two: no silent promotion
+    check_same_dtype(bg_table, fragments.bary, "bg_table", "fragments.bary")

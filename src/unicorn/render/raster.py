@@ -264,6 +264,7 @@ def rasterize_meshes(
         check_mesh_inputs(verts_ndc, faces)
     check_whole_number("faces_per_pixel", faces_per_pixel, 1)
     check_whole_number("max_candidates", max_candidates, 1)
+    faces_per_pixel, max_candidates = int(faces_per_pixel), int(max_candidates)  # 2.0 is accepted, as 2
     if max_bytes is not None:
         check_whole_number("max_bytes", max_bytes, 0)
     for name, flag in (("truncate_opaque", truncate_opaque), ("perspective_correct", perspective_correct)):

@@ -240,7 +240,7 @@ def _candidate_pixels(
     del local, start
 
     flat_face = active.index_select(0, owner)
-    # barycentrics are affine in the pixel position: three multiply-adds per candidate
+    # barycentrics are affine in the pixel position: two products per edge and candidate
     coef = barycentric_coefficients(fpx.reshape(-1, 3, 2).index_select(0, active))
     bary, inside = covered_barycentric(coef, owner, px.to(coef.dtype).unsqueeze(1), py.to(coef.dtype).unsqueeze(1))
     del owner

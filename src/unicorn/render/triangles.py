@@ -32,11 +32,13 @@ def barycentric(tri: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.
 
 
 def barycentric_coefficients(tri: torch.Tensor) -> torch.Tensor:
-    """(N, 15) coefficients of the 2D triangles (N, 3, 2) for :func:`covered_barycentric`, five groups of three
+    """(N, 18) coefficients of the 2D triangles (N, 3, 2) for :func:`covered_barycentric`, six groups of three
     (one per vertex i and the edge opposite it):
 
-    - ``A, B, C``: the edge's line function ``e_i = A_i x + B_i y + C_i``, its endpoints taken in a fixed order
-      (the lesser by (x, y) first), so that two triangles sharing an edge compute the same ``e_i`` at every point;
+    - ``A, B, xp, yp``: the edge's line function ``e_i = A_i (x - xp_i) + B_i (y - yp_i)`` from its first endpoint
+      ``(xp, yp)``, its endpoints taken in a fixed order (the lesser by (x, y) first), so that two triangles sharing
+      an edge compute the same ``e_i`` at every point, and ``e_i`` is exactly 0 at both endpoints (a vertex on a
+      pixel centre lies on each of its edges, not a rounding error off some of them);
     - ``k``: the factor (+-1 over twice the signed area; 0 for a degenerate triangle) making ``k_i e_i`` the
       barycentric ``w_i``;
     - ``t``: 1 where the triangle owns the points exactly on that edge, else 0: those whose interior lies toward
@@ -51,26 +53,27 @@ def barycentric_coefficients(tri: torch.Tensor) -> torch.Tensor:
     xp, yp = torch.where(swap, xk, xj), torch.where(swap, yk, yj)
     xq, yq = torch.where(swap, xj, xk), torch.where(swap, yj, yk)
     a, b = -(yq - yp), xq - xp
-    c = (yq - yp) * xp - (xq - xp) * yp
     area = _edge(x[..., 0], y[..., 0], x[..., 1], y[..., 1], x[..., 2], y[..., 2]).unsqueeze(-1)
     sign = torch.where(swap, -1.0, 1.0).to(area.dtype)
     k = torch.where(area != 0, sign / area, torch.zeros_like(area))
     owns = (k * a > 0) | ((a == 0) & (k * b > 0))
-    return torch.cat([a, b, c, k, owns.to(k.dtype)], dim=-1)
+    return torch.cat([a, b, xp, yp, k, owns.to(k.dtype)], dim=-1)
 
 
 def covered_barycentric(
     coef: torch.Tensor, face: torch.Tensor, px: torch.Tensor, py: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Unclipped barycentrics (P, 3) of the points (P, 1) ``px``, ``py`` in their triangles ``face`` (P,), indices
-    into the triangles' :func:`barycentric_coefficients` ``coef`` (N, 15), and whether each point is covered (P,):
+    into the triangles' :func:`barycentric_coefficients` ``coef`` (N, 18), and whether each point is covered (P,):
     inside, or on an edge its triangle owns. A point on an edge two triangles share is covered by exactly one.
     """
-    lines = coef[:, :9].index_select(0, face)  # gathered in parts: the largest tensors of the rasterizer
-    e = torch.addcmul(torch.addcmul(lines[:, 6:], lines[:, :3], px), lines[:, 3:6], py)
+    lines = coef[:, :12].index_select(0, face)  # gathered in parts: the largest tensors of the rasterizer
+    # two rounded products, not fused: at the edge's far end A dx + B dy = -(dy dx) + dx dy, exactly 0
+    e = torch.sub(px, lines[:, 6:9]).mul_(lines[:, :3])
+    e.add_(torch.sub(py, lines[:, 9:12]).mul_(lines[:, 3:6]))
     del lines
-    k = coef[:, 9:12].index_select(0, face)
-    on_owned = (e == 0) & (coef[:, 12:] > 0).index_select(0, face)
+    k = coef[:, 12:15].index_select(0, face)
+    on_owned = (e == 0) & (coef[:, 15:] > 0).index_select(0, face)
     bary = e.mul_(k)
     return bary, ((bary > 0) | on_owned).all(-1)
 
