@@ -10,6 +10,7 @@ import scipy.io
 import torch
 from PIL import Image
 
+from tests.support.checkpoints import deflated_torch_file
 from tests.support.datasets import make_record, save_with_orientation, write_struct_array
 from unicorn.data.cub import CUB200, CUB_FLIP_PERM, CUB_KEYPOINTS
 from unicorn.data.framing import hflip_keypoints
@@ -350,12 +351,15 @@ def test_p3d_keypoint_permutation_is_checked(p3d_root: Path, perm, message) -> N
             {"points": torch.zeros(5, 3), "normals": torch.zeros(7, 3)},
             r"must be as many and finite, got \{'points': 5, 'normals': 7\}",
         ),
+        ("deflated", r"cannot read the CAD point cloud \S+03_pointcloud\.pt: its entry '\S+' is compressed"),
     ],
-    ids=["garbage", "no-normals", "2d-points", "nan-points", "more-normals"],
+    ids=["garbage", "no-normals", "2d-points", "nan-points", "more-normals", "deflated"],
 )
 def test_p3d_bad_point_cloud_is_named(p3d_root: Path, content, message) -> None:
     path = p3d_root / "unicorn_anno/car/03_pointcloud.pt"
-    if isinstance(content, bytes):
+    if content == "deflated":
+        deflated_torch_file({"points": torch.zeros(5, 3), "normals": torch.zeros(5, 3)}, path)
+    elif isinstance(content, bytes):
         path.write_bytes(content)
     else:
         torch.save(content, path)

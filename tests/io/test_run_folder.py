@@ -11,12 +11,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.checkpoints import deflated_torch_file
 from unicorn.errors import UserError
 from unicorn.io.run_folder import (
     LOCK_NAME,
     FolderChanges,
     RunFolderBusyError,
     RunFolderError,
+    checkpoint_step,
     lock_folder,
     plan_folder,
     resolve_ckpt,
@@ -84,6 +86,18 @@ def _finished_run(folder: Path) -> Path:
     for name in ("checkpoints/last.ckpt", "checkpoints/step=0000004.ckpt", "csv/metrics.csv", "config.yaml"):
         (folder / name).write_text("the run's")
     return folder
+
+
+def test_the_step_of_a_checkpoint_is_read_without_inflating_it(tmp_path, monkeypatch) -> None:
+    import torch
+
+    plain = tmp_path / "mine.ckpt"
+    torch.save({"global_step": 7, "state_dict": {"w": torch.zeros(4)}}, plain)
+    assert checkpoint_step(plain) == 7
+    deflated = deflated_torch_file({"global_step": 7, "pad": torch.zeros(2**16)}, tmp_path / "bomb.ckpt")
+    read = []
+    monkeypatch.setattr(torch, "load", lambda *a, **k: read.append(a))
+    assert checkpoint_step(deflated) is None and not read  # refused from its zip directory: the step is unknown
 
 
 def test_a_run_resumed_from_another_folders_checkpoint_does_not_replace_the_run_here(tmp_path) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.support.checkpoints import malicious
+from tests.support.checkpoints import deflated_torch_file, malicious
 from unicorn.errors import UserError
 from unicorn.io.serialization import (
     INTEGRITY_KEY,
@@ -146,14 +146,9 @@ def test_damaged_zip_is_one_line(tmp_path: Path) -> None:
 
 
 def test_zip_entries_that_would_inflate_are_refused_from_the_directory(tmp_path: Path, monkeypatch) -> None:
-    import zipfile
-
     saved = tmp_path / "saved.pt"
     torch.save({"w": torch.zeros(2**16)}, saved)  # 256 KiB of zeros: deflated to a few hundred bytes
-    deflated = tmp_path / "deflated.pt"
-    with zipfile.ZipFile(saved) as zin, zipfile.ZipFile(deflated, "w", zipfile.ZIP_DEFLATED) as zout:
-        for entry in zin.infolist():
-            zout.writestr(entry.filename, zin.read(entry.filename))
+    deflated = deflated_torch_file({"w": torch.zeros(2**16)}, tmp_path / "deflated.pt")
     assert deflated.stat().st_size < saved.stat().st_size // 20
     # entries declaring more bytes than the file holds: overlapping entries, as torch.save never writes them
     overlapping = tmp_path / "overlapping.pt"

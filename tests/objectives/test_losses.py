@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from tests.support.checkpoints import deflated_torch_file
 from unicorn.errors import UserError
 from unicorn.geometry.mesh import ellipsoid
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
@@ -32,6 +33,7 @@ from unicorn.objectives import (
 )
 from unicorn.objectives.perceptual import (
     VGG16_URL,
+    VGGWeightsError,
     VGGWeightsNotFoundError,
     load_vgg16_weights,
     vgg16_cache_path,
@@ -168,6 +170,26 @@ def test_missing_vgg_file_error(tmp_path):
     assert _one_line_with_options(message)
 
 
+def test_a_vgg_file_that_is_not_torchvisions_vgg16_is_one_line_naming_it(tmp_path, monkeypatch):
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_bytes(b"<html>404 Not Found</html>")  # a failed download saved under the weights' name
+    not_a_dict, wrong_keys, wrong_shape = tmp_path / "tensor.pth", tmp_path / "resnet.pth", tmp_path / "shape.pth"
+    torch.save(torch.zeros(3), not_a_dict)
+    torch.save({"conv1.weight": torch.zeros(64, 3, 7, 7)}, wrong_keys)
+    torch.save({**torchvision_vgg16_state(), "features.0.bias": torch.zeros(3)}, wrong_shape)
+    deflated = deflated_torch_file(torchvision_vgg16_state(), tmp_path / "deflated.pth")
+    for path, message in [
+        (garbage, r"cannot read the VGG16 weights \S+garbage.pth: it is not a file written by torch.save$"),
+        (deflated, r"cannot read the VGG16 weights \S+deflated.pth: its entry '\S+' is compressed"),
+        (not_a_dict, r"the VGG16 weights \S+tensor.pth hold Tensor, not a state dict$"),
+        (wrong_keys, r"^VGG16 state dict lacks 'features.0.weight' \(is it torchvision's vgg16\?\)$"),
+        (wrong_shape, r"^VGG16 state dict: 'features.0.bias' is \(3,\), expected shape \(64,\)$"),
+    ]:
+        with pytest.raises(VGGWeightsError, match=message) as err:
+            VGGPerceptualLoss(path)
+        assert isinstance(err.value, UserError) and "\n" not in str(err.value)
+
+
 @pytest.fixture
 def torch_home(tmp_path, monkeypatch):
     """An empty torch hub cache (as torchvision uses it) under tmp_path."""
@@ -235,7 +257,7 @@ def test_vgg_perceptual_from_file_matches_hand_computation(tmp_path):
     assert float(loss(target, target).abs().max()) < 1e-10
     value.sum().backward()
     assert rec.grad.abs().sum() > 0
-    with pytest.raises(KeyError, match="features.14.weight"):
+    with pytest.raises(VGGWeightsError, match="features.14.weight"):
         VGGPerceptualLoss({k: v for k, v in state.items() if k != "features.14.weight"})
 
 

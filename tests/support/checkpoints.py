@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 import os
+import zipfile
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -124,4 +126,16 @@ class Payload:
 def malicious(path: Path, marker: Path, data: dict | None = None) -> Path:
     """Save ``data`` (default: a small dict) with a payload inside it."""
     torch.save({**(data or {"weights": torch.zeros(2)}), "epoch": Payload(marker)}, path)
+    return path
+
+
+def deflated_torch_file(obj: Any, path: Path) -> Path:
+    """``torch.save`` of ``obj`` re-packed with compressed (deflated) zip entries, which ``torch.save`` never writes
+    and ``torch.load`` would inflate in memory before anything is checked: a decompression bomb's layout."""
+    saved = path.with_name(path.name + ".stored")
+    torch.save(obj, saved)
+    with zipfile.ZipFile(saved) as zin, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zout:
+        for entry in zin.infolist():
+            zout.writestr(entry.filename, zin.read(entry.filename))
+    saved.unlink()
     return path

@@ -21,6 +21,7 @@ from unicorn.data.annotated import BBoxCropDataset
 from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, DatasetNotFoundError, require
 from unicorn.data.matlab import load_struct_array, read_mat
+from unicorn.torch_files import torch_file_problem
 
 __all__ = ["Pascal3DCar", "load_cad_pointclouds"]
 
@@ -64,6 +65,9 @@ def _read_pointcloud(path: Path) -> dict[str, torch.Tensor]:
     Raises:
         DatasetError: the file is not such a point cloud (truncated, another format, other keys or shapes).
     """
+    problem = torch_file_problem(path)
+    if problem:
+        raise DatasetError(f"cannot read the CAD point cloud {path}: {problem}")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)

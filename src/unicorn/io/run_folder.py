@@ -29,6 +29,7 @@ from typing import Any
 
 from unicorn.errors import UserError
 from unicorn.io.serialization import CheckpointNotFoundError, check_checkpoint_path
+from unicorn.torch_files import torch_file_problem
 
 __all__ = [
     "LOCK_NAME",
@@ -160,6 +161,8 @@ def checkpoint_step(path: Path) -> int | None:
         return int(match.group(1))
     import torch
 
+    if torch_file_problem(path):  # e.g. a zip whose compressed entries would inflate in memory
+        return None
     try:
         data = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # unreadable without trust, or not a checkpoint: the step is unknown

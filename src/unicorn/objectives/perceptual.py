@@ -22,6 +22,7 @@ import math
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +34,7 @@ from unicorn.errors import UserError
 from unicorn.model.config import LOSS_KEYS
 from unicorn.model.filtering import separable_filter
 from unicorn.registry import Registry
+from unicorn.torch_files import torch_file_problem
 
 __all__ = [
     "VGG16_FILE",
@@ -40,6 +42,7 @@ __all__ = [
     "StructuralLoss",
     "VGG16Relu33",
     "VGGPerceptualLoss",
+    "VGGWeightsError",
     "VGGWeightsNotFoundError",
     "build_perceptual",
     "list_perceptual_losses",
@@ -83,6 +86,10 @@ class VGGWeightsNotFoundError(UserError, FileNotFoundError):
     """The perceptual loss's VGG16 weights are neither where the user said nor in (nor downloadable to) the cache."""
 
 
+class VGGWeightsError(UserError, ValueError):
+    """The file given for the VGG16 weights cannot be read, or is not torchvision's VGG16 state dict."""
+
+
 def vgg16_cache_path() -> Path:
     """Where torch's hub (and torchvision) keeps the VGG16 file: ``<torch.hub.get_dir()>/checkpoints/<file>``."""
     return Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILE
@@ -99,6 +106,7 @@ def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) ->
     Raises:
         VGGWeightsNotFoundError: the file is missing and cannot be downloaded; the one-line message says what to
             pass (``paths.vgg16`` / ``UNICORN_VGG16``), where the cache is, and the weights-free alternative.
+        VGGWeightsError: the file cannot be read (not a ``torch.save`` file, or one that would inflate in memory).
     """
     cache = vgg16_cache_path()
     if path is not None:
@@ -106,7 +114,7 @@ def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) ->
         if not path.is_file():
             options = _VGG16_OPTIONS.format(cache=cache.parent)
             raise VGGWeightsNotFoundError(f"VGG16 weights for the perceptual loss not found at {path}: {options}")
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = _read_weights(path)
     elif cache.is_file() or download:
         try:
             state = torch.hub.load_state_dict_from_url(
@@ -124,7 +132,20 @@ def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) ->
         raise VGGWeightsNotFoundError(f"VGG16 weights for the perceptual loss: no {cache}; {options}")
     if isinstance(state, Mapping) and "state_dict" in state:
         state = state["state_dict"]
+    if not isinstance(state, Mapping):
+        raise VGGWeightsError(f"the VGG16 weights {path or cache} hold {type(state).__name__}, not a state dict")
     return dict(state)
+
+
+def _read_weights(path: Path) -> Any:
+    """A weights file, through :func:`~unicorn.torch_files.torch_file_problem` and ``torch.load`` without code."""
+    problem = torch_file_problem(path)
+    if problem is None:
+        try:
+            return torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
+            problem = " ".join(str(err).split())[:200] or type(err).__name__
+    raise VGGWeightsError(f"cannot read the VGG16 weights {path}: {problem}")
 
 
 class VGG16Relu33(nn.Module):
@@ -155,19 +176,19 @@ class VGG16Relu33(nn.Module):
         """Copy the ``features.N.weight`` / ``.bias`` entries (N < 16) of a torchvision VGG16 state dict.
 
         Raises:
-            KeyError: an expected entry is missing.
-            ValueError: an entry has the wrong shape.
+            VGGWeightsError: an expected entry is missing, or is not a tensor of its shape.
         """
         for i, _, _ in _CONVS:
             conv = self.features[i]
             for name in ("weight", "bias"):
                 key = f"features.{i}.{name}"
                 if key not in state_dict:
-                    raise KeyError(f"VGG16 state dict lacks '{key}' (is it torchvision's vgg16?)")
+                    raise VGGWeightsError(f"VGG16 state dict lacks '{key}' (is it torchvision's vgg16?)")
                 value = state_dict[key]
                 target = getattr(conv, name)
-                if tuple(value.shape) != tuple(target.shape):
-                    raise ValueError(f"'{key}' has shape {tuple(value.shape)}, expected {tuple(target.shape)}")
+                if not isinstance(value, torch.Tensor) or tuple(value.shape) != tuple(target.shape):
+                    got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+                    raise VGGWeightsError(f"VGG16 state dict: '{key}' is {got}, expected shape {tuple(target.shape)}")
                 with torch.no_grad():
                     target.copy_(value)
 
@@ -189,6 +210,7 @@ class VGGPerceptualLoss(nn.Module):
 
     Raises:
         VGGWeightsNotFoundError: no weights (the one-line message says what to pass).
+        VGGWeightsError: the weights cannot be read or are not torchvision's VGG16.
     """
 
     mean: torch.Tensor
