@@ -67,6 +67,40 @@ def test_restored_training_module_gives_the_same_losses(expected):
         _assert_same(got, expected[f"step_{name}"])
 
 
+def _without(mapping: dict, key: str) -> dict:
+    return {k: v for k, v in mapping.items() if k != key}
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda u: {**u, "ranks": []}, r"resume state's 'unicorn' entry must be a dict whose 'ranks' is a non-empty"),
+        (lambda u: [u], r"resume state's 'unicorn' entry must be a dict"),
+        (lambda u: {**u, "ranks": [_without(u["ranks"][0], "rng")]}, r"resume state's ranks\[0\]\.rng must be"),
+        (lambda u: {**u, "ranks": [_without(u["ranks"][0], "memory")]}, r"ranks\[0\]\.memory must be a dict of"),
+        (
+            lambda u: {**u, "ranks": [{**u["ranks"][0], "rng": {**u["ranks"][0]["rng"], "torch": torch.zeros(3)}}]},
+            r"ranks\[0\]\.rng must be torch, numpy and python random states \(TypeError\)",
+        ),
+    ],
+    ids=["no-ranks", "a-list", "no-rng", "no-memory", "bad-torch-state"],
+)
+def test_a_malformed_resume_state_is_refused_before_anything_is_restored(change, message):
+    from unicorn.io.serialization import CheckpointError
+
+    ckpt = torch.load(FIXTURES / "tiny_run.ckpt", map_location="cpu", weights_only=False)
+    module = UnicornLitModule(**ckpt["hyper_parameters"])
+    before = torch.get_rng_state()
+    with pytest.raises(CheckpointError, match=message) as info:
+        module.on_load_checkpoint({**ckpt, "unicorn": change(ckpt["unicorn"])})
+    assert "\n" not in str(info.value) and torch.equal(torch.get_rng_state(), before)
+    memory = ckpt["unicorn"]["ranks"][0]["memory"]
+    broken = {**ckpt["unicorn"], "ranks": [{**ckpt["unicorn"]["ranks"][0], "memory": _without(memory, "images")}]}
+    module.on_load_checkpoint({**ckpt, "unicorn": broken})  # tensors of the right types: found when restored
+    with pytest.raises(CheckpointError, match=r"resume state's neighbour memory cannot be restored: a neighbour"):
+        module.on_train_start()
+
+
 @pytest.mark.parametrize("composite", ["direct", "reference"])
 def test_background_model_renders_the_same(expected, composite):
     torch.manual_seed(0)

@@ -88,6 +88,25 @@ def test_background_none_skips_its_checks() -> None:
     assert cfg["background"] is None
 
 
+@pytest.mark.parametrize(
+    "group, key, value, message",
+    [
+        ("pose", "azim_range", None, r"pose\.azim_range must be two finite numbers \[min, max\] .*, got None"),
+        ("pose", "roll_range", 30, r"pose\.roll_range must be two finite numbers .*, got 30"),
+        ("renderer", "background_color", None, r"renderer\.background_color must be three numbers .*, got None"),
+        ("encoder", "pooled", None, r"encoder\.pooled must name distinct stages of .*, got None"),
+        ("encoder", "own", None, r"encoder\.own must be a list of branch names, got None"),
+        ("encoder", "own", "texture", r"encoder\.own must be a list of branch names, got 'texture'"),
+    ],
+)
+def test_a_list_setting_of_another_type_is_named(group, key, value, message) -> None:
+    # a checkpoint's stored settings reach these checks untyped (a released .pkl's rend_predictor.azim_range: null)
+    cfg = merge_config()
+    cfg[group][key] = value
+    with pytest.raises(ValueError, match=message):
+        check_model_config(cfg)
+
+
 def test_training_config_uses_the_same_checks() -> None:
     # the same range and choice, reported under the training config's key
     base = {

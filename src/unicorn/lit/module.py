@@ -107,6 +107,38 @@ def _set_rng_state(state: Mapping[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def _check_resume_state(state: Any, where: str) -> None:
+    """``checkpoint["unicorn"]`` as :meth:`UnicornLitModule.on_save_checkpoint` writes it (None: absent): one entry
+    per rank with its neighbour memory (tensors or None) and random states, which are tried on scratch generators.
+
+    Raises:
+        unicorn.io.serialization.CheckpointError: the first field that differs, named (a checkpoint changed by hand
+            or by another program: its hash was re-sealed or absent).
+    """
+    from unicorn.io.serialization import CheckpointError
+
+    def refuse(field: str, what: str) -> CheckpointError:
+        return CheckpointError(f"{where}: its resume state's {field} must be {what}")
+
+    if state is None:
+        return
+    ranks = state.get("ranks") if isinstance(state, Mapping) else None
+    if not isinstance(ranks, list) or not ranks:
+        raise refuse("'unicorn' entry", "a dict whose 'ranks' is a non-empty list")
+    for i, rank in enumerate(ranks):
+        memory = rank.get("memory") if isinstance(rank, Mapping) else None
+        if not isinstance(memory, Mapping) or any(v is not None and not torch.is_tensor(v) for v in memory.values()):
+            raise refuse(f"ranks[{i}].memory", "a dict of tensors")
+        rng = rank.get("rng")
+        try:
+            torch.Generator().set_state(rng["torch"])
+            name, keys, pos, has_gauss, gauss = rng["numpy"]
+            np.random.RandomState().set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+            random.Random().setstate(rng["python"])
+        except Exception as err:  # noqa: BLE001 - each generator refuses a bad state in its own way
+            raise refuse(f"ranks[{i}].rng", f"torch, numpy and python random states ({type(err).__name__})") from None
+
+
 @functools.lru_cache(maxsize=4)
 def _averaging_draws(base: int, chunk: int) -> tuple[float, ...]:
     """The texture-averaging draws of iterations ``chunk * _DRAWS`` to ``(chunk + 1) * _DRAWS - 1``: each the first
@@ -459,7 +491,8 @@ class UnicornLitModule(L.LightningModule):
         keep its neighbour memory and random states for :meth:`on_train_start`.
 
         Raises:
-            unicorn.io.serialization.CheckpointError: weights of another model (``ckpt_path`` with other settings).
+            unicorn.io.serialization.CheckpointError: weights of another model (``ckpt_path`` with other settings),
+                or a resume state not as this class saves it.
         """
         from unicorn.io.checkpoints import check_weights_fit
         from unicorn.io.serialization import CheckpointError
@@ -467,6 +500,7 @@ class UnicornLitModule(L.LightningModule):
         path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
         check_weights_fit(checkpoint.get("state_dict", {}), self.state_dict(), "ckpt_path", path or "the checkpoint")
         # applied in on_train_start: the random state must be set after everything that precedes training
+        _check_resume_state(checkpoint.get("unicorn"), f"ckpt_path {path or 'the checkpoint'}")
         self._resume_state = checkpoint.get("unicorn")
         saved, own = (
             len(checkpoint.get("optimizer_states", [])),
@@ -490,7 +524,15 @@ class UnicornLitModule(L.LightningModule):
         ranks = state["ranks"]
         mine = ranks[self.global_rank % len(ranks)]
         memory = self.objectives.memory
-        memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
+        try:
+            memory.load_state({k: (None if v is None else v.to(self.device)) for k, v in mine["memory"].items()})
+        except (KeyError, ValueError, RuntimeError, IndexError) as err:  # tensors, but not a memory's layout
+            from unicorn.io.serialization import CheckpointError
+
+            where = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
+            raise CheckpointError(
+                f"ckpt_path {where or 'the checkpoint'}: its resume state's neighbour memory cannot be restored: {err}"
+            ) from None
         _set_rng_state(mine["rng"])
         latest = mine.get("latest_terms", {})  # absent from older checkpoints
         self._latest_terms = {kind: _to_device(terms, self.device) for kind, terms in latest.items()}

@@ -304,10 +304,16 @@ def _finite_numbers(value: Any, n: int) -> bool:
     )
 
 
+def _listed(value: Any) -> Any:
+    """A list of ``value``'s items where it is a sequence (a list, a tuple, an OmegaConf list), else ``value`` as it
+    is, for the checks to name: a checkpoint's settings are not typed by the schema (None, a number)."""
+    return list(value) if isinstance(value, Sequence) and not isinstance(value, str | bytes) else value
+
+
 def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
     """The candidates' angle ranges are ``(min, max)`` degrees with ``min <= max``."""
     for name in ("azim_range", "elev_range", "roll_range"):
-        value = list(cfg["pose"][name])
+        value = _listed(cfg["pose"][name])
         if not _finite_numbers(value, 2) or value[1] < value[0]:
             raise ModelConfigError(
                 f"{prefix}pose.{name} must be two finite numbers [min, max] with min <= max, got {value}"
@@ -317,7 +323,7 @@ def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
 def _check_background_color(renderer: Mapping[str, Any]) -> None:
     """The renderer's background colour is RGB in [0, 1] (``renderer.background_color`` in the model's and in
     the training configuration alike)."""
-    color = list(renderer["background_color"])
+    color = _listed(renderer["background_color"])
     if not _finite_numbers(color, 3) or not all(0 <= c <= 1 for c in color):
         raise ModelConfigError(f"renderer.background_color must be three numbers in [0, 1] (RGB), got {color}")
 
@@ -326,7 +332,7 @@ def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
     """``encoder.pooled`` names distinct ResNet stages, at least one."""
     from unicorn.model.encoder import STAGES, distinct_stages
 
-    pooled = list(cfg["encoder"]["pooled"])
+    pooled = _listed(cfg["encoder"]["pooled"])
     if not distinct_stages(pooled):
         raise ModelConfigError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
 
@@ -345,7 +351,9 @@ def _check_symmetric_texture(cfg: Mapping[str, Any], prefix: str) -> None:
 
 def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
     """``encoder.own`` names distinct branches the model has, not all of them, and only with a shared encoder."""
-    own = list(cfg["encoder"]["own"])
+    own = _listed(cfg["encoder"]["own"])
+    if not isinstance(own, list) or not all(isinstance(b, str) for b in own):
+        raise ModelConfigError(f"{prefix}encoder.own must be a list of branch names, got {own!r}")
     if not own:
         return
     branches = model_branches(cfg["background"] is not None)

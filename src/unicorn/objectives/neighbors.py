@@ -261,7 +261,7 @@ class NeighborMemory:
 def _ring(state: Mapping[str, torch.Tensor | None], size: int) -> dict[str, torch.Tensor]:
     """``state`` (:meth:`NeighborMemory.state`) as a ring of ``size`` rows: unchanged when it is one, else its
     entries oldest first in rows ``0 .. n-1`` (the newest ``size`` of them), with ``head`` at row ``n``."""
-    fields = {name: state[name] for name in NeighborMemory._FIELDS}
+    fields = {name: state.get(name) for name in NeighborMemory._FIELDS}
     if any(value is None for value in fields.values()):
         raise ValueError(f"a neighbour memory state needs {', '.join(NeighborMemory._FIELDS)}")
     filled, head = state.get("filled"), state.get("head")
