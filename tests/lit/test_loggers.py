@@ -33,6 +33,39 @@ def test_a_new_column_that_fails_to_write_leaves_the_log_as_it_was(tmp_path, mon
     assert [p.name for p in path.parent.iterdir()] == ["metrics.csv"]  # no temporary file left
 
 
+def test_a_rewrite_writes_a_hidden_temporary_that_a_later_start_removes(tmp_path, monkeypatch) -> None:
+    import os
+    import subprocess
+    import sys
+
+    from omegaconf import OmegaConf
+
+    from unicorn.io.run_folder import plan_folder
+    from unicorn.lit.run import write_run_folder
+
+    logger = CSVLogger(str(tmp_path), name="csv", version="")
+    logger.log_metrics({"train/loss": 1.0}, step=0)
+    seen, writerows = [], csv.DictWriter.writerows
+    monkeypatch.setattr(
+        csv.DictWriter,
+        "writerows",
+        lambda self, rows: (seen.extend(os.listdir(tmp_path / "csv")), writerows(self, rows)),
+    )
+    logger.log_metrics({"heldout/iou": 0.5}, step=1)  # a new column: the file is written anew beside it
+    assert sorted(set(seen)) == [f".metrics.csv.tmp-{os.getpid()}", "metrics.csv"]
+    # what a SIGKILL during that rewrite, or during heldout.csv's, leaves: a temporary of a process now gone
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True).stdout)
+    left = [tmp_path / "csv" / f".metrics.csv.tmp-{dead}", tmp_path / f".heldout.csv.tmp-{dead}"]
+    for path in left:
+        path.write_text("step,heldout/iou\n0,0.")
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    assert plan_folder(tmp_path, None, None, overwrite=True)  # replaceable: the run's own kind of file
+    monkeypatch.chdir(tmp_path)
+    write_run_folder(OmegaConf.create({"dataset": {"root": None}}), tmp_path, None, [])
+    assert not any(path.exists() for path in left)
+
+
 def test_dropping_rows_keeps_the_others_and_the_columns(tmp_path) -> None:
     logger = CSVLogger(str(tmp_path), name="csv", version="")
     for step in range(6):

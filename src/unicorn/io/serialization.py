@@ -23,7 +23,7 @@ import io
 import os
 import pickle
 import shutil
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +50,9 @@ __all__ = [
     "link_into_place",
     "load_checkpoint_file",
     "remove_stale_temporaries",
+    "replacing",
     "seal",
+    "temporary_name",
     "verify",
 ]
 
@@ -275,7 +277,7 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
         obj = seal(dict(obj))
     buffer = io.BytesIO()
     torch.save(obj, buffer)  # serialise first: a failure here leaves nothing behind
-    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    tmp = temporary_name(path)
     try:
         with open(tmp, "wb") as f:
             f.write(buffer.getbuffer())
@@ -301,7 +303,7 @@ def link_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
     process killed meanwhile leaves ``path`` as it was, at worst with a ``.tmp`` file beside it
     (:func:`remove_stale_temporaries`)."""
     source, path = Path(source), Path(path)
-    tmp = path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+    tmp = temporary_name(path)
     try:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -317,6 +319,27 @@ def link_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
             tmp.unlink()
     _sync_folder(path.parent)
     return path
+
+
+def temporary_name(path: str | os.PathLike) -> Path:
+    """Where this process writes ``path`` before renaming it into place: ``.<name>.tmp-<pid>`` beside it, hidden
+    (a run folder's own kind of file), and deleted by :func:`remove_stale_temporaries` once its process is gone."""
+    path = Path(path)
+    return path.with_name(f".{path.name}{TMP_MARK}{os.getpid()}")
+
+
+@contextlib.contextmanager
+def replacing(path: str | os.PathLike) -> Iterator[Path]:
+    """The :func:`temporary_name` of ``path`` to write in the block, renamed onto ``path`` when the block ends and
+    deleted when it raises: ``path`` is always whole, the old file or the new one (logs and tables; checkpoints are
+    also flushed to disk, :func:`atomic_save`)."""
+    tmp = temporary_name(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
 
 
 def _sync_folder(folder: Path) -> None:

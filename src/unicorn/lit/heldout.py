@@ -209,12 +209,12 @@ def append_csv_row(path: Path, row: dict[str, float]) -> None:
             rows = [r for r in csv.DictReader(f) if float(r["step"]) < row["step"]]
     rows.append(row)
     columns = list(dict.fromkeys(k for r in rows for k in r))
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
+    from unicorn.io.serialization import replacing
+
+    with replacing(path) as tmp, tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
-    tmp.replace(path)
 
 
 def _stop_signalled(trainer: L.Trainer) -> bool:

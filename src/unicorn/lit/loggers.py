@@ -93,16 +93,12 @@ class _AppendingWriter(ExperimentWriter):
 
     def _replace(self, fields: list[str], rows: list[dict[str, str]]) -> None:
         """Write ``metrics.csv`` anew beside it, then rename it into place (whole or not at all)."""
-        tmp = f"{self.metrics_file_path}.tmp-{os.getpid()}"
-        try:
-            with open(tmp, "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=fields)
-                writer.writeheader()
-                writer.writerows(rows)
-            os.replace(tmp, self.metrics_file_path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        from unicorn.io.serialization import replacing
+
+        with replacing(self.metrics_file_path) as tmp, open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(rows)
 
 
 class CSVLogger(_LightningCSVLogger):

@@ -326,10 +326,10 @@ def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None,
         return None  # DDP processes started by Lightning build the run again
     aside = set_aside(outdated, output_dir) if output_dir.is_dir() else None
     output_dir.mkdir(parents=True, exist_ok=True)
-    checkpoint_dir = output_dir / "checkpoints"
-    if checkpoint_dir.is_dir():
-        for tmp in remove_stale_temporaries(checkpoint_dir):
-            log.info("removed %s, a partial checkpoint of a killed run", tmp)
+    for folder in (output_dir / "checkpoints", output_dir / "csv", output_dir):  # the writers' of a killed run
+        if folder.is_dir():
+            for tmp in remove_stale_temporaries(folder):
+                log.info("removed %s, a partial file of a killed run", tmp)
     (output_dir / "config.yaml").write_text(recorded_config(typed))
     _write_provenance(output_dir, ckpt_path)
     return aside
