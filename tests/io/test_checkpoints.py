@@ -32,6 +32,16 @@ def test_plain_round_trip(tmp_path: Path) -> None:
     _same_prediction(model, loaded)
 
 
+def test_save_model_replaces_a_file_only_when_asked(tmp_path: Path) -> None:
+    mine = tmp_path / "car.pkl"
+    mine.write_bytes(b"the user's file")
+    with pytest.raises(FileExistsError, match=rf"^{re.escape(str(mine))} exists: pass overwrite=True to replace it"):
+        save_model(tiny_model("real", seed=1), mine)
+    assert mine.read_bytes() == b"the user's file"
+    loaded, _ = load_model(save_model(tiny_model("real", seed=1), mine, overwrite=True, step=2))
+    _same_prediction(tiny_model("real", seed=1), loaded)
+
+
 def test_checkpoint_from_before_the_encoder_width_loads_resnet18(tmp_path: Path) -> None:
     model = tiny_model("real", seed=1)
     del model.config["encoder"]["width"]  # what versions before the setting stored

@@ -81,6 +81,25 @@ def test_a_file_that_exists_is_replaced_only_when_asked(model_and_prediction, tm
     assert photo in files and photo.read_bytes() != b"the user's photo"
 
 
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_replacement_that_fails_leaves_each_file_as_it_was(model_and_prediction, tmp_path, monkeypatch, suffix):
+    model, pred = model_and_prediction
+    mesh = export_prediction(model, pred, index=0)
+    files = save_mesh(mesh, tmp_path / f"car{suffix}")
+    before = {path: path.read_bytes() for path in files}
+
+    def full_disk(self, data):
+        self.open("wb").write(data[: len(data) // 2])  # half the bytes, then the disk is full
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    monkeypatch.setattr(Path, "write_text", lambda self, text: full_disk(self, text.encode()))
+    with pytest.raises(OSError, match="No space left"):
+        save_mesh(mesh.copy(), tmp_path / f"car{suffix}", overwrite=True)
+    assert {path: path.read_bytes() for path in files} == before  # whole: the old files
+    assert sorted(tmp_path.iterdir()) == sorted(files)  # no partial file beside them
+
+
 def test_reference_uvs_are_converted_to_edge_convention():
     torch.manual_seed(0)
     model = Unicorn(tiny_config(template={"uv_mode": "reference"})).eval()

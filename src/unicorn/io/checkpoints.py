@@ -503,7 +503,7 @@ def weights_misfit(saved: Mapping[str, Any], own: Mapping[str, torch.Tensor], st
     return f"missing {missing[:4]}, unexpected {unexpected[:4]}, other sizes or types [{'; '.join(misfit[:4])}{more}]"
 
 
-def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
+def save_model(model: Unicorn, path: str | os.PathLike, *, overwrite: bool = False, **info: Any) -> Path:
     """Write a plain checkpoint (config, weights and ``info``) that :func:`load_model` reads.
 
     The file is written atomically and carries a hash of its content (see :mod:`unicorn.io.serialization`).
@@ -511,6 +511,7 @@ def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
     Args:
         model: the model.
         path: the file to write (folders are created).
+        overwrite: replace a file at ``path``; otherwise one there is an error and nothing is written.
         **info: metadata kept with it: ``epoch``, ``step``, ``average_texture``, ``dataset`` (a dict with ``name``
             and ``root``) or anything else: numbers, strings, None, lists and dicts of them, tensors; paths are
             kept as strings and dataclasses (a :class:`CheckpointInfo`) as dicts.
@@ -521,8 +522,11 @@ def save_model(model: Unicorn, path: str | os.PathLike, **info: Any) -> Path:
     Raises:
         TypeError: a value of ``info`` that :func:`load_model` could not read back (it loads plain values only),
             named before anything is written.
+        FileExistsError: a file is at ``path`` and ``overwrite`` is False.
     """
     path = Path(path).expanduser()
+    if not overwrite and (path.exists() or path.is_symlink()):
+        raise FileExistsError(f"{path} exists: pass overwrite=True to replace it with the model")
     plain = {key: _plain_value(value, key) for key, value in info.items()}
     state = {k: v.detach().cpu() for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
     return atomic_save(

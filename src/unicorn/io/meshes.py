@@ -18,6 +18,7 @@ import trimesh
 from PIL import Image
 
 from unicorn.checks import check_shape
+from unicorn.io.serialization import replacing
 
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
@@ -122,7 +123,8 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
         mesh: a textured mesh (:func:`textured_mesh`, :func:`export_prediction`).
         path: the ``.obj`` or ``.glb`` file.
         overwrite: replace files that exist; otherwise an existing file among those written (the OBJ's texture
-            ``<stem>.png`` may be the photo the mesh was made from) is an error and nothing is written.
+            ``<stem>.png`` may be the photo the mesh was made from) is an error and nothing is written. Each file
+            is written beside its place and renamed into it: a file replaced is whole, the old one or the new.
 
     Returns:
         the files written.
@@ -143,7 +145,8 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
         raise FileExistsError(f"{existing[0]} exists: save_mesh writes {names}; pass overwrite=True to replace them")
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".glb":
-        path.write_bytes(glb_bytes(mesh, name=path.stem))
+        with replacing(path) as tmp:
+            tmp.write_bytes(glb_bytes(mesh, name=path.stem))
         return [path]
     return _write_obj(mesh, image, path)
 
@@ -236,9 +239,13 @@ def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Pa
         ]
     )
     obj, mtl_path, png = _obj_files(path)
-    obj.write_text("\n".join(lines) + "\n")
-    mtl_path.write_text(mtl)
-    image.save(png)
+    # each file whole or as it was (an overwritten one too); the texture first, the OBJ that names it last
+    with replacing(png) as tmp:
+        image.save(tmp, format="PNG")
+    with replacing(mtl_path) as tmp:
+        tmp.write_text(mtl)
+    with replacing(obj) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return [obj, mtl_path, png]
 
 
