@@ -215,3 +215,12 @@ def test_a_sweep_over_experiments_needs_one_folder(args, refused):
     assert (problem is not None) == refused
     if refused:
         assert "names the sweep's folder needs one folder for all its jobs, hydra.sweep.dir=DIR" in problem
+
+
+def test_cfg_job_with_a_sweep_is_one_line(tmp_path: Path) -> None:
+    done = unicorn_train("--cfg", "job", "-m", "+experiment=synthetic", "seed=1,2", cwd=tmp_path)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "unicorn-train: error: Only one of --run, --multirun, --cfg, --info and --shell_completion can be specified "
+        "(--cfg job prints one run's config: give it without -m, with one value per key)"
+    ]

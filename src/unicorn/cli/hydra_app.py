@@ -166,6 +166,7 @@ def hydra_failure(text: str) -> str | None:
     match = _EXCEPTION_LINE.match(lines[-1])
     if match and _is_os_error(match):
         return match.group(2)
+
     if match and match.group(2).startswith("Unable to configure handler"):  # the run's log, from an OSError
         causes = [m for m in map(_EXCEPTION_LINE.match, lines) if m and _is_os_error(m)]
         if causes:
@@ -398,6 +399,14 @@ class HydraApp:
                 sys.stderr.write(held.held.getvalue())
                 raise
             print(f"{self.prog}: error: {line}", file=sys.stderr)
+            raise SystemExit(2) from None
+        except ValueError as err:  # Hydra's check of its modes, raised before it reads anything else
+            if self.task_started or not str(err).startswith("Only one of --run, --multirun, --cfg"):
+                raise
+            if held is not None:
+                sys.stderr = held.stream
+            hint = "--cfg job prints one run's config: give it without -m, with one value per key"
+            print(f"{self.prog}: error: {err} ({hint})", file=sys.stderr)
             raise SystemExit(2) from None
         finally:
             if isinstance(sys.stderr, _HeldStream):
