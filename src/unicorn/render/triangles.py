@@ -67,11 +67,10 @@ def covered_barycentric(
     into the triangles' :func:`barycentric_coefficients` ``coef`` (N, 18), and whether each point is covered (P,):
     inside, or on an edge its triangle owns. A point on an edge two triangles share is covered by exactly one.
     """
-    lines = coef[:, :12].index_select(0, face)  # gathered in parts: the largest tensors of the rasterizer
-    # two rounded products, not fused: at the edge's far end A dx + B dy = -(dy dx) + dx dy, exactly 0
-    e = torch.sub(px, lines[:, 6:9]).mul_(lines[:, :3])
-    e.add_(torch.sub(py, lines[:, 9:12]).mul_(lines[:, 3:6]))
-    del lines
+    # gathered three columns at a time and combined in place: (P, 3) tensors are the largest of the rasterizer.
+    # Two rounded products, not fused: at the edge's far end A dx + B dy = -(dy dx) + dx dy, exactly 0
+    e = torch.sub(px, coef[:, 6:9].index_select(0, face)).mul_(coef[:, :3].index_select(0, face))
+    e.add_(torch.sub(py, coef[:, 9:12].index_select(0, face)).mul_(coef[:, 3:6].index_select(0, face)))
     k = coef[:, 12:15].index_select(0, face)
     on_owned = (e == 0) & (coef[:, 15:] > 0).index_select(0, face)
     bary = e.mul_(k)
