@@ -84,12 +84,23 @@ _LEGACY_ELEMENT_BYTES = {
 
 
 class _Named:
-    """What :class:`_DeclarationReader` puts where a pickle names a global: the name, never the object."""
+    """What :class:`_DeclarationReader` puts where a pickle names a global: the name, never the object. It takes
+    what a pickle gives the objects it builds (a state, the items of an ``OrderedDict``, the elements of a list
+    subclass) and keeps none of it."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         pass
 
     def __setstate__(self, state: Any) -> None:
+        pass
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        pass
+
+    def append(self, value: Any) -> None:
+        pass
+
+    def extend(self, values: Any) -> None:
         pass
 
 

@@ -222,5 +222,5 @@ def test_cfg_job_with_a_sweep_is_one_line(tmp_path: Path) -> None:
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert done.stderr.strip().splitlines() == [
         "unicorn-train: error: Only one of --run, --multirun, --cfg, --info and --shell_completion can be specified "
-        "(--cfg job prints one run's config: give it without -m, with one value per key)"
+        "(Hydra runs one of these at a time: --cfg job prints one run's config, without -m and one value per key)"
     ]

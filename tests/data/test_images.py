@@ -105,6 +105,9 @@ def test_load_mask_reads_colours_not_palette_indices_and_alpha_when_flat(tmp_pat
     drawn_in_alpha = np.full((5, 5, 4), 255, np.uint8)  # white throughout, the shape opaque
     drawn_in_alpha[..., 3] = m * 255
     np.testing.assert_array_equal(load_mask(_save(tmp_path / "alpha.png", Image.fromarray(drawn_in_alpha))), m)
+    empty = np.zeros((5, 5, 4), np.uint8)
+    empty[..., 3] = 255  # black and opaque throughout: an empty mask, whatever its channels
+    assert not load_mask(_save(tmp_path / "empty.png", Image.fromarray(empty))).any()
     shaded = drawn_in_alpha.copy()
     shaded[..., :3] = (m * 255)[..., None]  # white shape on a black background, also transparent: the colours count
     np.testing.assert_array_equal(load_mask(_save(tmp_path / "shaded.png", Image.fromarray(shaded))), m)

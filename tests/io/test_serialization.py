@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import errno
 import io
 import os
@@ -113,11 +114,13 @@ def test_both_torch_formats_are_read(tmp_path: Path, legacy: bool) -> None:
         load_checkpoint_file(tmp_path / "missing.pt")
 
 
-def test_legacy_storages_declaring_more_than_the_file_are_refused(tmp_path: Path, monkeypatch) -> None:
+@pytest.mark.parametrize("container", [dict, collections.OrderedDict], ids=["dict", "OrderedDict"])
+def test_legacy_storages_declaring_more_than_the_file_are_refused(tmp_path: Path, monkeypatch, container) -> None:
     # the format before PyTorch 1.6 declares each storage's element count in its pickle, and torch.load allocates
-    # that much before reading the bytes: 2**30 floats declared in a file of a few hundred bytes
+    # that much before reading the bytes: 2**30 floats declared in a file of a few hundred bytes. A state dict of
+    # that time (torchvision's VGG16 file) is an OrderedDict, whose items the pickle sets one by one
     buffer = io.BytesIO()
-    saved = {"w": torch.ones(2), "d": torch.ones(3, dtype=torch.float64)}
+    saved = container(w=torch.ones(2), d=torch.ones(3, dtype=torch.float64))
     torch.save(saved, buffer, _use_new_zipfile_serialization=False)
     raw = buffer.getvalue()
     count = raw.index(b"K\x02N", raw.index(b"FloatStorage"))  # the float storage's count (BININT1 2), then no view

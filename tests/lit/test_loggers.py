@@ -60,10 +60,14 @@ def test_a_rewrite_writes_a_hidden_temporary_that_a_later_start_removes(tmp_path
         path.write_text("step,heldout/iou\n0,0.")
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
-    assert plan_folder(tmp_path, None, None, overwrite=True)  # replaceable: the run's own kind of file
+    unhidden = tmp_path / "csv" / f"metrics.csv.tmp-{dead}"  # as unicorn 0.1.0 named it
+    unhidden.write_text("step\n")
+    assert plan_folder(tmp_path, None, None, overwrite=True)  # replaceable: the run's own kinds of file
+    users = tmp_path / f".notes.txt.tmp-{dead}"  # the run folder may be the user's (hydra.run.dir=.)
+    users.write_text("mine")
     monkeypatch.chdir(tmp_path)
     write_run_folder(OmegaConf.create({"dataset": {"root": None}}), tmp_path, None, [])
-    assert not any(path.exists() for path in left)
+    assert not any(path.exists() for path in left) and users.read_text() == "mine"
 
 
 def test_dropping_rows_keeps_the_others_and_the_columns(tmp_path) -> None:

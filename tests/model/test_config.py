@@ -95,6 +95,8 @@ def test_background_none_skips_its_checks() -> None:
         ("pose", "roll_range", 30, r"pose\.roll_range must be two finite numbers .*, got 30"),
         ("renderer", "background_color", None, r"renderer\.background_color must be three numbers .*, got None"),
         ("encoder", "pooled", None, r"encoder\.pooled must name distinct stages of .*, got None"),
+        ("encoder", "pooled", 3, r"encoder\.pooled must name distinct stages of .*, got 3"),
+        ("encoder", "pooled", [["layer4"]], r"encoder\.pooled must name distinct stages of .*, got \[\['layer4'\]\]"),
         ("encoder", "own", None, r"encoder\.own must be a list of branch names, got None"),
         ("encoder", "own", "texture", r"encoder\.own must be a list of branch names, got 'texture'"),
     ],

@@ -182,8 +182,8 @@ def test_a_vgg_file_that_is_not_torchvisions_vgg16_is_one_line_naming_it(tmp_pat
         (garbage, r"cannot read the VGG16 weights \S+garbage.pth: it is not a file written by torch.save$"),
         (deflated, r"cannot read the VGG16 weights \S+deflated.pth: its entry '\S+' is compressed"),
         (not_a_dict, r"the VGG16 weights \S+tensor.pth hold Tensor, not a state dict$"),
-        (wrong_keys, r"^VGG16 state dict lacks 'features.0.weight' \(is it torchvision's vgg16\?\)$"),
-        (wrong_shape, r"^VGG16 state dict: 'features.0.bias' is \(3,\), expected shape \(64,\)$"),
+        (wrong_keys, r"^the VGG16 weights \S+resnet.pth: VGG16 state dict lacks 'features.0.weight' \(is it torchvis"),
+        (wrong_shape, r"^the VGG16 weights \S+shape.pth: VGG16 state dict: 'features.0.bias' is \(3,\), expected"),
     ]:
         with pytest.raises(VGGWeightsError, match=message) as err:
             VGGPerceptualLoss(path)
@@ -228,6 +228,11 @@ def test_vgg_weights_come_from_torch_hub_cache(torch_home, monkeypatch):
     assert torch.equal(loaded["features.14.weight"], state["features.14.weight"])
     loss = VGGPerceptualLoss(None)  # from the cache now: no second download
     assert len(calls) == 1 and torch.equal(loss.vgg.features[0].weight, state["features.0.weight"])
+    # a file in the cache is checked as a file named by paths.vgg16 is (its hash was checked only when downloaded)
+    deflated_torch_file(state, vgg16_cache_path())
+    with pytest.raises(VGGWeightsError, match=r"cannot read the VGG16 weights \S+vgg16-397923af.pth: its entry"):
+        VGGPerceptualLoss(None)
+    assert len(calls) == 1
 
 
 def test_vgg_perceptual_from_file_matches_hand_computation(tmp_path):

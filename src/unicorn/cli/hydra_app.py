@@ -405,7 +405,9 @@ class HydraApp:
                 raise
             if held is not None:
                 sys.stderr = held.stream
-            hint = "--cfg job prints one run's config: give it without -m, with one value per key"
+            hint = (
+                "Hydra runs one of these at a time: --cfg job prints one run's config, without -m and one value per key"
+            )
             print(f"{self.prog}: error: {err} ({hint})", file=sys.stderr)
             raise SystemExit(2) from None
         finally:

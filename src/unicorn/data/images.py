@@ -329,7 +329,7 @@ def load_mask(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndar
     """Read a mask image as an (H, W) float32 array in {0, 1}, oriented as :func:`load_image` orients its image.
 
     The mask is the image's grey level (colour and palette images by their luminance, PIL's ``convert("L")``), or
-    its alpha channel where an image with transparency is of one colour throughout, thresholded at half its maximum.
+    its alpha channel where an image of one colour throughout has a varying one, thresholded at half its maximum.
     """
     with open_image(path, path, MASK_BYTES_PER_PIXEL) as img:
         arr = _mask_levels(decoded(img, path, exif_orientation))
@@ -341,8 +341,10 @@ def _mask_levels(img: Image.Image) -> np.ndarray:
     if img.mode in ("F", "I") or img.mode.startswith("I;16"):
         return np.asarray(img)  # one band of floats or wide integers, which convert("L") would clip
     grey = np.asarray(img.convert("L"))  # a palette image's colours, not its palette indices
-    if has_transparency(img) and grey.min() == grey.max():  # the shape is drawn in the alpha channel alone
-        return np.asarray(img.convert("RGBA"))[..., 3]
+    if has_transparency(img) and grey.min() == grey.max():
+        alpha = np.asarray(img.convert("RGBA"))[..., 3]
+        if alpha.min() < alpha.max():  # the shape is drawn in the alpha channel alone
+            return alpha
     return grey
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "RUN_OUTPUTS",
     "RUN_PROVENANCE",
     "RUN_RECORDS",
+    "RUN_TABLES",
     "STEP_CHECKPOINT",
     "SWEEP_RECORD",
     "FolderChanges",
@@ -67,13 +68,15 @@ __all__ = [
 
 log = logging.getLogger("unicorn.train")
 
+#: the tables a run writes at the top of its folder (each rewritten whole at every row)
+RUN_TABLES = ("heldout.csv", "diagnostics.csv")
 #: what a run writes into its folder as its outputs (replaced by ``overwrite=true``)
-RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", "heldout.csv", "diagnostics.csv")
+RUN_OUTPUTS = ("checkpoints", "csv", "tensorboard", "images", "eval", *RUN_TABLES)
 #: the entries a run writes in each of its output folders (glob patterns; hidden names are temporary files):
 #: ``overwrite=true`` refuses to delete a folder holding anything else
 RUN_FOLDER_FILES = {
     "checkpoints": ("last.ckpt", "step=*.ckpt", "nonfinite-step=*.ckpt", ".*"),
-    "csv": ("metrics.csv", "hparams.yaml", ".*"),
+    "csv": ("metrics.csv", "hparams.yaml", ".*", "metrics.csv.tmp-*"),  # the last: a killed rewrite of unicorn 0.1.0
     "tensorboard": ("events.out.tfevents.*", "hparams.yaml", ".*"),
     "images": ("step=*.png", ".*"),
     "eval": ("metrics.csv", "metrics.json", "per_image.csv", "report.html", "report.png", "report", "_viewer", ".*"),

@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import hashlib
 import io
 import os
 import pickle
 import shutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -360,16 +361,21 @@ DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO)
 TMP_MARK = ".tmp-"
 
 
-def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
-    """Delete the ``.tmp-<pid>`` files that :func:`atomic_save` calls killed in ``folder`` left behind.
+def remove_stale_temporaries(folder: str | os.PathLike, names: Iterable[str] | None = None) -> list[Path]:
+    """Delete the ``.tmp-<pid>`` files (:func:`temporary_name`) that writers killed in ``folder`` left behind.
 
     A file is stale when its process is gone (or is this process, which is not writing now).
+
+    Args:
+        folder: the folder.
+        names: only the temporaries of these file names (in a folder that holds the user's files too); None: all.
 
     Returns:
         the deleted files.
     """
     removed = []
-    for tmp in Path(folder).glob(f".*{TMP_MARK}*"):
+    patterns = [f".*{TMP_MARK}*"] if names is None else [f".{glob.escape(name)}{TMP_MARK}*" for name in names]
+    for tmp in (path for pattern in patterns for path in Path(folder).glob(pattern)):
         pid = tmp.name.rpartition(TMP_MARK)[2]
         if not pid.isdigit() or (int(pid) != os.getpid() and pid_alive(int(pid))):
             continue

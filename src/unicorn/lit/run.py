@@ -319,16 +319,17 @@ def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None,
     :func:`~unicorn.io.run_folder.set_aside`, deleted after the first iteration by :class:`DropAside`), then
     write ``config.yaml`` and ``provenance.json`` into the run folder (on the first process only); returns the
     folder holding what was set aside, or None."""
-    from unicorn.io.run_folder import set_aside
+    from unicorn.io.run_folder import RUN_TABLES, set_aside
     from unicorn.io.serialization import remove_stale_temporaries
 
     if not is_first_process():
         return None  # DDP processes started by Lightning build the run again
     aside = set_aside(outdated, output_dir) if output_dir.is_dir() else None
     output_dir.mkdir(parents=True, exist_ok=True)
-    for folder in (output_dir / "checkpoints", output_dir / "csv", output_dir):  # the writers' of a killed run
+    # what the writers of a killed run left: in the run folder itself (which may be the user's) only its tables'
+    for folder, names in ((output_dir / "checkpoints", None), (output_dir / "csv", None), (output_dir, RUN_TABLES)):
         if folder.is_dir():
-            for tmp in remove_stale_temporaries(folder):
+            for tmp in remove_stale_temporaries(folder, names):
                 log.info("removed %s, a partial file of a killed run", tmp)
     (output_dir / "config.yaml").write_text(recorded_config(typed))
     _write_provenance(output_dir, ckpt_path)

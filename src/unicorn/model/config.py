@@ -333,7 +333,7 @@ def _check_pooled_stages(cfg: Mapping[str, Any], prefix: str) -> None:
     from unicorn.model.encoder import STAGES, distinct_stages
 
     pooled = _listed(cfg["encoder"]["pooled"])
-    if not distinct_stages(pooled):
+    if not isinstance(pooled, list) or not all(isinstance(s, str) for s in pooled) or not distinct_stages(pooled):
         raise ModelConfigError(f"{prefix}encoder.pooled must name distinct stages of {list(STAGES)}, got {pooled}")
 
 

@@ -115,7 +115,9 @@ def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) ->
             options = _VGG16_OPTIONS.format(cache=cache.parent)
             raise VGGWeightsNotFoundError(f"VGG16 weights for the perceptual loss not found at {path}: {options}")
         state = _read_weights(path)
-    elif cache.is_file() or download:
+    elif cache.is_file():  # torch's hub would load it unchecked: its hash is checked only when it downloads
+        state = _read_weights(cache)
+    elif download:
         try:
             state = torch.hub.load_state_dict_from_url(
                 VGG16_URL, map_location="cpu", progress=False, check_hash=True, weights_only=True
@@ -220,7 +222,12 @@ class VGGPerceptualLoss(nn.Module):
         super().__init__()
         state = weights if isinstance(weights, Mapping) else load_vgg16_weights(weights)
         self.vgg = VGG16Relu33()
-        self.vgg.load_torchvision_state_dict(state)
+        try:
+            self.vgg.load_torchvision_state_dict(state)
+        except VGGWeightsError as err:
+            if isinstance(weights, Mapping):
+                raise
+            raise VGGWeightsError(f"the VGG16 weights {weights or vgg16_cache_path()}: {err}") from None
         self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 

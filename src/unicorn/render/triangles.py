@@ -67,10 +67,15 @@ def covered_barycentric(
     into the triangles' :func:`barycentric_coefficients` ``coef`` (N, 18), and whether each point is covered (P,):
     inside, or on an edge its triangle owns. A point on an edge two triangles share is covered by exactly one.
     """
-    # gathered three columns at a time and combined in place: (P, 3) tensors are the largest of the rasterizer.
-    # Two rounded products, not fused: at the edge's far end A dx + B dy = -(dy dx) + dx dy, exactly 0
-    e = torch.sub(px, coef[:, 6:9].index_select(0, face)).mul_(coef[:, :3].index_select(0, face))
-    e.add_(torch.sub(py, coef[:, 9:12].index_select(0, face)).mul_(coef[:, 3:6].index_select(0, face)))
+    # gathered three columns at a time and combined in place: (P, 3) tensors are the largest of the rasterizer
+    a, b = coef[:, :3].index_select(0, face), coef[:, 3:6].index_select(0, face)
+    dx = torch.sub(px, coef[:, 6:9].index_select(0, face))
+    far = dx == b  # at the edge's far end (dx, dy) = (B, -A): e = -(A B) + B A is 0, kept so where a compiler
+    e = dx.mul_(a)  # would fuse the products (a fused multiply-add leaves A B's rounding error)
+    dy = torch.sub(py, coef[:, 9:12].index_select(0, face))
+    far &= dy == a.neg_()
+    e.add_(dy.mul_(b)).masked_fill_(far, 0.0)
+    del a, b, dy, far
     k = coef[:, 12:15].index_select(0, face)
     on_owned = (e == 0) & (coef[:, 15:] > 0).index_select(0, face)
     bary = e.mul_(k)
