@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -491,3 +492,59 @@ def test_a_killed_generations_folder_is_removed_by_the_next(tmp_path: Path) -> N
         (folder / "image").mkdir(parents=True)
     assert ensure_synthetic_dataset(tmp_path, "car", "nmr", 3, 0, **options) == final
     assert not dead.exists() and live.is_dir() and remote.is_dir()
+
+
+def test_a_second_generation_of_a_dataset_waits_for_the_first_and_reuses_it(tmp_path: Path) -> None:
+    import threading
+
+    options = {k: v for k, v in TINY.items() if k not in ("n_models", "progress")}
+    final = synthetic_dataset_path("car", "nmr", 3, 0, tmp_path)
+    found = []
+    with writer.generation_lock(final):  # another process generating this dataset holds it
+        waiting = threading.Thread(
+            target=lambda: found.append(ensure_synthetic_dataset(tmp_path, "car", "nmr", 3, 0, **options))
+        )
+        waiting.start()
+        waiting.join(1.0)
+        assert waiting.is_alive() and not list(tmp_path.glob(f".{final.name}.tmp-*"))  # waits, generates nothing
+        stale = tmp_path / f".{final.name}.tmp-{socket.gethostname()}-{2**22 + 7}-0123abcd"  # a pid of no process
+        (stale / "image").mkdir(parents=True)  # left alone while the other process runs: it may be its own
+        generate_synthetic_dataset(final, "car", "nmr", 3, 0, **options)  # what the other process moves in
+        stamp = (final / "synthetic.json").stat().st_mtime_ns
+    waiting.join(120)
+    assert found == [final] and (final / "synthetic.json").stat().st_mtime_ns == stamp  # reused, not made again
+    assert stale.is_dir() and sorted(p.name for p in tmp_path.iterdir()) == sorted([final.name, stale.name])
+
+
+def test_a_folder_that_is_not_a_generated_dataset_is_refused_before_generating(tmp_path: Path) -> None:
+    options = {k: v for k, v in TINY.items() if k not in ("n_models", "progress")}
+    final = synthetic_dataset_path("car", "nmr", 3, 0, tmp_path)
+    final.mkdir(parents=True)
+    (final / "notes.txt").write_text("mine")
+    with pytest.raises(writer.StaleSyntheticDataset, match=r"holds files but no synthetic\.json") as info:
+        ensure_synthetic_dataset(tmp_path, "car", "nmr", 3, 0, **options)
+    assert "\n" not in str(info.value) and sorted(p.name for p in tmp_path.iterdir()) == [final.name]
+    assert [p.name for p in final.iterdir()] == ["notes.txt"]
+
+
+def test_two_synths_into_one_folder_both_land(tmp_path: Path, capsys) -> None:
+    import threading
+    import time
+
+    out = tmp_path / "data"
+    small = ["--models", "10", "--views", "1", "--size", "8", "--points", "100", "--quiet"]
+    codes = []
+
+    def synth(category: str) -> None:
+        codes.append(cli.main(["synth", "--out", str(out), "--category", category, *small]))
+
+    runs = [threading.Thread(target=synth, args=(category,)) for category in ("car", "chair")]
+    runs[0].start()
+    time.sleep(0.3)  # the second starts while the first generates: it waits, then joins its category to the first's
+    runs[1].start()
+    for run in runs:
+        run.join(120)
+    assert codes == [0, 0]
+    assert yaml.safe_load((out / "metadata.yaml").read_text()).keys() == {"90000001", "90000003"}
+    assert sorted(json.loads((out / "synthetic.json").read_text())["categories"]) == ["car", "chair"]
+    assert not list(tmp_path.glob(".*"))  # no lock file or staging folder left

@@ -33,6 +33,7 @@ def _synth(args: argparse.Namespace) -> int:
         check_output_folder,
         ensure_synthetic_dataset,
         generate_synthetic_dataset,
+        generation_lock,
         generation_settings,
     )
     from unicorn.io.staging import staged_folder
@@ -59,18 +60,20 @@ def _synth(args: argparse.Namespace) -> int:
         )
     else:
         out = Path(args.out).expanduser()
-        # refused here, naming --out, rather than in the folder the files are first written to
-        check_output_folder(
-            out, categories, generation_settings(categories, args.mode, args.models, args.seed, **options)
-        )
-        # a generation stopped part-way (Ctrl-C, a full disk) leaves --out as it was
-        with staged_folder(out) as staging:
-            for record in ("metadata.yaml", "synthetic.json"):  # the categories generated there before stay listed
-                if (out / record).is_file():
-                    shutil.copy2(out / record, staging / record)
-            generate_synthetic_dataset(
-                staging, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
+        # another process generating into --out (or training on it) waits until this one has moved its files
+        with generation_lock(out):
+            # refused here, naming --out, rather than in the folder the files are first written to
+            check_output_folder(
+                out, categories, generation_settings(categories, args.mode, args.models, args.seed, **options)
             )
+            # a generation stopped part-way (Ctrl-C, a full disk) leaves --out as it was
+            with staged_folder(out) as staging:
+                for record in ("metadata.yaml", "synthetic.json"):  # the categories already there stay listed
+                    if (out / record).is_file():
+                        shutil.copy2(out / record, staging / record)
+                generate_synthetic_dataset(
+                    staging, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
+                )
     print(f"wrote {args.models} models x {len(categories)} categories to {out} in {time.perf_counter() - start:.1f} s")
     return 0
 

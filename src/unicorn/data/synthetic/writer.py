@@ -13,6 +13,8 @@ surface points from ``numpy.random.default_rng([seed, category_index, i, stream]
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import inspect
 import json
 import logging
@@ -21,7 +23,7 @@ import os
 import shutil
 import socket
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +72,7 @@ __all__ = [
     "default_cache_dir",
     "ensure_synthetic_dataset",
     "generate_synthetic_dataset",
+    "generation_lock",
     "generation_settings",
     "synthetic_dataset_path",
 ]
@@ -582,6 +585,37 @@ def _generation_prefix(final: Path) -> str:
     return f".{final.name}.tmp-"
 
 
+@contextlib.contextmanager
+def generation_lock(folder: str | os.PathLike) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``folder`` (an exclusive ``flock``) while a dataset is checked, generated and moved
+    into ``folder``: another process generating into the same folder (a sweep's jobs, ``unicorn-data synth --out``
+    beside ``unicorn-train``) waits, then finds what this one wrote. Processes of one machine (containers on it
+    too); a cache shared over the network between machines is not locked across them. The lock file is removed when
+    the block ends."""
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    path = folder.parent / f".{folder.name}.lock"
+    while True:
+        handle = open(path, "a")  # noqa: SIM115 - held open with its lock until the block ends
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("waiting for another process generating %s", folder)
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        try:  # the holder before removes the file when it is done: hold the lock of the file at the path now
+            if os.path.samestat(os.fstat(handle.fileno()), os.stat(path)):
+                break
+        except FileNotFoundError:
+            pass
+        handle.close()
+    try:
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()  # nothing left beside the folder; a process waiting on it opens the path again
+        handle.close()
+
+
 def _remove_stale_generations(final: Path) -> None:
     """Delete the temporary folders of generations of ``final`` that a process of this machine, now gone, left (a
     SIGKILL while generating); another machine's (a cache shared over the network) are left alone."""
@@ -608,8 +642,8 @@ def ensure_synthetic_dataset(
     so that one made by another generator or with other options is never reused silently.
 
     Generation writes to a temporary sibling folder that is renamed into place at the end, so an
-    interrupted run never leaves a folder that looks complete; concurrent runs are safe (the loser's copy is
-    discarded).
+    interrupted run never leaves a folder that looks complete; a second process asking for the same dataset
+    meanwhile waits for it (:func:`generation_lock`) and then reuses it.
 
     Args:
         root: parent folder of the datasets; defaults to :func:`default_cache_dir` (``$UNICORN_CACHE``).
@@ -627,19 +661,21 @@ def ensure_synthetic_dataset(
     if (final / "synthetic.json").exists():
         check_manifest(final, **expected)
         return final
-    final.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_generations(final)
-    tmp = final.parent / f"{_generation_prefix(final)}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    try:
-        generate_synthetic_dataset(tmp, category, mode, n_models, seed, progress=progress, **kwargs)
-        try:
-            os.rename(tmp, final)
-        except OSError:
-            if not (final / "synthetic.json").exists():
-                raise
-            # another process finished first: keep its copy (if it was made with the same settings)
+    with generation_lock(final):  # a second process waits here, then finds the first's dataset
+        if (final / "synthetic.json").exists():
             check_manifest(final, **expected)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+            return final
+        if final.is_dir() and any(final.iterdir()):
+            raise StaleSyntheticDataset(
+                f"{final} holds files but no synthetic.json: it is not a generated dataset; move it away, or give "
+                "the dataset another root"
+            )
+        _remove_stale_generations(final)
+        tmp = final.parent / f"{_generation_prefix(final)}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            generate_synthetic_dataset(tmp, category, mode, n_models, seed, progress=progress, **kwargs)
+            os.replace(tmp, final)  # an empty folder there is replaced
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
     return final
