@@ -3,7 +3,8 @@
 ``torch.load`` inflates a zip's compressed entries, and allocates the storages an old-format file declares, before
 anything can be checked: :func:`torch_file_problem` reads only the file's directory or declarations, so that a file
 of a few hundred bytes cannot fill the memory. Every file unicorn gives to ``torch.load`` passes it first
-(checkpoints, released models, VGG16 weights, Pascal3D+ point clouds).
+(checkpoints, released models, VGG16 weights, Pascal3D+ point clouds); :func:`read_plain` reads the files of plain
+tensors and containers (weights, point clouds) through it.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-__all__ = ["NOT_A_TORCH_FILE", "torch_file_problem"]
+import torch
+
+__all__ = ["NOT_A_TORCH_FILE", "TorchFileError", "read_plain", "shortened", "torch_file_problem"]
 
 #: how files written by ``torch.save`` begin: a zip archive, or (the format before torch 1.6) a pickle of this
 #: magic number
@@ -56,8 +59,7 @@ def _inflating_zip(path: Path) -> str | None:
         with zipfile.ZipFile(path) as archive:
             entries = archive.infolist()
     except zipfile.BadZipFile as err:
-        reason = " ".join(str(err).split())[:120]
-        return f"it is a damaged zip archive, a truncated file or an incomplete copy (zipfile: {reason})"
+        return f"it is a damaged zip archive, a truncated file or an incomplete copy (zipfile: {shortened(err, 120)})"
     except OSError:
         return None  # torch.load says what is wrong
     compressed = next((e for e in entries if e.compress_type != zipfile.ZIP_STORED), None)
@@ -144,3 +146,30 @@ def _oversized_legacy(path: Path) -> str | None:
             "file in the format before PyTorch 1.6, which would allocate them all before reading)"
         )
     return None
+
+
+def shortened(text: object, limit: int = 300) -> str:
+    """``text`` on one line (whitespace runs made one space), cut to ``limit`` characters with ``...``."""
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+class TorchFileError(ValueError):
+    """Why a file of plain tensors cannot be read (:func:`read_plain`): one line, without the file's name, for the
+    caller's message to name it."""
+
+
+def read_plain(path: str | os.PathLike) -> Any:
+    """``torch.load`` of a file of tensors and plain containers, on the CPU, after :func:`torch_file_problem`, with
+    nothing unpickled that could run code (``weights_only``).
+
+    Raises:
+        TorchFileError: the problem :func:`torch_file_problem` found, or torch's error on one line.
+    """
+    problem = torch_file_problem(path)
+    if problem is None:
+        try:
+            return torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
+            problem = shortened(err, 200) or type(err).__name__
+    raise TorchFileError(problem)

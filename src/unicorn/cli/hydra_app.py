@@ -166,7 +166,6 @@ def hydra_failure(text: str) -> str | None:
     match = _EXCEPTION_LINE.match(lines[-1])
     if match and _is_os_error(match):
         return match.group(2)
-
     if match and match.group(2).startswith("Unable to configure handler"):  # the run's log, from an OSError
         causes = [m for m in map(_EXCEPTION_LINE.match, lines) if m and _is_os_error(m)]
         if causes:

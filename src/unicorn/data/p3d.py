@@ -21,7 +21,7 @@ from unicorn.data.annotated import BBoxCropDataset
 from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError, DatasetNotFoundError, require
 from unicorn.data.matlab import load_struct_array, read_mat
-from unicorn.torch_files import torch_file_problem
+from unicorn.torch_files import TorchFileError, read_plain
 
 __all__ = ["Pascal3DCar", "load_cad_pointclouds"]
 
@@ -65,14 +65,10 @@ def _read_pointcloud(path: Path) -> dict[str, torch.Tensor]:
     Raises:
         DatasetError: the file is not such a point cloud (truncated, another format, other keys or shapes).
     """
-    problem = torch_file_problem(path)
-    if problem:
-        raise DatasetError(f"cannot read the CAD point cloud {path}: {problem}")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise DatasetError(f"cannot read the CAD point cloud {path}: {first}") from None
+        data = read_plain(path)
+    except TorchFileError as err:
+        raise DatasetError(f"cannot read the CAD point cloud {path}: {err}") from None
     keys = ("points", "normals")
     if not isinstance(data, dict) or any(k not in data for k in keys):
         found = sorted(map(str, data)) if isinstance(data, dict) else type(data).__name__
@@ -136,8 +132,8 @@ class Pascal3DCar(BBoxCropDataset):
             try:
                 perm = np.atleast_1d(kps["kp_perm_inds"]).astype(np.float64)
             except (TypeError, ValueError):
-                perm = np.array([np.nan])
-            if not (np.isfinite(perm).all() and (perm == np.round(perm)).all()):
+                perm = None
+            if perm is None or not (np.isfinite(perm).all() and (perm == np.round(perm)).all()):
                 raise DatasetError(f"{kps_file}: kp_perm_inds must be whole numbers")
             flip_perm = perm.astype(np.int64) - 1  # MATLAB indices are 1-based
         self.root, self.split = root, split

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from unicorn.errors import UserError, pid_alive
-from unicorn.torch_files import NOT_A_TORCH_FILE, torch_file_problem
+from unicorn.torch_files import NOT_A_TORCH_FILE, shortened, torch_file_problem
 
 __all__ = [
     "INTEGRITY_KEY",
@@ -100,11 +100,6 @@ def kind_of(value: Any) -> str:
     return f"{'an' if name[0].lower() in 'aeiou' else 'a'} {name}"
 
 
-def _one_line(text: str, limit: int = 300) -> str:
-    text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def load_checkpoint_file(
     path: str | os.PathLike, map_location: Any = "cpu", trust: bool = False, check: bool = True
 ) -> Any:
@@ -142,14 +137,14 @@ def load_checkpoint_file(
     except pickle.UnpicklingError as err:
         names = [] if trust else _unsafe_names(path)
         if not names and (trust or "global" not in str(err).lower()):
-            raise CheckpointError(f"cannot read checkpoint {path}: {_one_line(err)}") from err
+            raise CheckpointError(f"cannot read checkpoint {path}: {shortened(err)}") from err
         what = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
         raise UnsafeCheckpointError(
             f"refusing to load {path}: it needs full unpickling ({what or 'objects beyond tensors and plain data'}),"
             f" which can run arbitrary code; {TRUST_HINT}"
         ) from None
     except Exception as err:  # torch raises many kinds (RuntimeError, EOFError...) on bad files
-        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {_one_line(err)}") from err
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {shortened(err)}") from err
     if check and isinstance(data, Mapping):
         data = verify(data, path)
     return data

@@ -497,10 +497,10 @@ class UnicornLitModule(L.LightningModule):
         from unicorn.io.checkpoints import check_weights_fit
         from unicorn.io.serialization import CheckpointError
 
-        path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
-        check_weights_fit(checkpoint.get("state_dict", {}), self.state_dict(), "ckpt_path", path or "the checkpoint")
+        path = self._resumed_from()
+        check_weights_fit(checkpoint.get("state_dict", {}), self.state_dict(), "ckpt_path", path)
         # applied in on_train_start: the random state must be set after everything that precedes training
-        _check_resume_state(checkpoint.get("unicorn"), f"ckpt_path {path or 'the checkpoint'}")
+        _check_resume_state(checkpoint.get("unicorn"), f"ckpt_path {path}")
         self._resume_state = checkpoint.get("unicorn")
         saved, own = (
             len(checkpoint.get("optimizer_states", [])),
@@ -508,7 +508,7 @@ class UnicornLitModule(L.LightningModule):
         )
         if saved and saved != own:  # Lightning would load what it can pair, silently
             raise CheckpointError(
-                f"ckpt_path {path or 'the checkpoint'} holds {saved} optimiser state(s) and this run has {own} "
+                f"ckpt_path {path} holds {saved} optimiser state(s) and this run has {own} "
                 f"(optim.adam_state={self.optim['adam_state']}): resume with the run's optim.adam_state"
             )
         # Lightning loads the optimizer states after this hook: fit older checkpoints' whole-kernel moments
@@ -516,6 +516,11 @@ class UnicornLitModule(L.LightningModule):
         params = [p for g in groups for p in g["params"]] if isinstance(groups, list) else list(groups)
         if sum(crop_optimizer_state(self.model, params, s) for s in checkpoint.get("optimizer_states", [])):
             log.info("cropped the optimizer moments saved for whole layer-4 kernels (an older checkpoint)")
+
+    def _resumed_from(self) -> str:
+        """The checkpoint a resume loads, as errors name it."""
+        path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
+        return str(path) if path else "the checkpoint"
 
     def on_train_start(self) -> None:
         state, self._resume_state = self._resume_state, None
@@ -529,9 +534,8 @@ class UnicornLitModule(L.LightningModule):
         except (KeyError, ValueError, RuntimeError, IndexError) as err:  # tensors, but not a memory's layout
             from unicorn.io.serialization import CheckpointError
 
-            where = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
             raise CheckpointError(
-                f"ckpt_path {where or 'the checkpoint'}: its resume state's neighbour memory cannot be restored: {err}"
+                f"ckpt_path {self._resumed_from()}: its resume state's neighbour memory cannot be restored: {err}"
             ) from None
         _set_rng_state(mine["rng"])
         latest = mine.get("latest_terms", {})  # absent from older checkpoints

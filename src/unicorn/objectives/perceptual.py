@@ -34,7 +34,7 @@ from unicorn.errors import UserError
 from unicorn.model.config import LOSS_KEYS
 from unicorn.model.filtering import separable_filter
 from unicorn.registry import Registry
-from unicorn.torch_files import torch_file_problem
+from unicorn.torch_files import TorchFileError, read_plain
 
 __all__ = [
     "VGG16_FILE",
@@ -140,14 +140,11 @@ def load_vgg16_weights(path: str | os.PathLike | None, download: bool = True) ->
 
 
 def _read_weights(path: Path) -> Any:
-    """A weights file, through :func:`~unicorn.torch_files.torch_file_problem` and ``torch.load`` without code."""
-    problem = torch_file_problem(path)
-    if problem is None:
-        try:
-            return torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
-            problem = " ".join(str(err).split())[:200] or type(err).__name__
-    raise VGGWeightsError(f"cannot read the VGG16 weights {path}: {problem}")
+    """A weights file (:func:`~unicorn.torch_files.read_plain`)."""
+    try:
+        return read_plain(path)
+    except TorchFileError as err:
+        raise VGGWeightsError(f"cannot read the VGG16 weights {path}: {err}") from None
 
 
 class VGG16Relu33(nn.Module):
