@@ -429,6 +429,21 @@ def test_cli_synth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert "image: (3, 32, 32) torch.float32" in capsys.readouterr().out
 
 
+def test_cli_synth_into_the_cache_says_whether_it_generated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    small = ["--category", "mug", "--models", "3", "--views", "2", "--size", "32", "--points", "100", "--quiet"]
+    assert cli.main(["synth", *small]) == 0
+    assert "wrote 3 models x 1 category to" in capsys.readouterr().out
+    path = synthetic_dataset_path("mug", "nmr", 3, 0)
+    stamp = (path / "synthetic.json").stat().st_mtime_ns
+    assert cli.main(["synth", *small]) == 0  # found in the cache: nothing generated, and it says so
+    out = capsys.readouterr().out
+    assert out.strip() == f"{path} already holds 3 models x 1 category with these settings"
+    assert (path / "synthetic.json").stat().st_mtime_ns == stamp
+
+
 def test_cli_synth_view_ranges(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     small = ["--category", "car", "--models", "3", "--views", "2", "--size", "32", "--points", "100", "--quiet"]
     out = tmp_path / "flat"

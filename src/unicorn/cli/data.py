@@ -35,6 +35,7 @@ def _synth(args: argparse.Namespace) -> int:
         generate_synthetic_dataset,
         generation_lock,
         generation_settings,
+        synthetic_dataset_path,
     )
     from unicorn.io.staging import staged_folder
 
@@ -43,6 +44,7 @@ def _synth(args: argparse.Namespace) -> int:
     categories = [c for arg in args.category for c in arg.split(",") if c]
     if not categories:
         raise UsageError(f"--category names no category; choose from {sorted(CATEGORIES)}")
+    counts = f"{args.models} models x {len(categories)} categor{'y' if len(categories) == 1 else 'ies'}"
     start = time.perf_counter()
     options = {
         "image_size": args.size,
@@ -55,9 +57,13 @@ def _synth(args: argparse.Namespace) -> int:
         "shift": args.shift,
     }
     if args.out is None:
+        cached = (synthetic_dataset_path(categories, args.mode, args.models, args.seed) / "synthetic.json").is_file()
         out = ensure_synthetic_dataset(
             None, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
         )
+        if cached:  # checked against these settings by ensure_synthetic_dataset: nothing was generated
+            print(f"{out} already holds {counts} with these settings")
+            return 0
     else:
         out = Path(args.out).expanduser()
         # another process generating into --out (or training on it) waits until this one has moved its files
@@ -74,7 +80,7 @@ def _synth(args: argparse.Namespace) -> int:
                 generate_synthetic_dataset(
                     staging, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
                 )
-    print(f"wrote {args.models} models x {len(categories)} categories to {out} in {time.perf_counter() - start:.1f} s")
+    print(f"wrote {counts} to {out} in {time.perf_counter() - start:.1f} s")
     return 0
 
 
