@@ -19,9 +19,17 @@ def test_fov_and_focal_length_agree():
     assert PerspectiveCamera(focal_length=3.732050895690918).fov == pytest.approx(30.0)
 
 
-@pytest.mark.parametrize("kwargs", [{}, {"fov": 30.0, "focal_length": 2.0}, {"fov": 0.0}, {"focal_length": -1.0}])
-def test_bad_camera_arguments(kwargs):
-    with pytest.raises(ValueError):
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({}, "give exactly one of fov"),
+        ({"fov": 30.0, "focal_length": 2.0}, "give exactly one of fov"),
+        ({"fov": 0.0}, r"fov must be in \(0, 180\) degrees, got 0.0"),
+        ({"focal_length": -1.0}, "focal_length must be a finite number > 0, got -1.0"),
+    ],
+)
+def test_bad_camera_arguments(kwargs, message):
+    with pytest.raises(ValueError, match=message):
         PerspectiveCamera(**kwargs)
 
 

@@ -16,6 +16,11 @@ from unicorn.io.serialization import INTEGRITY_KEY
 
 
 def _same_prediction(a, b) -> None:
+    """The same weights, tensor for tensor (an untrained model's prediction hardly depends on them), and so the same
+    prediction."""
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa), [k for k in sa if not torch.equal(sa[k], sb[k])]
     x = torch.rand(2, 3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(3))
     with torch.no_grad():
         pa, pb = a.predict(x), b.predict(x)
@@ -82,9 +87,11 @@ def test_lightning_checkpoint_of_a_run(tmp_path: Path) -> None:
 
 
 def test_reference_checkpoint_and_template_override(tmp_path: Path) -> None:
-    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": reference_state()}, tmp_path / "model.pkl")
+    state = reference_state()
+    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": state}, tmp_path / "model.pkl")
     model, info = load_model(tmp_path / "model.pkl")
     assert info.format == "reference" and info.epoch == 5 and info.run_dir is None
+    assert torch.equal(model.encoders[0].conv1.weight, state["encoder.encoder.0.weight"])  # the file's weights
     assert model.config["template"]["uv_mode"] == "reference" and model.template.verts.shape[0] == 642
     fine, _ = load_model(tmp_path / "model.pkl", overrides={"template": {"level": 4}})
     assert fine.template.verts.shape[0] == 2562  # the template is not part of the weights

@@ -522,7 +522,9 @@ def test_background_lr_scale_needs_a_background(tmp_path):
 
 
 def test_adam_state_is_checked(tmp_path):
-    with pytest.raises(Exception, match="adam_state"):
+    from unicorn.config.build import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^optim.adam_state must be one of \('shared', 'per_step'\), got 'both'$"):
         build_run(tmp_path, "optim.adam_state=both")
 
 

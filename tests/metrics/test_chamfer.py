@@ -18,12 +18,20 @@ def test_chamfer_l1_matches_open3d(backend):
     rng = np.random.default_rng(0)
     pred = rng.uniform(-0.5, 0.5, (2, 3000, 3))
     gt = rng.normal(0, 0.2, (2, 2000, 3))
-    scores = point_cloud_scores(torch.tensor(pred), torch.tensor(gt), backend=backend)
+    pred_n, gt_n = rng.normal(size=pred.shape), rng.normal(size=gt.shape)  # not unit: normalised by the metric
+    scores = point_cloud_scores(*map(torch.tensor, (pred, gt, pred_n, gt_n)), backend=backend)
     for b in range(2):
         acc, comp = o3d_mean_distance(pred[b], gt[b]), o3d_mean_distance(gt[b], pred[b])
         assert scores.accuracy[b].item() == pytest.approx(acc, rel=1e-9)
         assert scores.completeness[b].item() == pytest.approx(comp, rel=1e-9)
         assert scores.chamfer_l1[b].item() == pytest.approx(10 * 0.5 * (acc + comp), rel=1e-9)
+        # normal consistency: mean |cos| to the nearest point's normal, each way (nearest by a full distance matrix)
+        d2 = ((pred[b][:, None] - gt[b][None]) ** 2).sum(-1)
+        unit_p = pred_n[b] / np.linalg.norm(pred_n[b], axis=-1, keepdims=True)
+        unit_g = gt_n[b] / np.linalg.norm(gt_n[b], axis=-1, keepdims=True)
+        cos_pred = np.abs((unit_p * unit_g[d2.argmin(1)]).sum(-1)).mean()
+        cos_gt = np.abs((unit_g * unit_p[d2.argmin(0)]).sum(-1)).mean()
+        assert scores.normal_cos[b].item() == pytest.approx(0.5 * (cos_pred + cos_gt), rel=1e-9)
     torch.testing.assert_close(chamfer_l1(torch.tensor(pred), torch.tensor(gt)), scores.chamfer_l1)
 
 

@@ -52,8 +52,8 @@ def test_icp_recovers_rotation_translation_anisotropic_scale(blob):
     with torch.no_grad():  # runs with gradients internally anyway
         res = gradient_icp(src, tgt, src_n, n_iter=100)
     assert geodesic_error(res.R, R).item() < 2.0
-    torch.testing.assert_close(res.T, T, atol=0.01, rtol=0)
-    torch.testing.assert_close(res.scale, s, atol=0.01, rtol=0)
+    torch.testing.assert_close(res.T, T, atol=0.003, rtol=0)  # a few per cent of each component
+    torch.testing.assert_close(res.scale, s, atol=0.006, rtol=0)
     after = point_cloud_scores(res.points, tgt, res.normals, tgt_n)
     assert after.chamfer_l1.item() < 0.3 * before.chamfer_l1.item()
     assert after.normal_cos.item() > 0.97 > before.normal_cos.item()
@@ -65,11 +65,13 @@ def test_icp_per_object_batch_and_options(blob):
     tgt = src + torch.tensor([[[0.05, 0.0, 0.0]], [[0.0, -0.05, 0.0]]])
     res = gradient_icp(src, tgt, n_iter=40, estimate_scale=False)
     assert (res.scale == 1).all() and res.loss.shape == (2,)
-    torch.testing.assert_close(res.T, torch.tensor([[0.05, 0.0, 0.0], [0.0, -0.05, 0.0]]), atol=0.01, rtol=0)
-    iso = gradient_icp(src, 1.1 * src, n_iter=30, anisotropic_scale=True, window=7)
-    assert iso.scale.shape == (2, 3)
-    iso = gradient_icp(src, 1.1 * src, n_iter=30, anisotropic_scale=False)
-    assert torch.allclose(iso.scale, iso.scale[:, :1].expand(2, 3))
+    torch.testing.assert_close(res.T, torch.tensor([[0.05, 0.0, 0.0], [0.0, -0.05, 0.0]]), atol=0.002, rtol=0)
+    for anisotropic in (True, False):  # a cloud grown by 1.1 about the origin: scale 1.1, no translation
+        iso = gradient_icp(src, 1.1 * src, n_iter=30, anisotropic_scale=anisotropic, window=7 if anisotropic else 10)
+        assert iso.scale.shape == (2, 3)
+        torch.testing.assert_close(iso.scale, torch.full((2, 3), 1.1), atol=0.01, rtol=0)
+        torch.testing.assert_close(iso.T, torch.zeros(2, 3), atol=0.003, rtol=0)
+    assert torch.allclose(iso.scale, iso.scale[:, :1].expand(2, 3))  # isotropic: one factor
 
 
 def _reference_icp(src, tgt, src_normals, n_iter, lr=0.01, window=10):

@@ -73,7 +73,7 @@ def test_mask_switches_dims_off_and_is_saved():
     mask.set_active_dims(6)
     assert torch.equal(mask(code), code)
     assert int(mask.state_dict()["active"]) == 6
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"active dims must be in \[0, 6\], got 7"):
         mask.set_active_dims(7)
 
 
@@ -393,8 +393,8 @@ def test_mirror_index_pairs_each_anchor_with_its_mirror(n_azim):
 
 
 def test_a_flipped_render_is_the_render_at_the_mirrored_pose():
-    """The ray-cast oracle: a mesh symmetric through z = 0 (but not through x = 0), coloured by x and y, shows at
-    mirrored_pose(R, T) exactly the horizontal flip of what it shows at (R, T)."""
+    """Against the horizontally flipped image: a mesh symmetric through z = 0 (but not through x = 0), coloured by
+    x and y, shows at mirrored_pose(R, T) exactly the horizontal flip of what it shows at (R, T)."""
     verts, faces = ellipsoid(2, scale=0.6)
     verts = verts * torch.tensor([1.0, 0.7, 0.5])
     verts = verts + (verts[:, :1] > 0) * torch.tensor([0.3, 0.1, 0.0])  # a longer, higher front: no x symmetry

@@ -41,3 +41,31 @@ def test_model_renders_with_the_configured_compositing(composite, images):
     torch.testing.assert_close(torch.cat([rgb, alpha], 1), want)
     torch.testing.assert_close(torch.cat(no_bkg, 1), plain)
     assert 0 < float(alpha.mean()) < 1  # an object and some background in view
+
+
+def test_the_two_compositings_differ_only_where_the_silhouette_is_soft(images):
+    """Where the object covers a pixel fully or not at all both give the same colour (the object's, the background
+    image's); at the soft silhouette ``direct`` blends the background image inside the renderer's aggregation, unlike
+    ``reference``'s ``rgb * A + (1 - A) * background`` over the background colour."""
+    torch.manual_seed(0)
+    renders = {}
+    for composite in ("direct", "reference"):
+        cfg = tiny_config("real")
+        cfg["renderer"]["composite"] = composite
+        torch.manual_seed(0)
+        model = Unicorn(cfg).eval()
+        randomize_heads(model)
+        with torch.no_grad():
+            pred = model.predict(images)
+            renders[composite] = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    (rgb_d, alpha_d), (rgb_r, alpha_r) = renders["direct"], renders["reference"]
+    torch.testing.assert_close(alpha_d, alpha_r)
+    gap = (rgb_d - rgb_r).abs().amax(1, keepdim=True)
+    hard = (alpha_d == 0) | (alpha_d > 1 - 1e-6)
+    soft = (alpha_d > 0.05) & (alpha_d < 0.95)
+    assert hard.any() and soft.sum() > 10
+    assert gap[hard].max() < 1e-5
+    assert (gap[soft] > 1e-3).float().mean() > 0.5
+    background = pred.background.expand_as(rgb_d)
+    empty = (alpha_d == 0).expand_as(rgb_d)
+    torch.testing.assert_close(rgb_d[empty], background[empty])  # nothing there: the background image itself

@@ -81,7 +81,7 @@ def test_ring_keeps_the_newest_entries_in_the_same_tensors_and_checks():
     assert len(mem) == 4 and idx.tolist() == [0, 1] and int(mem.head) == 2
     assert mem.images[:, 0, 0, 0].tolist() == [2.0, 2.0, 1.0, 1.0]
     assert {name: t.data_ptr() for name, t in mem.state(copy=False).items()} == tensors  # written in place
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="batch of 5 does not fit a memory of 4"):
         mem.push(torch.zeros(5, 3, 2, 2), torch.zeros(5, 1), torch.zeros(5, 1), rotations([0] * 5))
     with pytest.raises(ValueError, match="images"):
         mem.push(torch.zeros(1, 3, 4, 4), torch.zeros(1, 1), torch.zeros(1, 1), rotations([0]))

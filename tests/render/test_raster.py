@@ -102,7 +102,7 @@ def _brute_force(verts_ndc: np.ndarray, faces: np.ndarray, size: int, blur: floa
             wc = wc / np.maximum(wc.sum(-1, keepdims=True), 1e-5)
             z = wc @ np.array([a[2], bb[2], c[2]])
             for pi in np.nonzero(inside | (d2 < blur))[0]:
-                per_pixel[pi].append((z[pi], fi, -d2[pi] if inside[pi] else d2[pi]))
+                per_pixel[pi].append((z[pi], fi, -d2[pi] if inside[pi] else d2[pi], tuple(wc[pi])))
         result.append([sorted(cands)[:K] for cands in per_pixel])
     return result
 
@@ -122,9 +122,10 @@ def test_fragments_match_brute_force(K):
             got = dense.pix_to_face[b, r, c].tolist()
             assert got[: len(exp)] == [e[1] for e in exp], (b, r, c)
             assert all(g == -1 for g in got[len(exp) :])
-            for k, (z, _, d) in enumerate(exp):
+            for k, (z, _, d, w) in enumerate(exp):
                 assert dense.zbuf[b, r, c, k].item() == pytest.approx(z, abs=1e-9)
                 assert dense.dists[b, r, c, k].item() == pytest.approx(d, abs=1e-12)
+                assert dense.bary_coords[b, r, c, k].tolist() == pytest.approx(w, abs=1e-9)
     assert frags.num_slots <= K
 
 
