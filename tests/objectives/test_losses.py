@@ -67,7 +67,7 @@ def test_mse_per_sample():
     rec = torch.zeros(2, 1, 2, 2)
     target = torch.tensor([[[[1.0, 1.0], [1.0, 1.0]]], [[[2.0, 0.0], [0.0, 0.0]]]])
     assert torch.allclose(mse_per_sample(rec, target), torch.tensor([1.0, 1.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"rec and target differ in shape: \(2, 1, 2, 2\) vs \(1, 1, 2, 2\)"):
         mse_per_sample(rec, target[:1])
 
 
@@ -285,6 +285,7 @@ def test_perceptual_registry():
 
 
 def test_reconstruction_and_mesh_terms_are_the_weighted_losses():
+    """Each term against its own weight times the unweighted loss (MSE, structural, normal, Laplacian)."""
     g = torch.Generator().manual_seed(0)
     rec, target = torch.rand(2, 2, 3, 16, 16, generator=g)
     structural = StructuralLoss()
@@ -295,10 +296,21 @@ def test_reconstruction_and_mesh_terms_are_the_weighted_losses():
     assert list(ReconstructionLoss(1.0, structural, 0.0)(rec, target)) == ["rgb"]
     verts, faces = ellipsoid(1, (1.0, 0.7, 0.7), 0.6)
     bumpy = (verts * (1 + 0.1 * torch.rand(verts.shape, generator=g))).unsqueeze(0)
-    regularizer = MeshRegularizer(faces, verts.shape[0], 0.1, 0.0)
+    # distinct non-zero weights: each term must carry its own weight
+    regularizer = MeshRegularizer(faces, verts.shape[0], 0.1, 0.3)
+    normal = NormalConsistencyLoss(faces)(bumpy, reduction="none")
+    laplacian = UniformLaplacianLoss(faces, verts.shape[0])(bumpy, reduction="none")
+    assert float(normal.min()) > 0 and float(laplacian.min()) > 0
     mesh = regularizer(bumpy, reduction="none")
-    assert list(mesh) == ["normal"]
-    torch.testing.assert_close(mesh["normal"], 0.1 * NormalConsistencyLoss(faces)(bumpy, reduction="none"))
+    assert list(mesh) == ["normal", "laplacian"]
+    torch.testing.assert_close(mesh["normal"], 0.1 * normal)
+    torch.testing.assert_close(mesh["laplacian"], 0.3 * laplacian)
+    mean = regularizer(bumpy)
+    torch.testing.assert_close(mean["normal"], 0.1 * normal.mean())
+    torch.testing.assert_close(mean["laplacian"], 0.3 * laplacian.mean())
+    # weight 0: left out
+    assert list(MeshRegularizer(faces, verts.shape[0], 0.1, 0.0)(bumpy)) == ["normal"]
+    assert list(MeshRegularizer(faces, verts.shape[0], 0.0, 0.3)(bumpy)) == ["laplacian"]
 
 
 def _candidates(R, T, logits):

@@ -7,7 +7,7 @@ import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
 from unicorn.data.augment import random_roll_shift
-from unicorn.geometry.rotations import azim_elev_roll_to_rotation
+from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angle_between
 from unicorn.model import Unicorn
 from unicorn.objectives import (
     AssignedLoss,
@@ -44,6 +44,13 @@ def encoders_read_by(model: Unicorn, branches) -> set[int]:
     return {model.encoder_index[b] for b in branches}
 
 
+def vivid_textures(model: Unicorn, gain: float = 30.0) -> None:
+    """Scale the texture generator's RGB outputs: saturated textures unlike the grey backgrounds."""
+    with torch.no_grad():
+        for conv in model.texture.generator.conv_rgb:
+            conv.weight.mul_(gain)
+
+
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_both_steps_return_the_batch_pose_probabilities(layout, images):
     torch.manual_seed(0)
@@ -59,6 +66,35 @@ def test_both_steps_return_the_batch_pose_probabilities(layout, images):
         assert losses.probs.shape == (model.n_candidates, images.shape[0]) and not losses.probs.requires_grad
         assert torch.allclose(losses.probs, expected, atol=1e-6)
         assert torch.allclose(losses["total"], sum(v for k, v in losses.items() if k != "total"))
+
+
+@pytest.mark.parametrize("layout", ["small", "own pose"])  # the pose features shared with the 3D branches or not
+def test_step_3d_renders_the_most_likely_candidate(layout, images):
+    """The 3D step's reconstruction terms against the model's prediction rendered here at each image's most likely
+    candidate (indexed by hand): not candidate 0, whose render reconstructs differently."""
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(**LAYOUTS[layout])).eval()  # eval: batch norm is the same in every call
+    randomize_heads(model)
+    model.set_active_dims(shape=2, texture=8)
+    vivid_textures(model)  # else the object is as grey as the background: the candidates' renders hardly differ
+    objectives = objectives_of(model)
+    reconstruction = objectives.steps["3d"].reconstruction
+    b = torch.arange(images.shape[0])
+    with torch.no_grad():
+        pred = model.predict(images)
+        best = pred.poses.probs.argmax(0)  # (B,)
+        assert (best != 0).all()  # else rendering candidate 0 would pass too
+
+        def terms_at(k: torch.Tensor) -> dict[str, torch.Tensor]:
+            R, T = pred.poses.R[k, b], pred.poses.T[k, b]
+            rec, _ = model.render(pred.verts, pred.texture, R, T, pred.background)
+            return reconstruction(rec, images)
+
+        expected, first = terms_at(best), terms_at(torch.zeros_like(best))
+    losses = objectives.step_3d(model, images)
+    for name in ("rgb", "perceptual"):
+        assert not torch.allclose(first[name], expected[name], rtol=1e-3)
+        assert torch.allclose(losses[name], expected[name].mean(), rtol=1e-4)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -205,6 +241,48 @@ def test_neighbor_term_gradients_reach_only_shape_and_texture(images):
     assert grads_of(model.shape.field) > 0 and grads_of(model.texture.generator) > 0
     assert grads_of(model.background) == 0 and grads_of(model.scale) == 0 and grads_of(model.pose) == 0
     assert len(objectives.memory) == 6 + images.shape[0]
+
+
+def test_neighbor_term_is_the_swapped_reconstruction_against_the_neighbours_images(images):
+    """The 3D step's neighbour term against both swaps rendered here from the model's predictions on known
+    neighbours: the sample's canonical shape with its shape neighbour's scale, texture, pose and background, and its
+    texture on its texture neighbour's mesh, pose and background, each against that neighbour's image."""
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(loss={"neighbor_weight": 0.5})).eval()  # eval: batch norm is the same in every call
+    randomize_heads(model, std=0.1)
+    vivid_textures(model)
+    model.set_active_dims(shape=2, texture=8)
+    objectives = objectives_of(model)
+    memory, reconstruction = objectives.memory, objectives.steps["3d"].reconstruction
+    B = images.shape[0]
+    # renders of an ellipsoid on white from six azimuths: unlike the noise images of the batch
+    shape_nbr, texture_nbr = ellipsoid_images(2 * B).split(B)
+    with torch.no_grad():
+        own = model.predict(images)
+        z_sh, z_tx, R = own.shape_code, own.texture_code, own.poses.R[own.poses.probs.argmax(0), torch.arange(B)]
+        # every entry 100 degrees away from every query (one bin: the draw cannot matter); sample b's shape
+        # neighbour holds its very shape code and a far texture code, its texture neighbour the other way round
+        turned = R[:1] @ azim_elev_roll_to_rotation(torch.tensor([100.0]), torch.zeros(1))
+        far = 100.0 + torch.arange(B, dtype=torch.float32).unsqueeze(1)
+        memory.push(
+            torch.cat([shape_nbr, texture_nbr]),
+            torch.cat([z_sh, z_sh + far]),
+            torch.cat([z_tx + far, z_tx]),
+            turned.expand(2 * B, 3, 3),
+        )
+        # the batch's own entries (pushed by the step) lie within min_angle of each other: never neighbours
+        assert (memory.bin_of(rotation_angle_between(R.unsqueeze(1), R.unsqueeze(0))) == -1).all()
+        assert (memory.bin_of(rotation_angle_between(turned, R)) == 2).all()
+        s, t = model.predict(shape_nbr), model.predict(texture_nbr)
+        swap_shape, _ = model.render(own.canonical_verts * s.scale.unsqueeze(1), s.texture, s.R, s.T, s.background)
+        swap_texture, _ = model.render(t.verts, own.texture, t.R, t.T, t.background)
+        expected = sum(reconstruction(swap_shape, shape_nbr).values()) + sum(
+            reconstruction(swap_texture, texture_nbr).values()
+        )
+    losses = objectives.step_3d(model, images)
+    assert float(expected.min()) > 0
+    assert torch.allclose(losses["neighbor"], 0.5 * expected.mean(), rtol=1e-4)
+    assert len(memory) == 3 * B
 
 
 def test_both_steps_decrease_losses_on_synthetic_renders():
