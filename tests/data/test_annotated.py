@@ -12,14 +12,17 @@ from PIL import Image
 
 from tests.support.checkpoints import deflated_torch_file
 from tests.support.datasets import make_record, save_with_orientation, write_struct_array
-from unicorn.data.cub import CUB200, CUB_FLIP_PERM, CUB_KEYPOINTS
-from unicorn.data.framing import hflip_keypoints
+from unicorn.data.cub import CUB200, CUB_KEYPOINTS
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.matlab import load_struct_array
 from unicorn.data.p3d import Pascal3DCar
 
 
-def _check_item(item: dict, img_size: int, mask_size: int, n_kp: int) -> None:
+def _check_item(
+    item: dict, img_size: int, mask_size: int, n_kp: int, hand: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> None:
+    """An item's shapes, ranges and dummy pose, keypoints on the mask; with ``hand`` (see :func:`_hand_item`), its
+    image, mask and keypoints against that hand computation from the annotation."""
     assert item["image"].shape == (3, img_size, img_size) and item["image"].dtype == torch.float32
     assert 0 <= item["image"].min() and item["image"].max() <= 1
     assert item["mask"].shape == (1, mask_size, mask_size) and set(item["mask"].unique().tolist()) <= {
@@ -36,6 +39,226 @@ def _check_item(item: dict, img_size: int, mask_size: int, n_kp: int) -> None:
     col, row = kps[vis, 0].round().long(), kps[vis, 1].round().long()
     assert ((col >= 0) & (col < mask_size) & (row >= 0) & (row < mask_size)).all()
     assert item["mask"][0, row, col].min() == 1.0
+    if hand is not None:
+        image, mask, keypoints = hand
+        # the hand crop is resized in 8 bits, as the reference's PIL images are; the loader resizes floats
+        assert np.abs(item["image"].permute(1, 2, 0).numpy() - image).max() <= 1.0 / 255
+        assert np.array_equal(item["mask"][0].numpy(), mask)
+        assert np.allclose(kps.numpy(), keypoints, atol=1e-4)
+
+
+# --------------------------------------------------------------------- items against a hand crop of a coded image
+CODED_W, CODED_H = 50, 40
+#: (x1, y1, x2, y2), 1-based and inclusive as in the .mat files: a box inside the image, and one at its top-left
+#: corner whose square crop leaves the image
+CODED_BOXES = ((11, 9, 30, 24), (1, 1, 20, 28))
+#: left/right keypoints, 0-based, written out by hand: CUB's LEye/REye, LLeg/RLeg, LWing/RWing (its order: back,
+#: beak, belly, breast, crown, forehead, left eye, left leg, left wing, nape, right eye, right leg, right wing, tail,
+#: throat) and the pairs of the car_kps.mat written below (1-based 1<->2, 3<->4, ...)
+CUB_PAIRS = {6: 10, 7: 11, 8: 12}
+P3D_PAIRS = {0: 1, 2: 3, 4: 5, 6: 7, 8: 9, 10: 11}
+INVISIBLE_KP = 5  # CUB's forehead; the car's 6th, paired with the 5th
+
+
+def _coded_image() -> np.ndarray:
+    """(H, W, 3) uint8 whose colour says where a pixel is: red 10 + 4 x, green 10 + 4 y (0-based), blue 128."""
+    yy, xx = np.mgrid[0:CODED_H, 0:CODED_W]
+    return np.stack([10 + 4 * xx, 10 + 4 * yy, np.full_like(xx, 128)], axis=-1).astype(np.uint8)
+
+
+def _coded_parts(box: tuple[int, int, int, int], n_kp: int) -> np.ndarray:
+    """(3, K) keypoints (x, y, visible), 1-based, on a grid of distinct pixels inside ``box``; one invisible."""
+    k = np.arange(n_kp)
+    parts = np.stack([box[0] + 3 + 3 * (k % 5), box[1] + 3 + 6 * (k // 5), np.ones(n_kp)]).astype(np.float64)
+    parts[:, INVISIBLE_KP] = 0.0
+    return parts
+
+
+def _coded_mask(box: tuple[int, int, int, int]) -> np.ndarray:
+    """(H, W) bool, the 1-based inclusive box filled."""
+    mask = np.zeros((CODED_H, CODED_W), bool)
+    mask[box[1] - 1 : box[3], box[0] - 1 : box[2]] = True
+    return mask
+
+
+def _write_coded(image_dir: Path, anno: Path, n_kp: int) -> None:
+    """One PNG (lossless: the crops can be compared pixel for pixel) and a MATLAB struct array of one record per
+    box of :data:`CODED_BOXES`, in the layout of the real annotation files."""
+    (image_dir / "coded").mkdir(parents=True)
+    Image.fromarray(_coded_image()).save(image_dir / "coded/img.png")
+    records = [
+        {
+            "id": i,
+            "rel_path": "coded/img.png",
+            "train": 1,
+            "test": 0,
+            "bbox": dict(zip(("x1", "y1", "x2", "y2"), map(float, box), strict=True)),
+            "width": CODED_W,
+            "height": CODED_H,
+            "parts": _coded_parts(box, n_kp),
+            "mask": _coded_mask(box),
+            "class_id": 1,
+            "cad_index": 1,
+        }
+        for i, box in enumerate(CODED_BOXES)
+    ]
+    write_struct_array(anno, records)
+
+
+def _coded_cub(root: Path) -> Path:
+    """A CUB root of the coded records (split "test")."""
+    _write_coded(root / "images", root / "cachedir/cub/data/test_cub_cleaned.mat", len(CUB_KEYPOINTS))
+    return root
+
+
+def _coded_p3d(root: Path) -> Path:
+    """A Pascal3D+ root of the coded records (split "train", no point clouds) with a car_kps.mat."""
+    _write_coded(root / "Images", root / "ucmr_anno/data/car_train.mat", 12)
+    perm = np.array([2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11])  # 1-based, like the real file
+    names = np.array([f"kp{i}" for i in range(12)], dtype=object)
+    scipy.io.savemat(root / "ucmr_anno/data/car_kps.mat", {"kp_names": names, "kp_perm_inds": perm})
+    return root
+
+
+def _hand_square(box: tuple[int, int, int, int], padding: float) -> tuple[int, int, int]:
+    """``(left, top, side)`` of the square crop of a 1-based inclusive box, 0-based: the box one less (CMR's
+    reading; UNICORN's reference crops from the 1-based numbers as they are), grown by ``padding`` of its width
+    (height) on each side, rounded, the shorter side grown evenly on both sides to the longer (the test boxes leave
+    an even difference, where CMR's, the reference's and the loader's rounding agree)."""
+    x1, y1, x2, y2 = (c - 1 for c in box)
+    bw, bh = x2 - x1 + 1, y2 - y1 + 1
+    x1, x2 = round(x1 - padding * bw), round(x2 + padding * bw)
+    y1, y2 = round(y1 - padding * bh), round(y2 + padding * bh)
+    w, h = x2 - x1 + 1, y2 - y1 + 1
+    side = max(w, h)
+    assert (side - w) % 2 == 0 and (side - h) % 2 == 0
+    return x1 - (side - w) // 2, y1 - (side - h) // 2, side
+
+
+def test_hand_square_worked_examples() -> None:
+    """The hand recipe on the coded boxes, worked out on paper."""
+    # (11, 9, 30, 24) -> 0-based (10, 8, 29, 23), 20 x 16, +1 / +0.8 -> (9, 7.2, 30, 23.8) -> (9, 7, 30, 24),
+    # 22 x 18 -> rows 2 higher: (9, 5), side 22; padding 0.1: (8, 6.4, 31, 24.6) -> (8, 6, 31, 25) -> (8, 4), 24
+    assert _hand_square(CODED_BOXES[0], 0.05) == (9, 5, 22) and _hand_square(CODED_BOXES[0], 0.1) == (8, 4, 24)
+    # (1, 1, 20, 28) -> (0, 0, 19, 27), 20 x 28, +1 / +1.4 -> (-1, -1, 20, 28), 22 x 30 -> columns 4 further left
+    assert _hand_square(CODED_BOXES[1], 0.05) == (-5, -1, 30)
+
+
+def _hand_item(
+    box: tuple[int, int, int, int], padding: float, img_size: int, mask_size: int, n_kp: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Image (S, S, 3) in [0, 1], mask (M, M) and keypoints (K, 3) of the coded record of ``box``, by hand.
+
+    The square crop takes the nearest image pixel outside the image (the mask is zero there) and is resized as the
+    reference does, with PIL (bilinear image, nearest mask); a keypoint at 1-based (u, v) is at the 0-based pixel
+    (u - 1, v - 1), at (u - 1 - left, v - 1 - top) in the crop, and at ``(c + 0.5) * M / side - 0.5`` in the M-pixel
+    mask: pixel centres stay pixel centres, as they do in the resized image (the reference scales ``c`` alone,
+    half a pixel off; :func:`_check_keypoints_on_their_pixels` confirms the centres on the image itself).
+    """
+    left, top, side = _hand_square(box, padding)
+    rows, cols = np.arange(top, top + side), np.arange(left, left + side)
+    rows_in, cols_in = np.clip(rows, 0, CODED_H - 1), np.clip(cols, 0, CODED_W - 1)
+    crop = _coded_image()[rows_in][:, cols_in]
+    image = np.asarray(Image.fromarray(crop).resize((img_size, img_size), Image.Resampling.BILINEAR)) / 255.0
+    inside = ((rows >= 0) & (rows < CODED_H))[:, None] & ((cols >= 0) & (cols < CODED_W))[None, :]
+    mask_crop = Image.fromarray((_coded_mask(box)[rows_in][:, cols_in] & inside).astype(np.uint8) * 255)
+    mask = (np.asarray(mask_crop.resize((mask_size, mask_size), Image.Resampling.NEAREST)) > 127).astype(np.float32)
+    parts = _coded_parts(box, n_kp)
+    keypoints = np.zeros((n_kp, 3))
+    for k in np.flatnonzero(parts[2] > 0):
+        col, row = parts[0, k] - 1 - left, parts[1, k] - 1 - top
+        keypoints[k] = [(col + 0.5) * mask_size / side - 0.5, (row + 0.5) * mask_size / side - 0.5, 1.0]
+    return image, mask, keypoints
+
+
+def _colour_at(image: torch.Tensor, x: float, y: float) -> np.ndarray:
+    """(3,) colour of a (3, H, W) image at (column, row) ``(x, y)``, bilinearly between pixel centres, in 0-255."""
+    x0, y0 = int(np.floor(x)), int(np.floor(y))
+    fx, fy = x - x0, y - y0
+    p = image[:, y0 : y0 + 2, x0 : x0 + 2].double().numpy() * 255
+    return (1 - fy) * ((1 - fx) * p[:, 0, 0] + fx * p[:, 0, 1]) + fy * ((1 - fx) * p[:, 1, 0] + fx * p[:, 1, 1])
+
+
+def _check_keypoints_on_their_pixels(item: dict, parts: np.ndarray, source: np.ndarray | None = None) -> None:
+    """The image where keypoint k is has the colour of the pixel annotated for keypoint ``source[k]`` (default k):
+    the coded image's red and green are a linear ramp, kept by bilinear resizing away from replicated borders."""
+    kps = item["keypoints"].double().numpy()
+    source = np.arange(len(kps)) if source is None else source
+    for k in np.flatnonzero(kps[:, 2] > 0):
+        u, v = parts[0, source[k]], parts[1, source[k]]
+        red, green, _ = _colour_at(item["image"], kps[k, 0], kps[k, 1])
+        assert abs(red - (10 + 4 * (u - 1))) < 0.25 and abs(green - (10 + 4 * (v - 1))) < 0.25, (k, red, green, u, v)
+
+
+@pytest.mark.parametrize("eval_size", [None, 256])
+def test_cub_crops_and_keypoints_match_a_hand_crop(tmp_path: Path, eval_size: int | None) -> None:
+    """CUB items of the coded records (padding 0.05) against :func:`_hand_item`, and each keypoint where its
+    annotated pixel's colour landed in the image."""
+    ds = CUB200(_coded_cub(tmp_path / "cub"), "test", eval_size=eval_size)
+    assert not ds.augment and ds.padding == 0.05
+    mask_size = eval_size or 64
+    for i, box in enumerate(CODED_BOXES):
+        item = ds[i]
+        _check_item(item, 64, mask_size, 15, hand=_hand_item(box, 0.05, 64, mask_size, 15))
+        if eval_size is None:
+            _check_keypoints_on_their_pixels(item, _coded_parts(box, 15))
+
+
+def test_p3d_crops_and_keypoints_match_a_hand_crop(tmp_path: Path) -> None:
+    """Pascal3D+ items of the coded records (padding 0.1, the reference's) against :func:`_hand_item`."""
+    ds = Pascal3DCar(_coded_p3d(tmp_path / "p3d"), "train", augment=False)
+    for i, box in enumerate(CODED_BOXES):
+        item = ds[i]
+        _check_item(item, 64, 64, 12, hand=_hand_item(box, 0.1, 64, 64, 12))
+        _check_keypoints_on_their_pixels(item, _coded_parts(box, 12))
+
+
+def _flipped_and_plain(ds: CUB200 | Pascal3DCar, index: int) -> dict[bool, dict]:
+    """Item ``index`` of an augmenting dataset, once flipped and once not (over torch seeds)."""
+    found: dict[bool, dict] = {}
+    for seed in range(20):
+        torch.manual_seed(seed)
+        item = ds[index]
+        found.setdefault(bool(item["flipped"]), item)
+    assert set(found) == {True, False}
+    return found
+
+
+def _check_hand_flip(
+    found: dict[bool, dict], plain: dict, box: tuple[int, int, int, int], padding: float, size: int, pairs: dict
+) -> None:
+    """A flipped item is the plain one mirrored; its keypoint k is the hand keypoint of k's partner in ``pairs``
+    (itself if none) at x' = size - 1 - x, invisible ones (0, 0, 0); it sits on its partner's annotated pixel."""
+    n_kp = len(plain["keypoints"])
+    source = np.arange(n_kp)
+    for a, b in pairs.items():
+        source[a], source[b] = b, a
+    _, _, hand = _hand_item(box, padding, 64, size, n_kp)
+    expected = np.zeros((n_kp, 3))
+    for k in range(n_kp):
+        if hand[source[k], 2] > 0:
+            expected[k] = [size - 1 - hand[source[k], 0], hand[source[k], 1], 1.0]
+    flipped = found[True]
+    assert torch.equal(found[False]["image"], plain["image"])
+    assert torch.equal(found[False]["keypoints"], plain["keypoints"])
+    assert torch.equal(flipped["image"], plain["image"].flip(-1))
+    assert torch.equal(flipped["mask"], plain["mask"].flip(-1))
+    assert np.allclose(flipped["keypoints"].numpy(), expected, atol=1e-4)
+    if size == 64:
+        _check_keypoints_on_their_pixels(flipped, _coded_parts(box, n_kp), source)
+
+
+@pytest.mark.parametrize("eval_size", [None, 256])
+def test_cub_flip_keeps_keypoints_consistent(tmp_path: Path, eval_size: int | None) -> None:
+    """Flipped CUB items (jitter 0: the flip alone) against the hand keypoints with LEye/REye, LLeg/RLeg and
+    LWing/RWing swapped, all six visible."""
+    root = _coded_cub(tmp_path / "cub")
+    parts = _coded_parts(CODED_BOXES[0], 15)
+    assert (parts[2, list(CUB_PAIRS) + list(CUB_PAIRS.values())] == 1).all()
+    assert all(not np.array_equal(parts[:2, a], parts[:2, b]) for a, b in CUB_PAIRS.items())
+    ds = CUB200(root, "test", augment=True, jitter=0.0, eval_size=eval_size)
+    plain = CUB200(root, "test", eval_size=eval_size)[0]
+    _check_hand_flip(_flipped_and_plain(ds, 0), plain, CODED_BOXES[0], 0.05, eval_size or 64, CUB_PAIRS)
 
 
 def test_struct_array_quirks(tmp_path: Path) -> None:
@@ -65,29 +288,6 @@ def test_cub_items(cub_root: Path, split: str) -> None:
 def test_cub_eval_size(cub_root: Path) -> None:
     item = CUB200(cub_root, "test", eval_size=256)[0]
     _check_item(item, 64, 256, 15)
-
-
-def test_cub_flip_keeps_keypoints_consistent(cub_root: Path) -> None:
-    ds = CUB200(cub_root, "train", augment=True, jitter=0.0)  # isolate the flip
-    plain = CUB200(cub_root, "train", augment=False)
-    ref = plain[1]
-    seen = set()
-    for seed in range(20):
-        torch.manual_seed(seed)
-        item = ds[1]
-        seen.add(bool(item["flipped"]))
-        if item["flipped"]:
-            assert torch.equal(item["image"], ref["image"].flip(-1))
-            assert torch.equal(item["mask"], ref["mask"].flip(-1))
-            expected = hflip_keypoints(ref["keypoints"].numpy(), 64, CUB_FLIP_PERM)
-            expected[expected[:, 2] == 0] = 0
-            assert np.allclose(item["keypoints"].numpy(), expected)
-            # LEye (index 6) of the flipped image is REye (index 10) of the original, mirrored
-            if ref["keypoints"][10, 2] > 0:
-                assert np.isclose(item["keypoints"][6, 0], 63 - ref["keypoints"][10, 0])
-        else:
-            assert torch.equal(item["image"], ref["image"])
-    assert seen == {True, False}
 
 
 def test_cub_jitter_moves_the_crop(cub_root: Path) -> None:
@@ -163,10 +363,16 @@ def test_p3d_items_and_points(p3d_root: Path) -> None:
         assert torch.equal(item["points"], expected)
 
 
-def test_p3d_flip_uses_kp_perm(p3d_root: Path) -> None:
+def test_p3d_flip_uses_kp_perm(p3d_root: Path, tmp_path: Path) -> None:
+    """The permutation is car_kps.mat's, 0-based; a flipped car's keypoints are the hand ones of the pairs it
+    lists, mirrored."""
     perm = scipy.io.loadmat(p3d_root / "ucmr_anno/data/car_kps.mat", squeeze_me=True)["kp_perm_inds"] - 1
     ds = Pascal3DCar(p3d_root, "train", augment=True)
     assert np.array_equal(ds.flip_perm, perm)
+    root = _coded_p3d(tmp_path / "p3d")
+    coded = Pascal3DCar(root, "train", augment=True, jitter=0.0)
+    plain = Pascal3DCar(root, "train", augment=False)[1]
+    _check_hand_flip(_flipped_and_plain(coded, 1), plain, CODED_BOXES[1], 0.1, 64, P3D_PAIRS)
 
 
 def test_p3d_missing_files(tmp_path: Path, p3d_root: Path) -> None:

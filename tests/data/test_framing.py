@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from PIL import Image
 
 from unicorn.data.framing import crop_box, fit_and_pad, hflip_keypoints, pad_bbox, square_bbox
 
@@ -28,10 +29,23 @@ def test_crop_box_replicates_border_and_zeroes_mask() -> None:
 
 
 def test_fit_and_pad_keeps_aspect() -> None:
-    image = np.zeros((20, 40, 3), np.float32)
-    image[:, :, 0] = 1.0
+    """A 20 x 40 image with a row ramp (green), a column ramp (red) and a block (blue) against a hand layout: at 16
+    pixels it is 8 x 16 (scale 0.4) at rows 4..11, equal to PIL's resize of it, rows 0..3 repeating row 4 and rows
+    12..15 row 11; a tall image is laid out the same way across."""
+    yy, xx = np.mgrid[0:20, 0:40]
+    image = np.stack([xx / 39, yy / 19, ((xx >= 10) & (xx < 20) & (yy < 10)).astype(float)], -1).astype(np.float32)
     out = fit_and_pad(image, 16)
-    assert out.shape == (16, 16, 3) and np.allclose(out[..., 0], 1.0)
+    assert out.shape == (16, 16, 3)
+    block = np.stack(
+        [np.asarray(Image.fromarray(image[..., c]).resize((16, 8), Image.Resampling.BILINEAR)) for c in range(3)], -1
+    )
+    assert np.allclose(out[4:12], block, atol=1e-6)
+    assert np.array_equal(out[:4], np.broadcast_to(out[4], (4, 16, 3)))
+    assert np.array_equal(out[12:], np.broadcast_to(out[11], (4, 16, 3)))
+    assert (np.diff(out[4:12, :, 1], axis=0) > 0.05).all()  # the row ramp spans the block rows only
+    assert out[4:6, 4:8, 2].min() > 0.5 and out[8:12, 4:8, 2].max() < 0.5 and out[4:6, 12:, 2].max() < 0.5
+    tall = fit_and_pad(np.ascontiguousarray(image.transpose(1, 0, 2)), 16)
+    assert np.allclose(tall, out.transpose(1, 0, 2), atol=1e-6)
 
 
 def test_hflip_keypoints_is_an_involution() -> None:

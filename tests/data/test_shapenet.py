@@ -165,6 +165,27 @@ def test_tiny_dataset_reads(tmp_path: Path) -> None:
     assert all(ds[i]["image"].shape == (3, 8, 8) and ds[i]["points"].shape == (5, 3) for i in range(6))
 
 
+def test_normals_change_frame_with_the_points(tmp_path: Path) -> None:
+    """Points spanning 3-D and distinct normals: the item's points are the file's under one linear map L (found by
+    least squares, the rotation A_ROW of the pose test), and its normals the file's under L's inverse transpose."""
+    root = _tiny_nmr(tmp_path)
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.45, 0.45, (6, 3))
+    points[0, 0] = 0.5  # reaching the unit cube's faces
+    normals = rng.normal(size=(6, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    for model in ("m0", "m1"):
+        np.savez(root / SYNSET / model / "pointcloud.npz", points=points, normals=normals)
+    item = ShapeNetNMR(root, split="test", with_points=True)[0]
+    L, *_ = np.linalg.lstsq(points, item["points"].double().numpy(), rcond=None)
+    assert np.allclose(points @ L, item["points"].double().numpy(), atol=1e-6)
+    assert np.allclose(L, A_ROW.T, atol=1e-6)
+    expected = normals @ np.linalg.inv(L).T
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    assert not np.allclose(expected, normals, atol=0.1)  # the frame change moves these normals
+    assert np.allclose(item["normals"].double().numpy(), expected, atol=1e-6)
+
+
 def test_only_the_views_own_files_count_as_views(tmp_path: Path) -> None:
     """macOS's resource forks (``._0000.png``) and other stray images beside the views are not views."""
     root = _tiny_nmr(tmp_path)

@@ -183,6 +183,61 @@ def test_lsun_reads_lmdb_and_cleaned_subset(tmp_path: Path) -> None:
         LSUN(tmp_path, "horse", cleaned=True)
 
 
+def _edged(width: int, height: int) -> np.ndarray:
+    """(H, W, 3) uint8 grey with a red left column, a blue right one, a green top row and a yellow bottom row."""
+    image = np.full((height, width, 3), 128, np.uint8)
+    image[:, 0], image[:, -1] = (255, 0, 0), (0, 0, 255)
+    image[0], image[-1] = (0, 255, 0), (255, 255, 0)
+    return image
+
+
+def _hand_lsun(image: np.ndarray, size: int = 64, padding: float = 0.1) -> np.ndarray:
+    """(size, size, 3) in [0, 1]: the whole image grown by ``padding`` of its width (height) on each side with its
+    border pixels repeated, resized (PIL, 8 bits, as the reference) so its longer side is ``size``, centred, and
+    the shorter side filled by repeating its first and last rows (columns)."""
+    H, W = image.shape[:2]
+    dx, dy = round(padding * W), round(padding * H)
+    crop = image[np.clip(np.arange(-dy, H + dy), 0, H - 1)][:, np.clip(np.arange(-dx, W + dx), 0, W - 1)]
+    h, w = crop.shape[:2]
+    nh, nw = round(h * size / max(h, w)), round(w * size / max(h, w))
+    resized = np.asarray(Image.fromarray(crop).resize((nw, nh), Image.Resampling.BILINEAR)) / 255.0
+    top, left = (size - nh) // 2, (size - nw) // 2
+    return np.pad(resized, [(top, size - nh - top), (left, size - nw - left), (0, 0)], mode="edge")
+
+
+def test_lsun_frames_the_whole_image_by_hand(tmp_path: Path) -> None:
+    """A wide and a tall record with coloured edges (PNG values, lossless), not augmenting: each item against
+    :func:`_hand_lsun`, and the wide one's edges where they land by hand: its 40 x 20 pixels padded by 4 and 2 make
+    48 x 24, scaled by 4/3 to 64 x 32 at rows 16..47; the 4 repeated + 1 red columns fill columns 0..5, the 2 + 1
+    green rows 16..18 (and the 16 pad rows above), the yellow ones 45..47 and the pad rows below."""
+    lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    from unicorn.data.lsun import LSUN
+
+    images = {b"a_wide": _edged(40, 20), b"b_tall": _edged(20, 30)}
+    (tmp_path / "horse").mkdir()
+    env = lmdb.open(str(tmp_path / "horse"), map_size=1 << 22)
+    with env.begin(write=True) as txn:
+        for key, image in images.items():
+            buf = io.BytesIO()
+            Image.fromarray(image).save(buf, format="PNG")
+            txn.put(key, buf.getvalue())
+    env.close()
+    ds = LSUN(tmp_path, "horse", cleaned=False, augment=False)
+    assert ds.keys == list(images) and ds.padding == 0.1
+    items = [ds[i] for i in range(len(ds))]
+    for item, image in zip(items, images.values(), strict=True):
+        _check_item(item)
+        assert np.abs(item["image"].permute(1, 2, 0).numpy() - _hand_lsun(image)).max() <= 1.0 / 255
+    wide = items[0]["image"].permute(1, 2, 0).numpy()
+    red, grey = np.array([1.0, 0.0, 0.0]), np.full(3, 128 / 255)
+    assert np.allclose(wide[22:42, :6], red, atol=1e-4) and not np.allclose(wide[22:42, 6], red, atol=0.1)
+    assert np.allclose(wide[22:42, 10:54], grey, atol=1e-4)
+    assert np.allclose(wide[:19], [0.0, 1.0, 0.0], atol=1e-4) and np.allclose(wide[45:], [1.0, 1.0, 0.0], atol=1e-4)
+    assert np.array_equal(wide[:16], np.broadcast_to(wide[16], (16, 64, 3)))  # pad rows repeat the border row
+    assert np.array_equal(wide[48:], np.broadcast_to(wide[47], (16, 64, 3)))
+    assert not np.allclose(wide[16], wide[19], atol=0.1) and not np.allclose(wide[44], wide[47], atol=0.1)
+
+
 @pytest.mark.parametrize("damage", ["empty", "random", "truncated"])
 def test_lsun_corrupt_lmdb_is_one_error_naming_it(tmp_path: Path, damage: str) -> None:
     from unicorn.data.lsun import LSUN
