@@ -513,6 +513,23 @@ def test_a_refused_run_touches_nothing_in_the_folder(synthetic_cache, tmp_path):
     assert after == before
 
 
+def test_a_divergence_a_callback_renders_first_is_one_line_and_keeps_the_run(synthetic_cache, tmp_path):
+    """The update of iteration 0 at this rate blows the weights up; the picture of iteration 1 (rendered at the end of
+    that iteration, before the next step's own check) meets them first: one line, status 2, the run's folder kept."""
+    run_dir = tmp_path / "run"
+    args = [a for a in TINY if not a.startswith("callbacks.images=")]
+    result = unicorn_train(
+        *args, "callbacks.images.every_n_steps=1", "optim.lr=1e30", f"hydra.run.dir={run_dir}", cwd=tmp_path
+    )
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert "Traceback" not in result.stderr
+    assert error_lines(result.stderr)[-1:] == [
+        "unicorn-train: error: the training diverged: the weights after iteration 0 give non-finite values (verts "
+        "contains NaN or infinite values); train again, or resume from an earlier checkpoint, with a lower optim.lr"
+    ]
+    assert "the training diverged" in (run_dir / "train.log").read_text()  # the iteration ran: its folder stays
+
+
 def test_a_plugin_that_cannot_be_imported_leaves_the_folders_as_they_were(tmp_path, monkeypatch):
     monkeypatch.setenv("UNICORN_PLUGINS", "probe_no_such_plugin")
     existing = tmp_path / "existing"

@@ -28,6 +28,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from unicorn.checks import NonFiniteValueError
 from unicorn.errors import Interrupted, interrupt_on_signal
 
 __all__ = [
@@ -555,6 +556,13 @@ def fit(run: Run) -> dict[str, float]:
             f"stopped by {signal.Signals(signum).name} at once (signalled twice) during iteration "
             f"{trainer.global_step + 1}: {then}",
             128 + signum,
+        ) from err
+    except NonFiniteValueError as err:  # a callback's render (pictures, held-out scores) of weights that blew up
+        from unicorn.lit.finite import NonFiniteLossError
+
+        raise NonFiniteLossError(
+            f"the training diverged: the weights after iteration {trainer.global_step - 1} give non-finite values "
+            f"({err}); train again, or resume from an earlier checkpoint, with a lower optim.lr"
         ) from err
     except SIGTERMException as err:  # Lightning's, at the end of the iteration GracefulStop saved, or elsewhere
         raise run.stopper.stopped or Interrupted(

@@ -54,8 +54,8 @@ class GracefulStop(Checkpoint):
     ``last_path`` as its ``last.ckpt``, that callback writes it (once per iteration: not again after its periodic
     save of the same iteration, nor at the end of training).
 
-    Also counts the iterations this process ran (:attr:`steps_run`): a run that fails before its first one leaves
-    its folder as it found it (:mod:`unicorn.cli.train`).
+    Its :class:`ArmStopSignals` counts the iterations this process ran (:attr:`steps_run`): a run that fails before
+    its first one leaves its folder as it found it (:mod:`unicorn.cli.train`).
 
     Args:
         last_path: where the checkpoint of an interrupted run goes (the run's ``checkpoints/last.ckpt``).
@@ -103,7 +103,6 @@ class GracefulStop(Checkpoint):
         log.warning("%s: stopping after this iteration (again to stop at once)", signal.Signals(signum).name)
 
     def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
-        self.steps_run += 1
         signum = self.received or (signal.SIGTERM if trainer.received_sigterm else None)
         if not trainer.strategy.reduce_boolean_decision(signum is not None, all=False):
             return
@@ -142,13 +141,18 @@ class GracefulStop(Checkpoint):
 
 class ArmStopSignals(L.Callback):
     """Puts ``stopper``'s signal handlers in place at the first ``on_train_start`` hook (:meth:`GracefulStop.arm`):
-    first in the trainer's callbacks, before any other callback's set-up (see the module docstring)."""
+    first in the trainer's callbacks, before any other callback's set-up (see the module docstring); and counts the
+    iterations run (``stopper.steps_run``) before any other callback's end-of-iteration hook."""
 
     def __init__(self, stopper: GracefulStop) -> None:
         self.stopper = stopper
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.stopper.arm()
+
+    def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+        # counted here, first of the callbacks: an iteration that ran counts even when a later callback fails
+        self.stopper.steps_run += 1
 
 
 def record_only_sigterm(trainer: L.Trainer) -> None:
