@@ -136,6 +136,13 @@ SETTING_CASES = [
     ("seed-huge", ["seed=4294967296"], r"seed must be a whole number in \[0, 4294967295\].*got 4294967296$"),
     ("precision", ["trainer.precision=bogus"], r"trainer\.precision must be one of \(.*'32-true'.*\), got 'bogus'$"),
     ("strategy", ["trainer.strategy=bogus"], r"trainer\.strategy must be one of \['auto', 'ddp'.*got 'bogus'$"),
+    (  # Lightning's plain DDP: every process stopped at the first step, the run's folder written
+        "devices-two-strategy-auto",
+        ["trainer.accelerator=cpu", "trainer.devices=2"],
+        r"trainer\.strategy=auto with trainer\.devices=2 runs Lightning's plain DDP, .* use "
+        r"trainer\.strategy=ddp_find_unused_parameters_true \(as trainer=ddp and trainer=ddp_cpu do\), or one device "
+        r"\(trainer\.devices=1\)$",
+    ),
     (
         "background-color",
         ["renderer.background_color=[2,3]"],
@@ -223,7 +230,11 @@ def test_last_without_last_ckpt_resumes_from_the_newest_step_file(finished_run, 
     assert result.returncode == 0, result.stderr[-3000:]
     assert "resuming from the newest checkpoint" in (folder / "train.log").read_text()
     assert "training from scratch" not in (folder / "train.log").read_text()
-    assert {p.name: p.read_bytes() for p in (folder / "checkpoints").glob("step=*.ckpt")} == steps
+    after = {p.name: p.read_bytes() for p in (folder / "checkpoints").glob("step=*.ckpt")}
+    assert after["step=0000008.ckpt"] == steps["step=0000008.ckpt"]  # resumed from, kept
+    # the end of training is a step file of its own (no last.ckpt); the rotation keeps the newest two
+    assert sorted(after) == ["step=0000008.ckpt", "step=0000010.ckpt"]
+    assert torch.load(folder / "checkpoints" / "step=0000010.ckpt", weights_only=True)["global_step"] == 10
 
 
 def test_eval_refuses_a_non_empty_out(tmp_path):

@@ -280,6 +280,22 @@ def test_a_signal_writes_last_ckpt_of_its_iteration_once(synthetic_cache, tmp_pa
     assert load_checkpoint_file(run.checkpoint_dir / "last.ckpt")["global_step"] == stop
 
 
+@pytest.mark.parametrize("every", [3, 4])
+def test_without_last_ckpt_the_final_iteration_is_a_step_checkpoint(synthetic_cache, tmp_path, every):
+    """With ``save_last=false`` the 8 iterations end in a ``step=0000008.ckpt``, written once (not again where the
+    periodic save just wrote it), so that the evaluation after training reads the final weights."""
+    run = build_run(
+        tmp_path,
+        f"callbacks.checkpoint.every_n_steps={every}",
+        "callbacks.checkpoint.save_last=false",
+        "callbacks.checkpoint.keep=-1",
+    )
+    written = record_checkpoints(run)
+    fit(run)
+    assert written == [(f"step={s:07d}.ckpt", s) for s in sorted({*range(every, 9, every), 8})]
+    assert sorted(p.name for p in run.checkpoint_dir.iterdir()) == [name for name, _ in written]
+
+
 class BatchRecorder(L.Callback):
     """The images of every training batch as the loader gives them."""
 

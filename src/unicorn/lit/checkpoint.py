@@ -77,7 +77,8 @@ class PeriodicCheckpoint(ModelCheckpoint):
     a second name (a hard link) of that iteration's ``step=<N>.ckpt``: one write, and no moment at which the two
     files hold different iterations. With ``save_last``, training ends with ``last.ckpt`` of the final iteration,
     written once: at the end of training unless a periodic save (or a signal's, :meth:`save_last_checkpoint`) just
-    wrote it.
+    wrote it; without it, a training that reaches ``max_steps`` between two periodic saves ends with one more
+    ``step=<N>.ckpt`` of its final iteration (unless ``save_top_k`` is 0).
     """
 
     def _save_last_checkpoint(self, trainer: L.Trainer, monitor_candidates: dict[str, torch.Tensor]) -> None:
@@ -109,6 +110,11 @@ class PeriodicCheckpoint(ModelCheckpoint):
         if self.save_last and self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
+    def note_saved(self, trainer: L.Trainer) -> None:
+        """The current iteration was saved by another writer (a signal's ``last.ckpt``): the end of training does
+        not save it again."""
+        self._last_global_step_saved = trainer.global_step
+
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         with warnings.catch_warnings():
             # a folder holding checkpoints is one the run may use (a resume, overwrite=true): the run folder's
@@ -118,7 +124,11 @@ class PeriodicCheckpoint(ModelCheckpoint):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # Lightning's own end-of-training save is made only where nothing was saved during the run
-        self.save_last_checkpoint(trainer)
+        if self.save_last:
+            self.save_last_checkpoint(trainer)
+        elif self._last_global_step_saved != trainer.global_step and 0 < trainer.max_steps <= trainer.global_step:
+            # without last.ckpt the final iterations would be lost: the end is one more step=<N>.ckpt (rotated)
+            self._save_topk_checkpoint(trainer, self._monitor_candidates(trainer))
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)

@@ -121,6 +121,9 @@ class GracefulStop(Checkpoint):
                 callback.save_last_checkpoint(trainer)
                 return
         trainer.save_checkpoint(self.last_path, weights_only=False)
+        for callback in trainer.checkpoint_callbacks:
+            if isinstance(callback, PeriodicCheckpoint):
+                callback.note_saved(trainer)
 
     def on_train_batch_start(self, trainer: L.Trainer, *args: Any) -> None:
         # the iteration that saw the signal has been logged like any other: stop before the next one runs
