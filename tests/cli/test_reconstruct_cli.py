@@ -18,11 +18,11 @@ from PIL import Image
 import unicorn
 from tests.support.checkpoints import reference_state
 from tests.support.datasets import bomb_png
-from tests.support.evaluation import TEXTURE_SIZE, referenced_files, tiny_checkpoint, write_inputs
+from tests.support.evaluation import TEXTURE_SIZE, referenced_files, tiny_checkpoint, tiny_model, write_inputs
 from tests.support.signals import SignalAtCall
 from unicorn.cli.reconstruct import main
 from unicorn.data.images import MAX_IMAGE_BYTES_ENV, MAX_IMAGE_PIXELS_ENV
-from unicorn.io import export_prediction, load_model
+from unicorn.io import export_prediction, load_input, load_model, save_model
 
 FAST = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "--quiet", "--device", "cpu"]
 
@@ -30,6 +30,21 @@ FAST = ["--view-size", "48", "--turntable-frames", "3", "--strip-views", "3", "-
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tiny_checkpoint(tmp_path_factory.mktemp("cli_rec_ckpt") / "tiny.pt", "real")
+
+
+@pytest.fixture(scope="module")
+def varied_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny checkpoint whose mesh, scale and pose differ from image to image (random output layers; the plain
+    tiny model predicts the same ones for every image)."""
+    model = tiny_model("real")
+    model.set_active_dims(shape=model.shape.code_dim)
+    layers = [(model.shape.regressor[-1], 1.0), (model.shape.field.mlp[-1], 0.05), (model.scale.regressor[-1], 1.0)]
+    layers += [(mlp[-1], 1.0) for mlp in (*model.pose.rot_regressors, *model.pose.T_regressors)]
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for layer, std in layers:
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen) * std)
+    return save_model(model, tmp_path_factory.mktemp("cli_rec_varied") / "varied.pt")
 
 
 @pytest.fixture
@@ -44,18 +59,25 @@ def test_console_scripts_are_installed() -> None:
     assert scripts.get("unicorn-eval") == "unicorn.cli.eval:main"
 
 
-def test_reconstruct_command(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
+def test_reconstruct_command(tmp_path: Path, varied_checkpoint: Path, inputs: Path) -> None:
+    """The command's files, each image's against the model run here on that image alone."""
+    checkpoint = varied_checkpoint
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "unicorn.cli.reconstruct", str(checkpoint), str(inputs), "--out", str(out), *FAST]
     proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "2 images reconstructed" in proc.stdout
 
-    model, _ = load_model(checkpoint)
-    with torch.no_grad():
-        expected = export_prediction(model, model.predict(torch.rand(1, 3, 32, 32)), 0)  # same topology for any input
+    model, info = load_model(checkpoint)
+    files = {"cutout": inputs / "cutout.png", "photo": inputs / "photo.jpg"}
+    poses = {}
     for name in ("cutout", "photo"):
         folder = out / name
+        # each image's files are that image's prediction: the model run here on it alone, framed as the command does
+        image = load_input(files[name], model.config["image_size"]).image[None]
+        with torch.no_grad():
+            pred = model.predict(image, average_texture=info.average_texture)
+        expected = export_prediction(model, pred, 0)
         for file in ("input.png", "reconstruction.png", "mask.png", "turntable.gif", "turntable.png", "pose.json",
                      "mesh.obj", "mesh.mtl", "mesh.png", "mesh.glb"):  # fmt: skip
             assert (folder / file).is_file(), file
@@ -70,10 +92,28 @@ def test_reconstruct_command(tmp_path: Path, checkpoint: Path, inputs: Path) -> 
             assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
         assert obj.visual.material.image.size == (TEXTURE_SIZE, TEXTURE_SIZE)
         assert glb.visual.material.baseColorTexture.size == (TEXTURE_SIZE, TEXTURE_SIZE)
+        # the OBJ's positions, one per template vertex in its order, are the prediction's object-frame vertices with
+        # the anisotropic scale applied (docs/reconstruct.md: scale * canonical; this model's scale is not 1)
+        assert (pred.scale[0] - 1).abs().max() > 0.05
+        lines = (folder / "mesh.obj").read_text().splitlines()
+        positions = torch.tensor([[float(x) for x in line.split()[1:4]] for line in lines if line.startswith("v ")])
+        corners = [[int(c.split("/")[0]) - 1 for c in line.split()[1:]] for line in lines if line.startswith("f ")]
+        scaled = pred.canonical_verts[0] * pred.scale[0]
+        torch.testing.assert_close(positions, scaled, atol=1e-5, rtol=0)
+        assert torch.equal(torch.tensor(corners), model.template.faces.cpu())
         pose = json.loads((folder / "pose.json").read_text())
         R = torch.tensor(pose["R"])
         torch.testing.assert_close(R @ R.T, torch.eye(3), atol=1e-5, rtol=0)
         assert len(pose["T"]) == 3 and len(pose["candidate_probabilities"]) == 6
+        torch.testing.assert_close(R, pred.R[0], atol=1e-5, rtol=0)
+        torch.testing.assert_close(torch.tensor(pose["T"]), pred.T[0], atol=1e-5, rtol=0)
+        assert pose["scale"] == pytest.approx(pred.scale[0].tolist(), abs=1e-6)
+        assert pose["candidate_probabilities"] == pytest.approx(pred.poses.probs[:, 0].tolist(), abs=1e-6)
+        poses[name] = R, torch.tensor(pose["T"]), positions
+    # two different inputs, two different poses and meshes (so the comparisons above tell the images apart)
+    assert (poses["cutout"][2] - poses["photo"][2]).abs().max() > 1e-2
+    assert (poses["cutout"][0] - poses["photo"][0]).abs().max() > 1e-2
+    assert (poses["cutout"][1] - poses["photo"][1]).abs().max() > 1e-2
     # the photo (70 x 40) fitted into 32 x 32: 32 x 18 pixels, 7 rows of padding above: its frame in photo pixels
     frame = json.loads((out / "photo" / "pose.json").read_text())["frame"]
     assert frame == pytest.approx({"x": 0.0, "y": -7 * 40 / 18, "width": 70.0, "height": 32 * 40 / 18})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import pytest
@@ -31,6 +32,7 @@ from unicorn.metrics import (
     sample_points_from_meshes,
     shape_retrieval,
 )
+from unicorn.model import Prediction, Unicorn
 
 FAST = dict(batch_size=3, num_points=400, icp_iterations=2, num_pairs=50, progress=False)
 
@@ -55,6 +57,15 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
         assert row["rot-err-mean"] == pytest.approx(float(errors.mean()), abs=1e-4)
         assert row["rot-acc-30"] == pytest.approx(float((errors < 30).double().mean()))
     assert "rot-err" not in result.columns
+    # ... and that error is the one after the group's alignment, recomputed here from the predictions
+    items = collate([data[i] for i in range(len(data))])
+    with torch.no_grad():
+        R_pred = shapenet_model.predict(items["image"]).R
+    for g in ("chair", "mug"):
+        idx = [i for i, r in enumerate(result.per_image) if r["group"] == g]
+        Q = align_canonical_frame(R_pred[idx], items["R"][idx])
+        want = geodesic_error(Q @ R_pred[idx], items["R"][idx])
+        assert [result.per_image[i]["rot-err"] for i in idx] == pytest.approx(want.tolist(), abs=1e-3)
 
     # the loop's numbers are the metric functions' on the same prediction (GT-pose alignment wired right)
     batch = collate([data[i] for i in range(3)])  # the loop's first batch (the point sampling is per batch)
@@ -71,6 +82,53 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
     sample = result.samples[0]
     iou = mask_iou(sample.alpha[None], sample.mask[None])
     assert result.per_image[0]["mask-iou"] == pytest.approx(float(iou), abs=1e-6)
+
+
+def _rotation(axis: list[float], degrees: float) -> torch.Tensor:
+    """(3, 3) rotation by ``degrees`` about ``axis`` (Rodrigues' formula)."""
+    k = torch.tensor(axis, dtype=torch.float64)
+    k = k / k.norm()
+    K = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=torch.float64)
+    a = math.radians(degrees)
+    return (torch.eye(3, dtype=torch.float64) + math.sin(a) * K + (1 - math.cos(a)) * K @ K).float()
+
+
+class _TurnedFrame(FixedShapeModel):
+    """A model whose every pose candidate is the ground truth seen in a frame turned by ``Q0``: ``Q0^T R_gt``.
+
+    Each image it is given is matched to the nearest of ``images`` (the evaluated items), whose ``R_gt`` it takes.
+    """
+
+    def __init__(self, model: Unicorn, images: torch.Tensor, R_gt: torch.Tensor, Q0: torch.Tensor) -> None:
+        super().__init__(model, model.template.verts, pose="predicted")
+        self.images, self.R_gt, self.Q0 = images, R_gt, Q0
+
+    def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
+        pred = super().predict(images, average_texture=average_texture)
+        nearest = torch.cdist(images.flatten(1), self.images.flatten(1)).argmin(1)
+        R = (self.Q0.T @ self.R_gt[nearest]).to(pred.R)
+        K = pred.poses.R.shape[0]
+        poses = dataclasses.replace(pred.poses, R=R.expand(K, -1, -1, -1).clone())
+        return dataclasses.replace(pred, poses=poses, R=R)
+
+
+def test_pose_errors_after_a_known_turn_of_the_frame(shapenet_model, synth_root) -> None:
+    """Predictions right up to one global rotation Q0: ~0 error once aligned, Q0's angle for every image without."""
+    data = build_eval_dataset("synthetic", str(synth_root), "train", img_size=32)
+    items = collate([data[i] for i in range(len(data))])
+    Q0 = _rotation([1.0, 2.0, -0.5], 100.0)
+    assert float(geodesic_error(Q0, torch.eye(3))) == pytest.approx(100.0, abs=1e-3)
+    turned = _TurnedFrame(shapenet_model, items["image"], items["R"], Q0)
+    options = dict(FAST, icp_iterations=0)
+    aligned = evaluate(turned, data, EvalOptions("shapenet", **options), "synthetic")
+    raw = evaluate(turned, data, EvalOptions("shapenet", align_pose=False, **options), "synthetic")
+    assert len(aligned.per_image) == len(raw.per_image) == len(data) == 4
+    for a, r in zip(aligned.per_image, raw.per_image, strict=True):
+        assert a["rot-err"] == pytest.approx(0.0, abs=0.05)
+        assert r["rot-err"] == pytest.approx(100.0, abs=0.05)
+    for a, r in zip(aligned.table, raw.table, strict=True):
+        assert a["rot-err-median"] == pytest.approx(0.0, abs=0.05) and a["rot-acc-30"] == 1.0
+        assert r["rot-err-median"] == pytest.approx(100.0, abs=0.05) and r["rot-acc-30"] == 0.0
 
 
 def _interior(fg: torch.Tensor, r: int) -> list[tuple[int, int]]:

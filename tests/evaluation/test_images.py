@@ -10,7 +10,6 @@ import pytest
 from PIL import Image
 
 from tests.support.evaluation import write_inputs
-from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import ImageLoadError, load_image
 from unicorn.errors import UserError
 from unicorn.io import alpha_bbox, collect_inputs, load_input, preprocess
@@ -58,12 +57,44 @@ def test_alpha_cutout_is_centred(tmp_path: Path) -> None:
     assert float(item.image[:, 0, 0].min()) > 0.95  # transparent pixels became white
 
 
-def test_opaque_image_is_fit_and_padded(tmp_path: Path) -> None:
-    files = write_inputs(tmp_path)
-    item = load_input(files["photo"], 32)
+def _pattern(height: int, width: int) -> np.ndarray:
+    """An (H, W, 3) uint8 image whose every pixel is different: red follows the column, green the row."""
+    rows, cols = np.mgrid[0:height, 0:width]
+    return np.stack([cols * 7 + 3, rows * 11 + 5, (rows * width + cols) % 251], axis=-1).astype(np.uint8)
+
+
+@pytest.mark.parametrize("landscape", [True, False])
+def test_opaque_image_is_fit_and_padded(tmp_path: Path, landscape: bool) -> None:
+    """Where a framed opaque image lands, against its pixels placed by hand: centred, its border repeated."""
+    # the longer side is the model's size: no resampling, the pixels are placed as they are
+    arr = _pattern(19, 32) if landscape else _pattern(32, 19)
+    Image.fromarray(arr).save(tmp_path / "pattern.png")
+    item = load_input(tmp_path / "pattern.png", 32)
     assert not item.cropped
-    np.testing.assert_allclose(item.image.permute(1, 2, 0).numpy(), fit_and_pad(load_image(files["photo"]), 32))
-    boxed = preprocess(load_image(files["photo"]), 16, bbox=(10, 5, 29, 24), padding=0.0)
+    got = item.image.permute(1, 2, 0).numpy()
+    want = arr.astype(np.float64) / 255
+    if not landscape:  # a portrait image is the landscape case turned: its padding columns are rows
+        got, want = got.transpose(1, 0, 2), want.transpose(1, 0, 2)
+    # 32 - 19 = 13 lines of padding: 6 before, 7 after
+    np.testing.assert_allclose(got[6:25], want, atol=1e-6)
+    np.testing.assert_allclose(got[:6], np.broadcast_to(want[0], (6, 32, 3)), atol=1e-6)
+    np.testing.assert_allclose(got[25:], np.broadcast_to(want[-1], (7, 32, 3)), atol=1e-6)
+    # the frame: the image's own pixels, 6 lines beyond its edge, 32 wide, as the photo spans 32 x 19
+    frame = (0.0, -6.0, 32.0, 32.0) if landscape else (-6.0, 0.0, 32.0, 32.0)
+    assert item.frame == pytest.approx(frame)
+
+    # twice as large: halved first, so each block of colour keeps its place (away from its edges)
+    blocks = np.zeros((38, 64, 3), dtype=np.uint8)
+    blocks[:, :32] = (255, 0, 0)
+    blocks[:, 32:] = (0, 0, 255)
+    blocks[:10, :] = (0, 255, 0)  # a band along the top edge, which the padding repeats upwards
+    Image.fromarray(blocks).save(tmp_path / "blocks.png")
+    framed = load_input(tmp_path / "blocks.png", 32).image.permute(1, 2, 0).numpy()  # 32 x 19 at rows 6..24
+    np.testing.assert_allclose(framed[:8], np.broadcast_to([0.0, 1.0, 0.0], (8, 32, 3)), atol=1e-6)  # band, above
+    np.testing.assert_allclose(framed[12:32, :14], np.broadcast_to([1.0, 0.0, 0.0], (20, 14, 3)), atol=1e-6)
+    np.testing.assert_allclose(framed[12:32, 18:], np.broadcast_to([0.0, 0.0, 1.0], (20, 14, 3)), atol=1e-6)
+    np.testing.assert_allclose(framed[25:], np.broadcast_to(framed[24], (7, 32, 3)), atol=0)  # the bottom line
+    boxed = preprocess(load_image(tmp_path / "pattern.png"), 16, bbox=(10, 5, 29, 24), padding=0.0)
     assert boxed.shape == (16, 16, 3)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +36,18 @@ def test_metric_files(tmp_path: Path, real_model) -> None:
     data = json.loads(paths["json"].read_text())  # strict JSON: NaN written as null
     assert data["mean"]["mask-iou"] == 0.5 and data["per_image"][1]["mask-iou"] is None
     assert data["better"] == {"mask-iou": "higher", "rec-mse": "lower"} and data["checkpoint"] == "/x/model.pkl"
-    with open(paths["per_image"]) as f:
-        assert len(list(csv.DictReader(f))) == 2
+    # per_image.csv: each row the result's row of that image, cell by cell (NaN as Python writes it, "nan")
+    with open(paths["per_image"], newline="") as f:
+        reader = csv.DictReader(f)
+        images = list(reader)
+    assert reader.fieldnames == ["index", "group", "mask-iou", "rec-mse"]
+    assert len(images) == len(result.per_image) == 2
+    for written, row in zip(images, result.per_image, strict=True):
+        assert int(written["index"]) == row["index"] and written["group"] == row["group"]
+        for column in ("mask-iou", "rec-mse"):
+            value = float(written[column])
+            assert (math.isnan(value) and math.isnan(row[column])) or value == row[column], (column, written)
+    assert images[1]["mask-iou"] == "nan"
 
 
 def test_report_page_and_grid(tmp_path: Path, real_model) -> None:

@@ -11,6 +11,8 @@ import torch
 
 from tests.support.training import build_run, compose_config
 from unicorn.config import ConfigError, validate
+from unicorn.config.schema import HeldOutConfig
+from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate
 from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
 from unicorn.lit.run import fit
 
@@ -62,6 +64,35 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
     # the untrained model and the trained one are different models: the curve moves
     assert rows[0]["rec-mse"] != rows[-1]["rec-mse"]
+    # the last row is the public evaluation of the trained model on the same held-out items, recomputed here:
+    # the settings of HELDOUT (the rest HeldOutConfig's defaults), the callback's mean shape as the baseline, and
+    # the textures the model was training with at its last iteration (full textures: stage 4, no mean colours)
+    model = watched.module.model
+    assert not watched.module.constant_mean_textures and int(watched.trainer.global_step) == 8
+    data = watched.trainer.datamodule
+    heldout = build_eval_dataset(
+        "synthetic", str(data.dataset_root()), "val", img_size=model.config["image_size"], categories="chair",
+        max_images=2,
+    )  # fmt: skip
+    settings = dict(
+        batch_size=HeldOutConfig.batch_size, num_points=300, icp_iterations=2, own_mean_shape=True,
+        shape_points=HeldOutConfig.shape_points, report_samples=0, progress=False,
+    )  # fmt: skip
+    scores = {
+        average: evaluate(
+            model, heldout, EvalOptions("shapenet", average_texture=average, **settings), "synthetic",
+            shape_baseline=callback.mean_shape,
+        ).mean
+        for average in (False, True)
+    }  # fmt: skip
+    last = rows[-1]
+    assert set(scores[False]) - {"group", "n-images"} <= set(last) - {"step"}
+    for key, value in scores[False].items():
+        if key not in ("group", "n-images"):  # the same computation: equal up to float32 rounding at most
+            assert float(last[key]) == pytest.approx(value, rel=1e-7, abs=1e-9, nan_ok=True), key
+    # which the mean-colour textures' is not: the colour columns tell the two apart at that tolerance
+    assert float(last["color-err"]) != pytest.approx(scores[True]["color-err"], rel=1e-7)
+    assert float(last["rec-mse"]) != pytest.approx(scores[True]["rec-mse"], rel=1e-7)
 
     # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
     rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
