@@ -14,6 +14,12 @@ CUB = ["experiment=cub", "dataset.root=/data/cub_200"]
 #: (id, overrides, the error's pattern)
 CASES = [
     (
+        "renderer-size",
+        [*SYNTHETIC, "+renderer.image_size=0"],
+        r"^renderer.image_size \(0\) differs from dataset.img_size \(32\): the renderer renders at the model's image "
+        r"size; leave renderer.image_size out$",
+    ),
+    (
         "models-huge",
         [*SYNTHETIC, "dataset.synthetic.n_models=1000000000000"],
         r"n_models must be a whole number >= 3 and <= 100,000",
@@ -98,6 +104,7 @@ def test_a_value_the_run_cannot_use_is_one_config_error(tmp_path, overrides, mes
          "dataset.synthetic.mode=wild"],
         CUB,
         [*SYNTHETIC, "renderer=hard", "~renderer.faces_per_pixel"],
+        [*SYNTHETIC, "+renderer.image_size=32"],  # the images' size: accepted
     ],
 )  # fmt: skip
 def test_the_documented_settings_pass(tmp_path, overrides) -> None:

@@ -191,6 +191,12 @@ def _check_model(cfg: DictConfig) -> None:
         m.image_size == cfg.dataset.img_size,
         f"model.image_size ({m.image_size}) differs from dataset.img_size ({cfg.dataset.img_size})",
     )
+    size = cfg.renderer.get("image_size", cfg.dataset.img_size)  # the renderer renders at the model's size
+    _check(
+        size == cfg.dataset.img_size,
+        f"renderer.image_size ({size}) differs from dataset.img_size ({cfg.dataset.img_size}): the renderer "
+        "renders at the model's image size; leave renderer.image_size out",
+    )
     _check(
         cfg.dataset.batch_size <= m.loss.memory_size,
         f"dataset.batch_size ({cfg.dataset.batch_size}) exceeds model.loss.memory_size ({m.loss.memory_size})",
