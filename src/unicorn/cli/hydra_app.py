@@ -29,7 +29,7 @@ import io
 import os
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -136,12 +136,14 @@ _ARGPARSE_ERROR = re.compile(r"^\S+: error: ")
 _EXCEPTION_LINE = re.compile(r"^(?:[\w.]+\.)?(\w+): (.+)$")
 
 
-def hydra_failure(text: str) -> str | None:
+def hydra_failure(text: str, overrides: Sequence[str] = (), config_dir: Path | None = None) -> str | None:
     """The one line to print for what Hydra reported before the task ran, or None when it is a bug.
 
     Without a traceback it is a composition error (a misspelt override or group); with one, an expected failure
-    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk), or
-    in logging's failure to open the run's log that an ``OSError`` caused.
+    only when the traceback ends in an ``OSError`` (e.g. the run folder cannot be created on a read-only disk), in
+    logging's failure to open the run's log that an ``OSError`` caused, or in Hydra's refusal of a config group set
+    to null (``model=null``): named from ``overrides`` (the command line Hydra got), with the group's options in
+    ``config_dir``.
     """
     lines = [line.strip() for line in text.splitlines() if line.strip() and "HYDRA_FULL_ERROR" not in line]
     if not any(line.startswith("Traceback (most recent call last)") for line in lines):
@@ -155,7 +157,7 @@ def hydra_failure(text: str) -> str | None:
         if "Could not find 'hydra/launcher/" in line:  # e.g. hydra/launcher=submitit_slurm without the plugin
             line += " (Hydra's launchers but basic are plugins of their own: pip install hydra-submitit-launcher)"
         if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
-            line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=10.ckpt\"')"
+            line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=0000010.ckpt\"')"
         elif "LexerNoViableAltException" in line or re.search(r"mismatched input '[()\[\]{}#]'", line):
             # e.g. hydra.run.dir=runs/café: letters outside ASCII, brackets, '#'
             line += (
@@ -166,11 +168,32 @@ def hydra_failure(text: str) -> str | None:
     match = _EXCEPTION_LINE.match(lines[-1])
     if match and _is_os_error(match):
         return match.group(2)
+    if match and match.group(1) == "ValueError" and match.group(2).startswith(_NULL_GROUP):
+        return _null_group(overrides, config_dir)
     if match and match.group(2).startswith("Unable to configure handler"):  # the run's log, from an OSError
         causes = [m for m in map(_EXCEPTION_LINE.match, lines) if m and _is_os_error(m)]
         if causes:
             return f"cannot write the run's log: {causes[-1].group(2)}"
     return None
+
+
+#: Hydra's error for a config group override whose value is null (``model=null``, ``+experiment=null``)
+_NULL_GROUP = "Config group override must be a string or a list"
+
+
+def _null_group(overrides: Sequence[str], config_dir: Path | None) -> str:
+    """The line for a config group set to null: the override, and the group's options where ``config_dir`` has
+    it."""
+    for arg in overrides:
+        key, sep, value = arg.partition("=")
+        group = key.lstrip("+")
+        if not sep or value.strip() != "null" or key.startswith("~") or "." in group:  # a group has no dots
+            continue
+        folder = config_dir / group if config_dir is not None else None
+        options = sorted(p.stem for p in folder.glob("*.yaml")) if folder is not None and folder.is_dir() else []
+        choose = f"one of its options ({', '.join(options)})" if options else "one of its options"
+        return f"{arg}: a config group cannot be null; choose {choose}, or leave the override out"
+    return "a config group override is null: choose one of the group's options, or leave the override out"
 
 
 def _is_os_error(match: re.Match[str]) -> bool:
@@ -393,7 +416,7 @@ class HydraApp:
                 raise
             sys.stderr = held.stream
             # Hydra's own report of an error before the task: one line, status 2, unless it is a bug
-            line = NoteExistingFolders.refusal or hydra_failure(held.held.getvalue())
+            line = NoteExistingFolders.refusal or hydra_failure(held.held.getvalue(), args, self.config_dir)
             if line is None:
                 sys.stderr.write(held.held.getvalue())
                 raise

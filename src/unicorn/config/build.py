@@ -276,6 +276,73 @@ def _check_trainer(t: DictConfig) -> None:
         f"trainer.strategy={strategy}: the pose / 3D alternation leaves half of the parameters without gradient "
         "at every step; use ddp_find_unused_parameters_true (or ddp_spawn_find_unused_parameters_true)",
     )
+    _check_accelerator(t.accelerator)
+    if strategy == "auto":
+        per_node = _device_count(t.accelerator, t.devices)
+        if per_node is not None and per_node * t.num_nodes > 1:
+            if t.num_nodes > 1:
+                what = f"trainer.num_nodes={t.num_nodes}"
+            elif _devices_text(t.devices) in ("auto", "-1"):
+                what = f"trainer.devices={_devices_text(t.devices)} ({per_node} devices on this machine)"
+            else:
+                what = f"trainer.devices={_devices_text(t.devices)}"
+            one = "trainer.devices=1" + (" trainer.num_nodes=1" if t.num_nodes > 1 else "")
+            raise ConfigError(
+                f"trainer.strategy=auto with {what} runs Lightning's plain DDP, which stops at the first step: the "
+                "pose / 3D alternation leaves part of the parameters without gradient at every step; use "
+                "trainer.strategy=ddp_find_unused_parameters_true (as trainer=ddp and trainer=ddp_cpu do), or one "
+                f"device ({one})"
+            )
+
+
+def _check_accelerator(accelerator: Any) -> None:
+    """An accelerator Lightning has registered (``tpu``...) whose package is not installed, named before the run
+    is built (Lightning raises a ``ModuleNotFoundError`` when it builds the trainer). Names Lightning does not know
+    and accelerators this machine lacks are the trainer's to report."""
+    from lightning.pytorch.accelerators import AcceleratorRegistry
+
+    if not isinstance(accelerator, str) or accelerator not in AcceleratorRegistry:
+        return
+    try:
+        AcceleratorRegistry.get(accelerator)
+    except ImportError as err:  # e.g. tpu: "Requirement 'torch_xla>=1.13' not met. HINT: ..."
+        raise ConfigError(f"trainer.accelerator={accelerator} needs a package that is not installed: {err}") from None
+
+
+def _devices_text(devices: Any) -> str:
+    """``trainer.devices`` as written on the command line (``auto``, ``2``, ``[0, 1]``)."""
+    if isinstance(devices, ListConfig):
+        devices = OmegaConf.to_container(devices)
+    return str(devices).strip() if isinstance(devices, str) else str(devices)
+
+
+def _device_count(accelerator: Any, devices: Any) -> int | None:
+    """How many devices (one process each on every node) Lightning's trainer runs on with these flags, as it counts
+    them (``auto`` and ``-1``: every device of this machine); None where Lightning itself refuses them (a device this
+    machine lacks, a list of CPUs) or runs no DDP (TPUs), for the trainer to report."""
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+    from lightning.pytorch.accelerators import AcceleratorRegistry, CUDAAccelerator, MPSAccelerator
+
+    if not isinstance(accelerator, str):
+        return None
+    if accelerator in ("auto", "gpu"):  # as Lightning picks them (a TPU aside)
+        if MPSAccelerator.is_available():
+            accelerator = "mps"
+        elif CUDAAccelerator.is_available():
+            accelerator = "cuda"
+        elif accelerator == "auto":
+            accelerator = "cpu"
+    if accelerator not in ("cpu", "cuda", "mps"):
+        return None
+    if isinstance(devices, ListConfig):
+        devices = OmegaConf.to_container(devices)
+    try:
+        cls = type(AcceleratorRegistry.get(accelerator))
+        if isinstance(devices, str) and devices.strip() == "auto":
+            devices = cls.auto_device_count()
+        return len(cls.get_parallel_devices(cls.parse_devices(devices)))
+    except (MisconfigurationException, ValueError, TypeError):
+        return None
 
 
 def _devices_ok(devices: Any) -> bool:
