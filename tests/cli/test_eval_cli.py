@@ -133,9 +133,29 @@ def test_a_missing_synthetic_folder_is_named_as_generated_data(tmp_path: Path, c
     err = capsys.readouterr().err.strip()
     assert err == (
         f"unicorn-eval: error: generated synthetic dataset not found at {missing}. unicorn-train generates it on "
-        "first use under dataset.root ($UNICORN_CACHE/synthetic by default), and unicorn-data synth --out DIR with "
-        "the run's dataset.synthetic settings generates it again"
+        "first use in a folder under dataset.root (by default $UNICORN_CACHE/synthetic; $UNICORN_CACHE/synthetic_32px "
+        "with +experiment=synthetic), and unicorn-data synth --out DIR with the run's dataset.synthetic settings "
+        "generates it again"
     )
+
+
+def test_a_training_runs_dataset_root_as_root_names_the_datasets_in_it(
+    tmp_path: Path, synth: Path, checkpoint: Path, capsys
+) -> None:
+    """The dataset.root a run records is the parent of the generated datasets: the error names them as --root."""
+    parent = tmp_path / "synthetic_32px"  # a scratch cache
+    parent.mkdir()
+    os.symlink(synth, parent / "nmr_chair+mug_n3_s0_v2")
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "synthetic", "--split", "train", "--device", "cpu", "--out", str(out)]
+    assert main([*args, "--root", str(parent), "--report-samples", "0", *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        f"unicorn-eval: error: {parent} is a folder of generated synthetic datasets (as a training run's dataset.root "
+        f"is), not one: give one of them as the root: {parent / 'nmr_chair+mug_n3_s0_v2'}\n"
+    )
+    assert not out.exists()
+    assert main([*args, "--root", str(parent / "nmr_chair+mug_n3_s0_v2"), "--report-samples", "0", *FAST]) == 0
 
 
 @pytest.mark.parametrize(
@@ -275,3 +295,55 @@ def test_the_cub_protocol_scores_the_level_4_mesh(tmp_path: Path, cub_root: Path
     loaded.clear()
     assert main([str(real), *common, "--template-level", "3", "--out", str(tmp_path / "b")]) == 0
     assert loaded == [{"template": {"level": 3}}, 642]
+
+
+@pytest.mark.parametrize(
+    "given, expected",
+    [
+        ([], (100_000, 100)),  # the full protocol
+        (["--fast"], (50_000, 30)),  # UNICORN's validation setting
+        (["--fast", "--num-points", "1000"], (1000, 30)),  # an option given wins over --fast's value
+        (["--fast", "--icp-iterations", "5"], (50_000, 5)),
+        (["--icp-iterations", "0", "--fast", "--num-points", "2000"], (2000, 0)),
+        (["--num-points", "3000"], (3000, 100)),
+    ],
+)
+def test_options_given_win_over_fast(given: list[str], expected: tuple[int, int]) -> None:
+    from unicorn.cli.eval import _options, build_parser
+
+    options = _options(build_parser().parse_args(["model.ckpt", *given]), "synthetic", average_texture=False)
+    assert (options.num_points, options.icp_iterations) == expected
+
+
+def test_skip_bad_scores_each_readable_image_once(tmp_path: Path, capsys, caplog) -> None:
+    """An unreadable image of a folder stops the evaluation unless --skip-bad, which leaves it out with a one-line
+    warning; every readable image is scored once (not its neighbour twice, in the unreadable one's place)."""
+    import numpy as np
+    from PIL import Image
+
+    from unicorn.cli.errors import WARNINGS_LOGGER
+
+    folder = tmp_path / "fold"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        Image.fromarray(rng.integers(0, 256, (24, 30, 3), dtype=np.uint8)).save(folder / f"img{i}.png")
+    (folder / "bad.jpg").write_bytes(b"not a JPEG" * 10)  # first in the listing: its neighbour would stand in
+    (folder / "img2.png").write_bytes(b"cut short")  # one among the others
+    checkpoint = tiny_checkpoint(tmp_path / "real.pt")
+    out = tmp_path / "eval"
+    args = [str(checkpoint), "--dataset", "folder", "--root", str(folder), "--device", "cpu", "--out", str(out),
+            "--report-samples", "0", "--batch-size", "2", *FAST]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"unicorn-eval: error: cannot read image {folder / 'bad.jpg'}") and err.count("\n") == 1
+    caplog.set_level("WARNING", logger=WARNINGS_LOGGER)
+    assert main([*args, "--skip-bad"]) == 0
+    data = json.loads((out / "metrics.json").read_text())
+    assert sorted(row["index"] for row in data["per_image"]) == [1, 2, 4, 5]  # bad.jpg is 0, img2.png 3
+    assert data["on_error"] == "skip" and data["command"].endswith(" --skip-bad")
+    logged = [r.getMessage() for r in caplog.records if r.name == WARNINGS_LOGGER]
+    assert [line.split(": UnidentifiedImageError")[0] for line in logged] == [
+        f"SkippedFileWarning: skipping unreadable file: cannot read image {folder / name}"
+        for name in ("bad.jpg", "img2.png")
+    ]  # one line each, once

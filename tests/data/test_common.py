@@ -63,3 +63,25 @@ def test_augmented_items_cannot_be_cached() -> None:
     ds.augment = True
     with pytest.raises(DatasetError, match="Counting augments its items at random"):
         ds.cache_items()
+
+
+def test_a_skipped_file_is_one_of_unicorns_warnings_logged_in_one_line(caplog) -> None:
+    """The skip is a :class:`~unicorn.errors.UnicornWarning` (still a RuntimeWarning): the command-line programs log
+    it in one line, into a run's train.log too, not as Python prints a warning (file, line, source line)."""
+    import warnings
+
+    from unicorn.cli.errors import WARNINGS_LOGGER, log_warnings
+    from unicorn.data.common import SkippedFileWarning
+    from unicorn.errors import UnicornWarning
+
+    assert issubclass(SkippedFileWarning, UnicornWarning) and issubclass(SkippedFileWarning, RuntimeWarning)
+    printed = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = lambda *args, **kwargs: printed.append(args)
+        with log_warnings(), caplog.at_level("WARNING", logger=WARNINGS_LOGGER):
+            assert Counting(bad=1, on_error="skip")[1]["index"] == 2
+    assert [(r.name, r.getMessage()) for r in caplog.records] == [
+        (WARNINGS_LOGGER, "SkippedFileWarning: skipping unreadable file: cannot read image bad1.png: truncated")
+    ]
+    assert printed == []

@@ -135,3 +135,46 @@ def test_a_dataset_entry_of_the_wrong_kind_is_refused_when_registered(monkeypatc
     with pytest.raises(TypeError, match=r"^DatasetSpec\.build must be a function"):
         DatasetSpec("shapenet", 5, "images")  # type: ignore[arg-type]
     assert DatasetSpec(shapenet.build, 5, "images", ["n_items"]).options == ("n_items",)
+
+
+@pytest.mark.parametrize("name", ["shapenet_nmr", "synthetic"])
+def test_a_category_named_twice_is_refused(synth_nmr: Path, name: str) -> None:
+    """A category given twice, by name or by name and synset, is a mistake: its models would be read twice."""
+    from unicorn.data.images import DatasetError
+
+    with pytest.raises(DatasetError, match=r"^category 'car' is named twice in categories \['car', 'car'\]; name"):
+        build_dataset(name, "test", synth_nmr, categories=["car", "car"])
+    with pytest.raises(DatasetError, match=r"^categories 'car' and '90000003' are one category \(synset 90000003\)"):
+        build_dataset(name, "train", synth_nmr, categories=["car", "chair", "90000003"])
+    assert len(build_dataset(name, "test", synth_nmr, categories=["car", "chair"])) == 2
+    assert len(build_dataset(name, "test", synth_nmr, categories="car")) == 1
+
+
+def test_a_folder_of_generated_datasets_given_as_the_synthetic_root_names_them(tmp_path: Path) -> None:
+    """A training run's dataset.root (the parent of the generated datasets) is not the dataset: the message lists
+    the datasets in it to give instead, not ShapeNet-NMR's download."""
+    from unicorn.data.images import DatasetError
+
+    cache = tmp_path / "synthetic_32px"  # a scratch cache, laid out as a training run leaves it
+    names = ["nmr_car_n100_s0_v2", "nmr_chair_n100_s0_v2", "nmr_lamp_n100_s0_v2", "wild_car_n100_s0_v2"]
+    for name in names:
+        (cache / name).mkdir(parents=True)
+        (cache / name / "synthetic.json").write_text("{}")
+    (cache / ".nmr_mug_n100_s0_v2.tmp-host-1-ab").mkdir()  # a generation under way is not one
+    (cache / "notes").mkdir()
+    for split in ("train", "test"):
+        with pytest.raises(DatasetError) as info:
+            build_dataset("synthetic", split, cache)
+        assert str(info.value) == (
+            f"{cache} is a folder of generated synthetic datasets (as a training run's dataset.root is), not one: "
+            f"give one of them as the root: {cache / names[0]}, {cache / names[1]}, {cache / names[2]} (and 1 more)"
+        )
+    (cache / names[3] / "synthetic.json").unlink()
+    with pytest.raises(DatasetError, match=rf"root: {cache / names[0]}, {cache / names[1]}, {cache / names[2]}$"):
+        build_dataset("synthetic", "test", cache)
+    # an existing folder with neither: named as the generated dataset it should be, with where that comes from
+    with pytest.raises(DatasetNotFoundError) as info:
+        build_dataset("synthetic", "test", cache / "notes")
+    message = str(info.value)
+    assert message.startswith(f"generated synthetic dataset's metadata.yaml not found at {cache / 'notes'}/metadata")
+    assert "$UNICORN_CACHE/synthetic_32px with +experiment=synthetic" in message and "NMR_Dataset.zip" not in message

@@ -563,3 +563,21 @@ def test_two_synths_into_one_folder_both_land(tmp_path: Path, capsys) -> None:
     assert yaml.safe_load((out / "metadata.yaml").read_text()).keys() == {"90000001", "90000003"}
     assert sorted(json.loads((out / "synthetic.json").read_text())["categories"]) == ["car", "chair"]
     assert not list(tmp_path.glob(".*"))  # no lock file or staging folder left
+
+
+def test_a_category_named_twice_is_refused_before_anything_is_generated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    small = ["--models", "3", "--views", "2", "--size", "16", "--points", "100", "--supersample", "1", "--quiet"]
+    message = "synthetic category 'car' is named twice in ['car', 'car']; name each category once"
+    for where in (["--out", str(tmp_path / "synC")], []):  # a folder of the user's, and the cache
+        for category in (["--category", "car,car"], ["--category", "car", "--category", "car"]):
+            assert cli.main(["synth", *category, *where, *small]) == 2
+            assert capsys.readouterr().err == f"unicorn-data: error: {message}\n"
+    assert list(tmp_path.iterdir()) == []  # nothing written: no folder, no staging sibling, no lock
+    with pytest.raises(DatasetError, match=r"^synthetic category 'car' is named twice"):
+        ensure_synthetic_dataset(tmp_path, ["car", "chair", "car"], "nmr", 3, 0, progress=False)
+    with pytest.raises(DatasetError, match=r"^synthetic category 'car' is named twice"):
+        writer.check_synthetic_settings(["car", "car"], {"n_models": 3})  # a training config's
+    assert list(tmp_path.iterdir()) == []

@@ -300,6 +300,27 @@ def test_unicorn_data_check_reads_an_lsun_config_name_as_its_tag(tmp_path: Path,
     assert out.startswith("lsun_motorbike train: 4 items") and "3 readable, 1 not" in out
     assert main(["check", "lsun_horse", "--root", str(tmp_path)]) == 2
     assert str(tmp_path / "horse") in capsys.readouterr().err
+    assert main(["check", "lsun", "--tag", "motorbike", "--root", str(tmp_path), "--split", "train"]) == 0
+    assert capsys.readouterr().out.startswith("lsun train: 4 items")
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["lsun"], "lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike), or check "
+         "lsun_horse / lsun_motorbike"),  # not horse, silently
+        (["lsun_horse", "--tag", "motorbike"], "lsun_horse is lsun with --tag horse, not motorbike: drop --tag, or "
+         "check lsun --tag motorbike"),
+        (["synthetic", "--tag", "horse"], "--tag is for lsun only (the LSUN category), not synthetic"),
+        (["folder", "--tag", "horse"], "--tag is for lsun only (the LSUN category), not folder"),
+    ],
+)  # fmt: skip
+def test_unicorn_data_check_refuses_a_tag_it_would_not_use(tmp_path: Path, capsys, args: list[str], message) -> None:
+    from unicorn.cli.data import main
+
+    _write_lsun(tmp_path, "motorbike", 3)  # refused before anything is read
+    assert main(["check", *args, "--root", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"unicorn-data: error: {message}\n"
 
 
 def test_lsun_missing_root(tmp_path: Path) -> None:

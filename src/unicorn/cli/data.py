@@ -88,11 +88,28 @@ def _synth(args: argparse.Namespace) -> int:
 CHECK_SHOWN = 20
 
 
-def _dataset_and_tag(name: str, tag: str) -> tuple[str, str]:
+def _dataset_and_tag(name: str, tag: str | None) -> tuple[str, str | None]:
     """The loader and LSUN tag a ``check`` names: ``lsun_horse`` and ``lsun_motorbike`` (the ``dataset=`` configs)
-    are ``lsun`` with their tag."""
+    are ``lsun`` with their tag; ``lsun`` takes it from ``--tag``.
+
+    Raises:
+        UsageError: ``lsun`` without ``--tag``, a ``--tag`` that contradicts the name's, or one for another dataset.
+    """
     loader, _, suffix = name.partition("_")
-    return (loader, suffix) if loader == "lsun" and suffix else (name, tag)
+    if loader == "lsun" and suffix:
+        if tag is not None and tag != suffix:
+            raise UsageError(f"{name} is lsun with --tag {suffix}, not {tag}: drop --tag, or check lsun --tag {tag}")
+        return loader, suffix
+    if name == "lsun":
+        if tag is None:
+            raise UsageError(
+                "lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike), or check "
+                "lsun_horse / lsun_motorbike"
+            )
+        return name, tag
+    if tag is not None:
+        raise UsageError(f"--tag is for lsun only (the LSUN category), not {name}")
+    return name, None
 
 
 def _check(args: argparse.Namespace) -> int:
@@ -195,7 +212,12 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--root", required=True)
     check.add_argument("--split", choices=["train", "val", "test"], default="train")
     check.add_argument("--categories", nargs="*", default=None, help="ShapeNet categories")
-    check.add_argument("--tag", default="horse", help="LSUN category (--root is the parent of its folder)")
+    check.add_argument(
+        "--tag",
+        default=None,
+        help="lsun only: the LSUN category, e.g. horse (--root is the parent of its folder); lsun_horse and "
+        "lsun_motorbike give theirs",
+    )
     check.add_argument(
         "--all", action="store_true", help="read every item and list the unreadable ones (exit status 1 if any)"
     )

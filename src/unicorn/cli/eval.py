@@ -64,6 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
     p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
     p.add_argument(
+        "--skip-bad",
+        action="store_true",
+        help="skip unreadable images with a warning (the others are scored) instead of stopping",
+    )
+    p.add_argument(
         "--out",
         type=folder_path,
         help="output folder; default: <run>/eval/<dataset>_<split> for a checkpoint in a training run's "
@@ -81,20 +86,26 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
     """What is scored and how finely (defaults: :class:`~unicorn.evaluation.EvalOptions`, the paper's protocol)."""
     p.add_argument("--max-images", type=whole_number, help="evaluate at most N images, spread over the split")
     p.add_argument("--batch-size", type=whole_number, default=EvalOptions.batch_size, help="images per forward pass")
+    # default None: an option given wins over --fast's value (_mesh_settings)
     p.add_argument(
-        "--num-points", type=whole_number, default=EvalOptions.num_points, help="points sampled per mesh for Chamfer"
+        "--num-points",
+        type=whole_number,
+        default=None,
+        help=f"points sampled per mesh for Chamfer (default {EvalOptions.num_points}; with --fast "
+        f"{FAST_EVAL['num_points']})",
     )
     p.add_argument(
         "--icp-iterations",
         type=whole_number,
-        default=EvalOptions.icp_iterations,
-        help="ICP iterations (0: no -ICP metrics)",
+        default=None,
+        help=f"ICP iterations, 0: no -ICP metrics (default {EvalOptions.icp_iterations}; with --fast "
+        f"{FAST_EVAL['icp_iterations']})",
     )
     p.add_argument(
         "--fast",
         action="store_true",
         help=f"UNICORN's validation setting: {FAST_EVAL['num_points'] // 1000}k points and "
-        f"{FAST_EVAL['icp_iterations']} ICP iterations",
+        f"{FAST_EVAL['icp_iterations']} ICP iterations, where --num-points and --icp-iterations are not given",
     )
     p.add_argument(
         "--num-pairs", type=whole_number, default=EvalOptions.num_pairs, help="keypoint-transfer pairs (CUB)"
@@ -258,18 +269,27 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     categories = args.categories.split(",") if args.categories else None
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]
-    return EvalTarget(dataset, str(root), args.split, categories, args.max_images)
+    on_error = "skip" if args.skip_bad else "raise"
+    return EvalTarget(dataset, str(root), args.split, categories, args.max_images, on_error)
+
+
+def _mesh_settings(args: argparse.Namespace) -> dict[str, int]:
+    """``--num-points`` and ``--icp-iterations``: as given, else ``--fast``'s
+    (:data:`~unicorn.config.schema.FAST_EVAL`), else the full protocol's (:class:`EvalOptions`)."""
+    defaults = (
+        FAST_EVAL if args.fast else {"num_points": EvalOptions.num_points, "icp_iterations": EvalOptions.icp_iterations}
+    )
+    return {key: defaults[key] if getattr(args, key) is None else getattr(args, key) for key in defaults}
 
 
 def _options(args: argparse.Namespace, dataset: str, average_texture: bool) -> EvalOptions:
-    """The evaluation options of the command line (``--fast``: :data:`~unicorn.config.schema.FAST_EVAL`)."""
+    """The evaluation options of the command line (:func:`_mesh_settings`: an option given wins over ``--fast``)."""
     from unicorn.evaluation import protocol_for
 
-    mesh_settings = FAST_EVAL if args.fast else {"num_points": args.num_points, "icp_iterations": args.icp_iterations}
     return EvalOptions(
         protocol=protocol_for(dataset),
         batch_size=args.batch_size,
-        **mesh_settings,
+        **_mesh_settings(args),
         num_pairs=args.num_pairs,
         align_pose=not args.no_align_pose,
         average_texture=average_texture,
@@ -302,7 +322,8 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     from unicorn.io.run_folder import run_dataset, run_of_checkpoint
     from unicorn.metrics.sampling import check_point_count
 
-    check_point_count(f"--num-points {args.num_points}", args.num_points)
+    num_points = _mesh_settings(args)["num_points"]
+    check_point_count(f"--num-points {num_points}", num_points)
     check_point_count(f"--shape-points {args.shape_points}", args.shape_points)
     check_picture_sizes(args)
     device = parse_device(args.device)

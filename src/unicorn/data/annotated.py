@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from unicorn.data.common import OnError, UnicornDataset, dummy_pose, item_rng
+from unicorn.data.common import OnError, SkippedFileWarning, UnicornDataset, dummy_pose, item_rng
 from unicorn.data.framing import (
     crop_box,
     hflip_keypoints,
@@ -164,7 +164,7 @@ class BBoxCropDataset(UnicornDataset):
             raise DatasetError(f"{said}{more}")
         warnings.warn(
             f"skipping {len(problems)} of {len(records)} records of {source}; the first: {said}",
-            RuntimeWarning,
+            SkippedFileWarning,
             stacklevel=3,
         )
         bad = {i for i, _ in problems}

@@ -24,9 +24,17 @@ import torch
 from torch.utils.data import Dataset
 
 from unicorn.data.images import DatasetError, ImageLoadError
-from unicorn.errors import UserError
+from unicorn.errors import UnicornWarning, UserError
 
-__all__ = ["PRIOR_TRANSLATION", "OnError", "UnicornDataset", "UnreadableItemsError", "dummy_pose", "item_rng"]
+__all__ = [
+    "PRIOR_TRANSLATION",
+    "OnError",
+    "SkippedFileWarning",
+    "UnicornDataset",
+    "UnreadableItemsError",
+    "dummy_pose",
+    "item_rng",
+]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +46,12 @@ OnError = Literal["skip", "raise"]
 
 class UnreadableItemsError(UserError, RuntimeError):
     """Too many consecutive items of a dataset could not be read, even when skipping bad files."""
+
+
+class SkippedFileWarning(UnicornWarning, RuntimeWarning):
+    """An unreadable file (or malformed annotation records) that a dataset with ``on_error="skip"`` skips (once per
+    file); the command-line programs log it in one line, into a run's ``train.log`` too
+    (:func:`unicorn.cli.errors.log_warnings`)."""
 
 
 def dummy_pose() -> tuple[torch.Tensor, torch.Tensor]:
@@ -54,8 +68,8 @@ class UnicornDataset(Dataset):
     """Base class: subclasses implement ``__len__`` and ``load(index)``.
 
     ``__getitem__`` applies the bad-file policy: with ``on_error="raise"`` an unreadable image raises
-    :class:`~unicorn.data.images.ImageLoadError` naming the file; with ``"skip"`` it warns once per file and
-    returns the next readable item instead (so batch sizes stay fixed).
+    :class:`~unicorn.data.images.ImageLoadError` naming the file; with ``"skip"`` it warns once per file
+    (:class:`SkippedFileWarning`) and returns the next readable item instead (so batch sizes stay fixed).
     """
 
     #: how many consecutive unreadable items to skip before giving up
@@ -105,7 +119,7 @@ class UnicornDataset(Dataset):
                     raise
                 if err.path not in self.bad_files:
                     self.bad_files.add(err.path)
-                    warnings.warn(f"skipping unreadable file: {err}", RuntimeWarning, stacklevel=2)
+                    warnings.warn(f"skipping unreadable file: {err}", SkippedFileWarning, stacklevel=2)
                 last_error = err
                 continue
             item.setdefault("index", torch.tensor(i, dtype=torch.int64))

@@ -74,21 +74,81 @@ def _from_offset(n: int, size: int) -> list[int]:
 def _shapenet(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:
     # every view for training, one fixed random view per model for evaluation, unless told
     views = o.pop("views", "all" if split == "train" else "random")
-    return ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **o)
+    dataset = ShapeNetNMR(root, categories, split, views=views, seed=seed, on_error=on_error, **o)
+    _refuse_repeated_categories(categories, dataset.synsets)
+    return dataset
+
+
+def _refuse_repeated_categories(categories: Any, synsets: list[str]) -> None:
+    """Refuse categories that name one category twice (by name, or by name and synset): its models would be read,
+    trained on and scored twice.
+
+    Raises:
+        DatasetError: names the repeated category.
+    """
+    if categories is None:  # every category of the dataset, once each
+        return
+    given = [categories] if isinstance(categories, str) else list(categories)
+    first: dict[str, Any] = {}
+    for cat, synset in zip(given, synsets, strict=True):  # one synset per category given, in order
+        if synset not in first:
+            first[synset] = cat
+            continue
+        if cat == first[synset]:
+            problem = f"category {cat!r} is named twice"
+        else:
+            problem = f"categories {first[synset]!r} and {cat!r} are one category (synset {synset})"
+        raise DatasetError(f"{problem} in categories {given}; name each category once")
+
+
+#: where the synthetic data comes from, in the message of a root that is not a generated dataset
+_SYNTHETIC_HINT = (
+    "unicorn-train generates it on first use in a folder under dataset.root (by default $UNICORN_CACHE/synthetic; "
+    "$UNICORN_CACHE/synthetic_32px with +experiment=synthetic), and unicorn-data synth --out DIR with the run's "
+    "dataset.synthetic settings generates it again"
+)
+#: the generated datasets a parent folder given as the root names in its message
+_SHOWN_DATASETS = 3
 
 
 def _synthetic(
     root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any
 ) -> Dataset:
     # the generated folder itself: ShapeNet-NMR's hint (download 33 GB) would not bring it back
-    if not Path(root).expanduser().is_dir():
+    folder = Path(root).expanduser()
+    if not folder.is_dir():
+        raise DatasetNotFoundError(folder, "generated synthetic dataset", _SYNTHETIC_HINT)
+    if not (folder / "metadata.yaml").exists():
+        _refuse_parent_folder(folder)
         raise DatasetNotFoundError(
-            Path(root).expanduser(),
-            "generated synthetic dataset",
-            "unicorn-train generates it on first use under dataset.root ($UNICORN_CACHE/synthetic by default), and "
-            "unicorn-data synth --out DIR with the run's dataset.synthetic settings generates it again",
+            folder / "metadata.yaml", "generated synthetic dataset's metadata.yaml", _SYNTHETIC_HINT
         )
     return _shapenet(root, split, img_size, categories, seed, on_error, **o)
+
+
+def _refuse_parent_folder(folder: Path) -> None:
+    """Refuse a folder that holds generated synthetic datasets (folders with a ``synthetic.json``) for one of them:
+    a training run's ``dataset.root``, their parent.
+
+    Raises:
+        DatasetError: names the datasets in it (the first :data:`_SHOWN_DATASETS`) to give as the root instead.
+    """
+    try:
+        found = sorted(
+            child
+            for child in folder.iterdir()
+            if not child.name.startswith(".") and (child / "synthetic.json").is_file()
+        )
+    except OSError:  # an unreadable folder: the missing metadata.yaml is the message
+        return
+    if not found:
+        return
+    shown = ", ".join(str(path) for path in found[:_SHOWN_DATASETS])
+    more = f" (and {len(found) - _SHOWN_DATASETS} more)" if len(found) > _SHOWN_DATASETS else ""
+    raise DatasetError(
+        f"{folder} is a folder of generated synthetic datasets (as a training run's dataset.root is), not one: give "
+        f"one of them as the root: {shown}{more}"
+    )
 
 
 def _cub(root: Any, split: str, img_size: int, categories: Any, seed: int, on_error: OnError, **o: Any) -> Dataset:

@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset, Subset
 from tqdm.auto import tqdm
 
 from unicorn.data import build_dataset
+from unicorn.data.common import OnError
 from unicorn.data.images import DatasetError
 from unicorn.data.registry import dataset_spec
 from unicorn.errors import ignore_stop_signals
@@ -37,6 +38,7 @@ def build_eval_dataset(
     categories: str | list[str] | None = None,
     max_images: int | None = None,
     seed: int = 0,
+    on_error: OnError = "raise",
 ) -> Dataset:
     """The evaluation items of a dataset, as its protocol needs them.
 
@@ -53,9 +55,13 @@ def build_eval_dataset(
         categories: ShapeNet / synthetic categories (names or synsets), None for all.
         max_images: evaluate at most this many items.
         seed: the view choice of ShapeNet.
+        on_error: ``"raise"``: an unreadable image is an error; ``"skip"``: it is skipped with a warning
+            (:class:`~unicorn.data.common.SkippedFileWarning`) and :func:`evaluate` scores each readable item once.
     """
     options = dict(dataset_spec(name).eval_options)
-    dataset = build_dataset(name, split, root, img_size=img_size, categories=categories, seed=seed, **options)
+    dataset = build_dataset(
+        name, split, root, img_size=img_size, categories=categories, seed=seed, on_error=on_error, **options
+    )
     if split == "train":
         # evaluation items are never augmented (ShapeNet training items are every view, which is fine)
         for attr in ("augment",):
@@ -75,6 +81,29 @@ def collate(items: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         else:
             out[key] = values
     return out
+
+
+def _first_reads(batch: dict[str, Any], seen: set[int]) -> dict[str, Any] | None:
+    """``batch`` without the items whose ``index`` is in ``seen`` or repeats an earlier one of the batch (a dataset
+    skipping an unreadable file returns the next readable item in its place, already scored or still to be); None
+    when none is left. The indices kept are added to ``seen``."""
+    if "index" not in batch:  # a dataset of another library: its items are taken as they come
+        return batch
+    indices = [int(i) for i in batch["index"]]
+    keep = []
+    for position, index in enumerate(indices):
+        if index not in seen:
+            seen.add(index)
+            keep.append(position)
+    if len(keep) == len(indices):
+        return batch
+    if not keep:
+        return None
+    rows = torch.tensor(keep)
+    return {
+        key: value[rows] if isinstance(value, torch.Tensor) else [value[k] for k in keep]
+        for key, value in batch.items()
+    }
 
 
 def _base_dataset(dataset: Dataset) -> Dataset:
@@ -132,7 +161,9 @@ def evaluate(
         model: the model (moved to ``device`` and put in eval mode): any
             :class:`~unicorn.evaluation.interface.EvaluableModel` (a :class:`~unicorn.model.Unicorn`, a baseline).
         dataset: test items (``image``, ``mask``/``has_mask``, ``R``/``T``, ``points``/``normals``, ``keypoints``...
-            as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it.
+            as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it. An item
+            whose ``index`` was scored already (the next readable item that a dataset skipping an unreadable file
+            returns in its place) is not scored again.
         options: :class:`EvalOptions`.
         dataset_name: group name for datasets without categories, and the label of the progress bar.
         device: where the model and the metrics run.
@@ -175,12 +206,15 @@ def evaluate(
         disable=not options.progress,
         leave=options.progress_leave,
     )
-    for batch in loader:
-        view = _predict_and_render(model, batch, options, group_of, len(acc.rows), device)
-        for measure in measurements:
-            measure(view, acc)
-        _append_rows(view, acc, samples, options.report_samples)
-        bar.update(view.images.shape[0])
+    seen: set[int] = set()
+    for loaded in loader:
+        batch = _first_reads(loaded, seen)
+        if batch is not None:
+            view = _predict_and_render(model, batch, options, group_of, len(acc.rows), device)
+            for measure in measurements:
+                measure(view, acc)
+            _append_rows(view, acc, samples, options.report_samples)
+        bar.update(len(loaded["image"]))
     bar.close()
     if not acc.rows:
         raise DatasetError("the dataset is empty: nothing to evaluate")
@@ -257,7 +291,11 @@ def _own_mean_shapes(
     """Per group, the model's average predicted mesh (V, 3) over the evaluated images (a forward pass only)."""
     sums: dict[str, torch.Tensor] = {}
     counts: dict[str, int] = {}
-    for batch in loader:
+    seen: set[int] = set()
+    for loaded in loader:
+        batch = _first_reads(loaded, seen)
+        if batch is None:
+            continue
         verts = model.predict(
             _resize_images(batch["image"].to(device), size), average_texture=options.average_texture
         ).verts

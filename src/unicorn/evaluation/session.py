@@ -17,6 +17,7 @@ from typing import Any
 import torch
 
 from unicorn.config.schema import REPORT_TURNTABLE_FRAMES, EvaluateConfig
+from unicorn.data.common import OnError
 from unicorn.errors import UserError
 from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
@@ -42,6 +43,8 @@ class EvalTarget:
         split: ``"train"``, ``"val"`` or ``"test"``.
         categories: ShapeNet / synthetic categories, None for all.
         max_images: at most this many items, spread evenly over the split; None for all.
+        on_error: ``"raise"``: an unreadable image is an error; ``"skip"``: it is left out with a warning
+            (``unicorn-eval --skip-bad``; the evaluation after training takes the dataset's ``on_error``).
     """
 
     dataset: str
@@ -49,6 +52,7 @@ class EvalTarget:
     split: str = "test"
     categories: str | list[str] | None = None
     max_images: int | None = None
+    on_error: OnError = "raise"
 
 
 def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions:
@@ -64,10 +68,17 @@ def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions
     return EvalOptions(protocol=protocol_for(dataset), **values, **options)
 
 
-def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig, template_level: int | None = None) -> str:
+def eval_command(
+    checkpoint: Path,
+    out: Path,
+    settings: EvaluateConfig,
+    template_level: int | None = None,
+    skip_bad: bool = False,
+) -> str:
     """The ``unicorn-eval`` command that evaluates ``checkpoint`` into ``out`` as ``settings`` say (a provenance
     record of the evaluation after training), on the mesh of ``template_level`` when given (the trained model's:
-    ``unicorn-eval`` would take the protocol's, :attr:`~unicorn.evaluation.protocols.Protocol.template_level`)."""
+    ``unicorn-eval`` would take the protocol's, :attr:`~unicorn.evaluation.protocols.Protocol.template_level`),
+    skipping unreadable images with ``skip_bad`` (a dataset with ``on_error: skip``)."""
     from unicorn.io.provenance import command_line
 
     s = settings
@@ -78,6 +89,7 @@ def eval_command(checkpoint: Path, out: Path, settings: EvaluateConfig, template
     argv += [f"--shape-points={s.shape_points}"]
     argv += [f"--max-images={s.max_images}"] if s.max_images is not None else []
     argv += [f"--template-level={template_level}"] if template_level is not None else []
+    argv += ["--skip-bad"] if skip_bad else []
     return command_line("unicorn-eval", argv)
 
 
@@ -130,6 +142,7 @@ def evaluate_to_folder(
         categories=target.categories,
         max_images=target.max_images,
         seed=options.seed,
+        on_error=target.on_error,
     )
     log.info(
         "evaluating %d %s images of %s (%s protocol) on %s",

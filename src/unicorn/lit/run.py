@@ -653,11 +653,12 @@ def evaluate_run(run: Run) -> Path:
 
     settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
     d = run.config.dataset
+    skip_bad = d.on_error == "skip"  # the dataset's bad-file policy, as in training
     checkpoint = newest_checkpoint(run.checkpoint_dir) or run.checkpoint_dir / "last.ckpt"
     out = run.output_dir / "eval"
     meta = {
         **provenance(
-            eval_command(checkpoint, out, settings, run.module.model.config["template"]["level"]),
+            eval_command(checkpoint, out, settings, run.module.model.config["template"]["level"], skip_bad),
             checkpoint if checkpoint.is_file() else None,
             produced_by=f"{_run_command()} (evaluation after training)",
         ),
@@ -665,7 +666,9 @@ def evaluate_run(run: Run) -> Path:
         "step": run.trainer.global_step,
     }
     categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
-    target = EvalTarget(d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images)
+    target = EvalTarget(
+        d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images, d.on_error
+    )
     if run.stopper.steps_run == 0 and _evaluated_before(out / "metrics.json", meta, target):
         log.info(
             "%s already holds the evaluation of this iteration's model (%d) with these settings: not evaluated "

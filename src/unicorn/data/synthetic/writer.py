@@ -319,14 +319,17 @@ def _category_list(categories: str | Sequence[str]) -> list[str]:
     """``categories`` as a list, each one of :data:`~unicorn.data.synthetic.shapes.CATEGORIES`.
 
     Raises:
-        DatasetError: an unknown category (the message lists them).
+        DatasetError: no category, an unknown one (the message lists them) or one named twice (a category is
+            generated once: its models would be written twice into the same folders).
     """
     categories = [categories] if isinstance(categories, str) else list(categories)
     if not categories:
         raise DatasetError(f"no synthetic category given; choose from {sorted(CATEGORIES)}")
-    for cat in categories:
+    for i, cat in enumerate(categories):
         if cat not in CATEGORIES:
             raise DatasetError(f"unknown synthetic category {cat!r}; choose from {sorted(CATEGORIES)}")
+        if cat in categories[:i]:
+            raise DatasetError(f"synthetic category {cat!r} is named twice in {categories}; name each category once")
     return categories
 
 
@@ -365,15 +368,15 @@ def check_output_folder(
         The folder's category table (its ``metadata.yaml``; {} for none).
 
     Raises:
-        DatasetError: the folder holds something else.
+        DatasetError: an unknown or repeated category, or the folder holds something else.
         SyntheticOutputExistsError: names the first category in the way.
     """
     out = Path(out)
-    categories = [categories] if isinstance(categories, str) else list(categories)
+    categories = _category_list(categories)
     metadata = _read_metadata(out / "metadata.yaml")
     for cat in categories:
-        folder = out / CATEGORIES[cat][0] if cat in CATEGORIES else None  # an unknown one: generation names it
-        if folder is not None and folder.exists():
+        folder = out / CATEGORIES[cat][0]
+        if folder.exists():
             raise SyntheticOutputExistsError(
                 f"{out} already holds {cat} models ({folder}): use that dataset as it is, delete it, or generate "
                 "into another folder"
@@ -656,6 +659,7 @@ def ensure_synthetic_dataset(
     Returns:
         The dataset root, ready for :class:`~unicorn.data.shapenet.ShapeNetNMR`.
     """
+    _category_list(category)  # before a folder is named after them, or a lock taken
     final = synthetic_dataset_path(category, mode, n_models, seed, root)
     expected = generation_settings(category, mode, n_models, seed, **kwargs)
     if (final / "synthetic.json").exists():

@@ -1,0 +1,52 @@
+"""The evaluation after training on a dataset with unreadable images: as the dataset's ``on_error`` says."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from tests.support.training import TINY, unicorn_train
+
+#: TINY's run, on a folder of images, with a quick evaluation after it
+FOLDER_RUN = [
+    *(o for o in TINY if not o.startswith(("dataset.", "evaluate.", "trainer.max_steps="))),
+    "dataset=folder",
+    "dataset.batch_size=4",
+    "dataset.cache_items=false",  # the folder's items are augmented
+    "trainer.max_steps=2",
+    "evaluate.enabled=true",
+    "evaluate.num_points=300",
+    "evaluate.icp_iterations=2",
+    "evaluate.report_samples=0",
+    "evaluate.mean_shape_iterations=0",
+    "evaluate.own_mean_shape=false",
+    "evaluate.shape_points=0",
+]
+
+
+def test_the_evaluation_after_training_skips_unreadable_images_as_training_did(tmp_path: Path) -> None:
+    """The folder preset skips unreadable images (``on_error: skip``): training and the evaluation after it leave
+    the bad one out, each with a one-line warning in train.log, and every readable image is scored once."""
+    folder = tmp_path / "fold"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(8):
+        Image.fromarray(rng.integers(0, 256, (40, 48, 3), dtype=np.uint8)).save(folder / f"img{i:02d}.png")
+    (folder / "bad.jpg").write_bytes(b"junk" * 10)
+    run = tmp_path / "run"
+    result = unicorn_train(*FOLDER_RUN, f"dataset.root={folder}", f"hydra.run.dir={run}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    assert sorted(row["index"] for row in metrics["per_image"]) == list(range(1, 9))  # bad.jpg is item 0
+    assert metrics["on_error"] == "skip" and metrics["command"].endswith(" --skip-bad")  # unicorn-eval's equivalent
+    log = (run / "train.log").read_text()
+    skipped = [line for line in log.splitlines() if "bad.jpg" in line]
+    assert skipped and all(
+        line.endswith(f"SkippedFileWarning: skipping unreadable file: cannot read image {folder / 'bad.jpg'}: "
+                      f"UnidentifiedImageError: cannot identify image file '{folder / 'bad.jpg'}'")
+        for line in skipped
+    )  # fmt: skip
+    assert "RuntimeWarning" not in log + result.stderr and "warnings.warn" not in result.stderr
