@@ -107,8 +107,8 @@ def test_reconstruct_command(tmp_path: Path, varied_checkpoint: Path, inputs: Pa
         assert len(pose["T"]) == 3 and len(pose["candidate_probabilities"]) == 6
         torch.testing.assert_close(R, pred.R[0], atol=1e-5, rtol=0)
         torch.testing.assert_close(torch.tensor(pose["T"]), pred.T[0], atol=1e-5, rtol=0)
-        assert pose["scale"] == pytest.approx(pred.scale[0].tolist(), abs=1e-6)
-        assert pose["candidate_probabilities"] == pytest.approx(pred.poses.probs[:, 0].tolist(), abs=1e-6)
+        assert pose["scale"] == pytest.approx(pred.scale[0].tolist(), abs=1e-5)
+        assert pose["candidate_probabilities"] == pytest.approx(pred.poses.probs[:, 0].tolist(), abs=1e-5)
         poses[name] = R, torch.tensor(pose["T"]), positions
     # two different inputs, two different poses and meshes (so the comparisons above tell the images apart)
     assert (poses["cutout"][2] - poses["photo"][2]).abs().max() > 1e-2

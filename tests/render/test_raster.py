@@ -227,14 +227,14 @@ def test_opaque_truncation_keeps_the_nearest_containing_face(K, capacity):
         for pi in range(size * size):
             r, c = divmod(pi, size)
             cands = every[b][pi]
-            first = next((i for i, (_, _, d) in enumerate(cands) if d < 0), None)
+            first = next((i for i, (_, _, d, _) in enumerate(cands) if d < 0), None)
             if first is None:
                 want = cands[:K]
             else:
                 want = cands[: first + 1] if first < K else [*cands[: K - 1], cands[first]]
                 given_way += first >= K
             got = dense.pix_to_face[b, r, c].tolist()
-            assert got[: len(want)] == [f for _, f, _ in want] and all(g == -1 for g in got[len(want) :]), (b, r, c)
+            assert got[: len(want)] == [f for _, f, _, _ in want] and all(g == -1 for g in got[len(want) :]), (b, r, c)
     if K == 1:
         assert given_way > 0  # the case arises
 
