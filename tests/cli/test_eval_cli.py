@@ -272,6 +272,29 @@ def test_a_training_runs_dataset_that_no_plugin_registered_here_is_named(tmp_pat
         _target(args, info)
 
 
+@pytest.mark.parametrize("dataset", ["cub_200", "p3d_car", "compcars", "lsun", "folder"])
+def test_categories_are_refused_for_a_dataset_of_one_category(tmp_path: Path, dataset: str) -> None:
+    """--categories would be ignored there (the build reads every item): one line naming the dataset."""
+    from types import SimpleNamespace
+
+    from unicorn.cli.errors import UsageError
+    from unicorn.cli.eval import _target, build_parser
+
+    parser = build_parser()
+    info = SimpleNamespace(dataset=None)
+    args = parser.parse_args(
+        [str(tmp_path / "m.ckpt"), "--dataset", dataset, "--root", str(tmp_path), "--categories", "car"]
+    )
+    with pytest.raises(UsageError, match=rf"^--categories picks ShapeNet or synthetic categories; {dataset} has none"):
+        _target(args, info)
+    args = parser.parse_args([str(tmp_path / "m.ckpt"), "--dataset", dataset, "--root", str(tmp_path)])
+    assert _target(args, info).categories is None
+    # where categories pick the items, they are taken
+    args = parser.parse_args([str(tmp_path / "m.ckpt"), "--dataset", "shapenet_nmr", "--root", str(tmp_path),
+                              "--categories", "car,chair"])  # fmt: skip
+    assert _target(args, info).categories == ["car", "chair"]
+
+
 def test_the_cub_protocol_scores_the_level_4_mesh(tmp_path: Path, cub_root: Path, monkeypatch) -> None:
     """UNICORN's keypoint evaluation rebuilds the template at level 4 (2562 vertices); --template-level chooses."""
     import unicorn.io

@@ -313,9 +313,15 @@ def test_unicorn_data_check_reads_an_lsun_config_name_as_its_tag(tmp_path: Path,
          "check lsun --tag motorbike"),
         (["synthetic", "--tag", "horse"], "--tag is for lsun only (the LSUN category), not synthetic"),
         (["folder", "--tag", "horse"], "--tag is for lsun only (the LSUN category), not folder"),
+        (["lsun_motorbike", "--categories", "car"], "--categories picks ShapeNet or synthetic categories; lsun has "
+         "none: drop --categories"),  # not ignored, silently
+        (["folder", "--categories"], "--categories picks ShapeNet or synthetic categories; folder has none: drop "
+         "--categories"),
     ],
 )  # fmt: skip
-def test_unicorn_data_check_refuses_a_tag_it_would_not_use(tmp_path: Path, capsys, args: list[str], message) -> None:
+def test_unicorn_data_check_refuses_an_option_it_would_not_use(
+    tmp_path: Path, capsys, args: list[str], message
+) -> None:
     from unicorn.cli.data import main
 
     _write_lsun(tmp_path, "motorbike", 3)  # refused before anything is read

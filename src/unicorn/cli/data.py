@@ -20,7 +20,12 @@ import torch
 
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, add_debug_argument, folder_path, positive_int, report_errors, seed_number
-from unicorn.cli.options import add_image_limit_arguments, apply_common_arguments, check_common_arguments
+from unicorn.cli.options import (
+    add_image_limit_arguments,
+    apply_common_arguments,
+    check_categories_option,
+    check_common_arguments,
+)
 from unicorn.data.synthetic.shapes import CATEGORIES
 
 __all__ = ["build_parser", "main"]
@@ -116,6 +121,7 @@ def _check(args: argparse.Namespace) -> int:
     from unicorn.data.registry import build_dataset
 
     name, tag = _dataset_and_tag(args.dataset, args.tag)
+    check_categories_option(name, args.categories)
     options = {"tag": tag} if name == "lsun" else {}
     dataset = build_dataset(name, args.split, args.root, categories=args.categories, **options)
     print(f"{args.dataset} {args.split}: {len(dataset)} items")

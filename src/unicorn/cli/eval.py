@@ -28,6 +28,7 @@ from unicorn.cli.options import (
     add_common_arguments,
     add_overwrite_argument,
     apply_common_arguments,
+    check_categories_option,
     check_common_arguments,
     check_out_folder,
     check_picture_sizes,
@@ -266,6 +267,7 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
         root = _run_root(run_data)
     if root is None:
         raise UsageError(f"no --root given for dataset {dataset!r}")
+    check_categories_option(dataset, args.categories)
     categories = args.categories.split(",") if args.categories else None
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]

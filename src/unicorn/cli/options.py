@@ -85,6 +85,19 @@ def check_out_folder(out: Path, overwrite: bool) -> None:
     check_writable(out)
 
 
+def check_categories_option(dataset: str, categories: Any) -> None:
+    """Refuse ``--categories`` (given: not None) for a dataset whose items are not picked by category
+    (:attr:`unicorn.data.registry.DatasetSpec.by_category`), where it would be ignored.
+
+    Raises:
+        UsageError: the message names the dataset.
+    """
+    from unicorn.data.registry import DATASETS
+
+    if categories is not None and dataset in DATASETS and not DATASETS.get(dataset).by_category:
+        raise UsageError(f"--categories picks ShapeNet or synthetic categories; {dataset} has none: drop --categories")
+
+
 def check_common_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse negative image limits (a usage error)."""
     for name in ("max_image_pixels", "max_image_bytes"):

@@ -205,6 +205,8 @@ class DatasetSpec:
             first use (default: :attr:`folder`; the data is read as it is).
         stored_size: ``(synthetic) -> int | None``, the side of the images as stored when the loader does not
             resize them to ``img_size`` (default: None).
+        by_category: whether ``build`` picks the items by its ``categories`` argument (ShapeNet's synsets); the
+            command-line tools refuse ``--categories`` for a dataset that does not.
     """
 
     build: Callable[..., Dataset]
@@ -216,6 +218,7 @@ class DatasetSpec:
     folder: Callable[..., Path] = _stored_as_is
     prepare: Callable[..., Path] | None = None
     stored_size: Callable[[Mapping[str, Any] | None], int | None] = _no_stored_size
+    by_category: bool = True
 
     def __post_init__(self) -> None:
         """Refuse fields of the wrong kind when the entry is made (a plugin's mistake, said at its registration).
@@ -276,13 +279,26 @@ DATASETS.add(
     ),
 )
 _CUB_OPTIONS = _options(CUB200, "root", "split", "img_size", "on_error")
-DATASETS.add("cub_200", DatasetSpec(_cub, 5, "cub", _CUB_OPTIONS, _shuffled, eval_options={"eval_size": 256}))
+# the datasets below hold one category each: their builds ignore ``categories``
+DATASETS.add(
+    "cub_200",
+    DatasetSpec(_cub, 5, "cub", _CUB_OPTIONS, _shuffled, eval_options={"eval_size": 256}, by_category=False),
+)
 # the CAD clouds on every split evaluated (the validation images are training images, which go without by default)
 _P3D_OPTIONS = _options(Pascal3DCar, "split", *_UNSPLIT_SET)
-DATASETS.add("p3d_car", DatasetSpec(_p3d, 5, "p3d", _P3D_OPTIONS, eval_options={"with_points": True}))
-DATASETS.add("compcars", DatasetSpec(_unsplit(CompCars), 5, "images", _options(CompCars, *_UNSPLIT_SET)))
-DATASETS.add("lsun", DatasetSpec(_unsplit(LSUN), 5, "images", _options(LSUN, *_UNSPLIT_SET), _from_offset))
-DATASETS.add("folder", DatasetSpec(_unsplit(ImageFolder), 5, "images", _options(ImageFolder, *_UNSPLIT_SET)))
+DATASETS.add(
+    "p3d_car", DatasetSpec(_p3d, 5, "p3d", _P3D_OPTIONS, eval_options={"with_points": True}, by_category=False)
+)
+DATASETS.add(
+    "compcars", DatasetSpec(_unsplit(CompCars), 5, "images", _options(CompCars, *_UNSPLIT_SET), by_category=False)
+)
+DATASETS.add(
+    "lsun",
+    DatasetSpec(_unsplit(LSUN), 5, "images", _options(LSUN, *_UNSPLIT_SET), _from_offset, by_category=False),
+)
+DATASETS.add(
+    "folder", DatasetSpec(_unsplit(ImageFolder), 5, "images", _options(ImageFolder, *_UNSPLIT_SET), by_category=False)
+)
 #: the built-in datasets' names (a plugin may register more: :func:`list_datasets` names them all)
 DATASET_NAMES = tuple(DATASETS)
 #: the reference's validation subset sizes of the built-in datasets (each entry's :attr:`DatasetSpec.val_size`)
