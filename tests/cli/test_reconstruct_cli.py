@@ -233,6 +233,18 @@ def test_non_empty_out_needs_overwrite(tmp_path: Path, checkpoint: Path, inputs:
     assert (out / "photo" / "mesh.glb").is_file() and "photo" in (out / "index.html").read_text()
 
 
+def test_an_input_folder_that_is_the_output_folder_is_refused_saying_why(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys
+) -> None:
+    """--out the photo folder itself: its images are left out as outputs, and the error says so (not just "no images"
+    in a folder the user sees images in); nothing is written there."""
+    before = sorted(p.name for p in inputs.iterdir())
+    assert main([str(checkpoint), str(inputs), "--out", str(inputs), "--overwrite", *FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"in folder {inputs} other than outputs, which are not read" in err
+    assert sorted(p.name for p in inputs.iterdir()) == before
+
+
 def test_input_names_never_collide_with_the_outputs(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
     for name in ("index.html.png", "overview.png.png", "reconstructions.json.png", "Index.HTML.jpg"):
         (inputs / name).write_bytes((inputs / "photo.jpg").read_bytes())

@@ -36,6 +36,28 @@ def test_alpha_box_is_in_the_upright_grid(tmp_path: Path) -> None:
     assert (raw.image[y1 : y2 + 1, x1 : x2 + 1] < 1).all()  # the box holds the opaque (black) pixels
 
 
+def test_a_cutout_trimmed_to_its_object_is_framed_on_white(tmp_path: Path) -> None:
+    """A cut-out whose object touches the image's edges (trimmed by the tool that cut it out): its square crop
+    reaches beyond the image, which is white there (the cut-out's background), not its edge pixels repeated into
+    streaks; a photo's crop around a given box still repeats its border, as the training crops do."""
+    rows, cols = np.mgrid[0:50, 0:100]
+    inside = ((cols - 49.5) / 50) ** 2 + ((rows - 24.5) / 25) ** 2 <= 1  # an ellipse touching all four edges
+    stored = np.zeros((50, 100, 4), np.uint8)
+    stored[inside] = (200, 30, 30, 255)
+    Image.fromarray(stored, "RGBA").save(tmp_path / "trimmed.png")
+    item = load_input(tmp_path / "trimmed.png", 32)
+    # the box grown by 10 %: x from -10 to 109, squared to y from -35 to 84: the image spans framed rows 9.3 to 22.7
+    # and columns 2.7 to 29.3 (one framed pixel more left out: the resize's filter reaches over the edge)
+    assert item.cropped and item.frame == pytest.approx((-10.0, -35.0, 120.0, 120.0))
+    framed = item.image.permute(1, 2, 0).numpy()
+    assert (framed[:8] == 1).all() and (framed[24:] == 1).all()  # above and below the image: white
+    assert (framed[:, :1] == 1).all() and (framed[:, 31:] == 1).all()  # left and right of it: white
+    np.testing.assert_allclose(framed[16, 16], [200 / 255, 30 / 255, 30 / 255], atol=1e-6)  # the object
+    boxed = load_input(tmp_path / "trimmed.png", 32, bbox=(0, 0, 99, 49))  # a given box: the border repeated
+    assert boxed.frame == item.frame and not read_input(tmp_path / "trimmed.png", bbox=(0, 0, 99, 49)).cutout
+    assert (boxed.image[0, :8, 16] > 0.7).all()  # the object's top edge, repeated upwards
+
+
 def test_non_finite_input_is_a_bad_image(tmp_path: Path) -> None:
     path = tmp_path / "nan.tif"
     Image.fromarray(np.full((8, 8), np.nan, np.float32), "F").save(path)

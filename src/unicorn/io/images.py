@@ -4,7 +4,8 @@ The framing is the training one (:mod:`unicorn.data.framing`):
 
 - an image whose alpha channel cuts the object out (a PNG with transparency) is cropped to the square box around
   its opaque pixels grown by ``padding`` on every side (as the CUB / Pascal3D+ loaders crop around their boxes),
-  composited on white and resized;
+  composited on white and resized; where the square reaches beyond the image (a cut-out trimmed to its object), it is
+  white there too, not the image's border repeated;
 - a box given by the caller is used the same way;
 - any other image is resized so that its longer side is the model's size and padded to a square by replicating
   its border, centred (the image-folder / CompCars loaders' ``fit_and_pad``).
@@ -82,7 +83,8 @@ def collect_inputs(
     written inside an input folder are not read back as photos by a later run.
 
     Raises:
-        FileNotFoundError: an input does not exist, or nothing to read was found at all.
+        FileNotFoundError: an input does not exist, a folder holds no images but outputs (the message says so), or
+            nothing to read was found at all.
         InputNotAFileError: an input is a device, a pipe or a socket.
         TypeError: a path given as bytes.
     """
@@ -96,9 +98,16 @@ def collect_inputs(
         path = Path(item).expanduser()
         if path.is_dir():
             outputs: dict[Path, bool] = {}  # folder -> whether it lies in an output (each folder looked at once)
-            found = [f for f in list_images(path) if not _in_output(f.parent, path, leave_out, outputs)]
+            listed = list_images(path)
+            found = [f for f in listed if not _in_output(f.parent, path, leave_out, outputs)]
             if not found:
-                raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {path}")
+                # the user sees images in the folder: say why none is read
+                why = (
+                    " other than outputs, which are not read (the output folder's, or an earlier run's)"
+                    if listed
+                    else ""
+                )
+                raise FileNotFoundError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {path}{why}")
             files += found
         elif path.is_file():
             files.append(path)
@@ -210,9 +219,16 @@ Rectangle = tuple[float, float, float, float]
 
 
 def _framed(
-    image: np.ndarray, size: int, bbox: np.ndarray | Sequence[float] | None, padding: float
+    image: np.ndarray,
+    size: int,
+    bbox: np.ndarray | Sequence[float] | None,
+    padding: float,
+    fill: float | None = None,
 ) -> tuple[np.ndarray, Rectangle]:
-    """:func:`preprocess`'s image and the rectangle of ``image`` it shows (beyond the image's edges where it pads)."""
+    """:func:`preprocess`'s image and the rectangle of ``image`` it shows (beyond the image's edges where it pads).
+
+    ``fill``: the value of the crop's pixels beyond the image's edges (None: its border pixels repeated, as the
+    training crops of photos are); the fit-and-pad framing (no ``bbox``) always repeats the border."""
     if bbox is None:
         H, W = image.shape[:2]
         h, w, top, left = fit_layout(H, W, size)
@@ -234,8 +250,21 @@ def _framed(
         )
     square = square_bbox(box)
     crop, _ = crop_box(image, square)
+    if fill is not None:
+        _fill_outside(crop, square, image.shape[0], image.shape[1], fill)
     side = float(square[2] - square[0] + 1)
     return resize_image(crop.astype(np.float32), (size, size)), (float(square[0]), float(square[1]), side, side)
+
+
+def _fill_outside(crop: np.ndarray, box: np.ndarray, height: int, width: int, value: float) -> None:
+    """Set the pixels of ``crop`` (the integer ``box`` of a ``height`` x ``width`` image) that lie beyond the image's
+    edges to ``value``, in place."""
+    x1, y1 = int(box[0]), int(box[1])
+    rows, cols = crop.shape[:2]
+    crop[: min(max(-y1, 0), rows)] = value
+    crop[max(min(height - y1, rows), 0) :] = value
+    crop[:, : min(max(-x1, 0), cols)] = value
+    crop[:, max(min(width - x1, cols), 0) :] = value
 
 
 class RawInput:
@@ -245,10 +274,12 @@ class RawInput:
         path: the file.
         image: (H, W, 3) float32 array in [0, 1] (transparent pixels composited on white).
         bbox: the object box (from the alpha channel or given), or None.
+        cutout: whether ``bbox`` is the alpha channel's: the crop around it is white beyond the image's edges (its
+            background), rather than the image's border repeated (a photo's).
     """
 
-    def __init__(self, path: Path, image: np.ndarray, bbox: np.ndarray | None) -> None:
-        self.path, self.image, self.bbox = path, image, bbox
+    def __init__(self, path: Path, image: np.ndarray, bbox: np.ndarray | None, cutout: bool = False) -> None:
+        self.path, self.image, self.bbox, self.cutout = path, image, bbox, cutout
 
 
 class InputImage:
@@ -280,9 +311,10 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
     path = Path(path)
     image = load_image(path)
     box = None if bbox is None else check_box(bbox, image.shape[1], image.shape[0], str(path))
-    if box is None and use_alpha:
-        box = alpha_bbox(path)
-    return RawInput(path, image, box)
+    if box is not None or not use_alpha:
+        return RawInput(path, image, box)
+    box = alpha_bbox(path)
+    return RawInput(path, image, box, cutout=box is not None)
 
 
 def frame_input(raw: RawInput, size: int, name: str | None = None, padding: float = DEFAULT_PADDING) -> InputImage:
@@ -293,7 +325,7 @@ def frame_input(raw: RawInput, size: int, name: str | None = None, padding: floa
     """
     if not is_whole(size) or size <= 0:
         raise ValueError(f"size must be a positive int (the model's input side in pixels), got {size!r}")
-    framed, frame = _framed(raw.image, size, raw.bbox, padding)
+    framed, frame = _framed(raw.image, size, raw.bbox, padding, 1.0 if raw.cutout else None)
     return InputImage(raw.path, name or raw.path.stem, to_chw_tensor(framed), raw.bbox is not None, frame)
 
 
