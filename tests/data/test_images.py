@@ -247,3 +247,35 @@ def test_exif_orientation_is_applied(tmp_path: Path, suffix: str) -> None:
     assert mask.shape == (20, 10) and mask[:5].all() and not mask[6:].any()
     np.testing.assert_allclose(load_image(path, exif_orientation=False), stored / 255, atol=tol)
     assert load_mask(path, exif_orientation=False).shape == (10, 20)
+
+
+def test_damaged_exif_is_one_warning_naming_the_file(tmp_path: Path, monkeypatch) -> None:
+    """A photo whose EXIF block is cut short (a tag's data past its end) is read upright by the orientation that
+    survives; the decoder's unnamed complaints become one ImageMetadataWarning naming the file, once per file."""
+    import warnings
+
+    from unicorn.data import images
+
+    stored = np.zeros((10, 20, 3), np.uint8)
+    stored[:, :5] = 255
+    exif = Image.Exif()
+    exif[0x0112] = 6  # orientation: turn clockwise
+    exif[0x010E] = "a description longer than what is left of the block" * 2
+    path = tmp_path / "phone.jpg"
+    Image.fromarray(stored).save(path, exif=exif.tobytes()[:-60])  # the description's data cut off
+    monkeypatch.setattr(images, "_DAMAGED_WARNED", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(2):
+            upright = load_image(path)
+            assert upright.shape == (20, 10, 3) and upright[:5].mean() > 0.9  # the white band on top
+        load_mask(path)
+    assert [(w.category, w.filename) for w in caught] == [(images.ImageMetadataWarning, __file__)]
+    assert str(caught[0].message).startswith(f"{path}: damaged metadata (Tag data larger than file")
+    # a file read before is not named again; another is
+    other = tmp_path / "other.jpg"
+    other.write_bytes(path.read_bytes())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_image(path), load_image(other)
+    assert [str(w.message).split(":")[0] for w in caught] == [str(other)]

@@ -34,7 +34,7 @@ import torch
 from PIL import ExifTags, Image, ImageOps
 
 from unicorn.checks import check_limit, env_limit
-from unicorn.errors import UserError
+from unicorn.errors import UnicornWarning, UserError
 
 __all__ = [
     "DEFAULT_MAX_IMAGE_BYTES",
@@ -46,6 +46,7 @@ __all__ = [
     "DatasetError",
     "DatasetNotFoundError",
     "ImageLoadError",
+    "ImageMetadataWarning",
     "check_image_size",
     "decode_image",
     "decoded",
@@ -72,6 +73,12 @@ class ImageLoadError(UserError, RuntimeError):
     def __init__(self, path: str | os.PathLike, reason: str) -> None:
         self.path = str(path)
         super().__init__(f"{self.lead} {self.path}: {reason}")
+
+
+class ImageMetadataWarning(UnicornWarning):
+    """An image's metadata (EXIF) is damaged: its pixels are read, turned by what could be read of its orientation.
+    One line naming the file, once per file and process, in place of the decoder's warnings (which name no file and
+    come again at every read)."""
 
 
 class DatasetError(UserError, ValueError):
@@ -128,6 +135,7 @@ FLOAT_SLACK = 1e-3
 #: 255, which Pillow rescales to 0-65535
 _SIXTEEN_BIT_FORMATS = ("PNG", "PPM")
 _PIL_LOCK = threading.Lock()
+_DAMAGED_WARNED: set[str] = set()  # the files an ImageMetadataWarning has named
 
 
 class ImageLimitError(UserError, ValueError):
@@ -206,7 +214,8 @@ def open_image(
     """
     pixel_limit, byte_limit = max_image_pixels(), max_image_bytes()
     try:
-        with _PIL_LOCK, warnings.catch_warnings():
+        with _PIL_LOCK, warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")  # the decoder's complaints about the header's metadata, said below
             # PIL's global bomb check is replaced by the header checks below (its limit is not ours)
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
@@ -214,6 +223,7 @@ def open_image(
                 img = Image.open(source)  # reads the header only
             finally:
                 Image.MAX_IMAGE_PIXELS = saved
+        _report_damaged_metadata(name, caught, stacklevel=5)  # past contextlib: the loader's caller
         with img:
             pixels = img.width * img.height
             if pixel_limit is not None and pixels > pixel_limit:
@@ -251,11 +261,30 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
     img.load()
     if img.mode == "F" and not np.isfinite(np.asarray(img)).all():  # the one float mode; others are integers
         raise ImageLoadError(name, "pixel values are NaN or infinite")
-    if exif_orientation and img.getexif().get(ExifTags.Base.Orientation, 1) != 1:
-        turned = ImageOps.exif_transpose(img)  # a copy: only made when there is something to turn
-        turned.format = img.format  # the copy keeps the file's format, which tells how its samples are scaled
-        img = turned
+    if not exif_orientation:
+        return img
+    with _PIL_LOCK, warnings.catch_warnings(record=True) as damaged:  # the filters are global: one thread at a time
+        warnings.simplefilter("always")  # every decoder complaint is caught here, none shown as it is
+        if img.getexif().get(ExifTags.Base.Orientation, 1) != 1:
+            turned = ImageOps.exif_transpose(img)  # a copy: only made when there is something to turn
+            turned.format = img.format  # the copy keeps the file's format, which tells how its samples are scaled
+            img = turned
+    _report_damaged_metadata(name, damaged, stacklevel=4)  # the loader's caller
     return img
+
+
+def _report_damaged_metadata(name: str | os.PathLike, caught: list[warnings.WarningMessage], stacklevel: int) -> None:
+    """One :class:`ImageMetadataWarning` naming ``name`` for the decoder's warnings ``caught`` reading it (none if
+    nothing was caught or the file was named before)."""
+    if not caught or str(name) in _DAMAGED_WARNED:
+        return
+    _DAMAGED_WARNED.add(str(name))
+    first = " ".join(str(caught[0].message).split())
+    warnings.warn(
+        f"{name}: damaged metadata ({first}); the pixels are read, turned by the orientation that could be read",
+        ImageMetadataWarning,
+        stacklevel=stacklevel,
+    )
 
 
 def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
