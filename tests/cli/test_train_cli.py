@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -260,6 +261,99 @@ def test_a_failing_job_leaves_the_other_jobs_of_a_sweep_to_run(synthetic_cache, 
     )
     assert sorted(p.name for p in sweep.iterdir()) == ["0", "2", "multirun.yaml"]  # job 1 left nothing
     assert all((sweep / job / "checkpoints" / "last.ckpt").is_file() for job in ("0", "2"))
+
+
+def test_a_bug_in_jobs_of_a_sweep_is_said_for_each_job_and_the_summary_kept(synthetic_cache, tmp_path):
+    """Hydra raises only the first failed job's error once the sweep ran: each bug is said as its job fails, with
+    its traceback, and the line naming the failed jobs is not lost."""
+    sweep = tmp_path / "sweep"
+    bug = "+callbacks.extra.bug={_target_: tests.lit.faults.Raise, step: 1}"
+    ran = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=2", bug, "seed=-1,0,1", f"hydra.sweep.dir={sweep}", cwd=REPO, timeout=300
+    )
+    lines = error_lines(ran.stderr)
+    assert ran.returncode == 1, ran.stderr[-3000:]
+    assert lines[0].startswith("unicorn-train: error: job #0 (seed=-1): seed must be")
+    for job in ("#1 (seed=0)", "#2 (seed=1)"):
+        assert f"unicorn-train: error: job {job}: a bug, its traceback:" in lines
+    assert ran.stderr.count("ZeroDivisionError: a bug injected at iteration 1") == 2
+    assert lines[-1] == (
+        "unicorn-train: error: every job of the sweep failed (3), each said above: #0 (seed=-1), #1 (seed=0), #2 "
+        f"(seed=1) (the same command with hydra.sweep.dir={sweep} ckpt_path=last goes on with the sweep once the "
+        "failures are fixed)"
+    )
+    assert sorted(p.name for p in sweep.iterdir()) == ["1", "2", "multirun.yaml"]  # the bugs came after iteration 0
+
+
+def test_a_job_refused_in_the_folder_of_an_earlier_job_of_its_sweep_leaves_that_run(synthetic_cache, tmp_path):
+    """Two jobs whose folders are named alike (``hydra.sweep.subdir``): the second is refused, and the first one's
+    run, which the sweep made after it started, is not taken for the second's and removed."""
+    sweep = tmp_path / "sweep"
+    ran = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=same",
+        cwd=tmp_path,
+    )  # fmt: skip
+    job, _ = error_lines(ran.stderr)
+    assert ran.returncode == 2 and f"job #1 (seed=2): {sweep / 'same'} already holds a run" in job, ran.stderr[-3000:]
+    assert (sweep / "same" / "checkpoints" / "last.ckpt").is_file()
+    assert "seed: 1" in (sweep / "same" / "config.yaml").read_text()
+
+
+def test_a_sweep_that_kept_nothing_is_not_told_to_resume(tmp_path):
+    sweep = tmp_path / "new" / "sweep"
+    bad = unicorn_train("-m", *TINY, "model.loss.memory_size=-3", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert bad.returncode == 2 and not (tmp_path / "new").exists()
+    assert error_lines(bad.stderr)[-1] == (
+        "unicorn-train: error: every job of the sweep failed (2), each said above: #0 (seed=1), #1 (seed=2) (nothing "
+        "of the sweep was kept: the same command runs it again once the failures are fixed)"
+    )
+
+
+def _signal_in_the_second_jobs_build() -> None:
+    """unicorn-train's main() that gets SIGTERM once the second job of a sweep is built, before its first
+    iteration (the forked command of the test below)."""
+    from unicorn.cli import train
+    from unicorn.lit import run as lit_run
+
+    build, built = lit_run.build, []
+
+    def signalled(cfg):
+        built.append(build(cfg))
+        if len(built) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return built[-1]
+
+    lit_run.build = signalled
+    train.main()
+
+
+def test_a_sweep_stopped_before_a_later_jobs_first_iteration_says_how_it_goes_on(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}"]
+    stopped = unicorn_train(*args, cwd=tmp_path, entry=f"{__name__}:_signal_in_the_second_jobs_build")
+    assert stopped.returncode == 143, stopped.stderr[-3000:]
+    assert error_lines(stopped.stderr)[-1] == (
+        f"unicorn-train: stopped by SIGTERM before the first iteration; {sweep / '1'} is left as it was; the sweep "
+        f"goes on with the same command and hydra.sweep.dir={sweep} ckpt_path=last"
+    )
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "multirun.yaml"]
+    went_on = unicorn_train(*args, "ckpt_path=last", cwd=tmp_path)  # as it says
+    assert went_on.returncode == 0, went_on.stderr[-3000:]
+    assert all((sweep / job / "checkpoints" / "last.ckpt").is_file() for job in ("0", "1", "2"))
+
+
+def test_the_evaluation_after_training_names_the_report_only_when_it_writes_one(synthetic_cache, tmp_path, caplog):
+    import logging
+
+    from tests.support.training import build_run
+    from unicorn.lit.run import fit
+
+    evaluate = ["evaluate.enabled=true", "evaluate.max_images=1", "evaluate.shape_points=0", "trainer.max_steps=1"]
+    with caplog.at_level(logging.INFO, logger="unicorn.train"):
+        fit(build_run(tmp_path, *evaluate, "evaluate.report_samples=0", "evaluate.num_points=100"))
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("evaluation")]
+    assert not (tmp_path / "eval" / "report.html").exists()
+    assert said == [f"evaluation metrics: {tmp_path / 'eval' / 'metrics.csv'} (no report: evaluate.report_samples=0)"]
 
 
 def test_ddp_two_cpu_processes(synthetic_cache, tmp_path):

@@ -5,9 +5,10 @@
 - before the task (Hydra's composition: a misspelt override or group, a run folder that cannot be created), what
   Hydra printed is held back and reported as ``<prog>: error: <one line>``, exit status 2, unless it is a bug;
 - in the task, an expected failure (:func:`~unicorn.cli.errors.expected_error`) the same way, a bug with its
-  traceback. In a sweep (``-m``) a job's expected failure is said with the job's number and swept values and the
-  other jobs run; the command then ends with one line naming the failed jobs and status 2 (a
-  :class:`~unicorn.cli.errors.SweepError`, a problem of the whole sweep, stops it at once).
+  traceback. In a sweep (``-m``) a job's expected failure is said with the job's number and swept values, a job's
+  bug with them and its traceback, and the other jobs run; the command then ends with one line naming the failed
+  jobs and status 2, or 1 when one of them failed with a bug (a :class:`~unicorn.cli.errors.SweepError`, a problem
+  of the whole sweep, stops it at once).
 
 Hydra writes its record of the run (``.hydra/``) before the task starts, over the record of a run whose folder
 the task may then refuse; the app turns that off and the task writes the record once it accepted the folder
@@ -29,6 +30,7 @@ import io
 import os
 import re
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -45,7 +47,8 @@ __all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before",
 
 class NoteExistingFolders(Callback):
     """A Hydra callback noting, before Hydra creates any job folder or log, which of them exist already and what
-    they hold: a single run's ``hydra.run.dir``; a sweep's ``hydra.sweep.dir`` and the folders in it."""
+    they hold: a single run's ``hydra.run.dir``; a sweep's ``hydra.sweep.dir`` and the folders in it (its job
+    folders again after each job, :meth:`on_job_end`)."""
 
     #: the noted folder, whether its sub-folders are the jobs' (a sweep), and each existing folder's entries
     noted: tuple[Path, bool, dict[Path, set[str]]] | None = None
@@ -72,6 +75,19 @@ class NoteExistingFolders(Callback):
         if NoteExistingFolders.refusal is None:  # a folder Hydra can make (or that is there)
             record = folder / SWEEP_RECORD
             NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
+
+    def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
+        """Note again, after each job of a sweep, what its job folders hold: the next job's folder may be one an
+        earlier job of it made and trained in (``hydra.sweep.subdir`` naming two jobs' folders alike, another
+        command's sweep into the same folder), whose run a refused job must not take for its own and remove."""
+        noted = NoteExistingFolders.noted
+        if noted is None or not noted[1] or not noted[0].is_dir():
+            return
+        folder, _, entries = noted
+        jobs = {f.resolve(): {p.name for p in f.iterdir()} for f in folder.iterdir() if f.is_dir()}
+        if folder in entries:  # the sweep's folder keeps what it held before the sweep: put_back_sweep reads it
+            jobs[folder] = entries[folder]
+        NoteExistingFolders.noted = (folder, True, jobs)
 
     @staticmethod
     def put_back_sweep() -> None:
@@ -316,9 +332,10 @@ class HydraApp:
         self.prog, self.config_dir, self.config_name, self.debug = prog, config_dir, config_name, debug
         self.record_subdir: str | None = ".hydra"  # where the task writes Hydra's record (None: nowhere)
         self.task_started = False
-        #: the jobs of a sweep that failed with an expected error (``#<num> (<overrides>)``): the sweep goes on with
-        #: the others and the command ends with status 2
+        #: the jobs of a sweep that failed (``#<num> (<overrides>)``): the sweep goes on with the others and the
+        #: command ends with status 2, or 1 after a bug
         self.failed_jobs: list[str] = []
+        self.failed_with_bug = False  # one of them with a bug (not an expected error): status 1
         self.jobs_started = 0
         self.sweep_dir: Path | None = None
         self.swept: set[str] = set()  # the keys the command line sweeps
@@ -370,19 +387,30 @@ class HydraApp:
             raise SystemExit(err.exit_status) from None
         except Exception as err:
             reported = expected_error(err)
-            if reported is None or debug_requested(self.debug):
-                raise  # a bug: Hydra prints the traceback (in a sweep once the other jobs ran), exit status 1
             job = "" if isinstance(reported, SweepError) else _sweep_job(self.swept)
-            print(f"{self.prog}: error: {job and f'job {job}: '}{one_line(reported)}", file=sys.stderr, flush=True)
+            if debug_requested(self.debug) or (reported is None and not job):
+                raise  # a bug: Hydra prints the traceback, exit status 1
+            if reported is None:  # a bug in a job of a sweep: Hydra would print only the first one's, after the sweep
+                print(f"{self.prog}: error: job {job}: a bug, its traceback:", file=sys.stderr, flush=True)
+                traceback.print_exception(err, file=sys.stderr)
+                self.failed_with_bug = True
+            else:
+                print(f"{self.prog}: error: {job and f'job {job}: '}{one_line(reported)}", file=sys.stderr, flush=True)
             if not job:
                 raise SystemExit(2) from None
             self.failed_jobs.append(job)  # the other jobs of the sweep still run
 
     def _end_sweep(self) -> None:
-        """After a sweep some of whose jobs failed: one line naming them, exit status 2."""
+        """After a sweep some of whose jobs failed: one line naming them, exit status 2 (1 when one failed with a
+        bug). Where the sweep's folder is gone (no job kept one, :meth:`NoteExistingFolders.put_back_sweep`), the
+        line says that the same command runs the sweep again, not how to resume that folder."""
         if not self.failed_jobs:
             return
+        status = 1 if self.failed_with_bug else 2
         where = f" hydra.sweep.dir={self.sweep_dir}" if self.sweep_dir is not None else ""
+        then = f"the same command with{where} ckpt_path=last goes on with the sweep once the failures are fixed"
+        if self.sweep_dir is not None and not self.sweep_dir.is_dir():
+            then = "nothing of the sweep was kept: the same command runs it again once the failures are fixed"
         failed = len(self.failed_jobs)
         which = (
             f"every job of the sweep failed ({failed}), each said above: {', '.join(self.failed_jobs)}"
@@ -390,13 +418,8 @@ class HydraApp:
             else f"{failed} job(s) of the sweep failed, each said above: {', '.join(self.failed_jobs)}; the other "
             "jobs ran"
         )
-        print(
-            f"{self.prog}: error: {which} (the same command with{where} ckpt_path=last goes on with the sweep once "
-            "the failures are fixed)",
-            file=sys.stderr,
-            flush=True,
-        )
-        raise SystemExit(2)
+        print(f"{self.prog}: error: {which} ({then})", file=sys.stderr, flush=True)
+        raise SystemExit(status)
 
     def run(self, task: Callable[[DictConfig], Any], args: list[str]) -> None:
         """Run ``task`` on the config Hydra composes from ``args`` (the command line after the program name)."""

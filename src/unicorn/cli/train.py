@@ -234,19 +234,21 @@ def _put_back(err: Exception, changes: list[FolderChanges], output_dir: Path) ->
         stop = late
     if stop is not None:
         name = signal.Signals(stop.exit_status - 128).name
-        raise Interrupted(
-            f"stopped by {name} before the first iteration; {output_dir} is left as it was", stop.exit_status
-        ) from stop
+        message = f"stopped by {name} before the first iteration; {output_dir} is left as it was"
+        raise _with_sweep_hint(Interrupted(message, stop.exit_status)) from stop
 
 
 def _with_sweep_hint(err: Exception) -> Exception:
     """A job of a sweep (``-m``) stopped by a signal: its message also says how the whole sweep goes on (the
-    sweep's folder is named after the time it started, so a new command would start another)."""
+    sweep's folder is named after the time it started, so a new command would start another), once a job of it
+    kept its folder (:attr:`NoteExistingFolders.sweep` is None; a job stopped before its first iteration puts its
+    own folder back, but not the jobs' before it). A sweep none of whose jobs kept a folder is removed again: the
+    same command starts it anew."""
     from hydra.core.hydra_config import HydraConfig
 
     from unicorn.io.run_folder import in_sweep
 
-    if not isinstance(err, Interrupted) or not in_sweep():
+    if not isinstance(err, Interrupted) or not in_sweep() or NoteExistingFolders.sweep is not None:
         return err
     sweep = Path(HydraConfig.get().sweep.dir).resolve()
     return Interrupted(

@@ -679,7 +679,7 @@ def evaluate_run(run: Run) -> Path:
         return out
     log.info("evaluating the trained model on the %s split", settings.split)
     with overflow_note("the evaluation after training"):  # once, instead of the renderer's warning
-        evaluate_to_folder(
+        _, written = evaluate_to_folder(
             run.module.model,
             target,
             settings_options(settings, d.name, average_texture=run.module.constant_mean_textures),
@@ -689,5 +689,8 @@ def evaluate_run(run: Run) -> Path:
             turntable_frames=settings.turntable_frames,
             title=f"{d.name} ({settings.split}): {checkpoint.name}",
         )
-    log.info("evaluation report: %s", out / "report.html")
+    if "html" in written:
+        log.info("evaluation report: %s", written["html"])
+    else:  # evaluate.report_samples=0: the metrics only (a report.html there is an earlier evaluation's)
+        log.info("evaluation metrics: %s (no report: evaluate.report_samples=0)", written["csv"])
     return out
