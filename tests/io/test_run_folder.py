@@ -15,6 +15,7 @@ from tests.support.checkpoints import deflated_torch_file
 from unicorn.errors import UserError
 from unicorn.io.run_folder import (
     LOCK_NAME,
+    RUN_PROVENANCE,
     FolderChanges,
     RunFolderBusyError,
     RunFolderError,
@@ -51,6 +52,28 @@ def test_last_in_a_folder_without_a_run_warns_that_it_resumes_nothing(tmp_path, 
         ("WARNING", f"ckpt_path=last: {tmp_path / 'new'} holds no run to resume"),
         ("INFO", f"ckpt_path=last: no {tmp_path / 'run' / 'checkpoints' / 'last.ckpt'} yet"),
     ]
+
+
+def test_last_in_a_resumed_sweep_trains_the_jobs_it_had_not_reached_without_a_warning(
+    tmp_path, caplog, monkeypatch
+) -> None:
+    """``-m ... hydra.sweep.dir=<sweep> ckpt_path=last`` named the sweep's folder: a job folder it had not reached
+    is said at INFO, not warned about with a hint to name the folder; a sweep of no run yet is still warned."""
+    from unicorn.io import run_folder
+
+    monkeypatch.setattr(run_folder, "in_sweep", lambda: True)
+    sweep = tmp_path / "sweep"
+    with caplog.at_level(logging.INFO, logger="unicorn.train"):
+        assert resolve_ckpt("last", sweep / "0" / "checkpoints") is None  # nothing there: a new folder?
+        (sweep / "0").mkdir(parents=True)
+        (sweep / "0" / RUN_PROVENANCE).write_text("{}")  # job 0 ran
+        assert resolve_ckpt("last", sweep / "1" / "checkpoints") is None
+    levels = [(r.levelname, r.getMessage().split(" (")[0]) for r in caplog.records]
+    assert levels == [
+        ("WARNING", f"ckpt_path=last: {sweep / '0'} holds no run to resume, training from scratch"),
+        ("INFO", f"ckpt_path=last: {sweep / '1'} holds no run yet"),
+    ]
+    assert "name its folder: hydra.sweep.dir=<sweep dir>" in caplog.records[0].getMessage()
 
 
 def test_last_without_last_ckpt_is_the_newest_step_file_when_none_is_written(tmp_path) -> None:

@@ -202,6 +202,12 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
         if not checkpoint_dir.is_dir() and (checkpoint_dir.parent / RUN_PROVENANCE).is_file():
             folder = checkpoint_dir.parent
             log.info("ckpt_path=last: %s holds a run killed before its first checkpoint: training it again", folder)
+        elif not checkpoint_dir.is_dir() and in_sweep() and _holds_a_run_beside(checkpoint_dir.parent):
+            # a resumed sweep's job that the sweep had not reached: its sweep folder was named, as the warning says
+            log.info(
+                "ckpt_path=last: %s holds no run yet (a job the sweep had not reached): training it from scratch",
+                checkpoint_dir.parent,
+            )
         elif not checkpoint_dir.is_dir():  # a folder without a run: most likely not the run's folder
             setting = folder_setting()
             log.warning(
@@ -215,6 +221,14 @@ def resolve_ckpt(ckpt_path: str | None, checkpoint_dir: Path, save_last: bool = 
             log.info("ckpt_path=last: no %s yet, training from scratch", last)
         return None
     return str(check_checkpoint_path(Path(ckpt_path).expanduser().resolve(), "ckpt_path"))
+
+
+def _holds_a_run_beside(folder: Path) -> bool:
+    """Whether a folder beside ``folder`` (another job's of its sweep) holds a run (:data:`RUN_PROVENANCE`)."""
+    try:
+        return any((f / RUN_PROVENANCE).is_file() for f in folder.parent.iterdir() if f != folder and f.is_dir())
+    except OSError:  # the sweep's folder unreadable: said where it is used
+        return False
 
 
 def later_checkpoints(checkpoint_dir: Path, ckpt: Path) -> list[Path]:
