@@ -31,7 +31,7 @@ import os
 import re
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +84,7 @@ class NoteExistingFolders(Callback):
         if noted is None or not noted[1] or not noted[0].is_dir():
             return
         folder, _, entries = noted
-        jobs = {f.resolve(): {p.name for p in f.iterdir()} for f in folder.iterdir() if f.is_dir()}
+        jobs = _entries(folder.iterdir())
         if folder in entries:  # the sweep's folder keeps what it held before the sweep: put_back_sweep reads it
             jobs[folder] = entries[folder]
         NoteExistingFolders.noted = (folder, True, jobs)
@@ -121,12 +121,16 @@ class NoteExistingFolders(Callback):
                 NoteExistingFolders.refusal = f"the run folder {folder} {where}: choose another folder ({key}=...)"
                 return
         folders = [folder, *(folder.iterdir() if jobs_inside and folder.is_dir() else [])]
-        entries = {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
-        NoteExistingFolders.noted = (folder, jobs_inside, entries)
+        NoteExistingFolders.noted = (folder, jobs_inside, _entries(folders))
         top = None
         while not folder.parent.exists() and folder.parent != folder:
             folder = top = folder.parent
         NoteExistingFolders.created_top = top
+
+
+def _entries(folders: Iterable[Path]) -> dict[Path, set[str]]:
+    """What each of ``folders`` that is a folder holds (the names in it), by its resolved path."""
+    return {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
 
 
 #: what the app adds to the overrides: no ``.hydra/`` record written by Hydra, the :class:`NoteExistingFolders`

@@ -75,10 +75,10 @@ def square_bbox(bbox: np.ndarray) -> np.ndarray:
     return np.array([x1, y1, x1 + side - 1, y1 + side - 1], dtype=np.int64)
 
 
-def _crop_padded(arr: np.ndarray, bbox: np.ndarray, edge: bool) -> np.ndarray:
+def _crop_padded(arr: np.ndarray, bbox: np.ndarray, edge: bool, fill: float = 0.0) -> np.ndarray:
     """Crop ``arr[y1:y2+1, x1:x2+1]`` where the box may leave the array; always a new array.
 
-    Outside pixels replicate the nearest border pixel (``edge=True``) or are zero.
+    Outside pixels replicate the nearest border pixel (``edge=True``) or are ``fill``.
     """
     x1, y1, x2, y2 = (int(v) for v in bbox)
     H, W = arr.shape[:2]
@@ -86,31 +86,36 @@ def _crop_padded(arr: np.ndarray, bbox: np.ndarray, edge: bool) -> np.ndarray:
     if top < bottom and left < right:
         # the part inside the array, padded: one slice and one copy
         widths = [(top - y1, y2 + 1 - bottom), (left - x1, x2 + 1 - right)] + [(0, 0)] * (arr.ndim - 2)
-        return np.pad(arr[top:bottom, left:right], widths, mode="edge" if edge else "constant")
+        if edge:
+            return np.pad(arr[top:bottom, left:right], widths, mode="edge")
+        return np.pad(arr[top:bottom, left:right], widths, mode="constant", constant_values=fill)
     # a box that misses the array entirely
     rows, cols = np.arange(y1, y2 + 1), np.arange(x1, x2 + 1)
     # clipped indices are exactly numpy's 'edge' padding, for any box, even one entirely outside
     crop = arr[np.clip(rows, 0, H - 1)][:, np.clip(cols, 0, W - 1)]
     if not edge:
         inside = ((rows >= 0) & (rows < H))[:, None] & ((cols >= 0) & (cols < W))[None, :]
-        crop = crop * inside.reshape(inside.shape + (1,) * (arr.ndim - 2))
+        crop = np.where(inside.reshape(inside.shape + (1,) * (arr.ndim - 2)), crop, np.asarray(fill, crop.dtype))
     return crop
 
 
 def crop_box(
-    image: np.ndarray, bbox: np.ndarray, mask: np.ndarray | None = None
+    image: np.ndarray, bbox: np.ndarray, mask: np.ndarray | None = None, fill: float | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Crop an integer box, replicating the image's border pixels and zero-padding the mask outside it.
+    """Crop an integer box, replicating the image's border pixels (or setting them to ``fill``) and zero-padding
+    the mask outside it.
 
     Args:
         image: (H, W, 3) array.
         bbox: int ``(x1, y1, x2, y2)``, e.g. from :func:`square_bbox`; it may leave the image.
         mask: optional (H, W) array.
+        fill: the image crop's value beyond the image's edges (a cut-out's white background); None: the border
+            pixels repeated (a photo's).
 
     Returns:
         (h, w, 3) crop and the (h, w) mask crop (or None), with h = y2 - y1 + 1 and w = x2 - x1 + 1.
     """
-    crop = _crop_padded(image, bbox, edge=True)
+    crop = _crop_padded(image, bbox, edge=fill is None, fill=fill or 0.0)
     mask_crop = None if mask is None else _crop_padded(mask, bbox, edge=False)
     return crop, mask_crop
 

@@ -249,22 +249,9 @@ def _framed(
             f"{MAX_CROP_SIDE} a side); give a smaller bbox or padding"
         )
     square = square_bbox(box)
-    crop, _ = crop_box(image, square)
-    if fill is not None:
-        _fill_outside(crop, square, image.shape[0], image.shape[1], fill)
+    crop, _ = crop_box(image, square, fill=fill)
     side = float(square[2] - square[0] + 1)
     return resize_image(crop.astype(np.float32), (size, size)), (float(square[0]), float(square[1]), side, side)
-
-
-def _fill_outside(crop: np.ndarray, box: np.ndarray, height: int, width: int, value: float) -> None:
-    """Set the pixels of ``crop`` (the integer ``box`` of a ``height`` x ``width`` image) that lie beyond the image's
-    edges to ``value``, in place."""
-    x1, y1 = int(box[0]), int(box[1])
-    rows, cols = crop.shape[:2]
-    crop[: min(max(-y1, 0), rows)] = value
-    crop[max(min(height - y1, rows), 0) :] = value
-    crop[:, : min(max(-x1, 0), cols)] = value
-    crop[:, max(min(width - x1, cols), 0) :] = value
 
 
 class RawInput:
