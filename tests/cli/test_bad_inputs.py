@@ -949,9 +949,9 @@ def test_a_bad_image_in_one_ddp_process_is_one_line_and_no_process_is_left(tmp_p
         Image.fromarray(rng.integers(0, 255, (40, 40, 3), dtype=np.uint8)).save(photos / f"img{k:02d}.jpg")
     good = (photos / "img00.jpg").read_bytes()
     (photos / "img07b.jpg").write_bytes(good[: len(good) // 3])  # truncated
-    args = [*TINY, "dataset=folder", f"dataset.root={photos}", "dataset.img_size=32", "dataset.on_error=raise",
-            "dataset.cache_items=false", "callbacks.heldout=null", "evaluate.enabled=false", "trainer=ddp_cpu",
-            "trainer.max_steps=12", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    args = [*TINY, "dataset=folder", "dataset.categories=null", f"dataset.root={photos}", "dataset.img_size=32",
+            "dataset.on_error=raise", "dataset.cache_items=false", "callbacks.heldout=null", "evaluate.enabled=false",
+            "trainer=ddp_cpu", "trainer.max_steps=12", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
     with _train_group(args, tmp_path) as proc:
         _, stderr = proc.communicate(timeout=240)
     lines = error_lines(stderr)

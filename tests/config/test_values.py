@@ -84,6 +84,18 @@ CASES = [
     ("lr-drop-to-zero", [*SYNTHETIC, "optim.lr_drop_gamma=0"], r"optim.lr_drop_gamma .*in \[1e-06, 1\]"),
     ("deterministic", [*SYNTHETIC, "trainer.deterministic=bogus"], r"trainer.deterministic must be true, false, warn"),
     ("another-renderers-option", [*SYNTHETIC, "renderer=hard"], r"drop them with ~renderer\.faces_per_pixel$"),
+    # the one-category datasets built without reading it: a run on the wrong data would not say so
+    (
+        "categories-of-one-category-data",
+        [*CUB, "+dataset.categories=bird"],
+        r"^dataset.categories='bird', but dataset cub_200 holds one category and would ignore it: drop it "
+        r"\(dataset.categories=null\)$",
+    ),
+    (
+        "an-experiments-categories-on-a-folder",
+        [*SYNTHETIC, "dataset=folder", "dataset.root=/photos"],
+        r"^dataset.categories='car', but dataset folder holds one category",
+    ),
 ]
 
 
@@ -103,6 +115,7 @@ def test_a_value_the_run_cannot_use_is_one_config_error(tmp_path, overrides, mes
         [*SYNTHETIC, "dataset.categories=[car,chair]", "+dataset.synthetic.background_kinds=[solid]",
          "dataset.synthetic.mode=wild"],
         CUB,
+        [*SYNTHETIC, "dataset=folder", "dataset.root=/photos", "dataset.categories=null"],
         [*SYNTHETIC, "renderer=hard", "~renderer.faces_per_pixel"],
         [*SYNTHETIC, "+renderer.image_size=32"],  # the images' size: accepted
     ],

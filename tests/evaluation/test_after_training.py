@@ -14,6 +14,7 @@ from tests.support.training import TINY, unicorn_train
 FOLDER_RUN = [
     *(o for o in TINY if not o.startswith(("dataset.", "evaluate.", "trainer.max_steps="))),
     "dataset=folder",
+    "dataset.categories=null",  # the experiment's synthetic category: a folder has none
     "dataset.batch_size=4",
     "dataset.cache_items=false",  # the folder's items are augmented
     "trainer.max_steps=2",

@@ -135,6 +135,11 @@ def _is_folder_name(name: str) -> bool:
     return bool(name.strip()) and name not in (".", "..") and not any(c in name for c in "/\\\0")
 
 
+def _plain(value: Any) -> Any:
+    """A config list as a plain list (for messages and checks); other values as they are."""
+    return OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+
+
 def _check_seed(key: str, value: Any) -> None:
     _check(is_seed(value), f"{key} must be a whole number in [0, {MAX_SEED}] (numpy's seeds), got {value}")
 
@@ -146,9 +151,14 @@ def _check_dataset(d: DictConfig) -> None:
     from unicorn.data.synthetic.writer import check_synthetic_settings
 
     _check_seed("dataset.seed", d.seed)
+    _check(
+        d.categories is None or DATASETS.get(d.name).by_category,
+        f"dataset.categories={_plain(d.categories)!r}, but dataset {d.name} holds one category and would ignore it: "
+        "drop it (dataset.categories=null)",
+    )
     if d.name != "synthetic":
         return
-    categories = OmegaConf.to_container(d.categories) if isinstance(d.categories, ListConfig) else d.categories
+    categories = _plain(d.categories)
     synthetic = OmegaConf.to_container(d.synthetic, resolve=True) if d.synthetic is not None else {}
     try:
         check_synthetic_settings(categories, synthetic)
