@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.support.datasets import bomb_png, save_with_orientation
+from tests.support.datasets import bomb_png, keyed_png16, save_with_orientation
 from unicorn.data.images import (
     DEFAULT_MAX_IMAGE_BYTES,
     DEFAULT_MAX_IMAGE_PIXELS,
@@ -60,6 +60,20 @@ def test_transparent_pixels_become_white(tmp_path: Path) -> None:
     rgba[:2, :, 3] = 255  # top half opaque red, bottom half transparent
     arr = load_image(_save(tmp_path / "a.png", Image.fromarray(rgba, "RGBA")))
     assert np.allclose(arr[0, 0], [1, 0, 0]) and np.allclose(arr[3, 0], [1, 1, 1])
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_a_16_bit_pngs_transparent_colour_becomes_white(tmp_path: Path, channels: int) -> None:
+    samples = np.full((4, 6, channels), 1000, np.uint16)  # the key: transparent
+    samples[1:3, 2:5] = (50000, 20000, 3000)[:channels]  # the object
+    samples[3, 0] = (1200, 1100, 1000)[:channels]  # near the key, but opaque (8 bits: 1000 and 1200 are both 3 or 4)
+    key = 1000 if channels == 1 else (1000, 1000, 1000)
+    arr = load_image(keyed_png16(tmp_path / "keyed.png", samples.squeeze(-1) if channels == 1 else samples, key))
+    transparent = (samples == 1000).all(axis=-1)
+    np.testing.assert_array_equal(arr[transparent], 1.0)
+    opaque = np.broadcast_to(samples[~transparent] / 65535, arr[~transparent].shape)
+    np.testing.assert_allclose(arr[~transparent], opaque, atol=1 / 255)  # RGB: Pillow keeps the high byte
+    assert (arr[3, 0] < 0.1).all()
 
 
 @pytest.mark.parametrize("content", [b"", b"not an image at all", b"\x89PNG\r\n\x1a\n\x00\x00garbage"])

@@ -9,7 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.support.datasets import save_with_orientation
+from tests.support.datasets import keyed_png16, save_with_orientation
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import ImageLoadError
 from unicorn.io import alpha_bbox, load_input, read_input
@@ -39,7 +39,8 @@ def test_alpha_box_is_in_the_upright_grid(tmp_path: Path) -> None:
 def test_a_cutout_trimmed_to_its_object_is_framed_on_white(tmp_path: Path) -> None:
     """A cut-out whose object touches the image's edges (trimmed by the tool that cut it out): its square crop
     reaches beyond the image, which is white there (the cut-out's background), not its edge pixels repeated into
-    streaks; a photo's crop around a given box still repeats its border, as the training crops do."""
+    streaks, whether its box is the alpha channel's or given; a photo's crop around a given box still repeats its
+    border, as the training crops do."""
     rows, cols = np.mgrid[0:50, 0:100]
     inside = ((cols - 49.5) / 50) ** 2 + ((rows - 24.5) / 25) ** 2 <= 1  # an ellipse touching all four edges
     stored = np.zeros((50, 100, 4), np.uint8)
@@ -53,9 +54,14 @@ def test_a_cutout_trimmed_to_its_object_is_framed_on_white(tmp_path: Path) -> No
     assert (framed[:8] == 1).all() and (framed[24:] == 1).all()  # above and below the image: white
     assert (framed[:, :1] == 1).all() and (framed[:, 31:] == 1).all()  # left and right of it: white
     np.testing.assert_allclose(framed[16, 16], [200 / 255, 30 / 255, 30 / 255], atol=1e-6)  # the object
-    boxed = load_input(tmp_path / "trimmed.png", 32, bbox=(0, 0, 99, 49))  # a given box: the border repeated
-    assert boxed.frame == item.frame and not read_input(tmp_path / "trimmed.png", bbox=(0, 0, 99, 49)).cutout
-    assert (boxed.image[0, :8, 16] > 0.7).all()  # the object's top edge, repeated upwards
+    boxed = load_input(tmp_path / "trimmed.png", 32, bbox=(0, 0, 99, 49))  # the same box, given
+    assert boxed.frame == item.frame and torch.equal(boxed.image, item.image)
+    whole = load_input(tmp_path / "trimmed.png", 32, use_alpha=False).image  # fitted whole: white above and below
+    assert (whole[:, :8] == 1).all() and (whole[:, 24:] == 1).all() and (whole[0, 16, :] < 1).any()
+    Image.fromarray(stored[..., :3]).save(tmp_path / "photo.png")  # opaque: a photo on black
+    photo = load_input(tmp_path / "photo.png", 32, bbox=(0, 0, 99, 49))  # a given box: the border repeated
+    assert photo.frame == item.frame and not read_input(tmp_path / "photo.png", bbox=(0, 0, 99, 49)).cutout
+    assert (photo.image[0, :8, 16] > 0.7).all()  # the object's top edge, repeated upwards
 
 
 def test_non_finite_input_is_a_bad_image(tmp_path: Path) -> None:
@@ -73,6 +79,16 @@ def test_a_transparent_colour_key_crops_like_an_alpha_channel(tmp_path: Path, mo
     key = (255, 255, 255) if mode == "RGB" else 255
     image.save(tmp_path / "keyed.png", transparency=key)
     np.testing.assert_array_equal(alpha_bbox(tmp_path / "keyed.png"), [10, 4, 19, 8])
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_a_16_bit_transparent_colour_crops_like_an_alpha_channel(tmp_path: Path, channels: int) -> None:
+    samples = np.full((20, 30, channels), 1000, np.uint16)  # near black: transparent
+    samples[4:9, 10:20] = (40000, 9000, 1000)[:channels]  # the object; RGB: the key's value in one channel
+    key = 1000 if channels == 1 else (1000, 1000, 1000)
+    path = keyed_png16(tmp_path / "keyed.png", samples.squeeze(-1) if channels == 1 else samples, key)
+    np.testing.assert_array_equal(alpha_bbox(path), [10, 4, 19, 8])
+    assert read_input(path).cutout
 
 
 @pytest.mark.parametrize(

@@ -93,21 +93,42 @@ def write_annotated_split(
 
 
 # ---------------------------------------------------------------------------------------------- limits, bombs
-def bomb_png(path: Path, width: int = 20000, height: int = 20000, one_bit: bool = False) -> Path:
-    """A valid PNG header announcing ``width x height`` RGB pixels (1-bit grayscale with ``one_bit``), a few
-    hundred bytes on disk."""
+def _png(header: bytes, data: bytes, *extra: tuple[bytes, bytes]) -> bytes:
+    """A PNG file's bytes: the ``IHDR`` fields, then the ``extra`` chunks (kind, data), then ``data`` compressed."""
     import struct
     import zlib
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
+    chunks = [chunk(b"IHDR", header), *(chunk(k, d) for k, d in extra), chunk(b"IDAT", zlib.compress(data))]
+    return b"\x89PNG\r\n\x1a\n" + b"".join(chunks) + chunk(b"IEND", b"")
+
+
+def bomb_png(path: Path, width: int = 20000, height: int = 20000, one_bit: bool = False) -> Path:
+    """A valid PNG header announcing ``width x height`` RGB pixels (1-bit grayscale with ``one_bit``), a few
+    hundred bytes on disk."""
+    import struct
+
     depth, colour = (1, 0) if one_bit else (8, 2)
     header = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, 0)
     row = b"\x00" + bytes(3 * min(width, 64))  # only the start of the image data: decoding would fail anyway
-    path.write_bytes(
-        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(row)) + chunk(b"IEND", b"")
-    )
+    path.write_bytes(_png(header, row))
+    return path
+
+
+def keyed_png16(path: Path, samples: np.ndarray, key: int | tuple[int, int, int]) -> Path:
+    """A 16-bit grey ((H, W) ``samples``) or RGB ((H, W, 3)) PNG whose ``tRNS`` chunk makes the ``key`` grey level or
+    colour transparent, written byte by byte (Pillow writes neither)."""
+    import struct
+
+    height, width = samples.shape[:2]
+    colour = 0 if samples.ndim == 2 else 2
+    rows = samples.astype(">u2").reshape(height, -1)
+    data = b"".join(b"\x00" + row.tobytes() for row in rows)  # filter type 0 on every row
+    header = struct.pack(">IIBBBBB", width, height, 16, colour, 0, 0, 0)
+    transparent = struct.pack(">H", key) if colour == 0 else struct.pack(">HHH", *key)
+    path.write_bytes(_png(header, data, (b"tRNS", transparent)))
     return path
 
 

@@ -120,17 +120,21 @@ def crop_box(
     return crop, mask_crop
 
 
-def fit_and_pad(image: np.ndarray, size: int) -> np.ndarray:
+def fit_and_pad(image: np.ndarray, size: int, fill: float | None = None) -> np.ndarray:
     """Resize so the longer side is ``size`` (aspect kept), then pad the shorter side to a square.
 
-    The padding replicates the border pixels and centres the image, as the reference's ``SquarePad``.
+    The padding centres the image and replicates its border pixels, as the reference's ``SquarePad`` (or, given
+    ``fill``, sets them to it: a cut-out's white background).
 
     Returns:
         (size, size, 3) array.
     """
     h, w, top, left = fit_layout(image.shape[0], image.shape[1], size)
     resized = resize_image(image, (h, w))
-    return np.pad(resized, [(top, size - h - top), (left, size - w - left), (0, 0)], mode="edge")
+    widths = [(top, size - h - top), (left, size - w - left), (0, 0)]
+    if fill is None:
+        return np.pad(resized, widths, mode="edge")
+    return np.pad(resized, widths, mode="constant", constant_values=fill)
 
 
 def fit_layout(H: int, W: int, size: int) -> tuple[int, int, int, int]:

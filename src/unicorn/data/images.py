@@ -61,6 +61,7 @@ __all__ = [
     "set_max_image_bytes",
     "set_max_image_pixels",
     "to_chw_tensor",
+    "transparency_alpha",
 ]
 
 
@@ -258,7 +259,11 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
     Raises:
         ImageLoadError: non-finite pixel values.
     """
+    sixteen_bit_rgb = img.mode == "RGB" and any(str(tile.args).endswith(";16B") for tile in img.tile)  # load clears
     img.load()
+    if sixteen_bit_rgb and isinstance(img.info.get("transparency"), tuple):
+        # Pillow keeps each 16-bit sample's high byte but matches the tRNS colour as written: match it at that precision
+        img.info["transparency"] = tuple(int(v) >> 8 for v in img.info["transparency"])
     if img.mode == "F" and not np.isfinite(np.asarray(img)).all():  # the one float mode; others are integers
         raise ImageLoadError(name, "pixel values are NaN or infinite")
     if not exif_orientation:
@@ -294,12 +299,15 @@ def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
         ImageLoadError: a float image (mode ``F``) with values outside [0, 1], whose scale cannot be told (0-255,
             0-65535, physical units).
     """
-    if img.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
+    if img.mode in _WIDE_GREY_MODES:
         # 16-bit (or 32-bit int) grayscale: PIL's convert('L') clips instead of rescaling
         arr = np.asarray(img, dtype=np.float64)
         sixteen_bit = img.mode.startswith("I;16") or img.format in _SIXTEEN_BIT_FORMATS or arr.max() > 255
         peak = 65535.0 if sixteen_bit else 255.0  # a dark 16-bit image is not an 8-bit one
         gray = np.clip(arr / peak, 0.0, 1.0).astype(np.float32)
+        alpha = transparency_alpha(img)
+        if alpha is not None:  # composite on white, as below
+            gray = gray * alpha + (1.0 - alpha)
         return np.repeat(gray[..., None], 3, axis=-1)
     if img.mode == "F":
         gray = np.asarray(img, dtype=np.float32)
@@ -322,11 +330,27 @@ def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
     return rgb
 
 
+#: PIL's modes of one band of integers wider than 8 bits (16-bit grey PNGs read as ``I;16``)
+_WIDE_GREY_MODES = ("I", "I;16", "I;16B", "I;16L", "I;16N")
+
+
 def has_transparency(img: Image.Image) -> bool:
     """Whether a PIL image has transparent pixels to read: an alpha channel, or a palette, RGB or grey image with a
-    transparent entry or colour (a PNG's ``tRNS`` chunk, a GIF's transparent index), which ``convert("RGBA")``
-    turns into alpha."""
-    return img.mode in ("RGBA", "LA", "PA") or (img.mode in ("P", "RGB", "L") and "transparency" in img.info)
+    transparent entry or colour (a PNG's ``tRNS`` chunk, a GIF's transparent index)."""
+    keyed = ("P", "RGB", "L", *_WIDE_GREY_MODES)
+    return img.mode in ("RGBA", "LA", "PA") or (img.mode in keyed and "transparency" in img.info)
+
+
+def transparency_alpha(img: Image.Image) -> np.ndarray | None:
+    """(H, W) float32 opacity in [0, 1] of a decoded image (:func:`decoded`), or None without transparency.
+
+    A 16-bit grey image's ``tRNS`` grey level is matched here: PIL's ``convert("RGBA")`` leaves such an image opaque.
+    """
+    if not has_transparency(img):
+        return None
+    if img.mode in _WIDE_GREY_MODES:
+        return (np.asarray(img) != img.info["transparency"]).astype(np.float32)
+    return np.asarray(img.convert("RGBA"))[..., 3].astype(np.float32) / 255.0
 
 
 def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
@@ -367,14 +391,15 @@ def load_mask(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndar
 
 def _mask_levels(img: Image.Image) -> np.ndarray:
     """(H, W) levels of a mask image, before thresholding."""
-    if img.mode in ("F", "I") or img.mode.startswith("I;16"):
-        return np.asarray(img)  # one band of floats or wide integers, which convert("L") would clip
-    grey = np.asarray(img.convert("L"))  # a palette image's colours, not its palette indices
-    if has_transparency(img) and grey.min() == grey.max():
-        alpha = np.asarray(img.convert("RGBA"))[..., 3]
-        if alpha.min() < alpha.max():  # the shape is drawn in the alpha channel alone
+    if img.mode == "F" or img.mode in _WIDE_GREY_MODES:
+        levels = np.asarray(img)  # one band of floats or wide integers, which convert("L") would clip
+    else:
+        levels = np.asarray(img.convert("L"))  # a palette image's colours, not its palette indices
+    if levels.min() == levels.max():
+        alpha = transparency_alpha(img)
+        if alpha is not None and alpha.min() < alpha.max():  # the shape is drawn in the alpha channel alone
             return alpha
-    return grey
+    return levels
 
 
 def to_chw_tensor(arr: np.ndarray) -> torch.Tensor:

@@ -4,11 +4,13 @@ The framing is the training one (:mod:`unicorn.data.framing`):
 
 - an image whose alpha channel cuts the object out (a PNG with transparency) is cropped to the square box around
   its opaque pixels grown by ``padding`` on every side (as the CUB / Pascal3D+ loaders crop around their boxes),
-  composited on white and resized; where the square reaches beyond the image (a cut-out trimmed to its object), it is
-  white there too, not the image's border repeated;
+  composited on white and resized;
 - a box given by the caller is used the same way;
-- any other image is resized so that its longer side is the model's size and padded to a square by replicating
-  its border, centred (the image-folder / CompCars loaders' ``fit_and_pad``).
+- any other image (or a cut-out read without its alpha box) is resized so that its longer side is the model's size
+  and padded to a square by replicating its border, centred (the image-folder / CompCars loaders' ``fit_and_pad``).
+
+Where the frame reaches beyond an image with transparent pixels (a cut-out trimmed to its object), it is white
+there, as its background is, not the image's border repeated.
 
 Images are read upright by their EXIF orientation, as image viewers show them (a phone photo stored sideways with
 orientation 6 reaches the model upright); a box given by the caller is in that displayed pixel grid.
@@ -39,6 +41,7 @@ from unicorn.data.images import (
     max_image_bytes,
     open_image,
     to_chw_tensor,
+    transparency_alpha,
 )
 from unicorn.errors import UserError
 
@@ -144,11 +147,13 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
         ImageLoadError: the image has no pixel more opaque than ``threshold``: nothing to reconstruct (framed whole,
             it would be a blank frame).
     """
-    with open_image(path, path) as img:
-        if not has_transparency(img):
-            return None
-        # oriented as load_image orients the image, so that the box is in its pixel grid
-        alpha = np.asarray(decoded(img, path).convert("RGBA"))[..., 3].astype(np.float32) / 255.0
+    return _opaque_box(_alpha(path), path, threshold)
+
+
+def _opaque_box(alpha: np.ndarray | None, path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | None:
+    """:func:`alpha_bbox` of an image's opacity (None: no transparency)."""
+    if alpha is None:
+        return None
     opaque = alpha > threshold
     if not opaque.any():
         raise ImageLoadError(path, f"it has no opaque pixel (none above {threshold:.0%} alpha): nothing to reconstruct")
@@ -156,6 +161,16 @@ def alpha_bbox(path: str | os.PathLike, threshold: float = 0.5) -> np.ndarray | 
         return None
     rows, cols = np.flatnonzero(opaque.any(axis=1)), np.flatnonzero(opaque.any(axis=0))
     return np.array([cols[0], rows[0], cols[-1], rows[-1]], dtype=np.float64)
+
+
+def _alpha(path: str | os.PathLike) -> np.ndarray | None:
+    """(H, W) opacity of an image with transparency in :func:`~unicorn.data.images.load_image`'s pixel grid, or
+    None."""
+    with open_image(path, path) as img:
+        if not has_transparency(img):
+            return None
+        # oriented as load_image orients the image, so that a box is in its pixel grid
+        return transparency_alpha(decoded(img, path))
 
 
 class BoxError(UserError, ValueError):
@@ -227,13 +242,13 @@ def _framed(
 ) -> tuple[np.ndarray, Rectangle]:
     """:func:`preprocess`'s image and the rectangle of ``image`` it shows (beyond the image's edges where it pads).
 
-    ``fill``: the value of the crop's pixels beyond the image's edges (None: its border pixels repeated, as the
-    training crops of photos are); the fit-and-pad framing (no ``bbox``) always repeats the border."""
+    ``fill``: the value of the framed pixels beyond the image's edges (None: its border pixels repeated, as the
+    training crops of photos are)."""
     if bbox is None:
         H, W = image.shape[:2]
         h, w, top, left = fit_layout(H, W, size)
         sx, sy = w / W, h / H  # the resized image's pixels per original pixel
-        return fit_and_pad(image, size).astype(np.float32), (-left / sx, -top / sy, size / sx, size / sy)
+        return fit_and_pad(image, size, fill).astype(np.float32), (-left / sx, -top / sy, size / sx, size / sy)
     box = pad_bbox(np.asarray(bbox, dtype=np.float64), check_padding(padding))
     side = float(max(box[2] - box[0], box[3] - box[1]) + 1)  # before the integers, which a huge box overflows
     shown = f"{side:.0f}" if side < 1e15 else f"{side:.3g}"
@@ -261,8 +276,8 @@ class RawInput:
         path: the file.
         image: (H, W, 3) float32 array in [0, 1] (transparent pixels composited on white).
         bbox: the object box (from the alpha channel or given), or None.
-        cutout: whether ``bbox`` is the alpha channel's: the crop around it is white beyond the image's edges (its
-            background), rather than the image's border repeated (a photo's).
+        cutout: whether the image has transparent pixels (a cut-out): its frame is white beyond the image's edges
+            (its background), rather than the image's border repeated (a photo's).
     """
 
     def __init__(self, path: Path, image: np.ndarray, bbox: np.ndarray | None, cutout: bool = False) -> None:
@@ -298,10 +313,10 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
     path = Path(path)
     image = load_image(path)
     box = None if bbox is None else check_box(bbox, image.shape[1], image.shape[0], str(path))
-    if box is not None or not use_alpha:
-        return RawInput(path, image, box)
-    box = alpha_bbox(path)
-    return RawInput(path, image, box, cutout=box is not None)
+    alpha = _alpha(path)
+    if box is None and use_alpha:
+        box = _opaque_box(alpha, path)
+    return RawInput(path, image, box, cutout=alpha is not None and bool((alpha < 1).any()))
 
 
 def frame_input(raw: RawInput, size: int, name: str | None = None, padding: float = DEFAULT_PADDING) -> InputImage:
