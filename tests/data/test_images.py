@@ -293,3 +293,63 @@ def test_damaged_exif_is_one_warning_naming_the_file(tmp_path: Path, monkeypatch
         warnings.simplefilter("always")
         load_image(path), load_image(other)
     assert [str(w.message).split(":")[0] for w in caught] == [str(other)]
+
+
+def test_a_heic_photo_is_listed_and_read_through_pillow_heif(tmp_path: Path) -> None:
+    pillow_heif = pytest.importorskip("pillow_heif")  # the heif extra (dev installs it)
+    import subprocess
+    import sys
+
+    rows, cols = np.mgrid[0:48, 0:64]
+    photo = np.stack([rows * 5, cols * 4, np.full_like(rows, 90)], axis=-1).astype(np.uint8)  # smooth: little loss
+    pillow_heif.from_pillow(Image.fromarray(photo)).save(tmp_path / "IMG_0001.HEIC", quality=95)
+    np.save(tmp_path / "photo.npy", photo)
+    code = (  # a new process: nothing has registered pillow-heif's opener with Pillow yet
+        "import numpy as np, pathlib\n"
+        "from unicorn.data.folder import list_images\n"
+        "from unicorn.data.images import load_image\n"
+        f"root = pathlib.Path({str(tmp_path)!r})\n"
+        "assert list_images(root) == [root / 'IMG_0001.HEIC'], list_images(root)\n"
+        "arr = load_image(root / 'IMG_0001.HEIC')\n"
+        "print(arr.shape, float(np.abs(arr - np.load(root / 'photo.npy') / 255).mean()))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    shape, error = proc.stdout.rsplit(")", 1)
+    assert shape == "(48, 64, 3" and float(error) < 0.02
+
+
+#: the first bytes of a HEIF and an AVIF file (an ISO base media file's ftyp box)
+_ISO_HEADERS = {"heic": b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic", "avif": b"\x00\x00\x00\x18ftypavif"}
+
+
+def test_without_pillow_heif_a_heic_photo_says_what_to_install(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    path = tmp_path / "IMG_0002.heic"
+    path.write_bytes(_ISO_HEADERS["heic"] + bytes(64))
+    code = (
+        "import sys; sys.modules['pillow_heif'] = None\n"  # as if not installed
+        "from unicorn.data.images import load_image\n"
+        f"load_image({str(path)!r})\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"unicorn.data.images.ImageLoadError: cannot read image {path}: it is a HEIF/HEIC image (a phone's photo "
+        "format), which needs pillow-heif: pip install pillow-heif (the heif extra), or convert it to JPEG"
+    )
+
+
+def test_an_avif_image_without_pillows_support_says_what_to_install(tmp_path: Path, monkeypatch) -> None:
+    from PIL import features
+
+    monkeypatch.setattr(features, "check", lambda feature: False)  # as Pillow before 11.3
+    path = tmp_path / "photo.avif"
+    path.write_bytes(_ISO_HEADERS["avif"] + bytes(64))
+    with pytest.raises(ImageLoadError, match=r"photo.avif: it is an AVIF image, which Pillow reads from 11.3 "):
+        load_image(path)
+    (tmp_path / "other.avif").write_bytes(b"\x00\x00\x00\x18ftypqt  " + bytes(64))  # another ISO file: Pillow's error
+    with pytest.raises(ImageLoadError, match=r"other.avif: UnidentifiedImageError: cannot identify image file"):
+        load_image(tmp_path / "other.avif")

@@ -32,7 +32,22 @@ __all__ = [
     "unannotated_item",
 ]
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp", ".tif", ".tiff", ".webp", ".gif")
+#: HEIF needs pillow-heif (the ``heif`` extra) and AVIF Pillow 11.3: without them their files fail to read, one line
+#: each saying what to install, rather than going unnoticed
+IMAGE_EXTENSIONS = (
+    ".jpg",
+    ".jpeg",
+    ".png",
+    ".ppm",
+    ".bmp",
+    ".tif",
+    ".tiff",
+    ".webp",
+    ".gif",
+    ".heic",
+    ".heif",
+    ".avif",
+)
 
 _COMPCARS_HINT = (
     "CompCars comes as GIRAFFE's comprehensive_cars.zip (github.com/autonomousvision/giraffe, "

@@ -13,6 +13,9 @@ unknown format) is an :class:`ImageLoadError` naming the file, and so are
   ``--max-image-pixels`` / ``--max-image-bytes``;
 - an image whose pixels decode to NaN or infinite values (a float TIFF).
 
+HEIF / HEIC images (phones' photos) are read through pillow-heif where it is installed (the ``heif`` extra,
+:func:`heif_support`); without it, such an image's error says how to read it. AVIF images need Pillow 11.3 or later.
+
 EXIF orientation is applied (as ``PIL.ImageOps.exif_transpose``: a phone photo stored sideways with orientation 6
 is returned upright) unless the loader is asked for the stored pixels (``exif_orientation=False``), which
 datasets whose annotations refer to the stored pixel grid need (:mod:`unicorn.data.annotated`).
@@ -21,6 +24,7 @@ datasets whose annotations refer to the stored pixel grid need (:mod:`unicorn.da
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import os
 import threading
@@ -30,8 +34,9 @@ from pathlib import Path
 from typing import IO
 
 import numpy as np
+import PIL
 import torch
-from PIL import ExifTags, Image, ImageOps
+from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError, features
 
 from unicorn.checks import check_limit, env_limit
 from unicorn.errors import UnicornWarning, UserError
@@ -51,6 +56,7 @@ __all__ = [
     "decode_image",
     "decoded",
     "has_transparency",
+    "heif_support",
     "load_image",
     "load_mask",
     "max_image_bytes",
@@ -139,6 +145,48 @@ _PIL_LOCK = threading.Lock()
 _DAMAGED_WARNED: set[str] = set()  # the files an ImageMetadataWarning has named
 
 
+#: the brands of an ISO base media file (its bytes 8-12, after ``ftyp``) that hold HEIF stills, and AVIF's
+_HEIF_BRANDS = (b"heic", b"heix", b"heim", b"heis", b"hevc", b"hevx", b"mif1", b"msf1")
+_AVIF_BRANDS = (b"avif", b"avis")
+
+
+@functools.cache
+def heif_support() -> bool:
+    """Whether HEIF / HEIC images can be read: pillow-heif is installed (the ``heif`` extra); the first call registers
+    its opener with Pillow."""
+    try:
+        from pillow_heif import register_heif_opener
+    except ImportError:
+        return False
+    register_heif_opener()
+    return True
+
+
+def _unreadable_format(source: str | os.PathLike | IO[bytes]) -> str | None:
+    """What to do with an image Pillow could not identify whose format needs more than Pillow has, or None."""
+    try:
+        if isinstance(source, (str, os.PathLike)):
+            with open(source, "rb") as f:
+                head = f.read(12)
+        else:
+            start = source.tell()
+            head = source.read(12)
+            source.seek(start)
+    except (OSError, ValueError):
+        return None
+    if head[4:8] != b"ftyp":
+        return None
+    if head[8:12] in _HEIF_BRANDS and not heif_support():
+        return (
+            "it is a HEIF/HEIC image (a phone's photo format), which needs pillow-heif: "
+            "pip install pillow-heif (the heif extra), or convert it to JPEG"
+        )
+    if head[8:12] in _AVIF_BRANDS and not features.check("avif"):
+        installed = PIL.__version__
+        return f"it is an AVIF image, which Pillow reads from 11.3 (installed: {installed}): pip install -U pillow"
+    return None
+
+
 class ImageLimitError(UserError, ValueError):
     """An invalid image pixel or byte limit."""
 
@@ -221,6 +269,7 @@ def open_image(
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
             try:
+                heif_support()  # registers the HEIF opener where pillow-heif is installed
                 img = Image.open(source)  # reads the header only
             finally:
                 Image.MAX_IMAGE_PIXELS = saved
@@ -246,7 +295,8 @@ def open_image(
     except ImageLoadError:
         raise
     except Exception as err:  # PIL raises many kinds on bad files (OSError, SyntaxError, struct.error, ...)
-        raise ImageLoadError(name, f"{type(err).__name__}: {' '.join(str(err).split())}") from err
+        unreadable = _unreadable_format(source) if isinstance(err, UnidentifiedImageError) else None
+        raise ImageLoadError(name, unreadable or f"{type(err).__name__}: {' '.join(str(err).split())}") from err
 
 
 def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = True) -> Image.Image:
