@@ -159,3 +159,19 @@ def test_rasterizer_keeps_the_needed_sizes_on_the_meshes_device(monkeypatch):
         rasterizer(verts, faces, R, T, check_inputs=False)  # into them
     (needed,) = rasterizer._needed.values()
     assert needed.device == verts.device
+
+
+def test_a_render_under_inference_mode_leaves_the_buffers_usable_for_training():
+    """Lightning validates under ``torch.inference_mode``: a render there (a batch size training has not seen) must
+    not leave the rasterizer a size tensor that the next steps without host reads, or the read of their sizes, update
+    in place outside it (PyTorch refuses in-place updates of inference tensors)."""
+    verts, faces, R, T = posed_ellipsoids(2, level=2)
+    renderer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4)
+    colors = TexturesVertex(torch.ones(2, verts.shape[1], 3))
+    with torch.inference_mode(), OverflowCounter():
+        expected = renderer(verts, faces, colors, R=R, T=T)  # sizes the buffers of (2, 16, 16)
+    assert renderer.rasterizer.grow_buffers() == []  # the read of the sizes, outside inference mode
+    with sync_free(), OverflowCounter():  # into the buffers: folds what it needed into the same tensor
+        image = renderer(verts, faces, colors, R=R, T=T)
+    assert renderer.rasterizer.grow_buffers() == []
+    torch.testing.assert_close(image, expected)

@@ -464,3 +464,33 @@ def test_render_size_bound():
     with pytest.raises(ValueError, match=r"faces_per_pixel=25 may need 1\.17 GiB"):
         check_render_size(192, (64, 64), 25, max_bytes=192 * 64 * 64 * 25 * 64 - 1)
     check_render_size(10**6, (10**4, 10**4), 50, max_bytes=0)  # 0: no limit
+
+
+@pytest.mark.parametrize(
+    ("supersample", "blend", "args"),
+    [
+        (2, "HardBlend", (1,)),
+        (1, "HardBlend", (2,)),
+        (3, "HardBlend", (2,)),
+        (2, "LayeredBlend", ()),
+        (2, "SoftRasBlend", ()),
+    ],
+)
+def test_a_blend_that_does_not_take_the_rasterizers_supersampling_is_refused_when_built(supersample, blend, args):
+    import unicorn.render
+    from unicorn.render import MeshRenderer, RenderError
+
+    made = getattr(unicorn.render, blend)(*args)
+    message = rf"^the rasterizer supersamples {supersample} times but the blend {blend} averages"
+    with pytest.raises(RenderError, match=message):
+        MeshRenderer(MeshRasterizer(8, supersample=supersample), made)
+
+
+def test_a_hand_made_supersampled_hard_renderer_renders_as_the_hard_backend():
+    from unicorn.render import HardBlend, MeshRenderer
+
+    verts, faces, R, T, _ = template_scene()
+    made = MeshRenderer(MeshRasterizer(12, truncate_opaque=True, supersample=3), HardBlend(3))
+    expected = build_renderer("hard", image_size=12, supersample=3)
+    textures = _tex(2, verts.shape[1])
+    torch.testing.assert_close(made(verts, faces, textures, R=R, T=T), expected(verts, faces, textures, R=R, T=T))

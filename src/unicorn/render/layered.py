@@ -86,6 +86,9 @@ def layered_blend(colors: torch.Tensor, fragments: Fragments, bg_table: torch.Te
 class LayeredBlend(nn.Module):
     """Module form of :func:`layered_blend` holding ``sigma``."""
 
+    #: the rasterizer's supersampling it takes: fragments at the image size (:class:`~unicorn.render.MeshRenderer`)
+    supersample = 1
+
     def __init__(self, sigma: float = 1e-4) -> None:
         super().__init__()
         check_sigma(sigma)

@@ -136,7 +136,9 @@ class MeshRasterizer(nn.Module):
             # an entry from the start, kept from then on: a compiled step's graph guards on the keys present
             # on the meshes' device (these sizes are on the host): the fixed renders fold theirs in there
             if key not in self._needed:
-                self._needed[key] = torch.zeros(2, dtype=torch.long, device=verts.device)
+                # a normal tensor even when first made under inference_mode (validation): updated in place outside
+                with torch.inference_mode(False):
+                    self._needed[key] = torch.zeros(2, dtype=torch.long, device=verts.device)
         elif fragments.sizes is not None:
             before = self._needed.get(key)
             if before is None:

@@ -21,7 +21,7 @@ from ..geometry.cameras import PerspectiveCamera
 from .compositing import background_pixels
 from .fragments import Fragments
 from .precision import float32_boundary
-from .raster import check_mesh_inputs, check_pose_inputs
+from .raster import RenderError, check_mesh_inputs, check_pose_inputs
 from .rasterizer import MeshRasterizer
 from .settings import BACKGROUND_COLOR, check_render_option
 from .textures import Textures
@@ -55,13 +55,31 @@ class RenderOutput:
         return self.fragments.first_layer()[1].unsqueeze(1)
 
 
+def _check_supersampling(rasterizer: nn.Module, blend: nn.Module) -> None:
+    """Refuse an aggregator whose ``supersample`` (the supersampling it averages; the built-in ones declare it) is
+    not the rasterizer's: it would fail at the first render on a background of another size than the fragments',
+    in an error naming neither."""
+    averages = getattr(blend, "supersample", None)
+    if averages is None:  # an aggregator that does not say: its own business
+        return
+    supersample = getattr(rasterizer, "supersample", 1)
+    if supersample != averages:
+        raise RenderError(
+            f"the rasterizer supersamples {supersample} times but the blend {type(blend).__name__} averages "
+            f"supersample={averages}: give HardBlend(supersample={supersample}) (LayeredBlend and SoftRasBlend take "
+            "fragments at the image size, supersample=1)"
+        )
+
+
 class MeshRenderer(nn.Module):
     """Rasterize, colour the fragments from the textures, aggregate them over the background.
 
     Args:
         rasterizer: makes the fragments at its ``raster_size``; its ``image_size`` is the output size.
         blend: the aggregator, called as ``blend(colors (M, C), fragments, bg_table (B * H * W, C))`` and
-            returning images (B, C + 1, H, W).
+            returning images (B, C + 1, H, W). One that declares ``supersample`` (the built-in ones) must take the
+            rasterizer's (``HardBlend(s)`` for ``supersample = s``; LayeredBlend and SoftRasBlend 1), else
+            RenderError.
         background_color: colour (C,) behind the mesh when no background image is given.
     """
 
@@ -80,6 +98,7 @@ class MeshRenderer(nn.Module):
             if not isinstance(part, nn.Module):  # a module of its own, moved and saved with the renderer
                 raise TypeError(f"{name} must be an nn.Module (a {name} of unicorn.render), got {type(part).__name__}")
         check_render_option("background_color", background_color)
+        _check_supersampling(rasterizer, blend)
         self.rasterizer = rasterizer
         self.blend = blend
         self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32))

@@ -82,6 +82,9 @@ def softras_blend(
 class SoftRasBlend(nn.Module):
     """Module form of :func:`softras_blend` holding its hyperparameters (see there)."""
 
+    #: the rasterizer's supersampling it takes: fragments at the image size (:class:`~unicorn.render.MeshRenderer`)
+    supersample = 1
+
     def __init__(
         self,
         sigma: float = 1e-4,
