@@ -494,3 +494,17 @@ def test_a_hand_made_supersampled_hard_renderer_renders_as_the_hard_backend():
     expected = build_renderer("hard", image_size=12, supersample=3)
     textures = _tex(2, verts.shape[1])
     torch.testing.assert_close(made(verts, faces, textures, R=R, T=T), expected(verts, faces, textures, R=R, T=T))
+
+
+@pytest.mark.parametrize("name", list_renderers())
+def test_textures_of_other_than_three_channels_take_a_background_color_of_as_many(name):
+    verts, faces, R, T, _ = template_scene(batch=1)
+    grey = TexturesVertex(torch.full((1, verts.shape[1], 1), 0.25))
+    message = "background_color has 3 channels, textures 1: give the renderer 1 background_color values"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        build_renderer(name, image_size=16)(verts, faces, grey, R=R, T=T)
+    out = build_renderer(name, image_size=16, background_color=(0.75,))(verts, faces, grey, R=R, T=T)
+    assert out.shape == (1, 2, 16, 16)
+    grey_out, alpha = out[:, 0], out[:, 1]
+    assert torch.allclose(grey_out[alpha == 0], torch.tensor(0.75))  # the background
+    assert torch.allclose(grey_out[alpha == 1], torch.tensor(0.25))  # the mesh

@@ -43,7 +43,10 @@ def background_pixels(
     H, W = image_size
     if background is None:
         if color.numel() != num_channels:
-            raise RenderError(f"background_color has {color.numel()} channels, textures {num_channels}")
+            raise RenderError(
+                f"background_color has {color.numel()} channels, textures {num_channels}: give the renderer "
+                f"{num_channels} background_color values, or a background image"
+            )
         return color.to(like).expand(batch_size * H * W, num_channels)
     check_shape(background, "B, C, H, W", "background", {"B": batch_size, "C": num_channels, "H": H, "W": W})
     return background.to(like).permute(0, 2, 3, 1).reshape(-1, num_channels)
