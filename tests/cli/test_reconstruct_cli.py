@@ -10,6 +10,7 @@ import sys
 from importlib.metadata import entry_points
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import trimesh
@@ -469,3 +470,75 @@ def test_an_out_below_a_file_is_refused_before_the_model_is_read(tmp_path, check
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"output folder {tmp_path / 'afile' / 'sub'}: {tmp_path / 'afile'} is a file" in err
     assert (tmp_path / "afile").read_text() == "mine"
+
+
+def _smooth_picture(height: int, width: int) -> np.ndarray:
+    """(H, W, 3) uint8: red grows to the right, green downwards, a blue disc left of centre (a picture whose every
+    shift or stretch shows)."""
+    rows, cols = np.mgrid[0:height, 0:width] + 0.5
+    disc = (cols - 0.3 * width) ** 2 + (rows - 0.6 * height) ** 2 < (0.25 * min(height, width)) ** 2
+    return (np.stack([cols / width, rows / height, 0.8 * disc], axis=-1) * 255).round().astype(np.uint8)
+
+
+@pytest.mark.parametrize(
+    ("name", "extra"),
+    [("photo.png", []), ("cutout.png", []), ("photo.png", ["--bbox", "40,-5,75,30"])],
+    ids=["landscape-photo", "alpha-cutout", "box-beyond-the-edges"],
+)
+def test_mesh_projected_with_pose_json_lands_on_the_mask_placed_on_the_photo(
+    tmp_path: Path, varied_checkpoint: Path, name: str, extra: list[str]
+) -> None:
+    """docs/reconstruct.md's recipe, computed here apart from the library: ``frame`` is the rectangle of the photo
+    that input.png shows (the photo averaged over each of input.png's pixels there gives input.png), and
+    mesh.obj's vertices through R, T and the focal length to NDC, then through ``frame`` to the photo, fill there
+    (PIL polygons) the pixels that mask.png covers once placed on the photo through the same ``frame``."""
+    from PIL import ImageDraw
+
+    photos = {"photo.png": _smooth_picture(40, 70)}  # landscape, fitted and padded to a square
+    cutout = np.zeros((60, 90, 4), dtype=np.uint8)  # object touching the top edge: its padded crop reaches beyond
+    cutout[1:30, 50:89, :3], cutout[1:30, 50:89, 3] = _smooth_picture(29, 39), 255
+    photos["cutout.png"] = np.where(cutout[..., 3:] > 0, cutout[..., :3], 255).astype(np.uint8)  # on white
+    Image.fromarray(photos["photo.png"]).save(tmp_path / "photo.png")
+    Image.fromarray(cutout, "RGBA").save(tmp_path / "cutout.png")
+    out = tmp_path / "out"
+    args = ["--view-size", "64", "--turntable-frames", "0", "--strip-views", "1", "--quiet", "--device", "cpu"]
+    assert main([str(varied_checkpoint), str(tmp_path / name), "--out", str(out), *args, *extra]) == 0
+    folder = out / Path(name).stem
+    pose = json.loads((folder / "pose.json").read_text())
+    x, y, width, height = (pose["frame"][k] for k in ("x", "y", "width", "height"))
+    if extra or name == "cutout.png":  # the frame reaches beyond the photo's top
+        assert y < 0
+
+    # input.png: the photo's frame, each pixel the mean of 8 x 8 samples of the photo over it (its border beyond it)
+    photo = photos[name].astype(np.float64) / 255
+    seen = np.asarray(Image.open(folder / "input.png").convert("RGB"), dtype=np.float64) / 255
+    side = seen.shape[0]
+    offsets = (np.arange(8) + 0.5) / 8
+    cols = x + (np.arange(side)[:, None] + offsets[None]).reshape(-1) / side * width
+    rows = y + (np.arange(side)[:, None] + offsets[None]).reshape(-1) / side * height
+    cols = np.clip(np.floor(cols).astype(int), 0, photo.shape[1] - 1)
+    rows = np.clip(np.floor(rows).astype(int), 0, photo.shape[0] - 1)
+    averaged = photo[rows][:, cols].reshape(side, 8, side, 8, 3).mean(axis=(1, 3))
+    assert np.abs(averaged - seen).mean() < 0.006
+
+    # mask.png against the mesh projected as the docs say
+    lines = (folder / "mesh.obj").read_text().splitlines()
+    verts = np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("v ")])
+    faces = [[int(c.split("/")[0]) - 1 for c in line.split()[1:]] for line in lines if line.startswith("f ")]
+    view = verts @ np.array(pose["R"]) + np.array(pose["T"])
+    ndc = pose["camera"]["focal_length_ndc"] * view[:, :2] / view[:, 2:]
+    on_photo = np.stack([x + (1 - ndc[:, 0]) / 2 * width, y + (1 - ndc[:, 1]) / 2 * height], axis=1)
+    # filled on a grid 4 times finer than mask.png over the frame, in photo pixels
+    fine = 4 * 64
+    canvas = Image.new("L", (fine, fine))
+    draw = ImageDraw.Draw(canvas)
+    scale = np.array([fine / width, fine / height])
+    for face in faces:
+        draw.polygon([tuple(((on_photo[k] - (x, y)) * scale).tolist()) for k in face], fill=255)
+    filled = np.asarray(canvas) > 127
+    shown = (np.asarray(Image.open(folder / "mask.png").convert("L")) > 127).repeat(4, 0).repeat(4, 1)
+    assert shown.sum() > 16 * 100  # the object is in view
+    assert (filled & shown).sum() / (filled | shown).sum() > 0.95
+    # the two silhouettes' centres agree to a tenth of one of mask.png's pixels
+    grid = np.stack(np.mgrid[0:fine, 0:fine], axis=-1)
+    assert np.linalg.norm(grid[filled].mean(0) - grid[shown].mean(0)) / 4 < 0.1

@@ -104,3 +104,25 @@ def test_a_second_reconstruction_into_the_same_folder_changes_nothing_unless_ask
     assert {p: p.read_bytes() for p in sorted((tmp_path / "out").rglob("*")) if p.is_file()} == before
     reconstruct(real_model, other, tmp_path / "out", overwrite=True, **options)
     assert (tmp_path / "out" / "car" / "input.png").read_bytes() != before[tmp_path / "out" / "car" / "input.png"]
+
+
+@pytest.mark.parametrize(
+    ("names", "message"),
+    [
+        (["x", "X"], r"both named 'X' \(without regard to case\)"),
+        (["index.html"], r"'index.html' .* is one of the output folder's own files"),
+        (["../escape"], r"'../escape' .* is not a folder name"),
+    ],
+)
+def test_names_that_cannot_each_be_a_folder_are_refused_before_anything_is_written(
+    real_model, tmp_path, names, message
+) -> None:
+    """Two images of one name would share a folder (the second's meshes refused half-way, or with overwrite one
+    folder for both); a reserved name is a file of the output folder; a path writes outside it."""
+    image = torch.rand(3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0))
+    items = [InputImage(tmp_path / f"{i}.png", name, image, cropped=False) for i, name in enumerate(names)]
+    options = {"view_size": 32, "turntable_frames": 0, "strip_views": 1, "progress": False, "provenance": {}}
+    for overwrite in (False, True):
+        with pytest.raises(ValueError, match=message):
+            reconstruct(real_model, items, tmp_path / "sub" / "out", overwrite=overwrite, **options)
+        assert not (tmp_path / "sub").exists()

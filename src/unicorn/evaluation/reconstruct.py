@@ -245,7 +245,8 @@ def reconstruct(
 
     Args:
         model: the model.
-        items: framed inputs (:func:`unicorn.io.load_input`), each (3, S, S) with S the model's size.
+        items: framed inputs (:func:`unicorn.io.load_input`), each (3, S, S) with S the model's size; each
+            ``name`` is its folder's, so names must differ (also without regard to case; :func:`unique_names`).
         out_dir: output folder (one sub-folder per image).
         device: where to run.
         batch_size: images per forward pass.
@@ -264,8 +265,14 @@ def reconstruct(
     Returns:
         one record per image (name, source, folder within ``out_dir``, written files, pose angles, and with
         refinement the objective before and after it); also written to ``<out>/reconstructions.json``.
+
+    Raises:
+        ValueError: two images of the same name, or a name that is not one folder name or is one of the output
+            folder's own files (before anything is written).
+        OutputConflictError: ``out_dir`` holds an earlier call's outputs and ``overwrite`` is False.
     """
     out = Path(out_dir)
+    _check_names(items)
     _check_free(out, items, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     if provenance is None:
@@ -316,6 +323,34 @@ def reconstruct(
 
 #: what :func:`reconstruct` writes beside the images' folders
 _OVERVIEW_FILES = ("overview.png", "index.html", RECONSTRUCTIONS_RECORD)
+
+
+def _check_names(items: Sequence[InputImage]) -> None:
+    """Refuse image names that cannot each be a folder of their own in the output folder: a path rather than one
+    name, one of :data:`RESERVED_NAMES`, or a name that two images share (without regard to case, as
+    :func:`unique_names` compares them).
+
+    Raises:
+        ValueError: names the first such name.
+    """
+    seen: dict[str, InputImage] = {}
+    reserved = {n.casefold() for n in RESERVED_NAMES}
+    for item in items:
+        name = item.name
+        if not name or name in (".", "..") or Path(name).name != name or "/" in name or "\\" in name:
+            raise ValueError(f"image name {name!r} ({item.path}) is not a folder name: give each image a plain name")
+        key = unicodedata.normalize("NFC", name).casefold()
+        if key in reserved:
+            raise ValueError(
+                f"image name {name!r} ({item.path}) is one of the output folder's own files "
+                f"({', '.join(RESERVED_NAMES)}); unique_names gives names clear of them"
+            )
+        if key in seen:
+            raise ValueError(
+                f"images {seen[key].path} and {item.path} are both named {name!r} (without regard to case): each needs "
+                "a folder of its own; unique_names gives distinct names"
+            )
+        seen[key] = item
 
 
 def _check_free(out: Path, items: Sequence[InputImage], overwrite: bool) -> None:
