@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.support.datasets import bomb_png, keyed_png16, save_with_orientation
+from tests.support.datasets import bomb_png, keyed_png16, save_with_orientation, swapped_rg_profile
 from unicorn.data.images import (
     DEFAULT_MAX_IMAGE_BYTES,
     DEFAULT_MAX_IMAGE_PIXELS,
@@ -353,3 +353,33 @@ def test_an_avif_image_without_pillows_support_says_what_to_install(tmp_path: Pa
     (tmp_path / "other.avif").write_bytes(b"\x00\x00\x00\x18ftypqt  " + bytes(64))  # another ISO file: Pillow's error
     with pytest.raises(ImageLoadError, match=r"other.avif: UnidentifiedImageError: cannot identify image file"):
         load_image(tmp_path / "other.avif")
+
+
+def test_colours_in_another_colour_profile_are_read_in_srgb(tmp_path: Path, monkeypatch) -> None:
+    """An embedded ICC profile's colours (a phone's Display P3, Adobe RGB) are converted to sRGB, as viewers show
+    them; an sRGB profile's are read as stored; a profile that cannot be used is one warning naming the file."""
+    import warnings
+
+    from PIL import ImageCms
+
+    from unicorn.data import images
+
+    rng = np.random.default_rng(0)
+    stored = rng.integers(0, 256, (6, 8, 4), dtype=np.uint8)
+    stored[..., 3] = 255
+    stored[4:, :, 3] = 0  # transparent rows
+    Image.fromarray(stored, "RGBA").save(tmp_path / "swapped.png", icc_profile=swapped_rg_profile())
+    arr = load_image(tmp_path / "swapped.png")
+    np.testing.assert_array_equal(arr[:4] * 255, stored[:4, :, [1, 0, 2]])  # red and green swapped, exactly
+    np.testing.assert_array_equal(arr[4:], 1.0)  # the alpha kept: composited on white
+    srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+    Image.fromarray(stored[..., :3]).save(tmp_path / "srgb.png", icc_profile=srgb)
+    np.testing.assert_array_equal(load_image(tmp_path / "srgb.png") * 255, stored[..., :3])
+    Image.fromarray(stored[..., :3]).save(tmp_path / "damaged.png", icc_profile=b"not a colour profile")
+    monkeypatch.setattr(images, "_DAMAGED_WARNED", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(2):
+            np.testing.assert_array_equal(load_image(tmp_path / "damaged.png") * 255, stored[..., :3])
+    assert [(w.category, w.filename) for w in caught] == [(images.ImageMetadataWarning, __file__)]
+    assert str(caught[0].message).startswith(f"{tmp_path / 'damaged.png'}: its colour profile cannot be used (")

@@ -140,3 +140,18 @@ def save_with_orientation(img: Image.Image, path: Path, orientation: int) -> Pat
     path.parent.mkdir(parents=True, exist_ok=True)
     img.save(path, exif=exif)
     return path
+
+
+def swapped_rg_profile() -> bytes:
+    """An ICC profile whose red and green primaries are sRGB's green and red (sRGB's otherwise): its colour (r, g, b)
+    is sRGB's (g, r, b), so that a conversion to sRGB swaps two channels exactly."""
+    from PIL import ImageCms
+
+    icc = bytearray(ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes())
+    count = int.from_bytes(icc[128:132], "big")  # the tag table: (signature, offset, size), 12 bytes a tag
+    entries = {bytes(icc[132 + 12 * i : 136 + 12 * i]): 132 + 12 * i for i in range(count)}
+    red, green = entries[b"rXYZ"], entries[b"gXYZ"]
+    icc[red + 4 : red + 12], icc[green + 4 : green + 12] = icc[green + 4 : green + 12], icc[red + 4 : red + 12]
+    icc[84:100] = bytes(16)  # no profile ID (an MD5 of the rest)
+    # named apart from sRGB (the loaders read a profile named sRGB as stored), in as many UTF-16 characters
+    return bytes(icc).replace("sRGB built-in".encode("utf-16-be"), "GRB swapped!!".encode("utf-16-be"))

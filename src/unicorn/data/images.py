@@ -13,6 +13,10 @@ unknown format) is an :class:`ImageLoadError` naming the file, and so are
   ``--max-image-pixels`` / ``--max-image-bytes``;
 - an image whose pixels decode to NaN or infinite values (a float TIFF).
 
+RGB images are read in sRGB: colours an embedded ICC profile puts in another space (a phone's Display P3, Adobe
+RGB) are converted, as image viewers show them (a profile that cannot be used: one :class:`ImageMetadataWarning`,
+the colours as stored).
+
 HEIF / HEIC images (phones' photos) are read through pillow-heif where it is installed (the ``heif`` extra,
 :func:`heif_support`); without it, such an image's error says how to read it. AVIF images need Pillow 11.3 or later.
 
@@ -36,7 +40,7 @@ from typing import IO
 import numpy as np
 import PIL
 import torch
-from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError, features
+from PIL import ExifTags, Image, ImageCms, ImageOps, UnidentifiedImageError, features
 
 from unicorn.checks import check_limit, env_limit
 from unicorn.errors import UnicornWarning, UserError
@@ -83,9 +87,9 @@ class ImageLoadError(UserError, RuntimeError):
 
 
 class ImageMetadataWarning(UnicornWarning):
-    """An image's metadata (EXIF) is damaged: its pixels are read, turned by what could be read of its orientation.
-    One line naming the file, once per file and process, in place of the decoder's warnings (which name no file and
-    come again at every read)."""
+    """An image's metadata is damaged: its pixels are read, turned by what could be read of its EXIF orientation, or
+    with their colours as stored where its colour profile cannot be used. One line naming the file, once per file and
+    process (in place of the decoder's warnings, which name no file and come again at every read)."""
 
 
 class DatasetError(UserError, ValueError):
@@ -142,6 +146,7 @@ FLOAT_SLACK = 1e-3
 #: 255, which Pillow rescales to 0-65535
 _SIXTEEN_BIT_FORMATS = ("PNG", "PPM")
 _PIL_LOCK = threading.Lock()
+_SRGB_PROFILE = ImageCms.createProfile("sRGB")
 _DAMAGED_WARNED: set[str] = set()  # the files an ImageMetadataWarning has named
 
 
@@ -331,24 +336,58 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
 def _report_damaged_metadata(name: str | os.PathLike, caught: list[warnings.WarningMessage], stacklevel: int) -> None:
     """One :class:`ImageMetadataWarning` naming ``name`` for the decoder's warnings ``caught`` reading it (none if
     nothing was caught or the file was named before)."""
-    if not caught or str(name) in _DAMAGED_WARNED:
+    if caught:
+        first = " ".join(str(caught[0].message).split())
+        message = f"damaged metadata ({first}); the pixels are read, turned by the orientation that could be read"
+        _warn_once(name, message, stacklevel)
+
+
+def _warn_once(name: str | os.PathLike, message: str, stacklevel: int) -> None:
+    """One :class:`ImageMetadataWarning` ``"<name>: <message>"``, unless the file was named before."""
+    if str(name) in _DAMAGED_WARNED:
         return
     _DAMAGED_WARNED.add(str(name))
-    first = " ".join(str(caught[0].message).split())
-    warnings.warn(
-        f"{name}: damaged metadata ({first}); the pixels are read, turned by the orientation that could be read",
-        ImageMetadataWarning,
-        stacklevel=stacklevel,
-    )
+    warnings.warn(f"{name}: {message}", ImageMetadataWarning, stacklevel=stacklevel + 1)
+
+
+#: the modes whose colours an embedded ICC profile converts to sRGB
+_MANAGED_MODES = ("RGB", "RGBA")
+
+
+@functools.lru_cache(maxsize=32)
+def _srgb_transform(icc: bytes, mode: str) -> ImageCms.ImageCmsTransform | None:
+    """The transform from an ICC profile's colours to sRGB for images of ``mode``; None for an sRGB profile (read as
+    stored: most photos', and the conversion costs about as much as decoding a JPEG)."""
+    source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+    if "srgb" in ImageCms.getProfileDescription(source).lower():
+        return None
+    return ImageCms.buildTransform(source, _SRGB_PROFILE, mode, mode)
+
+
+def _in_srgb(img: Image.Image, name: str | os.PathLike) -> Image.Image:
+    """The image with its colours in sRGB where its embedded ICC profile puts them in another space (a phone's
+    Display P3, Adobe RGB), as image viewers show them; as stored without a profile, with an sRGB one,
+    or with one that cannot be used (an :class:`ImageMetadataWarning`)."""
+    icc = img.info.get("icc_profile")
+    if not icc or img.mode not in _MANAGED_MODES:
+        return img
+    try:
+        transform = _srgb_transform(bytes(icc), img.mode)
+    except (OSError, ValueError, ImageCms.PyCMSError) as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        _warn_once(name, f"its colour profile cannot be used ({reason}); its colours are read as stored", 4)
+        return img
+    return img if transform is None else ImageCms.applyTransform(img, transform)
 
 
 def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
-    """Any PIL mode to an (H, W, 3) float32 RGB array in [0, 1].
+    """Any PIL mode to an (H, W, 3) float32 RGB array in [0, 1], in sRGB (:func:`_in_srgb`).
 
     Raises:
         ImageLoadError: a float image (mode ``F``) with values outside [0, 1], whose scale cannot be told (0-255,
             0-65535, physical units).
     """
+    img = _in_srgb(img, name)
     if img.mode in _WIDE_GREY_MODES:
         # 16-bit (or 32-bit int) grayscale: PIL's convert('L') clips instead of rescaling
         arr = np.asarray(img, dtype=np.float64)
@@ -406,7 +445,8 @@ def transparency_alpha(img: Image.Image) -> np.ndarray | None:
 def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
     """Read an image file as RGB, upright by its EXIF orientation unless ``exif_orientation`` is False.
 
-    Grayscale, palette, RGBA (composited on white), CMYK and 16-bit images are converted.
+    Grayscale, palette, RGBA (composited on white), CMYK and 16-bit images are converted; RGB colours in another
+    space than sRGB by their embedded ICC profile (a phone's Display P3, Adobe RGB) are converted to sRGB.
 
     Args:
         path: image file.
