@@ -30,6 +30,11 @@ def test_collect_inputs(tmp_path: Path) -> None:
         collect_inputs([tmp_path / "empty"])
     with pytest.raises(FileNotFoundError, match="input not found"):
         collect_inputs([tmp_path / "nope.png"])
+    # a file reached twice is read once: under its own name where another is a link to it (sorted first here)
+    (tmp_path / "in" / "a_link.png").symlink_to(files["photo"])
+    assert collect_inputs([tmp_path / "in"]) == sorted(files.values())
+    assert collect_inputs([tmp_path / "in" / "a_link.png", files["photo"]]) == [files["photo"]]
+    assert collect_inputs([files["photo"], files["photo"]]) == [files["photo"]]
     os.mkfifo(tmp_path / "pipe.png")  # exists, but reading it would wait for a writer
     with pytest.raises(UserError, match=r"pipe\.png is not an image file or a folder \(a device, a pipe"):
         collect_inputs([tmp_path / "pipe.png"])

@@ -78,8 +78,10 @@ class InputNotAFileError(UserError, OSError):
 def collect_inputs(
     inputs: str | os.PathLike | Sequence[str | os.PathLike], leave_out: str | os.PathLike | None = None
 ) -> list[Path]:
-    """Image files named on the command line: files as given (each once), folders searched recursively (sorted;
-    :func:`~unicorn.data.folder.list_images`). One path on its own is one input.
+    """Image files named on the command line: files as given, folders searched recursively (sorted;
+    :func:`~unicorn.data.folder.list_images`). One path on its own is one input. A file reached twice (named twice,
+    or also through a link to it) is read once, under the name it was first reached by, or its own name where
+    another was a link to it (a folder holding ``car.png`` and ``link.png -> car.png`` gives ``car.png``).
 
     A folder search leaves out ``leave_out`` (the command's output folder) and the output folders of
     ``unicorn-reconstruct`` and ``unicorn-eval`` (:func:`~unicorn.data.folder.is_output_folder`), so that outputs
@@ -120,8 +122,12 @@ def collect_inputs(
             raise FileNotFoundError(f"input not found: {path}")
     if not files:
         raise FileNotFoundError("no input images given")
-    unique = {os.path.realpath(f): f for f in reversed(files)}  # a file named twice is read once, where first named
-    return [f for f in files if unique[os.path.realpath(f)] is f]
+    kept: dict[str, Path] = {}  # a file reached twice is read once: as first named, or by its own name over a link's
+    for f in files:
+        real = os.path.realpath(f)
+        if real not in kept or (kept[real].is_symlink() and not f.is_symlink()):
+            kept[real] = f
+    return [f for f in files if kept[os.path.realpath(f)] is f]
 
 
 def _in_output(folder: Path, searched: Path, leave_out: str | os.PathLike | None, known: dict[Path, bool]) -> bool:
