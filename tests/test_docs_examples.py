@@ -81,6 +81,13 @@ def test_the_python_examples_of_a_page_run_as_written(page: str, tmp_path: Path,
         pose = json.loads((tmp_path / "reconstructions" / "car" / "pose.json").read_text())
         assert torch.allclose(namespace["R"], torch.tensor(pose["R"]), atol=1e-5)
         assert torch.allclose(namespace["T"], torch.tensor(pose["T"]), atol=1e-5)
+        # the OpenCV pixels: where R, T and the focal length put the vertices, through the frame (pixel centres at 0)
+        view = torch.tensor(namespace["vertices"]) @ torch.tensor(pose["R"]).double() + torch.tensor(pose["T"]).double()
+        ndc = pose["camera"]["focal_length_ndc"] * view[:, :2] / view[:, 2:]
+        frame = pose["frame"]
+        u = frame["x"] + (1 - ndc[:, 0]) / 2 * frame["width"] - 0.5
+        v = frame["y"] + (1 - ndc[:, 1]) / 2 * frame["height"] - 0.5
+        assert torch.allclose(torch.tensor(namespace["uv"]), torch.stack([u, v], dim=-1), atol=1e-4)
 
 
 #: where the documented command lines are

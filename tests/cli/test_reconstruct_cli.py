@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from importlib.metadata import entry_points
@@ -128,6 +129,8 @@ def test_reconstruct_command(tmp_path: Path, varied_checkpoint: Path, inputs: Pa
     assert "git_commit" in origin and json.loads((out / "photo" / "pose.json").read_text())["provenance"] == origin
     assert origin["command"] in (out / "index.html").read_text()
     assert records[0]["cropped_from_alpha_or_box"] and not records[1]["cropped_from_alpha_or_box"]
+    for record in records:  # every file of an image's folder is listed (a copy of the listed files is whole)
+        assert sorted(record["files"].values()) == sorted(p.name for p in (out / record["folder"]).iterdir())
     assert (out / "overview.png").is_file()
     assert all((out / s).is_file() for s in referenced_files(out / "index.html"))
 
@@ -273,11 +276,11 @@ def test_names_in_any_script_are_kept_and_linked(tmp_path: Path, checkpoint: Pat
 
 
 def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, checkpoint: Path, inputs: Path) -> None:
-    photo = str(inputs / "photo.jpg")
+    photo = str(inputs / "cutout.png")  # an image whose objective the refinement lowers (the photo's it does not)
     assert main([str(checkpoint), photo, "--out", str(tmp_path / "plain"), *FAST]) == 0
     refined_args = ["--refine", "6"]
     assert main([str(checkpoint), photo, "--out", str(tmp_path / "refined"), *refined_args, *FAST]) == 0
-    plain, refined = tmp_path / "plain" / "photo", tmp_path / "refined" / "photo"
+    plain, refined = tmp_path / "plain" / "cutout", tmp_path / "refined" / "cutout"
     # the network's own pictures beside the refined ones, identical to an unrefined run's
     for name in ("reconstruction_network.png", "turntable_network.png"):
         assert (refined / name).is_file() and not (plain / name).exists()
@@ -291,8 +294,10 @@ def test_refine_writes_the_refined_result_beside_the_network(tmp_path: Path, che
     assert poses[0]["R"] == poses[1]["R"] and poses[0]["T"] == poses[1]["T"]
     record = json.loads((tmp_path / "refined" / "reconstructions.json").read_text())["images"][0]
     assert record["refinement"]["steps"] == 6
-    # the objective is reported (its decrease is tested on the library, tests/model/test_refine.py)
+    assert sorted(record["files"].values()) == sorted(p.name for p in refined.iterdir())  # the network's too
+    # the objective is reported, that of the result written (tested on the library, tests/objectives/test_refine.py)
     assert all(math.isfinite(record["refinement"][k]) for k in ("objective_refined", "objective_network"))
+    assert record["refinement"]["objective_refined"] < record["refinement"]["objective_network"]
     wide, narrow = Image.open(tmp_path / "refined" / "overview.png"), Image.open(tmp_path / "plain" / "overview.png")
     assert wide.size[0] > narrow.size[0] and wide.size[1] == narrow.size[1]
     assert "reconstruction_network.png" in (tmp_path / "refined" / "index.html").read_text()
@@ -472,6 +477,79 @@ def test_an_out_below_a_file_is_refused_before_the_model_is_read(tmp_path, check
     assert (tmp_path / "afile").read_text() == "mine"
 
 
+@pytest.mark.parametrize(
+    ("entry", "kind"),
+    [("photo", "a file where a folder goes"), ("_viewer", "a file where a folder goes"),
+     ("index.html", "a folder where a file goes"), ("photo", "a link where a folder goes")],
+)  # fmt: skip
+def test_an_entry_of_out_the_outputs_cannot_replace_is_refused_before_the_model_is_read(
+    tmp_path, checkpoint, inputs, capsys, monkeypatch, entry, kind
+):
+    """With --overwrite, a file where an image's folder goes (or a folder where a file goes) is refused in one line
+    before the model is read, not once every image is reconstructed; --out is left as it was."""
+    import unicorn.io
+
+    out = tmp_path / "out"
+    out.mkdir()
+    if kind.startswith("a folder"):
+        (out / entry).mkdir()
+        (out / entry / "mine.txt").write_text("mine")
+    elif kind.startswith("a link"):
+        (tmp_path / "elsewhere").mkdir()
+        (out / entry).symlink_to(tmp_path / "elsewhere")
+    else:
+        (out / entry).write_text("mine")
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    monkeypatch.setattr(unicorn.io, "load_model", lambda *a, **k: pytest.fail("the model was read"))
+    assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 2
+    expected = f"cannot write the output folder {out}: {out / entry} is {kind}; move it away or choose another folder"
+    assert capsys.readouterr().err == f"unicorn-reconstruct: error: {expected}\n"
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+    assert {p.name for p in tmp_path.iterdir()} <= {"inputs", "out", "elsewhere"}  # no temporary folder left
+
+
+def test_every_option_is_in_the_docs_options_table() -> None:
+    from unicorn.cli.reconstruct import build_parser
+
+    text = (Path(__file__).parents[2] / "docs" / "reconstruct.md").read_text(encoding="utf-8")
+    table = text[text.index("## Options") : text.index("## What works best")]
+    documented = {
+        o
+        for line in table.splitlines()
+        if line.startswith("| `")
+        for o in re.findall(r"`(--[\w-]+)", line.split("|")[1])
+    }
+    options = {o for action in build_parser()._actions for o in action.option_strings if o.startswith("--")}
+    assert options - {"--help", "--version", "--debug"} <= documented  # --debug: docs/safety.md
+
+
+def test_a_box_is_inclusive_in_the_upright_photo_and_padding_frames_cut_outs_too(tmp_path, checkpoint) -> None:
+    """--bbox 5,30,24,49 with --padding 0 frames exactly those 20 x 20 pixels of the photo as viewers show it (stored
+    sideways, EXIF orientation 6); --padding 0.5 grows a cut-out's opaque box by half its side on every side."""
+    upright = _smooth_picture(60, 40)  # 40 wide, 60 tall as shown
+    exif = Image.Exif()
+    exif[0x0112] = 6  # shown turned by 90 degrees clockwise: stored 60 wide, 40 tall
+    Image.fromarray(upright).transpose(Image.Transpose.ROTATE_90).save(tmp_path / "turned.png", exif=exif)
+    cutout = np.zeros((60, 60, 4), dtype=np.uint8)
+    cutout[10:30, 20:40] = 255  # opaque rows 10..29, columns 20..39
+    Image.fromarray(cutout, "RGBA").save(tmp_path / "cutout.png")
+    out = tmp_path / "out"
+    fast = ["--turntable-frames", "0", "--strip-views", "1", "--view-size", "32", "--quiet", "--device", "cpu"]
+    box = ["--bbox", "5,30,24,49", "--padding", "0"]
+    assert main([str(checkpoint), str(tmp_path / "turned.png"), "--out", str(out / "box"), *box, *fast]) == 0
+    frame = json.loads((out / "box" / "turned" / "pose.json").read_text())["frame"]
+    assert frame == pytest.approx({"x": 5, "y": 30, "width": 20, "height": 20})
+    seen = np.asarray(Image.open(out / "box" / "turned" / "input.png").convert("RGB"), dtype=np.float64)
+    crop = upright[30:50, 5:25].astype(np.float64)
+    assert np.abs(seen.mean((0, 1)) - crop.mean((0, 1))).max() < 3  # that crop's colours, in the upright photo
+    stored = np.asarray(Image.open(tmp_path / "turned.png").convert("RGB"), dtype=np.float64)  # PIL: not turned
+    assert np.abs(seen.mean((0, 1)) - stored[30:50, 5:25].mean((0, 1))).max() > 20  # not the stored grid's box
+    padded = ["--padding", "0.5"]
+    assert main([str(checkpoint), str(tmp_path / "cutout.png"), "--out", str(out / "cut"), *padded, *fast]) == 0
+    frame = json.loads((out / "cut" / "cutout" / "pose.json").read_text())["frame"]
+    assert frame == pytest.approx({"x": 20 - 10, "y": 10 - 10, "width": 40, "height": 40})
+
+
 def _smooth_picture(height: int, width: int) -> np.ndarray:
     """(H, W, 3) uint8: red grows to the right, green downwards, a blue disc left of centre (a picture whose every
     shift or stretch shows)."""
@@ -528,6 +606,12 @@ def test_mesh_projected_with_pose_json_lands_on_the_mask_placed_on_the_photo(
     view = verts @ np.array(pose["R"]) + np.array(pose["T"])
     ndc = pose["camera"]["focal_length_ndc"] * view[:, :2] / view[:, 2:]
     on_photo = np.stack([x + (1 - ndc[:, 0]) / 2 * width, y + (1 - ndc[:, 1]) / 2 * height], axis=1)
+    # the same camera in OpenCV's convention (pixel centres at integers), on the photo and on input.png
+    cv = {k: np.array(v) for k, v in pose["opencv"].items() if k != "convention"}
+    cam = verts @ cv["R"].T + cv["t"]
+    assert (cam[:, 2] > 0).all()
+    for K, placed in ((cv["K"], on_photo), (cv["K_input"], (1 - ndc) / 2 * side)):
+        np.testing.assert_allclose((cam @ K.T)[:, :2] / cam[:, 2:], placed - 0.5, atol=1e-4)
     # filled on a grid 4 times finer than mask.png over the frame, in photo pixels
     fine = 4 * 64
     canvas = Image.new("L", (fine, fine))

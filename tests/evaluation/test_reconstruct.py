@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -126,3 +127,20 @@ def test_names_that_cannot_each_be_a_folder_are_refused_before_anything_is_writt
         with pytest.raises(ValueError, match=message):
             reconstruct(real_model, items, tmp_path / "sub" / "out", overwrite=overwrite, **options)
         assert not (tmp_path / "sub").exists()
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_file_where_an_image_folder_goes_is_refused_before_anything_is_written(
+    real_model, tmp_path, overwrite
+) -> None:
+    """The first image's folder is not written before the second's place turns out to be a file."""
+    image = torch.rand(3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0))
+    items = [InputImage(tmp_path / f"{name}.png", name, image, cropped=False) for name in ("bike", "car")]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "car").write_text("mine")
+    options = {"view_size": 32, "turntable_frames": 0, "strip_views": 1, "progress": False, "provenance": {}}
+    message = f"cannot write the output folder {out}: {out / 'car'} is a file where a folder goes"
+    with pytest.raises(OutputConflictError, match="^" + re.escape(message)):
+        reconstruct(real_model, items, out, overwrite=overwrite, **options)
+    assert [p.name for p in out.iterdir()] == ["car"] and (out / "car").read_text() == "mine"

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from unicorn.geometry.cameras import PerspectiveCamera, ndc_to_pixel, pixel_to_ndc, world_to_view
+from unicorn.geometry.cameras import PerspectiveCamera, ndc_to_pixel, opencv_camera, pixel_to_ndc, world_to_view
 from unicorn.geometry.rotations import (
     azim_elev_roll_to_rotation,
     camera_position_from_spherical,
@@ -163,3 +163,27 @@ def test_world_to_view_shape_errors():
 def test_a_camera_that_cannot_project_is_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         PerspectiveCamera(**kwargs)
+
+
+@pytest.mark.parametrize("frame", [(0.0, 0.0, 64.0, 64.0), (-10.0, -35.0, 120.0, 120.0), (412.5, 80.0, 300.0, 300.0)])
+def test_the_opencv_camera_projects_where_the_camera_does(frame):
+    """OpenCV's ``K @ (R_cv @ x + t_cv)`` lands where the camera projects a point: in the frame's pixels by NDC
+    (+X left, +Y up, pixel (i, j) spanning [j, j + 1) x [i, i + 1)); for the frame (0, 0, S, S), on the pixel centres
+    of an S x S render (``ndc_to_pixel``)."""
+    torch.manual_seed(0)
+    R, T = (t.double() for t in look_at_view_transform(2.7, 20.0, 130.0))
+    R = R[0] @ azim_elev_roll_to_rotation(torch.tensor([0.0]), torch.tensor([0.0]), torch.tensor([12.0])).double()[0]
+    T = T[0] + torch.tensor([0.1, -0.05, 0.2], dtype=torch.float64)
+    points = torch.rand(50, 3, dtype=torch.float64) - 0.5
+    camera = PerspectiveCamera(fov=30.0)
+    ndc = camera.transform_points(points[None], R[None], T[None])[0]
+    K, R_cv, t_cv = opencv_camera(R, T, camera.focal_length, frame)
+    assert torch.allclose(R_cv @ R_cv.T, torch.eye(3, dtype=torch.float64), atol=1e-6) and torch.det(R_cv) > 0
+    cam = points @ R_cv.T + t_cv
+    assert (cam[:, 2] > 0).all()  # in front of the camera: +Z forward
+    uv = (cam @ K.T)[:, :2] / cam[:, 2:]
+    x, y, width, height = frame
+    documented = torch.stack([x + (1 - ndc[:, 0]) / 2 * width, y + (1 - ndc[:, 1]) / 2 * height], dim=-1)
+    torch.testing.assert_close(uv, documented - 0.5)  # OpenCV's pixel centres at integers
+    if frame[:2] == (0.0, 0.0):
+        torch.testing.assert_close(uv, ndc_to_pixel(ndc[:, :2], int(width)))

@@ -187,6 +187,20 @@ def test_the_commands_own_files_an_earlier_run_wrote_are_removed_from_the_folder
     assert not (out / "report.html").exists()
 
 
+def test_a_users_folder_named_like_one_of_the_commands_files_is_kept(tmp_path) -> None:
+    """The commands' outputs are files: a folder that matches one of their patterns is the user's, and stays whole."""
+    out = tmp_path / "out"
+    (out / "a" / "turntable.gif").mkdir(parents=True)
+    (out / "a" / "turntable.gif" / "frame.png").write_text("mine")
+    (out / "report" / "sample01_mine").mkdir(parents=True)
+    (out / "report" / "sample01_mine" / "notes.txt").write_text("mine")
+    with staged_folder(out, outputs=("*/turntable.gif", "report/sample*")) as staging:
+        (staging / "a").mkdir()
+        (staging / "a" / "mesh.obj").write_text("new")  # no turntable this time, no report
+    assert (out / "a" / "turntable.gif" / "frame.png").read_text() == "mine"
+    assert (out / "report" / "sample01_mine" / "notes.txt").read_text() == "mine"
+
+
 def test_a_folder_a_pattern_names_loses_the_commands_files_even_where_this_run_does_not_write_it(tmp_path) -> None:
     out = tmp_path / "out"
     for folder in ("report", "pictures"):

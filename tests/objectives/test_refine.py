@@ -9,6 +9,7 @@ import torch
 
 from tests.support.model import ellipsoid_images, randomize_heads, tiny_config
 from unicorn.model import Unicorn
+from unicorn.objectives.loss_factory import build_losses
 from unicorn.objectives.refine import PARTS, RefineOptions, refine
 
 pytestmark = pytest.mark.filterwarnings("ignore:some pixels had more than faces_per_pixel")
@@ -165,6 +166,54 @@ def test_pose_part_and_bad_options(model: Unicorn, targets: torch.Tensor) -> Non
     with pytest.raises(ValueError, match="images must have shape"):
         refine(model, targets[:, :, :16])
     assert set(PARTS) == {"codes", "texture", "vertices", "pose"}
+
+
+NO_PRIOR = dict(code_weight=0.0, colour_weight=0.0, texture_weight=0.0, vertex_weight=0.0, pose_weight=0.0)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        # overshoots: image 0 ends above its start (0.641 > 0.631), the others end at their lowest
+        RefineOptions(steps=6, parts=("texture",), lr_texture=1.0, **NO_PRIOR),
+        # oscillates: images 0 and 1 are lowest at step 2 and end above it
+        RefineOptions(steps=6, parts=("vertices",), lr_vertices=0.3, **NO_PRIOR),
+    ],
+    ids=["texture", "vertices"],
+)
+def test_returns_the_lowest_iterate_and_its_objective(
+    model: Unicorn, targets: torch.Tensor, options: RefineOptions
+) -> None:
+    out = refine(model, targets, options)
+    lowest = out.losses.min(0)
+    assert (out.losses[-1] > lowest.values).any(), out.losses  # the setting overshoots: the last is not the lowest
+    assert (out.objective <= out.losses[0]).all(), (out.objective, out.losses)  # never worse than the network's
+    assert torch.equal(out.objective, lowest.values) and torch.equal(out.best_step, lowest.indices)
+    # without priors the objective is the image terms and the mesh regularisers: evaluated afresh on the result
+    p = out.prediction
+    fns = build_losses(model.config["loss"], model.template)
+    with torch.no_grad():
+        rec, _ = model.render(p.verts, p.texture, p.R, p.T, p.background)
+        fresh = sum(fns.reconstruction(rec, targets).values()) + sum(
+            fns.regularizer(p.verts, reduction="none").values()
+        )
+    torch.testing.assert_close(fresh, out.objective, rtol=1e-5, atol=1e-7)
+    for i, step in enumerate(out.best_step.tolist()):
+        kept = [torch.equal(getattr(p, name)[i], getattr(out.initial, name)[i]) for name in ("verts", "texture")]
+        assert all(kept) == (step == 0), (i, step, kept)
+
+
+def test_a_prediction_that_fits_its_image_is_kept(model: Unicorn, targets: torch.Tensor) -> None:
+    # the model's own rendering of its prediction: every step of the defaults (Adam's first moves each texel by
+    # about lr_texture, which the texel prior charges) ends above the start, so the network's prediction is returned
+    with torch.no_grad():
+        pred = model.predict(targets)
+        own, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    out = refine(model, own, RefineOptions(steps=6))
+    assert (out.losses[1:] > out.losses[0]).all(), out.losses
+    assert torch.equal(out.objective, out.losses[0]) and out.best_step.tolist() == [0, 0, 0]
+    for name in FIELDS:
+        assert torch.equal(getattr(out.prediction, name), getattr(out.initial, name)), name
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

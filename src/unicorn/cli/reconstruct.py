@@ -87,12 +87,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--strip-views", type=whole_number, default=4, help=f"views in turntable.png (at most {MAX_STRIP_VIEWS})"
     )
-    p.add_argument("--bbox", type=_bbox, help="object box x1,y1,x2,y2 in pixels (one input image only)")
+    p.add_argument(
+        "--bbox",
+        type=_bbox,
+        metavar="X1,Y1,X2,Y2",
+        help="object box x1,y1,x2,y2: 0-based pixels, both corners inclusive, of the photo turned upright by its EXIF "
+        "orientation (one input image only)",
+    )
     p.add_argument(
         "--padding",
         type=float,
         default=DEFAULT_PADDING,
-        help=f"margin around an alpha cut-out or --bbox (fraction of its side, at most {MAX_PADDING:g})",
+        help="margin added on every side of the object's box (a --bbox, or an alpha cut-out's opaque pixels) before "
+        f"it is squared, as a fraction of the box's width and height (at most {MAX_PADDING:g})",
     )
     p.add_argument("--no-alpha-crop", action="store_true", help="do not crop transparent images to their object")
     p.add_argument("--template-level", type=whole_number, help="icosphere level of the mesh (3: 642 vertices, 4: 2562)")
@@ -126,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, command: str | None = None) -> int:
     """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
     from unicorn.data.images import ImageLoadError
-    from unicorn.evaluation.reconstruct import OPTIONAL_FILES, reconstruct, unique_names
+    from unicorn.evaluation.reconstruct import OPTIONAL_FILES, check_free, reconstruct, unique_names
     from unicorn.evaluation.session import overflow_note
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.images import check_padding
@@ -158,6 +165,9 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     if not readable:
         raise UsageError("none of the inputs could be read")
     readable = list(zip(readable, unique_names(readable)))  # the names of the images read only
+    # an entry of --out that the outputs cannot replace (a file where an image's folder goes): refused now, not once
+    # every image is reconstructed (check_out_folder refused a non-empty --out without --overwrite)
+    check_free(out, [name for _, name in readable], overwrite=True)
     device = parse_device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)

@@ -20,8 +20,9 @@ and ``reconstruction_network.png`` and ``turntable_network.png`` keep the networ
 
 The folder also gets ``overview.png`` (one row per image; with refinement the network's reconstruction and views
 next to the refined ones), ``index.html`` and ``reconstructions.json``
-(``{"provenance": ..., "images": [...]}``); ``pose.json`` and both of these record the provenance (command,
-checkpoint, package version, git commit) given to :func:`reconstruct`.
+(``{"provenance": ..., "images": [...]}``, each image's ``files`` naming every file written in its folder);
+``pose.json`` and both of these record the provenance (command, checkpoint, package version, git commit) given to
+:func:`reconstruct`.
 """
 
 from __future__ import annotations
@@ -47,14 +48,15 @@ from tqdm.auto import tqdm
 from unicorn.evaluation.pictures import image_grid, save_gif, to_uint8
 from unicorn.evaluation.rendering import even_angles, hard_render, turntable
 from unicorn.evaluation.viewer import install_viewer, viewer_element, viewer_script_tags
+from unicorn.geometry.cameras import opencv_camera
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
-from unicorn.io.images import RECONSTRUCTIONS_RECORD, InputImage
+from unicorn.io.images import RECONSTRUCTIONS_RECORD, InputImage, Rectangle
 from unicorn.io.meshes import export_prediction, save_mesh
 from unicorn.io.staging import OutputConflictError
 from unicorn.model import Prediction, Unicorn
 from unicorn.objectives.refine import Refinement, RefineOptions, refine
 
-__all__ = ["pose_record", "reconstruct", "unique_names"]
+__all__ = ["check_free", "pose_record", "reconstruct", "unique_names"]
 
 #: the files written at the top of the output folder: no image's folder may take these names
 RESERVED_NAMES = ("index.html", "overview.png", RECONSTRUCTIONS_RECORD, "_viewer")
@@ -107,6 +109,13 @@ def unique_names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
+#: how pose.json's ``opencv`` numbers are read (written into the file)
+OPENCV_CONVENTION = (
+    "x_cam = R @ x_object + t, camera axes +X right, +Y down, +Z forward (OpenCV, COLMAP); pixel (u, v, 1) ~ K @ "
+    "x_cam with pixel centres at integers, in the photo turned upright by its EXIF orientation (K; as frame) or in "
+    "input.png (K_input). x_object are the vertices of mesh.obj and mesh.glb, as for R and T."
+)
+
 #: how pose.json's numbers are read (written into the file)
 POSE_CONVENTION = (
     "x_view = x_object @ R + T; view axes +X left, +Y up, +Z away from the camera (PyTorch3D). "
@@ -119,8 +128,11 @@ POSE_CONVENTION = (
 )
 
 
-def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
-    """JSON-ready pose of one prediction: R, T, look-at parameters, scale, camera, candidate probabilities."""
+def pose_record(model: Unicorn, pred: Prediction, index: int, frame: Rectangle | None = None) -> dict[str, Any]:
+    """JSON-ready pose of one prediction: R, T, look-at parameters, scale, camera, candidate probabilities, and the
+    same camera in OpenCV's convention (:func:`~unicorn.geometry.cameras.opencv_camera`); with the ``frame`` of the
+    photo the input shows (:attr:`unicorn.io.InputImage.frame`), that rectangle and the OpenCV intrinsics in the
+    photo's pixels."""
     R, T = pred.R[index].detach().cpu().double(), pred.T[index].detach().cpu().double()
     look = look_at_view_parameters(R, T)
     # roll: signed angle about the optical axis from the +Y-up look-at camera's Y axis to this camera's
@@ -128,6 +140,13 @@ def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
     y0, y, z = upright[:, 1], R[:, 1], R[:, 2]
     roll = torch.rad2deg(torch.atan2(torch.linalg.cross(y0, y).dot(z), y0.dot(y)))
     camera = model.renderer.camera
+    size = model.config["image_size"]
+    K_input, R_cv, t_cv = opencv_camera(R, T, camera.focal_length, (0.0, 0.0, size, size))
+    opencv = {"convention": OPENCV_CONVENTION, "R": R_cv.tolist(), "t": t_cv.tolist(), "K_input": K_input.tolist()}
+    placed = {}
+    if frame is not None:
+        placed = {"frame": dict(zip(("x", "y", "width", "height"), frame, strict=True))}
+        opencv["K"] = opencv_camera(R, T, camera.focal_length, frame)[0].tolist()
     return {
         "convention": POSE_CONVENTION,
         "R": R.tolist(),
@@ -142,6 +161,8 @@ def pose_record(model: Unicorn, pred: Prediction, index: int) -> dict[str, Any]:
         "camera": {"fov_degrees": camera.fov, "focal_length_ndc": float(camera.focal_length)},
         "image_size": model.config["image_size"],
         "candidate_probabilities": pred.poses.probs[:, index].detach().cpu().tolist(),
+        **placed,
+        "opencv": opencv,
     }
 
 
@@ -190,11 +211,10 @@ def _write_one(
 
     mesh = export_prediction(model, pred, i, name="mesh")
     for suffix in (".obj", ".glb"):
-        written = save_mesh(mesh, folder / f"mesh{suffix}", overwrite=overwrite)
-        files[f"mesh{suffix}"] = written[0].name
-    pose = pose_record(model, pred, i)
-    frame = {} if item.frame is None else {"frame": dict(zip(("x", "y", "width", "height"), item.frame, strict=True))}
-    (folder / "pose.json").write_text(json.dumps({**pose, **frame, "provenance": dict(provenance)}, indent=1))
+        for written in save_mesh(mesh, folder / f"mesh{suffix}", overwrite=overwrite):  # the OBJ's MTL and PNG too
+            files[written.name] = written.name
+    pose = pose_record(model, pred, i, item.frame)
+    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
     files["pose"] = "pose.json"
 
     verts, tex, R, T = pred.verts[i], pred.texture[i], pred.R[i], pred.T[i]
@@ -269,11 +289,12 @@ def reconstruct(
     Raises:
         ValueError: two images of the same name, or a name that is not one folder name or is one of the output
             folder's own files (before anything is written).
-        OutputConflictError: ``out_dir`` holds an earlier call's outputs and ``overwrite`` is False.
+        OutputConflictError: ``out_dir`` holds an earlier call's outputs and ``overwrite`` is False, or an entry
+            that an output cannot replace (:func:`check_free`; before anything is written).
     """
     out = Path(out_dir)
     _check_names(items)
-    _check_free(out, items, overwrite)
+    check_free(out, [it.name for it in items], overwrite)
     out.mkdir(parents=True, exist_ok=True)
     if provenance is None:
         from unicorn.io.provenance import command_line
@@ -353,21 +374,44 @@ def _check_names(items: Sequence[InputImage]) -> None:
         seen[key] = item
 
 
-def _check_free(out: Path, items: Sequence[InputImage], overwrite: bool) -> None:
-    """Refuse (unless ``overwrite``) to write into ``out`` over an earlier call's outputs: a non-empty folder of
-    one of the images, or one of :data:`_OVERVIEW_FILES`.
+def check_free(out: str | os.PathLike, names: Sequence[str], overwrite: bool = False) -> None:
+    """Check, before any work, that :func:`reconstruct` can write images of these names into ``out``.
+
+    Refused always: an entry of ``out`` that an output cannot replace, as
+    :func:`unicorn.io.staging.staged_folder` would refuse it once the work is done (a file or a link where an
+    image's folder or ``_viewer`` goes, a folder where one of :data:`_OVERVIEW_FILES` goes). Refused unless
+    ``overwrite``: an earlier call's outputs, a non-empty folder of one of the images or one of
+    :data:`_OVERVIEW_FILES`.
 
     Raises:
-        OutputConflictError: names the first few.
+        OutputConflictError: names the first such entry, or the first few outputs.
     """
-    if overwrite or not out.is_dir():
+    out = Path(out)
+    if not out.is_dir():
         return
-    taken = [out / it.name for it in items if (out / it.name).is_dir() and any((out / it.name).iterdir())]
+    where = Path(os.path.abspath(out))  # as staged_folder's message says it
+    for name in [*names, "_viewer"]:
+        place = where / name
+        if (place.exists() or place.is_symlink()) and not (place.is_dir() and not place.is_symlink()):
+            kind = "a link" if place.is_symlink() else "a file"
+            raise OutputConflictError(
+                f"cannot write the output folder {where}: {place} is {kind} where a folder goes; move it away or "
+                "choose another folder"
+            )
+    for name in _OVERVIEW_FILES:
+        if (out / name).is_dir() and not (out / name).is_symlink():
+            raise OutputConflictError(
+                f"cannot write the output folder {where}: {where / name} is a folder where a file goes; move it away "
+                "or choose another folder"
+            )
+    if overwrite:
+        return
+    taken = [out / name for name in names if (out / name).is_dir() and any((out / name).iterdir())]
     taken += [out / name for name in _OVERVIEW_FILES if (out / name).exists()]
     if taken:
-        names = ", ".join(p.name for p in taken[:4]) + (f" and {len(taken) - 4} more" if len(taken) > 4 else "")
+        listed = ", ".join(p.name for p in taken[:4]) + (f" and {len(taken) - 4} more" if len(taken) > 4 else "")
         raise OutputConflictError(
-            f"{out} holds the outputs of an earlier reconstruction ({names}); pass overwrite=True to replace them, "
+            f"{out} holds the outputs of an earlier reconstruction ({listed}); pass overwrite=True to replace them, "
             "or write elsewhere"
         )
 
@@ -379,7 +423,7 @@ def _refinement_record(result: Refinement, i: int, options: RefineOptions) -> di
         "steps": options.steps,
         "parts": list(options.parts),
         "objective_network": float(losses[0]),
-        "objective_refined": float(losses[-1]),
+        "objective_refined": float(result.objective[i]),  # that of the result written: the lowest, not the last
     }
 
 

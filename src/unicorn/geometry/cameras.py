@@ -16,7 +16,7 @@ from torch import nn
 
 from unicorn.checks import check_image_size, check_shape
 
-__all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "pixel_to_ndc", "world_to_view"]
+__all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "opencv_camera", "pixel_to_ndc", "world_to_view"]
 
 
 def image_hw(image_size: int | tuple[int, int]) -> tuple[int, int]:
@@ -49,6 +49,41 @@ def pixel_to_ndc(colrow: torch.Tensor, image_size: int | tuple[int, int]) -> tor
     x = (W - 1 - 2 * colrow[..., 0]) / S
     y = (H - 1 - 2 * colrow[..., 1]) / S
     return torch.stack([x, y], dim=-1)
+
+
+def opencv_camera(
+    R: torch.Tensor, T: torch.Tensor, focal_length: float, frame: tuple[float, float, float, float]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The camera ``x_view = x @ R + T`` with ``focal_length`` (NDC) in OpenCV's convention, for other tools.
+
+    OpenCV's camera (``cv2.projectPoints``, COLMAP): ``x_cam = R_cv @ x + t_cv`` with +X right, +Y down, +Z forward,
+    and pixel ``(u, v, 1) ~ K @ x_cam``, pixel centres at integers. The pixels are those of an image in which the
+    NDC square ``[-1, 1]`` spans ``frame = (x, y, width, height)`` (in pixels whose pixel (i, j) spans
+    ``[j, j + 1) x [i, i + 1)``, as ``unicorn-reconstruct``'s ``pose.json`` records it for the photo); the frame
+    ``(0, 0, S, S)`` gives the pixels of the S x S rendered image (:func:`ndc_to_pixel`).
+
+    Args:
+        R: (3, 3) rotation, T: (3,) translation (row-vector convention above).
+        focal_length: the camera's focal length in NDC units.
+        frame: ``(x, y, width, height)``.
+
+    Returns:
+        K (3, 3), R_cv (3, 3) and t_cv (3,), in R's dtype.
+    """
+    check_shape(R, "3, 3", "R")
+    check_shape(T, "3", "T")
+    x, y, width, height = (float(v) for v in frame)
+    flip = torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=R.dtype, device=R.device))  # view +X left, +Y up
+    K = torch.tensor(
+        [
+            [focal_length * width / 2, 0.0, x + width / 2 - 0.5],
+            [0.0, focal_length * height / 2, y + height / 2 - 0.5],
+            [0.0, 0.0, 1.0],
+        ],
+        dtype=R.dtype,
+        device=R.device,
+    )
+    return K, flip @ R.T, flip @ T.to(R)
 
 
 class PerspectiveCamera(nn.Module):

@@ -145,14 +145,15 @@ def _own_folder(pattern: str) -> str | None:
 
 
 def _outdated(source: Path, target: Path, outputs: Sequence[str]) -> list[Path]:
-    """The files and folders in ``target`` that match the glob patterns ``outputs`` (the command's own), where
-    ``source`` has none of that name, in folders that ``source`` writes too or that the pattern names without
-    wildcards (:func:`_own_folder`): an earlier run's, which this one did not write."""
+    """The files in ``target`` that match the glob patterns ``outputs`` (the command's own), where ``source`` has
+    none of that name, in folders that ``source`` writes too or that the pattern names without wildcards
+    (:func:`_own_folder`): an earlier run's, which this one did not write. A folder matching a pattern is not one:
+    the commands' outputs are files, so it is a user's, and kept."""
     found = []
     for pattern in outputs:
         own = _own_folder(pattern) is not None
         for path in target.glob(pattern):
-            if source in path.parents:  # the temporary folder itself, where it lies inside ``target``
+            if source in path.parents or _is_folder(path):  # the temporary folder itself (it may lie in ``target``)
                 continue
             rel = path.relative_to(target)
             if (own or _is_folder(source / rel.parent)) and not (source / rel).exists():
@@ -211,8 +212,8 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = (), *, merge:
 
     A missing ``out`` is the renamed temporary folder. In an existing ``out`` each file written replaces the file
     of the same name (sub-folders are merged) and the others are kept: whether an existing folder may be written
-    into is the caller's decision; only the files and folders matching ``outputs`` (glob patterns relative to
-    ``out``: the command's own optional outputs, such as a turntable made only on request) that an earlier run wrote
+    into is the caller's decision; only the files matching ``outputs`` (glob patterns relative to ``out``: the
+    command's own optional outputs, such as a turntable made only on request) that an earlier run wrote
     in a folder this block writes again, or in a folder a pattern names without wildcards (``report`` of
     ``report/sample*``), and this block did not write, are removed, so that a folder does not mix two runs; such a
     named folder left empty is removed too.
@@ -249,7 +250,7 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = (), *, merge:
             outdated = _outdated(tmp, out, outputs)
             _merge(tmp, out)
             for path in outdated:
-                shutil.rmtree(path) if _is_folder(path) else path.unlink(missing_ok=True)
+                path.unlink(missing_ok=True)
             _remove_emptied_folders(out, outputs)
     except OSError as err:
         if err.filename is None and err.errno in DISK_ERRORS:  # e.g. a write() on a full disk names no file

@@ -35,6 +35,13 @@ object cut out (a transparent PNG, composited on white by :mod:`unicorn.io.image
 Each image's variables are independent and the objective is a sum over images, so refining a batch gives the same
 result as refining its images one at a time (Adam is element-wise), up to floating-point rounding. Nothing is
 drawn at random: a refinement is deterministic on a given device.
+
+Each image gets the iterate of lowest objective among those evaluated (the network's prediction, the state before
+every later step and the state after the last), not the last one, so a refinement is never worse than the network's
+prediction by its objective. Adam's first step moves every variable with a gradient by about its learning rate,
+however small the gradient: on a prediction that already fits its image the per-texel residual's prior
+(``texture_weight`` times its mean square) can outweigh what the step gains, and the objective oscillates above
+its start for a few steps.
 """
 
 from __future__ import annotations
@@ -163,11 +170,16 @@ class Refinement:
             ``poses`` keeps the network's candidates and probabilities), detached.
         initial: the network's prediction it started from, detached.
         losses: (steps + 1, B) each image's objective before every step and after the last.
+        objective: (B,) each image's objective at ``prediction``: the lowest of its ``losses``.
+        best_step: (B,) the row of ``losses`` each image's ``prediction`` comes from: the first of its lowest
+            (0: the network's prediction, when no step lowered the objective).
     """
 
     prediction: Prediction
     initial: Prediction
     losses: torch.Tensor
+    objective: torch.Tensor
+    best_step: torch.Tensor
 
 
 class _Variables:
@@ -253,6 +265,18 @@ def _objective(
     return loss + prior
 
 
+def _where(better: torch.Tensor, new: Prediction, old: Prediction) -> Prediction:
+    """``new``'s images where ``better`` (B,) holds, ``old``'s elsewhere, detached (``poses``: ``old``'s)."""
+
+    def pick(a: torch.Tensor | None, b: torch.Tensor | None) -> torch.Tensor | None:
+        if a is None or b is None:
+            return b
+        return torch.where(better.view(-1, *[1] * (a.dim() - 1)), a.detach(), b)
+
+    names = [f.name for f in fields(new) if isinstance(getattr(new, f.name), torch.Tensor | None)]
+    return replace(old, **{n: pick(getattr(new, n), getattr(old, n)) for n in names})
+
+
 def _detached(pred: Prediction) -> Prediction:
     return replace(
         pred,
@@ -281,7 +305,8 @@ def refine(
         average_texture: mean-colour textures (as the prediction was made); the texture residual comes on top.
 
     Returns:
-        :class:`Refinement`; with 0 steps its ``prediction`` is the initial prediction itself.
+        :class:`Refinement`: each image's iterate of lowest objective, never above the network's prediction's; with 0
+        steps, or none that lowers an image's objective, that image's ``prediction`` is the initial prediction.
     """
     o = RefineOptions() if options is None else options
     model.check_images(images)
@@ -306,10 +331,25 @@ def refine(
         opt = torch.optim.Adam(groups) if params else None
         warmup = round(o.codes_first * steps) if "codes" in params else 0
         losses = []
+        # each image's iterate of lowest objective so far: its prediction, objective and step
+        best, best_loss = start, None
+        best_step = torch.zeros(images.shape[0], dtype=torch.long, device=images.device)
+
+        def keep_best(step: int, current: Prediction, loss: torch.Tensor) -> None:
+            nonlocal best, best_loss, best_step
+            if best_loss is None:  # step 0, all variables zero: the network's prediction itself
+                best_loss = loss
+                return
+            better = loss < best_loss
+            best, best_step = _where(better, current, best), torch.where(better, step, best_step)
+            best_loss = torch.where(better, loss, best_loss)
+
         for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
             active = [t for p, g in params.items() if p == "codes" or step >= warmup for t in g]
-            loss = _objective(model, fns, images, _decode(model, start, v, average_texture), v, o)
+            current = _decode(model, start, v, average_texture)
+            loss = _objective(model, fns, images, current, v, o)
             losses.append(loss.detach())
+            keep_best(step, current, losses[-1])
             grads = torch.autograd.grad(loss.sum(), active)
             for group in params.values():
                 for t in group:
@@ -318,10 +358,17 @@ def refine(
                 t.grad = g
             opt.step()  # type: ignore[union-attr]  # parameters without a gradient (parts not yet active) are left alone
         with torch.no_grad():
-            result = _decode(model, start, v, average_texture) if steps > 0 else start
-            losses.append(_objective(model, fns, images, result, v, o))
+            last = _decode(model, start, v, average_texture) if steps > 0 else start
+            losses.append(_objective(model, fns, images, last, v, o))
+            keep_best(steps, last, losses[-1])
     finally:
         model.train(was_training)
         for q in trainable:
             q.requires_grad_(True)
-    return Refinement(prediction=_detached(result), initial=start, losses=torch.stack(losses))
+    return Refinement(
+        prediction=_detached(best),
+        initial=start,
+        losses=torch.stack(losses),
+        objective=best_loss,  # type: ignore[arg-type]  # set at step 0
+        best_step=best_step,
+    )
