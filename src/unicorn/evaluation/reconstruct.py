@@ -52,7 +52,7 @@ from unicorn.geometry.cameras import opencv_camera
 from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters
 from unicorn.io.images import RECONSTRUCTIONS_RECORD, InputImage, Rectangle
 from unicorn.io.meshes import export_prediction, save_mesh
-from unicorn.io.staging import OutputConflictError
+from unicorn.io.staging import OutputConflictError, check_replaceable
 from unicorn.model import Prediction, Unicorn
 from unicorn.objectives.refine import Refinement, RefineOptions, refine
 
@@ -389,21 +389,7 @@ def check_free(out: str | os.PathLike, names: Sequence[str], overwrite: bool = F
     out = Path(out)
     if not out.is_dir():
         return
-    where = Path(os.path.abspath(out))  # as staged_folder's message says it
-    for name in [*names, "_viewer"]:
-        place = where / name
-        if (place.exists() or place.is_symlink()) and not (place.is_dir() and not place.is_symlink()):
-            kind = "a link" if place.is_symlink() else "a file"
-            raise OutputConflictError(
-                f"cannot write the output folder {where}: {place} is {kind} where a folder goes; move it away or "
-                "choose another folder"
-            )
-    for name in _OVERVIEW_FILES:
-        if (out / name).is_dir() and not (out / name).is_symlink():
-            raise OutputConflictError(
-                f"cannot write the output folder {where}: {where / name} is a folder where a file goes; move it away "
-                "or choose another folder"
-            )
+    check_replaceable(out, folders=[*names, "_viewer"], files=_OVERVIEW_FILES)
     if overwrite:
         return
     taken = [out / name for name in names if (out / name).is_dir() and any((out / name).iterdir())]

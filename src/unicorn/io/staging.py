@@ -21,7 +21,7 @@ from pathlib import Path, PurePosixPath
 from unicorn.errors import UserError, pid_alive, signals_held
 from unicorn.io.serialization import DISK_ERRORS
 
-__all__ = ["PARTIAL_MARK", "OutputConflictError", "check_writable", "staged_folder"]
+__all__ = ["PARTIAL_MARK", "OutputConflictError", "check_replaceable", "check_writable", "staged_folder"]
 
 #: infix of the temporary siblings (``.<name>.partial-<pid>``)
 PARTIAL_MARK = ".partial-"
@@ -120,21 +120,48 @@ def _is_folder(path: Path) -> bool:
     return path.is_dir() and not path.is_symlink()
 
 
+def _conflict(dest: Path, folder: bool) -> str | None:
+    """How ``dest`` keeps an output (a folder where ``folder``, else a file) from replacing it (``"<path> is a link
+    where a folder goes"``), or None: a file or a link where a folder goes, a folder where a file goes."""
+    if folder and (dest.exists() or dest.is_symlink()) and not _is_folder(dest):
+        return f"{dest} is {'a link' if dest.is_symlink() else 'a file'} where a folder goes"
+    if not folder and _is_folder(dest):
+        return f"{dest} is a folder where a file goes"
+    return None
+
+
 def _conflicts(source: Path, target: Path) -> list[str]:
-    """The entries of ``target`` that ``source``'s entries cannot replace, each described (``"<path> is a link
-    where a folder goes"``): a file or a link where ``source`` has a folder, a folder where it has a file."""
+    """The entries of ``target`` that ``source``'s entries cannot replace, each described (:func:`_conflict`)."""
     found = []
     for entry in sorted(source.iterdir()):
         dest = target / entry.name
-        if not (dest.exists() or dest.is_symlink()):
-            continue
         if _is_folder(entry) and _is_folder(dest):
             found += _conflicts(entry, dest)
-        elif _is_folder(entry):
-            found.append(f"{dest} is {'a link' if dest.is_symlink() else 'a file'} where a folder goes")
-        elif _is_folder(dest):
-            found.append(f"{dest} is a folder where a file goes")
+        elif (conflict := _conflict(dest, _is_folder(entry))) is not None:
+            found.append(conflict)
     return found
+
+
+def _conflict_error(out: Path, conflict: str) -> OutputConflictError:
+    message = f"cannot write the output folder {out}: {conflict}; move it away or choose another folder"
+    return OutputConflictError(message)
+
+
+def check_replaceable(out: str | os.PathLike, folders: Sequence[str] = (), files: Sequence[str] = ()) -> None:
+    """Refuse, before any work, what :func:`staged_folder` would refuse once it is done: an entry of an existing
+    ``out`` that the outputs ``folders`` and ``files`` (names in ``out``) cannot replace.
+
+    Raises:
+        OutputConflictError: names the first such entry, in :func:`staged_folder`'s words.
+    """
+    if not _is_folder(Path(out)):
+        return
+    where = _absolute(out)
+    for names, folder in ((folders, True), (files, False)):
+        for name in names:
+            conflict = _conflict(where / name, folder)
+            if conflict is not None:
+                raise _conflict_error(where, conflict)
 
 
 def _own_folder(pattern: str) -> str | None:
@@ -244,9 +271,7 @@ def staged_folder(out: str | os.PathLike, outputs: Sequence[str] = (), *, merge:
                 )
             conflicts = _conflicts(tmp, out)
             if conflicts:  # checked before anything moves: the folder is updated whole or not at all
-                raise OutputConflictError(
-                    f"cannot write the output folder {out}: {conflicts[0]}; move it away or choose another folder"
-                )
+                raise _conflict_error(out, conflicts[0])
             outdated = _outdated(tmp, out, outputs)
             _merge(tmp, out)
             for path in outdated:
