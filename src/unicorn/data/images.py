@@ -62,6 +62,7 @@ __all__ = [
     "has_transparency",
     "heif_support",
     "load_image",
+    "load_image_and_alpha",
     "load_mask",
     "max_image_bytes",
     "max_image_pixels",
@@ -460,6 +461,18 @@ def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.nda
     """
     with open_image(path, path) as img:
         return _pil_to_rgb(decoded(img, path, exif_orientation), path)
+
+
+def load_image_and_alpha(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`load_image` (upright) and :func:`transparency_alpha` of one image file, decoded once.
+
+    Returns:
+        (H, W, 3) float32 RGB in [0, 1] (transparent pixels composited on white) and the (H, W) float32 opacity, or
+        None for an image without transparency.
+    """
+    with open_image(path, path) as img:
+        img = decoded(img, path)
+        return _pil_to_rgb(img, path), transparency_alpha(img)
 
 
 def decode_image(data: bytes, name: str, exif_orientation: bool = True) -> np.ndarray:

@@ -37,7 +37,7 @@ from unicorn.data.images import (
     ImageLoadError,
     decoded,
     has_transparency,
-    load_image,
+    load_image_and_alpha,
     max_image_bytes,
     open_image,
     to_chw_tensor,
@@ -317,9 +317,8 @@ def read_input(path: str | os.PathLike, bbox: Sequence[float] | None = None, use
         BoxError: ``bbox`` is not finite or does not overlap the image.
     """
     path = Path(path)
-    image = load_image(path)
+    image, alpha = load_image_and_alpha(path)
     box = None if bbox is None else check_box(bbox, image.shape[1], image.shape[0], str(path))
-    alpha = _alpha(path)
     if box is None and use_alpha:
         box = _opaque_box(alpha, path)
     return RawInput(path, image, box, cutout=alpha is not None and bool((alpha < 1).any()))
