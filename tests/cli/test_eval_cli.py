@@ -175,6 +175,15 @@ def test_errors(tmp_path: Path, checkpoint: Path, capsys, args: list[str], messa
     assert err.startswith("unicorn-eval: error:") and message in err
 
 
+@pytest.mark.parametrize("workers", ["0", "-2"])
+def test_nn_workers_out_of_range_is_a_usage_error(checkpoint: Path, capsys, workers: str) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(checkpoint), "--dataset", "synthetic", "--root", ".", "--nn-workers", workers])
+    assert exit_info.value.code == 2
+    message = "unicorn-eval: error: --nn-workers must be -1 (all cores) or >= 1"
+    assert capsys.readouterr().err.splitlines()[-1] == message
+
+
 def test_a_malformed_dataset_of_the_checkpoint_is_one_line(tmp_path: Path, checkpoint: Path, capsys) -> None:
     from unicorn.io.serialization import INTEGRITY_KEY
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 import yaml
+from omegaconf import OmegaConf
 from PIL import Image
 
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
@@ -165,6 +166,14 @@ def test_tiny_dataset_reads(tmp_path: Path) -> None:
     assert all(ds[i]["image"].shape == (3, 8, 8) and ds[i]["points"].shape == (5, 3) for i in range(6))
 
 
+@pytest.mark.parametrize("n_points", [-5, 0, 2.5, True, "100"])
+def test_a_point_count_that_is_not_a_whole_number_of_points_is_refused(tmp_path: Path, n_points: object) -> None:
+    """``dataset.options.n_points``: refused when the dataset is made, not as an empty cloud or numpy's words at the
+    first item."""
+    with pytest.raises(DatasetError, match=f"n_points must be a whole number >= 1 .*, got {n_points!r}$"):
+        ShapeNetNMR(_tiny_nmr(tmp_path), split="test", n_points=n_points)
+
+
 def test_normals_change_frame_with_the_points(tmp_path: Path) -> None:
     """Points spanning 3-D and distinct normals: the item's points are the file's under one linear map L (found by
     least squares, the rotation A_ROW of the pose test), and its normals the file's under L's inverse transpose."""
@@ -203,6 +212,51 @@ def test_unquoted_synsets_are_read_as_written(tmp_path: Path) -> None:
     (root / "metadata.yaml").write_text(f"{SYNSET}:\n  id: {SYNSET}\n  name: chair\n02691156:\n  id: 02691156\n")
     ds = ShapeNetNMR(root, categories=["chair"], split="test")
     assert ds.synsets == [SYNSET] and ds.metadata[SYNSET] == {"id": SYNSET, "name": "chair"}
+
+
+def test_a_synset_read_as_a_number_is_refused_saying_to_quote_it(tmp_path: Path) -> None:
+    """``categories: [03001627]`` in a config file reaches the loader as YAML 1.1's octal 787351."""
+    root = _tiny_nmr(tmp_path)
+    number = OmegaConf.create(f"categories: [{SYNSET}]").categories[0]
+    assert number == int(SYNSET, 8)
+    with pytest.raises(DatasetError, match=r"unknown ShapeNet category '787351'; a number: write synsets in quotes"):
+        ShapeNetNMR(root, [number])
+    with pytest.raises(DatasetError, match=r"unknown ShapeNet category 'sofa'; metadata.yaml lists"):
+        ShapeNetNMR(root, ["sofa"])
+
+
+def test_a_name_of_two_synsets_is_refused_naming_them(tmp_path: Path) -> None:
+    """Synthetic chairs generated into a ShapeNet root (which keeps its categories) are also named ``chair``: the
+    name picks neither silently; the synsets and the names only one of them has pick each."""
+    from unicorn.data.synthetic.writer import generate_synthetic_dataset
+
+    root = _tiny_nmr(tmp_path)
+    tiny = {"n_models": 3, "n_views": 1, "image_size": 8, "supersample": 1, "n_points": 100, "progress": False}
+    generate_synthetic_dataset(root, "chair", "nmr", **tiny)
+    with pytest.raises(DatasetError, match="'chair' names several synsets") as info:
+        ShapeNetNMR(root, "chair")
+    assert "03001627 (chair)" in str(info.value) and "90000001 (chair,synthetic_chair)" in str(info.value)
+    assert ShapeNetNMR(root, "synthetic_chair").synsets == ["90000001"]
+    assert ShapeNetNMR(root, [SYNSET, "90000001"]).synsets == [SYNSET, "90000001"]
+
+
+def test_unicorn_data_check_reads_categories_comma_or_space_separated(tmp_path: Path, capsys) -> None:
+    """As ``unicorn-eval --categories`` and ``unicorn-data synth --category`` take them; ``--categories`` naming none
+    is a usage error rather than a dataset without models."""
+    from unicorn.cli import data as cli
+
+    root = _tiny_nmr(tmp_path)
+    shutil.copytree(root / SYNSET, root / "04256520")
+    metadata = yaml.safe_load((root / "metadata.yaml").read_text())
+    (root / "metadata.yaml").write_text(yaml.safe_dump({**metadata, "04256520": {"id": "04256520", "name": "sofa"}}))
+    for categories in (["chair,sofa"], ["chair", "sofa"], ["chair,", "04256520"]):
+        assert cli.main(["check", "shapenet_nmr", "--root", str(root), "--categories", *categories]) == 0
+        assert capsys.readouterr().out.startswith("shapenet_nmr train: 12 items\n")  # 2 categories x 2 models x 3 views
+    assert cli.main(["check", "shapenet_nmr", "--root", str(root), "--categories", "sofa"]) == 0
+    assert capsys.readouterr().out.startswith("shapenet_nmr train: 6 items\n")
+    assert cli.main(["check", "shapenet_nmr", "--root", str(root), "--categories"]) == 2
+    err = capsys.readouterr().err
+    assert err == "unicorn-data: error: --categories names no category; drop it to check every category\n"
 
 
 @pytest.mark.parametrize(

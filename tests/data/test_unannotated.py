@@ -53,6 +53,14 @@ def test_folder_reads_every_mode(mixed_folder: Path) -> None:
         _check_item(ds[i], 32)
 
 
+@pytest.mark.parametrize("extensions", [["PNG"], "png", (".png",), ["png", ".jpg"]])
+def test_folder_suffixes_with_or_without_their_dot(mixed_folder: Path, extensions: object) -> None:
+    """``dataset.options.extensions=[png]`` in a config picks the PNGs, as ``.png`` does."""
+    names = {p.name for p in ImageFolder(mixed_folder, extensions=extensions).files}
+    pngs = {"gray.png", "rgba.png", "palette.png", "deep.png"}
+    assert names == (pngs | {"photo.JPG"} if ".jpg" in extensions else pngs)
+
+
 def test_folder_flip_augmentation(mixed_folder: Path) -> None:
     ds, plain = ImageFolder(mixed_folder, augment=True), ImageFolder(mixed_folder)
     ref = plain[0]["image"]

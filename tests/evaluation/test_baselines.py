@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import pytest
 import torch
 
@@ -159,3 +161,9 @@ def test_models_and_baselines_are_evaluable(shapenet_model) -> None:
     for model in (shapenet_model, baseline):
         assert isinstance(model, EvaluableModel)
     assert not isinstance(torch.nn.Linear(2, 2), EvaluableModel)  # the check has teeth
+
+
+def test_the_protocol_takes_the_arguments_evaluate_passes(shapenet_model) -> None:
+    """A model written to the protocol's ``predict`` is called as ``evaluate`` calls it (``average_texture``)."""
+    for predict in (EvaluableModel.predict, type(shapenet_model).predict, FixedShapeModel.predict):
+        inspect.signature(predict).bind(shapenet_model, torch.zeros(1, 3, 8, 8), average_texture=True)

@@ -131,6 +131,26 @@ def test_pose_errors_after_a_known_turn_of_the_frame(shapenet_model, synth_root)
         assert r["rot-err-median"] == pytest.approx(100.0, abs=0.05) and r["rot-acc-30"] == 0.0
 
 
+def test_a_group_of_one_image_has_no_aligned_pose_error(shapenet_model, synth_root) -> None:
+    """One rotation fitted to one image aligns it exactly: its aligned error would be 0 for any prediction."""
+    data = build_eval_dataset("synthetic", str(synth_root), "test", img_size=32)  # one image per category
+    items = collate([data[i] for i in range(len(data))])
+    turned = _TurnedFrame(shapenet_model, items["image"], items["R"], _rotation([1.0, 2.0, -0.5], 100.0))
+    options = dict(FAST, icp_iterations=0)
+    aligned = evaluate(turned, data, EvalOptions("shapenet", **options), "synthetic")
+    raw = evaluate(turned, data, EvalOptions("shapenet", align_pose=False, **options), "synthetic")
+    pose_columns = ["rot-err-mean", "rot-err-median", "rot-acc-30", "rot-flip-150", "rot-acc-30-any"]
+    pose_columns += ["azim-err-mean", "azim-err-median"]
+    assert [row["n-images"] for row in aligned.table] == [1, 1, 2]
+    assert set(pose_columns) <= set(aligned.columns)  # shown, as undefined ("-")
+    for row in aligned.table:
+        assert all(math.isnan(row[c]) for c in pose_columns)
+    assert all("rot-err" not in r for r in aligned.per_image)
+    # without the alignment, the error is the frame's turn
+    assert [r["rot-err"] for r in raw.per_image] == pytest.approx([100.0, 100.0], abs=0.05)
+    assert all(row["rot-acc-30"] == 0.0 for row in raw.table)
+
+
 def _interior(fg: torch.Tensor, r: int) -> list[tuple[int, int]]:
     """Pixels of a (H, W) bool mask whose (2r+1)^2 neighbourhood (clipped to the frame) is all foreground."""
     H, W = fg.shape
@@ -410,6 +430,20 @@ def test_images_protocol_and_max_images(real_model, synth_root) -> None:
     assert [row["rec-mse"] for row in result.per_image] == pytest.approx(mse.tolist(), rel=1e-5)
 
 
+def test_items_without_an_index_are_numbered_in_order(real_model) -> None:
+    """A dataset of another library (items without ``index``) is scored, its rows numbered by position."""
+    images = torch.rand(4, 3, 32, 32, generator=torch.Generator().manual_seed(3))
+    data = [{"image": image} for image in images]
+    result = evaluate(real_model, data, EvalOptions("images", report_samples=2, **FAST), "mine")
+    assert [row["index"] for row in result.per_image] == [0, 1, 2, 3]
+    assert [s.index for s in result.samples] == [0, 1] and result.table[0]["group"] == "mine"
+    with torch.no_grad():
+        pred = real_model.predict(images)
+        rec, _ = real_model.render(pred.verts, pred.texture, pred.R, pred.T, pred.background)
+    mse = (rec - images).square().mean(dim=(1, 2, 3))
+    assert [row["rec-mse"] for row in result.per_image] == pytest.approx(mse.tolist(), rel=1e-5)
+
+
 def test_helpers_and_validation() -> None:
     assert (
         spread_indices(10, 3) == [0, 4, 9] and spread_indices(3, None) == [0, 1, 2] and spread_indices(2, 5) == [0, 1]
@@ -423,6 +457,10 @@ def test_helpers_and_validation() -> None:
         EvalOptions("nope")
     with pytest.raises(ValueError, match="num_points"):
         EvalOptions("shapenet", num_points=0)
+    for workers in (0, -2):  # scipy's k-d trees refuse them in the middle of an evaluation
+        with pytest.raises(ValueError, match=r"^nn_workers must be None, -1 \(all cores\) or >= 1, got -?\d$"):
+            EvalOptions("shapenet", nn_workers=workers)
+    assert EvalOptions("shapenet", nn_workers=-1).nn_workers == -1
 
 
 POSE_METRICS = {"rot-err-mean", "rot-err-median", "rot-acc-30", "azim-err-mean", "azim-err-median"}

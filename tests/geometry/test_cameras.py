@@ -158,6 +158,10 @@ def test_world_to_view_shape_errors():
         ({"focal_length": torch.tensor([1.0, 2.0])}, "focal_length must be one number"),
         ({"fov": 30.0, "zfar": float("inf")}, "need 0 <= znear < zfar, both finite"),
         ({"fov": float("nan")}, "fov must be in"),
+        ({"fov": "wide"}, "fov must be one number, got 'wide'"),
+        ({"fov": [30.0]}, r"fov must be one number, got \[30.0\]"),
+        ({"fov": 30.0, "znear": None}, "znear must be one number, got None"),
+        ({"fov": 30.0, "zfar": "far"}, "zfar must be one number, got 'far'"),
     ],
 )
 def test_a_camera_that_cannot_project_is_refused(kwargs, match):

@@ -55,6 +55,23 @@ def test_reference_uvs_straddle_the_seam_and_ours_do_not():
     assert torch.allclose(ours[..., 1], spherical_vertex_uvs(v)[f][..., 1])
 
 
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda v, f: spherical_vertex_uvs(v[None]), r"verts must have shape \(V, 3\), got \(1, 42, 3\)"),
+        (lambda v, f: spherical_face_uvs(v[None], f), r"verts must have shape \(V, 3\), got \(1, 42, 3\)"),
+        (lambda v, f: spherical_face_uvs(v, f[None]), r"faces must have shape \(F, 3\), got \(1, 80, 3\)"),
+        (lambda v, f: spherical_face_uvs(v, f + 1), r"face indices must be in \[0, 42\)"),
+    ],
+    ids=["vertex-batch", "face-batch", "faces-batch", "faces-range"],
+)
+def test_spherical_uvs_name_a_batch_of_meshes(call, match):
+    # a renderer's vertices are (B, V, 3): the UVs are one mesh's, said in one line
+    v, f = icosphere(1)
+    with pytest.raises(ValueError, match=match):
+        call(v, f)
+
+
 def _periodic_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Naive texel-centred bilinear lookup of ``image`` (C, H, W) at ``uv`` (N, 2), periodic in u: (N, C)."""
     c, h, w = image.shape

@@ -41,6 +41,15 @@ def test_azimuth_error_and_extraction():
         torch.testing.assert_close(got, want, atol=1e-3, rtol=0)
 
 
+def test_elevations_near_the_poles_are_read_back_in_float32() -> None:
+    """Within 1e-3 degrees of the angles a float32 rotation was made from, up to 0.01 degree from the pole."""
+    elev = torch.tensor([89.99, 89.9, -89.95, 89.5, -60.0])
+    azim, roll = torch.full_like(elev, 30.0), torch.full_like(elev, 10.0)
+    out = rotation_to_azim_elev_roll(azim_elev_roll_to_rotation(azim, elev, roll))
+    for got, want in zip(out, (azim, elev, roll)):
+        torch.testing.assert_close(got, want, atol=1e-3, rtol=0)
+
+
 def test_align_canonical_frame_with_outliers():
     R_gt = random_rotations(300, 1)
     Q = random_rotations(1, 2)[0]
@@ -96,3 +105,12 @@ def test_the_medians_of_an_even_number_of_views_are_the_mean_of_the_middle_two()
     expected = 25.0  # (10 + 40) / 2; torch.median gives 10
     assert errors["rot-err-median"] == pytest.approx(expected, abs=1e-3)
     assert errors["azim-err-median"] == pytest.approx(expected, abs=1e-3)
+
+
+def test_errors_aligned_on_one_view_are_refused() -> None:
+    """The rotation aligning one view makes its error 0 whatever the prediction."""
+    R_gt = azim_elev_roll_to_rotation(torch.zeros(1), torch.zeros(1), torch.zeros(1))
+    R_pred = azim_elev_roll_to_rotation(torch.tensor([120.0]), torch.zeros(1), torch.zeros(1))
+    assert pose_errors(R_pred, R_gt)["rot-err-mean"] == pytest.approx(120.0, abs=1e-3)
+    with pytest.raises(ValueError, match="^aligning the canonical frame needs at least 2 rotations, got 1$"):
+        pose_errors(R_pred, R_gt, align=True)

@@ -60,6 +60,10 @@ def test_fixed_buffers_keep_the_default_pairs(case):
     dense_a, dense_b = default.to_dense(), fixed.to_dense()
     for name in ("pix_to_face", "zbuf", "bary_coords", "dists"):
         assert torch.equal(getattr(dense_a, name), getattr(dense_b, name)[:, :, :, : default.num_slots]), name
+    # in PyTorch3D's shapes, K = faces_per_pixel: the same tensors, the padding rows left out
+    dense_a, dense_b = default.to_dense(K), fixed.to_dense(K)
+    for name in ("pix_to_face", "zbuf", "bary_coords", "dists"):
+        assert torch.equal(getattr(dense_a, name), getattr(dense_b, name)), name
 
 
 def test_fixed_buffers_too_small_drop_pairs_and_say_what_they_needed():

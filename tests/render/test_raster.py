@@ -107,6 +107,21 @@ def _brute_force(verts_ndc: np.ndarray, faces: np.ndarray, size: int, blur: floa
     return result
 
 
+def test_dense_fragments_in_pytorch3d_shapes_pad_the_slots_no_pixel_filled():
+    verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)
+    ndc = PerspectiveCamera(fov=30.0).transform_points(verts, R, T)
+    frags = rasterize_meshes(ndc, faces, 12, blur_radius_from_sigma(5e-4), 25)
+    K = frags.num_slots
+    assert 1 < K < 25
+    kept, padded = frags.to_dense(), frags.to_dense(25)
+    for name in ("pix_to_face", "zbuf", "bary_coords", "dists"):
+        got, want = getattr(padded, name), getattr(kept, name)
+        assert got.shape[3] == 25 and torch.equal(got[:, :, :, :K], want), name
+        assert (got[:, :, :, K:] == -1).all(), name
+    with pytest.raises(ValueError, match=f"faces_per_pixel=1 is below the {K} faces a pixel kept"):
+        frags.to_dense(1)
+
+
 @pytest.mark.parametrize("K", [1, 4, 25])
 def test_fragments_match_brute_force(K):
     verts, faces, R, T = posed_ellipsoids(batch=2, level=1, dtype=torch.float64, seed=1)

@@ -122,8 +122,13 @@ def _check(args: argparse.Namespace) -> int:
 
     name, tag = _dataset_and_tag(args.dataset, args.tag)
     check_categories_option(name, args.categories)
+    categories = None
+    if args.categories is not None:  # comma- or space-separated, as the other commands' --categories and --category
+        categories = [c for arg in args.categories for c in arg.split(",") if c]
+        if not categories:
+            raise UsageError("--categories names no category; drop it to check every category")
     options = {"tag": tag} if name == "lsun" else {}
-    dataset = build_dataset(name, args.split, args.root, categories=args.categories, **options)
+    dataset = build_dataset(name, args.split, args.root, categories=categories, **options)
     print(f"{args.dataset} {args.split}: {len(dataset)} items")
     if args.all:
         return _read_every_item(dataset)
@@ -217,7 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("--root", required=True)
     check.add_argument("--split", choices=["train", "val", "test"], default="train")
-    check.add_argument("--categories", nargs="*", default=None, help="ShapeNet categories")
+    check.add_argument(
+        "--categories", nargs="*", default=None, help="ShapeNet / synthetic categories, comma- or space-separated"
+    )
     check.add_argument(
         "--tag",
         default=None,

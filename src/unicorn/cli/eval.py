@@ -169,7 +169,8 @@ def _add_report_arguments(p: argparse.ArgumentParser) -> None:
         "--nn-workers",
         type=whole_number,
         default=None,
-        help="threads of the CPU nearest-neighbour search (-1: all cores; default: torch's thread count)",
+        help="threads of scipy's nearest-neighbour search, used where pykdtree is not installed (-1: all cores; "
+        "default: torch's thread count); pykdtree searches with OMP_NUM_THREADS threads",
     )
     p.add_argument(
         "--seed", type=seed_number, default=EvalOptions.seed, help="seed of the view choice and point sampling"
@@ -201,6 +202,8 @@ def check_ranges(parser: argparse.ArgumentParser, args: argparse.Namespace) -> N
             parser.error(f"--{name.replace('_', '-')} must be {describe_range(low, high)}")
     if args.view_size < 1:
         parser.error("--view-size must be >= 1")
+    if args.nn_workers is not None and not (args.nn_workers == -1 or args.nn_workers >= 1):
+        parser.error("--nn-workers must be -1 (all cores) or >= 1")
 
 
 def _out_dir(args: argparse.Namespace, run_dir: Path | None, dataset: str | None) -> Path | None:

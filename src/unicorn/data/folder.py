@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +133,13 @@ def unannotated_item(image: np.ndarray, img_size: int, flip: bool) -> dict[str, 
     }
 
 
+def _suffixes(extensions: str | Sequence[str]) -> tuple[str, ...]:
+    """Lower-case file suffixes with their dot: ``png``, ``.PNG`` and ``.png`` are one (a config's list of bare
+    extensions would otherwise match no file)."""
+    given = [extensions] if isinstance(extensions, str) else list(extensions)
+    return tuple(("" if str(e).startswith(".") else ".") + str(e).lower() for e in given)
+
+
 class ImageFolder(UnicornDataset):
     """Every image under a folder (recursively), for training on one's own photos.
 
@@ -139,7 +147,8 @@ class ImageFolder(UnicornDataset):
         root: folder of images (any depth).
         img_size: side of the returned square images.
         augment: random horizontal flips (training).
-        extensions: accepted file suffixes (case-insensitive).
+        extensions: accepted file suffixes, with or without their dot (case-insensitive): ``(".jpg", "png")``, or
+            one as a string.
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
 
     Items: ``image`` (3, S, S), ``mask`` (1, S, S) of ones (``has_mask`` False), dummy pose.
@@ -152,7 +161,7 @@ class ImageFolder(UnicornDataset):
         root: str | Path,
         img_size: int = 64,
         augment: bool = False,
-        extensions: tuple[str, ...] = IMAGE_EXTENSIONS,
+        extensions: str | Sequence[str] = IMAGE_EXTENSIONS,
         on_error: OnError = "raise",
     ) -> None:
         super().__init__(on_error)
@@ -160,9 +169,10 @@ class ImageFolder(UnicornDataset):
         folder = require(self.image_root(), "image folder", self.hint)
         if not folder.is_dir():
             raise DatasetError(f"{folder} is a file, not a folder of images. {self.hint}")
-        self.files = list_images(folder, tuple(e.lower() for e in extensions))
+        suffixes = _suffixes(extensions)
+        self.files = list_images(folder, suffixes)
         if not self.files:
-            raise DatasetNotFoundError(self.image_root() / "*", f"images with suffix {list(extensions)}", self.hint)
+            raise DatasetNotFoundError(self.image_root() / "*", f"images with suffix {list(suffixes)}", self.hint)
         self.img_size = int(img_size)
         self.augment = bool(augment)
 

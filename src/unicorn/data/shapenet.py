@@ -174,22 +174,40 @@ def read_metadata(root: Path) -> dict[str, dict[str, str]]:
 
 
 def resolve_categories(metadata: dict[str, dict[str, str]], categories: str | list[str] | None) -> list[str]:
-    """Synset ids for category names (any comma-separated token of the metadata name) or ids; None = all."""
+    """Synset ids for category names (any comma-separated token of the metadata name) or ids; None = all.
+
+    Raises:
+        DatasetError: an unknown category (a number: a synset unquoted in YAML), or a name that several synsets
+            share (a synthetic category generated into a ShapeNet root is named as the ShapeNet one it stands in
+            for): the message names the synsets.
+    """
     if categories is None:
         return sorted(metadata)
     if isinstance(categories, str):
         categories = [categories]
-    by_name = {token.strip(): synset for synset, info in metadata.items() for token in info["name"].split(",")}
+    by_name: dict[str, list[str]] = {}
+    for synset, info in metadata.items():
+        for token in dict.fromkeys(token.strip() for token in info["name"].split(",")):
+            by_name.setdefault(token, []).append(synset)
     synsets = []
     for cat in categories:
+        given_as_number = isinstance(cat, int) and not isinstance(cat, bool)
         cat = str(cat)
         if cat in metadata:
             synsets.append(cat)
+        elif len(by_name.get(cat, ())) == 1:
+            synsets.append(by_name[cat][0])
         elif cat in by_name:
-            synsets.append(by_name[cat])
+            named = ", ".join(f"{synset} ({metadata[synset]['name']})" for synset in by_name[cat])
+            raise DatasetError(
+                f"ShapeNet category {cat!r} names several synsets in metadata.yaml: {named}; give the synset, or a "
+                "name only one of them has"
+            )
         else:
             known = sorted({*metadata, *by_name})
-            raise DatasetError(f"unknown ShapeNet category {cat!r}; metadata.yaml lists {known}")
+            # a config file's unquoted synset: YAML reads 03001627 as the octal number 787351
+            number = "; a number: write synsets in quotes ('03001627') in YAML files" if given_as_number else ""
+            raise DatasetError(f"unknown ShapeNet category {cat!r}{number}; metadata.yaml lists {known}")
     return synsets
 
 
@@ -235,6 +253,12 @@ class ShapeNetNMR(UnicornDataset):
             raise DatasetError(f"split must be 'train', 'val' or 'test', got {split!r}")
         if views not in ("all", "random"):
             raise DatasetError(f"views must be 'all' or 'random', got {views!r}")
+        if n_points is not None and (
+            isinstance(n_points, bool) or not isinstance(n_points, (int, np.integer)) or n_points < 1
+        ):
+            raise DatasetError(
+                f"n_points must be a whole number >= 1 (points kept per model) or None (all), got {n_points!r}"
+            )
         self.root = require(root, "ShapeNet-NMR root", _HINT)
         self.metadata = read_metadata(self.root)
         self.synsets = resolve_categories(self.metadata, categories)

@@ -129,13 +129,21 @@ def _resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False, antialias=True).clamp(0, 1)
 
 
-def _require_poses(batch: Mapping[str, Any]) -> None:
+def _indices(batch: Mapping[str, Any], first_row: int) -> list[int]:
+    """Each item's ``index``; for items without one (a dataset of another library), its position in the evaluation,
+    the batch's first item being at ``first_row``."""
+    if "index" in batch:
+        return [int(i) for i in batch["index"]]
+    return list(range(first_row, first_row + len(batch["image"])))
+
+
+def _require_poses(batch: Mapping[str, Any], first_row: int) -> None:
     """Raise unless every item of the batch has a ground-truth pose (what ``oracle_pose`` substitutes)."""
     has_pose = batch.get("has_pose")
     if not isinstance(has_pose, torch.Tensor) or "R" not in batch or "T" not in batch:
         raise ValueError("oracle_pose needs ground-truth poses, but the dataset's items have no R / T / has_pose")
     if not bool(has_pose.all()):
-        missing = [int(i) for i, ok in zip(batch["index"], has_pose.tolist()) if not ok]
+        missing = [i for i, ok in zip(_indices(batch, first_row), has_pose.tolist()) if not ok]
         raise ValueError(f"oracle_pose needs a ground-truth pose for every item; items {missing} have none")
 
 
@@ -163,7 +171,7 @@ def evaluate(
         dataset: test items (``image``, ``mask``/``has_mask``, ``R``/``T``, ``points``/``normals``, ``keypoints``...
             as :mod:`unicorn.data` yields them); a :class:`~torch.utils.data.Subset` to evaluate part of it. An item
             whose ``index`` was scored already (the next readable item that a dataset skipping an unreadable file
-            returns in its place) is not scored again.
+            returns in its place) is not scored again; items without ``index`` are numbered by their position.
         options: :class:`EvalOptions`.
         dataset_name: group name for datasets without categories, and the label of the progress bar.
         device: where the model and the metrics run.
@@ -237,7 +245,7 @@ def _predict_and_render(
     size = model.config["image_size"]
     images = _resize_images(batch["image"].to(device), size)
     if options.oracle_pose:
-        _require_poses(batch)
+        _require_poses(batch, first_row)
     pred = model.predict(images, average_texture=options.average_texture)
     # the pose everything is rendered and aligned with: the prediction's, or the ground truth's (oracle)
     if options.oracle_pose:
@@ -257,8 +265,9 @@ def _predict_and_render(
 def _append_rows(view: EvaluatedBatch, acc: Accumulator, samples: list[Sample], report_samples: int) -> None:
     """The batch's per-image rows into ``acc.rows``, and its first images into ``samples`` up to ``report_samples``."""
     batch = view.batch
+    indices = _indices(batch, view.first_row)
     for i, group in enumerate(view.groups):
-        row: dict[str, Any] = {"index": int(batch["index"][i]), "group": group}
+        row: dict[str, Any] = {"index": indices[i], "group": group}
         row.update({k: v[i] for k, v in view.labels.items()})
         row.update({k: float(v[i]) for k, v in view.scores.items()})
         acc.rows.append(row)

@@ -38,8 +38,9 @@ class EvaluableModel(Protocol):
     @property
     def n_candidates(self) -> int: ...
 
-    def predict(self, images: torch.Tensor) -> Prediction:
-        """Everything predicted for images (B, 3, S, S) in [0, 1]."""
+    def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
+        """Everything predicted for images (B, 3, S, S) in [0, 1]; ``average_texture``: each texture replaced by its
+        mean colour (``unicorn-eval --average-texture``)."""
         ...
 
     def render(

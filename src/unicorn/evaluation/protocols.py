@@ -9,7 +9,8 @@ Protocols (UNICORN's, see ``docs/evaluation.md`` and :mod:`unicorn.metrics`):
   at 32^3 under the same two alignments, see below), ``mask-iou`` of the hard-rendered silhouette (3 x 3 samples
   per pixel, the pixels more than half covered, see ``EvalOptions.mask_supersample``).
   Per category: pose errors (:func:`~unicorn.metrics.pose_errors`, after aligning the learned canonical frame to
-  the ground truth with one rotation). Categories are averaged, then the categories.
+  the ground truth with one rotation; NaN for a category of one image, which that rotation aligns exactly).
+  Categories are averaged, then the categories.
 - ``"cub"`` (``cub_200``): ``mask-iou`` per image with masks at 256 px, and PCK by keypoint transfer over image
   pairs (:func:`~unicorn.metrics.keypoint_transfer_pck`), the visible vertices being those of faces hit by the 2x
   supersampled hard rasterisation (512 px for the 256 px keypoint frame).
@@ -188,8 +189,9 @@ class EvalOptions:
         average_texture: predict mean-colour textures (for checkpoints still in that training phase).
         report_samples: images kept (on CPU) for the visual report.
         num_workers: DataLoader workers.
-        nn_workers: threads of the nearest-neighbour queries; None: torch's thread count (exact search: the
-            results do not depend on it).
+        nn_workers: threads of the nearest-neighbour queries of scipy's k-d trees, the backend where pykdtree is
+            not installed (pykdtree's use ``OMP_NUM_THREADS`` threads); -1: all cores; None: torch's thread count
+            (exact search: the results do not depend on it).
         seed: seed of the point sampling.
         progress: show a progress bar.
         progress_label: the bar's label (default ``eval <dataset name>``).
@@ -236,6 +238,8 @@ class EvalOptions:
         check_ranges(vars(self), EvalOptions)
         check_point_count(f"num_points={self.num_points}", self.num_points)
         check_point_count(f"shape_points={self.shape_points}", self.shape_points)
+        if self.nn_workers is not None and not (self.nn_workers == -1 or self.nn_workers >= 1):
+            raise ValueError(f"nn_workers must be None, -1 (all cores) or >= 1, got {self.nn_workers}")
         if self.oracle_pose and not protocol.poses:
             # the other protocols have no ground-truth pose to substitute
             raise ValueError(f"oracle_pose needs the 'shapenet' protocol (ground-truth poses), got {self.protocol!r}")

@@ -215,15 +215,21 @@ def _set_metrics(
     if group in acc.poses:
         rows, R_pred, R_gt, R_all = zip(*acc.poses[group])
         R_pred, R_gt, R_all = torch.stack(R_pred), torch.stack(R_gt), torch.stack(R_all)  # R_all (N, K, 3, 3)
-        if options.align_pose:  # once, for the summary and the per-image errors
-            Q = align_canonical_frame(R_pred, R_gt).to(R_pred)
-            R_pred, R_all = Q @ R_pred, Q @ R_all
-        out.update(pose_errors(R_pred, R_gt))
-        if R_all.shape[1] > 1:  # the best of the candidates: what a perfect choice among them would score
-            best = geodesic_error(R_all, R_gt.unsqueeze(1)).min(1).values
-            out["rot-acc-30-any"] = rotation_accuracy(best, 30.0)
-        for r, err in zip(rows, geodesic_error(R_pred, R_gt).tolist()):
-            acc.rows[r]["rot-err"] = err
+        if options.align_pose and len(rows) < 2:
+            # the rotation aligning one image makes its error 0 whatever the prediction: the errors are undefined
+            out.update(dict.fromkeys(pose_errors(R_pred, R_gt), math.nan))
+            if R_all.shape[1] > 1:
+                out["rot-acc-30-any"] = math.nan
+        else:
+            if options.align_pose:  # once, for the summary and the per-image errors
+                Q = align_canonical_frame(R_pred, R_gt).to(R_pred)
+                R_pred, R_all = Q @ R_pred, Q @ R_all
+            out.update(pose_errors(R_pred, R_gt))
+            if R_all.shape[1] > 1:  # the best of the candidates: what a perfect choice among them would score
+                best = geodesic_error(R_all, R_gt.unsqueeze(1)).min(1).values
+                out["rot-acc-30-any"] = rotation_accuracy(best, 30.0)
+            for r, err in zip(rows, geodesic_error(R_pred, R_gt).tolist()):
+                acc.rows[r]["rot-err"] = err
     kps = acc.keypoints.get(group, [])
     if len(kps) >= 2:
         verts, R, T, visible, keypoints = (torch.stack(x) for x in zip(*kps))

@@ -86,6 +86,14 @@ def opencv_camera(
     return K, flip @ R.T, flip @ T.to(R)
 
 
+def _one_number(name: str, value: object) -> float:
+    """``value`` as a float (a one-element tensor or NumPy scalar included), or a ValueError naming ``name``."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{name} must be one number, got {value!r}") from None
+
+
 class PerspectiveCamera(nn.Module):
     """Pinhole camera with a square-pixel perspective projection.
 
@@ -115,15 +123,14 @@ class PerspectiveCamera(nn.Module):
         if (fov is None) == (focal_length is None):
             raise ValueError("give exactly one of fov (degrees) or focal_length (NDC units)")
         if fov is not None:
+            fov = _one_number("fov", fov)
             if not 0.0 < fov < 180.0:
                 raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
             focal_length = 1.0 / math.tan(math.radians(fov) / 2.0)
-        try:
-            focal_length = float(focal_length)
-        except (TypeError, ValueError, RuntimeError):
-            raise ValueError(f"focal_length must be one number, got {focal_length!r}") from None
+        focal_length = _one_number("focal_length", focal_length)
         if not (math.isfinite(focal_length) and focal_length > 0):
             raise ValueError(f"focal_length must be a finite number > 0, got {focal_length}")
+        znear, zfar = _one_number("znear", znear), _one_number("zfar", zfar)
         if not (0.0 <= znear < zfar and math.isfinite(zfar)):
             raise ValueError(f"need 0 <= znear < zfar, both finite, got znear={znear}, zfar={zfar}")
         self.focal_length = float(focal_length)

@@ -10,6 +10,8 @@ import math
 import torch
 import trimesh
 
+from unicorn.checks import check_faces, check_shape
+
 __all__ = [
     "ellipsoid",
     "icosphere",
@@ -56,7 +58,12 @@ def spherical_vertex_uvs(verts: torch.Tensor) -> torch.Tensor:
 
     These are what the released checkpoints were trained with; they are discontinuous along the seam
     (x = 0, z < 0) and undefined at the poles. Use :func:`spherical_face_uvs` for rendering.
+
+    Raises:
+        unicorn.checks.ShapeError: ``verts`` is not (V, 3) floating point (a batch (B, V, 3) included: give one
+            mesh's vertices).
     """
+    check_shape(verts, "V, 3", "verts", floating=True)
     r = verts.norm(dim=-1).clamp_min(1e-5)
     theta = torch.acos((verts[:, 1] / r).clamp(-1 + 1e-5, 1 - 1e-5))
     phi = torch.atan2(verts[:, 0], verts[:, 2])
@@ -70,7 +77,17 @@ def spherical_face_uvs(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
     than half a turn inside every face; sample them with a horizontally periodic texture lookup
     (``TexturesUV(..., wrap_u=True)``). A pole vertex, whose azimuth is undefined, takes the mean ``u`` of the
     two other vertices of each face it belongs to.
+
+    Args:
+        verts: (V, 3) floating point vertices of one mesh.
+        faces: (F, 3) integer vertex indices.
+
+    Raises:
+        unicorn.checks.ShapeError, TypeError, unicorn.checks.FaceIndexError: a batch of meshes, or faces not
+            (F, 3) integer indices of ``verts``.
     """
+    check_shape(verts, "V, 3", "verts", floating=True)
+    check_faces(faces, verts.shape[0], allow_empty=True)
     uv = spherical_vertex_uvs(verts)[faces]  # (F, 3, 2)
     u = uv[..., 0]
     straddles = (u.max(dim=1).values - u.min(dim=1).values) > 0.5

@@ -128,10 +128,11 @@ def look_at_rotation(
     Args:
         camera_position: (..., 3) camera centres in world coordinates.
         at: (..., 3) target points, the origin by default.
-        up: (..., 3) world up direction, +Y by default.
+        up: (..., 3) world up direction, +Y by default. A camera looking along it (to rounding) takes as X axis
+            the cross product of the world axis least aligned with its viewing direction and that direction.
 
     Returns:
-        (..., 3, 3) ``R`` whose columns are the camera's X (left), Y (up) and Z (forward) axes in world
+        (..., 3, 3) rotations ``R`` whose columns are the camera's X (left), Y (up) and Z (forward) axes in world
         coordinates, so that ``(x - camera_position) @ R`` are view coordinates.
 
     Raises:
@@ -147,11 +148,17 @@ def look_at_rotation(
     if bool((forward.norm(dim=-1) < 1e-8).any()):
         raise ValueError("look_at: a camera is at the point it looks at (distance 0), so it has no viewing direction")
     z_axis = torch.nn.functional.normalize(forward, dim=-1)
-    x_axis = torch.nn.functional.normalize(torch.cross(up.to(z_axis).expand_as(z_axis), z_axis, dim=-1), dim=-1)
-    # looking straight along `up`: any x axis orthogonal to z will do
-    degenerate = x_axis.norm(dim=-1, keepdim=True) < 1e-5
+    up = up.to(z_axis).expand_as(z_axis)
+    side = torch.cross(up, z_axis, dim=-1)
+    norm = side.norm(dim=-1, keepdim=True)
+    # looking along `up` to rounding (a camera straight above its target): any x axis orthogonal to z will do. A
+    # fixed floor on the norm instead (normalize's eps) would leave x shorter than 1 in float64, and R no rotation
+    eps = torch.finfo(z_axis.dtype).eps
+    degenerate = norm <= 4 * eps * up.norm(dim=-1, keepdim=True)
+    x_axis = side / torch.where(degenerate, 1.0, norm)  # not by a zero norm: its gradient would be NaN
     if degenerate.any():
-        x_ref = z_axis.new_tensor([1.0, 0.0, 0.0]).expand_as(z_axis)
+        # the world axis least aligned with z, so that the cross product is never 0 (the X axis is when up is X)
+        x_ref = torch.nn.functional.one_hot(z_axis.abs().argmin(dim=-1), 3).to(z_axis)
         alt = torch.nn.functional.normalize(torch.cross(x_ref, z_axis, dim=-1), dim=-1)
         x_axis = torch.where(degenerate, alt, x_axis)
     y_axis = torch.nn.functional.normalize(torch.cross(z_axis, x_axis, dim=-1), dim=-1)
@@ -172,7 +179,8 @@ def look_at_view_transform(
             tensors that broadcast together.
         at: (B, 3) or (3,) points looked at (tensors or nested lists, as PyTorch3D's ``at=((0, 0, 0),)``); the
             origin by default.
-        up: (B, 3) or (3,) world up directions; +Y by default.
+        up: (B, 3) or (3,) world up directions; +Y by default, and straight above or below the target (elev +-90,
+            where +Y is the viewing direction) the limit of the views beside the pole, which turns with ``azim``.
 
     Returns:
         R: (B, 3, 3) and T: (B, 3) with ``x_view = x_world @ R + T``; B is the broadcast size of the inputs
@@ -181,15 +189,28 @@ def look_at_view_transform(
     Raises:
         ValueError: ``at`` or ``up`` not of shape (..., 3), or a camera at distance 0 from ``at``.
     """
+    dist, elev, azim = torch.broadcast_tensors(_as_tensor(dist), _as_tensor(elev), _as_tensor(azim))
     eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
     if at is not None:
         at = torch.as_tensor(at)  # PyTorch3D's callers pass lists: at=[(0, 0, 0)]
         check_shape(at, "*, 3", "at")
         at = at.reshape(-1, 3).to(eye)
         eye = eye + at
-    R = look_at_rotation(eye, at, None if up is None else torch.as_tensor(up).to(eye))
+    up = _orbit_up(elev, azim).reshape(-1, 3) if up is None else torch.as_tensor(up)
+    R = look_at_rotation(eye, at, up.to(eye))
     T = -(eye.unsqueeze(1) @ R).squeeze(1)
     return R, T
+
+
+def _orbit_up(elev: torch.Tensor, azim: torch.Tensor) -> torch.Tensor:
+    """(..., 3) the +Y axis of a camera at ``elev``, ``azim`` (degrees, (...,)) looking at its centre with world up
+    +Y: the direction of growing elevation, turned over past the poles (cos(elev) < 0), as +Y makes it. Unlike +Y
+    it is defined at the poles (elev = +-90, where cos(elev) is rounding of either sign): there it is the limit from
+    the equator's side, so a view from straight above turns with the azimuth as the views just below it do."""
+    e, a = torch.deg2rad(elev), torch.deg2rad(azim)
+    up = torch.stack([-e.sin() * a.sin(), e.cos(), -e.sin() * a.cos()], dim=-1)
+    over = (e.cos() < 0) & (torch.remainder(elev, 180.0) != 90.0)
+    return torch.where(over.unsqueeze(-1), -up, up)
 
 
 def look_at_view_parameters(R: torch.Tensor, T: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -197,8 +218,9 @@ def look_at_view_parameters(R: torch.Tensor, T: torch.Tensor) -> dict[str, torch
 
     ``at`` is the point of the optical axis at the depth of the world origin (``T[..., 2]`` in front of the
     camera), so ``dist`` is that depth; ``up`` is the camera's own +Y axis, which carries the roll. For a camera
-    looking at the origin with no roll, ``at`` is 0 and ``up`` is +Y: ``look_at_view_transform(dist, elev, azim)``
-    alone gives it back.
+    looking at the origin with no roll, ``at`` is 0 and ``up`` may be left out (+Y gives the same camera):
+    ``look_at_view_transform(dist, elev, azim)`` alone gives it back. A camera straight above or below its target
+    (``elev`` +-90, where azimuth and roll are one turn) takes the azimuth of its ``up``, and so is such a camera.
 
     Args:
         R: (..., 3, 3) world-to-view rotations (``x_view = x_world @ R + T``).
@@ -215,8 +237,16 @@ def look_at_view_parameters(R: torch.Tensor, T: torch.Tensor) -> dict[str, torch
     dist = T[..., 2]
     at = centre + dist.unsqueeze(-1) * forward
     back = -forward  # direction from `at` to the camera
-    elev = torch.rad2deg(torch.asin(back[..., 1].clamp(-1.0, 1.0)))
+    horizontal = torch.hypot(back[..., 0], back[..., 2])
+    # atan2, not asin(back_y): as accurate near the poles as elsewhere (asin puts float32's 89.99 degrees at 90)
+    elev = torch.rad2deg(torch.atan2(back[..., 1], horizontal))
     azim = torch.rad2deg(torch.atan2(back[..., 0], back[..., 2]))
+    # at a pole the horizontal part of `back` is rounding: the azimuth is read from up, as look_at_view_transform
+    # turns it there (the camera's +Y is -sin(elev) (sin(azim), 0, cos(azim)))
+    pole = horizontal <= 4 * torch.finfo(back.dtype).eps
+    sign = back[..., 1].sign()
+    elev = torch.where(pole, 90.0 * sign, elev)
+    azim = torch.where(pole, torch.rad2deg(torch.atan2(-sign * up[..., 0], -sign * up[..., 2])), azim)
     return {"dist": dist, "elev": elev, "azim": azim, "at": at, "up": up}
 
 

@@ -66,7 +66,8 @@ def rotation_to_azim_elev_roll(R: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     """
     check_shape(R, "*, 3, 3", "R")
     azim = torch.rad2deg(torch.atan2(R[..., 0, 2], R[..., 2, 2]))
-    elev = -torch.rad2deg(torch.asin(R[..., 1, 2].clamp(-1.0, 1.0)))
+    # atan2, not asin(-R[1, 2]): as accurate near +-90 as elsewhere (asin reads float32's 89.99 degrees as 90)
+    elev = torch.rad2deg(torch.atan2(-R[..., 1, 2], torch.hypot(R[..., 0, 2], R[..., 2, 2])))
     roll = torch.rad2deg(torch.atan2(-R[..., 1, 0], R[..., 1, 1]))
     return azim, elev, roll
 
@@ -159,7 +160,8 @@ def pose_errors(
     Args:
         R_pred: (N, 3, 3) predicted world-to-view rotations.
         R_gt: (N, 3, 3) ground-truth rotations.
-        align: first map the learned canonical frame to the ground truth with :func:`align_canonical_frame`.
+        align: first map the learned canonical frame to the ground truth with :func:`align_canonical_frame`
+            (needs N >= 2: one view is aligned exactly).
         accuracy_threshold: degrees for the accuracy ratio (30 = pi / 6, the standard Acc_{pi/6}).
         flip_threshold: degrees above which an image counts as predicted turned round (flipped).
 
@@ -169,11 +171,16 @@ def pose_errors(
         above the flip threshold, :func:`~unicorn.metrics.instance.flip_rate`; the keys follow the thresholds),
         ``azim-err-mean`` and ``azim-err-median`` (degrees, azimuths read with
         :func:`rotation_to_azim_elev_roll`).
+
+    Raises:
+        ValueError: no rotations, or ``align`` with a single one.
     """
     check_rotations(R_pred, "R_pred")
     check_rotations(R_gt, "R_gt", R_pred.shape[0])
     if R_pred.shape[0] == 0:
         raise ValueError("need at least one rotation")
+    if align and R_pred.shape[0] < 2:  # the rotation aligning one view makes its error 0 whatever the prediction
+        raise ValueError(f"aligning the canonical frame needs at least 2 rotations, got {R_pred.shape[0]}")
     R_gt = R_gt.to(R_pred)
     if align:
         R_pred = align_canonical_frame(R_pred, R_gt).to(R_pred) @ R_pred

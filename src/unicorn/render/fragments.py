@@ -101,17 +101,27 @@ class Fragments:
         """Slots of the per-pixel layouts: ``num_slots``, one more for the padding of fixed buffers (at least 1)."""
         return max(self.num_slots, 1) + (self.valid is not None)
 
-    def to_dense(self) -> DenseFragments:
-        """Padded (B, H, W, K) tensors as PyTorch3D returns them (differentiable in bary, dists and zbuf)."""
-        B, (H, W), K = self.batch_size, self.image_size, self.slot_columns
-        n = B * H * W
-        flat = (self.pix, self.slot)
+    def to_dense(self, faces_per_pixel: int | None = None) -> DenseFragments:
+        """Padded (B, H, W, K) tensors as PyTorch3D returns them (differentiable in bary, dists and zbuf).
+
+        Args:
+            faces_per_pixel: K, the rasterizer's ``faces_per_pixel`` for PyTorch3D's shapes, the slots past
+                ``num_slots`` empty; None: K = ``num_slots``, the most faces any pixel kept (at least 1).
+
+        Raises:
+            ValueError: ``faces_per_pixel`` below ``num_slots``.
+        """
+        k = max(self.num_slots, 1) if faces_per_pixel is None else int(faces_per_pixel)
+        if k < max(self.num_slots, 1):
+            raise ValueError(f"faces_per_pixel={faces_per_pixel} is below the {self.num_slots} faces a pixel kept")
+        B, (H, W) = self.batch_size, self.image_size
+        n, K = B * H * W, k + 1  # a column past the last for the padding rows of fixed buffers, left out below
+        flat = (self.pix, self.slot if self.valid is None else torch.where(self.valid, self.slot, k))
         dev, dt = self.bary.device, self.bary.dtype
         pix_to_face = torch.full((n, K), -1, dtype=torch.long, device=dev).index_put(flat, self.face)
         zbuf = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.zbuf)
         dists = torch.full((n, K), -1.0, dtype=dt, device=dev).index_put(flat, self.dists)
         bary = torch.full((n, K, 3), -1.0, dtype=dt, device=dev).index_put(flat, self.bary)
-        k = max(self.num_slots, 1)  # without the padding's column
         return DenseFragments(
             pix_to_face=pix_to_face[:, :k].reshape(B, H, W, k),
             zbuf=zbuf[:, :k].reshape(B, H, W, k),

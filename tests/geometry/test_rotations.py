@@ -1,0 +1,61 @@
+"""Look-at cameras at the poles (straight above or below the target), where the world up is the viewing direction."""
+
+import pytest
+import torch
+
+from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters, look_at_view_transform
+
+DTYPES = [torch.float32, torch.float64]
+
+
+def _assert_rotations(R: torch.Tensor) -> None:
+    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
+    assert torch.allclose(R.transpose(-1, -2) @ R, eye, atol=1e-6)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(R.shape[:-2], dtype=R.dtype), atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("elev", [90.0, -90.0])
+def test_a_camera_straight_above_or_below_is_the_limit_of_the_cameras_beside_the_pole(dtype, elev):
+    azim = torch.tensor([0.0, 45.0, 200.0], dtype=dtype)
+    R, T = look_at_view_transform(2.0, torch.tensor(elev, dtype=dtype), azim)
+    _assert_rotations(R)
+    # the same view as a camera a hundredth of a degree towards the equator: it turns with the azimuth
+    inside = elev - 0.01 if elev > 0 else elev + 0.01
+    R_inside, _ = look_at_view_transform(2.0, torch.tensor(inside, dtype=dtype), azim)
+    assert torch.allclose(R, R_inside, atol=3e-4)
+    # the camera looks at the origin from (0, +-2, 0)
+    assert torch.allclose(R[:, :, 2], torch.tensor([0.0, -elev / 90.0, 0.0], dtype=dtype).expand(3, 3), atol=1e-6)
+    assert torch.allclose(T, torch.tensor([0.0, 0.0, 2.0], dtype=dtype).expand(3, 3), atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "position, up",
+    [([0.0, 2.0, 0.0], None), ([0.0, -3.0, 0.0], None), ([5.0, 0.0, 0.0], [1.0, 0.0, 0.0])],
+    ids=["above", "below", "along-x"],
+)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_a_camera_looking_along_up_gets_a_rotation(position, up, dtype):
+    position = torch.tensor([position], dtype=dtype)
+    R = look_at_rotation(position, up=None if up is None else torch.tensor([up], dtype=dtype))
+    _assert_rotations(R)
+    assert torch.allclose(R[0, :, 2], -position[0] / position[0].norm())  # still looking at the origin
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_look_at_view_parameters_give_the_camera_back_at_and_beside_the_poles(dtype):
+    elev = torch.tensor([90.0, -90.0, 89.99, -89.99, 0.0, 120.0, -179.9], dtype=dtype)
+    azim = torch.tensor([45.0, 100.0, 170.0, -30.0, 10.0, 33.0, 90.0], dtype=dtype)
+    R, T = look_at_view_transform(2.0, elev, azim)
+    p = look_at_view_parameters(R, T)
+    # with the up they give, and without it (+Y): the cameras have no roll
+    atol = 1e-6 if dtype == torch.float32 else 1e-12
+    for up in (p["up"], None):
+        R2, T2 = look_at_view_transform(p["dist"], p["elev"], p["azim"], p["at"], up)
+        _assert_rotations(R2)
+        assert torch.allclose(R2, R, atol=atol)
+        assert torch.allclose(T2, T, atol=atol)
+    # straight above or below, azimuth and roll are one turn: any camera there is one without roll
+    turned = R[:2] @ torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    p = look_at_view_parameters(turned, T[:2])
+    assert torch.allclose(look_at_view_transform(p["dist"], p["elev"], p["azim"])[0], turned, atol=1e-6)
