@@ -3,6 +3,7 @@ options and overrides (Hydra's own argument parser is the oracle)."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
@@ -49,6 +50,23 @@ def test_a_run_folder_under_the_home_folder_is_expanded_as_in_a_shell(monkeypatc
     args = HydraApp("unicorn-train", Path("."), "train").hydra_args([f"{key}={value}", "seed=1"])
     assert args == [*APP_OVERRIDES, f"{key}={quote}/home/me/runs/a{quote}", "seed=1"]  # not ./~/runs/a
     assert HydraApp("unicorn-train", Path("."), "train").hydra_args(["hydra.run.dir=a~b"])[-1] == "hydra.run.dir=a~b"
+
+
+@pytest.mark.parametrize("arg", ["hydra.run.dir=", "hydra.run.dir=''", '+hydra.sweep.dir=" "'])
+def test_a_run_folder_left_empty_is_refused_not_taken_for_the_current_folder(tmp_path, monkeypatch, capsys, arg):
+    # hydra.run.dir=$RUN with RUN unset: Hydra would train in the folder the command was started from
+    monkeypatch.setattr(sys, "argv", ["unicorn-train"])
+    monkeypatch.chdir(tmp_path)
+    app = HydraApp("unicorn-train", tmp_path / "conf", "train")
+    with pytest.raises(SystemExit) as stop:
+        app.run(lambda cfg: pytest.fail("the task ran"), ["seed=1", arg])
+    name = arg.lstrip("+").split("=")[0]
+    assert stop.value.code == 2
+    assert capsys.readouterr().err == (
+        f"unicorn-train: error: {name} is empty: give the folder, or leave {name} out for a new folder under "
+        "paths.log_dir\n"
+    )
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(

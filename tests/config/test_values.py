@@ -82,6 +82,12 @@ CASES = [
     ("task-name-path", [*SYNTHETIC, "task_name=../x"], r"task_name must be a folder name, not a path .* got '\.\./x'"),
     ("task-name-empty", [*SYNTHETIC, "task_name=''"], r"task_name must be a folder name"),
     ("lr-drop-to-zero", [*SYNTHETIC, "optim.lr_drop_gamma=0"], r"optim.lr_drop_gamma .*in \[1e-06, 1\]"),
+    # an unset shell variable (dataset.root=$DATA): the current folder, where the synthetic set was generated
+    ("root-empty", [*SYNTHETIC, "dataset.root="], r"^dataset.root is empty: give the folder of its data"),
+    ("root-blank", [*CUB, "dataset.root=' '"], r"^dataset.root is empty"),
+    # the run's folder ${paths.log_dir}/${task_name}/runs/<time> at the file system's root
+    ("log-dir-empty", [*SYNTHETIC, "paths.log_dir="], r"^paths.log_dir is empty: give the folder the runs go under"),
+    ("init-from-empty", [*SYNTHETIC, "init_from="], r"^init_from is empty: name a weights file"),
     ("deterministic", [*SYNTHETIC, "trainer.deterministic=bogus"], r"trainer.deterministic must be true, false, warn"),
     ("another-renderers-option", [*SYNTHETIC, "renderer=hard"], r"drop them with ~renderer\.faces_per_pixel$"),
     # the one-category datasets built without reading it: a run on the wrong data would not say so

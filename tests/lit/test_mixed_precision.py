@@ -1,5 +1,6 @@
 """A tiny training run with ``trainer.precision=bf16-mixed`` on the CPU: Lightning's autocast around the manual
-steps, the renderer in float32 inside it, and a checkpoint of float32 weights."""
+steps, the renderer in float32 inside it, and a checkpoint of float32 weights; and the float16 loss scaler's skipped
+steps."""
 
 from __future__ import annotations
 
@@ -43,3 +44,20 @@ def test_bf16_mixed_run_trains_and_saves_float32_weights(synthetic_cache, tmp_pa
     assert floats and all(v.dtype == torch.float32 for v in floats)
     memory = state["unicorn"]["ranks"][0]["memory"]
     assert all(v is None or not v.is_floating_point() or v.dtype == torch.float32 for v in memory.values())
+
+
+@pytest.mark.filterwarnings("ignore::unicorn.render.RenderOverflowWarning")
+def test_float16_steps_whose_scaled_gradients_overflow_are_skipped_not_taken_for_divergence(synthetic_cache, tmp_path):
+    # trainer.precision=16-mixed on CUDA: Lightning scales the loss with a GradScaler, whose scaled gradients
+    # overflow by design now and then (it skips those steps and lowers the scale). The same plugin on the CPU, with a
+    # scale so high that every step overflows: the run trains to its end, every update skipped.
+    from lightning.pytorch.plugins.precision import MixedPrecision
+
+    run = build_run(tmp_path, "trainer.max_steps=3")
+    scaler = torch.amp.GradScaler("cpu", init_scale=1e38)
+    run.trainer.strategy.precision_plugin = MixedPrecision("16-mixed", "cpu", scaler=scaler)
+    before = {name: p.detach().clone() for name, p in run.module.named_parameters()}
+    fit(run)
+    assert run.trainer.global_step == 3
+    assert scaler.get_scale() == pytest.approx(1e38 * 0.5**3, rel=1e-6)  # halved at each skipped step
+    assert all(torch.equal(p, before[name]) for name, p in run.module.named_parameters())

@@ -272,6 +272,17 @@ def _home_expanded(value: str) -> str:
     return f"{quote}{os.path.expanduser(inner)}{quote}" if inner.startswith("~") else value
 
 
+def _empty_folder(args: Sequence[str]) -> str | None:
+    """The error for a folder override left empty (``hydra.run.dir=$RUN`` with ``RUN`` unset), which Hydra would
+    take for the current folder, or None."""
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if sep and key.lstrip("+") in _FOLDER_KEYS and not value.strip().strip("'\"").strip():
+            name = key.lstrip("+")
+            return f"{name} is empty: give the folder, or leave {name} out for a new folder under paths.log_dir"
+    return None
+
+
 def _sweep_job(swept: set[str]) -> str:
     """``#<number> (<its values of the swept keys>)`` for a job of a sweep (``-m``), the empty string otherwise."""
     from hydra.core.hydra_config import HydraConfig
@@ -427,6 +438,10 @@ class HydraApp:
 
     def run(self, task: Callable[[DictConfig], Any], args: list[str]) -> None:
         """Run ``task`` on the config Hydra composes from ``args`` (the command line after the program name)."""
+        empty = _empty_folder(args)
+        if empty is not None:
+            print(f"{self.prog}: error: {empty}", file=sys.stderr)
+            raise SystemExit(2)
         sys.argv[1:] = self.hydra_args(args)
         self.swept = swept_keys(args)
         held = None if debug_requested(self.debug) else _HeldStream(sys.stderr)

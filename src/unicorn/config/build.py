@@ -62,6 +62,7 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
         "(dataset.root=/path/to/data)",
     )
     try:
+        _check_paths(typed)
         _check_values(typed)
     except OmegaConfBaseException as err:
         raise ConfigError(f"invalid training config: {err}") from None
@@ -71,6 +72,23 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
         # a check inside a part the config builds (a camera, a pose range): its message names the setting
         raise ConfigError(f"invalid training config: {err}") from None
     return typed
+
+
+#: the settings that name a file or folder, and what to give instead of an empty value
+_PATH_SETTINGS = {
+    "dataset.root": "give the folder of its data (dataset.root=/path/to/data)",
+    "init_from": "name a weights file (a released .pkl, a .ckpt), or leave it out",
+    "paths.log_dir": "give the folder the runs go under (default: outputs)",
+}
+
+
+def _check_paths(cfg: DictConfig) -> None:
+    """Refuse an empty path setting (``dataset.root=$DATA`` with ``DATA`` unset): alone it names the current folder
+    (where the synthetic dataset would be generated), and at the start of another path
+    (``${paths.log_dir}/${task_name}``, the run's folder) the file system's root."""
+    for key, instead in _PATH_SETTINGS.items():
+        value = OmegaConf.select(cfg, key)
+        _check(value is None or str(value).strip() != "", f"{key} is empty: {instead}")
 
 
 def check_optim(optim: Mapping[str, Any], prefix: str = "optim.") -> None:

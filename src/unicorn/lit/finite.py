@@ -1,5 +1,8 @@
 """The trainer's finite-loss check: stop on a NaN or infinite loss or gradient, keeping the last good state.
 
+Under a loss scaler (``trainer.precision=16-mixed``) only the loss terms are checked: the scaled gradients overflow
+now and then by design, and the scaler skips those steps.
+
 Two ways, the same verdict on the iteration that went wrong:
 
 - :meth:`FiniteCheck.now` (the default, and the CPU's): every step reduces the terms and the gradients to one flag
@@ -96,6 +99,10 @@ class FiniteCheck:
         self.module.objectives.memory.undo_push()
 
     def _grads(self) -> list[torch.Tensor]:
+        """The gradients to check; none under a loss scaler (``trainer.precision=16-mixed``): its gradients are
+        scaled, and an overflow is the scaler's to handle (it skips that step and lowers the scale)."""
+        if getattr(self.module.trainer.precision_plugin, "scaler", None) is not None:
+            return []
         if self._params is None:  # listed once: walking the modules at every step costs Python time
             self._params = list(self.module.model.parameters())
         return [p.grad for p in self._params if p.grad is not None]
