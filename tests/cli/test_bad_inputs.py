@@ -378,8 +378,9 @@ def test_a_signal_to_every_ddp_process_before_the_first_iteration_stops_them_aft
         _, stderr = proc.communicate(timeout=240)  # every rank ends: none waits on a signal handler's collective
     assert proc.returncode == 143, stderr[-3000:]
     stops = [line for line in stderr.splitlines() if "stopped by" in line]
-    assert stops == [f"unicorn-train: stopped by SIGTERM after iteration 1; {run / 'checkpoints' / 'last.ckpt'} "
-                     "written: resume with ckpt_path=last in the same folder"], stderr[-3000:]  # fmt: skip
+    last, resume = run / "checkpoints" / "last.ckpt", f"hydra.run.dir={run} ckpt_path=last"
+    assert stops == [f"unicorn-train: stopped by SIGTERM after iteration 1; {last} "
+                     f"written: the same command with {resume} resumes it"], stderr[-3000:]  # fmt: skip
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert saved["global_step"] == 1 and len(saved["unicorn"]["ranks"]) == 2
 
@@ -487,7 +488,7 @@ def test_a_signal_in_the_evaluation_after_training_stops_at_once_and_the_run_end
     assert result.returncode == 143, result.stderr[-3000:]
     assert error_lines(result.stderr)[-1] == (
         "unicorn-train: stopped by SIGTERM during the evaluation after training; the same command with "
-        "ckpt_path=last in the same folder ends it"
+        f"hydra.run.dir={run} ckpt_path=last ends it"
     )
     assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 8
     assert not (run / ".unicorn-train.lock").exists() and not (run / "eval" / "metrics.csv").exists()

@@ -88,6 +88,9 @@ CASES = [
     # the run's folder ${paths.log_dir}/${task_name}/runs/<time> at the file system's root
     ("log-dir-empty", [*SYNTHETIC, "paths.log_dir="], r"^paths.log_dir is empty: give the folder the runs go under"),
     ("init-from-empty", [*SYNTHETIC, "init_from="], r"^init_from is empty: name a weights file"),
+    # UNICORN_CACHE= (exported, empty): the synthetic set at /synthetic_32px
+    ("cache-empty", [*SYNTHETIC, "paths.cache_dir="], r"^paths.cache_dir is empty: set UNICORN_CACHE to a folder"),
+    ("vgg16-empty", [*SYNTHETIC, "paths.vgg16="], r"^paths.vgg16 is empty: set UNICORN_VGG16"),
     ("deterministic", [*SYNTHETIC, "trainer.deterministic=bogus"], r"trainer.deterministic must be true, false, warn"),
     ("another-renderers-option", [*SYNTHETIC, "renderer=hard"], r"drop them with ~renderer\.faces_per_pixel$"),
     # the one-category datasets built without reading it: a run on the wrong data would not say so

@@ -211,7 +211,9 @@ def test_a_second_signal_stops_at_once_with_the_signals_status(synthetic_cache, 
     run.trainer.callbacks.append(SignalDuring(2, count=2))
     ctrl_c = signal.getsignal(signal.SIGINT)
     with pytest.raises(
-        Interrupted, match=r"^stopped by SIGTERM at once \(signalled twice\) during iteration 3: resume from the last"
+        Interrupted,
+        match=r"^stopped by SIGTERM at once \(signalled twice\) during iteration 3: the same command with "
+        r"ckpt_path=last in the same folder resumes from the last checkpoint written$",
     ) as err:
         fit(run)
     assert err.value.exit_status == 143
@@ -220,7 +222,7 @@ def test_a_second_signal_stops_at_once_with_the_signals_status(synthetic_cache, 
     # before any checkpoint, the message does not point at one
     early = build_run(tmp_path / "early", "callbacks.checkpoint.every_n_steps=4")
     early.trainer.callbacks.append(SignalDuring(1, count=2))
-    with pytest.raises(Interrupted, match=r"iteration 2: no checkpoint was written yet: ckpt_path=last in the same"):
+    with pytest.raises(Interrupted, match=r"iteration 2: no checkpoint was written yet: the same command with ckpt"):
         fit(early)
 
 

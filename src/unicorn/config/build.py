@@ -79,6 +79,9 @@ _PATH_SETTINGS = {
     "dataset.root": "give the folder of its data (dataset.root=/path/to/data)",
     "init_from": "name a weights file (a released .pkl, a .ckpt), or leave it out",
     "paths.log_dir": "give the folder the runs go under (default: outputs)",
+    # from the environment: an exported but empty variable (UNICORN_CACHE=) is read as the empty string
+    "paths.cache_dir": "set UNICORN_CACHE to a folder, or unset it for ~/.cache/unicorn",
+    "paths.vgg16": "set UNICORN_VGG16 to the VGG16 weights file, or unset it for torch's hub cache",
 }
 
 

@@ -21,6 +21,7 @@ import logging
 import os
 import re
 import secrets
+import shlex
 import shutil
 import socket
 from collections.abc import Mapping
@@ -32,6 +33,7 @@ from unicorn.io.serialization import CheckpointNotFoundError, check_checkpoint_p
 from unicorn.torch_files import torch_file_problem
 
 __all__ = [
+    "resume_hint",
     "LOCK_NAME",
     "RUN_LOG",
     "RUN_FOLDER_FILES",
@@ -108,6 +110,18 @@ def in_sweep() -> bool:
     from hydra.types import RunMode
 
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def resume_hint(run_dir: str | Path) -> str:
+    """What to add to a stopped run's command to resume it in its folder ``run_dir``: the overrides that name the
+    folder, where a Hydra command ran one run (so that a folder Hydra timestamped is named too);
+    ``ckpt_path=last in the same folder`` for a job of a sweep (whose own hint names the sweep's folder) or a run
+    built from Python."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized() and not in_sweep():
+        return f"hydra.run.dir={shlex.quote(str(run_dir))} ckpt_path=last"
+    return "ckpt_path=last in the same folder"
 
 
 def sweep_job_overrides() -> list[tuple[str, str]]:

@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from unicorn.checks import NonFiniteValueError
 from unicorn.errors import Interrupted, interrupt_on_signal
+from unicorn.io.run_folder import resume_hint
 
 __all__ = [
     "Run",
@@ -88,7 +89,7 @@ def build(cfg: DictConfig) -> Run:
         data.check_early()  # a missing dataset is said first: nothing else matters without it
         _check_protocol(data.name)
         module = build_module(typed)
-        stopper = GracefulStop(checkpoint_dir / "last.ckpt")
+        stopper = GracefulStop(checkpoint_dir / "last.ckpt", output_dir)
         # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
         callbacks = [ArmStopSignals(stopper), *build_callbacks(typed, checkpoint_dir), stopper]
         loggers = build_loggers(typed)
@@ -546,11 +547,11 @@ def fit(run: Run) -> dict[str, float]:
         signum = run.stopper.at_once
         if signum is None:
             raise
-        last = run.checkpoint_dir / "last.ckpt"
+        last, resume = run.checkpoint_dir / "last.ckpt", resume_hint(run.output_dir)
         then = (
-            "resume from the last checkpoint written with ckpt_path=last"
+            f"the same command with {resume} resumes from the last checkpoint written"
             if last.is_file() or any(run.checkpoint_dir.glob("step=*.ckpt"))
-            else "no checkpoint was written yet: ckpt_path=last in the same folder trains it again from the start"
+            else f"no checkpoint was written yet: the same command with {resume} trains it again from the start"
         )
         raise Interrupted(
             f"stopped by {signal.Signals(signum).name} at once (signalled twice) during iteration "
@@ -573,7 +574,8 @@ def fit(run: Run) -> dict[str, float]:
         raise run.stopper.stopped
     if run.stopper.received is not None:  # after it, while training ended (its last.ckpt written)
         name = signal.Signals(run.stopper.received).name
-        then = "; the evaluation after training did not run: ckpt_path=last in the same folder runs it"
+        resume = resume_hint(run.output_dir)
+        then = f"; the evaluation after training did not run: the same command with {resume} runs it"
         raise Interrupted(
             f"stopped by {name} after the last iteration ({trainer.global_step}), the training complete"
             + (then if typed.evaluate.enabled else ""),
@@ -583,7 +585,7 @@ def fit(run: Run) -> dict[str, float]:
         _drop_superseded_last(run.checkpoint_dir)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     if typed.evaluate.enabled and not trainer.interrupted and trainer.is_global_zero:
-        where = "during the evaluation after training; the same command with ckpt_path=last in the same folder ends it"
+        where = f"during the evaluation after training; the same command with {resume_hint(run.output_dir)} ends it"
         with interrupt_on_signal(where):
             evaluate_run(run)
     return metrics
