@@ -82,6 +82,19 @@ def test_a_file_that_exists_is_replaced_only_when_asked(model_and_prediction, tm
 
 
 @pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_path_in_the_home_folder_is_written_there(model_and_prediction, tmp_path, monkeypatch, suffix):
+    """``~/meshes/car.glb`` is a file in the home folder (as for save_model), not in a folder named ``~``."""
+    model, pred = model_and_prediction
+    home, cwd = tmp_path / "home", tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(cwd)
+    files = save_mesh(export_prediction(model, pred, index=0), f"~/meshes/car{suffix}")
+    assert files[0] == home / "meshes" / f"car{suffix}" and all(f.is_file() for f in files)
+    assert list(cwd.iterdir()) == []
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
 def test_a_replacement_that_fails_leaves_each_file_as_it_was(model_and_prediction, tmp_path, monkeypatch, suffix):
     model, pred = model_and_prediction
     mesh = export_prediction(model, pred, index=0)

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
 from tests.support.checkpoints import reference_state
+from tests.support.evaluation import tiny_model
 from unicorn.errors import UserError
 from unicorn.io import (
+    CheckpointError,
     ReferenceCheckpointError,
     config_from_reference,
     convert_reference_state_dict,
     load_reference_checkpoint,
+    save_model,
 )
 
 
@@ -169,3 +174,35 @@ def test_the_reference_templates_are_read_from_their_names():
         kwargs = dict(real_kwargs(), mesh={**real_kwargs()["mesh"], "init": init})
         cfg = config_from_reference({"epoch": 15, "model_kwargs": kwargs, "model_state": reference_state()})
         assert (tuple(cfg["template"]["axes"]), cfg["template"]["level"]) == (axes, level), init
+
+
+def test_a_file_of_another_format_or_that_does_not_convert_is_named(tmp_path):
+    """Given a path, every error names the file; a checkpoint of the other formats is sent to load_model."""
+    plain = save_model(tiny_model("real"), tmp_path / "model.pt")
+    lightning = tmp_path / "last.ckpt"
+    torch.save({"state_dict": {"model.w": torch.zeros(1)}, "hyper_parameters": {"model": {}}}, lightning)
+    for path, kind in [(plain, "a unicorn.io.save_model file"), (lightning, "a unicorn-train checkpoint")]:
+        expected = rf"^{re.escape(str(path))} is {kind}, not a released UNICORN checkpoint: load it"
+        with pytest.raises(CheckpointError, match=expected):
+            load_reference_checkpoint(path)
+    torch.save([1, 2], tmp_path / "list.pkl")
+    with pytest.raises(CheckpointError, match=r"list.pkl holds a list, not a released UNICORN checkpoint"):
+        load_reference_checkpoint(tmp_path / "list.pkl")
+
+    state = reference_state()
+    del state["scale_regressor.0.weight"]
+    cases = [
+        ({"epoch": -3, "model_state": reference_state()}, CheckpointError, r"epoch = -3 is not a whole number"),
+        ({"epoch": 3, "model_state": state}, ReferenceCheckpointError, r"checkpoint does not fit the model: missing"),
+        (
+            {"model_state": reference_state(), "model_kwargs": {"rend_predictor": {"n_elev_azim": [2, 5]}}},
+            CheckpointError,
+            r"checkpoint has 6 pose candidates but n_elev_azim = \[2, 5\]",
+        ),
+    ]
+    for i, (checkpoint, error, message) in enumerate(cases):
+        path = tmp_path / f"released{i}.pkl"
+        torch.save(checkpoint, path)
+        with pytest.raises(error, match=rf"^released checkpoint {re.escape(str(path))}: {message}") as info:
+            load_reference_checkpoint(path)
+        assert isinstance(info.value, UserError)

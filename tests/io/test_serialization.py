@@ -148,6 +148,42 @@ def test_damaged_zip_is_one_line(tmp_path: Path) -> None:
         assert "\n" not in str(info.value) and "PytorchStreamReader" not in str(info.value)
 
 
+def _crafted_containers() -> list[tuple[str, object, str]]:
+    """Values a pickle of a few hundred bytes can hold that no walk of them (the content hash, the config's
+    conversion) finishes: shared lists repeating 2**21 items, a list holding itself, lists nested 150 deep."""
+    shared: list = [0]
+    for _ in range(21):
+        shared = [shared, shared]
+    loop: list = []
+    loop.append(loop)
+    deep: list = []
+    for _ in range(150):
+        deep = [deep]
+    return [
+        ("shared", shared, r"its shared containers repeat more than 1,000,000 items"),
+        ("loop", loop, r"a list in it holds itself"),
+        ("deep", deep, r"its containers nest more than 100 levels deep"),
+    ]
+
+
+@pytest.mark.parametrize("sealed", [False, True], ids=["plain", "sealed"])
+def test_containers_no_walk_could_finish_are_refused(tmp_path: Path, sealed: bool) -> None:
+    for name, value, message in _crafted_containers():
+        data = {"state": {"w": torch.ones(2)}, "info": {"x": value}}
+        if sealed:  # the hash is walked first
+            data[INTEGRITY_KEY] = {"algorithm": "sha256", "digest": "0" * 64}
+        path = tmp_path / f"{name}.pt"
+        torch.save(data, path)
+        assert path.stat().st_size < 4096
+        with pytest.raises(CheckpointError, match=rf"cannot read checkpoint \S+{name}.pt: {message}") as info:
+            load_checkpoint_file(path)
+        assert "\n" not in str(info.value)
+    # containers shared below the limit, as an honest file may share them, load
+    rows = list(range(1000))
+    torch.save({"info": {"x": [rows] * 900, "loop_free": [[rows]] * 3}}, tmp_path / "shared.pt")
+    assert load_checkpoint_file(tmp_path / "shared.pt")["info"]["x"][899] == rows
+
+
 def test_zip_entries_that_would_inflate_are_refused_from_the_directory(tmp_path: Path, monkeypatch) -> None:
     saved = tmp_path / "saved.pt"
     torch.save({"w": torch.zeros(2**16)}, saved)  # 256 KiB of zeros: deflated to a few hundred bytes

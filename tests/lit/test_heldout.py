@@ -5,11 +5,14 @@ from __future__ import annotations
 import csv
 import json
 import re
+import shlex
 
 import pytest
 import torch
+from PIL import Image
 
 from tests.support.training import build_run, compose_config
+from unicorn.cli.eval import build_parser as build_eval_parser
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import HeldOutConfig
 from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate
@@ -134,7 +137,11 @@ def test_evaluation_after_training_writes_the_report(synthetic_cache, tmp_path):
     # provenance: the equivalent unicorn-eval command, and the training command that ran it, kept apart
     assert metrics["command"].startswith(f"unicorn-eval {run.checkpoint_dir / 'last.ckpt'} --split=test")
     level = run.module.model.config["template"]["level"]
-    assert metrics["command"].endswith(f" --template-level={level}")  # the trained mesh, whatever the protocol's
+    recorded = build_eval_parser().parse_args(shlex.split(metrics["command"])[1:])
+    assert recorded.template_level == level  # the trained mesh, whatever the protocol's
+    # the command gives the same report: its pictures as large as those written
+    with Image.open(next((out / "report").glob("sample*.png"))) as picture:
+        assert picture.size == (recorded.view_size, recorded.view_size)
     command = json.loads((run.output_dir / "provenance.json").read_text())[-1]["command"]  # as provenance.json
     assert metrics["produced_by"] == f"{command} (evaluation after training)"
     assert metrics["checkpoint"] == str((run.checkpoint_dir / "last.ckpt").resolve()) and "git_commit" in metrics

@@ -68,17 +68,23 @@ def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions
     return EvalOptions(protocol=protocol_for(dataset), **values, **options)
 
 
+#: the side of the report's pictures of the evaluation after training (``unicorn-eval --view-size``)
+AFTER_TRAINING_VIEW_SIZE = 256
+
+
 def eval_command(
     checkpoint: Path,
     out: Path,
     settings: EvaluateConfig,
     template_level: int | None = None,
     skip_bad: bool = False,
+    view_size: int = AFTER_TRAINING_VIEW_SIZE,
 ) -> str:
     """The ``unicorn-eval`` command that evaluates ``checkpoint`` into ``out`` as ``settings`` say (a provenance
     record of the evaluation after training), on the mesh of ``template_level`` when given (the trained model's:
     ``unicorn-eval`` would take the protocol's, :attr:`~unicorn.evaluation.protocols.Protocol.template_level`),
-    skipping unreadable images with ``skip_bad`` (a dataset with ``on_error: skip``)."""
+    skipping unreadable images with ``skip_bad`` (a dataset with ``on_error: skip``), its report's pictures
+    ``view_size`` pixels wide."""
     from unicorn.io.provenance import command_line
 
     s = settings
@@ -90,6 +96,7 @@ def eval_command(
     argv += [f"--max-images={s.max_images}"] if s.max_images is not None else []
     argv += [f"--template-level={template_level}"] if template_level is not None else []
     argv += ["--skip-bad"] if skip_bad else []
+    argv += [f"--view-size={view_size}"]  # unicorn-eval's default differs from the evaluation after training's
     return command_line("unicorn-eval", argv)
 
 
@@ -101,7 +108,7 @@ def evaluate_to_folder(
     meta: Mapping[str, Any],
     *,
     mean_shape_iterations: int = 0,
-    view_size: int = 256,
+    view_size: int = AFTER_TRAINING_VIEW_SIZE,
     turntable_frames: int = REPORT_TURNTABLE_FRAMES,
     title: str | None = None,
     device: torch.device | str | None = None,

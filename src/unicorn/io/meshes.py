@@ -121,7 +121,7 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
 
     Args:
         mesh: a textured mesh (:func:`textured_mesh`, :func:`export_prediction`).
-        path: the ``.obj`` or ``.glb`` file.
+        path: the ``.obj`` or ``.glb`` file (``~`` is the home folder; missing folders are created).
         overwrite: replace files that exist; otherwise an existing file among those written (the OBJ's texture
             ``<stem>.png`` may be the photo the mesh was made from) is an error and nothing is written. Each file
             is written beside its place and renamed into it: a file replaced is whole, the old one or the new.
@@ -133,7 +133,7 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
         ValueError: another format, or a mesh without texture.
         FileExistsError: a file to write exists and ``overwrite`` is False (the message names it).
     """
-    path = Path(path)
+    path = Path(path).expanduser()  # as load_model and save_model do: "~/car.glb" is not ./~/car.glb
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".obj"):
         raise ValueError(f"unsupported mesh format {path.suffix!r}: use .obj or .glb")

@@ -37,7 +37,7 @@ from typing import Any
 
 import torch
 
-from unicorn.checks import is_number, is_whole
+from unicorn.checks import SizeLimitError, is_number, is_whole
 from unicorn.config.presets import model_preset
 from unicorn.io.serialization import CheckpointError, kind_of, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
@@ -323,7 +323,7 @@ def _pose_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any], n_cand: in
         if key in rp:
             cfg["pose"][key] = rp[key]
     if int(n_elev) * int(n_azim) != n_cand:
-        raise ValueError(f"checkpoint has {n_cand} pose candidates but n_elev_azim = {rp.get('n_elev_azim')}")
+        raise CheckpointError(f"checkpoint has {n_cand} pose candidates but n_elev_azim = {rp.get('n_elev_azim')}")
 
 
 def _template_from_kwargs(cfg: dict[str, Any], kwargs: Mapping[str, Any]) -> None:
@@ -434,17 +434,34 @@ def load_reference_checkpoint(
     Raises:
         unicorn.io.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
         unicorn.io.serialization.CheckpointError: a value of the checkpoint of the wrong type (the message names
-            it).
+            it, and the file when given a path), or a file of another format (a ``unicorn-train`` checkpoint or a
+            :func:`~unicorn.io.save_model` file, which :func:`~unicorn.io.load_model` reads).
         unicorn.io.checkpoints.ModelTooLargeError: a model, image or texture size above the limits.
         ReferenceCheckpointError: keys that do not fit the model (``strict``), weights of other shapes, or
-            ``with_perceptual`` on a file without the VGG weights.
+            ``with_perceptual`` on a file without the VGG weights (the message names the file when given a path).
     """
-    source = "the released checkpoint"
+    if isinstance(checkpoint, Mapping):
+        return reference_model(checkpoint, "the released checkpoint", strict, with_perceptual, **overrides)
+    from unicorn.io.checkpoints import checkpoint_format  # which imports this module
+
+    path = checkpoint
+    # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
+    checkpoint = load_checkpoint_file(path, map_location=map_location, trust=trust)
     if not isinstance(checkpoint, Mapping):
-        source = f"released checkpoint {checkpoint}"
-        # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
-        checkpoint = load_checkpoint_file(checkpoint, map_location=map_location, trust=trust)
-    return reference_model(checkpoint, source, strict, with_perceptual, **overrides)
+        raise CheckpointError(f"{path} holds {kind_of(checkpoint)}, not a released UNICORN checkpoint (a dict)")
+    other = {"lightning": "a unicorn-train checkpoint", "plain": "a unicorn.io.save_model file"}
+    kind = other.get(checkpoint_format(checkpoint) or "")
+    if kind:
+        raise CheckpointError(
+            f"{path} is {kind}, not a released UNICORN checkpoint: load it with unicorn.io.load_model"
+        )
+    source = f"released checkpoint {path}"
+    try:
+        return reference_model(checkpoint, source, strict, with_perceptual, **overrides)
+    except CheckpointError as err:
+        if isinstance(err, SizeLimitError):
+            raise  # names the file already
+        raise type(err)(f"{source}: {err}") from None
 
 
 def reference_model(

@@ -118,7 +118,8 @@ def load_checkpoint_file(
         FileNotFoundError: no such file (also a :class:`~unicorn.errors.UserError`).
         UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
         CheckpointError: not a readable torch file, or a zip whose entries would inflate beyond the file's size
-            (compressed or overlapping entries, which ``torch.save`` never writes), refused from its directory.
+            (compressed or overlapping entries, which ``torch.save`` never writes), refused from its directory, or
+            containers no walk of them finishes (:func:`_containers_problem`), refused before they are walked.
         CorruptCheckpointError: the content hash does not match.
     """
     path = Path(path).expanduser()
@@ -145,6 +146,9 @@ def load_checkpoint_file(
         ) from None
     except Exception as err:  # torch raises many kinds (RuntimeError, EOFError...) on bad files
         raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {shortened(err)}") from err
+    problem = _containers_problem(data)
+    if problem:
+        raise CheckpointError(f"cannot read checkpoint {path}: {problem}")
     if check and isinstance(data, Mapping):
         data = verify(data, path)
     return data
@@ -183,6 +187,67 @@ def check_checkpoint_path(path: str | os.PathLike, option: str | None = None) ->
             f"checkpoint not found: {path}" if option is None else f"{option}: no checkpoint file at {path}"
         )
     return path
+
+
+#: how deep a checkpoint's containers may nest (a model's checkpoint nests a few levels; every reader of one,
+#: the content hash included, walks it by recursion)
+MAX_CONTAINER_DEPTH = 100
+
+#: how many more items than it holds a checkpoint's containers may show through shared references: a pickle
+#: stores a container once and may reference it anywhere, so ``a = [a, a]`` sixty times is a file of a few hundred
+#: bytes whose content, as every reader walks it, has 2**60 items
+MAX_REPEATED_ITEMS = 1_000_000
+
+_CONTAINERS = (dict, list, tuple, set, frozenset)
+
+
+class _Refused(Exception):
+    """Why :func:`_containers_problem` stopped walking."""
+
+
+def _containers_problem(data: Any) -> str | None:
+    """Why walking the loaded ``data`` would not end (a container that holds itself), overflow the stack (containers
+    nested deeper than :data:`MAX_CONTAINER_DEPTH`) or take years (shared containers that repeat more than
+    :data:`MAX_REPEATED_ITEMS` items), or None. Only the dicts, lists, tuples and sets a checkpoint is made of are
+    walked, each once."""
+    expanded: dict[int, int] = {}  # id of a container walked -> items under it, counting every repetition
+    on_path: set[int] = set()
+    stored = 0  # the items the containers hold, each once
+
+    def walk(value: Any, depth: int) -> int:
+        nonlocal stored
+        if not isinstance(value, _CONTAINERS):
+            return 1
+        key = id(value)
+        if key in expanded:
+            return expanded[key]
+        if key in on_path:
+            raise _Refused(f"a {type(value).__name__} in it holds itself (a crafted file: walking it would not end)")
+        if depth > MAX_CONTAINER_DEPTH:
+            raise _Refused(
+                f"its containers nest more than {MAX_CONTAINER_DEPTH} levels deep (a crafted file: walking it would "
+                "overflow the stack)"
+            )
+        on_path.add(key)
+        items = [v for pair in value.items() for v in pair] if isinstance(value, dict) else value
+        total = 1
+        for item in items:
+            total += walk(item, depth + 1)
+            stored += 1
+            if total > stored + 1 + MAX_REPEATED_ITEMS:  # bounded before the sums grow out of reach
+                raise _Refused(
+                    f"its shared containers repeat more than {MAX_REPEATED_ITEMS:,} items (a crafted file: walking it "
+                    "would take far longer than reading it)"
+                )
+        on_path.discard(key)
+        expanded[key] = total
+        return total
+
+    try:
+        walk(data, 0)
+    except _Refused as err:
+        return str(err)
+    return None
 
 
 def _unsafe_names(path: Path) -> list[str]:
