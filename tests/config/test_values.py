@@ -78,7 +78,7 @@ CASES = [
     ("translation-negative", [*CUB, "model.pose.T_range=-0.1"], r"T_range must be .* in \[0, inf\)"),
     ("scale-flips", [*CUB, "model.pose.scale_range=2"], r"scale_range must be .* in \[0, 1\) \(scales 1 \+- it"),
     ("behind-the-camera", [*CUB, "model.pose.prior_translation=[0,0,0]"], r"prior_translation's z \(0\) must exceed"),
-    ("image-size-not-a-power-of-2", [*CUB, "dataset.img_size=48"], r"img_size must be a power of 2 >= 2, got 48"),
+    ("image-size-not-a-power-of-2", [*CUB, "dataset.img_size=48"], r"model.image_size must be a power of 2 .*got 48"),
     ("task-name-path", [*SYNTHETIC, "task_name=../x"], r"task_name must be a folder name, not a path .* got '\.\./x'"),
     ("task-name-empty", [*SYNTHETIC, "task_name=''"], r"task_name must be a folder name"),
     ("lr-drop-to-zero", [*SYNTHETIC, "optim.lr_drop_gamma=0"], r"optim.lr_drop_gamma .*in \[1e-06, 1\]"),

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from tests.support.model import IMAGE_SIZE, ellipsoid_images, randomize_heads, tiny_config
+from unicorn.checks import ShapeError
 from unicorn.geometry.rotations import azim_elev_roll_to_rotation
 from unicorn.model import Unicorn, merge_config
 from unicorn.objectives import Objectives, ReconstructionLoss
@@ -73,6 +74,38 @@ def test_images_out_of_the_unit_range_are_refused(tiny_model, images, values, me
     with pytest.raises(ValueError, match=message):
         tiny_model.predict(values(images))
     tiny_model.predict(images.clamp(0, 1) * (1 + 1e-4))  # a resampled image's rounding passes
+
+
+@pytest.mark.parametrize("background", [True, False], ids=["background", "no-background"])
+def test_render_refuses_channels_last_texture_maps_naming_them(images, background):
+    torch.manual_seed(0)
+    model = Unicorn(tiny_config(**({} if background else {"background": None}))).eval()
+    with torch.no_grad():
+        pred = model.predict(images)
+    bkg = pred.background
+    # (B, Ht, Wt, 3) maps read as Ht-channel maps would fail in the renderer, naming its background
+    with pytest.raises(ShapeError, match=r"^maps must have shape \(B, 3, Ht, Wt\), got \(3, 16, 16, 3\)$"):
+        model.render(pred.verts, pred.texture.permute(0, 2, 3, 1), pred.R, pred.T, bkg)
+    with pytest.raises(TypeError, match=r"^maps must be a floating point tensor, got torch.uint8$"):
+        model.render(pred.verts, (pred.texture * 255).to(torch.uint8), pred.R, pred.T, bkg)
+    # the same maps in channels-last memory are the (B, 3, Ht, Wt) maps they hold
+    rgb, _ = model.render(pred.verts, pred.texture, pred.R, pred.T, bkg)
+    maps = pred.texture.contiguous(memory_format=torch.channels_last)
+    assert torch.equal(model.render(pred.verts, maps, pred.R, pred.T, bkg)[0], rgb)
+
+
+def test_one_image_in_training_mode_is_refused_where_batchnorm_cannot_normalise_it(tiny_model, images):
+    # at 32 px the last ResNet stage is 1 x 1: one image leaves BatchNorm a single value per channel
+    with pytest.raises(
+        ValueError, match=r"^one 32 x 32 image in training mode: .*\(layer4's map is 1 x 1\); call model"
+    ):
+        tiny_model.predict(images[:1])
+    tiny_model.predict(images[:2])  # two images: batch statistics
+    tiny_model.eval()
+    with torch.no_grad():  # running statistics: the image's prediction alone is its prediction in a batch
+        one, batch = tiny_model.predict(images[:1]), tiny_model.predict(images)
+    assert torch.allclose(one.verts, batch.verts[:1], atol=1e-6) and torch.allclose(one.R, batch.R[:1], atol=1e-6)
+    assert torch.allclose(one.texture, batch.texture[:1], atol=1e-6)
 
 
 def test_zero_init_gives_ellipsoid_identity_scale_anchor_poses(tiny_model, images):

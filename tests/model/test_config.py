@@ -10,7 +10,7 @@ import pytest
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import StageDimsConfig
 from unicorn.model import DEFAULT_CONFIG, Unicorn, check_model_config, merge_config
-from unicorn.model.config import BRANCHES, CHOICES, CODE_BRANCHES, allowed_values
+from unicorn.model.config import BRANCHES, CHOICES, CODE_BRANCHES, ModelConfigError, allowed_values
 
 #: every string setting of the model configuration with the values the library ships (docs/model.md, docs/renderer.md,
 #: docs/training.md), written out here rather than read from the registries the check itself reads
@@ -62,6 +62,47 @@ def test_bad_values_fail_naming_the_key(groups, message) -> None:
         merge_config(groups)
     with pytest.raises(ValueError, match=message):
         Unicorn(groups)
+
+
+@pytest.mark.parametrize(
+    ("groups", "message"),
+    [
+        # what a constructor refuses: the configuration's check names the key before any network is built
+        ({"texture": {"size": 48}}, r"^texture\.size must be a power of 2, got 48$"),
+        ({"image_size": 48}, r"^image_size must be a power of 2 \(the background model generates images"),
+        ({"texture": {"active_dims": 200}}, r"^texture\.active_dims must be in \[0, texture\.code_dim=128\], got 200$"),
+        ({"shape": {"code_dim": 4, "active_dims": 8}}, r"^shape\.active_dims must be in \[0, shape\.code_dim=4\]"),
+        ({"background": {"active_dims": 129}}, r"^background\.active_dims must be in \[0, background\.code_dim=128\]"),
+        (
+            {"template": {"axes": (1.0, 0.0, 0.7)}},
+            r"^template\.axes must be three finite numbers > 0 .*, got \[1\.0, 0\.0",
+        ),
+        ({"template": {"axes": (1.0, 0.7)}}, r"^template\.axes must be three finite numbers > 0"),
+        (
+            {"pose": {"T_range": (0.3, 0.3)}},
+            r"^pose\.T_range must be a finite number or 3 of them .*, got \(0\.3, 0\.3\)$",
+        ),
+        ({"pose": {"T_range": -0.1}}, r"^pose\.T_range must be .* in \[0, inf\), got -0\.1$"),
+        ({"pose": {"scale_range": 1.5}}, r"^pose\.scale_range must be .* in \[0, 1\) \(scales 1 \+- it"),
+        ({"pose": {"prior_translation": (0.0, 0.0)}}, r"^pose\.prior_translation must be a finite number or 3"),
+        (
+            {"pose": {"prior_translation": (0.0, 0.0, 0.2)}},
+            r"^pose\.prior_translation's z \(0\.2\) must exceed pose\.T_",
+        ),
+        ({"loss": {"min_angle": 180.0}}, r"^loss\.min_angle must be below 180 .*, got 180\.0$"),
+    ],
+)
+def test_what_the_networks_cannot_be_built_with_fails_naming_the_key(groups, message) -> None:
+    with pytest.raises(ModelConfigError, match=message):
+        merge_config(groups)
+    with pytest.raises(ModelConfigError, match=message):
+        Unicorn(groups)
+
+
+def test_sizes_the_networks_take_pass_the_check() -> None:
+    # no background model: any image size (the ShapeNet family's renders), one number for a vector setting
+    Unicorn(image_size=48, background=None, pose={"T_range": 0.1, "prior_translation": 2.0, "scale_range": 0.5})
+    merge_config(texture={"size": 32.0, "active_dims": 128}, loss={"min_angle": 179.0})
 
 
 def test_every_choice_names_a_string_setting() -> None:

@@ -364,7 +364,15 @@ class Unicorn(nn.Module):
         )
 
     def textures(self, maps: torch.Tensor) -> TexturesUV:
-        """UV textures of the template for texture images (B, 3, Ht, Wt)."""
+        """UV textures of the template for texture images (B, 3, Ht, Wt).
+
+        Raises:
+            ShapeError: maps of another shape (channels last: ``maps.permute(0, 3, 1, 2)``).
+            TypeError: maps that are not floating point.
+        """
+        # the renderer takes any channel count: (B, Ht, Wt, 3) maps would render Ht channels against an RGB
+        # background and fail there, naming the background
+        check_shape(maps, "B, 3, Ht, Wt", "maps", floating=True)
         wrap = self.template.wrap_u
         return TexturesUV(maps, self.template.face_uvs, wrap_u=wrap, align_corners=not wrap, channels_last=False)
 
@@ -385,6 +393,9 @@ class Unicorn(nn.Module):
 
         Returns:
             rgb (N, 3, S, S) and alpha (N, 1, S, S).
+
+        Raises:
+            ShapeError, TypeError: maps of another shape or dtype (:meth:`textures`); the renderer checks the rest.
         """
         return self.compositing(self.renderer, verts, self.template.faces, self.textures(maps), R, T, background)
 

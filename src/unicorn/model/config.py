@@ -274,7 +274,9 @@ DEFAULT_CONFIG: dict[str, Any] = dataclasses.asdict(UnicornConfig())
 
 
 def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
-    """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges and choices.
+    """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges, choices and what the
+    networks' constructors need (powers of 2 for the generated images, active code sizes within the codes, the pose
+    and template vectors): the networks and the template are built from any configuration that passes.
 
     Raises:
         ModelConfigError: the first bad value, named with its key (``prefix`` + ``group.key``).
@@ -291,6 +293,11 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     _check_pooled_stages(cfg, prefix)
     _check_symmetric_texture(cfg, prefix)
     _check_pose_ranges(cfg, prefix)
+    _check_pose_vectors(cfg, prefix)
+    _check_template_axes(cfg, prefix)
+    _check_code_sizes(cfg, prefix)
+    _check_generated_sizes(cfg, prefix)
+    _check_neighbour_angle(cfg, prefix)
     _check_background_color(renderer)
 
 
@@ -318,6 +325,82 @@ def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
             raise ModelConfigError(
                 f"{prefix}pose.{name} must be two finite numbers [min, max] with min <= max, got {value}"
             )
+
+
+def _numbers_or_one(value: Any, n: int) -> list[float] | None:
+    """``value`` as ``n`` finite floats (one finite number stands for all ``n``), or None where it is neither."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        value = [value] * n
+    value = _listed(value)
+    return [float(v) for v in value] if _finite_numbers(value, n) else None
+
+
+def _check_pose_vectors(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The translation and scale ranges and the prior translation are one number or three (x, y, z), the ranges
+    >= 0, the scale range below 1 (every scale stays > 0), and the prior keeps the object in front of the camera
+    (:class:`unicorn.model.pose.PoseHead`, :class:`unicorn.model.pose.ScaleHead`)."""
+    pose = cfg["pose"]
+    t_range, prior = _numbers_or_one(pose["T_range"], 3), _numbers_or_one(pose["prior_translation"], 3)
+    scale = _numbers_or_one(pose["scale_range"], 3)
+    if t_range is None or min(t_range) < 0:
+        raise ModelConfigError(
+            f"{prefix}pose.T_range must be a finite number or 3 of them (x, y, z) in [0, inf), got {pose['T_range']}"
+        )
+    if prior is None:
+        raise ModelConfigError(
+            f"{prefix}pose.prior_translation must be a finite number or 3 of them (x, y, z), "
+            f"got {pose['prior_translation']}"
+        )
+    if scale is None or not all(0 <= s < 1 for s in scale):
+        raise ModelConfigError(
+            f"{prefix}pose.scale_range must be a finite number or 3 of them (x, y, z) in [0, 1) (scales 1 +- it: a "
+            f"scale must stay > 0), got {pose['scale_range']}"
+        )
+    if prior[2] - t_range[2] <= 0:
+        raise ModelConfigError(
+            f"{prefix}pose.prior_translation's z ({prior[2]:g}) must exceed {prefix}pose.T_range's z "
+            f"({t_range[2]:g}): every predicted translation must keep the object in front of the camera"
+        )
+
+
+def _check_template_axes(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The template's stretch is three positive numbers (:class:`unicorn.model.template.TemplateMesh`)."""
+    axes = _listed(cfg["template"]["axes"])
+    if not _finite_numbers(axes, 3) or min(axes) <= 0:
+        raise ModelConfigError(f"{prefix}template.axes must be three finite numbers > 0 (x, y, z), got {axes}")
+
+
+def _check_code_sizes(cfg: Mapping[str, Any], prefix: str) -> None:
+    """Each code's active size is at most its size (:class:`unicorn.model.progressive.ProgressiveMask`)."""
+    for branch in CODE_BRANCHES:
+        group = cfg[branch]
+        if group is not None and group["active_dims"] > group["code_dim"]:
+            raise ModelConfigError(
+                f"{prefix}{branch}.active_dims must be in [0, {branch}.code_dim={group['code_dim']}], "
+                f"got {group['active_dims']}"
+            )
+
+
+def _check_generated_sizes(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The generators double their images from 1 x 1 (:class:`unicorn.model.generator.GiraffeGenerator`): the texture
+    size, and with a background model the image size, are powers of 2."""
+    sizes = {"texture.size": cfg["texture"]["size"]}
+    if cfg["background"] is not None:
+        sizes["image_size"] = cfg["image_size"]
+    for key, size in sizes.items():
+        if not (float(size).is_integer() and int(size) & (int(size) - 1) == 0):
+            hint = " (the background model generates images of that size)" if key == "image_size" else ""
+            raise ModelConfigError(f"{prefix}{key} must be a power of 2{hint}, got {size}")
+
+
+def _check_neighbour_angle(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The neighbours' viewpoint bins span ``[loss.min_angle, 180]`` degrees: not empty
+    (:class:`unicorn.objectives.neighbors.NeighborMemory`)."""
+    if cfg["loss"]["min_angle"] >= 180:
+        raise ModelConfigError(
+            f"{prefix}loss.min_angle must be below 180 (the viewpoint bins span [min_angle, 180] degrees), "
+            f"got {cfg['loss']['min_angle']}"
+        )
 
 
 def _check_background_color(renderer: Mapping[str, Any]) -> None:

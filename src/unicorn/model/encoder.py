@@ -233,10 +233,26 @@ class ResNet18(nn.Module):
 
     def stage_means(self, x: torch.Tensor, names: Sequence[str]) -> dict[str, torch.Tensor]:
         """The named stages' outputs, each averaged over its map: (B, 3, H, W) -> {name: (B, C_name)}, in network
-        order; the stages after the last named one do not run."""
+        order; the stages after the last named one do not run.
+
+        Raises:
+            ValueError: one image in training mode whose last stage's map is 1 x 1 (at most 32 px for the last
+                stage): BatchNorm has a single value per channel to normalise.
+        """
+        last = max(STAGES.index(n) for n in names)
+        if self.training and x.shape[0] == 1:
+            h, w = x.shape[-2:]
+            for _ in range(2 + last):  # the stem's stride-2 convolution and max-pool, then layer2 ... layer4
+                h, w = (h + 1) // 2, (w + 1) // 2
+            if h * w == 1:
+                raise ValueError(
+                    f"one {x.shape[-2]} x {x.shape[-1]} image in training mode: the encoder's BatchNorm needs more "
+                    f"than one value per channel ({STAGES[last]}'s map is 1 x 1); call model.eval() to predict, or "
+                    "pass 2 images or more"
+                )
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
         out = {}
-        for name in STAGES[: max(STAGES.index(n) for n in names) + 1]:
+        for name in STAGES[: last + 1]:
             x = getattr(self, name)(x)
             if name in names:
                 out[name] = self.avgpool(x).flatten(1)
