@@ -87,7 +87,7 @@ def test_bad_values_fail_naming_the_key(groups, message) -> None:
         ({"pose": {"prior_translation": (0.0, 0.0)}}, r"^pose\.prior_translation must be a finite number or 3"),
         (
             {"pose": {"prior_translation": (0.0, 0.0, 0.2)}},
-            r"^pose\.prior_translation's z \(0\.2\) must exceed pose\.T_",
+            r"^pose\.prior_translation's z \(0\.2\) must exceed T_range's z",
         ),
         ({"loss": {"min_angle": 180.0}}, r"^loss\.min_angle must be below 180 .*, got 180\.0$"),
     ],

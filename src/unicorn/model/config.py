@@ -327,40 +327,17 @@ def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
             )
 
 
-def _numbers_or_one(value: Any, n: int) -> list[float] | None:
-    """``value`` as ``n`` finite floats (one finite number stands for all ``n``), or None where it is neither."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        value = [value] * n
-    value = _listed(value)
-    return [float(v) for v in value] if _finite_numbers(value, n) else None
-
-
 def _check_pose_vectors(cfg: Mapping[str, Any], prefix: str) -> None:
-    """The translation and scale ranges and the prior translation are one number or three (x, y, z), the ranges
-    >= 0, the scale range below 1 (every scale stays > 0), and the prior keeps the object in front of the camera
-    (:class:`unicorn.model.pose.PoseHead`, :class:`unicorn.model.pose.ScaleHead`)."""
+    """The translation and scale ranges and the prior translation as :class:`unicorn.model.pose.PoseHead` and
+    :class:`unicorn.model.pose.ScaleHead` take them."""
+    from unicorn.model.pose import scale_deviations, translation_ranges
+
     pose = cfg["pose"]
-    t_range, prior = _numbers_or_one(pose["T_range"], 3), _numbers_or_one(pose["prior_translation"], 3)
-    scale = _numbers_or_one(pose["scale_range"], 3)
-    if t_range is None or min(t_range) < 0:
-        raise ModelConfigError(
-            f"{prefix}pose.T_range must be a finite number or 3 of them (x, y, z) in [0, inf), got {pose['T_range']}"
-        )
-    if prior is None:
-        raise ModelConfigError(
-            f"{prefix}pose.prior_translation must be a finite number or 3 of them (x, y, z), "
-            f"got {pose['prior_translation']}"
-        )
-    if scale is None or not all(0 <= s < 1 for s in scale):
-        raise ModelConfigError(
-            f"{prefix}pose.scale_range must be a finite number or 3 of them (x, y, z) in [0, 1) (scales 1 +- it: a "
-            f"scale must stay > 0), got {pose['scale_range']}"
-        )
-    if prior[2] - t_range[2] <= 0:
-        raise ModelConfigError(
-            f"{prefix}pose.prior_translation's z ({prior[2]:g}) must exceed {prefix}pose.T_range's z "
-            f"({t_range[2]:g}): every predicted translation must keep the object in front of the camera"
-        )
+    try:
+        translation_ranges(pose["T_range"], pose["prior_translation"])
+        scale_deviations(pose["scale_range"])
+    except ValueError as err:
+        raise ModelConfigError(f"{prefix}pose.{err}") from None
 
 
 def _check_template_axes(cfg: Mapping[str, Any], prefix: str) -> None:

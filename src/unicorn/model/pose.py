@@ -15,7 +15,15 @@ from unicorn.geometry.rotations import azim_elev_roll_to_rotation, rotation_angl
 from unicorn.model.mlp import MLP
 from unicorn.render.precision import full_precision, to_full_precision
 
-__all__ = ["PoseHead", "PoseOutput", "ScaleHead", "anchor_angles", "mirrored_pose"]
+__all__ = [
+    "PoseHead",
+    "PoseOutput",
+    "ScaleHead",
+    "anchor_angles",
+    "mirrored_pose",
+    "scale_deviations",
+    "translation_ranges",
+]
 
 
 def _numbers(r: Any, count: int) -> list[float] | None:
@@ -42,6 +50,33 @@ def _triple(
         bounds = "" if (low, high) == (-math.inf, math.inf) else f" in [{low:g}, {high:g})"
         raise ValueError(f"{name} must be a finite number or 3 of them (x, y, z){bounds}{what}, got {r}")
     return triple[0], triple[1], triple[2]
+
+
+def translation_ranges(
+    T_range: Sequence[float] | float, prior_translation: Sequence[float] | float
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The translation's half-range and centre (x, y, z) of :class:`PoseHead` from one number or three each.
+
+    Raises:
+        ValueError: not one finite number or three, a negative half-range, or a centre whose z does not exceed the
+            half-range's (a translation could put the object behind the camera).
+    """
+    t_range, t_init = _triple(T_range, "T_range", low=0.0), _triple(prior_translation, "prior_translation")
+    if t_init[2] - t_range[2] <= 0:
+        raise ValueError(
+            f"prior_translation's z ({t_init[2]:g}) must exceed T_range's z ({t_range[2]:g}): every predicted "
+            "translation must keep the object in front of the camera"
+        )
+    return t_range, t_init
+
+
+def scale_deviations(scale_range: Sequence[float] | float) -> tuple[float, float, float]:
+    """The largest deviation of :class:`ScaleHead`'s scales from 1 per axis, from one number or three.
+
+    Raises:
+        ValueError: not one finite number or three in [0, 1).
+    """
+    return _triple(scale_range, "scale_range", 0.0, 1.0, " (scales 1 +- it: a scale must stay > 0)")
 
 
 def anchor_angles(
@@ -185,12 +220,7 @@ class PoseHead(nn.Module):
         self.register_buffer("R_range", half_range, persistent=False)
         ranges = [_pair(azim_range, "azim_range"), _pair(elev_range, "elev_range"), _pair(roll_range, "roll_range")]
         self.register_buffer("angle_ranges", torch.tensor(ranges), persistent=False)  # (3, 2): (min, max) degrees
-        t_range, t_init = _triple(T_range, "T_range", low=0.0), _triple(prior_translation, "prior_translation")
-        if t_init[2] - t_range[2] <= 0:
-            raise ValueError(
-                f"prior_translation's z ({t_init[2]:g}) must exceed T_range's z ({t_range[2]:g}): every predicted "
-                "translation must keep the object in front of the camera"
-            )
+        t_range, t_init = translation_ranges(T_range, prior_translation)
         self.register_buffer("T_range", torch.tensor(t_range), persistent=False)
         self.register_buffer("T_init", torch.tensor(t_init), persistent=False)
         self.register_buffer("use_translation", torch.tensor(True))
@@ -272,7 +302,7 @@ class ScaleHead(nn.Module):
         self.regressor = MLP(in_features, 3, n_units, n_layers, zero_last=True)
         self.register_buffer(
             "scale_range",
-            torch.tensor(_triple(scale_range, "scale_range", 0.0, 1.0, " (scales 1 +- it: a scale must stay > 0)")),
+            torch.tensor(scale_deviations(scale_range)),
             persistent=False,
         )
         self.register_buffer("use_scale", torch.tensor(True))
