@@ -91,12 +91,12 @@ def eval_command(
     argv = [str(checkpoint), f"--split={s.split}", f"--out={out}", f"--num-points={s.num_points}"]
     argv += [f"--icp-iterations={s.icp_iterations}", f"--batch-size={s.batch_size}"]
     argv += [f"--report-samples={s.report_samples}", f"--turntable-frames={s.turntable_frames}"]
+    argv += [f"--view-size={view_size}"]  # unicorn-eval's default differs from the evaluation after training's
     argv += [f"--mean-shape={s.mean_shape_iterations}"] + (["--own-mean-shape"] if s.own_mean_shape else [])
     argv += [f"--shape-points={s.shape_points}"]
     argv += [f"--max-images={s.max_images}"] if s.max_images is not None else []
     argv += [f"--template-level={template_level}"] if template_level is not None else []
     argv += ["--skip-bad"] if skip_bad else []
-    argv += [f"--view-size={view_size}"]  # unicorn-eval's default differs from the evaluation after training's
     return command_line("unicorn-eval", argv)
 
 

@@ -339,6 +339,11 @@ class Unicorn(nn.Module):
     def predict(self, images: torch.Tensor, average_texture: bool = False) -> Prediction:
         """Predict everything for a batch (B, 3, S, S) of [0, 1] images (gradients kept).
 
+        Args:
+            images: (B, 3, S, S) floating point pixels in [0, 1], of the model's dtype.
+            average_texture: replace every texture map by its mean colour (as the training's first iterations
+                render them, ``schedule.texture_averaging``).
+
         Raises:
             ShapeError, TypeError: see :meth:`check_images`.
             ValueError: values out of [0, 1] (:func:`unicorn.checks.check_pixels`).
