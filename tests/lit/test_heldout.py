@@ -6,16 +6,18 @@ import csv
 import json
 import re
 import shlex
+from types import SimpleNamespace
 
 import pytest
 import torch
 from PIL import Image
 
+from tests.support.evaluation import tiny_model
 from tests.support.training import build_run, compose_config
 from unicorn.cli.eval import build_parser as build_eval_parser
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import HeldOutConfig
-from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate
+from unicorn.evaluation import EvalOptions, build_eval_dataset, evaluate, fit_mean_shape, training_point_clouds
 from unicorn.lit import CodeDiagnostics, HeldOutEvaluation
 from unicorn.lit.run import fit
 
@@ -62,7 +64,9 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
         assert float(r["chamfer-L1-ICP-mean-shape"]) > 0
         assert float(r["chamfer-L1-ICP-own-mean"]) > 0 and 0.0 <= float(r["shape-win-own"]) <= 1.0
     callback = next(c for c in watched.trainer.callbacks if isinstance(c, HeldOutEvaluation))
-    assert callback.mean_shape is not None and callback.mean_shape.shape == watched.module.model.template.verts.shape
+    # the mean shape of the run's one category, fitted to its training shapes
+    assert callback.mean_shapes is not None and list(callback.mean_shapes) == ["chair"]
+    assert callback.mean_shapes["chair"].shape == watched.module.model.template.verts.shape
     # the mean shape is the same at every evaluation: its scores do not move while the model's do
     assert len({r["chamfer-L1-ICP-mean-shape"] for r in rows}) == 1
     assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
@@ -85,7 +89,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     scores = {
         average: evaluate(
             model, heldout, EvalOptions("shapenet", average_texture=average, **settings), "synthetic",
-            shape_baseline=callback.mean_shape,
+            shape_baseline=callback.mean_shapes,
         ).mean
         for average in (False, True)
     }  # fmt: skip
@@ -166,6 +170,30 @@ def test_bad_settings_are_named(tmp_path, override, message):
 
     with pytest.raises(ConfigError, match=message):
         validate(compose_config([*TINY, f"paths.output_dir={tmp_path}", override]))
+
+
+def _set_up(callback: HeldOutEvaluation, root, model) -> None:
+    """The callback's set-up at the start of training, on ``root`` (synthetic, every category) with ``model``."""
+    data = SimpleNamespace(name="synthetic", root=root, categories=None)
+    callback._build_dataset(SimpleNamespace(datamodule=data, callbacks=[]), SimpleNamespace(model=model))
+
+
+def test_each_category_has_its_own_mean_shape(synth_nmr, caplog):
+    model = tiny_model("shapenet")
+    callback = HeldOutEvaluation(max_images=2, num_points=300, icp_iterations=2, mean_shape_iterations=5)
+    _set_up(callback, synth_nmr, model)
+    assert callback.mean_shapes is not None and sorted(callback.mean_shapes) == ["car", "chair"]
+    for category, fitted in callback.mean_shapes.items():
+        # the oracle: the category's training shapes fitted alone
+        clouds = training_point_clouds(synth_nmr, category, HeldOutConfig.mean_shape_models, num_points=300)
+        alone = fit_mean_shape(model.template.verts, model.template.faces, clouds, iterations=5)
+        assert torch.equal(fitted, alone), category
+    # without ICP the mean shape cannot be scored: it is not fitted, and the log says so
+    callback = HeldOutEvaluation(max_images=2, num_points=300, icp_iterations=0, mean_shape_iterations=5)
+    with caplog.at_level("INFO", logger="unicorn.lit.heldout"):
+        _set_up(callback, synth_nmr, model)
+    assert callback.mean_shapes is None
+    assert "held-out: no mean shape is fitted: it is scored after ICP, and icp_iterations is 0" in caplog.text
 
 
 def test_bad_arguments():

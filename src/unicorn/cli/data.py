@@ -21,6 +21,7 @@ import torch
 from unicorn import __version__
 from unicorn.cli.errors import UsageError, add_debug_argument, folder_path, positive_int, report_errors, seed_number
 from unicorn.cli.options import (
+    HelpFormatter,
     add_image_limit_arguments,
     apply_common_arguments,
     check_categories_option,
@@ -176,14 +177,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    synth = sub.add_parser("synth", help="generate the synthetic benchmark in the ShapeNet-NMR (DVR) layout")
+    synth = sub.add_parser(
+        "synth", help="generate the synthetic benchmark in the ShapeNet-NMR (DVR) layout", formatter_class=HelpFormatter
+    )
     synth.add_argument(
         "--category",
         action="append",
         default=None,
         help=f"category (repeat or comma-separate); one of {sorted(CATEGORIES)}; default chair",
     )
-    synth.add_argument("--mode", choices=["nmr", "wild"], default="nmr")
+    synth.add_argument(
+        "--mode",
+        choices=["nmr", "wild"],
+        default="nmr",
+        help="nmr: views on a turntable, over white; wild: random viewpoints, distances and shifts, over random "
+        "backgrounds",
+    )
     synth.add_argument(
         "--backgrounds", choices=["random", "white"], default=None, help="default: the mode's (wild random, nmr white)"
     )
@@ -200,9 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--models", type=positive_int, default=200, help="models per category (70/10/20%% train/val/test)"
     )
     synth.add_argument(
-        "--out", type=folder_path, default=None, help="output folder; default: the cache ($UNICORN_CACHE)"
+        "--out",
+        type=folder_path,
+        default=None,
+        help="output folder; default: one named after the settings in the cache, $UNICORN_CACHE/synthetic "
+        "(~/.cache/unicorn/synthetic)",
     )
-    synth.add_argument("--seed", type=seed_number, default=0)
+    synth.add_argument("--seed", type=seed_number, default=0, help="seed of the models and their views")
     synth.add_argument("--size", type=positive_int, default=64, help="image side in pixels")
     synth.add_argument("--views", type=positive_int, default=24, help="views per model")
     synth.add_argument("--supersample", type=positive_int, default=3, help="rays per pixel along each axis")
@@ -214,14 +227,20 @@ def build_parser() -> argparse.ArgumentParser:
         "check",
         help="load a dataset and print its size and the first item (--all: read every item, exit status 1 if any "
         "is unreadable)",
+        formatter_class=HelpFormatter,
     )
     check.add_argument(
         "dataset",
         help="shapenet_nmr, synthetic, cub_200, p3d_car, compcars, lsun (lsun_horse, lsun_motorbike: lsun with that "
         "--tag) or folder",
     )
-    check.add_argument("--root", required=True)
-    check.add_argument("--split", choices=["train", "val", "test"], default="train")
+    check.add_argument(
+        "--root",
+        required=True,
+        help="the dataset's folder (synthetic: the generated dataset's, with metadata.yaml; lsun: the folder above "
+        "the tag's)",
+    )
+    check.add_argument("--split", choices=["train", "val", "test"], default="train", help="dataset split")
     check.add_argument(
         "--categories", nargs="*", default=None, help="ShapeNet / synthetic categories, comma- or space-separated"
     )

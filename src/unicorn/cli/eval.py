@@ -61,9 +61,16 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"dataset name ({', '.join(DATASET_NAMES)}, or a plugin's); default: the training run's dataset (from "
         "<run>/config.yaml)",
     )
-    p.add_argument("--root", help="dataset root (for synthetic: the generated dataset folder with metadata.yaml)")
+    p.add_argument(
+        "--root",
+        help="dataset root (for synthetic: the generated dataset folder with metadata.yaml); default: the training "
+        "run's, for its dataset",
+    )
     p.add_argument("--split", default="test", choices=SPLITS, help="dataset split")
-    p.add_argument("--categories", help="ShapeNet / synthetic categories, comma-separated; default: all")
+    p.add_argument(
+        "--categories",
+        help="ShapeNet / synthetic categories, comma-separated; default: the training run's, for its dataset, else all",
+    )
     p.add_argument(
         "--skip-bad",
         action="store_true",
@@ -116,8 +123,9 @@ def _add_metric_arguments(p: argparse.ArgumentParser) -> None:
         type=whole_number,
         default=0,
         metavar="ITERATIONS",
-        help="ShapeNet / synthetic: fit the training split's mean shape with this many iterations (e.g. 300) and "
-        "score it on every object beside the model (chamfer-L1-ICP-mean-shape, shape-win); 0: off",
+        help="ShapeNet / synthetic: fit each category's mean shape to its training objects with this many "
+        "iterations (e.g. 300) and score it beside the model on the category's objects (chamfer-L1-ICP-mean-shape, "
+        "shape-win; not with --icp-iterations 0); 0: off",
     )
     p.add_argument(
         "--own-mean-shape",

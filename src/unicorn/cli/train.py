@@ -21,7 +21,8 @@ Every run writes to one directory (``outputs/<task_name>/runs/<time>`` or, for s
 (the validated, resolved config), ``provenance.json`` (command, version, git commit), ``train.log``,
 ``tensorboard/``, ``csv/``, ``images/`` and ``checkpoints/``.
 A folder that already holds a run is only trained in again to resume it (``ckpt_path=last``: the logs are
-appended to) or with ``overwrite=true`` (its checkpoints and logs are deleted first). One run trains in a folder
+appended to) or with ``overwrite=true`` (its checkpoints and logs are set aside, and deleted once the new run's first
+iteration is done). One run trains in a folder
 at a time (a lock file holding its pid); SIGTERM or SIGINT stops a run at the next step boundary with
 ``last.ckpt`` written, and the command exits with ``128 + signal`` (:mod:`unicorn.lit.signals`). Outside the
 training iterations (building the run, the evaluation after training) a signal stops the command at once, with the

@@ -300,7 +300,7 @@ class EvalSettings:
     num_points: int = ranged(FAST_EVAL["num_points"], 1)  # points per mesh for Chamfer
     icp_iterations: int = ranged(FAST_EVAL["icp_iterations"], 0)  # 0: no -ICP metrics
     batch_size: int = ranged(EVAL_BATCH_SIZE, 1)
-    # > 0: score the training shapes' mean shape beside the model (a fit of that many Adam steps)
+    # > 0: score each category's mean training shape beside the model (a fit of that many Adam steps)
     mean_shape_iterations: int = ranged(0, 0, MAX_MEAN_SHAPE_ITERATIONS)
     own_mean_shape: bool = False  # score the model's own average shape beside it (shape-win-own)
     shape_points: int = ranged(SHAPE_POINTS, 0)  # > 0: shape retrieval among the evaluated objects, points per shape
@@ -386,7 +386,7 @@ class TrainConfig:
     # start a new run from the weights of a released .pkl, a save_model file or a .ckpt (iteration 0, fresh
     # optimizers; the model settings must match its architecture)
     init_from: str | None = None
-    trust_checkpoint: bool = False  # read ckpt_path with full unpickling: it can run code, only for files you trust
+    trust_checkpoint: bool = False  # read ckpt_path / init_from with full unpickling: it can run code (trusted files)
     overwrite: bool = False  # train in a folder holding an earlier run (not resumed): its checkpoints and logs go
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -19,13 +19,15 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
 from unicorn.checks import check_shape
-from unicorn.data.shapenet import ShapeNetNMR
+from unicorn.data.shapenet import ShapeNetNMR, read_metadata, resolve_categories
+from unicorn.evaluation.evaluator import category_group
 from unicorn.evaluation.interface import spread_indices
 from unicorn.evaluation.mean_shape import fit_mean_shape
 from unicorn.metrics import mask_iou
@@ -38,6 +40,7 @@ __all__ = [
     "POSE_MODES",
     "FixedShapeModel",
     "fit_silhouettes",
+    "category_point_clouds",
     "mean_shape_baseline",
     "template_baseline",
     "training_point_clouds",
@@ -259,3 +262,27 @@ def training_point_clouds(
     dataset = ShapeNetNMR(root, categories, "train", views="random", with_points=True, n_points=num_points)
     models = spread_indices(len(dataset.models), max_models)
     return [dataset.load_points(m)[0] for m in models]
+
+
+def category_point_clouds(
+    root: str | os.PathLike,
+    categories: str | list[str] | None = None,
+    max_models: int | None = None,
+    num_points: int | None = None,
+) -> dict[str, list[torch.Tensor]]:
+    """:func:`training_point_clouds` of each category, by the group :func:`~unicorn.evaluation.evaluate` scores
+    its objects in (:func:`~unicorn.evaluation.evaluator.category_group`: the category's name; categories that
+    share it are one group).
+
+    Args:
+        root, categories, num_points: as :func:`training_point_clouds`.
+        max_models: at most this many models per group.
+
+    Returns:
+        group name -> its M clouds (N_i, 3), in the order of the categories.
+    """
+    metadata = read_metadata(Path(root))
+    synsets: dict[str, list[str]] = {}
+    for synset in resolve_categories(metadata, categories):
+        synsets.setdefault(category_group(metadata, synset), []).append(synset)
+    return {group: training_point_clouds(root, ids, max_models, num_points) for group, ids in synsets.items()}

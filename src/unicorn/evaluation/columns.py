@@ -77,7 +77,7 @@ METRICS: dict[str, tuple[str, str]] = {
     ),
     "chamfer-L1-ICP-mean-shape": (
         "lower",
-        "Chamfer-L1 x10 after ICP of the training shapes' mean shape on the same object",
+        "Chamfer-L1 x10 after ICP of the object's category's mean training shape on the same object",
     ),
     "shape-win": (
         "higher",

@@ -27,7 +27,7 @@ from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, Sample, 
 from unicorn.evaluation.rendering import hard_render
 from unicorn.evaluation.tables import Accumulator, candidate_shares, color_scores, shape_scores, summary_table
 
-__all__ = ["build_eval_dataset", "candidate_shares", "collate", "evaluate", "group_namer"]
+__all__ = ["build_eval_dataset", "candidate_shares", "category_group", "collate", "evaluate", "group_namer"]
 
 
 def build_eval_dataset(
@@ -112,14 +112,21 @@ def _base_dataset(dataset: Dataset) -> Dataset:
     return dataset
 
 
+def category_group(metadata: Mapping[str, Mapping[str, str]], synset: str) -> str:
+    """The evaluation group of a ShapeNet-format category: the first name of its ``metadata.yaml`` entry, else its
+    synset (categories of the same first name share a group)."""
+    return metadata[synset]["name"].split(",")[0] or synset
+
+
 def group_namer(dataset: Dataset, dataset_name: str) -> Callable[[Mapping[str, Any], int], str]:
-    """A function ``(batch, i) -> group name``: the ShapeNet category name, else the dataset name."""
+    """A function ``(batch, i) -> group name``: the ShapeNet category's (:func:`category_group`), else the dataset
+    name."""
     base = _base_dataset(dataset)
     synsets = getattr(base, "synsets", None)
     metadata = getattr(base, "metadata", None)
     if synsets is None or metadata is None:
         return lambda batch, i: dataset_name
-    names = [metadata[s]["name"].split(",")[0] or s for s in synsets]
+    names = [category_group(metadata, s) for s in synsets]
     return lambda batch, i: names[int(batch["category"][i])]
 
 
@@ -154,7 +161,7 @@ def evaluate(
     options: EvalOptions,
     dataset_name: str = "dataset",
     device: str | torch.device = "cpu",
-    shape_baseline: torch.Tensor | None = None,
+    shape_baseline: torch.Tensor | Mapping[str, torch.Tensor] | None = None,
 ) -> EvaluationResult:
     """Run the evaluation protocol of ``options.protocol`` over ``dataset``.
 
@@ -175,16 +182,20 @@ def evaluate(
         options: :class:`EvalOptions`.
         dataset_name: group name for datasets without categories, and the label of the progress bar.
         device: where the model and the metrics run.
-        shape_baseline: (V, 3) one mesh on the model's template topology, e.g. the training set's mean shape
-            (:func:`~unicorn.evaluation.mean_shape.fit_mean_shape`), scored on every object beside the model
-            (``chamfer-L1-ICP-mean-shape`` and ``shape-win``; needs ground-truth points and ICP).
+        shape_baseline: a mesh on the model's template topology scored on every object beside the model
+            (``chamfer-L1-ICP-mean-shape`` and ``shape-win``; needs ground-truth points and ICP), e.g. a mean
+            training shape (:func:`~unicorn.evaluation.mean_shape.fit_mean_shape`): one (V, 3) mesh for every
+            group, or a mapping group name -> (V, 3) mesh, each group's objects scored against its own (every
+            evaluated group must have one; :func:`~unicorn.evaluation.mean_shape.fit_mean_shapes` fits one per
+            category).
 
     Returns:
         :class:`EvaluationResult`.
 
     Raises:
         ValueError: an empty dataset, or ``oracle_pose`` with an item without a ground-truth pose.
-        ShapeError: ``shape_baseline`` is not (V, 3) on the model's template.
+        ShapeError: a ``shape_baseline`` mesh is not (V, 3) on the model's template.
+        ValueError: ``shape_baseline`` is a mapping without a mesh for an evaluated group.
     """
     start = time.perf_counter()
     device = torch.device(device)

@@ -1,10 +1,11 @@
 """The mean shape of a set of shapes: the single mesh on a template's topology closest on average to all of them
-(:func:`fit_mean_shape`), the reference shape of :func:`~unicorn.evaluation.baselines.mean_shape_baseline` and of
-the evaluation's ``chamfer-L1-ICP-mean-shape``."""
+(:func:`fit_mean_shape`), the reference shape of :func:`~unicorn.evaluation.baselines.mean_shape_baseline` and,
+one per category (:func:`fit_mean_shapes`), of the evaluation's ``chamfer-L1-ICP-mean-shape``."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import torch
 from tqdm.auto import tqdm
@@ -13,7 +14,7 @@ from unicorn.checks import ShapeError, check_faces, check_shape
 from unicorn.metrics import NearestNeighborIndex, gather_points, sample_points_from_meshes
 from unicorn.objectives.losses import NormalConsistencyLoss, UniformLaplacianLoss
 
-__all__ = ["fit_mean_shape"]
+__all__ = ["fit_mean_shape", "fit_mean_shapes"]
 
 
 def _stack_clouds(
@@ -114,6 +115,34 @@ def fit_mean_shape(
             template_verts.detach(), faces, clouds, generator, iterations, lr, num_points, smooth_weight,
             normal_weight, shapes_per_step, progress, should_stop,
         )  # fmt: skip
+
+
+def fit_mean_shapes(
+    template_verts: torch.Tensor,
+    faces: torch.Tensor,
+    point_clouds: Mapping[str, Sequence[torch.Tensor] | torch.Tensor],
+    should_stop: Callable[[], bool] | None = None,
+    **fit_kwargs: Any,
+) -> dict[str, torch.Tensor] | None:
+    """The mean shape of each group of shapes (e.g. each category's training shapes): :func:`fit_mean_shape` of
+    every group's clouds on its own, with the same settings and seed (the mesh that fitting that group alone gives).
+
+    Args:
+        template_verts: (V, 3) initial vertices; faces: (F, 3), as :func:`fit_mean_shape`.
+        point_clouds: group name -> the group's shapes, as :func:`fit_mean_shape` takes them.
+        should_stop: asked before each iteration of every fit; True ends them all.
+        **fit_kwargs: the other options of :func:`fit_mean_shape`.
+
+    Returns:
+        group name -> (V, 3) fitted vertices, in ``point_clouds``' order; None when ``should_stop`` ended a fit.
+    """
+    fitted: dict[str, torch.Tensor] = {}
+    for group, clouds in point_clouds.items():
+        verts = fit_mean_shape(template_verts, faces, clouds, should_stop=should_stop, **fit_kwargs)
+        if verts is None:
+            return None
+        fitted[group] = verts
+    return fitted
 
 
 def _fit_offsets(

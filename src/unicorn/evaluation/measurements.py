@@ -142,16 +142,37 @@ class MeshScores:
 
 
 class ShapeBaselineScores:
-    """One fixed mesh (V, 3), e.g. the training set's mean shape, scored on every object after ICP beside the
-    model: ``chamfer-L1-ICP-mean-shape`` and ``shape-win``."""
+    """A fixed mesh, e.g. the mean training shape of the object's category, scored on every object after ICP
+    beside the model: ``chamfer-L1-ICP-mean-shape`` and ``shape-win``.
 
-    def __init__(self, model: EvaluableModel, options: EvalOptions, verts: torch.Tensor) -> None:
+    Args:
+        verts: (V, 3) one mesh for every image, or group name -> (V, 3) each group's mesh.
+    """
+
+    def __init__(
+        self, model: EvaluableModel, options: EvalOptions, verts: torch.Tensor | Mapping[str, torch.Tensor]
+    ) -> None:
         self.model, self.options, self.verts = model, options, verts
+
+    def _batch_verts(self, groups: list[str]) -> torch.Tensor:
+        """(B, V, 3) each image's baseline mesh."""
+        if isinstance(self.verts, torch.Tensor):
+            meshes = [self.verts] * len(groups)
+        else:
+            missing = sorted({g for g in groups if g not in self.verts})
+            if missing:
+                raise ValueError(
+                    f"shape_baseline has no mesh for the evaluated group(s) {missing}; it has {sorted(self.verts)}"
+                )
+            meshes = [self.verts[g] for g in groups]
+        if all(m is meshes[0] for m in meshes):  # one mesh: the same expanded tensor for every image
+            return meshes[0].unsqueeze(0).expand(len(groups), -1, -1)
+        return torch.stack(meshes)
 
     def __call__(self, view: EvaluatedBatch, acc: Accumulator) -> None:
         if "chamfer-L1-ICP" not in view.scores:
             return
-        verts = self.verts.unsqueeze(0).expand(view.images.shape[0], -1, -1)
+        verts = self._batch_verts(view.groups)
         base = _mesh_scores(self.model, verts, view, self.options, False, run_direct=False)["chamfer-L1-ICP"]
         view.scores["chamfer-L1-ICP-mean-shape"] = base
         view.scores["shape-win"] = _wins(view.scores["chamfer-L1-ICP"], base)
@@ -261,7 +282,7 @@ def measurements_for(
     protocol: EvalProtocol,
     options: EvalOptions,
     model: EvaluableModel,
-    shape_baseline: torch.Tensor | None = None,
+    shape_baseline: torch.Tensor | Mapping[str, torch.Tensor] | None = None,
     own_means: Mapping[str, torch.Tensor] | None = None,
 ) -> list[Measurement]:
     """The measurements a protocol makes, in the order their columns appear in a row.
@@ -270,7 +291,8 @@ def measurements_for(
         protocol: what the dataset provides (:class:`~unicorn.evaluation.protocols.Protocol`).
         options: the evaluation's settings.
         model: the evaluated model.
-        shape_baseline: (V, 3) a mesh scored beside the model on every object (:class:`ShapeBaselineScores`).
+        shape_baseline: (V, 3) a mesh, or group name -> (V, 3) each group's mesh, scored beside the model on every
+            object (:class:`ShapeBaselineScores`).
         own_means: per group, the model's average mesh (V, 3) (:class:`OwnMeanScores`).
     """
     steps: list[Measurement] = []
@@ -295,10 +317,23 @@ def measurements_for(
     return steps
 
 
-def checked_shape_baseline(shape_baseline: torch.Tensor, model: EvaluableModel, device: torch.device) -> torch.Tensor:
-    """``shape_baseline`` as a (V, 3) mesh on the model's template topology, on ``device`` in its dtype."""
-    check_shape(shape_baseline, "V, 3", "shape_baseline", {"V": model.template.num_verts})
-    return shape_baseline.to(device=device, dtype=model.template.verts.dtype)
+def checked_shape_baseline(
+    shape_baseline: torch.Tensor | Mapping[str, torch.Tensor], model: EvaluableModel, device: torch.device
+) -> torch.Tensor | dict[str, torch.Tensor]:
+    """``shape_baseline``, one (V, 3) mesh or group name -> (V, 3) mesh, as meshes on the model's template
+    topology, on ``device`` in its dtype.
+
+    Raises:
+        ShapeError: a mesh is not (V, 3) with the template's V.
+    """
+    dims = {"V": model.template.num_verts}
+    dtype = model.template.verts.dtype
+    if isinstance(shape_baseline, torch.Tensor):
+        check_shape(shape_baseline, "V, 3", "shape_baseline", dims)
+        return shape_baseline.to(device=device, dtype=dtype)
+    for group, verts in shape_baseline.items():
+        check_shape(verts, "V, 3", f"shape_baseline[{group!r}]", dims)
+    return {group: verts.to(device=device, dtype=dtype) for group, verts in shape_baseline.items()}
 
 
 def _mesh_scores(

@@ -42,9 +42,10 @@ outputs the category mean:
   input's mask cover, ``color-err-overlap``, ``color-err-mean-overlap`` and ``color-ratio-overlap``: the texture's
   colour alone, where ``color-ratio`` also counts what a wrong silhouette paints (a genus-0 mesh covering the
   open frame of a chair back paints it; the input shows the background there);
-- shape (with ``shape_baseline``, a mean shape, see :func:`evaluate`): per image ``chamfer-L1-ICP-mean-shape``,
-  Chamfer-L1 after ICP of that one mesh on the same object, and ``shape-win``, 1 where the model's
-  ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model wins;
+- shape (with ``shape_baseline``, a mean shape, one mesh or one per group, see :func:`evaluate`): per image
+  ``chamfer-L1-ICP-mean-shape``, Chamfer-L1 after ICP of its group's mesh on the same object, and ``shape-win``, 1
+  where the model's ``chamfer-L1-ICP`` is lower (0.5 on a tie), whose group mean is the share of objects the model
+  wins;
 - own shape (``EvalOptions(own_mean_shape=True)``): per image ``chamfer-L1-ICP-own-mean``, the same score for
   the model's *own* average shape (the mean of its predicted meshes over the group's evaluated images, vertex by
   vertex on the template topology) placed with the image's predicted pose, and ``shape-win-own``, 1 where the

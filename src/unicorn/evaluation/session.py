@@ -19,9 +19,10 @@ import torch
 from unicorn.config.schema import REPORT_TURNTABLE_FRAMES, EvaluateConfig
 from unicorn.data.common import OnError
 from unicorn.errors import UserError
-from unicorn.evaluation.baselines import fit_mean_shape, training_point_clouds
+from unicorn.evaluation.baselines import category_point_clouds
 from unicorn.evaluation.evaluator import build_eval_dataset, evaluate
 from unicorn.evaluation.interface import EvaluableModel
+from unicorn.evaluation.mean_shape import fit_mean_shapes
 from unicorn.evaluation.metric_files import write_metrics
 from unicorn.evaluation.protocols import EvalOptions, EvaluationResult, get_protocol, protocol_for
 from unicorn.evaluation.report import REPORT_FILES, write_report
@@ -123,8 +124,10 @@ def evaluate_to_folder(
         out: the output folder (created); the files appear in it only when all are written
             (:func:`unicorn.io.staging.staged_folder`), replacing same-named ones.
         meta: provenance written with the metrics (command, checkpoint, ...); the target and the options are added.
-        mean_shape_iterations: > 0: fit the training shapes' mean shape for that many iterations and score it
-            beside the model (``shape-win``; the shapenet protocol only).
+        mean_shape_iterations: > 0: fit each category's mean shape to its training shapes for that many
+            iterations and score it beside the model on the category's objects (``shape-win``; the shapenet
+            protocol only; not fitted, with a warning, when ``options.icp_iterations`` is 0: it is scored after
+            ICP).
         view_size, turntable_frames: the report's render size and turntable length.
         title: the report's title (default: dataset and split).
         device: where to evaluate (default: the model's device).
@@ -159,8 +162,8 @@ def evaluate_to_folder(
         options.protocol,
         device,
     )
-    mean_shape = _mean_shape(model, target, mean_shape_iterations, options.seed)
-    result = evaluate(model, data, options, dataset_name=target.dataset, device=device, shape_baseline=mean_shape)
+    mean_shapes = _mean_shapes(model, target, mean_shape_iterations, options)
+    result = evaluate(model, data, options, dataset_name=target.dataset, device=device, shape_baseline=mean_shapes)
     full_meta = {
         **meta,
         **dataclasses.asdict(target),
@@ -226,10 +229,21 @@ def _check_request(target: EvalTarget, options: EvalOptions, mean_shape_iteratio
         raise EvalRequestError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
 
 
-def _mean_shape(model: EvaluableModel, target: EvalTarget, iterations: int, seed: int) -> torch.Tensor | None:
-    """The training shapes' mean shape (V, 3) on the model's template, fitted for ``iterations``; None for 0."""
+def _mean_shapes(
+    model: EvaluableModel, target: EvalTarget, iterations: int, options: EvalOptions
+) -> dict[str, torch.Tensor] | None:
+    """Per evaluation group (category), the mean shape (V, 3) of its training shapes on the model's template,
+    fitted for ``iterations``; None for 0, or without ICP (the mean shape is only scored after it)."""
     if iterations <= 0:
         return None
-    clouds = training_point_clouds(target.root, target.categories, max_models=200, num_points=5000)
-    log.info("fitting the mean shape of %d training shapes (%d iterations)", len(clouds), iterations)
-    return fit_mean_shape(model.template.verts, model.template.faces, clouds, iterations=iterations, seed=seed)
+    if options.icp_iterations <= 0:
+        log.warning(
+            "note: no mean shape is fitted (mean_shape_iterations %d): it is scored after ICP, and icp_iterations is 0",
+            iterations,
+        )
+        return None
+    clouds = category_point_clouds(target.root, target.categories, max_models=200, num_points=5000)
+    shapes = ", ".join(f"{group} {len(group_clouds)}" for group, group_clouds in clouds.items())
+    log.info("fitting the mean shape of each category's training shapes (%s; %d iterations each)", shapes, iterations)
+    verts, faces = model.template.verts, model.template.faces
+    return fit_mean_shapes(verts, faces, clouds, iterations=iterations, seed=options.seed)

@@ -8,8 +8,8 @@ only of the training loss. Nothing is selected on them: they are for watching an
 
 They include the instance-level metrics of :func:`~unicorn.evaluation.evaluate`: the colour error beside the
 mean-colour predictor's (``color-err``, ``color-err-mean``, ``color-ratio``), the flip rate (``rot-flip-150``)
-and, with ``mean_shape_iterations`` > 0 on a dataset with ground-truth point clouds, the training split's mean
-shape (fitted once, at the start) scored on the same objects (``chamfer-L1-ICP-mean-shape``) and the share of
+and, with ``mean_shape_iterations`` > 0 on a dataset with ground-truth point clouds, each category's mean training
+shape (fitted once, at the start) scored on its objects (``chamfer-L1-ICP-mean-shape``) and the share of
 objects on which the model is closer (``shape-win``); with ``own_mean_shape``, the model's own average shape
 over the held-out images scored the same way (``chamfer-L1-ICP-own-mean``, ``shape-win-own``): whether the
 per-image shapes follow the objects, whatever the accuracy of the category's shape; and with ``shape_points`` > 0
@@ -55,11 +55,12 @@ class HeldOutEvaluation(L.Callback):
         batch_size: images per forward pass.
         at_start: also evaluate before the first iteration (the untrained model, the start of the curves).
         filename: the CSV file, relative to the run directory.
-        mean_shape_iterations: fit the mean shape of (at most ``mean_shape_models``) training point clouds
-            with this many iterations (:func:`~unicorn.evaluation.baselines.fit_mean_shape`) and score it beside
-            the model; 0: no shape baseline. Needs a dataset with point clouds (ShapeNet-NMR, synthetic) and
-            ``icp_iterations`` > 0.
-        mean_shape_models: most training shapes the mean shape is fitted to.
+        mean_shape_iterations: fit each category's mean shape to (at most ``mean_shape_models`` of) its training
+            point clouds with this many iterations (:func:`~unicorn.evaluation.mean_shape.fit_mean_shapes`) and
+            score it beside the model on the category's objects; 0: no shape baseline. Needs a dataset with point
+            clouds (ShapeNet-NMR, synthetic) and ``icp_iterations`` > 0 (without ICP it is not fitted, with a log
+            line).
+        mean_shape_models: most training shapes of a category its mean shape is fitted to.
         own_mean_shape: also score the model's own average shape (``EvalOptions.own_mean_shape``).
         shape_points: points per shape of the shape retrieval (``EvalOptions.shape_points``); 0: off.
         progress: a progress bar while scoring (erased when done; a line is logged before and after either way).
@@ -88,7 +89,8 @@ class HeldOutEvaluation(L.Callback):
         self.num_points, self.icp_iterations, self.batch_size = int(num_points), int(icp_iterations), int(batch_size)
         self.at_start, self.filename, self.progress = bool(at_start), filename, bool(progress)
         self.mean_shape_iterations, self.mean_shape_models = int(mean_shape_iterations), int(mean_shape_models)
-        self.mean_shape: torch.Tensor | None = None  # (V, 3), fitted with the dataset
+        # category (evaluation group) -> its mean shape (V, 3), fitted with the dataset
+        self.mean_shapes: dict[str, torch.Tensor] | None = None
         self.own_mean_shape, self.shape_points = bool(own_mean_shape), int(shape_points)
         self._dataset: Any = None
         self._name = "dataset"
@@ -112,25 +114,28 @@ class HeldOutEvaluation(L.Callback):
             max_images=self.max_images,
         )
         clouds_known = get_protocol(protocol_for(data.name)).training_clouds
-        if self.mean_shape_iterations > 0 and self.icp_iterations > 0 and clouds_known:
-            from unicorn.evaluation import fit_mean_shape, training_point_clouds
+        if self.mean_shape_iterations > 0 and clouds_known and self.icp_iterations == 0:
+            log.info("held-out: no mean shape is fitted: it is scored after ICP, and icp_iterations is 0")
+        elif self.mean_shape_iterations > 0 and clouds_known:
+            from unicorn.evaluation.baselines import category_point_clouds
+            from unicorn.evaluation.mean_shape import fit_mean_shapes
 
-            clouds = training_point_clouds(root, data.categories, self.mean_shape_models, num_points=self.num_points)
+            clouds = category_point_clouds(root, data.categories, self.mean_shape_models, num_points=self.num_points)
             template = pl_module.model.template
             with torch.random.fork_rng(devices=[]):  # the fit is seeded; leave the training's streams alone
-                self.mean_shape = fit_mean_shape(
+                self.mean_shapes = fit_mean_shapes(
                     template.verts.detach(),
                     template.faces,
                     clouds,
                     iterations=self.mean_shape_iterations,
                     should_stop=lambda: _stop_signalled(trainer),
                 )
-            if self.mean_shape is None:
+            if self.mean_shapes is None:
                 log.info("held-out: the mean-shape fit stopped by a signal: no mean shape is scored")
                 return
             log.info(
-                "held-out: mean shape of %d training shapes fitted (%d iterations)",
-                len(clouds),
+                "held-out: each category's mean shape fitted to its training shapes (%s; %d iterations each)",
+                ", ".join(f"{group} {len(group_clouds)}" for group, group_clouds in clouds.items()),
                 self.mean_shape_iterations,
             )
 
@@ -177,7 +182,7 @@ class HeldOutEvaluation(L.Callback):
                     options,
                     self._name,
                     device=pl_module.device,
-                    shape_baseline=self.mean_shape,
+                    shape_baseline=self.mean_shapes,
                 )
             finally:
                 pl_module.train(was_training)
