@@ -72,6 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="ShapeNet / synthetic categories, comma-separated; default: the training run's, for its dataset, else all",
     )
     p.add_argument(
+        "--tag",
+        help="LSUN: the category whose folder is under --root (horse, motorbike); default: the training run's",
+    )
+    p.add_argument(
         "--skip-bad",
         action="store_true",
         help="skip unreadable images with a warning (the others are scored) instead of stopping",
@@ -283,7 +287,15 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]
     on_error = "skip" if args.skip_bad else "raise"
-    return EvalTarget(dataset, str(root), args.split, categories, args.max_images, on_error)
+    # what the run read (LSUN's category...): build_eval_dataset keeps the options that say it
+    options = dict(run_data.get("options") or {}) if run_data.get("name") == dataset else {}
+    if args.tag is not None:
+        if dataset != "lsun":
+            raise UsageError(f"--tag is for lsun only (the LSUN category), not {dataset}")
+        options["tag"] = args.tag
+    if dataset == "lsun" and "tag" not in options:
+        raise UsageError("lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike)")
+    return EvalTarget(dataset, str(root), args.split, categories, args.max_images, on_error, options)
 
 
 def _mesh_settings(args: argparse.Namespace) -> dict[str, int]:

@@ -207,6 +207,8 @@ class DatasetSpec:
             resize them to ``img_size`` (default: None).
         by_category: whether ``build`` picks the items by its ``categories`` argument (ShapeNet's synsets); the
             command-line tools refuse ``--categories`` for a dataset that does not.
+        data_options: the options that say which data a run reads and how it is framed (LSUN's ``tag``, a folder's
+            ``extensions``), not how training draws from it: the run's evaluations read the same data with them.
     """
 
     build: Callable[..., Dataset]
@@ -219,6 +221,7 @@ class DatasetSpec:
     prepare: Callable[..., Path] | None = None
     stored_size: Callable[[Mapping[str, Any] | None], int | None] = _no_stored_size
     by_category: bool = True
+    data_options: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         """Refuse fields of the wrong kind when the entry is made (a plugin's mistake, said at its registration).
@@ -294,10 +297,26 @@ DATASETS.add(
 )
 DATASETS.add(
     "lsun",
-    DatasetSpec(_unsplit(LSUN), 5, "images", _options(LSUN, *_UNSPLIT_SET), _from_offset, by_category=False),
+    DatasetSpec(
+        _unsplit(LSUN),
+        5,
+        "images",
+        _options(LSUN, *_UNSPLIT_SET),
+        _from_offset,
+        by_category=False,
+        data_options=("tag", "cleaned", "padding"),
+    ),
 )
 DATASETS.add(
-    "folder", DatasetSpec(_unsplit(ImageFolder), 5, "images", _options(ImageFolder, *_UNSPLIT_SET), by_category=False)
+    "folder",
+    DatasetSpec(
+        _unsplit(ImageFolder),
+        5,
+        "images",
+        _options(ImageFolder, *_UNSPLIT_SET),
+        by_category=False,
+        data_options=("extensions",),
+    ),
 )
 #: the built-in datasets' names (a plugin may register more: :func:`list_datasets` names them all)
 DATASET_NAMES = tuple(DATASETS)

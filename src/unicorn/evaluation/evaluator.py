@@ -39,6 +39,7 @@ def build_eval_dataset(
     max_images: int | None = None,
     seed: int = 0,
     on_error: OnError = "raise",
+    options: Mapping[str, Any] | None = None,
 ) -> Dataset:
     """The evaluation items of a dataset, as its protocol needs them.
 
@@ -57,8 +58,13 @@ def build_eval_dataset(
         seed: the view choice of ShapeNet.
         on_error: ``"raise"``: an unreadable image is an error; ``"skip"``: it is skipped with a warning
             (:class:`~unicorn.data.common.SkippedFileWarning`) and :func:`evaluate` scores each readable item once.
+        options: a training run's dataset options: those that say which data it read
+            (:attr:`~unicorn.data.registry.DatasetSpec.data_options`: LSUN's ``tag``...) are kept, the others
+            (how training draws from the data) left out.
     """
-    options = dict(dataset_spec(name).eval_options)
+    spec = dataset_spec(name)
+    kept = {key: value for key, value in (options or {}).items() if key in spec.data_options}
+    options = {**kept, **spec.eval_options}
     dataset = build_dataset(
         name, split, root, img_size=img_size, categories=categories, seed=seed, on_error=on_error, **options
     )

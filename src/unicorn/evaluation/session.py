@@ -10,7 +10,7 @@ import dataclasses
 import logging
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,8 @@ class EvalTarget:
         max_images: at most this many items, spread evenly over the split; None for all.
         on_error: ``"raise"``: an unreadable image is an error; ``"skip"``: it is left out with a warning
             (``unicorn-eval --skip-bad``; the evaluation after training takes the dataset's ``on_error``).
+        dataset_options: the training run's dataset options; those that say which data it read (LSUN's ``tag``)
+            are kept (:func:`~unicorn.evaluation.build_eval_dataset`).
     """
 
     dataset: str
@@ -54,6 +56,7 @@ class EvalTarget:
     categories: str | list[str] | None = None
     max_images: int | None = None
     on_error: OnError = "raise"
+    dataset_options: Mapping[str, Any] = field(default_factory=dict)
 
 
 def settings_options(settings: Any, dataset: str, **options: Any) -> EvalOptions:
@@ -153,6 +156,7 @@ def evaluate_to_folder(
         max_images=target.max_images,
         seed=options.seed,
         on_error=target.on_error,
+        options=target.dataset_options,
     )
     log.info(
         "evaluating %d %s images of %s (%s protocol) on %s",

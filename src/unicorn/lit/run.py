@@ -635,6 +635,7 @@ def _evaluated_before(metrics: Path, meta: dict[str, Any], target: Any) -> bool:
         "split": target.split,
         "categories": target.categories,
         "max_images": target.max_images,
+        "dataset_options": target.dataset_options,
     }
     return isinstance(found, dict) and all(found.get(key) == value for key, value in same.items())
 
@@ -668,8 +669,9 @@ def evaluate_run(run: Run) -> Path:
         "step": run.trainer.global_step,
     }
     categories = OmegaConf.to_container(d.categories) if OmegaConf.is_config(d.categories) else d.categories
+    options = OmegaConf.to_container(d.options) if OmegaConf.is_config(d.options) else dict(d.options or {})
     target = EvalTarget(
-        d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images, d.on_error
+        d.name, str(run.data.dataset_root()), settings.split, categories, settings.max_images, d.on_error, options
     )
     if run.stopper.steps_run == 0 and _evaluated_before(out / "metrics.json", meta, target):
         log.info(
