@@ -51,3 +51,23 @@ def test_the_evaluation_after_training_skips_unreadable_images_as_training_did(t
         for line in skipped
     )  # fmt: skip
     assert "RuntimeWarning" not in log + result.stderr and "warnings.warn" not in result.stderr
+
+
+def test_a_folder_run_is_evaluated_and_resumed_on_the_suffixes_it_trained_on(tmp_path: Path) -> None:
+    """``dataset.options.extensions`` names the run's data: the evaluation after training reads the same images, and
+    a resume that would read others is refused."""
+    folder = tmp_path / "fold"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        image = Image.fromarray(rng.integers(0, 256, (40, 48, 3), dtype=np.uint8))
+        image.save(folder / f"img{i:02d}.{'png' if i < 4 else 'jpg'}")
+    run = tmp_path / "run"
+    args = [*FOLDER_RUN, f"dataset.root={folder}", f"hydra.run.dir={run}", "+dataset.options.extensions=[png]"]
+    result = unicorn_train(*args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    assert sorted(row["index"] for row in metrics["per_image"]) == [0, 1, 2, 3]  # the four PNGs
+    resumed = unicorn_train(*args[:-1], "+dataset.options.extensions=[jpg]", "ckpt_path=last", cwd=tmp_path)
+    assert resumed.returncode != 0
+    assert "dataset.options.extensions ['png'] -> ['jpg']" in resumed.stderr, resumed.stderr[-2000:]

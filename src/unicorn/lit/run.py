@@ -200,8 +200,9 @@ RESUMED_OPTIM = (
     "lr", "betas", "eps", "weight_decay", "lr_drop_step", "lr_drop_gamma", "texture_lr_scale", "background_lr_scale",
     "adam_state",
 )  # fmt: skip
-#: the settings that say which data a run trains on: a resumed run keeps them (a moved ``dataset.root`` is a change
-#: it may make, with a warning)
+#: the settings that say which data a run trains on: a resumed run keeps them, and its dataset's
+#: :attr:`~unicorn.data.registry.DatasetSpec.data_options` (a moved ``dataset.root`` is a change it may make, with a
+#: warning)
 RESUMED_DATA = ("name", "categories", "img_size", "synthetic")
 #: the settings a resume is expected to change (where it goes on, from what, for how long): not listed as changes
 _RESUME_SETTINGS = ("ckpt_path", "overwrite", "trust_checkpoint", "paths", "trainer.max_steps")
@@ -247,7 +248,8 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
             f"its run's ({recorded}): {'; '.join(map(said, fixed))}; resume with the run's values, or start a new "
             "run from its weights with init_from=..."
         )
-    data = [c for c in changes if under(c[0], [f"dataset.{key}" for key in RESUMED_DATA])]
+    data_keys = [*RESUMED_DATA, *(f"options.{key}" for key in _data_options(typed.dataset.name))]
+    data = [c for c in changes if under(c[0], [f"dataset.{key}" for key in data_keys])]
     if data:
         raise ConfigError(
             f"ckpt_path: a resumed run trains on its run's data, and these settings differ from its run's "
@@ -265,6 +267,13 @@ def check_resumed_settings(typed: DictConfig, ckpt_path: Path) -> None:
         )
     if shown:
         log.warning("resuming with settings other than those in %s: %s", recorded, "; ".join(map(said, shown)))
+
+
+def _data_options(dataset: str) -> tuple[str, ...]:
+    """The options that say which data ``dataset`` reads (none for a dataset not registered here)."""
+    from unicorn.data.registry import DATASETS
+
+    return DATASETS.get(dataset).data_options if dataset in DATASETS else ()
 
 
 def _moved_folder(before: Mapping[str, Any], output_dir: str) -> Callable[[tuple[str, Any, Any]], bool]:
