@@ -65,6 +65,8 @@ def test_only_the_appending_experiment_form_is_rewritten():
         "+seed=2",
     ]
     assert hydra_argv(["+experiment=cub"]) == ["experiment=cub"] and hydra_argv([]) == ["experiment=synthetic"]
+    # Hydra's add-or-override form, which it refuses for a config group ("force-add of config groups")
+    assert experiment_overrides(["++experiment=cub", "++experiment.x=1"]) == ["experiment=cub", "++experiment.x=1"]
 
 
 def test_both_forms_compose_the_same_config_with_the_experiment_applied_last(tmp_path):

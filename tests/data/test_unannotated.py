@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 import re
@@ -15,7 +14,7 @@ import pytest
 import torch
 from PIL import Image
 
-from tests.support.datasets import save_with_orientation, write_photo
+from tests.support.datasets import save_with_orientation, write_lsun, write_photo
 from unicorn.data.folder import CompCars, ImageFolder, UnreadableFolderWarning, list_images
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
@@ -150,30 +149,10 @@ def test_lsun_malformed_indices_name_the_file_and_line(tmp_path: Path, content: 
     assert "indices.txt" in str(info.value)
 
 
-def _write_lsun(root: Path, tag: str, n: int) -> list[bytes]:
-    lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
-    path = root / tag
-    path.mkdir(parents=True)
-    env = lmdb.open(str(path), map_size=1 << 26)
-    keys = []
-    with env.begin(write=True) as txn:
-        for i in range(n):
-            rng = np.random.default_rng(i)
-            buf = io.BytesIO()
-            w, h = (48, 32) if i % 2 else (32, 40)
-            Image.fromarray(rng.integers(0, 256, (h, w, 3), dtype=np.uint8)).save(buf, format="JPEG", quality=75)
-            key = hashlib.sha1(str(i).encode()).hexdigest().encode()
-            txn.put(key, buf.getvalue())
-            keys.append(key)
-        txn.put(b"ffff_corrupt", b"not a jpeg")
-    env.close()
-    return sorted(keys)
-
-
 def test_lsun_reads_lmdb_and_cleaned_subset(tmp_path: Path) -> None:
     from unicorn.data.lsun import LSUN
 
-    keys = _write_lsun(tmp_path, "horse", 24)
+    keys = write_lsun(tmp_path, "horse", 24)
     (tmp_path / "horse" / "indices.txt").write_text("".join(f"{j} {k}\n" for j, k in enumerate(range(0, 24, 2))))
     ds = LSUN(tmp_path, "horse", cleaned=True, augment=True)
     assert len(ds) == 12 and ds.keys[1] == keys[2]
@@ -250,7 +229,7 @@ def test_lsun_frames_the_whole_image_by_hand(tmp_path: Path) -> None:
 def test_lsun_corrupt_lmdb_is_one_error_naming_it(tmp_path: Path, damage: str) -> None:
     from unicorn.data.lsun import LSUN
 
-    _write_lsun(tmp_path, "horse", 4)
+    write_lsun(tmp_path, "horse", 4)
     data = tmp_path / "horse" / "data.mdb"
     size = data.stat().st_size
     # a truncated file would kill the process with SIGBUS on the first read past its end, were it not refused
@@ -269,7 +248,7 @@ def test_lsun_unreadable_record_is_skipped_like_a_bad_image(tmp_path: Path, monk
     import unicorn.data.lsun as lsun
 
     lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
-    _write_lsun(tmp_path, "horse", 4)
+    write_lsun(tmp_path, "horse", 4)
     ds = lsun.LSUN(tmp_path, "horse", cleaned=False)
     real = lsun._open_env(ds.path)
 
@@ -300,7 +279,7 @@ def test_lsun_unreadable_record_is_skipped_like_a_bad_image(tmp_path: Path, monk
 def test_unicorn_data_check_reads_an_lsun_config_name_as_its_tag(tmp_path: Path, capsys) -> None:
     from unicorn.cli.data import main
 
-    _write_lsun(tmp_path, "motorbike", 3)  # and a fourth record that is not an image
+    write_lsun(tmp_path, "motorbike", 3)  # and a fourth record that is not an image
     (tmp_path / "motorbike" / "indices.txt").write_text("".join(f"{j} {j}\n" for j in range(4)))
     # lsun_motorbike, as dataset=lsun_motorbike names it, is the lsun loader with --tag motorbike
     assert main(["check", "lsun_motorbike", "--root", str(tmp_path), "--split", "train", "--all"]) == 1
@@ -332,7 +311,7 @@ def test_unicorn_data_check_refuses_an_option_it_would_not_use(
 ) -> None:
     from unicorn.cli.data import main
 
-    _write_lsun(tmp_path, "motorbike", 3)  # refused before anything is read
+    write_lsun(tmp_path, "motorbike", 3)  # refused before anything is read
     assert main(["check", *args, "--root", str(tmp_path)]) == 2
     assert capsys.readouterr().err == f"unicorn-data: error: {message}\n"
 

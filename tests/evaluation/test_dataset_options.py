@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.data.test_unannotated import _write_lsun
+from tests.support.datasets import write_lsun
 from unicorn.cli.errors import UsageError
 from unicorn.cli.eval import _target, build_parser
 from unicorn.evaluation import build_eval_dataset
 
 
 def test_the_lsun_category_a_run_read_is_evaluated(tmp_path: Path) -> None:
-    _write_lsun(tmp_path, "horse", 6)
-    motorbikes = _write_lsun(tmp_path, "motorbike", 3)
+    write_lsun(tmp_path, "horse", 6)
+    motorbikes = write_lsun(tmp_path, "motorbike", 3)
     # the run's options: the tag and the framing are kept, how training draws (jitter) is not the evaluation's
     data = build_eval_dataset("lsun", str(tmp_path), options={"tag": "motorbike", "cleaned": False, "jitter": 0.0})
     assert data.tag == "motorbike" and data.keys == [*motorbikes, b"ffff_corrupt"]

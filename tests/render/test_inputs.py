@@ -297,13 +297,15 @@ def test_blend_functions_check_their_options():
             layered_blend(colors, fragments, bg, sigma)
         with pytest.raises(RenderError, match="sigma must be finite and >= 0"):
             layered_occupancy(fragments, sigma)
-    for options in ({"zfar": float("inf")}, {"znear": 5.0, "zfar": 5.0}, {"eps": float("nan")}):
+    for options in ({"zfar": float("inf")}, {"znear": 5.0, "zfar": 5.0}, {"eps": float("nan")}, {"znear": "a"}):
         with pytest.raises(RenderError, match="need finite 0 <= znear < zfar and a finite eps"):
             softras_blend(colors, fragments, bg, **options)
         with pytest.raises(RenderError, match="need finite 0 <= znear < zfar and a finite eps"):
             SoftRasBlend(**options)
     with pytest.raises(RenderError, match="sigma and gamma must be finite and > 0 in float32"):
         build_renderer("softras", gamma=1e-50)  # > 0, but 0 in float32: every weight 0 / 0
+    with pytest.raises(RenderError, match="sigma and gamma must be finite and > 0 in float32"):
+        softras_blend(colors, fragments, bg, gamma="1e-4")
     from unicorn.render.hard import HardBlend
 
     for bad in (2.5, float("nan"), 0):  # a count: 2.5 used to render as 2

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 from pathlib import Path
 
 import numpy as np
+import pytest
 import scipy.io
 from PIL import Image
 
@@ -155,3 +158,26 @@ def swapped_rg_profile() -> bytes:
     icc[84:100] = bytes(16)  # no profile ID (an MD5 of the rest)
     # named apart from sRGB (the loaders read a profile named sRGB as stored), in as many UTF-16 characters
     return bytes(icc).replace("sRGB built-in".encode("utf-16-be"), "GRB swapped!!".encode("utf-16-be"))
+
+
+def write_lsun(root: Path, tag: str, n: int) -> list[bytes]:
+    """LSUN's layout of one category: ``root/<tag>`` an LMDB of ``n`` JPEGs (alternately 48 x 32 and 32 x 40) under
+    hashed keys, and one record that is no image (``ffff_corrupt``); the images' keys, sorted. Skips the test
+    without the optional ``lmdb`` package."""
+    lmdb = pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    path = root / tag
+    path.mkdir(parents=True)
+    env = lmdb.open(str(path), map_size=1 << 26)
+    keys = []
+    with env.begin(write=True) as txn:
+        for i in range(n):
+            rng = np.random.default_rng(i)
+            buf = io.BytesIO()
+            w, h = (48, 32) if i % 2 else (32, 40)
+            Image.fromarray(rng.integers(0, 256, (h, w, 3), dtype=np.uint8)).save(buf, format="JPEG", quality=75)
+            key = hashlib.sha1(str(i).encode()).hexdigest().encode()
+            txn.put(key, buf.getvalue())
+            keys.append(key)
+        txn.put(b"ffff_corrupt", b"not a jpeg")
+    env.close()
+    return sorted(keys)

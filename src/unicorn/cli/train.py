@@ -277,7 +277,8 @@ def _log_end(err: Exception) -> None:
 
 
 def experiment_overrides(overrides: list[str]) -> list[str]:
-    """``overrides`` (command-line arguments or compose overrides) with ``+experiment=V`` written ``experiment=V``.
+    """``overrides`` (command-line arguments or compose overrides) with ``+experiment=V`` (and ``++experiment=V``)
+    written ``experiment=V``.
 
     ``conf/train.yaml`` ends its defaults list with ``experiment: null``: a placeholder after ``_self_``, so that the
     chosen experiment is merged last and overrides everything above it, and one that the compose API
@@ -289,8 +290,8 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
     presets join the same group. A ``train.yaml`` of your own in ``DIR`` replaces ours and must keep the
     ``train_schema`` and ``experiment: null`` entries. Every other argument is returned unchanged.
     """
-    prefix = "+experiment="
-    return [arg[1:] if arg.startswith(prefix) else arg for arg in overrides]
+    # ++experiment=NAME (Hydra's add-or-override) too: Hydra refuses it for a config group
+    return [arg.lstrip("+") if arg.startswith(("+experiment=", "++experiment=")) else arg for arg in overrides]
 
 
 def open_node_overrides(overrides: list[str]) -> list[str]:

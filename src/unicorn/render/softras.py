@@ -13,6 +13,8 @@ import math
 import torch
 from torch import nn
 
+from unicorn.checks import is_number
+
 from .compositing import gather_slots, write_pixels
 from .fragments import Fragments, check_blend_inputs
 from .raster import RenderError
@@ -27,13 +29,13 @@ _FLOAT32_ZERO = 2.0**-150
 def check_temperatures(sigma: float, gamma: float) -> None:
     """Raise RenderError unless the occupancy and depth temperatures are finite and > 0 (in float32, where the
     renders divide by them)."""
-    if not all(_FLOAT32_ZERO < t < math.inf for t in (sigma, gamma)):
+    if not all(is_number(t) and _FLOAT32_ZERO < t < math.inf for t in (sigma, gamma)):
         raise RenderError(f"sigma and gamma must be finite and > 0 in float32, got sigma={sigma}, gamma={gamma}")
 
 
 def check_depth_range(znear: float, zfar: float, eps: float = 0.0) -> None:
     """Raise RenderError unless ``0 <= znear < zfar`` are finite and the background's ``eps`` is a finite number."""
-    if not (0 <= znear < zfar < math.inf and math.isfinite(eps)):
+    if not (all(is_number(v) for v in (znear, zfar, eps)) and 0 <= znear < zfar):
         raise RenderError(f"need finite 0 <= znear < zfar and a finite eps, got znear={znear}, zfar={zfar}, eps={eps}")
 
 
