@@ -89,6 +89,11 @@ CASES = [
     ("log-dir-empty", [*SYNTHETIC, "paths.log_dir="], r"^paths.log_dir is empty: give the folder the runs go under"),
     ("init-from-empty", [*SYNTHETIC, "init_from="], r"^init_from is empty: name a weights file"),
     # UNICORN_CACHE= (exported, empty): the synthetic set at /synthetic_32px
+    (
+        "no-checkpoint-kept",
+        [*SYNTHETIC, "callbacks.checkpoint.keep=0", "callbacks.checkpoint.save_last=false"],
+        r"^callbacks.checkpoint.keep=0 with save_last=false keeps no checkpoint: the trained weights would be lost",
+    ),
     ("cache-empty", [*SYNTHETIC, "paths.cache_dir="], r"^paths.cache_dir is empty: set UNICORN_CACHE to a folder"),
     ("vgg16-empty", [*SYNTHETIC, "paths.vgg16="], r"^paths.vgg16 is empty: set UNICORN_VGG16"),
     ("deterministic", [*SYNTHETIC, "trainer.deterministic=bogus"], r"trainer.deterministic must be true, false, warn"),

@@ -403,7 +403,12 @@ def _lightning_precisions() -> tuple[Any, ...]:
 
 
 def _check_callbacks_and_loggers(cfg: DictConfig) -> None:
-    h, e = cfg.callbacks.heldout, cfg.evaluate
+    h, e, c = cfg.callbacks.heldout, cfg.evaluate, cfg.callbacks.checkpoint
+    _check(
+        c is None or c.keep != 0 or c.save_last,
+        "callbacks.checkpoint.keep=0 with save_last=false keeps no checkpoint: the trained weights would be lost "
+        "when the run ends; keep one (keep=1) or save last.ckpt (save_last=true)",
+    )
     if h is not None:
         _check(h.split in HELDOUT_SPLITS, f"callbacks.heldout.split must be val or test, got {h.split!r}")
     _check(e.split in SPLITS, f"evaluate.split must be train, val or test, got {e.split!r}")
