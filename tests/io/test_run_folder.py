@@ -103,6 +103,16 @@ def test_a_resume_from_an_earlier_checkpoint_names_the_later_ones(tmp_path) -> N
     assert plan_folder(tmp_path, "last", str(checkpoints / "last.ckpt"), overwrite=False) == []
 
 
+def test_overwrite_beside_ckpt_path_last_resumes_and_says_it_is_not_used(tmp_path, caplog) -> None:
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    with caplog.at_level(logging.WARNING, logger="unicorn.train"):
+        assert plan_folder(tmp_path, "last", str(tmp_path / "checkpoints" / "last.ckpt"), overwrite=True) == []
+    assert [r.getMessage() for r in caplog.records] == [
+        f"overwrite=true is not used: ckpt_path=last resumes the run {tmp_path} holds (drop ckpt_path to replace it)"
+    ]
+
+
 def _finished_run(folder: Path) -> Path:
     (folder / "checkpoints").mkdir(parents=True)
     (folder / "csv").mkdir()

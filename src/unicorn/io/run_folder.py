@@ -305,6 +305,11 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
             f"train elsewhere ({folder_setting()}=...)"
         )
     previous = previous_run(output_dir)
+    if ckpt_arg == "last" and overwrite and previous is not None:  # the run is resumed: nothing is replaced
+        log.warning(
+            "overwrite=true is not used: ckpt_path=last resumes the run %s holds (drop ckpt_path to replace it)",
+            output_dir,
+        )
     elsewhere = ckpt_arg not in (None, "last") and ckpt is not None and not _in_folder(Path(ckpt), output_dir)
     if (ckpt_arg is None or elsewhere) and previous is not None:
         if not overwrite:
