@@ -112,7 +112,7 @@ class HeldOutEvaluation(L.Callback):
             img_size=pl_module.model.config["image_size"],
             categories=data.categories,
             max_images=self.max_images,
-            options=data.options,
+            options=getattr(data, "options", None),  # the dataset options naming the data (LSUN's tag)
         )
         clouds_known = get_protocol(protocol_for(data.name)).training_clouds
         if self.mean_shape_iterations > 0 and clouds_known and self.icp_iterations == 0:
