@@ -26,6 +26,7 @@ from unicorn.cli.options import (
     apply_common_arguments,
     check_categories_option,
     check_common_arguments,
+    lsun_tag,
 )
 from unicorn.data.synthetic.shapes import CATEGORIES
 
@@ -106,16 +107,7 @@ def _dataset_and_tag(name: str, tag: str | None) -> tuple[str, str | None]:
         if tag is not None and tag != suffix:
             raise UsageError(f"{name} is lsun with --tag {suffix}, not {tag}: drop --tag, or check lsun --tag {tag}")
         return loader, suffix
-    if name == "lsun":
-        if tag is None:
-            raise UsageError(
-                "lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike), or check "
-                "lsun_horse / lsun_motorbike"
-            )
-        return name, tag
-    if tag is not None:
-        raise UsageError(f"--tag is for lsun only (the LSUN category), not {name}")
-    return name, None
+    return name, lsun_tag(name, tag, hint=", or check lsun_horse / lsun_motorbike")
 
 
 def _check(args: argparse.Namespace) -> int:

@@ -32,6 +32,7 @@ from unicorn.cli.options import (
     check_common_arguments,
     check_out_folder,
     check_picture_sizes,
+    lsun_tag,
     parse_device,
 )
 from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, EvaluateConfig
@@ -289,12 +290,9 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     on_error = "skip" if args.skip_bad else "raise"
     # what the run read (LSUN's category...): build_eval_dataset keeps the options that say it
     options = dict(run_data.get("options") or {}) if run_data.get("name") == dataset else {}
-    if args.tag is not None:
-        if dataset != "lsun":
-            raise UsageError(f"--tag is for lsun only (the LSUN category), not {dataset}")
-        options["tag"] = args.tag
-    if dataset == "lsun" and "tag" not in options:
-        raise UsageError("lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike)")
+    tag = lsun_tag(dataset, args.tag, options.get("tag"))
+    if tag is not None:
+        options["tag"] = tag
     return EvalTarget(dataset, str(root), args.split, categories, args.max_images, on_error, options)
 
 

@@ -17,6 +17,7 @@ __all__ = [
     "check_common_arguments",
     "check_out_folder",
     "check_picture_sizes",
+    "lsun_tag",
     "parse_device",
 ]
 
@@ -156,3 +157,19 @@ def parse_device(name: str) -> Any:
     if device.type not in ("cpu", "cuda") and not getattr(backend, "is_available", lambda: False)():
         raise UsageError(f"--device {name}: {device.type} is not available on this machine; use 'cpu' or 'auto'")
     return device
+
+
+def lsun_tag(dataset: str, tag: str | None, known: str | None = None, hint: str = "") -> str | None:
+    """The LSUN category a command reads for ``dataset``: ``--tag`` (``tag``), else ``known`` (a training run's);
+    None for another dataset.
+
+    Raises:
+        UsageError: ``--tag`` for another dataset, or ``lsun`` without a category (``hint``: what else names one).
+    """
+    if dataset != "lsun":
+        if tag is not None:
+            raise UsageError(f"--tag is for lsun only (the LSUN category), not {dataset}")
+        return None
+    if tag is None and known is None:
+        raise UsageError(f"lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike){hint}")
+    return tag if tag is not None else known

@@ -89,7 +89,7 @@ def build(cfg: DictConfig) -> Run:
         data.check_early()  # a missing dataset is said first: nothing else matters without it
         _check_protocol(data.name)
         module = build_module(typed)
-        stopper = GracefulStop(checkpoint_dir / "last.ckpt", output_dir)
+        stopper = GracefulStop(checkpoint_dir / "last.ckpt")
         # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
         callbacks = [ArmStopSignals(stopper), *build_callbacks(typed, checkpoint_dir), stopper]
         loggers = build_loggers(typed)

@@ -60,13 +60,10 @@ class GracefulStop(Checkpoint):
 
     Args:
         last_path: where the checkpoint of an interrupted run goes (the run's ``checkpoints/last.ckpt``).
-        run_dir: the run's folder, named in the message that says how to resume; default: the folder above
-            ``last_path``'s.
     """
 
-    def __init__(self, last_path: str | Path, run_dir: str | Path | None = None) -> None:
+    def __init__(self, last_path: str | Path) -> None:
         self.last_path = Path(last_path)
-        self.run_dir = self.last_path.parent.parent if run_dir is None else Path(run_dir)
         self.steps_run = 0
         self.received: int | None = None
         #: the second signal, which stopped the run at once (no checkpoint written), or None
@@ -114,7 +111,7 @@ class GracefulStop(Checkpoint):
         self._save(trainer)
         self.stopped = Interrupted(
             f"stopped by {signal.Signals(signum).name} after iteration {trainer.global_step}; {self.last_path} "
-            f"written: the same command with {resume_hint(self.run_dir)} resumes it",
+            f"written: the same command with {resume_hint(self.last_path.parent.parent)} resumes it",
             128 + signum,
         )
 
