@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -17,6 +18,11 @@ def test_fov_and_focal_length_agree():
     cam = PerspectiveCamera(fov=30.0)
     assert float(cam.focal_length) == pytest.approx(1 / math.tan(math.radians(15)))
     assert PerspectiveCamera(focal_length=3.732050895690918).fov == pytest.approx(30.0)
+
+
+def test_one_element_tensors_and_numpy_scalars_are_numbers():
+    for fov in (torch.tensor(30.0), torch.tensor([30]), np.float32(30.0), np.int64(30)):
+        assert PerspectiveCamera(fov=fov).fov == pytest.approx(30.0)
 
 
 @pytest.mark.parametrize(
@@ -162,6 +168,12 @@ def test_world_to_view_shape_errors():
         ({"fov": [30.0]}, r"fov must be one number, got \[30.0\]"),
         ({"fov": 30.0, "znear": None}, "znear must be one number, got None"),
         ({"fov": 30.0, "zfar": "far"}, "zfar must be one number, got 'far'"),
+        # float() reads these as numbers; a flag or a string where an angle belongs is a mistake
+        ({"fov": True}, "^fov must be one number, got True$"),
+        ({"focal_length": True}, "^focal_length must be one number, got True$"),
+        ({"fov": 30.0, "znear": False}, "^znear must be one number, got False$"),
+        ({"fov": torch.tensor(True)}, r"^fov must be one number, got tensor\(True\)$"),
+        ({"fov": "30"}, "^fov must be one number, got '30'$"),
     ],
 )
 def test_a_camera_that_cannot_project_is_refused(kwargs, match):

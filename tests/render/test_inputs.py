@@ -238,6 +238,10 @@ def test_textures_and_backgrounds_on_another_device_are_named(renderer):
         renderer(verts, faces, TexturesUV(torch.rand(2, 3, 8, 8, device=meta), uvs), R=R, T=T)
     with pytest.raises(ValueError, match="^verts is on cpu but background is on meta$"):
         renderer(verts, faces, _tex(2, V), R=R, T=T, background=torch.rand(2, 3, 16, 16, device=meta))
+    with pytest.raises(ValueError, match="^R is on meta but T is on cpu$"):
+        renderer(verts, faces, _tex(2, V), R=R.to(meta), T=T)
+    with pytest.raises(ValueError, match="^R is on cpu but T is on meta$"):
+        renderer.rasterize(verts, faces, R, T.to(meta))
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
@@ -357,6 +361,24 @@ def test_numpy_scalars_are_accepted_as_settings_and_kept_as_python_numbers():
     assert type(settings.sigma) is float and settings.sigma == pytest.approx(1e-4)
     with pytest.raises(RenderError, match=r"faces_per_pixel must be a whole number >= 1, got (np\.True_|True)$"):
         build_renderer("layered", faces_per_pixel=np.True_)
+
+
+def test_numpy_scalars_are_numbers_to_the_softras_depth_range_and_temperatures():
+    import numpy as np
+
+    from unicorn.render import RenderError, SoftRasBlend
+
+    verts, faces, R, T, _ = template_scene(batch=1)
+    tex = _tex(1, verts.shape[1])
+    python = build_renderer("softras", image_size=16, znear=0.5, zfar=50.0)(verts, faces, tex, R=R, T=T)
+    numpy = build_renderer("softras", image_size=16, znear=np.float32(0.5), zfar=np.float32(50.0))
+    assert torch.equal(numpy(verts, faces, tex, R=R, T=T), python)
+    blend = SoftRasBlend(np.float32(2.0**-13), np.float32(2.0**-13), np.int64(1), np.int64(100), np.float32(0.5))
+    assert (blend.sigma, blend.gamma, blend.znear, blend.zfar, blend.eps) == (2.0**-13, 2.0**-13, 1.0, 100.0, 0.5)
+    with pytest.raises(RenderError, match="^need finite 0 <= znear < zfar and a finite eps, got znear=True"):
+        SoftRasBlend(znear=True)
+    with pytest.raises(RenderError, match="^sigma and gamma must be finite and > 0 in float32, got sigma=nan"):
+        SoftRasBlend(sigma=np.float32("nan"))
 
 
 def test_blur_radius_needs_an_occupancy_threshold_in_range():

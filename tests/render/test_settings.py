@@ -6,6 +6,7 @@ import dataclasses
 import inspect
 
 import pytest
+import torch
 
 from unicorn.config import ConfigError
 from unicorn.config.build import renderer_settings
@@ -19,6 +20,7 @@ from unicorn.render import (
     MeshRenderer,
     RenderError,
     RenderSettings,
+    TexturesVertex,
     build_renderer,
     get_renderer_class,
     list_renderers,
@@ -84,3 +86,24 @@ def test_each_range_is_checked_by_the_settings_and_the_training_config(option: s
 def test_the_layered_renderer_keeps_its_earlier_name() -> None:
     assert LayeredRasterizer is LayeredRenderer is get_renderer_class("layered")
     assert "layered" in list_renderers()
+
+
+def _background(renderer: MeshRenderer) -> torch.Tensor:
+    """(C,) the colour ``renderer`` puts where no face is: an empty mesh's render."""
+    images = renderer(torch.zeros(1, 0, 3), torch.zeros(0, 3, dtype=torch.long), TexturesVertex(torch.zeros(1, 0, 3)))
+    return images[0, :3, 0, 0]
+
+
+@pytest.mark.parametrize("name", ["layered", "softras", "hard"])
+def test_the_settings_report_the_background_colour_the_renderer_renders(name: str) -> None:
+    renderer = build_renderer(name, image_size=4, background_color=(0.1, 0.2, 0.3))
+    assert renderer.settings.background_color == (0.1, 0.2, 0.3)  # as given, not rounded to float32
+    renderer.load_state_dict(build_renderer(name, image_size=4, background_color=(0.0, 0.25, 1.0)).state_dict())
+    assert renderer.settings.background_color == (0.0, 0.25, 1.0)
+    assert torch.equal(_background(renderer), torch.tensor([0.0, 0.25, 1.0]))
+    rebuilt = build_renderer(name, image_size=4, background_color=renderer.settings.background_color)
+    assert torch.equal(_background(rebuilt), _background(renderer))
+    with torch.no_grad():  # the buffer is the one record of the colour, whatever changes it
+        renderer.background_color.fill_(0.5)
+    assert renderer.settings.background_color == (0.5, 0.5, 0.5)
+    assert renderer.settings.image_size == (4, 4)  # the other settings as given

@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import nn
@@ -87,11 +88,13 @@ def opencv_camera(
 
 
 def _one_number(name: str, value: object) -> float:
-    """``value`` as a float (a one-element tensor or NumPy scalar included), or a ValueError naming ``name``."""
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(f"{name} must be one number, got {value!r}") from None
+    """``value`` as a float (a one-element tensor or NumPy scalar included), or a ValueError naming ``name``. A
+    bool or a string is no number, though ``float`` reads ``True`` as 1 and ``"30"`` as 30."""
+    real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    scalar = torch.is_tensor(value) and value.numel() == 1 and not (value.dtype == torch.bool or value.is_complex())
+    if not (real or scalar):
+        raise ValueError(f"{name} must be one number, got {value!r}")
+    return float(value)  # type: ignore[arg-type]
 
 
 class PerspectiveCamera(nn.Module):

@@ -1,8 +1,8 @@
 """The built-in backends, registered by name: named compositions of a rasterizer and an aggregator.
 
 Each is a :class:`MeshRenderer` whose constructor takes the backend's options, checks them as one
-:class:`~unicorn.render.settings.RenderSettings` (kept as ``renderer.settings``; defaults and ranges are defined
-there) and builds the two parts:
+:class:`~unicorn.render.settings.RenderSettings` (read back as ``renderer.settings``; defaults and ranges are
+defined there) and builds the two parts:
 
 - ``layered`` (:class:`LayeredRenderer`, also importable as ``LayeredRasterizer``): soft top-K rasterization +
   :class:`LayeredBlend`.
@@ -12,7 +12,11 @@ there) and builds the two parts:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
+
+import torch
+from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera
 from .hard import HardBlend
@@ -28,8 +32,28 @@ from .softras import SoftRasBlend, check_temperatures
 __all__ = ["HardRenderer", "LayeredRasterizer", "LayeredRenderer", "SoftRasRenderer"]
 
 
+class _Backend(MeshRenderer):
+    """A built-in backend: a :class:`MeshRenderer` that keeps the options it was built with."""
+
+    def __init__(self, rasterizer: MeshRasterizer, blend: nn.Module, settings: RenderSettings) -> None:
+        super().__init__(rasterizer, blend, settings.background_color)
+        self._settings = settings
+
+    @property
+    def settings(self) -> RenderSettings:
+        """The options the renderer renders with. The background colour is the ``background_color`` buffer's (one
+        host read), which a loaded state dict, an in-place edit or a 16-bit conversion may have changed since the
+        renderer was built: the colour given then while the buffer holds it in float32 (the buffer's dtype when
+        built), else the buffer's values."""
+        given = self._settings
+        buffer = self.background_color.detach().float()
+        if torch.equal(buffer, torch.tensor(given.background_color, device=buffer.device)):
+            return given  # the colour as given: 0.1, not its float32 rounding 0.10000000149...
+        return dataclasses.replace(given, background_color=tuple(buffer.tolist()))
+
+
 @register_renderer("layered")
-class LayeredRenderer(MeshRenderer):
+class LayeredRenderer(_Backend):
     """UNICORN's renderer: soft top-K rasterization and layered alpha compositing.
 
     Occupancy ``exp(min(0, -d) / sigma)`` on squared NDC distances: 1 inside a face, fading over about a pixel
@@ -73,8 +97,7 @@ class LayeredRenderer(MeshRenderer):
             s.image_size, s.faces_per_pixel, blur_radius_from_sigma(s.sigma), camera, truncate_opaque=True,
             max_candidates=s.max_candidates, max_bytes=s.max_bytes, perspective_correct=s.perspective_correct,
         )  # fmt: skip
-        super().__init__(rasterizer, LayeredBlend(s.sigma), s.background_color)
-        self.settings = s
+        super().__init__(rasterizer, LayeredBlend(s.sigma), s)
 
 
 #: the layered renderer's earlier name (it is a whole renderer, not a rasterizer), kept for the users who import it
@@ -82,7 +105,7 @@ LayeredRasterizer = LayeredRenderer
 
 
 @register_renderer("softras")
-class SoftRasRenderer(MeshRenderer):
+class SoftRasRenderer(_Backend):
     """SoftRasterizer-style aggregation (sigmoid occupancy, depth softmax with a background layer).
 
     Args:
@@ -121,12 +144,11 @@ class SoftRasRenderer(MeshRenderer):
         )  # fmt: skip
         znear = rasterizer.camera.znear if znear is None else znear
         zfar = rasterizer.camera.zfar if zfar is None else zfar
-        super().__init__(rasterizer, SoftRasBlend(s.sigma, s.gamma, znear, zfar, s.eps), s.background_color)
-        self.settings = s
+        super().__init__(rasterizer, SoftRasBlend(s.sigma, s.gamma, znear, zfar, s.eps), s)
 
 
 @register_renderer("hard")
-class HardRenderer(MeshRenderer):
+class HardRenderer(_Backend):
     """Hard rasterization (nearest face containing the pixel, no blur), optionally supersampled.
 
     For masks and pictures: with ``supersample = s`` it renders at s times the resolution and averages s x s
@@ -160,5 +182,4 @@ class HardRenderer(MeshRenderer):
             s.image_size, 1, 0.0, camera, truncate_opaque=True, supersample=s.supersample,
             max_candidates=s.max_candidates, max_bytes=s.max_bytes, perspective_correct=s.perspective_correct,
         )  # fmt: skip
-        super().__init__(rasterizer, HardBlend(s.supersample), s.background_color)
-        self.settings = s
+        super().__init__(rasterizer, HardBlend(s.supersample), s)

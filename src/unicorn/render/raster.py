@@ -171,14 +171,16 @@ def blur_radius_from_sigma(sigma: float, eps: float = 1e-4) -> float:
 
 
 def check_pose_inputs(R: torch.Tensor | None, T: torch.Tensor | None, batch_size: int) -> None:
-    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point and finite, or both None (the
-    finiteness is one host read, skipped inside :func:`unicorn.hostsync.sync_free`)."""
+    """Validate a world-to-view pose: R (B, 3, 3) and T (B, 3), floating point, finite and on one device, or both
+    None (the finiteness is one host read, skipped inside :func:`unicorn.hostsync.sync_free`)."""
     if (R is None) != (T is None):
         raise ValueError("give both R and T, or neither (verts already in view coordinates)")
     if R is None or T is None:
         return
     check_rotations(R, "R", batch_size)  # an integer R would be cast and render a wrong pose
     check_translations(T, "T", batch_size)
+    if R.device != T.device:  # read together below
+        raise ValueError(f"R is on {R.device} but T is on {T.device}")
     if is_sync_free():
         return
     finite = torch.stack([torch.isfinite(R).all(), torch.isfinite(T).all()]).tolist()  # one device sync

@@ -111,8 +111,8 @@ class MeshRasterizer(nn.Module):
         Args:
             verts: (B, V, 3) world vertices (view vertices if R and T are None).
             faces: (F, 3) integer, shared by the batch.
-            R: (B, 3, 3) world-to-view rotation, ``x_view = x @ R + T``.
-            T: (B, 3) world-to-view translation.
+            R: (B, 3, 3) world-to-view rotation, ``x_view = x @ R + T``, applied in the vertices' dtype.
+            T: (B, 3) world-to-view translation, likewise.
             image_size: H or (H, W) of the fragments; :attr:`raster_size` when None.
             check_inputs: validate the meshes and the pose (False when the caller did: each check is a host
                 sync on CUDA).

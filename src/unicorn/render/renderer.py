@@ -178,8 +178,9 @@ class MeshRenderer(nn.Module):
                 the vertices' dtype (no silent promotion: a mismatch is a TypeError naming both). Under
                 ``torch.autocast`` every float16 or bfloat16 input (vertices, textures, pose, background) is cast to
                 float32 first and the render runs with autocast off (:mod:`unicorn.render.precision`).
-            R: (B, 3, 3) floating point world-to-view rotation, ``x_view = x @ R + T``, finite.
-            T: (B, 3) floating point world-to-view translation, finite.
+            R: (B, 3, 3) floating point world-to-view rotation, ``x_view = x @ R + T``, finite; of any floating
+                dtype, applied in the vertices' (a float32 pose with float64 vertices renders in float64).
+            T: (B, 3) floating point world-to-view translation, finite; likewise.
             background: (B, C, H, W) background images of the vertices' dtype, finite, on their device;
                 ``background_color`` when None.
 

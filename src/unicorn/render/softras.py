@@ -13,11 +13,9 @@ import math
 import torch
 from torch import nn
 
-from unicorn.checks import is_number
-
 from .compositing import gather_slots, write_pixels
 from .fragments import Fragments, check_blend_inputs
-from .raster import RenderError
+from .raster import RenderError, is_real
 
 __all__ = ["SoftRasBlend", "check_depth_range", "check_temperatures", "softras_blend"]
 
@@ -27,15 +25,16 @@ _FLOAT32_ZERO = 2.0**-150
 
 
 def check_temperatures(sigma: float, gamma: float) -> None:
-    """Raise RenderError unless the occupancy and depth temperatures are finite and > 0 (in float32, where the
-    renders divide by them)."""
-    if not all(is_number(t) and _FLOAT32_ZERO < t < math.inf for t in (sigma, gamma)):
+    """Raise RenderError unless the occupancy and depth temperatures are finite numbers (NumPy scalars included, bools
+    not) > 0 in float32, where the renders divide by them."""
+    if not all(is_real(t) and _FLOAT32_ZERO < t < math.inf for t in (sigma, gamma)):
         raise RenderError(f"sigma and gamma must be finite and > 0 in float32, got sigma={sigma}, gamma={gamma}")
 
 
 def check_depth_range(znear: float, zfar: float, eps: float = 0.0) -> None:
-    """Raise RenderError unless ``0 <= znear < zfar`` are finite and the background's ``eps`` is a finite number."""
-    if not (all(is_number(v) for v in (znear, zfar, eps)) and 0 <= znear < zfar):
+    """Raise RenderError unless ``0 <= znear < zfar`` are finite and the background's ``eps`` is a finite number
+    (NumPy scalars included, bools not)."""
+    if not (all(is_real(v) and math.isfinite(v) for v in (znear, zfar, eps)) and 0 <= znear < zfar):
         raise RenderError(f"need finite 0 <= znear < zfar and a finite eps, got znear={znear}, zfar={zfar}, eps={eps}")
 
 
