@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +18,7 @@ from PIL import Image
 from unicorn.data.images import DatasetError, DatasetNotFoundError, ImageLoadError
 from unicorn.data.shapenet import (
     ShapeNetNMR,
+    ViewCountError,
     ViewSizeError,
     dvr_to_unicorn_points,
     dvr_to_unicorn_pose,
@@ -366,3 +368,115 @@ def test_view_of_another_size_is_skipped_like_an_unreadable_image(tmp_path: Path
     with pytest.warns(RuntimeWarning, match="0000.png"):
         item = ShapeNetNMR(root, on_error="skip")[0]
     assert int(item["index"]) == 1 and item["image"].shape == (3, 8, 8)
+
+
+CAR = "02958343"
+
+
+def _two_categories(root: Path, counts: dict[str, int] | None = None, n_views: int = 5) -> Path:
+    """A DVR-layout dataset of chairs (7 models) and cars (5), ``n_views`` views of 4 pixels each, the same models in
+    every split; every cloud is the same 12 points along x, so that a kept point's x tells which one it is."""
+    counts = {SYNSET: 7, CAR: 5} if counts is None else counts
+    names = {SYNSET: "chair", CAR: "car"}
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "metadata.yaml").write_text(yaml.safe_dump({s: {"id": s, "name": names[s]} for s in counts}))
+    points = np.zeros((12, 3))
+    points[:, 0] = np.linspace(-0.5, 0.5, 12)
+    for synset, n in counts.items():
+        models = [f"m{i}" for i in range(n)]
+        for split in ("train", "val", "test"):
+            (root / synset).mkdir(parents=True, exist_ok=True)
+            (root / synset / f"softras_{split}.lst").write_text("".join(f"{m}\n" for m in models))
+        for model in models:
+            folder = root / synset / model
+            (folder / "image").mkdir(parents=True)
+            (folder / "mask").mkdir()
+            for view in range(n_views):
+                Image.new("RGB", (4, 4), (40 * view, 0, 0)).save(folder / "image" / f"{view:04d}.png")
+                Image.new("L", (4, 4), 255).save(folder / "mask" / f"{view:04d}.png")
+            np.savez(folder / "cameras.npz", **{f"world_mat_{v}": np.eye(4) for v in range(n_views)})
+            np.savez(folder / "pointcloud.npz", points=points, normals=np.ones((12, 3)))
+    return root
+
+
+def _views_and_subsets(ds: ShapeNetNMR) -> list[tuple[int, list[int]]]:
+    """Each item's view and the cloud points it keeps (their indices along x; the file's x is the item's z)."""
+    items = [ds[i] for i in range(len(ds))]
+    return [(int(it["view"]), np.round((it["points"][:, 2].numpy() + 0.5) * 11).astype(int).tolist()) for it in items]
+
+
+#: chair's and car's views and 3-point subsets of :func:`_two_categories`, as each category alone was drawn before
+#: a category's draws depended on it alone (the results' single-category runs): seed -> [(view, subset)]
+SINGLE_CATEGORY = {
+    0: [
+        (4, [7, 6, 8]),
+        (3, [11, 5, 9]),
+        (2, [3, 9, 0]),
+        (1, [5, 9, 11]),
+        (1, [5, 9, 4]),
+        (0, [9, 6, 4]),
+        (0, [6, 10, 4]),
+    ],
+    5: [
+        (3, [8, 6, 0]),
+        (4, [1, 9, 8]),
+        (0, [8, 7, 2]),
+        (4, [3, 7, 9]),
+        (2, [3, 0, 7]),
+        (2, [5, 7, 10]),
+        (3, [8, 10, 0]),
+    ],
+}
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_a_single_category_draws_the_views_and_point_subsets_it_always_drew(tmp_path: Path, seed: int) -> None:
+    root = _two_categories(tmp_path)
+    for category, n in (("chair", 7), ("car", 5)):
+        ds = ShapeNetNMR(root, category, split="test", views="random", with_points=True, n_points=3, seed=seed)
+        assert _views_and_subsets(ds) == SINGLE_CATEGORY[seed][:n]
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_a_category_draws_the_same_views_and_subsets_beside_other_categories(tmp_path: Path, seed: int) -> None:
+    """The evaluation's fixed view of each model and its kept points depend on that model alone: the cars of a
+    chair-and-car dataset are seen and scored as the cars alone are, whatever the categories' order."""
+    root = _two_categories(tmp_path)
+    options = {"split": "test", "with_points": True, "n_points": 3, "seed": seed}
+    chair = _views_and_subsets(ShapeNetNMR(root, "chair", views="random", **options))
+    car = _views_and_subsets(ShapeNetNMR(root, "car", views="random", **options))
+    assert _views_and_subsets(ShapeNetNMR(root, ["chair", "car"], views="random", **options)) == chair + car
+    assert _views_and_subsets(ShapeNetNMR(root, ["car", "chair"], views="random", **options)) == car + chair
+    # every view of every model: each model keeps its own points there too
+    both = ShapeNetNMR(root, ["chair", "car"], views="all", **options)
+    cars = ShapeNetNMR(root, "car", views="all", **options)
+    assert [both.load_points(7 + k)[0].tolist() for k in range(5)] == [
+        cars.load_points(k)[0].tolist() for k in range(5)
+    ]
+
+
+@pytest.mark.parametrize("views", ["all", "random"])
+@pytest.mark.parametrize(("first", "other"), [(5, 3), (3, 5)], ids=["fewer", "more"])
+def test_a_model_with_another_number_of_views_is_refused_naming_it(
+    tmp_path: Path, views: str, first: int, other: int
+) -> None:
+    """Fewer views than the first model's: items of views it lacks; more: views left out, and the random view drawn
+    from the first model's. Either is one error naming the model, or its items skipped like unreadable images."""
+    root = _two_categories(tmp_path, {SYNSET: 2}, n_views=first)
+    odd = root / SYNSET / "m1"
+    shutil.rmtree(odd)
+    _two_categories(tmp_path / "other", {SYNSET: 2}, n_views=other)
+    shutil.copytree(tmp_path / "other" / SYNSET / "m1", odd)
+    ds = ShapeNetNMR(root, split="test", views=views)
+    assert ds.n_views == first
+    m1 = [i for i in range(len(ds)) if ds.model_view(i)[0] == 1]
+    for i in m1:
+        message = f"wrong number of views in {odd}: {other} views, where every model needs the {first} of the first"
+        with pytest.raises(ViewCountError, match=re.escape(message)) as info:
+            ds[i]
+        assert "\n" not in str(info.value)
+    assert issubclass(ViewCountError, ImageLoadError)
+    skipping = ShapeNetNMR(root, split="test", views=views, on_error="skip")
+    with pytest.warns(RuntimeWarning, match="wrong number of views in .*m1"):
+        items = [skipping[i] for i in range(len(ds))]
+    assert all(int(item["model"]) == 0 for item in items)

@@ -581,3 +581,35 @@ def test_a_category_named_twice_is_refused_before_anything_is_generated(
     with pytest.raises(DatasetError, match=r"^synthetic category 'car' is named twice"):
         writer.check_synthetic_settings(["car", "car"], {"n_models": 3})  # a training config's
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("category", sorted(CATEGORIES))
+def test_a_few_surface_points_reach_the_unit_cube_faces(category: str) -> None:
+    """A few points may all miss an object's farthest part (a wing tip): the cloud still reaches within the
+    evaluation's tolerance of 0.5, stored as float16 too, every point on the surface with a unit normal."""
+    from unicorn.metrics.mesh_evaluator import GT_EXTENT_TOLERANCE
+
+    for i in range(4):
+        obj = build_object(category, np.random.default_rng([2, i]))
+        points, normals = sample_surface_points(obj, 20, np.random.default_rng([3, i]))
+        assert abs(np.abs(points.astype(np.float16)).max() - 0.5) <= GT_EXTENT_TOLERANCE / 2, (category, i)
+        triangles = obj.mesh().triangles
+        for point in points:  # on the surface: on one of the triangles
+            nearest = trimesh.triangles.closest_point(triangles, np.broadcast_to(point, (len(triangles), 3)))
+            assert np.linalg.norm(nearest - point, axis=1).min() < 1e-9
+        assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+
+
+def test_cli_synth_with_few_points_writes_clouds_the_evaluation_reads(tmp_path: Path) -> None:
+    """``--points 20``: every model's cloud reaches the unit cube's faces, which the loader checks of a ground
+    truth (as the evaluation does)."""
+    from unicorn.data.shapenet import ShapeNetNMR
+
+    out = tmp_path / "few"
+    small = ["--models", "3", "--views", "1", "--size", "8", "--supersample", "1", "--quiet"]
+    assert cli.main(["synth", "--category", "airplane,mug", "--points", "20", "--out", str(out), *small]) == 0
+    ds = ShapeNetNMR(out, split="train", include_test=True, with_points=True)
+    assert len(ds.models) == 6
+    for model in range(len(ds.models)):
+        points, _ = ds.load_points(model)
+        assert points.shape == (20, 3)

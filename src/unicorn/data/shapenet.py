@@ -43,6 +43,7 @@ from unicorn.metrics.mesh_evaluator import GT_EXTENT, GT_EXTENT_TOLERANCE
 __all__ = [
     "SHAPENET_CATEGORIES",
     "ShapeNetNMR",
+    "ViewCountError",
     "ViewSizeError",
     "dvr_to_unicorn_points",
     "dvr_to_unicorn_pose",
@@ -127,6 +128,22 @@ class ViewSizeError(ImageLoadError):
     be batched together, so it is skipped like an unreadable image under ``on_error="skip"``."""
 
     lead = "wrong size of"
+
+
+class ViewCountError(ImageLoadError):
+    """A model with another number of views than the dataset's (:attr:`ShapeNetNMR.n_views`, its first model's): its
+    items would miss views or leave some out, so they are skipped like an unreadable image under
+    ``on_error="skip"``."""
+
+    lead = "wrong number of views in"
+
+
+def _view_images(folder: Path) -> list[Path]:
+    """A model's view images in ``folder`` (``0000.png``...), sorted; none if it is missing.
+
+    The views' own names only: not a copy's or a file system's hidden files (macOS's ``._0000.png``).
+    """
+    return sorted(path for path in folder.glob("*.png") if _VIEW_NAME.fullmatch(path.name))
 
 
 def _read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
@@ -220,13 +237,16 @@ class ShapeNetNMR(UnicornDataset):
         split: ``"train"``, ``"val"`` or ``"test"`` (SoftRas lists).
         views: ``"all"``: every (model, view) pair is an item, item k = model ``k % n_models``, view
             ``k // n_models`` (the reference's order); ``"random"``: one view per model, drawn once from
-            ``seed`` (the reference draws it unseeded).
+            ``seed`` and the model's place in its category's split lists (the reference draws it unseeded): a
+            category's views are the same whatever categories are loaded beside it.
         with_points: add ``points``/``normals``; defaults to True except for ``"train"``.
-        n_points: keep this many ground-truth points per model (a fixed subset per model), None for all.
+        n_points: keep this many ground-truth points per model (a fixed subset per model, drawn as the views are),
+            None for all.
         include_test: for ``"train"``, also use the val and test models (the reference's option).
         seed: seed of the view choice and the point subsets.
-        on_error: ``"raise"`` or ``"skip"`` unreadable images, and images or masks of another size than
-            :attr:`view_size` (:class:`ViewSizeError`).
+        on_error: ``"raise"`` or ``"skip"`` unreadable images, images or masks of another size than
+            :attr:`view_size` (:class:`ViewSizeError`), and the items of a model with another number of views than
+            :attr:`n_views` (:class:`ViewCountError`, checked at its first item read).
 
     A malformed ``metadata.yaml``, split list, ``cameras.npz`` or ``pointcloud.npz`` is a
     :class:`~unicorn.data.images.DatasetError` naming the file, whatever ``on_error``.
@@ -268,26 +288,37 @@ class ShapeNetNMR(UnicornDataset):
 
         splits = [split] + (["val", "test"] if include_test and split == "train" else [])
         self.models: list[tuple[int, Path]] = []  # (category index, model folder)
+        self._rank_in_category: list[int] = []  # a model's place in its category's split lists: its draws' seed
         for c, synset in enumerate(self.synsets):
+            names = []
             for s in splits:
                 lst = require(self.root / synset / f"softras_{s}.lst", f"ShapeNet split list for {synset}", _HINT)
-                names = [line.strip() for line in read_text(lst).splitlines() if line.strip()]
-                self.models += [(c, self.root / synset / name) for name in names]
+                names += [line.strip() for line in read_text(lst).splitlines() if line.strip()]
+            self.models += [(c, self.root / synset / name) for name in names]
+            self._rank_in_category += range(len(names))
         if not self.models:
             raise DatasetError(f"no {split} models for categories {self.synsets} under {self.root}")
         first = self.models[0][1] / "image"
         if not first.is_dir():
             raise DatasetNotFoundError(first, "ShapeNet model image folder", _HINT)
-        # the views' own names only: not a copy's or a file system's hidden files (macOS's ``._0000.png``)
-        views = sorted(path for path in first.glob("*.png") if _VIEW_NAME.fullmatch(path.name))
+        views = _view_images(first)
+        #: views per model: the first model's (every model must have as many, :class:`ViewCountError`)
         self.n_views = len(views)
         if self.n_views == 0:
             raise DatasetNotFoundError(first / "0000.png", "ShapeNet view images", _HINT)
         #: (H, W) of every image and mask: the most common among the first model's views
         self.view_size = self._common_size(views)
-        rng = np.random.default_rng(self.seed)
-        self.random_views = rng.integers(0, self.n_views, size=len(self.models))
+        # each category draws its views from the seed alone, so that a category's views do not change with the
+        # categories loaded beside it (model k of every category draws the same view)
+        counts = Counter(category for category, _ in self.models)
+        self.random_views = np.concatenate(
+            [
+                np.random.default_rng(self.seed).integers(0, self.n_views, size=counts[c])
+                for c in range(len(self.synsets))
+            ]
+        )
         self._world_mats: dict[int, dict[str, np.ndarray]] = {}
+        self._view_counts: dict[int, int] = {}
 
     def _common_size(self, views: list[Path]) -> tuple[int, int]:
         """(H, W) that most of ``views`` have (read from their headers); unreadable ones raise or are passed over
@@ -338,7 +369,9 @@ class ShapeNetNMR(UnicornDataset):
                 "too few points to reach them"
             )
         if self.n_points is not None and self.n_points < len(points):
-            keep = np.random.default_rng([self.seed, model]).choice(len(points), self.n_points, replace=False)
+            # seeded by the model's place in its category: the same subset whatever other categories are loaded
+            rng = np.random.default_rng([self.seed, self._rank_in_category[model]])
+            keep = rng.choice(len(points), self.n_points, replace=False)
             points, normals = points[keep], normals[keep]
         points, normals = dvr_to_unicorn_points(points), dvr_to_unicorn_points(normals)
         return torch.from_numpy(points.astype(np.float32)), torch.from_numpy(normals.astype(np.float32))
@@ -362,9 +395,23 @@ class ShapeNetNMR(UnicornDataset):
             raise DatasetError(f"{path}: {name} must be a finite (4, 4) or (3, 4) matrix, got {mat.shape} {mat.dtype}")
         return dvr_to_unicorn_pose(mat)
 
+    def _check_view_count(self, model: int) -> None:
+        """Raise :class:`ViewCountError` if a model has another number of views than :attr:`n_views` (counted once
+        per model). A model without view images passes: reading its view names the missing file."""
+        folder = self.models[model][1]
+        if model not in self._view_counts:
+            self._view_counts[model] = len(_view_images(folder / "image"))
+        count = self._view_counts[model]
+        if count not in (0, self.n_views):
+            first = self.models[0][1]
+            raise ViewCountError(
+                folder, f"{count} views, where every model needs the {self.n_views} of the first, {first}"
+            )
+
     def load(self, index: int) -> dict[str, Any]:
         model, view = self.model_view(index)
         category, folder = self.models[model]
+        self._check_view_count(model)
         image_path, mask_path = folder / "image" / f"{view:04d}.png", folder / "mask" / f"{view:04d}.png"
         # the stored pixel grid, EXIF orientation not applied: the cameras were made for it
         image = load_image(image_path, exif_orientation=False)
