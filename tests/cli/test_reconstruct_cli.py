@@ -451,6 +451,25 @@ def test_overwrite_removes_the_optional_files_the_new_run_does_not_make(
     assert (out / "photo" / "my_notes.txt").read_text() == "mine"
 
 
+def test_overwrite_with_other_images_names_the_earlier_folders_it_leaves(
+    tmp_path: Path, checkpoint: Path, inputs: Path, capsys
+) -> None:
+    out = tmp_path / "out"
+    assert main([str(checkpoint), str(inputs), "--out", str(out), *FAST]) == 0  # cutout and photo
+    (out / "mine").mkdir()  # a folder of the user's, not an image's: not named
+    assert main([str(checkpoint), str(inputs / "photo.jpg"), "--out", str(out), "--overwrite", *FAST]) == 0
+    assert (out / "cutout" / "mesh.glb").is_file()  # kept: nothing is deleted unasked
+    record = json.loads((out / "reconstructions.json").read_text())
+    assert [r["name"] for r in record["images"]] == ["photo"] and record["earlier_folders"] == ["cutout"]
+    assert "Not shown: image folders of an earlier reconstruction" in (out / "index.html").read_text()
+    assert 'href="cutout/"' in (out / "index.html").read_text()
+    assert f"earlier reconstruction left in {out}: cutout\n" in capsys.readouterr().out
+    # the same images again: nothing left over, nothing named
+    assert main([str(checkpoint), str(inputs), "--out", str(out), "--overwrite", *FAST]) == 0
+    assert "earlier_folders" not in json.loads((out / "reconstructions.json").read_text())
+    assert "Not shown" not in (out / "index.html").read_text() and "earlier" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize(
     "extra, message",
     [(["--refine-parts", "bogus"], "--refine-parts: unknown refinement part(s) ['bogus']"),

@@ -51,6 +51,10 @@ def test_shapenet_protocol(shapenet_model, synth_root) -> None:
         assert result.mean[key] == pytest.approx(sum(groups) / len(groups))  # categories, then their mean
         assert all(math.isfinite(v) for v in groups)
     assert 0 <= result.mean["mask-iou"] <= 1 and len(result.samples) == 2
+    # the report's samples carry their image's whole row, the scores computed over the group included
+    for row, sample in zip(result.per_image, result.samples):
+        assert sample.scores == {k: v for k, v in row.items() if k not in ("index", "group")}
+        assert {"rot-err", "color-err", "color-err-mean-overlap"} <= set(sample.scores)
     # each image's rotation error (after its group's alignment) is in its row, and the set metrics summarise it
     for row in result.table[:-1]:
         errors = torch.tensor([r["rot-err"] for r in result.per_image if r["group"] == row["group"]])

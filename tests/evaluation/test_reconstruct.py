@@ -105,6 +105,12 @@ def test_a_second_reconstruction_into_the_same_folder_changes_nothing_unless_ask
     assert {p: p.read_bytes() for p in sorted((tmp_path / "out").rglob("*")) if p.is_file()} == before
     reconstruct(real_model, other, tmp_path / "out", overwrite=True, **options)
     assert (tmp_path / "out" / "car" / "input.png").read_bytes() != before[tmp_path / "out" / "car" / "input.png"]
+    # another image into the same folder: the car's folder stays, named beside the new image's
+    bike = [InputImage(tmp_path / "bike.png", "bike", image, cropped=False)]
+    reconstruct(real_model, bike, tmp_path / "out", overwrite=True, **options)
+    record = json.loads((tmp_path / "out" / "reconstructions.json").read_text())
+    assert [r["name"] for r in record["images"]] == ["bike"] and record["earlier_folders"] == ["car"]
+    assert (tmp_path / "out" / "car" / "pose.json").is_file()
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,19 @@ def test_report_page_and_grid(tmp_path: Path, real_model) -> None:
     assert grid.width > 9 * 40 and grid.height > 2 * 40  # 9 pictures per row, 2 rows
     text = paths["html"].read_text()
     assert "mask-iou" in text and "test run" in text and "synthetic" in text
+
+
+def test_report_captions_list_every_per_image_score(tmp_path: Path, real_model) -> None:
+    result = report_result(real_model, n_samples=1)
+    result.columns = ["mask-iou", "rot-err-mean", "color-err", "rec-mse"]
+    scores = {"candidate": 2, "rec-mse": 0.01, "mask-iou": 0.5, "color-err": 0.0756, "rot-err": 12.345}
+    result.samples[0].scores = scores
+    page = write_report(real_model, result, tmp_path, "t", {}, view_size=24, turntable_frames=0, interactive=False)
+    (caption,) = re.findall(r'<td class="cap">(.*?)</td>', page["html"].read_text(), re.S)
+    # the key scores first, then table order, then rot-err (no column of its own); the candidate is no score
+    assert caption.splitlines() == [
+        "#0 chair", "mask-iou: 0.5000", "rec-mse: 0.0100", "color-err: 0.0756", "rot-err: 12.3",
+    ]  # fmt: skip
 
 
 def test_mask_overlay_and_grid() -> None:

@@ -52,7 +52,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     # the run's metrics files have their provenance beside them
     (origin,) = json.loads((watched.output_dir / "provenance.json").read_text())
     assert origin["unicorn_version"] and "git_commit" in origin and origin["command"]
-    assert [float(r["step"]) for r in rows] == [0.0, 4.0, 8.0]
+    assert [r["step"] for r in rows] == ["0", "4", "8"]
     for r in rows:
         assert 0.0 <= float(r["mask-iou"]) <= 1.0
         assert float(r["chamfer-L1"]) > 0 and float(r["chamfer-L1-ICP"]) > 0
@@ -69,7 +69,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     assert callback.mean_shapes["chair"].shape == watched.module.model.template.verts.shape
     # the mean shape is the same at every evaluation: its scores do not move while the model's do
     assert len({r["chamfer-L1-ICP-mean-shape"] for r in rows}) == 1
-    assert [row["step"] for row in callback.history] == [0.0, 4.0, 8.0]
+    assert [row["step"] for row in callback.history] == [0, 4, 8]
     # the untrained model and the trained one are different models: the curve moves
     assert rows[0]["rec-mse"] != rows[-1]["rec-mse"]
     # the last row is the public evaluation of the trained model on the same held-out items, recomputed here:
@@ -104,7 +104,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
 
     # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
     rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
-    assert [float(r["step"]) for r in rows] == [4.0, 8.0]
+    assert [r["step"] for r in rows] == ["4", "8"]
     assert {"shape/code-std", "texture/alive-last", "texture/units-last", "pose/azim-spread"} <= set(rows[0])
     diagnostics = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
     assert not diagnostics.collapsed and not (plain.output_dir / "diagnostics.csv").exists()
@@ -116,12 +116,23 @@ def test_csv_keeps_one_row_per_step_and_forgets_what_a_resume_writes_again(tmp_p
     HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.2})
     HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.3, "rot-err-median": 9.0})  # a resumed run
     rows = list(csv.DictReader(open(path)))
-    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0.0", "0.1"), ("4.0", "0.3")]
+    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0", "0.1"), ("4", "0.3")]  # steps as integers
     assert rows[1]["rot-err-median"] == "9.0" and rows[0]["rot-err-median"] == ""
-    HeldOutEvaluation._append_csv(path, {"step": 8.0, "mask-iou": 0.4})
-    HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.5})  # resumed from an earlier checkpoint
+    HeldOutEvaluation._append_csv(path, {"step": 8, "mask-iou": 0.4})
+    HeldOutEvaluation._append_csv(path, {"step": 4, "mask-iou": 0.5})  # resumed from an earlier checkpoint
     rows = list(csv.DictReader(open(path)))
-    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0.0", "0.1"), ("4.0", "0.5")]  # 8: abandoned
+    assert [(r["step"], r["mask-iou"]) for r in rows] == [("0", "0.1"), ("4", "0.5")]  # 8: abandoned
+
+
+def test_csv_appends_to_a_file_with_float_steps(tmp_path):
+    path = tmp_path / "heldout.csv"
+    path.write_text("step,mask-iou\n0.0,0.1\n4.0,0.2\n8.0,0.3\n")  # steps as floats
+    HeldOutEvaluation._append_csv(path, {"step": 12, "mask-iou": 0.4})
+    assert path.read_text().splitlines() == ["step,mask-iou", "0,0.1", "4,0.2", "8,0.3", "12,0.4"]
+    HeldOutEvaluation._append_csv(path, {"step": 8.0, "mask-iou": 0.5})  # a resume, the step as a float
+    assert path.read_text().splitlines() == ["step,mask-iou", "0,0.1", "4,0.2", "8,0.5"]
+    with pytest.raises(ValueError, match="whole number"):
+        HeldOutEvaluation._append_csv(path, {"step": 8.5, "mask-iou": 0.5})
 
 
 EVALUATE = (

@@ -69,9 +69,49 @@ def test_end_to_end_pck_hand_case():
     visible[1, 0] = False
     scores = keypoint_transfer_pck(verts, R, T, visible, kps, 256, pairs=([0], [1]))
     assert scores == {"pck-5": 0.5, "pck-10": 0.75, "pck-15": 0.75, "num-valid": 4.0}
-    # drawn pairs: with two images every pair is (0, 1) or (1, 0), both directions give the same pool
+    # without explicit pairs two images form two ordered pairs, each used once: the same two directions
     drawn = keypoint_transfer_pck(verts, R, T, visible, kps, 256, num_pairs=10)
-    assert drawn["pck-10"] == 0.75 and drawn["num-valid"] == 40.0
+    assert drawn == scores
+
+
+def _naive_pck(verts, R, T, visible, kps, size, alphas):
+    """PCK over every ordered pair of distinct images, one keypoint at a time."""
+    proj = project_vertices(verts, R, T, size)
+    hits, total = [0] * len(alphas), 0
+    N, K = kps.shape[:2]
+    for a in range(N):
+        for b in range(N):
+            for k in range(K):
+                if a == b or kps[a, k, 2] <= 0 or kps[b, k, 2] <= 0:
+                    continue
+                total += 1
+                seen = [v for v in range(verts.shape[1]) if visible[a, v]]
+                nearest = min(seen, key=lambda v: float((proj[a, v] - kps[a, k, :2]).norm()))
+                err = float((proj[b, nearest] - kps[b, k, :2]).norm())
+                hits = [h + (err <= alpha * size) for h, alpha in zip(hits, alphas)]
+    return [h / total for h in hits], total
+
+
+def test_few_images_use_every_ordered_pair_once():
+    g = torch.Generator().manual_seed(3)
+    N, V, K = 4, 40, 6
+    verts = torch.rand(N, V, 3, generator=g, dtype=torch.float64) - 0.5
+    R = torch.eye(3, dtype=torch.float64).expand(N, 3, 3)
+    T = torch.tensor([0.0, 0.0, 2.5], dtype=torch.float64).expand(N, 3)
+    visible = torch.rand(N, V, generator=g) > 0.3
+    kps = torch.rand(N, K, 3, generator=g, dtype=torch.float64) * 256
+    kps[..., 2] = (torch.rand(N, K, generator=g) > 0.2).double()
+    alphas = (0.05, 0.1, 0.15)
+    want, total = _naive_pck(verts, R, T, visible, kps, 256, alphas)
+    for num_pairs in (N * (N - 1), 10000):  # the default too
+        got = keypoint_transfer_pck(verts, R, T, visible, kps, 256, num_pairs=num_pairs)
+        assert [got["pck-5"], got["pck-10"], got["pck-15"]] == pytest.approx(want, abs=1e-12)
+        assert got["num-valid"] == total
+    # more images than that: the seeded draw of keypoint_pairs, as before
+    fewer = keypoint_transfer_pck(verts, R, T, visible, kps, 256, num_pairs=N * (N - 1) - 1)
+    assert fewer == keypoint_transfer_pck(verts, R, T, visible, kps, 256, pairs=keypoint_pairs(N, N * (N - 1) - 1))
+    with pytest.raises(ValueError, match="2 images"):
+        keypoint_transfer_pck(verts[:1], R[:1], T[:1], visible[:1], kps[:1], 256)
 
 
 def test_invalid_inputs():

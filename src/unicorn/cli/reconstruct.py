@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, command: str | None = None) -> int:
     """Reconstruct as ``args`` say; returns the exit status (``command``: the command line to record)."""
     from unicorn.data.images import ImageLoadError
-    from unicorn.evaluation.reconstruct import OPTIONAL_FILES, check_free, reconstruct, unique_names
+    from unicorn.evaluation.reconstruct import OPTIONAL_FILES, check_free, earlier_folders, reconstruct, unique_names
     from unicorn.evaluation.session import overflow_note
     from unicorn.io import collect_inputs, frame_input, load_model, read_input
     from unicorn.io.images import check_padding
@@ -168,6 +168,8 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
     # an entry of --out that the outputs cannot replace (a file where an image's folder goes): refused now, not once
     # every image is reconstructed (check_out_folder refused a non-empty --out without --overwrite)
     check_free(out, [name for _, name in readable], overwrite=True)
+    # --overwrite with other images: the earlier ones' folders stay (not ours to delete), named as left out of the index
+    earlier = earlier_folders(out, [name for _, name in readable])
     device = parse_device(args.device)
     overrides = {"template": {"level": args.template_level}} if args.template_level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
@@ -194,10 +196,16 @@ def run(args: argparse.Namespace, command: str | None = None) -> int:
             progress=not args.quiet,
             provenance=provenance(command or command_line("unicorn-reconstruct", sys.argv[1:]), args.checkpoint),
             refine_options=refine_options,
+            earlier=earlier,
         )
     seconds = time.perf_counter() - start
     print(f"{len(records)} images reconstructed in {seconds:.1f} s ({seconds / len(records):.2f} s/image) on {device}")
     print(f"outputs in {out}/<image>/ ; overview: {out / 'overview.png'}, {out / 'index.html'}")
+    if earlier:
+        listed = ", ".join(earlier[:5]) + (f" and {len(earlier) - 5} more" if len(earlier) > 5 else "")
+        print(
+            f"not in the overview: {len(earlier)} image folder(s) of an earlier reconstruction left in {out}: {listed}"
+        )
     return 0
 
 

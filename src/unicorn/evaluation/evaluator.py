@@ -247,6 +247,10 @@ def evaluate(
     shape_scores(acc, model.template.faces, options)
     shares = {g: candidate_shares(c, acc.n_candidates) for g, c in acc.candidates.items()}
     table, columns = summary_table(acc, model, options, shares)
+    # the scores computed over whole groups (colour, rotation after alignment, shape retrieval) went into the
+    # rows after the samples were taken: sample k is row k
+    for k, sample in enumerate(samples):
+        sample.scores = {key: value for key, value in acc.rows[k].items() if key not in ("index", "group")}
     return EvaluationResult(protocol.name, acc.rows, table, columns, samples, time.perf_counter() - start, shares)
 
 

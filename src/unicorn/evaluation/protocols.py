@@ -185,7 +185,8 @@ class EvalOptions:
             masks are made (3 x 3 rays per pixel).
         visibility_supersample: supersampling of the hard render whose faces make the visible vertices of the
             keypoint transfer (UNICORN: 2).
-        num_pairs: keypoint-transfer pairs (UNICORN: 10,000).
+        num_pairs: keypoint-transfer pairs (UNICORN: 10,000); N images forming at most that many ordered pairs
+            use each ordered pair once (:func:`~unicorn.metrics.keypoint_transfer_pck`).
         align_pose: align the learned canonical frame to the ground truth before the pose errors.
         average_texture: predict mean-colour textures (for checkpoints still in that training phase).
         report_samples: images kept (on CPU) for the visual report.

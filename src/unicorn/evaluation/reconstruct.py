@@ -22,7 +22,8 @@ The folder also gets ``overview.png`` (one row per image; with refinement the ne
 next to the refined ones), ``index.html`` and ``reconstructions.json``
 (``{"provenance": ..., "images": [...]}``, each image's ``files`` naming every file written in its folder);
 ``pose.json`` and both of these record the provenance (command, checkpoint, package version, git commit) given to
-:func:`reconstruct`.
+:func:`reconstruct`. Image folders of an earlier reconstruction that a reconstruction into the same folder does not
+write again stay where they are, and ``index.html`` and ``reconstructions.json`` (``earlier_folders``) name them.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from unicorn.io.staging import OutputConflictError, check_replaceable
 from unicorn.model import Prediction, Unicorn
 from unicorn.objectives.refine import Refinement, RefineOptions, refine
 
-__all__ = ["check_free", "pose_record", "reconstruct", "unique_names"]
+__all__ = ["check_free", "earlier_folders", "pose_record", "reconstruct", "unique_names"]
 
 #: the files written at the top of the output folder: no image's folder may take these names
 RESERVED_NAMES = ("index.html", "overview.png", RECONSTRUCTIONS_RECORD, "_viewer")
@@ -260,6 +261,7 @@ def reconstruct(
     provenance: Mapping[str, Any] | None = None,
     refine_options: RefineOptions | None = None,
     overwrite: bool = False,
+    earlier: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Reconstruct preprocessed images and write their outputs (see the module docstring).
 
@@ -281,6 +283,8 @@ def reconstruct(
             the refined result, the network's beside it; None (or 0 steps): the network's prediction.
         overwrite: replace the outputs of an earlier call in ``out_dir`` (an image's folder, the overview, the
             record); otherwise they are an error raised before anything is written.
+        earlier: the image folders of an earlier reconstruction that stay beside this one's, named in
+            ``index.html`` and ``reconstructions.json``; None: those in ``out_dir`` (:func:`earlier_folders`).
 
     Returns:
         one record per image (name, source, folder within ``out_dir``, written files, pose angles, and with
@@ -295,6 +299,7 @@ def reconstruct(
     out = Path(out_dir)
     _check_names(items)
     check_free(out, [it.name for it in items], overwrite)
+    earlier = earlier_folders(out, [it.name for it in items]) if earlier is None else list(earlier)
     out.mkdir(parents=True, exist_ok=True)
     if provenance is None:
         from unicorn.io.provenance import command_line
@@ -338,7 +343,7 @@ def reconstruct(
             records.append(record)
             bar.update()
     bar.close()
-    _write_overview(out, records, view_size, provenance)
+    _write_overview(out, records, view_size, provenance, earlier)
     return records
 
 
@@ -402,6 +407,24 @@ def check_free(out: str | os.PathLike, names: Sequence[str], overwrite: bool = F
         )
 
 
+def earlier_folders(out: str | os.PathLike, names: Sequence[str]) -> list[str]:
+    """The image folders of an earlier reconstruction in ``out`` (sub-folders holding a ``pose.json``) that images
+    of these ``names`` do not write again, sorted: a reconstruction into ``out`` leaves them in place (they may be
+    the user's to keep) and names them, as its overview does not show them."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    written = {unicodedata.normalize("NFC", n).casefold() for n in names}
+    return sorted(
+        entry.name
+        for entry in out.iterdir()
+        if not entry.name.startswith(".")
+        and unicodedata.normalize("NFC", entry.name).casefold() not in written
+        and entry.is_dir()
+        and (entry / "pose.json").is_file()
+    )
+
+
 def _refinement_record(result: Refinement, i: int, options: RefineOptions) -> dict[str, Any]:
     """What refining image ``i`` did: its settings and the objective before and after."""
     losses = result.losses[:, i]
@@ -413,9 +436,15 @@ def _refinement_record(result: Refinement, i: int, options: RefineOptions) -> di
     }
 
 
-def _write_overview(out: Path, records: list[dict[str, Any]], view_size: int, provenance: Mapping[str, Any]) -> None:
+def _write_overview(
+    out: Path,
+    records: list[dict[str, Any]],
+    view_size: int,
+    provenance: Mapping[str, Any],
+    earlier: Sequence[str] = (),
+) -> None:
     """``overview.png`` and ``index.html`` from the records' pictures (popped from them), and
-    ``reconstructions.json`` (the records)."""
+    ``reconstructions.json`` (the records, and the ``earlier`` image folders left beside them)."""
     rows = [r.pop("_row") for r in records]
     angles = records[0].pop("_angles") if records else []
     for r in records[1:]:
@@ -426,8 +455,11 @@ def _write_overview(out: Path, records: list[dict[str, Any]], view_size: int, pr
         if len(rows[0]) > len(labels):
             labels += ["network"] + [f"network {a:g}°" for a in angles]
         image_grid(rows, labels, [r["name"] for r in records]).save(out / "overview.png")
-        _write_index(out, records, labels, view_size, provenance)
-    (out / RECONSTRUCTIONS_RECORD).write_text(json.dumps({"provenance": provenance, "images": records}, indent=1))
+        _write_index(out, records, labels, view_size, provenance, earlier)
+    record = {"provenance": provenance, "images": records}
+    if earlier:
+        record["earlier_folders"] = list(earlier)
+    (out / RECONSTRUCTIONS_RECORD).write_text(json.dumps(record, indent=1))
 
 
 def _write_index(
@@ -436,8 +468,10 @@ def _write_index(
     labels: Sequence[str],
     view_size: int,
     provenance: Mapping[str, Any],
+    earlier: Sequence[str] = (),
 ) -> None:
-    """``index.html``: per image its pictures, turntable, an interactive 3D view, and links to the meshes and pose."""
+    """``index.html``: per image its pictures, turntable, an interactive 3D view, and links to the meshes and pose;
+    a note naming the ``earlier`` image folders, which it does not show."""
     rows = []
     size = min(view_size, 192)
     n_views = sum(label.startswith("textured") for label in labels)
@@ -468,6 +502,10 @@ def _write_index(
         azim, elev, roll = (pose[k] if abs(pose[k]) >= 0.5 else 0.0 for k in ("azimuth", "elevation", "roll"))
         caption = f"<b>{name}</b><br>azim {azim:.0f}°, elev {elev:.0f}°, roll {roll:.0f}°<br>{links}"
         rows.append(f"<tr><td class='cap'>{caption}</td>{cells}</tr>")
+    kept = ""
+    if earlier:
+        links = ", ".join(f'<a href="{html.escape(quote(n))}/">{html.escape(n)}/</a>' for n in earlier)
+        kept = f"<p>Not shown: image folders of an earlier reconstruction, left in this folder: {links}.</p>"
     origin = "".join(
         f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(str(v))}</code></dd>" for k, v in provenance.items()
     )
@@ -480,7 +518,7 @@ dl{{display:grid;grid-template-columns:max-content auto;gap:.2em 1em;font-size:.
 <p>Input, reconstruction, predicted mask, turntable and an interactive 3D view (drag to rotate, scroll to zoom;
 it opens from the predicted viewpoint) per image; <a href="overview.png">overview.png</a> shows
 the meshes from {n_views} viewpoints, textured and untextured.{refined}</p>
-<table>{"".join(rows)}</table>
+<table>{"".join(rows)}</table>{kept}
 <h2>Provenance</h2><dl>{origin}</dl>
 {body_script}</body></html>
 """

@@ -85,10 +85,14 @@ def sample_views(
 _KEY_SCORES = ("chamfer-L1", "chamfer-L1-ICP", "mask-iou", "rec-mse")
 
 
-def _row_label(sample: Sample, columns: Sequence[str], limit: int = 4) -> str:
+def _row_label(sample: Sample, columns: Sequence[str], limit: int | None = 4) -> str:
+    """The image's index and group, then its per-image scores (at most ``limit``; None: all): the key scores,
+    the others in table order, then those without a column of their own (``rot-err``)."""
     lines = [f"#{sample.index} {sample.group}"]
-    order = [c for c in _KEY_SCORES if c in columns] + [c for c in columns if c not in _KEY_SCORES]
-    lines += [f"{c}: {format_value(sample.scores[c], c)}" for c in order if c in sample.scores][:limit]
+    scores = [c for c in sample.scores if c != "candidate"]  # a label, not a score
+    order = [c for c in _KEY_SCORES if c in scores] + [c for c in columns if c in scores and c not in _KEY_SCORES]
+    order += [c for c in scores if c not in order]
+    lines += [f"{c}: {format_value(sample.scores[c], c)}" for c in order][:limit]
     return "\n".join(lines)
 
 
@@ -166,7 +170,7 @@ def write_report(
             grid_rows.append(cells)
             row_labels.append(_row_label(sample, result.columns))
             files = _save_sample_files(model, sample, k, cells, labels, assets, view_size, turntable_frames, device)
-            caption = html.escape(_row_label(sample, result.columns, limit=len(result.columns)))
+            caption = html.escape(_row_label(sample, result.columns, limit=None))
             cells_html = "".join(
                 f'<td><img src="report/{n}" width="{view_size}" height="{view_size}" alt="{html.escape(lb)}"></td>'
                 for lb, n in files

@@ -343,7 +343,7 @@ class CodeDiagnostics(L.Callback):
                 stats = code_diagnostics(pl_module.model, images)
         finally:
             pl_module.train(was_training)
-        row: dict[str, float] = {"step": float(step), "render/overflow-share": overflow_share}
+        row: dict[str, float] = {"step": step, "render/overflow-share": overflow_share}
         for branch, values in stats.items():
             row.update({f"{branch}/{k}": v for k, v in values.items()})
         for branch, values in ((b, stats[b]) for b in CODE_BRANCHES if b in stats):

@@ -187,7 +187,7 @@ class HeldOutEvaluation(L.Callback):
                 )
             finally:
                 pl_module.train(was_training)
-        row = {"step": float(step), **{k: float(v) for k, v in result.mean.items() if k in result.columns}}
+        row = {"step": step, **{k: float(v) for k, v in result.mean.items() if k in result.columns}}
         self.history.append(row)
         metrics = {f"heldout/{k}": v for k, v in row.items() if k != "step" and math.isfinite(v)}
         for logger in trainer.loggers:
@@ -203,17 +203,20 @@ class HeldOutEvaluation(L.Callback):
 
 
 def append_csv_row(path: Path, row: dict[str, float]) -> None:
-    """Add ``row`` (with a ``step``) to a CSV file of one row per step, atomically; new columns widen the file.
+    """Add ``row`` (with a ``step``, a whole number) to a CSV file of one row per step, atomically; new columns
+    widen the file. Steps are written as integers (``4``), also those of rows written as floats (``4.0``).
 
     The rows of ``row``'s step and later ones are dropped first: a resumed run writes again from its checkpoint's
     step on, so the file reads like that of a run never interrupted, also after a resume from an earlier
     checkpoint (whose abandoned later rows would otherwise stay)."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    step = _whole_step(row["step"])
     rows: list[dict[str, Any]] = []
     if path.exists():
         with path.open(newline="") as f:
-            rows = [r for r in csv.DictReader(f) if float(r["step"]) < row["step"]]
-    rows.append(row)
+            rows = [{**r, "step": _whole_step(r["step"])} for r in csv.DictReader(f)]
+        rows = [r for r in rows if r["step"] < step]
+    rows.append({**row, "step": step})
     columns = list(dict.fromkeys(k for r in rows for k in r))
     from unicorn.io.serialization import replacing
 
@@ -221,6 +224,14 @@ def append_csv_row(path: Path, row: dict[str, float]) -> None:
         writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)
+
+
+def _whole_step(value: float | str) -> int:
+    """An iteration as an integer, from a number or a CSV cell (``4``, ``4.0``)."""
+    step = float(value)
+    if not step.is_integer():
+        raise ValueError(f"a step must be a whole number of iterations, got {value!r}")
+    return int(step)
 
 
 def _stop_signalled(trainer: L.Trainer) -> bool:
