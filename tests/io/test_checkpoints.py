@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -10,8 +13,8 @@ import torch
 
 from tests.support.checkpoints import reference_state
 from tests.support.evaluation import IMAGE_SIZE, tiny_model
-from unicorn.io import CheckpointError, load_model, save_model
-from unicorn.io.checkpoints import init_weights
+from unicorn.io import CheckpointError, load_model, load_reference_checkpoint, read_checkpoint, save_model
+from unicorn.io.checkpoints import MapLocationError, init_weights
 from unicorn.io.serialization import INTEGRITY_KEY
 
 
@@ -141,6 +144,50 @@ def test_the_meta_device_is_refused_before_reading(tmp_path: Path) -> None:
     path = save_model(tiny_model("real"), tmp_path / "m.pt")
     with pytest.raises(ValueError, match=r"map_location='meta' loads no values"):
         load_model(path, map_location="meta")
+
+
+@pytest.mark.parametrize("device", ["cpux", "", "cuda:99", torch.device("cuda", 99), "cuda:257"], ids=repr)
+def test_a_device_this_machine_lacks_is_blamed_not_the_file(tmp_path: Path, device) -> None:
+    path = save_model(tiny_model("real"), tmp_path / "m.pt")
+    released = tmp_path / "model.pkl"
+    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": reference_state()}, released)
+    for load, file in ((load_model, path), (read_checkpoint, path), (load_reference_checkpoint, released)):
+        with pytest.raises(MapLocationError) as info:
+            load(file, map_location=device)
+        message = str(info.value)
+        assert message.startswith(f"map_location={device!r}") and "\n" not in message, message
+        assert not isinstance(info.value, CheckpointError) and str(file) not in message  # the file is not at fault
+    _same_prediction(tiny_model("real"), load_model(path, map_location="cpu")[0])
+
+
+def test_save_model_names_a_file_where_a_folder_goes(tmp_path: Path) -> None:
+    notes = tmp_path / "notes"
+    notes.write_text("the user's notes")
+    for path in (notes / "m.pt", notes / "models" / "m.pt"):
+        with pytest.raises(NotADirectoryError) as info:
+            save_model(tiny_model("real"), path)
+        assert str(info.value) == f"cannot write {path}: {notes} is a file, where a folder goes"
+    assert notes.read_text() == "the user's notes" and sorted(tmp_path.iterdir()) == [notes]
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_save_model_refuses_a_folder_at_its_path(tmp_path: Path, overwrite: bool) -> None:
+    folder = tmp_path / "m.pt"
+    folder.mkdir()
+    with pytest.raises(IsADirectoryError, match=rf"^{re.escape(str(folder))} is a folder: save_model writes a file"):
+        save_model(tiny_model("real"), folder, overwrite=overwrite)
+    assert list(tmp_path.iterdir()) == [folder] and not any(folder.iterdir())
+
+
+def test_save_model_removes_the_temporary_a_killed_save_left(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f".m.pt.tmp-{int(done.stdout)}"  # the process that wrote it has ended
+    live = tmp_path / f".m.pt.tmp-{os.getppid()}"  # a save running in another process
+    other = tmp_path / f".n.pt.tmp-{int(done.stdout)}"  # another file's
+    for tmp in (stale, live, other):
+        tmp.write_bytes(b"partial")
+    path = save_model(tiny_model("real"), tmp_path / "m.pt")
+    assert sorted(tmp_path.iterdir()) == sorted([path, live, other])
 
 
 def test_a_directory_is_not_a_checkpoint(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,8 @@ from PIL import Image
 from tests.support.datasets import keyed_png16, save_with_orientation
 from unicorn.data.framing import fit_and_pad
 from unicorn.data.images import ImageLoadError
-from unicorn.io import alpha_bbox, load_input, read_input
+from unicorn.io import alpha_bbox, load_input, preprocess, read_input
+from unicorn.io.images import BoxError
 
 
 def test_a_sideways_phone_photo_reaches_the_model_upright(tmp_path: Path) -> None:
@@ -115,3 +117,10 @@ def test_the_frame_locates_the_inputs_pixels_in_the_photo(tmp_path, shape, bbox,
     rows, cols = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
     found = (float((red * rows).sum() / red.sum()), float((red * cols).sum() / red.sum()))  # the spot's centroid
     assert found == pytest.approx(expected, abs=0.25)
+
+
+@pytest.mark.parametrize("padding", ["0.1", None, True], ids=repr)
+def test_a_padding_that_is_not_a_number_is_named(padding) -> None:
+    image = np.zeros((8, 8, 3), dtype=np.float32)
+    with pytest.raises(BoxError, match=rf"^padding {re.escape(repr(padding))}: must be a finite number in \[0, 10\]"):
+        preprocess(image, 4, bbox=(1, 1, 5, 5), padding=padding)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -106,11 +108,106 @@ def test_a_replacement_that_fails_leaves_each_file_as_it_was(model_and_predictio
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(Path, "write_bytes", full_disk)
-    monkeypatch.setattr(Path, "write_text", lambda self, text: full_disk(self, text.encode()))
+    monkeypatch.setattr(Path, "write_text", lambda self, text, **kwargs: full_disk(self, text.encode()))
     with pytest.raises(OSError, match="No space left"):
         save_mesh(mesh.copy(), tmp_path / f"car{suffix}", overwrite=True)
     assert {path: path.read_bytes() for path in files} == before  # whole: the old files
     assert sorted(tmp_path.iterdir()) == sorted(files)  # no partial file beside them
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+@pytest.mark.parametrize("below", ["", "meshes/"])
+def test_a_file_where_a_folder_goes_is_named_in_one_line(model_and_prediction, tmp_path, suffix, below):
+    model, pred = model_and_prediction
+    notes = tmp_path / "notes"
+    notes.write_text("the user's notes")
+    path = notes / f"{below}car{suffix}"
+    with pytest.raises(NotADirectoryError) as info:
+        save_mesh(export_prediction(model, pred, index=0), path)
+    assert str(info.value) == f"cannot write {path}: {notes} is a file, where a folder goes"
+    assert notes.read_text() == "the user's notes" and sorted(tmp_path.iterdir()) == [notes]
+
+
+@pytest.mark.parametrize("folder", ["car.obj", "car.png", "car.glb"])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_folder_where_a_file_goes_is_refused_before_anything_is_written(
+    model_and_prediction, tmp_path, folder, overwrite
+):
+    model, pred = model_and_prediction
+    (tmp_path / folder).mkdir()
+    path = tmp_path / ("car.glb" if folder == "car.glb" else "car.obj")
+    names = "car.glb" if folder == "car.glb" else "car.obj, car.mtl, car.png"
+    with pytest.raises(IsADirectoryError) as info:
+        save_mesh(export_prediction(model, pred, index=0), path, overwrite=overwrite)
+    assert str(info.value) == f"{tmp_path / folder} is a folder: save_mesh writes {names}; choose another path"
+    assert list(tmp_path.iterdir()) == [tmp_path / folder] and not any((tmp_path / folder).iterdir())
+
+
+def _dead_pid() -> int:
+    """The pid of a process that has ended."""
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(done.stdout)
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_save_removes_the_temporaries_a_killed_save_of_its_files_left(model_and_prediction, tmp_path, suffix):
+    model, pred = model_and_prediction
+    dead, live = _dead_pid(), os.getppid()
+    names = ["car.obj", "car.mtl", "car.png"] if suffix == ".obj" else ["car.glb"]
+    stale = [tmp_path / f".{name}.tmp-{dead}" for name in names]
+    kept = [
+        tmp_path / f".{names[-1]}.tmp-{live}",  # a save running in another process
+        tmp_path / f".{names[0]}.tmp-1.tmp-{dead}",  # the temporary of another file, ``car.obj.tmp-1``
+        tmp_path / f".{names[0]}.tmp-{dead}.bak",  # not the pattern of a temporary
+        tmp_path / f".bus{suffix}.tmp-{dead}",  # another mesh's
+        tmp_path / f"{names[0]}.tmp-{dead}",  # not hidden: a user's file
+    ]
+    for path in stale + kept:
+        path.write_bytes(b"partial")
+    files = save_mesh(export_prediction(model, pred, index=0), tmp_path / f"car{suffix}")
+    assert sorted(tmp_path.iterdir()) == sorted(files + kept)
+    assert all(path.read_bytes() == b"partial" for path in kept)
+
+
+def test_a_name_beyond_ascii_is_written_in_utf8_and_reloads(model_and_prediction, tmp_path):
+    model, pred = model_and_prediction
+    mesh = export_prediction(model, pred, index=0)
+    obj, mtl, png = save_mesh(mesh, tmp_path / "voiture_été_车.obj")
+    assert mtl.name == "voiture_été_车.mtl" and png.name == "voiture_été_车.png"
+    assert "mtllib voiture_été_车.mtl\n" in obj.read_bytes().decode("utf-8")
+    assert "map_Kd voiture_été_车.png\n" in mtl.read_bytes().decode("utf-8")
+    loaded = trimesh.load(obj, force="mesh", process=False)  # finds the material and texture by their names
+    assert np.array_equal(_texture_pixels(loaded), _texture_pixels(mesh))
+
+
+def test_obj_and_mtl_do_not_depend_on_the_locale_encoding(tmp_path):
+    """Text written in the locale's encoding (cp1252 on Windows, Latin-1 locales) would give other bytes for a name
+    beyond ASCII, or fail: with ``-X warn_default_encoding`` every such write warns, made an error around the save
+    (the imports' own warnings ignored)."""
+    script = (
+        "import sys, warnings, torch\n"
+        "from unicorn.io.meshes import save_mesh, textured_mesh\n"
+        "mesh = textured_mesh(torch.eye(3), torch.tensor([[0, 1, 2]]), torch.rand(1, 3, 2), torch.rand(3, 4, 4))\n"
+        "with warnings.catch_warnings():\n"
+        "    warnings.simplefilter('error', EncodingWarning)\n"
+        "    save_mesh(mesh, sys.argv[1])\n"
+    )
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-X",
+            "warn_default_encoding",
+            "-W",
+            "ignore::EncodingWarning",
+            "-c",
+            script,
+            str(tmp_path / "voiture_é.obj"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "voiture_é.mtl").read_text(encoding="utf-8").startswith("newmtl voiture_é\n")
 
 
 def test_reference_uvs_are_converted_to_edge_convention():

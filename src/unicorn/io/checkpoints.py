@@ -40,8 +40,10 @@ from unicorn.io.run_folder import run_dataset, run_of_checkpoint
 from unicorn.io.serialization import (
     CheckpointError,
     CorruptCheckpointError,
+    MapLocationError,
     UnsafeCheckpointError,
     atomic_save,
+    check_map_location,
     kind_of,
     load_checkpoint_file,
 )
@@ -55,6 +57,7 @@ __all__ = [
     "CheckpointError",
     "CheckpointInfo",
     "CorruptCheckpointError",
+    "MapLocationError",
     "ModelTooLargeError",
     "NotATrainingCheckpointError",
     "UnsafeCheckpointError",
@@ -335,9 +338,12 @@ def load_model(
             of another version, weights that do not fit, or NaN, infinite or negative-variance weights
             (:func:`check_weight_values`; each named in one line).
         ModelTooLargeError: a stored image, texture or model size above the limits, refused before building it.
+        MapLocationError: ``map_location`` is not a device of this machine (``"cuda:7"`` without that GPU), checked
+            before the file is read.
         ValueError: ``map_location`` is the meta device.
     """
     path = Path(path).expanduser()
+    check_map_location(map_location)  # a device this machine lacks is the argument's mistake, not the file's
     if torch.device(map_location).type == "meta":
         raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
     data = read_checkpoint(path, map_location, trust=trust)
@@ -506,7 +512,8 @@ def weights_misfit(saved: Mapping[str, Any], own: Mapping[str, torch.Tensor], st
 def save_model(model: Unicorn, path: str | os.PathLike, *, overwrite: bool = False, **info: Any) -> Path:
     """Write a plain checkpoint (config, weights and ``info``) that :func:`load_model` reads.
 
-    The file is written atomically and carries a hash of its content (see :mod:`unicorn.io.serialization`).
+    The file is written atomically and carries a hash of its content (see :mod:`unicorn.io.serialization`); the
+    temporary file a killed save to ``path`` left beside it is deleted.
 
     Args:
         model: the model.
@@ -523,8 +530,12 @@ def save_model(model: Unicorn, path: str | os.PathLike, *, overwrite: bool = Fal
         TypeError: a value of ``info`` that :func:`load_model` could not read back (it loads plain values only),
             named before anything is written.
         FileExistsError: a file is at ``path`` and ``overwrite`` is False.
+        IsADirectoryError: ``path`` is a folder, whatever ``overwrite``.
+        NotADirectoryError: a file stands where a folder above ``path`` goes (the message names it).
     """
     path = Path(path).expanduser()
+    if path.is_dir() and not path.is_symlink():  # a link is replaced, not followed
+        raise IsADirectoryError(f"{path} is a folder: save_model writes a file; choose a file name (model.pt)")
     if not overwrite and (path.exists() or path.is_symlink()):
         raise FileExistsError(f"{path} exists: pass overwrite=True to replace it with the model")
     plain = {key: _plain_value(value, key) for key, value in info.items()}

@@ -206,9 +206,11 @@ def check_padding(padding: float, name: str = "padding") -> float:
     Raises:
         BoxError: anything else (NaN and infinity included).
     """
-    if not (isinstance(padding, int | float) and math.isfinite(padding) and 0 <= padding <= MAX_PADDING):
+    number = isinstance(padding, int | float) and not isinstance(padding, bool)
+    if not (number and math.isfinite(padding) and 0 <= padding <= MAX_PADDING):
+        shown = f"{padding:g}" if number else repr(padding)  # a string or None has no number format
         raise BoxError(
-            f"{name} {padding:g}: must be a finite number in [0, {MAX_PADDING:g}] (the margin added on every side of "
+            f"{name} {shown}: must be a finite number in [0, {MAX_PADDING:g}] (the margin added on every side of "
             "the object's box, as a fraction of its side)"
         )
     return float(padding)

@@ -18,7 +18,7 @@ import trimesh
 from PIL import Image
 
 from unicorn.checks import check_shape
-from unicorn.io.serialization import replacing
+from unicorn.io.serialization import make_parent_folders, remove_stale_temporaries, replacing
 
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn
@@ -124,14 +124,17 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
         path: the ``.obj`` or ``.glb`` file (``~`` is the home folder; missing folders are created).
         overwrite: replace files that exist; otherwise an existing file among those written (the OBJ's texture
             ``<stem>.png`` may be the photo the mesh was made from) is an error and nothing is written. Each file
-            is written beside its place and renamed into it: a file replaced is whole, the old one or the new.
+            is written beside its place (``.<name>.tmp-<pid>``) and renamed into it: a file replaced is whole, the
+            old one or the new; such temporaries that a killed save of the same files left are deleted.
 
     Returns:
-        the files written.
+        the files written (the OBJ and MTL in UTF-8).
 
     Raises:
         ValueError: another format, or a mesh without texture.
         FileExistsError: a file to write exists and ``overwrite`` is False (the message names it).
+        IsADirectoryError: a folder is where a file to write goes, whatever ``overwrite`` (nothing is written).
+        NotADirectoryError: a file stands where a folder above ``path`` goes (the message names it).
     """
     path = Path(path).expanduser()  # as load_model and save_model do: "~/car.glb" is not ./~/car.glb
     suffix = path.suffix.lower()
@@ -139,11 +142,15 @@ def save_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, overwrite: bool = 
         raise ValueError(f"unsupported mesh format {path.suffix!r}: use .obj or .glb")
     image = _texture_image(mesh)
     targets = [path] if suffix == ".glb" else _obj_files(path)
+    names = ", ".join(p.name for p in targets)
+    folder = next((p for p in targets if p.is_dir() and not p.is_symlink()), None)  # a link is replaced, not followed
+    if folder is not None:  # refused before anything is written: no file of the set replaced
+        raise IsADirectoryError(f"{folder} is a folder: save_mesh writes {names}; choose another path")
     existing = [p for p in targets if p.exists() or p.is_symlink()]
     if existing and not overwrite:
-        names = ", ".join(p.name for p in targets)
         raise FileExistsError(f"{existing[0]} exists: save_mesh writes {names}; pass overwrite=True to replace them")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_parent_folders(path)
+    remove_stale_temporaries(path.parent, [p.name for p in targets])  # what a save to ``path`` killed left
     if suffix == ".glb":
         with replacing(path) as tmp:
             tmp.write_bytes(glb_bytes(mesh, name=path.stem))
@@ -243,9 +250,9 @@ def _write_obj(mesh: trimesh.Trimesh, image: Image.Image, path: Path) -> list[Pa
     with replacing(png) as tmp:
         image.save(tmp, format="PNG")
     with replacing(mtl_path) as tmp:
-        tmp.write_text(mtl)
+        tmp.write_text(mtl, encoding="utf-8")  # whatever the locale: viewers read file names in UTF-8
     with replacing(obj) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return [obj, mtl_path, png]
 
 

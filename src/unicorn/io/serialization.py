@@ -43,13 +43,16 @@ __all__ = [
     "CheckpointNotAFileError",
     "CheckpointNotFoundError",
     "CorruptCheckpointError",
+    "MapLocationError",
     "UnsafeCheckpointError",
     "atomic_save",
     "check_checkpoint_path",
+    "check_map_location",
     "content_digest",
     "kind_of",
     "link_into_place",
     "load_checkpoint_file",
+    "make_parent_folders",
     "remove_stale_temporaries",
     "replacing",
     "seal",
@@ -91,6 +94,48 @@ class CorruptCheckpointError(CheckpointError):
     """A checkpoint whose content does not match the hash stored in it."""
 
 
+class MapLocationError(UserError, ValueError):
+    """A ``map_location`` that names no device of this machine: a mistake of the argument, not of the file."""
+
+
+def check_map_location(map_location: Any) -> Any:
+    """``map_location`` when ``torch.load`` can put tensors there, checked before a file is read, so that a device
+    this machine lacks is not reported as a file that cannot be read. None, dicts and functions (``torch.load``'s
+    remappings) pass unchecked.
+
+    Raises:
+        MapLocationError: not a device (``"cpux"``), or a device this machine lacks (``"cuda:7"``, ``"mps"``).
+    """
+    if map_location is None or isinstance(map_location, Mapping) or callable(map_location):
+        return map_location
+    not_a_device = MapLocationError(
+        f"map_location={map_location!r} is not a device: use 'cpu', 'cuda', 'cuda:N' or a torch.device"
+    )
+    try:
+        device = torch.device(map_location)
+    except (RuntimeError, TypeError, ValueError):
+        raise not_a_device from None
+    stated = str(map_location).rpartition(":")[2]  # torch keeps an index in 8 bits: "cuda:257" is cuda:1
+    if device.index is not None and (device.index < 0 or (stated.isdigit() and int(stated) != device.index)):
+        raise not_a_device
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (device.index or 0) >= count:
+            choice = f"cuda:0 to cuda:{count - 1} or 'cpu'" if count else "'cpu'"
+            raise MapLocationError(
+                f"map_location={map_location!r}: this machine has {count} CUDA device(s); use {choice}"
+            )
+    elif device.type not in ("cpu", "meta"):
+        try:  # mps, xpu...: whether the backend is there is only known by using it
+            torch.empty(0, device=device)
+        except Exception as err:  # noqa: BLE001 - backends raise RuntimeError, AssertionError...
+            raise MapLocationError(
+                f"map_location={map_location!r}: {device.type} is not available on this machine "
+                f"({shortened(str(err).split('. ')[0], 100)}); use 'cpu'"
+            ) from None
+    return map_location
+
+
 def kind_of(value: Any) -> str:
     """What ``value`` is, for the messages that name a checkpoint's field of the wrong type: ``a str``, ``an int``,
     ``a tensor of shape [3]``."""
@@ -115,6 +160,8 @@ def load_checkpoint_file(
         the loaded object (the integrity key removed).
 
     Raises:
+        MapLocationError: ``map_location`` is no device of this machine (:func:`check_map_location`), checked
+            before the file is read.
         FileNotFoundError: no such file (also a :class:`~unicorn.errors.UserError`).
         UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
         CheckpointError: not a readable torch file, or a zip whose entries would inflate beyond the file's size
@@ -122,6 +169,7 @@ def load_checkpoint_file(
             containers no walk of them finishes (:func:`_containers_problem`), refused before they are walked.
         CorruptCheckpointError: the content hash does not match.
     """
+    check_map_location(map_location)
     path = Path(path).expanduser()
     check_checkpoint_path(path)
     unreadable = torch_file_problem(path)
@@ -330,10 +378,15 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
 
     The object is serialised in memory first, written to ``.<name>.tmp-<pid>`` beside ``path``, flushed to disk
     (``fsync``) and renamed into place (``os.replace`` is atomic). A process killed meanwhile leaves at worst the
-    ``.tmp`` file, which :func:`remove_stale_temporaries` deletes later. ``obj`` itself is not modified.
+    ``.tmp`` file, which the next save to ``path`` deletes (:func:`remove_stale_temporaries`). ``obj`` itself is not
+    modified.
+
+    Raises:
+        NotADirectoryError: a file stands where a folder above ``path`` goes (:func:`make_parent_folders`).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_parent_folders(path)
+    remove_stale_temporaries(path.parent, [path.name])
     if sealed and isinstance(obj, Mapping):
         obj = seal(dict(obj))
     buffer = io.BytesIO()
@@ -356,6 +409,23 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
             tmp.unlink()
     _sync_folder(path.parent)  # make the rename itself durable
     return path
+
+
+def make_parent_folders(path: str | os.PathLike) -> None:
+    """Create the missing folders above the file ``path``.
+
+    Raises:
+        NotADirectoryError: one of them is a file (or another non-folder); the message names it, in one line.
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):  # the system names the folder it could not make, not why
+        above = next((p for p in path.parents if p.exists() or p.is_symlink()), None)
+        if above is None or above.is_dir():
+            raise
+        what = "a file" if above.is_file() else "a broken link" if above.is_symlink() else "not a folder"
+        raise NotADirectoryError(f"cannot write {path}: {above} is {what}, where a folder goes") from None
 
 
 def link_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:
@@ -434,12 +504,15 @@ def remove_stale_temporaries(folder: str | os.PathLike, names: Iterable[str] | N
         the deleted files.
     """
     removed = []
-    patterns = [f".*{TMP_MARK}*"] if names is None else [f".{glob.escape(name)}{TMP_MARK}*" for name in names]
-    for tmp in (path for pattern in patterns for path in Path(folder).glob(pattern)):
-        pid = tmp.name.rpartition(TMP_MARK)[2]
-        if not pid.isdigit() or (int(pid) != os.getpid() and pid_alive(int(pid))):
-            continue
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-            removed.append(tmp)
+    prefixes = [""] if names is None else [f".{name}{TMP_MARK}" for name in names]
+    patterns = [f".*{TMP_MARK}*"] if names is None else [f"{glob.escape(prefix)}*" for prefix in prefixes]
+    for prefix, pattern in zip(prefixes, patterns):
+        for tmp in Path(folder).glob(pattern):
+            # a named file's own temporaries only (not those of ``<name>.tmp-1``, which its pattern matches too)
+            pid = tmp.name[len(prefix) :] if prefix else tmp.name.rpartition(TMP_MARK)[2]
+            if not pid.isdigit() or (int(pid) != os.getpid() and pid_alive(int(pid))) or tmp.is_dir():
+                continue  # a live writer's, or a folder: not a temporary file of ours
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                removed.append(tmp)
     return removed
