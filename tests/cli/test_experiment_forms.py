@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from tests.support.training import TINY, compose_config, unicorn_train
 from unicorn.cli import train
 from unicorn.cli.train import experiment_overrides, hydra_argv
-from unicorn.config import validate
+from unicorn.config import model_config, validate
 
 #: a user's preset in a config directory of their own (``-cd my_conf``): it overrides a group and values
 MINE = """# @package _global_
@@ -226,3 +226,16 @@ def test_cfg_job_with_a_sweep_is_one_line(tmp_path: Path) -> None:
         "unicorn-train: error: Only one of --run, --multirun, --cfg, --info and --shell_completion can be specified "
         "(Hydra runs one of these at a time: --cfg job prints one run's config, without -m and one value per key)"
     ]
+
+
+def test_a_key_deep_in_a_free_mapping_is_overridden_without_a_plus(tmp_path):
+    # the real-image family's camera names a fov: a focal length instead is a key the preset lacks, in the free
+    # renderer mapping, one level below it
+    args = ["experiment=cub", "renderer.camera.fov=null", "renderer.camera.focal_length=2.0"]
+    rewritten = train.open_node_overrides(args)
+    assert rewritten == ["experiment=cub", "++renderer.camera.fov=null", "++renderer.camera.focal_length=2.0"]
+    typed = validate(compose_config([*rewritten, "dataset.root=/data/cub", f"paths.output_dir={tmp_path}"]))
+    settings = model_config(typed)["renderer"]
+    assert settings["fov"] is None and settings["focal_length"] == 2.0
+    # a schema group's misspelt key is still not rewritten: Hydra names it
+    assert train.open_node_overrides(["model.loss.rgb_wieght=1"]) == ["model.loss.rgb_wieght=1"]

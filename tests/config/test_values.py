@@ -66,9 +66,28 @@ CASES = [
     (
         "focal-length",
         [*CUB, "~renderer.camera.fov", "+renderer.camera.focal_length=0"],
-        r"focal_length must be a finite number > 0",
+        r"^renderer.camera.focal_length must be a finite number > 0",
     ),
-    ("fov", [*CUB, "renderer.camera.fov=0"], r"fov must be in \(0, 180\) degrees"),
+    ("fov", [*CUB, "renderer.camera.fov=0"], r"^renderer.camera.fov must be in \(0, 180\) degrees, got 0.0$"),
+    # one grey level, or a colour's name, as the key's own error (not "'float' object is not iterable")
+    (
+        "background-grey",
+        [*SYNTHETIC, "renderer.background_color=0.5"],
+        r"^renderer.background_color must be three numbers in \[0, 1\] \(RGB\), got 0.5$",
+    ),
+    ("background-name", [*SYNTHETIC, "renderer.background_color=white"], r"\(RGB\), got white$"),
+    ("background-null", [*SYNTHETIC, "renderer.background_color=null"], r"\(RGB\), got None$"),
+    # a value of the wrong type: OmegaConf's message in one line, named by its key
+    (
+        "seed-float",
+        [*SYNTHETIC, "seed=1.5"],
+        r"^invalid training config: seed: Value '1.5' of type 'float' could not be converted to Integer$",
+    ),
+    (
+        "steps-text",
+        [*SYNTHETIC, "trainer.max_steps=abc"],
+        r"^invalid training config: trainer.max_steps: Value 'abc' of type 'str' could not be converted to Integer$",
+    ),
     ("translation-pair", [*CUB, "model.pose.T_range=[0.1,0.2]"], r"T_range must be a finite number or 3 of them"),
     (
         "translation-null",

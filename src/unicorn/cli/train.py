@@ -296,9 +296,10 @@ def experiment_overrides(overrides: list[str]) -> list[str]:
 
 def open_node_overrides(overrides: list[str]) -> list[str]:
     """``overrides`` with ``key=value`` written ``++key=value`` where ``key`` is a node that the composed config may
-    lack in part (:func:`unicorn.config.schema.open_nodes`) or one of its keys: ``callbacks.heldout.split=test`` or
-    ``callbacks.heldout={every_n_steps: 100, split: test}`` where the preset's ``callbacks.heldout`` names no
-    ``split``, ``callbacks.extra.mine={...}``, ``dataset.synthetic.roll=0``. Hydra refuses these without a ``+``;
+    lack in part (:func:`unicorn.config.schema.open_nodes`) or one of its keys (a free mapping's at any depth):
+    ``callbacks.heldout.split=test`` or ``callbacks.heldout={every_n_steps: 100, split: test}`` where the preset's
+    ``callbacks.heldout`` names no ``split``, ``callbacks.extra.mine={...}``, ``dataset.synthetic.roll=0``,
+    ``renderer.camera.focal_length=2`` where the preset's camera names a ``fov``. Hydra refuses these without a ``+``;
     with ``++`` (add, or merge into what is there) they work whether the key is there or not, and
     :func:`unicorn.config.validate` refuses the misspelt ones. Every other argument is returned unchanged."""
     from unicorn.config.schema import open_nodes
@@ -310,6 +311,9 @@ def open_node_overrides(overrides: list[str]) -> list[str]:
         node, _, name = key.rpartition(".")
         keys = nodes.get(node, ())
         known = key in nodes or (node in nodes and (keys is None or name in keys))  # the node, or one of its keys
+        # or a key deeper in a free mapping, which takes any key at any depth (renderer.camera.focal_length)
+        parts = key.split(".")
+        known = known or any(nodes.get(".".join(parts[:i]), ()) is None for i in range(1, len(parts) - 1))
         # a key without a dot names a config group (renderer=hard, logger=none): a choice, never rewritten
         if equals and known and "." in key and not arg.startswith(("+", "~", "-")):
             arg = f"++{arg}"

@@ -54,7 +54,7 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
     try:
         typed = OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg)
     except OmegaConfBaseException as err:
-        raise ConfigError(f"invalid training config: {err}") from None
+        raise ConfigError(f"invalid training config: {_omegaconf_message(err)}") from None
     # the schema has no default root: every dataset preset names one (`???`: to be given on the command line)
     _check(
         not OmegaConf.is_missing(typed.dataset, "root"),
@@ -65,13 +65,21 @@ def validate(cfg: DictConfig | Mapping[str, Any]) -> DictConfig:
         _check_paths(typed)
         _check_values(typed)
     except OmegaConfBaseException as err:
-        raise ConfigError(f"invalid training config: {err}") from None
+        raise ConfigError(f"invalid training config: {_omegaconf_message(err)}") from None
     except (ValueError, TypeError) as err:
         if isinstance(err, UserError):  # already one line naming the key
             raise
         # a check inside a part the config builds (a camera, a pose range): its message names the setting
         raise ConfigError(f"invalid training config: {err}") from None
     return typed
+
+
+def _omegaconf_message(err: OmegaConfBaseException) -> str:
+    """OmegaConf's error in one line, ``<key>: <what>``: its message's first line, without the lines it adds (the
+    key, the config's classes)."""
+    lines = str(err).strip().splitlines() or [type(err).__name__]
+    key = getattr(err, "full_key", None)
+    return f"{key}: {lines[0]}" if key else lines[0]
 
 
 #: the settings that name a file or folder, and what to give instead of an empty value
@@ -258,7 +266,10 @@ def _check_sizes(cfg: DictConfig) -> None:
     config = model_config(cfg)
     check_model_size(config, "model", error=SizeLimitError)
     settings = config["renderer"]
-    camera = PerspectiveCamera(fov=settings["fov"], focal_length=settings["focal_length"])
+    try:
+        camera = PerspectiveCamera(fov=settings["fov"], focal_length=settings["focal_length"])
+    except ValueError as err:  # "fov must be ...", "focal_length must be ..."
+        raise ConfigError(f"renderer.camera.{err}") from None
     renderer = build_renderer(settings["name"], image_size=d.img_size, camera=camera, **settings["options"])
     rasterizer = renderer.rasterizer
     candidates = m.pose.n_elev * m.pose.n_azim
@@ -451,6 +462,8 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
                 f"renderer.camera.{key}={value} is not supported by the model's camera",
             )
     background_color = cfg.pop("background_color", BACKGROUND_COLOR)
+    if isinstance(background_color, Sequence) and not isinstance(background_color, str):
+        background_color = tuple(background_color)  # else as given (0.5, "white"), for the model's check to name
     unknown = [] if accepted is None else sorted(set(cfg) - accepted)
     drop = " ".join(f"~renderer.{key}" for key in unknown)
     _check(
@@ -468,7 +481,7 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
         "name": name,
         "fov": fov,
         "focal_length": focal,
-        "background_color": tuple(background_color),
+        "background_color": background_color,
         "options": cfg,
     }
 

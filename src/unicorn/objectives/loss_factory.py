@@ -2,7 +2,8 @@
 
 The group's settings that name a registered loss (perceptual loss, pose objective, viewpoint supervision) are
 checked here, against the registries of this floor (:func:`check_loss_choices`); the group's ranges and other
-values are checked with the model's configuration (:func:`unicorn.model.config.check_model_config`).
+values are checked with the model's configuration (:func:`unicorn.model.config.check_model_config`). A group given
+in part takes :class:`unicorn.model.config.LossConfig`'s defaults for the keys it leaves out (:func:`loss_group`).
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
-from unicorn.model.config import ModelConfigError
+from unicorn.model.config import ModelConfigError, merge_config
 from unicorn.model.template import TemplateMesh
 from unicorn.objectives.losses import MeshRegularizer, ReconstructionLoss
 from unicorn.objectives.perceptual import list_perceptual_losses
@@ -18,7 +19,7 @@ from unicorn.objectives.pose_objectives import list_pose_objectives
 from unicorn.objectives.viewpoint import list_viewpoint_supervisions
 from unicorn.registry import PLUGINS_ENV
 
-__all__ = ["LOSS_CHOICES", "ImageLosses", "build_losses", "check_loss_choices"]
+__all__ = ["LOSS_CHOICES", "ImageLosses", "build_losses", "check_loss_choices", "loss_group"]
 
 #: the ``loss`` settings that name a registered loss: ``loss.key`` -> a function listing the allowed values (the
 #: registry's names, registered ones included; None where the loss may be left out)
@@ -44,6 +45,18 @@ def check_loss_choices(loss: Mapping[str, Any], prefix: str = "") -> None:
             )
 
 
+def loss_group(loss: Mapping[str, Any]) -> dict[str, Any]:
+    """The whole ``loss`` group that ``loss`` describes: the keys it leaves out at
+    :class:`unicorn.model.config.LossConfig`'s defaults (``{"perceptual": "structural"}`` reads as
+    ``Unicorn(loss={"perceptual": "structural"})`` does), its values range-checked.
+
+    Raises:
+        KeyError: a key the group does not have (a misspelt one), named with the known keys.
+        ModelConfigError: a value out of its range or not among the allowed ones, named with its key.
+    """
+    return merge_config(loss=loss)["loss"]
+
+
 class ImageLosses(NamedTuple):
     """The per-image loss modules of the 3D step: ``reconstruction`` (RGB and perceptual terms of a render against
     its image) and ``regularizer`` (the mesh's normal consistency and Laplacian terms)."""
@@ -53,12 +66,15 @@ class ImageLosses(NamedTuple):
 
 
 def build_losses(loss: Mapping[str, Any], template: TemplateMesh) -> ImageLosses:
-    """The loss modules a ``loss`` group (a model configuration's) describes for meshes of ``template``'s faces:
-    the perceptual loss chosen by name, weights <= 0 leaving their terms out.
+    """The loss modules a ``loss`` group (a model configuration's, or a part of one: :func:`loss_group`) describes
+    for meshes of ``template``'s faces: the perceptual loss chosen by name, weights <= 0 leaving their terms out.
 
     Raises:
-        ModelConfigError: a setting naming no registered loss (:func:`check_loss_choices`).
+        KeyError: a key the group does not have.
+        ModelConfigError: a value out of its range, or a setting naming no registered loss
+            (:func:`check_loss_choices`).
     """
+    loss = loss_group(loss)
     check_loss_choices(loss)
     reconstruction = ReconstructionLoss.from_config(loss)
     regularizer = MeshRegularizer.from_config(loss, template.faces, template.num_verts)

@@ -10,7 +10,7 @@ from torch import nn
 
 from unicorn.model import Unicorn
 from unicorn.model.compile import networks
-from unicorn.objectives.loss_factory import build_losses
+from unicorn.objectives.loss_factory import build_losses, loss_group
 from unicorn.objectives.neighbors import NeighborLoss, NeighborMemory
 from unicorn.objectives.pose_objectives import build_pose_objective
 from unicorn.objectives.pose_step import PoseStep
@@ -43,7 +43,14 @@ class Objectives(nn.Module):
     def from_config(cls, loss: Mapping[str, Any], model: Unicorn) -> Objectives:
         """The objectives a ``loss`` group describes (:class:`unicorn.model.config.LossConfig`) for ``model``'s
         template: the loss modules of :func:`unicorn.objectives.loss_factory.build_losses`, the pose objective and
-        the viewpoint supervision chosen by name, weights <= 0 leaving their terms out."""
+        the viewpoint supervision chosen by name, weights <= 0 leaving their terms out. Keys ``loss`` leaves out
+        take LossConfig's defaults (:func:`unicorn.objectives.loss_factory.loss_group`).
+
+        Raises:
+            KeyError: a key the group does not have.
+            ModelConfigError: a value out of its range, or a name of no registered loss.
+        """
+        loss = loss_group(loss)
         reconstruction, regularizer = build_losses(loss, model.template)
         objective = build_pose_objective(loss["pose_objective"], **loss)
         pose = PoseStep(
