@@ -54,11 +54,17 @@ def test_prediction_shapes_and_ranges(tiny_model, images):
 
 
 @pytest.mark.parametrize(
-    ("dtype", "hint"), [(torch.uint8, r" \(pixels in \[0, 255\]: divide by 255"), (torch.float64, "$")], ids=str
+    ("dtype", "hint"),
+    [
+        (torch.uint8, r" \(pixels in \[0, 255\]: images.to\(torch.float32\) / 255, the model reads \[0, 1\]\)$"),
+        (torch.bool, r" \(images.to\(torch.float32\) converts it: the model reads \[0, 1\]\)$"),
+        (torch.float64, r" \(images.to\(torch.float32\) converts it\)$"),
+    ],
+    ids=str,
 )
 def test_images_of_another_dtype_are_refused_by_name(tiny_model, images, dtype, hint):
     with pytest.raises(TypeError, match=rf"images must be torch.float32, the model's dtype, got {dtype}{hint}"):
-        tiny_model.predict((images * 255).to(dtype))
+        tiny_model.predict((images > 0.5).to(dtype) if dtype == torch.bool else (images * 255).to(dtype))
 
 
 @pytest.mark.parametrize(

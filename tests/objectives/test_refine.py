@@ -41,6 +41,15 @@ def test_zero_steps_is_the_prediction(model: Unicorn, targets: torch.Tensor) -> 
     assert out.losses.shape == (1, 3)
 
 
+def test_an_initial_prediction_of_another_batch_is_refused_naming_both_sizes(
+    model: Unicorn, targets: torch.Tensor
+) -> None:
+    with torch.no_grad():
+        two = model.predict(targets[:2])
+    with pytest.raises(ValueError, match=r"^initial holds 2 predictions for 3 images: give refine the network's"):
+        refine(model, targets, RefineOptions(steps=1), initial=two)
+
+
 def test_objective_decreases_and_weights_stay(model: Unicorn, targets: torch.Tensor) -> None:
     state = {k: v.clone() for k, v in model.state_dict().items()}
     model.train()

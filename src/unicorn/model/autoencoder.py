@@ -266,15 +266,18 @@ class Unicorn(nn.Module):
 
         Raises:
             ShapeError: another shape.
-            TypeError: another dtype (uint8 pixels: divide by 255, the model reads [0, 1]).
+            TypeError: another dtype; the message says how to convert (uint8 pixels: divide by 255, the model reads [0, 1]).
         """
         s = self.config["image_size"]
         check_shape(images, "B, 3, S, S", "images", {"S": s})
         dtype = self.template.verts.dtype
         if images.dtype != dtype:
-            hint = (
-                " (pixels in [0, 255]: divide by 255, the model reads [0, 1])" if not images.is_floating_point() else ""
-            )
+            if images.dtype == torch.bool:  # a mask: True reads as 1
+                hint = f" (images.to({dtype}) converts it: the model reads [0, 1])"
+            elif not images.is_floating_point():
+                hint = f" (pixels in [0, 255]: images.to({dtype}) / 255, the model reads [0, 1])"
+            else:
+                hint = f" (images.to({dtype}) converts it)"
             raise TypeError(f"images must be {dtype}, the model's dtype, got {images.dtype}{hint}")
 
     def encode(self, images: torch.Tensor, branches: tuple[str, ...]) -> dict[str, torch.Tensor]:

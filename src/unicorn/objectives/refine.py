@@ -310,6 +310,11 @@ def refine(
     """
     o = RefineOptions() if options is None else options
     model.check_images(images)
+    if initial is not None and initial.canonical_verts.shape[0] != images.shape[0]:
+        raise ValueError(
+            f"initial holds {initial.canonical_verts.shape[0]} predictions for {images.shape[0]} images: "
+            "give refine the network's prediction of these images"
+        )
     was_training = model.training
     # frozen weights: no gradient is computed for them (the variables' are the only ones asked for)
     trainable = [q for q in model.parameters() if q.requires_grad]
