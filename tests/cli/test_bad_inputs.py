@@ -26,15 +26,10 @@ import torch
 import yaml
 
 from tests.support.signals import SignalAtCall
-from tests.support.training import TINY, error_lines, unicorn_train
+from tests.support.training import TINY, error_lines, snapshot, unicorn_train
 
 #: a refusal that happens once the folder was accepted, while the trainer is built
 LATE_FAILURE = "trainer.devices=0"
-
-
-def snapshot(folder: Path) -> dict[str, bytes | None]:
-    """Every path under ``folder`` (hidden ones included), with the bytes of each file."""
-    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None for p in sorted(folder.rglob("*"))}
 
 
 @pytest.fixture(scope="module")
@@ -1048,8 +1043,9 @@ def test_a_signal_while_a_sweep_sets_up_leaves_its_folder_as_it_was(synthetic_ca
     (sweep / "multirun.yaml").write_text("the record of an earlier sweep")
     before = snapshot(sweep)
     result = unicorn_train(
-        "-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path, entry=f"{__name__}:_signal_during_set_up"
-    )
+        "-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path,
+        entry=f"{__name__}:_signal_during_set_up",
+    )  # fmt: skip
     assert result.returncode == 143, result.stderr[-3000:]
     assert error_lines(result.stderr)[-1].startswith("unicorn-train: stopped by SIGTERM before the first iteration")
     assert snapshot(sweep) == before

@@ -1,14 +1,18 @@
 """``HydraApp`` hands Hydra the user's command line with ``hydra.output_subdir=null`` added, in any order of
-options and overrides (Hydra's own argument parser is the oracle)."""
+options and overrides (Hydra's own argument parser is the oracle); it refuses a sweep's folder that holds an earlier
+sweep or another sweep under way, and a command it stops while it sets up leaves the folders as they were."""
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 from pathlib import Path
 
 import pytest
 from hydra._internal.utils import get_args_parser
 
+from tests.support.training import TINY, error_lines, snapshot, unicorn_train
 from unicorn.cli.hydra_app import APP_OVERRIDES, HydraApp
 
 COMMAND_LINES = [
@@ -82,3 +86,88 @@ def test_the_keys_a_command_line_sweeps(args, keys):
     from unicorn.cli.hydra_app import swept_keys
 
     assert swept_keys(args) == keys
+
+
+def test_a_new_sweep_into_an_earlier_sweeps_folder_is_refused_and_keeps_its_record(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    (sweep / "0").mkdir(parents=True)
+    (sweep / "0" / "notes.txt").write_text("mine")
+    (sweep / "multirun.yaml").write_text("the record of an earlier sweep")
+    before = snapshot(sweep)
+    args = ["-m", *TINY, "trainer.max_steps=1", "seed=5,6", f"hydra.sweep.dir={sweep}"]
+    refused = unicorn_train(*args, cwd=tmp_path)
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    assert error_lines(refused.stderr) == [
+        f"unicorn-train: error: {sweep} holds an earlier sweep (multirun.yaml, Hydra's record of it); go on with it "
+        "with ckpt_path=last, replace its runs with overwrite=true, or sweep elsewhere (hydra.sweep.dir=...)"
+    ]
+    assert snapshot(sweep) == before
+    # going on with it: the jobs it had not reached run, and the record is the command's that went on
+    went_on = unicorn_train(*args, "ckpt_path=last", cwd=tmp_path)
+    assert went_on.returncode == 0, went_on.stderr[-3000:]
+    assert all((sweep / job / "checkpoints" / "last.ckpt").is_file() for job in ("0", "1"))
+    assert (sweep / "0" / "notes.txt").read_text() == "mine"
+    assert "seed=5,6" in (sweep / "multirun.yaml").read_text()
+    assert not (sweep / ".unicorn-train.lock").exists()  # let go
+
+
+def test_a_sweep_into_the_folder_of_a_sweep_under_way_is_refused(synthetic_cache, tmp_path):
+    from unicorn.io.run_folder import lock_folder
+
+    sweep = tmp_path / "sweep"
+    lock = lock_folder(sweep)  # the sweep under way
+    before = snapshot(sweep)
+    try:
+        refused = unicorn_train("-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    finally:
+        after = snapshot(sweep)
+        lock.release()
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    [line] = error_lines(refused.stderr)
+    assert line.startswith(f"unicorn-train: error: {sweep} is in use by another unicorn-train (pid {os.getpid()} ")
+    assert line.endswith("; wait for it to end or train elsewhere (hydra.sweep.dir=...)")
+    assert after == before
+
+
+def _signalled_twice_while_setting_up() -> None:
+    """unicorn-train's main() signalled twice (SIGTERM) after Hydra made the job's folder and opened its log
+    (``UNICORN_TEST_AT=hydra``), or in the task once it locked the folder (``task``)."""
+    from unicorn.cli import train
+    from unicorn.cli.hydra_app import NoteExistingFolders
+    from unicorn.io import run_folder
+
+    def twice() -> None:
+        os.kill(os.getpid(), signal.SIGTERM)  # noted: the command puts its folder back, then stops
+        os.kill(os.getpid(), signal.SIGTERM)  # at once
+
+    if os.environ["UNICORN_TEST_AT"] == "hydra":
+        NoteExistingFolders.on_job_start = lambda self, config, **kwargs: twice()
+    else:
+        noted = run_folder.FolderChanges.__init__
+
+        def note(self, *args, **kwargs):
+            noted(self, *args, **kwargs)
+            twice()
+
+        run_folder.FolderChanges.__init__ = note
+    train.main()
+
+
+@pytest.mark.parametrize("at", ["hydra", "task"])
+@pytest.mark.parametrize("where", ["new", "mine", "sweep"])
+def test_a_command_signalled_twice_while_it_sets_up_stops_at_once_and_leaves_the_folders_as_they_were(
+    tmp_path, monkeypatch, where, at
+):
+    monkeypatch.setenv("UNICORN_TEST_AT", at)
+    if where == "mine":
+        (tmp_path / "mine").mkdir()
+        (tmp_path / "mine" / "notes.txt").write_text("mine")
+    before = snapshot(tmp_path)
+    folder = f"hydra.run.dir={tmp_path / 'outputs' / 'run'}" if where == "new" else f"hydra.run.dir={tmp_path / 'mine'}"
+    sweep = ["-m", *TINY, "seed=1,2", f"hydra.sweep.dir={tmp_path / 'outputs' / 'sweep'}"]
+    args = sweep if where == "sweep" else [*TINY, folder]
+    stopped = unicorn_train(*args, cwd=tmp_path, entry=f"{__name__}:_signalled_twice_while_setting_up")
+    assert stopped.returncode == 143, stopped.stderr[-3000:]
+    stops = [line for line in error_lines(stopped.stderr) if line.startswith("unicorn-train:")]
+    assert stops == ["unicorn-train: stopped by SIGTERM at once (signalled twice while setting up)"]
+    assert snapshot(tmp_path) == before

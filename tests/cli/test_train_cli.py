@@ -14,7 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from tests.support.training import TINY, compose_config, error_lines, unicorn_train
+from tests.support.training import TINY, compose_config, error_lines, snapshot, unicorn_train
 from unicorn import __version__
 from unicorn.cli.train import argument_note, hydra_argv
 from unicorn.config import ConfigError, validate
@@ -211,21 +211,33 @@ def test_a_refused_sweep_leaves_the_sweep_folder_as_it_was(synthetic_cache, tmp_
     ran = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert ran.returncode == 0, ran.stderr[-3000:]
     record = (sweep / "multirun.yaml").read_bytes()
-    # the same sweep again, another setting: every job is refused, and Hydra's record of it is not left behind
+    before = snapshot(sweep)
+    # a new sweep into its folder: refused before anything is written, the earlier sweep's record kept
     again = unicorn_train(
         "-m", *TINY, "trainer.max_steps=2", "seed=1,2", f"hydra.sweep.dir={sweep}", cwd=tmp_path
     )  # fmt: skip
     assert again.returncode == 2
-    *jobs, summary = error_lines(again.stderr)
+    assert error_lines(again.stderr) == [
+        f"unicorn-train: error: {sweep} holds an earlier sweep (multirun.yaml, Hydra's record of it); go on with it "
+        "with ckpt_path=last, replace its runs with overwrite=true, or sweep elsewhere (hydra.sweep.dir=...)"
+    ]
+    assert snapshot(sweep) == before
+    # the sweep gone on with other values: every job is refused, and Hydra's record of it is not left behind
+    other = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=1", "seed=2,1", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path
+    )  # fmt: skip
+    assert other.returncode == 2
+    *jobs, summary = error_lines(other.stderr)
     assert len(jobs) == 2 and summary.startswith("unicorn-train: error: every job of the sweep failed (2), each")
     assert "the other jobs ran" not in summary
-    assert f"job #0 (seed=1): {sweep / '0'} already holds a run" in jobs[0]
-    assert jobs[0].endswith("train elsewhere (hydra.sweep.dir=...)")
     assert (sweep / "multirun.yaml").read_bytes() == record
     assert sorted(p.name for p in sweep.iterdir()) == ["0", "1", "multirun.yaml"]
-    # one more job than before: it runs, and the sweep's record is the new command's
-    more = unicorn_train("-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
-    assert more.returncode == 2 and (sweep / "2" / "checkpoints" / "last.ckpt").is_file()
+    # one more job than before, going on with the sweep: it runs, and the sweep's record is the new command's
+    more = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=1", "seed=1,2,3", f"hydra.sweep.dir={sweep}", "ckpt_path=last", cwd=tmp_path
+    )  # fmt: skip
+    assert more.returncode == 0, more.stderr[-3000:]
+    assert (sweep / "2" / "checkpoints" / "last.ckpt").is_file()
     assert "seed=1,2,3" in (sweep / "multirun.yaml").read_text()
     # a sweep refused in a folder of its own: nothing is left of it, nor of the folders Hydra made above it
     new = tmp_path / "new" / "sweep"

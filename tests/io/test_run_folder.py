@@ -22,6 +22,8 @@ from unicorn.io.run_folder import (
     checkpoint_step,
     lock_folder,
     plan_folder,
+    plan_sweep_folder,
+    put_back_set_up,
     resolve_ckpt,
     run_of_checkpoint,
     set_aside,
@@ -187,6 +189,43 @@ def test_a_sweeps_folder_is_not_a_run_folder(tmp_path) -> None:
     for ckpt_arg, overwrite in ((None, False), ("last", False), (None, True)):
         with pytest.raises(RunFolderError, match=rf"^{tmp_path} is a sweep's folder \(multirun.yaml\): .* resume one"):
             plan_folder(tmp_path, ckpt_arg, None, overwrite=overwrite)
+
+
+def test_a_sweep_does_not_replace_an_earlier_sweeps_record_unless_it_goes_on_with_it_or_replaces_it(tmp_path) -> None:
+    plan_sweep_folder(tmp_path / "new", None, overwrite=False)  # no earlier sweep there
+    plan_sweep_folder(tmp_path, None, overwrite=False)
+    (tmp_path / "multirun.yaml").write_text("the earlier sweep's record")
+    for ckpt_arg in (None, str(tmp_path / "other.ckpt")):  # a new sweep, from scratch or from a checkpoint
+        with pytest.raises(
+            RunFolderError, match=rf"^{tmp_path} holds an earlier sweep \(multirun.yaml, .*ckpt_path=last"
+        ):
+            plan_sweep_folder(tmp_path, ckpt_arg, overwrite=False)
+    plan_sweep_folder(tmp_path, "last", overwrite=False)  # goes on with it
+    plan_sweep_folder(tmp_path, None, overwrite=True)  # replaces it
+
+
+def test_a_command_stopped_while_it_set_up_takes_back_only_its_empty_log_and_its_lock(tmp_path) -> None:
+    made = tmp_path / "outputs" / "run"  # made by the command, with its parent
+    made.mkdir(parents=True)
+    (made / "train.log").touch()
+    lock_folder(made)  # not released: the command stopped at once
+    put_back_set_up(made, None, tmp_path / "outputs")
+    assert list(tmp_path.iterdir()) == []
+    # the user's folder: only the new empty log goes (its lock released), what it held before stays
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.log").write_text("")
+    (mine / "train_ddp_process_1.log").write_text("an earlier run's")
+    (mine / "train.log").touch()
+    lock_folder(mine)
+    put_back_set_up(mine, {"notes.log", "train_ddp_process_1.log"})
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.log", "train_ddp_process_1.log"]
+    # a made folder holding more than an empty log (the run's log, a user's file) stays as it is
+    (made / "train.log").parent.mkdir(parents=True)
+    (made / "train.log").write_text("a line")
+    (made / "notes.txt").write_text("mine")
+    put_back_set_up(made, None, tmp_path / "outputs")
+    assert sorted(p.name for p in made.iterdir()) == ["notes.txt", "train.log"]
 
 
 def test_a_users_config_is_not_a_run(tmp_path) -> None:

@@ -107,3 +107,8 @@ class StateBefore(L.Callback):
     def on_train_batch_start(self, trainer, pl_module, *args):
         if trainer.global_step == self.step:
             self.state = {k: v.detach().clone() for k, v in pl_module.state_dict().items()}
+
+
+def snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every path under ``folder`` (hidden ones included), with the bytes of each file."""
+    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None for p in sorted(folder.rglob("*"))}

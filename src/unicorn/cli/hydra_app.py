@@ -16,7 +16,10 @@ the task may then refuse; the app turns that off and the task writes the record 
 
 Hydra creates a job's folder before the task starts; :class:`NoteExistingFolders`, a Hydra callback the app adds,
 notes beforehand which folders existed, so that the task can tell a folder it created (and may remove again)
-from one the user made (:func:`existed_before`).
+from one the user made (:func:`entries_before`); a command stopped at once before its task took the folder over
+(a second signal while it sets up) has what Hydra made for the job removed again. A sweep locks its folder and is
+refused there, before Hydra writes into it, where another sweep runs or an earlier sweep's record would be replaced
+(:meth:`NoteExistingFolders.on_multirun_start`).
 
 A task stopped by a signal (:class:`unicorn.errors.Interrupted`) prints its message as ``<prog>: <message>`` and
 exits with the error's status. unicorn's warnings in the task are logged in one line, into the run's log too
@@ -40,7 +43,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from unicorn.cli.errors import SweepError, debug_requested, expected_error, log_warnings, one_line
-from unicorn.errors import Interrupted
+from unicorn.errors import STOP_SIGNALS, Interrupted
 
 __all__ = ["APP_OVERRIDES", "HydraApp", "NoteExistingFolders", "entries_before", "hydra_failure", "swept_keys"]
 
@@ -52,7 +55,8 @@ class NoteExistingFolders(Callback):
 
     #: the noted folder, whether its sub-folders are the jobs' (a sweep), and each existing folder's entries
     noted: tuple[Path, bool, dict[Path, set[str]]] | None = None
-    #: why the noted folder cannot be created (it, or a folder above it, is a file), or None
+    #: why the command refuses the noted folder, or None: it cannot be created (it, or a folder above it, is a file;
+    #: Hydra then fails), or it is a sweep's folder that a sweep may not use (:meth:`on_multirun_start` stops Hydra)
     refusal: str | None = None
     #: the outermost of the noted folder's missing ancestors (``outputs`` of ``outputs/train/runs/<time>`` in a
     #: new project), which Hydra creates with it; None when its parent exists
@@ -61,20 +65,54 @@ class NoteExistingFolders(Callback):
     #: rewrote it (None: no such file), kept while no job of the sweep has kept its folder (the task sets it to None
     #: once one has): a sweep none of whose jobs kept one puts them back (:meth:`put_back_sweep`)
     sweep: tuple[Path, bytes | None] | None = None
+    #: the lock a sweep holds on its folder while it runs (:func:`unicorn.io.run_folder.lock_folder`), or None
+    sweep_lock: Any = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         NoteExistingFolders.sweep = None
         self._note(Path(str(config.hydra.run.dir)), jobs_inside=False)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from unicorn.io.run_folder import SWEEP_RECORD
+        """Note the sweep's folder, then refuse it before Hydra writes into it (its record, :data:`SWEEP_RECORD`,
+        replaces the folder's) where it holds an earlier sweep that this one neither goes on with nor replaces
+        (:func:`~unicorn.io.run_folder.plan_sweep_folder`), or where another sweep runs in it (its lock): the
+        command stops with that one line, status 2 (:meth:`HydraApp.run`)."""
+        from unicorn.io.run_folder import (
+            SWEEP_RECORD,
+            RunFolderBusyError,
+            RunFolderError,
+            lock_folder,
+            plan_sweep_folder,
+        )
 
         folder = Path(str(config.hydra.sweep.dir)).expanduser().resolve()
         NoteExistingFolders.sweep = None
         self._note(folder, jobs_inside=True)
-        if NoteExistingFolders.refusal is None:  # a folder Hydra can make (or that is there)
-            record = folder / SWEEP_RECORD
-            NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
+        if NoteExistingFolders.refusal is not None:  # a folder Hydra cannot make: it fails, the app says why
+            return
+        swept = swept_keys([str(o) for o in config.hydra.overrides.task])
+        try:
+            # locked first: a sweep started meanwhile is refused, or writes its record before this one reads it
+            NoteExistingFolders.sweep_lock = lock_folder(folder, setting="hydra.sweep.dir")
+            if not swept & {"ckpt_path", "overwrite"}:  # else each job's folder is checked with its own values
+                ckpt_arg = OmegaConf.select(config, "ckpt_path", throw_on_resolution_failure=False)
+                overwrite = OmegaConf.select(config, "overwrite", default=False, throw_on_resolution_failure=False)
+                plan_sweep_folder(folder, ckpt_arg, overwrite is True)
+        except (RunFolderError, RunFolderBusyError) as err:
+            NoteExistingFolders.refusal = one_line(err)
+            # Hydra turns a callback's Exception into a warning and goes on: SystemExit stops it
+            raise SystemExit(2) from None
+        except OSError:  # the folder cannot be made or written (a read-only disk): Hydra fails there, the app says why
+            pass
+        record = folder / SWEEP_RECORD
+        NoteExistingFolders.sweep = (folder, record.read_bytes() if record.is_file() else None)
+
+    @staticmethod
+    def release_sweep() -> None:
+        """Give up the lock of the sweep's folder (nothing outside a sweep, or once given up)."""
+        if NoteExistingFolders.sweep_lock is not None:
+            NoteExistingFolders.sweep_lock.release()
+            NoteExistingFolders.sweep_lock = None
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Note again, after each job of a sweep, what its job folders hold: the next job's folder may be one an
@@ -94,7 +132,9 @@ class NoteExistingFolders(Callback):
         """Put a sweep's record back as it was when none of its jobs kept a folder (each failed or was stopped
         before its first iteration, and put its own folder back): ``multirun.yaml`` gets back its bytes, or is
         removed, and then the sweep's folder and the parents Hydra created for it if they are empty. Nothing is
-        removed but that file and empty folders; nothing happens outside a sweep."""
+        removed but that file, the sweep's lock and empty folders; nothing happens outside a sweep. The sweep's
+        folder is let go in any case (:meth:`release_sweep`): the command ends."""
+        NoteExistingFolders.release_sweep()
         if NoteExistingFolders.sweep is None:
             return
         from unicorn.io.run_folder import SWEEP_RECORD, remove_empty_folders
@@ -108,6 +148,27 @@ class NoteExistingFolders(Callback):
             path.write_bytes(record)
         if entries_before(folder) is None:  # the sweep made it
             remove_empty_folders(folder, NoteExistingFolders.created_top or folder)
+
+    @staticmethod
+    def put_back_job() -> None:
+        """Remove what the job under way left of its set-up when the command stopped at once before the task took
+        its folder over (a second signal while it sets up: :func:`unicorn.errors.defer_stop_signals`): the empty log
+        Hydra opened in it, the lock this process took, and the folder where Hydra created it and it is empty
+        again (:func:`~unicorn.io.run_folder.put_back_set_up`). A folder that holds anything more, a run's or the
+        user's, stays as it is."""
+        from unicorn.io.run_folder import put_back_set_up
+
+        noted = NoteExistingFolders.noted
+        if noted is None:
+            return
+        folder, jobs_inside, entries = noted
+        if not jobs_inside:
+            put_back_set_up(folder, entries.get(folder), NoteExistingFolders.created_top)
+            return
+        # a sweep: the job under way's folder is one of its folders, noted before it began if it existed
+        for job in sorted(folder.iterdir()) if folder.is_dir() else []:
+            if job.is_dir() and not job.is_symlink():
+                put_back_set_up(job, entries.get(job.resolve()))
 
     @staticmethod
     def _note(folder: Path, jobs_inside: bool) -> None:
@@ -149,6 +210,10 @@ def entries_before(folder: Path) -> set[str] | None:
         return noted[2].get(folder)
     return {p.name for p in folder.iterdir()} if folder.is_dir() else None
 
+
+#: the exit statuses of a command stopped by a signal (``128 + signal``): one stopped at once while it set up says
+#: so itself (:func:`unicorn.errors.defer_stop_signals`)
+_STOPPED = frozenset(128 + signum for signum in STOP_SIGNALS)
 
 #: argparse's report of a bad command line, after its usage lines: ``<prog>: error: <what>``
 _ARGPARSE_ERROR = re.compile(r"^\S+: error: ")
@@ -453,10 +518,14 @@ class HydraApp:
             NoteExistingFolders.put_back_sweep()  # when every job failed before training
             self._end_sweep()
         except SystemExit as exit:
+            NoteExistingFolders.put_back_job()  # before the sweep's folder, which it may leave empty
             NoteExistingFolders.put_back_sweep()
-            if held is None or self.task_started or not exit.code:
+            if self.task_started or not exit.code or exit.code in _STOPPED:  # a signal: its line is said (held)
                 raise
-            sys.stderr = held.stream
+            if held is None and NoteExistingFolders.refusal is None:  # --debug: Hydra printed its traceback
+                raise
+            if held is not None:
+                sys.stderr = held.stream
             # Hydra's own report of an error before the task: one line, status 2, unless it is a bug
             line = NoteExistingFolders.refusal or hydra_failure(held.held.getvalue(), args, self.config_dir)
             if line is None:
@@ -475,5 +544,6 @@ class HydraApp:
             print(f"{self.prog}: error: {err} ({hint})", file=sys.stderr)
             raise SystemExit(2) from None
         finally:
+            NoteExistingFolders.release_sweep()
             if isinstance(sys.stderr, _HeldStream):
                 sys.stderr = sys.stderr.release()

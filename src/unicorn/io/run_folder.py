@@ -6,6 +6,7 @@ A folder that already holds a run is only trained in again to resume it (``ckpt_
 
 - :func:`plan_folder` checks a folder before anything is built and returns what the run will delete; nothing is
   written or deleted until the whole run is built (:func:`clear`);
+- :func:`plan_sweep_folder` checks a sweep's folder (``-m``) before Hydra writes its record there;
 - :func:`lock_folder` holds the folder for one process at a time;
 - :class:`FolderChanges` undoes what a run wrote into a folder when it fails before its first iteration: it removes
   a folder the run created, or in an existing folder only what the run added, and restores the records it
@@ -59,6 +60,8 @@ __all__ = [
     "lock_folder",
     "newest_checkpoint",
     "plan_folder",
+    "plan_sweep_folder",
+    "put_back_set_up",
     "previous_run",
     "resolve_ckpt",
     "run_config",
@@ -348,6 +351,28 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
     return []
 
 
+def plan_sweep_folder(folder: Path, ckpt_arg: str | None, overwrite: bool) -> None:
+    """Check that a sweep (``-m``) may run in ``folder`` (``hydra.sweep.dir``) before Hydra writes its record there
+    (:data:`SWEEP_RECORD`, which replaces the one the folder holds); reads only. As for a run's folder
+    (:func:`plan_folder`), a folder holding an earlier sweep is only used again to go on with that sweep or to
+    replace it.
+
+    Args:
+        folder: the sweep's folder.
+        ckpt_arg: the ``ckpt_path`` setting of the sweep (``"last"``: go on with the sweep the folder holds).
+        overwrite: the ``overwrite`` setting of the sweep.
+
+    Raises:
+        RunFolderError: ``folder`` holds :data:`SWEEP_RECORD`, and the sweep neither goes on with it
+            (``ckpt_path=last``) nor replaces it (``overwrite=true``).
+    """
+    if (folder / SWEEP_RECORD).is_file() and ckpt_arg != "last" and not overwrite:
+        raise RunFolderError(
+            f"{folder} holds an earlier sweep ({SWEEP_RECORD}, Hydra's record of it); go on with it with "
+            "ckpt_path=last, replace its runs with overwrite=true, or sweep elsewhere (hydra.sweep.dir=...)"
+        )
+
+
 def _in_folder(ckpt: Path, output_dir: Path) -> bool:
     """Whether ``ckpt`` is one of ``output_dir``'s own checkpoints (in its ``checkpoints/``, through any links)."""
     return os.path.realpath(ckpt.parent) == os.path.realpath(output_dir / RUN_OUTPUTS[0])
@@ -446,6 +471,7 @@ class FolderLock:
 
     def __init__(self, path: Path, fd: int) -> None:
         self.path, self.fd = path, fd
+        _HELD.append(self)
 
     def release(self) -> None:
         """Remove the lock file and let the folder go (idempotent)."""
@@ -455,12 +481,22 @@ class FolderLock:
             self.path.unlink()  # while still held: a process waiting on it finds the file gone and retries
         os.close(self.fd)
         self.fd = -1
+        _HELD.remove(self)
 
 
-def lock_folder(folder: Path) -> FolderLock:
+#: the locks this process holds: a command stopped at once before its run released its own releases them
+#: (:func:`put_back_set_up`)
+_HELD: list[FolderLock] = []
+
+
+def lock_folder(folder: Path, setting: str | None = None) -> FolderLock:
     """Lock ``folder`` (created if missing) for this process: an exclusive ``flock`` on
     ``<folder>/.unicorn-train.lock``, which holds the owner's pid and host. The kernel drops the lock when its
     process ends, however it ends, so a lock file left by a dead process is taken over.
+
+    Args:
+        folder: the folder to lock.
+        setting: the setting that names the folder, said in the refusal (default: :func:`folder_setting`).
 
     Raises:
         RunFolderBusyError: another live process holds the lock.
@@ -476,7 +512,7 @@ def lock_folder(folder: Path) -> FolderLock:
             os.close(fd)
             raise RunFolderBusyError(
                 f"{folder} is in use by another unicorn-train (pid {' on '.join(owner[:2])}); wait for it to end "
-                f"or train elsewhere ({folder_setting()}=...)"
+                f"or train elsewhere ({setting or folder_setting()}=...)"
             ) from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
@@ -552,6 +588,25 @@ class FolderChanges:
         log_file = self.folder / RUN_LOG
         if self.log_size is not None and log_file.is_file() and log_file.stat().st_size != self.log_size:
             os.truncate(self.folder / RUN_LOG, self.log_size)  # the lines this run appended
+
+
+def put_back_set_up(folder: Path, entries: set[str] | None, top: Path | None = None) -> None:
+    """Undo what a command stopped at once while it set up (a second signal before its run could take the folder
+    over, :class:`FolderChanges`) left in ``folder``: the locks this process holds there (:func:`lock_folder`), and
+    the logs Hydra opened there that are new (not in ``entries``, the names the folder held before) and still
+    empty; then ``folder`` and the folders above it up to ``top`` where it did not exist before (``entries`` None)
+    and they are empty again. Nothing else is removed: a folder holding anything more stays as it is."""
+    folder = folder.resolve()
+    for lock in [lock for lock in _HELD if lock.path.parent.resolve() == folder]:
+        lock.release()
+    for path in folder.iterdir() if folder.is_dir() else []:
+        if path.name in (entries or ()) or path.suffix != ".log" or not _is_run_entry(path.name):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            if path.is_file() and not path.is_symlink() and path.stat().st_size == 0:
+                path.unlink()
+    if entries is None:
+        remove_empty_folders(folder, top if top is not None and folder.is_relative_to(top) else folder)
 
 
 def remove_empty_folders(folder: Path, top: Path) -> None:

@@ -266,7 +266,7 @@ class Unicorn(nn.Module):
 
         Raises:
             ShapeError: another shape.
-            TypeError: another dtype; the message says how to convert (uint8 pixels: divide by 255, the model reads [0, 1]).
+            TypeError: another dtype; the message says how to convert (uint8 pixels: divide by 255).
         """
         s = self.config["image_size"]
         check_shape(images, "B, 3, S, S", "images", {"S": s})
