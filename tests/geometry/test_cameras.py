@@ -174,6 +174,9 @@ def test_world_to_view_shape_errors():
         ({"fov": 30.0, "znear": False}, "^znear must be one number, got False$"),
         ({"fov": torch.tensor(True)}, r"^fov must be one number, got tensor\(True\)$"),
         ({"fov": "30"}, "^fov must be one number, got '30'$"),
+        # a meta tensor has a shape and no value
+        ({"fov": torch.tensor([30.0], device="meta")}, "^fov must be one number, got a tensor on the meta device"),
+        ({"fov": 30.0, "zfar": torch.tensor(9.0, device="meta")}, "^zfar must be one number, got a tensor on the meta"),
     ],
 )
 def test_a_camera_that_cannot_project_is_refused(kwargs, match):

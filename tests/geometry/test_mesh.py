@@ -24,6 +24,13 @@ def test_icosphere_sizes_and_orientation():
         assert ((n * tri.mean(1)).sum(-1) > 0).all()
 
 
+def test_icosphere_refuses_a_level_that_is_no_whole_number_in_range():
+    for bad in (True, 1.5, float("nan"), "2", -1, 8):
+        with pytest.raises(ValueError, match=r"icosphere level must be a whole number in \[0, 7\], got"):
+            icosphere(bad)
+    assert torch.equal(icosphere(2.0)[1], icosphere(2)[1])  # 2.0 is 2
+
+
 def test_ellipsoid_axes():
     v, _ = ellipsoid(3, scale=0.6)
     assert torch.allclose(v.abs().amax(0), torch.tensor([0.6, 0.42, 0.42]), atol=1e-3)

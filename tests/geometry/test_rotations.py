@@ -1,9 +1,17 @@
 """Look-at cameras at the poles (straight above or below the target), where the world up is the viewing direction."""
 
+import math
+
 import pytest
 import torch
 
-from unicorn.geometry.rotations import look_at_rotation, look_at_view_parameters, look_at_view_transform
+from unicorn.geometry.rotations import (
+    azim_elev_roll_to_rotation,
+    camera_position_from_spherical,
+    look_at_rotation,
+    look_at_view_parameters,
+    look_at_view_transform,
+)
 
 DTYPES = [torch.float32, torch.float64]
 
@@ -59,3 +67,25 @@ def test_look_at_view_parameters_give_the_camera_back_at_and_beside_the_poles(dt
     turned = R[:2] @ torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
     p = look_at_view_parameters(turned, T[:2])
     assert torch.allclose(look_at_view_transform(p["dist"], p["elev"], p["azim"])[0], turned, atol=1e-6)
+
+
+def test_numbers_beside_float64_tensors_keep_float64():
+    """A Python number takes the dtype of the tensors given with it, not float32 (which rounds a float64 camera's
+    angles): the camera centre against its closed form in float64."""
+    R, T = look_at_view_transform(torch.tensor(2.0, dtype=torch.float64), 30.0, 45.0)
+    assert R.dtype == T.dtype == torch.float64
+    e, a = math.radians(30.0), math.radians(45.0)
+    want = [2 * math.cos(e) * math.sin(a), 2 * math.sin(e), 2 * math.cos(e) * math.cos(a)]
+    centre = -(T.unsqueeze(1) @ R.transpose(1, 2)).squeeze(1)
+    torch.testing.assert_close(centre[0], torch.tensor(want, dtype=torch.float64), rtol=0, atol=1e-15)
+    # a float32 and a float64 tensor: float64, as torch's arithmetic promotes them
+    azim, elev = torch.tensor([30.0, -120.0]), torch.tensor([10.0, 70.0], dtype=torch.float64)
+    R = azim_elev_roll_to_rotation(azim, elev, torch.tensor(5.0, dtype=torch.float64))
+    assert torch.equal(R, azim_elev_roll_to_rotation(azim.double(), elev, torch.tensor(5.0, dtype=torch.float64)))
+
+
+def test_numbers_beside_a_batch_on_another_device_go_there():
+    """The ``meta`` device stands in for CUDA: numbers and a batch of angles there broadcast together."""
+    azim = torch.tensor([10.0, 20.0], device="meta")
+    assert camera_position_from_spherical(2.0, 30.0, azim).device.type == "meta"
+    assert azim_elev_roll_to_rotation(azim, 30.0, 5.0).device.type == "meta"

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import warnings
 from types import SimpleNamespace
 
 import pytest
@@ -12,7 +13,7 @@ from tests.support.render import posed_ellipsoids
 from tests.support.syncs import record_syncs
 from unicorn.geometry.cameras import PerspectiveCamera
 from unicorn.hostsync import sync_free
-from unicorn.render import OverflowCounter, TexturesVertex, build_renderer
+from unicorn.render import OverflowCounter, RenderOverflowWarning, TexturesVertex, build_renderer
 from unicorn.render.raster import blur_radius_from_sigma, rasterize_meshes
 
 #: (blur_radius, faces_per_pixel, truncate_opaque, perspective_correct)
@@ -64,6 +65,25 @@ def test_fixed_buffers_keep_the_default_pairs(case):
     dense_a, dense_b = default.to_dense(K), fixed.to_dense(K)
     for name in ("pix_to_face", "zbuf", "bary_coords", "dists"):
         assert torch.equal(getattr(dense_a, name), getattr(dense_b, name)), name
+
+
+def test_fixed_buffers_outside_a_counter_read_no_overflow_back(monkeypatch):
+    """Outside any OverflowCounter a warning would read the device's count: inside sync_free it is left in
+    Fragments.overflow; outside the block, where reads are allowed, the same render warns."""
+    ndc, faces = _scene()
+    blur, K = blur_radius_from_sigma(1e-4), 3
+    with OverflowCounter():
+        default = rasterize_meshes(ndc, faces, 24, blur, K, check_inputs=False)
+    assert default.overflow > 0
+    monkeypatch.setattr("unicorn.render.overflow._WARNED", set())  # this setting not yet said in this process
+    capacity = tuple(default.sizes.tolist())
+    with sync_free(), record_syncs() as rec, warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fixed = rasterize_meshes(ndc, faces, 24, blur, K, check_inputs=False, capacity=capacity)
+    assert not rec.syncs, [str(s) for s in rec.syncs]
+    assert int(fixed.overflow) == default.overflow
+    with pytest.warns(RenderOverflowWarning, match=f"faces_per_pixel={K} "):
+        rasterize_meshes(ndc, faces, 24, blur, K, check_inputs=False, capacity=capacity)
 
 
 def test_fixed_buffers_too_small_drop_pairs_and_say_what_they_needed():

@@ -120,6 +120,10 @@ def test_dense_fragments_in_pytorch3d_shapes_pad_the_slots_no_pixel_filled():
         assert (got[:, :, :, K:] == -1).all(), name
     with pytest.raises(ValueError, match=f"faces_per_pixel=1 is below the {K} faces a pixel kept"):
         frags.to_dense(1)
+    for bad in (K + 0.5, True, float("nan"), 0):
+        with pytest.raises(ValueError, match="faces_per_pixel must be a whole number >= 1, got"):
+            frags.to_dense(bad)
+    assert torch.equal(frags.to_dense(25.0).pix_to_face, padded.pix_to_face)  # 25.0 is 25
 
 
 @pytest.mark.parametrize("K", [1, 4, 25])

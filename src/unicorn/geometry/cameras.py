@@ -89,11 +89,14 @@ def opencv_camera(
 
 def _one_number(name: str, value: object) -> float:
     """``value`` as a float (a one-element tensor or NumPy scalar included), or a ValueError naming ``name``. A
-    bool or a string is no number, though ``float`` reads ``True`` as 1 and ``"30"`` as 30."""
+    bool or a string is no number, though ``float`` reads ``True`` as 1 and ``"30"`` as 30; a meta tensor has no
+    value to read."""
     real = isinstance(value, numbers.Real) and not isinstance(value, bool)
     scalar = torch.is_tensor(value) and value.numel() == 1 and not (value.dtype == torch.bool or value.is_complex())
     if not (real or scalar):
         raise ValueError(f"{name} must be one number, got {value!r}")
+    if scalar and value.is_meta:  # type: ignore[union-attr]
+        raise ValueError(f"{name} must be one number, got a tensor on the meta device, which holds no value")
     return float(value)  # type: ignore[arg-type]
 
 

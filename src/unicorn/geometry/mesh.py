@@ -6,6 +6,7 @@ Meshes in unicorn share one topology across a batch: vertices (B, V, 3) float an
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 import trimesh
@@ -29,10 +30,15 @@ def icosphere(level: int = 3, dtype: torch.dtype = torch.float32) -> tuple[torch
 
     Returns:
         verts: (V, 3) and faces: (F, 3) long.
+
+    Raises:
+        ValueError: ``level`` not a whole number in [0, 7] (3.0 is 3; 2.5 or True are errors).
     """
-    if not 0 <= level <= 7:
-        raise ValueError(f"icosphere level must be in [0, 7], got {level}")
-    mesh = trimesh.creation.icosphere(subdivisions=level, radius=1.0)
+    # a bool is no level, and trimesh would subdivide a 2.5 twice without a word
+    whole = isinstance(level, numbers.Real) and not isinstance(level, bool) and float(level).is_integer()
+    if not (whole and 0 <= level <= 7):
+        raise ValueError(f"icosphere level must be a whole number in [0, 7], got {level!r}")
+    mesh = trimesh.creation.icosphere(subdivisions=int(level), radius=1.0)
     verts = torch.as_tensor(mesh.vertices, dtype=dtype)
     faces = torch.as_tensor(mesh.faces, dtype=torch.long)
     return verts, faces

@@ -4,11 +4,13 @@ Points are row vectors and the world-to-view transform is ``x_view = x_world @ R
 +X pointing to the image left, +Y up and +Z forward (away from the camera), as in PyTorch3D, so the released
 UNICORN checkpoints and the ShapeNet pose conversion apply unchanged.
 
-Angles are in degrees unless a function says otherwise.
+Angles are in degrees unless a function says otherwise. Python numbers given with tensors take the tensors' dtype
+and device (a float64 batch stays float64, a CUDA one on CUDA), as in torch's arithmetic.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import torch
@@ -33,12 +35,16 @@ def _matrix(rows: list[list[torch.Tensor]]) -> torch.Tensor:
     return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
 
 
-def _as_tensor(x: torch.Tensor | float, like: torch.Tensor | None = None) -> torch.Tensor:
-    if isinstance(x, torch.Tensor):
-        return x
-    if like is not None:
-        return torch.as_tensor(x, dtype=like.dtype, device=like.device)
-    return torch.as_tensor(x, dtype=torch.get_default_dtype())
+def _as_tensors(*values: torch.Tensor | float) -> list[torch.Tensor]:
+    """``values`` as tensors of one floating dtype, the Python numbers on the first tensor's device: the tensors'
+    promoted dtype, as torch's arithmetic gives it (the default dtype for integer tensors or none). A number made a
+    float32 tensor by itself would round a float64 camera's angles, and sit on the CPU beside a CUDA batch."""
+    tensors = [v for v in values if isinstance(v, torch.Tensor)]
+    dtype = functools.reduce(torch.promote_types, [t.dtype for t in tensors]) if tensors else None
+    if dtype is None or not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    device = tensors[0].device if tensors else None
+    return [torch.as_tensor(v, dtype=dtype, device=device) for v in values]
 
 
 def azim_elev_roll_to_rotation(
@@ -57,9 +63,11 @@ def azim_elev_roll_to_rotation(
     Returns:
         (..., 3, 3) rotation matrices, to be used as ``x @ R``.
     """
-    azim = _as_tensor(azim)
-    elev = _as_tensor(elev, azim)
-    roll = torch.zeros_like(azim) if roll is None else _as_tensor(roll, azim)
+    if roll is None:
+        azim, elev = _as_tensors(azim, elev)
+        roll = torch.zeros_like(azim)  # made on the device: a number would be copied there
+    else:
+        azim, elev, roll = _as_tensors(azim, elev, roll)
     azim, elev, roll = torch.broadcast_tensors(azim, elev, roll)
     a, e, r = torch.deg2rad(azim), torch.deg2rad(-elev), torch.deg2rad(roll)
     zero, one = torch.zeros_like(a), torch.ones_like(a)
@@ -115,7 +123,7 @@ def camera_position_from_spherical(
 
     Azimuth 0 looks from +Z, azimuth 90 from +X, positive elevation from above (+Y).
     """
-    dist, elev, azim = torch.broadcast_tensors(_as_tensor(dist), _as_tensor(elev), _as_tensor(azim))
+    dist, elev, azim = torch.broadcast_tensors(*_as_tensors(dist, elev, azim))
     e, a = torch.deg2rad(elev), torch.deg2rad(azim)
     return torch.stack([dist * e.cos() * a.sin(), dist * e.sin(), dist * e.cos() * a.cos()], dim=-1)
 
@@ -189,7 +197,7 @@ def look_at_view_transform(
     Raises:
         ValueError: ``at`` or ``up`` not of shape (..., 3), or a camera at distance 0 from ``at``.
     """
-    dist, elev, azim = torch.broadcast_tensors(_as_tensor(dist), _as_tensor(elev), _as_tensor(azim))
+    dist, elev, azim = torch.broadcast_tensors(*_as_tensors(dist, elev, azim))
     eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
     if at is not None:
         at = torch.as_tensor(at)  # PyTorch3D's callers pass lists: at=[(0, 0, 0)]

@@ -109,8 +109,12 @@ class Fragments:
                 ``num_slots`` empty; None: K = ``num_slots``, the most faces any pixel kept (at least 1).
 
         Raises:
-            ValueError: ``faces_per_pixel`` below ``num_slots``.
+            ValueError: ``faces_per_pixel`` not a whole number (2.5, True), or below ``num_slots``.
         """
+        from .raster import check_whole_number  # raster imports this module
+
+        if faces_per_pixel is not None:
+            check_whole_number("faces_per_pixel", faces_per_pixel, 1)
         k = max(self.num_slots, 1) if faces_per_pixel is None else int(faces_per_pixel)
         if k < max(self.num_slots, 1):
             raise ValueError(f"faces_per_pixel={faces_per_pixel} is below the {self.num_slots} faces a pixel kept")

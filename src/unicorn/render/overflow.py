@@ -12,7 +12,8 @@ Every rasterization reports its count here (:func:`note_overflow`; the count of 
 Counting costs no device synchronisation of its own: the rasterizer reads the count in the host read it makes
 anyway (the packed layout's size, see :mod:`unicorn.render.raster`). The rasterizer without host reads
 (:mod:`unicorn.render.fixed`) reports a count on the device: a counter adds it up there and reads the sum when it is
-taken (:meth:`OverflowCounter.take`), on the logging steps of training.
+taken (:meth:`OverflowCounter.take`), on the logging steps of training. Outside any counter such a render inside
+:func:`unicorn.hostsync.sync_free` does not warn, which would read the count: ``Fragments.overflow`` keeps it.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from types import TracebackType
 import torch
 
 from unicorn.errors import UnicornWarning
+from unicorn.hostsync import is_sync_free
 
 __all__ = ["OverflowCounter", "RenderOverflowWarning", "counting", "note_overflow"]
 
@@ -156,10 +158,12 @@ def _caller_level() -> int:
     return level
 
 
-def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
+def note_overflow(overflow: int | torch.Tensor, pixels: int, faces_per_pixel: int) -> None:
     """Report one render: to the innermost active :class:`OverflowCounter`, else (when ``overflow`` > 0) as a
     :class:`RenderOverflowWarning`, once per ``faces_per_pixel`` setting and process, except with one face per
-    pixel (``faces_per_pixel=1``), whose renders keep the nearest face by design.
+    pixel (``faces_per_pixel=1``), whose renders keep the nearest face by design. A count on the device (a 0-dim
+    tensor, from the fixed buffers) inside :func:`unicorn.hostsync.sync_free` and outside any counter is not
+    reported: reading it would be the host read that block leaves out (``Fragments.overflow`` keeps it).
 
     Python's own once-per-location registry is reset whenever any library changes the warning filters (Lightning
     does, every step), which would repeat the line thousands of times; hence the set kept here. Called by
@@ -170,6 +174,8 @@ def note_overflow(overflow: int, pixels: int, faces_per_pixel: int) -> None:
     if active:
         active[-1].add(overflow, pixels, faces_per_pixel)
         return
+    if isinstance(overflow, torch.Tensor) and is_sync_free():
+        return  # `not overflow` would read the device back, and break a torch.compile graph
     if not overflow or faces_per_pixel == 1 or faces_per_pixel in _WARNED:
         return
     _WARNED.add(faces_per_pixel)

@@ -260,7 +260,9 @@ def rasterize_meshes(
         :class:`~unicorn.render.fragments.Fragments`. A pixel with more than ``faces_per_pixel`` candidates keeps
         the nearest; ``Fragments.overflow`` counts such pixels, and the count goes to the active
         :class:`~unicorn.render.overflow.OverflowCounter`, or else to a warning
-        (:class:`~unicorn.render.overflow.RenderOverflowWarning`) once per ``faces_per_pixel`` setting and process.
+        (:class:`~unicorn.render.overflow.RenderOverflowWarning`) once per ``faces_per_pixel`` setting and process
+        (:func:`~unicorn.render.overflow.note_overflow`; not for a ``capacity`` render inside
+        :func:`unicorn.hostsync.sync_free`, whose count stays on the device).
     """
     if check_inputs:
         check_mesh_inputs(verts_ndc, faces)
