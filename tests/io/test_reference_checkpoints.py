@@ -206,3 +206,41 @@ def test_a_file_of_another_format_or_that_does_not_convert_is_named(tmp_path):
         with pytest.raises(error, match=rf"^released checkpoint {re.escape(str(path))}: {message}") as info:
             load_reference_checkpoint(path)
         assert isinstance(info.value, UserError)
+
+
+def _released_file(tmp_path) -> tuple:
+    state = reference_state()
+    path = tmp_path / "model.pkl"
+    torch.save({"epoch": 5, "model_kwargs": {}, "model_state": state}, path)
+    return path, state
+
+
+def test_the_meta_device_is_refused_before_reading(tmp_path):
+    """load_model's rule: meta tensors hold no values to load into the model."""
+    path, _ = _released_file(tmp_path)
+    for checkpoint in (path, tmp_path / "absent.pkl", {"model_state": reference_state()}):
+        with pytest.raises(ValueError, match=r"^map_location='meta' loads no values"):
+            load_reference_checkpoint(checkpoint, map_location="meta")
+
+
+def test_a_remapping_map_location_loads_on_the_cpu(tmp_path):
+    path, state = _released_file(tmp_path)
+    for map_location in ({"cuda:0": "cpu"}, lambda storage, location: storage):
+        model = load_reference_checkpoint(path, map_location=map_location)
+        assert {t.device.type for t in (*model.parameters(), *model.buffers())} == {"cpu"}
+        assert torch.equal(model.encoders[0].conv1.weight, state["encoder.encoder.0.weight"])
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("given", ["path", "dict"])
+def test_the_model_is_returned_on_map_location(tmp_path, given):
+    path, _ = _released_file(tmp_path)
+    checkpoint = path if given == "path" else torch.load(path)
+    model = load_reference_checkpoint(checkpoint, map_location="cuda", with_perceptual=True)
+    assert {t.device.type for t in (*model.parameters(), *model.buffers())} == {"cuda"} and not model.training
+    cpu = load_reference_checkpoint(path)
+    images = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        expected, actual = cpu.predict(images), model.predict(images.cuda())
+    torch.testing.assert_close(actual.verts.cpu(), expected.verts, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(actual.texture.cpu(), expected.texture, rtol=1e-4, atol=1e-5)

@@ -276,3 +276,27 @@ def test_symmetric_texture_needs_the_seamless_uvs_and_an_even_size():
         merge_config(texture={"symmetric": True}, template={"uv_mode": "reference"})
     with pytest.raises(ValueError, match="texture.symmetric needs an even texture.size"):
         merge_config(texture={"symmetric": True, "size": 15})
+
+
+def test_the_config_follows_the_background_colour_of_loaded_weights(tmp_path):
+    """The colour is a buffer of the renderer: a state dict brings its own, and the config, which save_model writes
+    beside the weights, says the colour the model renders."""
+    from unicorn.io import load_model, save_model
+
+    source = Unicorn(tiny_config(renderer={"background_color": (0.1, 0.5, 0.75)}))
+    model = Unicorn(tiny_config())
+    model.load_state_dict(source.state_dict())
+    assert model.config["renderer"]["background_color"] == (0.1, 0.5, 0.75)  # the decimals given, not float32's
+    far = torch.tensor([[0.0, 0.0, 100.0]])  # every pixel is background
+    verts, maps = far.expand(1, 642, 3), torch.ones(1, 3, 16, 16)
+    with torch.no_grad():
+        rgb, _ = model.render(verts, maps, torch.eye(3)[None], torch.zeros(1, 3))
+    assert torch.allclose(rgb[0, :, 0, 0], torch.tensor([0.1, 0.5, 0.75]))
+    path = save_model(model, tmp_path / "model.pt")
+    saved = torch.load(path, weights_only=True)
+    assert saved["config"]["renderer"]["background_color"] == (0.1, 0.5, 0.75)
+    loaded, _ = load_model(path)
+    assert loaded.config["renderer"] == model.config["renderer"]
+    # a state dict of the colour already configured leaves the config as written
+    model.load_state_dict(source.state_dict())
+    assert model.config["renderer"]["background_color"] == (0.1, 0.5, 0.75)

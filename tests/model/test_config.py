@@ -6,6 +6,7 @@ import copy
 import dataclasses
 
 import pytest
+import torch
 
 from unicorn.config import ConfigError, validate
 from unicorn.config.schema import StageDimsConfig
@@ -97,6 +98,37 @@ def test_what_the_networks_cannot_be_built_with_fails_naming_the_key(groups, mes
         merge_config(groups)
     with pytest.raises(ModelConfigError, match=message):
         Unicorn(groups)
+
+
+@pytest.mark.parametrize(
+    ("groups", "message"),
+    [
+        ({"image_size": 64.5}, r"^image_size must be a whole number >= 8, got 64\.5$"),
+        ({"image_size": "64"}, r"^image_size must be a finite number >= 8, got '64'$"),
+        ({"shape": {"code_dim": 31.5}}, r"^shape\.code_dim must be a whole number >= 1, got 31\.5$"),
+        ({"encoder": {"width": 32.5}}, r"^encoder\.width must be a whole number >= 1, got 32\.5$"),
+        ({"template": {"level": 2.5}}, r"^template\.level must be a whole number in \[0, 7\], got 2\.5$"),
+        ({"encoder": {"shared": "false"}}, r"^encoder\.shared must be true or false, got 'false'$"),
+        ({"shape": {"symmetric": 1}}, r"^shape\.symmetric must be true or false, got 1$"),
+        ({"loss": {"viewpoint_azimuth_only": "no"}}, r"^loss\.viewpoint_azimuth_only must be true or false, got 'no'$"),
+    ],
+)
+def test_a_size_that_is_not_whole_or_a_switch_that_is_not_a_bool_is_named(groups, message) -> None:
+    """Neither is rounded nor read as a truth value (64.5 is not 64, "false" is not on): each is named."""
+    with pytest.raises(ModelConfigError, match=message):
+        merge_config(groups)
+    with pytest.raises(ModelConfigError, match=message):
+        Unicorn(groups)
+
+
+def test_whole_floats_are_sizes_the_networks_take() -> None:
+    cfg = merge_config(image_size=32.0, shape={"code_dim": 16.0}, pose={"n_azim": 4.0}, background=None)
+    assert (cfg["image_size"], cfg["shape"]["code_dim"], cfg["pose"]["n_azim"]) == (32, 16, 4)
+    assert all(type(v) is int for v in (cfg["image_size"], cfg["shape"]["code_dim"], cfg["pose"]["n_azim"]))
+    model = Unicorn(cfg)
+    assert model.shape.code(torch.zeros(2, 512)).shape == (2, 16) and model.n_candidates == 4
+    with pytest.raises(KeyError, match=r"^\"only the background model can be disabled \(None\), not 'image_size'\"$"):
+        merge_config(image_size=None)
 
 
 def test_sizes_the_networks_take_pass_the_check() -> None:

@@ -39,7 +39,7 @@ import torch
 
 from unicorn.checks import SizeLimitError, is_number, is_whole
 from unicorn.config.presets import model_preset
-from unicorn.io.serialization import CheckpointError, kind_of, load_checkpoint_file
+from unicorn.io.serialization import CheckpointError, check_map_location, kind_of, load_checkpoint_file
 from unicorn.model.autoencoder import Unicorn
 from unicorn.model.config import merge_config
 from unicorn.model.progressive import active_dims_at
@@ -423,7 +423,8 @@ def load_reference_checkpoint(
         checkpoint: path of the ``.pkl`` file, or the loaded dict (or a bare reference state dict).
         strict: fail on unrecognised reference keys or on our parameters left unset.
         with_perceptual: also build the VGG16 perceptual loss from the weights stored in the checkpoint.
-        map_location: where to load the tensors.
+        map_location: where to load the tensors; the model is returned on that device (when it names one:
+            ``torch.load``'s remapping dicts and functions leave the model on the CPU).
         trust: read the file with full unpickling, for files from a source you trust (it can run arbitrary
             code); by default only tensors and plain data are read, which is all the released files hold.
         overrides: configuration groups overriding the inferred ones (see :func:`config_from_reference`).
@@ -439,9 +440,17 @@ def load_reference_checkpoint(
         unicorn.io.checkpoints.ModelTooLargeError: a model, image or texture size above the limits.
         ReferenceCheckpointError: keys that do not fit the model (``strict``), weights of other shapes, or
             ``with_perceptual`` on a file without the VGG weights (the message names the file when given a path).
+        unicorn.io.serialization.MapLocationError: ``map_location`` is not a device of this machine, checked before
+            the file is read.
+        ValueError: ``map_location`` is the meta device.
     """
+    check_map_location(map_location)  # a device this machine lacks is the argument's mistake, not the file's
+    device = torch.device(map_location) if isinstance(map_location, str | torch.device) else None
+    if device is not None and device.type == "meta":
+        raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
     if isinstance(checkpoint, Mapping):
-        return reference_model(checkpoint, "the released checkpoint", strict, with_perceptual, **overrides)
+        model = reference_model(checkpoint, "the released checkpoint", strict, with_perceptual, **overrides)
+        return model if device is None else model.to(device)
     from unicorn.io.checkpoints import checkpoint_format  # which imports this module
 
     path = checkpoint
@@ -457,11 +466,12 @@ def load_reference_checkpoint(
         )
     source = f"released checkpoint {path}"
     try:
-        return reference_model(checkpoint, source, strict, with_perceptual, **overrides)
+        model = reference_model(checkpoint, source, strict, with_perceptual, **overrides)
     except CheckpointError as err:
         if isinstance(err, SizeLimitError):
             raise  # names the file already
         raise type(err)(f"{source}: {err}") from None
+    return model if device is None else model.to(device)  # built on the CPU, whatever device the tensors came to
 
 
 def reference_model(

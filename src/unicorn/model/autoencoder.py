@@ -35,6 +35,7 @@ from unicorn.model.generator import CodeGenerator, mean_texture
 from unicorn.model.pose import PoseHead, PoseOutput, ScaleHead
 from unicorn.model.template import TemplateMesh
 from unicorn.render import TexturesUV, build_renderer
+from unicorn.render.settings import buffer_color
 
 __all__ = [
     "BRANCHES",
@@ -173,6 +174,20 @@ def build_networks(cfg: Mapping[str, Any]) -> dict[str, nn.Module | None]:
     }
 
 
+def _config_follows_background_color(model: Unicorn, incompatible_keys: Any) -> None:
+    """``load_state_dict``'s post hook: ``config["renderer"]["background_color"]`` takes the value of the
+    renderer's ``background_color`` buffer (3,), which the loaded weights may have changed, so that the config
+    describes what the model renders and a config saved beside the weights agrees with them
+    (:func:`~unicorn.render.settings.buffer_color`: the colour as written while the buffer holds it)."""
+    buffer = getattr(model.renderer, "background_color", None)
+    if not isinstance(buffer, torch.Tensor) or buffer.shape != (3,):  # a plugin renderer without the buffer
+        return
+    renderer = model.config["renderer"]
+    color = buffer_color(buffer, renderer["background_color"])
+    if color != tuple(renderer["background_color"]):
+        renderer["background_color"] = color
+
+
 class Unicorn(nn.Module):
     """The structured autoencoder (see the module docstring for the configuration keys).
 
@@ -220,6 +235,8 @@ class Unicorn(nn.Module):
         )
 
         self.compositing = build_compositing(rd["composite"])
+        # the colour is also a buffer of the renderer, loaded with the weights: the config follows it
+        self.register_load_state_dict_post_hook(_config_follows_background_color)
 
     # ------------------------------------------------------------------ configuration at run time
     @property

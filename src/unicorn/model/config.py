@@ -14,8 +14,10 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Callable, Mapping, Sequence
+import typing
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from numbers import Integral
 from typing import Any
 
 from unicorn.model.ranges import ModelConfigError, check_ranges, ranged
@@ -274,14 +276,16 @@ DEFAULT_CONFIG: dict[str, Any] = dataclasses.asdict(UnicornConfig())
 
 
 def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
-    """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges, choices and what the
-    networks' constructors need (powers of 2 for the generated images, active code sizes within the codes, the pose
-    and template vectors): the networks and the template are built from any configuration that passes.
+    """All value checks of a model configuration (groups as :data:`DEFAULT_CONFIG`): ranges (whole numbers for the
+    sizes and counts), on / off switches that are bools, choices and what the networks' constructors need (powers
+    of 2 for the generated images, active code sizes within the codes, the pose and template vectors): the networks
+    and the template are built from any configuration that passes (:func:`merge_config` makes its whole floats ints).
 
     Raises:
         ModelConfigError: the first bad value, named with its key (``prefix`` + ``group.key``).
     """
     check_ranges(cfg, UnicornConfig, prefix)
+    _check_switches(cfg, prefix)
     for key in CHOICES:
         group, name = key.split(".")
         if cfg.get(group) is not None and cfg[group][name] not in (allowed := allowed_values(key)):
@@ -299,6 +303,35 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     _check_generated_sizes(cfg, prefix)
     _check_neighbour_angle(cfg, prefix)
     _check_background_color(renderer)
+
+
+def _settings(cfg: Mapping[str, Any]) -> Iterator[tuple[Any, str, Any, str]]:
+    """Each setting of a configuration as ``(mapping, key, type hint, name)``: ``mapping[key]`` is its value (the
+    configuration itself for ``image_size``, else its group; a group set to None has none)."""
+    hints = typing.get_type_hints(UnicornConfig)
+    for group in dataclasses.fields(UnicornConfig):
+        schema = group.default_factory
+        if not dataclasses.is_dataclass(schema):
+            yield cfg, group.name, hints[group.name], group.name
+        elif isinstance(cfg.get(group.name), Mapping):
+            group_hints = typing.get_type_hints(schema)
+            for f in dataclasses.fields(schema):
+                yield cfg[group.name], f.name, group_hints[f.name], f"{group.name}.{f.name}"
+
+
+def _check_switches(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The on / off settings (``bool`` fields) are True or False: a string ``"false"`` would read as on."""
+    for values, key, hint, name in _settings(cfg):
+        if hint is bool and not isinstance(values[key], bool):
+            raise ModelConfigError(f"{prefix}{name} must be true or false, got {values[key]!r}")
+
+
+def _whole_numbers_as_ints(cfg: dict[str, Any]) -> None:
+    """The ``int`` settings given as whole floats (``64.0``) as ints, in place: the networks' constructors take
+    ints."""
+    for values, key, hint, _ in _settings(cfg):
+        if hint is int and isinstance(values[key], float) and values[key].is_integer():
+            values[key] = int(values[key])
 
 
 def _finite_numbers(value: Any, n: int) -> bool:
@@ -430,7 +463,8 @@ def _check_own_encoders(cfg: Mapping[str, Any], prefix: str) -> None:
 
 
 def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> dict[str, Any]:
-    """Full configuration: :data:`DEFAULT_CONFIG` updated group by group with ``config`` then ``overrides``.
+    """Full configuration: :data:`DEFAULT_CONFIG` updated group by group with ``config`` then ``overrides``; a
+    size or count given as a whole float (``64.0``) is kept as an int.
 
     Raises:
         KeyError: an unknown group or key (typos fail loudly).
@@ -441,12 +475,13 @@ def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> d
         for group, value in source.items():
             if group not in merged:
                 raise KeyError(f"unknown model config group {group!r}; known: {sorted(merged)}")
-            if group == "image_size":
-                merged[group] = int(value)
-            elif value is None:
+            if value is None:
                 if group != "background":
                     raise KeyError(f"only the background model can be disabled (None), not {group!r}")
                 merged[group] = None
+            elif group == "image_size":
+                # numpy's integers as Python's; any other value as given, for the checks to name (64.5 is not 64)
+                merged[group] = int(value) if isinstance(value, Integral) and not isinstance(value, bool) else value
             else:
                 base = merged[group] if merged[group] is not None else copy.deepcopy(DEFAULT_CONFIG[group])
                 for key, v in dict(value).items():
@@ -455,4 +490,5 @@ def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> d
                     base[key] = dict(v) if isinstance(v, Mapping) else v
                 merged[group] = base
     check_model_config(merged)
+    _whole_numbers_as_ints(merged)
     return merged

@@ -60,11 +60,12 @@ def describe_range(low: float | None, high: float | None) -> str:
 
 def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> None:
     """Check every field of ``schema`` declared with :func:`ranged`, recursing into nested groups: a finite number
-    within its bounds.
+    within its bounds, a whole number where the field is an ``int`` (a size or a count: ``64.5`` is refused, not
+    rounded; ``64.0`` passes).
 
     Raises:
-        ModelConfigError: the first value out of its range (or not finite), named with its full key (``prefix``
-            + path).
+        ModelConfigError: the first value out of its range (or not finite, or not whole), named with its full key
+            (``prefix`` + path).
     """
     hints = typing.get_type_hints(schema)
     for f in dataclasses.fields(schema):
@@ -80,5 +81,7 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
             continue
         if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
             raise ModelConfigError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
+        if hints[f.name] is int and isinstance(value, float) and not value.is_integer():
+            raise ModelConfigError(f"{key} must be a whole number {describe_range(low, high)}, got {value!r}")
         if not ((low is None or value >= low) and (high is None or value <= high)):
             raise ModelConfigError(f"{key} must be {describe_range(low, high)}, got {value}")

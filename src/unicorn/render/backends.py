@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-import torch
 from torch import nn
 
 from ..geometry.cameras import PerspectiveCamera
@@ -26,7 +25,7 @@ from .rasterizer import MeshRasterizer
 from .registry import register_renderer
 from .renderer import MeshRenderer
 from .settings import DEFAULT_SETTINGS as D
-from .settings import RenderSettings
+from .settings import RenderSettings, buffer_color
 from .softras import SoftRasBlend, check_temperatures
 
 __all__ = ["HardRenderer", "LayeredRasterizer", "LayeredRenderer", "SoftRasRenderer"]
@@ -41,15 +40,11 @@ class _Backend(MeshRenderer):
 
     @property
     def settings(self) -> RenderSettings:
-        """The options the renderer renders with. The background colour is the ``background_color`` buffer's (one
-        host read), which a loaded state dict, an in-place edit or a 16-bit conversion may have changed since the
-        renderer was built: the colour given then while the buffer holds it in float32 (the buffer's dtype when
-        built), else the buffer's values."""
-        given = self._settings
-        buffer = self.background_color.detach().float()
-        if torch.equal(buffer, torch.tensor(given.background_color, device=buffer.device)):
-            return given  # the colour as given: 0.1, not its float32 rounding 0.10000000149...
-        return dataclasses.replace(given, background_color=tuple(buffer.tolist()))
+        """The options the renderer renders with. The background colour is the ``background_color`` buffer's
+        (:func:`~unicorn.render.settings.buffer_color`, one host read), which a loaded state dict, an in-place edit or
+        a 16-bit conversion may have changed since the renderer was built."""
+        color = buffer_color(self.background_color, self._settings.background_color)
+        return dataclasses.replace(self._settings, background_color=color)
 
 
 @register_renderer("layered")

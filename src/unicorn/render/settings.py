@@ -14,10 +14,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import torch
+
 from ..geometry.cameras import image_hw
 from .raster import RenderError, check_whole_number, is_real
 
-__all__ = ["BACKGROUND_COLOR", "DEFAULT_SETTINGS", "RenderSettings", "check_render_option"]
+__all__ = ["BACKGROUND_COLOR", "DEFAULT_SETTINGS", "RenderSettings", "buffer_color", "check_render_option"]
 
 #: the colour behind the mesh where no background image is given: white, as the reference renders
 BACKGROUND_COLOR: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -113,3 +115,22 @@ def _finite_numbers(value: Any) -> bool:
 
 #: the defaults, for the backends' signatures
 DEFAULT_SETTINGS = RenderSettings()
+
+
+def buffer_color(buffer: torch.Tensor, given: Sequence[float]) -> tuple[float, ...]:
+    """The colour a renderer's ``background_color`` buffer (C,) holds, as numbers: ``given`` where the buffer holds
+    it in the buffer's dtype, else per channel the number of fewest decimals that the dtype rounds to the buffer's
+    value (0.1, not its float32 rounding 0.10000000149...). One host read."""
+    values = buffer.detach().cpu()
+    if len(given) == values.numel() and torch.equal(values, torch.tensor(list(given), dtype=values.dtype)):
+        return tuple(given)
+    return tuple(_shortest_decimal(v) for v in values)
+
+
+def _shortest_decimal(value: torch.Tensor) -> float:
+    """The number of fewest decimals that rounds to ``value`` (a 0-dim floating-point tensor) in its dtype."""
+    for digits in range(1, 18):
+        candidate = round(float(value), digits)
+        if torch.tensor(candidate, dtype=value.dtype) == value:
+            return candidate
+    return float(value)
