@@ -10,7 +10,7 @@ import lightning as L
 import pytest
 import torch
 
-from tests.support.training import StateBefore, build_run
+from tests.support.training import LossRecorder, StateBefore, build_run
 from unicorn.io.serialization import atomic_save
 from unicorn.lit import NonFiniteLossError
 from unicorn.lit.run import build, fit
@@ -159,6 +159,20 @@ def test_resume_is_exact(synthetic_cache, tmp_path, extra):
     assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"]
     for index, state in opt_a["state"].items():
         torch.testing.assert_close(state["exp_avg"], opt_b["state"][index]["exp_avg"], rtol=1e-5, atol=1e-7)
+
+
+def test_validation_during_training_leaves_the_training_unchanged(synthetic_cache, tmp_path):
+    """The sampled pose objective picks candidates from torch's global generator: a validation pass between two
+    iterations (``trainer.val_check_interval``) must not draw from it, or the training after it changes."""
+    losses = {}
+    for name, every in (("plain", "null"), ("validated", "2")):
+        run = build_run(tmp_path / name, "model.loss.pose_objective=sampled", f"trainer.val_check_interval={every}")
+        recorder = LossRecorder()
+        run.trainer.callbacks.append(recorder)
+        fit(run)
+        losses[name] = recorder.rows
+    assert len(losses["plain"]) == 8
+    assert losses["validated"] == losses["plain"]
 
 
 def record_checkpoints(run) -> list[tuple[str, int]]:

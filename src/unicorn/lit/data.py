@@ -304,7 +304,9 @@ class UnicornDataModule(L.LightningDataModule):
             pin_memory=pin,
             persistent_workers=workers > 0,
             worker_init_fn=ignore_stop_signals,  # the run stops at a step boundary, its workers with it
-            generator=torch.Generator().manual_seed(self.seed) if train else None,
+            # a private generator: a validation during training must not consume the global RNG the training draws
+            # from (the loader draws its workers' base seed at every pass)
+            generator=torch.Generator().manual_seed(self.seed),
         )
 
     def _stream(self, dataset: Dataset | None, seed: int) -> DataLoader:

@@ -213,14 +213,14 @@ def append_csv_row(path: Path, row: dict[str, float]) -> None:
     step = _whole_step(row["step"])
     rows: list[dict[str, Any]] = []
     if path.exists():
-        with path.open(newline="") as f:
+        with path.open(newline="", encoding="utf-8") as f:
             rows = [{**r, "step": _whole_step(r["step"])} for r in csv.DictReader(f)]
         rows = [r for r in rows if r["step"] < step]
     rows.append({**row, "step": step})
     columns = list(dict.fromkeys(k for r in rows for k in r))
     from unicorn.io.serialization import replacing
 
-    with replacing(path) as tmp, tmp.open("w", newline="") as f:
+    with replacing(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=columns, restval="")
         writer.writeheader()
         writer.writerows(rows)

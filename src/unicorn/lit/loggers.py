@@ -57,10 +57,26 @@ class _AppendingWriter(ExperimentWriter):
     def _check_log_dir_exists(self) -> None:
         if not os.path.isfile(self.metrics_file_path):
             return
-        with open(self.metrics_file_path, newline="") as f:
+        with open(self.metrics_file_path, newline="", encoding="utf-8") as f:
             header = next(csv.reader(f), [])
         # a later new column rewrites the file with every earlier column too
         self.metrics_keys = sorted(set(header))
+
+    def save(self) -> None:
+        """Append the rows logged since the last save (the header first in a new file; the whole file rewritten when
+        they bring a new column), in UTF-8 as the file is read, whatever the locale."""
+        if not self.metrics:
+            return
+        new_keys = self._record_new_keys()
+        exists = os.path.isfile(self.metrics_file_path)
+        if new_keys and exists:
+            self._rewrite_with_new_header(self.metrics_keys)
+        with open(self.metrics_file_path, "a" if exists else "w", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=self.metrics_keys)
+            if not exists:
+                writer.writeheader()
+            writer.writerows(self.metrics)
+        self.metrics = []
 
     def drop_from(self, step: int) -> int:
         """Remove the rows logged at ``step`` or later (they are about to be logged again), and a last row cut
@@ -84,7 +100,7 @@ class _AppendingWriter(ExperimentWriter):
     def _read(self) -> tuple[list[str], list[dict[str, str]], int]:
         """The columns, the rows as tables, and how many rows were left out as damaged: a last row without its
         line end, or a row of another width than the header."""
-        with open(self.metrics_file_path, newline="") as f:
+        with open(self.metrics_file_path, newline="", encoding="utf-8") as f:
             text = f.read()
         header, *lines = list(csv.reader(io.StringIO(text))) or [[]]
         whole = lines if text.endswith(("\n", "\r")) else lines[:-1]
@@ -95,7 +111,7 @@ class _AppendingWriter(ExperimentWriter):
         """Write ``metrics.csv`` anew beside it, then rename it into place (whole or not at all)."""
         from unicorn.io.serialization import replacing
 
-        with replacing(self.metrics_file_path) as tmp, open(tmp, "w", newline="") as f:
+        with replacing(self.metrics_file_path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
             writer = csv.DictWriter(f, fieldnames=fields)
             writer.writeheader()
             writer.writerows(rows)

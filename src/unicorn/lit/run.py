@@ -342,7 +342,7 @@ def write_run_folder(typed: DictConfig, output_dir: Path, ckpt_path: str | None,
         if folder.is_dir():
             for tmp in remove_stale_temporaries(folder, names):
                 log.info("removed %s, a partial file of a killed run", tmp)
-    (output_dir / "config.yaml").write_text(recorded_config(typed))
+    (output_dir / "config.yaml").write_text(recorded_config(typed), encoding="utf-8")
     _write_provenance(output_dir, ckpt_path)
     return aside
 
@@ -399,7 +399,7 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
 
     path = output_dir / "provenance.json"
     starts = read_run_starts(path)  # checked before anything was written (check_run_folder)
-    path.write_text(json.dumps([*starts, provenance(_run_command(), ckpt_path)], indent=1))
+    path.write_text(json.dumps([*starts, provenance(_run_command(), ckpt_path)], indent=1), encoding="utf-8")
 
 
 def build_module(typed: DictConfig) -> Any:
@@ -634,7 +634,7 @@ def _evaluated_before(metrics: Path, meta: dict[str, Any], target: Any) -> bool:
     on the same data with the same settings (its ``unicorn-eval`` command) and the same unicorn (version and
     commit): a resumed run that trained no further (a finished job of a resumed sweep) need not evaluate again."""
     try:
-        found = json.loads(metrics.read_text())
+        found = json.loads(metrics.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
     same = {
