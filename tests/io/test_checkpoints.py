@@ -160,6 +160,16 @@ def test_a_device_this_machine_lacks_is_blamed_not_the_file(tmp_path: Path, devi
     _same_prediction(tiny_model("real"), load_model(path, map_location="cpu")[0])
 
 
+@pytest.mark.parametrize(
+    "remap", [None, {"cuda:0": "cpu"}, lambda storage, location: storage], ids=["none", "dict", "function"]
+)
+def test_a_remapping_map_location_loads_the_model_on_the_cpu(tmp_path: Path, remap) -> None:
+    path = save_model(tiny_model("real"), tmp_path / "m.pt")
+    model, _ = load_model(path, map_location=remap)
+    assert {p.device.type for p in model.parameters()} == {"cpu"}
+    _same_prediction(tiny_model("real"), model)
+
+
 def test_save_model_names_a_file_where_a_folder_goes(tmp_path: Path) -> None:
     notes = tmp_path / "notes"
     notes.write_text("the user's notes")

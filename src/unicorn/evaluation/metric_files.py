@@ -60,14 +60,14 @@ def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Ma
     out.mkdir(parents=True, exist_ok=True)
     header = ["group", "n-images", *result.columns]
     paths = {"csv": out / "metrics.csv", "per_image": out / "per_image.csv", "json": out / "metrics.json"}
-    with open(paths["csv"], "w", newline="") as f:
+    with open(paths["csv"], "w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=header, extrasaction="ignore", restval="")
         writer.writeheader()
         writer.writerows(result.table)
     # the metrics, and the per-image entries that are not averaged (the selected candidate, the rotation error)
     cols = [c for c in ROW_INFO if c not in ("index", "group")] + result.columns
     image_cols = ["index", "group"] + [c for c in cols if any(c in r for r in result.per_image)]
-    with open(paths["per_image"], "w", newline="") as f:
+    with open(paths["per_image"], "w", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=image_cols, extrasaction="ignore", restval="")
         writer.writeheader()
         writer.writerows(result.per_image)
@@ -81,5 +81,5 @@ def write_metrics(result: EvaluationResult, out_dir: str | os.PathLike, meta: Ma
         "seconds": result.seconds,
         **meta,
     }
-    paths["json"].write_text(json.dumps(json_safe(payload), indent=1))
+    paths["json"].write_text(json.dumps(json_safe(payload), indent=1), encoding="utf-8")
     return paths

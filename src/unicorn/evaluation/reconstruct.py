@@ -215,7 +215,7 @@ def _write_one(
         for written in save_mesh(mesh, folder / f"mesh{suffix}", overwrite=overwrite):  # the OBJ's MTL and PNG too
             files[written.name] = written.name
     pose = pose_record(model, pred, i, item.frame)
-    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1))
+    (folder / "pose.json").write_text(json.dumps({**pose, "provenance": dict(provenance)}, indent=1), encoding="utf-8")
     files["pose"] = "pose.json"
 
     verts, tex, R, T = pred.verts[i], pred.texture[i], pred.R[i], pred.T[i]
@@ -459,7 +459,7 @@ def _write_overview(
     record = {"provenance": provenance, "images": records}
     if earlier:
         record["earlier_folders"] = list(earlier)
-    (out / RECONSTRUCTIONS_RECORD).write_text(json.dumps(record, indent=1))
+    (out / RECONSTRUCTIONS_RECORD).write_text(json.dumps(record, indent=1), encoding="utf-8")
 
 
 def _write_index(

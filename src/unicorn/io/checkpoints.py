@@ -43,9 +43,9 @@ from unicorn.io.serialization import (
     MapLocationError,
     UnsafeCheckpointError,
     atomic_save,
-    check_map_location,
     kind_of,
     load_checkpoint_file,
+    model_device,
 )
 from unicorn.model import MAX_MODEL_PARAMS, Unicorn, merge_config
 from unicorn.model import check_model_size as _check_model_size
@@ -323,7 +323,8 @@ def load_model(
 
     Args:
         path: a released ``.pkl``, a Lightning ``.ckpt`` or a :func:`save_model` file.
-        map_location: where the weights are loaded.
+        map_location: where the weights are loaded, and the model returned (a device); ``torch.load``'s remappings
+            (a dict, a function) leave the model on the CPU.
         overrides: model config groups to change, e.g. ``{"template": {"level": 4}}`` for the finer mesh of
             UNICORN's keypoint evaluation (the template and the renderer are not part of the weights).
         trust: allow full unpickling, for files from a source you trust (it can run arbitrary code).
@@ -343,9 +344,7 @@ def load_model(
         ValueError: ``map_location`` is the meta device.
     """
     path = Path(path).expanduser()
-    check_map_location(map_location)  # a device this machine lacks is the argument's mistake, not the file's
-    if torch.device(map_location).type == "meta":
-        raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
+    device = model_device(map_location)
     data = read_checkpoint(path, map_location, trust=trust)
     loader = _LOADERS.get(checkpoint_format(data))
     if loader is None:
@@ -359,7 +358,7 @@ def load_model(
     info.run_dir = run_of_checkpoint(path)
     if info.dataset is None:
         info.dataset = run_dataset(info.run_dir)
-    return model.to(map_location).eval(), info
+    return (model if device is None else model.to(device)).eval(), info
 
 
 def _load_reference(

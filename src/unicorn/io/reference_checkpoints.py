@@ -39,7 +39,7 @@ import torch
 
 from unicorn.checks import SizeLimitError, is_number, is_whole
 from unicorn.config.presets import model_preset
-from unicorn.io.serialization import CheckpointError, check_map_location, kind_of, load_checkpoint_file
+from unicorn.io.serialization import CheckpointError, kind_of, load_checkpoint_file, model_device
 from unicorn.model.autoencoder import Unicorn
 from unicorn.model.config import merge_config
 from unicorn.model.progressive import active_dims_at
@@ -444,10 +444,7 @@ def load_reference_checkpoint(
             the file is read.
         ValueError: ``map_location`` is the meta device.
     """
-    check_map_location(map_location)  # a device this machine lacks is the argument's mistake, not the file's
-    device = torch.device(map_location) if isinstance(map_location, str | torch.device) else None
-    if device is not None and device.type == "meta":
-        raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
+    device = model_device(map_location)
     if isinstance(checkpoint, Mapping):
         model = reference_model(checkpoint, "the released checkpoint", strict, with_perceptual, **overrides)
         return model if device is None else model.to(device)

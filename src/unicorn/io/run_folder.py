@@ -648,7 +648,7 @@ def run_config(run_dir: Path | None) -> dict[str, Any] | None:
     import yaml
 
     try:
-        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return None
     return dict(cfg) if isinstance(cfg, Mapping) else None

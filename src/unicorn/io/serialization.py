@@ -53,6 +53,7 @@ __all__ = [
     "link_into_place",
     "load_checkpoint_file",
     "make_parent_folders",
+    "model_device",
     "remove_stale_temporaries",
     "replacing",
     "seal",
@@ -134,6 +135,24 @@ def check_map_location(map_location: Any) -> Any:
                 f"({shortened(str(err).split('. ')[0], 100)}); use 'cpu'"
             ) from None
     return map_location
+
+
+def model_device(map_location: Any) -> torch.device | None:
+    """The device a model loaded with ``map_location`` goes to: the one it names, or None for ``torch.load``'s
+    remappings (None, a dict, a function), which leave the model where it is built (the CPU). Checked before a file
+    is read (:func:`check_map_location`).
+
+    Raises:
+        MapLocationError: no device of this machine.
+        ValueError: the meta device, which holds no values to load.
+    """
+    check_map_location(map_location)  # a device this machine lacks is the argument's mistake, not the file's
+    if not isinstance(map_location, str | torch.device):
+        return None
+    device = torch.device(map_location)
+    if device.type == "meta":
+        raise ValueError("map_location='meta' loads no values: load the model on 'cpu', then move it with .to('meta')")
+    return device
 
 
 def kind_of(value: Any) -> str:

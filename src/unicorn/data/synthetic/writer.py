@@ -147,7 +147,7 @@ def _write_model(
     mesh = trimesh.Trimesh(unicorn_to_dvr_points(mesh.vertices), mesh.faces, process=False)
     mesh.export(folder / "mesh.obj")
     np.savez(folder / "views.npz", **{k: v.astype(np.float32) for k, v in views.items()})
-    (folder / "params.json").write_text(json.dumps(obj.params, indent=1))
+    (folder / "params.json").write_text(json.dumps(obj.params, indent=1), encoding="utf-8")
 
 
 def check_generation_sizes(
@@ -299,11 +299,13 @@ def generate_synthetic_dataset(
             _write_model(cat_dir / name, obj, views, image_size, supersample, n_points, *streams[2:], kinds)
             bar.update()
         for split, idx in split_indices(seed, cat, n_models).items():
-            (cat_dir / f"softras_{split}.lst").write_text("".join(f"{names[i]}\n" for i in sorted(idx)))
+            (cat_dir / f"softras_{split}.lst").write_text(
+                "".join(f"{names[i]}\n" for i in sorted(idx)), encoding="utf-8"
+            )
         metadata[synset] = {"id": synset, "name": f"{cat},synthetic_{cat}"}
     bar.close()
     _write_metadata(out / "metadata.yaml", metadata)
-    (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
+    (out / "synthetic.json").write_text(json.dumps(settings, indent=1), encoding="utf-8")
     return out
 
 
@@ -398,7 +400,7 @@ def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
     if not path.is_file():
         return settings
     try:
-        earlier = json.loads(path.read_text())
+        earlier = json.loads(path.read_text(encoding="utf-8"))
     except ValueError:
         earlier = None
     if not isinstance(earlier, dict):
@@ -424,7 +426,7 @@ def _read_metadata(path: Path) -> dict[str, dict]:
         return {}
     try:
         # every scalar as its text: an unquoted synset such as 03001627 would be YAML 1.1 octal (787351)
-        metadata = yaml.load(path.read_text(), Loader=yaml.BaseLoader) or {}  # noqa: S506 - builds no object
+        metadata = yaml.load(path.read_text(encoding="utf-8"), Loader=yaml.BaseLoader) or {}  # noqa: S506 - builds no object
     except (yaml.YAMLError, UnicodeDecodeError, OSError):
         metadata = None  # not YAML, not text
     if not isinstance(metadata, dict) or not all(isinstance(v, dict) and "id" in v for v in metadata.values()):
@@ -442,7 +444,7 @@ def _write_metadata(path: Path, metadata: dict[str, dict]) -> None:
     appended to it where the result reads back as ``metadata``, else the table is written anew (a flow-style file).
     The file is replaced in one rename, so an interrupted generation leaves the earlier one.
     """
-    old = path.read_text() if path.is_file() else ""
+    old = path.read_text(encoding="utf-8") if path.is_file() else ""
     earlier = (yaml.load(old, Loader=yaml.BaseLoader) or {}) if old else {}  # noqa: S506 - builds no object
     added = {synset: info for synset, info in metadata.items() if synset not in earlier}
     text = yaml.safe_dump(metadata, sort_keys=True)
@@ -455,7 +457,7 @@ def _write_metadata(path: Path, metadata: dict[str, dict]) -> None:
         text = appended if same else text
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)  # a write that failed (a full disk) leaves no temporary file
@@ -484,7 +486,7 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     root = Path(root)
     path = root / "synthetic.json"
     try:
-        settings = json.loads(path.read_text())
+        settings = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as err:  # cut short or not JSON: the generation did not write it
         settings, problem = None, f": {err}"
     else:
@@ -599,7 +601,7 @@ def generation_lock(folder: str | os.PathLike) -> Iterator[None]:
     folder.parent.mkdir(parents=True, exist_ok=True)
     path = folder.parent / f".{folder.name}.lock"
     while True:
-        handle = open(path, "a")  # noqa: SIM115 - held open with its lock until the block ends
+        handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - held open with its lock until the block ends
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
