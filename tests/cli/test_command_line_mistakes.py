@@ -51,6 +51,29 @@ def test_a_null_group_hydra_reports_without_the_command_line_is_still_one_line()
     )
 
 
+@pytest.mark.parametrize(
+    "args, line",
+    [
+        (
+            ["experiment=cub", "+family=shapenet"],
+            "+family=shapenet: the config already chooses a family; write family=shapenet (without +)",
+        ),
+        (["+model=big"], "+model=big: the config already chooses a model; write model=big (without +)"),
+        (
+            ["experiment=cub", "+renderer=hard"],
+            "+renderer=hard: the config already chooses a renderer; write renderer=hard (without +)",
+        ),
+        (
+            ["+family=shapenet", "+family=real"],
+            "+family=shapenet, +family=real: family is chosen more than once; give it once",
+        ),
+    ],
+)
+def test_a_group_appended_that_the_config_already_chooses_is_one_line_naming_the_override(tmp_path, args, line):
+    """Not Hydra's hint about the ``override`` keyword of config files."""
+    assert _one_error(unicorn_train("--cfg", "job", *args, cwd=tmp_path), tmp_path) == line
+
+
 @pytest.mark.skipif(importlib.util.find_spec("torch_xla") is not None, reason="torch_xla is installed")
 def test_an_accelerator_whose_package_is_missing_is_one_line(tmp_path) -> None:
     result = unicorn_train(*TINY, "trainer.accelerator=tpu", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)

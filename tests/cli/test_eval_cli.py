@@ -184,6 +184,20 @@ def test_nn_workers_out_of_range_is_a_usage_error(checkpoint: Path, capsys, work
     assert capsys.readouterr().err.splitlines()[-1] == message
 
 
+@pytest.mark.parametrize("level", ["8", "-1"])
+def test_a_template_level_out_of_range_is_a_usage_error_naming_the_option(tmp_path: Path, capsys, level: str) -> None:
+    """Refused while the arguments are parsed (the checkpoint is not read: it does not exist), in the range of the
+    model's ``template.level``."""
+    from unicorn.model.config import TemplateConfig
+    from unicorn.model.ranges import field_range
+
+    assert field_range(TemplateConfig, "level") == (0, 7)
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path / "missing.ckpt"), "--dataset", "synthetic", "--root", ".", "--template-level", level])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == "unicorn-eval: error: --template-level must be in [0, 7]"
+
+
 def test_a_malformed_dataset_of_the_checkpoint_is_one_line(tmp_path: Path, checkpoint: Path, capsys) -> None:
     from unicorn.io.serialization import INTEGRITY_KEY
 
@@ -303,6 +317,43 @@ def test_categories_are_refused_for_a_dataset_of_one_category(tmp_path: Path, da
     args = parser.parse_args([str(tmp_path / "m.ckpt"), "--dataset", "shapenet_nmr", "--root", str(tmp_path),
                               "--categories", "car,chair"])  # fmt: skip
     assert _target(args, info).categories == ["car", "chair"]
+
+
+@pytest.mark.parametrize(("text", "names"), [(" car , chair", ["car", "chair"]), ("car,,", ["car"])])
+def test_categories_are_read_without_empty_names_or_spaces(tmp_path: Path, text: str, names: list[str]) -> None:
+    from types import SimpleNamespace
+
+    from unicorn.cli.eval import _target, build_parser
+
+    args = build_parser().parse_args(
+        [str(tmp_path / "m.ckpt"), "--dataset", "shapenet_nmr", "--root", str(tmp_path), "--categories", text]
+    )
+    assert _target(args, SimpleNamespace(dataset=None)).categories == names
+
+
+#: no category named: ``--categories "$CATS"`` with the variable unset
+NO_CATEGORY = "names no category; give one, or drop --categories"
+
+
+@pytest.mark.parametrize(
+    ("options", "line"),
+    [
+        (["--dataset", "synthetic", "--categories", ""], f"--categories '' {NO_CATEGORY}"),
+        (["--categories", ","], f"--categories ',' {NO_CATEGORY}"),
+        (["--dataset", "synthetic", "--tag", "horse"], "--tag is for lsun only (the LSUN category), not synthetic"),
+        (
+            ["--dataset", "cub_200", "--categories", "car"],
+            "--categories picks ShapeNet or synthetic categories; cub_200 has none: drop --categories",
+        ),
+    ],
+)
+def test_options_the_dataset_refuses_are_one_line_before_the_checkpoint_is_read(
+    tmp_path: Path, capsys, options: list[str], line: str
+) -> None:
+    """The checkpoint does not exist: an option refused once it was read would be reported after that error."""
+    assert main([str(tmp_path / "missing.ckpt"), "--root", str(tmp_path), "--device", "cpu", *options]) == 2
+    assert capsys.readouterr().err == f"unicorn-eval: error: {line}\n"
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_cub_protocol_scores_the_level_4_mesh(tmp_path: Path, cub_root: Path, monkeypatch) -> None:

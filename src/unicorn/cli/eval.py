@@ -39,6 +39,7 @@ from unicorn.config.schema import FAST_EVAL, REPORT_TURNTABLE_FRAMES, SPLITS, Ev
 from unicorn.data.images import DatasetNotFoundError
 from unicorn.data.registry import DATASET_NAMES, DATASETS, prepare_dataset
 from unicorn.evaluation.protocols import EvalOptions
+from unicorn.model.config import TemplateConfig
 from unicorn.model.ranges import describe_range, field_range
 from unicorn.registry import PLUGINS_ENV
 
@@ -203,6 +204,7 @@ _RANGED = {
     "max_images": (EvaluateConfig, "max_images"),
     "turntable_frames": (EvaluateConfig, "turntable_frames"),
     "mean_shape": (EvaluateConfig, "mean_shape_iterations"),
+    "template_level": (TemplateConfig, "level"),
 }
 
 
@@ -284,7 +286,7 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     if root is None:
         raise UsageError(f"no --root given for dataset {dataset!r}")
     check_categories_option(dataset, args.categories)
-    categories = args.categories.split(",") if args.categories else None
+    categories = _categories(args.categories)
     if categories is None and run_data.get("name") == dataset and run_data.get("categories"):
         categories = run_data["categories"]
     on_error = "skip" if args.skip_bad else "raise"
@@ -294,6 +296,20 @@ def _target(args: argparse.Namespace, info: Any) -> Any:
     if tag is not None:
         options["tag"] = tag
     return EvalTarget(dataset, str(root), args.split, categories, args.max_images, on_error, options)
+
+
+def _categories(text: str | None) -> list[str] | None:
+    """The names ``--categories`` gives, comma-separated, spaces around them left out (None: not given).
+
+    Raises:
+        UsageError: given but naming none (``--categories "$CATS"`` with the variable unset).
+    """
+    if text is None:
+        return None
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    if not names:
+        raise UsageError(f"--categories {text!r} names no category; give one, or drop --categories")
+    return names
 
 
 def _mesh_settings(args: argparse.Namespace) -> dict[str, int]:
@@ -421,6 +437,11 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     load_plugins()  # UNICORN_PLUGINS and the unicorn.plugins entry points: their datasets and renderers
     if args.dataset is not None and args.dataset not in DATASETS:
         raise UsageError(f"--dataset: unknown dataset {args.dataset!r}; known: {DATASETS.names()}")
+    _categories(args.categories)
+    if args.dataset is not None:  # the options --dataset refuses, before the model is read
+        check_categories_option(args.dataset, args.categories)
+        if args.dataset != "lsun":
+            lsun_tag(args.dataset, args.tag)
     from unicorn.io.provenance import command_line
 
     return run(args, command=command_line("unicorn-eval", sys.argv[1:] if argv is None else argv))

@@ -239,6 +239,10 @@ def hydra_failure(text: str, overrides: Sequence[str] = (), config_dir: Path | N
                 line += " (the key=value overrides go together, after Hydra's options: --cfg job seed=1)"
             return line
         line = " ".join(lines) or "invalid command line"
+        chosen = _MULTIPLE_VALUES.match(line)
+        added = _added_group_line(chosen.group(1), overrides) if chosen else None
+        if added is not None:
+            return added
         if "Could not find 'hydra/launcher/" in line:  # e.g. hydra/launcher=submitit_slurm without the plugin
             line += " (Hydra's launchers but basic are plugins of their own: pip install hydra-submitit-launcher)"
         if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
@@ -259,6 +263,21 @@ def hydra_failure(text: str, overrides: Sequence[str] = (), config_dir: Path | N
         causes = [m for m in map(_EXCEPTION_LINE.match, lines) if m and _is_os_error(m)]
         if causes:
             return f"cannot write the run's log: {causes[-1].group(2)}"
+    return None
+
+
+#: Hydra's error for a config group chosen twice, with a hint about the ``override`` keyword of config files
+_MULTIPLE_VALUES = re.compile(r"^Multiple values for (\S+)\. ")
+
+
+def _added_group_line(group: str, overrides: Sequence[str]) -> str | None:
+    """The line for Hydra's "Multiple values for ``group``" when the command line appends the group (``+G=V``,
+    ``+G@pkg=V``) that the config already chooses, or appends it twice; None when it does neither."""
+    added = [arg for arg in overrides if arg.partition("=")[1] and arg.partition("=")[0] == f"+{group}"]
+    if len(added) > 1:
+        return f"{', '.join(added)}: {group} is chosen more than once; give it once"
+    if added:
+        return f"{added[0]}: the config already chooses a {group}; write {added[0][1:]} (without +)"
     return None
 
 

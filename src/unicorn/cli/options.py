@@ -133,8 +133,16 @@ def check_picture_sizes(args: argparse.Namespace) -> None:
 
 
 def apply_common_arguments(args: argparse.Namespace) -> None:
-    """Set the image limits given on the command line for this process and its workers."""
+    """Refuse a ``--device`` this machine lacks, where the command has the option (:func:`parse_device`: before
+    any input is read), and set the image limits given on the command line for this process and its workers.
+
+    Raises:
+        UsageError: the ``--device``.
+    """
     from unicorn.data.images import set_max_image_bytes, set_max_image_pixels
+
+    if getattr(args, "device", None) is not None:
+        parse_device(args.device)
 
     if args.max_image_pixels is not None:
         set_max_image_pixels(args.max_image_pixels)
@@ -143,6 +151,11 @@ def apply_common_arguments(args: argparse.Namespace) -> None:
 
 
 def parse_device(name: str) -> Any:
+    """The ``torch.device`` that ``--device`` names (``auto``: CUDA when available, else the CPU).
+
+    Raises:
+        UsageError: not a device, or one this machine lacks (a CUDA index beyond its devices included).
+    """
     import torch
 
     if name == "auto":
@@ -152,7 +165,11 @@ def parse_device(name: str) -> Any:
     except RuntimeError:
         raise UsageError(f"--device {name!r} is not a device; use 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise UsageError(f"--device {name}: CUDA is not available on this machine")
+        raise UsageError(f"--device {name}: CUDA is not available on this machine; use --device cpu")
+    count = torch.cuda.device_count() if device.type == "cuda" else 0
+    if device.index is not None and device.type == "cuda" and device.index >= count:
+        have = "cuda:0" if count == 1 else f"cuda:0 to cuda:{count - 1}"
+        raise UsageError(f"--device {name}: this machine has {count} CUDA device(s), {have}")
     backend = getattr(torch, device.type, None)  # torch.mps, torch.xpu...: each says whether it is there
     if device.type not in ("cpu", "cuda") and not getattr(backend, "is_available", lambda: False)():
         raise UsageError(f"--device {name}: {device.type} is not available on this machine; use 'cpu' or 'auto'")
