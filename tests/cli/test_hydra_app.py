@@ -154,7 +154,7 @@ def _signalled_twice_while_setting_up() -> None:
 
 
 @pytest.mark.parametrize("at", ["hydra", "task"])
-@pytest.mark.parametrize("where", ["new", "mine", "sweep"])
+@pytest.mark.parametrize("where", ["new", "mine", "sweep", "elsewhere"])
 def test_a_command_signalled_twice_while_it_sets_up_stops_at_once_and_leaves_the_folders_as_they_were(
     tmp_path, monkeypatch, where, at
 ):
@@ -166,6 +166,8 @@ def test_a_command_signalled_twice_while_it_sets_up_stops_at_once_and_leaves_the
     folder = f"hydra.run.dir={tmp_path / 'outputs' / 'run'}" if where == "new" else f"hydra.run.dir={tmp_path / 'mine'}"
     sweep = ["-m", *TINY, "seed=1,2", f"hydra.sweep.dir={tmp_path / 'outputs' / 'sweep'}"]
     args = sweep if where == "sweep" else [*TINY, folder]
+    if where == "elsewhere":  # a paths.output_dir beside Hydra's folder (refused once built): neither is left
+        args.append(f"paths.output_dir={tmp_path / 'elsewhere'}")
     stopped = unicorn_train(*args, cwd=tmp_path, entry=f"{__name__}:_signalled_twice_while_setting_up")
     assert stopped.returncode == 143, stopped.stderr[-3000:]
     stops = [line for line in error_lines(stopped.stderr) if line.startswith("unicorn-train:")]

@@ -134,7 +134,9 @@ def _task(cfg: DictConfig) -> None:
             raise
         return
     entries = {folder: entries_before(folder) for folder in (hydra_dir, output_dir)}
-    lock = lock_folder(output_dir)  # refused before anything is written when another run holds it
+    # Hydra's folder, the only paths.output_dir build() accepts under Hydra (unicorn.lit.run._check_one_run_folder): a
+    # folder elsewhere is never made, and a second signal's clean-up (put_back_job) covers the folder locked
+    lock = lock_folder(hydra_dir)  # refused before anything is written when another run holds it
     top = NoteExistingFolders.created_top  # the outermost folder Hydra created above the run's
     changes = [FolderChanges(folder, names, top) for folder, names in entries.items()]
     run = None
