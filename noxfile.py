@@ -106,7 +106,7 @@ def lowest(session: nox.Session) -> None:
     probe = "import importlib.metadata as m; print(m.version('torch'))"  # without importing torch: no warnings
     torch_version = str(session.run("python", "-c", probe, silent=True, log=False)).split()[-1]
     constraints = os.path.join(session.create_tmp(), "torch.txt")
-    with open(constraints, "w") as f:
+    with open(constraints, "w", encoding="utf-8") as f:
         f.write(f"torch=={torch_version}\n")  # a pin that asks for another torch fails instead of replacing it
     session.install("-c", constraints, *lowest_requirements())
     session.install("--no-deps", "-e", ".")

@@ -103,7 +103,7 @@ def write_datasets(root: Path, n_images: int, source_size: tuple[int, int]) -> d
 def _cpu_seconds(pid: int) -> float | None:
     """User + system CPU seconds of a process so far (Linux ``/proc``; None elsewhere)."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        fields = Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
     except OSError:
         return None
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

@@ -325,7 +325,7 @@ def check_checkpoint(path: str) -> None:
 def main() -> None:
     args = parse_args()
     if args.child:
-        Path(args.child).write_text(json.dumps(measure(args)))
+        Path(args.child).write_text(json.dumps(measure(args)), encoding="utf-8")
         return
     check_checkpoint(args.checkpoint)
     variants = {**{ref: tree_of(ref) for ref in args.ref}, "this tree": REPO}

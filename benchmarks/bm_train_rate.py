@@ -63,7 +63,7 @@ def make_timer_callback(out: str, warmup: int):  # noqa: ANN201
             n = trainer.global_step - step
             result = {"iterations": n, "wall": time.perf_counter() - wall, "cpu": time.process_time() - cpu}
             result["threads"] = cpu_by_thread(self.threads, thread_cpu_times())
-            Path(out).write_text(json.dumps(result))
+            Path(out).write_text(json.dumps(result), encoding="utf-8")
 
     return IterationTimer()
 

@@ -458,7 +458,7 @@ def train_all(runs: list[Run], args: argparse.Namespace) -> dict[Run, float]:
                 run.dir.mkdir(parents=True, exist_ok=True)
                 run.log.parent.mkdir(parents=True, exist_ok=True)
                 print(f"[{run.label}] ({threads} threads) {' '.join(command[2:])}", flush=True)
-                log_file = open(run.log, "w")  # closed when the process ends
+                log_file = open(run.log, "w", encoding="utf-8")  # closed when the process ends
                 process = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env=env)
                 active[run] = (process, time.perf_counter(), log_file, command)
             if not active:
@@ -756,7 +756,7 @@ def markdown_table(rows: dict[str, Row], stds: dict[str, Row], columns: list[tup
 def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
             if line.startswith("model name"):
                 cpu = line.split(":", 1)[1].strip()
                 break

@@ -292,7 +292,7 @@ def test_a_signal_writes_last_ckpt_and_the_run_resumes(synthetic_cache, tmp_path
     # and the signal's last.ckpt, which whoever reads last.ckpt would take for the run's end, is gone
     assert sorted(p.name for p in (run / "checkpoints").glob("*.ckpt")) == [newest.name]
     # the metric log reads as one run's: every iteration once (TINY logs every iteration)
-    with open(run / "csv" / "metrics.csv", newline="") as f:
+    with open(run / "csv" / "metrics.csv", encoding="utf-8", newline="") as f:
         logged = [int(row["step"]) for row in csv.DictReader(f) if row.get("train/lr")]
     assert logged == list(range(step + 1)), logged
 

@@ -41,7 +41,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     assert "chamfer-L1-ICP" in proc.stdout and "\nmean " in proc.stdout  # the table is printed
 
-    with open(out / "metrics.csv") as f:
+    with open(out / "metrics.csv", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0])[:9] == [
         "group", "n-images", "chamfer-L1", "chamfer-L1-ICP", "normal-cos", "normal-cos-ICP", "iou-3d", "iou-3d-ICP",
@@ -53,7 +53,7 @@ def test_eval_command(tmp_path: Path, synth: Path, checkpoint: Path) -> None:
     instance = {"color-err", "color-err-mean", "chamfer-L1-ICP-mean-shape", "shape-win"}
     instance |= {"chamfer-L1-ICP-own-mean", "shape-win-own"}
     assert instance | {"color-ratio", "rot-flip-150"} <= set(rows[0])
-    with open(out / "per_image.csv") as f:
+    with open(out / "per_image.csv", encoding="utf-8") as f:
         assert instance | {"rot-err"} <= set(next(csv.DictReader(f)))  # with each image's rotation error
     data = json.loads((out / "metrics.json").read_text())
     assert data["dataset"] == "synthetic" and data["checkpoint_format"] == "plain" and len(data["per_image"]) == 3
@@ -76,10 +76,10 @@ def test_pascal3d_reports_3d_iou(tmp_path: Path, p3d_root: Path, capsys) -> None
     assert main([*args, "--report-samples", "0", *FAST]) == 0
     header = next(line for line in capsys.readouterr().out.splitlines() if "chamfer-L1-ICP" in line)
     assert "iou-3d-ICP" in header.split()
-    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    rows = list(csv.DictReader(open(out / "metrics.csv", encoding="utf-8")))
     assert "iou-3d-ICP" in rows[-1] and "iou-3d" not in rows[-1] and rows[-1]["group"] == "mean"
     assert 0 <= float(rows[-1]["iou-3d-ICP"]) <= 1
-    per_image = list(csv.DictReader(open(out / "per_image.csv")))
+    per_image = list(csv.DictReader(open(out / "per_image.csv", encoding="utf-8")))
     assert len(per_image) == 2 and all(0 <= float(r["iou-3d-ICP"]) <= 1 for r in per_image)
 
 
@@ -92,7 +92,7 @@ def test_dataset_of_the_training_run(tmp_path: Path, synth: Path, checkpoint: Pa
     code = main([str(run / "checkpoints" / "last.pt"), "--split", "train", "--report-samples", "0", *FAST])
     assert code == 0
     out = run / "eval" / "shapenet_nmr_train"  # inside the run directory
-    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    rows = list(csv.DictReader(open(out / "metrics.csv", encoding="utf-8")))
     assert [r["group"] for r in rows] == ["mug", "mean"]  # the run's categories
     assert not (out / "report.html").exists()
 

@@ -181,7 +181,7 @@ def test_end_to_end(synthetic_cache, tmp_path):
         "step=0000004.png",
         "step=0000008.png",
     ]
-    rows = list(csv.DictReader(open(run_dir / "csv" / "metrics.csv")))
+    rows = list(csv.DictReader(open(run_dir / "csv" / "metrics.csv", encoding="utf-8")))
     keys = ("train/pose/rgb", "train/pose/uniform", "train/3d/rgb", "train/3d/normal", "pose/share_0", "stage")
     keys += ("stage/dims_shape", "stage/texture_p", "stage/neighbor")
     assert set(keys) <= set(rows[0])

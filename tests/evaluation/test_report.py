@@ -31,14 +31,14 @@ def test_format_table() -> None:
 def test_metric_files(tmp_path: Path, real_model) -> None:
     result = report_result(real_model)
     paths = write_metrics(result, tmp_path, {"checkpoint": Path("/x/model.pkl")})
-    with open(paths["csv"]) as f:
+    with open(paths["csv"], encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == ["group", "n-images", "mask-iou", "rec-mse"] and rows[-1]["group"] == "mean"
     data = json.loads(paths["json"].read_text())  # strict JSON: NaN written as null
     assert data["mean"]["mask-iou"] == 0.5 and data["per_image"][1]["mask-iou"] is None
     assert data["better"] == {"mask-iou": "higher", "rec-mse": "lower"} and data["checkpoint"] == "/x/model.pkl"
     # per_image.csv: each row the result's row of that image, cell by cell (NaN as Python writes it, "nan")
-    with open(paths["per_image"], newline="") as f:
+    with open(paths["per_image"], encoding="utf-8", newline="") as f:
         reader = csv.DictReader(f)
         images = list(reader)
     assert reader.fieldnames == ["index", "group", "mask-iou", "rec-mse"]

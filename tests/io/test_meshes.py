@@ -325,7 +325,7 @@ def test_glb_passes_the_khronos_validator(model_and_prediction, tmp_path):
 
 def _obj_normals(obj: Path) -> tuple[np.ndarray, np.ndarray]:
     """An OBJ's positions and, for each, the normal its face corners name (they must agree)."""
-    lines = obj.read_text().splitlines()
+    lines = obj.read_text(encoding="utf-8").splitlines()
     positions = np.array([ln.split()[1:] for ln in lines if ln.startswith("v ")], dtype=float)
     normals = np.array([ln.split()[1:] for ln in lines if ln.startswith("vn ")], dtype=float)
     per_position = np.full_like(positions, np.nan)

@@ -271,7 +271,7 @@ def test_folder_changes_put_an_existing_folder_back(tmp_path) -> None:
     (tmp_path / "notes").mkdir()
     changes = FolderChanges(tmp_path, {p.name for p in tmp_path.iterdir()})
     (tmp_path / "config.yaml").write_text("the run's")
-    with open(tmp_path / "train.log", "a") as f:
+    with open(tmp_path / "train.log", "a", encoding="utf-8") as f:
         f.write("new lines\n")
     (tmp_path / "csv").mkdir()
     (tmp_path / "csv" / "metrics.csv").write_text("x")

@@ -116,7 +116,7 @@ def test_a_collapsed_branch_warns_loudly(tmp_path) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error", CollapseWarning)
         callback.check(trainer, module)
-    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv")))
+    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv", encoding="utf-8")))
     assert [r["step"] for r in rows] == ["5", "6", "7"] and rows[1]["shape/alive-last"] == "0.0"
     # a code size that just changed is not judged on its spread (new dimensions start at 0), dead units are
     fresh = CodeDiagnostics(every_n_steps=1, max_images=8)
@@ -297,7 +297,7 @@ def test_the_overflow_share_is_logged_and_said_once_per_run(tmp_path, monkeypatc
     finally:
         callback.on_fit_end(trainer, module)
     assert min(shares) > 0
-    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv")))
+    rows = list(csv.DictReader(open(tmp_path / "diagnostics.csv", encoding="utf-8")))
     assert [float(r["render/overflow-share"]) for r in rows[:2]] == pytest.approx(shares, abs=1e-12)
     assert rows[2]["render/overflow-share"] == "nan"
     assert [m["diagnostics/render/overflow-share"] for m in logged[:2]] == pytest.approx(shares, abs=1e-12)
@@ -326,7 +326,7 @@ def test_a_training_run_says_the_overflow_once(synthetic_cache, tmp_path, monkey
     # none from the training steps' renders: one, from the first check, naming the share it logged
     said = [w for w in caught if issubclass(w.category, RenderOverflowWarning)]
     assert len(said) == 1 and said[0].filename.endswith("diagnostics.py"), [str(w.message) for w in said]
-    rows = list(csv.DictReader(open(run.output_dir / "diagnostics.csv")))
+    rows = list(csv.DictReader(open(run.output_dir / "diagnostics.csv", encoding="utf-8")))
     share = float(rows[0]["render/overflow-share"])
     assert [r["step"] for r in rows] == ["2", "4"] and 0 < share < 1
     assert f"iterations 0-2, {100 * share:.2g}% of the" in str(said[0].message)

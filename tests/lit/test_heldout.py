@@ -48,7 +48,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     a, b = _weights(plain), _weights(watched)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
-    rows = list(csv.DictReader(open(watched.output_dir / "heldout.csv")))
+    rows = list(csv.DictReader(open(watched.output_dir / "heldout.csv", encoding="utf-8")))
     # the run's metrics files have their provenance beside them
     (origin,) = json.loads((watched.output_dir / "provenance.json").read_text())
     assert origin["unicorn_version"] and "git_commit" in origin and origin["command"]
@@ -103,7 +103,7 @@ def test_heldout_rows_and_training_unchanged(synthetic_cache, tmp_path, capsys, 
     assert float(last["rec-mse"]) != pytest.approx(scores[True]["rec-mse"], rel=1e-7)
 
     # code diagnostics: a row every 4 iterations, and no alarm on a healthy start
-    rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv")))
+    rows = list(csv.DictReader(open(watched.output_dir / "diagnostics.csv", encoding="utf-8")))
     assert [r["step"] for r in rows] == ["4", "8"]
     assert {"shape/code-std", "texture/alive-last", "texture/units-last", "pose/azim-spread"} <= set(rows[0])
     diagnostics = next(c for c in watched.trainer.callbacks if isinstance(c, CodeDiagnostics))
@@ -115,12 +115,12 @@ def test_csv_keeps_one_row_per_step_and_forgets_what_a_resume_writes_again(tmp_p
     HeldOutEvaluation._append_csv(path, {"step": 0.0, "mask-iou": 0.1})
     HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.2})
     HeldOutEvaluation._append_csv(path, {"step": 4.0, "mask-iou": 0.3, "rot-err-median": 9.0})  # a resumed run
-    rows = list(csv.DictReader(open(path)))
+    rows = list(csv.DictReader(open(path, encoding="utf-8")))
     assert [(r["step"], r["mask-iou"]) for r in rows] == [("0", "0.1"), ("4", "0.3")]  # steps as integers
     assert rows[1]["rot-err-median"] == "9.0" and rows[0]["rot-err-median"] == ""
     HeldOutEvaluation._append_csv(path, {"step": 8, "mask-iou": 0.4})
     HeldOutEvaluation._append_csv(path, {"step": 4, "mask-iou": 0.5})  # resumed from an earlier checkpoint
-    rows = list(csv.DictReader(open(path)))
+    rows = list(csv.DictReader(open(path, encoding="utf-8")))
     assert [(r["step"], r["mask-iou"]) for r in rows] == [("0", "0.1"), ("4", "0.5")]  # 8: abandoned
 
 

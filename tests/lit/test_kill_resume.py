@@ -79,7 +79,7 @@ def _scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
 
 
 def _rows(run: Path) -> list[dict[str, str]]:
-    with open(run / "csv" / "metrics.csv", newline="") as f:
+    with open(run / "csv" / "metrics.csv", encoding="utf-8", newline="") as f:
         return list(csv.DictReader(f))
 
 

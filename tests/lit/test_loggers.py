@@ -11,7 +11,7 @@ from unicorn.lit.loggers import CSVLogger, log_step
 
 
 def _rows(path) -> list[dict[str, str]]:
-    with open(path, newline="") as f:
+    with open(path, encoding="utf-8", newline="") as f:
         return list(csv.DictReader(f))
 
 
@@ -97,7 +97,7 @@ def test_a_last_row_cut_short_is_dropped_before_rows_are_appended(tmp_path, capl
     assert "dropped 1 row(s) cut short" in caplog.text
     resumed.log_metrics({"train/loss": 3.25, "train/iou": 0.5}, step=3)
     resumed.log_metrics({"train/loss": 4.25, "train/iou": 0.5}, step=4)
-    with open(path, newline="") as f:
+    with open(path, encoding="utf-8", newline="") as f:
         lines = list(csv.reader(f))
     assert all(len(line) == len(lines[0]) for line in lines)
     assert [(r["step"], r["train/loss"]) for r in _rows(path)] == [(str(s), f"{s + 0.25}") for s in range(5)]

@@ -67,5 +67,8 @@ def run_command(
             process.kill()
             process.join()
             raise subprocess.TimeoutExpired(argv, timeout)
-        read = {path: Path(path).read_text(errors="replace") if os.path.exists(path) else "" for path in (out, err)}
+        read = {
+            path: Path(path).read_text(encoding="utf-8", errors="replace") if os.path.exists(path) else ""
+            for path in (out, err)
+        }
         return subprocess.CompletedProcess(argv, process.exitcode, read[out], read[err])
