@@ -195,6 +195,23 @@ def test_errors(tmp_path: Path, checkpoint: Path, inputs: Path, capsys, args: li
     assert err.startswith("unicorn-reconstruct: error:") and message in err
 
 
+@pytest.mark.parametrize(
+    "args, line",
+    [
+        (["--template-level", "9"], "--template-level must be in [0, 7]"),
+        (["--refine", "-1"], "--refine must be >= 0"),
+        (["--turntable-frames", "-2"], "--turntable-frames must be >= 0"),
+        (["--bbox", "1,2,3"], "argument --bbox: must be four numbers x1,y1,x2,y2, got '1,2,3'"),
+    ],
+)
+def test_a_bad_option_is_a_usage_error_naming_it_once(tmp_path: Path, capsys, args: list[str], line: str) -> None:
+    """Refused while the arguments are read: the checkpoint and the image (missing here) are not read."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path / "missing.ckpt"), str(tmp_path / "photo.jpg"), *args])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == f"unicorn-reconstruct: error: {line}"
+
+
 def test_decompression_bomb_is_skipped_or_one_line(
     tmp_path: Path, checkpoint: Path, inputs: Path, capsys, caplog, monkeypatch: pytest.MonkeyPatch
 ) -> None:

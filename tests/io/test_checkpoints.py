@@ -260,6 +260,21 @@ def test_init_weights_copies_every_weight_or_refuses(tmp_path: Path) -> None:
         init_weights(other, path)
 
 
+def test_init_weights_keeps_the_runs_own_background_colour(tmp_path: Path) -> None:
+    from unicorn.io.checkpoints import init_weights
+    from unicorn.model import Unicorn
+
+    source = tiny_model("real", seed=1)  # white behind the mesh
+    path = save_model(source, tmp_path / "m.pt")
+    target = Unicorn(source.config, renderer={"background_color": (0.0, 0.5, 0.0)})
+    init_weights(target, path)
+    assert tuple(target.config["renderer"]["background_color"]) == (0.0, 0.5, 0.0)
+    assert torch.equal(target.renderer.background_color, torch.tensor([0.0, 0.5, 0.0]))
+    for key, value in source.state_dict().items():
+        if not key.startswith("renderer."):
+            assert torch.equal(target.state_dict()[key], value), key
+
+
 def test_save_model_keeps_info_load_model_can_read_back_and_names_what_it_cannot(tmp_path):
     import numpy as np
 

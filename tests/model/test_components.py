@@ -49,6 +49,10 @@ def test_template_sizes_axes_and_uvs():
     assert t.state_dict() == {}  # derived from the configuration
     with pytest.raises(ValueError, match="uv_mode"):
         TemplateMesh(uv_mode="bad")
+    assert TemplateMesh(level=2.0).num_verts == TemplateMesh(level=2).num_verts  # a whole float is a level
+    for bad in (2.5, True):
+        with pytest.raises(ValueError, match=rf"^level must be a whole number, got {bad!r}$"):
+            TemplateMesh(level=bad)
 
 
 def test_mlp_layout_and_zero_init():
@@ -73,8 +77,12 @@ def test_mask_switches_dims_off_and_is_saved():
     mask.set_active_dims(6)
     assert torch.equal(mask(code), code)
     assert int(mask.state_dict()["active"]) == 6
-    with pytest.raises(ValueError, match=r"active dims must be in \[0, 6\], got 7"):
-        mask.set_active_dims(7)
+    mask.set_active_dims(4.0)  # a whole float is a count
+    assert mask.active_dims == 4 and int(mask.state_dict()["active"]) == 4
+    for bad in (7, -1, 2.5, True):
+        with pytest.raises(ValueError, match=rf"^active dims must be a whole number in \[0, 6\], got {bad!r}$"):
+            mask.set_active_dims(bad)
+    assert mask.active_dims == 4
 
 
 def test_deformation_field_zero_init_and_shapes():

@@ -32,6 +32,7 @@ from unicorn.cli.options import (
     check_common_arguments,
     check_out_folder,
     check_picture_sizes,
+    check_ranged_options,
     lsun_tag,
     parse_device,
 )
@@ -40,7 +41,6 @@ from unicorn.data.images import DatasetNotFoundError
 from unicorn.data.registry import DATASET_NAMES, DATASETS, prepare_dataset
 from unicorn.evaluation.protocols import EvalOptions
 from unicorn.model.config import TemplateConfig
-from unicorn.model.ranges import describe_range, field_range
 from unicorn.registry import PLUGINS_ENV
 
 __all__ = ["build_parser", "main"]
@@ -210,11 +210,7 @@ _RANGED = {
 
 def check_ranges(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse a value outside the range its evaluation setting declares (a usage error naming the option)."""
-    for name, (schema, field) in _RANGED.items():
-        low, high = field_range(schema, field)
-        value = getattr(args, name)
-        if value is not None and not ((low is None or value >= low) and (high is None or value <= high)):
-            parser.error(f"--{name.replace('_', '-')} must be {describe_range(low, high)}")
+    check_ranged_options(parser, args, _RANGED)
     if args.view_size < 1:
         parser.error("--view-size must be >= 1")
     if args.nn_workers is not None and not (args.nn_workers == -1 or args.nn_workers >= 1):

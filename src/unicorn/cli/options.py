@@ -16,6 +16,7 @@ __all__ = [
     "apply_common_arguments",
     "check_common_arguments",
     "check_out_folder",
+    "check_ranged_options",
     "check_picture_sizes",
     "lsun_tag",
     "parse_device",
@@ -190,3 +191,23 @@ def lsun_tag(dataset: str, tag: str | None, known: str | None = None, hint: str 
     if tag is None and known is None:
         raise UsageError(f"lsun needs --tag, the LSUN category whose folder is under --root (horse, motorbike){hint}")
     return tag if tag is not None else known
+
+
+def check_ranged_options(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, ranged: dict[str, tuple[type, str]]
+) -> None:
+    """Refuse an option's value outside the range its setting declares (:func:`unicorn.model.ranges.ranged`), as a
+    usage error naming the option, before anything is read.
+
+    Args:
+        parser: the command's parser (its usage error).
+        args: the parsed options.
+        ranged: option (its ``args`` name) -> (the settings class, the field that declares the range).
+    """
+    from unicorn.model.ranges import describe_range, field_range
+
+    for name, (schema, field) in ranged.items():
+        low, high = field_range(schema, field)
+        value = getattr(args, name)
+        if value is not None and not ((low is None or value >= low) and (high is None or value <= high)):
+            parser.error(f"--{name.replace('_', '-')} must be {describe_range(low, high)}")

@@ -34,10 +34,12 @@ from unicorn.cli.options import (
     check_common_arguments,
     check_out_folder,
     check_picture_sizes,
+    check_ranged_options,
     parse_device,
 )
 from unicorn.errors import UnicornWarning
 from unicorn.io.images import DEFAULT_PADDING, MAX_PADDING
+from unicorn.model.config import TemplateConfig
 
 if TYPE_CHECKING:
     from unicorn.objectives.refine import RefineOptions
@@ -59,7 +61,7 @@ def _bbox(text: str) -> list[float]:
     except ValueError:
         values = []
     if len(values) != 4:
-        raise argparse.ArgumentTypeError(f"--bbox must be four numbers x1,y1,x2,y2, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be four numbers x1,y1,x2,y2, got {text!r}")  # after "--bbox: "
     return values
 
 
@@ -257,8 +259,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("batch_size", "view_size", "strip_views"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be positive")
-    if args.turntable_frames < 0 or args.refine < 0:
-        parser.error("--turntable-frames and --refine must be >= 0")
+    for name in ("turntable_frames", "refine"):
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be >= 0")
+    check_ranged_options(parser, args, {"template_level": (TemplateConfig, "level")})
     check_common_arguments(parser, args)
     return report_errors("unicorn-reconstruct", lambda: _run(args, argv), args.debug)
 

@@ -449,20 +449,26 @@ def check_weight_values(model: torch.nn.Module, path: str | os.PathLike) -> None
             raise CheckpointError(f"checkpoint {path}: its batch-norm running variance {name} holds negative values")
 
 
+#: the state of a model that ``init_from`` does not take from its file: the perceptual loss's fixed VGG16 and the
+#: renderer's settings (the run's configured ``renderer.background_color``)
+_NOT_LEARNED = ("perceptual.", "renderer.")
+
+
 def init_weights(model: Unicorn, path: str | os.PathLike, trust: bool = False) -> CheckpointInfo:
     """Load the weights of any checkpoint (:func:`load_model`'s formats) into ``model``, in place: training started
     from a released model or a :func:`save_model` file (``unicorn-train init_from=...``).
 
-    Every learned weight must fit: the same networks, the same sizes (the perceptual loss is not part of it).
+    Every learned weight must fit: the same networks, the same sizes. The perceptual loss and the renderer (its
+    ``background_color``, a setting of the run) are not part of it: ``model`` keeps its own.
 
     Raises:
         CheckpointError: the file cannot be loaded, or its weights do not fit ``model``'s configuration.
     """
     source, info = load_model(path, trust=trust)
-    state = {k: v for k, v in source.state_dict().items() if not k.startswith("perceptual.")}
-    own = {k: v for k, v in model.state_dict().items() if not k.startswith("perceptual.")}
+    state = {k: v for k, v in source.state_dict().items() if not k.startswith(_NOT_LEARNED)}
+    own = {k: v for k, v in model.state_dict().items() if not k.startswith(_NOT_LEARNED)}
     check_weights_fit(state, own, "init_from", path)
-    model.load_state_dict(state, strict=False)  # every key checked above; the perceptual loss keeps its own
+    model.load_state_dict(state, strict=False)  # every key checked above; the rest keeps the model's own
     return info
 
 

@@ -68,9 +68,9 @@ class ProgressiveMask(nn.Module):
 
     def set_active_dims(self, n: int) -> None:
         """Use the first ``n`` dimensions from now on (0 means a code that is all zeros)."""
+        if isinstance(n, bool) or not float(n).is_integer() or not 0 <= n <= self.code_dim:  # 2.5 is no count
+            raise ValueError(f"active dims must be a whole number in [0, {self.code_dim}], got {n!r}")
         n = int(n)
-        if not 0 <= n <= self.code_dim:
-            raise ValueError(f"active dims must be in [0, {self.code_dim}], got {n}")
         self.active.fill_(n)
         self._active_host = n
 

@@ -55,6 +55,8 @@ class TemplateMesh(nn.Module):
         super().__init__()
         if uv_mode not in UV_MODES:
             raise ValueError(f"uv_mode must be one of {UV_MODES}, got {uv_mode!r}")
+        if isinstance(level, bool) or not float(level).is_integer():  # icosphere's range check reads a whole level
+            raise ValueError(f"level must be a whole number, got {level!r}")
         if len(axes) != 3 or min(axes) <= 0 or scale <= 0:
             raise ValueError(f"axes must be 3 positive values and scale positive, got {axes}, {scale}")
         self.level, self.axes, self.scale, self.uv_mode = (
