@@ -121,6 +121,20 @@ def test_a_size_that_is_not_whole_or_a_switch_that_is_not_a_bool_is_named(groups
         Unicorn(groups)
 
 
+@pytest.mark.parametrize(
+    ("groups", "message"),
+    [
+        ({"template": 3}, r"^model config group 'template' must be a mapping of its keys, got 3$"),
+        ({"shape": [("code_dim", 8)]}, r"^model config group 'shape' must be a mapping of its keys, got \["),
+        ({"template": {"level": 10**400}}, r"^template\.level must be in \[0, 7\], got 1000"),
+    ],
+    ids=["int", "pairs", "huge"],
+)
+def test_a_group_that_is_no_mapping_or_a_huge_number_is_named(groups, message) -> None:
+    with pytest.raises(ModelConfigError, match=message):
+        merge_config(groups)
+
+
 def test_whole_floats_are_sizes_the_networks_take() -> None:
     cfg = merge_config(image_size=32.0, shape={"code_dim": 16.0}, pose={"n_azim": 4.0}, background=None)
     assert (cfg["image_size"], cfg["shape"]["code_dim"], cfg["pose"]["n_azim"]) == (32, 16, 4)

@@ -483,8 +483,10 @@ def merge_config(config: Mapping[str, Any] | None = None, **overrides: Any) -> d
                 # numpy's integers as Python's; any other value as given, for the checks to name (64.5 is not 64)
                 merged[group] = int(value) if isinstance(value, Integral) and not isinstance(value, bool) else value
             else:
+                if not isinstance(value, Mapping):  # dict(3) would say only that an int is not iterable
+                    raise ModelConfigError(f"model config group {group!r} must be a mapping of its keys, got {value!r}")
                 base = merged[group] if merged[group] is not None else copy.deepcopy(DEFAULT_CONFIG[group])
-                for key, v in dict(value).items():
+                for key, v in value.items():
                     if key not in base:
                         raise KeyError(f"unknown key {key!r} in model config group {group!r}; known: {sorted(base)}")
                     base[key] = dict(v) if isinstance(v, Mapping) else v

@@ -79,7 +79,8 @@ def check_ranges(values: Mapping[str, Any], schema: type, prefix: str = "") -> N
         low, high = field_range(schema, f.name)
         if value is None or (low is None and high is None):
             continue
-        if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or (isinstance(value, float) and not math.isfinite(value)):  # an int is finite (10**400 too)
             raise ModelConfigError(f"{key} must be a finite number {describe_range(low, high)}, got {value!r}")
         if hints[f.name] is int and isinstance(value, float) and not value.is_integer():
             raise ModelConfigError(f"{key} must be a whole number {describe_range(low, high)}, got {value!r}")
