@@ -9,6 +9,7 @@ vertices.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -43,6 +44,7 @@ __all__ = [
     "check_translations",
     "env_limit",
     "is_number",
+    "is_real",
     "is_seed",
     "is_whole",
 ]
@@ -54,6 +56,11 @@ MAX_SEED = 2**32 - 1
 def is_whole(value: object) -> bool:
     """Whether ``value`` is a Python int, not a bool (which Python counts as one)."""
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_real(value: object) -> bool:
+    """Whether ``value`` is a real number, a NumPy scalar included, but not a bool (which Python counts as one)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def is_number(value: object) -> bool:

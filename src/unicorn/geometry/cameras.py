@@ -10,12 +10,11 @@
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 from torch import nn
 
-from unicorn.checks import check_image_size, check_shape
+from unicorn.checks import check_image_size, check_shape, is_real
 
 __all__ = ["PerspectiveCamera", "image_hw", "ndc_to_pixel", "opencv_camera", "pixel_to_ndc", "world_to_view"]
 
@@ -91,7 +90,7 @@ def _one_number(name: str, value: object) -> float:
     """``value`` as a float (a one-element tensor or NumPy scalar included), or a ValueError naming ``name``. A
     bool or a string is no number, though ``float`` reads ``True`` as 1 and ``"30"`` as 30; a meta tensor has no
     value to read."""
-    real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    real = is_real(value)
     scalar = torch.is_tensor(value) and value.numel() == 1 and not (value.dtype == torch.bool or value.is_complex())
     if not (real or scalar):
         raise ValueError(f"{name} must be one number, got {value!r}")

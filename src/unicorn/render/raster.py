@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -39,6 +38,7 @@ from ..checks import (
     check_rotations,
     check_translations,
     env_limit,
+    is_real,
 )
 from ..errors import UserError
 from ..geometry.cameras import image_hw, ndc_to_pixel
@@ -196,11 +196,6 @@ def check_mesh_inputs(
     finite vertices; empty batches, meshes and face lists are allowed (:func:`unicorn.checks.check_mesh`).
     ``finite_also`` (a render's colours, by argument name) must be finite too, checked in the same host read."""
     check_mesh(verts, faces, allow_empty=True, finite=True, finite_also=finite_also)
-
-
-def is_real(value: Any) -> bool:
-    """Whether ``value`` is a real number, a NumPy scalar included, but not a bool (which Python counts as one)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def check_whole_number(name: str, value: Any, low: int) -> None:
