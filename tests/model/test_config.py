@@ -111,28 +111,18 @@ def test_what_the_networks_cannot_be_built_with_fails_naming_the_key(groups, mes
         ({"encoder": {"shared": "false"}}, r"^encoder\.shared must be true or false, got 'false'$"),
         ({"shape": {"symmetric": 1}}, r"^shape\.symmetric must be true or false, got 1$"),
         ({"loss": {"viewpoint_azimuth_only": "no"}}, r"^loss\.viewpoint_azimuth_only must be true or false, got 'no'$"),
-    ],
-)
-def test_a_size_that_is_not_whole_or_a_switch_that_is_not_a_bool_is_named(groups, message) -> None:
-    """Neither is rounded nor read as a truth value (64.5 is not 64, "false" is not on): each is named."""
-    with pytest.raises(ModelConfigError, match=message):
-        merge_config(groups)
-    with pytest.raises(ModelConfigError, match=message):
-        Unicorn(groups)
-
-
-@pytest.mark.parametrize(
-    ("groups", "message"),
-    [
         ({"template": 3}, r"^model config group 'template' must be a mapping of its keys, got 3$"),
         ({"shape": [("code_dim", 8)]}, r"^model config group 'shape' must be a mapping of its keys, got \["),
         ({"template": {"level": 10**400}}, r"^template\.level must be in \[0, 7\], got 1000"),
     ],
-    ids=["int", "pairs", "huge"],
 )
-def test_a_group_that_is_no_mapping_or_a_huge_number_is_named(groups, message) -> None:
+def test_a_size_that_is_not_whole_or_a_switch_that_is_not_a_bool_is_named(groups, message) -> None:
+    """Neither is rounded nor read as a truth value (64.5 is not 64, "false" is not on), a group is a mapping, a
+    huge number is no size: each is named."""
     with pytest.raises(ModelConfigError, match=message):
         merge_config(groups)
+    with pytest.raises(ModelConfigError, match=message):
+        Unicorn(groups)
 
 
 def test_whole_floats_are_sizes_the_networks_take() -> None:

@@ -193,7 +193,9 @@ class Unicorn(nn.Module):
 
     Args:
         config: configuration mapping (groups as in :data:`unicorn.model.config.DEFAULT_CONFIG`); keyword groups
-            override it.
+            override it. :attr:`config` keeps the merged mapping the model was built from: its ``active_dims`` are
+            the code sizes at build time, while the sizes in force are buffers, saved with the weights, that
+            :meth:`set_active_dims` changes and :meth:`active_dims` reads.
 
     Raises:
         KeyError, ValueError: an unknown key, a value out of range or not allowed (named).
