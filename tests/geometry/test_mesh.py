@@ -114,3 +114,40 @@ def test_mirrored_map_shows_at_a_point_what_the_map_shows_at_its_mirror():
     assert torch.equal(mirror_spherical_map(mirror_spherical_map(image)), image)
     with pytest.raises(ValueError, match="even width"):
         mirror_spherical_map(torch.rand(3, 8, 15))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"scale": 0.0}, r"^ellipsoid scale must be a finite number > 0, got 0\.0$"),
+        ({"scale": -0.6}, r"^ellipsoid scale must be a finite number > 0, got -0\.6$"),
+        ({"scale": float("nan")}, r"^ellipsoid scale must be a finite number > 0, got nan$"),
+        ({"scale": float("inf")}, r"^ellipsoid scale must be a finite number > 0, got inf$"),
+        ({"scale": True}, r"^ellipsoid scale must be a finite number > 0, got True$"),
+        ({"axes": (1.0, 0.7)}, r"^ellipsoid axes must be three finite numbers > 0 \(x, y, z\), got \(1\.0, 0\.7\)$"),
+        ({"axes": (1.0, 0.7, 0.7, 1.0)}, r"^ellipsoid axes must be three finite numbers > 0"),
+        ({"axes": (1.0, -0.7, 0.7)}, r"^ellipsoid axes must be .*, got \(1\.0, -0\.7, 0\.7\)$"),
+        ({"axes": (1.0, 0.0, 0.7)}, r"^ellipsoid axes must be three finite numbers > 0"),
+        ({"axes": (1.0, float("nan"), 0.7)}, r"^ellipsoid axes must be three finite numbers > 0"),
+        ({"axes": 0.7}, r"^ellipsoid axes must be three finite numbers > 0 .*, got 0\.7$"),
+        ({"axes": "abc"}, r"^ellipsoid axes must be three finite numbers > 0"),
+        ({"bottom": 0.0}, r"^ellipsoid bottom must be a number in \(0, 1\], got 0\.0$"),
+        ({"bottom": -0.5}, r"^ellipsoid bottom must be a number in \(0, 1\], got -0\.5$"),
+        ({"bottom": 1.5}, r"^ellipsoid bottom must be a number in \(0, 1\], got 1\.5$"),
+        ({"bottom": float("nan")}, r"^ellipsoid bottom must be a number in \(0, 1\], got nan$"),
+    ],
+)
+def test_ellipsoid_refuses_a_stretch_that_builds_no_template(kwargs, match):
+    # each of these would give a flat, inside-out or NaN template (or torch's broadcasting error) without a word
+    with pytest.raises(ValueError, match=match):
+        ellipsoid(1, **kwargs)
+
+
+def test_ellipsoid_takes_any_real_numbers_and_keeps_faces_outward():
+    np = pytest.importorskip("numpy")
+    v, f = ellipsoid(2, np.array([1.0, 0.5, 0.3]), np.float32(0.6), bottom=1)
+    assert torch.allclose(v.abs().amax(0), torch.tensor([0.6, 0.3, 0.18]), atol=1e-3)
+    tri = v[f]
+    n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    assert ((n * tri.mean(1)).sum(-1) > 0).all()  # outward: a convex shape's faces point away from its centre
+    assert torch.isfinite(ellipsoid(1, bottom=1e-3)[0]).all()

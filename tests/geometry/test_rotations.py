@@ -89,3 +89,58 @@ def test_numbers_beside_a_batch_on_another_device_go_there():
     azim = torch.tensor([10.0, 20.0], device="meta")
     assert camera_position_from_spherical(2.0, 30.0, azim).device.type == "meta"
     assert azim_elev_roll_to_rotation(azim, 30.0, 5.0).device.type == "meta"
+
+
+def test_one_up_or_target_serves_a_batch_and_a_batch_of_them_one_camera():
+    # the oracle: each camera computed by itself
+    ups = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]])
+    R, T = look_at_view_transform(2.5, 30.0, 45.0, up=ups)
+    alone = [look_at_view_transform(2.5, 30.0, 45.0, up=u[None]) for u in ups]
+    assert torch.equal(R, torch.cat([r for r, _ in alone])) and torch.equal(T, torch.cat([t for _, t in alone]))
+    _assert_rotations(R)
+    position = camera_position_from_spherical(2.5, 30.0, 45.0)[None]
+    assert torch.equal(look_at_rotation(position, up=ups), R)
+    # one up for three cameras, a target each
+    at = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, -0.2, 0.3]])
+    R, T = look_at_view_transform(2.0, torch.tensor([10.0, 20.0, 30.0]), 0.0, at=at, up=[0.0, 1.0, 0.0])
+    for i in range(3):
+        Ri, Ti = look_at_view_transform(2.0, 10.0 * (i + 1), 0.0, at=at[i : i + 1], up=[0.0, 1.0, 0.0])
+        assert torch.equal(R[i : i + 1], Ri) and torch.equal(T[i : i + 1], Ti)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (
+            lambda: look_at_view_transform(2.0, 0.0, torch.tensor([0.0, 90.0, 180.0]), at=torch.zeros(2, 3)),
+            r"^look_at_view_transform: 3 cameras \(dist, elev, azim\), 2 at points; each number must be 1 or the same",
+        ),
+        (
+            lambda: look_at_view_transform(2.0, 0.0, 0.0, at=torch.zeros(2, 3), up=torch.ones(3, 3)),
+            r"^look_at_view_transform: 1 cameras .*, 2 at points, 3 up directions; each number must be 1",
+        ),
+        (
+            lambda: look_at_rotation(torch.ones(3, 3), up=torch.ones(2, 3)),
+            r"^look_at: camera_position \(3, 3\), at \(3, 3\) and up \(2, 3\) do not broadcast together$",
+        ),
+    ],
+    ids=["cameras-at", "at-up", "rotation"],
+)
+def test_batches_of_different_sizes_are_refused_in_one_line(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_the_two_azimuth_conventions_place_the_camera_where_the_docs_say():
+    # the camera centre -T @ R^T of each convention, against the directions the docstrings and docs/renderer.md give
+    azim, elev = torch.tensor([0.0, 90.0, 0.0]), torch.tensor([0.0, 0.0, 30.0])
+    dist = 2.0
+    R, T = look_at_view_transform(dist, elev, azim)
+    look_at_centre = -(T.unsqueeze(1) @ R.transpose(1, 2)).squeeze(1)
+    R_pose = azim_elev_roll_to_rotation(azim, elev)
+    pose_centre = -(torch.tensor([0.0, 0.0, dist]) @ R_pose.transpose(1, 2))
+    h, v = dist * math.cos(math.radians(30.0)), dist * math.sin(math.radians(30.0))
+    expected = torch.tensor([[0.0, 0.0, dist], [dist, 0.0, 0.0], [0.0, v, h]])  # +Z, +X, above +Z
+    assert torch.allclose(look_at_centre, expected, atol=1e-5)
+    assert torch.allclose(pose_centre, expected * torch.tensor([-1.0, 1.0, -1.0]), atol=1e-5)  # -Z, -X, above -Z
+    assert torch.equal(R_pose[0], torch.eye(3))

@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
 
 import torch
 import trimesh
 
-from unicorn.checks import check_faces, check_shape
+from unicorn.checks import check_faces, check_shape, is_real
 
 __all__ = [
     "ellipsoid",
@@ -52,11 +53,28 @@ def ellipsoid(
 
     Returns:
         verts: (V, 3) and faces: (F, 3) long.
+
+    Raises:
+        ValueError: ``level`` refused by :func:`icosphere`, ``axes`` not three finite numbers > 0, ``scale`` not a
+            finite number > 0, or ``bottom`` not a number in (0, 1]. A zero or negative stretch would flatten the
+            template or turn it inside out (its faces clockwise seen from outside).
     """
+    values = list(axes) if isinstance(axes, Iterable) and not isinstance(axes, str) else []
+    if not (len(values) == 3 and all(_positive(a) for a in values)):
+        raise ValueError(f"ellipsoid axes must be three finite numbers > 0 (x, y, z), got {axes!r}")
+    if not _positive(scale):
+        raise ValueError(f"ellipsoid scale must be a finite number > 0, got {scale!r}")
+    if not (_positive(bottom) and bottom <= 1):
+        raise ValueError(f"ellipsoid bottom must be a number in (0, 1], got {bottom!r}")
     verts, faces = icosphere(level)
-    verts = verts * torch.tensor(axes, dtype=verts.dtype) * scale
-    verts[:, 1] = torch.where(verts[:, 1] < 0, verts[:, 1] * bottom, verts[:, 1])
+    verts = verts * torch.tensor([float(a) for a in values], dtype=verts.dtype) * float(scale)
+    verts[:, 1] = torch.where(verts[:, 1] < 0, verts[:, 1] * float(bottom), verts[:, 1])
     return verts, faces
+
+
+def _positive(value: object) -> bool:
+    """Whether ``value`` is a finite real number > 0 (a bool is no number)."""
+    return is_real(value) and math.isfinite(value) and value > 0
 
 
 def spherical_vertex_uvs(verts: torch.Tensor) -> torch.Tensor:

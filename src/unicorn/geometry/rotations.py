@@ -4,8 +4,13 @@ Points are row vectors and the world-to-view transform is ``x_view = x_world @ R
 +X pointing to the image left, +Y up and +Z forward (away from the camera), as in PyTorch3D, so the released
 UNICORN checkpoints and the ShapeNet pose conversion apply unchanged.
 
-Angles are in degrees unless a function says otherwise. Python numbers given with tensors take the tensors' dtype
-and device (a float64 batch stays float64, a CUDA one on CUDA), as in torch's arithmetic.
+Angles are in degrees unless a function says otherwise. Two azimuths meet here: :func:`look_at_view_transform`'s
+(PyTorch3D's) puts the camera on +Z at azimuth 0 and on +X at 90; UNICORN's pose angles
+(:func:`azim_elev_roll_to_rotation`, which the model predicts and the synthetic datasets record) put it half a turn
+round, on -Z at 0 and on -X at 90. Positive elevation is above the object (+Y) in both.
+
+Python numbers given with tensors take the tensors' dtype and device (a float64 batch stays float64, a CUDA one on
+CUDA), as in torch's arithmetic.
 """
 
 from __future__ import annotations
@@ -53,7 +58,9 @@ def azim_elev_roll_to_rotation(
     """Rotation of a camera looking at the origin, as UNICORN parametrises poses.
 
     ``R = Az(azim) @ El(elev) @ Ro(roll)`` with row-vector matrices: azimuth about +Y, elevation about +X with
-    positive elevation putting the camera above the object, roll about the optical axis.
+    positive elevation putting the camera above the object, roll about the optical axis. With ``T = (0, 0, dist)``
+    and no roll, this is the camera ``look_at_view_transform(dist, elev, azim + 180)``: azimuth 0 puts the camera on
+    -Z (R is the identity), 90 on -X.
 
     Args:
         azim: (...,) azimuth in degrees.
@@ -131,7 +138,8 @@ def camera_position_from_spherical(
 def look_at_rotation(
     camera_position: torch.Tensor, at: torch.Tensor | None = None, up: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Rotation (row-vector convention) of a camera at ``camera_position`` looking at ``at``.
+    """Rotation (row-vector convention) of a camera at ``camera_position`` looking at ``at``; the three tensors
+    broadcast together (one ``up`` for many cameras, or many for one camera), as in PyTorch3D.
 
     Args:
         camera_position: (..., 3) camera centres in world coordinates.
@@ -144,7 +152,8 @@ def look_at_rotation(
         coordinates, so that ``(x - camera_position) @ R`` are view coordinates.
 
     Raises:
-        ValueError: a tensor not of shape (..., 3), or a camera at its target point (no viewing direction).
+        ValueError: a tensor not of shape (..., 3), tensors that do not broadcast together, or a camera at its
+            target point (no viewing direction).
     """
     check_shape(camera_position, "*, 3", "camera_position")
     at = torch.zeros_like(camera_position) if at is None else at.to(camera_position)
@@ -152,11 +161,17 @@ def look_at_rotation(
         up = camera_position.new_tensor([0.0, 1.0, 0.0]).expand_as(camera_position)
     check_shape(at, "*, 3", "at")
     check_shape(up, "*, 3", "up")
+    try:
+        camera_position, at, up = torch.broadcast_tensors(camera_position, at, up.to(camera_position))
+    except RuntimeError:
+        raise ValueError(
+            f"look_at: camera_position {tuple(camera_position.shape)}, at {tuple(at.shape)} and up "
+            f"{tuple(up.shape)} do not broadcast together"
+        ) from None
     forward = at - camera_position
     if bool((forward.norm(dim=-1) < 1e-8).any()):
         raise ValueError("look_at: a camera is at the point it looks at (distance 0), so it has no viewing direction")
     z_axis = torch.nn.functional.normalize(forward, dim=-1)
-    up = up.to(z_axis).expand_as(z_axis)
     side = torch.cross(up, z_axis, dim=-1)
     norm = side.norm(dim=-1, keepdim=True)
     # looking along `up` to rounding (a camera straight above its target): any x axis orthogonal to z will do. A
@@ -180,7 +195,9 @@ def look_at_view_transform(
     at: torch.Tensor | Sequence[Sequence[float]] | None = None,
     up: torch.Tensor | Sequence[Sequence[float]] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """World-to-view ``(R, T)`` of cameras placed by distance, elevation and azimuth (degrees).
+    """World-to-view ``(R, T)`` of cameras placed by distance, elevation and azimuth (degrees): azimuth 0 puts the
+    camera on +Z, 90 on +X, positive elevation above (+Y), as :func:`camera_position_from_spherical` places it
+    (PyTorch3D's convention; UNICORN's pose angles are half a turn round, see :func:`azim_elev_roll_to_rotation`).
 
     Args:
         dist, elev, azim: the camera's distance to ``at`` and its elevation and azimuth (degrees), scalars or
@@ -195,17 +212,30 @@ def look_at_view_transform(
         (1 for scalars).
 
     Raises:
-        ValueError: ``at`` or ``up`` not of shape (..., 3), or a camera at distance 0 from ``at``.
+        ValueError: ``at`` or ``up`` not of shape (..., 3), batches of cameras, ``at`` and ``up`` of different sizes
+            (other than 1), or a camera at distance 0 from ``at``.
     """
     dist, elev, azim = torch.broadcast_tensors(*_as_tensors(dist, elev, azim))
     eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
+    sizes = {"cameras (dist, elev, azim)": eye.shape[0]}
     if at is not None:
         at = torch.as_tensor(at)  # PyTorch3D's callers pass lists: at=[(0, 0, 0)]
         check_shape(at, "*, 3", "at")
         at = at.reshape(-1, 3).to(eye)
+        sizes["at points"] = at.shape[0]
+    if up is not None:
+        up = torch.as_tensor(up)
+        check_shape(up, "*, 3", "up")
+        up = up.reshape(-1, 3).to(eye)
+        sizes["up directions"] = up.shape[0]
+    if any(n not in (1, max(sizes.values())) for n in sizes.values()):
+        given = ", ".join(f"{n} {name}" for name, n in sizes.items())
+        raise ValueError(f"look_at_view_transform: {given}; each number must be 1 or the same as the others")
+    if at is not None:
         eye = eye + at
-    up = _orbit_up(elev, azim).reshape(-1, 3) if up is None else torch.as_tensor(up)
-    R = look_at_rotation(eye, at, up.to(eye))
+    if up is None:
+        up = _orbit_up(elev, azim).reshape(-1, 3)
+    R = look_at_rotation(eye, at, up)
     T = -(eye.unsqueeze(1) @ R).squeeze(1)
     return R, T
 

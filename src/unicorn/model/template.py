@@ -32,6 +32,11 @@ class TemplateMesh(nn.Module):
         bottom: the lower half's height as a share of the upper half's (1: the paper's ellipsoid; below 1: a dome
             on a flatter base, which is not up-down symmetric).
 
+    Raises:
+        ValueError: ``uv_mode`` not one of :data:`UV_MODES`, or ``level``, ``axes``, ``scale`` or ``bottom`` refused
+            by :func:`unicorn.geometry.mesh.ellipsoid` (a level that is no whole number in [0, 7], a stretch that is
+            not finite and > 0, a bottom outside (0, 1]).
+
     Attributes:
         verts: (V, 3) template vertices.
         faces: (F, 3) long, counter-clockwise seen from outside.
@@ -55,10 +60,9 @@ class TemplateMesh(nn.Module):
         super().__init__()
         if uv_mode not in UV_MODES:
             raise ValueError(f"uv_mode must be one of {UV_MODES}, got {uv_mode!r}")
-        if isinstance(level, bool) or not float(level).is_integer():  # icosphere's range check reads a whole level
-            raise ValueError(f"level must be a whole number, got {level!r}")
-        if len(axes) != 3 or min(axes) <= 0 or scale <= 0:
-            raise ValueError(f"axes must be 3 positive values and scale positive, got {axes}, {scale}")
+        # ellipsoid (and icosphere for the level) refuses what builds no template: the values pass through as given,
+        # so that int() cannot truncate a level of 2.5 into one
+        verts, faces = ellipsoid(level, axes, scale, bottom)
         self.level, self.axes, self.scale, self.uv_mode = (
             int(level),
             tuple(float(a) for a in axes),
@@ -66,7 +70,6 @@ class TemplateMesh(nn.Module):
             uv_mode,
         )
         self.bottom = float(bottom)
-        verts, faces = ellipsoid(self.level, self.axes, self.scale, self.bottom)
         vertex_uvs = spherical_vertex_uvs(verts)
         face_uvs = spherical_face_uvs(verts, faces) if uv_mode == "seamless" else vertex_uvs[faces]
         self.register_buffer("verts", verts, persistent=False)
