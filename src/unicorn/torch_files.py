@@ -17,7 +17,18 @@ from typing import Any
 
 import torch
 
-__all__ = ["NOT_A_TORCH_FILE", "TorchFileError", "read_plain", "shortened", "torch_file_problem"]
+from unicorn.errors import UserError
+
+__all__ = [
+    "NOT_A_TORCH_FILE",
+    "TorchFileError",
+    "TorchFileMemoryError",
+    "load_memory_error",
+    "out_of_memory",
+    "read_plain",
+    "shortened",
+    "torch_file_problem",
+]
 
 #: how files written by ``torch.save`` begin: a zip archive, or (the format before torch 1.6) a pickle of this
 #: magic number
@@ -159,17 +170,50 @@ class TorchFileError(ValueError):
     caller's message to name it."""
 
 
+class TorchFileMemoryError(UserError, MemoryError):
+    """The memory ran out while ``torch.load`` read a file (the machine's, or the device's the tensors go to): the
+    message names the file and its size, and does not blame the file, which :func:`torch_file_problem` has checked
+    holds no more than its size."""
+
+
+#: how torch's allocators say that memory ran out in the ``RuntimeError`` they raise (CPU on Linux and Windows, CUDA,
+#: MPS)
+_OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "out of memory")
+
+
+def out_of_memory(err: BaseException) -> bool:
+    """Whether an error ``torch.load`` raised says that the memory ran out, not that the file is bad."""
+    if isinstance(err, (MemoryError, torch.OutOfMemoryError)):
+        return True
+    return isinstance(err, RuntimeError) and any(words in str(err) for words in _OUT_OF_MEMORY)
+
+
+def load_memory_error(path: str | os.PathLike, err: BaseException) -> TorchFileMemoryError:
+    """The one-line error for running out of memory (:func:`out_of_memory`) while loading ``path``."""
+    try:
+        size = f" ({Path(path).stat().st_size:,} bytes)"
+    except OSError:
+        size = ""
+    detail = shortened(err, 200) or type(err).__name__
+    return TorchFileMemoryError(
+        f"ran out of memory loading {path}{size}: {detail}; free some memory, or load it where more is available"
+    )
+
+
 def read_plain(path: str | os.PathLike) -> Any:
     """``torch.load`` of a file of tensors and plain containers, on the CPU, after :func:`torch_file_problem`, with
     nothing unpickled that could run code (``weights_only``).
 
     Raises:
         TorchFileError: the problem :func:`torch_file_problem` found, or torch's error on one line.
+        TorchFileMemoryError: the memory ran out while reading the file (the message names it).
     """
     problem = torch_file_problem(path)
     if problem is None:
         try:
             return torch.load(path, map_location="cpu", weights_only=True)
         except Exception as err:  # noqa: BLE001 - torch's errors for bad bytes vary (zip, pickle, EOF)
+            if out_of_memory(err):
+                raise load_memory_error(path, err) from err
             problem = shortened(err, 200) or type(err).__name__
     raise TorchFileError(problem)

@@ -19,6 +19,7 @@ from unicorn.data.images import (
     decode_image,
     decoded,
     load_image,
+    load_image_and_alpha,
     load_mask,
     max_image_bytes,
     max_image_pixels,
@@ -383,3 +384,128 @@ def test_colours_in_another_colour_profile_are_read_in_srgb(tmp_path: Path, monk
             np.testing.assert_array_equal(load_image(tmp_path / "damaged.png") * 255, stored[..., :3])
     assert [(w.category, w.filename) for w in caught] == [(images.ImageMetadataWarning, __file__)]
     assert str(caught[0].message).startswith(f"{tmp_path / 'damaged.png'}: its colour profile cannot be used (")
+
+
+def _icc(space: bytes, pcs: bytes, device_class: bytes, tags: dict[bytes, bytes]) -> bytes:
+    """A minimal ICC v2 profile of ``space`` (``b"GRAY"``, ``b"CMYK"``) with a description, D50 white and ``tags``,
+    written byte by byte (Pillow's ImageCms makes only sRGB, Lab and XYZ profiles)."""
+    import struct
+
+    def xyz(*values: float) -> bytes:
+        return b"".join(struct.pack(">i", round(v * 65536)) for v in values)
+
+    name = b"test " + space + b"\0"
+    desc = b"desc" + bytes(4) + struct.pack(">I", len(name)) + name + bytes(8 + 3 + 67)
+    tags = {b"desc": desc, b"wtpt": b"XYZ " + bytes(4) + xyz(0.9642, 1.0, 0.8249), b"cprt": b"text\0\0\0\0-\0", **tags}
+    offset, table, data = 128 + 4 + 12 * len(tags), b"", b""
+    for signature, body in tags.items():
+        body += bytes(-len(body) % 4)
+        table, data = table + signature + struct.pack(">II", offset + len(data), len(body)), data + body
+    header = struct.pack(">I4sI", offset + len(data), b"lcms", 0x02100000) + device_class + space + pcs + bytes(12)
+    header += b"acsp" + bytes(28) + xyz(0.9642, 1.0, 0.8249) + bytes(48)
+    return header + struct.pack(">I", len(tags)) + table + data
+
+
+def _linear_grey_profile() -> bytes:
+    """A grey profile whose levels are linear light (gamma 1): level v is sRGB's encoding of v."""
+    return _icc(b"GRAY", b"XYZ ", b"mntr", {b"kTRC": b"curv" + bytes(4) + (1).to_bytes(4, "big") + b"\x01\x00"})
+
+
+def _cmyk_profile() -> bytes:
+    """A CMYK profile of neutral inks: lightness L* = 100 (1 - k) (1 - c / 2) (a lut8 of 2 points a channel)."""
+    ramp = bytes(range(256))
+    identity = b"".join((v << 16).to_bytes(4, "big") for v in (1, 0, 0, 0, 1, 0, 0, 0, 1))
+    corners = [(c, k) for c in (0, 1) for _m in (0, 1) for _y in (0, 1) for k in (0, 1)]  # C varies slowest
+    lab = b"".join(bytes([round(255 * (1 - k) * (1 - c / 2)), 128, 128]) for c, k in corners)
+    return _icc(
+        b"CMYK",
+        b"Lab ",
+        b"prtr",
+        {b"A2B0": b"mft1" + bytes(4) + bytes([4, 3, 2, 0]) + identity + ramp * 4 + lab + ramp * 3},
+    )
+
+
+def _srgb_encoded(linear: np.ndarray | float) -> np.ndarray:
+    """sRGB's encoding of linear light in [0, 1] (IEC 61966-2-1)."""
+    linear = np.asarray(linear, np.float64)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+
+
+def test_grey_cmyk_and_keyed_images_are_read_through_their_colour_profile(tmp_path: Path) -> None:
+    """A grey, grey-and-alpha, palette or CMYK image's embedded profile is applied as an RGB image's is (a Photoshop
+    CMYK JPEG's inks, a greyscale's tone curve), keeping its transparency; a profile of another space than the
+    image's (an RGB photo's, which Pillow's convert("L") keeps) is not the image's: its levels are read as stored."""
+    import warnings
+
+    levels = np.array([[0, 64, 128, 255]], np.uint8)
+    expected = _srgb_encoded(levels / 255)  # linear light, in sRGB
+    Image.fromarray(levels).save(tmp_path / "grey.png", icc_profile=_linear_grey_profile())
+    np.testing.assert_allclose(
+        load_image(tmp_path / "grey.png")[0], np.repeat(expected[0, :, None], 3, 1), atol=1 / 255
+    )
+    # grey and alpha: the alpha kept (the transparent pixel white); a transparent grey level (tRNS) likewise
+    alpha = np.array([[255, 255, 0, 255]], np.uint8)
+    Image.fromarray(np.stack([levels, alpha], -1), "LA").save(tmp_path / "la.png", icc_profile=_linear_grey_profile())
+    Image.fromarray(levels).save(tmp_path / "keyed.png", icc_profile=_linear_grey_profile(), transparency=128)
+    for name in ("la.png", "keyed.png"):
+        arr = load_image(tmp_path / name)[0, :, 0]
+        np.testing.assert_allclose(arr, [expected[0, 0], expected[0, 1], 1.0, expected[0, 3]], atol=1 / 255)
+    # an RGB image's transparent colour (tRNS) is kept through its profile's conversion
+    rgb = np.zeros((2, 2, 3), np.uint8)
+    rgb[0, 0], rgb[1, 1] = (10, 20, 30), (200, 100, 0)
+    Image.fromarray(rgb).save(tmp_path / "rgb.png", icc_profile=swapped_rg_profile(), transparency=(10, 20, 30))
+    np.testing.assert_array_equal(
+        load_image(tmp_path / "rgb.png") * 255, [[[255] * 3, [0] * 3], [[0] * 3, [100, 200, 0]]]
+    )
+    # a palette's colours, likewise
+    palette = Image.fromarray(rgb).convert("P", palette=Image.Palette.ADAPTIVE)
+    palette.save(tmp_path / "palette.png", icc_profile=swapped_rg_profile())
+    np.testing.assert_array_equal(load_image(tmp_path / "palette.png") * 255, rgb[..., [1, 0, 2]])
+    # CMYK, stored inverted as Photoshop does (Adobe's marker): no ink is white, cyan a mid grey, black ink black
+    cmyk = Image.new("CMYK", (24, 8), (0, 0, 0, 0))
+    cmyk.paste((255, 0, 0, 0), (8, 0, 16, 8))
+    cmyk.paste((0, 0, 0, 255), (16, 0, 24, 8))
+    cmyk.save(tmp_path / "press.jpg", quality=100, icc_profile=_cmyk_profile())
+    mid = _srgb_encoded(((128 / 2.55 + 16) / 116) ** 3)  # L* = 50 as the lut8 stores it (128 of 255), in sRGB
+    np.testing.assert_allclose(
+        load_image(tmp_path / "press.jpg")[4, ::8], np.repeat([[1.0], [mid], [0.0]], 3, 1), atol=2 / 255
+    )
+    # a grey image with an RGB profile: as stored, and nothing to warn about
+    Image.fromarray(levels).save(tmp_path / "converted.png", icc_profile=swapped_rg_profile())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(load_image(tmp_path / "converted.png")[0, :, 0] * 255, levels[0])
+
+
+def test_a_16_bit_rgb_pngs_transparent_colour_is_matched_on_all_16_bits(tmp_path: Path) -> None:
+    """Only the tRNS colour itself is transparent, not the colours sharing its high bytes (a dark shadow on a black
+    key), whatever the rows' filters (Sub's differences span a pixel's 6 bytes)."""
+    import struct
+    import zlib
+
+    samples = np.zeros((3, 4, 3), np.uint16)  # the key, black: transparent
+    samples[1, 1:3] = (255, 255, 255)  # a shadow darker than 1/256: the key's high bytes, opaque
+    samples[2, 0] = (0, 0, 1)
+    samples[2, 3] = (51400, 25700, 0)  # a colour
+    rows = samples.astype(">u2").reshape(3, -1).view(np.uint8).astype(np.int16)
+    sub = rows.copy()
+    sub[:, 6:] = (rows[:, 6:] - rows[:, :-6]) % 256  # filter 1 (Sub): each byte less the pixel before's
+    data = b"".join(b"\x01" + row.astype(np.uint8).tobytes() for row in sub)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    path = tmp_path / "keyed.png"
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", struct.pack(">IIBBBBB", 4, 3, 16, 2, 0, 0, 0))
+        + chunk(b"tRNS", struct.pack(">HHH", 0, 0, 0))
+        + chunk(b"IDAT", zlib.compress(data))
+        + chunk(b"IEND", b"")
+    )
+    transparent = (samples == 0).all(axis=-1)
+    for rgb, alpha in [load_image_and_alpha(path), (decode_image(path.read_bytes(), "keyed"), None)]:
+        np.testing.assert_array_equal(rgb[transparent], 1.0)
+        np.testing.assert_allclose(rgb[~transparent], samples[~transparent] / 65535, atol=1 / 255)  # 8 bits kept
+        if alpha is not None:
+            np.testing.assert_array_equal(alpha, ~transparent)

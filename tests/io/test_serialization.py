@@ -31,6 +31,7 @@ from unicorn.io.serialization import (
     remove_stale_temporaries,
     seal,
 )
+from unicorn.torch_files import TorchFileMemoryError, read_plain
 
 
 def test_payload_is_refused_and_never_runs(tmp_path: Path) -> None:
@@ -103,6 +104,40 @@ def test_unreadable_file_is_one_error(tmp_path: Path) -> None:
             with pytest.raises(CheckpointError, match=f"{name}: it is not a file written by torch.save") as info:
                 load_checkpoint_file(tmp_path / name, trust=trust)
             assert "weights_only" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        MemoryError(),
+        RuntimeError("[enforce fail at alloc_cpu.cpp:117] DefaultCPUAllocator: can't allocate memory: you tried to "
+                     "allocate 4294967296 bytes. Error code 12 (Cannot allocate memory)"),
+        torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"),
+    ],
+    ids=["MemoryError", "cpu-allocator", "cuda"],
+)  # fmt: skip
+def test_running_out_of_memory_is_not_blamed_on_the_file(tmp_path: Path, monkeypatch, error: Exception) -> None:
+    """A checkpoint or weights file that needs more memory than is free is one error naming the file and the memory,
+    not a checkpoint that cannot be read."""
+    path = tmp_path / "big.ckpt"
+    torch.save({"w": torch.ones(3)}, path)
+
+    def load(*args, **kwargs):
+        raise raised
+
+    raised = error
+    monkeypatch.setattr(torch, "load", load)
+    size = f"{path.stat().st_size:,}"
+    for read in (load_checkpoint_file, read_plain):
+        with pytest.raises(
+            TorchFileMemoryError, match=rf"^ran out of memory loading \S+big.ckpt \({size} bytes\): "
+        ) as info:
+            read(path)
+        assert isinstance(info.value, UserError) and isinstance(info.value, MemoryError)
+        assert not isinstance(info.value, CheckpointError) and "\n" not in str(info.value)
+    raised = RuntimeError("PytorchStreamReader failed reading zip archive: failed finding central directory")
+    with pytest.raises(CheckpointError, match="cannot read checkpoint"):  # a damaged file is still the file's fault
+        load_checkpoint_file(path)
 
 
 @pytest.mark.parametrize("legacy", [False, True])

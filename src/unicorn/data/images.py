@@ -13,9 +13,13 @@ unknown format) is an :class:`ImageLoadError` naming the file, and so are
   ``--max-image-pixels`` / ``--max-image-bytes``;
 - an image whose pixels decode to NaN or infinite values (a float TIFF).
 
-RGB images are read in sRGB: colours an embedded ICC profile puts in another space (a phone's Display P3, Adobe
-RGB) are converted, as image viewers show them (a profile that cannot be used: one :class:`ImageMetadataWarning`,
-the colours as stored).
+Images are read in sRGB: colours an embedded ICC profile puts in another space (a phone's Display P3, Adobe RGB, a
+CMYK JPEG's press inks, a greyscale's tone curve) are converted, as image viewers show them (a profile of another
+colour space than the image's: left out; a profile that cannot be used: one :class:`ImageMetadataWarning`, the
+colours as stored).
+
+A 16-bit PNG's transparent colour (``tRNS``) is matched on its 16 bits; Pillow reads a 16-bit RGB PNG's colours at
+8 bits (16-bit grey ones keep their 16).
 
 HEIF / HEIC images (phones' photos) are read through pillow-heif where it is installed (the ``heif`` extra,
 :func:`heif_support`); without it, such an image's error says how to read it. AVIF images need Pillow 11.3 or later.
@@ -315,11 +319,21 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
     Raises:
         ImageLoadError: non-finite pixel values.
     """
-    sixteen_bit_rgb = img.mode == "RGB" and any(str(tile.args).endswith(";16B") for tile in img.tile)  # load clears
+    key = img.info.get("transparency")
+    keyed_16_bit = (
+        img.format == "PNG"
+        and img.mode == "RGB"
+        and isinstance(key, tuple)
+        and any(str(tile.args).endswith(";16B") for tile in img.tile)
+    )
+    low = _low_bytes(img) if keyed_16_bit else None  # read before load, which clears the tiles
     img.load()
-    if sixteen_bit_rgb and isinstance(img.info.get("transparency"), tuple):
-        # Pillow keeps each 16-bit sample's high byte but matches the tRNS colour as written: match it at that precision
-        img.info["transparency"] = tuple(int(v) >> 8 for v in img.info["transparency"])
+    if low is not None:
+        # Pillow keeps each 16-bit sample's high byte: the tRNS colour is matched on all 16 bits, as an alpha channel
+        samples = np.asarray(img).astype(np.uint16) << 8 | low
+        opaque = (samples != np.asarray(key, np.uint16)).any(axis=-1)
+        del img.info["transparency"]
+        img.putalpha(Image.fromarray(opaque.astype(np.uint8) * 255))
     if img.mode == "F" and not np.isfinite(np.asarray(img)).all():  # the one float mode; others are integers
         raise ImageLoadError(name, "pixel values are NaN or infinite")
     if not exif_orientation:
@@ -332,6 +346,26 @@ def decoded(img: Image.Image, name: str | os.PathLike, exif_orientation: bool = 
             img = turned
     _report_damaged_metadata(name, damaged, stacklevel=4)  # the loader's caller
     return img
+
+
+def _low_bytes(img: Image.Image) -> np.ndarray:
+    """(H, W, 3) uint8 low bytes of the samples of a 16-bit RGB PNG not yet loaded, whose high bytes Pillow reads (its
+    ``RGB;16B`` tiles): the file decoded a second time, each sample's other byte kept (``RGB;16L``)."""
+    start = img.fp.tell()
+    img.fp.seek(0)  # the loaders open files and bytes from their start
+    data = img.fp.read()
+    img.fp.seek(start)
+    with _PIL_LOCK, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # said when the image was opened
+        saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # the limits were checked from the header
+        try:
+            twin = Image.open(io.BytesIO(data), formats=["PNG"])
+        finally:
+            Image.MAX_IMAGE_PIXELS = saved
+    with twin:
+        twin.tile = [tile._replace(args=tile.args[:-1] + "L") for tile in twin.tile]
+        twin.load()
+        return np.asarray(twin)
 
 
 def _report_damaged_metadata(name: str | os.PathLike, caught: list[warnings.WarningMessage], stacklevel: int) -> None:
@@ -351,34 +385,58 @@ def _warn_once(name: str | os.PathLike, message: str, stacklevel: int) -> None:
     warnings.warn(f"{name}: {message}", ImageMetadataWarning, stacklevel=stacklevel + 1)
 
 
-#: the modes whose colours an embedded ICC profile converts to sRGB
-_MANAGED_MODES = ("RGB", "RGBA")
+#: the modes whose colours an embedded ICC profile converts to sRGB: the colour space of the profiles that describe
+#: such an image (ICC's signature), and the mode the image becomes
+_MANAGED_MODES = {
+    "RGB": ("RGB", "RGB"),
+    "RGBA": ("RGB", "RGBA"),
+    "CMYK": ("CMYK", "RGB"),  # a printing press's inks (Photoshop's CMYK JPEGs)
+    "L": ("GRAY", "RGB"),  # a greyscale's tone curve (Photoshop's "Dot Gain 20%")
+    "LA": ("GRAY", "RGBA"),
+}
 
 
 @functools.lru_cache(maxsize=32)
 def _srgb_transform(icc: bytes, mode: str) -> ImageCms.ImageCmsTransform | None:
-    """The transform from an ICC profile's colours to sRGB for images of ``mode``; None for an sRGB profile (read as
-    stored: most photos', and the conversion costs about as much as decoding a JPEG)."""
+    """The transform from an ICC profile's colours to sRGB for images of ``mode`` (a key of :data:`_MANAGED_MODES`,
+    ``LA`` excepted: its grey band is converted as ``L``); None for an sRGB profile (read as stored: most photos', and
+    the conversion costs about as much as decoding a JPEG), or for a profile of another colour space than the
+    image's, which does not describe its pixels (an RGB photo's profile that Pillow's ``convert("L")`` keeps)."""
     source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
-    if "srgb" in ImageCms.getProfileDescription(source).lower():
+    space, out_mode = _MANAGED_MODES[mode]
+    if "srgb" in ImageCms.getProfileDescription(source).lower() or source.profile.xcolor_space.strip() != space:
         return None
-    return ImageCms.buildTransform(source, _SRGB_PROFILE, mode, mode)
+    return ImageCms.buildTransform(source, _SRGB_PROFILE, mode, out_mode)
 
 
 def _in_srgb(img: Image.Image, name: str | os.PathLike) -> Image.Image:
     """The image with its colours in sRGB where its embedded ICC profile puts them in another space (a phone's
-    Display P3, Adobe RGB), as image viewers show them; as stored without a profile, with an sRGB one,
-    or with one that cannot be used (an :class:`ImageMetadataWarning`)."""
+    Display P3, Adobe RGB, a CMYK press's inks, a greyscale's tone curve), as image viewers show them: RGB, or RGBA
+    for an image with transparency. As stored without a profile, with an sRGB one, with one of another colour space
+    than the image's, or with one that cannot be used (an :class:`ImageMetadataWarning`).
+    """
     icc = img.info.get("icc_profile")
-    if not icc or img.mode not in _MANAGED_MODES:
+    if not icc or img.mode not in (*_MANAGED_MODES, "P"):
         return img
+    mode = img.mode  # what LittleCMS converts: a palette's colours, a transparent colour made an alpha channel
+    if mode == "P":
+        mode = "RGBA" if has_transparency(img) else "RGB"
+    elif mode in ("RGB", "L") and has_transparency(img):
+        mode += "A"
     try:
-        transform = _srgb_transform(bytes(icc), img.mode)
+        transform = _srgb_transform(bytes(icc), "L" if mode == "LA" else mode)
     except (OSError, ValueError, ImageCms.PyCMSError) as err:
         reason = " ".join(str(err).split()) or type(err).__name__
         _warn_once(name, f"its colour profile cannot be used ({reason}); its colours are read as stored", 4)
         return img
-    return img if transform is None else ImageCms.applyTransform(img, transform)
+    if transform is None:
+        return img
+    img = img.convert(mode)
+    if mode == "LA":  # LittleCMS would drop the alpha of grey and alpha: the grey is converted alone
+        converted = ImageCms.applyTransform(img.getchannel("L"), transform)
+        converted.putalpha(img.getchannel("A"))
+        return converted
+    return ImageCms.applyTransform(img, transform)
 
 
 def _pil_to_rgb(img: Image.Image, name: str | os.PathLike) -> np.ndarray:
@@ -446,8 +504,8 @@ def transparency_alpha(img: Image.Image) -> np.ndarray | None:
 def load_image(path: str | os.PathLike, exif_orientation: bool = True) -> np.ndarray:
     """Read an image file as RGB, upright by its EXIF orientation unless ``exif_orientation`` is False.
 
-    Grayscale, palette, RGBA (composited on white), CMYK and 16-bit images are converted; RGB colours in another
-    space than sRGB by their embedded ICC profile (a phone's Display P3, Adobe RGB) are converted to sRGB.
+    Grayscale, palette, RGBA (composited on white), CMYK and 16-bit images are converted; colours in another space
+    than sRGB by their embedded ICC profile (a phone's Display P3, Adobe RGB, CMYK inks) are converted to sRGB.
 
     Args:
         path: image file.

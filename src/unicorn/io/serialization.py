@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from unicorn.errors import UserError, pid_alive
-from unicorn.torch_files import NOT_A_TORCH_FILE, shortened, torch_file_problem
+from unicorn.torch_files import NOT_A_TORCH_FILE, load_memory_error, out_of_memory, shortened, torch_file_problem
 
 __all__ = [
     "INTEGRITY_KEY",
@@ -187,6 +187,7 @@ def load_checkpoint_file(
             (compressed or overlapping entries, which ``torch.save`` never writes), refused from its directory, or
             containers no walk of them finishes (:func:`_containers_problem`), refused before they are walked.
         CorruptCheckpointError: the content hash does not match.
+        unicorn.torch_files.TorchFileMemoryError: the memory ran out while reading the file (a ``MemoryError``).
     """
     check_map_location(map_location)
     path = Path(path).expanduser()
@@ -212,6 +213,8 @@ def load_checkpoint_file(
             f" which can run arbitrary code; {TRUST_HINT}"
         ) from None
     except Exception as err:  # torch raises many kinds (RuntimeError, EOFError...) on bad files
+        if out_of_memory(err):  # the machine's fault, not the file's
+            raise load_memory_error(path, err) from err
         raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {shortened(err)}") from err
     problem = _containers_problem(data)
     if problem:
