@@ -790,7 +790,7 @@ def test_synth_into_a_folder_that_holds_the_category_is_refused_and_other_catego
     before = snapshot(tmp_path)
     assert main(["synth", "--out", str(out), "--category", "mug", *SMALL_SYNTH, "--seed", "1"]) == 2
     assert capsys.readouterr().err == (  # names --out, not the folder the files are first written to
-        f"unicorn-data: error: {out} holds a synthetic dataset generated with seed=0 (asked: 1); other categories "
+        f"unicorn-data: error: {out} holds a synthetic dataset generated with --seed 0 (asked: 1); other categories "
         "join it only with the same settings: generate into another folder\n"
     )
     assert snapshot(tmp_path) == before
@@ -854,7 +854,7 @@ def test_data_check_takes_the_image_limits_its_message_names(tmp_path, capsys, m
     assert main([*args, "--max-image-bytes", "0"]) == 0  # no limit
     with pytest.raises(SystemExit):
         main([*args, "--max-image-pixels", "-1"])
-    assert capsys.readouterr().err.splitlines()[-1] == "unicorn-data: error: --max-image-pixels must be >= 0"
+    assert capsys.readouterr().err.splitlines()[-1] == "unicorn-data check: error: --max-image-pixels must be >= 0"
 
 
 def test_data_check_all_reads_every_item_and_names_the_unreadable_ones(tmp_path, capsys):

@@ -453,7 +453,7 @@ def test_cli_synth_view_ranges(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert all(not np.load(p)["roll"].any() for p in out.rglob("views.npz"))
     capsys.readouterr()
     assert cli.main(["synth", "--mode", "nmr", "--roll", "5", "--out", str(tmp_path / "nmr"), *small]) != 0
-    assert "roll=5.0 is for the wild mode" in capsys.readouterr().err
+    assert capsys.readouterr().err.startswith("unicorn-data: error: --roll=5.0 is for the wild mode;")
 
 
 def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -467,9 +467,13 @@ def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.Monk
     # an option left out means the generator's default (64 px), which this dataset was not made with
     with pytest.raises(writer.StaleSyntheticDataset, match="image_size"):
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, n_views=2, n_points=200, supersample=2, progress=False)
-    # so does one asked for with backgrounds it was not made with
-    with pytest.raises(writer.StaleSyntheticDataset, match="backgrounds=None \\(asked: True\\)"):
+    # so does one asked for with backgrounds it was not made with: named alone, not the kinds that follow from it
+    with pytest.raises(writer.StaleSyntheticDataset, match="backgrounds=None \\(asked: True\\);") as info:
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **options, backgrounds=True)
+    assert "background_kinds" not in str(info.value)
+    with pytest.raises(writer.StaleSyntheticDataset) as info:
+        ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **options, backgrounds=True, background_kinds="noise")
+    assert "with backgrounds=None (asked: True), background_kinds=None (asked: ['noise']);" in str(info.value)
     # a dataset written by another generator version is refused even under the current folder name
     settings = json.loads((path / "synthetic.json").read_text())
     settings["generator_version"] = writer.GENERATOR_VERSION - 1

@@ -33,10 +33,65 @@ from unicorn.data.synthetic.shapes import CATEGORIES
 __all__ = ["build_parser", "main"]
 
 
+#: the option of ``unicorn-data synth`` that sets each generation setting (``synthetic.json``'s keys)
+SYNTH_OPTIONS = {
+    "mode": "--mode",
+    "n_models": "--models",
+    "seed": "--seed",
+    "image_size": "--size",
+    "n_views": "--views",
+    "supersample": "--supersample",
+    "n_points": "--points",
+    "backgrounds": "--backgrounds",
+    "background_kinds": "--background-kinds",
+    "roll": "--roll",
+    "shift": "--shift",
+}
+
+
+def _option_value(key: str, value: Any) -> str:
+    """A recorded setting's value as ``unicorn-data synth`` takes it (``unset``: the option left out)."""
+    if key == "backgrounds" and isinstance(value, bool):
+        return "random" if value else "white"
+    if value is None:
+        return "unset"
+    if isinstance(value, list):
+        return ",".join(map(str, value))
+    return str(value)
+
+
+def _option_difference(key: str, recorded: Any, asked: Any) -> str:
+    """A setting of a generated dataset that differs from the one asked for, named by its option
+    (:data:`SYNTH_OPTIONS`): ``--size 64 (asked: 32)``; a setting of no option (the generator version) by its key."""
+    option = SYNTH_OPTIONS.get(key)
+    if option is None:
+        return f"{key}={recorded!r} (asked: {asked!r})"
+    return f"{option} {_option_value(key, recorded)} (asked: {_option_value(key, asked)})"
+
+
+def _background_kinds(args: argparse.Namespace) -> list[str] | None:
+    """``--background-kinds`` as a list (None: left out), refused as a usage error when it names no kind or an
+    unknown one, or asks for random backgrounds where they are white."""
+    from unicorn.data.synthetic.render import check_background_kinds
+
+    if args.background_kinds is None:
+        return None
+    kinds = list(check_background_kinds(args.background_kinds.split(","), "--background-kinds"))
+    if args.backgrounds == "white" or (args.backgrounds is None and args.mode == "nmr"):
+        white = "--backgrounds white" if args.backgrounds == "white" else "--mode nmr draws white backgrounds"
+        raise UsageError(
+            f"--background-kinds {args.background_kinds} picks random backgrounds, but {white}: "
+            "add --backgrounds random, or drop --background-kinds"
+        )
+    return kinds
+
+
 def _synth(args: argparse.Namespace) -> int:
+    from unicorn.data.synthetic.sampling import check_view_ranges
     from unicorn.data.synthetic.writer import (
         check_generation_counts,
         check_generation_sizes,
+        check_manifest,
         check_output_folder,
         ensure_synthetic_dataset,
         generate_synthetic_dataset,
@@ -46,8 +101,10 @@ def _synth(args: argparse.Namespace) -> int:
     )
     from unicorn.io.staging import staged_folder
 
+    # checked here, naming the options: the generator's own checks name its arguments
     check_generation_sizes(args.size, args.supersample, args.points, ("--size", "--supersample", "--points"))
     check_generation_counts(args.models, args.views, ("--models", "--views"))
+    check_view_ranges(args.mode, args.roll, args.shift, ("--roll", "--shift"))
     categories = [c for arg in args.category for c in arg.split(",") if c]
     if not categories:
         raise UsageError(f"--category names no category; choose from {sorted(CATEGORIES)}")
@@ -59,12 +116,16 @@ def _synth(args: argparse.Namespace) -> int:
         "supersample": args.supersample,
         "n_points": args.points,
         "backgrounds": {"random": True, "white": False}.get(args.backgrounds),
-        "background_kinds": None if args.background_kinds is None else args.background_kinds.split(","),
+        "background_kinds": _background_kinds(args),
         "roll": args.roll,
         "shift": args.shift,
     }
+    settings = generation_settings(categories, args.mode, args.models, args.seed, **options)
     if args.out is None:
-        cached = (synthetic_dataset_path(categories, args.mode, args.models, args.seed) / "synthetic.json").is_file()
+        path = synthetic_dataset_path(categories, args.mode, args.models, args.seed)
+        cached = (path / "synthetic.json").is_file()
+        if cached:  # checked here too, naming the options that differ
+            check_manifest(path, describe=_option_difference, **settings)
         out = ensure_synthetic_dataset(
             None, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
         )
@@ -76,9 +137,7 @@ def _synth(args: argparse.Namespace) -> int:
         # another process generating into --out (or training on it) waits until this one has moved its files
         with generation_lock(out):
             # refused here, naming --out, rather than in the folder the files are first written to
-            check_output_folder(
-                out, categories, generation_settings(categories, args.mode, args.models, args.seed, **options)
-            )
+            check_output_folder(out, categories, settings, _option_difference)
             # a generation stopped part-way (Ctrl-C, a full disk) leaves --out as it was
             with staged_folder(out) as staging:
                 for record in ("metadata.yaml", "synthetic.json"):  # the categories already there stay listed
@@ -170,7 +229,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     synth = sub.add_parser(
-        "synth", help="generate the synthetic benchmark in the ShapeNet-NMR (DVR) layout", formatter_class=HelpFormatter
+        "synth",
+        help="generate the synthetic benchmark in the ShapeNet-NMR (DVR) layout",
+        description="Generate the synthetic benchmark (procedural objects ray-cast with open3d, with their meshes, "
+        "point clouds, masks and poses) in the ShapeNet-NMR (DVR) layout, into --out or the cache. A folder that "
+        "already holds a category to generate is refused; other categories join it only with the same settings.",
+        formatter_class=HelpFormatter,
     )
     synth.add_argument(
         "--category",
@@ -219,6 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
         "check",
         help="load a dataset and print its size and the first item (--all: read every item, exit status 1 if any "
         "is unreadable)",
+        description="Load a dataset's split as training reads it (its folders, split lists and "
+        "annotation files checked), then print its item count and the first item's keys with their shapes and "
+        "dtypes. --all reads every item too and lists the unreadable ones (exit status 1 if there are any).",
         formatter_class=HelpFormatter,
     )
     check.add_argument(
@@ -250,17 +317,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     for command in (synth, check):
         add_debug_argument(command)
+        command.set_defaults(command_parser=command)  # its usage errors show the subcommand's usage
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``unicorn-data`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the subcommand's usage, where parse_args would show the top level's
+        args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if getattr(args, "category", None) is None and args.command == "synth":
         args.category = ["chair"]
     if args.command == "check":
-        check_common_arguments(parser, args)
+        check_common_arguments(args.command_parser, args)
         apply_common_arguments(args)
     return report_errors("unicorn-data", lambda: _run(args), args.debug)
 

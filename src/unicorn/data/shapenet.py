@@ -240,8 +240,11 @@ class ShapeNetNMR(UnicornDataset):
             ``seed`` and the model's place in its category's split lists (the reference draws it unseeded): a
             category's views are the same whatever categories are loaded beside it.
         with_points: add ``points``/``normals``; defaults to True except for ``"train"``.
-        n_points: keep this many ground-truth points per model (a fixed subset per model, drawn as the views are),
-            None for all.
+        n_points: keep this many ground-truth points per model, None for all: a fixed subset per model (seeded by
+            ``seed`` and the model's place in its category's split lists, as the random views are), drawn uniformly
+            without replacement from the stored points, so that an area-uniform cloud (ONet's, the synthetic set's)
+            stays one. Only the stored cloud is checked to reach the unit cube's faces: a small subset is a random
+            sample of the surface and may miss a thin part's tip, or a whole face of a box.
         include_test: for ``"train"``, also use the val and test models (the reference's option).
         seed: seed of the view choice and the point subsets.
         on_error: ``"raise"`` or ``"skip"`` unreadable images, images or masks of another size than
@@ -349,7 +352,9 @@ class ShapeNetNMR(UnicornDataset):
         return self.models[self.model_view(index)[0]][1]
 
     def load_points(self, model: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Ground-truth ``points`` and ``normals`` (P, 3) float32 of a model, in UNICORN's object frame."""
+        """Ground-truth ``points`` and ``normals`` (P, 3) float32 of a model, in UNICORN's object frame: the stored
+        cloud (checked to reach the unit cube's faces), or ``n_points`` of its points drawn uniformly where it holds
+        more (see the class)."""
         path = self.models[model][1] / "pointcloud.npz"
         data = _read_npz(path, "ShapeNet point cloud")
         for key in ("points", "normals"):

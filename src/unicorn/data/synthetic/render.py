@@ -54,15 +54,16 @@ def camera_rays(
 BACKGROUND_KINDS = ("solid", "gradient", "checker", "noise")
 
 
-def check_background_kinds(kinds: Sequence[str]) -> tuple[str, ...]:
-    """``kinds`` as a tuple, once checked to be some of :data:`BACKGROUND_KINDS`.
+def check_background_kinds(kinds: Sequence[str], name: str = "background kinds") -> tuple[str, ...]:
+    """``kinds`` as a tuple, once checked to be some of :data:`BACKGROUND_KINDS`. ``name``: what the setting is
+    called in the message (``unicorn-data synth``'s option).
 
     Raises:
         DatasetError: no kinds, or one that is not a kind of background (the message lists them).
     """
     kinds = (kinds,) if isinstance(kinds, str) else tuple(kinds)
     if not kinds or not set(kinds) <= set(BACKGROUND_KINDS):
-        raise DatasetError(f"background kinds must be some of {list(BACKGROUND_KINDS)}, got {list(kinds)}")
+        raise DatasetError(f"{name} must be some of {list(BACKGROUND_KINDS)}, got {list(kinds)}")
     return kinds
 
 

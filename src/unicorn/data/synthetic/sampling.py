@@ -79,16 +79,22 @@ def sample_views(
     }
 
 
-def check_view_ranges(mode: str, roll: float | None = None, shift: float | None = None) -> None:
+def check_view_ranges(
+    mode: str,
+    roll: float | None = None,
+    shift: float | None = None,
+    names: tuple[str, str] = ("roll", "shift"),
+) -> None:
     """Refuse an unknown mode and view ranges it cannot take: ``roll`` in [0, 180] degrees and ``shift`` in
-    [0, 1] view units, for the ``wild`` mode only (None: the mode's own).
+    [0, 1] view units, for the ``wild`` mode only (None: the mode's own). ``names``: what ``roll`` and ``shift``
+    are called in the message (the options of ``unicorn-data synth``).
 
     Raises:
         DatasetError: the message names the setting.
     """
     if mode not in ("nmr", "wild"):
         raise DatasetError(f"mode must be 'nmr' or 'wild', got {mode!r}")
-    for name, value, top in (("roll", roll, 180.0), ("shift", shift, 1.0)):
+    for name, value, top in zip(names, (roll, shift), (180.0, 1.0), strict=True):
         if value is None:
             continue
         if mode == "nmr":

@@ -23,7 +23,7 @@ import os
 import shutil
 import socket
 import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,7 @@ from unicorn.errors import UserError, pid_alive
 from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
+    "DescribeDifference",
     "GENERATOR_VERSION",
     "RECORDED_OPTIONS",
     "StaleSyntheticDataset",
@@ -74,6 +75,7 @@ __all__ = [
     "generate_synthetic_dataset",
     "generation_lock",
     "generation_settings",
+    "setting_difference",
     "synthetic_dataset_path",
 ]
 
@@ -170,6 +172,16 @@ def check_generation_sizes(
     check_point_count(f"{names[2]} {n_points}", n_points)
 
 
+#: how a message names a setting that differs, ``(key, recorded value, asked value) -> text``: ``key=value (asked:
+#: value)`` by default (:func:`setting_difference`); ``unicorn-data synth`` names its options
+DescribeDifference = Callable[[str, Any, Any], str]
+
+
+def setting_difference(key: str, recorded: Any, asked: Any) -> str:
+    """``key=recorded (asked: asked)``: a setting of a generated dataset that differs from the one asked for."""
+    return f"{key}={recorded!r} (asked: {asked!r})"
+
+
 #: the settings :func:`check_generation_sizes` bounds
 _SIZE_KEYS = ("image_size", "supersample", "n_points")
 #: the most models per category a generation makes (ShapeNet's largest category, tables, has 8,436)
@@ -179,12 +191,15 @@ MAX_VIEWS = 10_000
 
 
 def check_generation_counts(n_models: int, n_views: int, names: tuple[str, str] = ("n_models", "n_views")) -> None:
-    """Refuse more than :data:`MAX_MODELS` models per category or :data:`MAX_VIEWS` views per model, before anything
-    is generated. ``names``: what the two settings are called in the message.
+    """Refuse fewer than 3 models per category (one per split, :func:`~unicorn.data.synthetic.sampling.split_sizes`),
+    more than :data:`MAX_MODELS`, or more than :data:`MAX_VIEWS` views per model, before anything is generated.
+    ``names``: what the two settings are called in the message.
 
     Raises:
         DatasetError: the message names the setting and its limit.
     """
+    if n_models < 3:
+        raise DatasetError(f"{names[0]} must be at least 3 (one model per split: train, val, test), got {n_models}")
     for name, value, top in zip(names, (n_models, n_views), (MAX_MODELS, MAX_VIEWS), strict=True):
         if value > top:
             raise DatasetError(f"{name} must be at most {top:,}, got {value:,}")
@@ -359,12 +374,16 @@ class SyntheticOutputExistsError(DatasetError, FileExistsError):
 
 
 def check_output_folder(
-    out: str | os.PathLike, categories: str | Sequence[str], settings: dict[str, Any] | None = None
+    out: str | os.PathLike,
+    categories: str | Sequence[str],
+    settings: dict[str, Any] | None = None,
+    describe: DescribeDifference = setting_difference,
 ) -> dict[str, dict]:
     """Refuse an output folder that :func:`generate_synthetic_dataset` cannot write into: one that holds
     something other than a dataset (a ``metadata.yaml`` that is not a category table) or already holds one of
     these categories (its model lists would be replaced). Other categories may share the folder, when its dataset
-    was generated with ``settings`` (:func:`generation_settings`; None: not checked).
+    was generated with ``settings`` (:func:`generation_settings`; None: not checked); ``describe`` words a setting
+    that differs in the message.
 
     Returns:
         The folder's category table (its ``metadata.yaml``; {} for none).
@@ -384,11 +403,13 @@ def check_output_folder(
                 "into another folder"
             )
     if settings is not None:
-        _joined_settings(out, settings)
+        _joined_settings(out, settings, describe)
     return metadata
 
 
-def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
+def _joined_settings(
+    out: Path, settings: dict[str, Any], describe: DescribeDifference = setting_difference
+) -> dict[str, Any]:
     """``settings`` of a generation into ``out``, with the categories already there when ``out`` holds a generated
     dataset (its ``synthetic.json``): other categories join one only with the same settings, which the file then
     describes for all of them.
@@ -410,7 +431,7 @@ def _joined_settings(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
     if other:
         key = other[0]
         raise SyntheticOutputExistsError(
-            f"{out} holds a synthetic dataset generated with {key}={earlier.get(key)!r} (asked: {settings[key]!r}); "
+            f"{out} holds a synthetic dataset generated with {describe(key, earlier.get(key), settings[key])}; "
             "other categories join it only with the same settings: generate into another folder"
         )
     return {**settings, "categories": [*earlier.get("categories", []), *settings["categories"]]}
@@ -467,11 +488,14 @@ class StaleSyntheticDataset(UserError, ValueError):
     """A generated dataset's ``synthetic.json`` does not match the settings (or the generator) asked for."""
 
 
-def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, object]:
+def check_manifest(
+    root: str | os.PathLike, *, describe: DescribeDifference = setting_difference, **expected: object
+) -> dict[str, object]:
     """Check a generated dataset's ``synthetic.json`` against the current generator and ``expected`` settings.
 
     Args:
         root: the generated dataset.
+        describe: how the message words each setting that differs.
         **expected: settings it must have been generated with (``categories``, ``mode``, ``image_size``...);
             the generator version is always checked. An option left to the mode (None) and the mode's own value
             written out are the same setting.
@@ -500,10 +524,16 @@ def check_manifest(root: str | os.PathLike, **expected: object) -> dict[str, obj
     if isinstance(expected.get("categories"), str):
         expected["categories"] = [expected["categories"]]
     was, asked = _in_effect(settings), _in_effect({**settings, **expected})
+    # a setting given alike that differs in effect (background_kinds None: white in nmr, all four kinds in wild)
+    # differs through the mode or backgrounds, which are named
     wrong = [
-        f"{key}={settings.get(key)!r} (asked: {value!r})"
+        describe(key, settings.get(key), value)
         for key, value in expected.items()
-        if (sorted(settings.get(key) or []) != sorted(value) if key == "categories" else was.get(key) != asked[key])
+        if (
+            sorted(settings.get(key) or []) != sorted(value)
+            if key == "categories"
+            else was.get(key) != asked[key] and settings.get(key) != value
+        )
     ]
     if wrong:
         raise StaleSyntheticDataset(
