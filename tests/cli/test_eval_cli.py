@@ -345,6 +345,15 @@ NO_CATEGORY = "names no category; give one, or drop --categories"
             ["--dataset", "cub_200", "--categories", "car"],
             "--categories picks ShapeNet or synthetic categories; cub_200 has none: drop --categories",
         ),
+        (
+            ["--dataset", "folder", "--own-mean-shape"],
+            "--own-mean-shape: the model's own average shape needs a dataset with ground-truth point clouds, not "
+            "folder",
+        ),
+        (
+            ["--dataset", "cub_200", "--mean-shape", "5"],
+            "--mean-shape: a mean shape needs a dataset with training point clouds (shapenet protocol), not cub_200",
+        ),
     ],
 )
 def test_options_the_dataset_refuses_are_one_line_before_the_checkpoint_is_read(

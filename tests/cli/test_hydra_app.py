@@ -5,12 +5,15 @@ sweep or another sweep under way, and a command it stops while it sets up leaves
 from __future__ import annotations
 
 import os
+import re
+import shlex
 import signal
 import sys
 from pathlib import Path
 
 import pytest
 from hydra._internal.utils import get_args_parser
+from omegaconf import OmegaConf
 
 from tests.support.training import TINY, error_lines, snapshot, unicorn_train
 from unicorn.cli.hydra_app import APP_OVERRIDES, HydraApp
@@ -111,6 +114,25 @@ def test_a_new_sweep_into_an_earlier_sweeps_folder_is_refused_and_keeps_its_reco
     assert not (sweep / ".unicorn-train.lock").exists()  # let go
 
 
+@pytest.mark.parametrize("swept", ["seed=1,2", "overwrite=true,false"])
+def test_a_sweep_into_a_runs_folder_is_refused_and_the_run_still_resumes(synthetic_cache, tmp_path, swept):
+    """Hydra's record of the sweep (``multirun.yaml``) in a run's folder would make it a sweep's folder, which a
+    resume of the run refuses."""
+    run = tmp_path / "run"
+    trained = unicorn_train(*TINY, "trainer.max_steps=1", f"hydra.run.dir={run}", cwd=tmp_path)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    before = snapshot(run)
+    refused = unicorn_train("-m", *TINY, "trainer.max_steps=1", swept, f"hydra.sweep.dir={run}", cwd=tmp_path)
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    assert error_lines(refused.stderr) == [
+        f"unicorn-train: error: {run} holds a run (provenance.json), not a sweep: a sweep's folder holds its jobs' "
+        "folders, and its record there would keep the run from being resumed; sweep elsewhere (hydra.sweep.dir=...)"
+    ]
+    assert snapshot(run) == before
+    resumed = unicorn_train(*TINY, "trainer.max_steps=2", f"hydra.run.dir={run}", "ckpt_path=last", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+
+
 def test_a_sweep_into_the_folder_of_a_sweep_under_way_is_refused(synthetic_cache, tmp_path):
     from unicorn.io.run_folder import lock_folder
 
@@ -173,3 +195,21 @@ def test_a_command_signalled_twice_while_it_sets_up_stops_at_once_and_leaves_the
     stops = [line for line in error_lines(stopped.stderr) if line.startswith("unicorn-train:")]
     assert stops == ["unicorn-train: stopped by SIGTERM at once (signalled twice while setting up)"]
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    "arg", ["paths.output_dir=runs/café", "paths.output_dir=runs/a#b", "ckpt_path=run/checkpoints/step=0000010.ckpt"]
+)
+def test_the_quoting_hint_quotes_the_users_override_as_hydra_reads_it(tmp_path, arg):
+    """The one line for an override Hydra's grammar refuses shows that override quoted; given back to the shell as
+    shown, Hydra reads the value the user meant (Hydra's composed config is the oracle)."""
+    refused = unicorn_train(*TINY, arg, "--cfg", "job", cwd=tmp_path)
+    (line,) = error_lines(refused.stderr)
+    assert refused.returncode == 2 and line.startswith("unicorn-train: error: "), refused.stderr[-3000:]
+    hint = re.search(r"must be quoted for Hydra: (.+)\)$", line)
+    assert hint is not None, line
+    (quoted,) = shlex.split(hint.group(1))  # as a shell hands it over
+    read = unicorn_train(*TINY, quoted, "--cfg", "job", cwd=tmp_path)
+    assert read.returncode == 0, read.stderr[-3000:]
+    key, _, value = arg.partition("=")
+    assert OmegaConf.select(OmegaConf.create(read.stdout), key) == value

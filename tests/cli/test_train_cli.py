@@ -298,17 +298,55 @@ def test_a_bug_in_jobs_of_a_sweep_is_said_for_each_job_and_the_summary_kept(synt
 
 
 def test_a_job_refused_in_the_folder_of_an_earlier_job_of_its_sweep_leaves_that_run(synthetic_cache, tmp_path):
-    """Two jobs whose folders are named alike (``hydra.sweep.subdir``): the second is refused, and the first one's
-    run, which the sweep made after it started, is not taken for the second's and removed."""
+    """Two jobs whose folders are named alike (``hydra.sweep.subdir`` naming a value the jobs share): the second is
+    refused, and the first one's run, which the sweep made after it started, is not taken for the second's and
+    removed."""
     sweep = tmp_path / "sweep"
     ran = unicorn_train(
-        "-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=same",
-        cwd=tmp_path,
+        "-m", *TINY, "trainer.max_steps=1", "seed=1,2", f"hydra.sweep.dir={sweep}",
+        "hydra.sweep.subdir=${hydra.job.name}", cwd=tmp_path,
     )  # fmt: skip
     job, _ = error_lines(ran.stderr)
-    assert ran.returncode == 2 and f"job #1 (seed=2): {sweep / 'same'} already holds a run" in job, ran.stderr[-3000:]
-    assert (sweep / "same" / "checkpoints" / "last.ckpt").is_file()
-    assert "seed: 1" in (sweep / "same" / "config.yaml").read_text()
+    assert ran.returncode == 2 and f"job #1 (seed=2): {sweep / 'train'} already holds a run" in job, ran.stderr[-3000:]
+    assert (sweep / "train" / "checkpoints" / "last.ckpt").is_file()
+    assert "seed: 1" in (sweep / "train" / "config.yaml").read_text()
+
+
+def test_a_sweep_whose_jobs_share_one_folder_is_refused_before_anything_is_written(tmp_path):
+    """``hydra.sweep.subdir=.`` (the sweep's folder, which holds the sweep's record and lock) or one name without a
+    value of the job for several jobs: refused in one line naming the setting, and no folder is made; one job in a
+    folder of a fixed name runs."""
+    sweep = tmp_path / "sweep"
+    itself = unicorn_train("-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=.", cwd=tmp_path)
+    assert itself.returncode == 2
+    assert error_lines(itself.stderr) == [
+        f"unicorn-train: error: hydra.sweep.subdir=.: the jobs would train in the sweep's folder {sweep} itself, which "
+        "holds the sweep's record; give each job a folder of its own (hydra.sweep.subdir=${hydra.job.num}, the "
+        f"default), or train one run without -m (hydra.run.dir={sweep})"
+    ]
+    one = unicorn_train("-m", *TINY, "seed=1", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=.", cwd=tmp_path)
+    assert one.returncode == 2 and "hydra.sweep.subdir=.: the jobs would train in the sweep's folder" in one.stderr
+    shared = unicorn_train(
+        "-m", *TINY, "seed=1,2,3", "overwrite=true,false", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=same",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert shared.returncode == 2
+    assert error_lines(shared.stderr) == [
+        f"unicorn-train: error: hydra.sweep.subdir=same: the 6 jobs of the sweep would all train in one folder, "
+        f"{sweep / 'same'}, which holds one run; give each job a folder of its own (hydra.sweep.subdir="
+        "${hydra.job.num}, the default)"
+    ]
+    assert not sweep.exists()
+
+
+def test_a_single_job_sweep_runs_in_a_folder_of_a_fixed_name(synthetic_cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    ran = unicorn_train(
+        "-m", *TINY, "trainer.max_steps=1", "seed=3", f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=only",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    assert "seed: 3" in (sweep / "only" / "config.yaml").read_text()
 
 
 def test_a_sweep_that_kept_nothing_is_not_told_to_resume(tmp_path):

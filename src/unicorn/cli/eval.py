@@ -351,7 +351,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     """
     # heavy imports here: --help and argument errors stay fast
     from unicorn.evaluation import format_table, get_protocol
-    from unicorn.evaluation.session import evaluate_to_folder, overflow_note
+    from unicorn.evaluation.session import EVAL_OPTION_NAMES, check_request, evaluate_to_folder, overflow_note
     from unicorn.io import load_model
     from unicorn.io.provenance import command_line, provenance
     from unicorn.io.run_folder import run_dataset, run_of_checkpoint
@@ -367,6 +367,8 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     early = _out_dir(args, run_dir, named)
     if early is not None:  # before the model is read: a mistake fails fast
         check_out_folder(early, args.overwrite)
+    if named in DATASETS:  # the baselines the dataset's protocol cannot serve, named as the options given
+        check_request(named, args.mean_shape, args.own_mean_shape, EVAL_OPTION_NAMES)
     level = args.template_level if args.template_level is not None else _protocol_level(named)
     overrides = {"template": {"level": level}} if level is not None else None
     model, info = load_model(args.checkpoint, map_location=device, overrides=overrides, trust=args.trust_checkpoint)
@@ -375,6 +377,7 @@ def run(args: argparse.Namespace, command: str | None = None, produced_by: str |
     out = _out_dir(args, info.run_dir, target.dataset)
     if out != early:
         check_out_folder(out, args.overwrite)
+    check_request(target.dataset, args.mean_shape, args.own_mean_shape, EVAL_OPTION_NAMES)
     average = info.average_texture if args.average_texture == "auto" else args.average_texture == "on"
     options = _options(args, target.dataset, average)
     if device.type == "cpu" and get_protocol(options.protocol).meshes is not None and options.icp_iterations > 30:

@@ -18,8 +18,8 @@ Hydra creates a job's folder before the task starts; :class:`NoteExistingFolders
 notes beforehand which folders existed, so that the task can tell a folder it created (and may remove again)
 from one the user made (:func:`entries_before`); a command stopped at once before its task took the folder over
 (a second signal while it sets up) has what Hydra made for the job removed again. A sweep locks its folder and is
-refused there, before Hydra writes into it, where another sweep runs or an earlier sweep's record would be replaced
-(:meth:`NoteExistingFolders.on_multirun_start`).
+refused there, before Hydra writes into it, where another sweep runs, an earlier sweep's record would be replaced,
+the folder holds a run, or the jobs would share one folder (:meth:`NoteExistingFolders.on_multirun_start`).
 
 A task stopped by a signal (:class:`unicorn.errors.Interrupted`) prints its message as ``<prog>: <message>`` and
 exits with the error's status. unicorn's warnings in the task are logged in one line, into the run's log too
@@ -30,8 +30,10 @@ from __future__ import annotations
 
 import builtins
 import io
+import math
 import os
 import re
+import shlex
 import sys
 import traceback
 from collections.abc import Callable, Iterable, Sequence
@@ -74,7 +76,8 @@ class NoteExistingFolders(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Note the sweep's folder, then refuse it before Hydra writes into it (its record, :data:`SWEEP_RECORD`,
-        replaces the folder's) where it holds an earlier sweep that this one neither goes on with nor replaces
+        replaces the folder's) where the jobs would share one folder (``hydra.sweep.subdir``), where it holds a run
+        or an earlier sweep that this one neither goes on with nor replaces
         (:func:`~unicorn.io.run_folder.plan_sweep_folder`), or where another sweep runs in it (its lock): the
         command stops with that one line, status 2 (:meth:`HydraApp.run`)."""
         from unicorn.io.run_folder import (
@@ -90,14 +93,18 @@ class NoteExistingFolders(Callback):
         self._note(folder, jobs_inside=True)
         if NoteExistingFolders.refusal is not None:  # a folder Hydra cannot make: it fails, the app says why
             return
+        shared = _shared_job_folder(config, folder)
+        if shared is not None:  # before the lock and Hydra's record: nothing is written
+            NoteExistingFolders.refusal = shared
+            raise SystemExit(2) from None
         swept = swept_keys([str(o) for o in config.hydra.overrides.task])
         try:
             # locked first: a sweep started meanwhile is refused, or writes its record before this one reads it
             NoteExistingFolders.sweep_lock = lock_folder(folder, setting="hydra.sweep.dir")
-            if not swept & {"ckpt_path", "overwrite"}:  # else each job's folder is checked with its own values
-                ckpt_arg = OmegaConf.select(config, "ckpt_path", throw_on_resolution_failure=False)
-                overwrite = OmegaConf.select(config, "overwrite", default=False, throw_on_resolution_failure=False)
-                plan_sweep_folder(folder, ckpt_arg, overwrite is True)
+            ckpt_arg = OmegaConf.select(config, "ckpt_path", throw_on_resolution_failure=False)
+            overwrite = OmegaConf.select(config, "overwrite", default=False, throw_on_resolution_failure=False)
+            # swept: each job's folder is checked with its own values
+            plan_sweep_folder(folder, ckpt_arg, overwrite is True, jobs_decide=bool(swept & {"ckpt_path", "overwrite"}))
         except (RunFolderError, RunFolderBusyError) as err:
             NoteExistingFolders.refusal = one_line(err)
             # Hydra turns a callback's Exception into a warning and goes on: SystemExit stops it
@@ -189,6 +196,50 @@ class NoteExistingFolders(Callback):
         NoteExistingFolders.created_top = top
 
 
+def _shared_job_folder(config: DictConfig, folder: Path) -> str | None:
+    """Why a sweep into ``folder`` is refused for its ``hydra.sweep.subdir``, or None: the jobs' folder would be the
+    sweep's folder itself (``hydra.sweep.subdir=.``: its record and lock are the sweep's), or one folder named
+    without any value of the job (no ``${...}``) shared by several jobs, each of which would replace the run of the
+    one before (with ``overwrite=true``) or be refused."""
+    subdir = OmegaConf.to_container(config.hydra.sweep, resolve=False).get("subdir")
+    if not isinstance(subdir, str) or "${" in subdir:  # named from the job (${hydra.job.num}, the default)
+        return None
+    job_folder = (folder / subdir).resolve()
+    apart = "give each job a folder of its own (hydra.sweep.subdir=${hydra.job.num}, the default)"
+    if job_folder == folder:
+        return (
+            f"hydra.sweep.subdir={subdir}: the jobs would train in the sweep's folder {folder} itself, which holds "
+            f"the sweep's record; {apart}, or train one run without -m (hydra.run.dir={folder})"
+        )
+    jobs = _job_count(config)
+    if jobs is not None and jobs > 1:
+        return (
+            f"hydra.sweep.subdir={subdir}: the {jobs} jobs of the sweep would all train in one folder, {job_folder}, "
+            f"which holds one run; {apart}"
+        )
+    return None
+
+
+def _job_count(config: DictConfig) -> int | None:
+    """How many jobs a sweep runs under Hydra's basic sweeper: the product of the number of values of each swept
+    key (its command line's and ``hydra.sweeper.params``); None under another sweeper, or when Hydra cannot parse
+    the overrides (it says why itself)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if not str(OmegaConf.select(config, "hydra.sweeper._target_", default="")).endswith(".BasicSweeper"):
+        return None
+    params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
+    args = [f"{key}={value}" for key, value in params.items()] + [str(o) for o in config.hydra.overrides.task]
+    values: dict[str, int] = {}  # by key: a key given twice takes its last value, as in Hydra
+    try:
+        for override in OverridesParser.create().parse_overrides(args):
+            sweep = override.is_discrete_sweep()
+            values[override.get_key_element()] = len(list(override.sweep_string_iterator())) if sweep else 1
+    except Exception:  # e.g. glob(), which needs Hydra's config loader: the count is unknown
+        return None
+    return math.prod(values.values())
+
+
 def _entries(folders: Iterable[Path]) -> dict[Path, set[str]]:
     """What each of ``folders`` that is a folder holds (the names in it), by its resolved path."""
     return {f.resolve(): {p.name for p in f.iterdir()} for f in folders if f.is_dir()}
@@ -246,12 +297,15 @@ def hydra_failure(text: str, overrides: Sequence[str] = (), config_dir: Path | N
         if "Could not find 'hydra/launcher/" in line:  # e.g. hydra/launcher=submitit_slurm without the plugin
             line += " (Hydra's launchers but basic are plugins of their own: pip install hydra-submitit-launcher)"
         if "mismatched input '='" in line:  # e.g. ckpt_path=run/checkpoints/step=0000010.ckpt
-            line += " (a value holding '=' must be quoted for Hydra: 'ckpt_path=\"run/checkpoints/step=0000010.ckpt\"')"
+            given = next((arg for arg in overrides if "=" in _unquoted_value(arg)), None)
+            example = _quoted(given) if given else "'ckpt_path=\"run/checkpoints/step=0000010.ckpt\"'"
+            line += f" (a value holding '=' must be quoted for Hydra: {example})"
         elif "LexerNoViableAltException" in line or re.search(r"mismatched input '[()\[\]{}#]'", line):
-            # e.g. hydra.run.dir=runs/café: letters outside ASCII, brackets, '#'
+            # e.g. hydra.run.dir=runs/café: letters outside ASCII, brackets, '#'; Hydra's line repeats the override
+            given = next((arg for arg in overrides if _unquoted_value(arg) and f" {arg} ^" in line), None)
+            example = _quoted(given) if given else "'hydra.run.dir=\"runs/café (1)\"'"
             line += (
-                " (a value holding letters outside ASCII, spaces, brackets or '#' must be quoted for Hydra: "
-                "'hydra.run.dir=\"runs/café (1)\"')"
+                f" (a value holding letters outside ASCII, spaces, brackets or '#' must be quoted for Hydra: {example})"
             )
         return line
     match = _EXCEPTION_LINE.match(lines[-1])
@@ -264,6 +318,19 @@ def hydra_failure(text: str, overrides: Sequence[str] = (), config_dir: Path | N
         if causes:
             return f"cannot write the run's log: {causes[-1].group(2)}"
     return None
+
+
+def _unquoted_value(arg: str) -> str:
+    """The value of an override ``key=value`` that is not quoted as a whole; the empty string otherwise."""
+    key, sep, value = arg.partition("=")
+    quoted = len(value) > 1 and value[0] in "'\"" and value[-1] == value[0]
+    return value if sep and key and not key.startswith("-") and not quoted else ""
+
+
+def _quoted(arg: str) -> str:
+    """An override ``key=value`` with its value quoted for Hydra, the whole quoted for a shell: 'key="value"'."""
+    key, _, value = arg.partition("=")
+    return shlex.quote(f'{key}="{value}"')
 
 
 #: Hydra's error for a config group chosen twice, with a hint about the ``override`` keyword of config files

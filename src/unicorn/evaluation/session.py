@@ -29,7 +29,16 @@ from unicorn.evaluation.report import REPORT_FILES, write_report
 from unicorn.io.staging import staged_folder
 from unicorn.render import OverflowCounter
 
-__all__ = ["EvalRequestError", "EvalTarget", "eval_command", "evaluate_to_folder", "overflow_note", "settings_options"]
+__all__ = [
+    "EVAL_OPTION_NAMES",
+    "EvalRequestError",
+    "EvalTarget",
+    "check_request",
+    "eval_command",
+    "evaluate_to_folder",
+    "overflow_note",
+    "settings_options",
+]
 
 log = logging.getLogger(__name__)
 
@@ -213,24 +222,53 @@ class EvalRequestError(UserError, ValueError):
     """Evaluation options the dataset cannot serve (a mean shape without training point clouds...)."""
 
 
+#: how :func:`check_request` names the settings it checks in ``unicorn-eval``'s errors: its options
+EVAL_OPTION_NAMES = {"mean_shape_iterations": "--mean-shape", "own_mean_shape": "--own-mean-shape"}
+
+
+def check_request(
+    dataset: str, mean_shape_iterations: int, own_mean_shape: bool, names: Mapping[str, str] | None = None
+) -> None:
+    """Refuse baselines that ``dataset``'s protocol cannot serve, before anything is read.
+
+    Args:
+        dataset: a registered dataset name.
+        mean_shape_iterations: > 0: a mean shape fitted to the training shapes is asked for.
+        own_mean_shape: the model's own average shape is asked for.
+        names: how the error names each setting, by its name here (``mean_shape_iterations``, ``own_mean_shape``):
+            :data:`EVAL_OPTION_NAMES` for ``unicorn-eval``, ``evaluate.<name>`` for a training config; a
+            setting left out is named as here.
+
+    Raises:
+        EvalRequestError: names the setting given and the dataset.
+    """
+    spec = get_protocol(protocol_for(dataset))
+    name = {"mean_shape_iterations": "mean_shape_iterations", "own_mean_shape": "own_mean_shape", **(names or {})}
+    if mean_shape_iterations > 0 and not spec.training_clouds:
+        raise EvalRequestError(
+            f"{name['mean_shape_iterations']}: a mean shape needs a dataset with training point clouds (shapenet "
+            f"protocol), not {dataset}"
+        )
+    if own_mean_shape and spec.meshes is None:
+        raise EvalRequestError(
+            f"{name['own_mean_shape']}: the model's own average shape needs a dataset with ground-truth point clouds, "
+            f"not {dataset}"
+        )
+
+
 def _check_request(target: EvalTarget, options: EvalOptions, mean_shape_iterations: int) -> None:
     """Refuse options the dataset's protocol cannot serve.
 
     Raises:
-        EvalRequestError: the options' protocol is not the dataset's, or a baseline needs data the dataset lacks.
+        EvalRequestError: the options' protocol is not the dataset's, or a baseline needs data the dataset lacks
+            (:func:`check_request`).
     """
     protocol = protocol_for(target.dataset)
-    spec = get_protocol(protocol)
     if options.protocol != protocol:
         raise EvalRequestError(
             f"options.protocol is {options.protocol!r} but {target.dataset} is evaluated with {protocol!r}"
         )
-    if mean_shape_iterations > 0 and not spec.training_clouds:
-        raise EvalRequestError(
-            f"a mean shape needs a dataset with training point clouds (shapenet protocol), not {target.dataset}"
-        )
-    if options.own_mean_shape and spec.meshes is None:
-        raise EvalRequestError(f"own_mean_shape needs a dataset with ground-truth point clouds, not {target.dataset}")
+    check_request(target.dataset, mean_shape_iterations, options.own_mean_shape)
 
 
 def _mean_shapes(

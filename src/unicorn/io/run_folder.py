@@ -351,22 +351,30 @@ def plan_folder(output_dir: Path, ckpt_arg: str | None, ckpt: str | None, overwr
     return []
 
 
-def plan_sweep_folder(folder: Path, ckpt_arg: str | None, overwrite: bool) -> None:
+def plan_sweep_folder(folder: Path, ckpt_arg: str | None, overwrite: bool, jobs_decide: bool = False) -> None:
     """Check that a sweep (``-m``) may run in ``folder`` (``hydra.sweep.dir``) before Hydra writes its record there
     (:data:`SWEEP_RECORD`, which replaces the one the folder holds); reads only. As for a run's folder
     (:func:`plan_folder`), a folder holding an earlier sweep is only used again to go on with that sweep or to
-    replace it.
+    replace it; a folder holding a run is never a sweep's (the record would keep the run from being resumed there).
 
     Args:
         folder: the sweep's folder.
         ckpt_arg: the ``ckpt_path`` setting of the sweep (``"last"``: go on with the sweep the folder holds).
         overwrite: the ``overwrite`` setting of the sweep.
+        jobs_decide: ``ckpt_path`` or ``overwrite`` is swept: each job checks its folder with its own values, and
+            an earlier sweep's record is not refused here.
 
     Raises:
-        RunFolderError: ``folder`` holds :data:`SWEEP_RECORD`, and the sweep neither goes on with it
-            (``ckpt_path=last``) nor replaces it (``overwrite=true``).
+        RunFolderError: ``folder`` holds a run; or it holds :data:`SWEEP_RECORD`, and the sweep neither goes on with
+            it (``ckpt_path=last``) nor replaces it (``overwrite=true``).
     """
-    if (folder / SWEEP_RECORD).is_file() and ckpt_arg != "last" and not overwrite:
+    run = folder / RUN_PROVENANCE if (folder / RUN_PROVENANCE).is_file() else previous_run(folder)
+    if run is not None:
+        raise RunFolderError(
+            f"{folder} holds a run ({run.relative_to(folder)}), not a sweep: a sweep's folder holds its jobs' folders, "
+            "and its record there would keep the run from being resumed; sweep elsewhere (hydra.sweep.dir=...)"
+        )
+    if (folder / SWEEP_RECORD).is_file() and ckpt_arg != "last" and not overwrite and not jobs_decide:
         raise RunFolderError(
             f"{folder} holds an earlier sweep ({SWEEP_RECORD}, Hydra's record of it); go on with it with "
             "ckpt_path=last, replace its runs with overwrite=true, or sweep elsewhere (hydra.sweep.dir=...)"
