@@ -22,8 +22,8 @@ FOLDER_RUN = [
     "evaluate.num_points=300",
     "evaluate.icp_iterations=2",
     "evaluate.report_samples=0",
-    "evaluate.mean_shape_iterations=0",
-    "evaluate.own_mean_shape=false",
+    "evaluate.mean_shape_iterations=5",  # a folder serves neither baseline: both left out, named in the log
+    "evaluate.own_mean_shape=true",
     "evaluate.shape_points=0",
 ]
 
@@ -51,6 +51,12 @@ def test_the_evaluation_after_training_skips_unreadable_images_as_training_did(t
         for line in skipped
     )  # fmt: skip
     assert "RuntimeWarning" not in log + result.stderr and "warnings.warn" not in result.stderr
+    for left_out in (
+        "evaluate.mean_shape_iterations left out: folder has no training point clouds for a mean shape",
+        "evaluate.own_mean_shape left out: folder has no ground-truth point clouds to score the model's own average",
+    ):
+        assert left_out in log
+    assert "--mean-shape=0 " in metrics["command"] and "--own-mean-shape" not in metrics["command"]
 
 
 def test_a_folder_run_is_evaluated_and_resumed_on_the_suffixes_it_trained_on(tmp_path: Path) -> None:

@@ -37,6 +37,7 @@ __all__ = [
     "eval_command",
     "evaluate_to_folder",
     "overflow_note",
+    "served_settings",
     "settings_options",
 ]
 
@@ -254,6 +255,22 @@ def check_request(
             f"{name['own_mean_shape']}: the model's own average shape needs a dataset with ground-truth point clouds, "
             f"not {dataset}"
         )
+
+
+def served_settings(settings: EvaluateConfig, dataset: str) -> EvaluateConfig:
+    """``settings`` without the baselines ``dataset``'s protocol cannot serve (:func:`check_request`), each one left
+    out named in the log: the evaluation after training of a recipe run on another dataset
+    (``experiment=synthetic dataset=folder``) scores what the dataset allows instead of failing once trained, as the
+    held-out evaluation does."""
+    spec = get_protocol(protocol_for(dataset))
+    left_out = {}
+    if settings.mean_shape_iterations > 0 and not spec.training_clouds:
+        left_out["mean_shape_iterations"] = (0, "no training point clouds for a mean shape")
+    if settings.own_mean_shape and spec.meshes is None:
+        left_out["own_mean_shape"] = (False, "no ground-truth point clouds to score the model's own average shape")
+    for key, (_, why) in left_out.items():
+        log.info("evaluation after training: evaluate.%s left out: %s has %s", key, dataset, why)
+    return dataclasses.replace(settings, **{key: value for key, (value, _) in left_out.items()})
 
 
 def _check_request(target: EvalTarget, options: EvalOptions, mean_shape_iterations: int) -> None:

@@ -659,12 +659,19 @@ def evaluate_run(run: Run) -> Path:
     evaluated again.
     """
     from unicorn.config.schema import EvaluateConfig
-    from unicorn.evaluation.session import EvalTarget, eval_command, evaluate_to_folder, overflow_note, settings_options
+    from unicorn.evaluation.session import (
+        EvalTarget,
+        eval_command,
+        evaluate_to_folder,
+        overflow_note,
+        served_settings,
+        settings_options,
+    )
     from unicorn.io.provenance import provenance
     from unicorn.io.run_folder import newest_checkpoint
 
-    settings = EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True))
     d = run.config.dataset
+    settings = served_settings(EvaluateConfig(**OmegaConf.to_container(run.config.evaluate, resolve=True)), d.name)
     skip_bad = d.on_error == "skip"  # the dataset's bad-file policy, as in training
     checkpoint = newest_checkpoint(run.checkpoint_dir) or run.checkpoint_dir / "last.ckpt"
     out = run.output_dir / "eval"
