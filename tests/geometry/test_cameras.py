@@ -206,3 +206,52 @@ def test_the_opencv_camera_projects_where_the_camera_does(frame):
     torch.testing.assert_close(uv, documented - 0.5)  # OpenCV's pixel centres at integers
     if frame[:2] == (0.0, 0.0):
         torch.testing.assert_close(uv, ndc_to_pixel(ndc[:, :2], int(width)))
+
+
+@pytest.mark.parametrize("convert", [ndc_to_pixel, pixel_to_ndc], ids=lambda f: f.__name__)
+@pytest.mark.parametrize("shape", [(5, 1), (5, 3), ()], ids=str)
+def test_pixel_conversions_name_points_that_are_not_2d(convert, shape):
+    # (5, 1) indexed past its last dimension; (5, 3) dropped its third coordinate without a word
+    name = "xy" if convert is ndc_to_pixel else "colrow"
+    with pytest.raises(ValueError, match=rf"^{name} must have shape \(\.\.\., 2\), got "):
+        convert(torch.zeros(shape), 8)
+
+
+@pytest.mark.parametrize(
+    "focal_length, frame, match",
+    [
+        (0.0, (0.0, 0.0, 64.0, 64.0), "focal_length must be a finite number > 0, got 0.0"),
+        (-2.0, (0.0, 0.0, 64.0, 64.0), "focal_length must be a finite number > 0, got -2.0"),
+        (math.nan, (0.0, 0.0, 64.0, 64.0), "focal_length must be a finite number > 0, got nan"),
+        (True, (0.0, 0.0, 64.0, 64.0), "focal_length must be one number, got True"),
+        ("2", (0.0, 0.0, 64.0, 64.0), "focal_length must be one number, got '2'"),
+        (2.0, (0.0, 0.0, 0.0, 64.0), r"frame must be four finite numbers \(x, y, width > 0, height > 0\), got"),
+        (2.0, (0.0, 0.0, 64.0, -64.0), "frame must be four finite numbers"),
+        (2.0, (0.0, math.inf, 64.0, 64.0), "frame must be four finite numbers"),
+        (2.0, (0.0, 0.0, 64.0), "frame must be four finite numbers"),
+        (2.0, 64.0, "frame must be four finite numbers"),
+        (2.0, "0 0 64 64", "frame must be four finite numbers"),
+        (2.0, (0.0, 0.0, "64", 64.0), "frame must be four finite numbers"),
+    ],
+)
+def test_the_opencv_camera_refuses_a_focal_length_or_frame_that_projects_nowhere(focal_length, frame, match):
+    # a zero focal length or width flattens K, a negative one mirrors the image, NaN fills it with NaN
+    with pytest.raises(ValueError, match=f"^{match}"):
+        opencv_camera(torch.eye(3), torch.zeros(3), focal_length, frame)
+
+
+def test_the_opencv_camera_takes_one_element_tensors_and_numpy_scalars():
+    K = opencv_camera(torch.eye(3), torch.zeros(3), 2.0, (0.0, 0.0, 64.0, 64.0))[0]
+    got = opencv_camera(torch.eye(3), torch.zeros(3), torch.tensor([2.0]), np.array([0, 0, 64, 64]))[0]
+    assert torch.equal(got, K)
+
+
+def test_world_to_view_refuses_integer_points_rather_than_rounding_the_camera():
+    # R and T were cast to the points' dtype: an integer one rounded the rotation to 0 and +-1
+    R, T = look_at_view_transform(2.0, 30.0, 45.0)
+    points = torch.tensor([[[1, 0, 0]]])
+    with pytest.raises(TypeError, match=r"^verts must be a floating point tensor, got torch.int64$"):
+        world_to_view(points, R, T)
+    with pytest.raises(TypeError, match=r"^verts must be a floating point tensor"):
+        PerspectiveCamera(fov=30.0).transform_points_screen(points, R, T, 64)
+    torch.testing.assert_close(world_to_view(points.float(), R, T)[0, 0], R[0, 0] + T[0])  # the oracle: row 0 of R

@@ -31,6 +31,14 @@ def test_icosphere_refuses_a_level_that_is_no_whole_number_in_range():
     assert torch.equal(icosphere(2.0)[1], icosphere(2)[1])  # 2.0 is 2
 
 
+@pytest.mark.parametrize("dtype", [torch.long, torch.int32, torch.bool, torch.complex64, "float32"], ids=str)
+def test_icosphere_refuses_a_dtype_that_cannot_hold_its_vertices(dtype):
+    # an integer dtype would round the unit sphere's coordinates to -1, 0 and 1
+    with pytest.raises(TypeError, match=r"^icosphere dtype must be a floating point torch dtype, got "):
+        icosphere(1, dtype=dtype)
+    assert icosphere(1, dtype=torch.float16)[0].dtype == torch.float16
+
+
 def test_ellipsoid_axes():
     v, _ = ellipsoid(3, scale=0.6)
     assert torch.allclose(v.abs().amax(0), torch.tensor([0.6, 0.42, 0.42]), atol=1e-3)
@@ -100,6 +108,13 @@ def test_icosphere_is_mirror_symmetric_in_z():
     mirrored = mirror_points(v)
     assert torch.cdist(mirrored, v).min(dim=1).values.max() < 1e-5
     assert torch.equal(mirror_points(v)[:, :2], v[:, :2]) and torch.equal(mirror_points(v)[:, 2], -v[:, 2])
+
+
+@pytest.mark.parametrize("shape", [(4, 2), (4, 1), (3, 4), ()], ids=str)
+def test_mirror_points_names_points_that_are_not_3d(shape):
+    # (4, 1) would broadcast to (4, 3) without a word
+    with pytest.raises(ValueError, match=r"^points must have shape \(\.\.\., 3\), got "):
+        mirror_points(torch.ones(shape))
 
 
 def test_mirrored_map_shows_at_a_point_what_the_map_shows_at_its_mirror():

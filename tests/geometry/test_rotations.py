@@ -131,6 +131,42 @@ def test_batches_of_different_sizes_are_refused_in_one_line(call, match):
         call()
 
 
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (
+            lambda: look_at_rotation(torch.tensor([[0.0, 0.0, 2.0]]), up=torch.zeros(1, 3)),
+            r"^look_at: an up vector is \(0, 0, 0\), which gives no direction$",
+        ),
+        (
+            lambda: look_at_view_transform(
+                2.0, 30.0, torch.tensor([0.0, 90.0]), up=[[0.0, 1.0, 0.0], [0.0, -0.0, 0.0]]
+            ),
+            r"^look_at: an up vector is \(0, 0, 0\)",
+        ),
+        (
+            lambda: look_at_rotation(torch.tensor([[0.0, math.nan, 2.0]])),
+            r"^look_at: camera_position, at or up contains NaN or infinite values$",
+        ),
+        (
+            lambda: look_at_rotation(torch.tensor([[0.0, 0.0, 2.0]]), at=torch.tensor([math.inf, 0.0, 0.0])),
+            "NaN or inf",
+        ),
+        (
+            lambda: look_at_rotation(torch.tensor([[0.0, 0.0, 2.0]]), up=torch.tensor([0.0, math.nan, 0.0])),
+            "NaN or inf",
+        ),
+        (lambda: look_at_view_transform(math.nan, 30.0, 45.0), "NaN or infinite"),
+        (lambda: look_at_view_transform(2.0, 30.0, torch.tensor([45.0, math.inf])), "NaN or infinite"),
+    ],
+    ids=["zero-up", "zero-up-in-batch", "nan-position", "inf-at", "nan-up", "nan-dist", "inf-azim"],
+)
+def test_a_camera_with_no_up_direction_or_no_finite_position_is_refused(call, match):
+    # a zero up gave an arbitrary camera (x axis picked as when looking along up), NaN gave NaN R and T
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
 def test_the_two_azimuth_conventions_place_the_camera_where_the_docs_say():
     # the camera centre -T @ R^T of each convention, against the directions the docstrings and docs/renderer.md give
     azim, elev = torch.tensor([0.0, 90.0, 0.0]), torch.tensor([0.0, 0.0, 30.0])

@@ -26,15 +26,25 @@ def image_hw(image_size: int | tuple[int, int]) -> tuple[int, int]:
 
 
 def world_to_view(verts: torch.Tensor, R: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
-    """``verts @ R + T``: (B, V, 3) world points to view coordinates, with R (B, 3, 3) and T (B, 3)."""
-    dims = check_shape(verts, "B, V, 3", "verts")
+    """``verts @ R + T``: (B, V, 3) world points to view coordinates, with R (B, 3, 3) and T (B, 3), in verts' dtype.
+
+    Raises:
+        unicorn.checks.ShapeError: shapes outside these.
+        TypeError: ``verts`` not floating point (R and T cast to an integer dtype would be rounded).
+    """
+    dims = check_shape(verts, "B, V, 3", "verts", floating=True)
     check_shape(R, "B, 3, 3", "R", dims)
     check_shape(T, "B, 3", "T", dims)
     return verts @ R.to(verts) + T.to(verts).unsqueeze(1)
 
 
 def ndc_to_pixel(xy: torch.Tensor, image_size: int | tuple[int, int]) -> torch.Tensor:
-    """NDC (..., 2) to continuous pixel coordinates (column, row), pixel centres at integers."""
+    """NDC (..., 2) to continuous pixel coordinates (column, row), pixel centres at integers.
+
+    Raises:
+        unicorn.checks.ShapeError: ``xy`` not of shape (..., 2).
+    """
+    check_shape(xy, "*, 2", "xy")
     H, W = image_hw(image_size)
     S = min(H, W)
     col = (W - 1 - xy[..., 0] * S) / 2
@@ -43,7 +53,12 @@ def ndc_to_pixel(xy: torch.Tensor, image_size: int | tuple[int, int]) -> torch.T
 
 
 def pixel_to_ndc(colrow: torch.Tensor, image_size: int | tuple[int, int]) -> torch.Tensor:
-    """Continuous pixel coordinates (column, row) (..., 2) to NDC, the inverse of :func:`ndc_to_pixel`."""
+    """Continuous pixel coordinates (column, row) (..., 2) to NDC, the inverse of :func:`ndc_to_pixel`.
+
+    Raises:
+        unicorn.checks.ShapeError: ``colrow`` not of shape (..., 2).
+    """
+    check_shape(colrow, "*, 2", "colrow")
     H, W = image_hw(image_size)
     S = min(H, W)
     x = (W - 1 - 2 * colrow[..., 0]) / S
@@ -69,10 +84,24 @@ def opencv_camera(
 
     Returns:
         K (3, 3), R_cv (3, 3) and t_cv (3,), in R's dtype.
+
+    Raises:
+        unicorn.checks.ShapeError: ``R`` or ``T`` of another shape.
+        ValueError: ``focal_length`` not a finite number > 0, or ``frame`` not four finite numbers with width and
+            height > 0 (K would hold NaN, or mirror or flatten the image).
     """
     check_shape(R, "3, 3", "R")
     check_shape(T, "3", "T")
-    x, y, width, height = (float(v) for v in frame)
+    focal_length = _one_number("focal_length", focal_length)
+    if not (math.isfinite(focal_length) and focal_length > 0):
+        raise ValueError(f"focal_length must be a finite number > 0, got {focal_length}")
+    try:
+        values = [_one_number("frame", v) for v in frame] if not isinstance(frame, str) else []
+    except (TypeError, ValueError):  # not iterable, or an entry that is no number
+        values = []
+    if not (len(values) == 4 and all(map(math.isfinite, values)) and values[2] > 0 and values[3] > 0):
+        raise ValueError(f"frame must be four finite numbers (x, y, width > 0, height > 0), got {frame!r}")
+    x, y, width, height = values
     flip = torch.diag(torch.tensor([-1.0, -1.0, 1.0], dtype=R.dtype, device=R.device))  # view +X left, +Y up
     K = torch.tensor(
         [

@@ -34,11 +34,14 @@ def icosphere(level: int = 3, dtype: torch.dtype = torch.float32) -> tuple[torch
 
     Raises:
         ValueError: ``level`` not a whole number in [0, 7] (3.0 is 3; 2.5 or True are errors).
+        TypeError: ``dtype`` not a floating point torch dtype (an integer one would round the vertices).
     """
     # a bool is no level, and trimesh would subdivide a 2.5 twice without a word
     whole = isinstance(level, numbers.Real) and not isinstance(level, bool) and float(level).is_integer()
     if not (whole and 0 <= level <= 7):
         raise ValueError(f"icosphere level must be a whole number in [0, 7], got {level!r}")
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise TypeError(f"icosphere dtype must be a floating point torch dtype, got {dtype!r}")
     mesh = trimesh.creation.icosphere(subdivisions=int(level), radius=1.0)
     verts = torch.as_tensor(mesh.vertices, dtype=dtype)
     faces = torch.as_tensor(mesh.faces, dtype=torch.long)
@@ -134,7 +137,12 @@ def spherical_face_uvs(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor
 
 
 def mirror_points(points: torch.Tensor) -> torch.Tensor:
-    """Mirror points (..., 3) through the template's plane of symmetry z = 0."""
+    """Mirror points (..., 3) through the template's plane of symmetry z = 0.
+
+    Raises:
+        unicorn.checks.ShapeError: ``points`` not of shape (..., 3).
+    """
+    check_shape(points, "*, 3", "points")
     return points * points.new_tensor((1.0, 1.0, -1.0))
 
 

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import torch
 
-from unicorn.checks import check_shape
+from unicorn.checks import NonFiniteValueError, check_shape
 
 __all__ = [
     "azim_elev_roll_to_rotation",
@@ -152,8 +152,9 @@ def look_at_rotation(
         coordinates, so that ``(x - camera_position) @ R`` are view coordinates.
 
     Raises:
-        ValueError: a tensor not of shape (..., 3), tensors that do not broadcast together, or a camera at its
-            target point (no viewing direction).
+        ValueError: a tensor not of shape (..., 3), tensors that do not broadcast together, a camera at its
+            target point (no viewing direction), or an ``up`` of (0, 0, 0) (no direction).
+        unicorn.checks.NonFiniteValueError: NaN or infinite values (a ``ValueError``).
     """
     check_shape(camera_position, "*, 3", "camera_position")
     at = torch.zeros_like(camera_position) if at is None else at.to(camera_position)
@@ -169,8 +170,19 @@ def look_at_rotation(
             f"{tuple(up.shape)} do not broadcast together"
         ) from None
     forward = at - camera_position
-    if bool((forward.norm(dim=-1) < 1e-8).any()):
+    not_finite, at_target, no_up = torch.stack(  # one device read for the three refusals
+        [
+            ~(torch.isfinite(camera_position).all() & torch.isfinite(at).all() & torch.isfinite(up).all()),
+            (forward.norm(dim=-1) < 1e-8).any(),
+            (up == 0).all(dim=-1).any(),
+        ]
+    ).tolist()
+    if not_finite:
+        raise NonFiniteValueError("look_at: camera_position, at or up contains NaN or infinite values")
+    if at_target:
         raise ValueError("look_at: a camera is at the point it looks at (distance 0), so it has no viewing direction")
+    if no_up:
+        raise ValueError("look_at: an up vector is (0, 0, 0), which gives no direction")
     z_axis = torch.nn.functional.normalize(forward, dim=-1)
     side = torch.cross(up, z_axis, dim=-1)
     norm = side.norm(dim=-1, keepdim=True)
@@ -213,7 +225,8 @@ def look_at_view_transform(
 
     Raises:
         ValueError: ``at`` or ``up`` not of shape (..., 3), batches of cameras, ``at`` and ``up`` of different sizes
-            (other than 1), or a camera at distance 0 from ``at``.
+            (other than 1), a camera at distance 0 from ``at``, an ``up`` of (0, 0, 0), or NaN or infinite values
+            (:func:`look_at_rotation`).
     """
     dist, elev, azim = torch.broadcast_tensors(*_as_tensors(dist, elev, azim))
     eye = camera_position_from_spherical(dist, elev, azim).reshape(-1, 3)
