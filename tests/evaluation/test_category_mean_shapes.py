@@ -78,7 +78,8 @@ def test_no_mean_shape_is_fitted_without_icp(shapenet_model, synth_root, tmp_pat
         raise AssertionError("the mean shape is fitted, but it cannot be scored without ICP")
 
     monkeypatch.setattr(mean_shape_module, "_fit_offsets", no_fit)
-    with caplog.at_level(logging.INFO, logger="unicorn.evaluation.session"):
-        result = _scored(shapenet_model, synth_root, None, tmp_path, icp_iterations=0)
-    assert not set(COLUMNS) & set(result.columns)
+    with caplog.at_level(logging.INFO, logger="unicorn.evaluation"):
+        result = _scored(shapenet_model, synth_root, None, tmp_path, icp_iterations=0, own_mean_shape=True)
+    assert not {*COLUMNS, "chamfer-L1-ICP-own-mean"} & set(result.columns)
     assert "no mean shape is fitted (mean_shape_iterations 20): it is scored after ICP" in caplog.text
+    assert "the model's own average shape is not scored (own_mean_shape): it is scored after ICP" in caplog.text

@@ -7,6 +7,7 @@ evaluation items of a dataset and runs the loop.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -28,6 +29,8 @@ from unicorn.evaluation.rendering import hard_render
 from unicorn.evaluation.tables import Accumulator, candidate_shares, color_scores, shape_scores, summary_table
 
 __all__ = ["build_eval_dataset", "candidate_shares", "category_group", "collate", "evaluate", "group_namer"]
+
+log = logging.getLogger(__name__)
 
 
 def build_eval_dataset(
@@ -219,7 +222,10 @@ def evaluate(
         worker_init_fn=ignore_stop_signals,  # a signal to the process group stops the command, not its workers
     )
     own_means = None
-    if options.own_mean_shape and protocol.meshes is not None and options.icp_iterations > 0:
+    if options.own_mean_shape and protocol.meshes is not None and options.icp_iterations <= 0:
+        log.warning("note: the model's own average shape is not scored (own_mean_shape): it is scored after ICP, "
+                    "and icp_iterations is 0")  # fmt: skip
+    elif options.own_mean_shape and protocol.meshes is not None:
         own_means = _own_mean_shapes(model, loader, group_of, model.config["image_size"], options, device)
     measurements = measurements_for(protocol, options, model, shape_baseline, own_means)
     acc = Accumulator()
