@@ -128,3 +128,65 @@ def test_synth_names_the_options_a_generated_dataset_differs_in(
         err = capsys.readouterr().err
         assert err.startswith(f"unicorn-data: error: the synthetic dataset in {cached} was generated with {difference}")
         assert err.count("\n") == 1
+
+
+def test_synth_says_how_to_generate_elsewhere_than_a_cache_folder_it_cannot_use(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A cache folder of other settings, with a damaged synthetic.json or holding other files is refused naming
+    --out, the option that generates elsewhere (the folder's name holds neither --size nor the other options)."""
+    monkeypatch.setenv("UNICORN_CACHE", str(tmp_path / "cache"))
+    assert main(["synth", *MUGS]) == 0
+    capsys.readouterr()
+    remedy = "or generate into another folder with --out DIR\n"
+    assert main(["synth", *MUGS, "--size", "16"]) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f"was generated with --size 8 (asked: 16); delete that folder to generate it again, {remedy}")
+    cached = writer.synthetic_dataset_path("mug", "nmr", 3, 0)
+    (cached / "synthetic.json").write_text("[1, 2]")
+    assert main(["synth", *MUGS]) == 2
+    assert capsys.readouterr().err.endswith(f"delete {cached} to generate it again, {remedy}")
+    other = writer.synthetic_dataset_path("mug", "nmr", 3, 1)
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert main(["synth", *MUGS, "--seed", "1"]) == 2
+    assert capsys.readouterr().err == (
+        f"unicorn-data: error: {other} holds files but no synthetic.json: it is not a generated dataset; move it "
+        f"away, {remedy}"
+    )
+
+
+def test_synth_into_a_folder_under_a_file_names_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "notes").write_text("mine")
+    out = tmp_path / "notes" / "data" / "mugs"
+    assert main(["synth", *MUGS, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (
+        f"unicorn-data: error: cannot write {out}: {tmp_path / 'notes'} is a file, where a folder goes\n"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes"] and (tmp_path / "notes").read_text() == "mine"
+
+
+@pytest.mark.parametrize(
+    ("argv", "error"),
+    [
+        (
+            ["--categories", "chair", "synthetic", "--root", "DIR"],
+            "the following arguments are required: dataset (--categories took every word after it: name the dataset "
+            "before --categories)",
+        ),
+        (
+            ["--cat", "chair", "car", "synthetic"],
+            "the following arguments are required: dataset, --root (--categories took every word after it: name "
+            "the dataset before --categories)",
+        ),
+        (["--categories", "--root", "DIR"], "the following arguments are required: dataset"),
+        (["--root", "DIR"], "the following arguments are required: dataset"),
+    ],
+    ids=["categories-took-it", "prefix-took-it", "categories-empty", "no-categories"],
+)
+def test_check_says_when_categories_took_the_datasets_name(
+    argv: list[str], error: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert _usage_error(["check", *argv], capsys)[-1] == f"unicorn-data check: error: {error}"
+    assert main(["check", "synthetic", "--root", "DIR", "--categories", "chair", "car"]) == 2  # after it: read
+    assert "synthetic dataset not found at" in capsys.readouterr().err

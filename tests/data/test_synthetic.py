@@ -462,8 +462,13 @@ def test_cache_is_versioned_and_checked(tmp_path: Path, monkeypatch: pytest.Monk
     assert path.name.endswith(f"_v{writer.GENERATOR_VERSION}")
     assert writer.check_manifest(path, image_size=32)["generator_version"] == writer.GENERATOR_VERSION
     # the same folder asked for with another image size: an error that names it, not a silent reuse
-    with pytest.raises(writer.StaleSyntheticDataset, match="image_size=32 \\(asked: 64\\)"):
+    with pytest.raises(writer.StaleSyntheticDataset, match="image_size=32 \\(asked: 64\\)") as info:
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, **{**options, "image_size": 64})
+    # the folder's name holds no image size: the message says how a training run generates it elsewhere
+    assert str(info.value).endswith(
+        "; delete that folder to generate it again, or generate it under another root (dataset.root=DIR in a "
+        "training run)"
+    )
     # an option left out means the generator's default (64 px), which this dataset was not made with
     with pytest.raises(writer.StaleSyntheticDataset, match="image_size"):
         ensure_synthetic_dataset(tmp_path, "mug", "nmr", 3, 0, n_views=2, n_points=200, supersample=2, progress=False)
@@ -533,6 +538,18 @@ def test_a_second_generation_of_a_dataset_waits_for_the_first_and_reuses_it(tmp_
     waiting.join(120)
     assert found == [final] and (final / "synthetic.json").stat().st_mtime_ns == stamp  # reused, not made again
     assert stale.is_dir() and sorted(p.name for p in tmp_path.iterdir()) == sorted([final.name, stale.name])
+
+
+def test_a_root_under_a_file_is_refused_naming_the_file(tmp_path: Path) -> None:
+    """``dataset.root`` naming a file (or a folder under one): one line naming the file, which is left as it was."""
+    options = {k: v for k, v in TINY.items() if k not in ("n_models", "progress")}
+    (tmp_path / "notes").write_text("mine")
+    for root in (tmp_path / "notes", tmp_path / "notes" / "data"):
+        final = synthetic_dataset_path("car", "nmr", 3, 0, root)
+        with pytest.raises(NotADirectoryError) as info:
+            ensure_synthetic_dataset(root, "car", "nmr", 3, 0, **options)
+        assert str(info.value) == f"cannot write {final}: {tmp_path / 'notes'} is a file, where a folder goes"
+    assert [p.name for p in tmp_path.iterdir()] == ["notes"] and (tmp_path / "notes").read_text() == "mine"
 
 
 def test_a_folder_that_is_not_a_generated_dataset_is_refused_before_generating(tmp_path: Path) -> None:

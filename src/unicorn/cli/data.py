@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 
@@ -47,6 +47,10 @@ SYNTH_OPTIONS = {
     "roll": "--roll",
     "shift": "--shift",
 }
+
+
+#: how ``unicorn-data synth``'s errors about a cache folder that cannot be used say to generate elsewhere
+ANOTHER_FOLDER = "generate into another folder with --out DIR"
 
 
 def _option_value(key: str, value: Any) -> str:
@@ -125,9 +129,16 @@ def _synth(args: argparse.Namespace) -> int:
         path = synthetic_dataset_path(categories, args.mode, args.models, args.seed)
         cached = (path / "synthetic.json").is_file()
         if cached:  # checked here too, naming the options that differ
-            check_manifest(path, describe=_option_difference, **settings)
+            check_manifest(path, describe=_option_difference, elsewhere=ANOTHER_FOLDER, **settings)
         out = ensure_synthetic_dataset(
-            None, categories, args.mode, args.models, args.seed, progress=not args.quiet, **options
+            None,
+            categories,
+            args.mode,
+            args.models,
+            args.seed,
+            progress=not args.quiet,
+            elsewhere=ANOTHER_FOLDER,
+            **options,
         )
         if cached:  # checked against these settings by ensure_synthetic_dataset: nothing was generated
             print(f"{out} already holds {counts} with these settings")
@@ -217,6 +228,29 @@ def _read_every_item(dataset: Any) -> int:
     return 1 if bad else 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """A subcommand's parser whose error for a missing ``check`` dataset says when ``--categories`` took it: the
+    option takes every word after it (``check --categories chair synthetic --root D``)."""
+
+    def parse_known_args(
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        self.given = list(sys.argv[1:] if args is None else args)  # what error() looks at
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str) -> NoReturn:
+        missing = message.partition("the following arguments are required: ")[2].split(", ")
+        given = getattr(self, "given", [])
+        # --categories (or a prefix of it, which argparse takes too) followed by a word, not an option
+        took = any(
+            len(arg) > 2 and "--categories".startswith(arg) and not word.startswith("-")
+            for arg, word in zip(given, given[1:])
+        )
+        if "dataset" in missing and took:
+            message += " (--categories took every word after it: name the dataset before --categories)"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``unicorn-data`` (subcommands ``synth`` and ``check``)."""
     parser = argparse.ArgumentParser(
@@ -226,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
         "unicorn-data check cub_200 --root datasets/cub_200 --split test",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s (unicorn3d) {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     synth = sub.add_parser(
         "synth",
@@ -301,7 +335,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("--split", choices=["train", "val", "test"], default="train", help="dataset split")
     check.add_argument(
-        "--categories", nargs="*", default=None, help="ShapeNet / synthetic categories, comma- or space-separated"
+        "--categories",
+        nargs="*",
+        default=None,
+        help="ShapeNet / synthetic categories, comma- or space-separated (after the dataset: it takes every word "
+        "that follows)",
     )
     check.add_argument(
         "--tag",

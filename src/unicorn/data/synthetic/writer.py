@@ -3,7 +3,9 @@
 Per model (``<root>/<synset>/<model>/``): ``image/`` and ``mask/`` PNGs, ``cameras.npz`` (DVR
 ``world_mat_<v>``, ``camera_mat_<v>`` and their inverses), ``pointcloud.npz`` (``points``, ``normals``
 float16, ``loc``, ``scale``) and ``mesh.obj`` in the ShapeNet object frame (as DVR stores them), plus
-``views.npz`` (``azim``, ``elev``, ``roll``, ``dist``, ``tx``, ``ty`` per view) and ``params.json`` (shape and
+``views.npz`` (``azim``, ``elev``, ``roll``, ``dist``, ``tx``, ``ty`` per view; the angles in degrees, in UNICORN's
+convention, :func:`unicorn.geometry.rotations.azim_elev_roll_to_rotation`: azimuth 0 puts the camera on -Z and 90 on
+-X, half a turn from :func:`~unicorn.geometry.rotations.look_at_view_transform`'s) and ``params.json`` (shape and
 texture parameters). Per category: ``softras_{train,val,test}.lst``; at the root: ``metadata.yaml`` and
 ``synthetic.json`` (generator settings).
 
@@ -57,9 +59,11 @@ from unicorn.data.synthetic.sampling import (
 )
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
 from unicorn.errors import UserError, pid_alive
+from unicorn.io.serialization import make_parent_folders
 from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
+    "ANOTHER_ROOT",
     "DescribeDifference",
     "GENERATOR_VERSION",
     "RECORDED_OPTIONS",
@@ -488,14 +492,24 @@ class StaleSyntheticDataset(UserError, ValueError):
     """A generated dataset's ``synthetic.json`` does not match the settings (or the generator) asked for."""
 
 
+#: how a message about a dataset folder that cannot be used says to generate the dataset elsewhere, by default: the
+#: ``root`` of :func:`ensure_synthetic_dataset`, which a training run sets; ``unicorn-data synth`` names ``--out``
+ANOTHER_ROOT = "generate it under another root (dataset.root=DIR in a training run)"
+
+
 def check_manifest(
-    root: str | os.PathLike, *, describe: DescribeDifference = setting_difference, **expected: object
+    root: str | os.PathLike,
+    *,
+    describe: DescribeDifference = setting_difference,
+    elsewhere: str = ANOTHER_ROOT,
+    **expected: object,
 ) -> dict[str, object]:
     """Check a generated dataset's ``synthetic.json`` against the current generator and ``expected`` settings.
 
     Args:
         root: the generated dataset.
         describe: how the message words each setting that differs.
+        elsewhere: how the message says to generate the dataset in another folder (:data:`ANOTHER_ROOT`).
         **expected: settings it must have been generated with (``categories``, ``mode``, ``image_size``...);
             the generator version is always checked. An option left to the mode (None) and the mode's own value
             written out are the same setting.
@@ -518,7 +532,7 @@ def check_manifest(
     if not isinstance(settings, dict):
         raise StaleSyntheticDataset(
             f"{path} is damaged (not a generated dataset's settings{problem}); delete {root} to generate it again, "
-            "or choose another root"
+            f"or {elsewhere}"
         )
     expected = _as_recorded({"generator_version": GENERATOR_VERSION, **expected})
     if isinstance(expected.get("categories"), str):
@@ -538,7 +552,7 @@ def check_manifest(
     if wrong:
         raise StaleSyntheticDataset(
             f"the synthetic dataset in {root} was generated with {', '.join(wrong)}; delete that folder to "
-            "generate it again, or choose another root"
+            f"generate it again, or {elsewhere}"
         )
     return settings
 
@@ -626,9 +640,13 @@ def generation_lock(folder: str | os.PathLike) -> Iterator[None]:
     into ``folder``: another process generating into the same folder (a sweep's jobs, ``unicorn-data synth --out``
     beside ``unicorn-train``) waits, then finds what this one wrote. Processes of one machine (containers on it
     too); a cache shared over the network between machines is not locked across them. The lock file is removed when
-    the block ends."""
+    the block ends.
+
+    Raises:
+        NotADirectoryError: a file stands where a folder above ``folder`` goes (the message names it).
+    """
     folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
+    make_parent_folders(folder)
     path = folder.parent / f".{folder.name}.lock"
     while True:
         handle = open(path, "a", encoding="utf-8")  # noqa: SIM115 - held open with its lock until the block ends
@@ -669,6 +687,7 @@ def ensure_synthetic_dataset(
     n_models: int = 200,
     seed: int = 0,
     progress: bool = True,
+    elsewhere: str = ANOTHER_ROOT,
     **kwargs,
 ) -> Path:
     """Return the synthetic dataset for these settings, generating it first if it is absent.
@@ -684,6 +703,7 @@ def ensure_synthetic_dataset(
         root: parent folder of the datasets; defaults to :func:`default_cache_dir` (``$UNICORN_CACHE``).
         category, mode, n_models, seed: see :func:`generate_synthetic_dataset`.
         progress: show a progress bar while generating.
+        elsewhere: how an error about the folder says to generate the dataset in another one (:data:`ANOTHER_ROOT`).
         **kwargs: further :func:`generate_synthetic_dataset` options (``image_size``, ``n_views``...); they
             are not part of the folder name: a dataset in the folder generated with other values is an error
             (:class:`StaleSyntheticDataset`), so give each combination its own ``root``.
@@ -695,16 +715,16 @@ def ensure_synthetic_dataset(
     final = synthetic_dataset_path(category, mode, n_models, seed, root)
     expected = generation_settings(category, mode, n_models, seed, **kwargs)
     if (final / "synthetic.json").exists():
-        check_manifest(final, **expected)
+        check_manifest(final, elsewhere=elsewhere, **expected)
         return final
     with generation_lock(final):  # a second process waits here, then finds the first's dataset
         if (final / "synthetic.json").exists():
-            check_manifest(final, **expected)
+            check_manifest(final, elsewhere=elsewhere, **expected)
             return final
         if final.is_dir() and any(final.iterdir()):
             raise StaleSyntheticDataset(
-                f"{final} holds files but no synthetic.json: it is not a generated dataset; move it away, or give "
-                "the dataset another root"
+                f"{final} holds files but no synthetic.json: it is not a generated dataset; move it away, or "
+                f"{elsewhere}"
             )
         _remove_stale_generations(final)
         tmp = final.parent / f"{_generation_prefix(final)}{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
