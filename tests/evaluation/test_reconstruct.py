@@ -113,6 +113,23 @@ def test_a_second_reconstruction_into_the_same_folder_changes_nothing_unless_ask
     assert (tmp_path / "out" / "car" / "pose.json").is_file()
 
 
+def test_overwrite_removes_the_optional_files_of_an_earlier_call_that_it_does_not_write(real_model, tmp_path) -> None:
+    """A folder written again holds one run's files: the earlier call's turntable GIF goes when this call writes
+    none (as unicorn-reconstruct --overwrite removes it), the user's own files stay."""
+    image = torch.rand(3, IMAGE_SIZE, IMAGE_SIZE, generator=torch.Generator().manual_seed(0))
+    items = [InputImage(tmp_path / "car.png", "car", image, cropped=False)]
+    options = {"view_size": 32, "strip_views": 1, "progress": False, "provenance": {}}
+    out = tmp_path / "out"
+    reconstruct(real_model, items, out, turntable_frames=2, **options)
+    assert (out / "car" / "turntable.gif").is_file()
+    (out / "car" / "notes.txt").write_text("mine")
+    records = reconstruct(real_model, items, out, turntable_frames=0, overwrite=True, **options)
+    written = set(records[0]["files"].values())
+    assert "turntable.gif" not in written
+    assert {p.name for p in (out / "car").iterdir()} == written | {"notes.txt"}
+    assert (out / "car" / "notes.txt").read_text() == "mine"
+
+
 @pytest.mark.parametrize(
     ("names", "message"),
     [

@@ -44,6 +44,19 @@ def test_pairs_follow_the_seeded_permutation_rule():
         keypoint_pairs(1)
 
 
+def test_pairs_of_an_odd_number_of_images_follow_the_reference_loop():
+    """UNICORN's kp_eval.py: seed 123 + pairs so far, sources ``indices[:middle]``, targets ``indices[-middle:]``."""
+    n, num_pairs = 7, 20
+    idx0: list[int] = []
+    idx1: list[int] = []
+    while len(idx0) < num_pairs:
+        indices = np.random.RandomState(len(idx0) + 123).permutation(np.arange(0, n))
+        middle = n // 2
+        idx0, idx1 = idx0 + indices[:middle].tolist(), idx1 + indices[-middle:].tolist()
+    src, tgt = keypoint_pairs(n, num_pairs)
+    assert src.tolist() == idx0[:num_pairs] and tgt.tolist() == idx1[:num_pairs]
+
+
 def _scene():
     """Two images of the same square (4 vertices ~95 px apart at 256 px), same pose."""
     verts = torch.tensor([[-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.2, 0.2, 0.0], [-0.2, 0.2, 0.0]]).expand(2, 4, 3)

@@ -196,7 +196,8 @@ def _write_one(
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Write image ``i``'s files for ``pred`` and return its record; ``network``: the network's own prediction
-    that ``pred`` refines, written beside it; ``overwrite``: replace the meshes of an earlier call."""
+    that ``pred`` refines, written beside it; ``overwrite``: replace the meshes of an earlier call and remove its
+    :data:`OPTIONAL_FILES` that this call does not write."""
     folder.mkdir(parents=True, exist_ok=True)
     files: dict[str, str] = {}
 
@@ -234,6 +235,11 @@ def _write_one(
         save("reconstruction_network.png", to_uint8(net_rendered[:3]))
         save("turntable_network.png", np.concatenate([to_uint8(f[:3]) for f in net_strip], axis=1))
         row += [to_uint8(net_rendered[:3], cell)] + [to_uint8(f[:3], cell) for f in net_strip]
+    if overwrite:
+        # an earlier call's optional files that this one does not write would mix two runs in one folder
+        for name in {Path(pattern).name for pattern in OPTIONAL_FILES} - set(files.values()):
+            if (folder / name).is_file():
+                (folder / name).unlink()
     return {
         "name": item.name,
         "source": os.path.abspath(item.path),
@@ -282,7 +288,9 @@ def reconstruct(
         refine_options: refine each prediction against its image (:func:`unicorn.objectives.refine.refine`) and write
             the refined result, the network's beside it; None (or 0 steps): the network's prediction.
         overwrite: replace the outputs of an earlier call in ``out_dir`` (an image's folder, the overview, the
-            record); otherwise they are an error raised before anything is written.
+            record; in the folder of an image written again, the earlier call's :data:`OPTIONAL_FILES` that this
+            call does not write are removed, other files of the folder stay); otherwise they are an error raised
+            before anything is written.
         earlier: the image folders of an earlier reconstruction that stay beside this one's, named in
             ``index.html`` and ``reconstructions.json``; None: those in ``out_dir`` (:func:`earlier_folders`).
 

@@ -38,9 +38,9 @@ def keypoint_pairs(num_images: int, num_pairs: int = 10000, seed_offset: int = 1
 
     While fewer than ``num_pairs`` pairs exist, a permutation of the images is drawn with
     ``np.random.RandomState(seed_offset + pairs_so_far)``; its first ``n // 2`` entries become sources and its
-    last ``n // 2`` targets (for odd ``n`` the middle image is left out of that round, where the reference
-    appends one more target than sources and so shifts later pairs). The first ``num_pairs`` pairs are kept;
-    an image is never paired with itself.
+    last ``n // 2`` targets (for odd ``n`` the middle image is left out of that round, as the reference's
+    ``indices[:middle]`` and ``indices[-middle:]`` leave it). The first ``num_pairs`` pairs are kept; an image is
+    never paired with itself.
 
     Args:
         num_images: n >= 2 test images.
