@@ -172,8 +172,11 @@ def test_rasterizer_keeps_the_needed_sizes_on_the_meshes_device(monkeypatch):
 
     def fake_rasterize(ndc, faces, size, *args, capacity=None, **kwargs):
         # the default path's sizes are on the host, the fixed buffers' on the device
-        sizes = torch.tensor([300, 200]) if capacity is None else torch.tensor([310, 190], device=ndc.device)
-        return SimpleNamespace(sizes=sizes)
+        if capacity is None:
+            return SimpleNamespace(sizes=torch.tensor([300, 200]), valid=None)
+        return SimpleNamespace(
+            sizes=torch.tensor([310, 190], device=ndc.device), valid=torch.ones(190, device=ndc.device)
+        )
 
     monkeypatch.setattr(rasterizer_module, "rasterize_meshes", fake_rasterize)
     verts, faces, R, T = (t.to("meta") for t in posed_ellipsoids(2, level=1))
@@ -181,6 +184,35 @@ def test_rasterizer_keeps_the_needed_sizes_on_the_meshes_device(monkeypatch):
     with sync_free():
         rasterizer(verts, faces, R, T, check_inputs=False)  # sizes the buffers
         rasterizer(verts, faces, R, T, check_inputs=False)  # into them
+    (needed,) = rasterizer._needed.values()
+    assert needed.device == verts.device
+
+
+def test_a_mesh_with_nothing_to_draw_renders_inside_sync_free_after_sized_renders(monkeypatch):
+    """A batch without faces takes the default path even when the buffers of its size exist (its sizes, on the host,
+    are known): the rasterizer must not fold them into the sizes it keeps on the meshes' device (on CUDA the mix is an
+    error; the meta device stands for CUDA here)."""
+    import unicorn.render.rasterizer as rasterizer_module
+
+    ndc, faces = _scene()
+    empty = rasterize_meshes(ndc.detach(), faces[:0], 16, 0.0, 4, capacity=(64, 64))
+    assert empty.valid is None and empty.sizes.device.type == "cpu" and empty.sizes.tolist() == [0, 0]
+
+    def fake_rasterize(ndc, faces, size, *args, capacity=None, **kwargs):
+        # as rasterize_meshes: the default path (which takes a render with nothing to draw) sizes on the host
+        if capacity is None or faces.shape[0] == 0:
+            return SimpleNamespace(sizes=torch.tensor([300 * (faces.shape[0] > 0), 0]), valid=None)
+        return SimpleNamespace(
+            sizes=torch.tensor([310, 190], device=ndc.device), valid=torch.ones(190, device=ndc.device)
+        )
+
+    monkeypatch.setattr(rasterizer_module, "rasterize_meshes", fake_rasterize)
+    verts, faces, R, T = (t.to("meta") for t in posed_ellipsoids(2, level=1))
+    rasterizer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4).rasterizer
+    with sync_free():
+        rasterizer(verts, faces, R, T, check_inputs=False)  # sizes the buffers
+        rasterizer(verts, faces, R, T, check_inputs=False)  # into them
+        rasterizer(verts, faces[:0], R, T, check_inputs=False)  # nothing to draw
     (needed,) = rasterizer._needed.values()
     assert needed.device == verts.device
 

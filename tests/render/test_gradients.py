@@ -80,3 +80,20 @@ def test_position_gradients_says_whether_silhouettes_follow_the_vertices(name):
     (grad,) = torch.autograd.grad((alpha * weights).sum(), v, allow_unused=True)
     moves = grad is not None and grad.abs().sum() > 1e-6
     assert moves == renderer.position_gradients
+
+
+@pytest.mark.parametrize("name", list_renderers())
+def test_depth_gradients_match_finite_differences(name):
+    # RenderOutput.depth, like PyTorch3D's zbuf, is a function of the vertices a depth loss can fit
+    verts, faces, R, T = _scene()
+    renderer = build_renderer(name, image_size=12, **_options(name))
+    white = TexturesVertex(torch.ones(1, verts.shape[1], 3, dtype=torch.float64))
+    weights = torch.rand(1, 1, *renderer.raster_size, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def fn(v):
+        return (renderer.render(v, faces, white, R=R, T=T).depth * weights).sum()
+
+    v = verts.clone().requires_grad_()
+    assert torch.autograd.gradcheck(fn, (v,), eps=1e-7, atol=1e-5, rtol=1e-3)
+    fn(v).backward()
+    assert v.grad.abs().sum() > 1e-2  # the check above compared a real, non-zero gradient

@@ -9,8 +9,8 @@ marked by ``valid``; the rasterizer makes them transparent. Nothing is read back
 sizes (candidates and kept pairs, the capacity needed) stay on the device, in :attr:`Selection.sizes`.
 
 Where the capacity suffices, the kept pairs are those of :func:`~unicorn.render.selection.select_pairs` in the same
-order, for a batch that it selects in one chunk (``max_candidates``; depth ties are broken by the depth quantised over
-the chunk). Candidates and pairs beyond the capacity are dropped (the farthest pairs of the last pixels).
+order, however it chunks the batch (``max_candidates``). Candidates and pairs beyond the capacity are dropped (the
+farthest pairs of the last pixels).
 """
 
 from __future__ import annotations

@@ -135,7 +135,8 @@ class Fragments:
 
     def first_layer(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Nearest face containing each pixel: face ids (B, H, W) long (-1 where none) and depth (B, H, W)
-        (0 where none). Near-miss faces (outside but within the blur radius) are ignored."""
+        (0 where none; differentiable, as ``zbuf``). Near-miss faces (outside but within the blur radius) are
+        ignored."""
         B, (H, W) = self.batch_size, self.image_size
         n = B * H * W
         dev = self.pix.device
@@ -147,8 +148,7 @@ class Fragments:
         hit = sel & (self.slot == best[self.pix])
         face_ids = torch.full((n,), -1, dtype=torch.long, device=dev)
         face_ids[self.pix[hit]] = self.face[hit]
-        depth = torch.zeros(n, dtype=self.zbuf.dtype, device=dev)
-        depth[self.pix[hit]] = self.zbuf[hit].detach()
+        depth = self.zbuf.new_zeros(n).index_put((self.pix[hit],), self.zbuf[hit])  # one pair per pixel at most
         return face_ids.view(B, H, W), depth.view(B, H, W)
 
 

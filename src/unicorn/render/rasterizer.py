@@ -131,7 +131,9 @@ class MeshRasterizer(nn.Module):
             self.faces_per_pixel, self.truncate_opaque, self.max_candidates, check_inputs=False,
             max_bytes=self.max_bytes, perspective_correct=self.perspective_correct, capacity=capacity,
         )  # fmt: skip
-        if fragments.sizes is not None and capacity is None:  # on the host: sizes the fixed buffers
+        # the default path (a fixed render with nothing to draw takes it too) reads its sizes to the host: they size
+        # the fixed buffers
+        if fragments.sizes is not None and fragments.valid is None:
             self._fit(key, fragments.sizes.tolist())
             # an entry from the start, kept from then on: a compiled step's graph guards on the keys present
             # on the meshes' device (these sizes are on the host): the fixed renders fold theirs in there

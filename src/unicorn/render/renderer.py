@@ -51,7 +51,7 @@ class RenderOutput:
     @property
     def depth(self) -> torch.Tensor:
         """(B, 1, sH, sW), at the rasterized resolution: the view depth of the nearest face covering each sample,
-        0 where none."""
+        0 where none; differentiable (a depth loss reaches the vertices, as through PyTorch3D's ``zbuf``)."""
         return self.fragments.first_layer()[1].unsqueeze(1)
 
 
