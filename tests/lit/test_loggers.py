@@ -163,3 +163,21 @@ def test_tensorboard_errors_other_than_io_are_raised(tmp_path) -> None:
     with pytest.raises(ValueError, match="you tried to log"):
         logger.log_metrics({"train/loss": "not a number"}, step=0)
     assert logger.failure is None
+
+
+def test_rows_appended_to_a_log_follow_its_own_column_order(tmp_path) -> None:
+    """A ``metrics.csv`` whose header is not in sorted order (written by another writer): the rows a resumed run
+    appends go under the columns that name them, and a new column rewrites the file keeping every value."""
+    path = tmp_path / "csv" / "metrics.csv"
+    path.parent.mkdir()
+    path.write_text("step,train/loss,epoch\n0,1.5,0\n", encoding="utf-8")
+    logger = CSVLogger(str(tmp_path), name="csv", version="")
+    logger.log_metrics({"train/loss": 2.5, "epoch": 0}, step=1)
+    assert path.read_text(encoding="utf-8").splitlines()[0] == "step,train/loss,epoch"  # appended, not rewritten
+    assert [(r["step"], r["train/loss"], r["epoch"]) for r in _rows(path)] == [("0", "1.5", "0"), ("1", "2.5", "0")]
+    logger.log_metrics({"train/loss": 3.5, "epoch": 0, "heldout/iou": 0.5}, step=2)  # a new column
+    assert [(r["step"], r["train/loss"], r["heldout/iou"]) for r in _rows(path)] == [
+        ("0", "1.5", ""),
+        ("1", "2.5", ""),
+        ("2", "3.5", "0.5"),
+    ]

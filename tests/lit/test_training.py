@@ -216,6 +216,39 @@ def test_a_resumed_run_replaces_the_last_checkpoint_a_signal_wrote(synthetic_cac
     assert load_checkpoint_file(second.checkpoint_dir / "last.ckpt")["global_step"] == 8
 
 
+def test_a_run_stopped_at_the_lr_drop_with_validation_resumes_exactly(synthetic_cache, tmp_path):
+    """SIGTERM after iteration 6 (``optim.lr_drop_step``, between two validations), resumed in its folder: the
+    weights, Adam's moments, the learning rate and the CSV log (training and validation rows) are those of a run
+    never stopped."""
+    import csv
+
+    from unicorn.errors import Interrupted
+
+    extra = ["trainer.val_check_interval=2", "logger=csv", "callbacks.diagnostics=null"]
+    straight = build_run(tmp_path / "straight", *extra)
+    fit(straight)
+    first = build_run(tmp_path / "resumed", *extra)
+    first.trainer.callbacks.append(SignalDuring(5))
+    with pytest.raises(Interrupted, match="after iteration 6;"):
+        fit(first)
+    second = build_run(tmp_path / "resumed", "ckpt_path=last", *extra)
+    fit(second)
+    a, b = straight.module.state_dict(), second.module.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+    opt_a, opt_b = (run.trainer.optimizers[0].state_dict() for run in (straight, second))
+    assert opt_a["param_groups"][0]["lr"] == opt_b["param_groups"][0]["lr"] == pytest.approx(2e-4 * 0.2)
+    for index, state in opt_a["state"].items():
+        assert all(torch.equal(value, opt_b["state"][index][name]) for name, value in state.items())
+
+    def rows(run):
+        with open(run.output_dir / "csv" / "metrics.csv", encoding="utf-8", newline="") as f:
+            return [{k: v for k, v in row.items() if v} for row in csv.DictReader(f)]
+
+    logged = rows(straight)
+    assert [row["step"] for row in logged if "val/rgb" in row] == ["1", "3", "5", "7"]
+    assert rows(second) == logged
+
+
 def test_a_second_signal_stops_at_once_with_the_signals_status(synthetic_cache, tmp_path):
     """Signalled twice, a run stops in the iteration under way with no checkpoint written for it, and says so with
     the signal's exit status (Lightning's own end of it is ``sys.exit(1)``, which reads as a crash)."""

@@ -52,15 +52,25 @@ def log_step(iteration: int) -> int:
 
 
 class _AppendingWriter(ExperimentWriter):
-    """Lightning's CSV writer, minus the deletion of an existing ``metrics.csv`` (its columns are kept)."""
+    """Lightning's CSV writer, minus the deletion of an existing ``metrics.csv`` (its columns are kept, in their
+    order: rows are appended under the file's own header)."""
 
     def _check_log_dir_exists(self) -> None:
         if not os.path.isfile(self.metrics_file_path):
             return
         with open(self.metrics_file_path, newline="", encoding="utf-8") as f:
             header = next(csv.reader(f), [])
-        # a later new column rewrites the file with every earlier column too
-        self.metrics_keys = sorted(set(header))
+        # the file's order, which need not be sorted (a file of another writer): appended rows follow it
+        self.metrics_keys = list(dict.fromkeys(header))
+
+    def _record_new_keys(self) -> set[str]:
+        """Add the columns of the pending rows that the file lacks; the columns are sorted only when some are new
+        (the file is then written anew under the new header), so that rows appended to an existing file follow its
+        header whatever its order."""
+        new_keys = set().union(*self.metrics) - set(self.metrics_keys)
+        if new_keys:
+            self.metrics_keys = sorted({*self.metrics_keys, *new_keys})
+        return new_keys
 
     def save(self) -> None:
         """Append the rows logged since the last save (the header first in a new file; the whole file rewritten when
