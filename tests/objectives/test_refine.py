@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 
 import pytest
 import torch
@@ -80,6 +81,26 @@ def test_deterministic(model: Unicorn, targets: torch.Tensor) -> None:
     b = refine(model, targets, options)
     for name in FIELDS:
         assert torch.equal(getattr(a.prediction, name), getattr(b.prediction, name)), name
+
+
+def test_under_no_grad_the_steps_compute_their_gradients(model: Unicorn, targets: torch.Tensor) -> None:
+    # beside model.predict, as an evaluation loop calls it: the same refinement as with gradients enabled
+    options = RefineOptions(steps=4, parts=tuple(PARTS), lr_shape_code=0.1)
+    with torch.no_grad():
+        pred = model.predict(targets)
+        quiet = refine(model, targets, options, initial=pred)
+        assert not torch.is_grad_enabled()  # given back as it was
+    loud = refine(model, targets, options, initial=pred)
+    assert torch.equal(quiet.losses, loud.losses)
+    for name in FIELDS:
+        assert torch.equal(getattr(quiet.prediction, name), getattr(loud.prediction, name)), name
+
+
+def test_inference_mode_is_one_line_naming_it(model: Unicorn, targets: torch.Tensor) -> None:
+    with torch.inference_mode():
+        assert refine(model, targets, RefineOptions(steps=0)).losses.shape == (1, 3)  # no step: nothing to compute
+        with pytest.raises(RuntimeError, match=r"^refine takes gradient steps, which torch.inference_mode\(\) forb"):
+            refine(model, targets, RefineOptions(steps=1))
 
 
 def test_batch_equals_one_image_at_a_time(model: Unicorn, targets: torch.Tensor) -> None:
@@ -175,6 +196,21 @@ def test_pose_part_and_bad_options(model: Unicorn, targets: torch.Tensor) -> Non
     with pytest.raises(ValueError, match="images must have shape"):
         refine(model, targets[:, :, :16])
     assert set(PARTS) == {"codes", "texture", "vertices", "pose"}
+
+
+def test_a_whole_float_is_a_step_count_and_other_counts_are_one_line(model: Unicorn, targets: torch.Tensor) -> None:
+    # 2.0 as a number read from a JSON or YAML file gives it: the same refinement as 2
+    options = RefineOptions(steps=2.0, parts=("texture",))
+    assert options.steps == 2 and isinstance(options.steps, int)
+    out = refine(model, targets[:1], options)
+    assert torch.equal(out.losses, refine(model, targets[:1], RefineOptions(steps=2, parts=("texture",))).losses)
+    for bad in (2.5, "2", None, True, float("nan")):
+        with pytest.raises(ValueError, match=rf"^steps must be a whole number, got {re.escape(repr(bad))}$"):
+            RefineOptions(steps=bad)
+    for bad in ("0.5", None, float("nan"), 1.5):
+        message = rf"^codes_first must be a number in \[0, 1\], got {re.escape(repr(bad))}$"
+        with pytest.raises(ValueError, match=message):
+            RefineOptions(codes_first=bad)
 
 
 NO_PRIOR = dict(code_weight=0.0, colour_weight=0.0, texture_weight=0.0, vertex_weight=0.0, pose_weight=0.0)

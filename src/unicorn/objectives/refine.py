@@ -130,12 +130,16 @@ class RefineOptions:
     progress: bool = False
 
     def __post_init__(self) -> None:
-        """Raises :class:`RefineOptionsError` for a value out of its range (``steps`` in [0, :data:`MAX_STEPS`])."""
+        """Raises :class:`RefineOptionsError` for a value out of its range (``steps`` a whole number in
+        [0, :data:`MAX_STEPS`]: ``50.0`` is taken as 50)."""
+        if not is_number(self.steps) or not float(self.steps).is_integer():
+            raise RefineOptionsError(f"steps must be a whole number, got {self.steps!r}")
+        object.__setattr__(self, "steps", int(self.steps))  # frozen: set once, here
         if not 0 <= self.steps <= MAX_STEPS:
             raise RefineOptionsError(f"steps must be in [0, {MAX_STEPS:,}] (refine.MAX_STEPS), got {self.steps:,}")
-        object.__setattr__(self, "parts", parse_parts(self.parts))  # frozen: set once, here
-        if not 0.0 <= self.codes_first <= 1.0:
-            raise RefineOptionsError(f"codes_first must be in [0, 1], got {self.codes_first}")
+        object.__setattr__(self, "parts", parse_parts(self.parts))
+        if not is_number(self.codes_first) or not 0.0 <= self.codes_first <= 1.0:
+            raise RefineOptionsError(f"codes_first must be a number in [0, 1], got {self.codes_first!r}")
         for f in fields(self):
             if f.name.startswith("lr_") or f.name.endswith("_weight"):
                 value = getattr(self, f.name)
@@ -307,9 +311,18 @@ def refine(
     Returns:
         :class:`Refinement`: each image's iterate of lowest objective, never above the network's prediction's; with 0
         steps, or none that lowers an image's objective, that image's ``prediction`` is the initial prediction.
+
+    Raises:
+        RuntimeError: steps to take under ``torch.inference_mode()``, where no gradient can be computed (under
+            ``torch.no_grad()`` the steps compute theirs).
     """
     o = RefineOptions() if options is None else options
     model.check_images(images)
+    if o.steps > 0 and torch.is_inference_mode_enabled():
+        raise RuntimeError(
+            "refine takes gradient steps, which torch.inference_mode() forbids: call it under torch.no_grad() or "
+            "outside inference mode"
+        )
     if initial is not None and initial.canonical_verts.shape[0] != images.shape[0]:
         raise ValueError(
             f"initial holds {initial.canonical_verts.shape[0]} predictions for {images.shape[0]} images: "
@@ -351,11 +364,12 @@ def refine(
 
         for step in tqdm(range(steps), desc="refine", unit="step", disable=not o.progress, leave=False):
             active = [t for p, g in params.items() if p == "codes" or step >= warmup for t in g]
-            current = _decode(model, start, v, average_texture)
-            loss = _objective(model, fns, images, current, v, o)
-            losses.append(loss.detach())
-            keep_best(step, current, losses[-1])
-            grads = torch.autograd.grad(loss.sum(), active)
+            with torch.enable_grad():  # callers may be under no_grad (e.g. beside model.predict)
+                current = _decode(model, start, v, average_texture)
+                loss = _objective(model, fns, images, current, v, o)
+                losses.append(loss.detach())
+                keep_best(step, current, losses[-1])
+                grads = torch.autograd.grad(loss.sum(), active)
             for group in params.values():
                 for t in group:
                     t.grad = None
