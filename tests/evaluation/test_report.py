@@ -96,3 +96,14 @@ def test_every_metric_column_has_a_direction_and_a_meaning() -> None:
     assert list(METRIC_ORDER) == [name for name in METRICS if name != "n-images"]
     assert set(METRIC_ORDER.values()) == {"lower", "higher"}
     assert all(METRIC_HELP[name].strip() for name in METRICS)
+
+
+def test_report_settings_show_names_beyond_ascii_as_written(tmp_path: Path, real_model) -> None:
+    """A folder named in UTF-8 reads as written; one whose name is not UTF-8 (its bytes kept as surrogates, as
+    Python reads such a file name) does not stop the page from being written."""
+    result = report_result(real_model, n_samples=0)
+    meta = {"root": "/données/voitures_车", "checkpoint": "/runs/bad\udce9name/model.pkl"}
+    page = write_report(real_model, result, tmp_path, "t", meta, interactive=False)["html"]
+    text = page.read_text(encoding="utf-8")
+    assert "<code>&quot;/données/voitures_车&quot;</code>" in text
+    assert "<code>&quot;/runs/bad\\udce9name/model.pkl&quot;</code>" in text

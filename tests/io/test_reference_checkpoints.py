@@ -15,6 +15,7 @@ from unicorn.io import (
     ReferenceCheckpointError,
     config_from_reference,
     convert_reference_state_dict,
+    load_model,
     load_reference_checkpoint,
     save_model,
 )
@@ -244,3 +245,74 @@ def test_the_model_is_returned_on_map_location(tmp_path, given):
         expected, actual = cpu.predict(images), model.predict(images.cuda())
     torch.testing.assert_close(actual.verts.cpu(), expected.verts, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(actual.texture.cpu(), expected.texture, rtol=1e-4, atol=1e-5)
+
+
+def _older_reference_file(state: dict) -> dict:
+    """``state`` as the older reference versions the small released models come from saved it (their ``Unicorn``
+    state dict as read in the reference repository): the camera buffers ``T_cam`` (the prior translation) and
+    ``R_cam`` beside ``T_init = 0``, the whole VGG16 of the perceptual loss (slices 1 to 5) with its normalisation
+    buffers, the blur kernels of shape (1, 3, 3)."""
+    state = dict(state)
+    state.update({"T_init": torch.zeros(3), "T_cam": torch.tensor([0.0, 0.0, 2.732]), "R_cam": torch.eye(3)})
+    state.update({"perceptual_loss.mean_rgb": torch.rand(3), "perceptual_loss.std_rgb": torch.rand(3)})
+    for name, i, cin in (("slice4", 17, 256), ("slice4", 19, 512), ("slice4", 21, 512), ("slice5", 24, 512),
+                         ("slice5", 26, 512), ("slice5", 28, 512)):  # fmt: skip
+        state[f"perceptual_loss.{name}.{i}.weight"] = torch.zeros(512, cin, 3, 3)
+        state[f"perceptual_loss.{name}.{i}.bias"] = torch.zeros(512)
+    for key in [k for k in state if k.endswith(".kernel")]:
+        state[key] = torch.rand(1, 3, 3)
+    return state
+
+
+def test_a_file_of_the_older_reference_versions_loads_with_the_prior_translation(tmp_path):
+    state = _older_reference_file(reference_state())
+    for k in range(6):  # no translation offset: the object at the prior translation
+        state[f"T_regressors.{k}.6.weight"].zero_()
+        state[f"T_regressors.{k}.6.bias"].zero_()
+    path = tmp_path / "model.pkl"
+    torch.save({"epoch": 700, "model_kwargs": real_kwargs(), "model_state": state}, path)
+    model = load_reference_checkpoint(path, with_perceptual=True)
+    assert torch.equal(model.perceptual.vgg.features[0].weight, state["perceptual_loss.slice1.0.weight"])
+    assert load_model(path)[1].format == "reference"  # unicorn-eval's and unicorn-reconstruct's reader
+    with torch.no_grad():
+        T = model.predict(torch.rand(2, 3, 32, 32)).T
+    # T_cam's translation, not T_init = 0
+    torch.testing.assert_close(T, torch.tensor([0.0, 0.0, 2.732]).expand(2, 3))
+
+
+def test_a_model_saved_from_multi_gpu_training_loads():
+    """The reference saves ``DistributedDataParallel``'s state dict, every name under ``module.``."""
+    state = reference_state()
+    model = load_reference_checkpoint({"epoch": 3, "model_state": {f"module.{k}": v for k, v in state.items()}})
+    assert torch.equal(model.encoders[0].conv1.weight, state["encoder.encoder.0.weight"])
+    assert torch.equal(model.pose.rot_regressors[1][6].weight, state["rot_regressors.1.6.weight"][[1, 0, 2]])
+
+
+def test_a_state_dict_key_that_is_not_a_name_is_named_in_one_line(tmp_path):
+    path = tmp_path / "model.pkl"
+    torch.save({"epoch": 3, "model_state": {**reference_state(), 7: torch.zeros(2)}}, path)
+    with pytest.raises(CheckpointError, match=r"model_state has the key 7 \(an int\), not a parameter name$"):
+        load_reference_checkpoint(path)
+
+
+def test_a_file_with_nan_weights_is_refused_as_load_model_refuses_it(tmp_path):
+    state = reference_state()
+    state["deform_field.field.mlp.2.weight"][0, 0] = float("nan")
+    path = tmp_path / "model.pkl"
+    torch.save({"epoch": 5, "model_state": state}, path)
+    expected = rf"^checkpoint {re.escape(str(path))}: its weight shape\.field\.mlp\.2\.weight holds NaN or infinite"
+    for load in (load_reference_checkpoint, load_model):
+        with pytest.raises(CheckpointError, match=expected):
+            load(path)
+
+
+def test_another_programs_checkpoint_is_named_by_its_keys_not_read_as_a_state_dict(tmp_path):
+    """A Lightning checkpoint without hyper-parameters (another program's) has no model_state and is no state dict."""
+    path = tmp_path / "last.pkl"
+    torch.save({"epoch": 3, "global_step": 10, "state_dict": {"net.w": torch.zeros(2)}}, path)
+    expected = (
+        rf"^released checkpoint {re.escape(str(path))}: no 'model_state' and not a state dict "
+        r"\(keys \['epoch', 'global_step', 'state_dict'\]\): not a released UNICORN checkpoint$"
+    )
+    with pytest.raises(CheckpointError, match=expected):
+        load_reference_checkpoint(path)

@@ -193,7 +193,9 @@ def write_report(
             scripts = viewer_script_tags(install_viewer(out))
         samples_block = _samples_block(header_cells, sample_html)
     paths["html"] = out / "report.html"
-    paths["html"].write_text(_page(result, title, meta, samples_block, *scripts), encoding="utf-8")
+    # a file name that is not UTF-8 (its bytes kept as surrogates) is shown as its JSON escape, "\udce9"
+    page = _page(result, title, meta, samples_block, *scripts)
+    paths["html"].write_text(page, encoding="utf-8", errors="backslashreplace")
     return paths
 
 
@@ -248,9 +250,10 @@ def _page(
         f"<dd>{html.escape(METRIC_HELP.get(c, ''))}{better.get(METRIC_ORDER.get(c, ''), '')}</dd>"
         for c in ["n-images", *result.columns]
     )
+    # the settings as written (a folder "données" not as "donn\u00e9es")
+    values = {k: json.dumps(json_safe(v), ensure_ascii=False) for k, v in meta.items()}
     settings = "".join(
-        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(json.dumps(json_safe(v)))}</code></dd>"
-        for k, v in meta.items()
+        f"<dt>{html.escape(str(k))}</dt><dd><code>{html.escape(text)}</code></dd>" for k, text in values.items()
     )
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{_CSS}</style>

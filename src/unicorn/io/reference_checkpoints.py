@@ -23,7 +23,9 @@ reference                                              unicorn
 =====================================================  ====================================================
 
 Dropped: buffers derived from the configuration (``uvs``, ``R_init``, ``R_range``, ``T_init``, ``T_range``,
-``scale_init``, ``scale_range``, the blur ``*.upsample_rgb.1.kernel``). To reproduce the released models'
+``scale_init``, ``scale_range``, the blur ``*.upsample_rgb.1.kernel``, and ``T_cam`` / ``R_cam``, the camera buffers
+of the older reference versions the small released models come from). The ``module.`` prefix of a model saved from
+the reference's multi-GPU training is removed, as the reference's loader does. To reproduce the released models'
 images the model is built with ``template.uv_mode = "reference"`` (per-vertex UVs, ``align_corners=True``,
 border padding) and ``renderer.composite = "reference"`` (``rgb * A + (1 - A) * bkg`` over a white render).
 """
@@ -62,7 +64,9 @@ class ReferenceCheckpointError(CheckpointError, KeyError):
 
 _RESNET_CHILDREN = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
 _ENCODER_INDEX = {"encoder": 0, "encoder_sh": 0, "encoder_tx": 1, "encoder_pose": 2, "encoder_bg": 3}
-_DROPPED = re.compile(r"^(uvs|R_init|R_range|T_init|T_range|scale_init|scale_range)$|\.kernel$|^renderer\.")
+# the configuration's buffers; T_cam (the prior translation, kept apart from a zero T_init there) and R_cam (the
+# identity) are those of the older reference versions the small released models were saved with
+_DROPPED = re.compile(r"^(uvs|R_init|R_range|T_init|T_range|T_cam|R_cam|scale_init|scale_range)$|\.kernel$|^renderer\.")
 _PREFIXES = {
     "deform_field.": "shape.",
     "txt_generator.": "texture.",
@@ -76,17 +80,29 @@ _ROT_SWAP = [1, 0, 2]
 
 
 def _state_dict_of(checkpoint: Mapping[str, Any]) -> Mapping[str, torch.Tensor]:
-    """The reference state dict of a checkpoint dict (or the bare state dict itself), checked to hold tensors.
+    """The reference state dict of a checkpoint dict (or the bare state dict itself), checked to hold tensors
+    under names; the ``module.`` prefix of a model saved from the reference's multi-GPU training
+    (``DistributedDataParallel``), which the reference's loader strips too, is removed.
 
     Raises:
-        CheckpointError: ``model_state`` is not a dict of tensors (the message names the first other value).
+        CheckpointError: ``model_state`` is not a dict of tensors under string names (the message names the first
+            other key or value), or a dict without ``model_state`` is no state dict either (its keys named).
     """
+    if "model_state" not in checkpoint and not all(isinstance(v, torch.Tensor) for v in checkpoint.values()):
+        # another program's checkpoint (a Lightning .ckpt without hyper-parameters...), not a bare state dict
+        keys = sorted(map(str, checkpoint))[:10]
+        raise CheckpointError(f"no 'model_state' and not a state dict (keys {keys}): not a released UNICORN checkpoint")
     state = checkpoint["model_state"] if "model_state" in checkpoint else checkpoint
     if not isinstance(state, Mapping):
         raise CheckpointError(f"model_state is {kind_of(state)}, not a dict of tensors")
+    key = next((k for k in state if not isinstance(k, str)), None)
+    if key is not None:
+        raise CheckpointError(f"model_state has the key {key!r} ({kind_of(key)}), not a parameter name")
     other = next((k for k, v in state.items() if not isinstance(v, torch.Tensor)), None)
     if other is not None:
         raise CheckpointError(f"model_state[{other!r}] is {kind_of(state[other])}, not a tensor")
+    if state and all(k.startswith("module.") for k in state):
+        state = {k[len("module.") :]: v for k, v in state.items()}
     return state
 
 
@@ -436,7 +452,8 @@ def load_reference_checkpoint(
         unicorn.io.serialization.UnsafeCheckpointError: the file needs full unpickling and ``trust`` is False.
         unicorn.io.serialization.CheckpointError: a value of the checkpoint of the wrong type (the message names
             it, and the file when given a path), or a file of another format (a ``unicorn-train`` checkpoint or a
-            :func:`~unicorn.io.save_model` file, which :func:`~unicorn.io.load_model` reads).
+            :func:`~unicorn.io.save_model` file, which :func:`~unicorn.io.load_model` reads); given a path, NaN,
+            infinite or negative-variance weights (:func:`~unicorn.io.checkpoints.check_weight_values`).
         unicorn.io.checkpoints.ModelTooLargeError: a model, image or texture size above the limits.
         ReferenceCheckpointError: keys that do not fit the model (``strict``), weights of other shapes, or
             ``with_perceptual`` on a file without the VGG weights (the message names the file when given a path).
@@ -448,7 +465,7 @@ def load_reference_checkpoint(
     if isinstance(checkpoint, Mapping):
         model = reference_model(checkpoint, "the released checkpoint", strict, with_perceptual, **overrides)
         return model if device is None else model.to(device)
-    from unicorn.io.checkpoints import checkpoint_format  # which imports this module
+    from unicorn.io.checkpoints import check_weight_values, checkpoint_format  # which imports this module
 
     path = checkpoint
     # the released files pickle plain dicts and tensors (the optimizer state needs no custom classes)
@@ -468,6 +485,7 @@ def load_reference_checkpoint(
         if isinstance(err, SizeLimitError):
             raise  # names the file already
         raise type(err)(f"{source}: {err}") from None
+    check_weight_values(model, path)  # as load_model: NaN weights would give NaN meshes without a word
     return model if device is None else model.to(device)  # built on the CPU, whatever device the tensors came to
 
 
