@@ -129,6 +129,38 @@ CASES = [
         [*SYNTHETIC, "dataset=folder", "dataset.root=/photos"],
         r"^dataset.categories='car', but dataset folder holds one category",
     ),
+    # cub's crop jitter after the dataset group is switched: refused only when the data was read, naming no key
+    (
+        "an-experiments-options-on-a-folder",
+        [*CUB, "dataset=folder", "dataset.root=/photos"],
+        r"^dataset.options \['jitter'\] are not taken by dataset folder \(its options: \['extensions'\]\); an "
+        r"experiment may set them for another dataset: drop them with ~dataset.options.jitter$",
+    ),
+    (
+        "an-option-the-dataset-lacks",
+        [*CUB, "+dataset.options.tag=horse"],
+        r"^dataset.options \['tag'\] are not taken by dataset cub_200 \(its options: \['augment', 'eval_size', "
+        r"'jitter'\]\);.* drop them with ~dataset.options.tag$",
+    ),
+    # the model builds its perspective camera whatever the node names: another class was silently not used
+    (
+        "camera-class",
+        [*CUB, "renderer.camera._target_=my_cameras.Orthographic"],
+        r"^renderer.camera._target_=my_cameras.Orthographic is not supported: the model's camera is "
+        r"unicorn.geometry.cameras.PerspectiveCamera",
+    ),
+    # Lightning compared the text with a number: "'<=' not supported between instances of 'int' and 'str'"
+    (
+        "limit-val-text",
+        [*SYNTHETIC, "trainer.limit_val_batches=abc"],
+        r"^trainer.limit_val_batches must be a number of batches >= 0 or a fraction in \[0, 1\], got 'abc'$",
+    ),
+    (
+        "limit-val-negative",
+        [*SYNTHETIC, "trainer.limit_val_batches=-1"],
+        r"^trainer.limit_val_batches must be .*got -1$",
+    ),
+    ("limit-val-fraction", [*SYNTHETIC, "trainer.limit_val_batches=1.5"], r"^trainer.limit_val_batches .*got 1.5$"),
 ]
 
 
@@ -151,6 +183,10 @@ def test_a_value_the_run_cannot_use_is_one_config_error(tmp_path, overrides, mes
         [*SYNTHETIC, "dataset=folder", "dataset.root=/photos", "dataset.categories=null"],
         [*SYNTHETIC, "renderer=hard", "~renderer.faces_per_pixel"],
         [*SYNTHETIC, "+renderer.image_size=32"],  # the images' size: accepted
+        [*CUB, "dataset=folder", "dataset.root=/photos", "~dataset.options.jitter"],
+        [*SYNTHETIC, "trainer.limit_val_batches=4"],
+        [*SYNTHETIC, "trainer.limit_val_batches=0.25"],
+        [*SYNTHETIC, "trainer.limit_val_batches=2.0"],  # Lightning's whole float: 2 batches
     ],
 )  # fmt: skip
 def test_the_documented_settings_pass(tmp_path, overrides) -> None:

@@ -31,6 +31,8 @@ from unicorn.render import BACKGROUND_COLOR, RenderError, check_render_option, g
 __all__ = ["ConfigError", "check_optim", "model_config", "renderer_settings", "validate"]
 
 _CAMERA_DEFAULTS = {"znear": 1.0, "zfar": 100.0}
+#: the one camera the model builds (``renderer.camera._target_`` in ``conf/renderer/*.yaml`` names it)
+_CAMERA_TARGET = "unicorn.geometry.cameras.PerspectiveCamera"
 
 
 class ConfigError(UserError, ValueError):
@@ -185,6 +187,15 @@ def _check_dataset(d: DictConfig) -> None:
         f"dataset.categories={_plain(d.categories)!r}, but dataset {d.name} holds one category and would ignore it: "
         "drop it (dataset.categories=null)",
     )
+    # an experiment's options for its own dataset (cub's jitter) stay when the dataset group is switched after it
+    accepted = sorted(DATASETS.get(d.name).options)
+    unknown = sorted(set(d.options or {}) - set(accepted))
+    drop = " ".join(f"~dataset.options.{key}" for key in unknown)
+    _check(
+        not unknown,
+        f"dataset.options {unknown} are not taken by dataset {d.name} (its options: {accepted}); an experiment may "
+        f"set them for another dataset: drop them with {drop}",
+    )
     if d.name != "synthetic":
         return
     categories = _plain(d.categories)
@@ -308,6 +319,11 @@ def _check_trainer(t: DictConfig) -> None:
 
         strategies = ["auto", *StrategyRegistry.available_strategies()]
         _check(t.strategy in strategies, f"trainer.strategy must be one of {strategies}, got {t.strategy!r}")
+    limit = t.limit_val_batches  # Lightning's: a number of batches, or a fraction of them (null: all)
+    _check(
+        limit is None or (is_number(limit) and limit >= 0 and (limit <= 1 or float(limit).is_integer())),
+        f"trainer.limit_val_batches must be a number of batches >= 0 or a fraction in [0, 1], got {limit!r}",
+    )
     _check(
         t.val_check_interval is None or t.val_check_interval >= 1,
         "trainer.val_check_interval must be null (no validation) or a number of iterations >= 1",
@@ -440,7 +456,8 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     keys the backend's options. ``image_size`` is ignored (the model's image size wins).
 
     Raises:
-        ConfigError: no or an unregistered ``name``, or an option the backend does not take.
+        ConfigError: no or an unregistered ``name``, an option the backend does not take, or a ``camera._target_``
+            other than the model's perspective camera.
     """
     cfg = OmegaConf.to_container(renderer, resolve=True) if isinstance(renderer, DictConfig) else dict(renderer)
     name = cfg.pop("name", None)
@@ -448,7 +465,12 @@ def renderer_settings(renderer: Mapping[str, Any]) -> dict[str, Any]:
     cls = get_renderer_class(name)
     cfg.pop("image_size", None)
     camera = dict(cfg.pop("camera", None) or {})
-    camera.pop("_target_", None)
+    target = camera.pop("_target_", _CAMERA_TARGET)
+    _check(
+        target == _CAMERA_TARGET,
+        f"renderer.camera._target_={target} is not supported: the model's camera is {_CAMERA_TARGET} "
+        "(renderer.camera.fov or focal_length set it)",
+    )
     fov, focal = camera.pop("fov", None), camera.pop("focal_length", None)
     _check((fov is None) != (focal is None), "renderer.camera needs exactly one of fov and focal_length")
     taken = keyword_options(cls)  # None: it takes any keyword (**kwargs) and checks its own options
