@@ -60,6 +60,13 @@ CASES = [
         r"callbacks.heldout.mean_shape_iterations must be in \[0, 100000\], got 1000000000",
     ),
     ("category", [*SYNTHETIC, "dataset.categories=unicorns"], r"unknown synthetic category 'unicorns'"),
+    # the whole model cast: its first render failed on float32 pose tensors beside bfloat16 ones
+    (
+        "precision-cast",
+        [*SYNTHETIC, "trainer.precision=bf16-true"],
+        r"^trainer.precision=bf16-true casts the whole model, .* use bf16-mixed \(or 16-mixed on CUDA\)",
+    ),
+    ("precision-cast-16", [*SYNTHETIC, "trainer.precision=16-true"], r"^trainer.precision=16-true casts the whole"),
     ("unknown-setting", [*SYNTHETIC, "+dataset.synthetic.colour=red"], r"unknown setting 'colour'"),
     ("roll-in-nmr", [*SYNTHETIC, "+dataset.synthetic.roll=5"], r"roll=5 is for the wild mode"),
     ("dataset-seed", [*SYNTHETIC, "dataset.seed=-1"], r"dataset.seed must be a whole number in \[0, 4294967295\]"),

@@ -314,6 +314,11 @@ def _check_trainer(t: DictConfig) -> None:
     )
     precisions = _lightning_precisions()
     _check(t.precision in precisions, f"trainer.precision must be one of {precisions}, got {t.precision!r}")
+    _check(
+        str(t.precision) not in _CAST_PRECISIONS,
+        f"trainer.precision={t.precision} casts the whole model, whose renderer, pose candidates and scale stay in "
+        "float32: use bf16-mixed (or 16-mixed on CUDA), which runs the networks in the lower precision",
+    )
     if isinstance(t.strategy, str):
         from lightning.pytorch.strategies import StrategyRegistry
 
@@ -420,6 +425,10 @@ def _devices_ok(devices: Any) -> bool:
     if isinstance(devices, Sequence):
         return len(devices) > 0 and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in devices)
     return False
+
+
+#: Lightning's precisions that cast the model's weights (the networks, and the float32 renderer's inputs with them)
+_CAST_PRECISIONS = ("16-true", "bf16-true", "transformer-engine", "transformer-engine-float16")
 
 
 def _lightning_precisions() -> tuple[Any, ...]:
