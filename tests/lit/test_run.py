@@ -187,6 +187,20 @@ def test_a_run_too_short_for_its_stages_is_told(caplog, mode: str, max_steps: in
 
 
 @pytest.mark.parametrize(
+    "lr_drop_step, max_steps, warned", [(4400, 1000, True), (4400, 4400, True), (4400, 4401, False), (None, 10, False)]
+)
+def test_a_run_too_short_for_its_learning_rate_drop_is_told(caplog, lr_drop_step, max_steps, warned) -> None:
+    from unicorn.lit.run import _note_unreached_lr_drop
+
+    with caplog.at_level("WARNING", logger="unicorn.train"):
+        _note_unreached_lr_drop(lr_drop_step, max_steps)
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages == ([f"trainer.max_steps={max_steps} ends the run before optim.lr_drop_step=4400: the learning "
+                         "rate is never lowered (scale the drop with the run's length, or set it to null)"]
+                        if warned else [])  # fmt: skip
+
+
+@pytest.mark.parametrize(
     "env, first",
     [({}, True), ({"LOCAL_RANK": "1"}, False), ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, False),
      ({"NODE_RANK": "1"}, False),  # Lightning's launcher's first process on the second node

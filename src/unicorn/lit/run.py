@@ -535,6 +535,19 @@ def _note_unreached_stages(mode: str, milestones: list[int], max_steps: int) -> 
     )
 
 
+def _note_unreached_lr_drop(lr_drop_step: int | None, max_steps: int) -> None:
+    """Warn when ``trainer.max_steps`` ends a run before its learning-rate drop (``optim.lr_drop_step``): the
+    lowered rate never trains (a short trial of an experiment made for a longer schedule)."""
+    if lr_drop_step is None or lr_drop_step < max_steps:
+        return
+    log.warning(
+        "trainer.max_steps=%d ends the run before optim.lr_drop_step=%d: the learning rate is never lowered (scale "
+        "the drop with the run's length, or set it to null)",
+        max_steps,
+        lr_drop_step,
+    )
+
+
 def fit(run: Run) -> dict[str, float]:
     """Train a built run; returns the last values of the trainer's scalar callback metrics.
 
@@ -548,6 +561,7 @@ def fit(run: Run) -> dict[str, float]:
         _compile(run)
     log.info("training %s for %d iterations in %s", typed.task_name, typed.trainer.max_steps, run.output_dir)
     _note_unreached_stages(typed.schedule.mode, list(typed.schedule.milestones), typed.trainer.max_steps)
+    _note_unreached_lr_drop(typed.optim.lr_drop_step, typed.trainer.max_steps)
     ctrl_c = signal.getsignal(signal.SIGINT)
     try:
         trainer.fit(run.module, datamodule=run.data, ckpt_path=run.ckpt_path)
