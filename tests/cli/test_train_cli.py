@@ -593,7 +593,8 @@ def test_values_are_range_checked_where_declared(tmp_path):
     ]:
         if message is None:
             with pytest.raises(ConfigError, match="init_from and ckpt_path exclude each other"):
-                validate(compose_config([*base, override, "ckpt_path=last"]))
+                validate(compose_config([*base, override, "ckpt_path=run/checkpoints/last.ckpt"]))
+            validate(compose_config([*base, override, "ckpt_path=last"]))  # init_from starts it, a requeue resumes
             continue
         with pytest.raises(ConfigError, match=message):
             validate(compose_config([*base, override]))

@@ -76,6 +76,31 @@ def test_the_trainers_sigterm_handler_only_records_the_signal(tmp_path, monkeypa
     assert connector.received_sigterm and collectives == ([] if ours else ["broadcast"])
 
 
+def test_init_from_with_ckpt_path_last_starts_from_the_weights_and_the_same_command_resumes(
+    synthetic_cache, tmp_path, caplog
+):
+    """A requeue-safe fine-tuning command: ``init_from`` starts the run where its folder holds no checkpoint, and the
+    same command run again (a requeued job) resumes the run instead of starting it over from the weights."""
+    source = build_run(tmp_path / "source", "trainer.max_steps=1")
+    fit(source)
+    weights = {k: v.clone() for k, v in source.module.model.state_dict().items()}
+    command = (f"init_from={source.checkpoint_dir / 'last.ckpt'}", "ckpt_path=last")
+    with caplog.at_level("INFO", logger="unicorn.train"):
+        first = build_run(tmp_path / "tuned", *command, "trainer.max_steps=1")
+    assert first.ckpt_path is None and "init_from: starting from the weights" in caplog.text
+    assert all(torch.equal(v, weights[k]) for k, v in first.module.model.state_dict().items())
+    fit(first)
+    tuned = {k: v.clone() for k, v in first.module.model.state_dict().items()}
+    caplog.clear()
+    with caplog.at_level("INFO", logger="unicorn.train"):
+        again = build_run(tmp_path / "tuned", *command, "trainer.max_steps=2")
+    assert again.ckpt_path == str(tmp_path / "tuned" / "checkpoints" / "last.ckpt")
+    assert "init_from: not used: the run resumes from" in caplog.text and "starting from the weights" not in caplog.text
+    fit(again)
+    assert again.trainer.global_step == 2 and again.stopper.steps_run == 1  # one more iteration, from the first's
+    assert any(not torch.equal(tuned[k], weights[k]) for k in tuned)  # the first run trained
+
+
 def test_training_with_model_compile_compiles_the_networks_and_the_reconstruction_loss(
     synthetic_cache, tmp_path, monkeypatch
 ):

@@ -145,8 +145,9 @@ def _check_values(cfg: DictConfig) -> None:
     _check_trainer(cfg.trainer)
     _check_callbacks_and_loggers(cfg)
     _check(
-        cfg.init_from is None or cfg.ckpt_path is None,
-        "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights",
+        cfg.init_from is None or cfg.ckpt_path in (None, "last"),
+        "init_from and ckpt_path exclude each other: ckpt_path resumes a run, init_from starts a new one from weights "
+        "(with ckpt_path=last, init_from starts the run when its folder holds no checkpoint yet)",
     )
     on_error, d = typing.get_args(OnError), cfg.dataset
     _check(d.on_error in on_error, f"dataset.on_error must be one of {on_error}, got {d.on_error!r}")

@@ -88,7 +88,11 @@ def build(cfg: DictConfig) -> Run:
         data = instantiate(typed.dataset, stream_seed=typed.seed, _convert_="all")
         data.check_early()  # a missing dataset is said first: nothing else matters without it
         _check_protocol(data.name)
-        module = build_module(typed)
+        # with ckpt_path=last, init_from starts the run, and a requeue of the same command resumes it
+        init_from = typed.init_from if ckpt_path is None else None
+        if typed.init_from is not None and init_from is None:
+            log.info("init_from: not used: the run resumes from %s", ckpt_path)
+        module = build_module(typed, init_from)
         stopper = GracefulStop(checkpoint_dir / "last.ckpt")
         # its handlers first, before any callback's set-up; itself a Checkpoint callback: after the periodic one
         callbacks = [ArmStopSignals(stopper), *build_callbacks(typed, checkpoint_dir), stopper]
@@ -402,8 +406,9 @@ def _write_provenance(output_dir: Path, ckpt_path: str | None) -> None:
     path.write_text(json.dumps([*starts, provenance(_run_command(), ckpt_path)], indent=1), encoding="utf-8")
 
 
-def build_module(typed: DictConfig) -> Any:
-    """The LightningModule of the validated config, from ``init_from``'s weights when it names a file."""
+def build_module(typed: DictConfig, init_from: str | None = None) -> Any:
+    """The LightningModule of the validated config, from the weights of ``init_from`` when it names a file (the
+    config's ``init_from`` where the run does not resume a checkpoint, :func:`build`)."""
     from unicorn.config import model_config
     from unicorn.io.checkpoints import init_weights
     from unicorn.io.serialization import check_checkpoint_path
@@ -418,8 +423,8 @@ def build_module(typed: DictConfig) -> Any:
         shift_jitter=typed.schedule.shift_jitter,
         seed=typed.seed,
     )
-    if typed.init_from is not None:
-        info = init_weights(module.model, check_checkpoint_path(typed.init_from, "init_from"), typed.trust_checkpoint)
+    if init_from is not None:
+        info = init_weights(module.model, check_checkpoint_path(init_from, "init_from"), typed.trust_checkpoint)
         log.info("init_from: starting from the weights of the %s", info.describe())
     return module
 
