@@ -186,6 +186,29 @@ def test_a_list_setting_of_another_type_is_named(group, key, value, message) -> 
         check_model_config(cfg)
 
 
+@pytest.mark.parametrize(
+    "groups, message",
+    [
+        # a second turn puts candidates on the azimuths of others
+        ({"pose": {"azim_range": [0, 720]}}, r"^pose\.azim_range must span at most 360 degrees \(one turn\), got"),
+        # nothing trains the pose or the shape from the images (the sampled objective failed on an empty stack)
+        (
+            {"loss": {"rgb_weight": 0, "perceptual_weight": 0}},
+            r"^loss\.rgb_weight is 0 and there is no perceptual term .*: nothing would reconstruct the images$",
+        ),
+        ({"loss": {"rgb_weight": 0, "perceptual": None}}, r"^loss\.rgb_weight is 0 and there is no perceptual term"),
+    ],
+)
+def test_a_config_that_cannot_train_is_named(groups, message) -> None:
+    with pytest.raises(ModelConfigError, match=message):
+        merge_config(groups)
+
+
+def test_the_terms_and_ranges_that_can_train_pass() -> None:
+    merge_config(pose={"azim_range": [-180, 180]}, loss={"rgb_weight": 0, "perceptual": "structural"})
+    merge_config(loss={"perceptual_weight": 0})  # the pixel loss alone
+
+
 def test_training_config_uses_the_same_checks() -> None:
     # the same range and choice, reported under the training config's key
     base = {

@@ -302,6 +302,7 @@ def check_model_config(cfg: Mapping[str, Any], prefix: str = "") -> None:
     _check_code_sizes(cfg, prefix)
     _check_generated_sizes(cfg, prefix)
     _check_neighbour_angle(cfg, prefix)
+    _check_reconstruction_terms(cfg, prefix)
     _check_background_color(renderer)
 
 
@@ -351,13 +352,17 @@ def _listed(value: Any) -> Any:
 
 
 def _check_pose_ranges(cfg: Mapping[str, Any], prefix: str) -> None:
-    """The candidates' angle ranges are ``(min, max)`` degrees with ``min <= max``."""
+    """The candidates' angle ranges are ``(min, max)`` degrees with ``min <= max``; the azimuths' spans at most a
+    turn (the anchors are spread over it: a wider range would put two candidates on one azimuth)."""
     for name in ("azim_range", "elev_range", "roll_range"):
         value = _listed(cfg["pose"][name])
         if not _finite_numbers(value, 2) or value[1] < value[0]:
             raise ModelConfigError(
                 f"{prefix}pose.{name} must be two finite numbers [min, max] with min <= max, got {value}"
             )
+    azim = _listed(cfg["pose"]["azim_range"])
+    if azim[1] - azim[0] > 360:
+        raise ModelConfigError(f"{prefix}pose.azim_range must span at most 360 degrees (one turn), got {azim}")
 
 
 def _check_pose_vectors(cfg: Mapping[str, Any], prefix: str) -> None:
@@ -410,6 +415,17 @@ def _check_neighbour_angle(cfg: Mapping[str, Any], prefix: str) -> None:
         raise ModelConfigError(
             f"{prefix}loss.min_angle must be below 180 (the viewpoint bins span [min_angle, 180] degrees), "
             f"got {cfg['loss']['min_angle']}"
+        )
+
+
+def _check_reconstruction_terms(cfg: Mapping[str, Any], prefix: str) -> None:
+    """The images are reconstructed by some term (:class:`unicorn.objectives.losses.ReconstructionLoss`): without
+    one, nothing trains the pose or the shape and texture from the images."""
+    loss = cfg["loss"]
+    if loss["rgb_weight"] == 0 and (loss["perceptual"] is None or loss["perceptual_weight"] == 0):
+        raise ModelConfigError(
+            f"{prefix}loss.rgb_weight is 0 and there is no perceptual term (loss.perceptual={loss['perceptual']}, "
+            f"perceptual_weight={loss['perceptual_weight']}): nothing would reconstruct the images"
         )
 
 
