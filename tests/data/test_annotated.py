@@ -299,8 +299,9 @@ def test_cub_jitter_moves_the_crop(cub_root: Path) -> None:
     assert {tuple(centred.square_crop_box(2, np.random.default_rng(s))) for s in range(5)} == {
         tuple(plain.square_crop_box(2, None))
     }
-    with pytest.raises(DatasetError, match=r"jitter must be in \[0, 1\)"):
-        CUB200(cub_root, "train", jitter=-0.1)
+    for jitter in (-0.1, 0.5, 0.9):  # from 0.5 on, the corners could cross: a crop of nothing
+        with pytest.raises(DatasetError, match=r"^jitter must be in \[0, 0.5\) \(a fraction of the box size\), got"):
+            CUB200(cub_root, "train", jitter=jitter)
 
 
 def test_cub_missing_root_and_annotations(tmp_path: Path, cub_root: Path) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
-from unicorn.data.framing import crop_box, fit_and_pad, hflip_keypoints, pad_bbox, square_bbox
+from unicorn.data.framing import crop_box, fit_and_pad, hflip_keypoints, jitter_bbox, pad_bbox, square_bbox
 
 
 def test_square_bbox_and_padding() -> None:
@@ -13,6 +13,20 @@ def test_square_bbox_and_padding() -> None:
     side = box[2] - box[0] + 1
     assert side == box[3] - box[1] + 1 == 44
     assert box[1] == 18 and box[3] == 61  # the long side keeps the padded extent
+
+
+def test_moved_and_shrunk_boxes_keep_a_pixel() -> None:
+    """A box's far corner never passes its near one: jittered by up to 0.49 of its size (a 2 x 2 box, whose corners
+    then may cross by a pixel) or shrunk past its centre, the box still crops at least one pixel."""
+    image = np.zeros((8, 8, 3), np.float32)
+    rng = np.random.default_rng(0)
+    boxes = [jitter_bbox(np.array([3.0, 3.0, 4.0, 4.0]), 0.49, rng) for _ in range(500)]
+    boxes += [pad_bbox(np.array([0.0, 0.0, 7.0, 7.0]), frac) for frac in (-0.45, -0.49, -0.7)]
+    for box in boxes:
+        assert box[2] >= box[0] and box[3] >= box[1], box
+        crop, _ = crop_box(image, np.round(box).astype(np.int64))
+        assert crop.shape[0] >= 1 and crop.shape[1] >= 1
+        assert square_bbox(box)[2] >= square_bbox(box)[0]
 
 
 def test_crop_box_replicates_border_and_zeroes_mask() -> None:

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import unicorn.data.synthetic.writer as writer
@@ -44,6 +45,21 @@ def test_val_indices_reference_sizes_capped() -> None:
     cub = val_indices("cub_200", 50)
     assert len(cub) == 5 and cub == val_indices("cub_200", 50) and cub != list(range(5))
     assert val_indices("folder", 2) == [0, 1]
+
+
+@pytest.mark.parametrize("n", [7, 2874])
+def test_cub_validation_images_are_the_references(n: int) -> None:
+    """CUB validates on the reference's images: the first 5 of its records after its shuffle, which seeds NumPy's
+    global generator with 123 and shuffles the array of records in place."""
+    records = np.empty(n, dtype=object)
+    records[:] = [{"id": i} for i in range(n)]
+    state = np.random.get_state()  # noqa: NPY002 (the reference's legacy global generator, put back after)
+    try:
+        np.random.seed(123)  # noqa: NPY002
+        np.random.shuffle(records)  # noqa: NPY002
+    finally:
+        np.random.set_state(state)  # noqa: NPY002
+    assert val_indices("cub_200", n) == [r["id"] for r in records[:5]]
 
 
 def test_errors() -> None:

@@ -324,6 +324,22 @@ def test_lsun_missing_root(tmp_path: Path) -> None:
         LSUN(tmp_path, "motorbike")
 
 
+def test_lsun_framing_options_that_would_leave_nothing_are_refused(tmp_path: Path) -> None:
+    """Padding down to -0.49 (the 32 x 40 and 48 x 32 images shrunk past their centre) keeps a pixel of each image;
+    -0.5 and beyond, or a jitter of 0.5 and more (whose corners could cross), are refused when the dataset is made."""
+    pytest.importorskip("lmdb", reason="the optional 'lmdb' package is not installed")
+    from unicorn.data.lsun import LSUN
+
+    write_lsun(tmp_path, "horse", 2)
+    ds = LSUN(tmp_path, "horse", cleaned=False, padding=-0.49)
+    for i in range(2):
+        _check_item(ds[i])
+    with pytest.raises(DatasetError, match=r"^padding must be > -0.5 \(a fraction of the image size added"):
+        LSUN(tmp_path, "horse", cleaned=False, padding=-0.5)
+    with pytest.raises(DatasetError, match=r"^jitter must be in \[0, 0.5\) \(a fraction of the image size\), got"):
+        LSUN(tmp_path, "horse", cleaned=False, jitter=0.5)
+
+
 def test_decompression_bomb_is_skipped_like_any_bad_image(mixed_folder: Path) -> None:
     from tests.support.datasets import bomb_png
 

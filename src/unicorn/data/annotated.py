@@ -71,7 +71,7 @@ class BBoxCropDataset(UnicornDataset):
         image_dir: folder that ``rel_path`` is relative to.
         img_size: side of the returned images.
         padding: fraction of the box size added on every side (0.05 CUB, 0.1 Pascal3D+).
-        jitter: fraction of the box size by which training boxes move at random (same values).
+        jitter: fraction of the box size by which training boxes move at random (same values), in [0, 0.5).
         augment: jitter the box and flip at random (the reference does so for training only).
         eval_size: if set, masks and keypoints are given at this resolution instead of ``img_size`` (the
             reference evaluates CUB masks / PCK at 256).
@@ -103,8 +103,8 @@ class BBoxCropDataset(UnicornDataset):
         source: str | Path = "the annotations",
     ) -> None:
         super().__init__(on_error)
-        if not 0.0 <= jitter < 1.0:
-            raise DatasetError(f"jitter must be in [0, 1) (a fraction of the box size), got {jitter}")
+        if not 0.0 <= jitter < 0.5:  # from 0.5 on, a box's opposite corners may cross
+            raise DatasetError(f"jitter must be in [0, 0.5) (a fraction of the box size), got {jitter}")
         self.image_dir = Path(image_dir)
         self.img_size = int(img_size)
         self.padding = float(padding)

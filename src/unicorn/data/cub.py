@@ -59,7 +59,7 @@ class CUB200(BBoxCropDataset):
         img_size: side of the returned images (64 in UNICORN).
         augment: box jitter and random flips; defaults to True for ``"train"`` only.
         jitter: fraction of the box size by which each training box's corners move at random when augmenting
-            (None: the reference's 0.05; 0: crops centred on the box).
+            (None: the reference's 0.05; 0: crops centred on the box), in [0, 0.5).
         eval_size: resolution of masks and keypoints if different from ``img_size`` (256 for PCK).
         on_error: ``"raise"`` or ``"skip"`` unreadable images.
 

@@ -46,19 +46,30 @@ def resize_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return (np.asarray(img.resize((size[1], size[0]), Image.Resampling.NEAREST)) > 127).astype(np.float32)
 
 
+def _ordered(x1: float, y1: float, x2: float, y2: float) -> np.ndarray:
+    """``(x1, y1, x2, y2)`` with ``x2 >= x1`` and ``y2 >= y1``: a far corner that crossed the near one is put on it,
+    so that the box, rounded, still frames at least one pixel."""
+    return np.array([x1, y1, max(x2, x1), max(y2, y1)])
+
+
 def pad_bbox(bbox: np.ndarray, frac: float) -> np.ndarray:
-    """Grow an (x1, y1, x2, y2) box by ``frac`` of its width / height on every side."""
+    """Grow an (x1, y1, x2, y2) box by ``frac`` of its width / height on every side (shrink it when negative; a box
+    shrunk past its centre keeps one pixel)."""
     x1, y1, x2, y2 = np.asarray(bbox, dtype=np.float64)
     bw, bh = x2 - x1 + 1, y2 - y1 + 1
-    return np.array([x1 - frac * bw, y1 - frac * bh, x2 + frac * bw, y2 + frac * bh])
+    return _ordered(x1 - frac * bw, y1 - frac * bh, x2 + frac * bw, y2 + frac * bh)
 
 
 def jitter_bbox(bbox: np.ndarray, frac: float, rng: np.random.Generator) -> np.ndarray:
-    """Move every coordinate of a box by ``U(-1, 1) * frac`` times the box width (x) or height (y)."""
+    """Move every coordinate of a box by ``U(-1, 1) * frac`` times the box width (x) or height (y).
+
+    Below 0.5 opposite corners cannot cross on a box of a few pixels or more; whatever ``frac``, a far corner moved
+    past the near one is put on it (the box keeps one pixel).
+    """
     x1, y1, x2, y2 = np.asarray(bbox, dtype=np.float64)
     bw, bh = x2 - x1 + 1, y2 - y1 + 1
     u = rng.uniform(-1.0, 1.0, size=4)
-    return np.array([x1 + u[0] * frac * bw, y1 + u[1] * frac * bh, x2 + u[2] * frac * bw, y2 + u[3] * frac * bh])
+    return _ordered(x1 + u[0] * frac * bw, y1 + u[1] * frac * bh, x2 + u[2] * frac * bw, y2 + u[3] * frac * bh)
 
 
 def square_bbox(bbox: np.ndarray) -> np.ndarray:

@@ -122,8 +122,8 @@ class LSUN(UnicornDataset):
         cleaned: keep only the keys listed in ``<tag>/indices.txt`` (UNICORN's filtered subset).
         img_size: side of the returned square images.
         augment: box jitter and random horizontal flips (training).
-        padding: fraction of the image size added on every side (0.1 in the reference).
-        jitter: fraction of the image size by which boxes move when augmenting (0.1).
+        padding: fraction of the image size added on every side (0.1 in the reference), > -0.5 (negative: cut away).
+        jitter: fraction of the image size by which boxes move when augmenting (0.1), in [0, 0.5).
         on_error: ``"raise"`` or ``"skip"`` undecodable or unreadable records.
 
     An LMDB that cannot be opened or listed, or a malformed ``indices.txt``, is a
@@ -144,8 +144,12 @@ class LSUN(UnicornDataset):
         on_error: OnError = "raise",
     ) -> None:
         super().__init__(on_error)
-        if not 0.0 <= jitter < 1.0:
-            raise DatasetError(f"jitter must be in [0, 1) (a fraction of the image size), got {jitter}")
+        if not 0.0 <= jitter < 0.5:  # from 0.5 on, a box's opposite corners may cross
+            raise DatasetError(f"jitter must be in [0, 0.5) (a fraction of the image size), got {jitter}")
+        if not padding > -0.5:  # -0.5 takes half the image away on every side: nothing is left
+            raise DatasetError(
+                f"padding must be > -0.5 (a fraction of the image size added on every side), got {padding}"
+            )
         lmdb = import_lmdb()  # fail early, with the install hint
         root = require(root, "LSUN root", _HINT)
         self.path = require(root / tag, f"LSUN '{tag}' LMDB folder", _HINT)

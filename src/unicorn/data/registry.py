@@ -64,7 +64,8 @@ def _first(n: int, size: int) -> list[int]:
 
 
 def _shuffled(n: int, size: int) -> list[int]:
-    return np.random.default_rng(_EVAL_SHUFFLE_SEED).permutation(n)[:size].tolist()
+    # NumPy's legacy generator, as the reference's np.random.seed(123) before np.random.shuffle: the same images
+    return np.random.RandomState(_EVAL_SHUFFLE_SEED).permutation(n)[:size].tolist()
 
 
 def _from_offset(n: int, size: int) -> list[int]:
