@@ -11,7 +11,8 @@
   for every image and a perfect pose: generous to the baseline, so a model beating it on ``chamfer-L1`` does
   reconstruct per-image shape.
 
-Both are :class:`FixedShapeModel` instances, which :func:`~unicorn.evaluation.evaluate` scores unchanged.
+The template and the mean shape are :class:`FixedShapeModel` instances, which :func:`~unicorn.evaluation.evaluate`
+scores unchanged; :func:`fit_silhouettes` returns the fitted vertices and their mask IoU.
 """
 
 from __future__ import annotations
