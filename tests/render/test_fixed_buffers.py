@@ -179,11 +179,19 @@ def test_rasterizer_keeps_the_needed_sizes_on_the_meshes_device(monkeypatch):
         )
 
     monkeypatch.setattr(rasterizer_module, "rasterize_meshes", fake_rasterize)
+    _sized_then_fixed_on_meta(draw_nothing=False)
+
+
+def _sized_then_fixed_on_meta(draw_nothing: bool) -> None:
+    """Render twice on the meta device inside ``sync_free`` (the first render sizes the buffers, the second goes into
+    them), then, with ``draw_nothing``, a batch without faces; the sizes the rasterizer keeps stay on that device."""
     verts, faces, R, T = (t.to("meta") for t in posed_ellipsoids(2, level=1))
     rasterizer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4).rasterizer
     with sync_free():
-        rasterizer(verts, faces, R, T, check_inputs=False)  # sizes the buffers
-        rasterizer(verts, faces, R, T, check_inputs=False)  # into them
+        rasterizer(verts, faces, R, T, check_inputs=False)
+        rasterizer(verts, faces, R, T, check_inputs=False)
+        if draw_nothing:
+            rasterizer(verts, faces[:0], R, T, check_inputs=False)
     (needed,) = rasterizer._needed.values()
     assert needed.device == verts.device
 
@@ -207,14 +215,7 @@ def test_a_mesh_with_nothing_to_draw_renders_inside_sync_free_after_sized_render
         )
 
     monkeypatch.setattr(rasterizer_module, "rasterize_meshes", fake_rasterize)
-    verts, faces, R, T = (t.to("meta") for t in posed_ellipsoids(2, level=1))
-    rasterizer = build_renderer("layered", image_size=16, sigma=1e-4, faces_per_pixel=4).rasterizer
-    with sync_free():
-        rasterizer(verts, faces, R, T, check_inputs=False)  # sizes the buffers
-        rasterizer(verts, faces, R, T, check_inputs=False)  # into them
-        rasterizer(verts, faces[:0], R, T, check_inputs=False)  # nothing to draw
-    (needed,) = rasterizer._needed.values()
-    assert needed.device == verts.device
+    _sized_then_fixed_on_meta(draw_nothing=True)
 
 
 def test_a_render_under_inference_mode_leaves_the_buffers_usable_for_training():
