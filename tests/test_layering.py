@@ -14,7 +14,7 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "unicorn"
 FLOORS = [
-    {"errors", "caching", "checks", "hostsync", "torch_files", "registry", "resources", "geometry"},
+    {"errors", "caching", "checks", "hostsync", "torch_files", "folders", "registry", "resources", "geometry"},
     {"render", "metrics", "data"},
     {"model"},
     {"objectives"},

@@ -18,7 +18,8 @@ import trimesh
 from PIL import Image
 
 from unicorn.checks import check_shape
-from unicorn.io.serialization import make_parent_folders, remove_stale_temporaries, replacing
+from unicorn.folders import make_parent_folders
+from unicorn.io.serialization import remove_stale_temporaries, replacing
 
 if TYPE_CHECKING:
     from unicorn.model.autoencoder import Prediction, Unicorn

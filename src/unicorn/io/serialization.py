@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from unicorn.errors import UserError, pid_alive
+from unicorn.folders import make_parent_folders
 from unicorn.torch_files import NOT_A_TORCH_FILE, load_memory_error, out_of_memory, shortened, torch_file_problem
 
 __all__ = [
@@ -52,7 +53,6 @@ __all__ = [
     "kind_of",
     "link_into_place",
     "load_checkpoint_file",
-    "make_parent_folders",
     "model_device",
     "remove_stale_temporaries",
     "replacing",
@@ -431,23 +431,6 @@ def atomic_save(obj: Any, path: str | os.PathLike, sealed: bool = True) -> Path:
             tmp.unlink()
     _sync_folder(path.parent)  # make the rename itself durable
     return path
-
-
-def make_parent_folders(path: str | os.PathLike) -> None:
-    """Create the missing folders above the file ``path``.
-
-    Raises:
-        NotADirectoryError: one of them is a file (or another non-folder); the message names it, in one line.
-    """
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError):  # the system names the folder it could not make, not why
-        above = next((p for p in path.parents if p.exists() or p.is_symlink()), None)
-        if above is None or above.is_dir():
-            raise
-        what = "a file" if above.is_file() else "a broken link" if above.is_symlink() else "not a folder"
-        raise NotADirectoryError(f"cannot write {path}: {above} is {what}, where a folder goes") from None
 
 
 def link_into_place(source: str | os.PathLike, path: str | os.PathLike) -> Path:

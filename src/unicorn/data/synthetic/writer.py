@@ -59,7 +59,7 @@ from unicorn.data.synthetic.sampling import (
 )
 from unicorn.data.synthetic.shapes import CATEGORIES, ProceduralObject, build_object
 from unicorn.errors import UserError, pid_alive
-from unicorn.io.serialization import make_parent_folders
+from unicorn.folders import make_parent_folders
 from unicorn.metrics.sampling import check_point_count
 
 __all__ = [
