@@ -243,18 +243,27 @@ def check_request(
     Raises:
         EvalRequestError: names the setting given and the dataset.
     """
-    spec = get_protocol(protocol_for(dataset))
     name = {"mean_shape_iterations": "mean_shape_iterations", "own_mean_shape": "own_mean_shape", **(names or {})}
-    if mean_shape_iterations > 0 and not spec.training_clouds:
+    unserved = _unserved(dataset, mean_shape_iterations, own_mean_shape)
+    if "mean_shape_iterations" in unserved:
         raise EvalRequestError(
             f"{name['mean_shape_iterations']}: a mean shape needs a dataset with training point clouds (shapenet "
             f"protocol), not {dataset}"
         )
-    if own_mean_shape and spec.meshes is None:
+    if "own_mean_shape" in unserved:
         raise EvalRequestError(
             f"{name['own_mean_shape']}: the model's own average shape needs a dataset with ground-truth point clouds, "
             f"not {dataset}"
         )
+
+
+def _unserved(dataset: str, mean_shape_iterations: int, own_mean_shape: bool) -> list[str]:
+    """The baselines asked for (``mean_shape_iterations``, ``own_mean_shape``) that ``dataset``'s protocol cannot
+    serve: a mean shape needs training point clouds, the model's own average shape ground-truth ones."""
+    spec = get_protocol(protocol_for(dataset))
+    asked = {"mean_shape_iterations": mean_shape_iterations > 0, "own_mean_shape": own_mean_shape}
+    served = {"mean_shape_iterations": spec.training_clouds, "own_mean_shape": spec.meshes is not None}
+    return [key for key in asked if asked[key] and not served[key]]
 
 
 def served_settings(settings: EvaluateConfig, dataset: str) -> EvaluateConfig:
@@ -262,14 +271,13 @@ def served_settings(settings: EvaluateConfig, dataset: str) -> EvaluateConfig:
     out named in the log: the evaluation after training of a recipe run on another dataset
     (``experiment=synthetic dataset=folder``) scores what the dataset allows instead of failing once trained, as the
     held-out evaluation does."""
-    spec = get_protocol(protocol_for(dataset))
-    left_out = {}
-    if settings.mean_shape_iterations > 0 and not spec.training_clouds:
-        left_out["mean_shape_iterations"] = (0, "no training point clouds for a mean shape")
-    if settings.own_mean_shape and spec.meshes is None:
-        left_out["own_mean_shape"] = (False, "no ground-truth point clouds to score the model's own average shape")
-    for key, (_, why) in left_out.items():
-        log.info("evaluation after training: evaluate.%s left out: %s has %s", key, dataset, why)
+    why = {
+        "mean_shape_iterations": (0, "no training point clouds for a mean shape"),
+        "own_mean_shape": (False, "no ground-truth point clouds to score the model's own average shape"),
+    }
+    left_out = {key: why[key] for key in _unserved(dataset, settings.mean_shape_iterations, settings.own_mean_shape)}
+    for key, (_, reason) in left_out.items():
+        log.info("evaluation after training: evaluate.%s left out: %s has %s", key, dataset, reason)
     return dataclasses.replace(settings, **{key: value for key, (value, _) in left_out.items()})
 
 
